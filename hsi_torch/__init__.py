@@ -1,0 +1,29 @@
+"""hsi_torch: snapshot hyperspectral imaging with a birefringent filter and a tapered kaleidoscope.
+
+Sub-packages follow the data flow: ``optics`` and ``simulate`` (the virtual prototype),
+``calibrate`` (captures → calibration bundle), ``recon`` (bundle + capture → spectral cube),
+``io`` (files), ``experiments`` (evaluations). Heavy sub-modules are imported lazily.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "SpectralGrid": "hsi_torch.spectral",
+    "DEFAULT_GRID": "hsi_torch.spectral",
+    "solve_nnls": "hsi_torch.recon.solvers",
+    "NNLSResult": "hsi_torch.recon.solvers",
+    "HSIReconstructor": "hsi_torch.recon.module",
+}
+
+__all__ = ["__version__", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'hsi_torch' has no attribute {name!r}")

@@ -1,0 +1,6 @@
+#!/usr/bin/env bash
+# README command 1: install what is needed, then run the end-to-end demo.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/install.sh
+exec hsi-torch demo "$@"
