@@ -37,7 +37,9 @@ def band_widths(wavelengths: torch.Tensor) -> torch.Tensor:
     if wl.ndim != 1:
         raise ValueError(f"wavelengths must be 1-D, got shape {tuple(wl.shape)}")
     if wl.numel() == 1:
-        return torch.ones_like(wl, dtype=torch.get_default_dtype() if not wl.is_floating_point() else wl.dtype)
+        return torch.ones_like(
+            wl, dtype=torch.get_default_dtype() if not wl.is_floating_point() else wl.dtype
+        )
     wl = wl.to(torch.float64) if not wl.is_floating_point() else wl
     d = wl[1:] - wl[:-1]
     out = torch.empty_like(wl)
@@ -73,7 +75,9 @@ class SpectralGrid:
             raise ValueError("wavelengths must be strictly increasing")
 
     @classmethod
-    def uniform(cls, start_nm: float = 430.0, stop_nm: float = 670.0, step_nm: float = 10.0) -> SpectralGrid:
+    def uniform(
+        cls, start_nm: float = 430.0, stop_nm: float = 670.0, step_nm: float = 10.0
+    ) -> SpectralGrid:
         """Uniform grid ``start, start+step, …, stop`` (inclusive, nm)."""
         if step_nm <= 0:
             raise ValueError(f"step_nm must be positive, got {step_nm}")
@@ -89,15 +93,25 @@ class SpectralGrid:
     def __len__(self) -> int:
         return self.num_bands
 
-    def wavelengths(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
+    def wavelengths(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> torch.Tensor:
         """``(M,)`` wavelengths in nm."""
-        return torch.tensor(self.wavelengths_nm, device=device, dtype=dtype or torch.get_default_dtype())
+        return torch.tensor(
+            self.wavelengths_nm, device=device, dtype=dtype or torch.get_default_dtype()
+        )
 
-    def band_widths(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
+    def band_widths(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> torch.Tensor:
         """``(M,)`` band widths Δλ_m in nm (see :func:`band_widths`)."""
-        return band_widths(self.wavelengths(device, torch.float64)).to(dtype or torch.get_default_dtype())
+        return band_widths(self.wavelengths(device, torch.float64)).to(
+            dtype or torch.get_default_dtype()
+        )
 
-    def wavenumbers(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
+    def wavenumbers(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> torch.Tensor:
         """``(M,)`` wavenumbers ``k = 1/λ`` in nm⁻¹ (decreasing)."""
         return 1.0 / self.wavelengths(device, dtype)
 
@@ -138,7 +152,8 @@ def resample_spectra(
         raise ValueError("source_nm and target_nm must be 1-D")
     if values.shape[dim] != src.numel():
         raise ValueError(
-            f"values has {values.shape[dim]} samples along dim {dim} but source_nm has {src.numel()}"
+            f"values has {values.shape[dim]} samples along dim {dim} "
+            f"but source_nm has {src.numel()}"
         )
     if src.numel() > 1 and bool((src[1:] <= src[:-1]).any()):
         raise ValueError("source_nm must be strictly increasing")
@@ -154,7 +169,9 @@ def resample_spectra(
     if src.numel() == 1:
         out = v[..., :1].expand(*v.shape[:-1], tgt.numel()).clone()
     else:
-        idx = torch.searchsorted(src, tgt.clamp(src[0], src[-1]), right=True).clamp(1, src.numel() - 1)
+        idx = torch.searchsorted(src, tgt.clamp(src[0], src[-1]), right=True).clamp(
+            1, src.numel() - 1
+        )
         x0, x1 = src[idx - 1], src[idx]
         t = ((tgt.clamp(src[0], src[-1]) - x0) / (x1 - x0)).clamp(0, 1)
         out = v[..., idx - 1] * (1 - t) + v[..., idx] * t
