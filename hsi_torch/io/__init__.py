@@ -1,0 +1,53 @@
+"""File I/O: camera RAW (linear, via rawpy), capture TIFF/NPY/NPZ, spectral cubes, atomic writes.
+
+See :mod:`hsi_torch.io.raw`, :mod:`hsi_torch.io.captures`, :mod:`hsi_torch.io.cube` and
+:mod:`hsi_torch.io.atomic` for the file formats and conventions.
+"""
+
+from hsi_torch.io.atomic import (
+    FileFormatError,
+    atomic_save_npz,
+    atomic_write,
+    atomic_write_bytes,
+    atomic_write_json,
+    atomic_write_text,
+)
+from hsi_torch.io.captures import LinearCapture, read_any, read_capture, write_capture
+from hsi_torch.io.cube import Cube, load_cube, save_cube, save_cube_formats
+from hsi_torch.io.raw import (
+    RawImage,
+    bayer_half,
+    cfa_masks,
+    demosaic,
+    demosaic_bilinear,
+    demosaic_saturation,
+    load_raw,
+    mosaic,
+    validate_cfa_pattern,
+)
+
+__all__ = [
+    "FileFormatError",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "atomic_write_json",
+    "atomic_save_npz",
+    "LinearCapture",
+    "read_any",
+    "read_capture",
+    "write_capture",
+    "Cube",
+    "load_cube",
+    "save_cube",
+    "save_cube_formats",
+    "RawImage",
+    "load_raw",
+    "bayer_half",
+    "cfa_masks",
+    "demosaic",
+    "demosaic_bilinear",
+    "demosaic_saturation",
+    "mosaic",
+    "validate_cfa_pattern",
+]

@@ -1,0 +1,137 @@
+"""Atomic file writes: a temporary file in the destination folder, then ``os.replace``.
+
+A reader (or a resumed batch run) therefore sees either the complete old file, the complete new
+file, or no file — never a partial one. On any error inside the ``with`` block the temporary file
+is removed and the destination is left untouched.
+
+Also defines :class:`FileFormatError`, the error raised by :mod:`hsi_torch.io` for unreadable,
+truncated or inconsistent files (a ``ValueError`` whose message names the file).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+__all__ = [
+    "FileFormatError",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "atomic_write_json",
+    "atomic_save_npz",
+]
+
+
+class FileFormatError(ValueError):
+    """A file exists but cannot be read as the expected format (corrupt, truncated, mismatched).
+
+    The message always names the file.
+    """
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path`` for writing; rename it onto ``path`` on success.
+
+    The temporary file lives in the same folder (same file system, so ``os.replace`` is atomic)
+    and is named ``.<name>.<random>.tmp``. Parent folders are created. If the block raises, the
+    temporary file is deleted and ``path`` keeps its previous content (or stays absent).
+
+    Args:
+        path: destination file.
+        mode: ``"wb"`` (default) or ``"w"`` (text, UTF-8).
+
+    Yields:
+        The open file object. Writers that need a *file name* rather than a file object can use
+        ``f.name`` (the temporary path) — the rename still happens on exit.
+
+    Example:
+        >>> with atomic_write("out/result.json", "w") as f:  # doctest: +SKIP
+        ...     f.write("{}")
+    """
+    if mode not in ("wb", "w"):
+        raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        kwargs: dict[str, Any] = {} if mode == "wb" else {"encoding": "utf-8", "newline": ""}
+        os.close(fd)
+        with open(tmp, mode, **kwargs) as f:  # opened by name so that f.name is a path
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp creates 0600 files; give the result ordinary permissions (respecting umask).
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, dest)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_write(path, "wb") as f:
+        f.write(data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically; returns the path."""
+    with atomic_write(path, "w") as f:
+        f.write(text)
+    return Path(path)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if hasattr(obj, "tolist"):  # torch tensors without importing torch here
+        return obj.tolist()
+    if isinstance(obj, (set, frozenset, tuple)):
+        return list(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> Path:
+    """Serialise ``obj`` as JSON (numpy/torch arrays → lists, paths → str) and write atomically.
+
+    Serialisation happens before the file is touched, so an unserialisable object leaves nothing.
+    """
+    text = json.dumps(obj, indent=indent, default=_json_default, allow_nan=True)
+    return atomic_write_text(path, text + "\n")
+
+
+def atomic_save_npz(
+    path: str | os.PathLike, arrays: Mapping[str, Any], compressed: bool = False
+) -> Path:
+    """Save arrays to an ``.npz`` file atomically (the name is used as given, no suffix added).
+
+    Args:
+        path: destination, conventionally ending in ``.npz``.
+        arrays: name → array-like (numpy arrays, scalars, strings; torch tensors are moved to CPU).
+        compressed: use ``np.savez_compressed``.
+    """
+    converted: dict[str, np.ndarray] = {}
+    for k, v in arrays.items():
+        if hasattr(v, "detach"):  # torch.Tensor
+            v = v.detach().cpu().numpy()
+        converted[k] = np.asarray(v)
+    with atomic_write(path, "wb") as f:
+        (np.savez_compressed if compressed else np.savez)(f, **converted)
+    return Path(path)

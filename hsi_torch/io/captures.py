@@ -1,0 +1,468 @@
+"""Capture files: 16-bit TIFF with JSON metadata, NPY/NPZ arrays, camera RAW — one linear reader.
+
+File format written by :func:`write_capture` (read back by :func:`read_capture`):
+    - A single-page uncompressed **uint16 TIFF**: a Bayer mosaic as a grey ``H×W`` page
+      (``kind = "bayer"``) or an RGB image as an ``H×W×3`` RGB page (``kind = "rgb"``), so ordinary
+      viewers open it.
+    - The TIFF ``ImageDescription`` holds a JSON object with at least ``"hsi_torch_capture": 1``
+      (format version) and ``"kind"``; the simulator and users add ``"cfa_pattern"`` (required
+      for Bayer), ``"black_level"`` (scalar, 4 values for the Bayer cell positions in row-major
+      order, or 3 values for R, G, B), ``"white_level"`` (DN), ``"exposure_s"``, ``"wavelength_nm"``
+      (monochromator scan frames), ``"role"``, ... Any JSON-serialisable keys are kept.
+
+:func:`read_any` turns any supported file into *linear* RGB ``(3, H, W)`` (value = stored − black,
+float, DN; or normalised to the white level), a saturation mask and the metadata. Bayer inputs are
+demosaiced (``"bilinear"``, full resolution, the default; or ``"half"``, see
+:mod:`hsi_torch.io.raw`). Supported suffixes: ``.tif/.tiff``, ``.npy`` (optional sidecar
+``<file>.npy.json`` with metadata), ``.npz`` (array ``image`` + optional JSON string ``metadata``)
+and camera RAW (``.dng``, ``.cr2``, ``.nef``, ``.kdc``, ...; through rawpy, linear).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hsi_torch.io.atomic import FileFormatError, atomic_write
+from hsi_torch.io.raw import (
+    RAW_SUFFIXES,
+    DemosaicMethod,
+    bayer_half,
+    demosaic_bilinear,
+    demosaic_saturation,
+    load_raw,
+    validate_cfa_pattern,
+)
+
+__all__ = [
+    "CAPTURE_FORMAT_VERSION",
+    "LinearCapture",
+    "write_capture",
+    "read_capture",
+    "read_any",
+    "SUPPORTED_SUFFIXES",
+]
+
+CAPTURE_FORMAT_VERSION = 1
+_TIFF_SUFFIXES = (".tif", ".tiff")
+SUPPORTED_SUFFIXES = (*_TIFF_SUFFIXES, ".npy", ".npz", *RAW_SUFFIXES)
+
+
+@dataclass
+class LinearCapture:
+    """A capture converted to linear RGB.
+
+    Attributes:
+        image: ``(3, H', W')`` float linear RGB (stored value − black level, DN; or normalised).
+        saturated: ``(3, H', W')`` bool, the stored value reached the white level (propagated
+            through the demosaic for Bayer inputs).
+        metadata: the file's metadata plus the resolved ``kind``, ``black_level``, ``white_level``,
+            ``cfa_pattern`` (Bayer), ``demosaic`` (Bayer), ``source`` (path as str).
+        path: source file.
+        mosaic: ``(1, H, W)`` linear mosaic for Bayer inputs (before demosaic), else ``None``.
+    """
+
+    image: torch.Tensor
+    saturated: torch.Tensor
+    metadata: dict[str, Any]
+    path: Path
+    mosaic: torch.Tensor | None = None
+    mosaic_saturated: torch.Tensor | None = field(default=None, repr=False)
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+
+
+def _to_numpy(image: Any) -> np.ndarray:
+    if isinstance(image, torch.Tensor):
+        return image.detach().cpu().numpy()
+    return np.asarray(image)
+
+
+def write_capture(
+    path: str | os.PathLike, image: Any, metadata: dict[str, Any] | None = None
+) -> Path:
+    """Write a capture as a 16-bit TIFF with JSON metadata, atomically.
+
+    Args:
+        path: destination (``.tif`` or ``.tiff``).
+        image: ``(1, H, W)`` or ``(H, W)`` Bayer mosaic, or ``(3, H, W)`` RGB; tensor or array of
+            stored DN. Integer data must lie in [0, 65535]; floating data must be finite and in
+            [0, 65535] and is rounded to the nearest integer.
+        metadata: JSON-serialisable dict (see module docstring). ``kind`` is inferred from the
+            channel count when absent; a Bayer capture needs ``cfa_pattern``.
+
+    Returns:
+        The path written.
+    """
+    import tifffile
+
+    p = Path(path)
+    if p.suffix.lower() not in _TIFF_SUFFIXES:
+        raise ValueError(f"capture path must end in .tif or .tiff, got {p}")
+    arr = _to_numpy(image)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[0] not in (1, 3):
+        raise ValueError(
+            f"image must have shape (1, H, W) (Bayer) or (3, H, W) (RGB), got {tuple(arr.shape)}"
+        )
+    if arr.dtype.kind not in "uif":
+        raise TypeError(f"image must be integer or floating point, got dtype {arr.dtype}")
+    if arr.dtype.kind == "f":
+        if not np.isfinite(arr).all():
+            raise ValueError(f"image has {int((~np.isfinite(arr)).sum())} non-finite values")
+        arr = np.rint(arr)
+    if arr.size and (arr.min() < 0 or arr.max() > 65535):
+        raise ValueError(
+            f"image values must lie in [0, 65535] for a 16-bit capture, got "
+            f"[{arr.min()}, {arr.max()}]"
+        )
+    arr = arr.astype(np.uint16)
+    meta = dict(metadata or {})
+    kind = meta.get("kind", "bayer" if arr.shape[0] == 1 else "rgb")
+    if kind not in ("bayer", "rgb") or (kind == "bayer") != (arr.shape[0] == 1):
+        raise ValueError(
+            f"metadata kind {kind!r} does not match an image with {arr.shape[0]} channel(s)"
+        )
+    if kind == "bayer":
+        if "cfa_pattern" not in meta:
+            raise ValueError("a Bayer capture needs metadata['cfa_pattern'] (e.g. 'RGGB')")
+        meta["cfa_pattern"] = validate_cfa_pattern(meta["cfa_pattern"])
+    meta["kind"] = kind
+    meta["hsi_torch_capture"] = CAPTURE_FORMAT_VERSION
+    description = json.dumps(meta, default=_json_default)
+    with atomic_write(p, "wb") as f:
+        if kind == "bayer":
+            tifffile.imwrite(f, arr[0], photometric="minisblack", description=description,
+                             metadata=None)  # fmt: skip
+        else:
+            tifffile.imwrite(f, np.ascontiguousarray(arr.transpose(1, 2, 0)), photometric="rgb",
+                             description=description, metadata=None)  # fmt: skip
+    return p
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, (np.generic,)):
+        return obj.item()
+    if isinstance(obj, (np.ndarray, torch.Tensor)):
+        return obj.tolist()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (tuple, set)):
+        return list(obj)
+    raise TypeError(f"metadata value of type {type(obj).__name__} is not JSON serialisable")
+
+
+# ----------------------------------------------------------------------------------------------
+# reading (storage level)
+
+
+def _check_exists(p: Path) -> None:
+    if not p.exists():
+        raise FileNotFoundError(f"capture file not found: {p}")
+    if p.is_dir():
+        raise FileFormatError(f"{p}: is a directory, expected a capture file")
+
+
+def _as_chw(arr: np.ndarray, p: Path, meta: dict[str, Any]) -> tuple[np.ndarray, str]:
+    """Bring a stored array to (C, H, W) with C in {1, 3}; returns it and the kind."""
+    kind = meta.get("kind")
+    if arr.ndim == 2:
+        arr = arr[None]
+    elif arr.ndim == 3 and arr.shape[0] in (1, 3):
+        pass
+    elif arr.ndim == 3 and arr.shape[-1] in (1, 3):
+        arr = arr.transpose(2, 0, 1)
+    else:
+        raise FileFormatError(
+            f"{p}: image has shape {tuple(arr.shape)}; expected (H, W) or (1, H, W) for a Bayer "
+            "mosaic, or (3, H, W) / (H, W, 3) for RGB"
+        )
+    inferred = "bayer" if arr.shape[0] == 1 else "rgb"
+    if kind is not None and kind != inferred:
+        raise FileFormatError(
+            f"{p}: metadata says kind={kind!r} but the image has {arr.shape[0]} channel(s)"
+        )
+    return arr, inferred
+
+
+def _check_dtype(arr: np.ndarray, p: Path) -> None:
+    if arr.dtype.kind not in "uif" or arr.dtype.itemsize > 8:
+        raise FileFormatError(
+            f"{p}: unsupported pixel dtype {arr.dtype}; expected unsigned/signed integers or floats"
+        )
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise FileFormatError(f"{p}: image contains {int(bad.sum())} NaN/inf values")
+    if arr.dtype.kind in "if" and arr.size and arr.min() < 0:
+        raise FileFormatError(f"{p}: image contains negative stored values (min {arr.min()})")
+
+
+def _read_tiff(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(p) as tif:
+            if not tif.series:
+                raise FileFormatError(f"{p}: TIFF file has no image data")
+            desc = tif.pages[0].description if len(tif.pages) else ""
+            arr = tif.series[0].asarray()
+            if len(tif.series) > 1:
+                raise FileFormatError(
+                    f"{p}: TIFF holds {len(tif.series)} image series; a capture has exactly one"
+                )
+    except FileFormatError:
+        raise
+    except Exception as exc:  # tifffile raises many types for corrupt/truncated data
+        raise FileFormatError(
+            f"{p}: cannot read TIFF ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
+        ) from exc
+    meta: dict[str, Any] = {}
+    if desc:
+        try:
+            parsed = json.loads(desc)
+        except json.JSONDecodeError:
+            parsed = None
+        if isinstance(parsed, dict):
+            meta = parsed
+    return arr, meta
+
+
+def _read_npy(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    try:
+        arr = np.load(p, allow_pickle=False)
+    except Exception as exc:
+        raise FileFormatError(
+            f"{p}: cannot read NPY ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
+        ) from exc
+    meta: dict[str, Any] = {}
+    side = p.with_name(p.name + ".json")
+    if side.exists():
+        try:
+            meta = json.loads(side.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise FileFormatError(f"{side}: invalid JSON metadata sidecar ({exc})") from exc
+    return arr, meta
+
+
+def _read_npz(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            keys = list(z.keys())
+            if "image" in keys:
+                arr = z["image"]
+            elif len([k for k in keys if k != "metadata"]) == 1:
+                arr = z[next(k for k in keys if k != "metadata")]
+            else:
+                raise FileFormatError(
+                    f"{p}: NPZ must hold an array named 'image' (found {sorted(keys)})"
+                )
+            meta_raw = str(z["metadata"]) if "metadata" in keys else ""
+    except FileFormatError:
+        raise
+    except Exception as exc:
+        raise FileFormatError(
+            f"{p}: cannot read NPZ ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
+        ) from exc
+    meta = json.loads(meta_raw) if meta_raw else {}
+    return arr, meta
+
+
+def _read_stored(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """Stored array as (C, H, W) numpy (file dtype) and metadata with ``kind`` filled in."""
+    _check_exists(p)
+    suffix = p.suffix.lower()
+    if suffix in _TIFF_SUFFIXES:
+        arr, meta = _read_tiff(p)
+    elif suffix == ".npy":
+        arr, meta = _read_npy(p)
+    elif suffix == ".npz":
+        arr, meta = _read_npz(p)
+    else:
+        raise FileFormatError(f"{p}: unsupported capture suffix {p.suffix!r} for read_capture")
+    _check_dtype(arr, p)
+    arr, kind = _as_chw(arr, p, meta)
+    meta = dict(meta)
+    meta["kind"] = kind
+    return arr, meta
+
+
+def read_capture(path: str | os.PathLike) -> tuple[torch.Tensor, dict[str, Any]]:
+    """Read a TIFF/NPY/NPZ capture at storage level (no black subtraction, no demosaic).
+
+    Args:
+        path: ``.tif``, ``.tiff``, ``.npy`` or ``.npz`` file.
+
+    Returns:
+        ``(image, metadata)``: ``image`` is ``(1, H, W)`` (Bayer) or ``(3, H, W)`` (RGB) float32
+        stored values (float64 for float64 files; exact for 16-bit data); ``metadata`` is the
+        stored JSON (``{}`` for a file without it) with ``kind`` filled in.
+
+    Raises:
+        FileNotFoundError, FileFormatError (corrupt/truncated file, wrong shape or dtype, NaNs).
+    """
+    arr, meta = _read_stored(Path(path))
+    out_dtype = np.float64 if arr.dtype == np.float64 else np.float32
+    return torch.from_numpy(np.ascontiguousarray(arr, dtype=out_dtype)), meta
+
+
+# ----------------------------------------------------------------------------------------------
+# linear reader
+
+
+def _level_map(value: Any, kind: str, shape: tuple[int, int], p: Path, name: str) -> torch.Tensor:
+    """A black/white level (scalar, 4 per Bayer cell position, or 3 per RGB channel) as (C,H,W)."""
+    vals = np.atleast_1d(np.asarray(value, dtype=np.float64)).ravel()
+    h, w = shape
+    if vals.size == 1:
+        return torch.full((1, 1, 1), float(vals[0]), dtype=torch.float64)
+    if kind == "bayer" and vals.size == 4:
+        cell = torch.from_numpy(vals.reshape(2, 2))
+        return cell.repeat((h + 1) // 2, (w + 1) // 2)[None, :h, :w]
+    if kind == "rgb" and vals.size == 3:
+        return torch.from_numpy(vals).reshape(3, 1, 1)
+    raise FileFormatError(
+        f"{p}: {name} must be a scalar, 4 values (Bayer cell, row-major) or 3 values (RGB); "
+        f"got {vals.tolist()} for a {kind} capture"
+    )
+
+
+def read_any(
+    path: str | os.PathLike,
+    expected_size: tuple[int, int] | None = None,
+    demosaic: DemosaicMethod = "bilinear",
+    cfa_pattern: str | None = None,
+    black_level: float | list[float] | None = None,
+    white_level: float | None = None,
+    normalize: bool = False,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> LinearCapture:
+    """Read any supported capture (TIFF, NPY, NPZ, camera RAW) as linear RGB.
+
+    Args:
+        path: the capture file; the reader is chosen by suffix (case-insensitive).
+        expected_size: ``(H, W)`` the *sensor* (full-resolution, before ``"half"`` binning) image
+            must have, e.g. the calibration bundle's sensor size; a mismatch raises a
+            ``FileFormatError`` naming the file and both shapes.
+        demosaic: ``"bilinear"`` (full resolution) or ``"half"`` for Bayer inputs.
+        cfa_pattern, black_level, white_level: override (or supply, for files without metadata)
+            the CFA pattern, black level and white level. Defaults: metadata, else black 0 and the
+            integer dtype's maximum as white level (floating files without a white level get no
+            saturation mask).
+        normalize: divide by ``white − black`` (1.0 = saturation).
+        dtype, device: of the returned tensors.
+
+    Returns:
+        :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
+        mask ``(3, H', W')`` and metadata.
+
+    Raises:
+        FileNotFoundError, FileFormatError (``ValueError``) for unreadable, truncated, NaN-holding,
+        wrongly shaped/typed or wrong-size files.
+    """
+    p = Path(path)
+    _check_exists(p)
+    if not dtype.is_floating_point:
+        raise TypeError(f"dtype must be floating point, got {dtype}")
+    if demosaic not in ("half", "bilinear"):
+        raise ValueError(f"demosaic must be 'half' or 'bilinear', got {demosaic!r}")
+    suffix = p.suffix.lower()
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise FileFormatError(
+            f"{p}: unsupported file type {p.suffix!r}; expected one of .tif, .tiff, .npy, .npz or "
+            "a camera RAW suffix (.dng, .cr2, .nef, .arw, .kdc, ...)"
+        )
+
+    if suffix in RAW_SUFFIXES:
+        raw = load_raw(p, demosaic=None, dtype=torch.float64)
+        shape = (raw.mosaic.shape[-2], raw.mosaic.shape[-1])
+        stored = raw.mosaic + _level_map(raw.black_level, "bayer", shape, p, "black_level")
+        meta = {
+            "kind": "bayer",
+            "cfa_pattern": raw.cfa_pattern,
+            "black_level": list(raw.black_level),
+            "white_level": raw.white_level,
+            **raw.metadata,
+        }
+        stored_dtype = "uint16"
+    else:
+        arr, meta = _read_stored(p)
+        stored_dtype = str(arr.dtype)
+        stored = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float64))
+    kind = meta["kind"]
+    h, w = stored.shape[-2:]
+    _check_size(p, (h, w), expected_size)
+
+    bl = black_level if black_level is not None else meta.get("black_level", 0.0)
+    wl = white_level if white_level is not None else meta.get("white_level")
+    if wl is None and np.dtype(stored_dtype).kind in "ui":
+        wl = float(np.iinfo(np.dtype(stored_dtype)).max)
+    black = _level_map(bl, kind, (h, w), p, "black_level")
+    lin = stored - black
+    if wl is not None:
+        white = _level_map(wl, kind, (h, w), p, "white_level")
+        sat = (stored >= white).expand(stored.shape)
+        if normalize:
+            span = white - black
+            if bool((span <= 0).any()):
+                raise FileFormatError(f"{p}: white level {wl} is not above black level {bl}")
+            lin = lin / span
+    else:
+        if normalize:
+            raise FileFormatError(f"{p}: normalize=True needs a white level (none in metadata)")
+        sat = torch.zeros(stored.shape, dtype=torch.bool)
+    lin = lin.to(device=device, dtype=dtype)
+    sat = sat.to(device=device)
+
+    out_meta = dict(meta)
+    out_meta.update(kind=kind, black_level=_jsonable(bl), white_level=_jsonable(wl), source=str(p))
+    if kind == "bayer":
+        pattern = cfa_pattern or meta.get("cfa_pattern")
+        if not pattern:
+            raise FileFormatError(
+                f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
+                "('RGGB', 'BGGR', 'GRBG' or 'GBRG')"
+            )
+        try:
+            pattern = validate_cfa_pattern(pattern)
+        except (TypeError, ValueError) as exc:
+            raise FileFormatError(f"{p}: {exc}") from exc
+        out_meta.update(cfa_pattern=pattern, demosaic=demosaic)
+        rgb = _demosaic(lin, pattern, demosaic)
+        rgb_sat = demosaic_saturation(sat, pattern, demosaic)
+        return LinearCapture(rgb, rgb_sat, out_meta, p, lin, sat)
+    return LinearCapture(lin, sat, out_meta, p)
+
+
+def _demosaic(x: torch.Tensor, pattern: str, method: str) -> torch.Tensor:
+    return bayer_half(x, pattern) if method == "half" else demosaic_bilinear(x, pattern)
+
+
+def _jsonable(v: Any) -> Any:
+    if v is None:
+        return None
+    a = np.asarray(v, dtype=np.float64)
+    return float(a) if a.ndim == 0 else a.tolist()
+
+
+def _check_size(p: Path, actual: tuple[int, ...], expected: tuple[int, int] | None) -> None:
+    if expected is None:
+        return
+    exp = tuple(int(v) for v in expected)
+    if len(exp) != 2:
+        raise ValueError(f"expected_size must be (H, W), got {expected!r}")
+    if tuple(actual) != exp:
+        raise FileFormatError(
+            f"{p}: image size (H, W) = {tuple(actual)} does not match the expected sensor size "
+            f"{exp} (e.g. of the calibration bundle)"
+        )
