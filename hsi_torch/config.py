@@ -1,0 +1,483 @@
+"""Typed, validated configuration files (YAML) built on dataclasses.
+
+A *schema* is a (possibly nested) dataclass owned by the module that uses it. :func:`load_config`
+reads a YAML file (or a dict), applies command-line overrides, checks every key and type against
+the schema and returns an instance; :func:`dump_config` writes the resolved configuration back as
+YAML (each run stores it beside its outputs).
+
+Supported field types: ``bool``, ``int``, ``float``, ``str``, :class:`pathlib.Path`, ``Optional``
+and unions, ``Literal[...]``, ``Enum`` subclasses, ``list[X]``, ``tuple[X, ...]``,
+``tuple[X, Y]``, ``dict[str, X]``, nested dataclasses, ``Any``, and
+:data:`ExistingPath` (a ``Path`` that must exist).
+
+Conversions: ``int`` → ``float`` is allowed; numeric strings are accepted for ``float``/``int``
+(PyYAML reads ``1e-3`` as a string); ``bool`` is never coerced from or to numbers; a ``Path``
+that is relative is joined to the config file's folder (for a dict source: ``base_dir``, default
+the current directory; for a command-line override: the current directory); ``~`` is expanded.
+
+Errors: :class:`ConfigError` (a ``ValueError``) naming the source file and the dotted key —
+unknown key (with the closest valid key suggested), wrong type, value not among the ``Literal``
+choices, missing required key, missing file, invalid YAML, and errors raised by a schema's
+``__post_init__``.
+
+Example:
+    >>> @dataclass
+    ... class Solver:
+    ...     beta: float = 1.0
+    ...     method: Literal["active_set", "admm"] = "active_set"
+    >>> @dataclass
+    ... class Run:
+    ...     solver: Solver = field(default_factory=Solver)
+    >>> load_config({"solver": {"beta": 2}}, Run, overrides=["solver.method=admm"])
+    Run(solver=Solver(beta=2.0, method='admm'))
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import enum
+import os
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path, PurePath
+from typing import Annotated, Any, Literal, TypeVar, Union
+
+import yaml
+
+from hsi_torch.io.atomic import atomic_write_text
+
+__all__ = [
+    "ConfigError",
+    "ExistingPath",
+    "MustExist",
+    "load_config",
+    "parse_override",
+    "apply_overrides",
+    "to_dict",
+    "dump_config",
+    "describe_schema",
+]
+
+T = TypeVar("T")
+KeyPath = tuple[str | int, ...]
+
+
+class ConfigError(ValueError):
+    """Invalid configuration. ``key`` is the dotted key at fault (or ``None``), ``source`` the file.
+
+    The message is a single line: ``"<source>: key 'a.b': <problem>"``.
+    """
+
+    def __init__(self, message: str, key: str | None = None, source: str | None = None):
+        self.key = key
+        self.source = source
+        self.problem = message
+        parts = [p for p in (source, f"key '{key}'" if key else None, message) if p]
+        super().__init__(": ".join(parts))
+
+
+@dataclass(frozen=True)
+class MustExist:
+    """Marker for ``Annotated[Path, MustExist()]``: the path must exist after resolution."""
+
+    kind: Literal["any", "file", "dir"] = "any"
+
+
+ExistingPath = Annotated[Path, MustExist()]
+"""A ``Path`` field that must exist (file or folder) once resolved."""
+
+
+def _fmt_key(path: KeyPath) -> str:
+    out = ""
+    for part in path:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + part
+    return out
+
+
+@dataclass
+class _Ctx:
+    source: str
+    base_dir: Path
+    overridden: dict[KeyPath, str] = field(default_factory=dict)
+
+    def error(self, path: KeyPath, message: str) -> ConfigError:
+        for i in range(len(path), 0, -1):
+            if path[:i] in self.overridden:
+                message += f" (from override '{self.overridden[path[:i]]}')"
+                break
+        return ConfigError(message, _fmt_key(path) or None, self.source)
+
+    def from_override(self, path: KeyPath) -> bool:
+        return any(path[:i] in self.overridden for i in range(len(path), 0, -1))
+
+
+# ----------------------------------------------------------------------------------------------
+# overrides
+
+
+def parse_override(text: str) -> tuple[KeyPath, Any]:
+    """Parse ``"a.b.c=value"`` into ``(("a", "b", "c"), yaml.safe_load("value"))``.
+
+    Integer parts index into lists (``views.0.x=1``). The value is YAML: ``beta=1e-3`` gives the
+    string ``"1e-3"`` (accepted by float fields), ``sizes=[1, 2]`` a list, ``name=`` ``None``.
+    """
+    if not isinstance(text, str) or "=" not in text:
+        raise ConfigError(f"override {text!r} must have the form key.sub=value")
+    key, _, raw = text.partition("=")
+    key = key.strip()
+    if not key or any(not p for p in key.split(".")):
+        raise ConfigError(f"override {text!r} has an empty key part")
+    parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.split(".")]
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({exc})") from None
+    return tuple(parts), value
+
+
+def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyPath, str]:
+    """Apply ``key.sub=value`` overrides to a nested dict in place; returns key path → text."""
+    applied: dict[KeyPath, str] = {}
+    for text in overrides:
+        parts, value = parse_override(text)
+        node: Any = data
+        for i, part in enumerate(parts[:-1]):
+            nxt = parts[i + 1]
+            if isinstance(node, dict):
+                if not isinstance(node.get(part), (dict, list)):
+                    node[part] = {}
+                node = node[part]
+            elif isinstance(node, list) and isinstance(part, int):
+                if part >= len(node):
+                    raise ConfigError(
+                        f"override '{text}': index {part} is out of range (length {len(node)})",
+                        _fmt_key(parts[:i]),
+                    )
+                if not isinstance(node[part], (dict, list)):
+                    node[part] = {} if not isinstance(nxt, int) else []
+                node = node[part]
+            else:
+                raise ConfigError(
+                    f"override '{text}': cannot descend into a {type(node).__name__}",
+                    _fmt_key(parts[:i]) or None,
+                )
+        last = parts[-1]
+        if isinstance(node, dict):
+            node[last] = value
+        elif isinstance(node, list) and isinstance(last, int) and last < len(node):
+            node[last] = value
+        else:
+            raise ConfigError(
+                f"override '{text}': cannot set {last!r} on a {type(node).__name__}",
+                _fmt_key(parts[:-1]) or None,
+            )
+        applied[parts] = text
+    return applied
+
+
+# ----------------------------------------------------------------------------------------------
+# conversion
+
+
+def _type_name(tp: Any) -> str:
+    if tp is type(None):
+        return "None"
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        return _type_name(typing.get_args(tp)[0])
+    if origin in (Union, types.UnionType):
+        return " | ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin is not None:
+        args = ", ".join("..." if a is Ellipsis else _type_name(a) for a in typing.get_args(tp))
+        return f"{getattr(origin, '__name__', str(origin))}[{args}]"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _got(value: Any) -> str:
+    text = repr(value)
+    if len(text) > 60:
+        text = text[:57] + "..."
+    return f"{type(value).__name__} {text}"
+
+
+def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+
+    if tp is Any or tp is object:
+        return value
+    if origin is Annotated:
+        out = _convert(value, args[0], path, ctx)
+        for marker in args[1:]:
+            if isinstance(marker, MustExist) and out is not None:
+                p = Path(out)
+                ok = {"any": p.exists(), "file": p.is_file(), "dir": p.is_dir()}[marker.kind]
+                if not ok:
+                    what = {"any": "path", "file": "file", "dir": "folder"}[marker.kind]
+                    raise ctx.error(path, f"{what} not found: {p}")
+        return out
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        candidates = [a for a in args if a is not type(None)]
+        if len(candidates) == 1:  # Optional[X]: keep X's precise error message
+            return _convert(value, candidates[0], path, ctx)
+        # exact-type matches first, so that e.g. int | str keeps "3" a str and 3 an int
+        candidates.sort(key=lambda a: 0 if isinstance(a, type) and type(value) is a else 1)
+        for cand in candidates:
+            try:
+                return _convert(value, cand, path, ctx)
+            except ConfigError:
+                continue
+        raise ctx.error(path, f"expected {_type_name(tp)}, got {_got(value)}")
+    if tp is type(None):
+        if value is not None:
+            raise ctx.error(path, f"expected null, got {_got(value)}")
+        return None
+    if origin is Literal:
+        for choice in args:
+            if value == choice and type(value) is type(choice):
+                return choice
+        msg = f"expected {_type_name(tp)}, got {_got(value)}"
+        if isinstance(value, str):
+            close = difflib.get_close_matches(value, [a for a in args if isinstance(a, str)], 1)
+            if close:
+                msg += f" (did you mean {close[0]!r}?)"
+        raise ctx.error(path, msg)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ctx.error(path, f"expected bool (true/false), got {_got(value)}")
+        return value
+    if tp is int:
+        if isinstance(value, bool):
+            raise ctx.error(path, f"expected int, got {_got(value)}")
+        if isinstance(value, int):
+            return value
+        num = value
+        if isinstance(value, str):
+            try:
+                num = float(value)
+            except ValueError:
+                raise ctx.error(path, f"expected int, got {_got(value)}") from None
+        if isinstance(num, float) and num.is_integer():
+            return int(num)
+        raise ctx.error(path, f"expected int, got {_got(value)}")
+    if tp is float:
+        if isinstance(value, bool):
+            raise ctx.error(path, f"expected float, got {_got(value)}")
+        if isinstance(value, (int, float)):
+            return float(value)
+        if isinstance(value, str):
+            try:
+                return float(value)
+            except ValueError:
+                pass
+        raise ctx.error(path, f"expected float, got {_got(value)}")
+    if tp is str:
+        if not isinstance(value, str):
+            raise ctx.error(path, f"expected str, got {_got(value)} (quote it in YAML)")
+        return value
+    if isinstance(tp, type) and issubclass(tp, PurePath):
+        if not isinstance(value, (str, os.PathLike)) or (isinstance(value, str) and not value):
+            raise ctx.error(path, f"expected a path (str), got {_got(value)}")
+        p = Path(os.path.expanduser(os.fspath(value)))
+        if not p.is_absolute():
+            base = Path.cwd() if ctx.from_override(path) else ctx.base_dir
+            p = base / p
+        return tp(p)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        for member in tp:
+            if value == member.value or value == member.name:
+                return member
+        choices = ", ".join(repr(m.value) for m in tp)
+        raise ctx.error(path, f"expected one of {choices}, got {_got(value)}")
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        return _convert_dataclass(value, tp, path, ctx)
+    if origin in (list, Sequence) or tp in (list, Sequence):
+        if not isinstance(value, (list, tuple)):
+            raise ctx.error(path, f"expected a list, got {_got(value)}")
+        item_tp = args[0] if args else Any
+        return [_convert(v, item_tp, (*path, i), ctx) for i, v in enumerate(value)]
+    if origin is tuple or tp is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ctx.error(path, f"expected a list of {_type_name(tp)}, got {_got(value)}")
+        if not args:
+            return tuple(value)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], (*path, i), ctx) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ctx.error(
+                path, f"expected {len(args)} items ({_type_name(tp)}), got {len(value)}"
+            )
+        return tuple(
+            _convert(v, a, (*path, i), ctx)
+            for i, (v, a) in enumerate(zip(value, args, strict=True))
+        )
+    if origin in (dict, Mapping) or tp in (dict, Mapping):
+        if not isinstance(value, Mapping):
+            raise ctx.error(path, f"expected a mapping, got {_got(value)}")
+        k_tp, v_tp = args if args else (Any, Any)
+        return {
+            _convert(k, k_tp, (*path, str(k)), ctx): _convert(v, v_tp, (*path, str(k)), ctx)
+            for k, v in value.items()
+        }
+    if isinstance(tp, type):
+        if not isinstance(value, tp):
+            raise ctx.error(path, f"expected {tp.__name__}, got {_got(value)}")
+        return value
+    raise TypeError(f"unsupported type annotation {tp!r} for config key '{_fmt_key(path)}'")
+
+
+def _convert_dataclass(value: Any, cls: type, path: KeyPath, ctx: _Ctx) -> Any:
+    if not isinstance(value, Mapping):
+        raise ctx.error(path, f"expected a mapping for {cls.__name__}, got {_got(value)}")
+    hints = typing.get_type_hints(cls, include_extras=True)
+    fields = [f for f in dataclasses.fields(cls) if f.init]
+    names = [f.name for f in fields]
+    for key in value:
+        if not isinstance(key, str):
+            raise ctx.error(path, f"keys must be strings, got {_got(key)}")
+        if key not in names:
+            close = difflib.get_close_matches(key, names, n=1, cutoff=0.6)
+            hint = f" (did you mean '{_fmt_key((*path, close[0]))}'?)" if close else ""
+            valid = ", ".join(names)
+            raise ctx.error((*path, key), f"unknown key{hint}; valid keys here: {valid}")
+    kwargs: dict[str, Any] = {}
+    for f in fields:
+        if f.name in value:
+            kwargs[f.name] = _convert(value[f.name], hints[f.name], (*path, f.name), ctx)
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ctx.error((*path, f.name), f"missing required key ({_type_name(hints[f.name])})")
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ctx.error(path, f"invalid {cls.__name__}: {exc}") from exc
+
+
+# ----------------------------------------------------------------------------------------------
+# public API
+
+
+def load_config(
+    source: str | os.PathLike | Mapping[str, Any] | None,
+    schema_cls: type[T],
+    overrides: Sequence[str] | None = None,
+    base_dir: str | os.PathLike | None = None,
+) -> T:
+    """Load, override and validate a configuration.
+
+    Args:
+        source: YAML file path, an already-parsed mapping, or ``None`` (all defaults).
+        schema_cls: the dataclass describing the configuration.
+        overrides: ``["key.sub=value", ...]`` applied after reading (values parsed as YAML).
+        base_dir: folder that relative ``Path`` values of a mapping source are joined to
+            (default: the current directory; for a file: the file's folder, always).
+
+    Returns:
+        An instance of ``schema_cls``.
+
+    Raises:
+        ConfigError: missing/unreadable file, invalid YAML, unknown key, wrong type, missing
+            required key, missing file for an :data:`ExistingPath`, failed ``__post_init__``.
+    """
+    if not (dataclasses.is_dataclass(schema_cls) and isinstance(schema_cls, type)):
+        raise TypeError(f"schema_cls must be a dataclass type, got {schema_cls!r}")
+    if source is None or isinstance(source, Mapping):
+        data = copy.deepcopy(dict(source or {}))
+        src_name = "<config>" if source is None else "<dict>"
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+    else:
+        cfg_path = Path(source)
+        src_name = str(cfg_path)
+        if not cfg_path.is_file():
+            what = "is a directory" if cfg_path.is_dir() else "not found"
+            raise ConfigError(f"config file {what}", source=src_name)
+        try:
+            text = cfg_path.read_text(encoding="utf-8")
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise ConfigError(f"invalid YAML{where}: {problem}", source=src_name) from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"cannot read config file ({exc})", source=src_name) from None
+        if data is None:
+            data = {}
+        base = cfg_path.resolve().parent
+    if not isinstance(data, dict):
+        raise ConfigError(f"top level must be a mapping, got {_got(data)}", source=src_name)
+    ctx = _Ctx(source=src_name, base_dir=base)
+    try:
+        ctx.overridden = apply_overrides(data, list(overrides or []))
+    except ConfigError as exc:
+        raise ConfigError(exc.problem, exc.key, src_name) from None
+    return _convert_dataclass(data, schema_cls, (), ctx)
+
+
+def to_dict(instance: Any) -> Any:
+    """Plain-Python (YAML/JSON-safe) form of a config: dataclasses → dicts (field order), paths →
+    str, tuples → lists, enums → values."""
+    if dataclasses.is_dataclass(instance) and not isinstance(instance, type):
+        return {
+            f.name: to_dict(getattr(instance, f.name))
+            for f in dataclasses.fields(instance)
+            if f.init
+        }
+    if isinstance(instance, PurePath):
+        return str(instance)
+    if isinstance(instance, enum.Enum):
+        return to_dict(instance.value)
+    if isinstance(instance, Mapping):
+        return {str(k) if isinstance(k, PurePath) else k: to_dict(v) for k, v in instance.items()}
+    if isinstance(instance, (list, tuple)):
+        return [to_dict(v) for v in instance]
+    if hasattr(instance, "item") and hasattr(instance, "ndim") and instance.ndim == 0:
+        return instance.item()  # numpy / torch scalars
+    return instance
+
+
+def dump_config(instance: Any, path: str | os.PathLike, header: str | None = None) -> Path:
+    """Write the resolved configuration as YAML, atomically (loadable again by
+    :func:`load_config` with the same schema). ``header`` becomes leading ``#`` comment lines."""
+    text = yaml.safe_dump(to_dict(instance), sort_keys=False, default_flow_style=None, width=100)
+    if header:
+        text = "".join(f"# {line}\n" for line in header.splitlines()) + text
+    return atomic_write_text(path, text)
+
+
+def describe_schema(schema_cls: type, prefix: str = "") -> str:
+    """A plain-text reference of a schema: one line per key with type, default and the field's
+    ``metadata["help"]`` (for README config tables and ``--help`` epilogues)."""
+    hints = typing.get_type_hints(schema_cls, include_extras=True)
+    lines: list[str] = []
+    for f in dataclasses.fields(schema_cls):
+        if not f.init:
+            continue
+        tp = hints[f.name]
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+            lines.append(describe_schema(tp, prefix=key + "."))
+            continue
+        if f.default is not dataclasses.MISSING:
+            default = f" = {to_dict(f.default)!r}"
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f" = {to_dict(f.default_factory())!r}"
+        else:
+            default = " (required)"
+        help_text = f.metadata.get("help", "")
+        lines.append(
+            f"{key}: {_type_name(tp)}{default}" + (f"  # {help_text}" if help_text else "")
+        )
+    return "\n".join(lines)
