@@ -59,8 +59,12 @@ __all__ = [
     "apply_overrides",
     "to_dict",
     "dump_config",
+    "write_resolved_config",
+    "RESOLVED_CONFIG_NAME",
     "describe_schema",
 ]
+
+RESOLVED_CONFIG_NAME = "resolved_config.yaml"
 
 T = TypeVar("T")
 KeyPath = tuple[str | int, ...]
@@ -455,6 +459,18 @@ def dump_config(instance: Any, path: str | os.PathLike, header: str | None = Non
     if header:
         text = "".join(f"# {line}\n" for line in header.splitlines()) + text
     return atomic_write_text(path, text)
+
+
+def write_resolved_config(
+    instance: Any, out_dir: str | os.PathLike, name: str = RESOLVED_CONFIG_NAME
+) -> Path:
+    """Write ``instance`` as ``out_dir/resolved_config.yaml`` (every run does this beside its
+    outputs, so a result can be reproduced with ``--config out_dir/resolved_config.yaml``)."""
+    from hsi_torch import __version__
+
+    return dump_config(
+        instance, Path(out_dir) / name, header=f"resolved configuration, hsi_torch {__version__}"
+    )
 
 
 def describe_schema(schema_cls: type, prefix: str = "") -> str:
