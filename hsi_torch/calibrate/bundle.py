@@ -1,0 +1,389 @@
+"""The calibration bundle: everything reconstruction needs, in one versioned NPZ file.
+
+File format (schema version 1): an uncompressed ``.npz`` with the arrays below and ``meta``, a
+0-d unicode array holding a JSON object ``{schema_version, software_version, settings,
+provenance, reflection_sequences}``. Loading needs no pickle.
+
+=========================  =================  ==================================================
+key                        shape, dtype       meaning
+=========================  =================  ==================================================
+wavelengths_nm             (M,) float64       reconstruction grid (nm)
+layout_triangles           (V, 3, 2) float64  view triangles, sensor px (x, y)
+layout_parity              (V,) int64         ±1 (−1: odd number of reflections)
+layout_view_homographies   (V, 3, 3) float64  view-v sensor px → reference sensor px, H_0 = I
+layout_sensor_size         (2,) int64         (H, W) of the sensor the bundle was made for
+layout_reference_bbox      (4,) int64         (x0, y0, w, h): reference frame = sensor crop
+B                          (V, M, h, w) float BRF transmittance B_v(p, λ_m), reference frame
+phi                        (3, M) float       φ^c(λ_m)
+gain                       (V, h, w) float    g_v(p) (mean 1 over the reference view)
+view_mask                  (V, h, w) bool     view present and BRF-modulated at p
+modulated                  (V, h, w) bool     view BRF-modulated at p (False on the BRF-free patch)
+valid                      (h, w) bool        ≥ 3 modulated views
+extra_<name>               any                optional diagnostics
+=========================  =================  ==================================================
+
+Sensing matrix of reference-frame pixel ``p = i·w + j`` (row-major):
+``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (view-major observations).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hsi_torch.io.atomic import FileFormatError, atomic_save_npz
+from hsi_torch.spectral import band_widths
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "CalibrationBundle",
+    "file_sha256",
+    "make_provenance",
+]
+
+SCHEMA_VERSION = 1
+
+_FLOAT_KEYS = ("wavelengths_nm", "triangles", "view_homographies", "B", "phi", "gain")
+_INT_KEYS = ("parity", "sensor_size", "reference_bbox")
+_BOOL_KEYS = ("view_mask", "modulated", "valid")
+_FILE_KEYS = {
+    "wavelengths_nm": "wavelengths_nm",
+    "triangles": "layout_triangles",
+    "parity": "layout_parity",
+    "view_homographies": "layout_view_homographies",
+    "sensor_size": "layout_sensor_size",
+    "reference_bbox": "layout_reference_bbox",
+    "B": "B",
+    "phi": "phi",
+    "gain": "gain",
+    "view_mask": "view_mask",
+    "modulated": "modulated",
+    "valid": "valid",
+}
+
+
+def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file's content."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def make_provenance(
+    inputs: Mapping[str, str | os.PathLike] | Iterable[str | os.PathLike] = (),
+    **extra: Any,
+) -> dict[str, Any]:
+    """Provenance record: SHA-256 of each input file, UTC creation time, plus ``extra`` items.
+
+    Args:
+        inputs: files (``{label: path}`` or a list of paths; a list is labelled by file name).
+        **extra: further JSON-serialisable entries (e.g. ``simulator_seed=0``).
+    """
+    items = inputs.items() if isinstance(inputs, Mapping) else ((Path(p).name, p) for p in inputs)
+    hashes = {str(k): file_sha256(p) for k, p in items}
+    return {
+        "inputs_sha256": hashes,
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **extra,
+    }
+
+
+def _np(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _software_version() -> str:
+    import hsi_torch
+
+    return str(getattr(hsi_torch, "__version__", "unknown"))
+
+
+@dataclass
+class CalibrationBundle:
+    """Calibration products in reference-frame coordinates (see the module docstring for shapes).
+
+    Array fields accept numpy arrays or tensors and are stored as numpy arrays. Construction
+    validates shapes and dtypes (``ValueError`` naming the field).
+
+    Example:
+        >>> bundle = CalibrationBundle.load("calib.npz")  # doctest: +SKIP
+        >>> bundle.check_compatible(capture.shape)  # doctest: +SKIP
+        >>> A = bundle.sensing_matrices(device="cuda")  # (h*w, 3V, M)  # doctest: +SKIP
+    """
+
+    wavelengths_nm: np.ndarray
+    triangles: np.ndarray
+    parity: np.ndarray
+    view_homographies: np.ndarray
+    sensor_size: np.ndarray  # (H, W), any int sequence accepted
+    reference_bbox: np.ndarray  # (x0, y0, w, h), any int sequence accepted
+    B: np.ndarray
+    phi: np.ndarray
+    gain: np.ndarray
+    view_mask: np.ndarray
+    modulated: np.ndarray
+    valid: np.ndarray
+    reflection_sequences: list[tuple[int, ...]] = field(default_factory=list)
+    settings: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+    software_version: str = field(default_factory=_software_version)
+    schema_version: int = SCHEMA_VERSION
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for k in _FLOAT_KEYS:
+            setattr(self, k, _np(getattr(self, k)))
+        for k in _INT_KEYS:
+            setattr(self, k, _np(getattr(self, k)))
+        for k in _BOOL_KEYS:
+            setattr(self, k, _np(getattr(self, k)))
+        self.extras = {str(k): _np(v) for k, v in self.extras.items()}
+        self.reflection_sequences = [tuple(int(i) for i in s) for s in self.reflection_sequences]
+        self.validate()
+
+    # ---------------------------------------------------------------- shapes
+    @property
+    def num_views(self) -> int:
+        return int(self.triangles.shape[0])
+
+    @property
+    def num_bands(self) -> int:
+        return int(self.wavelengths_nm.shape[0])
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """``(h, w)`` of the reference frame."""
+        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
+
+    def validate(self, source: str = "<in memory>") -> None:
+        """Check dtypes and the consistency of all shapes; raise naming the key and ``source``."""
+
+        def fail(key: str, msg: str) -> None:
+            raise FileFormatError(f"calibration bundle {source}: '{key}' {msg}")
+
+        for k in _FLOAT_KEYS:
+            a = getattr(self, k)
+            if a.dtype.kind != "f":
+                fail(k, f"must be floating point, got dtype {a.dtype}")
+            if not np.all(np.isfinite(a)):
+                fail(k, "contains NaN or inf")
+        for k in _INT_KEYS:
+            a = getattr(self, k)
+            if a.dtype.kind not in "iu":
+                fail(k, f"must be integer, got dtype {a.dtype}")
+        for k in _BOOL_KEYS:
+            a = getattr(self, k)
+            if a.dtype != np.bool_:
+                fail(k, f"must be bool, got dtype {a.dtype}")
+        if self.wavelengths_nm.ndim != 1 or self.wavelengths_nm.size < 1:
+            fail("wavelengths_nm", f"must be (M,), got {self.wavelengths_nm.shape}")
+        if np.any(np.diff(self.wavelengths_nm) <= 0):
+            fail("wavelengths_nm", "must be strictly increasing")
+        M = self.num_bands
+        if self.triangles.ndim != 3 or self.triangles.shape[1:] != (3, 2):
+            fail("triangles", f"must be (V, 3, 2), got {self.triangles.shape}")
+        V = self.num_views
+        if self.parity.shape != (V,) or not np.all(np.isin(self.parity, (-1, 1))):
+            fail("parity", f"must be (V,) = ({V},) of ±1, got {self.parity.tolist()}")
+        if self.view_homographies.shape != (V, 3, 3):
+            fail("view_homographies", f"must be ({V}, 3, 3), got {self.view_homographies.shape}")
+        if self.sensor_size.shape != (2,) or np.any(self.sensor_size <= 0):
+            fail("sensor_size", f"must be (H, W) > 0, got {self.sensor_size.tolist()}")
+        if self.reference_bbox.shape != (4,) or np.any(self.reference_bbox[2:] <= 0):
+            fail("reference_bbox", f"must be (x0, y0, w, h), got {self.reference_bbox.tolist()}")
+        h, w = self.frame_size
+        expect = {
+            "B": (V, M, h, w),
+            "phi": (3, M),
+            "gain": (V, h, w),
+            "view_mask": (V, h, w),
+            "modulated": (V, h, w),
+            "valid": (h, w),
+        }
+        for k, shp in expect.items():
+            if getattr(self, k).shape != shp:
+                fail(
+                    k,
+                    f"has shape {getattr(self, k).shape}, expected {shp} (V={V}, M={M}, "
+                    f"reference frame {h}x{w})",
+                )
+        if self.reflection_sequences and len(self.reflection_sequences) != V:
+            fail("reflection_sequences", f"has {len(self.reflection_sequences)} entries, not {V}")
+        if int(self.schema_version) != SCHEMA_VERSION:
+            fail(
+                "schema_version", f"is {self.schema_version}; this software reads {SCHEMA_VERSION}"
+            )
+
+    # ---------------------------------------------------------------- I/O
+    def meta(self) -> dict[str, Any]:
+        """The JSON metadata object stored under ``meta``."""
+        return {
+            "schema_version": int(self.schema_version),
+            "software_version": self.software_version,
+            "settings": self.settings,
+            "provenance": self.provenance,
+            "reflection_sequences": [list(s) for s in self.reflection_sequences],
+            "extras": sorted(self.extras),
+        }
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the bundle atomically (temporary file + ``os.replace``); returns the path."""
+        self.validate()
+        meta = json.dumps(self.meta(), default=_json_default)  # fails before touching the file
+        arrays: dict[str, Any] = {fk: getattr(self, k) for k, fk in _FILE_KEYS.items()}
+        arrays["meta"] = np.array(meta)
+        for k, v in self.extras.items():
+            arrays[f"extra_{k}"] = v
+        return atomic_save_npz(path, arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> CalibrationBundle:
+        """Read and validate a bundle; errors name the file and the offending key."""
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"calibration bundle {p} does not exist")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except Exception as exc:  # zipfile/format errors
+            raise FileFormatError(
+                f"calibration bundle {p}: not a readable NPZ file ({exc})"
+            ) from exc
+        if "meta" not in data:
+            raise FileFormatError(f"calibration bundle {p}: missing key 'meta'")
+        try:
+            meta = json.loads(str(data["meta"]))
+        except json.JSONDecodeError as exc:
+            raise FileFormatError(
+                f"calibration bundle {p}: 'meta' is not valid JSON ({exc})"
+            ) from exc
+        ver = meta.get("schema_version")
+        if ver != SCHEMA_VERSION:
+            raise FileFormatError(
+                f"calibration bundle {p}: schema_version {ver!r} is not supported "
+                f"(this software reads version {SCHEMA_VERSION})"
+            )
+        missing = [fk for fk in _FILE_KEYS.values() if fk not in data]
+        if missing:
+            raise FileFormatError(f"calibration bundle {p}: missing key(s) {missing}")
+        kw = {k: data[fk] for k, fk in _FILE_KEYS.items()}
+        extras = {k[len("extra_") :]: v for k, v in data.items() if k.startswith("extra_")}
+        bundle = cls.__new__(cls)  # bypass __post_init__ so errors can name the file
+        for k, v in kw.items():
+            setattr(bundle, k, v)
+        bundle.reflection_sequences = [
+            tuple(int(i) for i in s) for s in meta.get("reflection_sequences", [])
+        ]
+        bundle.settings = meta.get("settings", {})
+        bundle.provenance = meta.get("provenance", {})
+        bundle.software_version = str(meta.get("software_version", "unknown"))
+        bundle.schema_version = int(ver)
+        bundle.extras = extras
+        bundle.validate(source=str(p))
+        return bundle
+
+    # ---------------------------------------------------------------- use
+    def check_compatible(self, image_shape: Sequence[int] | torch.Size) -> None:
+        """Refuse a capture whose sensor size differs from the bundle's.
+
+        Args:
+            image_shape: ``(H, W)``, ``(C, H, W)`` or ``(B, C, H, W)``.
+
+        Raises:
+            ValueError: naming both sizes.
+        """
+        shp = tuple(int(s) for s in image_shape)
+        if len(shp) < 2:
+            raise ValueError(f"image_shape must end with (H, W), got {shp}")
+        H, W = int(self.sensor_size[0]), int(self.sensor_size[1])
+        if shp[-2:] != (H, W):
+            raise ValueError(
+                f"capture sensor size {shp[-2]}x{shp[-1]} (HxW) does not match the calibration "
+                f"bundle's {H}x{W}: the bundle was made for another camera/geometry or crop"
+            )
+        if len(shp) >= 3 and shp[-3] != 3:
+            raise ValueError(f"capture must have 3 colour channels, got shape {shp}")
+
+    def layout_tensors(
+        self, device: torch.device | str | None = None, dtype: torch.dtype = torch.float64
+    ) -> dict[str, torch.Tensor]:
+        """``triangles (V,3,2)``, ``parity (V,)``, ``view_homographies (V,3,3)`` as tensors."""
+        return {
+            "triangles": torch.as_tensor(self.triangles, device=device, dtype=dtype),
+            "parity": torch.as_tensor(self.parity, device=device),
+            "view_homographies": torch.as_tensor(
+                self.view_homographies, device=device, dtype=dtype
+            ),
+        }
+
+    def sensing_matrices(
+        self,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+        pixel_index: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Per-pixel sensing matrices ``A (P, 3V, M)``.
+
+        ``A[p, 3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]``; pixels are the reference
+        frame in row-major order (``P = h·w``) or the subset ``pixel_index`` (long, flat indices).
+        """
+        V, M = self.num_views, self.num_bands
+        dl = band_widths(torch.as_tensor(self.wavelengths_nm, dtype=torch.float64)).to(
+            device=device, dtype=dtype
+        )
+        B = torch.as_tensor(self.B, device=device, dtype=dtype).reshape(V, M, -1)
+        g = torch.as_tensor(self.gain, device=device, dtype=dtype).reshape(V, -1)
+        phi = torch.as_tensor(self.phi, device=device, dtype=dtype)
+        if pixel_index is not None:
+            idx = torch.as_tensor(pixel_index, device=B.device, dtype=torch.long)
+            B, g = B[..., idx], g[:, idx]
+        gb = (g[:, None, :] * B).permute(2, 0, 1)  # (P, V, M)
+        A = gb[:, :, None, :] * (dl * phi)[None, None]  # (P, V, 3, M)
+        return A.reshape(A.shape[0], 3 * V, M)
+
+    def observation_mask(
+        self, device: torch.device | str | None = None, pixel_index: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``(P, 3V)`` bool: observation ``3v + c`` of pixel p is usable (``view_mask[v, p]``)."""
+        vm = torch.as_tensor(self.view_mask, device=device).reshape(self.num_views, -1)
+        if pixel_index is not None:
+            vm = vm[:, torch.as_tensor(pixel_index, device=vm.device, dtype=torch.long)]
+        return vm.T.repeat_interleave(3, dim=1)
+
+    def summary(self) -> str:
+        """A few readable lines (sizes, valid-region size, provenance)."""
+        h, w = self.frame_size
+        nv = int(self.valid.sum())
+        return (
+            f"calibration bundle v{self.schema_version} (hsi_torch {self.software_version}): "
+            f"{self.num_views} views, {self.num_bands} bands "
+            f"{self.wavelengths_nm[0]:g}-{self.wavelengths_nm[-1]:g} nm, sensor "
+            f"{int(self.sensor_size[0])}x{int(self.sensor_size[1])}, reference frame {h}x{w} at "
+            f"({int(self.reference_bbox[0])}, {int(self.reference_bbox[1])}), valid {nv} px "
+            f"({100 * nv / (h * w):.1f} %)"
+        )
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (np.ndarray, torch.Tensor)):
+        return obj.tolist()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (set, frozenset, tuple)):
+        return list(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")

@@ -1,0 +1,639 @@
+"""Inter-view registration from asymmetric circle-grid captures, and batched warping of views.
+
+Each view-channel of the kaleidoscope is a (possibly mirrored) projective copy of the reference
+view. Registration crops each view's triangle from every target image, undoes its mirror parity,
+detects an asymmetric circle grid with OpenCV, maps the detections back to sensor pixels,
+aggregates the correspondences with the reference view over all target images and fits one
+homography per view with RANSAC.
+
+Convention:
+    Pixel coordinates are ``(x, y) = (column, row)`` with pixel centres at integer coordinates
+    (kornia ``align_corners=True``). ``view_homographies[v]`` maps **sensor px of view v → sensor
+    px of the reference view** (homogeneous column vectors), ``H_0 = I``; mirrored views have
+    ``det(H_v) < 0`` (the parity flip is part of the homography). The reference frame is the sensor
+    crop ``reference_bbox = (x0, y0, w, h)``: reference-frame pixel ``(j, i)`` is reference-sensor
+    pixel ``(x0 + j, y0 + i)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+import torch
+from kornia.geometry.transform import warp_perspective
+
+__all__ = [
+    "BlobDetectorParams",
+    "GridDetectorConfig",
+    "ViewRegistrationReport",
+    "RegistrationResult",
+    "to_gray_uint8",
+    "detect_circle_grid",
+    "crop_triangle",
+    "detect_in_views",
+    "register_views",
+    "fit_homography",
+    "reference_to_source_matrices",
+    "view_masks",
+    "warp_views",
+    "apply_homography",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# detection
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BlobDetectorParams:
+    """Parameters of ``cv2.SimpleBlobDetector`` (areas in px² of the image it runs on).
+
+    The defaults accept dark circles of roughly 3…180 px radius on a light background; narrow
+    ``min_area``/``max_area`` to the circle size of your target when clutter is detected.
+    """
+
+    min_area: float = 20.0
+    max_area: float = 1.0e5
+    min_circularity: float = 0.6
+    min_convexity: float = 0.8
+    min_inertia_ratio: float = 0.1
+    min_threshold: float = 10.0
+    max_threshold: float = 230.0
+    threshold_step: float = 10.0
+    min_dist_between_blobs: float = 3.0
+    min_repeatability: int = 2
+    blob_color: int = 0  # 0: dark blobs, 255: light blobs
+
+    def create(self) -> cv2.SimpleBlobDetector:
+        """Build the OpenCV detector."""
+        p = cv2.SimpleBlobDetector_Params()
+        p.filterByArea = True
+        p.minArea = float(self.min_area)
+        p.maxArea = float(self.max_area)
+        p.filterByCircularity = self.min_circularity > 0
+        p.minCircularity = float(self.min_circularity)
+        p.filterByConvexity = self.min_convexity > 0
+        p.minConvexity = float(self.min_convexity)
+        p.filterByInertia = self.min_inertia_ratio > 0
+        p.minInertiaRatio = float(self.min_inertia_ratio)
+        p.minThreshold = float(self.min_threshold)
+        p.maxThreshold = float(self.max_threshold)
+        p.thresholdStep = float(self.threshold_step)
+        p.minDistBetweenBlobs = float(self.min_dist_between_blobs)
+        p.minRepeatability = int(self.min_repeatability)
+        p.filterByColor = True
+        p.blobColor = int(self.blob_color)
+        return cv2.SimpleBlobDetector_create(p)
+
+
+@dataclass
+class GridDetectorConfig:
+    """Settings of the circle-grid detection.
+
+    Attributes:
+        pattern_size: ``(points per row, rows)`` as ``cv2.findCirclesGrid`` expects for
+            ``CALIB_CB_ASYMMETRIC_GRID`` (OpenCV's sample target is ``(4, 11)``).
+        blob: blob-detector parameters.
+        equalize: ``"none"``, ``"clahe"`` (always equalise) or ``"auto"`` (try the plain image,
+            then a CLAHE-equalised one).
+        margin_px: margin added around each triangle's bounding box when cropping.
+        fill_outside: paint pixels outside the triangle (beyond ``margin_px``) with the bright
+            background so neighbouring views cannot contribute blobs.
+        ransac_threshold_px: RANSAC inlier threshold of ``cv2.findHomography`` (px).
+    """
+
+    pattern_size: tuple[int, int] = (4, 5)
+    blob: BlobDetectorParams = field(default_factory=BlobDetectorParams)
+    equalize: str = "auto"
+    margin_px: int = 6
+    fill_outside: bool = True
+    ransac_threshold_px: float = 1.0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["pattern_size"] = list(self.pattern_size)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GridDetectorConfig:
+        d = dict(d)
+        blob = BlobDetectorParams(**d.pop("blob", {}))
+        if "pattern_size" in d:
+            d["pattern_size"] = tuple(int(x) for x in d["pattern_size"])
+        return cls(blob=blob, **d)
+
+
+def to_gray_uint8(image: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Convert an image to a contiguous ``(H, W)`` uint8 grey image for OpenCV.
+
+    Accepts numpy ``(H, W)``, ``(H, W, 3)`` (OpenCV BGR order is irrelevant for the mean) or a
+    torch ``(H, W)`` / ``(3, H, W)`` tensor (channels first, R, G, B). Float inputs are scaled so
+    that their 99.5th percentile maps to 255 (linear data of any range).
+    """
+    if isinstance(image, torch.Tensor):
+        t = image.detach().cpu()
+        if t.ndim == 3:
+            t = t.float().mean(0)
+        arr = t.numpy()
+    else:
+        arr = np.asarray(image)
+        if arr.ndim == 3 and arr.dtype == np.uint8 and arr.shape[2] == 3:
+            arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
+        elif arr.ndim == 3:
+            arr = arr.astype(np.float32).mean(axis=2)
+    if arr.ndim != 2:
+        raise ValueError(f"image must be (H, W), (H, W, 3) or (3, H, W); got shape {arr.shape}")
+    if arr.dtype == np.uint8:
+        return np.ascontiguousarray(arr)
+    arr = arr.astype(np.float32)
+    hi = float(np.percentile(arr, 99.5)) if arr.size else 1.0
+    lo = min(float(arr.min()), 0.0) if arr.size else 0.0
+    scale = 255.0 / (hi - lo) if hi > lo else 1.0
+    return np.ascontiguousarray(np.clip((arr - lo) * scale, 0, 255).astype(np.uint8))
+
+
+def detect_circle_grid(
+    gray: np.ndarray, config: GridDetectorConfig | None = None
+) -> np.ndarray | None:
+    """Detect an asymmetric circle grid in one grey image.
+
+    Args:
+        gray: ``(H, W)`` uint8 image (use :func:`to_gray_uint8`).
+        config: detector settings (pattern size, blob parameters, equalisation).
+
+    Returns:
+        ``(N, 2)`` float64 centres ``(x, y)`` in OpenCV's grid order (``N = cols·rows``), or
+        ``None`` when the grid is not found.
+    """
+    cfg = config or GridDetectorConfig()
+    if gray.ndim != 2 or gray.dtype != np.uint8:
+        raise ValueError(f"gray must be a (H, W) uint8 array, got {gray.shape} {gray.dtype}")
+    if cfg.equalize not in ("none", "clahe", "auto"):
+        raise ValueError(f"equalize must be 'none', 'clahe' or 'auto', got {cfg.equalize!r}")
+    candidates = []
+    if cfg.equalize in ("none", "auto"):
+        candidates.append(gray)
+    if cfg.equalize in ("clahe", "auto"):
+        clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
+        candidates.append(clahe.apply(gray))
+    detector = cfg.blob.create()
+    pattern = (int(cfg.pattern_size[0]), int(cfg.pattern_size[1]))
+    for img in candidates:
+        ok, centres = cv2.findCirclesGrid(
+            img, pattern, flags=cv2.CALIB_CB_ASYMMETRIC_GRID, blobDetector=detector
+        )
+        if ok and centres is not None and len(centres) == pattern[0] * pattern[1]:
+            return centres.reshape(-1, 2).astype(np.float64)
+    return None
+
+
+def crop_triangle(
+    gray: np.ndarray,
+    triangle: np.ndarray,
+    parity: int,
+    margin_px: int = 6,
+    fill_outside: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Crop one view's triangle (plus a margin) and undo its mirror parity.
+
+    Args:
+        gray: ``(H, W)`` uint8 sensor image.
+        triangle: ``(3, 2)`` vertices ``(x, y)`` in sensor px.
+        parity: ``+1`` (even number of reflections) or ``-1`` (mirrored: the crop is flipped
+            left-right).
+        margin_px: margin around the triangle's bounding box; with ``fill_outside`` pixels farther
+            than this from the triangle are painted with the bright background (the 95th
+            percentile of the pixels inside), so that neighbouring views contribute no blobs.
+
+    Returns:
+        ``(crop, T)``: the crop ``(h_c, w_c)`` uint8 and the ``(3, 3)`` float64 matrix mapping crop
+        px → sensor px.
+    """
+    tri = np.asarray(triangle, dtype=np.float64).reshape(3, 2)
+    H, W = gray.shape
+    x0 = int(max(np.floor(tri[:, 0].min()) - margin_px, 0))
+    y0 = int(max(np.floor(tri[:, 1].min()) - margin_px, 0))
+    x1 = int(min(np.ceil(tri[:, 0].max()) + margin_px, W - 1))
+    y1 = int(min(np.ceil(tri[:, 1].max()) + margin_px, H - 1))
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError(f"triangle {tri.tolist()} lies outside the {W}x{H} image")
+    crop = gray[y0 : y1 + 1, x0 : x1 + 1].copy()
+    if fill_outside:
+        ys, xs = np.mgrid[y0 : y1 + 1, x0 : x1 + 1]
+        pts = np.stack([xs, ys], axis=-1).reshape(-1, 2).astype(np.float64)
+        dist = _signed_edge_distance(pts, tri).reshape(crop.shape)
+        inside = dist >= 0
+        if inside.any():
+            fill = np.percentile(crop[inside], 95)
+            crop[dist < -margin_px] = np.uint8(fill)
+    T = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+    if int(parity) < 0:
+        crop = np.ascontiguousarray(crop[:, ::-1])
+        wc = crop.shape[1]
+        T = T @ np.array([[-1.0, 0.0, wc - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    elif int(parity) != 1:
+        raise ValueError(f"parity must be +1 or -1, got {parity}")
+    return crop, T
+
+
+def _signed_edge_distance(pts: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Minimum signed distance (px, positive inside) of ``(N, 2)`` points to a triangle's edges."""
+    a, b, c = tri
+    area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    s = 1.0 if area >= 0 else -1.0
+    out = np.full(len(pts), np.inf)
+    for p, q in ((a, b), (b, c), (c, a)):
+        e = q - p
+        cross = e[0] * (pts[:, 1] - p[1]) - e[1] * (pts[:, 0] - p[0])
+        out = np.minimum(out, s * cross / max(np.hypot(*e), 1e-12))
+    return out
+
+
+def apply_homography(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a ``(3, 3)`` homography to ``(N, 2)`` points (numpy, float64)."""
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    q = np.concatenate([p, np.ones((len(p), 1))], axis=1) @ np.asarray(H, dtype=np.float64).T
+    return q[:, :2] / q[:, 2:3]
+
+
+def detect_in_views(
+    image: np.ndarray | torch.Tensor,
+    triangles: np.ndarray | torch.Tensor,
+    parity: np.ndarray | torch.Tensor | Sequence[int],
+    config: GridDetectorConfig | None = None,
+) -> list[np.ndarray | None]:
+    """Detect the circle grid in every view's triangle of one target image.
+
+    Args:
+        image: sensor image (see :func:`to_gray_uint8` for accepted layouts).
+        triangles: ``(V, 3, 2)`` triangle vertices in sensor px.
+        parity: ``(V,)`` ±1.
+        config: detector settings.
+
+    Returns:
+        A list of ``V`` entries: ``(N, 2)`` detections in **sensor px** (grid order as returned by
+        the detector on the parity-corrected crop), or ``None`` where the grid was not found.
+    """
+    cfg = config or GridDetectorConfig()
+    gray = to_gray_uint8(image)
+    tris = _as_numpy(triangles).reshape(-1, 3, 2)
+    par = _as_numpy(parity).reshape(-1)
+    if len(par) != len(tris):
+        raise ValueError(f"parity has {len(par)} entries but triangles has {len(tris)} views")
+    out: list[np.ndarray | None] = []
+    for v in range(len(tris)):
+        crop, T = crop_triangle(gray, tris[v], int(par[v]), cfg.margin_px, cfg.fill_outside)
+        pts = detect_circle_grid(crop, cfg)
+        out.append(None if pts is None else apply_homography(T, pts))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# homography estimation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ViewRegistrationReport:
+    """Per-view registration statistics.
+
+    Attributes:
+        view: view index.
+        images_with_detections: number of target images where the grid was found in this view
+            *and* in the reference view.
+        points_used: correspondences given to RANSAC.
+        inliers: RANSAC inliers.
+        rms_px: reprojection RMS (px, reference sensor) over the inliers.
+        reversed_order_images: images whose detections had to be reversed (180° grid ambiguity).
+    """
+
+    view: int
+    images_with_detections: int
+    points_used: int
+    inliers: int
+    rms_px: float
+    reversed_order_images: int = 0
+
+    def __str__(self) -> str:
+        return (
+            f"view {self.view:2d}: {self.images_with_detections} images, "
+            f"{self.inliers}/{self.points_used} inliers, RMS {self.rms_px:.3f} px"
+            + (f", {self.reversed_order_images} reversed" if self.reversed_order_images else "")
+        )
+
+
+@dataclass
+class RegistrationResult:
+    """Output of :func:`register_views`.
+
+    Attributes:
+        view_homographies: ``(V, 3, 3)`` float64 tensor, view-v sensor px → reference sensor px.
+        reports: one :class:`ViewRegistrationReport` per view.
+    """
+
+    view_homographies: torch.Tensor
+    reports: list[ViewRegistrationReport]
+
+    def __str__(self) -> str:
+        return "\n".join(str(r) for r in self.reports)
+
+
+def _fit_rms(src: np.ndarray, dst: np.ndarray) -> float:
+    """RMS error of a least-squares homography src → dst (inf when degenerate)."""
+    if len(src) < 4:
+        return float("inf")
+    H, _ = cv2.findHomography(np.ascontiguousarray(src), np.ascontiguousarray(dst), 0)
+    if H is None:
+        return float("inf")
+    return float(np.sqrt(np.mean(np.sum((apply_homography(H, src) - dst) ** 2, axis=1))))
+
+
+def fit_homography(
+    src: Sequence[np.ndarray],
+    dst: Sequence[np.ndarray],
+    ransac_threshold_px: float = 1.0,
+    check_reversed: bool = True,
+) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """RANSAC homography from grid correspondences aggregated over several images.
+
+    For each image the detections ``src[k]`` may come in the reversed grid order (the 180°
+    ambiguity of the detector's ordering): both orders are fitted to ``dst[k]`` by least squares
+    and the one with the lower RMS is kept. The chosen pairs of all images are then given to
+    ``cv2.findHomography(..., cv2.RANSAC, ransac_threshold_px)``.
+
+    Args:
+        src: per image ``(N_k, 2)`` points (source view, px).
+        dst: per image ``(N_k, 2)`` corresponding points (destination, px), same order as the
+            detector returned them.
+        ransac_threshold_px: RANSAC inlier threshold.
+        check_reversed: try the reversed order of each ``src[k]``.
+
+    Returns:
+        ``(H (3, 3) float64 with H[2, 2] = 1, inliers (ΣN_k,) bool, rms_px over inliers,
+        number of images whose order was reversed)``.
+    """
+    if len(src) != len(dst) or not src:
+        raise ValueError(f"need matching non-empty lists of point sets, got {len(src)}/{len(dst)}")
+    s_all, d_all, n_rev = [], [], 0
+    for s_k, d_k in zip(src, dst, strict=True):
+        s_k = np.asarray(s_k, dtype=np.float64).reshape(-1, 2)
+        d_k = np.asarray(d_k, dtype=np.float64).reshape(-1, 2)
+        if len(s_k) != len(d_k):
+            raise ValueError(f"point sets differ in size: {len(s_k)} vs {len(d_k)}")
+        if check_reversed and _fit_rms(s_k[::-1], d_k) < _fit_rms(s_k, d_k):
+            s_k = s_k[::-1]
+            n_rev += 1
+        s_all.append(s_k)
+        d_all.append(d_k)
+    s_np = np.ascontiguousarray(np.concatenate(s_all))
+    d_np = np.ascontiguousarray(np.concatenate(d_all))
+    if len(s_np) < 4:
+        raise ValueError(f"a homography needs at least 4 correspondences, got {len(s_np)}")
+    H, inl = cv2.findHomography(s_np, d_np, cv2.RANSAC, float(ransac_threshold_px))
+    if H is None:
+        raise ValueError("cv2.findHomography found no homography (degenerate correspondences)")
+    inl = inl.ravel().astype(bool)
+    H = H / H[2, 2]
+    res = apply_homography(H, s_np[inl]) - d_np[inl]
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if inl.any() else float("inf")
+    return H, inl, rms, n_rev
+
+
+def register_views(
+    images: Sequence[np.ndarray | torch.Tensor],
+    triangles: np.ndarray | torch.Tensor,
+    parity: np.ndarray | torch.Tensor | Sequence[int],
+    config: GridDetectorConfig | None = None,
+    reference_view: int = 0,
+) -> RegistrationResult:
+    """Estimate each view's homography to the reference view from circle-grid target images.
+
+    For every image the grid is detected in each parity-corrected triangle crop and mapped back
+    to sensor px. The ordering returned by the detector is checked against the reference view's
+    (both the given and the reversed order are fitted by least squares on that image; the one with
+    the lower error is kept — this resolves the 180° ambiguity of the grid ordering). The chosen
+    correspondences of all images are aggregated and ``cv2.findHomography(..., cv2.RANSAC,
+    config.ransac_threshold_px)`` gives ``H_v``; the reference view gets the identity.
+
+    Args:
+        images: target images (each as accepted by :func:`to_gray_uint8`), same sensor size.
+        triangles: ``(V, 3, 2)`` triangle vertices in sensor px.
+        parity: ``(V,)`` ±1.
+        config: detector/RANSAC settings.
+        reference_view: index of the reference view (0 by convention).
+
+    Returns:
+        :class:`RegistrationResult` with ``(V, 3, 3)`` float64 homographies and per-view reports.
+
+    Raises:
+        ValueError: no images, or the grid was found in no image for some view (the message names
+            the views).
+    """
+    cfg = config or GridDetectorConfig()
+    if len(images) == 0:
+        raise ValueError("register_views needs at least one target image")
+    tris = _as_numpy(triangles).reshape(-1, 3, 2)
+    V = len(tris)
+    detections = [detect_in_views(img, tris, parity, cfg) for img in images]
+    missing_ref = all(d[reference_view] is None for d in detections)
+    if missing_ref:
+        raise ValueError(
+            f"circle grid {tuple(cfg.pattern_size)} found in none of the {len(images)} images for "
+            f"the reference view {reference_view}; check pattern_size (cols, rows) and blob sizes"
+        )
+    Hs = np.tile(np.eye(3), (V, 1, 1))
+    reports: list[ViewRegistrationReport] = []
+    failed: list[int] = []
+    for v in range(V):
+        pairs = [
+            (det[v], det[reference_view])
+            for det in detections
+            if det[v] is not None and det[reference_view] is not None
+        ]
+        if not pairs:
+            failed.append(v)
+            continue
+        if v == reference_view:
+            src = np.concatenate([p[0] for p in pairs])
+            reports.append(ViewRegistrationReport(v, len(pairs), len(src), len(src), 0.0))
+            continue
+        try:
+            H, inl, rms, n_rev = fit_homography(
+                [p[0] for p in pairs], [p[1] for p in pairs], cfg.ransac_threshold_px
+            )
+        except ValueError:
+            failed.append(v)
+            continue
+        Hs[v] = H
+        reports.append(ViewRegistrationReport(v, len(pairs), len(inl), int(inl.sum()), rms, n_rev))
+    if failed:
+        raise ValueError(
+            f"circle grid {tuple(cfg.pattern_size)} found in no image (together with the reference "
+            f"view) for view(s) {failed} of {V}; check the triangles, parity, pattern_size and "
+            "blob-detector area limits"
+        )
+    return RegistrationResult(torch.from_numpy(Hs), reports)
+
+
+# --------------------------------------------------------------------------------------------
+# warping into the reference frame
+# --------------------------------------------------------------------------------------------
+
+
+def _as_numpy(x: np.ndarray | torch.Tensor | Sequence) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _check_bbox(reference_bbox: Sequence[int] | torch.Tensor) -> tuple[int, int, int, int]:
+    bb = [int(v) for v in _as_numpy(reference_bbox).reshape(-1).tolist()]
+    if len(bb) != 4 or bb[2] <= 0 or bb[3] <= 0:
+        raise ValueError(f"reference_bbox must be (x0, y0, w, h) with w, h > 0, got {bb}")
+    return bb[0], bb[1], bb[2], bb[3]
+
+
+def _check_homographies(view_homographies: torch.Tensor) -> None:
+    if not isinstance(view_homographies, torch.Tensor):
+        raise TypeError(f"view_homographies must be a tensor, got {type(view_homographies)}")
+    if view_homographies.ndim != 3 or view_homographies.shape[1:] != (3, 3):
+        raise ValueError(
+            f"view_homographies must be (V, 3, 3), got {tuple(view_homographies.shape)}"
+        )
+
+
+def reference_to_source_matrices(
+    view_homographies: torch.Tensor, reference_bbox: Sequence[int] | torch.Tensor
+) -> torch.Tensor:
+    """Matrices ``M_v = T_crop · H_v`` mapping view-v sensor px → reference-frame px.
+
+    ``T_crop`` translates by ``(−x0, −y0)``. These are the ``M`` that
+    ``kornia.geometry.transform.warp_perspective`` expects (it samples ``src(M⁻¹ x)``).
+
+    Args:
+        view_homographies: ``(V, 3, 3)``.
+        reference_bbox: ``(x0, y0, w, h)``.
+
+    Returns:
+        ``(V, 3, 3)`` tensor, dtype/device of ``view_homographies``.
+    """
+    _check_homographies(view_homographies)
+    x0, y0, _, _ = _check_bbox(reference_bbox)
+    T = torch.eye(3, dtype=view_homographies.dtype, device=view_homographies.device)
+    T[0, 2] = -float(x0)
+    T[1, 2] = -float(y0)
+    return T @ view_homographies
+
+
+def view_masks(
+    view_homographies: torch.Tensor,
+    triangles: torch.Tensor,
+    reference_bbox: Sequence[int] | torch.Tensor,
+    sensor_size: Sequence[int] | None = None,
+    inset_px: float = 1.0,
+) -> torch.Tensor:
+    """Analytic per-view masks in the reference frame: pixels whose source lies inside the view.
+
+    A reference-frame pixel ``q`` belongs to view ``v`` when ``H_v⁻¹ (q + (x0, y0))`` lies inside
+    triangle ``v`` by at least ``inset_px`` (so bilinear sampling does not mix in the dark border)
+    and inside the sensor ``[0, W−1] × [0, H−1]`` when ``sensor_size = (H, W)`` is given.
+
+    Args:
+        view_homographies: ``(V, 3, 3)`` view sensor px → reference sensor px.
+        triangles: ``(V, 3, 2)`` sensor px.
+        reference_bbox: ``(x0, y0, w, h)``.
+        sensor_size: optional ``(H, W)``.
+        inset_px: inward margin from the triangle edges (px of the view's sensor image).
+
+    Returns:
+        ``(V, h, w)`` bool tensor on the device of ``view_homographies``.
+    """
+    _check_homographies(view_homographies)
+    x0, y0, w, h = _check_bbox(reference_bbox)
+    V = view_homographies.shape[0]
+    dev = view_homographies.device
+    tri = torch.as_tensor(triangles, device=dev, dtype=torch.float64)
+    if tri.shape != (V, 3, 2):
+        raise ValueError(f"triangles must be (V, 3, 2) = ({V}, 3, 2), got {tuple(tri.shape)}")
+    Hinv = torch.linalg.inv(view_homographies.to(torch.float64))  # ref sensor -> view sensor
+    ys, xs = torch.meshgrid(
+        torch.arange(h, device=dev, dtype=torch.float64) + y0,
+        torch.arange(w, device=dev, dtype=torch.float64) + x0,
+        indexing="ij",
+    )
+    P = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.ones_like(xs.reshape(-1))], 0)
+    Q = Hinv @ P  # (V, 3, h*w)
+    qz = Q[:, 2]
+    ok = qz.abs() > 1e-12
+    qx = Q[:, 0] / torch.where(ok, qz, torch.ones_like(qz))
+    qy = Q[:, 1] / torch.where(ok, qz, torch.ones_like(qz))
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]  # (V, 2)
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    sgn = torch.where(area >= 0, 1.0, -1.0).to(torch.float64)[:, None]
+    inside = ok.clone()
+    for p, q in ((a, b), (b, c), (c, a)):
+        e = q - p
+        cross = e[:, 0:1] * (qy - p[:, 1:2]) - e[:, 1:2] * (qx - p[:, 0:1])
+        dist = sgn * cross / e.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        inside &= dist >= inset_px
+    if sensor_size is not None:
+        Hs, Ws = (int(s) for s in sensor_size)
+        inside &= (qx >= 0) & (qx <= Ws - 1) & (qy >= 0) & (qy <= Hs - 1)
+    return inside.reshape(V, h, w)
+
+
+def warp_views(
+    image: torch.Tensor,
+    view_homographies: torch.Tensor,
+    reference_bbox: Sequence[int] | torch.Tensor,
+    triangles: torch.Tensor | None = None,
+    inset_px: float = 1.0,
+    mode: str = "bilinear",
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Warp every view of a sensor image into the reference frame with ONE kornia call.
+
+    The image is expanded (not copied) along the view axis and warped with
+    ``kornia.geometry.transform.warp_perspective(align_corners=True)`` using
+    ``M_v = T_crop · H_v`` (see :func:`reference_to_source_matrices`).
+
+    Args:
+        image: ``(C, H, W)`` or ``(B, C, H, W)`` sensor image(s), any float dtype/device.
+        view_homographies: ``(V, 3, 3)`` view sensor px → reference sensor px.
+        reference_bbox: ``(x0, y0, w, h)``.
+        triangles: optional ``(V, 3, 2)``; when given, the per-view validity masks are returned.
+        inset_px: inward triangle margin of the masks (see :func:`view_masks`).
+        mode: ``"bilinear"`` or ``"nearest"``.
+
+    Returns:
+        ``(warped, masks)``: ``warped`` is ``(V, C, h, w)`` for a ``(C, H, W)`` input or
+        ``(B, V, C, h, w)`` for a batch; ``masks`` is ``(V, h, w)`` bool (or ``None``).
+    """
+    if not isinstance(image, torch.Tensor):
+        raise TypeError(f"image must be a torch.Tensor, got {type(image)}")
+    if image.ndim not in (3, 4):
+        raise ValueError(f"image must be (C, H, W) or (B, C, H, W), got {tuple(image.shape)}")
+    if not image.is_floating_point():
+        raise TypeError(f"image must be floating point, got {image.dtype}")
+    _check_homographies(view_homographies)
+    x0, y0, w, h = _check_bbox(reference_bbox)
+    batched = image.ndim == 4
+    img4 = image if batched else image[None]
+    B, C, H, W = img4.shape
+    V = view_homographies.shape[0]
+    M = reference_to_source_matrices(
+        view_homographies.to(device=image.device, dtype=image.dtype), (x0, y0, w, h)
+    )
+    src = img4.reshape(1, B * C, H, W).expand(V, B * C, H, W)
+    out = warp_perspective(src, M, (h, w), mode=mode, align_corners=True)  # (V, B*C, h, w)
+    out = out.reshape(V, B, C, h, w)
+    out = out.permute(1, 0, 2, 3, 4) if batched else out[:, 0]
+    masks = None
+    if triangles is not None:
+        masks = view_masks(
+            view_homographies.to(image.device), triangles, (x0, y0, w, h), (H, W), inset_px
+        )
+    return out, masks
