@@ -1,0 +1,453 @@
+"""Sensor and diffuser radiometry of the virtual prototype.
+
+Signal chain of :meth:`SensorModel.expose` (per pixel, all batched torch):
+
+1. optional Gaussian PSF on the sensor (``psf_sigma_px``, :func:`gaussian_blur`);
+2. Bayer mosaic (``output='bayer'``, :func:`mosaic`) or three full planes (``output='rgb'``);
+3. mean electrons ``μ = exposure · scale · E`` where ``E`` is the input (``scale`` = full-well
+   electrons for ``input_units='relative'``, so ``E·exposure = 1`` fills the well; 1 for
+   ``'electrons'``);
+4. photon shot noise ``N_e ~ Poisson(μ)`` (``shot_noise``), clipped at the full well;
+5. read noise ``+ N(0, σ_read²)`` electrons;
+6. conversion to digital numbers ``DN = N_e / (electrons per DN) + black_level``, rounding
+   (``quantize``) and clipping to ``[0, white_level]``; pixels at the full well or the white level
+   are flagged saturated and read exactly the white level.
+
+Noise is drawn from a ``torch.Generator`` seeded with ``seed`` (one per device, advancing from call
+to call; :meth:`SensorModel.reseed` restarts the sequence) or from a generator passed explicitly.
+
+CFA patterns are named by the 2 × 2 tile read row-major from pixel ``(x, y) = (0, 0)``:
+``'RGGB'`` means row 0 = R G, row 1 = G B. Channel order of RGB tensors is R, G, B.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+__all__ = [
+    "CFA_PATTERNS",
+    "cfa_index",
+    "cfa_masks",
+    "cfa_pattern_from_rawpy",
+    "mosaic",
+    "demosaic_bilinear",
+    "bin_bayer",
+    "gaussian_blur",
+    "diffuser_falloff",
+    "DiffuserModel",
+    "Exposure",
+    "SensorModel",
+]
+
+CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+_CH = {"R": 0, "G": 1, "B": 2}
+
+
+def _check_pattern(pattern: str) -> str:
+    if not isinstance(pattern, str) or pattern.upper() not in CFA_PATTERNS:
+        raise ValueError(f"cfa pattern must be one of {CFA_PATTERNS}, got {pattern!r}")
+    return pattern.upper()
+
+
+def cfa_index(pattern: str = "RGGB") -> list[list[int]]:
+    """Channel index (0 = R, 1 = G, 2 = B) of the 2 × 2 CFA tile, ``[row][col]``."""
+    p = _check_pattern(pattern)
+    return [[_CH[p[0]], _CH[p[1]]], [_CH[p[2]], _CH[p[3]]]]
+
+
+def cfa_pattern_from_rawpy(raw_pattern, color_desc: bytes | str = b"RGBG") -> str:
+    """Pattern name from rawpy's ``raw_pattern`` (2 × 2 indices) and ``color_desc``.
+
+    Example: the Kodak DC50 file has ``raw_pattern = [[1, 0], [2, 3]]``, ``'RGBG'`` → ``'GRBG'``.
+    """
+    desc = color_desc.decode() if isinstance(color_desc, bytes) else str(color_desc)
+    try:
+        idx = [int(raw_pattern[r][c]) for r in range(2) for c in range(2)]
+        name = "".join(desc[i] for i in idx)
+    except (IndexError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f"raw_pattern {raw_pattern!r} / color_desc {desc!r} is not a 2x2 CFA"
+        ) from exc
+    return _check_pattern(name)
+
+
+def cfa_masks(
+    pattern: str,
+    height: int,
+    width: int,
+    *,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> torch.Tensor:
+    """One-hot CFA masks ``(3, H, W)``: ``masks[c, y, x] = 1`` where pixel ``(x, y)`` sees ``c``."""
+    idx = torch.tensor(cfa_index(pattern), device=device)
+    tile = idx.repeat((height + 1) // 2, (width + 1) // 2)[:height, :width]
+    ch = torch.arange(3, device=device).view(3, 1, 1)
+    return (tile.unsqueeze(0) == ch).to(dtype or torch.get_default_dtype())
+
+
+def _check_image(x: torch.Tensor, channels: int | None, name: str) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.ndim < 3:
+        raise ValueError(f"{name} must have shape (..., C, H, W), got {tuple(x.shape)}")
+    if channels is not None and x.shape[-3] != channels:
+        raise ValueError(f"{name} must have {channels} channel(s) at dim -3, got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        x = x.to(torch.get_default_dtype())
+    return x
+
+
+def mosaic(rgb: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
+    """Sample an RGB image through a Bayer CFA.
+
+    Args:
+        rgb: ``(..., 3, H, W)``.
+        pattern: CFA tile name (see module docstring).
+
+    Returns:
+        ``(..., 1, H, W)`` raw mosaic, same dtype/device.
+    """
+    rgb = _check_image(rgb, 3, "rgb")
+    m = cfa_masks(pattern, rgb.shape[-2], rgb.shape[-1], device=rgb.device, dtype=rgb.dtype)
+    return (rgb * m).sum(dim=-3, keepdim=True)
+
+
+_K_G = [[0.0, 1.0, 0.0], [1.0, 4.0, 1.0], [0.0, 1.0, 0.0]]
+_K_RB = [[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]
+
+
+def demosaic_bilinear(raw: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
+    """Bilinear demosaic of a Bayer mosaic (normalised convolution).
+
+    Each channel is interpolated from its own samples with the classic bilinear kernels
+    (cross for G, 3 × 3 tent for R/B), divided by the same convolution of the sampling mask, so
+    known samples are kept exactly and borders use only the samples that exist (no padding bias).
+
+    Args:
+        raw: ``(..., 1, H, W)`` mosaic.
+
+    Returns:
+        ``(..., 3, H, W)`` RGB, same dtype/device.
+    """
+    raw = _check_image(raw, 1, "raw")
+    lead, (h, w) = raw.shape[:-3], raw.shape[-2:]
+    m = cfa_masks(pattern, h, w, device=raw.device, dtype=raw.dtype)
+    x = raw.reshape(-1, 1, h, w) * m  # (N, 3, H, W)
+    k = torch.tensor([_K_RB, _K_G, _K_RB], device=raw.device, dtype=raw.dtype).unsqueeze(1)
+    num = F.conv2d(x, k, padding=1, groups=3)
+    den = F.conv2d(m.unsqueeze(0), k, padding=1, groups=3)
+    return (num / den).reshape(*lead, 3, h, w)
+
+
+def bin_bayer(raw: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
+    """Half-size RGB from a Bayer mosaic by 2 × 2 binning (R, mean of the two G, B).
+
+    A trailing odd row/column is dropped. Output pixel ``(x, y)`` covers raw pixels
+    ``2x…2x+1, 2y…2y+1``; its centre is at raw coordinate ``(2x + 0.5, 2y + 0.5)``.
+
+    Args:
+        raw: ``(..., 1, H, W)`` mosaic.
+
+    Returns:
+        ``(..., 3, H // 2, W // 2)``.
+    """
+    raw = _check_image(raw, 1, "raw")
+    lead, (h, w) = raw.shape[:-3], raw.shape[-2:]
+    if h < 2 or w < 2:
+        raise ValueError(f"raw must be at least 2x2, got {tuple(raw.shape)}")
+    h2, w2 = h // 2, w // 2
+    cells = F.pixel_unshuffle(raw.reshape(-1, 1, h, w)[..., : 2 * h2, : 2 * w2], 2)  # (N,4,h2,w2)
+    idx = [c for row in cfa_index(pattern) for c in row]
+    sel = torch.zeros(3, 4, device=raw.device, dtype=raw.dtype)
+    for pos, c in enumerate(idx):
+        sel[c, pos] = 1.0
+    sel = sel / sel.sum(dim=1, keepdim=True)
+    out = torch.einsum("cp,nphw->nchw", sel, cells)
+    return out.reshape(*lead, 3, h2, w2)
+
+
+def gaussian_blur(image: torch.Tensor, sigma_px: float, border: str = "reflect") -> torch.Tensor:
+    """Isotropic Gaussian PSF (``kornia.filters.gaussian_blur2d``), kernel ±3σ.
+
+    Args:
+        image: ``(..., C, H, W)``.
+        sigma_px: standard deviation in pixels; ``0`` returns the input unchanged.
+        border: kornia border mode (``'reflect'``, ``'replicate'``, ``'constant'``, ``'circular'``).
+    """
+    image = _check_image(image, None, "image")
+    if sigma_px < 0:
+        raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
+    if sigma_px == 0:
+        return image
+    import kornia
+
+    half = max(1, int(math.ceil(3.0 * sigma_px)))
+    lead, (c, h, w) = image.shape[:-3], image.shape[-3:]
+    x = image.reshape(-1, c, h, w)
+    if border == "reflect" and (half >= h or half >= w):
+        border = "replicate"
+    out = kornia.filters.gaussian_blur2d(
+        x, (2 * half + 1, 2 * half + 1), (float(sigma_px), float(sigma_px)), border_type=border
+    )
+    return out.reshape(*lead, c, h, w)
+
+
+def diffuser_falloff(alpha: torch.Tensor, k: float = 2.0) -> torch.Tensor:
+    """Relative radiance of the diffuser towards angle ``alpha`` (rad from the normal): cos^k(α).
+
+    ``k = 0`` is a Lambertian diffuser (constant radiance); larger ``k`` is more forward scattering.
+    Angles beyond 90° give 0.
+    """
+    alpha = torch.as_tensor(alpha)
+    if not alpha.is_floating_point():
+        alpha = alpha.to(torch.get_default_dtype())
+    if k < 0:
+        raise ValueError(f"fall-off exponent k must be >= 0, got {k}")
+    return torch.cos(alpha).clamp_min(0.0).pow(k)
+
+
+@dataclass
+class DiffuserModel:
+    """The diffuser at the objective's image plane.
+
+    Attributes:
+        falloff_k: exponent of the angular fall-off ``cos^k(α)`` (see :func:`diffuser_falloff`).
+            Default 2: a mildly forward-scattering ground-glass diffuser (an assumed value; the
+            calibration absorbs it into the per-view throughput ``g_v``).
+        blur_sigma_mm: Gaussian blur of the scene by the diffuser, σ in mm on the diffuser plane
+            (default 0 = none).
+    """
+
+    falloff_k: float = 2.0
+    blur_sigma_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.falloff_k < 0:
+            raise ValueError(f"falloff_k must be >= 0, got {self.falloff_k}")
+        if self.blur_sigma_mm < 0:
+            raise ValueError(f"blur_sigma_mm must be >= 0, got {self.blur_sigma_mm}")
+
+    def falloff(self, alpha: torch.Tensor) -> torch.Tensor:
+        """``cos^k(α)`` for angles ``alpha`` (rad), any shape."""
+        return diffuser_falloff(alpha, self.falloff_k)
+
+    def blur(self, image: torch.Tensor, pixel_size_mm: float) -> torch.Tensor:
+        """Blur a diffuser-plane image ``(..., C, H, W)`` sampled every ``pixel_size_mm``."""
+        if pixel_size_mm <= 0:
+            raise ValueError(f"pixel_size_mm must be > 0, got {pixel_size_mm}")
+        return gaussian_blur(image, self.blur_sigma_mm / pixel_size_mm)
+
+
+class Exposure(NamedTuple):
+    """Result of :meth:`SensorModel.expose`."""
+
+    dn: torch.Tensor
+    """Digital numbers (float tensor holding integers when ``quantize``), ``(..., C, H, W)``."""
+    saturated: torch.Tensor
+    """Bool mask, same shape: full well reached or DN ≥ white level; these read the white level."""
+
+
+_OUTPUTS = ("bayer", "rgb")
+_UNITS = ("relative", "electrons")
+
+
+@dataclass
+class SensorModel:
+    """Raw sensor: CFA, exposure, shot + read noise, black/white level, saturation.
+
+    Attributes:
+        output: ``'bayer'`` (one mosaicked plane) or ``'rgb'`` (three full planes, as a
+            3-sensor or demosaicked camera without interpolation error).
+        cfa_pattern: 2 × 2 CFA tile, one of ``'RGGB'``, ``'BGGR'``, ``'GRBG'``, ``'GBRG'``.
+        bit_depth: ADC bits; sets the default ``white_level = 2**bit_depth − 1``.
+        white_level: clipping level in DN (``None``: from ``bit_depth``).
+        black_level: offset added to every pixel, DN.
+        full_well_e: full-well capacity in electrons; electrons are clipped there. ``None``: no
+            well clipping (then ``electrons_per_dn`` is required).
+        electrons_per_dn: conversion gain; ``None``: ``full_well_e / (white_level − black_level)``
+            so a full well reads exactly the white level.
+        read_noise_e: read noise σ in electrons (Gaussian).
+        shot_noise: draw Poisson photon noise.
+        exposure: multiplies the input (exposure time × gain of the optics).
+        input_units: ``'relative'``: input × exposure = 1 means a full well (or the white level
+            when no full well is set); ``'electrons'``: input × exposure is the mean electron count.
+        quantize: round to integer DN.
+        psf_sigma_px: Gaussian PSF on the sensor, σ in pixels (0 = none), before the mosaic.
+        seed: seed of the noise generator (``None``: nondeterministic).
+
+    Defaults describe a generic 14-bit DSLR raw at low ISO (black 512 DN, 30 000 e⁻ full well,
+    3 e⁻ read noise): representative values, not one camera's datasheet.
+    """
+
+    output: str = "bayer"
+    cfa_pattern: str = "RGGB"
+    bit_depth: int = 14
+    white_level: float | None = None
+    black_level: float = 512.0
+    full_well_e: float | None = 30000.0
+    electrons_per_dn: float | None = None
+    read_noise_e: float = 3.0
+    shot_noise: bool = True
+    exposure: float = 1.0
+    input_units: str = "relative"
+    quantize: bool = True
+    psf_sigma_px: float = 0.0
+    seed: int | None = 0
+    _generators: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.output not in _OUTPUTS:
+            raise ValueError(f"output must be one of {_OUTPUTS}, got {self.output!r}")
+        self.cfa_pattern = _check_pattern(self.cfa_pattern)
+        if self.input_units not in _UNITS:
+            raise ValueError(f"input_units must be one of {_UNITS}, got {self.input_units!r}")
+        if not 1 <= int(self.bit_depth) <= 32:
+            raise ValueError(f"bit_depth must be in 1..32, got {self.bit_depth}")
+        if not 0 <= self.black_level < self.white:
+            raise ValueError(
+                f"black_level {self.black_level} must lie in [0, white_level={self.white})"
+            )
+        if self.full_well_e is None and self.electrons_per_dn is None:
+            raise ValueError("give full_well_e or electrons_per_dn")
+        if self.full_well_e is not None and self.full_well_e <= 0:
+            raise ValueError(f"full_well_e must be > 0, got {self.full_well_e}")
+        if self.electrons_per_dn is not None and self.electrons_per_dn <= 0:
+            raise ValueError(f"electrons_per_dn must be > 0, got {self.electrons_per_dn}")
+        if self.read_noise_e < 0:
+            raise ValueError(f"read_noise_e must be >= 0, got {self.read_noise_e}")
+        if self.exposure < 0:
+            raise ValueError(f"exposure must be >= 0, got {self.exposure}")
+        if self.psf_sigma_px < 0:
+            raise ValueError(f"psf_sigma_px must be >= 0, got {self.psf_sigma_px}")
+
+    # ---------------------------------------------------------------- derived quantities
+    @property
+    def white(self) -> float:
+        """White level in DN."""
+        if self.white_level is not None:
+            return float(self.white_level)
+        return float(2 ** int(self.bit_depth) - 1)
+
+    @property
+    def gain_e_per_dn(self) -> float:
+        """Conversion gain in electrons per DN."""
+        if self.electrons_per_dn is not None:
+            return float(self.electrons_per_dn)
+        return float(self.full_well_e) / (self.white - self.black_level)
+
+    @property
+    def electrons_at_unity(self) -> float:
+        """Electrons for a relative input × exposure of 1 (the full well, or the white level)."""
+        if self.full_well_e is not None:
+            return float(self.full_well_e)
+        return (self.white - self.black_level) * self.gain_e_per_dn
+
+    # ---------------------------------------------------------------- RNG
+    def reseed(self, seed: int | None = None) -> None:
+        """Restart the noise sequence (optionally with a new seed) on every device."""
+        if seed is not None:
+            self.seed = seed
+        self._generators.clear()
+
+    def generator(self, device: torch.device | str) -> torch.Generator:
+        """The model's generator on ``device`` (created from ``seed`` on first use)."""
+        dev = torch.device(device)
+        key = str(dev)
+        gen = self._generators.get(key)
+        if gen is None:
+            gen = torch.Generator(device=dev)
+            if self.seed is None:
+                gen.seed()
+            else:
+                gen.manual_seed(int(self.seed))
+            self._generators[key] = gen
+        return gen
+
+    # ---------------------------------------------------------------- imaging
+    def mosaic(self, rgb: torch.Tensor) -> torch.Tensor:
+        """``(..., 3, H, W)`` → ``(..., 1, H, W)`` with this sensor's CFA."""
+        return mosaic(rgb, self.cfa_pattern)
+
+    def demosaic(self, raw: torch.Tensor) -> torch.Tensor:
+        """Bilinear demosaic ``(..., 1, H, W)`` → ``(..., 3, H, W)``."""
+        return demosaic_bilinear(raw, self.cfa_pattern)
+
+    def bin2x2(self, raw: torch.Tensor) -> torch.Tensor:
+        """Half-size binning ``(..., 1, H, W)`` → ``(..., 3, H//2, W//2)``."""
+        return bin_bayer(raw, self.cfa_pattern)
+
+    def mean_electrons(self, irradiance: torch.Tensor) -> torch.Tensor:
+        """Noise-free electrons ``exposure · scale · E`` (no mosaic, no clipping)."""
+        scale = self.electrons_at_unity if self.input_units == "relative" else 1.0
+        return irradiance * (self.exposure * scale)
+
+    def expose(
+        self, irradiance: torch.Tensor, generator: torch.Generator | None = None
+    ) -> Exposure:
+        """Turn irradiance into raw digital numbers.
+
+        Args:
+            irradiance: ``(..., 3, H, W)`` per-channel signal (R, G, B; already weighted by the
+                camera sensitivities), or ``(..., 1, H, W)`` already mosaicked when
+                ``output='bayer'``. Units per ``input_units``; negative values are clipped to 0.
+            generator: noise generator on the input's device (default: the model's own, see
+                :meth:`generator`).
+
+        Returns:
+            :class:`Exposure` ``(dn, saturated)``, ``dn`` of shape ``(..., 1, H, W)`` for
+            ``'bayer'`` or ``(..., 3, H, W)`` for ``'rgb'``, in the input's floating dtype.
+        """
+        x = _check_image(irradiance, None, "irradiance")
+        c = x.shape[-3]
+        if self.output == "rgb" and c != 3:
+            raise ValueError(f"output='rgb' needs 3 input channels, got shape {tuple(x.shape)}")
+        if self.output == "bayer" and c not in (1, 3):
+            raise ValueError(f"output='bayer' needs 1 or 3 input channels, got {tuple(x.shape)}")
+        if self.psf_sigma_px > 0:
+            if c != 3 and self.output == "bayer":
+                raise ValueError("psf_sigma_px needs the 3-channel irradiance (blur before mosaic)")
+            x = gaussian_blur(x, self.psf_sigma_px)
+        if self.output == "bayer" and c == 3:
+            x = self.mosaic(x)
+        gen = generator if generator is not None else self.generator(x.device)
+        e = self.mean_electrons(x).clamp_min(0.0)
+        if self.shot_noise:
+            e = torch.poisson(e, generator=gen)
+        saturated = torch.zeros_like(e, dtype=torch.bool)
+        if self.full_well_e is not None:
+            saturated = e >= self.full_well_e
+            e = e.clamp_max(self.full_well_e)
+        if self.read_noise_e > 0:
+            noise = torch.randn(e.shape, generator=gen, device=e.device, dtype=e.dtype)
+            e = e + self.read_noise_e * noise
+        dn = e / self.gain_e_per_dn + self.black_level
+        if self.quantize:
+            dn = torch.round(dn)
+        saturated = saturated | (dn >= self.white)
+        dn = torch.where(saturated, torch.full_like(dn, self.white), dn.clamp_min(0.0))
+        return Exposure(dn, saturated)
+
+    def to_dict(self) -> dict:
+        """Plain-data description (for metadata / configs)."""
+        return {
+            "output": self.output,
+            "cfa_pattern": self.cfa_pattern,
+            "bit_depth": int(self.bit_depth),
+            "white_level": self.white,
+            "black_level": float(self.black_level),
+            "full_well_e": None if self.full_well_e is None else float(self.full_well_e),
+            "electrons_per_dn": self.gain_e_per_dn,
+            "read_noise_e": float(self.read_noise_e),
+            "shot_noise": bool(self.shot_noise),
+            "exposure": float(self.exposure),
+            "input_units": self.input_units,
+            "quantize": bool(self.quantize),
+            "psf_sigma_px": float(self.psf_sigma_px),
+            "seed": self.seed,
+        }
