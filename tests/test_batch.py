@@ -1,0 +1,112 @@
+"""Tests of batch processing: globs, failures collected, resume, summaries."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from hsi_torch.batch import DONE_DIR, expand_inputs, print_summary, run_batch
+from hsi_torch.io.atomic import atomic_write_text
+
+
+@pytest.fixture
+def inputs(tmp_path) -> Path:
+    d = tmp_path / "in"
+    d.mkdir()
+    for name in ["a.txt", "b.txt", "bad.txt", "c.txt"]:
+        (d / name).write_text(name.upper())
+    (d / "sub").mkdir()
+    (d / "sub" / "d.txt").write_text("D")
+    return d
+
+
+def _processor(out_dir: Path, calls: list[str]):
+    def process(p: Path) -> Path:
+        calls.append(p.name)
+        if p.stem == "bad":
+            raise ValueError(f"{p}: not a valid capture")
+        return atomic_write_text(out_dir / f"{p.stem}.out", p.read_text().lower())
+
+    return process
+
+
+def test_expand_inputs(inputs):
+    got = expand_inputs([str(inputs / "*.txt"), str(inputs / "a.txt"), str(inputs / "**/d.txt")])
+    assert [p.name for p in got] == ["a.txt", "b.txt", "bad.txt", "c.txt", "d.txt"]  # sorted, dedup
+    assert [p.name for p in expand_inputs(str(inputs / "[ab]*.txt"))] == [
+        "a.txt",
+        "b.txt",
+        "bad.txt",
+    ]
+    with pytest.raises(ValueError, match=r"pattern '.*\*\.tif' matches no files"):
+        expand_inputs([str(inputs / "*.tif")])
+    with pytest.raises(ValueError, match="is a directory"):
+        expand_inputs([str(inputs / "sub")])
+    assert expand_inputs([str(inputs / "missing.txt")]) == [inputs / "missing.txt"]
+
+
+def test_run_batch_continues_and_resumes(tmp_path, inputs, capsys):
+    out = tmp_path / "out"
+    calls: list[str] = []
+    items = [str(inputs / "*.txt"), str(inputs / "missing.txt")]
+    s = run_batch(items, _processor(out, calls), out, progress=False)
+    assert [p.name for p in s.processed] == ["a.txt", "b.txt", "c.txt"]
+    assert [f.input.name for f in s.failed] == ["bad.txt", "missing.txt"]
+    assert s.failed[0].error == f"ValueError: {inputs / 'bad.txt'}: not a valid capture"
+    assert s.failed[1].error.startswith("FileNotFoundError: input file not found")
+    assert "Traceback" in s.failed[0].traceback
+    assert (out / "a.out").read_text() == "a.txt" and not (out / "bad.out").exists()
+    assert s.outputs[inputs / "a.txt"] == [out / "a.out"]
+    assert s.exit_code == 1 and not s.ok and s.total == 5
+    markers = sorted((out / DONE_DIR).iterdir())
+    assert len(markers) == 3  # only successes are marked
+    rec = json.loads(markers[0].read_text())
+    assert rec["outputs"] == [str((out / "a.out").absolute())]
+
+    print_summary(s)
+    err = capsys.readouterr().err
+    assert "5 input(s): 3 processed, 0 skipped (outputs exist), 2 failed" in err
+    assert f"FAILED {inputs / 'bad.txt'}: ValueError" in err and "FAILED" in err.splitlines()[-1]
+
+    # resume: only the failures are retried
+    calls.clear()
+    s2 = run_batch(items, _processor(out, calls), out, progress=False)
+    assert calls == ["bad.txt"] and len(s2.skipped) == 3 and len(s2.failed) == 2
+    # an output deleted since: that input is redone
+    (out / "b.out").unlink()
+    calls.clear()
+    run_batch(items, _processor(out, calls), out, progress=False)
+    assert calls == ["b.txt", "bad.txt"]
+    # --no-resume processes everything again
+    calls.clear()
+    run_batch(items, _processor(out, calls), out, resume=False, progress=False)
+    assert calls == ["a.txt", "b.txt", "bad.txt", "c.txt"]
+
+
+def test_run_batch_expected_outputs_and_progress(tmp_path, inputs, capsys):
+    out = tmp_path / "o2"
+    out.mkdir()
+    (out / "a.out").write_text("done earlier")
+    calls: list[str] = []
+    s = run_batch(
+        [inputs / "a.txt", inputs / "c.txt"],
+        _processor(out, calls),
+        out,
+        expected_outputs=lambda p: [out / f"{p.stem}.out"],
+        progress=True,
+        desc="reconstructing",
+    )
+    assert calls == ["c.txt"] and [p.name for p in s.skipped] == ["a.txt"] and s.ok
+    assert not (out / DONE_DIR).exists()  # explicit expected outputs need no markers
+    assert "reconstructing" in capsys.readouterr().err  # tqdm bar on stderr
+
+
+def test_run_batch_interrupt_propagates(tmp_path, inputs):
+    def process(p: Path) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batch([inputs / "a.txt"], process, tmp_path / "o3", progress=False)
+    assert not (tmp_path / "o3" / DONE_DIR).exists()
