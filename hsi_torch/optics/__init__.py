@@ -1,0 +1,71 @@
+"""Optics of the virtual prototype: birefringent filter, tapered kaleidoscope, view layout.
+
+See ``docs/ARCHITECTURE.md`` for the coordinate conventions and ``docs/readme_optics.md`` for the
+physics and default numbers.
+"""
+
+from .birefringence import (
+    MATERIALS,
+    POLARIZER_PRESETS,
+    BRFConfig,
+    UniaxialMaterial,
+    get_material,
+    polarizer_transmittance,
+    refractive_indices,
+    sellmeier_index,
+    uniaxial_opd,
+    uniaxial_opd_small_angle,
+)
+from .kaleidoscope import (
+    DEFAULT_CAMERA,
+    DEFAULT_GEOMETRY,
+    FULL_CAMERA,
+    CameraModel,
+    KaleidoscopeGeometry,
+    RayTrace,
+    diffuser_to_sensor_homography,
+    enumerate_sequences,
+    mirror_planes,
+    reflection_isometry,
+    sequence_codes,
+    trace_rays,
+    trace_sensor,
+)
+from .layout import (
+    ViewLayout,
+    apply_homography,
+    brf_free_mask,
+    build_view_layout,
+    fit_homography_dlt,
+)
+
+__all__ = [
+    "MATERIALS",
+    "POLARIZER_PRESETS",
+    "BRFConfig",
+    "UniaxialMaterial",
+    "get_material",
+    "polarizer_transmittance",
+    "refractive_indices",
+    "sellmeier_index",
+    "uniaxial_opd",
+    "uniaxial_opd_small_angle",
+    "DEFAULT_CAMERA",
+    "DEFAULT_GEOMETRY",
+    "FULL_CAMERA",
+    "CameraModel",
+    "KaleidoscopeGeometry",
+    "RayTrace",
+    "diffuser_to_sensor_homography",
+    "enumerate_sequences",
+    "mirror_planes",
+    "reflection_isometry",
+    "sequence_codes",
+    "trace_rays",
+    "trace_sensor",
+    "ViewLayout",
+    "apply_homography",
+    "brf_free_mask",
+    "build_view_layout",
+    "fit_homography_dlt",
+]
