@@ -134,6 +134,19 @@ def test_demosaic_saturation_propagation():
     assert h.shape == (3, 3, 3) and h[1, 1, 1] and h.sum() == 1
 
 
+@pytest.mark.parametrize("pattern", PATTERNS)
+def test_demosaic_saturation_matches_conv_reference(pattern):
+    import torch.nn.functional as F
+
+    sat = torch.rand(2, 1, 9, 12, generator=torch.Generator().manual_seed(3)) > 0.9
+    m = cfa_masks(pattern, 9, 12)
+    k_rb = torch.ones(3, 3)
+    k_g = torch.tensor([[0.0, 1, 0], [1, 1, 1], [0, 1, 0]])
+    support = torch.stack([k_rb, k_g, k_rb])[:, None]
+    ref = F.conv2d(sat.float() * m, support, padding=1, groups=3) > 0
+    assert torch.equal(demosaic_saturation(sat, pattern, "bilinear"), ref)
+
+
 # --------------------------------------------------------------------------- rawpy files
 
 
