@@ -1,0 +1,340 @@
+"""Colour rendering of spectral cubes: CIE XYZ, sRGB previews and spectra plots.
+
+Convention: a cube is *reflectance* (or relative radiance when ``illuminant=None``) on the
+wavelengths given. Tristimulus values are ``X = k Σ_m R(λ_m) S(λ_m) x̄(λ_m) Δλ_m`` (likewise ``Y``,
+``Z``) with the CIE 1931 2° observer, the illuminant ``S`` and band widths ``Δλ_m``
+(:func:`hsi_torch.spectral.band_widths`), normalised by ``k = 1 / Σ S ȳ Δλ`` so that a perfect
+white reflector has ``Y = 1`` (colour-science's convention divided by 100). For sRGB the XYZ are
+(optionally) adapted from the illuminant's white to sRGB's D65 white with the Bradford transform,
+multiplied by the IEC 61966-2-1 matrix, clipped to [0, 1] and gamma-encoded with the sRGB curve.
+
+Note: a cube covering only part of the visible range (e.g. the default 430–670 nm grid) yields
+colours from that part only; a white reflector still maps to white because ``k`` uses the same
+wavelengths.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hsi_torch import refdata
+from hsi_torch.spectral import band_widths
+
+__all__ = [
+    "XYZ_TO_LINEAR_SRGB",
+    "D65_WHITE_XYZ",
+    "illuminant_white_xyz",
+    "spectra_to_xyz",
+    "xyz_to_linear_srgb",
+    "srgb_encode",
+    "spectra_to_srgb",
+    "cube_to_xyz",
+    "cube_to_srgb",
+    "save_preview_png",
+    "save_png_rgb",
+    "plot_spectra",
+]
+
+#: IEC 61966-2-1 XYZ → linear sRGB (D65), as in ``colour.RGB_COLOURSPACES['sRGB']``.
+XYZ_TO_LINEAR_SRGB = (
+    (3.2406, -1.5372, -0.4986),
+    (-0.9689, 1.8758, 0.0415),
+    (0.0557, -0.2040, 1.0570),
+)
+#: sRGB reference white (x, y) = (0.3127, 0.3290) as XYZ with Y = 1.
+D65_WHITE_XYZ = (0.3127 / 0.3290, 1.0, (1.0 - 0.3127 - 0.3290) / 0.3290)
+_BRADFORD = (
+    (0.8951, 0.2664, -0.1614),
+    (-0.7502, 1.7135, 0.0367),
+    (0.0389, -0.0685, 1.0296),
+)
+
+IlluminantLike = str | os.PathLike | torch.Tensor | None
+
+
+def _weights(
+    wavelengths, illuminant: IlluminantLike, device, dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(3, M)`` weights ``k · S · cmf · Δλ`` and the ``(M,)`` wavelengths."""
+    wl = refdata.as_wavelengths(wavelengths, device=device, dtype=torch.float64)
+    cmf = refdata.cie_1931_cmfs(wl)
+    if illuminant is None:
+        s = torch.ones_like(wl)
+    elif isinstance(illuminant, torch.Tensor):
+        s = illuminant.to(device=wl.device, dtype=torch.float64).reshape(-1)
+        if s.numel() != wl.numel():
+            raise ValueError(f"illuminant tensor has {s.numel()} values, wavelengths {wl.numel()}")
+    else:
+        s = refdata.illuminant(illuminant, wl)
+    dl = band_widths(wl) if wl.numel() > 1 else torch.ones_like(wl)
+    w = cmf * (s * dl)
+    norm = w[1].sum()
+    if float(norm) <= 0:
+        raise ValueError("illuminant × ȳ integrates to zero on these wavelengths (no visible band)")
+    return (w / norm).to(dtype), wl
+
+
+def illuminant_white_xyz(
+    wavelengths, illuminant: IlluminantLike = "D65", *, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """``(3,)`` XYZ of a perfect white reflector (``Y = 1``) on these wavelengths."""
+    w, _ = _weights(wavelengths, illuminant, None, torch.float64)
+    return w.sum(dim=1).to(dtype or torch.get_default_dtype())
+
+
+def spectra_to_xyz(
+    spectra: torch.Tensor, wavelengths, illuminant: IlluminantLike = "D65"
+) -> torch.Tensor:
+    """``(..., M)`` spectra → ``(..., 3)`` XYZ (white reflector: ``Y = 1``)."""
+    spectra = torch.as_tensor(spectra)
+    if not spectra.is_floating_point():
+        spectra = spectra.to(torch.get_default_dtype())
+    w, wl = _weights(wavelengths, illuminant, spectra.device, spectra.dtype)
+    if spectra.shape[-1] != wl.numel():
+        raise ValueError(f"spectra have {spectra.shape[-1]} samples on the last axis but "
+                         f"{wl.numel()} wavelengths were given")
+    return spectra @ w.T
+
+
+def xyz_to_linear_srgb(xyz: torch.Tensor, source_white: torch.Tensor | None = None) -> torch.Tensor:
+    """``(..., 3)`` XYZ → ``(..., 3)`` linear sRGB (unclipped).
+
+    Args:
+        source_white: ``(3,)`` XYZ of the white the values are relative to; if given, a Bradford
+            chromatic adaptation to sRGB's D65 white is applied first.
+    """
+    dev, dt = xyz.device, xyz.dtype
+    m = torch.tensor(XYZ_TO_LINEAR_SRGB, device=dev, dtype=torch.float64)
+    if source_white is not None:
+        b = torch.tensor(_BRADFORD, device=dev, dtype=torch.float64)
+        src = b @ source_white.to(device=dev, dtype=torch.float64).reshape(3)
+        dst = b @ torch.tensor(D65_WHITE_XYZ, device=dev, dtype=torch.float64)
+        m = m @ torch.linalg.solve(b, torch.diag(dst / src) @ b)
+    return xyz @ m.to(dt).T
+
+
+def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
+    """sRGB transfer function (IEC 61966-2-1) of values in [0, 1] (negatives → 0)."""
+    x = linear.clamp_min(0.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12).pow(1 / 2.4) - 0.055)
+
+
+def spectra_to_srgb(
+    spectra: torch.Tensor,
+    wavelengths,
+    illuminant: IlluminantLike = "D65",
+    *,
+    adapt: bool = True,
+    clip: bool = True,
+    encode: bool = True,
+) -> torch.Tensor:
+    """``(..., M)`` spectra → ``(..., 3)`` sRGB.
+
+    Args:
+        adapt: Bradford-adapt from the illuminant's white to D65 (a white reflector → (1, 1, 1)).
+        clip: clip linear RGB to [0, 1].
+        encode: apply the sRGB gamma (else return linear RGB).
+    """
+    xyz = spectra_to_xyz(spectra, wavelengths, illuminant)
+    white = illuminant_white_xyz(wavelengths, illuminant, dtype=torch.float64) if adapt else None
+    rgb = xyz_to_linear_srgb(xyz, white)
+    if clip:
+        rgb = rgb.clamp(0.0, 1.0)
+    return srgb_encode(rgb) if encode else rgb
+
+
+def cube_to_xyz(
+    cube: torch.Tensor, wavelengths, illuminant: IlluminantLike = "D65"
+) -> torch.Tensor:
+    """``(..., M, H, W)`` cube → ``(..., 3, H, W)`` XYZ (white reflector: ``Y = 1``)."""
+    cube = torch.as_tensor(cube)
+    if cube.ndim < 3:
+        raise ValueError(f"cube must have shape (..., M, H, W), got {tuple(cube.shape)}")
+    return spectra_to_xyz(cube.movedim(-3, -1), wavelengths, illuminant).movedim(-1, -3)
+
+
+def _robust_max(y: torch.Tensor, q: float) -> torch.Tensor:
+    """Per batch item ``q``-quantile (percent) of ``y (B, N)`` → ``(B,)``."""
+    n = y.shape[-1]
+    if n > 4_000_000:
+        y = y[:, :: n // 4_000_000 + 1]
+    return torch.quantile(y, q / 100.0, dim=-1)
+
+
+def cube_to_srgb(
+    cube: torch.Tensor,
+    wavelengths,
+    illuminant: IlluminantLike = "D65",
+    *,
+    normalise: str | None = None,
+    percentile: float = 99.5,
+    exposure: float = 1.0,
+    adapt: bool = True,
+) -> torch.Tensor:
+    """``(..., M, H, W)`` cube → ``(..., 3, H, W)`` gamma-encoded sRGB in [0, 1].
+
+    Args:
+        normalise: ``None``: absolute (reflectance 1 = white); ``'max'``: scale each image so its
+            largest ``Y`` is 1; ``'percentile'``: so its ``percentile``-th ``Y`` is 1 (robust to
+            specular highlights).
+        exposure: extra factor on the linear values (after ``normalise``).
+        adapt: Bradford adaptation from the illuminant's white to D65.
+    """
+    xyz = cube_to_xyz(cube, wavelengths, illuminant)
+    if normalise is not None:
+        y = xyz[..., 1, :, :]
+        flat = y.reshape(-1, y.shape[-2] * y.shape[-1])
+        if normalise == "max":
+            ref = flat.amax(dim=-1)
+        elif normalise == "percentile":
+            if not 0 < percentile <= 100:
+                raise ValueError(f"percentile must be in (0, 100], got {percentile}")
+            ref = _robust_max(flat, percentile)
+        else:
+            raise ValueError(f"normalise must be None, 'max' or 'percentile', got {normalise!r}")
+        ref = torch.where(ref > 0, ref, torch.ones_like(ref))
+        xyz = xyz / ref.reshape(*y.shape[:-2], 1, 1, 1)
+    white = illuminant_white_xyz(wavelengths, illuminant, dtype=torch.float64) if adapt else None
+    rgb = xyz_to_linear_srgb(xyz.movedim(-3, -1), white) * exposure
+    return srgb_encode(rgb.clamp(0.0, 1.0)).movedim(-1, -3)
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_png_rgb(rgb: torch.Tensor, path: str | os.PathLike) -> Path:
+    """Write a ``(3, H, W)`` image in [0, 1] (already encoded) as an 8-bit PNG, atomically."""
+    import cv2
+
+    rgb = torch.as_tensor(rgb)
+    if rgb.ndim != 3 or rgb.shape[0] != 3:
+        raise ValueError(f"rgb must have shape (3, H, W), got {tuple(rgb.shape)}")
+    arr = (rgb.detach().to("cpu", torch.float64).clamp(0, 1) * 255.0).round().to(torch.uint8)
+    bgr = np.ascontiguousarray(arr.permute(1, 2, 0).numpy()[..., ::-1])
+    ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for {path}")
+    path = Path(path)
+    _atomic_write_bytes(path, buf.tobytes())
+    return path
+
+
+def save_preview_png(
+    cube: torch.Tensor,
+    wavelengths,
+    path: str | os.PathLike,
+    illuminant: IlluminantLike = "D65",
+    *,
+    normalise: str | None = "percentile",
+    percentile: float = 99.5,
+    exposure: float = 1.0,
+) -> Path:
+    """Render an ``(M, H, W)`` cube to sRGB and write an 8-bit PNG (temp file + ``os.replace``).
+
+    Defaults normalise the image so its 99.5th-percentile luminance is white.
+    """
+    cube = torch.as_tensor(cube)
+    if cube.ndim != 3:
+        raise ValueError(f"cube must have shape (M, H, W), got {tuple(cube.shape)}")
+    rgb = cube_to_srgb(cube, wavelengths, illuminant, normalise=normalise,
+                       percentile=percentile, exposure=exposure)
+    return save_png_rgb(rgb, path)
+
+
+def plot_spectra(
+    wavelengths,
+    spectra: torch.Tensor,
+    truth: torch.Tensor | None = None,
+    *,
+    labels: Sequence[str] | None = None,
+    path: str | os.PathLike | None = None,
+    title: str | None = None,
+    ylabel: str = "reflectance",
+    ncols: int = 6,
+    truth_wavelengths=None,
+):
+    """Plot spectra (solid) against ground truth (dashed); small multiples when ``K > 6``.
+
+    Args:
+        wavelengths: ``(M,)`` nm of ``spectra``.
+        spectra: ``(K, M)`` or ``(M,)``.
+        truth: ``(K, M_t)`` reference spectra on ``truth_wavelengths`` (default ``wavelengths``).
+        labels: ``K`` panel/line labels.
+        path: if given, the figure is saved there atomically (format from the suffix).
+
+    Returns:
+        The ``matplotlib.figure.Figure`` (Agg canvas; pyplot is not used).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    def to_np(x) -> np.ndarray:
+        return torch.as_tensor(x).detach().to("cpu", torch.float64).numpy()
+
+    wl = to_np(refdata.as_wavelengths(wavelengths, dtype=torch.float64))
+    s = np.atleast_2d(to_np(spectra))
+    if s.shape[1] != wl.size:
+        raise ValueError(f"spectra have {s.shape[1]} samples, wavelengths {wl.size}")
+    t = t_wl = None
+    if truth is not None:
+        t = np.atleast_2d(to_np(truth))
+        t_wl = wl if truth_wavelengths is None else to_np(
+            refdata.as_wavelengths(truth_wavelengths, dtype=torch.float64))
+        if t.shape[0] != s.shape[0] or t.shape[1] != t_wl.size:
+            raise ValueError(f"truth shape {t.shape} does not match spectra {s.shape} / "
+                             f"{t_wl.size} truth wavelengths")
+    k = s.shape[0]
+    if labels is not None and len(labels) != k:
+        raise ValueError(f"got {len(labels)} labels for {k} spectra")
+    grid = k > 6
+    nc = min(ncols, k) if grid else 1
+    nr = -(-k // nc) if grid else 1
+    fig = Figure(figsize=(2.4 * nc + 1.0, 1.9 * nr + 0.8) if grid else (6.4, 4.0), dpi=100)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nr, nc, squeeze=False, sharex=True, sharey=True)
+    ymax = max(float(np.nanmax(s)), float(np.nanmax(t)) if t is not None else 0.0, 1e-12)
+    for i in range(k):
+        ax = axes[i // nc, i % nc] if grid else axes[0, 0]
+        lab = labels[i] if labels is not None else f"#{i}"
+        (line,) = ax.plot(wl, s[i], "-", lw=1.4, label=None if grid else lab)
+        if t is not None:
+            ax.plot(t_wl, t[i], "--", lw=1.1, color="k" if grid else line.get_color())
+        if grid:
+            ax.set_title(lab, fontsize=8)
+        ax.set_ylim(0, 1.05 * ymax)
+        ax.grid(alpha=0.3)
+    if grid:
+        for j in range(k, nr * nc):
+            axes[j // nc, j % nc].set_visible(False)
+    else:
+        if k <= 10:
+            axes[0, 0].legend(fontsize=8)
+    fig.supxlabel("wavelength (nm)")
+    fig.supylabel(ylabel)
+    if title:
+        fig.suptitle(title + ("  (solid: estimate, dashed: truth)" if t is not None else ""))
+    fig.tight_layout()
+    if path is not None:
+        import io
+
+        path = Path(path)
+        buf = io.BytesIO()
+        fig.savefig(buf, format=(path.suffix.lstrip(".") or "png"))
+        _atomic_write_bytes(path, buf.getvalue())
+    return fig
