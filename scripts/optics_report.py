@@ -321,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     cond_design = torch.linalg.cond(a_design)
     rgb10 = (grid.band_widths(dtype=torch.float64) * phi).repeat(layout.num_views, 1)
     sv = torch.linalg.svdvals(rgb10)
-    cond_rgb = float(sv[0] / sv[-1]) if float(sv[-1]) > 0 else math.inf
+    rank = int(torch.linalg.matrix_rank(rgb10))
+    cond_rgb = math.inf if rank < min(rgb10.shape) else float(sv[0] / sv[-1])
     print(
         f"stacked sensing matrix {tuple(a_design.shape[1:])}: condition number at the diffuser "
         f"centre {float(cond_design[0]):.3e}; over {pts.shape[0]} scene points median "
@@ -329,7 +330,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(
         f"RGB repeated {layout.num_views}x {tuple(rgb10.shape)}: condition number {cond_rgb:.3e} "
-        f"(rank {int(torch.linalg.matrix_rank(rgb10))}; singular values {sv[:4].tolist()})"
+        f"(rank {rank}; sigma_1/sigma_{rank + 1} = {float(sv[0] / sv[rank]):.1e} is round-off; "
+        f"sigma_1/sigma_3 = {float(sv[0] / sv[2]):.2f})"
     )
 
     rgb = white_field_rgb(geom, cam, brf, trace)
