@@ -336,6 +336,8 @@ def camera_sensitivities(
     """
     import colour
 
+    if normalise not in ("max", "channel", None, "none"):
+        raise ValueError(f"normalise must be 'max', 'channel' or None, got {normalise!r}")
     name = os.fspath(name_or_path)
     if name in colour.MSDS_CAMERA_SENSITIVITIES:
         msds = colour.MSDS_CAMERA_SENSITIVITIES[name]

@@ -87,6 +87,8 @@ def test_reproducible_seed_and_errors():
     assert torch.equal(a, b1) and not torch.equal(b1, b2)  # advances between calls
     m.reseed()
     assert torch.equal(m.expose(x).dn, a)
+    clone = SensorModel(**SensorModel(seed=7, output="rgb", black_level=64.0).to_dict())
+    assert clone.to_dict() == SensorModel(seed=7, output="rgb", black_level=64.0).to_dict()
     g = torch.Generator().manual_seed(7)
     assert torch.equal(SensorModel(seed=99).expose(x, generator=g).dn, a)
     with pytest.raises(ValueError, match="output"):
