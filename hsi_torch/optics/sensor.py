@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
+
+from hsi_torch.io import raw as _raw
 
 __all__ = [
     "CFA_PATTERNS",
@@ -84,11 +85,18 @@ def cfa_masks(
     device: torch.device | str | None = None,
     dtype: torch.dtype | None = None,
 ) -> torch.Tensor:
-    """One-hot CFA masks ``(3, H, W)``: ``masks[c, y, x] = 1`` where pixel ``(x, y)`` sees ``c``."""
-    idx = torch.tensor(cfa_index(pattern), device=device)
-    tile = idx.repeat((height + 1) // 2, (width + 1) // 2)[:height, :width]
-    ch = torch.arange(3, device=device).view(3, 1, 1)
-    return (tile.unsqueeze(0) == ch).to(dtype or torch.get_default_dtype())
+    """One-hot CFA masks ``(3, H, W)``: ``masks[c, y, x] = 1`` where pixel ``(x, y)`` sees ``c``.
+
+    Thin wrapper of :func:`hsi_torch.io.raw.cfa_masks` (one CFA implementation for the
+    simulator and the loaders).
+    """
+    return _raw.cfa_masks(
+        _check_pattern(pattern),
+        height,
+        width,
+        device=device,
+        dtype=dtype or torch.get_default_dtype(),
+    )
 
 
 def _check_image(x: torch.Tensor, channels: int | None, name: str) -> torch.Tensor:
@@ -104,72 +112,29 @@ def _check_image(x: torch.Tensor, channels: int | None, name: str) -> torch.Tens
 
 
 def mosaic(rgb: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
-    """Sample an RGB image through a Bayer CFA.
+    """Sample an RGB image ``(..., 3, H, W)`` through a Bayer CFA → ``(..., 1, H, W)``.
 
-    Args:
-        rgb: ``(..., 3, H, W)``.
-        pattern: CFA tile name (see module docstring).
-
-    Returns:
-        ``(..., 1, H, W)`` raw mosaic, same dtype/device.
+    Same as :func:`hsi_torch.io.raw.mosaic` with a default pattern.
     """
-    rgb = _check_image(rgb, 3, "rgb")
-    m = cfa_masks(pattern, rgb.shape[-2], rgb.shape[-1], device=rgb.device, dtype=rgb.dtype)
-    return (rgb * m).sum(dim=-3, keepdim=True)
-
-
-_K_G = [[0.0, 1.0, 0.0], [1.0, 4.0, 1.0], [0.0, 1.0, 0.0]]
-_K_RB = [[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]
+    return _raw.mosaic(_check_image(rgb, 3, "rgb"), _check_pattern(pattern))
 
 
 def demosaic_bilinear(raw: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
-    """Bilinear demosaic of a Bayer mosaic (normalised convolution).
+    """Bilinear demosaic ``(..., 1, H, W)`` → ``(..., 3, H, W)`` by normalised convolution.
 
-    Each channel is interpolated from its own samples with the classic bilinear kernels
-    (cross for G, 3 × 3 tent for R/B), divided by the same convolution of the sampling mask, so
-    known samples are kept exactly and borders use only the samples that exist (no padding bias).
-
-    Args:
-        raw: ``(..., 1, H, W)`` mosaic.
-
-    Returns:
-        ``(..., 3, H, W)`` RGB, same dtype/device.
+    Known samples are kept exactly and borders use only the samples that exist. Delegates to
+    :func:`hsi_torch.io.raw.demosaic_bilinear`.
     """
-    raw = _check_image(raw, 1, "raw")
-    lead, (h, w) = raw.shape[:-3], raw.shape[-2:]
-    m = cfa_masks(pattern, h, w, device=raw.device, dtype=raw.dtype)
-    x = raw.reshape(-1, 1, h, w) * m  # (N, 3, H, W)
-    k = torch.tensor([_K_RB, _K_G, _K_RB], device=raw.device, dtype=raw.dtype).unsqueeze(1)
-    num = F.conv2d(x, k, padding=1, groups=3)
-    den = F.conv2d(m.unsqueeze(0), k, padding=1, groups=3)
-    return (num / den).reshape(*lead, 3, h, w)
+    return _raw.demosaic_bilinear(_check_image(raw, 1, "raw"), _check_pattern(pattern))
 
 
 def bin_bayer(raw: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
-    """Half-size RGB from a Bayer mosaic by 2 × 2 binning (R, mean of the two G, B).
+    """Half-size RGB ``(..., 3, H // 2, W // 2)`` by 2 × 2 binning (R, mean of the two G, B).
 
-    A trailing odd row/column is dropped. Output pixel ``(x, y)`` covers raw pixels
-    ``2x…2x+1, 2y…2y+1``; its centre is at raw coordinate ``(2x + 0.5, 2y + 0.5)``.
-
-    Args:
-        raw: ``(..., 1, H, W)`` mosaic.
-
-    Returns:
-        ``(..., 3, H // 2, W // 2)``.
+    A trailing odd row/column is dropped; output pixel ``(x, y)`` is centred on raw coordinate
+    ``(2x + 0.5, 2y + 0.5)``. Delegates to :func:`hsi_torch.io.raw.bayer_half`.
     """
-    raw = _check_image(raw, 1, "raw")
-    lead, (h, w) = raw.shape[:-3], raw.shape[-2:]
-    if h < 2 or w < 2:
-        raise ValueError(f"raw must be at least 2x2, got {tuple(raw.shape)}")
-    h2, w2 = h // 2, w // 2
-    cells = F.pixel_unshuffle(raw.reshape(-1, 1, h, w)[..., : 2 * h2, : 2 * w2], 2)  # (N,4,h2,w2)
-    idx = [c for row in cfa_index(pattern) for c in row]
-    sel = torch.zeros(3, 4, device=raw.device, dtype=raw.dtype)
-    for pos, c in enumerate(idx):
-        sel[c, pos] = 1.0
-    sel = sel / sel.sum(dim=1, keepdim=True)
-    out = torch.einsum("cp,nphw->nchw", sel, cells)
-    return out.reshape(*lead, 3, h2, w2)
+    return _raw.bayer_half(_check_image(raw, 1, "raw"), _check_pattern(pattern))
 
 
 def gaussian_blur(image: torch.Tensor, sigma_px: float, border: str = "reflect") -> torch.Tensor:
