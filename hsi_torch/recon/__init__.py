@@ -1,0 +1,33 @@
+"""Reconstruction: batched NNLS solvers, per-bundle sensing, the frame pipeline, the nn.Module and
+the ``hsi-torch reconstruct`` command.
+
+Heavy parts are imported lazily (``from hsi_torch.recon import Reconstructor``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_LAZY = {
+    "solve_nnls": "hsi_torch.recon.solvers",
+    "prepare_nnls": "hsi_torch.recon.solvers",
+    "NNLSProblem": "hsi_torch.recon.solvers",
+    "NNLSResult": "hsi_torch.recon.solvers",
+    "BundleSensing": "hsi_torch.recon.sensing",
+    "precompute_sensing": "hsi_torch.recon.sensing",
+    "Reconstructor": "hsi_torch.recon.pipeline",
+    "ReconstructionResult": "hsi_torch.recon.pipeline",
+    "reconstruct_frame": "hsi_torch.recon.pipeline",
+    "HSIReconstructor": "hsi_torch.recon.module",
+    "ReconstructionOutput": "hsi_torch.recon.module",
+    "ReconstructConfig": "hsi_torch.recon.config",
+}
+
+__all__ = list(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'hsi_torch.recon' has no attribute {name!r}")

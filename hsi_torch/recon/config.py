@@ -1,0 +1,82 @@
+"""``ReconstructConfig``: the schema of ``configs/reconstruct.yaml`` (``hsi-torch reconstruct``).
+
+Loaded and validated by :func:`hsi_torch.config.load_config`; every key can be overridden on the
+command line (``--set beta=100``). ``describe_schema(ReconstructConfig)`` prints the reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+__all__ = ["ReconstructConfig"]
+
+CubeFormatName = Literal["tiff", "envi", "npz"]
+
+
+def _help(text: str) -> dict[str, str]:
+    return {"help": text}
+
+
+@dataclass
+class ReconstructConfig:
+    """Settings of a reconstruction run (see the field help texts)."""
+
+    beta: float = field(
+        default=1.0,
+        metadata=_help("smoothness weight on ||D s||^2, on the data's scale (DN^2); 1e-2..1e6"),
+    )
+    diff_order: int = field(
+        default=1, metadata=_help("order of the difference operator D: 1, 2, or 0 (Tikhonov)")
+    )
+    solver: Literal["active_set", "admm"] = field(
+        default="active_set", metadata=_help("exact active set, or ADMM")
+    )
+    admm_iters: int | None = field(
+        default=None, metadata=_help("ADMM: fixed iteration count (null: run to tolerance)")
+    )
+    device: str = field(default="cpu", metadata=_help("torch device (cpu, cuda, cuda:1, ...)"))
+    dtype: Literal["float32", "float64"] = field(
+        default="float32", metadata=_help("precision of the sensing matrices and the solve")
+    )
+    formats: list[CubeFormatName] = field(
+        default_factory=lambda: ["tiff", "envi", "npz"],
+        metadata=_help("cube files written per input: tiff, envi (.hdr/.img), npz"),
+    )
+    preview: bool = field(default=True, metadata=_help("write an sRGB preview PNG (D65)"))
+    spectra_points: list[tuple[int, int]] = field(
+        default_factory=list,
+        metadata=_help("reference-frame pixels [x, y] whose spectra are plotted (PNG)"),
+    )
+    chunk_size: int | None = field(
+        default=None, metadata=_help("pixels per solver chunk (null: solver default)")
+    )
+    nan_invalid: bool = field(
+        default=True, metadata=_help("invalid pixels are NaN (else 0) in the cube")
+    )
+    demosaic: Literal["bilinear", "half"] = field(
+        default="bilinear",
+        metadata=_help("Bayer inputs: bilinear (full resolution) or half (2x2 binning; needs a "
+                       "bundle made at half resolution)"),
+    )
+    exposure_correction: bool = field(
+        default=True,
+        metadata=_help("scale observations by t_white / t_capture when both exposures are known"),
+    )
+    min_views: int = field(default=3, metadata=_help("views a pixel needs to be valid"))
+
+    def __post_init__(self) -> None:
+        if not self.beta >= 0:
+            raise ValueError(f"beta must be >= 0, got {self.beta}")
+        if self.diff_order not in (0, 1, 2):
+            raise ValueError(f"diff_order must be 0, 1 or 2, got {self.diff_order}")
+        if self.admm_iters is not None and self.admm_iters < 1:
+            raise ValueError(f"admm_iters must be >= 1 or null, got {self.admm_iters}")
+        if self.chunk_size is not None and self.chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1 or null, got {self.chunk_size}")
+        if self.min_views < 1:
+            raise ValueError(f"min_views must be >= 1, got {self.min_views}")
+        if not self.formats and not self.preview:
+            raise ValueError("nothing to write: formats is empty and preview is false")
+        if len(set(self.formats)) != len(self.formats):
+            raise ValueError(f"formats has duplicates: {self.formats}")

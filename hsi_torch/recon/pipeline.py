@@ -1,0 +1,520 @@
+"""Capture → spectral cube: warp the views, build observations and masks, solve, assemble.
+
+Per frame (all pixels at once, no per-pixel Python):
+
+1. **Warp** (:func:`warp_capture`): the linear RGB capture ``(3, H, W)`` and its saturation mask
+   are stacked into six channels and warped into the reference frame by *one* batched kornia call
+   (:func:`hsi_torch.calibrate.registration.warp_views`, ``align_corners=True``) →
+   ``(V, 3, h, w)`` values and ``(V, 3, h, w)`` warped saturation weights. A warped sample is
+   *saturated* when any saturated sensor sample contributes to its bilinear footprint (warped
+   weight ``> sat_threshold``, default ``1e-3``: weights that are 0 up to rounding of the
+   homography do not count).
+2. **Observations** (:func:`build_observations`): for the ``P`` valid pixels of the bundle,
+   ``y (P, 3V)`` view-major (``o = 3v + c``) and the frame mask = static mask (view present and
+   modulated, outside-triangle excluded) ∧ not saturated ∧ finite. ``y`` is multiplied by the
+   exposure ratio ``t_white / t_capture`` when both are known (the bundle's response was
+   calibrated at the white reference's exposure ``t_white``; see :func:`exposure_scale`).
+3. **Solve** (:func:`solve_observations`): the precomputed factorisation
+   (:class:`~hsi_torch.recon.sensing.BundleSensing`) solves every pixel for the static mask; pixels
+   whose frame mask differs (saturation, non-finite data) are re-solved *exactly* with their own
+   mask (``solve_nnls`` on that sub-batch only). Pixels left with fewer than ``min_views`` (3)
+   views that still have an observation are invalid: NaN in the cube (or 0 with
+   ``nan_invalid=False``) and ``False`` in ``valid``.
+4. **Assemble**: ``cube (M, h, w)``, ``valid (h, w)``.
+
+Gradients (used by :class:`~hsi_torch.recon.module.HSIReconstructor`): the active-set solver (and
+tolerance-driven ADMM) run without autograd; when the input requires grad, the answer is passed
+through one differentiable *reduced solve* on its free set ``F = {m : x_m > 0}``:
+``x_F = G_FF⁻¹ (Aᵀ W y)_F``, ``x_Z = 0`` — the exact derivative of the NNLS solution wherever the
+free set is locally constant. The forward value stays the solver's answer (straight-through
+form). Fixed-iteration ADMM (``admm_iters=N``) is differentiated through its iterations.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hsi_torch.calibrate.bundle import CalibrationBundle
+from hsi_torch.calibrate.registration import warp_views
+from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
+from hsi_torch.recon.solvers import solve_nnls
+from hsi_torch.spectral import difference_matrix
+
+__all__ = [
+    "ReconstructionResult",
+    "Reconstructor",
+    "reconstruct_frame",
+    "warp_capture",
+    "build_observations",
+    "solve_observations",
+    "assemble_cube",
+    "exposure_scale",
+    "prepare_input",
+]
+
+_SOLVERS = ("active_set", "admm")
+
+
+@dataclass
+class ReconstructionResult:
+    """One reconstructed frame.
+
+    Attributes:
+        cube: ``(M, h, w)`` spectra on the reference frame (NaN or 0 where ``valid`` is False).
+        valid: ``(h, w)`` bool, pixel reconstructed from ≥ ``min_views`` views.
+        wavelengths_nm: ``(M,)`` float64, nm.
+        stats: counts and solver diagnostics — ``num_valid``, ``num_lost`` (valid in the bundle,
+            invalid in this frame), ``num_resolved`` (exact re-solves with a frame mask),
+            ``num_pivoted`` (active-set corrections), ``converged_fraction``, ``max_kkt``,
+            ``exposure_scale``, ``saturated_observations``.
+        timings: seconds per stage (``load`` when read from a file, ``warp``, ``observations``,
+            ``solve``, ``assemble``, ``total``).
+    """
+
+    cube: Tensor
+    valid: Tensor
+    wavelengths_nm: Tensor
+    stats: dict[str, Any] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def exposure_scale(capture_exposure_s: Any, white_exposure_s: float | None) -> float:
+    """Factor applied to a capture's observations: ``t_white / t_capture`` (1 when unknown).
+
+    The response ``phi`` (hence ``A``) is calibrated on white-reference shots taken with exposure
+    ``t_white``: a white reflector imaged with exposure ``t`` reads ``t / t_white`` times the
+    calibrated values. Scaling ``y`` by ``t_white / t`` keeps reconstructed spectra in
+    reflectance units relative to the white reference, whatever the capture's exposure.
+    """
+    if white_exposure_s is None or capture_exposure_s is None:
+        return 1.0
+    try:
+        t = float(capture_exposure_s)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"capture metadata 'exposure_s' is not a number: {capture_exposure_s!r}"
+        ) from None
+    if not t > 0 or t == float("inf"):
+        raise ValueError(f"capture metadata 'exposure_s' must be > 0, got {capture_exposure_s!r}")
+    return float(white_exposure_s) / t
+
+
+def prepare_input(
+    image: Tensor, saturated: Tensor | None, cfa_pattern: str | None
+) -> tuple[Tensor, Tensor | None]:
+    """``(…, 3, H, W)`` RGB passes; ``(…, 1, H, W)`` Bayer is demosaiced (bilinear, full
+    resolution, the saturation mask propagated) with ``cfa_pattern``."""
+    if not isinstance(image, Tensor):
+        raise TypeError(f"image must be a torch.Tensor, got {type(image).__name__}")
+    if image.ndim < 3 or image.shape[-3] not in (1, 3):
+        raise ValueError(
+            f"image must be (…, 3, H, W) linear RGB or (…, 1, H, W) Bayer, got {tuple(image.shape)}"
+        )
+    if saturated is not None and saturated.shape != image.shape:
+        raise ValueError(
+            f"saturated must have the image's shape {tuple(image.shape)}, got "
+            f"{tuple(saturated.shape)}"
+        )
+    if image.shape[-3] == 3:
+        return image, saturated
+    from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
+
+    if cfa_pattern is None:
+        raise ValueError(
+            "a Bayer input (…, 1, H, W) needs a CFA pattern: pass cfa_pattern= or use a bundle "
+            "whose settings hold 'cfa_pattern'"
+        )
+    pattern = validate_cfa_pattern(cfa_pattern)
+    rgb = demosaic_bilinear(image, pattern)
+    sat = None if saturated is None else demosaic_saturation(saturated.bool(), pattern, "bilinear")
+    return rgb, sat
+
+
+def warp_capture(
+    sens: BundleSensing, images: Tensor, saturated: Tensor | None = None
+) -> tuple[Tensor, Tensor | None]:
+    """Warp all views of ``(B, 3, H, W)`` images (and masks) into the reference frame, one call.
+
+    Returns:
+        ``(B, V, 3, h, w)`` warped values and ``(B, V, 3, h, w)`` warped saturation weights
+        (float in [0, 1]; ``None`` without a mask).
+    """
+    x = images
+    if saturated is not None:
+        x = torch.cat([images, saturated.to(images.dtype)], dim=1)
+    warped, _ = warp_views(x, sens.homographies.to(images.device), sens.reference_bbox)
+    if saturated is None:
+        return warped, None
+    return warped[:, :, :3], warped[:, :, 3:]
+
+
+def build_observations(
+    sens: BundleSensing,
+    warped: Tensor,
+    warped_sat: Tensor | None = None,
+    sat_threshold: float = 1e-3,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Observations and per-frame masks of the bundle's valid pixels.
+
+    Args:
+        warped: ``(B, V, 3, h, w)``; warped_sat: same shape (weights) or ``None``.
+
+    Returns:
+        ``y (B, P, 3V)`` (``o = 3v + c``), ``mask (B, P, 3V)`` bool (static ∧ unsaturated ∧ finite),
+        ``saturated (B, P, 3V)`` bool (within the static mask).
+    """
+    B, V, C, h, w = warped.shape
+    pix = sens.pixel_index.to(warped.device)
+    y = warped.reshape(B, V * C, h * w).index_select(2, pix).transpose(1, 2)
+    static = sens.obs_mask.to(warped.device).unsqueeze(0)
+    finite = torch.isfinite(y)
+    if warped_sat is not None:
+        sat = warped_sat.reshape(B, V * C, h * w).index_select(2, pix).transpose(1, 2)
+        sat = (sat > sat_threshold) & static
+    else:
+        sat = torch.zeros_like(finite)
+    return y, static & finite & ~sat, sat
+
+
+def _gram(A: Tensor, mask: Tensor, beta: float, diff_order: int) -> Tensor:
+    """``Aᵀ W A + β DᵀD`` per pixel → ``(n, M, M)``."""
+    zero = torch.zeros((), dtype=A.dtype, device=A.device)
+    aw = torch.where(mask.unsqueeze(2), A, zero)
+    G = aw.transpose(1, 2) @ aw
+    if beta > 0:
+        D = difference_matrix(A.shape[2], diff_order, device=A.device, dtype=A.dtype)
+        G = G + beta * (D.T @ D)
+    return G
+
+
+def _reduced_resolve(
+    sens: BundleSensing, y: Tensor, mask: Tensor, x: Tensor, changed: Tensor
+) -> Tensor:
+    """Differentiable re-solve on the free set of ``x``; value ``x``, gradient of the reduced
+    system ``x_F = G_FF⁻¹ (Aᵀ W y)_F``."""
+    A = sens.A
+    zero = torch.zeros((), dtype=A.dtype, device=A.device)
+    G = sens.problem.gram
+    G = G.expand(x.shape[0], -1, -1) if G.shape[0] == 1 else G
+    if bool(changed.any()):
+        idx = changed.nonzero().squeeze(1)
+        G = G.clone()
+        G[idx] = _gram(A[idx], mask[idx], sens.beta, sens.diff_order)
+    b = torch.bmm(torch.where(mask, y, zero).unsqueeze(1), A).squeeze(1)  # (P, M)
+    free = x.detach() > 0
+    m = x.shape[1]
+    eye = torch.eye(m, dtype=A.dtype, device=A.device)
+    ff = free.unsqueeze(2) & free.unsqueeze(1)
+    Gh = torch.where(ff, G, eye.expand_as(G))
+    bh = torch.where(free, b, zero)
+    xr = torch.linalg.solve(Gh, bh)
+    return x.detach() + (xr - xr.detach())
+
+
+def solve_observations(
+    sens: BundleSensing,
+    y: Tensor,
+    mask: Tensor,
+    *,
+    solver: str = "active_set",
+    admm_iters: int | None = None,
+    chunk_size: int | None = None,
+    min_views: int = 3,
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Solve one frame's ``P`` pixels with the precomputed factorisation (+ exact re-solves).
+
+    Args:
+        y: ``(P, 3V)`` observations (DN, exposure-corrected); may hold NaN where ``mask`` is False.
+        mask: ``(P, 3V)`` bool frame mask.
+        solver: ``"active_set"`` or ``"admm"``; admm_iters: fixed ADMM iterations (differentiable).
+        min_views: views (with ≥ 1 usable colour) a pixel needs to stay valid.
+
+    Returns:
+        ``x (P, M)`` (0 where invalid), ``ok (P,)`` bool, ``info`` (counts, KKT statistics).
+    """
+    if solver not in _SOLVERS:
+        raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
+    P, O = y.shape
+    V = O // 3
+    zero = torch.zeros((), dtype=y.dtype, device=y.device)
+    views_left = mask.view(P, V, 3).any(2).sum(1)
+    ok = views_left >= int(min_views)
+    static = sens.obs_mask
+    changed = ok & (mask != static).any(1)
+    yc = torch.where(mask, y, zero).to(sens.dtype)
+    kw: dict[str, Any] = dict(method=solver, chunk_size=chunk_size)
+    if solver == "admm" and admm_iters is not None:
+        kw["admm_iters"] = int(admm_iters)
+    res = sens.problem.solve(yc, **kw)
+    x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
+    n_changed = int(changed.sum())
+    if n_changed:
+        idx = changed.nonzero().squeeze(1)
+        sub = solve_nnls(
+            sens.A[idx], yc[idx], mask=mask[idx], beta=sens.beta, diff_order=sens.diff_order,
+            **kw,
+        )  # fmt: skip
+        x = x.index_copy(0, idx, sub.x)
+        conv = conv.index_copy(0, idx, sub.converged)
+        kkt = kkt.index_copy(0, idx, sub.kkt_residual)
+        iters = iters.index_copy(0, idx, sub.iterations)
+    native_grad = solver == "admm" and admm_iters is not None
+    if torch.is_grad_enabled() and yc.requires_grad and not native_grad:
+        x = _reduced_resolve(sens, yc, mask, x, changed)
+    x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
+    okc = conv & ok
+    info = {
+        "num_valid": int(ok.sum()),
+        "num_lost": int((~ok).sum()),
+        "num_resolved": n_changed,
+        "num_pivoted": int((iters[ok] > 0).sum()) if solver == "active_set" else 0,
+        "converged_fraction": float(okc.sum()) / max(1, int(ok.sum())),
+        "max_kkt": float(kkt[ok].max()) if bool(ok.any()) else 0.0,
+    }
+    return x, ok, info
+
+
+def assemble_cube(
+    sens: BundleSensing, x: Tensor, ok: Tensor, nan_invalid: bool = True
+) -> tuple[Tensor, Tensor]:
+    """Scatter ``x (…, P, M)`` into ``cube (…, M, h, w)``; ``valid (…, h, w)``. Differentiable."""
+    h, w = sens.frame_size
+    lead = x.shape[:-2]
+    P, M = x.shape[-2:]
+    pix = sens.pixel_index.to(x.device)
+    fill = float("nan") if nan_invalid else 0.0
+    flat = torch.full((*lead, h * w, M), fill, dtype=x.dtype, device=x.device)
+    vals = torch.where(ok.unsqueeze(-1), x, torch.full_like(x, fill))
+    flat = flat.index_copy(len(lead), pix, vals)
+    cube = flat.transpose(-1, -2).reshape(*lead, M, h, w)
+    valid = torch.zeros((*lead, h * w), dtype=torch.bool, device=x.device)
+    valid = valid.index_copy(len(lead), pix, ok)
+    return cube, valid.reshape(*lead, h, w)
+
+
+def reconstruct_batch(
+    sens: BundleSensing,
+    images: Tensor,
+    saturated: Tensor | None = None,
+    *,
+    scale: Tensor | float | None = None,
+    solver: str = "active_set",
+    admm_iters: int | None = None,
+    chunk_size: int | None = None,
+    min_views: int = 3,
+    nan_invalid: bool = True,
+    sat_threshold: float = 1e-3,
+) -> tuple[Tensor, Tensor, list[dict[str, Any]], dict[str, float]]:
+    """Shared core of :class:`Reconstructor` and :class:`~hsi_torch.recon.module.HSIReconstructor`.
+
+    Args:
+        images: ``(B, 3, H, W)`` linear RGB on ``sens.device`` (cast to ``sens.dtype``).
+        saturated: ``(B, 3, H, W)`` bool or ``None``.
+        scale: scalar or ``(B,)`` factor on the observations (exposure correction).
+
+    Returns:
+        ``cube (B, M, h, w)``, ``valid (B, h, w)``, per-frame stats, stage timings (s, summed).
+    """
+    dev = sens.device
+    if images.device != dev:
+        raise ValueError(f"input is on {images.device} but the bundle tensors are on {dev}")
+    t: dict[str, float] = {}
+    t0 = time.perf_counter()
+    imgs = images.to(sens.dtype)
+    warped, wsat = warp_capture(sens, imgs, saturated)
+    _sync(dev)
+    t1 = time.perf_counter()
+    t["warp"] = t1 - t0
+    y, mask, sat = build_observations(sens, warped, wsat, sat_threshold)
+    if scale is not None:
+        s = torch.as_tensor(scale, dtype=y.dtype, device=dev)
+        y = y * (s.view(-1, 1, 1) if s.ndim == 1 else s)
+    _sync(dev)
+    t2 = time.perf_counter()
+    t["observations"] = t2 - t1
+    xs, oks, stats = [], [], []
+    for i in range(y.shape[0]):
+        x, ok, info = solve_observations(
+            sens, y[i], mask[i], solver=solver, admm_iters=admm_iters, chunk_size=chunk_size,
+            min_views=min_views,
+        )  # fmt: skip
+        info["saturated_observations"] = int(sat[i].sum())
+        xs.append(x)
+        oks.append(ok)
+        stats.append(info)
+    _sync(dev)
+    t3 = time.perf_counter()
+    t["solve"] = t3 - t2
+    cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
+    _sync(dev)
+    t["assemble"] = time.perf_counter() - t3
+    return cube, valid, stats, t
+
+
+class Reconstructor:
+    """Reconstruct frames that share one calibration bundle (all precomputation done once).
+
+    Args:
+        bundle: :class:`CalibrationBundle`, its path, or a ready :class:`BundleSensing`.
+        beta: smoothness weight on ``‖D s‖²`` (DN² scale: 1e-2 … 1e6 are useful).
+        diff_order: 1 (first difference, default), 2, or 0 (Tikhonov).
+        solver: ``"active_set"`` (exact) or ``"admm"``; admm_iters: fixed ADMM iterations.
+        device, dtype: where the bundle tensors and the solve live.
+        chunk_size: pixels per solver chunk (memory bound); ``None``: solver default.
+        min_views: views a pixel needs (default 3, as the bundle's valid region).
+        nan_invalid: invalid pixels hold NaN (else 0) in the cube.
+        exposure_correction: scale observations by ``t_white / t_capture`` when both are known.
+        sat_threshold: warped saturation weight above which an observation is saturated.
+
+    Example:
+        >>> rec = Reconstructor("calib.npz", beta=10.0)  # doctest: +SKIP
+        >>> res = rec.reconstruct_file("scene.tif")  # doctest: +SKIP
+        >>> res.cube.shape, res.valid.sum(), res.timings  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
+        *,
+        beta: float = 1.0,
+        diff_order: int = 1,
+        solver: str = "active_set",
+        admm_iters: int | None = None,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+        chunk_size: int | None = None,
+        min_views: int = 3,
+        nan_invalid: bool = True,
+        exposure_correction: bool = True,
+        sat_threshold: float = 1e-3,
+    ) -> None:
+        if solver not in _SOLVERS:
+            raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
+        if isinstance(bundle, BundleSensing):
+            self.sensing = bundle.with_regularisation(beta, diff_order)
+        else:
+            self.sensing = precompute_sensing(
+                bundle, beta=beta, diff_order=diff_order, device=device, dtype=dtype,
+                chunk_size=chunk_size,
+            )  # fmt: skip
+        self.solver = solver
+        self.admm_iters = admm_iters
+        self.chunk_size = chunk_size
+        self.min_views = int(min_views)
+        self.nan_invalid = bool(nan_invalid)
+        self.exposure_correction = bool(exposure_correction)
+        self.sat_threshold = float(sat_threshold)
+
+    @property
+    def wavelengths_nm(self) -> Tensor:
+        return self.sensing.wavelengths_nm
+
+    def reconstruct_frame(
+        self,
+        image: Tensor,
+        saturated: Tensor | None = None,
+        *,
+        exposure_s: float | None = None,
+        cfa_pattern: str | None = None,
+        source: str = "capture",
+    ) -> ReconstructionResult:
+        """Reconstruct one capture.
+
+        Args:
+            image: ``(3, H, W)`` linear RGB (DN above black) or ``(1, H, W)`` Bayer mosaic
+                (demosaiced bilinearly with ``cfa_pattern`` or the bundle's), sensor size.
+            saturated: same shape, bool, or ``None``.
+            exposure_s: the capture's exposure time (s); see :func:`exposure_scale`.
+            source: name used in error messages (the file).
+
+        Returns:
+            :class:`ReconstructionResult`.
+        """
+        sens = self.sensing
+        if not isinstance(image, Tensor) or image.ndim != 3:
+            raise ValueError(
+                f"{source}: image must be a (3, H, W) or (1, H, W) tensor, got "
+                f"{tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__}"
+            )
+        sens.check_capture_size(image.shape, source)
+        t0 = time.perf_counter()
+        img = image.to(device=sens.device)
+        sat = None if saturated is None else saturated.to(device=sens.device)
+        img, sat = prepare_input(img, sat, cfa_pattern or sens.cfa_pattern)
+        scale = exposure_scale(exposure_s, sens.exposure_s) if self.exposure_correction else 1.0
+        _sync(sens.device)
+        t_demosaic = time.perf_counter() - t0
+        with torch.no_grad():
+            cube, valid, stats, t = reconstruct_batch(
+                sens, img.unsqueeze(0), None if sat is None else sat.unsqueeze(0),
+                scale=None if scale == 1.0 else scale, solver=self.solver,
+                admm_iters=self.admm_iters, chunk_size=self.chunk_size,
+                min_views=self.min_views, nan_invalid=self.nan_invalid,
+                sat_threshold=self.sat_threshold,
+            )  # fmt: skip
+        st = stats[0]
+        st["exposure_scale"] = scale
+        timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
+        timings["total"] = time.perf_counter() - t0
+        return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings)
+
+    def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
+        """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``,
+        ``metadata["exposure_s"]``)."""
+        src = str(getattr(capture, "path", "capture"))
+        return self.reconstruct_frame(
+            capture.image, capture.saturated, exposure_s=capture.metadata.get("exposure_s"),
+            source=src,
+        )  # fmt: skip
+
+    def reconstruct_file(
+        self, path: str | os.PathLike, demosaic: str = "bilinear"
+    ) -> ReconstructionResult:
+        """Read a capture (:func:`hsi_torch.io.read_any`, checked against the bundle's sensor
+        size, errors naming the file) and reconstruct it; ``timings["load"]`` is the read."""
+        from hsi_torch.io import read_any
+
+        p = Path(path)
+        sens = self.sensing
+        t0 = time.perf_counter()
+        cap = read_any(
+            p, expected_size=sens.sensor_size if demosaic == "bilinear" else None,
+            demosaic=demosaic, cfa_pattern=None, dtype=sens.dtype, device=sens.device,
+        )  # fmt: skip
+        _sync(sens.device)
+        t_load = time.perf_counter() - t0
+        res = self.reconstruct_capture(cap)
+        res.timings = {"load": t_load, **res.timings}
+        res.timings["total"] += t_load
+        res.stats["metadata"] = cap.metadata
+        return res
+
+
+def reconstruct_frame(
+    image: Tensor,
+    saturated: Tensor | None,
+    bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
+    *,
+    beta: float = 1.0,
+    diff_order: int = 1,
+    solver: str = "active_set",
+    exposure_s: float | None = None,
+    **kwargs: Any,
+) -> ReconstructionResult:
+    """One-call form of :meth:`Reconstructor.reconstruct_frame` (the per-bundle precomputation is
+    cached, so repeated calls with the same bundle object reuse it). ``kwargs`` go to
+    :class:`Reconstructor` (``device``, ``dtype``, ``chunk_size``, ``min_views``, …)."""
+    rec = Reconstructor(bundle, beta=beta, diff_order=diff_order, solver=solver, **kwargs)
+    return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s)

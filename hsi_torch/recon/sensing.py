@@ -1,0 +1,272 @@
+"""Per-bundle precomputation for reconstruction: sensing matrices, static masks, factorisation.
+
+Everything that depends only on the calibration bundle (and on ``beta``/``diff_order``) is done
+once and reused by every frame that shares the bundle:
+
+- the flat indices of the reconstructed pixels (the bundle's ``valid`` region, row-major over the
+  reference frame), ``pixel_index (P,)``;
+- the per-pixel sensing matrices ``A (P, 3V, M)``,
+  ``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (view-major observations);
+- the static observation mask ``obs_mask (P, 3V)`` (view ``v`` present and BRF-modulated at ``p``);
+- the solver factorisation (:func:`hsi_torch.recon.solvers.prepare_nnls`): per-pixel Gram matrices
+  and their inverses for the static mask, one per ``(beta, diff_order)``.
+
+:func:`precompute_sensing` keeps a small cache keyed by the bundle object's identity, device,
+dtype, ``beta`` and ``diff_order``, so building several
+:class:`~hsi_torch.recon.pipeline.Reconstructor` objects for the same bundle does not repeat the
+work (:data:`BUILD_COUNTS` counts the builds).
+
+Convention:
+    Observation index ``o = 3·v + c`` (``v = 0`` the reference view, ``c`` = R, G, B).
+    Reference-frame pixel ``p = i·w + j`` (row ``i``, column ``j``). Homographies map view-``v``
+    sensor px to reference sensor px (``H_0 = I``); the reference frame is the sensor crop
+    ``reference_bbox``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hsi_torch.calibrate.bundle import CalibrationBundle
+from hsi_torch.recon.solvers import NNLSProblem, prepare_nnls
+
+__all__ = [
+    "BundleSensing",
+    "precompute_sensing",
+    "load_bundle",
+    "bundle_exposure",
+    "clear_sensing_cache",
+    "BUILD_COUNTS",
+    "EXPOSURE_KEYS",
+]
+
+#: Number of times the expensive parts were built (``"sensing"``: A and masks,
+#: ``"factorisation"``: :func:`prepare_nnls`). Tests use it to check that frames reuse the cache.
+BUILD_COUNTS: dict[str, int] = {"sensing": 0, "factorisation": 0}
+
+#: Keys looked up (in order) in ``bundle.settings`` for the exposure time (s) of the white
+#: reference the response ``phi`` was calibrated from; nested ``{"response": {...}}`` is searched
+#: too. A capture's own exposure is its metadata key ``exposure_s``.
+EXPOSURE_KEYS = ("white_exposure_s", "white_reference_exposure_s", "exposure_s")
+
+_CACHE_SIZE = 2
+_CACHE: OrderedDict[tuple, BundleSensing] = OrderedDict()
+
+
+def clear_sensing_cache() -> None:
+    """Drop every cached :class:`BundleSensing` (frees the factorisations' memory)."""
+    _CACHE.clear()
+
+
+def load_bundle(bundle: CalibrationBundle | str | os.PathLike) -> CalibrationBundle:
+    """Return ``bundle`` itself, or load it from a path (:meth:`CalibrationBundle.load`)."""
+    if isinstance(bundle, CalibrationBundle):
+        return bundle
+    if isinstance(bundle, (str, os.PathLike)):
+        return CalibrationBundle.load(Path(bundle))
+    raise TypeError(f"bundle must be a CalibrationBundle or a path, got {type(bundle).__name__}")
+
+
+def bundle_exposure(bundle: CalibrationBundle) -> float | None:
+    """Exposure time (s) of the white reference the bundle's response was calibrated at, if known.
+
+    Looks for :data:`EXPOSURE_KEYS` in ``bundle.settings`` and in ``bundle.settings["response"]``.
+    """
+    places: list[Any] = [bundle.settings]
+    if isinstance(bundle.settings, dict) and isinstance(bundle.settings.get("response"), dict):
+        places.append(bundle.settings["response"])
+    for d in places:
+        if not isinstance(d, dict):
+            continue
+        for k in EXPOSURE_KEYS:
+            v = d.get(k)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0:
+                return float(v)
+    return None
+
+
+@dataclass
+class BundleSensing:
+    """Per-bundle tensors used by every frame (see the module docstring).
+
+    Attributes:
+        wavelengths_nm: ``(M,)`` float64, nm (CPU).
+        sensor_size: ``(H, W)`` of the captures the bundle belongs to.
+        reference_bbox: ``(x0, y0, w, h)``; frame_size: ``(h, w)``.
+        homographies: ``(V, 3, 3)`` float64, view-v sensor px → reference sensor px.
+        valid: ``(h, w)`` bool, the bundle's valid region (pixels reconstructed).
+        pixel_index: ``(P,)`` long, flat row-major indices of the valid pixels.
+        A: ``(P, 3V, M)`` sensing matrices (``dtype``, ``device``).
+        obs_mask: ``(P, 3V)`` bool static observation mask.
+        beta, diff_order: the regularisation the factorisation was made for.
+        problem: :class:`~hsi_torch.recon.solvers.NNLSProblem` for ``A``, ``obs_mask``, ``beta``.
+        exposure_s: white-reference exposure of the calibration (s) or ``None``.
+        cfa_pattern: the bundle's CFA pattern (``settings["cfa_pattern"]``) or ``None``.
+    """
+
+    wavelengths_nm: Tensor
+    sensor_size: tuple[int, int]
+    reference_bbox: tuple[int, int, int, int]
+    homographies: Tensor
+    valid: Tensor
+    pixel_index: Tensor
+    A: Tensor
+    obs_mask: Tensor
+    beta: float
+    diff_order: int
+    problem: NNLSProblem
+    exposure_s: float | None = None
+    cfa_pattern: str | None = None
+    _problems: dict[tuple[float, int], NNLSProblem] = field(default_factory=dict, repr=False)
+
+    @property
+    def num_views(self) -> int:
+        return int(self.homographies.shape[0])
+
+    @property
+    def num_bands(self) -> int:
+        return int(self.A.shape[2])
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.pixel_index.shape[0])
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
+
+    @property
+    def device(self) -> torch.device:
+        return self.A.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.A.dtype
+
+    def with_regularisation(self, beta: float, diff_order: int = 1) -> BundleSensing:
+        """A view of the same sensing with another ``(beta, diff_order)``: ``A``/masks are shared,
+        only the factorisation is (re)computed — and cached on this object."""
+        key = (float(beta), int(diff_order))
+        if key == (self.beta, self.diff_order):
+            return self
+        if key not in self._problems:
+            self._problems[key] = _factorise(self.A, self.obs_mask, *key, None)
+        return BundleSensing(
+            self.wavelengths_nm, self.sensor_size, self.reference_bbox, self.homographies,
+            self.valid, self.pixel_index, self.A, self.obs_mask, key[0], key[1],
+            self._problems[key], self.exposure_s, self.cfa_pattern, self._problems,
+        )  # fmt: skip
+
+    def check_capture_size(self, shape: Sequence[int], source: str = "capture") -> None:
+        """Raise ``ValueError`` naming ``source`` when ``shape[-2:]`` is not the sensor size."""
+        hw = tuple(int(s) for s in shape[-2:])
+        if hw != self.sensor_size:
+            raise ValueError(
+                f"{source}: sensor size {hw[0]}x{hw[1]} (HxW) does not match the calibration "
+                f"bundle's {self.sensor_size[0]}x{self.sensor_size[1]}"
+            )
+
+    def memory_bytes(self) -> int:
+        """Bytes held by ``A``, the masks and the factorisation."""
+        p = self.problem
+        ts = [self.A, self.obs_mask, self.pixel_index, p.gram, p.gram_inv]
+        return int(sum(t.numel() * t.element_size() for t in ts))
+
+
+def _factorise(
+    A: Tensor, mask: Tensor, beta: float, diff_order: int, chunk_size: int | None
+) -> NNLSProblem:
+    BUILD_COUNTS["factorisation"] += 1
+    return prepare_nnls(A, mask=mask, beta=beta, diff_order=diff_order, chunk_size=chunk_size)
+
+
+def _cfa_from_settings(bundle: CalibrationBundle) -> str | None:
+    s = bundle.settings
+    v = s.get("cfa_pattern") if isinstance(s, dict) else None
+    return str(v) if isinstance(v, str) else None
+
+
+def precompute_sensing(
+    bundle: CalibrationBundle | str | os.PathLike,
+    *,
+    beta: float = 0.0,
+    diff_order: int = 1,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+    chunk_size: int | None = None,
+    cache: bool = True,
+) -> BundleSensing:
+    """Build (or fetch from the cache) the per-bundle sensing and factorisation.
+
+    Args:
+        bundle: a :class:`CalibrationBundle` or the path of one.
+        beta: smoothness weight ``β ≥ 0`` on ``‖D s‖²`` (DN² scale).
+        diff_order: order of ``D`` (0, 1, 2).
+        device, dtype: where and in which float type ``A`` and the factorisation live.
+        chunk_size: pixels per chunk of the factorisation (``None``: the solver's default).
+        cache: reuse/insert in the module cache (keyed by the bundle object's identity).
+
+    Returns:
+        :class:`BundleSensing` with ``P = bundle.valid.sum()`` pixels.
+    """
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    b = load_bundle(bundle)
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    key = (id(b), str(dev), dtype, float(beta), int(diff_order))
+    if cache and key in _CACHE and _CACHE[key]._bundle_ref is b:  # type: ignore[attr-defined]
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    BUILD_COUNTS["sensing"] += 1
+    valid = torch.as_tensor(b.valid, device=dev)
+    pix = valid.reshape(-1).nonzero().squeeze(1)
+    A = b.sensing_matrices(device=dev, dtype=dtype, pixel_index=pix)
+    obs = b.observation_mask(device=dev, pixel_index=pix)
+    problem = _factorise(A, obs, float(beta), int(diff_order), chunk_size)
+    x0, y0, w, h = (int(v) for v in b.reference_bbox)
+    sens = BundleSensing(
+        wavelengths_nm=torch.as_tensor(b.wavelengths_nm, dtype=torch.float64),
+        sensor_size=(int(b.sensor_size[0]), int(b.sensor_size[1])),
+        reference_bbox=(x0, y0, w, h),
+        homographies=torch.as_tensor(b.view_homographies, device=dev, dtype=torch.float64),
+        valid=valid,
+        pixel_index=pix,
+        A=A,
+        obs_mask=obs,
+        beta=float(beta),
+        diff_order=int(diff_order),
+        problem=problem,
+        exposure_s=bundle_exposure(b),
+        cfa_pattern=_cfa_from_settings(b),
+    )
+    sens._problems[(float(beta), int(diff_order))] = problem
+    sens._bundle_ref = b  # type: ignore[attr-defined]  # identity check for the cache
+    if cache:
+        _CACHE[key] = sens
+        while len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    return sens
+
+
+def bundle_summary_json(sens: BundleSensing) -> str:
+    """A short JSON description (for output metadata)."""
+    return json.dumps(
+        {
+            "num_views": sens.num_views,
+            "num_bands": sens.num_bands,
+            "num_pixels": sens.num_pixels,
+            "sensor_size": list(sens.sensor_size),
+            "reference_bbox": list(sens.reference_bbox),
+            "beta": sens.beta,
+            "diff_order": sens.diff_order,
+        }
+    )
