@@ -41,7 +41,7 @@ def make_bundle(t: int = 20, seed: int = 0, missing: int = 4, **settings) -> Cal
     the corner ``x, y < missing`` has 2 views (invalid) and the two strips 3 views.
     """
     g = np.random.default_rng(seed)
-    V, M = 4, WL.size
+    V = 4
     yy, xx = np.meshgrid(np.arange(t), np.arange(t), indexing="ij")
     opd = np.array([2200.0, 3400.0, 4700.0, 6100.0])
     ramp = 1 + 0.02 * (xx / t - 0.5)[None, None] + 0.01 * (yy / t)[None, None]

@@ -1,0 +1,253 @@
+"""``HSIReconstructor``: the whole reconstruction as a ``torch.nn.Module``.
+
+All bundle tensors (``B``, ``phi``, ``gain``, masks, homographies) and the per-bundle
+precomputation (sensing matrices, static masks, the solver's Gram matrices and inverses) are
+registered buffers, so ``.to(device)``/``.cuda()`` move everything and ``.double()`` switches the
+precision (the factorisation is then recomputed in the new dtype). The forward pass is exactly
+:func:`hsi_torch.recon.pipeline.reconstruct_batch` — the same code as the file pipeline.
+
+Differentiable with respect to the input: see :mod:`hsi_torch.recon.pipeline` (straight-through
+reduced solve on the solver's free set for the active-set method; fixed-iteration ADMM is
+differentiated through its iterations).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from hsi_torch.calibrate.bundle import CalibrationBundle
+from hsi_torch.recon.pipeline import prepare_input, reconstruct_batch
+from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing
+from hsi_torch.recon.solvers import NNLSProblem, prepare_nnls
+
+__all__ = ["HSIReconstructor", "ReconstructionOutput"]
+
+
+class ReconstructionOutput(NamedTuple):
+    """``cube (B, M, h, w)`` (NaN or 0 where invalid) and ``valid (B, h, w)`` bool."""
+
+    cube: Tensor
+    valid: Tensor
+
+
+class HSIReconstructor(nn.Module):
+    """Linear RGB (or Bayer) captures → spectral cubes on the bundle's reference frame.
+
+    Build with :meth:`from_bundle`. ``forward(x)`` takes ``(B, 3, H, W)`` linear RGB (DN above
+    black, on the calibration's exposure scale) or ``(B, 1, H, W)`` Bayer mosaics, ``H×W`` the
+    bundle's sensor size, and returns :class:`ReconstructionOutput` ``(cube (B, M, h, w),
+    valid (B, h, w))``. The input may have any float dtype; the output has the input's dtype. The
+    input must be on the module's device.
+
+    Example:
+        >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=10.0).to("cuda")  # doctest: +SKIP
+        >>> cube, valid = rec(rgb)          # rgb (B, 3, H, W) on cuda  # doctest: +SKIP
+        >>> loss = cube[valid.unsqueeze(1).expand_as(cube)].mean()  # doctest: +SKIP
+        >>> loss.backward()  # doctest: +SKIP
+    """
+
+    wavelengths_nm: Tensor
+    B: Tensor
+    phi: Tensor
+    gain: Tensor
+    view_mask: Tensor
+    valid_region: Tensor
+    homographies: Tensor
+    pixel_index: Tensor
+    A: Tensor
+    obs_mask: Tensor
+    gram: Tensor
+    gram_inv: Tensor
+    singular: Tensor
+    no_data: Tensor
+
+    def __init__(
+        self,
+        sensing: BundleSensing,
+        bundle: CalibrationBundle,
+        *,
+        solver: str = "active_set",
+        admm_iters: int | None = None,
+        cfa_pattern: str | None = None,
+        chunk_size: int | None = None,
+        min_views: int = 3,
+        nan_invalid: bool = True,
+        sat_threshold: float = 1e-3,
+    ) -> None:
+        super().__init__()
+        if solver not in ("active_set", "admm"):
+            raise ValueError(f"solver must be 'active_set' or 'admm', got {solver!r}")
+        dev, dt = sensing.device, sensing.dtype
+        self.solver = solver
+        self.admm_iters = admm_iters
+        self.cfa_pattern = cfa_pattern or sensing.cfa_pattern
+        self.chunk_size = chunk_size
+        self.min_views = int(min_views)
+        self.nan_invalid = bool(nan_invalid)
+        self.sat_threshold = float(sat_threshold)
+        self.beta = sensing.beta
+        self.diff_order = sensing.diff_order
+        self.sensor_size = sensing.sensor_size
+        self.reference_bbox = sensing.reference_bbox
+        self.exposure_s = sensing.exposure_s
+        # calibration products (persistent)
+        self.register_buffer("wavelengths_nm", sensing.wavelengths_nm.to(dev, dt))
+        self.register_buffer("B", torch.as_tensor(bundle.B, device=dev, dtype=dt))
+        self.register_buffer("phi", torch.as_tensor(bundle.phi, device=dev, dtype=dt))
+        self.register_buffer("gain", torch.as_tensor(bundle.gain, device=dev, dtype=dt))
+        self.register_buffer("view_mask", torch.as_tensor(bundle.view_mask, device=dev))
+        self.register_buffer("valid_region", sensing.valid.to(dev))
+        self.register_buffer("homographies", sensing.homographies.to(dev))
+        self.register_buffer("pixel_index", sensing.pixel_index.to(dev))
+        # derived per-bundle precomputation (not saved in state_dict; rebuilt by from_bundle)
+        p = sensing.problem
+        self.register_buffer("A", sensing.A, persistent=False)
+        self.register_buffer("obs_mask", sensing.obs_mask, persistent=False)
+        self.register_buffer("gram", p.gram, persistent=False)
+        self.register_buffer("gram_inv", p.gram_inv, persistent=False)
+        self.register_buffer("singular", p.singular, persistent=False)
+        self.register_buffer("no_data", p.no_data, persistent=False)
+        self._problem_cache: tuple[tuple, NNLSProblem] | None = None
+
+    # ------------------------------------------------------------------------------ build
+    @classmethod
+    def from_bundle(
+        cls,
+        bundle: CalibrationBundle | str | os.PathLike,
+        *,
+        beta: float = 1.0,
+        solver: str = "active_set",
+        diff_order: int = 1,
+        admm_iters: int | None = None,
+        cfa_pattern: str | None = None,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+        chunk_size: int | None = None,
+        min_views: int = 3,
+        nan_invalid: bool = True,
+    ) -> HSIReconstructor:
+        """Build from a bundle (object or ``.npz`` path).
+
+        Args:
+            beta: smoothness weight (DN² scale). diff_order: 0, 1, 2.
+            solver: ``"active_set"`` (exact; gradient of the final reduced solve) or ``"admm"``
+                (``admm_iters=N``: exactly ``N`` differentiable iterations; ``None``: to
+                tolerance, gradient as for the active set).
+            cfa_pattern: for ``(B, 1, H, W)`` Bayer inputs (default: the bundle's
+                ``settings["cfa_pattern"]``).
+            device, dtype: of the buffers (movable later with ``.to``).
+        """
+        b = load_bundle(bundle)
+        sens = precompute_sensing(
+            b, beta=beta, diff_order=diff_order, device=device, dtype=dtype,
+            chunk_size=chunk_size,
+        )  # fmt: skip
+        return cls(
+            sens, b, solver=solver, admm_iters=admm_iters, cfa_pattern=cfa_pattern,
+            chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid,
+        )  # fmt: skip
+
+    def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
+        dt = self.A.dtype
+        out = super()._apply(fn, recurse)
+        self._problem_cache = None
+        if self.A.dtype != dt:  # precision changed: refactorise in the new dtype
+            p = prepare_nnls(
+                self.A, mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
+                chunk_size=self.chunk_size,
+            )  # fmt: skip
+            self.gram, self.gram_inv, self.singular, self.no_data = (
+                p.gram, p.gram_inv, p.singular, p.no_data
+            )
+        return out
+
+    # ------------------------------------------------------------------------------ use
+    @property
+    def num_bands(self) -> int:
+        return int(self.A.shape[2])
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
+
+    def _problem(self) -> NNLSProblem:
+        key = (self.A.device, self.A.dtype, self.A.data_ptr(), self.gram.data_ptr())
+        if self._problem_cache is None or self._problem_cache[0] != key:
+            prob = NNLSProblem(
+                self.A, self.obs_mask, self.beta, self.diff_order, self.gram, self.gram_inv,
+                self.singular, self.no_data,
+            )  # fmt: skip
+            self._problem_cache = (key, prob)
+        return self._problem_cache[1]
+
+    def sensing(self) -> BundleSensing:
+        """The :class:`BundleSensing` view of the buffers (shares their memory)."""
+        return BundleSensing(
+            wavelengths_nm=self.wavelengths_nm.detach().to("cpu", torch.float64),
+            sensor_size=self.sensor_size,
+            reference_bbox=self.reference_bbox,
+            homographies=self.homographies,
+            valid=self.valid_region,
+            pixel_index=self.pixel_index,
+            A=self.A,
+            obs_mask=self.obs_mask,
+            beta=self.beta,
+            diff_order=self.diff_order,
+            problem=self._problem(),
+            exposure_s=self.exposure_s,
+            cfa_pattern=self.cfa_pattern,
+        )
+
+    def forward(
+        self,
+        x: Tensor,
+        saturated: Tensor | None = None,
+        exposure_scale: Tensor | float | None = None,
+    ) -> ReconstructionOutput:
+        """Reconstruct a batch.
+
+        Args:
+            x: ``(B, 3, H, W)`` linear RGB or ``(B, 1, H, W)`` Bayer, float, on this module's
+                device.
+            saturated: optional bool mask of ``x``'s shape (saturated samples are masked).
+            exposure_scale: optional scalar or ``(B,)`` factor on the observations.
+
+        Returns:
+            :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``.
+        """
+        if not isinstance(x, Tensor) or x.ndim != 4:
+            raise ValueError(
+                "x must be a (B, 3, H, W) or (B, 1, H, W) tensor, got "
+                f"{tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__}"
+            )
+        if not x.is_floating_point():
+            raise TypeError(f"x must be floating point, got {x.dtype}")
+        if tuple(x.shape[-2:]) != tuple(self.sensor_size):
+            raise ValueError(
+                f"x has sensor size {tuple(x.shape[-2:])} but the bundle expects "
+                f"{tuple(self.sensor_size)}"
+            )
+        if x.device != self.A.device:
+            raise ValueError(
+                f"x is on {x.device} but the module is on {self.A.device}; call .to({x.device})"
+            )
+        out_dtype = x.dtype
+        rgb, sat = prepare_input(x, saturated, self.cfa_pattern)
+        cube, valid, _, _ = reconstruct_batch(
+            self.sensing(), rgb, sat, scale=exposure_scale, solver=self.solver,
+            admm_iters=self.admm_iters, chunk_size=self.chunk_size, min_views=self.min_views,
+            nan_invalid=self.nan_invalid, sat_threshold=self.sat_threshold,
+        )  # fmt: skip
+        return ReconstructionOutput(cube.to(out_dtype), valid)
+
+    def extra_repr(self) -> str:
+        h, w = self.frame_size
+        return (
+            f"views={self.homographies.shape[0]}, bands={self.num_bands}, "
+            f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
+            f"beta={self.beta:g}, diff_order={self.diff_order}, solver={self.solver!r}"
+        )
