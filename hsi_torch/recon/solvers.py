@@ -1,0 +1,974 @@
+"""Batched non-negative, smoothness-regularised least squares: one small problem per pixel.
+
+Every pixel ``p`` solves
+
+.. math::
+
+    x_p = \\arg\\min_{x \\ge 0} \\sum_o w_{po} (A_p x - y_p)_o^2 + \\beta \\lVert D x \\rVert^2
+
+with ``A_p`` of shape ``(O, M)`` (``O`` observations, ``M`` bands), a 0/1 observation mask ``w``
+and ``D`` the difference operator of :func:`hsi_torch.spectral.difference_matrix`. In
+normal-equation form this is the convex quadratic programme ``min ½ xᵀGx − bᵀx, x ≥ 0`` with
+``G = Aᵀ W A + β DᵀD`` and ``b = Aᵀ W y``; its KKT conditions are ``x ≥ 0``, ``g = Gx − b ≥ 0`` and
+``x ⊙ g = 0``.
+
+Method (``method="active_set"``, exact, finite termination):
+
+1. Per calibration (:func:`prepare_nnls`, done once when ``A``, mask and ``beta`` are fixed):
+   the Gram matrices ``G_p`` and their explicit inverses ``G_p⁻¹`` (batched Cholesky). A frame
+   then costs ``b = Aᵀ W y`` and one batched matrix–vector product ``x = G⁻¹ b`` (plus one step
+   of iterative refinement in float32).
+2. Pixels whose unconstrained solution is already ``≥ 0`` are finished. The others (usually a small
+   sub-batch) run a *block principal pivoting* active-set method (Júdice & Pires; Kim & Park's NNLS
+   variant) with Murty's single-pivot back-up rule, which guarantees finite termination for positive
+   definite ``G``. The free set is a boolean mask. Instead of re-factorising the reduced systems,
+   every pixel carries the principal pivot transform (a "tableau") of ``G⁻¹``; moving one variable
+   between the free and the active set is a rank-1 update of that ``M × M`` tableau, done for the
+   whole sub-batch at once. A final refinement step recomputes the gradient from the exact ``G``.
+3. Pixels whose ``G`` is singular or numerically so (``beta = 0`` with rank-deficient ``A``, few
+   observations) use the Lawson–Hanson active-set method on the same tableau machinery, starting
+   from ``x = 0``; a variable only enters the free set while its reduced pivot is safely positive,
+   so the free columns stay independent and the KKT conditions hold at the end.
+
+``method="admm"``: ADMM on ``x = z, z ≥ 0`` with per-pixel ``(G + ρI)⁻¹`` precomputed, warm started
+from the clamped unconstrained solution (or a given ``x0``). With ``admm_iters=N`` it runs exactly
+``N`` iterations with out-of-place torch ops only, so the result is differentiable w.r.t. ``y``.
+
+Convention:
+    ``A``: ``(O, M)`` shared by all pixels or ``(P, O, M)`` one per pixel; ``y``: ``(P, O)``;
+    ``mask``: ``(P, O)`` bool, ``True`` = observation used. ``y`` may hold non-finite values where
+    the mask is ``False``; ``A`` must be finite. Observation index ``o = 3·v + c`` (view-major)
+    as in the rest of the package, but the solver itself is agnostic of it. No per-pixel Python
+    loops: all loops run over iterations or pivots of a whole (sub-)batch; memory is bounded by
+    chunking over pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid, difference_matrix
+
+__all__ = [
+    "NNLSResult",
+    "NNLSProblem",
+    "prepare_nnls",
+    "solve_nnls",
+    "nnls_kkt_residual",
+    "synthetic_brf_problem",
+]
+
+_METHODS = ("active_set", "admm")
+
+
+@dataclass
+class NNLSResult:
+    """Output of :func:`solve_nnls` / :meth:`NNLSProblem.solve`.
+
+    Attributes:
+        x: ``(P, M)`` solution, ``≥ 0``, never NaN (0 for pixels without data).
+        converged: ``(P,)`` bool, the method terminated and the relative KKT residual is ``≤ tol``.
+        iterations: ``(P,)`` int64; active set: pivoting rounds (0 when the unconstrained solution
+            was already non-negative); ADMM: iterations run.
+        kkt_residual: ``(P,)`` relative KKT residual ``max_m |min(G_mm x_m, g_m)| / s`` with
+            ``g = Gx − b`` and ``s = max(‖b‖∞, ‖diag(G) ⊙ x‖∞)`` (0 for an exact solution).
+        no_data: ``(P,)`` bool, pixel had no usable observation (all masked): ``x = 0``.
+        method: the method used.
+    """
+
+    x: Tensor
+    converged: Tensor
+    iterations: Tensor
+    kkt_residual: Tensor
+    no_data: Tensor
+    method: str = "active_set"
+
+
+# ----------------------------------------------------------------------------------------------
+# small helpers
+
+
+def _rowvec(v: Tensor, mat: Tensor) -> Tensor:
+    """``out[p] = v[p] @ mat[p]`` for ``v (n, K)`` and ``mat (n|1, K, L)`` -> ``(n, L)``.
+
+    The row-vector form of a batched mat-vec is the fast one on CPU (a symmetric ``mat`` gives
+    ``mat @ v``).
+    """
+    if mat.shape[0] == 1 and v.shape[0] != 1:
+        return v @ mat[0]
+    return torch.bmm(v.unsqueeze(1), mat).squeeze(1)
+
+
+def _take(t: Tensor | None, sl: slice) -> Tensor | None:
+    """Slice a per-pixel tensor, pass shared (leading dim 1) and ``None`` through."""
+    if t is None or t.shape[0] == 1:
+        return t
+    return t[sl]
+
+
+def _expand_rows(t: Tensor, n: int) -> Tensor:
+    return t.expand(n, *t.shape[1:]) if t.shape[0] == 1 and n != 1 else t
+
+
+def _default_tol(dtype: torch.dtype, num_bands: int) -> float:
+    return float(20.0 * num_bands * torch.finfo(dtype).eps)
+
+
+def _admm_tol(dtype: torch.dtype) -> float:
+    return float(torch.finfo(dtype).eps) ** 0.5
+
+
+def _default_chunk(device: torch.device) -> int:
+    # Measured on the 2-core CPU: chunks of a few thousand pixels keep the batched 25×25 LAPACK
+    # calls in cache and are ~2× faster than one huge batch. GPUs prefer large batches.
+    return 8192 if device.type == "cpu" else 262144
+
+
+def _chunk_len(
+    num: int, per_pixel_bytes: int, chunk_size: int | None, max_memory: int | None,
+    device: torch.device,
+) -> int:
+    if chunk_size is not None:
+        if int(chunk_size) < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        n = int(chunk_size)
+    elif max_memory is not None:
+        if int(max_memory) < 1:
+            raise ValueError(f"max_memory must be >= 1 byte, got {max_memory}")
+        n = max(1, int(max_memory) // max(1, per_pixel_bytes))
+    else:
+        n = _default_chunk(device)
+    return max(1, min(n, max(num, 1)))
+
+
+def nnls_kkt_residual(G: Tensor, b: Tensor, x: Tensor) -> Tensor:
+    """Relative KKT residual of ``min ½xᵀGx − bᵀx, x ≥ 0`` per pixel.
+
+    Args:
+        G: ``(P|1, M, M)`` symmetric Gram matrices.
+        b: ``(P, M)`` right-hand sides.
+        x: ``(P, M)`` candidate solutions.
+
+    Returns:
+        ``(P,)`` ``max_m |min(G_mm x_m, g_m)| / max(‖b‖∞, ‖diag(G) ⊙ x‖∞)`` with ``g = Gx − b``
+        (0 where both scales are 0). It vanishes exactly when ``x ≥ 0``, ``g ≥ 0`` and
+        ``x ⊙ g = 0``.
+    """
+    gd = G.diagonal(dim1=-2, dim2=-1)
+    g = _rowvec(x, G) - b
+    xs = gd * x
+    nat = torch.minimum(xs, g).abs().amax(dim=1)
+    scale = torch.maximum(b.abs().amax(dim=1), xs.abs().amax(dim=1))
+    return torch.where(scale > 0, nat / scale.clamp_min(torch.finfo(x.dtype).tiny), nat)
+
+
+# ----------------------------------------------------------------------------------------------
+# tableau (principal pivot transform) machinery
+
+
+def _pivot(T: Tensor, c: Tensor, k: Tensor, has: Tensor | None = None) -> Tensor:
+    """One principal pivot on index ``k[i]`` of every tableau ``T[i]``, in place.
+
+    The tableau represents ``v = T u + c`` with ``v = (x_F, g_Z)`` and ``u = (g_F, x_Z)`` for the
+    free set ``F`` and the active (zero) set ``Z``; pivoting on ``k`` moves ``k`` between the two
+    sets. ``c`` then holds ``x_F`` and ``g_Z`` of the equality-constrained solution. Rows with
+    ``has[i] = False`` are left unchanged (masked rank-1 update, no gather/scatter of ``T``).
+
+    Returns:
+        ``(n,)`` bool: the pivot was positive and finite (otherwise ``T`` of that row is invalid).
+    """
+    n, m = c.shape
+    kk = k.view(n, 1, 1)
+    col = T.gather(2, kk.expand(n, m, 1))  # T[:, :, k]
+    row = T.gather(1, kk.expand(n, 1, m))  # T[:, k, :]
+    p0 = col.gather(1, kk)  # (n, 1, 1)
+    ok = (p0 > 0) & torch.isfinite(p0)
+    use = ok if has is None else ok & has.view(n, 1, 1)
+    p = torch.where(use, p0, torch.ones((), dtype=p0.dtype, device=p0.device))
+    colp = torch.where(use, col / p, torch.zeros((), dtype=p.dtype, device=p.device))
+    ck = c.gather(1, k.view(n, 1))
+    # entries off row/column k get the rank-1 update; row k, column k and (k, k) are written
+    # explicitly (no cancellation whatever the scale of p)
+    T.addcmul_(colp, row, value=-1.0)
+    T.scatter_(1, kk.expand(n, 1, m), torch.where(use, -row / p, row))
+    T.scatter_(2, kk.expand(n, m, 1), torch.where(use, colp, col))
+    T.view(n, m * m).scatter_(1, (k * (m + 1)).view(n, 1), torch.where(use, 1.0 / p, p0).view(n, 1))
+    c.addcmul_(colp.squeeze(2), ck, value=-1.0)
+    c.scatter_(1, k.view(n, 1), torch.where(use.view(n, 1), -ck / p.view(n, 1), ck))
+    return ok.view(n)
+
+
+def _pivot_rows(T: Tensor, c: Tensor, free: Tensor, k: Tensor, has: Tensor | None) -> Tensor:
+    """Masked pivot (see :func:`_pivot`) that also toggles ``free[i, k[i]]``; returns ok."""
+    ok = _pivot(T, c, k, has)
+    flip = ok if has is None else ok & has
+    fk = free.gather(1, k.view(-1, 1))
+    free.scatter_(1, k.view(-1, 1), fk ^ flip.view(-1, 1))
+    return ok
+
+
+def _refine(T: Tensor, c: Tensor, free: Tensor, G: Tensor, b: Tensor) -> Tensor:
+    """One step of iterative refinement of the equality-constrained solution; returns new ``c``.
+
+    Uses the exact ``G`` for the gradient and the tableau block ``T_FF = G_FF⁻¹`` as the
+    (approximate) inverse; ``c`` becomes ``(x_F, g_Z)`` recomputed from the refined ``x``.
+    """
+    zero = torch.zeros((), dtype=c.dtype, device=c.device)
+    x = torch.where(free, c, zero)
+    g = _rowvec(x, G) - b
+    d = torch.bmm(T, torch.where(free, g, zero).unsqueeze(2)).squeeze(2)
+    x = torch.where(free, x - d, zero)
+    g = _rowvec(x, G) - b
+    return torch.where(free, x, g)
+
+
+def _bpp(
+    T: Tensor, c: Tensor, G: Tensor, b: Tensor, thr: Tensor, max_iter: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Block principal pivoting from the all-free state (``T = G⁻¹``, ``c`` = unconstrained x).
+
+    Each round, every working pixel exchanges its infeasible set (or, after three rounds without
+    progress, only its largest infeasible index: Murty's rule, which guarantees termination). The
+    working set is compacted as pixels finish and sorted by the number of pivots it needs, so the
+    ``j``-th pivot of a round touches only the contiguous prefix of pixels that have one. A pixel
+    finishes when no variable is infeasible both before and after one refinement step with the
+    exact ``G``.
+
+    Args:
+        T: ``(n, M, M)`` tableau (consumed). c: ``(n, M)`` current ``(x_F, g_Z)`` (consumed).
+        G: ``(n|1, M, M)``, b: ``(n, M)``: the problem (for refinement).
+        thr: ``(n, 1)`` infeasibility threshold in gradient units.
+        max_iter: maximum number of pivoting rounds.
+
+    Returns:
+        ``x (n, M)``, ``done (n,)``, ``failed (n,)`` (non-positive pivot met: the pixel must be
+        re-solved another way), ``iterations (n,)``.
+    """
+    n, m = c.shape
+    dev, dt = c.device, c.dtype
+    zero = torch.zeros((), dtype=dt, device=dev)
+    x_out = torch.zeros((n, m), dtype=dt, device=dev)
+    done = torch.zeros((n,), dtype=torch.bool, device=dev)
+    failed = torch.zeros((n,), dtype=torch.bool, device=dev)
+    iters = torch.zeros((n,), dtype=torch.long, device=dev)
+    shared_g = G.shape[0] == 1
+    gidx = torch.arange(n, device=dev)  # global index of each working row
+    gd = _expand_rows(G, n).diagonal(dim1=1, dim2=2)
+    Gw, bw, tw = G, b, thr
+    free = torch.ones((n, m), dtype=torch.bool, device=dev)
+    best = torch.full((n,), m + 1, dtype=torch.long, device=dev)
+    backup = torch.full((n,), 3, dtype=torch.long, device=dev)
+    fail_w = torch.zeros((n,), dtype=torch.bool, device=dev)
+    for rnd in range(max_iter + 1):
+        infeas = torch.where(free, c * gd < -tw, c < -tw)
+        stalled = ~infeas.any(1) | fail_w
+        keep = None
+        if bool(stalled.any()):
+            # candidates to finish: refine once, keep those still free of infeasibility
+            s_idx = stalled.nonzero().squeeze(1)
+            ok_rows = ~fail_w[s_idx]
+            fs = free[s_idx]
+            Gs = Gw if shared_g else Gw[s_idx]
+            c_ref = _refine(T[s_idx], c[s_idx], fs, Gs, bw[s_idx])
+            inf2 = torch.where(fs, c_ref * gd[s_idx] < -tw[s_idx], c_ref < -tw[s_idx])
+            fin = ~inf2.any(1) | ~ok_rows
+            g_fin = gidx[s_idx[fin]]
+            x_out[g_fin] = torch.where(fs[fin], c_ref[fin], zero).clamp_min(0)
+            done[g_fin] = ok_rows[fin]
+            failed[g_fin] = ~ok_rows[fin]
+            c[s_idx] = c_ref
+            infeas[s_idx] = inf2
+            keep = torch.ones_like(stalled)
+            keep[s_idx[fin]] = False
+            if not bool(keep.any()):
+                return x_out, done, failed, iters
+        if rnd >= max_iter:
+            break
+        nv = infeas.sum(1)
+        improved = nv < best
+        full_block = improved | (backup >= 1)
+        backup = torch.where(improved, torch.full_like(backup, 3), (backup - 1).clamp_min(0))
+        best = torch.where(improved, nv, best)
+        last = (m - 1) - infeas.flip(1).to(torch.uint8).argmax(1)  # Murty back-up: largest index
+        single = torch.zeros_like(infeas).scatter_(1, last.view(-1, 1), True)
+        Vh = torch.where(full_block.view(-1, 1), infeas, single)
+        cnt = Vh.sum(1)
+        if keep is not None:
+            cnt = torch.where(keep, cnt, torch.full_like(cnt, -1))
+        order = torch.argsort(cnt, descending=True, stable=True)
+        n_keep = int(stalled.shape[0] if keep is None else keep.sum())
+        order = order[:n_keep]
+        hist = torch.bincount(cnt[order], minlength=m + 1)
+        # prefix sizes: number of working rows with more than j pivots, j = 0, 1, ...
+        sizes = (n_keep - torch.cumsum(hist, 0))[:m].tolist()
+        T, c, free, gd, bw, tw = T[order], c[order], free[order], gd[order], bw[order], tw[order]
+        best, backup, gidx, fail_w, Vh = best[order], backup[order], gidx[order], fail_w[order], \
+            Vh[order]
+        Gw = Gw if shared_g else Gw[order]
+        for nj in sizes:
+            if nj <= 0:
+                break
+            Vj = Vh[:nj]
+            k = Vj.to(torch.uint8).argmax(1)
+            fail_w[:nj] |= ~_pivot_rows(T[:nj], c[:nj], free[:nj], k, None)
+            Vj.scatter_(1, k.view(-1, 1), False)
+        iters[gidx] += 1
+    # out of rounds: report the current (clamped) iterate as not converged
+    x_out[gidx] = torch.where(free, c, zero).clamp_min(0)
+    return x_out, done, failed, iters
+
+
+def _lawson_hanson(
+    G: Tensor, b: Tensor, thr: Tensor, piv_tol: float, max_iter: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Lawson–Hanson active set on the tableau, for singular or ill-conditioned ``G``.
+
+    Starts from ``x = 0`` (``T = G``, ``c = −b``). Outer step: the most negative gradient among
+    the active variables whose reduced pivot ``T_kk > piv_tol · G_kk`` enters the free set. Inner
+    step: while the equality-constrained solution ``z`` has a non-positive free entry, move ``x``
+    towards ``z`` up to the first blocking bound and drop that variable. One pivot per pixel per
+    loop iteration.
+
+    Returns:
+        ``x (n, M)``, ``done (n,)``, ``iterations (n,)``.
+    """
+    n, m = b.shape
+    dev, dt = b.device, b.dtype
+    Gn = _expand_rows(G, n)
+    gd = Gn.diagonal(dim1=1, dim2=2)
+    T = Gn.clone()
+    c = -b.clone()
+    free = torch.zeros((n, m), dtype=torch.bool, device=dev)
+    x = torch.zeros((n, m), dtype=dt, device=dev)
+    iters = torch.zeros((n,), dtype=torch.long, device=dev)
+    done = torch.zeros((n,), dtype=torch.bool, device=dev)
+    zero = torch.zeros((), dtype=dt, device=dev)
+    inf = torch.full((), float("inf"), dtype=dt, device=dev)
+    refined = False
+    refinements = 0
+    for _ in range(max_iter + 3):
+        nonpos = free & (c <= 0)
+        inner = nonpos.any(1)
+        diag_t = T.diagonal(dim1=1, dim2=2)
+        cand = ~free & (c < -thr) & (diag_t > piv_tol * gd)
+        outer = ~inner & cand.any(1)
+        act = inner | outer
+        finished = ~act
+        x = torch.where(finished.view(-1, 1), torch.where(free, c, zero), x)
+        if not bool(act.any()):
+            if refined or refinements >= 3:
+                done = torch.ones_like(done)
+                break
+            c = _refine(T, c, free, G, b)
+            refined = True
+            refinements += 1
+            continue
+        if int(iters.max()) >= max_iter:
+            done = finished
+            break
+        refined = False
+        z = torch.where(free, c, zero)
+        # outer: x = z, k = most negative admissible gradient
+        k_out = torch.where(cand, c, inf).argmin(1)
+        # inner: step to the first blocking bound
+        ratio = torch.where(nonpos, x / (x - z).clamp_min(torch.finfo(dt).tiny), inf)
+        alpha, k_in = ratio.min(1)
+        alpha = torch.where(inner, alpha, torch.zeros_like(alpha)).clamp(0, 1).view(-1, 1)
+        x_in = torch.where(free, x + alpha * (z - x), zero).clamp_min(0)
+        x_in = x_in.scatter(1, k_in.view(-1, 1), zero.expand(n, 1))
+        x = torch.where(inner.view(-1, 1), x_in, torch.where(outer.view(-1, 1), z, x))
+        k = torch.where(inner, k_in, k_out)
+        _pivot_rows(T, c, free, k, act)
+        iters += act.long()
+    return x.clamp_min(0), done, iters
+
+
+# ----------------------------------------------------------------------------------------------
+# the problem object
+
+
+def _check_inputs(
+    A: Tensor, mask: Tensor | None, beta: float, diff_order: int
+) -> tuple[Tensor, Tensor | None, float]:
+    if not isinstance(A, Tensor):
+        raise TypeError(f"A must be a torch.Tensor, got {type(A).__name__}")
+    if A.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"A must be float32 or float64, got {A.dtype}")
+    if A.ndim not in (2, 3):
+        raise ValueError(f"A must have shape (O, M) or (P, O, M), got {tuple(A.shape)}")
+    o, m = A.shape[-2:]
+    if o < 1 or m < 1:
+        raise ValueError(f"A needs at least one observation and one band, got {tuple(A.shape)}")
+    if diff_order not in (0, 1, 2):
+        raise ValueError(f"diff_order must be 0, 1 or 2, got {diff_order}")
+    beta = float(beta)
+    if not (beta >= 0.0) or beta == float("inf"):
+        raise ValueError(f"beta must be finite and >= 0, got {beta}")
+    if beta > 0 and m < diff_order + 1:
+        raise ValueError(f"diff_order={diff_order} needs at least {diff_order + 1} bands, got {m}")
+    if mask is not None:
+        if not isinstance(mask, Tensor):
+            raise TypeError(f"mask must be a torch.Tensor or None, got {type(mask).__name__}")
+        if mask.ndim != 2 or mask.shape[1] != o:
+            raise ValueError(f"mask must have shape (P, {o}) to match A, got {tuple(mask.shape)}")
+        if A.ndim == 3 and mask.shape[0] != A.shape[0]:
+            raise ValueError(
+                f"mask has {mask.shape[0]} pixels but A has {A.shape[0]} (shape {tuple(A.shape)})"
+            )
+        if mask.device != A.device:
+            raise ValueError(f"mask is on {mask.device} but A is on {A.device}")
+        mask = mask.to(torch.bool)
+    return A, mask, beta
+
+
+class NNLSProblem:
+    """Precomputed per-pixel factorisations of one sensing configuration; reuse for every frame.
+
+    Build with :func:`prepare_nnls`. Holds ``A`` (a reference, not a copy), the mask, the Gram
+    matrices ``G = Aᵀ W A + β DᵀD`` and their inverses, each ``(P, M, M)`` (or ``(1, M, M)`` when
+    ``A`` is shared and there is no mask). Memory: ``2·P·M²`` floats (≈ 1.6 GB in float32 for
+    324 000 pixels × 25 bands).
+
+    Attributes:
+        A: ``(1|P, O, M)``; mask: ``(P, O)`` bool or ``None``; beta; diff_order.
+        gram, gram_inv: ``(1|P, M, M)``; ``gram_inv`` is 0 where ``singular``.
+        singular: ``(1|P,)`` bool, ``G`` is (numerically) singular: those pixels use
+            Lawson–Hanson. no_data: ``(1|P,)`` bool, all observations masked.
+    """
+
+    def __init__(
+        self,
+        A: Tensor,
+        mask: Tensor | None,
+        beta: float,
+        diff_order: int,
+        gram: Tensor,
+        gram_inv: Tensor,
+        singular: Tensor,
+        no_data: Tensor,
+    ) -> None:
+        self.A = A
+        self.mask = mask
+        self.beta = beta
+        self.diff_order = diff_order
+        self.gram = gram
+        self.gram_inv = gram_inv
+        self.singular = singular
+        self.no_data = no_data
+        self._admm_cache: dict[str, tuple[Tensor, Tensor]] = {}
+
+    # -- shapes -----------------------------------------------------------------------------
+    @property
+    def num_pixels(self) -> int | None:
+        """``P``, or ``None`` when ``A`` is shared and unmasked (any ``P`` is accepted)."""
+        if self.mask is not None:
+            return self.mask.shape[0]
+        return self.A.shape[0] if self.A.shape[0] > 1 else None
+
+    @property
+    def num_obs(self) -> int:
+        return self.A.shape[1]
+
+    @property
+    def num_bands(self) -> int:
+        return self.A.shape[2]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.A.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.A.device
+
+    def _check_y(self, y: Tensor) -> Tensor:
+        if not isinstance(y, Tensor):
+            raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+        if y.ndim != 2 or y.shape[1] != self.num_obs:
+            raise ValueError(f"y must have shape (P, {self.num_obs}), got {tuple(y.shape)}")
+        p = self.num_pixels
+        if p is not None and y.shape[0] != p:
+            raise ValueError(f"y has {y.shape[0]} pixels but the problem has {p}")
+        if y.device != self.device:
+            raise ValueError(f"y is on {y.device} but A is on {self.device}")
+        if not y.is_floating_point():
+            raise TypeError(f"y must be floating point, got {y.dtype}")
+        return y.to(self.dtype)
+
+    def _rhs(self, y: Tensor, sl: slice) -> Tensor:
+        """``b = Aᵀ W y`` for the pixels ``sl`` -> ``(n, M)``."""
+        yc = y[sl]
+        w = _take(self.mask, sl)
+        if w is not None:
+            yc = torch.where(w, yc, torch.zeros((), dtype=yc.dtype, device=yc.device))
+        return _rowvec(yc, _take(self.A, sl))
+
+    # -- solve ------------------------------------------------------------------------------
+    def solve(
+        self,
+        y: Tensor,
+        *,
+        method: str = "active_set",
+        tol: float | None = None,
+        max_iter: int | None = None,
+        refine: int | None = None,
+        chunk_size: int | None = None,
+        max_memory: int | None = None,
+        x0: Tensor | None = None,
+        admm_iters: int | None = None,
+        rho: float | None = None,
+    ) -> NNLSResult:
+        """Solve all pixels for observations ``y``.
+
+        Args:
+            y: ``(P, O)`` observations (same device as ``A``; cast to ``A``'s dtype).
+            method: ``"active_set"`` (exact) or ``"admm"``.
+            tol: active set: relative KKT tolerance (gradient units, see :class:`NNLSResult`),
+                default ``20·M·eps(dtype)``; ADMM: relative primal/dual residual tolerance
+                (``‖x − z‖∞`` and ``‖z − z_prev‖∞`` over ``‖z‖∞``), default ``sqrt(eps)``.
+            max_iter: active set: pivoting rounds (default ``10·M``); ADMM: iterations in the
+                tolerance-driven mode (default 5000).
+            refine: refinement steps of the unconstrained solution (default 1 for float32, 0 for
+                float64).
+            chunk_size / max_memory: pixels per chunk, or a working-memory budget in bytes.
+            x0: ``(P, M)`` ADMM warm start (e.g. the previous frame's solution).
+            admm_iters: run exactly this many ADMM iterations (no data-dependent stopping,
+                differentiable w.r.t. ``y``). Ignored by the active-set method.
+            rho: ADMM penalty; default per pixel ``trace(G)/M``.
+
+        Returns:
+            :class:`NNLSResult`. Gradients flow only in the fixed-iteration ADMM mode.
+        """
+        if method not in _METHODS:
+            raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+        y = self._check_y(y)
+        P, m = y.shape[0], self.num_bands
+        if tol is None:
+            tol = _default_tol(self.dtype, m) if method == "active_set" else _admm_tol(self.dtype)
+        tol = float(tol)
+        if not tol > 0:
+            raise ValueError(f"tol must be > 0, got {tol}")
+        if refine is None:
+            refine = 0 if self.dtype == torch.float64 else 1
+        if x0 is not None and (x0.shape != (P, m) or x0.device != self.device):
+            raise ValueError(f"x0 must have shape ({P}, {m}) on {self.device}, got "
+                             f"{tuple(x0.shape)} on {x0.device}")
+        if admm_iters is not None and int(admm_iters) < 0:
+            raise ValueError(f"admm_iters must be >= 0, got {admm_iters}")
+        item = torch.finfo(self.dtype).bits // 8
+        per_px = item * (2 * self.num_obs + 16 * m + 4 * m * m)
+        n = _chunk_len(P, per_px, chunk_size, max_memory, self.device)
+        outs = []
+        for s in range(0, P, n):
+            sl = slice(s, min(P, s + n))
+            if method == "active_set":
+                with torch.no_grad():
+                    outs.append(self._solve_chunk_as(y, sl, tol, max_iter or 10 * m, refine))
+            else:
+                fixed = admm_iters is not None
+                with torch.set_grad_enabled(fixed and torch.is_grad_enabled()):
+                    outs.append(self._solve_chunk_admm(
+                        y, sl, tol, max_iter or 5000, admm_iters, rho,
+                        None if x0 is None else x0[sl]))
+        cat = [torch.cat([o[i] for o in outs]) for i in range(5)]
+        return NNLSResult(cat[0], cat[1], cat[2], cat[3], cat[4], method)
+
+    def _chunk_parts(self, sl: slice, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        G = _take(self.gram, sl)
+        Gi = _take(self.gram_inv, sl)
+        sing = _expand_rows(_take(self.singular, sl), n)
+        nod = _expand_rows(_take(self.no_data, sl), n)
+        return G, Gi, sing, nod
+
+    def _finish(
+        self, G: Tensor, b: Tensor, x: Tensor, nod: Tensor, done: Tensor, tol: float
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        zero = torch.zeros((), dtype=x.dtype, device=x.device)
+        x = torch.where(nod.view(-1, 1), zero, x)
+        with torch.no_grad():
+            r = nnls_kkt_residual(G, b, x.detach())
+            r = torch.where(nod, zero, r)
+            r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
+        return x, done & (r <= tol), r
+
+    def _solve_chunk_as(
+        self, y: Tensor, sl: slice, tol: float, max_iter: int, refine: int
+    ) -> tuple[Tensor, ...]:
+        b = self._rhs(y, sl)
+        n, m = b.shape
+        dev, dt = b.device, b.dtype
+        G, Gi, sing, nod = self._chunk_parts(sl, n)
+        zero = torch.zeros((), dtype=dt, device=dev)
+        regular = ~sing & ~nod
+        any_irregular = bool((~regular).any())
+        x = _rowvec(b, Gi)
+        for _ in range(refine):
+            x = x - _rowvec(_rowvec(x, G) - b, Gi)
+        if any_irregular:
+            x = torch.where(regular.view(-1, 1), x, zero)
+        gd = _expand_rows(G, n).diagonal(dim1=1, dim2=2)
+        scale = torch.maximum(b.abs().amax(1), (gd * x).abs().amax(1))
+        thr = (tol * 0.25 * scale).clamp_min(torch.finfo(dt).tiny).view(-1, 1)
+        iters = torch.zeros((n,), dtype=torch.long, device=dev)
+        done = torch.ones((n,), dtype=torch.bool, device=dev)
+        need = (x * gd < -thr).any(1)
+        if any_irregular:
+            need &= regular
+        redo = sing & ~nod
+        if bool(need.any()):
+            idx = need.nonzero().squeeze(1)
+            Gs = G if G.shape[0] == 1 else G[idx]
+            Ts = _expand_rows(Gi if Gi.shape[0] == 1 else Gi[idx], idx.shape[0]).clone()
+            xs, ds, fs, its = _bpp(Ts, x[idx], Gs, b[idx], thr[idx], max_iter)
+            x[idx], done[idx], iters[idx] = xs, ds, its
+            redo[idx] |= fs
+        x.clamp_min_(0)
+        # robust fallback: singular pixels, and any pixel whose answer fails the KKT check (e.g. a
+        # numerically singular G that passed the Cholesky test), go to Lawson–Hanson from x = 0
+        r = nnls_kkt_residual(G, b, x)
+        redo |= ~(r <= tol)
+        if any_irregular:
+            redo &= ~nod
+        if bool(redo.any()):
+            idx = redo.nonzero().squeeze(1)
+            Gs = G if G.shape[0] == 1 else G[idx]
+            bs = b[idx]
+            thr_s = (tol * 0.25 * bs.abs().amax(1)).clamp_min(torch.finfo(dt).tiny).view(-1, 1)
+            eps = float(torch.finfo(dt).eps)
+            piv_tol = min(eps**0.5, 100.0 * m * eps)
+            xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
+            rs = nnls_kkt_residual(Gs, bs, xs)
+            better = ~(rs >= r[idx])  # keep the earlier answer where it was at least as good
+            x[idx] = torch.where(better.view(-1, 1), xs, x[idx])
+            done[idx] = torch.where(better, ds, done[idx])
+            r[idx] = torch.where(better, rs, r[idx])
+            iters[idx] = iters[idx] + its
+        if any_irregular:
+            x = torch.where(nod.view(-1, 1), zero, x)
+            r = torch.where(nod, zero, r)
+        r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
+        return x, done & (r <= tol), iters, r, nod.clone()
+
+    # -- ADMM ---------------------------------------------------------------------------------
+    def _admm_factors(self, rho: float | None) -> tuple[Tensor, Tensor]:
+        key = "auto" if rho is None else repr(float(rho))
+        if key in self._admm_cache:
+            return self._admm_cache[key]
+        G = self.gram
+        m = self.num_bands
+        gd = G.diagonal(dim1=1, dim2=2)
+        if rho is None:
+            r = gd.mean(1)
+            r = torch.where(r > 0, r, torch.ones_like(r))
+        else:
+            if not float(rho) > 0:
+                raise ValueError(f"rho must be > 0, got {rho}")
+            r = torch.full((G.shape[0],), float(rho), dtype=G.dtype, device=G.device)
+        K = torch.empty_like(G)
+        eye = torch.eye(m, dtype=G.dtype, device=G.device)
+        n = _chunk_len(G.shape[0], 8 * m * m * G.element_size(), None, None, G.device)
+        with torch.no_grad():
+            for s in range(0, G.shape[0], n):
+                sl = slice(s, s + n)
+                L, _ = torch.linalg.cholesky_ex(G[sl] + r[sl].view(-1, 1, 1) * eye)
+                K[sl] = torch.cholesky_inverse(L)
+        self._admm_cache[key] = (K, r)
+        return K, r
+
+    def _solve_chunk_admm(
+        self, y: Tensor, sl: slice, tol: float, max_iter: int, admm_iters: int | None,
+        rho: float | None, x0: Tensor | None,
+    ) -> tuple[Tensor, ...]:
+        K, r = self._admm_factors(rho)
+        K, r = _take(K, sl), _take(r, sl)
+        b = self._rhs(y, sl)
+        n, m = b.shape
+        dev, dt = b.device, b.dtype
+        G, Gi, sing, nod = self._chunk_parts(sl, n)
+        r = _expand_rows(r.view(-1, 1), n)
+        zero = torch.zeros((), dtype=dt, device=dev)
+        if x0 is None:
+            z = torch.where((sing | nod).view(-1, 1), zero, _rowvec(b, Gi)).clamp_min(0)
+        else:
+            z = x0.to(dt).clamp_min(0)
+        u = (b - _rowvec(z, G)) / r
+        if admm_iters is not None:  # fixed iterations, out of place: differentiable
+            for _ in range(int(admm_iters)):
+                x = _rowvec(b + r * (z - u), K)
+                z = (x + u).clamp_min(0)
+                u = u + x - z
+            iters = torch.full((n,), int(admm_iters), dtype=torch.long, device=dev)
+            done = torch.ones((n,), dtype=torch.bool, device=dev)
+            x, conv, res = self._finish(G, b, z, nod, done, tol)
+            return x, conv, iters, res, nod.clone()
+        # tolerance-driven: iterate on the sub-batch that has not converged
+        iters = torch.zeros((n,), dtype=torch.long, device=dev)
+        done = torch.zeros((n,), dtype=torch.bool, device=dev)
+        act = torch.arange(n, device=dev)
+        Ka, ra, ba, za, ua = _expand_rows(K, n), r, b, z, u
+        check = 10
+        it = 0
+        while act.numel() > 0 and it < max_iter:
+            z_prev = za
+            for _ in range(check):
+                x = _rowvec(ba + ra * (za - ua), Ka)
+                z_prev = za
+                za = (x + ua).clamp_min(0)
+                ua = ua + x - za
+            it += check
+            xs = za.abs().amax(1).clamp_min(torch.finfo(dt).tiny)
+            prim = (x - za).abs().amax(1) / xs
+            dual = (za - z_prev).abs().amax(1) / xs
+            ok = (prim <= tol) & (dual <= tol)
+            iters[act] = it
+            if bool(ok.any()):
+                fin = act[ok]
+                z[fin] = za[ok]
+                done[fin] = True
+                keep = ~ok
+                act, Ka, ra = act[keep], Ka[keep], ra[keep]
+                ba, za, ua = ba[keep], za[keep], ua[keep]
+        if act.numel() > 0:
+            z[act] = za
+        x, _, res = self._finish(G, b, z, nod, done, tol)
+        return x, done | nod, iters, res, nod.clone()
+
+
+def prepare_nnls(
+    A: Tensor,
+    *,
+    mask: Tensor | None = None,
+    beta: float = 0.0,
+    diff_order: int = 1,
+    chunk_size: int | None = None,
+    max_memory: int | None = None,
+) -> NNLSProblem:
+    """Factorise the per-pixel systems once (calibration fixed, only ``y`` changes per frame).
+
+    Args:
+        A: ``(O, M)`` shared or ``(P, O, M)`` per-pixel sensing matrices (float32/float64, any
+            device, finite).
+        mask: ``(P, O)`` bool, ``True`` = observation used; ``None`` = all used.
+        beta: smoothness weight ``β ≥ 0`` on ``‖D x‖²`` (data scale, e.g. DN²).
+        diff_order: order of ``D`` (0 identity, 1 first difference, 2 second difference).
+        chunk_size / max_memory: pixels per chunk or working-memory budget (bytes) for the
+            factorisation; the stored result is ``2·P·M²`` floats regardless.
+
+    Returns:
+        :class:`NNLSProblem`; call ``.solve(y)`` per frame.
+
+    Example:
+        >>> A = torch.rand(1000, 30, 25)
+        >>> prob = prepare_nnls(A, beta=1e2)
+        >>> res = prob.solve(torch.rand(1000, 30) * 255)
+        >>> res.x.shape
+        torch.Size([1000, 25])
+    """
+    A, mask, beta = _check_inputs(A, mask, beta, diff_order)
+    A3 = A.unsqueeze(0) if A.ndim == 2 else A
+    _, o, m = A3.shape
+    dev, dt = A3.device, A3.dtype
+    with torch.no_grad():
+        A3 = A3.detach()
+        if beta > 0:
+            D = difference_matrix(m, diff_order, device=dev, dtype=dt)
+            R = beta * (D.T @ D)
+        else:
+            R = torch.zeros((m, m), dtype=dt, device=dev)
+        shared = A3.shape[0] == 1
+        if shared and mask is None:
+            P = 1
+        else:
+            P = mask.shape[0] if shared else A3.shape[0]
+        item = A3.element_size()
+        n = _chunk_len(P, item * (o * m + 8 * m * m), chunk_size, max_memory, dev)
+        gram = torch.empty((P, m, m), dtype=dt, device=dev)
+        gram_inv = torch.empty((P, m, m), dtype=dt, device=dev)
+        singular = torch.empty((P,), dtype=torch.bool, device=dev)
+        no_data = torch.zeros((P,), dtype=torch.bool, device=dev)
+        eps = torch.finfo(dt).eps
+        outer = (A3[0].unsqueeze(2) * A3[0].unsqueeze(1)).reshape(o, m * m) if shared else None
+        for s in range(0, P, n):
+            sl = slice(s, min(P, s + n))
+            w = None if mask is None else mask[sl]
+            if shared:
+                if w is None:
+                    G = (A3[0].T @ A3[0]).unsqueeze(0)
+                else:
+                    G = (w.to(dt) @ outer).view(-1, m, m)
+            else:
+                a = A3[sl]
+                aw = a if w is None else torch.where(w.unsqueeze(2), a, torch.zeros((), dtype=dt,
+                                                                                     device=dev))
+                G = torch.bmm(a.transpose(1, 2), aw)
+            G = 0.5 * (G + G.transpose(1, 2)) + R
+            L, info = torch.linalg.cholesky_ex(G)
+            gd = G.diagonal(dim1=1, dim2=2)
+            ld2 = L.diagonal(dim1=1, dim2=2).square()
+            bad = (info != 0) | ~(ld2.amin(1) > 20.0 * m * eps * gd.amax(1))
+            bad |= ~torch.isfinite(ld2).all(1)
+            L = torch.where(bad.view(-1, 1, 1), torch.eye(m, dtype=dt, device=dev), L)
+            Gi = torch.cholesky_inverse(L)
+            Gi = torch.where(bad.view(-1, 1, 1), torch.zeros((), dtype=dt, device=dev), Gi)
+            gram[sl] = G
+            gram_inv[sl] = 0.5 * (Gi + Gi.transpose(1, 2))
+            singular[sl] = bad
+            if w is not None:
+                no_data[sl] = ~w.any(1)
+        singular |= no_data
+    return NNLSProblem(A3, mask, beta, diff_order, gram, gram_inv, singular, no_data)
+
+
+def solve_nnls(
+    A: Tensor,
+    y: Tensor,
+    *,
+    beta: float = 0.0,
+    mask: Tensor | None = None,
+    diff_order: int = 1,
+    method: str = "active_set",
+    tol: float | None = None,
+    max_iter: int | None = None,
+    refine: int | None = None,
+    chunk_size: int | None = None,
+    max_memory: int | None = None,
+    x0: Tensor | None = None,
+    admm_iters: int | None = None,
+    rho: float | None = None,
+) -> NNLSResult:
+    """Batched non-negative smoothness-regularised least squares, one problem per pixel.
+
+    ``x_p = argmin_{x ≥ 0} Σ_o mask_po (A_p x − y_p)_o² + beta ‖D x‖²``, ``D`` from
+    :func:`hsi_torch.spectral.difference_matrix` (``M``, ``diff_order``).
+
+    Args:
+        A: ``(O, M)`` shared or ``(P, O, M)`` per pixel; float32 or float64; any device.
+        y: ``(P, O)`` observations (e.g. DN). Entries where ``mask`` is False are ignored (may be
+            NaN).
+        beta: smoothness weight (≥ 0) on the data's scale.
+        mask: ``(P, O)`` bool, True = observation used; None = all.
+        diff_order: 0, 1 (default) or 2.
+        method: ``"active_set"`` (exact, finite termination) or ``"admm"``.
+        tol, max_iter, refine, x0, admm_iters, rho: see :meth:`NNLSProblem.solve`.
+        chunk_size / max_memory: pixels per chunk or a working-memory budget in bytes; each chunk
+            is factorised and solved on its own, so memory stays bounded (per-pixel ``A``).
+
+    Returns:
+        :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
+        ``no_data``.
+
+    Example:
+        >>> A = torch.rand(500, 30, 25, dtype=torch.float64)
+        >>> y = torch.einsum("pom,pm->po", A, torch.rand(500, 25, dtype=torch.float64))
+        >>> res = solve_nnls(A, y, beta=1e-2)
+        >>> bool(res.converged.all()), bool((res.x >= 0).all())
+        (True, True)
+    """
+    A, mask, beta = _check_inputs(A, mask, beta, diff_order)
+    if not isinstance(y, Tensor) or y.ndim != 2:
+        raise ValueError(f"y must be a (P, O) tensor, got {getattr(y, 'shape', type(y))}")
+    P = y.shape[0]
+    if A.ndim == 3 and A.shape[0] != P:
+        raise ValueError(f"A has {A.shape[0]} pixels (shape {tuple(A.shape)}) but y has {P}")
+    if mask is not None and mask.shape[0] != P:
+        raise ValueError(f"mask has {mask.shape[0]} pixels but y has {P}")
+    kw = dict(method=method, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
+              rho=rho)
+    if A.ndim == 2 and mask is None:
+        prob = prepare_nnls(A, beta=beta, diff_order=diff_order)
+        return prob.solve(y, chunk_size=chunk_size, max_memory=max_memory, x0=x0, **kw)
+    o, m = A.shape[-2:]
+    item = A.element_size()
+    per_px = item * (o * m + 8 * m * m + 2 * o + 16 * m)
+    n = _chunk_len(P, per_px, chunk_size, max_memory, A.device)
+    parts: list[NNLSResult] = []
+    for s in range(0, P, n):
+        sl = slice(s, min(P, s + n))
+        prob = prepare_nnls(A if A.ndim == 2 else A[sl], mask=None if mask is None else mask[sl],
+                            beta=beta, diff_order=diff_order, chunk_size=n)
+        parts.append(prob.solve(y[sl], chunk_size=n, x0=None if x0 is None else x0[sl], **kw))
+    return NNLSResult(
+        torch.cat([r.x for r in parts]),
+        torch.cat([r.converged for r in parts]),
+        torch.cat([r.iterations for r in parts]),
+        torch.cat([r.kkt_residual for r in parts]),
+        torch.cat([r.no_data for r in parts]),
+        method,
+    )
+
+
+def synthetic_brf_problem(
+    num_pixels: int,
+    *,
+    grid: SpectralGrid = DEFAULT_GRID,
+    num_views: int = 10,
+    opd_range_nm: tuple[float, float] = (1500.0, 6000.0),
+    mask_fraction: float = 0.1,
+    noise_dn: float = 1.0,
+    peak_dn: float = 255.0,
+    shared: bool = False,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """A realistic random test/benchmark problem with the camera's sensing structure.
+
+    ``A_p[(v, c), m] = g_v(p) · T_v(p, λ_m) · Δλ_m · φ^c(λ_m)`` with BRF-like transmittances
+    ``T = ½[1 − cos(2π·OPD/λ)]`` (view OPDs spread over ``opd_range_nm``, ±2 % per pixel unless
+    ``shared``), smooth Gaussian "RGB" curves ``φ^c`` (peaks 600/540/460 nm), per-pixel gains
+    0.6…1 (1 when ``shared``). ``A`` is scaled so that a white reflectance (1 in every band) gives
+    at most about ``peak_dn``. Spectra are smooth and non-negative (1–3 Gaussian bumps on a small
+    floor, times a brightness 0.03…1). ``y = A x + N(0, noise_dn²)``; ``mask`` drops a random
+    ``mask_fraction`` of the observations and every observation above ``peak_dn`` (saturation).
+    Generated in float64 in chunks (memory ≈ the outputs), then cast.
+
+    Returns:
+        ``A`` ``(P, 3V, M)`` (``(3V, M)`` when ``shared``), ``y (P, 3V)``, ``mask (P, 3V)`` bool,
+        ``x_true (P, M)``, in ``dtype`` on ``device``.
+    """
+    if num_pixels < 1 or num_views < 1:
+        raise ValueError(f"need num_pixels >= 1 and num_views >= 1, got {num_pixels}, {num_views}")
+    gen = torch.Generator().manual_seed(int(seed))
+    f64 = torch.float64
+    lam = grid.wavelengths(dtype=f64)
+    dl = grid.band_widths(dtype=f64)
+    m, v, P = lam.numel(), num_views, num_pixels
+    opd = torch.linspace(opd_range_nm[0], opd_range_nm[1], v, dtype=f64)
+    opd = opd[torch.randperm(v, generator=gen)].view(1, v, 1)
+    centres = torch.tensor([600.0, 540.0, 460.0], dtype=f64).view(3, 1)
+    widths = torch.tensor([40.0, 40.0, 30.0], dtype=f64).view(3, 1)
+    phi_dl = (dl * torch.exp(-0.5 * ((lam - centres) / widths) ** 2)).view(1, 1, 3, m)
+
+    def sensing(n: int, jitter: bool) -> Tensor:
+        rnd = torch.rand(n, v, 1, generator=gen, dtype=f64) if jitter else torch.full(
+            (n, v, 1), 0.5, dtype=f64)
+        trans = 0.5 * (1 - torch.cos(2 * torch.pi * opd * (1 + 0.02 * (2 * rnd - 1)) / lam))
+        gain = 0.6 + 0.4 * torch.rand(n, v, 1, 1, generator=gen, dtype=f64) if jitter else 1.0
+        return (gain * trans.unsqueeze(2) * phi_dl).reshape(n, 3 * v, m)
+
+    scale = peak_dn / float(sensing(1, False).sum(2).amax())
+    t = (lam - lam[0]) / (lam[-1] - lam[0])
+    A_shared = sensing(1, False)[0] * scale if shared else None
+    outs: list[list[Tensor]] = [[], [], [], []]
+    for s in range(0, P, 16384):
+        n = min(P, s + 16384) - s
+        a = A_shared.expand(n, -1, -1) if shared else sensing(n, True) * scale
+        c = torch.rand(n, 3, 1, generator=gen, dtype=f64) * 1.2 - 0.1
+        w = 0.08 + 0.3 * torch.rand(n, 3, 1, generator=gen, dtype=f64)
+        h = torch.rand(n, 3, 1, generator=gen, dtype=f64)
+        h = h * (torch.rand(n, 3, 1, generator=gen, dtype=f64) < 0.8)
+        x = (h * torch.exp(-0.5 * ((t - c) / w) ** 2)).sum(1)
+        x = x + 0.05 * torch.rand(n, 1, generator=gen, dtype=f64)
+        x = x / x.amax(1, keepdim=True).clamp_min(1e-12)
+        x = x * (0.03 + 0.97 * torch.rand(n, 1, generator=gen, dtype=f64))
+        y = torch.bmm(a, x.unsqueeze(2)).squeeze(2)
+        y = y + noise_dn * torch.randn(n, 3 * v, generator=gen, dtype=f64)
+        mk = (torch.rand(n, 3 * v, generator=gen, dtype=f64) >= mask_fraction) & (y <= peak_dn)
+        for lst, val in zip(outs, (a, y, mk, x), strict=True):
+            if not (shared and val is a):
+                lst.append(val.to(device=device, dtype=dtype if val.is_floating_point() else None))
+    A = A_shared.to(device=device, dtype=dtype) if shared else torch.cat(outs[0])
+    return A, torch.cat(outs[1]), torch.cat(outs[2]), torch.cat(outs[3])
