@@ -1,0 +1,101 @@
+"""``hsi-torch reconstruct``: outputs, bad inputs, resume, resolved config, nothing partial."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_pipeline import make_bundle, render_capture, true_spectra
+
+from hsi_torch.cli import main
+from hsi_torch.io import load_cube, write_capture
+
+
+@pytest.fixture
+def workspace(tmp_path):
+    bundle = make_bundle(white_exposure_s=0.01)
+    bpath = tmp_path / "calib.npz"
+    bundle.save(bpath)
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    s = true_spectra()
+    img = render_capture(bundle, s).numpy()
+    np.save(caps / "a.npy", img)  # float RGB, no metadata
+    np.save(caps / "b.npy", 0.5 * img)
+    # a uint16 RGB TIFF taken with twice the white reference's exposure
+    write_capture(caps / "c.tif", np.round(2 * img).clip(0, 65535).astype(np.uint16),
+                  {"kind": "rgb", "exposure_s": 0.02})
+    (caps / "corrupt.tif").write_bytes(b"II*\x00garbage")
+    np.save(caps / "small.npy", img[:, :30, :30])  # wrong sensor size
+    return tmp_path, bpath, caps, s
+
+
+def _files(d):
+    return sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file())
+
+
+def test_reconstruct_cli_end_to_end(workspace, capsys):
+    tmp, bpath, caps, s = workspace
+    out = tmp / "out"
+    argv = ["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
+            "--set", "beta=0", "--set", "dtype=float64", "--set", "spectra_points=[[10, 10]]",
+            str(caps / "*.tif"), str(caps / "*.npy")]
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "FAILED" in err and "corrupt.tif" in err and "small.npy" in err
+    assert "2 failed" in err and "3 processed" in err
+    assert "30x30" in err or "(30, 30)" in err  # the size mismatch is named
+    files = _files(out)
+    for stem in ("a", "b", "c"):
+        for suf in (".npz", ".tif", ".hdr", ".img", "_preview.png", "_spectra.png"):
+            assert f"{stem}{suf}" in files
+    assert not any(f.startswith(("corrupt", "small")) for f in files)
+    assert not any(f.endswith(".tmp") or "/." in f or f.startswith(".") and "done" not in f
+                   for f in files)
+    assert "resolved_config.yaml" in files
+    valid = torch.as_tensor(make_bundle().valid)
+    a = load_cube(out / "a.npz")
+    torch.testing.assert_close(a.cube[:, valid].double(), s[:, valid], rtol=1e-5, atol=1e-5)
+    assert torch.equal(a.valid, valid)
+    b = load_cube(out / "b.tif")
+    torch.testing.assert_close(b.cube[:, valid].double(), 0.5 * s[:, valid], rtol=1e-5,
+                               atol=1e-5)
+    assert torch.isnan(b.cube[:, ~valid]).all()
+    # exposure 0.02 s vs the white reference's 0.01 s: scaled back (uint16 rounding only)
+    c = load_cube(out / "c.npz")
+    dc = (c.cube[:, valid].double() - s[:, valid]).abs()
+    assert float(dc.mean()) < 1e-3 and float(dc.max()) < 2e-2  # (unscaled would be off by ~s)
+    assert c.metadata["stats"]["exposure_scale"] == pytest.approx(0.5)
+    import spectral
+
+    img = spectral.envi.open(str(out / "a.hdr"))
+    np.testing.assert_allclose(img.bands.centers, np.arange(430.0, 641.0, 30.0))
+    np.testing.assert_allclose(np.asarray(img.load())[10, 10, :], a.cube[:, 10, 10].numpy())
+
+    # resume: nothing recomputed, outputs untouched; the bad files fail again
+    mtimes = {f: (out / f).stat().st_mtime_ns for f in files if f != "resolved_config.yaml"}
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 1 and "3 skipped" in err
+    assert all((out / f).stat().st_mtime_ns == t for f, t in mtimes.items())
+    # --no-resume with only the good files: reprocessed, exit 0
+    code = main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
+                 "--no-resume", "--set", "formats=[npz]", "--set", "preview=false",
+                 str(caps / "a.npy")])
+    assert code == 0
+    assert (out / "a.npz").stat().st_mtime_ns != mtimes["a.npz"]
+
+
+def test_reconstruct_cli_errors(workspace, capsys):
+    tmp, bpath, caps, _ = workspace
+    out = tmp / "out2"
+    code = main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--set", "betta=1",
+                 str(caps / "a.npy")])
+    assert code == 1 and "betta" in capsys.readouterr().err
+    code = main(["reconstruct", "--bundle", str(tmp / "missing.npz"), "--out", str(out),
+                 str(caps / "a.npy")])
+    assert code == 1 and "missing.npz" in capsys.readouterr().err
+    code = main(["reconstruct", "--bundle", str(bpath), "--out", str(out),
+                 "--set", "spectra_points=[[50, 1]]", str(caps / "a.npy")])
+    assert code == 1 and "spectra_points" in capsys.readouterr().err
