@@ -1,0 +1,66 @@
+"""``hsi-torch experiment NAME --config C --out DIR``: dispatch to the named experiment.
+
+The registry maps a name to ``(module, schema class name, run function name)``; the module is
+imported only when its experiment runs. A run function has the signature
+``run(cfg, out: Path, *, device: str | None = None) -> dict`` and writes its tables and figures
+into ``out``; this entry point loads and validates the config (``--config``, ``--set``), calls
+it and writes ``out/resolved_config.yaml``.
+
+To add an experiment, add a line to :data:`EXPERIMENTS` (or call :func:`register_experiment`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+from typing import Any
+
+__all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment"]
+
+#: name → (module, schema class, run function)
+EXPERIMENTS: dict[str, tuple[str, str, str]] = {
+    "synthetic": ("hsi_torch.experiments.synthetic", "SyntheticConfig", "run_synthetic"),
+    "design": ("hsi_torch.experiments.design", "DesignSweepConfig", "run_design"),
+}
+
+
+def register_experiment(name: str, module: str, schema: str, run: str) -> None:
+    """Register (or replace) an experiment: ``module`` holds the dataclass ``schema`` and the
+    function ``run(cfg, out, *, device=None)``."""
+    EXPERIMENTS[name] = (module, schema, run)
+
+
+def resolve_experiment(name: str) -> tuple[type, Any]:
+    """Import the experiment's module lazily; return ``(schema class, run function)``.
+
+    Raises:
+        ValueError: unknown name (lists the known ones) or a module lacking the named objects.
+    """
+    if name not in EXPERIMENTS:
+        raise ValueError(
+            f"unknown experiment {name!r}; available: {', '.join(sorted(EXPERIMENTS))}"
+        )
+    modname, schema_name, run_name = EXPERIMENTS[name]
+    module = importlib.import_module(modname)
+    schema = getattr(module, schema_name, None)
+    run = getattr(module, run_name, None)
+    if schema is None or not callable(run):
+        raise ValueError(
+            f"experiment {name!r}: {modname} lacks {schema_name if schema is None else run_name}"
+        )
+    return schema, run
+
+
+def run_experiment(args: argparse.Namespace) -> int:
+    """CLI entry: ``args.name``, ``args.config`` (Path or None = the schema's defaults),
+    ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
+    from hsi_torch.config import load_config, write_resolved_config
+
+    schema, run = resolve_experiment(args.name)
+    cfg = load_config(getattr(args, "config", None), schema, getattr(args, "overrides", None))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    run(cfg, out, device=getattr(args, "device", None))
+    write_resolved_config(cfg, out)
+    return 0

@@ -1,0 +1,449 @@
+"""Sensing designs for the experiments: channel-response builders.
+
+A *sensing design* is a linear map from a reflectance spectrum ``r (M,)`` on a wavelength grid to
+``K`` noise-free observations ``y = A r`` (before exposure matching). Row ``k`` of ``A`` is
+``T_k(λ_m) · l(λ_m) · Δλ_m``: the channel's spectral response to radiance ``T_k`` times the
+illuminant ``l`` times the band width, so observations are radiances of reflectances under ``l``.
+
+Designs (DESIGN.md §5):
+
+- **this system** (:func:`this_system_design`): ``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` with
+  the BRF transmittance ``B_v`` of the ray that sees a scene point in view ``v``, ``φ^c = l f^c``
+  and ``g_v = R^n`` (mirror reflectance per bounce); or from a calibration bundle
+  (:func:`bundle_design`).
+- **3Camera** (:func:`three_camera_design`): nine channels ``T_{q,c} = f_q^c``.
+- **Faced Reflectors** (:func:`faced_reflectors_design`): ``T_{i,c} = f^c τ^i``, ``i = 0 … N``.
+- any design from a CSV of channel responses (:func:`csv_design`).
+
+The helpers :func:`scene_points`, :func:`view_rays` and :func:`brf_sensing_matrices` are shared
+with the BRF design sweep (:mod:`hsi_torch.experiments.design`) and ``scripts/optics_report.py``.
+All builders return float tensors on the requested ``device``/``dtype``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from hsi_torch import refdata
+from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
+
+__all__ = [
+    "SensingDesign",
+    "DEFAULT_3CAMERA",
+    "DEFAULT_FACED_FILTER",
+    "DEFAULT_FACED_BOUNCES",
+    "phi_matrix",
+    "scene_points",
+    "view_rays",
+    "brf_sensing_matrices",
+    "this_system_design",
+    "this_system_matrices",
+    "bundle_design",
+    "three_camera_design",
+    "faced_reflectors_design",
+    "csv_design",
+]
+
+#: Default cameras of the 3Camera baseline (measured sets shipped with colour-science/rawtoaces).
+DEFAULT_3CAMERA: tuple[str, str, str] = (
+    "Canon EOS 5D Mark II",
+    "Nikon 5100 (NPL)",
+    "Sigma SDMerill (NPL)",
+)
+#: Default filter of the Faced Reflectors baseline: Lee 068 Sky Blue (``lighting_filters``).
+DEFAULT_FACED_FILTER = "L068"
+#: Default highest bounce order N of the Faced Reflectors baseline (channels i = 0 … N).
+DEFAULT_FACED_BOUNCES = 4
+
+
+@dataclass
+class SensingDesign:
+    """A sensing design on a wavelength grid.
+
+    Attributes:
+        name: label used in tables and figures.
+        matrix: ``(K, M)`` noise-free observation of a reflectance: ``y = matrix @ r``
+            (illuminant and band widths included; arbitrary overall scale).
+        channel_names: ``K`` labels (e.g. ``"v3/G"``, ``"Nikon 5100 (NPL)/R"``, ``"i=2/B"``).
+        grid: the wavelength grid of ``matrix``.
+        info: provenance (kind, cameras, filter, scene point, …) for reports.
+    """
+
+    name: str
+    matrix: Tensor
+    channel_names: list[str]
+    grid: SpectralGrid = DEFAULT_GRID
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.matrix.ndim != 2 or self.matrix.shape[1] != self.grid.num_bands:
+            raise ValueError(
+                f"design {self.name!r}: matrix must have shape (K, {self.grid.num_bands}), "
+                f"got {tuple(self.matrix.shape)}"
+            )
+        if len(self.channel_names) != self.matrix.shape[0]:
+            raise ValueError(
+                f"design {self.name!r}: {len(self.channel_names)} channel names for "
+                f"{self.matrix.shape[0]} channels"
+            )
+        if not bool(torch.isfinite(self.matrix).all()):
+            raise ValueError(f"design {self.name!r}: matrix holds non-finite values")
+
+    @property
+    def num_channels(self) -> int:
+        return int(self.matrix.shape[0])
+
+    def responses(self) -> Tensor:
+        """``(K, M)`` channel responses per nm (``matrix / Δλ``), for plots."""
+        dl = self.grid.band_widths(device=self.matrix.device, dtype=self.matrix.dtype)
+        return self.matrix / dl
+
+
+def _rgb(prefix: str) -> list[str]:
+    return [f"{prefix}/{c}" for c in "RGB"]
+
+
+def phi_matrix(
+    camera: str | os.PathLike = refdata.DEFAULT_CAMERA,
+    illuminant: str | os.PathLike = "D65",
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> Tensor:
+    """``(3, M)`` φ^c(λ) = l(λ) f^c(λ): illuminant (1 at 560 nm) × camera sensitivities (``"max"``
+    normalisation, so the ratios between R, G, B are kept)."""
+    f = refdata.camera_sensitivities(camera, grid, device=device, dtype=dtype)
+    l_ = refdata.illuminant(illuminant, grid, device=device, dtype=dtype)
+    return f * l_
+
+
+# ---------------------------------------------------------------------------------------------
+# this system: rays through the kaleidoscope
+
+
+def scene_points(geometry: Any, dtype: torch.dtype = torch.float64) -> Tensor:
+    """``(7, 2)`` diffuser points (mm): the centre, then half-way from it to each entrance vertex
+    and to each edge midpoint (vertex k, then edge k→k+1, for k = 0, 1, 2)."""
+    v = geometry.entrance_vertices(dtype=dtype)
+    c = v.mean(0)
+    pts = [c]
+    for k in range(3):
+        pts.append(c + 0.5 * (v[k] - c))
+        pts.append(c + 0.5 * (0.5 * (v[k] + v[(k + 1) % 3]) - c))
+    return torch.stack(pts)
+
+
+def view_rays(
+    geometry: Any, camera: Any, layout: Any, points_mm: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(α, σ, throughput)``, each ``(P, V)``, of the rays that see ``points_mm (P, 2)`` (mm) in
+    each view of ``layout`` (traced through the kaleidoscope; α, σ in rad).
+
+    Raises:
+        ValueError: a point is not seen by every view (off the sensor or outside the triangle).
+    """
+    from hsi_torch.optics import apply_homography, trace_rays
+
+    p, v = points_mm.shape[0], layout.num_views
+    hd = layout.diffuser_homographies.to(points_mm)
+    px = torch.stack([apply_homography(hd[i], points_mm) for i in range(v)], 1)
+    tr = trace_rays(geometry, camera, px.reshape(-1, 2), sequences=layout.reflection_sequences)
+    seen = tr.view_index.reshape(p, v) == torch.arange(v, device=tr.view_index.device)
+    if not bool(seen.all()):
+        bad = (~seen).nonzero()[:, 0].unique().tolist()
+        raise ValueError(
+            f"scene points {bad} (of points_mm, shape {tuple(points_mm.shape)}) are not seen by "
+            "every view of the layout"
+        )
+    return tr.alpha.reshape(p, v), tr.sigma.reshape(p, v), tr.throughput.reshape(p, v)
+
+
+def brf_sensing_matrices(
+    brf: Any,
+    alpha: Tensor,
+    sigma: Tensor,
+    throughput: Tensor,
+    grid: SpectralGrid,
+    phi: Tensor,
+) -> Tensor:
+    """``(P, 3V, M)`` stacked sensing matrices ``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)``.
+
+    Args:
+        brf: a :class:`~hsi_torch.optics.BRFConfig`.
+        alpha, sigma, throughput: ``(P, V)`` rays (rad) and ``g_v`` per scene point and view.
+        grid: wavelength grid (``M``); phi: ``(3, M)``.
+
+    Returns:
+        ``(P, 3V, M)``, rows view-major ``o = 3v + c``; dtype/device of ``alpha``.
+    """
+    wl = grid.wavelengths(device=alpha.device, dtype=alpha.dtype)
+    dl = grid.band_widths(device=alpha.device, dtype=alpha.dtype)
+    t = brf.transmittance(alpha[..., None], sigma[..., None], wl)  # (P, V, M)
+    a = throughput[..., None, None] * t[:, :, None, :] * (dl * phi.to(t))  # (P, V, 3, M)
+    return a.reshape(alpha.shape[0], -1, wl.numel())
+
+
+def _optics(
+    geometry: Any | Mapping[str, Any] | None,
+    camera: Any | Mapping[str, Any] | None,
+    brf: Any | Mapping[str, Any] | None,
+) -> tuple[Any, Any, Any]:
+    from hsi_torch.optics import (
+        DEFAULT_CAMERA,
+        DEFAULT_GEOMETRY,
+        BRFConfig,
+        CameraModel,
+        KaleidoscopeGeometry,
+    )
+
+    def build(value: Any, default: Any, cls: type, what: str) -> Any:
+        if value is None:
+            return default
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, Mapping):
+            d = dict(default.to_dict()) if hasattr(default, "to_dict") else {}
+            d.update(value)
+            try:
+                return cls.from_dict(d) if hasattr(cls, "from_dict") else cls(**d)
+            except TypeError as exc:
+                raise ValueError(f"{what}: {exc}") from None
+        raise TypeError(f"{what} must be a {cls.__name__} or a mapping, got {type(value).__name__}")
+
+    return (
+        build(geometry, DEFAULT_GEOMETRY, KaleidoscopeGeometry, "geometry"),
+        build(camera, DEFAULT_CAMERA, CameraModel, "camera"),
+        build(brf, BRFConfig(), BRFConfig, "brf"),
+    )
+
+
+def this_system_matrices(
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    geometry: Any | Mapping[str, Any] | None = None,
+    camera_model: Any | Mapping[str, Any] | None = None,
+    brf: Any | Mapping[str, Any] | None = None,
+    camera: str | os.PathLike = refdata.DEFAULT_CAMERA,
+    illuminant: str | os.PathLike = "D65",
+    points_mm: Tensor | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> tuple[Tensor, Tensor, Any]:
+    """Sensing matrices of the simulated prototype at several scene points.
+
+    Traces the sensor once (``trace_sensor`` + ``build_view_layout``), then the rays seeing each
+    point in each view, and evaluates ``g_v B_v(λ) Δλ φ^c(λ)`` with ``g_v = R^n``.
+
+    Args:
+        geometry, camera_model, brf: optics (objects or mappings of field overrides on the
+            defaults ``DEFAULT_GEOMETRY``, ``DEFAULT_CAMERA``, ``BRFConfig()``).
+        camera: camera sensitivities for φ (default Canon EOS 5D Mark II); illuminant: l(λ).
+        points_mm: ``(P, 2)`` diffuser points; default :func:`scene_points` (7 points).
+
+    Returns:
+        ``(A (P, 3V, M), points_mm (P, 2), layout)``.
+    """
+    from hsi_torch.optics import build_view_layout, trace_sensor
+
+    geom, cam, brf_ = _optics(geometry, camera_model, brf)
+    trace = trace_sensor(geom, cam, dtype=torch.float64)
+    layout = build_view_layout(geom, cam, brf_, trace=trace)
+    pts = scene_points(geom) if points_mm is None else points_mm.to("cpu", torch.float64)
+    alpha, sigma, thr = view_rays(geom, cam, layout, pts)
+    phi = phi_matrix(camera, illuminant, grid)
+    a = brf_sensing_matrices(brf_, alpha, sigma, thr, grid, phi)
+    return a.to(device=device, dtype=dtype), pts.to(device=device, dtype=dtype), layout
+
+
+def this_system_design(
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    geometry: Any | Mapping[str, Any] | None = None,
+    camera_model: Any | Mapping[str, Any] | None = None,
+    brf: Any | Mapping[str, Any] | None = None,
+    camera: str | os.PathLike = refdata.DEFAULT_CAMERA,
+    illuminant: str | os.PathLike = "D65",
+    scene_point: str | Sequence[float] = "centre",
+    name: str = "this system",
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """The prototype's ``3V`` channels at one scene point.
+
+    Args:
+        scene_point: ``"centre"`` (the diffuser centre, i.e. the tube axis), ``"mean"`` (the
+            sensing matrices of the 7 :func:`scene_points` averaged) or ``(X, Y)`` in mm.
+        other arguments: see :func:`this_system_matrices`.
+    """
+    if isinstance(scene_point, str):
+        if scene_point not in ("centre", "center", "mean"):
+            raise ValueError(
+                f"scene_point must be 'centre', 'mean' or (X, Y) mm, got {scene_point!r}"
+            )
+        pts = None
+    else:
+        xy = [float(v) for v in scene_point]
+        if len(xy) != 2:
+            raise ValueError(f"scene_point must be (X, Y) in mm, got {scene_point!r}")
+        pts = torch.tensor([xy], dtype=torch.float64)
+    a, p, layout = this_system_matrices(
+        grid, geometry=geometry, camera_model=camera_model, brf=brf, camera=camera,
+        illuminant=illuminant, points_mm=pts, device=device, dtype=dtype,
+    )  # fmt: skip
+    mat = a.mean(0) if scene_point == "mean" else a[0]
+    names = [f"v{v}/{c}" for v in range(layout.num_views) for c in "RGB"]
+    geom, cam, brf_ = _optics(geometry, camera_model, brf)
+    info = {
+        "kind": "this_system",
+        "scene_point": scene_point if isinstance(scene_point, str) else list(p[0].tolist()),
+        "camera": os.fspath(camera),
+        "illuminant": os.fspath(illuminant),
+        "brf": brf_.to_dict(),
+        "geometry": geom.to_dict(),
+        "opd_nm_550": layout.opd_nm.tolist(),
+    }
+    return SensingDesign(name, mat, names, grid, info)
+
+
+def bundle_design(
+    path: str | os.PathLike,
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    pixel: Sequence[int] | None = None,
+    name: str = "this system (bundle)",
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """This system's channels from a calibration bundle (``hsi_torch.calibrate.bundle``).
+
+    ``A_p[(v,c), m] = gain[v,p] B[v,m,p] Δλ_m phi[c,m]`` averaged over the valid pixels where every
+    view is present, or at ``pixel = (x, y)`` of the reference frame. ``phi`` is the calibrated
+    φ = l·f, so the calibration's illuminant is used as is. The bundle's wavelengths must equal
+    ``grid``.
+    """
+    from hsi_torch.calibrate.bundle import CalibrationBundle
+
+    b = CalibrationBundle.load(path)
+    wl = np.asarray(b.wavelengths_nm, dtype=np.float64)
+    if wl.shape != (grid.num_bands,) or not np.allclose(wl, grid.wavelengths_nm):
+        raise ValueError(
+            f"calibration bundle {path}: wavelengths {wl.tolist()} differ from the experiment "
+            f"grid {list(grid.wavelengths_nm)}"
+        )
+    h, w = b.frame_size
+    vm = np.asarray(b.view_mask).reshape(b.num_views, -1)
+    if pixel is not None:
+        x, y = (int(v) for v in pixel)
+        if not (0 <= x < w and 0 <= y < h):
+            raise ValueError(f"pixel {(x, y)} lies outside the reference frame {w}x{h} of {path}")
+        idx = np.array([y * w + x])
+        if not vm[:, idx[0]].all():
+            raise ValueError(f"pixel {(x, y)} of {path} is not seen by every view")
+    else:
+        full = vm.all(0) & np.asarray(b.valid).reshape(-1)
+        idx = np.flatnonzero(full)
+        if idx.size == 0:
+            raise ValueError(f"calibration bundle {path}: no valid pixel is seen by every view")
+    a = b.sensing_matrices(device=device, dtype=torch.float64,
+                           pixel_index=torch.as_tensor(idx)).mean(0)
+    names = [f"v{v}/{c}" for v in range(b.num_views) for c in "RGB"]
+    info = {"kind": "bundle", "path": os.fspath(path),
+            "pixel": None if pixel is None else [int(v) for v in pixel], "pixels": int(idx.size)}
+    return SensingDesign(name, a.to(dtype), names, grid, info)
+
+
+def three_camera_design(
+    cameras: Sequence[str | os.PathLike] = DEFAULT_3CAMERA,
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    illuminant: str | os.PathLike = "D65",
+    name: str = "3Camera",
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """Nine (``3 × len(cameras)``) channels ``T_{q,c} = f_q^c`` (each camera ``"max"``-normalised,
+    i.e. its own channel ratios kept), × illuminant × Δλ."""
+    if len(cameras) < 1:
+        raise ValueError("cameras must name at least one camera")
+    dl = grid.band_widths(device=device, dtype=dtype)
+    rows, names = [], []
+    for cam in cameras:
+        rows.append(phi_matrix(cam, illuminant, grid, device=device, dtype=dtype) * dl)
+        names += _rgb(Path(os.fspath(cam)).stem if os.fspath(cam).endswith(".json")
+                      or os.fspath(cam).endswith(".csv") else os.fspath(cam))
+    info = {"kind": "three_camera", "cameras": [os.fspath(c) for c in cameras],
+            "illuminant": os.fspath(illuminant)}
+    return SensingDesign(name, torch.cat(rows), names, grid, info)
+
+
+def faced_reflectors_design(
+    filter_name: str | os.PathLike = DEFAULT_FACED_FILTER,
+    bounces: int = DEFAULT_FACED_BOUNCES,
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    camera: str | os.PathLike = refdata.DEFAULT_CAMERA,
+    illuminant: str | os.PathLike = "D65",
+    name: str = "Faced Reflectors",
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """``3(N+1)`` channels ``T_{i,c} = f^c τ^i`` for bounces ``i = 0 … N`` (``N = bounces``),
+    τ a filter transmittance (Lee code of ``lighting_filters`` or a CSV), × illuminant × Δλ."""
+    if int(bounces) < 0:
+        raise ValueError(f"bounces must be >= 0, got {bounces}")
+    tau = refdata.filter_transmittance(filter_name, grid, device=device, dtype=dtype)
+    phi = phi_matrix(camera, illuminant, grid, device=device, dtype=dtype)
+    dl = grid.band_widths(device=device, dtype=dtype)
+    i = torch.arange(int(bounces) + 1, device=tau.device, dtype=dtype)
+    powers = tau[None, :] ** i[:, None]  # (N+1, M)
+    mat = (powers[:, None, :] * phi[None] * dl).reshape(-1, grid.num_bands)
+    names = [n for k in range(int(bounces) + 1) for n in _rgb(f"i={k}")]
+    info = {"kind": "faced_reflectors", "filter": os.fspath(filter_name), "bounces": int(bounces),
+            "camera": os.fspath(camera), "illuminant": os.fspath(illuminant)}
+    return SensingDesign(name, mat, names, grid, info)
+
+
+def csv_design(
+    path: str | os.PathLike,
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    illuminant: str | os.PathLike = "D65",
+    includes_illuminant: bool = False,
+    name: str | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """Any design from a CSV ``wavelength_nm, ch_1, …, ch_K`` of channel responses T_k(λ).
+
+    Responses are resampled linearly onto ``grid`` (error outside the table), multiplied by the
+    illuminant (unless ``includes_illuminant``) and by Δλ. Header names become channel names.
+    """
+    src, table, cols = refdata.read_spectral_csv(path)
+    vals = torch.as_tensor(np.ascontiguousarray(table.T), dtype=torch.float64)
+    from hsi_torch.spectral import resample_spectra
+
+    wl = grid.wavelengths(dtype=torch.float64)
+    src_t = torch.as_tensor(np.ascontiguousarray(src, dtype=np.float64))
+    if float(wl[0]) < float(src_t[0]) - 1e-9 or float(wl[-1]) > float(src_t[-1]) + 1e-9:
+        raise ValueError(
+            f"design CSV {path}: table covers {float(src_t[0])}-{float(src_t[-1])} nm but the grid "
+            f"needs {float(wl[0])}-{float(wl[-1])} nm"
+        )
+    t = resample_spectra(vals, src_t, wl).to(device=device, dtype=dtype)
+    if not includes_illuminant:
+        t = t * refdata.illuminant(illuminant, grid, device=device, dtype=dtype)
+    mat = t * grid.band_widths(device=device, dtype=dtype)
+    names = list(cols) if cols and len(cols) == mat.shape[0] else [
+        f"ch{k}" for k in range(mat.shape[0])
+    ]
+    info = {"kind": "csv", "path": os.fspath(path), "includes_illuminant": includes_illuminant}
+    return SensingDesign(name or Path(path).stem, mat, names, grid, info)
