@@ -1,0 +1,337 @@
+"""Tests of the batched NNLS solver against scipy.optimize.nnls and the KKT conditions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import nnls
+
+from hsi_torch.recon.solvers import (
+    NNLSResult,
+    prepare_nnls,
+    solve_nnls,
+    synthetic_brf_problem,
+)
+from hsi_torch.solvers import solve_nnls as solve_nnls_alias
+from hsi_torch.spectral import difference_matrix
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DTYPES = [torch.float64, torch.float32]
+# relative (per-pixel L2) agreement with SciPy on well-conditioned problems
+RTOL = {torch.float64: 1e-8, torch.float32: 1e-4}
+
+
+# ------------------------------------------------------------------------------------------------
+# references
+
+
+def scipy_reference(A, y, beta, mask=None, diff_order=1):
+    """Per-pixel scipy.optimize.nnls on the stacked system [A_p[mask]; sqrt(beta) D] (float64)."""
+    A = A.detach().double().cpu()
+    y = y.detach().double().cpu().numpy()
+    P = y.shape[0]
+    A = (A.unsqueeze(0).expand(P, -1, -1) if A.ndim == 2 else A).numpy()
+    M = A.shape[2]
+    m = np.ones(y.shape, bool) if mask is None else mask.cpu().numpy()
+    D = np.sqrt(beta) * difference_matrix(M, diff_order, dtype=torch.float64).numpy()
+    X = np.zeros((P, M))
+    for p in range(P):
+        a = np.vstack([A[p][m[p]], D])
+        b = np.concatenate([y[p][m[p]], np.zeros(D.shape[0])])
+        X[p] = nnls(a, b, maxiter=50 * M)[0]
+    return torch.from_numpy(X)
+
+
+def kkt_violation(A, y, x, beta, mask=None, diff_order=1):
+    """Independent KKT check from (A, y, mask): returns per-pixel scaled violations.
+
+    g = Aᵀ W (A x − y) + β DᵀD x. Violations: max(−x), max over x=0 of max(−g, 0), and
+    |min(G_mm x_m, g_m)| (covers |g| at x > 0), all divided by the scale ‖AᵀWy‖∞ + ‖diag(G) x‖∞.
+    """
+    A = A.double()
+    y = y.double()
+    x = x.double()
+    P, M = x.shape
+    A3 = A.unsqueeze(0).expand(P, -1, -1) if A.ndim == 2 else A
+    w = torch.ones_like(y) if mask is None else mask.double()
+    y = torch.where(w > 0, y, torch.zeros_like(y))
+    D = difference_matrix(M, diff_order, dtype=torch.float64, device=x.device)
+    r = torch.einsum("pom,pm->po", A3, x) - y
+    g = torch.einsum("pom,po->pm", A3, w * r) + beta * x @ (D.T @ D)
+    gdiag = torch.einsum("pom,po->pm", A3 * A3, w) + beta * torch.diagonal(D.T @ D)
+    b = torch.einsum("pom,po->pm", A3, w * y)
+    scale = (b.abs().amax(1) + (gdiag * x).abs().amax(1)).clamp_min(1e-300)
+    neg_x = (-x).clamp_min(0).amax(1) * gdiag.amax(1)
+    neg_g = torch.where(x <= 0, (-g).clamp_min(0), torch.zeros_like(g)).amax(1)
+    comp = torch.minimum(gdiag * x, g).abs().amax(1)
+    return torch.stack([neg_x, neg_g, comp]).amax(0) / scale
+
+
+def rel_err(x, ref):
+    x = x.detach().double().cpu()
+    return (x - ref).norm(dim=1) / ref.norm(dim=1).clamp_min(1e-30)
+
+
+def random_problem(P, O=30, M=25, *, seed=0, shared=False, masked=False, noise=0.5):
+    g = torch.Generator().manual_seed(seed)
+    A = torch.rand((O, M) if shared else (P, O, M), generator=g, dtype=torch.float64)
+    xt = torch.randn(P, M, generator=g, dtype=torch.float64).clamp_min(0)
+    A3 = A.expand(P, -1, -1) if shared else A
+    y = torch.einsum("pom,pm->po", A3, xt) + noise * torch.randn(P, O, generator=g,
+                                                                 dtype=torch.float64)
+    mask = (torch.rand(P, O, generator=g) > 0.25) if masked else None
+    return A, y, mask
+
+
+# ------------------------------------------------------------------------------------------------
+# agreement with SciPy
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("masked", [False, True])
+def test_random_matches_scipy(device, dtype, shared, masked):
+    P, beta = 500, 1.0
+    A, y, mask = random_problem(P, seed=1 + 2 * shared + masked, shared=shared, masked=masked)
+    A, y = A.to(device, dtype), y.to(device, dtype)
+    mask = None if mask is None else mask.to(device)
+    res = solve_nnls(A, y, beta=beta, mask=mask)
+    assert isinstance(res, NNLSResult)
+    assert res.x.shape == (P, 25) and res.x.dtype == dtype and res.x.device.type == device
+    ref = scipy_reference(A, y, beta, mask)
+    err = rel_err(res.x, ref)
+    assert err.max() < RTOL[dtype] * (5 if dtype == torch.float32 else 1), err.max()
+    assert bool(res.converged.all())
+    assert bool((res.x >= 0).all())
+    assert kkt_violation(A, y, res.x, beta, mask).max() < (1e-10 if dtype == torch.float64
+                                                            else 1e-4)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("shared", [False, True])
+def test_realistic_brf_matches_scipy(device, dtype, shared):
+    """BRF-like cosine transmittances × smooth RGB curves, 30 obs × 25 bands, DN scale."""
+    A, y, mask, _ = synthetic_brf_problem(800, shared=shared, seed=3, dtype=torch.float64)
+    beta = 1e2
+    ref = scipy_reference(A, y, beta, mask)
+    res = solve_nnls(A.to(device, dtype), y.to(device, dtype), beta=beta, mask=mask.to(device))
+    err = rel_err(res.x, ref)
+    # per-pixel relative L2; float32 is limited by cond(G)·eps (cond up to ~700 here)
+    assert err.max() < (1e-8 if dtype == torch.float64 else 5e-4), err.max()
+    assert err.median() < RTOL[dtype], err.median()
+    assert bool(res.converged.all())
+    # some pixels really need the active set (the unconstrained solution is negative there)
+    assert 0.05 < float((res.iterations > 0).double().mean()) < 0.9
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    assert kkt_violation(A.to(device), y.to(device), res.x, beta, mask.to(device)).max() < tol
+
+
+@pytest.mark.parametrize("diff_order", [0, 2])
+def test_other_difference_orders(diff_order):
+    A, y, mask = random_problem(300, seed=7, masked=True)
+    res = solve_nnls(A, y, beta=3.0, mask=mask, diff_order=diff_order)
+    ref = scipy_reference(A, y, 3.0, mask, diff_order)
+    assert rel_err(res.x, ref).max() < 1e-8
+
+
+def test_beta_zero_full_rank_and_masked_rank_deficient():
+    """beta = 0: unique solutions match SciPy; < M used rows (rank deficient) still satisfy KKT."""
+    A, y, mask = random_problem(600, seed=11, masked=True)  # ~22 of 30 rows used < 25 bands
+    res = solve_nnls(A, y, beta=0.0, mask=mask)
+    assert bool(res.converged.all())
+    assert kkt_violation(A, y, res.x, 0.0, mask).max() < 1e-10
+    ref = scipy_reference(A, y, 0.0, mask)
+    # same optimal objective as SciPy (the minimiser need not be unique)
+    A_np, y_np, m_np = A.numpy(), y.numpy(), mask.numpy()
+    for p in range(0, 600, 7):
+        a, b = A_np[p][m_np[p]], y_np[p][m_np[p]]
+        f_ours = np.sum((a @ res.x[p].numpy() - b) ** 2)
+        f_ref = np.sum((a @ ref[p].numpy() - b) ** 2)
+        assert f_ours <= f_ref * (1 + 1e-9) + 1e-12
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_beta_zero_rank_deficient_A(device, dtype):
+    """A = B C with rank 8 < 25 bands: Lawson–Hanson fallback, KKT holds, objective = SciPy's."""
+    g = torch.Generator().manual_seed(5)
+    P = 400
+    A = torch.rand(P, 30, 8, generator=g, dtype=torch.float64) @ torch.rand(
+        P, 8, 25, generator=g, dtype=torch.float64)
+    y = 10 * torch.rand(P, 30, generator=g, dtype=torch.float64)
+    res = solve_nnls(A.to(device, dtype), y.to(device, dtype), beta=0.0)
+    assert torch.isfinite(res.x).all() and bool((res.x >= 0).all())
+    viol = kkt_violation(A.to(device), y.to(device), res.x, 0.0)
+    if dtype == torch.float64:
+        assert viol.max() < 1e-10
+        assert bool(res.converged.all())
+    else:
+        assert viol.median() < 1e-5 and viol.max() < 5e-3
+    ref = scipy_reference(A, y, 0.0)
+    r_ours = torch.einsum("pom,pm->po", A, res.x.double().cpu()) - y
+    r_ref = torch.einsum("pom,pm->po", A, ref) - y
+    f_ours, f_ref = r_ours.square().sum(1), r_ref.square().sum(1)
+    tol = 1e-10 if dtype == torch.float64 else 1e-3
+    assert ((f_ours - f_ref) / f_ref).max() < tol
+
+
+# ------------------------------------------------------------------------------------------------
+# edge cases
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_all_masked_pixel_returns_zero_and_is_flagged(device, dtype):
+    A, y, mask = random_problem(50, seed=2, masked=True)
+    mask[3] = False
+    mask[17] = False
+    y[3] = float("nan")  # ignored where masked
+    y[10, ~mask[10]] = float("inf")
+    A, y, mask = A.to(device, dtype), y.to(device, dtype), mask.to(device)
+    for beta in (0.0, 2.0):
+        for method in ("active_set", "admm"):
+            res = solve_nnls(A, y, beta=beta, mask=mask, method=method, max_iter=300)
+            assert torch.isfinite(res.x).all()
+            assert res.no_data.tolist() == [i in (3, 17) for i in range(50)]
+            assert (res.x[[3, 17]] == 0).all()
+            assert res.converged[[3, 17]].all()
+            if beta > 0 and method == "active_set":  # the other pixels are unaffected
+                ref = scipy_reference(A[8:12], torch.nan_to_num(y[8:12], posinf=0.0), beta,
+                                      mask[8:12])
+                assert rel_err(res.x[8:12], ref).max() < RTOL[dtype] * 5
+
+
+def test_exact_zeros():
+    # y = 0 -> x = 0 exactly
+    A, _, _ = random_problem(20, seed=4)
+    res = solve_nnls(A, torch.zeros(20, 30, dtype=torch.float64), beta=1.0)
+    assert (res.x == 0).all() and bool(res.converged.all())
+    # noise-free data from a sparse non-negative x with exact zeros, beta = 0, full rank
+    g = torch.Generator().manual_seed(9)
+    xt = torch.rand(200, 25, generator=g, dtype=torch.float64)
+    xt[torch.rand(200, 25, generator=g) < 0.4] = 0.0
+    A, _, _ = random_problem(200, seed=9)
+    y = torch.einsum("pom,pm->po", A, xt)
+    res = solve_nnls(A, y, beta=0.0)
+    torch.testing.assert_close(res.x, xt, rtol=0, atol=1e-9)
+    # a band no observation sees (zero column) with beta = 0 stays 0, and KKT holds
+    A2 = A.clone()
+    A2[:, :, 5] = 0.0
+    res = solve_nnls(A2, y, beta=0.0)
+    assert (res.x[:, 5] == 0).all()
+    assert kkt_violation(A2, y, res.x, 0.0).max() < 1e-10
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_single_pixel(device):
+    A, y, mask = random_problem(1, seed=21, masked=True)
+    res = solve_nnls(A.to(device), y.to(device), beta=0.5, mask=mask.to(device))
+    assert res.x.shape == (1, 25)
+    assert rel_err(res.x, scipy_reference(A, y, 0.5, mask)).max() < 1e-8
+    res2 = solve_nnls(A[0].to(device), y.to(device), beta=0.5)  # shared A, P = 1
+    assert rel_err(res2.x, scipy_reference(A[0], y, 0.5)).max() < 1e-8
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_prepared_reuse_equals_fresh_solve(device, dtype):
+    A, y, mask, _ = synthetic_brf_problem(400, seed=8, dtype=dtype, device=device)
+    prob = prepare_nnls(A, mask=mask, beta=50.0)
+    g = torch.Generator().manual_seed(0)
+    for f in range(2):  # several frames, same calibration
+        yf = y + torch.randn(y.shape, generator=g, dtype=torch.float64).to(device, dtype)
+        fresh = solve_nnls(A, yf, beta=50.0, mask=mask)
+        reused = prob.solve(yf)
+        torch.testing.assert_close(reused.x, fresh.x, rtol=0, atol=0 if f == 0 else 1e-12)
+        assert torch.equal(reused.iterations, fresh.iterations)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_chunking_gives_identical_results(device):
+    A, y, mask, _ = synthetic_brf_problem(600, seed=12, device=device)
+    full = solve_nnls(A, y, beta=1e2, mask=mask, chunk_size=600)
+    for kw in (dict(chunk_size=61), dict(max_memory=300_000)):
+        part = solve_nnls(A, y, beta=1e2, mask=mask, **kw)
+        torch.testing.assert_close(part.x, full.x, rtol=1e-12, atol=1e-12)
+        assert torch.equal(part.converged, full.converged)
+        prob = prepare_nnls(A, mask=mask, beta=1e2, **kw)
+        torch.testing.assert_close(prob.solve(y, **kw).x, full.x, rtol=1e-12, atol=1e-12)
+
+
+def test_shared_A_with_mask_equals_per_pixel_A():
+    A, y, mask = random_problem(300, seed=13, shared=True, masked=True)
+    a = solve_nnls(A, y, beta=2.0, mask=mask)
+    b = solve_nnls(A.expand(300, -1, -1).contiguous(), y, beta=2.0, mask=mask)
+    torch.testing.assert_close(a.x, b.x, rtol=1e-10, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# ADMM
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_admm_converges_to_active_set(device):
+    A, y, mask, _ = synthetic_brf_problem(400, seed=14, device=device)
+    exact = solve_nnls(A, y, beta=1e2, mask=mask)
+    res = solve_nnls(A, y, beta=1e2, mask=mask, method="admm", tol=1e-11, max_iter=20000)
+    assert bool(res.converged.all())
+    torch.testing.assert_close(res.x, exact.x, rtol=0, atol=1e-7 * float(exact.x.abs().max()))
+    # warm start from the exact answer: ADMM is at its fixed point and stops at the first check
+    warm = solve_nnls(A, y, beta=1e2, mask=mask, method="admm", x0=exact.x, tol=1e-11)
+    assert int(warm.iterations.max()) <= 10
+    torch.testing.assert_close(warm.x, exact.x, rtol=0, atol=1e-9 * float(exact.x.abs().max()))
+    # fixed-iteration mode gets close too
+    fixed = solve_nnls(A, y, beta=1e2, mask=mask, method="admm", admm_iters=300)
+    assert (fixed.iterations == 300).all()
+    assert float((fixed.x - exact.x).abs().max()) < 1e-3 * float(exact.x.abs().max())
+
+
+def test_admm_fixed_iterations_gradcheck():
+    g = torch.Generator().manual_seed(0)
+    A = torch.rand(2, 6, 4, generator=g, dtype=torch.float64)
+    x_true = torch.rand(2, 4, generator=g, dtype=torch.float64)
+    y0 = torch.einsum("pom,pm->po", A, x_true) + 0.05 * torch.randn(2, 6, generator=g,
+                                                                    dtype=torch.float64)
+    prob = prepare_nnls(A, beta=0.5)
+
+    def f(y):
+        return prob.solve(y, method="admm", admm_iters=25).x
+
+    y = y0.clone().requires_grad_(True)
+    assert f(y).requires_grad
+    assert torch.autograd.gradcheck(f, (y,), eps=1e-6, atol=1e-6)
+    # and through solve_nnls directly
+    out = solve_nnls(A, y, beta=0.5, method="admm", admm_iters=25).x.sum()
+    (grad,) = torch.autograd.grad(out, y)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+# ------------------------------------------------------------------------------------------------
+# API and errors
+
+
+def test_alias_and_errors():
+    assert solve_nnls_alias is solve_nnls
+    A, y, mask = random_problem(10, seed=1)
+    with pytest.raises(ValueError, match="y"):
+        solve_nnls(A, y[:, :5])
+    with pytest.raises(ValueError, match="pixels"):
+        solve_nnls(A, y[:7])
+    with pytest.raises(ValueError, match="mask"):
+        solve_nnls(A, y, mask=torch.ones(10, 4, dtype=torch.bool))
+    with pytest.raises(TypeError, match="float32 or float64"):
+        solve_nnls(A.long(), y)
+    with pytest.raises(ValueError, match="beta"):
+        solve_nnls(A, y, beta=-1.0)
+    with pytest.raises(ValueError, match="method"):
+        solve_nnls(A, y, method="lbfgs")
+    with pytest.raises(ValueError, match="diff_order"):
+        solve_nnls(A, y, diff_order=3)
+    with pytest.raises(ValueError, match="chunk_size"):
+        solve_nnls(A, y, chunk_size=0)
+    prob = prepare_nnls(A)
+    with pytest.raises(ValueError, match="pixels"):
+        prob.solve(y[:3])
