@@ -1,0 +1,25 @@
+"""Virtual prototype: scenes, capture renderer, calibration/scene capture sets, ground truth.
+
+See ``docs/readme_simulate.md``. Heavy imports are lazy (``hsi_torch.simulate.render`` etc.).
+"""
+
+from hsi_torch.simulate.capture_sets import (
+    MANIFEST_SCHEMA_VERSION,
+    SimulationSummary,
+    build_renderer,
+    build_scene,
+    simulate_capture_set,
+)
+from hsi_torch.simulate.config import SimulateConfig
+from hsi_torch.simulate.render import CaptureRenderer, CaptureSpec
+
+__all__ = [
+    "MANIFEST_SCHEMA_VERSION",
+    "CaptureRenderer",
+    "CaptureSpec",
+    "SimulateConfig",
+    "SimulationSummary",
+    "build_renderer",
+    "build_scene",
+    "simulate_capture_set",
+]

@@ -1,0 +1,280 @@
+"""Configuration schema of ``hsi-torch simulate`` (loaded by :func:`hsi_torch.config.load_config`).
+
+Every section mirrors the dataclass of the module that owns the physics, so a config key has the
+same name and unit as the field it sets (lengths in mm, angles in degrees, wavelengths in nm):
+
+- ``geometry`` → :class:`hsi_torch.optics.KaleidoscopeGeometry`
+- ``camera`` → :class:`hsi_torch.optics.CameraModel` (+ ``scale`` = :meth:`CameraModel.scaled`)
+- ``brf`` → :class:`hsi_torch.optics.BRFConfig` (+ ``polarizer_efficiency``)
+- ``sensor`` → :class:`hsi_torch.optics.sensor.SensorModel` (noise seed: ``render.seed``)
+- ``diffuser`` → :class:`hsi_torch.optics.sensor.DiffuserModel`
+- ``objective``, ``illuminant``, ``camera_sensitivity``, ``render``, ``captures``: this package.
+
+``describe_schema(SimulateConfig)`` prints one line per key with its default and help text.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+__all__ = [
+    "GeometryConfig",
+    "CameraConfig",
+    "BRFSection",
+    "SensorSection",
+    "ObjectiveConfig",
+    "DiffuserConfig",
+    "RenderConfig",
+    "GridPose",
+    "GridConfig",
+    "SceneSpec",
+    "CapturesConfig",
+    "SimulateConfig",
+    "DEFAULT_GRID_POSES",
+    "DEFAULT_SCENES",
+]
+
+
+def _h(text: str) -> dict[str, str]:
+    return {"help": text}
+
+
+def _positive(obj: Any, *names: str) -> None:
+    for n in names:
+        v = getattr(obj, n)
+        if v is not None and not v > 0:
+            raise ValueError(f"{n} must be > 0, got {v}")
+
+
+@dataclass
+class GeometryConfig:
+    """Tapered kaleidoscope (fields of :class:`~hsi_torch.optics.KaleidoscopeGeometry`)."""
+
+    a_in_mm: float = field(default=16.0, metadata=_h("entrance side at the diffuser, mm"))
+    a_out_mm: float = field(default=28.0, metadata=_h("exit side, mm (taper: a_out > a_in)"))
+    length_mm: float = field(default=160.0, metadata=_h("tube length, mm"))
+    pupil_distance_mm: float = field(default=12.0, metadata=_h("camera pupil beyond the exit, mm"))
+    mirror_reflectance: float = field(default=0.92, metadata=_h("reflectance per bounce"))
+    max_reflections: int = field(default=2, metadata=_h("reflections that count as views"))
+    vertices_in: list[tuple[float, float]] | None = field(
+        default=None, metadata=_h("3 entrance vertices (mm, counter-clockwise) or null"))
+    brf_free_center_mm: tuple[float, float] | None = field(
+        default=None, metadata=_h("BRF-free disk centre (mm); null = 60 % towards vertex 0"))
+    brf_free_radius_mm: float = field(default=1.0, metadata=_h("BRF-free disk radius, mm"))
+
+
+@dataclass
+class CameraConfig:
+    """Pinhole camera (fields of :class:`~hsi_torch.optics.CameraModel`)."""
+
+    width_px: int = field(default=400, metadata=_h("sensor width, px"))
+    height_px: int = field(default=384, metadata=_h("sensor height, px"))
+    pixel_pitch_mm: float = field(default=0.0275, metadata=_h("pixel pitch, mm"))
+    focal_length_mm: float = field(default=35.0, metadata=_h("focal length, mm"))
+    cx: float | None = field(default=None, metadata=_h("principal point x, px (null = centre)"))
+    cy: float | None = field(default=None, metadata=_h("principal point y, px (null = centre)"))
+    scale: float = field(default=1.0, metadata=_h("resample the sensor (CameraModel.scaled)"))
+
+    def __post_init__(self) -> None:
+        _positive(self, "scale")
+
+
+@dataclass
+class BRFSection:
+    """Birefringent filter between polarizers (fields of :class:`~hsi_torch.optics.BRFConfig`)."""
+
+    material: str = field(default="quartz", metadata=_h("quartz | calcite | polymer"))
+    thickness_mm: float = field(default=2.0, metadata=_h("plate thickness, mm"))
+    axis_tilt_deg: float = field(default=65.0, metadata=_h("optic axis tilt out of the plate"))
+    axis_azimuth_deg: float = field(default=10.0, metadata=_h("azimuth of the projected axis"))
+    psi_deg: float = field(default=45.0, metadata=_h("retarder axis vs polarizer"))
+    chi_deg: float = field(default=90.0, metadata=_h("analyser vs polarizer (90 = crossed)"))
+    outside_index: float = field(default=1.0, metadata=_h("index of the outside medium"))
+    polarizer_efficiency: float = field(
+        default=0.9, metadata=_h("transmission of the polarizer pair for the passed "
+                                 "polarization (stack = ½·eff·T_BRF)"))
+
+    def __post_init__(self) -> None:
+        if not 0 < self.polarizer_efficiency <= 1:
+            raise ValueError(f"polarizer_efficiency must be in (0, 1], got "
+                             f"{self.polarizer_efficiency}")
+
+
+@dataclass
+class SensorSection:
+    """Raw sensor (fields of :class:`~hsi_torch.optics.sensor.SensorModel`)."""
+
+    output: Literal["bayer", "rgb"] = field(default="bayer", metadata=_h("bayer | rgb"))
+    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = "RGGB"
+    bit_depth: int = field(default=14, metadata=_h("ADC bits"))
+    white_level: float | None = field(default=None, metadata=_h("DN; null = 2^bits - 1"))
+    black_level: float = field(default=512.0, metadata=_h("DN offset"))
+    full_well_e: float | None = field(default=30000.0, metadata=_h("electrons"))
+    electrons_per_dn: float | None = field(default=None, metadata=_h("null = full well/range"))
+    read_noise_e: float = field(default=3.0, metadata=_h("read noise sigma, electrons"))
+    shot_noise: bool = field(default=True, metadata=_h("Poisson photon noise"))
+    exposure: float = field(
+        default=0.8, metadata=_h("scene/white/grid exposure: a white target seen without the "
+                                 "filter stack fills this fraction of the full well"))
+    quantize: bool = field(default=True, metadata=_h("round to integer DN"))
+    psf_sigma_px: float = field(default=0.0, metadata=_h("lens PSF sigma, px (0 = none)"))
+
+
+@dataclass
+class ObjectiveConfig:
+    """Objective lens in front of the diffuser (absent during the monochromator scan)."""
+
+    vignetting: float = field(
+        default=0.2, metadata=_h("V(X) = 1 - vignetting·(|X|/R)², R = circumradius of the "
+                                 "entrance triangle"))
+    transmission: float = field(default=0.9, metadata=_h("flat transmission tau_obj"))
+    transmission_csv: str | None = field(
+        default=None, metadata=_h("CSV wavelength_nm,value (replaces `transmission`)"))
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.vignetting < 1:
+            raise ValueError(f"vignetting must be in [0, 1), got {self.vignetting}")
+        if not 0 < self.transmission <= 1:
+            raise ValueError(f"transmission must be in (0, 1], got {self.transmission}")
+
+
+@dataclass
+class DiffuserConfig:
+    """Diffuser (fields of :class:`~hsi_torch.optics.sensor.DiffuserModel`)."""
+
+    falloff_k: float = field(default=2.0, metadata=_h("angular fall-off D(α) = cos^k α"))
+    blur_sigma_mm: float = field(default=0.0, metadata=_h("scene blur on the diffuser, mm"))
+
+    def __post_init__(self) -> None:
+        if self.falloff_k < 0 or self.blur_sigma_mm < 0:
+            raise ValueError("falloff_k and blur_sigma_mm must be >= 0")
+
+
+@dataclass
+class RenderConfig:
+    """Numerics of the renderer."""
+
+    grid_start_nm: float = field(default=430.0, metadata=_h("reconstruction grid start, nm"))
+    grid_stop_nm: float = field(default=670.0, metadata=_h("reconstruction grid stop, nm"))
+    grid_step_nm: float = field(default=10.0, metadata=_h("reconstruction grid step, nm"))
+    fine_step_nm: float = field(
+        default=2.0, metadata=_h("internal wavelength step; the band-pass is the grid +- half a "
+                                 "grid step"))
+    supersample: int = field(default=2, metadata=_h("s: s×s rays per sensor pixel"))
+    max_reflections: int = field(
+        default=3, metadata=_h("reflections traced for the image (higher-order tiles are drawn "
+                               "but are no views)"))
+    chunk: int = field(default=1 << 16, metadata=_h("rays per batch (memory bound)"))
+    device: str = field(default="cpu", metadata=_h("torch device (--device overrides)"))
+    dtype: Literal["float32", "float64"] = field(default="float64", metadata=_h("render dtype"))
+    seed: int = field(default=0, metadata=_h("noise seed (each capture gets seed + index)"))
+    progress: bool = field(default=True, metadata=_h("tqdm progress bars on stderr"))
+    figures: bool = field(default=True, metadata=_h("write OUT/figures/*.png"))
+    view_inset_px: float = field(
+        default=1.0, metadata=_h("truth view_mask: distance a reference pixel's source point "
+                                 "must keep from its triangle's edges, px"))
+
+    def __post_init__(self) -> None:
+        _positive(self, "grid_step_nm", "fine_step_nm", "supersample", "chunk")
+        if self.grid_stop_nm < self.grid_start_nm:
+            raise ValueError("grid_stop_nm must be >= grid_start_nm")
+        if self.max_reflections < 0:
+            raise ValueError(f"max_reflections must be >= 0, got {self.max_reflections}")
+
+
+@dataclass
+class GridPose:
+    """One pose of the circle-grid target (see :class:`~.scenes.CircleGridScene`)."""
+
+    rotation_deg: float = 0.0
+    translation_mm: tuple[float, float] = (0.0, 0.9)
+    tilt_x_deg: float = 0.0
+    tilt_y_deg: float = 0.0
+
+
+DEFAULT_GRID_POSES: tuple[GridPose, ...] = (
+    GridPose(0.0, (0.0, 0.9), 0.0, 0.0),
+    GridPose(7.0, (-0.4, 0.7), 12.0, 0.0),
+    GridPose(-6.0, (0.4, 1.1), 0.0, 12.0),
+)
+
+
+@dataclass
+class GridConfig:
+    """OpenCV asymmetric circle grid used for registration."""
+
+    pattern_size: tuple[int, int] = field(default=(4, 5), metadata=_h("(cols, rows) as OpenCV"))
+    spacing_mm: float = field(default=1.0, metadata=_h("OpenCV squareSize on the diffuser, mm"))
+    radius_mm: float = field(default=0.38, metadata=_h("circle radius, mm"))
+    poses: list[GridPose] = field(default_factory=lambda: list(DEFAULT_GRID_POSES),
+                                  metadata=_h("poses (>= 3 recommended)"))
+
+
+@dataclass
+class SceneSpec:
+    """A scene capture.
+
+    ``kind``: ``colorchecker`` | ``usaf`` | ``white`` | ``flat`` | ``circle_grid`` | ``cave`` |
+    ``cube``. ``params`` go to the scene constructor (:func:`hsi_torch.simulate.scenes.make_scene`;
+    ``*_deg`` keys are converted). ``cube``: ``path`` to a cube file read with
+    :func:`hsi_torch.io.load_cube`, placed with ``params`` ``width_mm``/``center_mm``.
+    ``optional``: skip (with a message) when the data is missing, e.g. CAVE without
+    ``../shared/data/real``.
+    """
+
+    kind: Literal["colorchecker", "usaf", "white", "flat", "circle_grid", "cave", "cube"]
+    name: str | None = None
+    path: Path | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    optional: bool = False
+
+
+DEFAULT_SCENES: tuple[SceneSpec, ...] = (
+    SceneSpec("colorchecker", "colorchecker", params={"width_mm": 8.4, "center_mm": [0.0, 1.4]}),
+)
+
+
+@dataclass
+class CapturesConfig:
+    """Which captures to render."""
+
+    scan_wavelengths_nm: list[float] | None = field(
+        default=None, metadata=_h("monochromator wavelengths; null = the reconstruction grid"))
+    scan_fwhm_nm: float = field(default=10.0, metadata=_h("monochromator line FWHM, nm"))
+    scan_line: Literal["gaussian", "triangle"] = field(
+        default="gaussian", metadata=_h("line shape (triangle = equal entrance/exit slits)"))
+    scan_exposure: float = field(
+        default=0.8, metadata=_h("the BRF-free patch at the brightest scan line and colour "
+                                 "fills this fraction of the full well"))
+    white_shots: int = field(default=3, metadata=_h("white-reference captures"))
+    dark_frames: int = field(default=1, metadata=_h("dark frames (type 'dark')"))
+    grid: GridConfig = field(default_factory=GridConfig)
+    scenes: list[SceneSpec] = field(default_factory=lambda: list(DEFAULT_SCENES))
+
+    def __post_init__(self) -> None:
+        _positive(self, "scan_fwhm_nm", "scan_exposure")
+        if self.white_shots < 0 or self.dark_frames < 0:
+            raise ValueError("white_shots and dark_frames must be >= 0")
+        names = [s.name or s.kind for s in self.scenes]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"scene names must be unique; give `name` to {dup}")
+
+
+@dataclass
+class SimulateConfig:
+    """``hsi-torch simulate`` configuration (see ``docs/readme_simulate.md``)."""
+
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    brf: BRFSection = field(default_factory=BRFSection)
+    sensor: SensorSection = field(default_factory=SensorSection)
+    illuminant: str = field(default="D65", metadata=_h("CIE name (D65, A, ...) or CSV path"))
+    camera_sensitivity: str = field(
+        default="Canon EOS 5D Mark II", metadata=_h("camera name, CSV or rawtoaces JSON path"))
+    objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    diffuser: DiffuserConfig = field(default_factory=DiffuserConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    captures: CapturesConfig = field(default_factory=CapturesConfig)

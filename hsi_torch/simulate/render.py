@@ -1,0 +1,753 @@
+"""Capture renderer of the virtual prototype: sensor images and the ground truth behind them.
+
+Physics of one sensor pixel ``p`` (``s × s`` sub-pixel rays traced with
+:func:`hsi_torch.optics.trace_rays`; a ray with no view, or more reflections than
+``max_reflections``, is black):
+
+    E_c(p) = κ · mean_rays[ t · D(α) · V(X) · Σ_λ Δλ_f · φ^c(λ) · Tstack(X, α, σ, λ) · S(X, λ) ]
+
+- ``λ`` runs over the *fine* grid: ``fine_step_nm`` (2 nm) samples tiling the band-pass
+  ``[λ_0 − Δλ_0/2, λ_{M−1} + Δλ_{M−1}/2]`` (425–675 nm for the default 430–670/10 nm grid).
+  The add-on carries a band-pass filter to the reconstruction band ± half a step in front of
+  the camera, so it applies to every capture including the BRF-free patch.
+- ``t = R^n`` mirror throughput, ``D(α) = cos^k α`` the diffuser fall-off
+  (:class:`~hsi_torch.optics.sensor.DiffuserModel`), ``V(X) = 1 − v·|X|²/R²`` the objective's
+  vignetting on the diffuser plane (``R`` the entrance triangle's circumradius).
+- ``φ^c(λ) = l(λ) f^c(λ) τ_obj(λ)``: illuminant × camera sensitivity × objective transmission.
+- ``Tstack = ½·η·T_BRF(α, σ, λ)`` (unpolarized light, polarizer pair efficiency ``η``,
+  :meth:`BRFConfig.transmittance`) outside the BRF-free disk, ``1`` inside it (no filter stack).
+- ``S`` the scene reflectance (``Scene.reflectance``; a white target when ``scene=None``).
+- ``κ = 1 / max_c Σ_λ Δλ_f φ^c(λ)``: a white target seen without the filter stack
+  (``t = D = V = 1``) gives ``E = 1`` in its brightest channel; the sensor exposure then sets the
+  fraction of the full well (:class:`~hsi_torch.optics.sensor.SensorModel`, relative units).
+
+Monochromator scan frame at ``λ_j``: objective removed, diffuser lit evenly from all directions
+(``V = D = 1``, ``S = 1``) by a line ``g_j(λ)`` (Gaussian or triangular, FWHM ``scan_fwhm_nm``,
+peak 1) instead of ``l·τ_obj``: ``E_c = κ_scan · t · Σ_λ Δλ_f g_j f^c Tstack`` with ``κ_scan``
+making the BRF-free patch reach 1 at the brightest line of the band in its brightest channel.
+
+Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) — see
+:meth:`CaptureRenderer.ground_truth`. With it the reference-frame forward model
+
+    y[v, c, q] ≈ gain[v, q] · Σ_m B[v, m, q] · Δλ_m · phi[c, m] · s[m, q]      (DN above black)
+
+reproduces the noise-free rendering to the discretisation error of the 10 nm grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from hsi_torch import refdata
+from hsi_torch.optics import (
+    BRFConfig,
+    CameraModel,
+    KaleidoscopeGeometry,
+    ViewLayout,
+    build_view_layout,
+    enumerate_sequences,
+    sequence_codes,
+    trace_rays,
+)
+from hsi_torch.optics.birefringence import polarizer_transmittance
+from hsi_torch.optics.layout import apply_homography
+from hsi_torch.optics.sensor import DiffuserModel, Exposure, SensorModel, cfa_index
+from hsi_torch.simulate.scenes import (
+    CircleGridScene,
+    ColorCheckerScene,
+    CubeScene,
+    FlatScene,
+    Scene,
+    USAF1951Scene,
+    render_scene_image,
+)
+from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid, band_widths, resample_spectra
+
+__all__ = [
+    "CaptureSpec",
+    "CaptureRenderer",
+    "SubpixelTrace",
+    "fine_wavelengths",
+    "hat_weights",
+    "line_profile",
+    "subpixel_offsets",
+    "points_in_triangle",
+    "blur_scene",
+]
+
+
+# =============================================================================================
+# spectral helpers
+# =============================================================================================
+
+
+def fine_wavelengths(grid_nm: torch.Tensor, step_nm: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fine sample centres tiling the band-pass ``[λ_0 − Δλ_0/2, λ_{M−1} + Δλ_{M−1}/2]``.
+
+    Args:
+        grid_nm: ``(M,)`` reconstruction grid (nm).
+        step_nm: requested fine step; the actual step divides the band-pass evenly.
+
+    Returns:
+        ``(wavelengths (L,), widths (L,))`` in nm, dtype/device of ``grid_nm``.
+        Default grid, 2 nm: 426, 428, …, 674 (L = 125), widths 2.
+    """
+    if step_nm <= 0:
+        raise ValueError(f"step_nm must be > 0, got {step_nm}")
+    g = grid_nm.to(torch.float64)
+    dl = band_widths(g)
+    lo, hi = float(g[0] - dl[0] / 2), float(g[-1] + dl[-1] / 2)
+    n = max(1, int(round((hi - lo) / step_nm)))
+    h = (hi - lo) / n
+    wl = lo + (torch.arange(n, dtype=torch.float64, device=grid_nm.device) + 0.5) * h
+    return wl.to(grid_nm.dtype), torch.full_like(wl, h).to(grid_nm.dtype)
+
+
+def hat_weights(grid_nm: torch.Tensor, fine_nm: torch.Tensor) -> torch.Tensor:
+    """``(M, L)`` linear-interpolation basis ``h_m(λ_l)`` of the grid, constant beyond the ends.
+
+    ``Σ_m h_m = 1`` everywhere, so a spectrum that is linear between grid nodes is reproduced
+    exactly: ``s(λ_l) = Σ_m s_m h_m(λ_l)``.
+    """
+    eye = torch.eye(grid_nm.numel(), dtype=fine_nm.dtype, device=fine_nm.device)
+    return resample_spectra(eye, grid_nm.to(fine_nm), fine_nm, dim=-1, extrapolate="edge")
+
+
+def line_profile(
+    centres_nm: torch.Tensor, fine_nm: torch.Tensor, fwhm_nm: float, shape: str = "gaussian"
+) -> torch.Tensor:
+    """``(J, L)`` monochromator lines of peak 1 centred at ``centres_nm (J,)``.
+
+    ``'gaussian'``: ``exp(−½((λ−λ_j)/σ)²)``, ``σ = FWHM / (2√(2 ln 2))``; ``'triangle'``:
+    ``max(0, 1 − |λ−λ_j| / FWHM)`` (equal entrance and exit slits).
+    """
+    if fwhm_nm <= 0:
+        raise ValueError(f"fwhm_nm must be > 0, got {fwhm_nm}")
+    d = fine_nm[None, :] - centres_nm.to(fine_nm)[:, None]
+    if shape == "gaussian":
+        sig = fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+        return torch.exp(-0.5 * (d / sig) ** 2)
+    if shape == "triangle":
+        return (1.0 - d.abs() / fwhm_nm).clamp_min(0.0)
+    raise ValueError(f"line shape must be 'gaussian' or 'triangle', got {shape!r}")
+
+
+def subpixel_offsets(s: int, device=None, dtype=None) -> torch.Tensor:
+    """``(s², 2)`` offsets ``(dx, dy)`` of a regular ``s × s`` sub-pixel pattern (unit pixel)."""
+    o = (torch.arange(s, device=device, dtype=dtype or torch.float64) + 0.5) / s - 0.5
+    yy, xx = torch.meshgrid(o, o, indexing="ij")
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
+
+
+def points_in_triangle(p: torch.Tensor, tri: torch.Tensor, inset: float = 0.0) -> torch.Tensor:
+    """``(N,)`` bool: ``p (N, 2)`` lies inside triangle ``tri (3, 2)`` (any orientation) at a
+    distance ≥ ``inset`` from all three edges."""
+    tri = tri.to(p)
+    c = tri.mean(0)
+    ok = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
+    for i in range(3):
+        a, b = tri[i], tri[(i + 1) % 3]
+        e = b - a
+        n = torch.stack([-e[1], e[0]]) / e.norm()
+        sgn = torch.sign(((c - a) * n).sum())
+        ok &= ((p - a) @ n) * sgn >= inset
+    return ok
+
+
+def blur_scene(
+    scene: Scene,
+    sigma_mm: float,
+    extent: tuple[float, float, float, float],
+    spacing_mm: float,
+    wavelengths_nm: torch.Tensor,
+    max_side: int = 1024,
+) -> CubeScene:
+    """The scene blurred on the diffuser plane by a Gaussian of ``sigma_mm``, as a cube scene.
+
+    The scene is rasterised over ``extent`` (mm) every ``spacing_mm`` (at most ``max_side``
+    samples a side; 2× supersampled), blurred with
+    :meth:`~hsi_torch.optics.sensor.DiffuserModel.blur` and wrapped in a
+    :class:`~hsi_torch.simulate.scenes.CubeScene` on ``wavelengths_nm``.
+    """
+    x0, x1, y0, y1 = extent
+    w = int(min(max_side, max(8, math.ceil((x1 - x0) / spacing_mm))))
+    h = int(min(max_side, max(8, math.ceil((y1 - y0) / spacing_mm))))
+    img = render_scene_image(scene, extent, h, w, wavelengths_nm, supersample=2)
+    px = min((x1 - x0) / w, (y1 - y0) / h)
+    img = DiffuserModel(blur_sigma_mm=sigma_mm).blur(img, px)
+    return CubeScene(img, wavelengths_nm.to(torch.float64).cpu(), extent_mm=extent,
+                     extrapolate="edge")
+
+
+# =============================================================================================
+# data containers
+# =============================================================================================
+
+
+@dataclass
+class CaptureSpec:
+    """One capture to render.
+
+    Attributes:
+        name: identifier (file stem).
+        kind: ``'scene'`` (objective on, illuminant ``l``; white reference, circle grid and scene
+            captures), ``'scan'`` (monochromator frame, objective off) or ``'dark'``.
+        scene: reflectance on the diffuser; ``None`` = white (reflectance 1).
+        wavelength_nm: centre of the monochromator line (``'scan'`` only).
+    """
+
+    name: str
+    kind: str = "scene"
+    scene: Any = None
+    wavelength_nm: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("scene", "scan", "dark"):
+            raise ValueError(f"CaptureSpec.kind must be 'scene', 'scan' or 'dark', got "
+                             f"{self.kind!r}")
+        if self.kind == "scan" and self.wavelength_nm is None:
+            raise ValueError(f"scan capture {self.name!r} needs wavelength_nm")
+
+
+@dataclass
+class SubpixelTrace:
+    """Sub-pixel rays that reach the diffuser (all others are black).
+
+    Attributes (``N`` rays): ``pixel`` long flat sensor index ``y·W + x``; ``alpha``, ``sigma``
+    (rad); ``hit_xy (N, 2)`` mm; ``throughput`` ``R^n``; ``brf_free`` bool; ``view`` layout view
+    index or −1 (higher-order tile); ``samples`` = ``s²`` rays per pixel; ``sensor_size (H, W)``.
+    """
+
+    pixel: torch.Tensor
+    alpha: torch.Tensor
+    sigma: torch.Tensor
+    hit_xy: torch.Tensor
+    throughput: torch.Tensor
+    brf_free: torch.Tensor
+    view: torch.Tensor
+    samples: int
+    sensor_size: tuple[int, int]
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.pixel.numel())
+
+
+# =============================================================================================
+# renderer
+# =============================================================================================
+
+
+def _spectrally_flat(scene: Any) -> bool:
+    """Scenes whose reflectance does not depend on wavelength (one sample suffices)."""
+    if isinstance(scene, (CircleGridScene, USAF1951Scene)):
+        return True
+    return isinstance(scene, FlatScene) and scene.spectrum_nm is None
+
+
+def _cc_index(scene: ColorCheckerScene, xy: torch.Tensor) -> torch.Tensor:
+    idx = scene.patch_index(xy)
+    return torch.where(idx < 0, torch.full_like(idx, 24), idx)
+
+
+def _camera_signal(name_or_path: str, wl: torch.Tensor) -> torch.Tensor:
+    return refdata.camera_sensitivities(name_or_path, wl, extrapolate="edge")
+
+
+class CaptureRenderer:
+    """Renders captures of the virtual prototype and their ground truth.
+
+    Args:
+        geometry, camera, brf: optics (``geometry.max_reflections`` views, normally 2 → 10 views).
+        sensor: the raw sensor; ``sensor.exposure`` is the scene/white/grid exposure.
+        diffuser: angular fall-off ``cos^k α`` and optional blur of the scene on the diffuser.
+        grid: reconstruction grid (default 430…670 nm, 10 nm).
+        fine_step_nm: internal wavelength step (see :func:`fine_wavelengths`).
+        polarizer_efficiency: ``η`` in ``Tstack = ½ η T_BRF``.
+        vignetting: objective vignetting strength ``v`` (``V = 1 − v |X|²/R²``).
+        objective_transmission: flat ``τ_obj`` or ``(wavelengths_nm, values)``.
+        illuminant, camera_sensitivity: names or file paths (:mod:`hsi_torch.refdata`).
+        supersample: ``s`` (``s × s`` rays per pixel).
+        max_reflections: reflections traced for the image (3 draws the dark higher-order tiles
+            around the ten views as a real camera sees them; they are not views).
+        scan_fwhm_nm, scan_line: monochromator line.
+        scan_exposure: the BRF-free patch at the brightest scan line fills this fraction of the
+            full well.
+        chunk: rays per batch; device, dtype: where and how to render.
+        layout: a precomputed :class:`ViewLayout` (else built from a float64 trace).
+        view_inset_px: truth ``view_mask`` keeps source points this far inside the triangle.
+    """
+
+    def __init__(
+        self,
+        geometry: KaleidoscopeGeometry,
+        camera: CameraModel,
+        brf: BRFConfig,
+        sensor: SensorModel,
+        *,
+        diffuser: DiffuserModel | None = None,
+        grid: SpectralGrid = DEFAULT_GRID,
+        fine_step_nm: float = 2.0,
+        polarizer_efficiency: float = 0.9,
+        vignetting: float = 0.2,
+        objective_transmission: float | tuple[Sequence[float], Sequence[float]] = 0.9,
+        illuminant: str = refdata.DEFAULT_ILLUMINANT,
+        camera_sensitivity: str = refdata.DEFAULT_CAMERA,
+        supersample: int = 2,
+        max_reflections: int = 3,
+        scan_fwhm_nm: float = 10.0,
+        scan_line: str = "gaussian",
+        scan_exposure: float = 0.8,
+        chunk: int = 1 << 16,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float64,
+        layout: ViewLayout | None = None,
+        view_inset_px: float = 1.0,
+    ) -> None:
+        if supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+        if max_reflections < geometry.max_reflections:
+            raise ValueError(f"render max_reflections ({max_reflections}) must be >= "
+                             f"geometry.max_reflections ({geometry.max_reflections})")
+        if not 0 < polarizer_efficiency <= 1:
+            raise ValueError(f"polarizer_efficiency must be in (0, 1], got {polarizer_efficiency}")
+        if not 0 <= vignetting < 1:
+            raise ValueError(f"vignetting must be in [0, 1), got {vignetting}")
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.geometry, self.camera, self.brf, self.sensor = geometry, camera, brf, sensor
+        self.diffuser = diffuser if diffuser is not None else DiffuserModel()
+        self.grid = grid
+        self.polarizer_efficiency = float(polarizer_efficiency)
+        self.vignetting = float(vignetting)
+        self.supersample = int(supersample)
+        self.max_reflections = int(max_reflections)
+        self.scan_fwhm_nm, self.scan_line = float(scan_fwhm_nm), scan_line
+        self.scan_exposure = float(scan_exposure)
+        self.chunk = int(chunk)
+        self.view_inset_px = float(view_inset_px)
+        self.device, self.dtype = torch.device(device), dtype
+        dev = self.device
+
+        self.wavelengths = grid.wavelengths(dev, torch.float64)  # (M,)
+        self.band_widths = band_widths(self.wavelengths)  # (M,)
+        self.fine, self.fine_widths = fine_wavelengths(self.wavelengths, fine_step_nm)  # (L,)
+        l_ = refdata.illuminant(illuminant, self.fine, extrapolate="edge")
+        f_ = _camera_signal(camera_sensitivity, self.fine)
+        if isinstance(objective_transmission, (int, float)):
+            tau = torch.full_like(self.fine, float(objective_transmission))
+        else:
+            src, val = objective_transmission
+            tau = resample_spectra(torch.as_tensor(val, dtype=torch.float64, device=dev),
+                                   torch.as_tensor(src, dtype=torch.float64, device=dev),
+                                   self.fine, extrapolate="edge")
+        if bool((tau < 0).any()) or bool((tau > 1).any()):
+            raise ValueError("objective transmission must lie in [0, 1]")
+        self.illuminant_spd, self.camera_sens, self.objective_tau = l_, f_, tau
+        self.phi_fine = l_ * f_ * tau  # (3, L), l·f·τ
+        self.kappa = 1.0 / float((self.phi_fine * self.fine_widths).sum(1).max())
+        lines = line_profile(self.fine, self.fine, self.scan_fwhm_nm, self.scan_line)  # (L, L)
+        self.kappa_scan = 1.0 / float(
+            torch.einsum("jl,cl->jc", lines * self.fine_widths, f_).max())
+        self.dn_per_unit = sensor.electrons_at_unity / sensor.gain_e_per_dn
+        self.layout = layout if layout is not None else build_view_layout(
+            geometry, camera, brf, device=dev)
+        self.layout = self.layout.to(dev)
+        v = geometry.entrance_vertices(dev, torch.float64)
+        self._r2 = float((v - v.mean(0)).pow(2).sum(1).max())
+        self._trace: SubpixelTrace | None = None
+        self._blur_cache: dict[int, Scene] = {}
+        self._knots: tuple | None = None
+        self.opd_knot_step_nm = 10.0
+
+    # ------------------------------------------------------------------ factors
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        return (self.camera.height_px, self.camera.width_px)
+
+    @property
+    def scene_exposure(self) -> float:
+        return float(self.sensor.exposure)
+
+    @property
+    def mosaic_early(self) -> bool:
+        """Accumulate only each pixel's CFA colour (Bayer without PSF): 3× less memory."""
+        return self.sensor.output == "bayer" and self.sensor.psf_sigma_px == 0
+
+    def vignetting_factor(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """Objective vignetting ``V(X) = 1 − v·|X|²/R²`` at diffuser points ``(..., 2)`` (≥ 0)."""
+        return (1.0 - self.vignetting * xy_mm.pow(2).sum(-1) / self._r2).clamp_min(0.0)
+
+    def stack_transmittance(
+        self, alpha: torch.Tensor, sigma: torch.Tensor, brf_free: torch.Tensor,
+        wavelengths_nm: torch.Tensor, exact: bool = True,
+    ) -> torch.Tensor:
+        """``(N, L)`` filter-stack transmittance: ``½ η T_BRF`` outside the BRF-free disk, 1 in it.
+
+        ``exact=False`` (used for the fine-grid image, ``wavelengths_nm`` = :attr:`fine`)
+        evaluates the exact OPD (:meth:`BRFConfig.opd_nm`) at knots every
+        ``opd_knot_step_nm`` and interpolates it linearly in λ before the polarizer formula;
+        the OPD is smooth in λ (dispersion only), so the error is < 0.05 nm of OPD (≤ 1e-3 in
+        T, tested) at a fifth of the cost.
+        """
+        wl = wavelengths_nm.to(alpha)
+        if exact:
+            t = self.brf.transmittance(alpha[:, None], sigma[:, None], wl)
+        else:
+            knots, interp = self._opd_knots(wl)
+            opd = self.brf.opd_nm(alpha[:, None], sigma[:, None], knots) @ interp
+            t = polarizer_transmittance(opd, wl, math.radians(self.brf.psi_deg),
+                                        math.radians(self.brf.chi_deg))
+        t = 0.5 * self.polarizer_efficiency * t
+        return torch.where(brf_free[:, None], torch.ones_like(t), t)
+
+    def _opd_knots(self, wl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        key = (wl.device, wl.dtype, wl.numel())
+        if self._knots is None or self._knots[0] != key:
+            lo, hi = float(wl.min()), float(wl.max())
+            n = max(2, int(math.ceil((hi - lo) / self.opd_knot_step_nm)) + 1)
+            knots = torch.linspace(lo, hi, n, device=wl.device, dtype=torch.float64)
+            eye = torch.eye(n, device=wl.device, dtype=torch.float64)
+            interp = resample_spectra(eye, knots, wl.to(torch.float64), dim=-1)
+            self._knots = (key, knots.to(wl.dtype), interp.to(wl.dtype))
+        return self._knots[1], self._knots[2]
+
+    def phi_true(self) -> torch.Tensor:
+        """``(3, M)`` float64 ``φ^c_m`` in DN per nm per unit reflectance (× gain × B).
+
+        ``φ_m = dn_per_unit · exposure · κ · Σ_l h_m(λ_l) φ^c(λ_l) Δλ_l / Δλ_m``: the
+        exposure-scaled ``l·f·τ`` averaged with the grid's interpolation basis.
+        """
+        h = hat_weights(self.wavelengths, self.fine)  # (M, L)
+        avg = (self.phi_fine * self.fine_widths) @ h.T / self.band_widths  # (3, M)
+        return avg * (self.dn_per_unit * self.scene_exposure * self.kappa)
+
+    def scan_line_weights(self, centres_nm: torch.Tensor) -> torch.Tensor:
+        """``(J, L)`` normalised weights of the scan lines (sum 1 over the band-pass)."""
+        w = line_profile(centres_nm.to(self.fine), self.fine, self.scan_fwhm_nm,
+                         self.scan_line) * self.fine_widths
+        return w / w.sum(1, keepdim=True)
+
+    # ------------------------------------------------------------------ tracing
+    def _render_geometry(self) -> KaleidoscopeGeometry:
+        return dataclasses.replace(self.geometry, max_reflections=self.max_reflections)
+
+    def trace(self, progress: Callable | None = None) -> SubpixelTrace:
+        """Trace ``s²`` rays per sensor pixel (cached); keeps the rays that reach the diffuser."""
+        if self._trace is not None:
+            return self._trace
+        dev, dt = self.device, self.dtype
+        geom = self._render_geometry()
+        seqs = enumerate_sequences(self.max_reflections)
+        lay_codes = sequence_codes(self.layout.reflection_sequences)
+        all_codes = torch.tensor(sequence_codes(seqs), device=dev)
+        view_of = torch.full((int(all_codes.max()) + 1,), -1, dtype=torch.long, device=dev)
+        for v, c in enumerate(lay_codes):
+            view_of[c] = v
+        h, w = self.sensor_size
+        s2 = self.supersample**2
+        offs = subpixel_offsets(self.supersample, dev, torch.float64)
+        rows_per = max(1, self.chunk // (w * s2))
+        parts: dict[str, list[torch.Tensor]] = {k: [] for k in
+                                                 ("pix", "a", "s", "hit", "t", "code")}
+        it = range(0, h, rows_per)
+        if progress is not None:
+            it = progress(it, desc="tracing rays", unit="block")
+        for y0 in it:
+            y1 = min(h, y0 + rows_per)
+            ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev, dtype=torch.float64),
+                                    torch.arange(w, device=dev, dtype=torch.float64),
+                                    indexing="ij")
+            base = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)  # (P, 2)
+            pts = (base[:, None, :] + offs[None]).reshape(-1, 2)
+            tr = trace_rays(geom, self.camera, pts.to(dt), sequences=seqs, chunk=self.chunk)
+            keep = tr.view_index >= 0
+            pix = (ys.reshape(-1).long() * w + xs.reshape(-1).long()).repeat_interleave(s2)
+            parts["pix"].append(pix[keep])
+            parts["a"].append(tr.alpha[keep])
+            parts["s"].append(tr.sigma[keep])
+            parts["hit"].append(tr.hit_xy[keep])
+            parts["t"].append(tr.throughput[keep])
+            parts["code"].append(tr.sequence_code[keep])
+        cat = {k: torch.cat(v) for k, v in parts.items()}
+        self._trace = SubpixelTrace(
+            pixel=cat["pix"], alpha=cat["a"], sigma=cat["s"], hit_xy=cat["hit"],
+            throughput=cat["t"], brf_free=self.geometry.brf_free_mask(cat["hit"]),
+            view=view_of[cat["code"]], samples=s2, sensor_size=(h, w))
+        return self._trace
+
+    # ------------------------------------------------------------------ rendering
+    def _scene_for_render(self, scene: Any) -> Any:
+        if scene is None or self.diffuser.blur_sigma_mm <= 0:
+            return scene
+        key = id(scene)
+        if key not in self._blur_cache:
+            v = self.geometry.entrance_vertices(dtype=torch.float64)
+            m = 4.0 * self.diffuser.blur_sigma_mm
+            ext = (float(v[:, 0].min()) - m, float(v[:, 0].max()) + m,
+                   float(v[:, 1].min()) - m, float(v[:, 1].max()) + m)
+            hd = self.layout.diffuser_homographies[0]
+            px_per_mm = float(torch.linalg.det(hd[:2, :2] / hd[2, 2]).abs().sqrt())
+            self._blur_cache[key] = blur_scene(scene, self.diffuser.blur_sigma_mm, ext,
+                                               0.5 / px_per_mm, self.fine.cpu())
+        return self._blur_cache[key]
+
+    def render(
+        self, specs: Sequence[CaptureSpec], progress: Callable | None = None
+    ) -> torch.Tensor:
+        """Noise-free relative irradiance of every capture (exposure not applied).
+
+        Args:
+            specs: captures to render (``'dark'`` ones give zeros).
+            progress: optional ``tqdm``-like wrapper for the ray-chunk loop.
+
+        Returns:
+            ``(K, C, H, W)`` in the render dtype; ``C = 1`` (each pixel's CFA colour) when
+            :attr:`mosaic_early`, else ``C = 3`` (R, G, B). Multiply by an exposure to get the
+            input of :meth:`SensorModel.expose`.
+        """
+        tr = self.trace(progress)
+        dev, dt = self.device, self.dtype
+        h, w = self.sensor_size
+        k_all = len(specs)
+        c_out = 1 if self.mosaic_early else 3
+        out = torch.zeros(k_all, c_out, h * w, device=dev, dtype=dt)
+        scan_idx = [i for i, s in enumerate(specs) if s.kind == "scan"]
+        scene_idx = [i for i, s in enumerate(specs) if s.kind == "scene"]
+        scenes = {i: self._scene_for_render(specs[i].scene) for i in scene_idx}
+        fine = self.fine.to(dt)
+        phi_w = (self.phi_fine * self.fine_widths * self.kappa).to(dt).T  # (L, 3)
+        if scan_idx:
+            centres = torch.tensor([float(specs[i].wavelength_nm) for i in scan_idx],
+                                   device=dev, dtype=torch.float64)
+            lines = line_profile(centres, self.fine, self.scan_fwhm_nm, self.scan_line)
+            w_scan = torch.einsum("jl,cl->ljc", lines * self.fine_widths * self.kappa_scan,
+                                  self.camera_sens).reshape(self.fine.numel(), -1).to(dt)
+        if self.mosaic_early:
+            cfa = torch.tensor(cfa_index(self.sensor.cfa_pattern), device=dev)
+            cfa = cfa.repeat((h + 1) // 2, (w + 1) // 2)[:h, :w].reshape(-1)
+        cc_tables = {i: torch.cat([sc.patch_spectra(fine),
+                                   torch.full_like(fine, sc.gap_reflectance)[None]]).to(dt)
+                     for i, sc in scenes.items() if isinstance(sc, ColorCheckerScene)}
+        inv_s2 = 1.0 / tr.samples
+        it = range(0, tr.num_rays, self.chunk)
+        if progress is not None:
+            it = progress(it, desc=f"rendering {k_all} captures", unit="chunk")
+        for a in it:
+            sl = slice(a, a + self.chunk)
+            pix, hit = tr.pixel[sl], tr.hit_xy[sl]
+            t_path = tr.throughput[sl]
+            tst = self.stack_transmittance(tr.alpha[sl], tr.sigma[sl], tr.brf_free[sl], fine,
+                                           exact=False)
+            contrib: dict[int, torch.Tensor] = {}  # capture → (n, 3)
+            if scan_idx:
+                e = (tst @ w_scan).reshape(-1, len(scan_idx), 3) * t_path[:, None, None]
+                for j, i in enumerate(scan_idx):
+                    contrib[i] = e[:, j]
+            if scene_idx:
+                g_obj = t_path * self.diffuser.falloff(tr.alpha[sl]) * self.vignetting_factor(hit)
+                white = None
+                for i in scene_idx:
+                    sc = scenes[i]
+                    if sc is None:
+                        if white is None:
+                            white = (tst @ phi_w) * g_obj[:, None]
+                        contrib[i] = white
+                    elif isinstance(sc, ColorCheckerScene):
+                        refl = cc_tables[i][_cc_index(sc, hit)]
+                        contrib[i] = ((tst * refl) @ phi_w) * g_obj[:, None]
+                    elif _spectrally_flat(sc):
+                        if white is None:
+                            white = (tst @ phi_w) * g_obj[:, None]
+                        contrib[i] = white * sc.reflectance(hit, fine[:1]).to(dt)
+                    else:
+                        refl = sc.reflectance(hit, fine).to(dt)
+                        contrib[i] = ((tst * refl) @ phi_w) * g_obj[:, None]
+            if self.mosaic_early:
+                ch = cfa[pix][:, None]
+            for i, e in contrib.items():
+                if self.mosaic_early:
+                    out[i, 0].index_add_(0, pix, e.gather(1, ch)[:, 0] * inv_s2)
+                else:
+                    out[i].index_add_(1, pix, e.T * inv_s2)
+        return out.reshape(k_all, c_out, h, w)
+
+    def exposure_of(self, spec: CaptureSpec) -> float:
+        """Relative exposure of a capture (scan frames: ``scan_exposure``, else the sensor's)."""
+        return self.scan_exposure if spec.kind == "scan" else self.scene_exposure
+
+    def expose(
+        self, irradiance: torch.Tensor, exposure: float, seed: int | None
+    ) -> Exposure:
+        """Sensor readout of one noise-free irradiance image ``(C, H, W)`` at ``exposure``.
+
+        Noise comes from a generator seeded with ``seed`` (reproducible per capture).
+        ``C = 1`` inputs are already mosaicked (see :meth:`render`).
+        """
+        gen = torch.Generator(device=irradiance.device)
+        if seed is None:
+            gen.seed()
+        else:
+            gen.manual_seed(int(seed))
+        scale = exposure / self.sensor.exposure if self.sensor.exposure > 0 else 0.0
+        return self.sensor.expose(irradiance * scale, generator=gen)
+
+    def noise_free_dn(self, irradiance: torch.Tensor, exposure: float) -> torch.Tensor:
+        """Noise-free, unclipped DN above black: ``irradiance · exposure · dn_per_unit``."""
+        return irradiance * (exposure * self.dn_per_unit)
+
+    # ------------------------------------------------------------------ ground truth
+    def reference_pixels(self) -> torch.Tensor:
+        """``(h·w, 2)`` float64 sensor coordinates of the reference frame's pixels (row-major)."""
+        x0, y0, w, h = self.layout.reference_bbox
+        ys, xs = torch.meshgrid(
+            torch.arange(y0, y0 + h, device=self.device, dtype=torch.float64),
+            torch.arange(x0, x0 + w, device=self.device, dtype=torch.float64), indexing="ij")
+        return torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+
+    def reference_diffuser_points(self, supersample: int = 1) -> torch.Tensor:
+        """``(h·w, s², 2)`` diffuser points (mm) of the reference pixels' sub-samples."""
+        q = self.reference_pixels()
+        offs = subpixel_offsets(supersample, self.device, torch.float64)
+        qs = (q[:, None, :] + offs[None]).reshape(-1, 2)
+        x = self.layout.sensor_to_diffuser(0, qs)
+        return x.reshape(q.shape[0], -1, 2)
+
+    def scene_truth(self, scene: Any) -> torch.Tensor:
+        """``(M, h, w)`` float32 reflectance of a scene on the grid in the reference frame,
+        averaged over each reference pixel's ``s × s`` sub-samples (as rendered)."""
+        x0, y0, w, h = self.layout.reference_bbox
+        sc = self._scene_for_render(scene)
+        pts = self.reference_diffuser_points(self.supersample)
+        n, s2, _ = pts.shape
+        flat = pts.reshape(-1, 2)
+        out = torch.empty(flat.shape[0], self.wavelengths.numel(), dtype=torch.float64,
+                          device=self.device)
+        for a in range(0, flat.shape[0], self.chunk):
+            if sc is None:
+                out[a:a + self.chunk] = 1.0
+            else:
+                out[a:a + self.chunk] = sc.reflectance(flat[a:a + self.chunk],
+                                                       self.wavelengths).to(torch.float64)
+        cube = out.reshape(n, s2, -1).mean(1).T.reshape(-1, h, w)
+        return cube.to(torch.float32)
+
+    def ground_truth(self, progress: Callable | None = None) -> dict[str, torch.Tensor]:
+        """Everything calibration must recover, in the reference frame ``(h, w)``.
+
+        For reference pixel ``q`` (diffuser point ``X(q)`` of view 0) and view ``v`` the sensor
+        position ``layout.reference_to_view(v, q)`` is traced (float64) to get ``α, σ, t``:
+
+        - ``B (V, M, h, w)``: ``t · Tstack(X, α, σ, λ) / Tstack_free`` (``Tstack_free = 1``)
+          averaged over the monochromator line at each grid wavelength — what the scan ratio to
+          the reference view's BRF-free patch measures. 0 where the view is absent.
+        - ``phi (3, M)``: :meth:`phi_true` (DN per nm per unit reflectance).
+        - ``gain (V, h, w)``: ``D(α_v(q)) · V_obj(X(q))`` (0 where absent).
+        - ``view_mask (V, h, w)``: the traced ray lands in view ``v`` and the source point lies in
+          the view's triangle at least ``view_inset_px`` from its edges, inside the sensor.
+        - ``modulated``: ``view_mask`` and ``X(q)`` outside the BRF-free disk; ``valid (h, w)``:
+          ≥ 3 modulated views.
+        - ``alpha, sigma (V, h, w)`` rad, ``throughput (V, h, w)``, ``diffuser_xy (h, w, 2)`` mm,
+          ``brf_free (h, w)``.
+        """
+        lay = self.layout
+        x0, y0, w, h = lay.reference_bbox
+        H, W = self.sensor_size
+        q = self.reference_pixels()
+        n = q.shape[0]
+        V, M = lay.num_views, self.wavelengths.numel()
+        geom = self.geometry
+        x_ref = lay.sensor_to_diffuser(0, q)
+        free = geom.brf_free_mask(x_ref)
+        vig = self.vignetting_factor(x_ref)
+        lw = self.scan_line_weights(self.wavelengths)  # (M, L)
+        B = torch.zeros(V, M, n, dtype=torch.float32, device=self.device)
+        gain = torch.zeros(V, n, dtype=torch.float64, device=self.device)
+        alpha = torch.full((V, n), float("nan"), dtype=torch.float64, device=self.device)
+        sigma = torch.full_like(alpha, float("nan"))
+        thr = torch.zeros_like(gain)
+        mask = torch.zeros(V, n, dtype=torch.bool, device=self.device)
+        it = range(V)
+        if progress is not None:
+            it = progress(it, desc="ground truth", unit="view")
+        inset = self.view_inset_px
+        for v in it:
+            p = lay.reference_to_view(v, q)
+            tr = trace_rays(geom, self.camera, p, sequences=lay.reflection_sequences,
+                            chunk=self.chunk)
+            inside = points_in_triangle(p, lay.triangles[v], inset)
+            inside &= (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)
+            ok = (tr.view_index == v) & inside
+            mask[v] = ok
+            idx = torch.nonzero(ok).squeeze(1)
+            alpha[v, idx], sigma[v, idx] = tr.alpha[idx], tr.sigma[idx]
+            thr[v, idx] = tr.throughput[idx]
+            gain[v, idx] = self.diffuser.falloff(tr.alpha[idx]) * vig[idx]
+            for a in range(0, idx.numel(), self.chunk):
+                j = idx[a:a + self.chunk]
+                tst = self.stack_transmittance(tr.alpha[j], tr.sigma[j], free[j], self.fine)
+                B[v, :, j] = (tr.throughput[j, None] * (tst @ lw.T)).T.to(torch.float32)
+        modulated = mask & ~free[None]
+        valid = modulated.sum(0) >= 3
+        return {
+            "wavelengths_nm": self.wavelengths.clone(),
+            "band_widths_nm": self.band_widths.clone(),
+            "B": B.reshape(V, M, h, w),
+            "phi": self.phi_true(),
+            "gain": gain.reshape(V, h, w).to(torch.float32),
+            "view_mask": mask.reshape(V, h, w),
+            "modulated": modulated.reshape(V, h, w),
+            "valid": valid.reshape(h, w),
+            "alpha": alpha.reshape(V, h, w).to(torch.float32),
+            "sigma": sigma.reshape(V, h, w).to(torch.float32),
+            "throughput": thr.reshape(V, h, w).to(torch.float32),
+            "diffuser_xy": x_ref.reshape(h, w, 2).to(torch.float32),
+            "brf_free": free.reshape(h, w),
+        }
+
+    def forward_model(self, truth: dict[str, torch.Tensor], cube: torch.Tensor) -> torch.Tensor:
+        """Reference-frame forward model ``y[v, c] = gain_v · Σ_m B_vm Δλ_m φ_cm s_m``.
+
+        Args:
+            truth: :meth:`ground_truth` output.
+            cube: ``(M, h, w)`` reflectance (e.g. :meth:`scene_truth`).
+
+        Returns:
+            ``(V, 3, h, w)`` float64 noise-free DN above black.
+        """
+        B = truth["B"].to(torch.float64)
+        dl = truth["band_widths_nm"].to(B)
+        phi = truth["phi"].to(B)
+        s = cube.to(B)
+        y = torch.einsum("vmhw,m,cm,mhw->vchw", B, dl, phi, s)
+        return y * truth["gain"].to(B)[:, None]
+
+    def sample_views(self, image: torch.Tensor) -> torch.Tensor:
+        """Bilinearly sample a sensor image ``(C, H, W)`` at every view's source point of every
+        reference pixel → ``(V, C, h, w)`` (NaN outside the sensor)."""
+        x0, y0, w, h = self.layout.reference_bbox
+        H, W = self.sensor_size
+        q = self.reference_pixels()
+        grids = []
+        for v in range(self.layout.num_views):
+            p = self.layout.reference_to_view(v, q)
+            g = torch.stack([2 * p[:, 0] / (W - 1) - 1, 2 * p[:, 1] / (H - 1) - 1], -1)
+            grids.append(g.reshape(h, w, 2))
+        g = torch.stack(grids).to(image)
+        img = image.unsqueeze(0).expand(len(grids), -1, -1, -1)
+        out = torch.nn.functional.grid_sample(img, g, mode="bilinear", padding_mode="zeros",
+                                              align_corners=True)
+        outside = (g.abs() > 1).any(-1)
+        return out.masked_fill(outside[:, None], float("nan"))
+
+    def diffuser_to_reference(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """Diffuser points ``(..., 2)`` mm → reference-frame px (sensor px − bbox origin)."""
+        x0, y0, _, _ = self.layout.reference_bbox
+        p = apply_homography(self.layout.diffuser_homographies[0], xy_mm.to(torch.float64))
+        return p - torch.tensor([x0, y0], dtype=p.dtype, device=p.device)
