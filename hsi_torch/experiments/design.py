@@ -249,8 +249,8 @@ def _plot(out: Path, rows: list[dict[str, Any]], best: dict[str, Any], cfg: Desi
     sel = {(r["axis_tilt_deg"], r["axis_azimuth_deg"]): r for r in rows
            if (r["a_out_mm"], r["length_mm"], r["material"], r["thickness_mm"])
            == (best["a_out_mm"], best["length_mm"], best["material"], best["thickness_mm"])}
-    heat = np.array([[math.log10(sel[(t, a)][key]) if (t, a) in sel else np.nan for a in azs]
-                     for t in tilts])
+    heat = np.array([[math.log10(sel[(t, a)][key]) if (t, a) in sel and sel[(t, a)]["ok"]
+                      else np.nan for a in azs] for t in tilts])
     ths = sorted(cfg.materials[best["material"]])
     heat2 = np.full((len(tilts), len(ths)), np.nan)
     for r in rows:
@@ -266,7 +266,9 @@ def _plot(out: Path, rows: list[dict[str, Any]], best: dict[str, Any], cfg: Desi
     axes[0].set_xlabel("optic-axis azimuth (deg)")
     axes[0].set_ylabel("optic-axis tilt θ (deg)")
     axes[0].set_title(f"log10 cond ({cfg.rank_by}) — {best['material']} "
-                      f"{best['thickness_mm']:g} mm, a_out {best['a_out_mm']:g} mm", fontsize=9)
+                      f"{best['thickness_mm']:g} mm, a_out {best['a_out_mm']:g} mm "
+                      "(white: OPD too large)",
+                      fontsize=9)
     fig.colorbar(im, ax=axes[0])
     im2 = axes[1].imshow(heat2, aspect="auto", cmap="viridis_r",
                          extent=[-0.5, len(ths) - 0.5, tilts[-1] + 2.5, tilts[0] - 2.5])
