@@ -25,10 +25,10 @@ from hsi_torch.optics import DEFAULT_GEOMETRY, BRFConfig, KaleidoscopeGeometry
 from hsi_torch.spectral import DEFAULT_GRID
 
 SMALL = dict(
-    materials={"quartz": [2.0, 3.0], "polymer": [1.0]},
+    materials={"quartz": [2.5, 3.0], "polymer": [1.0]},
     tilts_deg=[0.0, 40.0, 65.0, 70.0],
     azimuths_deg=[10.0, 40.0],
-    a_out_mm=[28.0],
+    a_out_mm=[40.0],
     top_k=2,
     psnr=PSNRSpec(num_seeds=1, betas=[1e2, 1e3]),
     progress=False,
@@ -161,13 +161,13 @@ def test_cli_dispatch(tmp_path, capsys):
     out = tmp_path / "cli"
     code = main([
         "experiment", "design", "--config", "configs/design.yaml", "--out", str(out),
-        "--set", "materials={quartz: [2.0]}", "--set", "tilts_deg=[60, 65]",
-        "--set", "azimuths_deg=[10]", "--set", "a_out_mm=[28]", "--set", "top_k=1",
+        "--set", "materials={quartz: [2.5]}", "--set", "tilts_deg=[65, 70]",
+        "--set", "azimuths_deg=[40]", "--set", "a_out_mm=[40]", "--set", "top_k=1",
         "--set", "psnr.num_seeds=1", "--set", "psnr.betas=[1000]", "--set", "progress=false",
     ])  # fmt: skip
     assert code == 0
     resolved = yaml.safe_load((out / "resolved_config.yaml").read_text())
-    assert resolved["tilts_deg"] == [60.0, 65.0] and resolved["psnr"]["betas"] == [1000.0]
+    assert resolved["tilts_deg"] == [65.0, 70.0] and resolved["psnr"]["betas"] == [1000.0]
     rows = list(csv.DictReader(open(out / "ranking.csv")))
     assert len(rows) == 2
     assert main(["experiment", "nope", "--out", str(tmp_path / "x")]) == 1

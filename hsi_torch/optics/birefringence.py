@@ -293,9 +293,9 @@ class BRFConfig:
     """
 
     material: str | UniaxialMaterial | dict = "quartz"
-    thickness_mm: float = 2.0
-    axis_tilt_deg: float = 65.0
-    axis_azimuth_deg: float = 10.0
+    thickness_mm: float = 2.5
+    axis_tilt_deg: float = 70.0
+    axis_azimuth_deg: float = 40.0
     psi_deg: float = 45.0
     chi_deg: float = 90.0
     outside_index: float = 1.0

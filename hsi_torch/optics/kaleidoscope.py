@@ -68,7 +68,7 @@ class KaleidoscopeGeometry:
     """
 
     a_in_mm: float = 16.0
-    a_out_mm: float = 28.0
+    a_out_mm: float = 40.0
     length_mm: float = 160.0
     pupil_distance_mm: float = 12.0
     mirror_reflectance: float = 0.92
