@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Optics report: view layout, white-field capture, per-view BRF spectra, BRF design sweep.
+"""Optics report: view layout, white-field capture, per-view BRF spectra, condition numbers.
 
 Writes to ``--out``:
     view_map.png            simulated white-field capture (left) and view-index map (right), each
@@ -7,20 +7,19 @@ Writes to ``--out``:
     transmittance.png       per-view BRF transmittance B_v(λ) of the ray seeing the diffuser centre
     opd_polar.png           mean (α, σ) of the views on a polar plot, coloured by OPD
     layout.json             the ViewLayout (to_dict)
-    sweep.csv               the condition-number sweep (unless --no-sweep)
 and prints the layout table and the condition numbers of the stacked 30 × 25 sensing matrix
-``A[(v, c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` (φ^c = Nikon 5100 (NPL) sensitivities × CIE D65) for
-the chosen BRF and for plain RGB repeated ten times.
+``A[(v, c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` (φ^c = the default camera's sensitivities ×
+CIE D65) for the chosen BRF and for plain RGB repeated ten times.
 
 Usage:
-    python scripts/optics_report.py --out /tmp/optics [--full] [--no-sweep]
+    python scripts/optics_report.py --out /tmp/optics [--full]
+
+The BRF/taper design sweep is the ``design`` experiment (``hsi-torch experiment design``).
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import itertools
 import json
 import math
 import time
@@ -33,6 +32,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from hsi_torch.experiments.systems import (  # noqa: E402
+    brf_sensing_matrices,
+    phi_matrix,
+    scene_points,
+    view_rays,
+)
 from hsi_torch.optics import (  # noqa: E402
     DEFAULT_CAMERA,
     DEFAULT_GEOMETRY,
@@ -43,109 +48,9 @@ from hsi_torch.optics import (  # noqa: E402
     ViewLayout,
     apply_homography,
     build_view_layout,
-    trace_rays,
     trace_sensor,
 )
-from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid, resample_spectra  # noqa: E402
-
-
-def camera_response(wavelengths_nm: torch.Tensor, camera: str = "Nikon 5100 (NPL)") -> torch.Tensor:
-    """``(3, M)`` φ^c(λ) = camera sensitivity × CIE D65 (colour-science data), peak-normalised."""
-    import colour
-
-    cs = colour.MSDS_CAMERA_SENSITIVITIES[camera]
-    d65 = colour.SDS_ILLUMINANTS["D65"]
-    wl = wavelengths_nm.to(torch.float64)
-    sens = resample_spectra(
-        torch.tensor(np.asarray(cs.values).T), torch.tensor(np.asarray(cs.wavelengths)), wl
-    )
-    ill = resample_spectra(
-        torch.tensor(np.asarray(d65.values)), torch.tensor(np.asarray(d65.wavelengths)), wl
-    )
-    phi = sens * ill
-    return phi / phi.max()
-
-
-def scene_points(geometry: KaleidoscopeGeometry) -> torch.Tensor:
-    """``(7, 2)`` diffuser points (mm): centre, and half-way to the vertices / edge midpoints."""
-    v = geometry.entrance_vertices(dtype=torch.float64)
-    c = v.mean(0)
-    pts = [c]
-    for k in range(3):
-        pts.append(c + 0.5 * (v[k] - c))
-        pts.append(c + 0.5 * (0.5 * (v[k] + v[(k + 1) % 3]) - c))
-    return torch.stack(pts)
-
-
-def view_rays(
-    geometry: KaleidoscopeGeometry, camera: CameraModel, layout: ViewLayout, points_mm: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(α, σ, throughput), each ``(P, V)``, of the rays seeing ``points_mm (P, 2)`` in each view."""
-    p, v = points_mm.shape[0], layout.num_views
-    px = torch.stack(
-        [apply_homography(layout.diffuser_homographies[i], points_mm) for i in range(v)], 1
-    )
-    tr = trace_rays(geometry, camera, px.reshape(-1, 2), sequences=layout.reflection_sequences)
-    if not bool((tr.view_index.reshape(p, v) == torch.arange(v)).all()):
-        raise RuntimeError("a scene point is not visible in every view")
-    return tr.alpha.reshape(p, v), tr.sigma.reshape(p, v), tr.throughput.reshape(p, v)
-
-
-def sensing_matrices(
-    brf: BRFConfig,
-    alpha: torch.Tensor,
-    sigma: torch.Tensor,
-    throughput: torch.Tensor,
-    grid: SpectralGrid,
-    phi: torch.Tensor,
-) -> torch.Tensor:
-    """``(P, 3V, M)`` stacked sensing matrices (view-major rows ``3v + c``)."""
-    wl = grid.wavelengths(dtype=torch.float64)
-    dl = grid.band_widths(dtype=torch.float64)
-    t = brf.transmittance(alpha[..., None], sigma[..., None], wl)  # (P, V, M)
-    a = throughput[..., None, None] * t[:, :, None, :] * dl * phi  # (P, V, 3, M)
-    return a.reshape(alpha.shape[0], -1, wl.numel())
-
-
-def design_sweep(
-    alpha: torch.Tensor,
-    sigma: torch.Tensor,
-    throughput: torch.Tensor,
-    grid: SpectralGrid,
-    phi: torch.Tensor,
-    min_period_nm: float = 30.0,
-) -> list[dict]:
-    """Condition number (median and worst over scene points) for a grid of BRF designs.
-
-    Designs whose largest OPD would give a modulation period below ``min_period_nm`` at the
-    shortest wavelength (period ≈ λ²/OPD) are marked ``ok = False``.
-    """
-    lam0 = float(grid.wavelengths_nm[0])
-    max_opd = lam0**2 / min_period_nm
-    thick = {
-        "quartz": [0.5, 1.0, 1.5, 2.0, 2.5, 3.0],
-        "calcite": [0.05, 0.1, 0.15, 0.2],
-        "polymer": [0.5, 1.0, 1.5],
-    }
-    rows = []
-    for mat, ths in thick.items():
-        for lmm, tilt, az in itertools.product(ths, range(0, 90, 5), range(0, 120, 10)):
-            brf = BRFConfig(material=mat, thickness_mm=lmm, axis_tilt_deg=tilt, axis_azimuth_deg=az)
-            opd = brf.opd_nm(alpha, sigma, torch.tensor(lam0, dtype=torch.float64)).abs().max()
-            c = torch.linalg.cond(sensing_matrices(brf, alpha, sigma, throughput, grid, phi))
-            rows.append(
-                {
-                    "material": mat,
-                    "thickness_mm": lmm,
-                    "axis_tilt_deg": tilt,
-                    "axis_azimuth_deg": az,
-                    "cond_median": float(c.median()),
-                    "cond_max": float(c.max()),
-                    "max_opd_nm": float(opd),
-                    "ok": bool(opd <= max_opd),
-                }
-            )
-    return rows
+from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid  # noqa: E402
 
 
 def white_field_rgb(
@@ -161,7 +66,8 @@ def white_field_rgb(
     φ^c on a 5 nm grid; white-balanced on the BRF-free patch; sRGB-like gamma. For the picture only.
     """
     wl = torch.arange(420.0, 681.0, 5.0, dtype=torch.float64)
-    phi = camera_response(wl)
+    phi = phi_matrix(grid=SpectralGrid(tuple(wl.tolist())))
+    phi = phi / phi.max()
     ok = trace.view_index >= 0
     t = brf.transmittance(trace.alpha[..., None], trace.sigma[..., None], wl) * polarizer
     free = geometry.brf_free_mask(trace.hit_xy) & ok
@@ -286,7 +192,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
     ap.add_argument("--full", action="store_true", help="also trace the full-size camera preset")
-    ap.add_argument("--no-sweep", action="store_true", help="skip the BRF design sweep")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     torch.set_printoptions(precision=4)
@@ -314,10 +219,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{int(layout.brf_free_mask_sensor(0).sum())} px in the reference view"
     )
 
-    phi = camera_response(grid.wavelengths(dtype=torch.float64))
+    phi = phi_matrix(grid=grid)
     pts = scene_points(geom)
     alpha, sigma, thr = view_rays(geom, cam, layout, pts)
-    a_design = sensing_matrices(brf, alpha, sigma, thr, grid, phi)
+    a_design = brf_sensing_matrices(brf, alpha, sigma, thr, grid, phi)
     cond_design = torch.linalg.cond(a_design)
     rgb10 = (grid.band_widths(dtype=torch.float64) * phi).repeat(layout.num_views, 1)
     sv = torch.linalg.svdvals(rgb10)
@@ -340,28 +245,10 @@ def main(argv: list[str] | None = None) -> int:
     plot_polar(args.out, layout)
     print(f"wrote {sorted(p.name for p in args.out.glob('*.png'))} to {args.out}")
 
-    if not args.no_sweep:
-        t0 = time.perf_counter()
-        rows = design_sweep(alpha, sigma, thr, grid, phi)
-        with open(args.out / "sweep.csv", "w", newline="") as fh:
-            wr = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            wr.writeheader()
-            wr.writerows(rows)
-        ok = sorted((r for r in rows if r["ok"]), key=lambda r: r["cond_max"])
-        print(
-            f"sweep: {len(rows)} designs ({len(ok)} with modulation period >= 30 nm at "
-            f"{grid.wavelengths_nm[0]:.0f} nm) in {time.perf_counter() - t0:.1f} s; "
-            "best by worst-case cond:"
-        )
-        for r in ok[:8]:
-            print("   ", {k: (round(v, 1) if isinstance(v, float) else v) for k, v in r.items()})
-        for mat in ("quartz", "calcite", "polymer"):
-            best = [r for r in ok if r["material"] == mat][:1]
-            if best:
-                print(f"    best {mat}: {best[0]}")
-        untilted = [r for r in ok if r["axis_tilt_deg"] == 0][:1]
-        if untilted:
-            print(f"    best with the axis in the plate plane (θ = 0): {untilted[0]}")
+    print(
+        "BRF/taper design sweep (ranked by condition number and simulated PSNR): "
+        "hsi-torch experiment design --config configs/design.yaml --out DIR"
+    )
 
     if args.full:
         t0 = time.perf_counter()
