@@ -22,6 +22,8 @@ __all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_expe
 EXPERIMENTS: dict[str, tuple[str, str, str]] = {
     "synthetic": ("hsi_torch.experiments.synthetic", "SyntheticConfig", "run_synthetic"),
     "design": ("hsi_torch.experiments.design", "DesignSweepConfig", "run_design"),
+    "opd": ("hsi_torch.experiments.opd", "OPDConfig", "run_opd"),
+    "usaf": ("hsi_torch.experiments.usaf", "USAFConfig", "run_usaf"),
 }
 
 
