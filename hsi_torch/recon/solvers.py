@@ -114,7 +114,7 @@ def _expand_rows(t: Tensor, n: int) -> Tensor:
 
 
 def _default_tol(dtype: torch.dtype, num_bands: int) -> float:
-    return float(20.0 * num_bands * torch.finfo(dtype).eps)
+    return float(2.0 * num_bands * torch.finfo(dtype).eps)
 
 
 def _admm_tol(dtype: torch.dtype) -> float:
@@ -127,9 +127,21 @@ def _default_chunk(device: torch.device) -> int:
     return 8192 if device.type == "cpu" else 262144
 
 
+def _default_stream_chunk(device: torch.device) -> int:
+    # per-frame solve, streamed stages (b = AᵀWy, x = Hb, KKT check): on the 2-core CPU chunks of
+    # ~16k pixels keep the (n, M) temporaries in cache (measured ~3x faster than one full-frame
+    # batch with 2 threads); GPUs prefer one large batch
+    return 16384 if device.type == "cpu" else 1 << 20
+
+
+def _default_solve_chunk(device: torch.device) -> int:
+    # correction sub-batch: as large as memory comfortably allows (fewer Python-level rounds)
+    return 131072 if device.type == "cpu" else 1 << 20
+
+
 def _chunk_len(
     num: int, per_pixel_bytes: int, chunk_size: int | None, max_memory: int | None,
-    device: torch.device,
+    device: torch.device, default: int | None = None,
 ) -> int:
     if chunk_size is not None:
         if int(chunk_size) < 1:
@@ -140,28 +152,40 @@ def _chunk_len(
             raise ValueError(f"max_memory must be >= 1 byte, got {max_memory}")
         n = max(1, int(max_memory) // max(1, per_pixel_bytes))
     else:
-        n = _default_chunk(device)
+        n = _default_chunk(device) if default is None else default
     return max(1, min(n, max(num, 1)))
 
 
-def nnls_kkt_residual(G: Tensor, b: Tensor, x: Tensor) -> Tensor:
-    """Relative KKT residual of ``min ½xᵀGx − bᵀx, x ≥ 0`` per pixel.
+def _gram_norm(G: Tensor) -> Tensor:
+    """``‖G‖∞`` (max absolute row sum) per pixel: ``(P|1, M, M)`` -> ``(P|1,)``."""
+    return G.abs().sum(2).amax(1)
+
+
+def nnls_kkt_residual(G: Tensor, b: Tensor, x: Tensor, gram_norm: Tensor | None = None) -> Tensor:
+    """Relative KKT residual (a normwise backward error) of ``min ½xᵀGx − bᵀx, x ≥ 0`` per pixel.
 
     Args:
         G: ``(P|1, M, M)`` symmetric Gram matrices.
         b: ``(P, M)`` right-hand sides.
         x: ``(P, M)`` candidate solutions.
+        gram_norm: ``(P|1,)`` ``‖G‖∞`` (max absolute row sum) if already known.
 
     Returns:
-        ``(P,)`` ``max_m |min(G_mm x_m, g_m)| / max(‖b‖∞, ‖diag(G) ⊙ x‖∞)`` with ``g = Gx − b``
-        (0 where both scales are 0). It vanishes exactly when ``x ≥ 0``, ``g ≥ 0`` and
-        ``x ⊙ g = 0``.
+        ``(P,)`` ``max_m |min(G_mm x_m, g_m)| / (‖G‖∞ ‖x‖∞ + ‖b‖∞)`` with ``g = Gx − b`` (0 where
+        the denominator is 0). The numerator vanishes exactly when ``x ≥ 0``, ``g ≥ 0`` and
+        ``x ⊙ g = 0``; dividing by ``‖G‖∞‖x‖∞ + ‖b‖∞`` (the size of the terms that make up ``g``)
+        makes it the relative perturbation of ``(G, b)`` the answer is exact for, so a well-solved
+        pixel scores ``O(M·eps)`` whatever ``cond(G)``.
     """
-    gd = G.diagonal(dim1=-2, dim2=-1)
     g = _rowvec(x, G) - b
-    xs = gd * x
-    nat = torch.minimum(xs, g).abs().amax(dim=1)
-    scale = torch.maximum(b.abs().amax(dim=1), xs.abs().amax(dim=1))
+    gn = _gram_norm(G) if gram_norm is None else gram_norm
+    return _kkt_ratio(g, x, G.diagonal(dim1=-2, dim2=-1), gn, b.abs().amax(dim=1))
+
+
+def _kkt_ratio(g: Tensor, x: Tensor, gd: Tensor, gn: Tensor, bmax: Tensor) -> Tensor:
+    """:func:`nnls_kkt_residual` from the gradient ``g``, ``diag(G)``, ``‖G‖∞`` and ``‖b‖∞``."""
+    nat = torch.minimum(gd * x, g).abs().amax(dim=1)
+    scale = gn * x.abs().amax(dim=1) + bmax
     return torch.where(scale > 0, nat / scale.clamp_min(torch.finfo(x.dtype).tiny), nat)
 
 
@@ -225,100 +249,113 @@ def _refine(T: Tensor, c: Tensor, free: Tensor, G: Tensor, b: Tensor) -> Tensor:
     return torch.where(free, x, g)
 
 
-def _bpp(
-    T: Tensor, c: Tensor, G: Tensor, b: Tensor, thr: Tensor, max_iter: int
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Block principal pivoting from the all-free state (``T = G⁻¹``, ``c`` = unconstrained x).
+def _zero_set_solve(
+    H: Tensor, idx: Tensor, Z: Tensor, v: Tensor, k: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Equality-constrained solve through the precomputed inverse ``H = G⁻¹``.
 
-    Each round, every working pixel exchanges its infeasible set (or, after three rounds without
-    progress, only its largest infeasible index: Murty's rule, which guarantees termination). The
-    working set is compacted as pixels finish and sorted by the number of pivots it needs, so the
-    ``j``-th pivot of a round touches only the contiguous prefix of pixels that have one. A pixel
-    finishes when no variable is infeasible both before and after one refinement step with the
-    exact ``G``.
+    For every row: ``λ = −H_ZZ⁻¹ v_Z``, ``x = v + H[:, Z] λ`` (so ``x_Z = 0``). With ``v = G⁻¹ b``
+    this is the minimiser of ``½xᵀGx − bᵀx`` subject to ``x_Z = 0`` and ``λ = (Gx − b)_Z`` its
+    gradient (the multipliers) on ``Z``. Only ``|Z|`` rows of ``H`` are read and only a
+    ``k × k`` system (``k = max |Z|``, padded with identity rows) is factorised per pixel.
 
     Args:
-        T: ``(n, M, M)`` tableau (consumed). c: ``(n, M)`` current ``(x_F, g_Z)`` (consumed).
-        G: ``(n|1, M, M)``, b: ``(n, M)``: the problem (for refinement).
-        thr: ``(n, 1)`` infeasibility threshold in gradient units.
-        max_iter: maximum number of pivoting rounds.
+        H: ``(P|1, M, M)`` symmetric inverses (all pixels); idx: ``(n,)`` rows of ``H`` to use.
+        Z: ``(n, M)`` bool zero set; v: ``(n, M)``; k: ``max |Z|`` over the rows (host int).
 
     Returns:
-        ``x (n, M)``, ``done (n,)``, ``failed (n,)`` (non-positive pivot met: the pixel must be
-        re-solved another way), ``iterations (n,)``.
+        ``x (n, M)`` with exact zeros on ``Z``; ``lam (n, M)`` (0 off ``Z``); ``ok (n,)`` the
+        ``k × k`` Cholesky succeeded; the Cholesky data ``(zi, R, L)`` packed for reuse (or None
+        when ``k = 0``).
     """
-    n, m = c.shape
-    dev, dt = c.device, c.dtype
-    zero = torch.zeros((), dtype=dt, device=dev)
-    x_out = torch.zeros((n, m), dtype=dt, device=dev)
+    n, m = v.shape
+    if k == 0:
+        return v.clone(), torch.zeros_like(v), torch.ones((n,), dtype=torch.bool,
+                                                           device=v.device), None
+    zero = torch.zeros((), dtype=v.dtype, device=v.device)
+    # indices of Z first (ascending), then free ones as padding (their λ comes out exactly 0)
+    zi = torch.argsort((~Z).to(torch.uint8), dim=1, stable=True)[:, :k]
+    zv = Z.gather(1, zi)  # (n, k) valid entries
+    # rows H[Z, :] (n, k, M): one contiguous row copy each (H symmetric: also the columns)
+    rows = zi if H.shape[0] == 1 else idx.unsqueeze(1) * m + zi
+    R = H.view(-1, m).index_select(0, rows.reshape(-1)).view(n, k, m)
+    Hzz = R.gather(2, zi.unsqueeze(1).expand(n, k, k))
+    eye = torch.eye(k, dtype=v.dtype, device=v.device)
+    Hzz = torch.where(zv.unsqueeze(2) & zv.unsqueeze(1), Hzz, eye)
+    L, info = torch.linalg.cholesky_ex(Hzz)
+    ok = info == 0
+    L = torch.where(ok.view(n, 1, 1), L, eye)
+    rhs = torch.where(zv, v.gather(1, zi), zero).unsqueeze(2)
+    t = torch.linalg.solve_triangular(L, rhs, upper=False)
+    lam_k = -torch.linalg.solve_triangular(L.transpose(1, 2), t, upper=True).squeeze(2)
+    x = (v + _rowvec(lam_k, R)).masked_fill(Z, 0.0)
+    lam = torch.zeros_like(v).scatter_(1, zi, lam_k)
+    return x, lam, ok, (zi, R, L)
+
+
+def _bpp(
+    H: Tensor, idx: Tensor, x0: Tensor, gd: Tensor, thr: Tensor, max_iter: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Block principal pivoting on the zero set, through ``H = G⁻¹`` (Júdice–Pires, Kim–Park).
+
+    Starts with the zero set ``Z`` = the negative entries of the unconstrained solution ``x0``
+    (usually already the answer). Each round solves the equality-constrained problem for the
+    current ``Z`` (:func:`_zero_set_solve`, a ``|Z| × |Z|`` system per pixel) and exchanges the
+    infeasible set (``x_F < 0`` or ``λ_Z < 0``); after three rounds without fewer infeasible
+    variables only the largest infeasible index is exchanged (Murty's rule, which guarantees
+    finite termination for positive definite ``G``). Finished pixels leave the working set, so
+    every round works on the still-active rows only.
+
+    Args:
+        H: ``(P|1, M, M)`` inverses; idx: ``(n,)`` global pixel indices into ``H``.
+        x0: ``(n, M)`` unconstrained solutions ``H b``; gd: ``(n, M)`` ``diag(G)``.
+        thr: ``(n, 1)`` infeasibility threshold in gradient units (``x_m G_mm`` and ``λ_m``).
+        max_iter: maximum number of exchange rounds.
+
+    Returns:
+        ``x (n, M)``, ``Z (n, M)`` final zero sets, ``done (n,)``, ``failed (n,)`` (Cholesky of
+        ``H_ZZ`` failed: re-solve another way), ``iterations (n,)``.
+    """
+    n, m = x0.shape
+    dev = x0.device
+    x_out = torch.zeros_like(x0)
+    z_out = torch.zeros((n, m), dtype=torch.bool, device=dev)
     done = torch.zeros((n,), dtype=torch.bool, device=dev)
     failed = torch.zeros((n,), dtype=torch.bool, device=dev)
     iters = torch.zeros((n,), dtype=torch.long, device=dev)
-    shared_g = G.shape[0] == 1
-    gidx = torch.arange(n, device=dev)  # global index of each working row
-    gd = _expand_rows(G, n).diagonal(dim1=1, dim2=2)
-    Gw, bw, tw = G, b, thr
-    free = torch.ones((n, m), dtype=torch.bool, device=dev)
+    w = torch.arange(n, device=dev)  # local row of each working pixel
+    gi, v, gdw, tw = idx, x0, gd, thr
+    Z = v * gdw < -tw
     best = torch.full((n,), m + 1, dtype=torch.long, device=dev)
     backup = torch.full((n,), 3, dtype=torch.long, device=dev)
-    fail_w = torch.zeros((n,), dtype=torch.bool, device=dev)
-    for rnd in range(max_iter + 1):
-        infeas = torch.where(free, c * gd < -tw, c < -tw)
-        stalled = ~infeas.any(1) | fail_w
-        keep = None
-        if bool(stalled.any()):
-            # candidates to finish: refine once, keep those still free of infeasibility
-            s_idx = stalled.nonzero().squeeze(1)
-            ok_rows = ~fail_w[s_idx]
-            fs = free[s_idx]
-            Gs = Gw if shared_g else Gw[s_idx]
-            c_ref = _refine(T[s_idx], c[s_idx], fs, Gs, bw[s_idx])
-            inf2 = torch.where(fs, c_ref * gd[s_idx] < -tw[s_idx], c_ref < -tw[s_idx])
-            fin = ~inf2.any(1) | ~ok_rows
-            g_fin = gidx[s_idx[fin]]
-            x_out[g_fin] = torch.where(fs[fin], c_ref[fin], zero).clamp_min(0)
-            done[g_fin] = ok_rows[fin]
-            failed[g_fin] = ~ok_rows[fin]
-            c[s_idx] = c_ref
-            infeas[s_idx] = inf2
-            keep = torch.ones_like(stalled)
-            keep[s_idx[fin]] = False
-            if not bool(keep.any()):
-                return x_out, done, failed, iters
-        if rnd >= max_iter:
-            break
+    k = int(Z.sum(1).max()) if n else 0
+    for rnd in range(1, max_iter + 1):
+        x, lam, ok, _ = _zero_set_solve(H, gi, Z, v, k)
+        infeas = torch.where(Z, lam < -tw, x * gdw < -tw)
         nv = infeas.sum(1)
+        fin = (nv == 0) | ~ok
+        if rnd == max_iter:
+            fin = torch.ones_like(fin)
+        iters[w] = rnd
+        x_out[w] = x
+        z_out[w] = Z
+        done[w] = (nv == 0) & ok
+        failed[w] = ~ok
         improved = nv < best
         full_block = improved | (backup >= 1)
         backup = torch.where(improved, torch.full_like(backup, 3), (backup - 1).clamp_min(0))
         best = torch.where(improved, nv, best)
-        last = (m - 1) - infeas.flip(1).to(torch.uint8).argmax(1)  # Murty back-up: largest index
+        last = (m - 1) - infeas.flip(1).to(torch.uint8).argmax(1)  # Murty: largest index
         single = torch.zeros_like(infeas).scatter_(1, last.view(-1, 1), True)
-        Vh = torch.where(full_block.view(-1, 1), infeas, single)
-        cnt = Vh.sum(1)
-        if keep is not None:
-            cnt = torch.where(keep, cnt, torch.full_like(cnt, -1))
-        order = torch.argsort(cnt, descending=True, stable=True)
-        n_keep = int(stalled.shape[0] if keep is None else keep.sum())
-        order = order[:n_keep]
-        hist = torch.bincount(cnt[order], minlength=m + 1)
-        # prefix sizes: number of working rows with more than j pivots, j = 0, 1, ...
-        sizes = (n_keep - torch.cumsum(hist, 0))[:m].tolist()
-        T, c, free, gd, bw, tw = T[order], c[order], free[order], gd[order], bw[order], tw[order]
-        best, backup, gidx, fail_w, Vh = best[order], backup[order], gidx[order], fail_w[order], \
-            Vh[order]
-        Gw = Gw if shared_g else Gw[order]
-        for nj in sizes:
-            if nj <= 0:
-                break
-            Vj = Vh[:nj]
-            k = Vj.to(torch.uint8).argmax(1)
-            fail_w[:nj] |= ~_pivot_rows(T[:nj], c[:nj], free[:nj], k, None)
-            Vj.scatter_(1, k.view(-1, 1), False)
-        iters[gidx] += 1
-    # out of rounds: report the current (clamped) iterate as not converged
-    x_out[gidx] = torch.where(free, c, zero).clamp_min(0)
-    return x_out, done, failed, iters
+        Z = Z ^ torch.where(full_block.view(-1, 1), infeas, single)
+        keep = (~fin).nonzero().squeeze(1)
+        if keep.numel() == 0:
+            break
+        if keep.numel() < w.numel():
+            w, gi, v, gdw, tw = w[keep], gi[keep], v[keep], gdw[keep], tw[keep]
+            Z, best, backup = Z[keep], best[keep], backup[keep]
+        k = int(Z.sum(1).max())
+    return x_out.clamp_min(0), z_out, done, failed, iters
 
 
 def _lawson_hanson(
@@ -459,6 +496,10 @@ class NNLSProblem:
         self.singular = singular
         self.no_data = no_data
         self._admm_cache: dict[str, tuple[Tensor, Tensor]] = {}
+        with torch.no_grad():  # ‖G‖∞ per pixel, for the KKT residual's scale (chunked: |G| temp)
+            n = 65536
+            self.gram_norm = torch.cat([_gram_norm(gram[s:s + n]) for s in range(0, gram.shape[0],
+                                                                                    n)])
 
     # -- shapes -----------------------------------------------------------------------------
     @property
@@ -552,27 +593,34 @@ class NNLSProblem:
         if not tol > 0:
             raise ValueError(f"tol must be > 0, got {tol}")
         if refine is None:
-            refine = 0 if self.dtype == torch.float64 else 1
+            refine = 2
+        if int(refine) < 0:
+            raise ValueError(f"refine must be >= 0, got {refine}")
         if x0 is not None and (x0.shape != (P, m) or x0.device != self.device):
             raise ValueError(f"x0 must have shape ({P}, {m}) on {self.device}, got "
                              f"{tuple(x0.shape)} on {x0.device}")
         if admm_iters is not None and int(admm_iters) < 0:
             raise ValueError(f"admm_iters must be >= 0, got {admm_iters}")
         item = torch.finfo(self.dtype).bits // 8
+        if method == "active_set":
+            per_px = item * (2 * self.num_obs + 16 * m + 3 * m * m)
+            n = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
+                           default=_default_stream_chunk(self.device))
+            n_corr = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
+                                default=_default_solve_chunk(self.device))
+            with torch.no_grad():
+                out = self._solve_as(y, tol, max_iter or 10 * m, int(refine), n, n_corr)
+            return NNLSResult(*out, method)
         per_px = item * (2 * self.num_obs + 16 * m + 4 * m * m)
         n = _chunk_len(P, per_px, chunk_size, max_memory, self.device)
         outs = []
         for s in range(0, P, n):
             sl = slice(s, min(P, s + n))
-            if method == "active_set":
-                with torch.no_grad():
-                    outs.append(self._solve_chunk_as(y, sl, tol, max_iter or 10 * m, refine))
-            else:
-                fixed = admm_iters is not None
-                with torch.set_grad_enabled(fixed and torch.is_grad_enabled()):
-                    outs.append(self._solve_chunk_admm(
-                        y, sl, tol, max_iter or 5000, admm_iters, rho,
-                        None if x0 is None else x0[sl]))
+            fixed = admm_iters is not None
+            with torch.set_grad_enabled(fixed and torch.is_grad_enabled()):
+                outs.append(self._solve_chunk_admm(
+                    y, sl, tol, max_iter or 5000, admm_iters, rho,
+                    None if x0 is None else x0[sl]))
         cat = [torch.cat([o[i] for o in outs]) for i in range(5)]
         return NNLSResult(cat[0], cat[1], cat[2], cat[3], cat[4], method)
 
@@ -594,63 +642,118 @@ class NNLSProblem:
             r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
         return x, done & (r <= tol), r
 
-    def _solve_chunk_as(
-        self, y: Tensor, sl: slice, tol: float, max_iter: int, refine: int
-    ) -> tuple[Tensor, ...]:
-        b = self._rhs(y, sl)
-        n, m = b.shape
-        dev, dt = b.device, b.dtype
-        G, Gi, sing, nod = self._chunk_parts(sl, n)
+    def _solve_as(
+        self, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Active-set solve of the whole frame (see the module docstring).
+
+        ``n``: pixels per chunk of the streamed stages; ``n_corr``: pixels per correction batch.
+        """
+        P, m = y.shape[0], self.num_bands
+        dev, dt = y.device, self.dtype
+        G, H = self.gram, self.gram_inv
+        tiny = torch.finfo(dt).tiny
         zero = torch.zeros((), dtype=dt, device=dev)
-        regular = ~sing & ~nod
-        any_irregular = bool((~regular).any())
-        x = _rowvec(b, Gi)
-        for _ in range(refine):
-            x = x - _rowvec(_rowvec(x, G) - b, Gi)
+        gn_all = self.gram_norm
+        # 1. right-hand sides, unconstrained solutions x = H b and their negative entries,
+        #    streamed over pixel chunks (cache-sized on CPU)
+        b = torch.empty((P, m), dtype=dt, device=dev)
+        x = torch.empty((P, m), dtype=dt, device=dev)
+        bmax = torch.empty((P,), dtype=dt, device=dev)
+        thr = torch.empty((P, 1), dtype=dt, device=dev)
+        need = torch.empty((P,), dtype=torch.bool, device=dev)
+        for s in range(0, P, n):
+            sl = slice(s, min(P, s + n))
+            bs = self._rhs(y, sl)
+            xs = _rowvec(bs, _take(H, sl))
+            bm = bs.abs().amax(1)
+            ts = 0.25 * tol * (_take(gn_all, sl) * xs.abs().amax(1) + bm)
+            ts = ts.clamp_min(tiny).unsqueeze(1)
+            need[sl] = (xs * _take(G, sl).diagonal(dim1=1, dim2=2) < -ts).any(1)
+            b[sl], x[sl], bmax[sl], thr[sl] = bs, xs, bm, ts
+        sing = _expand_rows(self.singular, P)
+        nod = _expand_rows(self.no_data, P)
+        irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
+        any_irregular = bool(irregular.any())
         if any_irregular:
-            x = torch.where(regular.view(-1, 1), x, zero)
-        gd = _expand_rows(G, n).diagonal(dim1=1, dim2=2)
-        scale = torch.maximum(b.abs().amax(1), (gd * x).abs().amax(1))
-        thr = (tol * 0.25 * scale).clamp_min(torch.finfo(dt).tiny).view(-1, 1)
-        iters = torch.zeros((n,), dtype=torch.long, device=dev)
-        done = torch.ones((n,), dtype=torch.bool, device=dev)
-        need = (x * gd < -thr).any(1)
-        if any_irregular:
-            need &= regular
+            need &= ~irregular
+        # 2. exact correction of the pixels with negative entries: one compacted sub-batch
+        iters = torch.zeros((P,), dtype=torch.long, device=dev)
+        done = torch.ones((P,), dtype=torch.bool, device=dev)
+        zset = torch.zeros((P, m), dtype=torch.bool, device=dev)
         redo = sing & ~nod
-        if bool(need.any()):
-            idx = need.nonzero().squeeze(1)
-            Gs = G if G.shape[0] == 1 else G[idx]
-            Ts = _expand_rows(Gi if Gi.shape[0] == 1 else Gi[idx], idx.shape[0]).clone()
-            xs, ds, fs, its = _bpp(Ts, x[idx], Gs, b[idx], thr[idx], max_iter)
-            x[idx], done[idx], iters[idx] = xs, ds, its
-            redo[idx] |= fs
-        x.clamp_min_(0)
-        # robust fallback: singular pixels, and any pixel whose answer fails the KKT check (e.g. a
-        # numerically singular G that passed the Cholesky test), go to Lawson–Hanson from x = 0
-        r = nnls_kkt_residual(G, b, x)
-        redo |= ~(r <= tol)
+        idx = need.nonzero().squeeze(1)
+        if idx.numel():
+            gd = _expand_rows(G.diagonal(dim1=1, dim2=2), P)
+            for s in range(0, idx.numel(), n_corr):
+                ic = idx[s:s + n_corr]
+                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic], max_iter)
+                x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
+                redo[ic] |= fs | ~ds
+        # 3. independent KKT check with the exact G and b (streamed); refine where it fails
+        r = torch.empty((P,), dtype=dt, device=dev)
+        for s in range(0, P, n):
+            sl = slice(s, min(P, s + n))
+            Gs = _take(G, sl)
+            xs = x[sl].clamp_min_(0)
+            g = _rowvec(xs, Gs) - b[sl]
+            r[sl] = _kkt_ratio(g, xs, Gs.diagonal(dim1=1, dim2=2), _take(gn_all, sl), bmax[sl])
+        bad = ~(r <= tol) & ~irregular & ~redo
+        for _ in range(refine):
+            idx = bad.nonzero().squeeze(1)
+            if idx.numel() == 0:
+                break
+            for s in range(0, idx.numel(), n_corr):
+                ic = idx[s:s + n_corr]
+                xs, rs = self._refine_rows(ic, x[ic], zset[ic], b[ic])
+                better = rs < r[ic]
+                x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
+                r[ic] = torch.where(better, rs, r[ic])
+            bad[idx] = ~(r[idx] <= tol)
+        # 4. robust fallback: singular G, Cholesky failures, unfinished or still failing pixels
+        redo |= bad
         if any_irregular:
             redo &= ~nod
-        if bool(redo.any()):
-            idx = redo.nonzero().squeeze(1)
-            Gs = G if G.shape[0] == 1 else G[idx]
-            bs = b[idx]
-            thr_s = (tol * 0.25 * bs.abs().amax(1)).clamp_min(torch.finfo(dt).tiny).view(-1, 1)
+        idx = redo.nonzero().squeeze(1)
+        for s in range(0, idx.numel(), n_corr):
+            ic = idx[s:s + n_corr]
+            Gs = G if G.shape[0] == 1 else G[ic]
+            bs = b[ic]
+            thr_s = (tol * 0.25 * bs.abs().amax(1)).clamp_min(tiny).view(-1, 1)
             eps = float(torch.finfo(dt).eps)
             piv_tol = min(eps**0.5, 100.0 * m * eps)
             xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
-            rs = nnls_kkt_residual(Gs, bs, xs)
-            better = ~(rs >= r[idx])  # keep the earlier answer where it was at least as good
-            x[idx] = torch.where(better.view(-1, 1), xs, x[idx])
-            done[idx] = torch.where(better, ds, done[idx])
-            r[idx] = torch.where(better, rs, r[idx])
-            iters[idx] = iters[idx] + its
+            rs = nnls_kkt_residual(Gs, bs, xs, gn_all if gn_all.shape[0] == 1 else gn_all[ic])
+            better = ~(rs >= r[ic])  # keep the earlier answer where it was at least as good
+            x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
+            done[ic] = torch.where(better, ds, done[ic])
+            r[ic] = torch.where(better, rs, r[ic])
+            iters[ic] = iters[ic] + its
         if any_irregular:
             x = torch.where(nod.view(-1, 1), zero, x)
             r = torch.where(nod, zero, r)
         r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
         return x, done & (r <= tol), iters, r, nod.clone()
+
+    def _refine_rows(
+        self, idx: Tensor, x: Tensor, Z: Tensor, b: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """One step of iterative refinement on the zero set ``Z`` with the exact ``G``.
+
+        ``x ← x − G_FF⁻¹ g_F`` (``g = Gx − b``; ``G_FF⁻¹`` applied through ``H`` and the ``Z``
+        block, :func:`_zero_set_solve`). Returns the refined ``x`` (clamped at 0) and its KKT
+        residual.
+        """
+        G, H = self.gram, self.gram_inv
+        Gs = G if G.shape[0] == 1 else G[idx]
+        Hs = H if H.shape[0] == 1 else H[idx]
+        g = _rowvec(x, Gs) - b
+        u = -_rowvec(torch.where(Z, torch.zeros((), dtype=x.dtype, device=x.device), g), Hs)
+        k = int(Z.sum(1).max())
+        d, _, ok, _ = _zero_set_solve(H, idx, Z, u, k)
+        xs = torch.where(ok.view(-1, 1), x + d, x).clamp_min(0)
+        gn = self.gram_norm if self.gram_norm.shape[0] == 1 else self.gram_norm[idx]
+        return xs, nnls_kkt_residual(Gs, b, xs, gn)
 
     # -- ADMM ---------------------------------------------------------------------------------
     def _admm_factors(self, rho: float | None) -> tuple[Tensor, Tensor]:
