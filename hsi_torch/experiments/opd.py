@@ -395,7 +395,8 @@ def points_from_reference_frame(
     point = torch.cat(ps)
     return MeasuredPoints(torch.cat(xs), torch.cat(ts).to(torch.float64),
                           torch.as_tensor(wavelengths_nm, dtype=torch.float64).cpu(), view,
-                          point, [f"v{a}p{b}" for a, b in zip(view.tolist(), point.tolist(), strict=True)])
+                          point, [f"v{a}p{b}" for a, b in
+                                  zip(view.tolist(), point.tolist(), strict=True)])
 
 
 def points_from_sensor_map(
@@ -431,7 +432,8 @@ def points_from_sensor_map(
     point = torch.cat(ps)
     return MeasuredPoints(torch.cat(xs), torch.cat(ts).to(torch.float64),
                           torch.as_tensor(wavelengths_nm, dtype=torch.float64).cpu(), view,
-                          point, [f"v{a}p{b}" for a, b in zip(view.tolist(), point.tolist(), strict=True)])
+                          point, [f"v{a}p{b}" for a, b in
+                                  zip(view.tolist(), point.tolist(), strict=True)])
 
 
 def read_points_csv(path: str | Path) -> MeasuredPoints:
@@ -966,7 +968,8 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     stats: dict[str, Any] = {}
     per_input: list[tuple[str, MeasuredPoints, OPDEstimate, list[dict[str, Any]]]] = []
     es = cfg.estimator
-    it = report.progress(list(zip(names, cfg.inputs, strict=True)), desc="opd: inputs", enable=cfg.progress)
+    it = report.progress(list(zip(names, cfg.inputs, strict=True)), desc="opd: inputs",
+                         enable=cfg.progress)
     for name, spec in it:
         t0 = time.perf_counter()
         if spec.kind in ("bundle", "csv") and spec.path is None:

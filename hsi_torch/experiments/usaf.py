@@ -1,0 +1,516 @@
+"""Spatial resolution with a USAF 1951 target (DESIGN.md §5): the finest resolvable group/element
+per reconstructed band, compared with an RGB reference imaged without the add-on.
+
+**Target and scale.** The simulator's :class:`~hsi_torch.simulate.scenes.USAF1951Scene` (bars 0.9,
+background 0.05, both orientations per element) is placed on the diffuser (object side of the
+add-on = image plane of the objective) inside the reference view. ``magnification`` is diffuser mm
+per target mm (default 0.25: the objective demagnifies 4×), so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm is
+in *target* (object-plane) units and the diffuser sees ``r / magnification``. The reference frame
+samples the diffuser at ``p`` mm per pixel (0.1351 mm for the small default prototype): its
+Nyquist limit is ``1/(2p)`` lp/mm on the diffuser, ``magnification/(2p)`` on the target.
+
+**HSI.** The USAF capture is rendered through the prototype (kaleidoscope, BRF, diffuser, Bayer
+sensor with noise; ``hsi_torch.simulate.simulate_capture_set``) and reconstructed with
+:class:`hsi_torch.recon.Reconstructor` from the oracle bundle (the simulator's truth) or a
+calibrated bundle.
+
+**RGB reference.** The same scene imaged directly on a sensor with the same image-plane scale:
+the reflectance is sampled at the diffuser points of the reference frame's pixels (``s × s``
+sub-samples, :meth:`CaptureRenderer.reference_diffuser_points`), weighted by the same
+illuminant × camera sensitivity × objective (``φ``, normalised with ``κ``) and objective
+vignetting — no kaleidoscope, diffuser fall-off, polarizers or BRF — then the same
+:class:`~hsi_torch.optics.sensor.SensorModel` (Bayer mosaic, shot/read noise, same exposure) and
+bilinear demosaic. Channels are white-balanced; ``gray`` is their mean.
+
+**Contrast criterion.** Per bar triplet, a profile across the bars is sampled (bilinear) at the
+three bar centres and the two gap centres, each averaged along the central ``length_fraction`` of
+the bars. Michelson contrast ``C = (min bars − max gaps) / (min bars + max gaps)``: every bar
+must stand above both gaps. An element is *resolved* when ``C ≥ threshold`` (default 0.1) for
+the chosen orientations (``both`` by default). The limit is the finest element of the
+coarse-to-fine sequence before the first unresolved one (elements not fully inside the valid
+reconstruction region are skipped).
+
+Command: ``hsi-torch experiment usaf --config configs/usaf.yaml --out DIR``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from hsi_torch.experiments import report
+from hsi_torch.io.atomic import atomic_write_text
+
+__all__ = [
+    "michelson_bar_contrast",
+    "triplet_sample_points",
+    "element_contrasts",
+    "resolution_limit",
+    "rgb_reference",
+    "USAFTargetSpec",
+    "USAFConfig",
+    "run_usaf",
+]
+
+
+# =============================================================================================
+# contrast criterion
+# =============================================================================================
+
+
+def michelson_bar_contrast(bars: Tensor, gaps: Tensor) -> Tensor:
+    """Michelson contrast of a bar triplet: ``(min bars − max gaps) / (min bars + max gaps)``.
+
+    Args:
+        bars: ``(..., 3)`` intensities at the three bar centres (bright bars).
+        gaps: ``(..., 2)`` intensities at the two gap centres.
+
+    Returns:
+        ``(...)`` contrast (negative when some gap is brighter than some bar; NaN propagates).
+    """
+    if bars.shape[-1] != 3 or gaps.shape[-1] != 2 or bars.shape[:-1] != gaps.shape[:-1]:
+        raise ValueError(f"bars must be (..., 3) and gaps (..., 2) with equal leading dims, got "
+                         f"{tuple(bars.shape)} and {tuple(gaps.shape)}")
+    lo = bars.amin(-1)
+    hi = gaps.amax(-1)
+    # amin/amax ignore NaN ordering rules: propagate explicitly
+    nan = torch.isnan(bars).any(-1) | torch.isnan(gaps).any(-1)
+    den = lo + hi
+    c = (lo - hi) / torch.where(den == 0, torch.ones_like(den), den)
+    return torch.where(nan, torch.full_like(c, float("nan")), c)
+
+
+def triplet_sample_points(element: Any, length_fraction: float = 0.6, n_along: int = 7
+                          ) -> Tensor:
+    """``(5, n_along, 2)`` diffuser points (mm) of a bar triplet: rows 0, 2, 4 = bar centres,
+    rows 1, 3 = gap centres, each at ``n_along`` positions along the central ``length_fraction``
+    of the bars. ``element``: a :class:`~hsi_torch.simulate.scenes.USAFElement`."""
+    w = float(element.bar_width_mm)
+    x0, x1, y0, y1 = (float(v) for v in element.bbox_mm)
+    across = torch.tensor([(j + 0.5) * w for j in range(5)], dtype=torch.float64)
+    half = 0.5 * length_fraction * 5 * w
+    along = torch.linspace(-half, half, n_along, dtype=torch.float64)
+    if element.orientation == "vertical":  # bars run along Y, profile along X
+        xs = x0 + across[:, None].expand(5, n_along)
+        ys = 0.5 * (y0 + y1) + along[None].expand(5, n_along)
+    else:
+        ys = y0 + across[:, None].expand(5, n_along)
+        xs = 0.5 * (x0 + x1) + along[None].expand(5, n_along)
+    return torch.stack([xs, ys], -1)
+
+
+def element_contrasts(images: Tensor, points_px: Tensor) -> Tensor:
+    """Contrast of every triplet in every image channel.
+
+    Args:
+        images: ``(C, h, w)`` (NaN = invalid pixels, which make the contrast NaN).
+        points_px: ``(E, 5, n, 2)`` sample points in image px ``(x, y)`` (triplets × bars/gaps
+            × along), from :func:`triplet_sample_points` mapped to the image.
+
+    Returns:
+        ``(C, E)`` Michelson contrasts (:func:`michelson_bar_contrast` of the along-averages).
+    """
+    C, h, w = images.shape
+    E = points_px.shape[0]
+    p = points_px.to(images)
+    g = torch.stack([2 * p[..., 0] / (w - 1) - 1, 2 * p[..., 1] / (h - 1) - 1], -1)
+    g = g.reshape(1, E * 5, -1, 2).expand(C, -1, -1, -1)
+    out = F.grid_sample(images[:, None].expand(C, 1, h, w).reshape(C, 1, h, w), g,
+                        mode="bilinear", padding_mode="border", align_corners=True)
+    out = out[:, 0].reshape(C, E, 5, -1).mean(-1)  # (C, E, 5), NaN propagates
+    outside = (g[0].abs() > 1).any(-1).any(-1).reshape(E, 5).any(-1)  # (E,)
+    c = michelson_bar_contrast(out[..., [0, 2, 4]], out[..., [1, 3]])
+    return c.masked_fill(outside[None], float("nan"))
+
+
+def resolution_limit(contrast: Tensor, frequency: Tensor, threshold: float,
+                     usable: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Finest resolved element per row: walk the usable elements from coarse to fine and stop
+    at the first with ``contrast < threshold`` (or NaN).
+
+    Args:
+        contrast: ``(C, E)``; frequency: ``(E,)`` lp/mm (any order); usable: ``(E,)`` bool
+            (default all).
+
+    Returns:
+        ``(index (C,) long, lp_per_mm (C,))``: index into ``E`` of the finest resolved element
+        (−1 and 0 lp/mm when even the coarsest usable one fails).
+    """
+    C, E = contrast.shape
+    usable = torch.ones(E, dtype=torch.bool) if usable is None else usable.to(torch.bool).cpu()
+    order = [i for i in torch.argsort(frequency.cpu(), stable=True).tolist() if bool(usable[i])]
+    idx = torch.full((C,), -1, dtype=torch.long)
+    c = contrast.detach().cpu()
+    for row in range(C):
+        for i in order:
+            v = float(c[row, i])
+            if not (v >= threshold):
+                break
+            idx[row] = i
+    f = torch.where(idx >= 0, frequency.cpu().to(torch.float64)[idx.clamp_min(0)],
+                    torch.zeros(C, dtype=torch.float64))
+    return idx, f
+
+
+# =============================================================================================
+# RGB reference (no add-on)
+# =============================================================================================
+
+
+def rgb_reference(renderer: Any, scene: Any, *, seed: int = 0, supersample: int | None = None,
+                  chunk: int = 1 << 16) -> tuple[Tensor, Tensor]:
+    """The scene imaged directly on a sensor with the reference frame's image-plane scale.
+
+    ``E_c(q) = κ · mean_sub-samples[ V(X) · Σ_λ Δλ_f φ^c(λ) S(X, λ) ]`` at the diffuser points
+    ``X`` of reference pixel ``q`` (the renderer's illuminant × camera × objective ``φ``, κ and
+    vignetting; no kaleidoscope, diffuser fall-off, polarizers or BRF), then the renderer's
+    :class:`~hsi_torch.optics.sensor.SensorModel` (mosaic, noise, same exposure, generator seeded
+    with ``seed``) and its bilinear demosaic.
+
+    Returns:
+        ``(rgb (3, h, w), white (3,))``: demosaiced DN above black, and the noise-free DN of a
+        white (reflectance 1) reflector per channel at the frame centre's vignetting — divide by
+        it to white-balance.
+    """
+    s = int(supersample or renderer.supersample)
+    x0, y0, w, h = renderer.layout.reference_bbox
+    pts = renderer.reference_diffuser_points(s)  # (n, s², 2) float64
+    n = pts.shape[0]
+    flat = pts.reshape(-1, 2)
+    fine = renderer.fine.to(torch.float64)
+    phi_w = (renderer.phi_fine * renderer.fine_widths * renderer.kappa).to(torch.float64)  # (3,L)
+    sig = torch.empty(flat.shape[0], 3, dtype=torch.float64, device=flat.device)
+    for a in range(0, flat.shape[0], chunk):
+        p = flat[a:a + chunk]
+        refl = scene.reflectance(p, fine).to(torch.float64)  # (N, L)
+        sig[a:a + chunk] = (refl @ phi_w.T) * renderer.vignetting_factor(p)[:, None]
+    irr = sig.reshape(n, s * s, 3).mean(1).T.reshape(3, h, w)
+    gen = torch.Generator(device=irr.device)
+    gen.manual_seed(int(seed))
+    sensor = renderer.sensor
+    dn, _ = sensor.expose(irr[None], generator=gen)
+    raw = dn - sensor.black_level
+    rgb = sensor.demosaic(raw)[0] if raw.shape[-3] == 1 else raw[0]
+    unit = float(renderer.dn_per_unit) * sensor.exposure
+    white = phi_w.sum(1) * unit
+    return rgb, white
+
+
+# =============================================================================================
+# config and run
+# =============================================================================================
+
+
+@dataclass
+class USAFTargetSpec:
+    """The USAF 1951 scene (:class:`~hsi_torch.simulate.scenes.USAF1951Scene` parameters)."""
+
+    groups: list[int] = field(default_factory=lambda: [-1, 0, 1])
+    magnification: float = field(
+        default=0.25, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm)"})
+    center_mm: list[float] = field(default_factory=lambda: [0.0, 0.3])
+    bar_reflectance: float = 0.9
+    background_reflectance: float = 0.05
+
+
+@dataclass
+class USAFConfig:
+    """``hsi-torch experiment usaf`` configuration (see docs/readme_experiments.md)."""
+
+    prototype: Path | None = field(
+        default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: defaults)"})
+    prototype_overrides: list[str] = field(
+        default_factory=lambda: ["camera.scale=2"],
+        metadata={"help": "overrides of the prototype config (default: 2x finer sensor, so the "
+                          "target's coarse groups fit in the reference view above Nyquist)"})
+    target: USAFTargetSpec = field(default_factory=USAFTargetSpec)
+    bundle: str = field(
+        default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
+    calibrate_config: Path | None = None
+    beta: float = field(default=1000.0, metadata={"help": "smoothness weight (DN² scale)"})
+    diff_order: int = 1
+    threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})
+    orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
+    length_fraction: float = 0.6
+    n_along: int = 7
+    figure_band_nm: float = 600.0
+    seed: int = 0
+    dtype: Literal["float32", "float64"] = "float32"
+    device: str | None = None
+    progress: bool = True
+
+
+def _sim_config(cfg: USAFConfig, calibrated: bool):
+    from hsi_torch.config import load_config
+    from hsi_torch.simulate.config import SceneSpec, SimulateConfig
+
+    proto = load_config(cfg.prototype, SimulateConfig, list(cfg.prototype_overrides))
+    t = cfg.target
+    scene = SceneSpec("usaf", "usaf", params={
+        "groups": list(t.groups), "magnification": t.magnification,
+        "center_mm": list(t.center_mm), "bar_reflectance": t.bar_reflectance,
+        "background_reflectance": t.background_reflectance})
+    cap = proto.captures
+    if calibrated:
+        cap.scenes = [scene]
+    else:  # the oracle bundle needs only the ground truth
+        cap.scenes, cap.scan_wavelengths_nm = [scene], []
+        cap.white_shots, cap.dark_frames, cap.grid.poses = 0, 0, []
+    proto.render.figures = False
+    proto.render.seed = int(cfg.seed)
+    return proto
+
+
+def _combine(contrast: Tensor, elements: list[Any], mode: str) -> tuple[Tensor, list[tuple]]:
+    """Per (G, E): combine the two orientations' contrasts (min for 'both', max for 'either')."""
+    keys = list(dict.fromkeys((e.group, e.element) for e in elements))
+    cols = []
+    for k in keys:
+        ii = [i for i, e in enumerate(elements) if (e.group, e.element) == k]
+        sel = {elements[i].orientation: contrast[:, i] for i in ii}
+        if mode in ("horizontal", "vertical"):
+            cols.append(sel[mode])
+        else:
+            st = torch.stack(list(sel.values()), -1)
+            nan = torch.isnan(st).any(-1)
+            v = st.amin(-1) if mode == "both" else st.amax(-1)
+            cols.append(torch.where(nan, torch.full_like(v, float("nan")), v))
+    return torch.stack(cols, -1), keys
+
+
+def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> dict[str, Any]:
+    """Render, reconstruct and score the USAF target; write ``resolution.csv/.md``,
+    ``contrast.csv``, ``summary.json``, ``usaf_600nm_vs_rgb.png``, ``resolution_vs_wavelength.png``
+    into ``out``.
+
+    Returns:
+        The summary dict (limits per band and for the RGB reference, scale, timings).
+    """
+    from hsi_torch.experiments.opd import calibrated_bundle
+    from hsi_torch.recon import Reconstructor
+    from hsi_torch.simulate.capture_sets import build_renderer, build_scene, simulate_capture_set
+    from hsi_torch.simulate.oracle import bundle_from_truth
+
+    t_all = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    dev = str(torch.device(device or cfg.device or "cpu"))
+    dt = {"float32": torch.float32, "float64": torch.float64}[cfg.dtype]
+    if cfg.beta < 0:
+        raise ValueError(f"beta must be >= 0, got {cfg.beta}")
+    tm: dict[str, float] = {}
+    calibrated = cfg.bundle == "calibrated"
+    sim = _sim_config(cfg, calibrated)
+    cs = out / "capture_set"
+    t0 = time.perf_counter()
+    simulate_capture_set(sim, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
+    tm["simulate"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if cfg.bundle == "oracle":
+        bundle, note = bundle_from_truth(cs), "oracle bundle (simulator truth)"
+    elif calibrated:
+        bundle, note = calibrated_bundle(cs, cfg.calibrate_config, device=dev,
+                                         progress=cfg.progress, save_to=out / "bundle.npz")
+    else:
+        from hsi_torch.calibrate import CalibrationBundle
+
+        bundle, note = CalibrationBundle.load(cfg.bundle), f"bundle {cfg.bundle}"
+    tm["bundle"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rec = Reconstructor(bundle, beta=cfg.beta, diff_order=cfg.diff_order, device=dev, dtype=dt)
+    res = rec.reconstruct_file(cs / "scenes" / "usaf.tif")
+    tm["reconstruct"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    renderer = build_renderer(sim, device="cpu")
+    scene = build_scene(sim.captures.scenes[0])
+    rgb, white = rgb_reference(renderer, scene, seed=cfg.seed + 1000)
+    rgb_wb = rgb / white[:, None, None].to(rgb)
+    ref_imgs = torch.cat([rgb_wb, rgb_wb.mean(0, keepdim=True)])
+    tm["rgb_reference"] = time.perf_counter() - t0
+
+    # geometry of the triplets in reference-frame px
+    elements = scene.elements()
+    pts_mm = torch.stack([triplet_sample_points(e, cfg.length_fraction, cfg.n_along)
+                          for e in elements])  # (T, 5, n, 2)
+    pts_px = renderer.diffuser_to_reference(pts_mm.reshape(-1, 2)).reshape(pts_mm.shape)
+    valid = res.valid.cpu()
+    h, w = valid.shape
+    box_ok = []
+    for e in elements:
+        bx = renderer.diffuser_to_reference(torch.tensor(
+            [[e.bbox_mm[0], e.bbox_mm[2]], [e.bbox_mm[1], e.bbox_mm[3]]], dtype=torch.float64))
+        xa, ya = [int(math.floor(v)) for v in bx[0].tolist()]
+        xb, yb = [int(math.ceil(v)) for v in bx[1].tolist()]
+        ok = 0 <= xa and 0 <= ya and xb < w and yb < h and bool(valid[ya:yb + 1, xa:xb + 1]
+                                                               .all())
+        box_ok.append(ok)
+    cube = res.cube.detach().to("cpu", torch.float64)
+    c_hsi = element_contrasts(cube, pts_px)  # (M, T)
+    c_rgb = element_contrasts(ref_imgs.to("cpu", torch.float64), pts_px)  # (4, T)
+    usable_t = torch.tensor(box_ok)
+    c_hsi = c_hsi.masked_fill(~usable_t[None], float("nan"))
+    c_rgb_u = c_rgb.masked_fill(~usable_t[None], float("nan"))
+    cb_hsi, keys = _combine(c_hsi, elements, cfg.orientation)
+    cb_rgb, _ = _combine(c_rgb_u, elements, cfg.orientation)
+    freq = torch.tensor([2.0 ** (g + (e - 1) / 6.0) for g, e in keys], dtype=torch.float64)
+    usable_k = torch.tensor([all(box_ok[i] for i, el in enumerate(elements)
+                                 if (el.group, el.element) == k) for k in keys])
+    idx_h, f_h = resolution_limit(cb_hsi, freq, cfg.threshold, usable_k)
+    idx_r, f_r = resolution_limit(cb_rgb, freq, cfg.threshold, usable_k)
+    orient = {}
+    for o in ("horizontal", "vertical"):
+        cbo, _ = _combine(c_hsi, elements, o)
+        orient[o] = resolution_limit(cbo, freq, cfg.threshold, usable_k)
+
+    m = float(cfg.target.magnification)
+    hd = renderer.layout.diffuser_homographies[0]
+    px_mm = 1.0 / float(torch.linalg.det(hd[:2, :2] / hd[2, 2]).abs().sqrt())
+    nyq_diff = 1.0 / (2.0 * px_mm)
+    wl = res.wavelengths_nm.cpu().tolist()
+
+    def ge(i: int) -> str:
+        return "–" if i < 0 else f"G{keys[i][0]} E{keys[i][1]}"
+
+    rows = []
+    for mi, lam in enumerate(wl):
+        rows.append({"image": f"HSI {lam:g} nm", "wavelength_nm": lam,
+                     "finest": ge(int(idx_h[mi])), "lp_per_mm_target": float(f_h[mi]),
+                     "lp_per_mm_diffuser": float(f_h[mi]) / m,
+                     "horizontal": ge(int(orient["horizontal"][0][mi])),
+                     "vertical": ge(int(orient["vertical"][0][mi]))})
+    rnames = ["RGB reference (R)", "RGB reference (G)", "RGB reference (B)",
+              "RGB reference (gray)"]
+    for ci, nm in enumerate(rnames):
+        rows.append({"image": nm, "wavelength_nm": None, "finest": ge(int(idx_r[ci])),
+                     "lp_per_mm_target": float(f_r[ci]),
+                     "lp_per_mm_diffuser": float(f_r[ci]) / m})
+    report.write_csv(out / "resolution.csv", rows)
+    crow = []
+    for ti, e in enumerate(elements):
+        base = {"group": e.group, "element": e.element, "orientation": e.orientation,
+                "lp_per_mm_target": e.lp_per_mm_target, "lp_per_mm_diffuser": e.lp_per_mm,
+                "in_valid_region": box_ok[ti]}
+        for mi, lam in enumerate(wl):
+            crow.append({**base, "image": f"HSI {lam:g} nm", "contrast": float(c_hsi[mi, ti])})
+        for ci, nm in enumerate(rnames):
+            crow.append({**base, "image": nm, "contrast": float(c_rgb[ci, ti])})
+    report.write_csv(out / "contrast.csv", crow)
+
+    hsi_f = f_h.numpy()
+    stats = {"hsi_median_lp_mm": float(np.median(hsi_f)), "hsi_min_lp_mm": float(hsi_f.min()),
+             "hsi_max_lp_mm": float(hsi_f.max()), "rgb_gray_lp_mm": float(f_r[3]),
+             "rgb_channels_lp_mm": [float(v) for v in f_r[:3]],
+             "rgb_at_least_as_fine_as_hsi_max": bool(float(f_r[3]) >= hsi_f.max())}
+    md = [
+        "# USAF 1951 resolution\n",
+        f"Target groups {list(cfg.target.groups)}, magnification {m:g} diffuser mm per target "
+        f"mm: r(G, E) = 2^(G+(E−1)/6) lp/mm on the target, r/{m:g} on the diffuser. Reference "
+        f"frame: {px_mm:.4f} mm per px on the diffuser → Nyquist {nyq_diff:.2f} lp/mm "
+        f"(diffuser) = {nyq_diff * m:.3f} lp/mm (target). {note}; β = {cfg.beta:g}. "
+        f"Criterion: Michelson contrast (min bars − max gaps)/(min bars + max gaps) ≥ "
+        f"{cfg.threshold:g}, orientation '{cfg.orientation}', finest element before the first "
+        f"failure (coarse → fine); {sum(usable_k.tolist())}/{len(keys)} elements lie wholly "
+        "in the valid region.\n",
+        report.markdown_table(
+            rows, {"image": "image", "finest": "finest G/E",
+                   "lp_per_mm_target": "lp/mm (target)",
+                   "lp_per_mm_diffuser": "lp/mm (diffuser)", "horizontal": "horizontal bars",
+                   "vertical": "vertical bars"},
+            {"lp_per_mm_target": ".3f", "lp_per_mm_diffuser": ".2f"}),
+        f"\nHSI bands: median {stats['hsi_median_lp_mm']:.3f} lp/mm (range "
+        f"{stats['hsi_min_lp_mm']:.3f}–{stats['hsi_max_lp_mm']:.3f}); RGB reference (gray) "
+        f"{stats['rgb_gray_lp_mm']:.3f} lp/mm.\n",
+    ]
+    report.write_markdown(out / "resolution.md", "\n".join(md))
+
+    t0 = time.perf_counter()
+    band = int(np.argmin(np.abs(np.asarray(wl) - cfg.figure_band_nm)))
+    _plot_side_by_side(out / "usaf_600nm_vs_rgb.png", cube[band], ref_imgs[:3], renderer,
+                       elements, keys, int(idx_h[band]), int(idx_r[3]), wl[band])
+    _plot_vs_wavelength(out / "resolution_vs_wavelength.png", wl, f_h.numpy(),
+                        {o: orient[o][1].numpy() for o in orient}, f_r.numpy(), rnames,
+                        nyq_diff * m, m)
+    tm["figures"] = time.perf_counter() - t0
+    tm["total"] = time.perf_counter() - t_all
+    summary = {"rows": rows, "stats": stats, "bundle": note, "magnification": m,
+               "diffuser_mm_per_px": px_mm, "nyquist_lp_mm_diffuser": nyq_diff,
+               "nyquist_lp_mm_target": nyq_diff * m, "threshold": cfg.threshold,
+               "orientation": cfg.orientation, "usable_elements": int(usable_k.sum()),
+               "elements": len(keys), "recon_stats": {k: v for k, v in res.stats.items()
+                                                       if isinstance(v, (int, float))},
+               "timings_s": tm, "device": dev}
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def _element_box_px(renderer: Any, elements: list[Any], key: tuple) -> list[tuple]:
+    boxes = []
+    for e in elements:
+        if (e.group, e.element) != key:
+            continue
+        b = renderer.diffuser_to_reference(torch.tensor(
+            [[e.bbox_mm[0], e.bbox_mm[2]], [e.bbox_mm[1], e.bbox_mm[3]]], dtype=torch.float64))
+        boxes.append((float(b[0, 0]), float(b[0, 1]), float(b[1, 0] - b[0, 0]),
+                      float(b[1, 1] - b[0, 1])))
+    return boxes
+
+
+def _plot_side_by_side(path: Path, band_img: Tensor, rgb: Tensor, renderer: Any,
+                       elements: list[Any], keys: list[tuple], i_hsi: int, i_rgb: int,
+                       lam: float) -> None:
+    import matplotlib.patches as mpatches
+
+    fig, axes = report.new_figure(1, 2, figsize=(11, 5.2))
+    img = band_img.numpy()
+    finite = img[np.isfinite(img)]
+    hi = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    axes[0].imshow(np.ma.masked_invalid(img), cmap="gray", vmin=0, vmax=hi,
+                   interpolation="nearest")
+    disp = (rgb / rgb.amax().clamp_min(1e-9)).clamp(0, 1).permute(1, 2, 0).numpy() ** (1 / 2.2)
+    axes[1].imshow(disp, interpolation="nearest")
+    for ax, i, title in ((axes[0], i_hsi, f"HSI reconstruction, {lam:g} nm band"),
+                         (axes[1], i_rgb, "RGB reference (no add-on, same image-plane scale)")):
+        for j, col, tag in ((i, "lime", "finest resolved"), (i + 1, "red", "first failed")):
+            if 0 <= j < len(keys):
+                for (x, y, bw, bh) in _element_box_px(renderer, elements, keys[j]):
+                    ax.add_patch(mpatches.Rectangle((x - 0.5, y - 0.5), bw, bh, fill=False,
+                                                    ec=col, lw=1.3))
+                g, e = keys[j]
+                ax.plot([], [], color=col, lw=2, label=f"{tag}: G{g} E{e} "
+                        f"({2.0 ** (g + (e - 1) / 6):.3f} lp/mm)")
+        ax.set_title(title, fontsize=10)
+        ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
+        ax.set_xlabel("x (reference-frame px)")
+    axes[0].set_ylabel("y (px)")
+    report.save_figure(fig, path)
+
+
+def _plot_vs_wavelength(path: Path, wl: list[float], both: np.ndarray,
+                        per_orient: dict[str, np.ndarray], rgb: np.ndarray, rnames: list[str],
+                        nyq_target: float, m: float) -> None:
+    fig, ax = report.new_figure(figsize=(7.5, 4.2))
+    ax.plot(wl, both, "o-", color="k", label="HSI, both orientations")
+    ax.plot(wl, per_orient["horizontal"], "v--", color="tab:blue", ms=4, lw=0.8,
+            label="HSI, horizontal bars")
+    ax.plot(wl, per_orient["vertical"], "^--", color="tab:orange", ms=4, lw=0.8,
+            label="HSI, vertical bars")
+    for v, nm, col in zip(rgb, rnames, ("red", "green", "blue", "gray"), strict=True):
+        ax.axhline(v, color=col, ls=":", lw=1.2, label=nm)
+    ax.axhline(nyq_target, color="purple", ls="-.", lw=0.8, label="Nyquist of the frame")
+    ax.set_xlabel("wavelength (nm)")
+    ax.set_ylabel("finest resolved (lp/mm, target)")
+    sec = ax.secondary_yaxis("right", functions=(lambda y: y / m, lambda y: y * m))
+    sec.set_ylabel("lp/mm on the diffuser")
+    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    ax.set_title("USAF 1951: resolvable spatial frequency per band", fontsize=10)
+    report.save_figure(fig, path)
