@@ -1,0 +1,49 @@
+"""``hsi-torch calibrate [--config C] --captures DIR --out BUNDLE.npz [--set k=v] [--device D]``.
+
+Writes, only after the whole calibration succeeded (each file atomically):
+
+- ``BUNDLE.npz`` — the :class:`~hsi_torch.calibrate.CalibrationBundle`;
+- ``BUNDLE.report.json`` — the per-view registration report, valid-region statistics, timings;
+- ``resolved_config.yaml`` beside the bundle (rerun with ``--config``).
+
+On any error nothing is written (an existing bundle is left untouched).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["run_calibrate", "output_paths"]
+
+
+def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
+    """``(bundle, report_json, resolved_config)`` for ``--out`` (``.npz`` added if missing)."""
+    p = Path(out)
+    if p.suffix.lower() != ".npz":
+        p = p.with_name(p.name + ".npz")
+    return p, p.with_name(p.stem + ".report.json"), p.parent / "resolved_config.yaml"
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """Entry point called by :mod:`hsi_torch.cli`: calibrate a capture folder into a bundle."""
+    from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.calibrate.pipeline import calibrate_capture_set
+    from hsi_torch.cli import load_args_config
+    from hsi_torch.config import write_resolved_config
+    from hsi_torch.io.atomic import atomic_write_json
+
+    cfg = load_args_config(args, CalibrateConfig)
+    device = getattr(args, "device", None)
+    bundle_path, report_path, _ = output_paths(args.out)
+    if bundle_path.exists() and bundle_path.is_dir():
+        raise ValueError(f"--out {bundle_path} is a directory; give the bundle file name")
+    bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
+    bundle_path.parent.mkdir(parents=True, exist_ok=True)
+    bundle.save(bundle_path)
+    atomic_write_json(report_path, report.to_dict())
+    write_resolved_config(cfg, bundle_path.parent)
+    print(report)
+    print(bundle.summary())
+    print(f"wrote {bundle_path} (+ {report_path.name}, resolved_config.yaml)")
+    return 0

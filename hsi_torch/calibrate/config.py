@@ -1,0 +1,211 @@
+"""``CalibrateConfig``: the schema of ``configs/calibrate.yaml`` (``hsi-torch calibrate``).
+
+Loaded and validated by :func:`hsi_torch.config.load_config`; every key can be overridden on the
+command line (``--set response.beta_phi=1e2``). ``describe_schema(CalibrateConfig)`` prints the
+reference. Wavelengths in nm, lengths on the sensor in px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+__all__ = [
+    "BlobSection",
+    "RegistrationSection",
+    "TransmittanceSection",
+    "ResponseSection",
+    "CalibrateConfig",
+]
+
+
+def _h(text: str) -> dict[str, str]:
+    return {"help": text}
+
+
+@dataclass
+class BlobSection:
+    """``cv2.SimpleBlobDetector`` limits (areas in px² of the parity-corrected view crop)."""
+
+    min_area: float = field(
+        default=5.0,
+        metadata=_h("smallest blob area, px^2 (simulator default circles: r ~ 2.8 px, ~25 px^2)"),
+    )
+    max_area: float = field(default=2000.0, metadata=_h("largest blob area, px^2"))
+    min_circularity: float = field(default=0.6, metadata=_h("0 disables the filter"))
+    min_convexity: float = field(default=0.8, metadata=_h("0 disables the filter"))
+    min_inertia_ratio: float = field(default=0.1, metadata=_h("0 disables the filter"))
+    min_threshold: float = field(default=10.0, metadata=_h("first binarisation threshold"))
+    max_threshold: float = field(default=230.0, metadata=_h("last binarisation threshold"))
+    threshold_step: float = field(default=10.0, metadata=_h("threshold step"))
+    min_dist_between_blobs: float = field(default=2.0, metadata=_h("px"))
+    min_repeatability: int = field(default=2, metadata=_h("thresholds a blob must survive"))
+    blob_color: int = field(default=0, metadata=_h("0: dark circles, 255: light circles"))
+
+
+@dataclass
+class RegistrationSection:
+    """Circle-grid detection and homography fit (:func:`hsi_torch.calibrate.register_views`)."""
+
+    pattern_size: tuple[int, int] = field(
+        default=(4, 5), metadata=_h("asymmetric grid (points per row, rows), OpenCV order")
+    )
+    blob: BlobSection = field(default_factory=BlobSection)
+    equalize: Literal["none", "clahe", "auto"] = field(
+        default="auto", metadata=_h("auto: plain image, then CLAHE-equalised")
+    )
+    margin_px: int = field(default=6, metadata=_h("margin around each triangle's crop, px"))
+    fill_outside: bool = field(
+        default=True, metadata=_h("paint pixels outside the triangle with the background")
+    )
+    ransac_threshold_px: float = field(default=1.0, metadata=_h("RANSAC inlier threshold, px"))
+    inset_px: float = field(
+        default=1.0, metadata=_h("view masks: source point at least this far inside the triangle")
+    )
+
+    def __post_init__(self) -> None:
+        if len(self.pattern_size) != 2 or min(self.pattern_size) < 2:
+            raise ValueError(f"pattern_size must be (cols, rows) >= 2, got {self.pattern_size}")
+        if not self.ransac_threshold_px > 0:
+            raise ValueError(f"ransac_threshold_px must be > 0, got {self.ransac_threshold_px}")
+
+
+@dataclass
+class TransmittanceSection:
+    """BRF transmittance from the monochromator scan (:func:`brf_transmittance`)."""
+
+    lit_threshold: float = field(
+        default=0.05, metadata=_h("a pixel is lit when max_j B >= this (between triangles: dark)")
+    )
+    weight_power: float = field(
+        default=1.0, metadata=_h("colour weights ∝ BRF-free patch mean ** power (1: ∝ signal)")
+    )
+    wavelength_tol_nm: float = field(
+        default=0.5, metadata=_h("largest |scan wavelength - grid wavelength| accepted, nm")
+    )
+    brf_free_erode_px: float = field(
+        default=1.5,
+        metadata=_h("without brf_free_mask.png: keep polygon pixels this far inside the disk"),
+    )
+    brf_free_margin_px: float = field(
+        default=1.5,
+        metadata=_h("reference-frame pixels within the disk + this margin are not modulated"),
+    )
+    max_patch_ratio: float = field(
+        default=0.8,
+        metadata=_h("refuse a 'BRF-free' patch when the reference view elsewhere reaches this "
+                    "fraction of its brightness (median over the view): the patch is filtered"),
+    )
+    frames_per_chunk: int = field(
+        default=8, metadata=_h("scan frames processed together (memory bound at full scale)")
+    )
+
+    def __post_init__(self) -> None:
+        if self.frames_per_chunk < 1:
+            raise ValueError(f"frames_per_chunk must be >= 1, got {self.frames_per_chunk}")
+        if not self.wavelength_tol_nm > 0:
+            raise ValueError(f"wavelength_tol_nm must be > 0, got {self.wavelength_tol_nm}")
+
+
+@dataclass
+class ResponseSection:
+    """φ^c(λ) and the gain field g_v(p) from the white shots (:func:`estimate_response_field`)."""
+
+    beta_phi: float = field(
+        default=1e4,
+        metadata=_h("smoothness weight on ||D phi||^2 (original prototype: 8e5, too strong on "
+                    "DN-scale data; see docs/readme_calibration.md)"),
+    )
+    gamma_h: float = field(
+        default=1e2,
+        metadata=_h("weight of the shape prior ||phi - alpha f~||^2 (original prototype: 8e5)"),
+    )
+    n_iter: int = field(default=3, metadata=_h("alternations (original prototype: 3)"))
+    refine_steps: int = field(
+        default=20, metadata=_h("joint Levenberg-Marquardt steps after the alternations")
+    )
+    degree: int = field(default=2, metadata=_h("total degree of the Legendre gain field"))
+    smoothness: float = field(
+        default=1e-3, metadata=_h("relative ridge on the non-constant gain coefficients")
+    )
+    diff_order: int = field(default=1, metadata=_h("order of D in the phi smoothness term"))
+    camera_sensitivity: str = field(
+        default="Canon EOS 5D Mark II",
+        metadata=_h("shape prior f~: a camera name (hsi_torch.refdata.list_cameras), CSV or "
+                    "JSON file, or 'flat'"),
+    )
+    saturation_margin: float = field(
+        default=1e-3, metadata=_h("white sample counts as saturated above this warped weight")
+    )
+
+    def __post_init__(self) -> None:
+        if self.beta_phi < 0 or self.gamma_h < 0:
+            raise ValueError(f"beta_phi, gamma_h must be >= 0, got {self.beta_phi}, {self.gamma_h}")
+        if self.degree < 0 or self.n_iter < 0 or self.refine_steps < 0:
+            raise ValueError("degree, n_iter and refine_steps must be >= 0")
+        if self.diff_order not in (1, 2):
+            raise ValueError(f"diff_order must be 1 or 2, got {self.diff_order}")
+
+
+@dataclass
+class CalibrateConfig:
+    """Settings of ``hsi-torch calibrate`` (see the field help texts)."""
+
+    layout: Path | None = field(
+        default=None,
+        metadata=_h("nominal layout JSON (triangles, parity, reference_bbox, BRF-free patch); "
+                    "null: CAPTURES/nominal_layout.json"),
+    )
+    brf_free_mask: Path | None = field(
+        default=None,
+        metadata=_h("PNG of usable BRF-free pixels (255 = use); null: the layout's usable_mask / "
+                    "CAPTURES/brf_free_mask.png, else the layout's polygon eroded"),
+    )
+    grid_start_nm: float = field(default=430.0, metadata=_h("first band centre, nm"))
+    grid_stop_nm: float = field(default=670.0, metadata=_h("last band centre, nm"))
+    grid_step_nm: float = field(default=10.0, metadata=_h("band step, nm"))
+    demosaic: Literal["bilinear"] = field(
+        default="bilinear",
+        metadata=_h("Bayer captures: bilinear demosaic at full resolution (read_any default)"),
+    )
+    cfa_pattern: str | None = field(
+        default=None, metadata=_h("override the files' CFA pattern (e.g. RGGB)")
+    )
+    black_level: float | None = field(
+        default=None, metadata=_h("override the files' black level (DN)")
+    )
+    white_level: float | None = field(
+        default=None, metadata=_h("override the files' white (saturation) level (DN)")
+    )
+    dark: Literal["per_pixel", "mean", "none"] = field(
+        default="per_pixel",
+        metadata=_h("dark frames: subtract their per-pixel mean, their per-channel mean, or "
+                    "nothing (the black level is always subtracted)"),
+    )
+    device: str = field(default="cpu", metadata=_h("torch device"))
+    dtype: Literal["float32", "float64"] = field(
+        default="float64", metadata=_h("precision of the calibration arrays")
+    )
+    min_views: int = field(default=3, metadata=_h("modulated views a valid pixel needs"))
+    registration: RegistrationSection = field(default_factory=RegistrationSection)
+    transmittance: TransmittanceSection = field(default_factory=TransmittanceSection)
+    response: ResponseSection = field(default_factory=ResponseSection)
+    progress: bool = field(default=True, metadata=_h("progress bar on stderr"))
+
+    def __post_init__(self) -> None:
+        if not (self.grid_step_nm > 0 and self.grid_stop_nm >= self.grid_start_nm):
+            raise ValueError(
+                f"grid must have step > 0 and stop >= start, got {self.grid_start_nm}, "
+                f"{self.grid_stop_nm}, {self.grid_step_nm}"
+            )
+        if self.min_views < 1:
+            raise ValueError(f"min_views must be >= 1, got {self.min_views}")
+
+    def detector_dict(self) -> dict[str, Any]:
+        """The registration settings as :meth:`GridDetectorConfig.from_dict` expects."""
+        from hsi_torch.config import to_dict
+
+        d = to_dict(self.registration)
+        d.pop("inset_px")
+        return d
