@@ -18,6 +18,8 @@ _LAZY = {
     "solve_nnls": "hsi_torch.recon.solvers",
     "NNLSResult": "hsi_torch.recon.solvers",
     "HSIReconstructor": "hsi_torch.recon.module",
+    "Reconstructor": "hsi_torch.recon.pipeline",
+    "CalibrationBundle": "hsi_torch.calibrate.bundle",
 }
 
 __all__ = ["__version__", *_LAZY]
