@@ -1,0 +1,189 @@
+"""End to end: ``hsi-torch simulate`` (default prototype) → ``hsi-torch calibrate`` → scores against
+the simulator's truth, plus the bad-input errors (nothing written on failure)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hsi_torch.calibrate import CalibrationBundle, file_sha256
+from hsi_torch.calibrate.cli_entry import output_paths
+from hsi_torch.calibrate.pipeline import (
+    find_captures,
+    format_scores,
+    score_against_truth,
+    wavelength_from_name,
+)
+from hsi_torch.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Path:
+    """The default small capture set (configs/simulate.yaml, realistic noise), no scene captures,
+    rendered in float32 (the simulator's documented fast setting) to keep the test short."""
+    out = tmp_path_factory.mktemp("sim")
+    rc = main(["simulate", "--config", str(REPO / "configs" / "simulate.yaml"), "--out", str(out),
+               "--set", "captures.scenes=[]", "--set", "render.figures=false",
+               "--set", "render.progress=false", "--set", "render.dtype=float32"])  # fmt: skip
+    assert rc == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def calibrated(sim: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cal") / "calib.npz"
+    rc = main(["calibrate", "--config", str(REPO / "configs" / "calibrate.yaml"),
+               "--captures", str(sim), "--out", str(out), "--set", "progress=false"])  # fmt: skip
+    assert rc == 0
+    return out
+
+
+def test_targets_on_default_simulated_set(sim: Path, calibrated: Path):
+    s = score_against_truth(calibrated, sim)
+    print(format_scores(s))
+    assert s["B_rel_rms"] < 0.02  # RMS(B - B_true) / RMS(B_true) over the common valid region
+    assert min(s["phi_corr"]) > 0.99
+    assert s["gain_max_rel_rms"] < 0.02  # after the same (g, phi) gauge on both sides
+    assert s["homography_worst_rms_px"] < 0.3  # against the true mapping, reference px
+    assert s["valid_iou"] > 0.95
+
+
+def test_cli_outputs_settings_and_provenance(sim: Path, calibrated: Path):
+    b = CalibrationBundle.load(calibrated)
+    bundle_path, report_path, cfg_path = output_paths(calibrated)
+    assert report_path.is_file() and cfg_path.is_file()
+    manifest = json.loads((sim / "manifest.json").read_text())
+    s = b.settings
+    assert s["cfa_pattern"] == manifest["cfa_pattern"] == "RGGB"
+    assert s["white_exposure_s"] == pytest.approx(manifest["exposure"])
+    assert s["beta_phi"] == 1e4 and s["gamma_h"] == 1e2
+    assert s["detector"]["pattern_size"] == [4, 5] and s["detector"]["blob"]["min_area"] == 5.0
+    h = b.provenance["inputs_sha256"]
+    assert h["scan/scan_550nm.tif"] == file_sha256(sim / "scan" / "scan_550nm.tif")
+    assert h["nominal_layout.json"] == file_sha256(sim / "nominal_layout.json")
+    assert len(h) == 25 + 3 + 3 + 1 + 2  # scan, white, grid, dark, layout, mask
+    rep = json.loads(report_path.read_text())
+    assert len(rep["registration"]) == 10
+    for r in rep["registration"][1:]:  # every view found in >= 2 poses, nearly all inliers
+        assert r["images_with_detections"] >= 2 and r["inliers"] >= 0.9 * r["points_used"]
+        assert r["rms_px"] < 0.3
+    assert rep["valid"]["num_valid"] == int(b.valid.sum())
+    # the bundle's phi/gain reproduce the white shots' level through the forward model
+    assert np.all(b.gain[b.view_mask] > 0.5) and np.all(b.gain[b.view_mask] < 1.5)
+
+
+def test_reconstruct_refuses_bundle_of_other_geometry(calibrated: Path):
+    from hsi_torch.recon import Reconstructor
+
+    rec = Reconstructor(calibrated, beta=1e3)
+    with pytest.raises(ValueError, match="384x400"):
+        rec.reconstruct_frame(torch.zeros(3, 192, 200))
+    with pytest.raises(ValueError, match="does not match the calibration"):
+        CalibrationBundle.load(calibrated).check_compatible((3, 192, 200))
+
+
+def _copy_set(sim: Path, dst: Path) -> Path:
+    """A modifiable copy of the capture set: JSON/PNG copied, capture folders linked."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for name in ("scan", "white", "grid", "dark", "ground_truth"):
+        (dst / name).symlink_to(sim / name, target_is_directory=True)
+    for name in ("manifest.json", "nominal_layout.json", "brf_free_mask.png"):
+        shutil.copy(sim / name, dst / name)
+    return dst
+
+
+def _calibrate_fails(captures: Path, tmp_path: Path, capsys, *extra: str) -> str:
+    out = tmp_path / "out" / "bad.npz"
+    rc = main(["calibrate", "--captures", str(captures), "--out", str(out),
+               "--set", "progress=false", *extra])  # fmt: skip
+    assert rc == 1
+    assert not out.exists() and not out.with_name("bad.report.json").exists()
+    assert not (out.parent / "resolved_config.yaml").exists()
+    return capsys.readouterr().err
+
+
+def test_missing_wavelengths(sim: Path, tmp_path: Path, capsys):
+    d = _copy_set(sim, tmp_path / "set")
+    m = json.loads((d / "manifest.json").read_text())
+    m["captures"] = [c for c in m["captures"] if c.get("wavelength_nm") not in (550.0, 600.0)]
+    (d / "manifest.json").write_text(json.dumps(m))
+    err = _calibrate_fails(d, tmp_path, capsys)
+    assert "missing wavelengths [550.0, 600.0]" in err
+
+
+def test_scan_without_brf_free_patch(sim: Path, tmp_path: Path, capsys):
+    d = _copy_set(sim, tmp_path / "set")
+    (d / "brf_free_mask.png").unlink()
+    lay = json.loads((d / "nominal_layout.json").read_text())
+    lay.pop("brf_free_patch")
+    (d / "nominal_layout.json").write_text(json.dumps(lay))
+    err = _calibrate_fails(d, tmp_path, capsys)
+    assert "no BRF-free patch" in err
+
+
+def test_empty_and_misplaced_brf_free_mask(sim: Path, tmp_path: Path, capsys):
+    import cv2
+
+    d = _copy_set(sim, tmp_path / "set")
+    lay = json.loads((d / "nominal_layout.json").read_text())
+    cv2.imwrite(str(d / "brf_free_mask.png"), np.zeros(tuple(lay["sensor_size"]), np.uint8))
+    assert "selects no pixels" in _calibrate_fails(d, tmp_path, capsys)
+    # a patch of the same size in the filtered centre of the reference view: B ratio ~ 1 there
+    x0, y0, w, h = lay["reference_bbox"]
+    tri = np.asarray(lay["triangles_px"][0])
+    cx, cy = tri.mean(0)
+    m = np.zeros(tuple(lay["sensor_size"]), np.uint8)
+    m[int(cy) : int(cy) + 10, int(cx) - 5 : int(cx) + 5] = 255
+    cv2.imwrite(str(d / "brf_free_mask.png"), m)
+    lay["brf_free_patch"].pop("polygon_px")  # the disk itself is no longer known
+    (d / "nominal_layout.json").write_text(json.dumps(lay))
+    assert "does not mark a BRF-free patch" in _calibrate_fails(d, tmp_path, capsys)
+
+
+def test_grid_found_in_no_image(sim: Path, tmp_path: Path, capsys):
+    d = _copy_set(sim, tmp_path / "set")
+    m = json.loads((d / "manifest.json").read_text())
+    for c in m["captures"]:
+        if c["type"] == "grid":
+            c["file"] = "white/white_00.tif"  # flat white: no circles anywhere
+    (d / "manifest.json").write_text(json.dumps(m))
+    err = _calibrate_fails(d, tmp_path, capsys)
+    assert "circle grid (4, 5) found in none" in err and "reference view 0" in err
+    # a wrong pattern size is reported the same way
+    err = _calibrate_fails(sim, tmp_path, capsys, "--set", "registration.pattern_size=[4,11]")
+    assert "circle grid (4, 11)" in err
+
+
+def test_captures_of_another_geometry(sim: Path, tmp_path: Path, capsys):
+    d = _copy_set(sim, tmp_path / "set")
+    lay = json.loads((d / "nominal_layout.json").read_text())
+    lay["sensor_size"] = [400, 384]
+    (d / "nominal_layout.json").write_text(json.dumps(lay))
+    err = _calibrate_fails(d, tmp_path, capsys, "--set", f"brf_free_mask={sim}/brf_free_mask.png")
+    assert "does not match" in err
+
+
+def test_plain_folders_without_manifest(sim: Path, calibrated: Path, tmp_path: Path):
+    """A real-device layout: scan/ white/ grid/ dark/ folders, wavelengths from the file names
+    (or the TIFF metadata): same bundle as with the manifest."""
+    d = _copy_set(sim, tmp_path / "set")
+    (d / "manifest.json").unlink()
+    cs = find_captures(d)
+    assert cs.manifest is None and len(cs.scan) == 25 and len(cs.white) == 3
+    assert sorted(w for _, w in cs.scan) == [430.0 + 10 * k for k in range(25)]
+    assert wavelength_from_name("mono_552p5nm.dng") == 552.5
+    assert wavelength_from_name("scan_7.tif") is None
+    out = tmp_path / "plain.npz"
+    assert main(["calibrate", "--captures", str(d), "--out", str(out),
+                 "--set", "progress=false"]) == 0  # fmt: skip
+    a, b = CalibrationBundle.load(out), CalibrationBundle.load(calibrated)
+    np.testing.assert_array_equal(a.view_homographies, b.view_homographies)
+    np.testing.assert_array_equal(a.B, b.B)
+    np.testing.assert_array_equal(a.valid, b.valid)

@@ -1,0 +1,59 @@
+"""``hsi-torch demo --quick``: simulate → calibrate → reconstruct → score, at a smaller sensor."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hsi_torch.cli import main
+from hsi_torch.demo import colorchecker_scores, cube_scores
+
+
+def test_colorchecker_scores_against_formula():
+    rng = np.random.default_rng(0)
+    spectra = rng.uniform(0.1, 0.9, size=(24, 5))
+    pidx = -np.ones((12, 48), np.int16)
+    for k in range(24):
+        r, c = divmod(k, 8)
+        pidx[r * 4 : r * 4 + 4, c * 6 : c * 6 + 6] = k
+    cube = spectra[np.maximum(pidx, 0)].transpose(2, 0, 1).copy()
+    cube[:, pidx < 0] = 0.0
+    cube[0, pidx == 3] += 0.1  # one band of patch 3 off by 0.1 everywhere
+    valid = np.ones(pidx.shape, bool)
+    s = colorchecker_scores(cube, valid, pidx, spectra, erode_px=0.0)
+    assert s["patches"] == 24
+    assert s["psnr_db"][3] == pytest.approx(10 * np.log10(1 / (0.1**2 / 5)))
+    e, t = cube[:, pidx == 3].mean(1), spectra[3]
+    ang = np.degrees(np.arccos(e @ t / np.linalg.norm(e) / np.linalg.norm(t)))
+    assert s["sam_deg"][3] == pytest.approx(ang)
+    assert s["psnr_db"][0] > 200 and s["sam_deg"][0] == pytest.approx(0.0, abs=1e-5)
+    # eroding a 4-row patch by 2 px leaves no interior pixel
+    assert colorchecker_scores(cube, valid, pidx, spectra, erode_px=2.0)["patches"] == 0
+    c = cube_scores(cube, cube + 0.01, valid)
+    assert c["psnr_db"] == pytest.approx(40.0)
+
+
+def test_demo_quick_meets_targets(tmp_path: Path, capsys):
+    out = tmp_path / "demo"
+    rc = main(["demo", "--out", str(out), "--quick", "--set", "progress=false", "--set",
+               "cave=false"])  # fmt: skip
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "colorchecker: 24 patches" in printed
+    s = json.loads((out / "summary.json").read_text())
+    cc = s["scenes"]["colorchecker"]
+    assert cc["calibrated"]["patches"] == 24
+    assert cc["calibrated"]["mean_psnr_db"] >= 30.0
+    assert cc["calibrated"]["mean_sam_deg"] <= 5.0
+    assert cc["oracle"]["mean_psnr_db"] >= 30.0
+    syn = s["scenes"]["synthetic"]  # built-in scene when CAVE is off
+    assert syn["calibrated"]["pixels"] > 500 and np.isfinite(syn["calibrated"]["psnr_db"])
+    for f in ("calib.npz", "colorchecker.npz", "colorchecker.tif", "colorchecker_preview.png",
+              "colorchecker_spectra.png", "synthetic_preview.png", "synthetic_spectra.png",
+              "resolved_config.yaml"):  # fmt: skip
+        assert (out / f).is_file(), f
+    cal = s["calibration"]
+    assert cal["B_rel_rms"] < 0.03 and min(cal["phi_corr"]) > 0.99
