@@ -45,6 +45,9 @@ Convention:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -59,6 +62,7 @@ __all__ = [
     "solve_nnls",
     "nnls_kkt_residual",
     "synthetic_brf_problem",
+    "cpu_threads",
 ]
 
 _METHODS = ("active_set", "admm")
@@ -91,15 +95,92 @@ class NNLSResult:
 # small helpers
 
 
-def _rowvec(v: Tensor, mat: Tensor) -> Tensor:
-    """``out[p] = v[p] @ mat[p]`` for ``v (n, K)`` and ``mat (n|1, K, L)`` -> ``(n, L)``.
+def _rowvec(
+    v: Tensor, mat: Tensor, *, out: Tensor | None = None, sub: Tensor | None = None
+) -> Tensor:
+    """``v[p] @ mat[p]`` (minus ``sub[p]``) for ``v (n, K)``, ``mat (n|1, K, L)`` -> ``(n, L)``.
 
     The row-vector form of a batched mat-vec is the fast one on CPU (a symmetric ``mat`` gives
-    ``mat @ v``).
+    ``mat @ v``). ``out``: contiguous ``(n, L)`` to write into; ``sub``: ``(n, L)`` subtracted in
+    the same kernel.
     """
     if mat.shape[0] == 1 and v.shape[0] != 1:
-        return v @ mat[0]
-    return torch.bmm(v.unsqueeze(1), mat).squeeze(1)
+        if sub is not None:
+            return torch.addmm(sub, v, mat[0], beta=-1, out=out)
+        return torch.mm(v, mat[0], out=out)
+    o3 = None if out is None else out.unsqueeze(1)
+    if sub is not None:
+        r = torch.baddbmm(sub.unsqueeze(1), v.unsqueeze(1), mat, beta=-1, out=o3)
+    else:
+        r = torch.bmm(v.unsqueeze(1), mat, out=o3)
+    return r.squeeze(1) if out is None else out
+
+
+@contextmanager
+def cpu_threads(device: torch.device | str, num_threads: int | None) -> Iterator[None]:
+    """Temporarily lower torch's intra-op thread count for CPU work (no-op elsewhere).
+
+    ``num_threads=None`` keeps torch's setting. The setting is process-wide while the block runs.
+    """
+    dev = torch.device(device)
+    if num_threads is not None and int(num_threads) < 1:
+        raise ValueError(f"num_threads must be >= 1 or None, got {num_threads}")
+    old = torch.get_num_threads()
+    if dev.type != "cpu" or num_threads is None or int(num_threads) >= old:
+        yield
+        return
+    torch.set_num_threads(int(num_threads))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _workers(device: torch.device, num_threads: int | None) -> int:
+    """Worker threads of the CPU solver: ``num_threads`` or torch's intra-op thread count.
+
+    The solver runs thousands of small batched kernels. On a small machine shared with other
+    processes every multi-threaded kernel waits at its barrier for a thread the OS has not
+    scheduled: measured on the 2-core development machine under load, one frame took 3.6–9 s
+    with torch's 2 intra-op threads and 0.6–1.1 s with one. So the solver runs single-threaded
+    kernels and instead splits the pixels between ``num_threads`` Python threads (torch releases
+    the GIL inside kernels), which never wait for each other within a kernel.
+    """
+    if num_threads is not None and int(num_threads) < 1:
+        raise ValueError(f"num_threads must be >= 1 or None, got {num_threads}")
+    if device.type != "cpu":
+        return 1
+    return int(num_threads) if num_threads is not None else torch.get_num_threads()
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def _for_chunks(fn: Callable[[slice], None], num: int, n: int, workers: int) -> None:
+    """Call ``fn(slice)`` for consecutive chunks of ``n`` of ``range(num)``.
+
+    With ``workers > 1`` the chunks are split into ``workers`` contiguous blocks run by that many
+    threads (``fn`` must write disjoint outputs). Each thread runs single-threaded kernels, so no
+    kernel waits at a thread barrier for a core that another process holds.
+    """
+    chunks = [slice(s, min(num, s + n)) for s in range(0, num, max(1, n))]
+    if workers <= 1 or len(chunks) <= 1:
+        for sl in chunks:
+            fn(sl)
+        return
+    workers = min(workers, len(chunks))
+    per = -(-len(chunks) // workers)
+    blocks = [chunks[i:i + per] for i in range(0, len(chunks), per)]
+    pool = _POOLS.get(workers)
+    if pool is None:
+        pool = _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="hsi_nnls")
+
+    def run(block: list[slice]) -> None:
+        for sl in block:
+            fn(sl)
+
+    for f in [pool.submit(run, blk) for blk in blocks]:
+        f.result()
 
 
 def _take(t: Tensor | None, sl: slice) -> Tensor | None:
@@ -182,11 +263,19 @@ def nnls_kkt_residual(G: Tensor, b: Tensor, x: Tensor, gram_norm: Tensor | None 
     return _kkt_ratio(g, x, G.diagonal(dim1=-2, dim2=-1), gn, b.abs().amax(dim=1))
 
 
-def _kkt_ratio(g: Tensor, x: Tensor, gd: Tensor, gn: Tensor, bmax: Tensor) -> Tensor:
-    """:func:`nnls_kkt_residual` from the gradient ``g``, ``diag(G)``, ``‖G‖∞`` and ``‖b‖∞``."""
-    nat = torch.minimum(gd * x, g).abs().amax(dim=1)
-    scale = gn * x.abs().amax(dim=1) + bmax
-    return torch.where(scale > 0, nat / scale.clamp_min(torch.finfo(x.dtype).tiny), nat)
+def _kkt_ratio(
+    g: Tensor, x: Tensor, gd: Tensor, gn: Tensor, bmax: Tensor, nonneg: bool = False
+) -> Tensor:
+    """:func:`nnls_kkt_residual` from the gradient ``g``, ``diag(G)``, ``‖G‖∞`` and ``‖b‖∞``.
+
+    ``nonneg=True`` promises ``x ≥ 0`` (saves a pass). The denominator is 0 only where
+    ``x = 0`` and ``b = 0``, and then ``g = 0`` too: the ratio is 0 there.
+    """
+    t = gd * x
+    torch.minimum(t, g, out=t)
+    nat = t.abs_().amax(dim=1)
+    xm = x.amax(dim=1) if nonneg else x.abs().amax(dim=1)
+    return nat / (gn * xm + bmax).clamp_min(torch.finfo(x.dtype).tiny)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -293,6 +382,11 @@ def _zero_set_solve(
     return x, lam, ok, (zi, R, L)
 
 
+#: bucket bounds on |Z| for the padded zero-set solves (pixels with |Z| in (e_i, e_{i+1}] share
+#: one k = e_{i+1} system size)
+_K_EDGES = (0, 1, 2, 3, 4, 5, 6, 8, 10, 13, 17)
+
+
 def _bpp(
     H: Tensor, idx: Tensor, x0: Tensor, gd: Tensor, thr: Tensor, max_iter: int
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -323,14 +417,29 @@ def _bpp(
     done = torch.zeros((n,), dtype=torch.bool, device=dev)
     failed = torch.zeros((n,), dtype=torch.bool, device=dev)
     iters = torch.zeros((n,), dtype=torch.long, device=dev)
-    w = torch.arange(n, device=dev)  # local row of each working pixel
-    gi, v, gdw, tw = idx, x0, gd, thr
-    Z = v * gdw < -tw
+    edges = torch.tensor([e for e in _K_EDGES if e < m] + [m], device=dev)
+    edge_list = edges.tolist()
+    Z = x0 * gd < -thr
+    z0_empty = ~Z.any(1)  # candidates without a clearly negative entry: 0 rounds if done at once
+    # working set, kept sorted by |Z| so that each bucket of similar |Z| is a contiguous slice
+    key = Z.sum(1)
+    order = torch.argsort(key, stable=True)
+    w = order  # local row (into the outputs) of each working pixel
+    gi, v, gdw, tw, Z = idx[order], x0[order], gd[order], thr[order], Z[order]
     best = torch.full((n,), m + 1, dtype=torch.long, device=dev)
     backup = torch.full((n,), 3, dtype=torch.long, device=dev)
-    k = int(Z.sum(1).max()) if n else 0
+    bounds = torch.searchsorted(key[order], edges, right=True).tolist()
     for rnd in range(1, max_iter + 1):
-        x, lam, ok, _ = _zero_set_solve(H, gi, Z, v, k)
+        nw = w.numel()
+        x = torch.empty_like(v)
+        lam = torch.empty_like(v)
+        ok = torch.empty((nw,), dtype=torch.bool, device=dev)
+        start = 0
+        for k, stop in zip(edge_list, bounds, strict=True):
+            if stop > start:
+                sl = slice(start, stop)
+                x[sl], lam[sl], ok[sl], _ = _zero_set_solve(H, gi[sl], Z[sl], v[sl], k)
+                start = stop
         infeas = torch.where(Z, lam < -tw, x * gdw < -tw)
         nv = infeas.sum(1)
         fin = (nv == 0) | ~ok
@@ -348,14 +457,17 @@ def _bpp(
         last = (m - 1) - infeas.flip(1).to(torch.uint8).argmax(1)  # Murty: largest index
         single = torch.zeros_like(infeas).scatter_(1, last.view(-1, 1), True)
         Z = Z ^ torch.where(full_block.view(-1, 1), infeas, single)
-        keep = (~fin).nonzero().squeeze(1)
-        if keep.numel() == 0:
+        # compact (finished rows sort last) and re-sort by the new |Z|: one host sync a round
+        key = torch.where(fin, m + 1, Z.sum(1))
+        order = torch.argsort(key, stable=True)
+        bounds = torch.searchsorted(key[order], edges, right=True).tolist()
+        n_keep = bounds[-1]
+        if n_keep == 0:
             break
-        if keep.numel() < w.numel():
-            w, gi, v, gdw, tw = w[keep], gi[keep], v[keep], gdw[keep], tw[keep]
-            Z, best, backup = Z[keep], best[keep], backup[keep]
-        k = int(Z.sum(1).max())
-    return x_out.clamp_min(0), z_out, done, failed, iters
+        order = order[:n_keep]
+        w, gi, v, gdw, tw = w[order], gi[order], v[order], gdw[order], tw[order]
+        Z, best, backup = Z[order], best[order], backup[order]
+    return x_out.clamp_min(0), z_out, done, failed, iters - z0_empty.long()
 
 
 def _lawson_hanson(
@@ -500,6 +612,7 @@ class NNLSProblem:
             n = 65536
             self.gram_norm = torch.cat([_gram_norm(gram[s:s + n]) for s in range(0, gram.shape[0],
                                                                                     n)])
+            self.gram_diag_max = gram.diagonal(dim1=1, dim2=2).amax(1)
 
     # -- shapes -----------------------------------------------------------------------------
     @property
@@ -539,13 +652,17 @@ class NNLSProblem:
             raise TypeError(f"y must be floating point, got {y.dtype}")
         return y.to(self.dtype)
 
-    def _rhs(self, y: Tensor, sl: slice) -> Tensor:
-        """``b = Aᵀ W y`` for the pixels ``sl`` -> ``(n, M)``."""
+    def _masked_y(self, y: Tensor, sl: slice) -> Tensor:
+        """``y`` of the pixels ``sl`` with 0 where the mask is False (NaN-safe)."""
         yc = y[sl]
         w = _take(self.mask, sl)
         if w is not None:
             yc = torch.where(w, yc, torch.zeros((), dtype=yc.dtype, device=yc.device))
-        return _rowvec(yc, _take(self.A, sl))
+        return yc
+
+    def _rhs(self, y: Tensor, sl: slice) -> Tensor:
+        """``b = Aᵀ W y`` for the pixels ``sl`` -> ``(n, M)``."""
+        return _rowvec(self._masked_y(y, sl), _take(self.A, sl))
 
     # -- solve ------------------------------------------------------------------------------
     def solve(
@@ -561,6 +678,7 @@ class NNLSProblem:
         x0: Tensor | None = None,
         admm_iters: int | None = None,
         rho: float | None = None,
+        num_threads: int | None = None,
     ) -> NNLSResult:
         """Solve all pixels for observations ``y``.
 
@@ -579,10 +697,23 @@ class NNLSProblem:
             admm_iters: run exactly this many ADMM iterations (no data-dependent stopping,
                 differentiable w.r.t. ``y``). Ignored by the active-set method.
             rho: ADMM penalty; default per pixel ``trace(G)/M``.
+            num_threads: CPU threads (default ``torch.get_num_threads()``); each runs
+                single-threaded kernels on its share of the pixels, so no kernel waits at a
+                thread barrier for a core another process holds (see :func:`_workers`).
 
         Returns:
             :class:`NNLSResult`. Gradients flow only in the fixed-iteration ADMM mode.
         """
+        workers = _workers(self.device, num_threads)
+        with cpu_threads(self.device, 1):
+            return self._solve(y, method, tol, max_iter, refine, chunk_size, max_memory, x0,
+                               admm_iters, rho, workers)
+
+    def _solve(
+        self, y: Tensor, method: str, tol: float | None, max_iter: int | None,
+        refine: int | None, chunk_size: int | None, max_memory: int | None, x0: Tensor | None,
+        admm_iters: int | None, rho: float | None, workers: int,
+    ) -> NNLSResult:
         if method not in _METHODS:
             raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
         y = self._check_y(y)
@@ -609,7 +740,8 @@ class NNLSProblem:
             n_corr = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
                                 default=_default_solve_chunk(self.device))
             with torch.no_grad():
-                out = self._solve_as(y, tol, max_iter or 10 * m, int(refine), n, n_corr)
+                out = self._solve_as(y, tol, max_iter or 10 * m, int(refine), n, n_corr,
+                                     workers)
             return NNLSResult(*out, method)
         per_px = item * (2 * self.num_obs + 16 * m + 4 * m * m)
         n = _chunk_len(P, per_px, chunk_size, max_memory, self.device)
@@ -643,11 +775,13 @@ class NNLSProblem:
         return x, done & (r <= tol), r
 
     def _solve_as(
-        self, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int
+        self, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int,
+        workers: int,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Active-set solve of the whole frame (see the module docstring).
 
-        ``n``: pixels per chunk of the streamed stages; ``n_corr``: pixels per correction batch.
+        ``n``: pixels per chunk of the streamed stages; ``n_corr``: pixels per correction batch;
+        ``workers``: CPU threads sharing the chunks (1 elsewhere).
         """
         P, m = y.shape[0], self.num_bands
         dev, dt = y.device, self.dtype
@@ -655,22 +789,27 @@ class NNLSProblem:
         tiny = torch.finfo(dt).tiny
         zero = torch.zeros((), dtype=dt, device=dev)
         gn_all = self.gram_norm
-        # 1. right-hand sides, unconstrained solutions x = H b and their negative entries,
-        #    streamed over pixel chunks (cache-sized on CPU)
+        # 1. right-hand sides and unconstrained solutions x = H b, streamed over pixel chunks
+        #    (cache-sized on CPU), with the per-pixel norms the thresholds need
         b = torch.empty((P, m), dtype=dt, device=dev)
         x = torch.empty((P, m), dtype=dt, device=dev)
         bmax = torch.empty((P,), dtype=dt, device=dev)
-        thr = torch.empty((P, 1), dtype=dt, device=dev)
-        need = torch.empty((P,), dtype=torch.bool, device=dev)
-        for s in range(0, P, n):
-            sl = slice(s, min(P, s + n))
-            bs = self._rhs(y, sl)
-            xs = _rowvec(bs, _take(H, sl))
-            bm = bs.abs().amax(1)
-            ts = 0.25 * tol * (_take(gn_all, sl) * xs.abs().amax(1) + bm)
-            ts = ts.clamp_min(tiny).unsqueeze(1)
-            need[sl] = (xs * _take(G, sl).diagonal(dim1=1, dim2=2) < -ts).any(1)
-            b[sl], x[sl], bmax[sl], thr[sl] = bs, xs, bm, ts
+        xnorm = torch.empty((P,), dtype=dt, device=dev)
+        xmin = torch.empty((P,), dtype=dt, device=dev)
+
+        def stage1(sl: slice) -> None:
+            bs, xs = b[sl], x[sl]
+            _rowvec(self._masked_y(y, sl), _take(self.A, sl), out=bs)
+            _rowvec(bs, _take(H, sl), out=xs)
+            torch.amax(bs.abs(), 1, out=bmax[sl])
+            lo, hi = xs.amin(1), xs.amax(1)
+            xmin[sl] = lo
+            torch.maximum(hi, -lo, out=xnorm[sl])
+
+        _for_chunks(stage1, P, n, workers)
+        # infeasibility threshold in gradient units; x_m·G_mm < −thr needs xmin·max(diag G) < −thr
+        thr = (0.25 * tol * (_expand_rows(gn_all, P) * xnorm + bmax)).clamp_min(tiny)
+        need = xmin * _expand_rows(self.gram_diag_max, P) < -thr
         sing = _expand_rows(self.singular, P)
         nod = _expand_rows(self.no_data, P)
         irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
@@ -685,19 +824,27 @@ class NNLSProblem:
         idx = need.nonzero().squeeze(1)
         if idx.numel():
             gd = _expand_rows(G.diagonal(dim1=1, dim2=2), P)
-            for s in range(0, idx.numel(), n_corr):
-                ic = idx[s:s + n_corr]
-                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic], max_iter)
+
+            def correct(sl: slice) -> None:
+                ic = idx[sl]
+                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic].unsqueeze(1), max_iter)
                 x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
                 redo[ic] |= fs | ~ds
+
+            # split between the workers (each a compacted sub-batch of at most n_corr pixels)
+            nw = min(workers, max(1, idx.numel() // 2048))
+            _for_chunks(correct, idx.numel(), min(n_corr, -(-idx.numel() // nw)), nw)
         # 3. independent KKT check with the exact G and b (streamed); refine where it fails
         r = torch.empty((P,), dtype=dt, device=dev)
-        for s in range(0, P, n):
-            sl = slice(s, min(P, s + n))
+
+        def stage3(sl: slice) -> None:
             Gs = _take(G, sl)
             xs = x[sl].clamp_min_(0)
-            g = _rowvec(xs, Gs) - b[sl]
-            r[sl] = _kkt_ratio(g, xs, Gs.diagonal(dim1=1, dim2=2), _take(gn_all, sl), bmax[sl])
+            g = _rowvec(xs, Gs, sub=b[sl])
+            r[sl] = _kkt_ratio(g, xs, Gs.diagonal(dim1=1, dim2=2), _take(gn_all, sl), bmax[sl],
+                               nonneg=True)
+
+        _for_chunks(stage3, P, n, workers)
         bad = ~(r <= tol) & ~irregular & ~redo
         for _ in range(refine):
             idx = bad.nonzero().squeeze(1)
@@ -848,6 +995,7 @@ def prepare_nnls(
     diff_order: int = 1,
     chunk_size: int | None = None,
     max_memory: int | None = None,
+    num_threads: int | None = None,
 ) -> NNLSProblem:
     """Factorise the per-pixel systems once (calibration fixed, only ``y`` changes per frame).
 
@@ -859,6 +1007,8 @@ def prepare_nnls(
         diff_order: order of ``D`` (0 identity, 1 first difference, 2 second difference).
         chunk_size / max_memory: pixels per chunk or working-memory budget (bytes) for the
             factorisation; the stored result is ``2·P·M²`` floats regardless.
+        num_threads: CPU threads (default ``torch.get_num_threads()``); each runs
+            single-threaded kernels on its share of the pixels (see :func:`_workers`).
 
     Returns:
         :class:`NNLSProblem`; call ``.solve(y)`` per frame.
@@ -871,6 +1021,15 @@ def prepare_nnls(
         torch.Size([1000, 25])
     """
     A, mask, beta = _check_inputs(A, mask, beta, diff_order)
+    workers = _workers(A.device, num_threads)
+    with cpu_threads(A.device, 1):
+        return _prepare(A, mask, beta, diff_order, chunk_size, max_memory, workers)
+
+
+def _prepare(
+    A: Tensor, mask: Tensor | None, beta: float, diff_order: int, chunk_size: int | None,
+    max_memory: int | None, workers: int,
+) -> NNLSProblem:
     A3 = A.unsqueeze(0) if A.ndim == 2 else A
     _, o, m = A3.shape
     dev, dt = A3.device, A3.dtype
@@ -894,8 +1053,8 @@ def prepare_nnls(
         no_data = torch.zeros((P,), dtype=torch.bool, device=dev)
         eps = torch.finfo(dt).eps
         outer = (A3[0].unsqueeze(2) * A3[0].unsqueeze(1)).reshape(o, m * m) if shared else None
-        for s in range(0, P, n):
-            sl = slice(s, min(P, s + n))
+
+        def factor(sl: slice) -> None:
             w = None if mask is None else mask[sl]
             if shared:
                 if w is None:
@@ -921,6 +1080,8 @@ def prepare_nnls(
             singular[sl] = bad
             if w is not None:
                 no_data[sl] = ~w.any(1)
+
+        _for_chunks(factor, P, n, workers)
         singular |= no_data
     return NNLSProblem(A3, mask, beta, diff_order, gram, gram_inv, singular, no_data)
 
@@ -941,6 +1102,7 @@ def solve_nnls(
     x0: Tensor | None = None,
     admm_iters: int | None = None,
     rho: float | None = None,
+    num_threads: int | None = None,
 ) -> NNLSResult:
     """Batched non-negative smoothness-regularised least squares, one problem per pixel.
 
@@ -957,7 +1119,10 @@ def solve_nnls(
         method: ``"active_set"`` (exact, finite termination) or ``"admm"``.
         tol, max_iter, refine, x0, admm_iters, rho: see :meth:`NNLSProblem.solve`.
         chunk_size / max_memory: pixels per chunk or a working-memory budget in bytes; each chunk
-            is factorised and solved on its own, so memory stays bounded (per-pixel ``A``).
+            is factorised and solved on its own, so memory stays bounded (per-pixel ``A``;
+            default 131 072 pixels per outer chunk on CPU).
+        num_threads: CPU threads (default ``torch.get_num_threads()``), see
+            :meth:`NNLSProblem.solve`.
 
     Returns:
         :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
@@ -978,21 +1143,29 @@ def solve_nnls(
         raise ValueError(f"A has {A.shape[0]} pixels (shape {tuple(A.shape)}) but y has {P}")
     if mask is not None and mask.shape[0] != P:
         raise ValueError(f"mask has {mask.shape[0]} pixels but y has {P}")
+    workers = _workers(A.device, num_threads)
     kw = dict(method=method, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
-              rho=rho)
+              rho=rho, num_threads=workers)
     if A.ndim == 2 and mask is None:
-        prob = prepare_nnls(A, beta=beta, diff_order=diff_order)
+        prob = prepare_nnls(A, beta=beta, diff_order=diff_order,
+                            num_threads=workers)
         return prob.solve(y, chunk_size=chunk_size, max_memory=max_memory, x0=x0, **kw)
     o, m = A.shape[-2:]
     item = A.element_size()
+    # the factorisation of one outer chunk is held while it is solved: 2·M² floats a pixel
     per_px = item * (o * m + 8 * m * m + 2 * o + 16 * m)
-    n = _chunk_len(P, per_px, chunk_size, max_memory, A.device)
+    n = _chunk_len(P, per_px, chunk_size, max_memory, A.device,
+                   default=_default_solve_chunk(A.device))
+    inner = n if chunk_size is not None or max_memory is not None else None
     parts: list[NNLSResult] = []
     for s in range(0, P, n):
         sl = slice(s, min(P, s + n))
-        prob = prepare_nnls(A if A.ndim == 2 else A[sl], mask=None if mask is None else mask[sl],
-                            beta=beta, diff_order=diff_order, chunk_size=n)
-        parts.append(prob.solve(y[sl], chunk_size=n, x0=None if x0 is None else x0[sl], **kw))
+        prob = prepare_nnls(A if A.ndim == 2 else A[sl],
+                            mask=None if mask is None else mask[sl], beta=beta,
+                            diff_order=diff_order, chunk_size=inner,
+                            num_threads=workers)
+        parts.append(prob.solve(y[sl], chunk_size=inner, x0=None if x0 is None else x0[sl],
+                                **kw))
     return NNLSResult(
         torch.cat([r.x for r in parts]),
         torch.cat([r.converged for r in parts]),
@@ -1013,6 +1186,7 @@ def synthetic_brf_problem(
     noise_dn: float = 1.0,
     peak_dn: float = 255.0,
     shared: bool = False,
+    spectra: str = "bumps",
     seed: int = 0,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
@@ -1023,8 +1197,15 @@ def synthetic_brf_problem(
     ``T = ½[1 − cos(2π·OPD/λ)]`` (view OPDs spread over ``opd_range_nm``, ±2 % per pixel unless
     ``shared``), smooth Gaussian "RGB" curves ``φ^c`` (peaks 600/540/460 nm), per-pixel gains
     0.6…1 (1 when ``shared``). ``A`` is scaled so that a white reflectance (1 in every band) gives
-    at most about ``peak_dn``. Spectra are smooth and non-negative (1–3 Gaussian bumps on a small
-    floor, times a brightness 0.03…1). ``y = A x + N(0, noise_dn²)``; ``mask`` drops a random
+    at most about ``peak_dn``. Spectra (times a brightness 0.03…1):
+
+    * ``spectra="bumps"`` (hard case): 1–3 Gaussian bumps on a small floor, normalised to peak 1
+      — many bands near 0, so ~30 % of the pixels need the active-set correction;
+    * ``spectra="reflectance"`` (realistic): random convex mixtures of 2–3 of the 24 ColorChecker
+      reflectances (:func:`hsi_torch.refdata.colorchecker_reflectances`) lit by CIE D65,
+      normalised to peak 1 — smooth and positive in every band, like real scenes.
+
+    ``y = A x + N(0, noise_dn²)``; ``mask`` drops a random
     ``mask_fraction`` of the observations and every observation above ``peak_dn`` (saturation).
     Generated in float64 in chunks (memory ≈ the outputs), then cast.
 
@@ -1052,19 +1233,33 @@ def synthetic_brf_problem(
         gain = 0.6 + 0.4 * torch.rand(n, v, 1, 1, generator=gen, dtype=f64) if jitter else 1.0
         return (gain * trans.unsqueeze(2) * phi_dl).reshape(n, 3 * v, m)
 
+    if spectra not in ("bumps", "reflectance"):
+        raise ValueError(f"spectra must be 'bumps' or 'reflectance', got {spectra!r}")
     scale = peak_dn / float(sensing(1, False).sum(2).amax())
     t = (lam - lam[0]) / (lam[-1] - lam[0])
+    if spectra == "reflectance":
+        from hsi_torch.refdata import colorchecker_reflectances, illuminant
+
+        refl, _ = colorchecker_reflectances(lam)
+        lit = refl.to(f64) * illuminant("D65", lam).to(f64)  # (24, M)
     A_shared = sensing(1, False)[0] * scale if shared else None
     outs: list[list[Tensor]] = [[], [], [], []]
     for s in range(0, P, 16384):
         n = min(P, s + 16384) - s
         a = A_shared.expand(n, -1, -1) if shared else sensing(n, True) * scale
-        c = torch.rand(n, 3, 1, generator=gen, dtype=f64) * 1.2 - 0.1
-        w = 0.08 + 0.3 * torch.rand(n, 3, 1, generator=gen, dtype=f64)
-        h = torch.rand(n, 3, 1, generator=gen, dtype=f64)
-        h = h * (torch.rand(n, 3, 1, generator=gen, dtype=f64) < 0.8)
-        x = (h * torch.exp(-0.5 * ((t - c) / w) ** 2)).sum(1)
-        x = x + 0.05 * torch.rand(n, 1, generator=gen, dtype=f64)
+        if spectra == "bumps":
+            c = torch.rand(n, 3, 1, generator=gen, dtype=f64) * 1.2 - 0.1
+            w = 0.08 + 0.3 * torch.rand(n, 3, 1, generator=gen, dtype=f64)
+            h = torch.rand(n, 3, 1, generator=gen, dtype=f64)
+            h = h * (torch.rand(n, 3, 1, generator=gen, dtype=f64) < 0.8)
+            x = (h * torch.exp(-0.5 * ((t - c) / w) ** 2)).sum(1)
+            x = x + 0.05 * torch.rand(n, 1, generator=gen, dtype=f64)
+        else:
+            pick = torch.randint(0, lit.shape[0], (n, 3), generator=gen)
+            wts = -torch.log(torch.rand(n, 3, generator=gen, dtype=f64).clamp_min(1e-12))
+            wts = wts * (torch.rand(n, 3, generator=gen, dtype=f64) < 0.8)
+            wts[:, 0] += 1e-3  # at least one patch
+            x = (wts.unsqueeze(2) * lit[pick]).sum(1) / wts.sum(1, keepdim=True)
         x = x / x.amax(1, keepdim=True).clamp_min(1e-12)
         x = x * (0.03 + 0.97 * torch.rand(n, 1, generator=gen, dtype=f64))
         y = torch.bmm(a, x.unsqueeze(2)).squeeze(2)
