@@ -1067,27 +1067,29 @@ def _prepare(
 
         def factor(sl: slice) -> None:
             w = None if mask is None else mask[sl]
+            G = gram[sl]
             if shared:
                 if w is None:
-                    G = (A3[0].T @ A3[0]).unsqueeze(0)
+                    G.copy_((A3[0].T @ A3[0]).unsqueeze(0))
                 else:
-                    G = (w.to(dt) @ outer).view(-1, m, m)
+                    torch.mm(w.to(dt), outer, out=G.view(-1, m * m))
             else:
                 a = A3[sl]
-                aw = a if w is None else torch.where(w.unsqueeze(2), a, torch.zeros((), dtype=dt,
-                                                                                     device=dev))
-                G = torch.bmm(a.transpose(1, 2), aw)
-            G = 0.5 * (G + G.transpose(1, 2)) + R
+                aw = a if w is None else a * w.unsqueeze(2)  # A finite: 0/1 weights by product
+                torch.bmm(a.transpose(1, 2), aw, out=G)  # symmetric (same products, same order)
+            G.add_(R)
             L, info = torch.linalg.cholesky_ex(G)
             gd = G.diagonal(dim1=1, dim2=2)
             ld2 = L.diagonal(dim1=1, dim2=2).square()
             bad = (info != 0) | ~(ld2.amin(1) > 20.0 * m * eps * gd.amax(1))
             bad |= ~torch.isfinite(ld2).all(1)
-            L = torch.where(bad.view(-1, 1, 1), torch.eye(m, dtype=dt, device=dev), L)
-            Gi = torch.cholesky_inverse(L)
-            Gi = torch.where(bad.view(-1, 1, 1), torch.zeros((), dtype=dt, device=dev), Gi)
-            gram[sl] = G
-            gram_inv[sl] = 0.5 * (Gi + Gi.transpose(1, 2))
+            any_bad = bool(bad.any())
+            if any_bad:
+                L = torch.where(bad.view(-1, 1, 1), torch.eye(m, dtype=dt, device=dev), L)
+            Gi = gram_inv[sl]
+            torch.cholesky_inverse(L, out=Gi)  # exactly symmetric
+            if any_bad:
+                Gi.masked_fill_(bad.view(-1, 1, 1), 0.0)
             singular[sl] = bad
             if w is not None:
                 no_data[sl] = ~w.any(1)
