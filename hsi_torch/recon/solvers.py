@@ -394,6 +394,49 @@ def _zero_set_solve(
     return x, lam, ok, (zi, R, L)
 
 
+def _bucketed_solve(
+    H: Tensor, gi: Tensor, Z: Tensor, v: Tensor, edge_list: list[int], bounds: list[int]
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_zero_set_solve` for rows sorted by ``|Z|``, one padded size per bucket.
+
+    ``bounds[i]`` = number of rows with ``|Z| ≤ edge_list[i]`` (rows ``bounds[i-1]:bounds[i]``
+    are solved with ``k = edge_list[i]``).
+    """
+    x = torch.empty_like(v)
+    lam = torch.empty_like(v)
+    ok = torch.empty((v.shape[0],), dtype=torch.bool, device=v.device)
+    start = 0
+    for k, stop in zip(edge_list, bounds, strict=True):
+        if stop > start:
+            sl = slice(start, stop)
+            x[sl], lam[sl], ok[sl], _ = _zero_set_solve(H, gi[sl], Z[sl], v[sl], k)
+            start = stop
+    return x, lam, ok
+
+
+def _zero_set_solve_any(H: Tensor, gi: Tensor, Z: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_zero_set_solve` for rows in any order (sorted into ``|Z|`` buckets inside).
+
+    Returns ``x`` and ``ok`` in the input order.
+    """
+    m = v.shape[1]
+    edges = torch.tensor([e for e in _K_EDGES if e < m] + [m], device=v.device)
+    cnt = Z.sum(1)
+    order = torch.argsort(cnt, stable=True)
+    bounds = torch.searchsorted(cnt[order], edges, right=True).tolist()
+    xs, _, oks = _bucketed_solve(H, gi[order], Z[order], v[order], edges.tolist(), bounds)
+    x = torch.empty_like(v)
+    ok = torch.empty_like(oks)
+    x[order] = xs
+    ok[order] = oks
+    return x, ok
+
+
+#: exchange rounds after which a pixel leaves block principal pivoting for Lawson–Hanson: well
+#: conditioned pixels settle in 1–6 rounds; badly conditioned ones (cond(G) ~ 1e5) can cycle
+#: through dozens of Murty single pivots, each a round for the whole (tiny) remaining batch
+_BPP_ROUNDS = 16
+
 #: bucket bounds on |Z| for the padded zero-set solves (pixels with |Z| in (e_i, e_{i+1}] share
 #: one k = e_{i+1} system size)
 _K_EDGES = (0, 1, 2, 3, 4, 5, 6, 8, 10, 13, 17)
@@ -442,16 +485,7 @@ def _bpp(
     backup = torch.full((n,), 3, dtype=torch.long, device=dev)
     bounds = torch.searchsorted(key[order], edges, right=True).tolist()
     for rnd in range(1, max_iter + 1):
-        nw = w.numel()
-        x = torch.empty_like(v)
-        lam = torch.empty_like(v)
-        ok = torch.empty((nw,), dtype=torch.bool, device=dev)
-        start = 0
-        for k, stop in zip(edge_list, bounds, strict=True):
-            if stop > start:
-                sl = slice(start, stop)
-                x[sl], lam[sl], ok[sl], _ = _zero_set_solve(H, gi[sl], Z[sl], v[sl], k)
-                start = stop
+        x, lam, ok = _bucketed_solve(H, gi, Z, v, edge_list, bounds)
         infeas = torch.where(Z, lam < -tw, x * gdw < -tw)
         nv = infeas.sum(1)
         fin = (nv == 0) | ~ok
@@ -839,7 +873,8 @@ class NNLSProblem:
 
             def correct(sl: slice) -> None:
                 ic = idx[sl]
-                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic].unsqueeze(1), max_iter)
+                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic].unsqueeze(1),
+                                           min(max_iter, _BPP_ROUNDS))
                 x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
                 redo[ic] |= fs | ~ds
 
@@ -849,14 +884,29 @@ class NNLSProblem:
         # 3. independent KKT check with the exact G and b (streamed); refine where it fails
         r = torch.empty((P,), dtype=dt, device=dev)
 
+        plain = ~zset.any(1) & ~irregular  # all-free pixels: refined right here, streamed
+
         def stage3(sl: slice) -> None:
-            Gs = _take(G, sl)
+            Gs, Hs, gns, bs = _take(G, sl), _take(H, sl), _take(gn_all, sl), b[sl]
+            gd = Gs.diagonal(dim1=1, dim2=2)
             xs = x[sl].clamp_min_(0)
-            g = _rowvec(xs, Gs, sub=b[sl])
-            r[sl] = _kkt_ratio(g, xs, Gs.diagonal(dim1=1, dim2=2), _take(gn_all, sl), bnorm[sl])
+            g = _rowvec(xs, Gs, sub=bs)
+            rs = _kkt_ratio(g, xs, gd, gns, bnorm[sl])
+            for _ in range(refine):
+                fix = ~(rs <= tol) & plain[sl]
+                if not bool(fix.any()):
+                    break
+                xn = (xs - _rowvec(g, Hs)).clamp_min_(0)
+                gn = _rowvec(xn, Gs, sub=bs)
+                rn = _kkt_ratio(gn, xn, gd, gns, bnorm[sl])
+                fix &= rn < rs
+                xs.copy_(torch.where(fix.unsqueeze(1), xn, xs))
+                g = torch.where(fix.unsqueeze(1), gn, g)
+                rs = torch.where(fix, rn, rs)
+            r[sl] = rs
 
         _for_chunks(stage3, P, n, workers)
-        bad = ~(r <= tol) & ~irregular & ~redo
+        bad = ~(r <= tol) & ~irregular & ~redo & ~plain
         for _ in range(refine):
             idx = bad.nonzero().squeeze(1)
             if idx.numel() == 0:
@@ -869,7 +919,7 @@ class NNLSProblem:
                 r[ic] = torch.where(better, rs, r[ic])
             bad[idx] = ~(r[idx] <= tol)
         # 4. robust fallback: singular G, Cholesky failures, unfinished or still failing pixels
-        redo |= bad
+        redo |= ~(r <= tol) & ~irregular
         if any_irregular:
             redo &= ~nod
         idx = redo.nonzero().squeeze(1)
@@ -907,8 +957,7 @@ class NNLSProblem:
         Hs = H if H.shape[0] == 1 else H[idx]
         g = _rowvec(x, Gs) - b
         u = -_rowvec(torch.where(Z, torch.zeros((), dtype=x.dtype, device=x.device), g), Hs)
-        k = int(Z.sum(1).max())
-        d, _, ok, _ = _zero_set_solve(H, idx, Z, u, k)
+        d, ok = _zero_set_solve_any(H, idx, Z, u)
         xs = torch.where(ok.view(-1, 1), x + d, x).clamp_min(0)
         gn = self.gram_norm if self.gram_norm.shape[0] == 1 else self.gram_norm[idx]
         return xs, nnls_kkt_residual(Gs, b, xs, gn)
