@@ -335,3 +335,92 @@ def test_alias_and_errors():
     prob = prepare_nnls(A)
     with pytest.raises(ValueError, match="pixels"):
         prob.solve(y[:3])
+
+
+# ------------------------------------------------------------------------------------------------
+# per-frame fast path: conditioning, realistic spectra, threads, residual definition
+
+
+def test_ill_conditioned_float64_no_spurious_fallback():
+    """beta = 1 on the DN scale (cond(G) ~ 1e4–1e5): well-solved pixels count as converged,
+    only pixels whose unconstrained solution is negative pivot, answers match SciPy."""
+    A, y, mask, _ = synthetic_brf_problem(600, seed=21, dtype=torch.float64)
+    G = prepare_nnls(A, mask=mask, beta=1.0).gram
+    ev = torch.linalg.eigvalsh(G)
+    assert float((ev[:, -1] / ev[:, 0]).median()) > 1e3
+    res = solve_nnls(A, y, beta=1.0, mask=mask)
+    assert bool(res.converged.all())
+    assert float(res.kkt_residual.max()) < 25 * torch.finfo(torch.float64).eps
+    ref = scipy_reference(A, y, 1.0, mask)
+    # exactly the pixels with a negative unconstrained solution needed the active set
+    x_unc = torch.linalg.solve(G, prepare_nnls(A, mask=mask, beta=1.0)._rhs(y, slice(None)))
+    assert torch.equal(res.iterations > 0, (x_unc < -1e-9 * x_unc.abs().amax(1,
+                                                                             keepdim=True)).any(1))
+    assert rel_err(res.x, ref).max() < 1e-8
+    assert kkt_violation(A, y, res.x, 1.0, mask).max() < 1e-10
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_realistic_reflectance_spectra(dtype):
+    """ColorChecker × D65 spectra: positive in every band, few pixels need the correction."""
+    A, y, mask, xt = synthetic_brf_problem(600, spectra="reflectance", seed=4)
+    assert bool((xt > 0).all())
+    res = solve_nnls(A.to(dtype), y.to(dtype), beta=1e2, mask=mask)
+    ref = scipy_reference(A, y, 1e2, mask)
+    assert rel_err(res.x, ref).max() < (1e-8 if dtype == torch.float64 else 5e-4)
+    Ah, yh, mh, _ = synthetic_brf_problem(600, seed=4)  # the hard (Gaussian-bump) spectra
+    hard = solve_nnls(Ah, yh, beta=1e2, mask=mh)
+    assert float((res.iterations > 0).double().mean()) < float(
+        (hard.iterations > 0).double().mean())
+    assert bool(res.converged.all())
+    with pytest.raises(ValueError, match="spectra"):
+        synthetic_brf_problem(5, spectra="flat")
+
+
+def test_worker_threads_identical_and_restored():
+    A, y, mask, _ = synthetic_brf_problem(5000, seed=6, dtype=torch.float32)
+    n0 = torch.get_num_threads()
+    prob = prepare_nnls(A, mask=mask, beta=1e2, num_threads=1)
+    one = prob.solve(y, num_threads=1, chunk_size=512)
+    two = prob.solve(y, num_threads=2, chunk_size=512)
+    assert torch.get_num_threads() == n0
+    assert torch.equal(one.x, two.x) and torch.equal(one.iterations, two.iterations)
+    prob2 = prepare_nnls(A, mask=mask, beta=1e2, num_threads=2, chunk_size=512)
+    assert torch.equal(prob2.gram_inv, prob.gram_inv)
+    with pytest.raises(ValueError, match="num_threads"):
+        prob.solve(y, num_threads=0)
+
+
+def test_kkt_residual_is_a_backward_error():
+    """The residual is ~eps at SciPy's answers, large for a wrong answer; ‖G‖₂ bound is below
+    the largest eigenvalue."""
+    from hsi_torch.recon.solvers import nnls_kkt_residual
+
+    A, y, mask, _ = synthetic_brf_problem(300, seed=2)
+    prob = prepare_nnls(A, mask=mask, beta=1.0)
+    b = prob._rhs(y, slice(None))
+    lam = torch.linalg.eigvalsh(prob.gram)[:, -1]
+    assert bool((prob.gram_norm <= lam * (1 + 1e-12)).all())
+    assert float((prob.gram_norm / lam).min()) > 0.5
+    ref = scipy_reference(A, y, 1.0, mask)
+    r = nnls_kkt_residual(prob.gram, b, ref)
+    assert float(r.max()) < 1e-12
+    bad = ref.clone()
+    bad[:, 3] += 0.01 * ref.abs().amax(1)
+    assert float(nnls_kkt_residual(prob.gram, b, bad).min()) > 1e-6
+
+
+def test_small_beta_stacked_sweep_converges():
+    """The experiments' sweep: stacked [A; √β D] with tiny β and beta = 0 in the solver."""
+    A, y, mask, _ = synthetic_brf_problem(400, seed=9, shared=True, mask_fraction=0.0)
+    D = difference_matrix(25, 1, dtype=torch.float64)
+    a = torch.cat([A, 0.1 * D])  # beta = 0.01
+    yy = torch.cat([y, torch.zeros(400, D.shape[0], dtype=torch.float64)], 1)
+    res = solve_nnls(a, yy, beta=0.0)
+    assert bool(res.converged.all())
+    ref = scipy_reference(a, yy, 0.0)
+    # same optimal objective as SciPy (cond is huge: compare objectives, not x)
+    f_ours = (yy - res.x @ a.T).square().sum(1)
+    f_ref = (yy - ref @ a.T).square().sum(1)
+    assert float(((f_ours - f_ref) / f_ref).max()) < 1e-9
+    assert kkt_violation(a, yy, res.x, 0.0).max() < 1e-9

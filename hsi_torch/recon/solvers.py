@@ -894,15 +894,30 @@ class NNLSProblem:
             rs = _kkt_ratio(g, xs, gd, gns, bnorm[sl])
             for _ in range(refine):
                 fix = ~(rs <= tol) & plain[sl]
-                if not bool(fix.any()):
+                nf = int(fix.sum())
+                if nf == 0:
                     break
-                xn = (xs - _rowvec(g, Hs)).clamp_min_(0)
-                gn = _rowvec(xn, Gs, sub=bs)
-                rn = _kkt_ratio(gn, xn, gd, gns, bnorm[sl])
-                fix &= rn < rs
-                xs.copy_(torch.where(fix.unsqueeze(1), xn, xs))
-                g = torch.where(fix.unsqueeze(1), gn, g)
-                rs = torch.where(fix, rn, rs)
+                if 4 * nf >= fix.numel():  # many: whole chunk, masked
+                    xn = (xs - _rowvec(g, Hs)).clamp_min_(0)
+                    gn = _rowvec(xn, Gs, sub=bs)
+                    rn = _kkt_ratio(gn, xn, gd, gns, bnorm[sl])
+                    fix &= rn < rs
+                    xs.copy_(torch.where(fix.unsqueeze(1), xn, xs))
+                    g = torch.where(fix.unsqueeze(1), gn, g)
+                    rs = torch.where(fix, rn, rs)
+                    continue
+                li = fix.nonzero().squeeze(1)  # few: those rows only
+                Gl = Gs if Gs.shape[0] == 1 else Gs[li]
+                Hl = Hs if Hs.shape[0] == 1 else Hs[li]
+                xl = xs[li]
+                xn = (xl - _rowvec(g[li], Hl)).clamp_min_(0)
+                gn = _rowvec(xn, Gl, sub=bs[li])
+                rn = _kkt_ratio(gn, xn, Gl.diagonal(dim1=1, dim2=2), gns if gns.shape[0] == 1
+                                else gns[li], bnorm[sl][li])
+                ok = (rn < rs[li]).unsqueeze(1)
+                xs[li] = torch.where(ok, xn, xl)
+                g[li] = torch.where(ok, gn, g[li])
+                rs[li] = torch.minimum(rn, rs[li])
             r[sl] = rs
 
         _for_chunks(stage3, P, n, workers)
