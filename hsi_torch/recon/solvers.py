@@ -15,20 +15,30 @@ normal-equation form this is the convex quadratic programme ``min ½ xᵀGx − 
 Method (``method="active_set"``, exact, finite termination):
 
 1. Per calibration (:func:`prepare_nnls`, done once when ``A``, mask and ``beta`` are fixed):
-   the Gram matrices ``G_p`` and their explicit inverses ``G_p⁻¹`` (batched Cholesky). A frame
-   then costs ``b = Aᵀ W y`` and one batched matrix–vector product ``x = G⁻¹ b`` (plus one step
-   of iterative refinement in float32).
-2. Pixels whose unconstrained solution is already ``≥ 0`` are finished. The others (usually a small
-   sub-batch) run a *block principal pivoting* active-set method (Júdice & Pires; Kim & Park's NNLS
-   variant) with Murty's single-pivot back-up rule, which guarantees finite termination for positive
-   definite ``G``. The free set is a boolean mask. Instead of re-factorising the reduced systems,
-   every pixel carries the principal pivot transform (a "tableau") of ``G⁻¹``; moving one variable
-   between the free and the active set is a rank-1 update of that ``M × M`` tableau, done for the
-   whole sub-batch at once. A final refinement step recomputes the gradient from the exact ``G``.
-3. Pixels whose ``G`` is singular or numerically so (``beta = 0`` with rank-deficient ``A``, few
-   observations) use the Lawson–Hanson active-set method on the same tableau machinery, starting
-   from ``x = 0``; a variable only enters the free set while its reduced pivot is safely positive,
-   so the free columns stay independent and the KKT conditions hold at the end.
+   the Gram matrices ``G_p``, their explicit inverses ``H_p = G_p⁻¹`` (batched Cholesky) and a
+   lower bound of ``‖G_p‖₂``. A frame then costs, streamed over cache-sized pixel chunks,
+   ``b = Aᵀ W y`` and ``x = H b`` (two batched row-vector products).
+2. Pixels whose ``x`` has a negative entry are gathered into one compacted sub-batch and run
+   *block principal pivoting* (Júdice & Pires; Kim & Park's NNLS variant) on the zero set ``Z``,
+   starting from ``Z`` = the negative entries (usually already the answer). The solution with
+   ``x_Z = 0`` is ``x = x₀ − H[:, Z] H_ZZ⁻¹ x₀_Z`` and its multipliers ``λ_Z = −H_ZZ⁻¹ x₀_Z``
+   (the gradient on ``Z``), so a round reads ``|Z|`` rows of ``H`` and factorises a
+   ``|Z| × |Z|`` system per pixel (pixels bucketed by ``|Z|``, padded within a bucket). Infeasible
+   variables (``x_F < 0`` or ``λ_Z < 0``) are exchanged; after three rounds without progress
+   only the largest one (Murty's rule: finite termination for positive definite ``G``). Pixels
+   leave the working set as they finish; those not settled after 16 rounds (badly conditioned
+   ``G`` cycling through single pivots) continue with Lawson–Hanson (3.).
+3. An independent KKT check with the exact ``G`` and ``b`` for every pixel (streamed), as a
+   normwise backward error (:func:`nnls_kkt_residual`); pixels above ``tol`` (default ``M·eps``)
+   get up to ``refine`` steps of iterative refinement on their zero set. Pixels whose ``G`` is
+   singular or numerically so (``beta = 0`` with rank-deficient ``A``, few observations), or that
+   still fail, use the Lawson–Hanson active-set method on a principal-pivot tableau of ``G``
+   starting from ``x = 0``; a variable only enters the free set while its reduced pivot is safely
+   positive, so the free columns stay independent and the KKT conditions hold at the end.
+
+On CPU every kernel runs single-threaded and the pixels are split between ``num_threads`` Python
+threads instead (default ``torch.get_num_threads()``): thousands of small multi-threaded kernels
+stall at their barriers whenever another process holds a core (see :func:`_workers`).
 
 ``method="admm"``: ADMM on ``x = z, z ≥ 0`` with per-pixel ``(G + ρI)⁻¹`` precomputed, warm started
 from the clamped unconstrained solution (or a given ``x0``). With ``admm_iters=N`` it runs exactly
@@ -632,6 +642,10 @@ class NNLSProblem:
         gram, gram_inv: ``(1|P, M, M)``; ``gram_inv`` is 0 where ``singular``.
         singular: ``(1|P,)`` bool, ``G`` is (numerically) singular: those pixels use
             Lawson–Hanson. no_data: ``(1|P,)`` bool, all observations masked.
+        gram_norm: ``(1|P,)`` lower bound of ``‖G‖₂`` (computed here, for the KKT residual);
+            gram_diag_max: ``(1|P,)`` ``max_m G_mm``.
+
+    The constructor signature is stable (``HSIReconstructor`` builds it from its buffers).
     """
 
     def __init__(
