@@ -9,6 +9,9 @@ With ``resume=True`` an input is skipped when its outputs already exist:
   output it lists still exists. Markers live in ``out_dir/.hsi_torch_done/`` (one small JSON per
   input, named ``<stem>-<hash of the absolute input path>.json``, written atomically *after*
   ``process`` returned), so an interrupted or failed input is never mistaken for a finished one.
+  The marker also records the input file's size and modification time and the run's
+  ``fingerprint`` (e.g. a hash of the configuration and the bundle): an input that changed since,
+  or a rerun with different settings, is processed again instead of being skipped.
 
 ``process`` should write its files atomically (:func:`hsi_torch.io.atomic.atomic_write`) so a
 crash leaves no partial output. Inputs run sequentially in this process; the per-frame work
@@ -39,6 +42,8 @@ __all__ = [
     "run_batch",
     "print_summary",
     "DONE_DIR",
+    "ensure_out_dir",
+    "fingerprint_of",
 ]
 
 DONE_DIR = ".hsi_torch_done"
@@ -114,7 +119,7 @@ def expand_inputs(inputs: Iterable[str | os.PathLike]) -> list[Path]:
     seen: set[str] = set()
     for item in inputs:
         text = os.fspath(item)
-        if _GLOB_CHARS & set(text):
+        if _GLOB_CHARS & set(text) and not os.path.exists(os.path.expanduser(text)):
             matches = sorted(m for m in glob.glob(os.path.expanduser(text), recursive=True))
             matches = [m for m in matches if not os.path.isdir(m)]
             if not matches:
@@ -141,8 +146,39 @@ def _marker_path(out_dir: Path, inp: Path) -> Path:
     return out_dir / DONE_DIR / f"{inp.stem}-{digest}.json"
 
 
+def ensure_out_dir(path: str | os.PathLike) -> Path:
+    """Create the output folder ``path`` (and its parents); errors name the folder.
+
+    Raises:
+        ValueError: ``path`` exists and is not a folder.
+        OSError: it cannot be created (the message names the folder and the reason).
+    """
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"output folder {p} exists and is not a folder")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"cannot create output folder {p}: {exc.strerror or exc}") from None
+    return p
+
+
+def fingerprint_of(obj: Any) -> str:
+    """A short stable hash of a JSON-serialisable ``obj`` (keys sorted), for ``run_batch``."""
+    text = json.dumps(obj, sort_keys=True, default=str)
+    return hashlib.sha1(text.encode("utf-8")).hexdigest()
+
+
+def _input_stamp(inp: Path) -> list[int]:
+    st = inp.stat()
+    return [int(st.st_size), int(st.st_mtime_ns)]
+
+
 def _is_done(
-    inp: Path, out_dir: Path, expected_outputs: Callable[[Path], Sequence[Path | str]] | None
+    inp: Path,
+    out_dir: Path,
+    expected_outputs: Callable[[Path], Sequence[Path | str]] | None,
+    fingerprint: str | None = None,
 ) -> bool:
     if expected_outputs is not None:
         paths = [Path(p) for p in expected_outputs(inp)]
@@ -152,7 +188,12 @@ def _is_done(
         return False
     try:
         rec = json.loads(marker.read_text(encoding="utf-8"))
+        stamp = _input_stamp(inp)
     except (OSError, json.JSONDecodeError):
+        return False
+    if rec.get("input_stamp") != stamp:  # the input changed since it was processed
+        return False
+    if fingerprint is not None and rec.get("fingerprint") != fingerprint:  # other settings
         return False
     return all(Path(p).exists() for p in rec.get("outputs", []))
 
@@ -173,6 +214,7 @@ def run_batch(
     progress: bool = True,
     expected_outputs: Callable[[Path], Sequence[Path | str]] | None = None,
     desc: str = "processing",
+    fingerprint: str | None = None,
 ) -> BatchSummary:
     """Run ``process`` over every input, continuing past failures.
 
@@ -184,6 +226,8 @@ def run_batch(
         progress: show a tqdm progress bar on stderr.
         expected_outputs: optional ``input -> output paths`` used to decide resumption.
         desc: progress-bar label.
+        fingerprint: identifies the settings of this run (see :func:`fingerprint_of`); with the
+            done-markers, an input finished under a different fingerprint is processed again.
 
     Returns:
         :class:`BatchSummary` (use ``.report()`` / :func:`print_summary` and ``.exit_code``).
@@ -194,23 +238,25 @@ def run_batch(
     from tqdm import tqdm
 
     paths = expand_inputs(inputs)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = ensure_out_dir(out_dir)
     summary = BatchSummary()
     t0 = time.perf_counter()
     bar = tqdm(paths, desc=desc, unit="file", disable=not progress, file=sys.stderr, leave=True)
     try:
         for inp in bar:
-            if resume and _is_done(inp, out, expected_outputs):
+            if resume and _is_done(inp, out, expected_outputs, fingerprint):
                 summary.skipped.append(inp)
                 continue
             try:
                 if not inp.exists():
                     raise FileNotFoundError(f"input file not found: {inp}")
+                stamp = _input_stamp(inp)
                 outputs = _as_paths(process(inp))
                 if expected_outputs is None:
                     record = {
                         "input": os.path.abspath(inp),
+                        "input_stamp": stamp,
+                        "fingerprint": fingerprint,
                         "outputs": [os.path.abspath(p) for p in outputs],
                         "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
                     }

@@ -346,6 +346,7 @@ def read_any(
     normalize: bool = False,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
+    default_cfa_pattern: str | None = None,
 ) -> LinearCapture:
     """Read any supported capture (TIFF, NPY, NPZ, camera RAW) as linear RGB.
 
@@ -361,6 +362,8 @@ def read_any(
             saturation mask).
         normalize: divide by ``white − black`` (1.0 = saturation).
         dtype, device: of the returned tensors.
+        default_cfa_pattern: CFA pattern of a Bayer file that has none in its metadata (when
+            ``cfa_pattern`` is not given), e.g. the pattern the calibration bundle was made with.
 
     Returns:
         :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
@@ -427,11 +430,11 @@ def read_any(
     out_meta = dict(meta)
     out_meta.update(kind=kind, black_level=_jsonable(bl), white_level=_jsonable(wl), source=str(p))
     if kind == "bayer":
-        pattern = cfa_pattern or meta.get("cfa_pattern")
+        pattern = cfa_pattern or meta.get("cfa_pattern") or default_cfa_pattern
         if not pattern:
             raise FileFormatError(
                 f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
-                "('RGGB', 'BGGR', 'GRBG' or 'GBRG')"
+                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB)"
             )
         try:
             pattern = validate_cfa_pattern(pattern)

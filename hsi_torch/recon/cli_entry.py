@@ -6,7 +6,9 @@ For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif
 outputs fails, the files already written for that input are removed. ``DIR/resolved_config.yaml``
 records the configuration. Runs through :func:`hsi_torch.batch.run_batch` (progress bar, continues
 past bad files, every failure reported at the end, non-zero exit; resume skips inputs whose
-outputs exist).
+outputs exist and were made from the same input file, configuration and bundle — anything else
+is reconstructed again). Inputs, configuration and bundle are all checked before the output
+folder is created or ``resolved_config.yaml`` is written.
 """
 
 from __future__ import annotations
@@ -95,6 +97,33 @@ def write_outputs(
     return written
 
 
+def _reconstruct_file(
+    rec: Reconstructor, path: Path, cfg: ReconstructConfig, bundle_cfa: str | None
+) -> ReconstructionResult:
+    """:meth:`Reconstructor.reconstruct_file` with the config's ``cfa_pattern``, ``black_level``
+    and ``white_level`` (and the bundle's CFA pattern for Bayer files that have none)."""
+    import time
+
+    from hsi_torch.io import read_any
+
+    sens = rec.sensing
+    t0 = time.perf_counter()
+    cap = read_any(
+        path, expected_size=sens.sensor_size if cfg.demosaic == "bilinear" else None,
+        demosaic=cfg.demosaic, cfa_pattern=cfg.cfa_pattern, black_level=cfg.black_level,
+        white_level=cfg.white_level, dtype=sens.dtype, device=sens.device,
+        default_cfa_pattern=bundle_cfa,
+    )  # fmt: skip
+    if sens.device.type == "cuda":
+        torch.cuda.synchronize(sens.device)
+    t_load = time.perf_counter() - t0
+    res = rec.reconstruct_capture(cap)
+    res.timings = {"load": t_load, **res.timings}
+    res.timings["total"] = res.timings.get("total", 0.0) + t_load
+    res.stats["metadata"] = cap.metadata
+    return res
+
+
 def _resolve_device(name: str) -> torch.device:
     try:
         dev = torch.device(name)
@@ -111,12 +140,13 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     ``args``: ``bundle``, ``out``, ``inputs``, ``config``, ``overrides``, ``device``, ``resume``,
     ``progress``. Returns the :class:`hsi_torch.batch.BatchSummary`.
     """
-    from hsi_torch.batch import run_batch
+    from hsi_torch.batch import ensure_out_dir, expand_inputs, fingerprint_of, run_batch
     from hsi_torch.cli import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.recon.sensing import load_bundle
 
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig)
+    inputs = expand_inputs(args.inputs)  # a glob matching nothing fails before anything is written
     if getattr(args, "device", None):
         cfg.device = str(args.device)
     device = _resolve_device(cfg.device)
@@ -126,10 +156,16 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     h, w = bundle.frame_size
     if cfg.spectra_points:
         _check_points(cfg.spectra_points, h, w)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = ensure_out_dir(args.out)
     write_resolved_config(cfg, out)
+    st = bundle_path.stat()
+    settings = {k: v for k, v in vars(cfg).items() if k not in ("device", "chunk_size")}
+    fingerprint = fingerprint_of({
+        "config": settings,
+        "bundle": [os.path.abspath(bundle_path), st.st_size, st.st_mtime_ns],
+    })  # fmt: skip
 
+    bundle_cfa = bundle.settings.get("cfa_pattern") if isinstance(bundle.settings, dict) else None
     state: dict[str, Any] = {"rec": None, "stems": {}}
 
     def reconstructor() -> Reconstructor:  # built on the first input that needs it
@@ -152,7 +188,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
             )
         state["stems"][path.stem] = os.path.abspath(path)
         rec = reconstructor()
-        res = rec.reconstruct_file(path, demosaic=cfg.demosaic)
+        res = _reconstruct_file(rec, path, cfg, bundle_cfa)
         cap_meta = res.stats.pop("metadata", {})
         meta = {
             "source": os.path.abspath(path),
@@ -165,6 +201,6 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
         return write_outputs(res, stem, cfg, meta)
 
     return run_batch(
-        args.inputs, process, out, resume=getattr(args, "resume", True),
-        progress=getattr(args, "progress", True), desc="reconstruct",
+        inputs, process, out, resume=getattr(args, "resume", True),
+        progress=getattr(args, "progress", True), desc="reconstruct", fingerprint=fingerprint,
     )  # fmt: skip

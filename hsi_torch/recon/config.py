@@ -23,8 +23,9 @@ class ReconstructConfig:
     """Settings of a reconstruction run (see the field help texts)."""
 
     beta: float = field(
-        default=1.0,
-        metadata=_help("smoothness weight on ||D s||^2, on the data's scale (DN^2); 1e-2..1e6"),
+        default=1e4,
+        metadata=_help("smoothness weight on ||D s||^2, on the data's scale (DN^2); 1e-2..1e6 "
+                       "(1e4: best measured on the default prototype)"),
     )
     diff_order: int = field(
         default=1, metadata=_help("order of the difference operator D: 1, 2, or 0 (Tikhonov)")
@@ -64,6 +65,21 @@ class ReconstructConfig:
         metadata=_help("scale observations by t_white / t_capture when both exposures are known"),
     )
     min_views: int = field(default=3, metadata=_help("views a pixel needs to be valid"))
+    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] | None = field(
+        default=None,
+        metadata=_help("Bayer inputs: CFA pattern (null: the file's metadata, else the pattern "
+                       "the bundle was calibrated with)"),
+    )
+    black_level: float | list[float] | None = field(
+        default=None,
+        metadata=_help("black level subtracted from the stored values, DN: scalar, 4 values "
+                       "(Bayer cell) or 3 (R, G, B) (null: the file's metadata, else 0)"),
+    )
+    white_level: float | None = field(
+        default=None,
+        metadata=_help("saturation level, DN (null: the file's metadata, else the integer "
+                       "type's maximum)"),
+    )
 
     def __post_init__(self) -> None:
         if not self.beta >= 0:
