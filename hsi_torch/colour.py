@@ -16,7 +16,6 @@ wavelengths.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -206,16 +205,10 @@ def cube_to_srgb(
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    # hsi_torch.io.atomic gives the file ordinary permissions (mkstemp alone makes them 0600)
+    from hsi_torch.io.atomic import atomic_write_bytes
+
+    atomic_write_bytes(path, data)
 
 
 def save_png_rgb(rgb: torch.Tensor, path: str | os.PathLike) -> Path:
