@@ -105,7 +105,7 @@ def _calibrate_fails(captures: Path, tmp_path: Path, capsys, *extra: str) -> str
                "--set", "progress=false", *extra])  # fmt: skip
     assert rc == 1
     assert not out.exists() and not out.with_name("bad.report.json").exists()
-    assert not (out.parent / "resolved_config.yaml").exists()
+    assert not output_paths(out)[2].exists() and not (out.parent / "resolved_config.yaml").exists()
     return capsys.readouterr().err
 
 

@@ -32,6 +32,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import zipfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -255,6 +256,11 @@ class CalibrationBundle:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"calibration bundle {p} does not exist")
+        if not zipfile.is_zipfile(p):  # np.load would guess .npy/pickle and say something odd
+            raise FileFormatError(
+                f"calibration bundle {p}: not a readable NPZ file (not a zip archive: corrupt, "
+                "truncated or another format)"
+            )
         try:
             with np.load(p, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
@@ -263,7 +269,10 @@ class CalibrationBundle:
                 f"calibration bundle {p}: not a readable NPZ file ({exc})"
             ) from exc
         if "meta" not in data:
-            raise FileFormatError(f"calibration bundle {p}: missing key 'meta'")
+            raise FileFormatError(
+                f"calibration bundle {p}: missing key 'meta' (not a bundle written by "
+                "'hsi-torch calibrate')"
+            )
         try:
             meta = json.loads(str(data["meta"]))
         except json.JSONDecodeError as exc:

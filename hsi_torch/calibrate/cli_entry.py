@@ -4,7 +4,8 @@ Writes, only after the whole calibration succeeded (each file atomically):
 
 - ``BUNDLE.npz`` — the :class:`~hsi_torch.calibrate.CalibrationBundle`;
 - ``BUNDLE.report.json`` — the per-view registration report, valid-region statistics, timings;
-- ``resolved_config.yaml`` beside the bundle (rerun with ``--config``).
+- ``BUNDLE.resolved_config.yaml`` — the configuration (rerun with ``--config``); named after the
+  bundle so that several bundles can share a folder without overwriting each other's record.
 
 On any error nothing is written (an existing bundle is left untouched).
 """
@@ -22,7 +23,7 @@ def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
     p = Path(out)
     if p.suffix.lower() != ".npz":
         p = p.with_name(p.name + ".npz")
-    return p, p.with_name(p.stem + ".report.json"), p.parent / "resolved_config.yaml"
+    return p, p.with_name(p.stem + ".report.json"), p.with_name(p.stem + ".resolved_config.yaml")
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
@@ -35,15 +36,20 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     cfg = load_args_config(args, CalibrateConfig)
     device = getattr(args, "device", None)
-    bundle_path, report_path, _ = output_paths(args.out)
-    if bundle_path.exists() and bundle_path.is_dir():
-        raise ValueError(f"--out {bundle_path} is a directory; give the bundle file name")
+    if Path(args.out).is_dir():  # checked before '.npz' is appended (DIR would become DIR.npz)
+        raise ValueError(
+            f"--out {args.out} is a folder; give the bundle's file name, e.g. "
+            f"{Path(args.out) / 'calib.npz'}"
+        )
+    bundle_path, report_path, config_path = output_paths(args.out)
+    if bundle_path.is_dir():
+        raise ValueError(f"--out {bundle_path} is a folder; give the bundle's file name")
     bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
     bundle_path.parent.mkdir(parents=True, exist_ok=True)
     bundle.save(bundle_path)
     atomic_write_json(report_path, report.to_dict())
-    write_resolved_config(cfg, bundle_path.parent)
+    write_resolved_config(cfg, config_path.parent, name=config_path.name)
     print(report)
     print(bundle.summary())
-    print(f"wrote {bundle_path} (+ {report_path.name}, resolved_config.yaml)")
+    print(f"wrote {bundle_path} (+ {report_path.name}, {config_path.name})")
     return 0
