@@ -46,6 +46,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "demo": ("hsi_torch.demo", "run_demo"),
 }
 BENCH_TARGETS = ("solver", "pipeline")
+_FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")  # commands whose --out is a folder
 
 
 def _version() -> str:
@@ -120,13 +121,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="smaller, faster run")
 
     p = sub.add_parser(
-        "bench", help="timing benchmarks (extra arguments go to the script)",
-        description="Runs scripts/bench_<target>.py; unknown arguments are passed to it.",
+        "bench", help="timing benchmarks (extra arguments go to the script)", add_help=False,
+        description="Runs scripts/bench_<target>.py; unknown arguments are passed to it. "
+        "'hsi-torch bench <target> --help' lists the script's own options.",
     )  # fmt: skip
-    p.add_argument("target", nargs="?", choices=BENCH_TARGETS, default="pipeline")
+    p.add_argument(
+        "target", nargs="?", choices=BENCH_TARGETS, default=None,
+        help="benchmark to run (default: pipeline)",
+    )  # fmt: skip
+    p.add_argument(
+        "-h", "--help", dest="bench_help", action="store_true",
+        help="show this help (after a target: the benchmark script's options)",
+    )  # fmt: skip
     p.add_argument(
         "--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
+    p.set_defaults(_bench_parser=p)  # printed by main() for a bare "bench --help"
     return parser
 
 
@@ -178,6 +188,33 @@ def _run_entry(args: argparse.Namespace) -> int:
     return _exit_code(func(args))
 
 
+def _check_device(name: str) -> None:
+    """Refuse an unknown or unavailable ``--device`` before any work (or output) starts."""
+    import torch
+
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"--device {name!r}: not a torch device ({_one_line(exc)})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name!r}: CUDA is not available on this machine/torch build")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(
+            f"--device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)"
+        )
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"--device {name!r}: MPS is not available on this machine/torch build")
+
+
+def _is_missing_cuda(exc: BaseException) -> bool:
+    """torch's own error for a CUDA device it does not have (e.g. a config key ``device: cuda``)."""
+    if not isinstance(exc, (AssertionError, RuntimeError)) or "CUDA" not in str(exc):
+        return False
+    import torch
+
+    return not torch.cuda.is_available()
+
+
 def _scripts_dir() -> Path:
     return Path(__file__).resolve().parents[1] / "scripts"
 
@@ -226,7 +263,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "bench":
             if extra[:1] == ["--"]:
                 extra = extra[1:]
+            if args.bench_help:
+                if args.target is None:  # 'hsi-torch bench --help': this command's own help
+                    args._bench_parser.print_help()
+                    return 0
+                extra = ["--help", *extra]  # 'hsi-torch bench solver --help': the script's
+            if args.target is None:
+                args.target = "pipeline"
             return _run_bench(args, extra)
+        if getattr(args, "device", None):
+            _check_device(args.device)
+        out = getattr(args, "out", None)
+        if args.command in _FOLDER_OUT and out is not None and out.exists() and not out.is_dir():
+            raise ValueError(f"output folder {out} exists and is not a folder")
         return _run_entry(args)
     except KeyboardInterrupt:
         _err("interrupted")
@@ -237,6 +286,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err(_one_line(exc))
         return 1
     except Exception as exc:  # noqa: BLE001 - unexpected: still one line unless --debug
+        if _is_missing_cuda(exc):  # a user error (config key 'device'), not a bug
+            if debug:
+                traceback.print_exc()
+            _err(f"a CUDA device was requested (--device or config key 'device') but CUDA is not "
+                 f"available ({_one_line(exc)})")  # fmt: skip
+            return 1
         if debug:
             traceback.print_exc()
             _err(_one_line(exc))

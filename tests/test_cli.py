@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import torch
 
 import hsi_torch
 from hsi_torch import cli
@@ -75,6 +76,9 @@ def test_dispatch_passes_parsed_args(monkeypatch, argv, command, expected):
         return 0
 
     _fake_module(monkeypatch, command, entry)
+    # main() refuses an unavailable --device up front; pretend one GPU exists for "--device cuda"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     assert cli.main(argv) == 0
     args = seen["args"]
     assert args.command == command

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
-from pathlib import Path
+import time
 from typing import Any
 
 __all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment"]
@@ -57,12 +57,16 @@ def resolve_experiment(name: str) -> tuple[type, Any]:
 def run_experiment(args: argparse.Namespace) -> int:
     """CLI entry: ``args.name``, ``args.config`` (Path or None = the schema's defaults),
     ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
+    from hsi_torch.batch import ensure_out_dir
     from hsi_torch.config import load_config, write_resolved_config
 
     schema, run = resolve_experiment(args.name)
     cfg = load_config(getattr(args, "config", None), schema, getattr(args, "overrides", None))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = ensure_out_dir(args.out)
+    t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
+    files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
+    print(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
+          f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
     return 0
