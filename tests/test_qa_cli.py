@@ -262,3 +262,24 @@ def test_folder_out_that_is_a_file(tmp_path, capsys, command):
     assert main([*command, "--out", str(f)]) == 1
     err = capsys.readouterr().err
     assert err == f"hsi-torch: error: output folder {f} exists and is not a folder\n"
+
+
+def test_spectra_plot_leaves_invalid_points_out(ws, monkeypatch):
+    import hsi_torch.colour as colour
+
+    tmp, bpath, caps, _ = ws
+    seen = {}
+    real = colour.plot_spectra
+
+    def spy(wl, spectra, **kw):
+        seen["spectra"] = torch.as_tensor(spectra).clone()
+        return real(wl, spectra, **kw)
+
+    monkeypatch.setattr(colour, "plot_spectra", spy)
+    # (1, 1) lies in the 2-view corner of the test bundle (invalid), (10, 10) is valid
+    assert _rec(bpath, tmp / "out", "--set", "spectra_points=[[10, 10], [1, 1]]", "--set", "beta=0",
+                str(caps / "a.npy")) == 0  # fmt: skip
+    s = seen["spectra"]
+    assert torch.isfinite(s[0]).all() and float(s[0].max()) > 0.1
+    assert torch.isnan(s[1]).all()  # was drawn as a flat zero "spectrum"
+    assert (tmp / "out" / "a_spectra.png").stat().st_size > 1000

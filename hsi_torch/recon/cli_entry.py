@@ -82,12 +82,16 @@ def write_outputs(
             xs = torch.tensor([p[0] for p in cfg.spectra_points])
             ys = torch.tensor([p[1] for p in cfg.spectra_points])
             spectra = cube[:, ys, xs].T  # (K, M)
+            # invalid points are left out of the plot (NaN), not drawn as a flat zero spectrum
+            spectra = torch.where(valid[ys, xs].unsqueeze(1), spectra, float("nan"))
+            if not bool(valid[ys, xs].any()):
+                spectra = torch.zeros_like(spectra)  # nothing to draw; keep the axes finite
             labels = [
                 f"(x={x}, y={y})" + ("" if bool(valid[y, x]) else " invalid")
                 for x, y in cfg.spectra_points
             ]
             path = s.with_name(s.name + "_spectra.png")
-            plot_spectra(wl, torch.nan_to_num(spectra, nan=0.0), labels=labels, path=path,
+            plot_spectra(wl, spectra, labels=labels, path=path,
                          title=s.name, ylabel="reflectance (relative to white reference)")
             written.append(path)
     except BaseException:
