@@ -85,10 +85,12 @@ class NNLSResult:
     Attributes:
         x: ``(P, M)`` solution, ``≥ 0``, never NaN (0 for pixels without data).
         converged: ``(P,)`` bool, the method terminated and the relative KKT residual is ``≤ tol``.
-        iterations: ``(P,)`` int64; active set: pivoting rounds (0 when the unconstrained solution
-            was already non-negative); ADMM: iterations run.
-        kkt_residual: ``(P,)`` relative KKT residual ``max_m |min(G_mm x_m, g_m)| / s`` with
-            ``g = Gx − b`` and ``s = max(‖b‖∞, ‖diag(G) ⊙ x‖∞)`` (0 for an exact solution).
+        iterations: ``(P,)`` int64; active set: exchange rounds plus Lawson–Hanson iterations of
+            the fallback (0 when the unconstrained solution was already non-negative); ADMM:
+            iterations run.
+        kkt_residual: ``(P,)`` KKT residual as a normwise backward error,
+            ``‖min(diag(G) ⊙ x, g)‖₂ / (‖G‖₂ ‖x‖₂ + ‖b‖₂)`` with ``g = Gx − b`` (see
+            :func:`nnls_kkt_residual`; 0 for an exact solution, O(eps) for a well-solved one).
         no_data: ``(P,)`` bool, pixel had no usable observation (all masked): ``x = 0``.
         method: the method used.
     """
@@ -745,13 +747,15 @@ class NNLSProblem:
         Args:
             y: ``(P, O)`` observations (same device as ``A``; cast to ``A``'s dtype).
             method: ``"active_set"`` (exact) or ``"admm"``.
-            tol: active set: relative KKT tolerance (gradient units, see :class:`NNLSResult`),
-                default ``20·M·eps(dtype)``; ADMM: relative primal/dual residual tolerance
-                (``‖x − z‖∞`` and ``‖z − z_prev‖∞`` over ``‖z‖∞``), default ``sqrt(eps)``.
-            max_iter: active set: pivoting rounds (default ``10·M``); ADMM: iterations in the
+            tol: active set: tolerance on the KKT residual (a backward error, see
+                :class:`NNLSResult`), default ``M·eps(dtype)``; ADMM: relative primal/dual
+                residual tolerance (``‖x − z‖∞`` and ``‖z − z_prev‖∞`` over ``‖z‖∞``), default
+                ``sqrt(eps)``.
+            max_iter: active set: exchange rounds (at most 16, then Lawson–Hanson) and
+                Lawson–Hanson iterations (default ``10·M``); ADMM: iterations in the
                 tolerance-driven mode (default 5000).
-            refine: refinement steps of the unconstrained solution (default 1 for float32, 0 for
-                float64).
+            refine: at most this many steps of iterative refinement (on the final zero set), only
+                for pixels whose KKT residual exceeds ``tol`` (default 2).
             chunk_size / max_memory: pixels per chunk, or a working-memory budget in bytes.
             x0: ``(P, M)`` ADMM warm start (e.g. the previous frame's solution).
             admm_iters: run exactly this many ADMM iterations (no data-dependent stopping,
