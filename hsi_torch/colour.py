@@ -175,6 +175,7 @@ def cube_to_srgb(
     percentile: float = 99.5,
     exposure: float = 1.0,
     adapt: bool = True,
+    valid: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``(..., M, H, W)`` cube → ``(..., 3, H, W)`` gamma-encoded sRGB in [0, 1].
 
@@ -184,8 +185,15 @@ def cube_to_srgb(
             specular highlights).
         exposure: extra factor on the linear values (after ``normalise``).
         adapt: Bradford adaptation from the illuminant's white to D65.
+        valid: optional ``(..., H, W)`` bool; pixels where it is False render as a zero spectrum
+            (black, and counted as 0 by ``normalise``) whatever they hold (e.g. NaN). The same
+            image as ``cube_to_srgb(where(valid, nan_to_num(cube), 0))`` without that cube-size
+            copy.
     """
-    xyz = cube_to_xyz(cube, wavelengths, illuminant)
+    if valid is None:
+        xyz = cube_to_xyz(cube, wavelengths, illuminant)
+    else:
+        xyz = _masked_xyz(torch.as_tensor(cube), wavelengths, illuminant, valid)
     if normalise is not None:
         y = xyz[..., 1, :, :]
         flat = y.reshape(-1, y.shape[-2] * y.shape[-1])
@@ -202,6 +210,25 @@ def cube_to_srgb(
     white = illuminant_white_xyz(wavelengths, illuminant, dtype=torch.float64) if adapt else None
     rgb = xyz_to_linear_srgb(xyz.movedim(-3, -1), white) * exposure
     return srgb_encode(rgb.clamp(0.0, 1.0)).movedim(-1, -3)
+
+
+def _masked_xyz(
+    cube: torch.Tensor, wavelengths, illuminant: IlluminantLike, valid: torch.Tensor
+) -> torch.Tensor:
+    """XYZ of ``where(valid, nan_to_num(cube), 0)``: XYZ of the cube itself, zeroed where invalid
+    (a pixel's XYZ depends on its own spectrum only); pixels with non-finite values inside the
+    valid region (finite XYZ implies a finite spectrum) take the ``nan_to_num`` route."""
+    v = torch.as_tensor(valid, device=cube.device).bool().unsqueeze(-3)
+    if v.shape[-2:] != cube.shape[-2:]:
+        raise ValueError(f"valid must have shape (..., H, W) = {tuple(cube.shape[-2:])}, got "
+                         f"{tuple(valid.shape)}")
+    xyz = cube_to_xyz(cube, wavelengths, illuminant)
+    zero = torch.zeros((), dtype=xyz.dtype, device=xyz.device)
+    xyz = torch.where(v, xyz, zero)
+    if not bool(torch.isfinite(xyz).all()):
+        xyz = cube_to_xyz(torch.where(v, torch.nan_to_num(cube, nan=0.0), 0.0), wavelengths,
+                          illuminant)
+    return xyz
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -237,16 +264,19 @@ def save_preview_png(
     normalise: str | None = "percentile",
     percentile: float = 99.5,
     exposure: float = 1.0,
+    valid: torch.Tensor | None = None,
 ) -> Path:
     """Render an ``(M, H, W)`` cube to sRGB and write an 8-bit PNG (temp file + ``os.replace``).
 
-    Defaults normalise the image so its 99.5th-percentile luminance is white.
+    Defaults normalise the image so its 99.5th-percentile luminance is white. ``valid``
+    (``(H, W)`` bool): pixels where it is False are black and count as 0 in the normalisation
+    (see :func:`cube_to_srgb`).
     """
     cube = torch.as_tensor(cube)
     if cube.ndim != 3:
         raise ValueError(f"cube must have shape (M, H, W), got {tuple(cube.shape)}")
     rgb = cube_to_srgb(cube, wavelengths, illuminant, normalise=normalise,
-                       percentile=percentile, exposure=exposure)
+                       percentile=percentile, exposure=exposure, valid=valid)
     return save_png_rgb(rgb, path)
 
 

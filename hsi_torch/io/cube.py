@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -105,7 +106,18 @@ def _prepare(
         v = _np(valid).astype(bool)
         if v.shape != c.shape[1:]:
             raise ValueError(f"valid must have shape {tuple(c.shape[1:])}, got {tuple(v.shape)}")
-    return c.astype(np.float32), wl, v
+    return c.astype(np.float32, copy=False), wl, v
+
+
+def _nan_where_invalid(c: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``c`` with NaN in every band where ``v`` is False; ``c`` itself when it already is
+    (e.g. a cube from the reconstruction pipeline), else a copy (``c`` is never modified)."""
+    inv = ~v
+    if not inv.any():
+        return c
+    if all(np.isnan(band[inv]).all() for band in c):  # one band at a time: no cube-size temporary
+        return c
+    return np.where(v[None], c, np.float32(np.nan))
 
 
 def save_cube(
@@ -132,9 +144,23 @@ def save_cube(
     p = Path(path)
     kind = _format_of(p, fmt)
     c, wl, v = _prepare(cube, wavelengths, valid)
+    return _save_prepared(p, kind, c, wl, v, metadata)
+
+
+def _save_prepared(
+    p: Path,
+    kind: CubeFormat,
+    c: np.ndarray,
+    wl: np.ndarray,
+    v: np.ndarray,
+    metadata: dict[str, Any] | None,
+    c_nan: np.ndarray | None = None,
+) -> list[Path]:
+    """:func:`save_cube` after :func:`_prepare`; ``c_nan``: ``c`` with NaN where invalid, if
+    already made (TIFF/ENVI)."""
     meta = dict(metadata or {})
-    if kind != "npz" and not v.all():
-        c = np.where(v[None], c, np.float32(np.nan))
+    if kind != "npz":
+        c = c_nan if c_nan is not None else _nan_where_invalid(c, v)
     if kind == "npz":
         meta_json = json.dumps(
             {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=_json_default
@@ -198,8 +224,8 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
         "wavelength = {" + ", ".join(f"{x:.10g}" for x in wl) + "}",
         "band names = {" + ", ".join(f"{x:.10g} nm" for x in wl) + "}",
     ]
-    with atomic_write(img, "wb") as f:
-        f.write(np.ascontiguousarray(c, dtype="<f4").tobytes())
+    with atomic_write(img, "wb") as f:  # the array's own buffer, no bytes copy
+        f.write(memoryview(np.ascontiguousarray(c, dtype="<f4")).cast("B"))
     with atomic_write(hdr, "w") as f:
         f.write("\n".join(lines) + "\n")
     return [img, hdr]
@@ -212,14 +238,35 @@ def save_cube_formats(
     valid: Any | None = None,
     metadata: dict[str, Any] | None = None,
     formats: Sequence[CubeFormat] = ("npz", "tiff", "envi"),
+    timings: dict[str, float] | None = None,
 ) -> list[Path]:
-    """Write the cube in several formats: ``<stem>.npz``, ``<stem>.tif``, ``<stem>.hdr/.img``."""
-    out: list[Path] = []
+    """Write the cube in several formats: ``<stem>.npz``, ``<stem>.tif``, ``<stem>.hdr/.img``.
+
+    The same files as :func:`save_cube` per format; the cube is converted (and NaN-filled for
+    TIFF/ENVI) once. If one format fails, the files already written by this call are removed.
+    ``timings``: if given, receives the seconds spent per format (``"prepare"`` for the shared
+    conversion).
+    """
     s = Path(stem)
     for fmt in formats:
-        out += save_cube(
-            s.with_name(s.name + _FORMAT_SUFFIX[fmt]), cube, wavelengths, valid, metadata, fmt=fmt
-        )
+        if fmt not in _FORMAT_SUFFIX:
+            raise ValueError(f"formats: unknown cube format {fmt!r} (tiff, envi, npz)")
+    t0 = time.perf_counter()
+    c, wl, v = _prepare(cube, wavelengths, valid)
+    c_nan = _nan_where_invalid(c, v) if any(f != "npz" for f in formats) else None
+    tm = timings if timings is not None else {}
+    tm["prepare"] = time.perf_counter() - t0
+    out: list[Path] = []
+    try:
+        for fmt in formats:
+            t0 = time.perf_counter()
+            p = s.with_name(s.name + _FORMAT_SUFFIX[fmt])
+            out += _save_prepared(p, fmt, c, wl, v, metadata, c_nan)
+            tm[fmt] = time.perf_counter() - t0
+    except BaseException:
+        for q in out:
+            q.unlink(missing_ok=True)
+        raise
     return out
 
 
