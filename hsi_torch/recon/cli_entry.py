@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -53,10 +54,13 @@ def write_outputs(
     stem: str | os.PathLike,
     cfg: ReconstructConfig,
     metadata: dict[str, Any] | None = None,
+    timings: dict[str, float] | None = None,
 ) -> list[Path]:
     """Write a reconstruction's cube files, preview and spectra plot (all atomic).
 
     On an error the files already written for this stem are removed, then the error propagates.
+    ``timings``: if given, receives seconds per output (``npz``, ``tiff``, ``envi``, ``prepare``,
+    ``preview``, ``spectra``).
 
     Returns:
         The paths written.
@@ -72,12 +76,19 @@ def write_outputs(
     if cfg.spectra_points:
         _check_points(cfg.spectra_points, h, w)
     written: list[Path] = []
+    tm = timings if timings is not None else {}
     try:
         if cfg.formats:
-            written += save_cube_formats(s, cube, wl, valid, metadata, formats=tuple(cfg.formats))
+            written += save_cube_formats(
+                s, cube, wl, valid, metadata, formats=tuple(cfg.formats), timings=tm
+            )
+        t0 = time.perf_counter()
         if cfg.preview:
-            prev = torch.where(valid.unsqueeze(0), torch.nan_to_num(cube, nan=0.0), 0.0)
-            written.append(save_preview_png(prev, wl, s.with_name(s.name + "_preview.png")))
+            # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
+            path = s.with_name(s.name + "_preview.png")
+            written.append(save_preview_png(cube, wl, path, valid=valid))
+            tm["preview"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         if cfg.spectra_points:
             xs = torch.tensor([p[0] for p in cfg.spectra_points])
             ys = torch.tensor([p[1] for p in cfg.spectra_points])
@@ -94,6 +105,7 @@ def write_outputs(
             plot_spectra(wl, spectra, labels=labels, path=path,
                          title=s.name, ylabel="reflectance (relative to white reference)")
             written.append(path)
+            tm["spectra"] = time.perf_counter() - t0
     except BaseException:
         for p in written:
             p.unlink(missing_ok=True)
@@ -106,8 +118,6 @@ def _reconstruct_file(
 ) -> ReconstructionResult:
     """:meth:`Reconstructor.reconstruct_file` with the config's ``cfa_pattern``, ``black_level``
     and ``white_level`` (and the bundle's CFA pattern for Bayer files that have none)."""
-    import time
-
     from hsi_torch.io import read_any
 
     sens = rec.sensing

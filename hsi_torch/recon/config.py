@@ -23,7 +23,7 @@ class ReconstructConfig:
     """Settings of a reconstruction run (see the field help texts)."""
 
     beta: float = field(
-        default=1e4,
+        default=1e4,  # = hsi_torch.recon.pipeline.DEFAULT_BETA (kept importable without torch)
         metadata=_help("smoothness weight on ||D s||^2, on the data's scale (DN^2); 1e-2..1e6 "
                        "(1e4: best measured on the default prototype)"),
     )

@@ -1,7 +1,8 @@
 """``HSIReconstructor``: the whole reconstruction as a ``torch.nn.Module``.
 
 All bundle tensors (``B``, ``phi``, ``gain``, masks, homographies) and the per-bundle
-precomputation (sensing matrices, static masks, the solver's Gram matrices and inverses) are
+precomputation (sensing matrices, static masks, the views' sampling grid, the solver's Gram
+matrices and inverses) are
 registered buffers, so ``.to(device)``/``.cuda()`` move everything and ``.double()`` switches the
 precision (the factorisation is then recomputed in the new dtype). The forward pass is exactly
 :func:`hsi_torch.recon.pipeline.reconstruct_batch` — the same code as the file pipeline.
@@ -20,8 +21,8 @@ import torch
 from torch import Tensor, nn
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
-from hsi_torch.recon.pipeline import prepare_input, reconstruct_batch
-from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing
+from hsi_torch.recon.pipeline import DEFAULT_BETA, prepare_input, reconstruct_batch
+from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing, source_grid
 from hsi_torch.recon.solvers import NNLSProblem, prepare_nnls
 
 __all__ = ["HSIReconstructor", "ReconstructionOutput"]
@@ -44,7 +45,7 @@ class HSIReconstructor(nn.Module):
     input must be on the module's device.
 
     Example:
-        >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=10.0).to("cuda")  # doctest: +SKIP
+        >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=1e4).to("cuda")  # doctest: +SKIP
         >>> cube, valid = rec(rgb)          # rgb (B, 3, H, W) on cuda  # doctest: +SKIP
         >>> loss = cube[valid.unsqueeze(1).expand_as(cube)].mean()  # doctest: +SKIP
         >>> loss.backward()  # doctest: +SKIP
@@ -60,6 +61,7 @@ class HSIReconstructor(nn.Module):
     pixel_index: Tensor
     A: Tensor
     obs_mask: Tensor
+    sample_grid: Tensor
     gram: Tensor
     gram_inv: Tensor
     singular: Tensor
@@ -107,11 +109,13 @@ class HSIReconstructor(nn.Module):
         p = sensing.problem
         self.register_buffer("A", sensing.A, persistent=False)
         self.register_buffer("obs_mask", sensing.obs_mask, persistent=False)
+        self.register_buffer("sample_grid", sensing.grid(), persistent=False)
         self.register_buffer("gram", p.gram, persistent=False)
         self.register_buffer("gram_inv", p.gram_inv, persistent=False)
         self.register_buffer("singular", p.singular, persistent=False)
         self.register_buffer("no_data", p.no_data, persistent=False)
         self._problem_cache: tuple[tuple, NNLSProblem] | None = None
+        self._sensing_cache: tuple[tuple, BundleSensing] | None = None
 
     # ------------------------------------------------------------------------------ build
     @classmethod
@@ -119,7 +123,7 @@ class HSIReconstructor(nn.Module):
         cls,
         bundle: CalibrationBundle | str | os.PathLike,
         *,
-        beta: float = 1.0,
+        beta: float = DEFAULT_BETA,
         solver: str = "active_set",
         diff_order: int = 1,
         admm_iters: int | None = None,
@@ -133,7 +137,9 @@ class HSIReconstructor(nn.Module):
         """Build from a bundle (object or ``.npz`` path).
 
         Args:
-            beta: smoothness weight (DN² scale). diff_order: 0, 1, 2.
+            beta: smoothness weight on ``‖D s‖²``, on the data's DN² scale (default
+                :data:`~hsi_torch.recon.pipeline.DEFAULT_BETA` = 1e4, as ``ReconstructConfig``).
+                diff_order: 0, 1, 2.
             solver: ``"active_set"`` (exact; gradient of the final reduced solve) or ``"admm"``
                 (``admm_iters=N``: exactly ``N`` differentiable iterations; ``None``: to
                 tolerance, gradient as for the active set).
@@ -155,7 +161,13 @@ class HSIReconstructor(nn.Module):
         dt = self.A.dtype
         out = super()._apply(fn, recurse)
         self._problem_cache = None
+        self._sensing_cache = None
         if self.A.dtype != dt:  # precision changed: refactorise in the new dtype
+            # sampling positions recomputed in float64 from the bundle, not re-rounded
+            self.sample_grid = source_grid(
+                self.homographies, self.reference_bbox, self.sensor_size, self.pixel_index,
+                dtype=self.A.dtype,
+            )  # fmt: skip
             p = prepare_nnls(
                 self.A, mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
                 chunk_size=self.chunk_size,
@@ -185,7 +197,17 @@ class HSIReconstructor(nn.Module):
         return self._problem_cache[1]
 
     def sensing(self) -> BundleSensing:
-        """The :class:`BundleSensing` view of the buffers (shares their memory)."""
+        """The :class:`BundleSensing` view of the buffers (shares their memory; kept while the
+        buffers are unchanged, so its frame work buffer is reused between calls)."""
+        key = (
+            self.A.device, self.A.dtype, self.A.data_ptr(), self.gram.data_ptr(),
+            self.sample_grid.data_ptr(), self.homographies.data_ptr(), self.cfa_pattern,
+        )  # fmt: skip
+        if self._sensing_cache is None or self._sensing_cache[0] != key:
+            self._sensing_cache = (key, self._make_sensing())
+        return self._sensing_cache[1]
+
+    def _make_sensing(self) -> BundleSensing:
         return BundleSensing(
             wavelengths_nm=self.wavelengths_nm.detach().to("cpu", torch.float64),
             sensor_size=self.sensor_size,
@@ -200,6 +222,7 @@ class HSIReconstructor(nn.Module):
             problem=self._problem(),
             exposure_s=self.exposure_s,
             cfa_pattern=self.cfa_pattern,
+            sample_grid=self.sample_grid,
         )
 
     def forward(

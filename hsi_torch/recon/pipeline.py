@@ -1,25 +1,30 @@
-"""Capture → spectral cube: warp the views, build observations and masks, solve, assemble.
+"""Capture → spectral cube: sample the views, build observations and masks, solve, assemble.
 
 Per frame (all pixels at once, no per-pixel Python):
 
-1. **Warp** (:func:`warp_capture`): the linear RGB capture ``(3, H, W)`` and its saturation mask
-   are stacked into six channels and warped into the reference frame by *one* batched kornia call
-   (:func:`hsi_torch.calibrate.registration.warp_views`, ``align_corners=True``) →
-   ``(V, 3, h, w)`` values and ``(V, 3, h, w)`` warped saturation weights. A warped sample is
+1. **Warp** (:func:`sample_views`): the linear RGB capture ``(3, H, W)`` and its saturation mask
+   are stacked into six channels and sampled at the bundle's precomputed sensor positions of every
+   valid pixel in every view (:attr:`BundleSensing.sample_grid`, ``(1, V, P, 2)``) by *one*
+   batched kornia call (``kornia.geometry.transform.remap``, bilinear, ``align_corners=True``,
+   zero padding) → ``(B, 6, V, P)``. This equals the full-frame warp
+   (:func:`warp_capture`: :func:`hsi_torch.calibrate.registration.warp_views`, kornia
+   ``warp_perspective``) at the valid pixels, without warping the invalid ones. A sample is
    *saturated* when any saturated sensor sample contributes to its bilinear footprint (warped
    weight ``> sat_threshold``, default ``1e-3``: weights that are 0 up to rounding of the
    homography do not count).
-2. **Observations** (:func:`build_observations`): for the ``P`` valid pixels of the bundle,
-   ``y (P, 3V)`` view-major (``o = 3v + c``) and the frame mask = static mask (view present and
-   modulated, outside-triangle excluded) ∧ not saturated ∧ finite. ``y`` is multiplied by the
-   exposure ratio ``t_white / t_capture`` when both are known (the bundle's response was
-   calibrated at the white reference's exposure ``t_white``; see :func:`exposure_scale`).
+2. **Observations** (:func:`observations_from_samples`): ``y (P, 3V)`` view-major
+   (``o = 3v + c``) and the frame mask = static mask (view present and modulated,
+   outside-triangle excluded) ∧ not saturated ∧ finite. ``y`` is multiplied by the exposure ratio
+   ``t_white / t_capture`` when both are known (the bundle's response was calibrated at the white
+   reference's exposure ``t_white``; see :func:`exposure_scale`).
 3. **Solve** (:func:`solve_observations`): the precomputed factorisation
    (:class:`~hsi_torch.recon.sensing.BundleSensing`) solves every pixel for the static mask; pixels
    whose frame mask differs (saturation, non-finite data) are re-solved *exactly* with their own
    mask (``solve_nnls`` on that sub-batch only). Pixels left with fewer than ``min_views`` (3)
    views that still have an observation are invalid: NaN in the cube (or 0 with
-   ``nan_invalid=False``) and ``False`` in ``valid``.
+   ``nan_invalid=False``) and ``False`` in ``valid``. The frame's fit residual
+   ``‖W(A s − y)‖ / ‖W y‖`` (median over a fixed sample of valid pixels) flags a bundle that does
+   not belong to the capture.
 4. **Assemble**: ``cube (M, h, w)``, ``valid (h, w)``.
 
 Gradients (used by :class:`~hsi_torch.recon.module.HSIReconstructor`): the active-set solver (and
@@ -53,13 +58,25 @@ __all__ = [
     "reconstruct_frame",
     "warp_capture",
     "build_observations",
+    "sample_views",
+    "observations_from_samples",
+    "DEFAULT_BETA",
+    "FIT_RESIDUAL_SAMPLES",
     "solve_observations",
     "assemble_cube",
     "exposure_scale",
     "prepare_input",
+    "fit_residual",
 ]
 
 _SOLVERS = ("active_set", "admm")
+
+#: Default smoothness weight β on ‖D s‖² (DN² scale), shared by the Python API and
+#: :class:`~hsi_torch.recon.config.ReconstructConfig` (best measured on the default prototype).
+DEFAULT_BETA = 1e4
+
+#: Pixels (evenly spaced over the bundle's valid pixels) on which the fit residual is evaluated.
+FIT_RESIDUAL_SAMPLES = 4096
 
 
 @dataclass
@@ -72,7 +89,11 @@ class ReconstructionResult:
         wavelengths_nm: ``(M,)`` float64, nm.
         stats: counts and solver diagnostics — ``num_valid``, ``num_lost`` (valid in the bundle,
             invalid in this frame), ``num_resolved`` (exact re-solves with a frame mask),
-            ``num_pivoted`` (active-set corrections), ``converged_fraction``, ``max_kkt``,
+            ``num_pivoted`` (active-set corrections), ``converged_fraction``,
+            ``num_not_converged`` (valid pixels whose solve did not reach the KKT tolerance),
+            ``max_kkt``, ``fit_residual`` (median over up to :data:`FIT_RESIDUAL_SAMPLES` evenly
+            spaced valid pixels of ``‖W(A s − y)‖ / ‖W y‖``, W = the frame mask; ≈ the noise
+            level for a matching bundle, large when the bundle belongs to another geometry),
             ``exposure_scale``, ``saturated_observations``.
         timings: seconds per stage (``load`` when read from a file, ``warp``, ``observations``,
             ``solve``, ``assemble``, ``total``).
@@ -188,6 +209,71 @@ def build_observations(
     return y, static & finite & ~sat, sat
 
 
+def sample_views(
+    sens: BundleSensing, images: Tensor, saturated: Tensor | None = None
+) -> tuple[Tensor, Tensor | None]:
+    """Sample every view of ``(B, 3, H, W)`` images (and masks) at the bundle's valid pixels.
+
+    One ``kornia.geometry.transform.remap`` call (bilinear, zero padding, ``align_corners=True``)
+    on the stacked image and saturation channels with the per-bundle grid
+    :meth:`BundleSensing.grid` ``(1, V, P, 2)``.
+
+    Returns:
+        ``(B, 3, V, P)`` values and ``(B, 3, V, P)`` saturation weights in [0, 1] (``None``
+        without a mask). Equal to :func:`warp_capture` at ``sens.pixel_index``.
+    """
+    grid = sens.grid().to(device=images.device, dtype=images.dtype)
+    if saturated is None:
+        x = images
+    elif torch.is_grad_enabled() and images.requires_grad:
+        x = torch.cat([images, saturated.to(images.dtype)], dim=1)
+    else:
+        # image and mask copied into a staging buffer kept with the bundle (one pass each, no
+        # float copy of the mask, no fresh cube-size allocation per frame)
+        with sens.staging_lock:
+            x = sens.staging((images.shape[0], 6, *images.shape[2:]), images.dtype, images.device)
+            x[:, :3].copy_(images)
+            x[:, 3:].copy_(saturated)
+            return _remap_split(x, grid, 3)
+    return _remap_split(x, grid, 3 if saturated is not None else None)
+
+
+def _remap_split(x: Tensor, grid: Tensor, split: int | None) -> tuple[Tensor, Tensor | None]:
+    from kornia.geometry.transform import remap
+
+    out = remap(
+        x, grid[..., 0], grid[..., 1], mode="bilinear", padding_mode="zeros", align_corners=True,
+        normalized_coordinates=True,
+    )  # fmt: skip  # (B, C, V, P)
+    if split is None:
+        return out, None
+    return out[:, :split], out[:, split:]
+
+
+def observations_from_samples(
+    sens: BundleSensing,
+    samples: Tensor,
+    sat_weights: Tensor | None = None,
+    sat_threshold: float = 1e-3,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Observations and per-frame masks from :func:`sample_views`' ``(B, 3, V, P)`` output.
+
+    Returns:
+        ``y (B, P, 3V)`` (``o = 3v + c``), ``mask (B, P, 3V)`` bool (static ∧ unsaturated ∧ finite),
+        ``saturated (B, P, 3V)`` bool (within the static mask) — as :func:`build_observations`.
+    """
+    B, C, V, P = samples.shape
+    y = samples.permute(0, 3, 2, 1).reshape(B, P, V * C)
+    static = sens.obs_mask.to(samples.device).unsqueeze(0)
+    ok = static & torch.isfinite(y)
+    if sat_weights is not None:
+        sat = (sat_weights.permute(0, 3, 2, 1) > sat_threshold).reshape(B, P, V * C) & static
+        ok &= ~sat
+    else:
+        sat = torch.zeros_like(ok)
+    return y, ok, sat
+
+
 def _gram(A: Tensor, mask: Tensor, beta: float, diff_order: int) -> Tensor:
     """``Aᵀ W A + β DᵀD`` per pixel → ``(n, M, M)``."""
     zero = torch.zeros((), dtype=A.dtype, device=A.device)
@@ -275,15 +361,53 @@ def solve_observations(
         x = _reduced_resolve(sens, yc, mask, x, changed)
     x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
     okc = conv & ok
+    n_ok = int(ok.sum())
     info = {
-        "num_valid": int(ok.sum()),
-        "num_lost": int((~ok).sum()),
+        "num_valid": n_ok,
+        "num_lost": P - n_ok,
         "num_resolved": n_changed,
         "num_pivoted": int((iters[ok] > 0).sum()) if solver == "active_set" else 0,
-        "converged_fraction": float(okc.sum()) / max(1, int(ok.sum())),
-        "max_kkt": float(kkt[ok].max()) if bool(ok.any()) else 0.0,
+        "num_not_converged": n_ok - int(okc.sum()),
+        "converged_fraction": float(okc.sum()) / max(1, n_ok),
+        "max_kkt": float(kkt[ok].max()) if n_ok else 0.0,
+        "fit_residual": fit_residual(sens, x.detach(), yc.detach(), mask, ok),
     }
     return x, ok, info
+
+
+def fit_residual(
+    sens: BundleSensing,
+    x: Tensor,
+    y: Tensor,
+    mask: Tensor,
+    ok: Tensor,
+    num_samples: int = FIT_RESIDUAL_SAMPLES,
+) -> float:
+    """Median relative fit residual ``‖W(A s − y)‖ / ‖W y‖`` of a frame (NaN without valid pixels).
+
+    Evaluated on up to ``num_samples`` pixels evenly spaced over the bundle's ``P`` valid pixels
+    (the same ones every frame; those invalid in this frame are left out), W = the frame mask.
+
+    Args:
+        x: ``(P, M)`` solution; y: ``(P, 3V)`` observations (zero where masked); mask, ok: as in
+            :func:`solve_observations`.
+    """
+    P = x.shape[0]
+    k = min(P, int(num_samples))
+    if k == 0:
+        return float("nan")
+    idx = torch.linspace(0, P - 1, k, device=x.device).round().long()
+    idx = idx[ok[idx]]
+    if idx.numel() == 0:
+        return float("nan")
+    A = sens.A.index_select(0, idx)
+    w = mask.index_select(0, idx).to(A.dtype)
+    ys = y.index_select(0, idx).to(A.dtype) * w
+    r = (torch.bmm(A, x.index_select(0, idx).to(A.dtype).unsqueeze(2)).squeeze(2) * w) - ys
+    num = torch.linalg.vector_norm(r.double(), dim=1)
+    den = torch.linalg.vector_norm(ys.double(), dim=1)
+    rel = torch.where(den > 0, num / den.clamp_min(1e-300), torch.zeros_like(num))
+    return float(rel.median())
 
 
 def assemble_cube(
@@ -295,13 +419,14 @@ def assemble_cube(
     P, M = x.shape[-2:]
     pix = sens.pixel_index.to(x.device)
     fill = float("nan") if nan_invalid else 0.0
-    flat = torch.full((*lead, h * w, M), fill, dtype=x.dtype, device=x.device)
-    vals = torch.where(ok.unsqueeze(-1), x, torch.full_like(x, fill))
-    flat = flat.index_copy(len(lead), pix, vals)
-    cube = flat.transpose(-1, -2).reshape(*lead, M, h, w)
+    cube = torch.full((*lead, M, h * w), fill, dtype=x.dtype, device=x.device)
+    cube.index_copy_(cube.ndim - 1, pix, x.transpose(-1, -2))
     valid = torch.zeros((*lead, h * w), dtype=torch.bool, device=x.device)
-    valid = valid.index_copy(len(lead), pix, ok)
-    return cube, valid.reshape(*lead, h, w)
+    valid.index_copy_(valid.ndim - 1, pix, ok)
+    lost = sens.valid.to(x.device).reshape(h * w) & ~valid
+    if bool(lost.any()):  # bundle pixels invalid in this frame (usually few)
+        cube.masked_fill_(lost.unsqueeze(-2), fill)
+    return cube.reshape(*lead, M, h, w), valid.reshape(*lead, h, w)
 
 
 def reconstruct_batch(
@@ -333,11 +458,13 @@ def reconstruct_batch(
     t: dict[str, float] = {}
     t0 = time.perf_counter()
     imgs = images.to(sens.dtype)
-    warped, wsat = warp_capture(sens, imgs, saturated)
+    if saturated is not None and not bool(saturated.any()):
+        saturated = None  # nothing saturated: the mask channels would sample to 0 everywhere
+    samples, wsat = sample_views(sens, imgs, saturated)
     _sync(dev)
     t1 = time.perf_counter()
     t["warp"] = t1 - t0
-    y, mask, sat = build_observations(sens, warped, wsat, sat_threshold)
+    y, mask, sat = observations_from_samples(sens, samples, wsat, sat_threshold)
     if scale is not None:
         s = torch.as_tensor(scale, dtype=y.dtype, device=dev)
         y = y * (s.view(-1, 1, 1) if s.ndim == 1 else s)
@@ -368,7 +495,8 @@ class Reconstructor:
 
     Args:
         bundle: :class:`CalibrationBundle`, its path, or a ready :class:`BundleSensing`.
-        beta: smoothness weight on ``‖D s‖²`` (DN² scale: 1e-2 … 1e6 are useful).
+        beta: smoothness weight on ``‖D s‖²`` on the data's DN² scale (1e-2 … 1e6 are useful;
+            default :data:`DEFAULT_BETA` = 1e4, as ``ReconstructConfig``).
         diff_order: 1 (first difference, default), 2, or 0 (Tikhonov).
         solver: ``"active_set"`` (exact) or ``"admm"``; admm_iters: fixed ADMM iterations.
         device, dtype: where the bundle tensors and the solve live.
@@ -379,7 +507,7 @@ class Reconstructor:
         sat_threshold: warped saturation weight above which an observation is saturated.
 
     Example:
-        >>> rec = Reconstructor("calib.npz", beta=10.0)  # doctest: +SKIP
+        >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
         >>> res = rec.reconstruct_file("scene.tif")  # doctest: +SKIP
         >>> res.cube.shape, res.valid.sum(), res.timings  # doctest: +SKIP
     """
@@ -388,7 +516,7 @@ class Reconstructor:
         self,
         bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
         *,
-        beta: float = 1.0,
+        beta: float = DEFAULT_BETA,
         diff_order: int = 1,
         solver: str = "active_set",
         admm_iters: int | None = None,
@@ -480,19 +608,37 @@ class Reconstructor:
         )  # fmt: skip
 
     def reconstruct_file(
-        self, path: str | os.PathLike, demosaic: str = "bilinear"
+        self,
+        path: str | os.PathLike,
+        demosaic: str = "bilinear",
+        *,
+        cfa_pattern: str | None = None,
+        black_level: float | list[float] | None = None,
+        white_level: float | None = None,
     ) -> ReconstructionResult:
-        """Read a capture (:func:`hsi_torch.io.read_any`, checked against the bundle's sensor
-        size, errors naming the file) and reconstruct it; ``timings["load"]`` is the read."""
+        """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it.
+
+        The file's full-resolution size is checked against the bundle (errors name the file):
+        the sensor size, or for Bayer files read with ``demosaic="half"`` (a bundle made at half
+        resolution) twice the sensor size. ``cfa_pattern``, ``black_level``, ``white_level``
+        override the file's metadata; a Bayer file without a pattern gets the bundle's.
+        ``timings["load"]`` is the read (and demosaic).
+        """
         from hsi_torch.io import read_any
 
+        if demosaic not in ("bilinear", "half"):
+            raise ValueError(f"demosaic must be 'bilinear' or 'half', got {demosaic!r}")
         p = Path(path)
         sens = self.sensing
         t0 = time.perf_counter()
         cap = read_any(
             p, expected_size=sens.sensor_size if demosaic == "bilinear" else None,
-            demosaic=demosaic, cfa_pattern=None, dtype=sens.dtype, device=sens.device,
+            demosaic=demosaic, cfa_pattern=cfa_pattern, black_level=black_level,
+            white_level=white_level, dtype=sens.dtype, device=sens.device,
+            default_cfa_pattern=sens.cfa_pattern,
         )  # fmt: skip
+        if demosaic == "half":
+            _check_half_size(cap, sens, p)
         _sync(sens.device)
         t_load = time.perf_counter() - t0
         res = self.reconstruct_capture(cap)
@@ -502,19 +648,43 @@ class Reconstructor:
         return res
 
 
+def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:
+    """``demosaic="half"``: a Bayer mosaic must be exactly twice the bundle's sensor size (odd
+    sizes included, which binning would silently crop); an RGB file is not binned."""
+    from hsi_torch.io.atomic import FileFormatError
+
+    H, W = sens.sensor_size
+    if cap.mosaic is not None:
+        full = tuple(int(v) for v in cap.mosaic.shape[-2:])
+        if full != (2 * H, 2 * W):
+            raise FileFormatError(
+                f"{path}: Bayer mosaic size (H, W) = {full} does not match the calibration "
+                f"bundle: with demosaic='half' it must be twice the bundle's sensor size "
+                f"{(H, W)}, i.e. {(2 * H, 2 * W)}"
+            )
+    else:
+        full = tuple(int(v) for v in cap.image.shape[-2:])
+        if full != (H, W):
+            raise FileFormatError(
+                f"{path}: RGB image size (H, W) = {full} does not match the calibration bundle's "
+                f"sensor size {(H, W)} (demosaic='half' bins Bayer mosaics only)"
+            )
+
+
 def reconstruct_frame(
     image: Tensor,
     saturated: Tensor | None,
     bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
     *,
-    beta: float = 1.0,
+    beta: float = DEFAULT_BETA,
     diff_order: int = 1,
     solver: str = "active_set",
     exposure_s: float | None = None,
     **kwargs: Any,
 ) -> ReconstructionResult:
     """One-call form of :meth:`Reconstructor.reconstruct_frame` (the per-bundle precomputation is
-    cached, so repeated calls with the same bundle object reuse it). ``kwargs`` go to
+    cached, so repeated calls with the same bundle object reuse it). ``beta`` is on the DN² scale
+    (default :data:`DEFAULT_BETA` = 1e4, as ``ReconstructConfig``). ``kwargs`` go to
     :class:`Reconstructor` (``device``, ``dtype``, ``chunk_size``, ``min_views``, …)."""
     rec = Reconstructor(bundle, beta=beta, diff_order=diff_order, solver=solver, **kwargs)
     return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s)

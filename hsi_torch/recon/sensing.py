@@ -8,6 +8,10 @@ once and reused by every frame that shares the bundle:
 - the per-pixel sensing matrices ``A (P, 3V, M)``,
   ``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (view-major observations);
 - the static observation mask ``obs_mask (P, 3V)`` (view ``v`` present and BRF-modulated at ``p``);
+- the sampling grid ``sample_grid (1, V, P, 2)``: where every valid pixel of every view lies on the
+  sensor (``H_v⁻¹`` applied to the reference sensor px, kornia's ``transform_points``, float64),
+  in grid_sample's normalised ``align_corners=True`` coordinates (:func:`source_grid`), so a frame
+  is warped by *one* ``kornia.geometry.transform.remap`` call over the valid pixels only;
 - the solver factorisation (:func:`hsi_torch.recon.solvers.prepare_nnls`): per-pixel Gram matrices
   and their inverses for the static mask, one per ``(beta, diff_order)``.
 
@@ -25,8 +29,10 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -42,6 +48,7 @@ from hsi_torch.recon.solvers import NNLSProblem, prepare_nnls
 __all__ = [
     "BundleSensing",
     "precompute_sensing",
+    "source_grid",
     "load_bundle",
     "bundle_exposure",
     "clear_sensing_cache",
@@ -111,6 +118,11 @@ class BundleSensing:
         problem: :class:`~hsi_torch.recon.solvers.NNLSProblem` for ``A``, ``obs_mask``, ``beta``.
         exposure_s: white-reference exposure of the calibration (s) or ``None``.
         cfa_pattern: the bundle's CFA pattern (``settings["cfa_pattern"]``) or ``None``.
+        sample_grid: ``(1, V, P, 2)`` (``dtype``, ``device``) sensor position of valid pixel ``p``
+            in view ``v`` as normalised ``(x, y)`` (``align_corners=True``; see
+            :func:`source_grid`); ``None``: computed on first use.
+        staging_lock: guards the per-bundle work buffer of :meth:`staging` (frames of one bundle
+            may be reconstructed from several threads).
     """
 
     wavelengths_nm: Tensor
@@ -127,6 +139,30 @@ class BundleSensing:
     exposure_s: float | None = None
     cfa_pattern: str | None = None
     _problems: dict[tuple[float, int], NNLSProblem] = field(default_factory=dict, repr=False)
+    sample_grid: Tensor | None = field(default=None, repr=False)
+    staging_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _staging: list[Tensor] = field(default_factory=list, repr=False)
+
+    def staging(self, shape: Sequence[int], dtype: torch.dtype, device: torch.device) -> Tensor:
+        """A work buffer of ``shape`` kept between frames (the frame's stacked image and
+        saturation mask); reallocated when shape, dtype or device change. Hold
+        :attr:`staging_lock` while using it."""
+        shape = tuple(int(v) for v in shape)
+        buf = self._staging[0] if self._staging else None
+        if buf is None or buf.shape != shape or buf.dtype != dtype or buf.device != device:
+            self._staging[:] = []  # free the old one first
+            buf = torch.empty(shape, dtype=dtype, device=device)
+            self._staging.append(buf)
+        return buf
+
+    def grid(self) -> Tensor:
+        """:attr:`sample_grid`, computed (and kept) on first use."""
+        if self.sample_grid is None:
+            self.sample_grid = source_grid(
+                self.homographies, self.reference_bbox, self.sensor_size, self.pixel_index,
+                dtype=self.dtype,
+            )  # fmt: skip
+        return self.sample_grid
 
     @property
     def num_views(self) -> int:
@@ -160,10 +196,9 @@ class BundleSensing:
             return self
         if key not in self._problems:
             self._problems[key] = _factorise(self.A, self.obs_mask, *key, None)
-        return BundleSensing(
-            self.wavelengths_nm, self.sensor_size, self.reference_bbox, self.homographies,
-            self.valid, self.pixel_index, self.A, self.obs_mask, key[0], key[1],
-            self._problems[key], self.exposure_s, self.cfa_pattern, self._problems,
+        return dataclasses.replace(
+            self, beta=key[0], diff_order=key[1], problem=self._problems[key],
+            sample_grid=self.grid(),
         )  # fmt: skip
 
     def check_capture_size(self, shape: Sequence[int], source: str = "capture") -> None:
@@ -179,7 +214,48 @@ class BundleSensing:
         """Bytes held by ``A``, the masks and the factorisation."""
         p = self.problem
         ts = [self.A, self.obs_mask, self.pixel_index, p.gram, p.gram_inv]
+        if self.sample_grid is not None:
+            ts.append(self.sample_grid)
         return int(sum(t.numel() * t.element_size() for t in ts))
+
+
+def source_grid(
+    homographies: Tensor,
+    reference_bbox: Sequence[int],
+    sensor_size: Sequence[int],
+    pixel_index: Tensor,
+    dtype: torch.dtype | None = None,
+) -> Tensor:
+    """Sensor positions of the reconstructed pixels in every view, as a grid_sample grid.
+
+    Reference-frame pixel ``p = i·w + j`` is reference sensor px ``q = (j + x0, i + y0)``; in view
+    ``v`` it lies at ``H_v⁻¹ q`` (kornia ``transform_points``, float64), normalised for
+    ``grid_sample(align_corners=True)``: ``x_n = 2x/(W − 1) − 1``, ``y_n = 2y/(H − 1) − 1``
+    (kornia's ``normalize_pixel_coordinates``). Sampling the sensor image there is exactly what
+    :func:`hsi_torch.calibrate.registration.warp_views` (kornia ``warp_perspective`` with
+    ``M_v = T_crop·H_v``) computes at those pixels.
+
+    Args:
+        homographies: ``(V, 3, 3)`` view-v sensor px → reference sensor px.
+        reference_bbox: ``(x0, y0, w, h)``; sensor_size: ``(H, W)``.
+        pixel_index: ``(P,)`` flat row-major reference-frame indices.
+        dtype: of the result (default: ``homographies``' dtype).
+
+    Returns:
+        ``(1, V, P, 2)`` normalised ``(x, y)`` on ``pixel_index``'s device.
+    """
+    from kornia.geometry.conversions import normalize_pixel_coordinates
+    from kornia.geometry.linalg import transform_points
+
+    dev = pixel_index.device
+    x0, y0, w, _ = (int(v) for v in reference_bbox)
+    H, W = (int(v) for v in sensor_size)
+    Hv = homographies.to(device=dev, dtype=torch.float64)
+    V = Hv.shape[0]
+    q = torch.stack([pixel_index % w + x0, pixel_index // w + y0], dim=1).to(torch.float64)
+    src = transform_points(torch.linalg.inv(Hv), q.unsqueeze(0).expand(V, -1, -1))  # (V, P, 2)
+    grid = normalize_pixel_coordinates(src, H, W)
+    return grid.unsqueeze(0).to(dtype or homographies.dtype)
 
 
 def _factorise(
@@ -249,6 +325,7 @@ def precompute_sensing(
         cfa_pattern=_cfa_from_settings(b),
     )
     sens._problems[(float(beta), int(diff_order))] = problem
+    sens.grid()  # the frames' sampling positions, once per bundle
     sens._bundle_ref = b  # type: ignore[attr-defined]  # identity check for the cache
     if cache:
         _CACHE[key] = sens
