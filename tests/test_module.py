@@ -109,3 +109,24 @@ def test_inside_a_torch_pipeline(device):
     assert x.grad.abs().sum() > 0 and conv.weight.grad.abs().sum() > 0
     # gradient only reaches sensor pixels sampled by some valid view
     assert (x.grad == 0).any()
+
+
+def test_sampling_grid_buffer_recomputed_in_new_dtype():
+    from test_pipeline import _tilted
+
+    from hsi_torch.recon.sensing import source_grid
+
+    bundle = _tilted(make_bundle())  # non-integer sampling positions
+    mod = HSIReconstructor.from_bundle(bundle, beta=1.0)
+    assert mod.sample_grid.dtype == torch.float32 and mod.sample_grid.shape[:2] == (1, 4)
+    assert mod.sensing() is mod.sensing()  # view (and its work buffer) kept between calls
+    mod = mod.double()
+    ref = source_grid(torch.as_tensor(bundle.view_homographies), mod.reference_bbox,
+                      mod.sensor_size, mod.pixel_index, dtype=torch.float64)
+    assert torch.equal(mod.sample_grid, ref)  # float64 positions, not float32 ones upcast
+    assert not torch.equal(mod.sample_grid, ref.float().double())
+    x = torch.rand(2, 3, 40, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    rec = Reconstructor(bundle, beta=1.0, dtype=torch.float64)
+    # equal up to A's float32 rounding (the module's A was built in float32, then upcast)
+    torch.testing.assert_close(mod(x).cube[1], rec.reconstruct_frame(x[1]).cube, equal_nan=True,
+                               rtol=1e-5, atol=1e-8)

@@ -9,6 +9,8 @@ each view's sensor pixels.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -17,7 +19,14 @@ from scipy.optimize import nnls
 from hsi_torch.calibrate import CalibrationBundle
 from hsi_torch.io.raw import demosaic_bilinear, mosaic
 from hsi_torch.recon import sensing as sensing_mod
-from hsi_torch.recon.pipeline import Reconstructor, reconstruct_frame
+from hsi_torch.recon.pipeline import (
+    Reconstructor,
+    build_observations,
+    observations_from_samples,
+    reconstruct_frame,
+    sample_views,
+    warp_capture,
+)
 from hsi_torch.spectral import band_widths, difference_matrix
 
 WL = np.arange(430.0, 641.0, 30.0)  # 8 bands: 3V = 12 >= M, exact recovery with beta = 0
@@ -268,3 +277,159 @@ def test_capture_size_mismatch_names_source():
         rec.reconstruct_frame(torch.zeros(3, 40, 41), source="shot.tif")
     with pytest.raises(ValueError, match="CFA pattern"):
         rec.reconstruct_frame(torch.zeros(1, 40, 40))
+
+
+# ------------------------------------------------------------------ warp on the valid pixels only
+def _tilted(bundle: CalibrationBundle, seed: int = 0) -> CalibrationBundle:
+    """The bundle with non-integer homographies (sub-pixel shift, small rotation/scale,
+    perspective): bilinear sampling then mixes neighbouring sensor samples."""
+    g = np.random.default_rng(seed)
+    Hs = []
+    for Hv in bundle.view_homographies:
+        a = 0.03 * g.standard_normal()
+        P = np.array([[np.cos(a) * 1.01, -np.sin(a), 0.37], [np.sin(a), np.cos(a) * 0.99, -0.21],
+                      [2e-4, -1e-4, 1.0]])
+        Hs.append(P @ Hv)
+    return dataclasses.replace(bundle, view_homographies=np.stack(Hs))
+
+
+def test_sample_views_equals_full_frame_warp(device, dtype):
+    bundle = _tilted(make_bundle())
+    sens = sensing_mod.precompute_sensing(bundle, beta=1.0, device=device, dtype=dtype,
+                                          cache=False)
+    g = torch.Generator().manual_seed(0)
+    img = (100 * torch.rand(2, 3, 40, 40, generator=g, dtype=torch.float64)).to(device, dtype)
+    sat = (torch.rand(2, 3, 40, 40, generator=g) > 0.97).to(device)
+    full, full_sat = warp_capture(sens, img, sat)  # (B, V, 3, h, w), kornia warp_perspective
+    vals, wsat = sample_views(sens, img, sat)  # (B, 3, V, P), one kornia remap
+    pix = sens.pixel_index
+    ref = full.flatten(3)[..., pix].permute(0, 2, 1, 3)
+    ref_sat = full_sat.flatten(3)[..., pix].permute(0, 2, 1, 3)
+    tol = dict(rtol=1e-4, atol=1e-3) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(vals, ref, **tol)
+    torch.testing.assert_close(wsat, ref_sat, atol=tol["atol"] / 100, rtol=0)
+    assert (ref_sat > 1e-3).any() and (ref_sat < 1).any()  # the masks were really mixed
+    # observations and masks as from the full-frame path
+    y1, m1, s1 = build_observations(sens, full, full_sat)
+    y2, m2, s2 = observations_from_samples(sens, vals, wsat)
+    torch.testing.assert_close(y2, y1, **tol)
+    assert torch.equal(m2, m1) and torch.equal(s2, s1)
+    # the frame pipeline (staging buffer reused across frames) gives the same cube as before
+    rec = Reconstructor(sens)
+    r1 = rec.reconstruct_frame(img[0], sat[0])
+    r2 = rec.reconstruct_frame(img[1], sat[1])
+    r1b = rec.reconstruct_frame(img[0], sat[0])
+    torch.testing.assert_close(r1b.cube, r1.cube, equal_nan=True, rtol=0, atol=0)
+    assert not torch.equal(torch.nan_to_num(r2.cube), torch.nan_to_num(r1.cube))
+
+
+def test_fit_residual_flags_a_bundle_from_another_geometry():
+    dt = torch.float64
+    bundle = make_bundle()
+    s = true_spectra()
+    img = render_capture(bundle, s).to(dt)
+    noisy = img + 0.2 * torch.randn(img.shape, generator=torch.Generator().manual_seed(3),
+                                    dtype=dt)
+    good = Reconstructor(bundle, beta=0.0, dtype=dt).reconstruct_frame(noisy)
+    # same sensor and frame sizes, views 5 px elsewhere on the sensor: another geometry
+    T = np.array([[1, 0, 5], [0, 1, 5], [0, 0, 1.0]])
+    H = bundle.view_homographies
+    other = dataclasses.replace(bundle, view_homographies=np.stack([H[0]] + [T @ h for h in H[1:]]))
+    bad = Reconstructor(other, beta=0.0, dtype=dt).reconstruct_frame(noisy)
+    assert good.stats["fit_residual"] < 1e-3 and bad.stats["fit_residual"] > 0.15
+    assert good.stats["num_not_converged"] == 0
+    # independent computation on the same evenly spaced pixels: ||W(A s - y)|| / ||W y||
+    from hsi_torch.recon.pipeline import FIT_RESIDUAL_SAMPLES
+
+    pix = torch.as_tensor(bundle.valid).reshape(-1).nonzero().squeeze(1)
+    k = min(pix.numel(), FIT_RESIDUAL_SAMPLES)
+    sel = torch.linspace(0, pix.numel() - 1, k).round().long()
+    A = bundle.sensing_matrices(dtype=dt, pixel_index=pix[sel]).numpy()
+    W = bundle.observation_mask(pixel_index=pix[sel]).numpy()
+    x = good.cube.reshape(WL.size, -1)[:, pix[sel]].T.numpy()
+    t = 20
+    yy, xx = np.meshgrid(np.arange(t), np.arange(t), indexing="ij")
+    ref = np.stack([xx.ravel(), yy.ravel(), np.ones(t * t)])
+    obs = np.zeros((t * t, 12))
+    for v, Hv in enumerate(view_maps(t)):
+        q = np.rint(np.linalg.inv(Hv) @ ref).astype(int)
+        obs[:, 3 * v : 3 * v + 3] = noisy.numpy()[:, q[1], q[0]].T
+    y = obs[pix[sel].numpy()] * W
+    r = np.linalg.norm((np.einsum("pom,pm->po", A, x) - y) * W, axis=1) / np.linalg.norm(y, axis=1)
+    lower_median = float(np.sort(r)[(r.size - 1) // 2])  # torch.median: lower middle value
+    assert good.stats["fit_residual"] == pytest.approx(lower_median, rel=1e-9)
+
+
+def test_default_beta_is_the_config_default():
+    import inspect
+
+    from hsi_torch.recon.config import ReconstructConfig
+    from hsi_torch.recon.module import HSIReconstructor
+    from hsi_torch.recon.pipeline import DEFAULT_BETA
+
+    assert DEFAULT_BETA == ReconstructConfig().beta == 1e4
+    for fn in (Reconstructor.__init__, reconstruct_frame, HSIReconstructor.from_bundle):
+        assert inspect.signature(fn).parameters["beta"].default == DEFAULT_BETA, fn
+    sensing_mod.clear_sensing_cache()
+    assert Reconstructor(make_bundle()).sensing.beta == 1e4
+
+
+def test_half_demosaic_checks_the_full_resolution_size(tmp_path):
+    from hsi_torch.io import FileFormatError, write_capture
+
+    # a bundle made at half resolution: its sensor is 40x40, the mosaic must be 80x80
+    bundle = make_bundle(cfa_pattern="RGGB")
+    img = render_capture(bundle, true_spectra())
+    full = img.repeat_interleave(2, 1).repeat_interleave(2, 2)  # each sample -> a 2x2 cell
+    rec = Reconstructor(bundle, beta=0.0, dtype=torch.float64)
+    ok_path = tmp_path / "ok.tif"
+    write_capture(ok_path, np.round(mosaic(full, "RGGB").numpy() * 10).clip(0, 65000),
+                  {"kind": "bayer", "cfa_pattern": "RGGB", "white_level": 65535})
+    res = rec.reconstruct_file(ok_path, demosaic="half")
+    assert res.valid.any()
+    for shape in [(81, 81), (80, 82), (40, 40)]:
+        bad = tmp_path / f"bad_{shape[0]}x{shape[1]}.tif"
+        write_capture(bad, np.zeros((1, *shape), np.uint16), {"kind": "bayer",
+                                                               "cfa_pattern": "RGGB"})
+        with pytest.raises(FileFormatError, match=rf"bad_{shape[0]}x{shape[1]}\.tif.*twice"):
+            rec.reconstruct_file(bad, demosaic="half")
+    rgb = tmp_path / "rgb.tif"
+    write_capture(rgb, np.zeros((3, 80, 80), np.uint16), {"kind": "rgb"})
+    with pytest.raises(FileFormatError, match=r"rgb\.tif: RGB image size"):
+        rec.reconstruct_file(rgb, demosaic="half")
+
+
+def test_read_any_integer_fast_path_is_exact(tmp_path):
+    """stored − black and stored >= white for 8/16-bit files equal the float64 formula."""
+    import json
+
+    from hsi_torch.io import read_any
+
+    g = np.random.default_rng(5)
+    cases = [  # (dtype, kind, black, white)
+        (np.uint16, "rgb", 512, 16383), (np.uint16, "bayer", [510, 512, 511, 509], 16383),
+        (np.uint16, "rgb", [10, 20, 30], 70000), (np.uint8, "bayer", 0, None),
+        (np.int16, "rgb", 3, 20000), (np.uint16, "rgb", 100.5, 4000),  # last: float64 route
+    ]
+    for i, (dt, kind, bl, wl) in enumerate(cases):
+        shape = (3, 30, 40) if kind == "rgb" else (30, 40)
+        a = g.integers(0, min(np.iinfo(dt).max, 20000) + 1, shape).astype(dt)
+        a.flat[::37] = min(np.iinfo(dt).max, 16383)
+        meta = {"kind": kind, "black_level": bl, "cfa_pattern": "RGGB"}
+        if wl is not None:
+            meta["white_level"] = wl
+        f = tmp_path / f"c{i}.npy"
+        np.save(f, a)
+        (tmp_path / f"c{i}.npy.json").write_text(json.dumps(meta))
+        a3 = a.astype(np.float64).reshape(-1, 30, 40)
+        blk = np.asarray(bl, np.float64)
+        blk = (np.tile(blk.reshape(2, 2), (15, 20))[None] if blk.size == 4 else
+               blk.reshape(-1, 1, 1))
+        white = wl if wl is not None else np.iinfo(dt).max
+        for tdt in (torch.float32, torch.float64):
+            cap = read_any(f, dtype=tdt)
+            lin = cap.mosaic if kind == "bayer" else cap.image
+            assert lin.dtype == tdt and lin.is_contiguous()
+            assert torch.equal(lin, torch.from_numpy(a3 - blk).to(tdt)), (i, tdt)
+            sat = cap.mosaic_saturated if kind == "bayer" else cap.saturated
+            assert torch.equal(sat, torch.from_numpy(a3 >= white)), (i, tdt)

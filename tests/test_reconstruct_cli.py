@@ -99,3 +99,94 @@ def test_reconstruct_cli_errors(workspace, capsys):
     code = main(["reconstruct", "--bundle", str(bpath), "--out", str(out),
                  "--set", "spectra_points=[[50, 1]]", str(caps / "a.npy")])
     assert code == 1 and "spectra_points" in capsys.readouterr().err
+
+
+def test_reconstruct_cli_warns_for_a_bundle_from_another_geometry(workspace, capsys):
+    import dataclasses
+
+    tmp, bpath, caps, _ = workspace
+    b = make_bundle(white_exposure_s=0.01)
+    T = np.array([[1, 0, 5], [0, 1, 5], [0, 0, 1.0]])  # same sizes, views 5 px elsewhere
+    H = b.view_homographies
+    other = tmp / "other.npz"
+    dataclasses.replace(b, view_homographies=np.stack([H[0]] + [T @ h for h in H[1:]])).save(other)
+    argv = ["--no-progress", "--set", "beta=0", "--set", "dtype=float64",
+            "--set", "formats=[npz]", "--set", "preview=false", str(caps / "a.npy")]
+    assert main(["reconstruct", "--bundle", str(bpath), "--out", str(tmp / "ok"), *argv]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" not in err
+    fit_ok = load_cube(tmp / "ok" / "a.npz").metadata["stats"]["fit_residual"]
+    assert main(["reconstruct", "--bundle", str(other), "--out", str(tmp / "bad"), *argv]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" in err and "a.npy" in err and "fit residual" in err
+    st = load_cube(tmp / "bad" / "a.npz").metadata["stats"]
+    assert st["fit_residual"] > 0.1 > 1e-3 > fit_ok and st["num_not_converged"] == 0
+
+
+def test_frame_warnings():
+    from hsi_torch.recon.cli_entry import frame_warnings
+    from hsi_torch.recon.config import ReconstructConfig
+
+    cfg = ReconstructConfig()
+    ok = {"fit_residual": 0.03, "num_not_converged": 0, "num_valid": 100, "max_kkt": 1e-7}
+    assert frame_warnings(ok, cfg) == []
+    w = frame_warnings({**ok, "fit_residual": 0.25, "num_not_converged": 7}, cfg)
+    assert len(w) == 2 and "0.250 > 0.1" in w[0] and "7 of 100 pixels" in w[1]
+    off = ReconstructConfig(fit_residual_warning=None)
+    assert frame_warnings({**ok, "fit_residual": 0.25}, off) == []
+    assert frame_warnings({**ok, "fit_residual": float("nan")}, cfg) == []
+    with pytest.raises(ValueError, match="fit_residual_warning"):
+        ReconstructConfig(fit_residual_warning=0.0)
+
+
+def test_write_outputs_same_files_as_per_format_writers(tmp_path):
+    """The shared conversion/NaN fill and the preview's valid= route write the same bytes as
+    save_cube per format and the NaN-free copy; a failing format leaves nothing behind."""
+    import filecmp
+    import zipfile
+
+    from hsi_torch.colour import save_preview_png
+    from hsi_torch.io import cube as cube_io
+    from hsi_torch.recon.cli_entry import write_outputs
+    from hsi_torch.recon.config import ReconstructConfig
+    from hsi_torch.recon.pipeline import ReconstructionResult
+
+    g = torch.Generator().manual_seed(0)
+    M, h, w = 6, 30, 40
+    wl = torch.linspace(430.0, 670.0, M, dtype=torch.float64)
+    for nan_invalid in (True, False):
+        cube = torch.rand(M, h, w, generator=g)
+        valid = torch.rand(h, w, generator=g) > 0.3
+        cube[:, ~valid] = float("nan") if nan_invalid else 0.0
+        kept = cube.clone()
+        res = ReconstructionResult(cube, valid, wl, {}, {})
+        d = tmp_path / str(nan_invalid)
+        tm: dict[str, float] = {}
+        written = write_outputs(res, d / "x", ReconstructConfig(), {"k": 1}, timings=tm)
+        assert {"npz", "tiff", "envi", "preview"} <= set(tm)
+        assert torch.equal(torch.nan_to_num(cube, 7.0), torch.nan_to_num(kept, 7.0))
+        assert {q.name for q in written} >= {"x.tif", "x.hdr", "x.img", "x.npz"}
+        for suf in (".tif", ".hdr"):
+            for p in cube_io.save_cube(d / f"ref{suf}", cube, wl, valid, {"k": 1}):
+                assert filecmp.cmp(p, d / ("x" + p.suffix), shallow=False), p
+        ref = cube_io.save_cube(d / "ref.npz", cube, wl, valid, {"k": 1})[0]
+        with zipfile.ZipFile(ref) as za, zipfile.ZipFile(d / "x.npz") as zb:
+            assert za.namelist() == zb.namelist()
+            assert all(za.read(n) == zb.read(n) for n in za.namelist())
+        prev = torch.where(valid.unsqueeze(0), torch.nan_to_num(cube, nan=0.0), 0.0)
+        assert filecmp.cmp(save_preview_png(prev, wl, d / "ref.png"), d / "x_preview.png",
+                           shallow=False)
+    # a format that fails: the formats already written by the call are removed
+    orig = cube_io._save_envi
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    cube_io._save_envi = boom
+    try:
+        with pytest.raises(OSError, match="disk full"):
+            cube_io.save_cube_formats(tmp_path / "f", cube, wl, valid,
+                                      formats=("npz", "tiff", "envi"))
+    finally:
+        cube_io._save_envi = orig
+    assert not any(p.name.startswith("f") for p in tmp_path.iterdir())

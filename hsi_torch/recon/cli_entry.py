@@ -25,7 +25,7 @@ import torch
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
-__all__ = ["run_reconstruct", "write_outputs", "output_paths"]
+__all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings"]
 
 _SUFFIXES = {"tiff": [".tif"], "envi": [".hdr", ".img"], "npz": [".npz"]}
 
@@ -113,31 +113,6 @@ def write_outputs(
     return written
 
 
-def _reconstruct_file(
-    rec: Reconstructor, path: Path, cfg: ReconstructConfig, bundle_cfa: str | None
-) -> ReconstructionResult:
-    """:meth:`Reconstructor.reconstruct_file` with the config's ``cfa_pattern``, ``black_level``
-    and ``white_level`` (and the bundle's CFA pattern for Bayer files that have none)."""
-    from hsi_torch.io import read_any
-
-    sens = rec.sensing
-    t0 = time.perf_counter()
-    cap = read_any(
-        path, expected_size=sens.sensor_size if cfg.demosaic == "bilinear" else None,
-        demosaic=cfg.demosaic, cfa_pattern=cfg.cfa_pattern, black_level=cfg.black_level,
-        white_level=cfg.white_level, dtype=sens.dtype, device=sens.device,
-        default_cfa_pattern=bundle_cfa,
-    )  # fmt: skip
-    if sens.device.type == "cuda":
-        torch.cuda.synchronize(sens.device)
-    t_load = time.perf_counter() - t0
-    res = rec.reconstruct_capture(cap)
-    res.timings = {"load": t_load, **res.timings}
-    res.timings["total"] = res.timings.get("total", 0.0) + t_load
-    res.stats["metadata"] = cap.metadata
-    return res
-
-
 def _resolve_device(name: str) -> torch.device:
     try:
         dev = torch.device(name)
@@ -173,13 +148,15 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     out = ensure_out_dir(args.out)
     write_resolved_config(cfg, out)
     st = bundle_path.stat()
-    settings = {k: v for k, v in vars(cfg).items() if k not in ("device", "chunk_size")}
+    # keys that change the outputs (not where/how fast they are computed, nor warnings)
+    ignored = ("device", "chunk_size", "fit_residual_warning")
+    settings = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({
         "config": settings,
         "bundle": [os.path.abspath(bundle_path), st.st_size, st.st_mtime_ns],
     })  # fmt: skip
 
-    bundle_cfa = bundle.settings.get("cfa_pattern") if isinstance(bundle.settings, dict) else None
+    progress = getattr(args, "progress", True)
     state: dict[str, Any] = {"rec": None, "stems": {}}
 
     def reconstructor() -> Reconstructor:  # built on the first input that needs it
@@ -202,7 +179,12 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
             )
         state["stems"][path.stem] = os.path.abspath(path)
         rec = reconstructor()
-        res = _reconstruct_file(rec, path, cfg, bundle_cfa)
+        res = rec.reconstruct_file(
+            path, cfg.demosaic, cfa_pattern=cfg.cfa_pattern, black_level=cfg.black_level,
+            white_level=cfg.white_level,
+        )  # fmt: skip
+        for msg in frame_warnings(res.stats, cfg):
+            _warn(f"WARNING {path}: {msg}", progress)
         cap_meta = res.stats.pop("metadata", {})
         meta = {
             "source": os.path.abspath(path),
@@ -215,6 +197,40 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
         return write_outputs(res, stem, cfg, meta)
 
     return run_batch(
-        inputs, process, out, resume=getattr(args, "resume", True),
-        progress=getattr(args, "progress", True), desc="reconstruct", fingerprint=fingerprint,
+        inputs, process, out, resume=getattr(args, "resume", True), progress=progress,
+        desc="reconstruct", fingerprint=fingerprint,
     )  # fmt: skip
+
+
+def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
+    """Warnings about one reconstructed frame: a fit residual above
+    ``cfg.fit_residual_warning`` (the bundle probably belongs to another geometry, or the
+    black level / exposure is wrong) and pixels whose solve did not converge."""
+    out: list[str] = []
+    fit = stats.get("fit_residual")
+    lim = cfg.fit_residual_warning
+    if lim is not None and isinstance(fit, float) and fit > lim:
+        out.append(
+            f"median relative fit residual {fit:.3f} > {lim:g}: the spectra do not explain the "
+            "capture; is the calibration bundle from this camera and geometry (and are the black "
+            "level and exposure right)?"
+        )
+    n = int(stats.get("num_not_converged", 0))
+    if n:
+        out.append(
+            f"{n} of {stats.get('num_valid', '?')} pixels did not converge (KKT residual above "
+            f"the solver tolerance; max {stats.get('max_kkt', float('nan')):.1e}); try "
+            "dtype=float64 or a larger beta"
+        )
+    return out
+
+
+def _warn(msg: str, progress: bool) -> None:
+    import sys
+
+    if progress:
+        from tqdm import tqdm
+
+        tqdm.write(msg, file=sys.stderr)
+    else:
+        print(msg, file=sys.stderr)

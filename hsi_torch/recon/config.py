@@ -81,6 +81,13 @@ class ReconstructConfig:
                        "type's maximum)"),
     )
 
+    fit_residual_warning: float | None = field(
+        default=0.1,
+        metadata=_help("warn when a frame's median relative fit residual ||W(A s - y)|| / ||W y|| "
+                       "exceeds this (a bundle from another geometry; default prototype: "
+                       "0.01-0.05 with its own bundle, 0.21-0.24 with another's); null: never"),
+    )
+
     def __post_init__(self) -> None:
         if not self.beta >= 0:
             raise ValueError(f"beta must be >= 0, got {self.beta}")
@@ -92,6 +99,10 @@ class ReconstructConfig:
             raise ValueError(f"chunk_size must be >= 1 or null, got {self.chunk_size}")
         if self.min_views < 1:
             raise ValueError(f"min_views must be >= 1, got {self.min_views}")
+        if self.fit_residual_warning is not None and not self.fit_residual_warning > 0:
+            raise ValueError(
+                f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
+            )
         if not self.formats and not self.preview:
             raise ValueError("nothing to write: formats is empty and preview is false")
         if len(set(self.formats)) != len(self.formats):

@@ -386,7 +386,8 @@ def fit_residual(
     """Median relative fit residual ``‖W(A s − y)‖ / ‖W y‖`` of a frame (NaN without valid pixels).
 
     Evaluated on up to ``num_samples`` pixels evenly spaced over the bundle's ``P`` valid pixels
-    (the same ones every frame; those invalid in this frame are left out), W = the frame mask.
+    (the same ones every frame; those invalid in this frame are left out), W = the frame mask;
+    for an even count the lower of the two middle values (``torch.median``).
 
     Args:
         x: ``(P, M)`` solution; y: ``(P, 3V)`` observations (zero where masked); mask, ok: as in
