@@ -176,12 +176,22 @@ def test_write_outputs_same_files_as_per_format_writers(tmp_path):
         prev = torch.where(valid.unsqueeze(0), torch.nan_to_num(cube, nan=0.0), 0.0)
         assert filecmp.cmp(save_preview_png(prev, wl, d / "ref.png"), d / "x_preview.png",
                            shallow=False)
-    # a format that fails: the formats already written by the call are removed
-    orig = cube_io._save_envi
+    # one output that fails (here the preview): every file of the stem is removed
+    import hsi_torch.colour as colour
 
     def boom(*a, **k):
         raise OSError("disk full")
 
+    orig_prev = colour.save_preview_png
+    colour.save_preview_png = boom
+    try:
+        with pytest.raises(OSError, match="disk full"):
+            write_outputs(res, tmp_path / "g", ReconstructConfig(spectra_points=[[1, 2]]))
+    finally:
+        colour.save_preview_png = orig_prev
+    assert not any(p.name.startswith("g") for p in tmp_path.iterdir())
+    # a format that fails: the formats already written by the call are removed
+    orig = cube_io._save_envi
     cube_io._save_envi = boom
     try:
         with pytest.raises(OSError, match="disk full"):

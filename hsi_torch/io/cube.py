@@ -226,8 +226,12 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
     ]
     with atomic_write(img, "wb") as f:  # the array's own buffer, no bytes copy
         f.write(memoryview(np.ascontiguousarray(c, dtype="<f4")).cast("B"))
-    with atomic_write(hdr, "w") as f:
-        f.write("\n".join(lines) + "\n")
+    try:
+        with atomic_write(hdr, "w") as f:
+            f.write("\n".join(lines) + "\n")
+    except BaseException:
+        img.unlink(missing_ok=True)  # no data file without its header
+        raise
     return [img, hdr]
 
 

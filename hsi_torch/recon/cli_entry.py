@@ -16,7 +16,9 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -58,14 +60,15 @@ def write_outputs(
 ) -> list[Path]:
     """Write a reconstruction's cube files, preview and spectra plot (all atomic).
 
-    On an error the files already written for this stem are removed, then the error propagates.
-    ``timings``: if given, receives seconds per output (``npz``, ``tiff``, ``envi``, ``prepare``,
-    ``preview``, ``spectra``).
+    The files are written concurrently (one thread per file). On an error the files already
+    written for this stem are removed, then the (first) error propagates.
+    ``timings``: if given, receives seconds per output (``npz``, ``tiff``, ``envi``,
+    ``preview``, ``spectra``; they overlap).
 
     Returns:
         The paths written.
     """
-    from hsi_torch.colour import plot_spectra, save_preview_png
+    from hsi_torch.colour import save_preview_png
     from hsi_torch.io import save_cube_formats
 
     s = Path(stem)
@@ -75,42 +78,67 @@ def write_outputs(
     h, w = cube.shape[-2:]
     if cfg.spectra_points:
         _check_points(cfg.spectra_points, h, w)
-    written: list[Path] = []
     tm = timings if timings is not None else {}
-    try:
-        if cfg.formats:
-            written += save_cube_formats(
-                s, cube, wl, valid, metadata, formats=tuple(cfg.formats), timings=tm
-            )
-        t0 = time.perf_counter()
-        if cfg.preview:
-            # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
-            path = s.with_name(s.name + "_preview.png")
-            written.append(save_preview_png(cube, wl, path, valid=valid))
-            tm["preview"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if cfg.spectra_points:
-            xs = torch.tensor([p[0] for p in cfg.spectra_points])
-            ys = torch.tensor([p[1] for p in cfg.spectra_points])
-            spectra = cube[:, ys, xs].T  # (K, M)
-            # invalid points are left out of the plot (NaN), not drawn as a flat zero spectrum
-            spectra = torch.where(valid[ys, xs].unsqueeze(1), spectra, float("nan"))
-            if not bool(valid[ys, xs].any()):
-                spectra = torch.zeros_like(spectra)  # nothing to draw; keep the axes finite
-            labels = [
-                f"(x={x}, y={y})" + ("" if bool(valid[y, x]) else " invalid")
-                for x, y in cfg.spectra_points
-            ]
-            path = s.with_name(s.name + "_spectra.png")
-            plot_spectra(wl, spectra, labels=labels, path=path,
-                         title=s.name, ylabel="reflectance (relative to white reference)")
-            written.append(path)
-            tm["spectra"] = time.perf_counter() - t0
-    except BaseException:
+
+    def timed(name: str, fn: Callable[[], list[Path]]) -> Callable[[], list[Path]]:
+        def run() -> list[Path]:
+            t0 = time.perf_counter()
+            out = fn()
+            tm[name] = time.perf_counter() - t0
+            return out
+
+        return run
+
+    jobs = [
+        timed(f, partial(save_cube_formats, s, cube, wl, valid, metadata, formats=(f,)))
+        for f in cfg.formats
+    ]
+    if cfg.preview:
+        # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
+        path = s.with_name(s.name + "_preview.png")
+        jobs.append(timed("preview", lambda: [save_preview_png(cube, wl, path, valid=valid)]))
+    if cfg.spectra_points:
+        jobs.append(timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg)]))
+    # the files are independent: written concurrently (mostly kernel copies and fsync waits,
+    # which release the GIL); every file is still atomic
+    results: list[list[Path]] = []
+    errors: list[BaseException] = []
+    with ThreadPoolExecutor(max_workers=max(1, len(jobs))) as pool:
+        futures = [pool.submit(job) for job in jobs]
+        for fut in futures:
+            try:
+                results.append(fut.result())
+            except BaseException as exc:  # noqa: BLE001 - re-raised below after cleanup
+                errors.append(exc)
+    written = [p for r in results for p in r]
+    if errors:
         for p in written:
             p.unlink(missing_ok=True)
-        raise
+        raise errors[0]
     return written
+
+
+def _plot_points(
+    cube: torch.Tensor, valid: torch.Tensor, wl: torch.Tensor, s: Path, cfg: ReconstructConfig
+) -> Path:
+    """The spectra at ``cfg.spectra_points`` → ``<stem>_spectra.png``."""
+    from hsi_torch.colour import plot_spectra
+
+    xs = torch.tensor([p[0] for p in cfg.spectra_points])
+    ys = torch.tensor([p[1] for p in cfg.spectra_points])
+    spectra = cube[:, ys, xs].T  # (K, M)
+    # invalid points are left out of the plot (NaN), not drawn as a flat zero spectrum
+    spectra = torch.where(valid[ys, xs].unsqueeze(1), spectra, float("nan"))
+    if not bool(valid[ys, xs].any()):
+        spectra = torch.zeros_like(spectra)  # nothing to draw; keep the axes finite
+    labels = [
+        f"(x={x}, y={y})" + ("" if bool(valid[y, x]) else " invalid")
+        for x, y in cfg.spectra_points
+    ]
+    path = s.with_name(s.name + "_spectra.png")
+    plot_spectra(wl, spectra, labels=labels, path=path,
+                 title=s.name, ylabel="reflectance (relative to white reference)")
+    return path
 
 
 def _resolve_device(name: str) -> torch.device:
