@@ -318,6 +318,7 @@ def solve_observations(
     admm_iters: int | None = None,
     chunk_size: int | None = None,
     min_views: int = 3,
+    premasked: bool = False,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Solve one frame's ``P`` pixels with the precomputed factorisation (+ exact re-solves).
 
@@ -326,6 +327,8 @@ def solve_observations(
         mask: ``(P, 3V)`` bool frame mask.
         solver: ``"active_set"`` or ``"admm"``; admm_iters: fixed ADMM iterations (differentiable).
         min_views: views (with ≥ 1 usable colour) a pixel needs to stay valid.
+        premasked: ``y`` is already 0 wherever ``mask`` is False (and in ``sens.dtype``): used
+            as is, without a masked copy.
 
     Returns:
         ``x (P, M)`` (0 where invalid), ``ok (P,)`` bool, ``info`` (counts, KKT statistics).
@@ -339,7 +342,7 @@ def solve_observations(
     ok = views_left >= int(min_views)
     static = sens.obs_mask
     changed = ok & (mask != static).any(1)
-    yc = torch.where(mask, y, zero).to(sens.dtype)
+    yc = y if premasked else torch.where(mask, y, zero).to(sens.dtype)
     kw: dict[str, Any] = dict(method=solver, chunk_size=chunk_size)
     if solver == "admm" and admm_iters is not None:
         kw["admm_iters"] = int(admm_iters)
@@ -466,9 +469,13 @@ def reconstruct_batch(
     t1 = time.perf_counter()
     t["warp"] = t1 - t0
     y, mask, sat = observations_from_samples(sens, samples, wsat, sat_threshold)
+    inplace = not (torch.is_grad_enabled() and y.requires_grad)  # y is this function's own copy
     if scale is not None:
         s = torch.as_tensor(scale, dtype=y.dtype, device=dev)
-        y = y * (s.view(-1, 1, 1) if s.ndim == 1 else s)
+        s = s.view(-1, 1, 1) if s.ndim == 1 else s
+        y = y.mul_(s) if inplace else y * s
+    if inplace:
+        y.masked_fill_(~mask, 0)  # masked observations are never used (they may be NaN)
     _sync(dev)
     t2 = time.perf_counter()
     t["observations"] = t2 - t1
@@ -476,7 +483,7 @@ def reconstruct_batch(
     for i in range(y.shape[0]):
         x, ok, info = solve_observations(
             sens, y[i], mask[i], solver=solver, admm_iters=admm_iters, chunk_size=chunk_size,
-            min_views=min_views,
+            min_views=min_views, premasked=inplace,
         )  # fmt: skip
         info["saturated_observations"] = int(sat[i].sum())
         xs.append(x)
@@ -485,7 +492,10 @@ def reconstruct_batch(
     _sync(dev)
     t3 = time.perf_counter()
     t["solve"] = t3 - t2
-    cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
+    if len(xs) == 1:  # no stacked copy for a single frame
+        cube, valid = assemble_cube(sens, xs[0][None], oks[0][None], nan_invalid)
+    else:
+        cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
     _sync(dev)
     t["assemble"] = time.perf_counter() - t3
     return cube, valid, stats, t
