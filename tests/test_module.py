@@ -130,3 +130,19 @@ def test_sampling_grid_buffer_recomputed_in_new_dtype():
     # equal up to A's float32 rounding (the module's A was built in float32, then upcast)
     torch.testing.assert_close(mod(x).cube[1], rec.reconstruct_frame(x[1]).cube, equal_nan=True,
                                rtol=1e-5, atol=1e-8)
+
+
+def test_deepcopy_and_torch_save_roundtrip(tmp_path):
+    import copy
+
+    bundle = make_bundle()
+    mod = HSIReconstructor.from_bundle(bundle, beta=1.0)
+    x = render_capture(bundle, true_spectra()).float()[None]
+    sat = torch.zeros_like(x, dtype=torch.bool)
+    sat[0, 0, 3, 3] = True
+    ref = mod(x, sat).cube  # caches the sensing view, its lock and work buffer
+    twin = copy.deepcopy(mod)
+    torch.save(mod, tmp_path / "mod.pt")
+    loaded = torch.load(tmp_path / "mod.pt", weights_only=False)
+    for m in (twin, loaded):
+        torch.testing.assert_close(m(x, sat).cube, ref, equal_nan=True, rtol=0, atol=0)

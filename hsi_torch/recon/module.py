@@ -177,6 +177,13 @@ class HSIReconstructor(nn.Module):
             )
         return out
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickling / ``copy.deepcopy``: the derived views are rebuilt on use."""
+        state = self.__dict__.copy()
+        state["_problem_cache"] = None
+        state["_sensing_cache"] = None
+        return state
+
     # ------------------------------------------------------------------------------ use
     @property
     def num_bands(self) -> int:

@@ -143,6 +143,16 @@ class BundleSensing:
     staging_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _staging: list[Tensor] = field(default_factory=list, repr=False)
 
+    def __getstate__(self) -> dict[str, Any]:  # picklable / deep-copyable: no lock, no buffer
+        state = self.__dict__.copy()
+        state["staging_lock"] = None
+        state["_staging"] = []
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.staging_lock = threading.Lock()
+
     def staging(self, shape: Sequence[int], dtype: torch.dtype, device: torch.device) -> Tensor:
         """A work buffer of ``shape`` kept between frames (the frame's stacked image and
         saturation mask); reallocated when shape, dtype or device change. Hold
