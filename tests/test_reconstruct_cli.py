@@ -200,3 +200,20 @@ def test_write_outputs_same_files_as_per_format_writers(tmp_path):
     finally:
         cube_io._save_envi = orig
     assert not any(p.name.startswith("f") for p in tmp_path.iterdir())
+
+
+def test_preview_percentile_equals_torch_quantile():
+    """The preview's percentile (two kthvalue selections) is bit-identical to torch.quantile."""
+    from hsi_torch.colour import _robust_max
+
+    g = torch.Generator().manual_seed(0)
+    for dt in (torch.float32, torch.float64):
+        for n in (1, 2, 7, 1000, 64_071, 640_700):
+            y = torch.rand(2, n, generator=g, dtype=dt) ** 3
+            y[1, : n // 2] = 0  # many ties, as the invalid pixels of a preview
+            for q in (99.5, 50.0, 100.0, 0.1):
+                ref = torch.quantile(y, q / 100.0, dim=-1)
+                assert torch.equal(_robust_max(y, q), ref), (dt, n, q)
+    y = torch.rand(1, 100, generator=g)
+    y[0, 3] = float("nan")
+    assert torch.isnan(_robust_max(y, 99.5)).all()  # NaN as torch.quantile
