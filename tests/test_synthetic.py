@@ -137,7 +137,7 @@ def test_this_system_ahead_of_three_camera(refl):
     this = evaluate_design(this_system_design().matrix, refl, [1.0], seeds)
     cam = evaluate_design(three_camera_design().matrix, refl, [1.0], seeds)
     margin = this.summary_rows()[0]["psnr_db"] - cam.summary_rows()[0]["psnr_db"]
-    # measured with 5 seeds in the default run: +6.15 dB (docs/readme_experiments.md)
+    # measured with 5 seeds in the default run: +6.15 dB (docs/experiments.md)
     assert margin > 3.0, margin
 
 

@@ -115,7 +115,7 @@ class ResponseSection:
     beta_phi: float = field(
         default=1e4,
         metadata=_h("smoothness weight on ||D phi||^2 (original prototype: 8e5, too strong on "
-                    "DN-scale data; see docs/readme_calibration.md)"),
+                    "DN-scale data; see docs/calibration.md)"),
     )
     gamma_h: float = field(
         default=1e2,

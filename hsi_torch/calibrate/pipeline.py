@@ -186,7 +186,7 @@ def find_captures(captures_dir: str | Path, cfg: CalibrateConfig | None = None) 
     if not lpath.is_file():
         raise FileNotFoundError(
             f"nominal layout {lpath} not found: calibration needs the view triangles, parity, "
-            "reference_bbox and BRF-free patch (see docs/readme_calibration.md)"
+            "reference_bbox and BRF-free patch (see docs/calibration.md)"
         )
     try:
         layout = json.loads(lpath.read_text())

@@ -609,7 +609,7 @@ def _default_inputs() -> list[OPDInputSpec]:
 
 @dataclass
 class OPDConfig:
-    """``hsi-torch experiment opd`` configuration (see docs/readme_experiments.md)."""
+    """``hsi-torch experiment opd`` configuration (see docs/experiments.md)."""
 
     prototype: Path | None = field(
         default=None, metadata={"help": "SimulateConfig YAML of the design (null: defaults)"})

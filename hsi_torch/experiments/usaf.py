@@ -224,7 +224,7 @@ class USAFTargetSpec:
 
 @dataclass
 class USAFConfig:
-    """``hsi-torch experiment usaf`` configuration (see docs/readme_experiments.md)."""
+    """``hsi-torch experiment usaf`` configuration (see docs/experiments.md)."""
 
     prototype: Path | None = field(
         default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: defaults)"})

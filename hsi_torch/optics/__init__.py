@@ -1,6 +1,6 @@
 """Optics of the virtual prototype: birefringent filter, tapered kaleidoscope, view layout.
 
-See ``docs/ARCHITECTURE.md`` for the coordinate conventions and ``docs/readme_optics.md`` for the
+See ``docs/architecture.md`` for the coordinate conventions and ``docs/optics.md`` for the
 physics and default numbers.
 """
 

@@ -278,7 +278,7 @@ class BRFConfig:
     """A birefringent filter between polarizers, directly behind the diffuser.
 
     The defaults are the design picked by the condition-number sweep of
-    ``scripts/optics_report.py`` for the default kaleidoscope (see ``docs/readme_optics.md``).
+    ``scripts/optics_report.py`` for the default kaleidoscope (see ``docs/optics.md``).
 
     Attributes:
         material: ``"quartz"``, ``"calcite"``, ``"polymer"`` (constant-Δn film), a

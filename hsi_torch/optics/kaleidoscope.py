@@ -1,6 +1,6 @@
 """Tapered triangular kaleidoscope: geometry, pinhole camera and a batched backward ray tracer.
 
-Convention (see ``docs/ARCHITECTURE.md``):
+Convention (see ``docs/architecture.md``):
     Diffuser plane ``z = 0``, tube axis ``+z`` (diffuser → camera), lengths in mm, origin on the
     tube axis. The entrance triangle (vertices ``P_i``, counter-clockwise in ``(X, Y)``) lies at
     ``z = 0``; the exit triangle is its copy scaled by ``a_out/a_in`` about the axis at

@@ -1,6 +1,6 @@
 """Virtual prototype: scenes, capture renderer, calibration/scene capture sets, ground truth.
 
-See ``docs/readme_simulate.md``. Heavy imports are lazy (``hsi_torch.simulate.render`` etc.).
+See ``docs/simulate.md``. Heavy imports are lazy (``hsi_torch.simulate.render`` etc.).
 """
 
 from hsi_torch.simulate.capture_sets import (

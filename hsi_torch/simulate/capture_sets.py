@@ -1,6 +1,6 @@
 """Calibration and scene capture sets of the virtual prototype, written with their ground truth.
 
-Folder format (read by calibration and reconstruction; see ``docs/readme_simulate.md``)::
+Folder format (read by calibration and reconstruction; see ``docs/simulate.md``)::
 
     OUT/manifest.json            schema version, sensor, levels, exposures, list of captures
     OUT/nominal_layout.json      what a user knows before calibration (no homographies)

@@ -265,7 +265,7 @@ class CapturesConfig:
 
 @dataclass
 class SimulateConfig:
-    """``hsi-torch simulate`` configuration (see ``docs/readme_simulate.md``)."""
+    """``hsi-torch simulate`` configuration (see ``docs/simulate.md``)."""
 
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)

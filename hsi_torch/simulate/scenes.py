@@ -1,7 +1,7 @@
 """Resolution-independent scenes on the diffuser plane.
 
 A scene is a spectral reflectance field ``r(X, Y, λ)`` on the diffuser plane ``z = 0``, with
-``(X, Y)`` in mm in the optics frame of ``docs/ARCHITECTURE.md`` (image ``x`` = ``+X``, image ``y``
+``(X, Y)`` in mm in the optics frame of ``docs/architecture.md`` (image ``x`` = ``+X``, image ``y``
 = ``+Y``, so ``Y`` grows *downwards* in a rendered image). Any object with
 
 - ``extent``: ``(x_min, x_max, y_min, y_max)`` in mm (the region worth rendering), and
