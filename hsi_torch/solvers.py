@@ -1,4 +1,7 @@
-"""Public alias: ``hsi_torch.solvers.solve_nnls`` (implementation in :mod:`hsi_torch.recon.solvers`)."""
+"""Public alias ``hsi_torch.solvers`` (``solve_nnls`` and friends).
+
+The implementation lives in :mod:`hsi_torch.recon.solvers`.
+"""
 
 from hsi_torch.recon.solvers import *  # noqa: F401,F403
 from hsi_torch.recon.solvers import __all__  # noqa: F401
