@@ -3,4 +3,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
-exec hsi-torch demo "$@"
+PY=${PYTHON:-python3}
+exec "$PY" -m hsi_torch demo "$@"
