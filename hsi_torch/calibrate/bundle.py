@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_save_npz
+from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, json_default
 from hsi_torch.spectral import band_widths
 
 __all__ = [
@@ -243,7 +243,7 @@ class CalibrationBundle:
     def save(self, path: str | os.PathLike) -> Path:
         """Write the bundle atomically (temporary file + ``os.replace``); returns the path."""
         self.validate()
-        meta = json.dumps(self.meta(), default=_json_default)  # fails before touching the file
+        meta = json.dumps(self.meta(), default=json_default)  # fails before touching the file
         arrays: dict[str, Any] = {fk: getattr(self, k) for k, fk in _FILE_KEYS.items()}
         arrays["meta"] = np.array(meta)
         for k, v in self.extras.items():
@@ -386,13 +386,3 @@ class CalibrationBundle:
         )
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, (np.ndarray, torch.Tensor)):
-        return obj.tolist()
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    if isinstance(obj, (set, frozenset, tuple)):
-        return list(obj)
-    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")

@@ -94,7 +94,8 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return Path(path)
 
 
-def _json_default(obj: Any) -> Any:
+def json_default(obj: Any) -> Any:
+    """``json.dumps(default=...)`` for numpy scalars/arrays, tensors, paths, sets and tuples."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
@@ -113,7 +114,7 @@ def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2)
 
     Serialisation happens before the file is touched, so an unserialisable object leaves nothing.
     """
-    text = json.dumps(obj, indent=indent, default=_json_default, allow_nan=True)
+    text = json.dumps(obj, indent=indent, default=json_default, allow_nan=True)
     return atomic_write_text(path, text + "\n")
 
 

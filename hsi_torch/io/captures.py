@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_write
+from hsi_torch.io.atomic import FileFormatError, atomic_write, json_default
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
@@ -138,7 +138,7 @@ def write_capture(
         meta["cfa_pattern"] = validate_cfa_pattern(meta["cfa_pattern"])
     meta["kind"] = kind
     meta["hsi_torch_capture"] = CAPTURE_FORMAT_VERSION
-    description = json.dumps(meta, default=_json_default)
+    description = json.dumps(meta, default=json_default)
     with atomic_write(p, "wb") as f:
         if kind == "bayer":
             tifffile.imwrite(f, arr[0], photometric="minisblack", description=description,
@@ -149,16 +149,6 @@ def write_capture(
     return p
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, (np.generic,)):
-        return obj.item()
-    if isinstance(obj, (np.ndarray, torch.Tensor)):
-        return obj.tolist()
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    if isinstance(obj, (tuple, set)):
-        return list(obj)
-    raise TypeError(f"metadata value of type {type(obj).__name__} is not JSON serialisable")
 
 
 # ----------------------------------------------------------------------------------------------

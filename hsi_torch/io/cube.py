@@ -29,7 +29,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, atomic_write
+from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, atomic_write, json_default
 
 __all__ = ["Cube", "save_cube", "save_cube_formats", "load_cube", "CubeFormat"]
 
@@ -163,7 +163,7 @@ def _save_prepared(
         c = c_nan if c_nan is not None else _nan_where_invalid(c, v)
     if kind == "npz":
         meta_json = json.dumps(
-            {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=_json_default
+            {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=json_default
         )
         atomic_save_npz(
             p, {"cube": c, "wavelengths_nm": wl, "valid": v, "metadata": np.array(meta_json)}
@@ -179,23 +179,13 @@ def _save_prepared(
             "shape": list(c.shape),
             **meta,
         }
-        text = json.dumps(desc, default=_json_default)
+        text = json.dumps(desc, default=json_default)
         with atomic_write(p, "wb") as f:
             tifffile.imwrite(f, c, photometric="minisblack", description=text, metadata=None)
         return [p]
     return _save_envi(p, c, wl, meta)
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, (np.ndarray, torch.Tensor)):
-        return obj.tolist()
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    if isinstance(obj, (tuple, set)):
-        return list(obj)
-    raise TypeError(f"metadata value of type {type(obj).__name__} is not JSON serialisable")
 
 
 def _envi_paths(p: Path) -> tuple[Path, Path]:
