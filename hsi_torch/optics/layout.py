@@ -232,20 +232,7 @@ class ViewLayout:
         dtype: torch.dtype | None = None,
     ) -> ViewLayout:
         """Inverse of :meth:`to_dict` (lists or arrays); float tensors get ``dtype`` (float64)."""
-        required = (
-            "reflection_sequences",
-            "sensor_size",
-            "reference_bbox",
-            "triangles",
-            "parity",
-            "view_homographies",
-            "diffuser_homographies",
-            "mean_alpha",
-            "mean_sigma",
-            "opd_nm",
-            "pixel_count",
-            "homography_residual_px",
-        )
+        required = ("reflection_sequences", "sensor_size", "reference_bbox", *cls._TENSORS)
         missing = [k for k in required if k not in d]
         if missing:
             raise ValueError(f"ViewLayout dict is missing keys {missing}")
