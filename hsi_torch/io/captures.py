@@ -33,12 +33,11 @@ from hsi_torch.io.atomic import FileFormatError, atomic_write, json_default
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
-    bayer_half,
-    demosaic_bilinear,
     demosaic_saturation,
     load_raw,
     validate_cfa_pattern,
 )
+from hsi_torch.io.raw import demosaic as _demosaic  # read_any's argument shadows the name
 
 __all__ = [
     "CAPTURE_FORMAT_VERSION",
@@ -147,8 +146,6 @@ def write_capture(
             tifffile.imwrite(f, np.ascontiguousarray(arr.transpose(1, 2, 0)), photometric="rgb",
                              description=description, metadata=None)  # fmt: skip
     return p
-
-
 
 
 # ----------------------------------------------------------------------------------------------
@@ -468,10 +465,6 @@ def _exact_in(
         if float(lv.abs().max()) > 2**20:
             return False
     return True
-
-
-def _demosaic(x: torch.Tensor, pattern: str, method: str) -> torch.Tensor:
-    return bayer_half(x, pattern) if method == "half" else demosaic_bilinear(x, pattern)
 
 
 def _jsonable(v: Any) -> Any:
