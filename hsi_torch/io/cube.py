@@ -186,8 +186,6 @@ def _save_prepared(
     return _save_envi(p, c, wl, meta)
 
 
-
-
 def _envi_paths(p: Path) -> tuple[Path, Path]:
     stem = p.with_suffix("")
     return stem.with_suffix(".hdr"), stem.with_suffix(".img")
