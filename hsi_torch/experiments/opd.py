@@ -349,6 +349,18 @@ def triangle_sample_points(tri: Tensor, num_ring: int = 6, ring_fraction: float 
     return torch.stack(pts)
 
 
+def _collect_points(xs: list[Tensor], ts: list[Tensor], vs: list[Tensor], ps: list[Tensor],
+                    wavelengths_nm: Tensor) -> MeasuredPoints:
+    """:class:`MeasuredPoints` from per-view lists (positions, spectra, view and point ids),
+    labelled ``v<view>p<point>``."""
+    view = torch.cat(vs)
+    point = torch.cat(ps)
+    return MeasuredPoints(torch.cat(xs), torch.cat(ts).to(torch.float64),
+                          torch.as_tensor(wavelengths_nm, dtype=torch.float64).cpu(), view,
+                          point, [f"v{a}p{b}" for a, b in
+                                  zip(view.tolist(), point.tolist(), strict=True)])
+
+
 def points_from_reference_frame(
     B: Tensor,
     wavelengths_nm: Tensor,
@@ -391,12 +403,7 @@ def points_from_reference_frame(
         ps.append(idx)
     if not xs:
         raise ValueError("no usable sample point in any view (check the masks)")
-    view = torch.cat(vs)
-    point = torch.cat(ps)
-    return MeasuredPoints(torch.cat(xs), torch.cat(ts).to(torch.float64),
-                          torch.as_tensor(wavelengths_nm, dtype=torch.float64).cpu(), view,
-                          point, [f"v{a}p{b}" for a, b in
-                                  zip(view.tolist(), point.tolist(), strict=True)])
+    return _collect_points(xs, ts, vs, ps, wavelengths_nm)
 
 
 def points_from_sensor_map(
@@ -428,12 +435,7 @@ def points_from_sensor_map(
                   .T.cpu())
         vs.append(torch.full((idx.numel(),), v, dtype=torch.long))
         ps.append(idx)
-    view = torch.cat(vs)
-    point = torch.cat(ps)
-    return MeasuredPoints(torch.cat(xs), torch.cat(ts).to(torch.float64),
-                          torch.as_tensor(wavelengths_nm, dtype=torch.float64).cpu(), view,
-                          point, [f"v{a}p{b}" for a, b in
-                                  zip(view.tolist(), point.tolist(), strict=True)])
+    return _collect_points(xs, ts, vs, ps, wavelengths_nm)
 
 
 def read_points_csv(path: str | Path) -> MeasuredPoints:
