@@ -111,15 +111,18 @@ class _Ctx:
     base_dir: Path
     overridden: dict[KeyPath, str] = field(default_factory=dict)
 
-    def error(self, path: KeyPath, message: str) -> ConfigError:
+    def override_of(self, path: KeyPath) -> str | None:
+        """The override text that set ``path`` or its closest overridden parent, if any."""
         for i in range(len(path), 0, -1):
             if path[:i] in self.overridden:
-                message += f" (from override '{self.overridden[path[:i]]}')"
-                break
-        return ConfigError(message, _fmt_key(path) or None, self.source)
+                return self.overridden[path[:i]]
+        return None
 
-    def from_override(self, path: KeyPath) -> bool:
-        return any(path[:i] in self.overridden for i in range(len(path), 0, -1))
+    def error(self, path: KeyPath, message: str) -> ConfigError:
+        text = self.override_of(path)
+        if text is not None:
+            message += f" (from override '{text}')"
+        return ConfigError(message, _fmt_key(path) or None, self.source)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -295,7 +298,7 @@ def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
             raise ctx.error(path, f"expected a path (str), got {_got(value)}")
         p = Path(os.path.expanduser(os.fspath(value)))
         if not p.is_absolute():
-            base = Path.cwd() if ctx.from_override(path) else ctx.base_dir
+            base = Path.cwd() if ctx.override_of(path) is not None else ctx.base_dir
             p = base / p
         return tp(p)
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
