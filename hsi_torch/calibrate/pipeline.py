@@ -41,6 +41,7 @@ from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
     ViewRegistrationReport,
+    apply_homography,
     register_views,
     warp_views,
 )
@@ -701,11 +702,6 @@ def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
 # =============================================================================================
 
 
-def _h_apply(H: np.ndarray, p: np.ndarray) -> np.ndarray:
-    q = np.concatenate([p, np.ones((len(p), 1))], 1) @ H.T
-    return q[:, :2] / q[:, 2:3]
-
-
 def score_against_truth(
     bundle: CalibrationBundle | str | Path, capture_dir: str | Path
 ) -> dict[str, Any]:
@@ -781,8 +777,8 @@ def score_against_truth(
             rms.append(float("nan"))
             mx.append(float("nan"))
             continue
-        p = _h_apply(np.linalg.inv(Ht[v]), q)
-        e = np.linalg.norm(_h_apply(He[v], p) - q, axis=1)
+        p = apply_homography(np.linalg.inv(Ht[v]), q)
+        e = np.linalg.norm(apply_homography(He[v], p) - q, axis=1)
         rms.append(float(np.sqrt((e**2).mean())))
         mx.append(float(e.max()))
     out["homography_rms_px"] = rms
