@@ -42,6 +42,7 @@ __all__ = [
     "run_batch",
     "print_summary",
     "DONE_DIR",
+    "check_out_dir",
     "ensure_out_dir",
     "fingerprint_of",
 ]
@@ -146,6 +147,18 @@ def _marker_path(out_dir: Path, inp: Path) -> Path:
     return out_dir / DONE_DIR / f"{inp.stem}-{digest}.json"
 
 
+def check_out_dir(path: str | os.PathLike) -> Path:
+    """Refuse an output folder ``path`` that exists as something else (creates nothing).
+
+    Raises:
+        ValueError: ``path`` exists and is not a folder.
+    """
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"output folder {p} exists and is not a folder")
+    return p
+
+
 def ensure_out_dir(path: str | os.PathLike) -> Path:
     """Create the output folder ``path`` (and its parents); errors name the folder.
 
@@ -153,9 +166,7 @@ def ensure_out_dir(path: str | os.PathLike) -> Path:
         ValueError: ``path`` exists and is not a folder.
         OSError: it cannot be created (the message names the folder and the reason).
     """
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise ValueError(f"output folder {p} exists and is not a folder")
+    p = check_out_dir(path)
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -274,8 +274,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, "device", None):
             _check_device(args.device)
         out = getattr(args, "out", None)
-        if args.command in _FOLDER_OUT and out is not None and out.exists() and not out.is_dir():
-            raise ValueError(f"output folder {out} exists and is not a folder")
+        if args.command in _FOLDER_OUT and out is not None:
+            from hsi_torch.batch import check_out_dir
+
+            check_out_dir(out)
         return _run_entry(args)
     except KeyboardInterrupt:
         _err("interrupted")
