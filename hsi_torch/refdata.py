@@ -190,6 +190,11 @@ def read_spectral_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, 
     return data[:, 0], data[:, 1:], names
 
 
+def _is_table_file(name: str) -> bool:
+    """Whether a loader argument names a spectral table file (CSV/TXT/TSV suffix or a file)."""
+    return Path(name).suffix.lower() in (".csv", ".txt", ".tsv") or Path(name).is_file()
+
+
 def _rawtoaces_root() -> Path:
     from colour.characterisation.aces_it import ROOT_RESOURCES_RAWTOACES
 
@@ -257,7 +262,7 @@ def illuminant(
     if name in colour.SDS_ILLUMINANTS:
         sd = colour.SDS_ILLUMINANTS[name]
         src, val, what = np.asarray(sd.wavelengths), np.asarray(sd.values), f"illuminant {name!r}"
-    elif Path(name).suffix.lower() in (".csv", ".txt", ".tsv") or Path(name).is_file():
+    elif _is_table_file(name):
         src, table, _ = read_spectral_csv(name)
         if table.shape[1] != 1:
             raise ValueError(f"illuminant CSV {name}: expected 2 columns, got {table.shape[1] + 1}")
@@ -347,7 +352,7 @@ def camera_sensitivities(
         vals = vals.T
     elif Path(name).suffix.lower() == ".json":
         src, vals = _read_camera_json(Path(name))
-    elif Path(name).suffix.lower() in (".csv", ".txt", ".tsv") or Path(name).is_file():
+    elif _is_table_file(name):
         src, table, _ = read_spectral_csv(name)
         if table.shape[1] != 3:
             raise ValueError(
@@ -434,7 +439,7 @@ def reflectance_set(
     elif name in colour.SDS_COLOURCHECKERS:
         src, vals, nm = _colorchecker_table(name)
         names, what = list(nm), f"ColorChecker {name!r}"
-    elif Path(name).suffix.lower() in (".csv", ".txt", ".tsv") or Path(name).is_file():
+    elif _is_table_file(name):
         src, table, names = read_spectral_csv(name)
         vals, what = table.T, f"reflectance CSV {name}"
     else:
@@ -520,7 +525,7 @@ def filter_transmittance(
         ``(M,)`` transmittance.
     """
     name = os.fspath(name_or_path)
-    if Path(name).suffix.lower() in (".csv", ".txt", ".tsv") or Path(name).is_file():
+    if _is_table_file(name):
         src, table, _ = read_spectral_csv(name)
         if table.shape[1] != 1:
             raise ValueError(f"filter CSV {name}: expected 2 columns, got {table.shape[1] + 1}")
