@@ -71,7 +71,7 @@ def _weights(
             raise ValueError(f"illuminant tensor has {s.numel()} values, wavelengths {wl.numel()}")
     else:
         s = refdata.illuminant(illuminant, wl)
-    dl = band_widths(wl) if wl.numel() > 1 else torch.ones_like(wl)
+    dl = band_widths(wl)  # 1 for a single band
     w = cmf * (s * dl)
     norm = w[1].sum()
     if float(norm) <= 0:
