@@ -30,7 +30,6 @@ Convention:
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import threading
 from collections import OrderedDict
@@ -343,17 +342,3 @@ def precompute_sensing(
             _CACHE.popitem(last=False)
     return sens
 
-
-def bundle_summary_json(sens: BundleSensing) -> str:
-    """A short JSON description (for output metadata)."""
-    return json.dumps(
-        {
-            "num_views": sens.num_views,
-            "num_bands": sens.num_bands,
-            "num_pixels": sens.num_pixels,
-            "sensor_size": list(sens.sensor_size),
-            "reference_bbox": list(sens.reference_bbox),
-            "beta": sens.beta,
-            "diff_order": sens.diff_order,
-        }
-    )
