@@ -27,7 +27,6 @@ Command: ``hsi-torch experiment design --config configs/design.yaml --out DIR``.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -47,7 +46,7 @@ from hsi_torch.experiments.systems import (
     scene_points,
     view_rays,
 )
-from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.spectral import SpectralGrid
 
 __all__ = [
@@ -463,5 +462,5 @@ def run_design(
         "elapsed_cond_s": t_cond,
         "elapsed_s": time.perf_counter() - t0,
     }
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=str))
+    atomic_write_json(out / "summary.json", summary)
     return summary

@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch.experiments import report
-from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.spectral import resample_spectra
 
 __all__ = [
@@ -1078,5 +1078,5 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     summary = {"inputs": stats, "notes": notes, "band_centre_nm": k0,
                "capture_set": str(capture_set) if capture_set else None,
                "timings_s": timings, "device": str(dev)}
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=str))
+    atomic_write_json(out / "summary.json", summary)
     return summary

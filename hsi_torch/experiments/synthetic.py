@@ -24,7 +24,6 @@ Command: ``hsi-torch experiment synthetic --config configs/synthetic.yaml --out 
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -49,7 +48,7 @@ from hsi_torch.experiments.systems import (
     this_system_design,
     three_camera_design,
 )
-from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.spectral import SpectralGrid, difference_matrix
 
 __all__ = [
@@ -581,5 +580,5 @@ def run_synthetic(
         "elapsed_s": time.perf_counter() - t0,
         "device": str(dev),
     }
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=str))
+    atomic_write_json(out / "summary.json", summary)
     return summary

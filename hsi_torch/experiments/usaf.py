@@ -35,7 +35,6 @@ Command: ``hsi-torch experiment usaf --config configs/usaf.yaml --out DIR``.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -48,7 +47,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hsi_torch.experiments import report
-from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.io.atomic import atomic_write_json
 
 __all__ = [
     "michelson_bar_contrast",
@@ -449,7 +448,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
                "elements": len(keys), "recon_stats": {k: v for k, v in res.stats.items()
                                                        if isinstance(v, (int, float))},
                "timings_s": tm, "device": dev}
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=str))
+    atomic_write_json(out / "summary.json", summary)
     return summary
 
 
