@@ -40,6 +40,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from hsi_torch.experiments.metrics import psnr_from_mse
+
 __all__ = ["DemoConfig", "run_demo", "demo", "colorchecker_scores", "cube_scores"]
 
 _ROOT = Path(__file__).resolve().parents[1]
@@ -92,10 +94,6 @@ def _interior(mask: np.ndarray, erode_px: float) -> np.ndarray:
     return d > erode_px
 
 
-def _psnr(mse: float) -> float:
-    return 10.0 * math.log10(1.0 / mse) if mse > 0 else math.inf
-
-
 def _sam_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     cos = (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1),
                                        1e-12)  # fmt: skip
@@ -134,7 +132,7 @@ def colorchecker_scores(
             continue
         s = cube[:, m].mean(1)
         est.append(s.tolist())
-        ps.append(_psnr(float(((s - spectra[k]) ** 2).mean())))
+        ps.append(psnr_from_mse(float(((s - spectra[k]) ** 2).mean())))
         sa.append(float(_sam_deg(s, spectra[k])))
     ok = [i for i in range(K) if npx[i] > 0]
     return {
@@ -161,7 +159,7 @@ def cube_scores(
     bright = t.mean(1) >= sam_min_reflectance
     return {
         "pixels": int(mask.sum()),
-        "psnr_db": _psnr(mse),
+        "psnr_db": psnr_from_mse(mse),
         "rmse": math.sqrt(mse),
         "mean_sam_deg": float(_sam_deg(e[bright], t[bright]).mean()) if bright.any() else math.nan,
         "sam_pixels": int(bright.sum()),
