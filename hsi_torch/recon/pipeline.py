@@ -49,8 +49,7 @@ from torch import Tensor
 from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.calibrate.registration import warp_views
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
-from hsi_torch.recon.solvers import solve_nnls
-from hsi_torch.spectral import difference_matrix
+from hsi_torch.recon.solvers import masked_gram, smoothness_gram, solve_nnls
 
 __all__ = [
     "ReconstructionResult",
@@ -274,17 +273,6 @@ def observations_from_samples(
     return y, ok, sat
 
 
-def _gram(A: Tensor, mask: Tensor, beta: float, diff_order: int) -> Tensor:
-    """``Aᵀ W A + β DᵀD`` per pixel → ``(n, M, M)``."""
-    zero = torch.zeros((), dtype=A.dtype, device=A.device)
-    aw = torch.where(mask.unsqueeze(2), A, zero)
-    G = aw.transpose(1, 2) @ aw
-    if beta > 0:
-        D = difference_matrix(A.shape[2], diff_order, device=A.device, dtype=A.dtype)
-        G = G + beta * (D.T @ D)
-    return G
-
-
 def _reduced_resolve(
     sens: BundleSensing, y: Tensor, mask: Tensor, x: Tensor, changed: Tensor
 ) -> Tensor:
@@ -297,7 +285,9 @@ def _reduced_resolve(
     if bool(changed.any()):
         idx = changed.nonzero().squeeze(1)
         G = G.clone()
-        G[idx] = _gram(A[idx], mask[idx], sens.beta, sens.diff_order)
+        reg = smoothness_gram(A.shape[2], sens.beta, sens.diff_order, device=A.device,
+                              dtype=A.dtype)
+        G[idx] = masked_gram(A[idx], mask[idx], reg)
     b = torch.bmm(torch.where(mask, y, zero).unsqueeze(1), A).squeeze(1)  # (P, M)
     free = x.detach() > 0
     m = x.shape[1]

@@ -71,6 +71,8 @@ __all__ = [
     "prepare_nnls",
     "solve_nnls",
     "nnls_kkt_residual",
+    "smoothness_gram",
+    "masked_gram",
     "synthetic_brf_problem",
     "cpu_threads",
 ]
@@ -247,6 +249,36 @@ def _chunk_len(
     else:
         n = _default_chunk(device) if default is None else default
     return max(1, min(n, max(num, 1)))
+
+
+def smoothness_gram(
+    num_bands: int, beta: float, diff_order: int, *, device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> Tensor:
+    """The regulariser's Gram matrix ``β DᵀD`` ``(M, M)`` (zeros for ``β = 0``), ``D`` from
+    :func:`hsi_torch.spectral.difference_matrix`."""
+    if beta > 0:
+        D = difference_matrix(num_bands, diff_order, device=device, dtype=dtype)
+        return beta * (D.T @ D)
+    return torch.zeros((num_bands, num_bands), dtype=dtype, device=device)
+
+
+def masked_gram(
+    A: Tensor, mask: Tensor | None, reg: Tensor | None = None, *, out: Tensor | None = None
+) -> Tensor:
+    """Per-pixel Gram matrices ``G = Aᵀ W A (+ reg)``.
+
+    Args:
+        A: ``(n, O, M)`` finite sensing matrices; mask: ``(n, O)`` bool (``W``) or ``None``.
+        reg: optional ``(M, M)`` added, e.g. :func:`smoothness_gram`.
+        out: optional ``(n, M, M)`` to write into.
+
+    Returns:
+        ``(n, M, M)``, exactly symmetric (the same products in the same order on both sides).
+    """
+    aw = A if mask is None else A * mask.unsqueeze(2)  # A finite: 0/1 weights by product
+    G = torch.bmm(A.transpose(1, 2), aw, out=out)
+    return G if reg is None else G.add_(reg)
 
 
 def _gram_norm(G: Tensor) -> Tensor:
@@ -1128,11 +1160,7 @@ def _prepare(
     dev, dt = A3.device, A3.dtype
     with torch.no_grad():
         A3 = A3.detach()
-        if beta > 0:
-            D = difference_matrix(m, diff_order, device=dev, dtype=dt)
-            R = beta * (D.T @ D)
-        else:
-            R = torch.zeros((m, m), dtype=dt, device=dev)
+        R = smoothness_gram(m, beta, diff_order, device=dev, dtype=dt)
         shared = A3.shape[0] == 1
         if shared and mask is None:
             P = 1
@@ -1156,9 +1184,7 @@ def _prepare(
                 else:
                     torch.mm(w.to(dt), outer, out=G.view(-1, m * m))
             else:
-                a = A3[sl]
-                aw = a if w is None else a * w.unsqueeze(2)  # A finite: 0/1 weights by product
-                torch.bmm(a.transpose(1, 2), aw, out=G)  # symmetric (same products, same order)
+                masked_gram(A3[sl], w, out=G)
             G.add_(R)
             L, info = torch.linalg.cholesky_ex(G)
             gd = G.diagonal(dim1=1, dim2=2)
