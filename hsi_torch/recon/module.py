@@ -114,7 +114,6 @@ class HSIReconstructor(nn.Module):
         self.register_buffer("gram_inv", p.gram_inv, persistent=False)
         self.register_buffer("singular", p.singular, persistent=False)
         self.register_buffer("no_data", p.no_data, persistent=False)
-        self._problem_cache: tuple[tuple, NNLSProblem] | None = None
         self._sensing_cache: tuple[tuple, BundleSensing] | None = None
 
     # ------------------------------------------------------------------------------ build
@@ -160,7 +159,6 @@ class HSIReconstructor(nn.Module):
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
         dt = self.A.dtype
         out = super()._apply(fn, recurse)
-        self._problem_cache = None
         self._sensing_cache = None
         if self.A.dtype != dt:  # precision changed: refactorise in the new dtype
             # sampling positions recomputed in float64 from the bundle, not re-rounded
@@ -180,7 +178,6 @@ class HSIReconstructor(nn.Module):
     def __getstate__(self) -> dict[str, Any]:
         """Pickling / ``copy.deepcopy``: the derived views are rebuilt on use."""
         state = self.__dict__.copy()
-        state["_problem_cache"] = None
         state["_sensing_cache"] = None
         return state
 
@@ -192,16 +189,6 @@ class HSIReconstructor(nn.Module):
     @property
     def frame_size(self) -> tuple[int, int]:
         return int(self.reference_bbox[3]), int(self.reference_bbox[2])
-
-    def _problem(self) -> NNLSProblem:
-        key = (self.A.device, self.A.dtype, self.A.data_ptr(), self.gram.data_ptr())
-        if self._problem_cache is None or self._problem_cache[0] != key:
-            prob = NNLSProblem(
-                self.A, self.obs_mask, self.beta, self.diff_order, self.gram, self.gram_inv,
-                self.singular, self.no_data,
-            )  # fmt: skip
-            self._problem_cache = (key, prob)
-        return self._problem_cache[1]
 
     def sensing(self) -> BundleSensing:
         """The :class:`BundleSensing` view of the buffers (shares their memory; kept while the
@@ -226,7 +213,10 @@ class HSIReconstructor(nn.Module):
             obs_mask=self.obs_mask,
             beta=self.beta,
             diff_order=self.diff_order,
-            problem=self._problem(),
+            problem=NNLSProblem(
+                self.A, self.obs_mask, self.beta, self.diff_order, self.gram, self.gram_inv,
+                self.singular, self.no_data,
+            ),  # fmt: skip
             exposure_s=self.exposure_s,
             cfa_pattern=self.cfa_pattern,
             sample_grid=self.sample_grid,
