@@ -77,6 +77,30 @@ def _check_obs(I: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     return I, b
 
 
+def _obs_weights(weights: torch.Tensor | None, N: int, V: int, like: torch.Tensor) -> torch.Tensor:
+    """Observation weights broadcast to (N, V) in ``like``'s dtype/device (default: ones)."""
+    w = (
+        torch.ones((), dtype=like.dtype, device=like.device)
+        if weights is None
+        else torch.as_tensor(weights, dtype=like.dtype, device=like.device)
+    )
+    return w.expand(N, V)
+
+
+def _check_white(
+    white: torch.Tensor, b: torch.Tensor
+) -> tuple[torch.Tensor, int, int, int, int]:
+    """Bring white to (S, V, 3, h, w) and check ``b (V, M, h, w)`` against it."""
+    if white.ndim == 4:
+        white = white[None]
+    if white.ndim != 5 or white.shape[2] != 3:
+        raise ValueError(f"white must be (S, V, 3, h, w) or (V, 3, h, w), got {tuple(white.shape)}")
+    S, V, _, h, w = white.shape
+    if b.ndim != 4 or b.shape[0] != V or b.shape[2:] != (h, w):
+        raise ValueError(f"b must be (V, M, h, w) = ({V}, M, {h}, {w}), got {tuple(b.shape)}")
+    return white, S, V, h, w
+
+
 def solve_phi(
     I: torch.Tensor,
     b: torch.Tensor,
@@ -108,12 +132,7 @@ def solve_phi(
     dt, dev = I.dtype, I.device
     g = torch.as_tensor(g, dtype=dt, device=dev)
     g = g.expand(N, V) if g.ndim <= 1 or g.shape[0] != N else g
-    w = (
-        torch.ones((), dtype=dt, device=dev)
-        if weights is None
-        else torch.as_tensor(weights, dtype=dt, device=dev)
-    )
-    w = w.expand(N, V)
+    w = _obs_weights(weights, N, V, I)
     f = torch.as_tensor(f_prior, dtype=dt, device=dev)
     if f.shape != (3, M):
         raise ValueError(f"f_prior must be (3, M) = (3, {M}), got {tuple(f.shape)}")
@@ -155,14 +174,8 @@ def solve_gain(
     """
     I, b = _check_obs(I, b)
     N, V, M = b.shape
-    dt, dev = I.dtype, I.device
-    w = (
-        torch.ones((), dtype=dt, device=dev)
-        if weights is None
-        else torch.as_tensor(weights, dtype=dt, device=dev)
-    )
-    w = w.expand(N, V)
-    a = torch.einsum("nvm,cm->nvc", b, phi.to(dt))
+    w = _obs_weights(weights, N, V, I)
+    a = torch.einsum("nvm,cm->nvc", b, phi.to(I.dtype))
     saa = torch.einsum("nv,nvc->v", w, a * a)
     sai = torch.einsum("nv,nvc->v", w, a * I)
     lam = reg * saa
@@ -330,11 +343,7 @@ def estimate_response(
     I, b = _check_obs(I, b)
     N, V, M = b.shape
     dt, dev = I.dtype, I.device
-    w = (
-        torch.ones((N, V), dtype=dt, device=dev)
-        if weights is None
-        else torch.as_tensor(weights, dtype=dt, device=dev).expand(N, V)
-    )
+    w = _obs_weights(weights, N, V, I)
     g = (
         torch.ones(V, dtype=dt, device=dev)
         if g_init is None
@@ -444,14 +453,8 @@ def fit_gain_field(
     Returns:
         ``(gain (V, h, w), coefficients (V, K))``.
     """
-    if white.ndim == 4:
-        white = white[None]
-    if white.ndim != 5 or white.shape[2] != 3:
-        raise ValueError(f"white must be (S, V, 3, h, w) or (V, 3, h, w), got {tuple(white.shape)}")
-    S, V, _, h, w = white.shape
+    white, S, V, h, w = _check_white(white, b)
     dt, dev = white.dtype, white.device
-    if b.shape[0] != V or b.shape[2:] != (h, w):
-        raise ValueError(f"b must be (V, M, h, w) = ({V}, M, {h}, {w}), got {tuple(b.shape)}")
     m = torch.as_tensor(mask, device=dev).to(dt)
     if m.shape != (V, h, w):
         raise ValueError(f"mask must be (V, h, w) = ({V}, {h}, {w}), got {tuple(m.shape)}")
@@ -511,14 +514,8 @@ def estimate_response_field(
     Returns:
         :class:`ResponseResult` with ``gain (V, h, w)`` and its coefficients.
     """
-    if white.ndim == 4:
-        white = white[None]
-    if white.ndim != 5 or white.shape[2] != 3:
-        raise ValueError(f"white must be (S, V, 3, h, w) or (V, 3, h, w), got {tuple(white.shape)}")
-    S, V, _, h, w = white.shape
+    white, S, V, h, w = _check_white(white, b)
     dt, dev = white.dtype, white.device
-    if b.ndim != 4 or b.shape[0] != V or b.shape[2:] != (h, w):
-        raise ValueError(f"b must be (V, M, h, w) = ({V}, M, {h}, {w}), got {tuple(b.shape)}")
     M = b.shape[1]
     mask_b = torch.as_tensor(mask, device=dev).to(torch.bool)
     if mask_b.shape != (V, h, w):
