@@ -702,10 +702,11 @@ class NNLSProblem:
         self.singular = singular
         self.no_data = no_data
         self._admm_cache: dict[str, tuple[Tensor, Tensor]] = {}
-        with torch.no_grad():  # ‖G‖∞ per pixel, for the KKT residual's scale (chunked: |G| temp)
+        with torch.no_grad():  # ‖G‖₂ bound per pixel, the KKT residual's scale (chunked temps)
             n = 65536
-            self.gram_norm = torch.cat([_gram_norm(gram[s:s + n]) for s in range(0, gram.shape[0],
-                                                                                    n)])
+            self.gram_norm = torch.cat(
+                [_gram_norm(gram[s:s + n]) for s in range(0, gram.shape[0], n)]
+            )
             self.gram_diag_max = gram.diagonal(dim1=1, dim2=2).amax(1)
 
     # -- shapes -----------------------------------------------------------------------------
