@@ -17,6 +17,7 @@ from hsi_torch.calibrate.pipeline import (
     find_captures,
     format_scores,
     score_against_truth,
+    targets_met,
     wavelength_from_name,
 )
 from hsi_torch.cli import main
@@ -53,6 +54,7 @@ def test_targets_on_default_simulated_set(sim: Path, calibrated: Path):
     assert s["gain_max_rel_rms"] < 0.02  # after the same (g, phi) gauge on both sides
     assert s["homography_worst_rms_px"] < 0.3  # against the true mapping, reference px
     assert s["valid_iou"] > 0.95
+    assert targets_met(s) == {"B": True, "phi": True, "gain": True, "homography": True}
 
 
 def test_cli_outputs_settings_and_provenance(sim: Path, calibrated: Path):
