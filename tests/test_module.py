@@ -40,18 +40,18 @@ def test_to_dtype_and_device_moves_everything(device):
     bundle = make_bundle()
     s = true_spectra()
     mod = HSIReconstructor.from_bundle(bundle, beta=0.0)
-    assert mod.A.dtype == torch.float32 and mod.gram.dtype == torch.float32
+    assert mod.model_transmittance.dtype == torch.float32 and mod.gram.dtype == torch.float32
     mod = mod.to(device=device, dtype=torch.float64)
     for name, buf in mod.named_buffers():
         assert buf.device.type == device.type, name
         if buf.is_floating_point():
             assert buf.dtype == torch.float64, name
-    assert {"B", "phi", "gain", "homographies", "gram", "gram_inv", "A"} <= {
+    assert {"B", "phi", "gain", "homographies", "gram", "gram_inv", "model_transmittance"} <= {
         n for n, _ in mod.named_buffers()
     }
     x = render_capture(bundle, s).to(device, torch.float64)[None]
     cube, valid = mod(x)
-    # refactorised in float64: exact to float32 rounding of A only
+    # refactorised in float64: exact to float32 rounding of the sensing factors only
     assert rel_err(cube[0][:, valid[0]], s.to(device)[:, valid[0]]) < 1e-5
     # float32 input to a float64 module: output in the input's dtype
     assert mod(x.float()).cube.dtype == torch.float32

@@ -345,7 +345,7 @@ def test_ill_conditioned_float64_no_spurious_fallback():
     """beta = 1 on the DN scale (cond(G) ~ 1e4–1e5): well-solved pixels count as converged,
     only pixels whose unconstrained solution is negative pivot, answers match SciPy."""
     A, y, mask, _ = synthetic_brf_problem(600, seed=21, dtype=torch.float64)
-    G = prepare_nnls(A, mask=mask, beta=1.0).gram
+    G = prepare_nnls(A, mask=mask, beta=1.0).gram_matrices()
     ev = torch.linalg.eigvalsh(G)
     assert float((ev[:, -1] / ev[:, 0]).median()) > 1e3
     res = solve_nnls(A, y, beta=1.0, mask=mask)
@@ -353,7 +353,7 @@ def test_ill_conditioned_float64_no_spurious_fallback():
     assert float(res.kkt_residual.max()) < 25 * torch.finfo(torch.float64).eps
     ref = scipy_reference(A, y, 1.0, mask)
     # exactly the pixels with a negative unconstrained solution needed the active set
-    x_unc = torch.linalg.solve(G, prepare_nnls(A, mask=mask, beta=1.0)._rhs(y, slice(None)))
+    x_unc = torch.linalg.solve(G, prepare_nnls(A, mask=mask, beta=1.0).rhs(y, slice(None)))
     assert torch.equal(res.iterations > 0, (x_unc < -1e-9 * x_unc.abs().amax(1,
                                                                              keepdim=True)).any(1))
     assert rel_err(res.x, ref).max() < 1e-8
@@ -398,16 +398,17 @@ def test_kkt_residual_is_a_backward_error():
 
     A, y, mask, _ = synthetic_brf_problem(300, seed=2)
     prob = prepare_nnls(A, mask=mask, beta=1.0)
-    b = prob._rhs(y, slice(None))
-    lam = torch.linalg.eigvalsh(prob.gram)[:, -1]
+    b = prob.rhs(y, slice(None))
+    G = prob.gram_matrices()
+    lam = torch.linalg.eigvalsh(G)[:, -1]
     assert bool((prob.gram_norm <= lam * (1 + 1e-12)).all())
     assert float((prob.gram_norm / lam).min()) > 0.5
     ref = scipy_reference(A, y, 1.0, mask)
-    r = nnls_kkt_residual(prob.gram, b, ref)
+    r = nnls_kkt_residual(G, b, ref)
     assert float(r.max()) < 1e-12
     bad = ref.clone()
     bad[:, 3] += 0.01 * ref.abs().amax(1)
-    assert float(nnls_kkt_residual(prob.gram, b, bad).min()) > 1e-6
+    assert float(nnls_kkt_residual(G, b, bad).min()) > 1e-6
 
 
 def test_small_beta_stacked_sweep_converges():
@@ -424,3 +425,61 @@ def test_small_beta_stacked_sweep_converges():
     f_ref = (yy - ref @ a.T).square().sum(1)
     assert float(((f_ours - f_ref) / f_ref).max()) < 1e-9
     assert kkt_violation(a, yy, res.x, 0.0).max() < 1e-9
+
+
+# ------------------------------------------------------------------------------------------------
+# dark pixels (most bands at zero) and the two kernels of the active-set correction
+
+
+def dark_scene_problem(P, seed, dtype):
+    """Camera-structured problem whose spectra are mostly noise (shadows): the unconstrained
+    solution is negative in ~half the bands and the answer has 15–25 zeros."""
+    A, y, mask, _ = synthetic_brf_problem(P, seed=seed, dtype=torch.float64, spectra="bumps",
+                                          noise_dn=2.0, mask_fraction=0.05)
+    g = torch.Generator().manual_seed(seed + 100)
+    dark = torch.rand(P, generator=g, dtype=torch.float64) < 0.7
+    A3 = A
+    clean = torch.bmm(A3, (0.01 * torch.rand(P, 25, generator=g, dtype=torch.float64))
+                      .unsqueeze(2)).squeeze(2)
+    y = torch.where(dark.unsqueeze(1), clean + 2.0 * torch.randn(y.shape, generator=g,
+                                                                 dtype=torch.float64), y)
+    return A.to(dtype), y.to(dtype), mask
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("backend", ["torch", "compiled"])
+def test_dark_pixels_both_kernels_match_scipy_and_kkt(dtype, backend):
+    from hsi_torch.recon.nnls import _compiled
+
+    if backend == "compiled" and not _compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    A, y, mask = dark_scene_problem(1500, seed=5, dtype=dtype)
+    beta = 1e2
+    res = solve_nnls(A, y, beta=beta, mask=mask, backend=backend)
+    zeros = (res.x == 0).sum(1)
+    assert float((res.iterations > 0).float().mean()) > 0.5  # most pixels pivot
+    assert int((zeros >= 15).sum()) > 300  # many with mostly zero bands (free-set solves)
+    assert bool(res.converged.all())
+    ref = scipy_reference(A, y, beta, mask)
+    scale = ref.abs().amax().item()
+    tol = 1e-9 if dtype == torch.float64 else 2e-4
+    assert float((res.x.double() - ref).abs().max()) < tol * scale
+    assert float(kkt_violation(A.double(), y.double(), res.x.double(), beta, mask).max()) < (
+        1e-10 if dtype == torch.float64 else 1e-4)
+
+
+def test_compiled_and_torch_kernels_agree():
+    """Same method, same exchange rules: same rounds and answers to rounding."""
+    from hsi_torch.recon.nnls import _compiled
+
+    if not _compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    A, y, mask = dark_scene_problem(2000, seed=8, dtype=torch.float64)
+    prob = prepare_nnls(A, mask=mask, beta=10.0)
+    a = prob.solve(y, backend="torch")
+    b = prob.solve(y, backend="compiled")
+    assert torch.equal(a.iterations, b.iterations)
+    assert torch.equal(a.x == 0, b.x == 0)
+    torch.testing.assert_close(a.x, b.x, rtol=1e-9, atol=1e-9 * float(a.x.abs().max()))
+    with pytest.raises(ValueError, match="backend"):
+        prob.solve(y, backend="numba")

@@ -1,8 +1,8 @@
 """``HSIReconstructor``: the whole reconstruction as a ``torch.nn.Module``.
 
 All bundle tensors (``B``, ``phi``, ``gain``, masks, homographies) and the per-bundle
-precomputation (sensing matrices, static masks, the views' sampling grid, the solver's Gram
-matrices and inverses) are
+precomputation (the factored sensing model of the reconstructed pixels, static masks, the views'
+sampling grid, the solver's Gram matrices and inverses) are
 registered buffers, so ``.to(device)``/``.cuda()`` move everything and ``.double()`` switches the
 precision (the factorisation is then recomputed in the new dtype). The forward pass is exactly
 :func:`hsi_torch.recon.pipeline.reconstruct_batch` — the same code as the file pipeline.
@@ -21,9 +21,10 @@ import torch
 from torch import Tensor, nn
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
+from hsi_torch.forward_model import SensingModel
+from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.pipeline import DEFAULT_BETA, prepare_input, reconstruct_batch
 from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing, source_grid
-from hsi_torch.recon.solvers import NNLSProblem, prepare_nnls
 
 __all__ = ["HSIReconstructor", "ReconstructionOutput"]
 
@@ -59,11 +60,15 @@ class HSIReconstructor(nn.Module):
     valid_region: Tensor
     homographies: Tensor
     pixel_index: Tensor
-    A: Tensor
+    model_transmittance: Tensor
+    model_gain: Tensor
+    model_response: Tensor
     obs_mask: Tensor
     sample_grid: Tensor
     gram: Tensor
     gram_inv: Tensor
+    gram_diag: Tensor
+    gram_norm: Tensor
     singular: Tensor
     no_data: Tensor
 
@@ -107,11 +112,15 @@ class HSIReconstructor(nn.Module):
         self.register_buffer("pixel_index", sensing.pixel_index.to(dev))
         # derived per-bundle precomputation (not saved in state_dict; rebuilt by from_bundle)
         p = sensing.problem
-        self.register_buffer("A", sensing.A, persistent=False)
+        self.register_buffer("model_transmittance", sensing.model.transmittance, persistent=False)
+        self.register_buffer("model_gain", sensing.model.gain, persistent=False)
+        self.register_buffer("model_response", sensing.model.response, persistent=False)
         self.register_buffer("obs_mask", sensing.obs_mask, persistent=False)
         self.register_buffer("sample_grid", sensing.grid(), persistent=False)
         self.register_buffer("gram", p.gram, persistent=False)
         self.register_buffer("gram_inv", p.gram_inv, persistent=False)
+        self.register_buffer("gram_diag", p.gram_diag, persistent=False)
+        self.register_buffer("gram_norm", p.gram_norm, persistent=False)
         self.register_buffer("singular", p.singular, persistent=False)
         self.register_buffer("no_data", p.no_data, persistent=False)
         self._sensing_cache: tuple[tuple, BundleSensing] | None = None
@@ -157,22 +166,23 @@ class HSIReconstructor(nn.Module):
         )  # fmt: skip
 
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
-        dt = self.A.dtype
+        dt = self.model_transmittance.dtype
         out = super()._apply(fn, recurse)
         self._sensing_cache = None
-        if self.A.dtype != dt:  # precision changed: refactorise in the new dtype
+        if self.model_transmittance.dtype != dt:  # precision changed: refactorise in the new dtype
             # sampling positions recomputed in float64 from the bundle, not re-rounded
             self.sample_grid = source_grid(
                 self.homographies, self.reference_bbox, self.sensor_size, self.pixel_index,
-                dtype=self.A.dtype,
+                dtype=self.model_transmittance.dtype,
             )  # fmt: skip
             p = prepare_nnls(
-                self.A, mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
+                self._model(), mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
                 chunk_size=self.chunk_size,
             )  # fmt: skip
-            self.gram, self.gram_inv, self.singular, self.no_data = (
-                p.gram, p.gram_inv, p.singular, p.no_data
+            self.gram, self.gram_inv, self.gram_diag, self.gram_norm = (
+                p.gram, p.gram_inv, p.gram_diag, p.gram_norm
             )
+            self.singular, self.no_data = p.singular, p.no_data
         return out
 
     def __getstate__(self) -> dict[str, Any]:
@@ -184,7 +194,10 @@ class HSIReconstructor(nn.Module):
     # ------------------------------------------------------------------------------ use
     @property
     def num_bands(self) -> int:
-        return int(self.A.shape[2])
+        return int(self.model_transmittance.shape[2])
+
+    def _model(self) -> SensingModel:
+        return SensingModel(self.model_transmittance, self.model_gain, self.model_response)
 
     @property
     def frame_size(self) -> tuple[int, int]:
@@ -194,7 +207,8 @@ class HSIReconstructor(nn.Module):
         """The :class:`BundleSensing` view of the buffers (shares their memory; kept while the
         buffers are unchanged, so its frame work buffer is reused between calls)."""
         key = (
-            self.A.device, self.A.dtype, self.A.data_ptr(), self.gram.data_ptr(),
+            self.gram.device, self.gram.dtype, self.model_transmittance.data_ptr(),
+            self.gram.data_ptr(),
             self.sample_grid.data_ptr(), self.homographies.data_ptr(), self.cfa_pattern,
         )  # fmt: skip
         if self._sensing_cache is None or self._sensing_cache[0] != key:
@@ -202,6 +216,7 @@ class HSIReconstructor(nn.Module):
         return self._sensing_cache[1]
 
     def _make_sensing(self) -> BundleSensing:
+        model = self._model()
         return BundleSensing(
             wavelengths_nm=self.wavelengths_nm.detach().to("cpu", torch.float64),
             sensor_size=self.sensor_size,
@@ -209,13 +224,13 @@ class HSIReconstructor(nn.Module):
             homographies=self.homographies,
             valid=self.valid_region,
             pixel_index=self.pixel_index,
-            A=self.A,
+            model=model,
             obs_mask=self.obs_mask,
             beta=self.beta,
             diff_order=self.diff_order,
             problem=NNLSProblem(
-                self.A, self.obs_mask, self.beta, self.diff_order, self.gram, self.gram_inv,
-                self.singular, self.no_data,
+                model, self.obs_mask, self.beta, self.diff_order, self.gram, self.gram_inv,
+                self.gram_diag, self.gram_norm, self.singular, self.no_data,
             ),  # fmt: skip
             exposure_s=self.exposure_s,
             cfa_pattern=self.cfa_pattern,
@@ -251,9 +266,10 @@ class HSIReconstructor(nn.Module):
                 f"x has sensor size {tuple(x.shape[-2:])} but the bundle expects "
                 f"{tuple(self.sensor_size)}"
             )
-        if x.device != self.A.device:
+        if x.device != self.gram.device:
             raise ValueError(
-                f"x is on {x.device} but the module is on {self.A.device}; call .to({x.device})"
+                f"x is on {x.device} but the module is on {self.gram.device}; call "
+                f".to({x.device})"
             )
         out_dtype = x.dtype
         rgb, sat = prepare_input(x, saturated, self.cfa_pattern)

@@ -37,6 +37,7 @@ form). Fixed-iteration ADMM (``admm_iters=N``) is differentiated through its ite
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -48,8 +49,8 @@ from torch import Tensor
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.calibrate.registration import warp_views
+from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
-from hsi_torch.recon.solvers import masked_gram, smoothness_gram, solve_nnls
 
 __all__ = [
     "ReconstructionResult",
@@ -278,20 +279,18 @@ def _reduced_resolve(
 ) -> Tensor:
     """Differentiable re-solve on the free set of ``x``; value ``x``, gradient of the reduced
     system ``x_F = G_FF⁻¹ (Aᵀ W y)_F``."""
-    A = sens.A
-    zero = torch.zeros((), dtype=A.dtype, device=A.device)
-    G = sens.problem.gram
+    model, prob = sens.model, sens.problem
+    zero = torch.zeros((), dtype=model.dtype, device=model.device)
+    G = prob.gram
     G = G.expand(x.shape[0], -1, -1) if G.shape[0] == 1 else G
     if bool(changed.any()):
         idx = changed.nonzero().squeeze(1)
         G = G.clone()
-        reg = smoothness_gram(A.shape[2], sens.beta, sens.diff_order, device=A.device,
-                              dtype=A.dtype)
-        G[idx] = masked_gram(A[idx], mask[idx], reg)
-    b = torch.bmm(torch.where(mask, y, zero).unsqueeze(1), A).squeeze(1)  # (P, M)
+        G[idx] = model.gram(mask[idx], idx, prob.reg)
+    b = model.A_adjoint(torch.where(mask, y, zero))  # (P, M), differentiable in y
     free = x.detach() > 0
     m = x.shape[1]
-    eye = torch.eye(m, dtype=A.dtype, device=A.device)
+    eye = torch.eye(m, dtype=model.dtype, device=model.device)
     ff = free.unsqueeze(2) & free.unsqueeze(1)
     Gh = torch.where(ff, G, eye.expand_as(G))
     bh = torch.where(free, b, zero)
@@ -342,8 +341,8 @@ def solve_observations(
     if n_changed:
         idx = changed.nonzero().squeeze(1)
         sub = solve_nnls(
-            sens.A[idx], yc[idx], mask=mask[idx], beta=sens.beta, diff_order=sens.diff_order,
-            **kw,
+            sens.model.select(idx), yc[idx], mask=mask[idx], beta=sens.beta,
+            diff_order=sens.diff_order, **kw,
         )  # fmt: skip
         x = x.index_copy(0, idx, sub.x)
         conv = conv.index_copy(0, idx, sub.converged)
@@ -376,11 +375,16 @@ def fit_residual(
     ok: Tensor,
     num_samples: int = FIT_RESIDUAL_SAMPLES,
 ) -> float:
-    """Median relative fit residual ``‖W(A s − y)‖ / ‖W y‖`` of a frame (NaN without valid pixels).
+    """Relative fit residual of a frame on its brighter half: ``sqrt(Σ‖W(A s − y)‖² / Σ‖W y‖²)``.
 
     Evaluated on up to ``num_samples`` pixels evenly spaced over the bundle's ``P`` valid pixels
-    (the same ones every frame; those invalid in this frame are left out), W = the frame mask;
-    for an even count the lower of the two middle values (``torch.median``).
+    (the same ones every frame; those invalid in this frame are left out), W = the frame mask,
+    pooled over the sampled pixels whose signal ``‖W y‖`` is at least the median of the sample.
+    Dark pixels are left out because their observations are mostly noise: a dark or shadowed
+    scene would otherwise score high with the right bundle. Pooling weights pixels by their
+    signal, so the value is the share of the observed signal the model does not explain — about
+    the noise-to-signal ratio for the right bundle, large for a bundle of another geometry. NaN
+    without valid pixels.
 
     Args:
         x: ``(P, M)`` solution; y: ``(P, 3V)`` observations (zero where masked); mask, ok: as in
@@ -394,14 +398,15 @@ def fit_residual(
     idx = idx[ok[idx]]
     if idx.numel() == 0:
         return float("nan")
-    A = sens.A.index_select(0, idx)
-    w = mask.index_select(0, idx).to(A.dtype)
-    ys = y.index_select(0, idx).to(A.dtype) * w
-    r = (torch.bmm(A, x.index_select(0, idx).to(A.dtype).unsqueeze(2)).squeeze(2) * w) - ys
-    num = torch.linalg.vector_norm(r.double(), dim=1)
-    den = torch.linalg.vector_norm(ys.double(), dim=1)
-    rel = torch.where(den > 0, num / den.clamp_min(1e-300), torch.zeros_like(num))
-    return float(rel.median())
+    model = sens.model
+    w = mask.index_select(0, idx).to(model.dtype)
+    ys = y.index_select(0, idx).to(model.dtype) * w
+    r = model.A(x.index_select(0, idx).to(model.dtype), idx) * w - ys
+    num = r.double().square().sum(1)
+    den = ys.double().square().sum(1)
+    bright = den >= den.median()
+    total = float(den[bright].sum())
+    return math.sqrt(float(num[bright].sum()) / total) if total > 0 else 0.0
 
 
 def assemble_cube(

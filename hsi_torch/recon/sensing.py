@@ -5,20 +5,22 @@ once and reused by every frame that shares the bundle:
 
 - the flat indices of the reconstructed pixels (the bundle's ``valid`` region, row-major over the
   reference frame), ``pixel_index (P,)``;
-- the per-pixel sensing matrices ``A (P, 3V, M)``,
-  ``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (view-major observations);
+- the per-pixel sensing operator in factored form (:class:`~hsi_torch.forward_model.SensingModel`:
+  ``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]``, view-major observations;
+  ``V·M`` numbers a pixel instead of the dense ``3V·M``);
 - the static observation mask ``obs_mask (P, 3V)`` (view ``v`` present and BRF-modulated at ``p``);
 - the sampling grid ``sample_grid (1, V, P, 2)``: where every valid pixel of every view lies on the
   sensor (``H_v⁻¹`` applied to the reference sensor px, kornia's ``transform_points``, float64),
   in grid_sample's normalised ``align_corners=True`` coordinates (:func:`source_grid`), so a frame
   is warped by *one* ``kornia.geometry.transform.remap`` call over the valid pixels only;
-- the solver factorisation (:func:`hsi_torch.recon.solvers.prepare_nnls`): per-pixel Gram matrices
+- the solver factorisation (:func:`hsi_torch.recon.nnls.prepare_nnls`): per-pixel Gram matrices
   and their inverses for the static mask, one per ``(beta, diff_order)``.
 
 :func:`precompute_sensing` keeps a small cache keyed by the bundle object's identity, device,
 dtype, ``beta`` and ``diff_order``, so building several
 :class:`~hsi_torch.recon.pipeline.Reconstructor` objects for the same bundle does not repeat the
-work (:data:`BUILD_COUNTS` counts the builds).
+work (:data:`BUILD_COUNTS` counts the builds). The cache holds the bundle weakly: a bundle that
+is no longer referenced is freed (its full-frame arrays are not needed after the build).
 
 Convention:
     Observation index ``o = 3·v + c`` (``v = 0`` the reference view, ``c`` = R, G, B).
@@ -32,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -42,13 +45,16 @@ import torch
 from torch import Tensor
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
-from hsi_torch.recon.solvers import NNLSProblem, prepare_nnls
+from hsi_torch.forward_model import SensingModel
+from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
+from hsi_torch.spectral import band_widths
 
 __all__ = [
     "BundleSensing",
     "precompute_sensing",
     "source_grid",
     "load_bundle",
+    "sensing_model",
     "bundle_exposure",
     "clear_sensing_cache",
     "BUILD_COUNTS",
@@ -111,7 +117,8 @@ class BundleSensing:
         homographies: ``(V, 3, 3)`` float64, view-v sensor px → reference sensor px.
         valid: ``(h, w)`` bool, the bundle's valid region (pixels reconstructed).
         pixel_index: ``(P,)`` long, flat row-major indices of the valid pixels.
-        A: ``(P, 3V, M)`` sensing matrices (``dtype``, ``device``).
+        model: the sensing operator of the ``P`` pixels (``dtype``, ``device``); dense
+            matrices of a subset with ``model.dense(idx)``.
         obs_mask: ``(P, 3V)`` bool static observation mask.
         beta, diff_order: the regularisation the factorisation was made for.
         problem: :class:`~hsi_torch.recon.solvers.NNLSProblem` for ``A``, ``obs_mask``, ``beta``.
@@ -130,7 +137,7 @@ class BundleSensing:
     homographies: Tensor
     valid: Tensor
     pixel_index: Tensor
-    A: Tensor
+    model: SensingModel
     obs_mask: Tensor
     beta: float
     diff_order: int
@@ -146,6 +153,7 @@ class BundleSensing:
         state = self.__dict__.copy()
         state["staging_lock"] = None
         state["_staging"] = []
+        state.pop("_bundle_ref", None)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -179,7 +187,7 @@ class BundleSensing:
 
     @property
     def num_bands(self) -> int:
-        return int(self.A.shape[2])
+        return self.model.num_bands
 
     @property
     def num_pixels(self) -> int:
@@ -191,11 +199,11 @@ class BundleSensing:
 
     @property
     def device(self) -> torch.device:
-        return self.A.device
+        return self.model.device
 
     @property
     def dtype(self) -> torch.dtype:
-        return self.A.dtype
+        return self.model.dtype
 
     def with_regularisation(self, beta: float, diff_order: int = 1) -> BundleSensing:
         """A view of the same sensing with another ``(beta, diff_order)``: ``A``/masks are shared,
@@ -204,7 +212,7 @@ class BundleSensing:
         if key == (self.beta, self.diff_order):
             return self
         if key not in self._problems:
-            self._problems[key] = _factorise(self.A, self.obs_mask, *key, None)
+            self._problems[key] = _factorise(self.model, self.obs_mask, *key, None)
         return dataclasses.replace(
             self, beta=key[0], diff_order=key[1], problem=self._problems[key],
             sample_grid=self.grid(),
@@ -220,12 +228,12 @@ class BundleSensing:
             )
 
     def memory_bytes(self) -> int:
-        """Bytes held by ``A``, the masks and the factorisation."""
-        p = self.problem
-        ts = [self.A, self.obs_mask, self.pixel_index, p.gram, p.gram_inv]
+        """Bytes held by the sensing model, the masks, the factorisation and the sampling grid."""
+        ts = [self.obs_mask, self.pixel_index]
         if self.sample_grid is not None:
             ts.append(self.sample_grid)
-        return int(sum(t.numel() * t.element_size() for t in ts))
+        return int(sum(t.numel() * t.element_size() for t in ts) + self.model.memory_bytes()
+                   + self.problem.memory_bytes())
 
 
 def source_grid(
@@ -268,10 +276,24 @@ def source_grid(
 
 
 def _factorise(
-    A: Tensor, mask: Tensor, beta: float, diff_order: int, chunk_size: int | None
+    model: SensingModel, mask: Tensor, beta: float, diff_order: int, chunk_size: int | None
 ) -> NNLSProblem:
     BUILD_COUNTS["factorisation"] += 1
-    return prepare_nnls(A, mask=mask, beta=beta, diff_order=diff_order, chunk_size=chunk_size)
+    return prepare_nnls(model, mask=mask, beta=beta, diff_order=diff_order,
+                        chunk_size=chunk_size)
+
+
+def sensing_model(
+    bundle: CalibrationBundle, pixel_index: Tensor, *, device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> SensingModel:
+    """The bundle's :class:`~hsi_torch.forward_model.SensingModel` at reference-frame pixels
+    ``pixel_index`` (flat row-major)."""
+    wl = torch.as_tensor(bundle.wavelengths_nm, dtype=torch.float64)
+    return SensingModel.from_factors(
+        torch.as_tensor(bundle.B), torch.as_tensor(bundle.gain), torch.as_tensor(bundle.phi),
+        band_widths(wl), pixel_index=pixel_index.cpu(), device=device, dtype=dtype,
+    )  # fmt: skip
 
 
 def _cfa_from_settings(bundle: CalibrationBundle) -> str | None:
@@ -308,15 +330,15 @@ def precompute_sensing(
     b = load_bundle(bundle)
     dev = torch.device(device) if device is not None else torch.device("cpu")
     key = (id(b), str(dev), dtype, float(beta), int(diff_order))
-    if cache and key in _CACHE and _CACHE[key]._bundle_ref is b:  # type: ignore[attr-defined]
+    if cache and key in _CACHE and _CACHE[key]._bundle_ref() is b:  # type: ignore[attr-defined]
         _CACHE.move_to_end(key)
         return _CACHE[key]
     BUILD_COUNTS["sensing"] += 1
     valid = torch.as_tensor(b.valid, device=dev)
     pix = valid.reshape(-1).nonzero().squeeze(1)
-    A = b.sensing_matrices(device=dev, dtype=dtype, pixel_index=pix)
+    model = sensing_model(b, pix, device=dev, dtype=dtype)
     obs = b.observation_mask(device=dev, pixel_index=pix)
-    problem = _factorise(A, obs, float(beta), int(diff_order), chunk_size)
+    problem = _factorise(model, obs, float(beta), int(diff_order), chunk_size)
     x0, y0, w, h = (int(v) for v in b.reference_bbox)
     sens = BundleSensing(
         wavelengths_nm=torch.as_tensor(b.wavelengths_nm, dtype=torch.float64),
@@ -325,7 +347,7 @@ def precompute_sensing(
         homographies=torch.as_tensor(b.view_homographies, device=dev, dtype=torch.float64),
         valid=valid,
         pixel_index=pix,
-        A=A,
+        model=model,
         obs_mask=obs,
         beta=float(beta),
         diff_order=int(diff_order),
@@ -335,7 +357,8 @@ def precompute_sensing(
     )
     sens._problems[(float(beta), int(diff_order))] = problem
     sens.grid()  # the frames' sampling positions, once per bundle
-    sens._bundle_ref = b  # type: ignore[attr-defined]  # identity check for the cache
+    # identity check for the cache, without keeping the bundle's full-frame arrays alive
+    sens._bundle_ref = weakref.ref(b)  # type: ignore[attr-defined]
     if cache:
         _CACHE[key] = sens
         while len(_CACHE) > _CACHE_SIZE:

@@ -1,0 +1,824 @@
+"""The problem object of the batched NNLS solver: per-pixel factorisations kept between frames.
+
+See :mod:`hsi_torch.recon.nnls` for the method. :class:`NNLSProblem` holds the sensing operator
+(dense matrices, or the camera's factored :class:`~hsi_torch.forward_model.SensingModel`), the
+static observation mask and, per pixel, the inverse ``H = G⁻¹`` of the Gram matrix
+``G = Aᵀ W A + β DᵀD``, ``G`` itself, ``diag(G)`` and a lower bound of ``‖G‖₂``. The dense
+sensing matrices are not kept: right-hand sides ``Aᵀ W y`` go through the operator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hsi_torch.forward_model import DenseSensing, SensingModel
+from hsi_torch.recon.nnls import _compiled
+from hsi_torch.recon.nnls._threads import cpu_threads, for_chunks, workers_for
+from hsi_torch.recon.nnls.active_set import (
+    _BPP_ROUNDS,
+    FreeSetSolver,
+    _bpp,
+    _lawson_hanson,
+    _zero_set_solve_any,
+)
+from hsi_torch.recon.nnls.kkt import (
+    _admm_tol,
+    _chunk_len,
+    _default_solve_chunk,
+    _default_stream_chunk,
+    _default_tol,
+    _expand_rows,
+    _gram_norm,
+    _kkt_ratio,
+    _norm2,
+    _rowvec,
+    _take,
+    nnls_kkt_residual,
+    smoothness_gram,
+)
+
+__all__ = ["NNLSResult", "NNLSProblem", "prepare_nnls", "solve_nnls"]
+
+_METHODS = ("active_set", "admm")
+_BACKENDS = ("auto", "torch", "compiled")
+Sensing = SensingModel | DenseSensing
+@dataclass
+class NNLSResult:
+    """Output of :func:`solve_nnls` / :meth:`NNLSProblem.solve`.
+
+    Attributes:
+        x: ``(P, M)`` solution, ``≥ 0``, never NaN (0 for pixels without data).
+        converged: ``(P,)`` bool, the method terminated and the relative KKT residual is ``≤ tol``.
+        iterations: ``(P,)`` int64; active set: exchange rounds plus Lawson–Hanson iterations of
+            the fallback (0 when the unconstrained solution was already non-negative); ADMM:
+            iterations run.
+        kkt_residual: ``(P,)`` KKT residual as a normwise backward error,
+            ``‖min(diag(G) ⊙ x, g)‖₂ / (‖G‖₂ ‖x‖₂ + ‖b‖₂)`` with ``g = Gx − b`` (see
+            :func:`nnls_kkt_residual`; 0 for an exact solution, O(eps) for a well-solved one).
+        no_data: ``(P,)`` bool, pixel had no usable observation (all masked): ``x = 0``.
+        method: the method used.
+    """
+
+    x: Tensor
+    converged: Tensor
+    iterations: Tensor
+    kkt_residual: Tensor
+    no_data: Tensor
+    method: str = "active_set"
+
+
+
+def _as_sensing(A: Tensor | Sensing) -> Sensing:
+    if isinstance(A, (SensingModel, DenseSensing)):
+        return A
+    if not isinstance(A, Tensor):
+        raise TypeError(f"A must be a torch.Tensor or a SensingModel, got {type(A).__name__}")
+    if A.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"A must be float32 or float64, got {A.dtype}")
+    if A.ndim not in (2, 3):
+        raise ValueError(f"A must have shape (O, M) or (P, O, M), got {tuple(A.shape)}")
+    return DenseSensing(A)
+
+
+def _check_inputs(
+    A: Tensor | Sensing, mask: Tensor | None, beta: float, diff_order: int
+) -> tuple[Sensing, Tensor | None, float]:
+    op = _as_sensing(A)
+    if op.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"the sensing operator must be float32 or float64, got {op.dtype}")
+    o, m = op.num_obs, op.num_bands
+    if o < 1 or m < 1:
+        raise ValueError(f"A needs at least one observation and one band, got O={o}, M={m}")
+    if diff_order not in (0, 1, 2):
+        raise ValueError(f"diff_order must be 0, 1 or 2, got {diff_order}")
+    beta = float(beta)
+    if not (beta >= 0.0) or beta == float("inf"):
+        raise ValueError(f"beta must be finite and >= 0, got {beta}")
+    if beta > 0 and m < diff_order + 1:
+        raise ValueError(f"diff_order={diff_order} needs at least {diff_order + 1} bands, got {m}")
+    if mask is not None:
+        if not isinstance(mask, Tensor):
+            raise TypeError(f"mask must be a torch.Tensor or None, got {type(mask).__name__}")
+        if mask.ndim != 2 or mask.shape[1] != o:
+            raise ValueError(f"mask must have shape (P, {o}) to match A, got {tuple(mask.shape)}")
+        if not op.shared and mask.shape[0] != op.num_pixels:
+            raise ValueError(
+                f"mask has {mask.shape[0]} pixels but A has {op.num_pixels}"
+            )
+        if mask.device != op.device:
+            raise ValueError(f"mask is on {mask.device} but A is on {op.device}")
+        mask = mask.to(torch.bool)
+    return op, mask, beta
+
+
+class NNLSProblem:
+    """Precomputed per-pixel factorisations of one sensing configuration; reuse for every frame.
+
+    Build with :func:`prepare_nnls`. Holds the sensing operator (a reference), the mask, the
+    regulariser ``β DᵀD`` and per pixel the Gram matrix ``G`` and its inverse ``H = G⁻¹``, each
+    ``(P, M, M)`` (or ``(1, M, M)`` when ``A`` is shared and there is no mask): ``2·P·M²``
+    floats, ≈ 1.6 GB in float32 for 324 000 pixels × 25 bands.
+
+    Attributes:
+        sensing: :class:`~hsi_torch.forward_model.SensingModel` or
+            :class:`~hsi_torch.forward_model.DenseSensing`; mask: ``(P, O)`` bool or ``None``;
+            beta; diff_order; reg: ``(M, M)`` ``β DᵀD``.
+        gram, gram_inv: ``(1|P, M, M)``; ``gram_inv`` is 0 where ``singular``.
+        gram_diag: ``(1|P, M)`` ``diag(G)``; gram_norm: ``(1|P,)`` lower bound of ``‖G‖₂``;
+            gram_diag_max: ``(1|P,)``.
+        singular: ``(1|P,)`` bool, ``G`` (numerically) singular: those pixels use
+            Lawson–Hanson. no_data: ``(1|P,)`` bool, all observations masked.
+    """
+
+    def __init__(
+        self,
+        sensing: Sensing,
+        mask: Tensor | None,
+        beta: float,
+        diff_order: int,
+        gram: Tensor,
+        gram_inv: Tensor,
+        gram_diag: Tensor,
+        gram_norm: Tensor,
+        singular: Tensor,
+        no_data: Tensor,
+    ) -> None:
+        self.sensing = sensing
+        self.mask = mask
+        self.beta = float(beta)
+        self.diff_order = int(diff_order)
+        self.reg = smoothness_gram(sensing.num_bands, self.beta, self.diff_order,
+                                   device=sensing.device, dtype=sensing.dtype)
+        self.gram = gram
+        self.gram_inv = gram_inv
+        self.gram_diag = gram_diag
+        self.gram_norm = gram_norm
+        self.gram_diag_max = gram_diag.amax(1)
+        self.singular = singular
+        self.no_data = no_data
+        self._admm_cache: dict[str, tuple[Tensor, Tensor]] = {}
+
+    # -- shapes -----------------------------------------------------------------------------
+    @property
+    def num_pixels(self) -> int | None:
+        """``P``, or ``None`` when ``A`` is shared and unmasked (any ``P`` is accepted)."""
+        if self.mask is not None:
+            return self.mask.shape[0]
+        return None if self.sensing.shared else self.sensing.num_pixels
+
+    @property
+    def num_obs(self) -> int:
+        return self.sensing.num_obs
+
+    @property
+    def num_bands(self) -> int:
+        return self.sensing.num_bands
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.sensing.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.sensing.device
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the factorisation (not the operator or the mask)."""
+        ts = (self.gram, self.gram_inv, self.gram_diag, self.gram_norm, self.singular,
+              self.no_data)
+        return int(sum(t.numel() * t.element_size() for t in ts))
+
+    # -- Gram products ----------------------------------------------------------------------
+    def _mask_rows(self, idx: Tensor | slice | None) -> Tensor | None:
+        if self.mask is None:
+            return None
+        if idx is None:
+            return self.mask
+        return self.mask[idx] if isinstance(idx, slice) else self.mask.index_select(0, idx)
+
+    def gram_matrices(self, idx: Tensor | slice | None = None) -> Tensor:
+        """Stored ``G`` of pixels ``idx`` ``(n, M, M)`` (``(1, M, M)`` when shared)."""
+        G = self.gram
+        if G.shape[0] == 1 or idx is None:
+            return G
+        return G[idx] if isinstance(idx, slice) else G.index_select(0, idx)
+
+    def gram_apply(self, x: Tensor, idx: Tensor | slice | None = None) -> Tensor:
+        """``G x`` ``(n, M)`` for pixels ``idx``."""
+        return _rowvec(x, self.gram_matrices(idx))
+
+    def _masked_y(self, y: Tensor, sl: slice) -> Tensor:
+        """``y`` of the pixels ``sl`` with 0 where the mask is False (NaN-safe)."""
+        yc = y[sl]
+        w = _take(self.mask, sl)
+        if w is not None:
+            yc = torch.where(w, yc, torch.zeros((), dtype=yc.dtype, device=yc.device))
+        return yc
+
+    def rhs(self, y: Tensor, sl: slice) -> Tensor:
+        """``b = Aᵀ W y`` for the pixels ``sl`` -> ``(n, M)``."""
+        return self.sensing.A_adjoint(self._masked_y(y, sl), sl)
+
+    def _check_y(self, y: Tensor) -> Tensor:
+        if not isinstance(y, Tensor):
+            raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+        if y.ndim != 2 or y.shape[1] != self.num_obs:
+            raise ValueError(f"y must have shape (P, {self.num_obs}), got {tuple(y.shape)}")
+        p = self.num_pixels
+        if p is not None and y.shape[0] != p:
+            raise ValueError(f"y has {y.shape[0]} pixels but the problem has {p}")
+        if y.device != self.device:
+            raise ValueError(f"y is on {y.device} but A is on {self.device}")
+        if not y.is_floating_point():
+            raise TypeError(f"y must be floating point, got {y.dtype}")
+        return y.to(self.dtype)
+
+    # -- solve ------------------------------------------------------------------------------
+    def solve(
+        self,
+        y: Tensor,
+        *,
+        method: str = "active_set",
+        tol: float | None = None,
+        max_iter: int | None = None,
+        refine: int | None = None,
+        chunk_size: int | None = None,
+        max_memory: int | None = None,
+        x0: Tensor | None = None,
+        admm_iters: int | None = None,
+        rho: float | None = None,
+        num_threads: int | None = None,
+        backend: str = "auto",
+    ) -> NNLSResult:
+        """Solve all pixels for observations ``y``.
+
+        Args:
+            y: ``(P, O)`` observations (same device as ``A``; cast to ``A``'s dtype).
+            method: ``"active_set"`` (exact) or ``"admm"``.
+            tol: active set: tolerance on the KKT residual (a backward error, see
+                :class:`NNLSResult`), default ``M·eps(dtype)``; ADMM: relative primal/dual
+                residual tolerance (``‖x − z‖∞`` and ``‖z − z_prev‖∞`` over ``‖z‖∞``), default
+                ``sqrt(eps)``.
+            max_iter: active set: exchange rounds (at most 16, then Lawson–Hanson) and
+                Lawson–Hanson iterations (default ``10·M``); ADMM: iterations in the
+                tolerance-driven mode (default 5000).
+            refine: at most this many steps of iterative refinement (on the final zero set), only
+                for pixels whose KKT residual exceeds ``tol`` (default 2).
+            chunk_size / max_memory: pixels per chunk, or a working-memory budget in bytes.
+            x0: ``(P, M)`` ADMM warm start (e.g. the previous frame's solution).
+            admm_iters: run exactly this many ADMM iterations (no data-dependent stopping,
+                differentiable w.r.t. ``y``). Ignored by the active-set method.
+            rho: ADMM penalty; default per pixel ``trace(G)/M``.
+            num_threads: CPU threads (default ``torch.get_num_threads()``); each runs
+                single-threaded kernels on its share of the pixels, so no kernel waits at a
+                thread barrier for a core another process holds.
+            backend: the active-set correction's kernels: ``"auto"`` (the compiled CPU kernel
+                when numba is installed and the problem is on the CPU, else the batched torch
+                kernels), ``"torch"`` or ``"compiled"``. Same method and answers (to rounding).
+
+        Returns:
+            :class:`NNLSResult`. Gradients flow only in the fixed-iteration ADMM mode.
+        """
+        if backend not in _BACKENDS:
+            raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+        workers = workers_for(self.device, num_threads)
+        with cpu_threads(self.device, 1):
+            return self._solve(y, method, tol, max_iter, refine, chunk_size, max_memory, x0,
+                               admm_iters, rho, workers, backend)
+
+    def _solve(
+        self, y: Tensor, method: str, tol: float | None, max_iter: int | None,
+        refine: int | None, chunk_size: int | None, max_memory: int | None, x0: Tensor | None,
+        admm_iters: int | None, rho: float | None, workers: int, backend: str = "auto",
+    ) -> NNLSResult:
+        if method not in _METHODS:
+            raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+        y = self._check_y(y)
+        P, m = y.shape[0], self.num_bands
+        if tol is None:
+            tol = _default_tol(self.dtype, m) if method == "active_set" else _admm_tol(self.dtype)
+        tol = float(tol)
+        if not tol > 0:
+            raise ValueError(f"tol must be > 0, got {tol}")
+        if refine is None:
+            refine = 2
+        if int(refine) < 0:
+            raise ValueError(f"refine must be >= 0, got {refine}")
+        if x0 is not None and (x0.shape != (P, m) or x0.device != self.device):
+            raise ValueError(f"x0 must have shape ({P}, {m}) on {self.device}, got "
+                             f"{tuple(x0.shape)} on {x0.device}")
+        if admm_iters is not None and int(admm_iters) < 0:
+            raise ValueError(f"admm_iters must be >= 0, got {admm_iters}")
+        item = torch.finfo(self.dtype).bits // 8
+        if method == "active_set":
+            per_px = item * (2 * self.num_obs + 16 * m + 3 * m * m)
+            n = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
+                           default=_default_stream_chunk(self.device))
+            n_corr = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
+                                default=_default_solve_chunk(self.device))
+            with torch.no_grad():
+                out = self._solve_as(y, tol, max_iter or 10 * m, int(refine), n, n_corr,
+                                     workers, backend)
+            return NNLSResult(*out, method)
+        per_px = item * (2 * self.num_obs + 16 * m + 4 * m * m)
+        n = _chunk_len(P, per_px, chunk_size, max_memory, self.device)
+        outs = []
+        for s in range(0, P, n):
+            sl = slice(s, min(P, s + n))
+            fixed = admm_iters is not None
+            with torch.set_grad_enabled(fixed and torch.is_grad_enabled()):
+                outs.append(self._solve_chunk_admm(
+                    y, sl, tol, max_iter or 5000, admm_iters, rho,
+                    None if x0 is None else x0[sl]))
+        cat = [torch.cat([o[i] for o in outs]) for i in range(5)]
+        return NNLSResult(cat[0], cat[1], cat[2], cat[3], cat[4], method)
+
+    def _chunk_parts(self, sl: slice, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        G = self.gram_matrices(sl)
+        Gi = _take(self.gram_inv, sl)
+        sing = _expand_rows(_take(self.singular, sl), n)
+        nod = _expand_rows(_take(self.no_data, sl), n)
+        return G, Gi, sing, nod
+
+    def _finish(
+        self, G: Tensor, b: Tensor, x: Tensor, nod: Tensor, done: Tensor, tol: float
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        zero = torch.zeros((), dtype=x.dtype, device=x.device)
+        x = torch.where(nod.view(-1, 1), zero, x)
+        with torch.no_grad():
+            r = nnls_kkt_residual(G, b, x.detach())
+            r = torch.where(nod, zero, r)
+            r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
+        return x, done & (r <= tol), r
+
+    def _solve_as(
+        self, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int,
+        workers: int, backend: str = "auto",
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Active-set solve of the whole frame (see the module docstring).
+
+        ``n``: pixels per chunk of the streamed stages; ``n_corr``: pixels per correction batch;
+        ``workers``: CPU threads sharing the chunks (1 elsewhere).
+        """
+        P, m = y.shape[0], self.num_bands
+        dev, dt = y.device, self.dtype
+        H = self.gram_inv
+        tiny = torch.finfo(dt).tiny
+        zero = torch.zeros((), dtype=dt, device=dev)
+        gn_all = self.gram_norm
+        # 1. right-hand sides and unconstrained solutions x = H b, streamed over pixel chunks
+        #    (cache-sized on CPU), with the per-pixel norms the thresholds need
+        b = torch.empty((P, m), dtype=dt, device=dev)
+        x = torch.empty((P, m), dtype=dt, device=dev)
+        bnorm = torch.empty((P,), dtype=dt, device=dev)
+        xnorm = torch.empty((P,), dtype=dt, device=dev)
+        xneg = torch.empty((P,), dtype=dt, device=dev)
+
+        def stage1(sl: slice) -> None:
+            bs, xs = b[sl], x[sl]
+            bs.copy_(self.rhs(y, sl))
+            _rowvec(bs, _take(H, sl), out=xs)
+            bnorm[sl] = _norm2(bs)
+            xnorm[sl] = _norm2(xs)
+            xneg[sl] = xs.clamp_max(0).sum(1)
+
+        for_chunks(stage1, P, n, workers)
+        # infeasibility threshold in gradient units. x_m·G_mm < −thr for some m needs
+        # Σ_m min(x_m, 0) · max_m G_mm < −thr: a cheap test that selects a superset
+        thr = (0.25 * tol * (_expand_rows(gn_all, P) * xnorm + bnorm)).clamp_min(tiny)
+        need = xneg * _expand_rows(self.gram_diag_max, P) < -thr
+        sing = _expand_rows(self.singular, P)
+        nod = _expand_rows(self.no_data, P)
+        irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
+        any_irregular = bool(irregular.any())
+        if any_irregular:
+            need &= ~irregular
+        # 2. exact correction of the pixels with negative entries: one compacted sub-batch
+        iters = torch.zeros((P,), dtype=torch.long, device=dev)
+        done = torch.ones((P,), dtype=torch.bool, device=dev)
+        zset = torch.zeros((P, m), dtype=torch.bool, device=dev)
+        redo = sing & ~nod
+        idx = need.nonzero().squeeze(1)
+        if idx.numel():
+            gd = _expand_rows(self.gram_diag, P)
+            free_solve = FreeSetSolver(self.gram)
+
+            def correct(sl: slice) -> None:
+                ic = idx[sl]
+                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic].unsqueeze(1),
+                                           min(max_iter, _BPP_ROUNDS), b[ic], free_solve)
+                x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
+                redo[ic] |= fs | ~ds
+
+            if self._use_compiled(backend):
+                self._correct_compiled(idx, x, b, gd, thr, min(max_iter, _BPP_ROUNDS), workers,
+                                       zset, done, iters, redo)
+            else:  # split between the workers (compacted sub-batches of at most n_corr pixels)
+                nw = min(workers, max(1, idx.numel() // 2048))
+                for_chunks(correct, idx.numel(), min(n_corr, -(-idx.numel() // nw)), nw)
+        # 3. independent KKT check with the exact G and b (streamed); refine where it fails
+        r = torch.empty((P,), dtype=dt, device=dev)
+
+        plain = ~zset.any(1) & ~irregular  # all-free pixels: refined right here, streamed
+
+        def stage3(sl: slice) -> None:
+            Hs, gns, bs = _take(H, sl), _take(gn_all, sl), b[sl]
+            gd = _take(self.gram_diag, sl)
+            xs = x[sl].clamp_min_(0)
+            g = self.gram_apply(xs, sl).sub_(bs)
+            rs = _kkt_ratio(g, xs, gd, gns, bnorm[sl])
+            for _ in range(refine):
+                fix = ~(rs <= tol) & plain[sl]
+                nf = int(fix.sum())
+                if nf == 0:
+                    break
+                if 4 * nf >= fix.numel():  # many: whole chunk, masked
+                    xn = (xs - _rowvec(g, Hs)).clamp_min_(0)
+                    gn = self.gram_apply(xn, sl).sub_(bs)
+                    rn = _kkt_ratio(gn, xn, gd, gns, bnorm[sl])
+                    fix &= rn < rs
+                    xs.copy_(torch.where(fix.unsqueeze(1), xn, xs))
+                    g = torch.where(fix.unsqueeze(1), gn, g)
+                    rs = torch.where(fix, rn, rs)
+                    continue
+                li = fix.nonzero().squeeze(1)  # few: those rows only
+                gl = li + sl.start
+                Hl = Hs if Hs.shape[0] == 1 else Hs[li]
+                xl = xs[li]
+                xn = (xl - _rowvec(g[li], Hl)).clamp_min_(0)
+                gn = self.gram_apply(xn, gl).sub_(bs[li])
+                rn = _kkt_ratio(gn, xn, gd if gd.shape[0] == 1 else gd[li],
+                                gns if gns.shape[0] == 1 else gns[li], bnorm[sl][li])
+                ok = (rn < rs[li]).unsqueeze(1)
+                xs[li] = torch.where(ok, xn, xl)
+                g[li] = torch.where(ok, gn, g[li])
+                rs[li] = torch.minimum(rn, rs[li])
+            r[sl] = rs
+
+        for_chunks(stage3, P, n, workers)
+        bad = ~(r <= tol) & ~irregular & ~redo & ~plain
+        for _ in range(refine):
+            idx = bad.nonzero().squeeze(1)
+            if idx.numel() == 0:
+                break
+            for s in range(0, idx.numel(), n_corr):
+                ic = idx[s:s + n_corr]
+                xs, rs = self._refine_rows(ic, x[ic], zset[ic], b[ic])
+                better = rs < r[ic]
+                x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
+                r[ic] = torch.where(better, rs, r[ic])
+            bad[idx] = ~(r[idx] <= tol)
+        # 4. robust fallback: singular G, Cholesky failures, unfinished or still failing pixels
+        redo |= ~(r <= tol) & ~irregular
+        if any_irregular:
+            redo &= ~nod
+        idx = redo.nonzero().squeeze(1)
+        for s in range(0, idx.numel(), n_corr):
+            ic = idx[s:s + n_corr]
+            Gs = self.gram_matrices(ic)
+            bs = b[ic]
+            thr_s = (tol * 0.25 * bnorm[ic]).clamp_min(tiny).view(-1, 1)
+            eps = float(torch.finfo(dt).eps)
+            piv_tol = min(eps**0.5, 100.0 * m * eps)
+            xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
+            rs = nnls_kkt_residual(Gs, bs, xs, gn_all if gn_all.shape[0] == 1 else gn_all[ic])
+            better = ~(rs >= r[ic])  # keep the earlier answer where it was at least as good
+            x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
+            done[ic] = torch.where(better, ds, done[ic])
+            r[ic] = torch.where(better, rs, r[ic])
+            iters[ic] = iters[ic] + its
+        if any_irregular:
+            x = torch.where(nod.view(-1, 1), zero, x)
+            r = torch.where(nod, zero, r)
+        r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
+        return x, done & (r <= tol), iters, r, nod.clone()
+
+    def _use_compiled(self, backend: str) -> bool:
+        """Whether the active-set correction runs the compiled CPU kernel (see ``backend``)."""
+        if backend == "torch":
+            return False
+        ok = self.device.type == "cpu" and _compiled.AVAILABLE
+        if backend == "compiled" and not ok:
+            raise RuntimeError(
+                "backend='compiled' needs numba and a CPU problem "
+                f"(numba installed: {_compiled.AVAILABLE}, device: {self.device})"
+            )
+        return ok
+
+    def _correct_compiled(
+        self, idx: Tensor, x: Tensor, b: Tensor, gd: Tensor, thr: Tensor, rounds: int,
+        workers: int, zset: Tensor, done: Tensor, iters: Tensor, redo: Tensor,
+    ) -> None:
+        """Step 2 with :func:`hsi_torch.recon.nnls._compiled.bpp_cpu` (CPU, numba), in place."""
+        x0 = x[idx]
+        z0_empty = ~(x0 * gd[idx] < -thr[idx].unsqueeze(1)).any(1)
+        xs, zs, st, rn = _compiled.bpp_cpu(
+            self.gram.numpy(), self.gram_inv.numpy(), idx.numpy(), x0.numpy(), b[idx].numpy(),
+            gd[idx].numpy(), thr[idx].numpy(), rounds, workers,
+        )  # fmt: skip
+        status = torch.from_numpy(st)
+        ok = status == _compiled.DONE
+        x[idx] = torch.from_numpy(xs)
+        zset[idx] = torch.from_numpy(zs)
+        done[idx] = ok
+        iters[idx] = torch.from_numpy(rn).long() - z0_empty.long()
+        redo[idx] |= ~ok
+
+    def _refine_rows(
+        self, idx: Tensor, x: Tensor, Z: Tensor, b: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """One step of iterative refinement on the zero set ``Z`` with the exact ``G``.
+
+        ``x ← x − G_FF⁻¹ g_F`` (``g = Gx − b``; ``G_FF⁻¹`` applied through ``H`` and the ``Z``
+        block, :func:`_zero_set_solve`). Returns the refined ``x`` (clamped at 0) and its KKT
+        residual.
+        """
+        H = self.gram_inv
+        Gs = self.gram_matrices(idx)
+        Hs = H if H.shape[0] == 1 else H[idx]
+        g = _rowvec(x, Gs) - b
+        u = -_rowvec(torch.where(Z, torch.zeros((), dtype=x.dtype, device=x.device), g), Hs)
+        d, ok = _zero_set_solve_any(H, idx, Z, u)
+        xs = torch.where(ok.view(-1, 1), x + d, x).clamp_min(0)
+        gn = self.gram_norm if self.gram_norm.shape[0] == 1 else self.gram_norm[idx]
+        return xs, nnls_kkt_residual(Gs, b, xs, gn)
+
+    # -- ADMM ---------------------------------------------------------------------------------
+    def _admm_factors(self, rho: float | None) -> tuple[Tensor, Tensor]:
+        key = "auto" if rho is None else repr(float(rho))
+        if key in self._admm_cache:
+            return self._admm_cache[key]
+        H = self.gram_inv
+        m = self.num_bands
+        gd = self.gram_diag
+        if rho is None:
+            r = gd.mean(1)
+            r = torch.where(r > 0, r, torch.ones_like(r))
+        else:
+            if not float(rho) > 0:
+                raise ValueError(f"rho must be > 0, got {rho}")
+            r = torch.full((gd.shape[0],), float(rho), dtype=H.dtype, device=H.device)
+        K = torch.empty_like(H)
+        eye = torch.eye(m, dtype=H.dtype, device=H.device)
+        n = _chunk_len(H.shape[0], 8 * m * m * H.element_size(), None, None, H.device)
+        with torch.no_grad():
+            for s in range(0, H.shape[0], n):
+                sl = slice(s, s + n)
+                G = self.gram_matrices(sl)
+                L, _ = torch.linalg.cholesky_ex(G + r[sl].view(-1, 1, 1) * eye)
+                K[sl] = torch.cholesky_inverse(L)
+        self._admm_cache[key] = (K, r)
+        return K, r
+
+    def _solve_chunk_admm(
+        self, y: Tensor, sl: slice, tol: float, max_iter: int, admm_iters: int | None,
+        rho: float | None, x0: Tensor | None,
+    ) -> tuple[Tensor, ...]:
+        K, r = self._admm_factors(rho)
+        K, r = _take(K, sl), _take(r, sl)
+        b = self.rhs(y, sl)
+        n, m = b.shape
+        dev, dt = b.device, b.dtype
+        G, Gi, sing, nod = self._chunk_parts(sl, n)
+        r = _expand_rows(r.view(-1, 1), n)
+        zero = torch.zeros((), dtype=dt, device=dev)
+        if x0 is None:
+            z = torch.where((sing | nod).view(-1, 1), zero, _rowvec(b, Gi)).clamp_min(0)
+        else:
+            z = x0.to(dt).clamp_min(0)
+        u = (b - _rowvec(z, G)) / r
+        if admm_iters is not None:  # fixed iterations, out of place: differentiable
+            for _ in range(int(admm_iters)):
+                x = _rowvec(b + r * (z - u), K)
+                z = (x + u).clamp_min(0)
+                u = u + x - z
+            iters = torch.full((n,), int(admm_iters), dtype=torch.long, device=dev)
+            done = torch.ones((n,), dtype=torch.bool, device=dev)
+            x, conv, res = self._finish(G, b, z, nod, done, tol)
+            return x, conv, iters, res, nod.clone()
+        # tolerance-driven: iterate on the sub-batch that has not converged
+        iters = torch.zeros((n,), dtype=torch.long, device=dev)
+        done = torch.zeros((n,), dtype=torch.bool, device=dev)
+        act = torch.arange(n, device=dev)
+        Ka, ra, ba, za, ua = _expand_rows(K, n), r, b, z, u
+        check = 10
+        it = 0
+        while act.numel() > 0 and it < max_iter:
+            z_prev = za
+            for _ in range(check):
+                x = _rowvec(ba + ra * (za - ua), Ka)
+                z_prev = za
+                za = (x + ua).clamp_min(0)
+                ua = ua + x - za
+            it += check
+            xs = za.abs().amax(1).clamp_min(torch.finfo(dt).tiny)
+            prim = (x - za).abs().amax(1) / xs
+            dual = (za - z_prev).abs().amax(1) / xs
+            ok = (prim <= tol) & (dual <= tol)
+            iters[act] = it
+            if bool(ok.any()):
+                fin = act[ok]
+                z[fin] = za[ok]
+                done[fin] = True
+                keep = ~ok
+                act, Ka, ra = act[keep], Ka[keep], ra[keep]
+                ba, za, ua = ba[keep], za[keep], ua[keep]
+        if act.numel() > 0:
+            z[act] = za
+        x, _, res = self._finish(G, b, z, nod, done, tol)
+        return x, done | nod, iters, res, nod.clone()
+
+
+
+
+def prepare_nnls(
+    A: Tensor | Sensing,
+    *,
+    mask: Tensor | None = None,
+    beta: float = 0.0,
+    diff_order: int = 1,
+    chunk_size: int | None = None,
+    max_memory: int | None = None,
+    num_threads: int | None = None,
+) -> NNLSProblem:
+    """Factorise the per-pixel systems once (calibration fixed, only ``y`` changes per frame).
+
+    Args:
+        A: ``(O, M)`` shared or ``(P, O, M)`` per-pixel sensing matrices (float32/float64, any
+            device, finite), or a :class:`~hsi_torch.forward_model.SensingModel` (the camera's
+            factored ``A``, never expanded to dense matrices for the whole frame).
+        mask: ``(P, O)`` bool, ``True`` = observation used; ``None`` = all used.
+        beta: smoothness weight ``β ≥ 0`` on ``‖D x‖²`` (data scale, e.g. DN²).
+        diff_order: order of ``D`` (0 identity, 1 first difference, 2 second difference).
+        chunk_size / max_memory: pixels per chunk or working-memory budget (bytes) for the
+            factorisation; the stored result is ``P·M²`` floats regardless.
+        num_threads: CPU threads (default ``torch.get_num_threads()``); each runs
+            single-threaded kernels on its share of the pixels.
+
+    Returns:
+        :class:`NNLSProblem`; call ``.solve(y)`` per frame.
+
+    Example:
+        >>> A = torch.rand(1000, 30, 25)
+        >>> prob = prepare_nnls(A, beta=1e2)
+        >>> res = prob.solve(torch.rand(1000, 30) * 255)
+        >>> res.x.shape
+        torch.Size([1000, 25])
+    """
+    op, mask, beta = _check_inputs(A, mask, beta, diff_order)
+    workers = workers_for(op.device, num_threads)
+    with cpu_threads(op.device, 1), torch.no_grad():
+        return _prepare(op, mask, beta, diff_order, chunk_size, max_memory, workers)
+
+
+def _prepare(
+    op: Sensing, mask: Tensor | None, beta: float, diff_order: int, chunk_size: int | None,
+    max_memory: int | None, workers: int,
+) -> NNLSProblem:
+    o, m = op.num_obs, op.num_bands
+    dev, dt = op.device, op.dtype
+    R = smoothness_gram(m, beta, diff_order, device=dev, dtype=dt)
+    if op.shared and mask is None:
+        P = 1
+    else:
+        P = mask.shape[0] if op.shared else op.num_pixels
+    item = torch.finfo(dt).bits // 8
+    n = _chunk_len(P, item * (o * m + 8 * m * m), chunk_size, max_memory, dev)
+    gram = torch.empty((P, m, m), dtype=dt, device=dev)
+    gram_inv = torch.empty((P, m, m), dtype=dt, device=dev)
+    gram_diag = torch.empty((P, m), dtype=dt, device=dev)
+    gram_norm = torch.empty((P,), dtype=dt, device=dev)
+    singular = torch.empty((P,), dtype=torch.bool, device=dev)
+    no_data = torch.zeros((P,), dtype=torch.bool, device=dev)
+    eps = torch.finfo(dt).eps
+    shared_masked = op.shared and mask is not None
+    if shared_masked:  # G of a pixel = Σ_o w_o a_o a_oᵀ: one (P, O) × (O, M²) product
+        a0 = op.dense()[0]
+        outer = (a0.unsqueeze(2) * a0.unsqueeze(1)).reshape(o, m * m)
+
+    def factor(sl: slice) -> None:
+        w = None if mask is None else mask[sl]
+        G = gram[sl]
+        if shared_masked:
+            torch.mm(w.to(dt), outer, out=G.view(-1, m * m))
+            G.add_(R)
+        else:
+            G.copy_(op.gram(w, None if op.shared else sl, R))
+        L, info = torch.linalg.cholesky_ex(G)
+        gd = G.diagonal(dim1=1, dim2=2)
+        ld2 = L.diagonal(dim1=1, dim2=2).square()
+        bad = (info != 0) | ~(ld2.amin(1) > 20.0 * m * eps * gd.amax(1))
+        bad |= ~torch.isfinite(ld2).all(1)
+        any_bad = bool(bad.any())
+        if any_bad:
+            L = torch.where(bad.view(-1, 1, 1), torch.eye(m, dtype=dt, device=dev), L)
+        Gi = gram_inv[sl]
+        torch.cholesky_inverse(L, out=Gi)  # exactly symmetric
+        if any_bad:
+            Gi.masked_fill_(bad.view(-1, 1, 1), 0.0)
+        singular[sl] = bad
+        gram_diag[sl] = gd
+        gram_norm[sl] = _gram_norm(G)
+        if w is not None:
+            no_data[sl] = ~w.any(1)
+
+    for_chunks(factor, P, n, workers)
+    singular |= no_data
+    return NNLSProblem(op, mask, beta, diff_order, gram, gram_inv, gram_diag, gram_norm,
+                       singular, no_data)
+
+
+def solve_nnls(
+    A: Tensor | Sensing,
+    y: Tensor,
+    *,
+    beta: float = 0.0,
+    mask: Tensor | None = None,
+    diff_order: int = 1,
+    method: str = "active_set",
+    tol: float | None = None,
+    max_iter: int | None = None,
+    refine: int | None = None,
+    chunk_size: int | None = None,
+    max_memory: int | None = None,
+    x0: Tensor | None = None,
+    admm_iters: int | None = None,
+    rho: float | None = None,
+    num_threads: int | None = None,
+    backend: str = "auto",
+) -> NNLSResult:
+    """Batched non-negative smoothness-regularised least squares, one problem per pixel.
+
+    ``x_p = argmin_{x ≥ 0} Σ_o mask_po (A_p x − y_p)_o² + beta ‖D x‖²``, ``D`` from
+    :func:`hsi_torch.spectral.difference_matrix` (``M``, ``diff_order``).
+
+    Args:
+        A: ``(O, M)`` shared or ``(P, O, M)`` per pixel (float32 or float64, any device), or a
+            :class:`~hsi_torch.forward_model.SensingModel`.
+        y: ``(P, O)`` observations (e.g. DN). Entries where ``mask`` is False are ignored (may be
+            NaN).
+        beta: smoothness weight (≥ 0) on the data's scale.
+        mask: ``(P, O)`` bool, True = observation used; None = all.
+        diff_order: 0, 1 (default) or 2.
+        method: ``"active_set"`` (exact, finite termination) or ``"admm"``.
+        tol, max_iter, refine, x0, admm_iters, rho: see :meth:`NNLSProblem.solve`.
+        chunk_size / max_memory: pixels per chunk or a working-memory budget in bytes; each chunk
+            is factorised and solved on its own, so memory stays bounded (per-pixel ``A``;
+            default 131 072 pixels per outer chunk on CPU).
+        num_threads: CPU threads (default ``torch.get_num_threads()``), see
+            :meth:`NNLSProblem.solve`.
+        backend: ``"auto"``, ``"torch"`` or ``"compiled"``, see :meth:`NNLSProblem.solve`.
+
+    Returns:
+        :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
+        ``no_data``.
+
+    Example:
+        >>> A = torch.rand(500, 30, 25, dtype=torch.float64)
+        >>> y = torch.einsum("pom,pm->po", A, torch.rand(500, 25, dtype=torch.float64))
+        >>> res = solve_nnls(A, y, beta=1e-2)
+        >>> bool(res.converged.all()), bool((res.x >= 0).all())
+        (True, True)
+    """
+    op, mask, beta = _check_inputs(A, mask, beta, diff_order)
+    if not isinstance(y, Tensor) or y.ndim != 2:
+        raise ValueError(f"y must be a (P, O) tensor, got {getattr(y, 'shape', type(y))}")
+    P = y.shape[0]
+    if not op.shared and op.num_pixels != P:
+        raise ValueError(f"A has {op.num_pixels} pixels but y has {P}")
+    if mask is not None and mask.shape[0] != P:
+        raise ValueError(f"mask has {mask.shape[0]} pixels but y has {P}")
+    workers = workers_for(op.device, num_threads)
+    kw = dict(method=method, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
+              rho=rho, num_threads=workers, backend=backend)
+    if op.shared and mask is None:
+        prob = prepare_nnls(op, beta=beta, diff_order=diff_order, num_threads=workers)
+        return prob.solve(y, chunk_size=chunk_size, max_memory=max_memory, x0=x0, **kw)
+    o, m = op.num_obs, op.num_bands
+    item = torch.finfo(op.dtype).bits // 8
+    # the factorisation of one outer chunk is held while it is solved: M² floats a pixel
+    per_px = item * (o * m + 8 * m * m + 2 * o + 16 * m)
+    n = _chunk_len(P, per_px, chunk_size, max_memory, op.device,
+                   default=_default_solve_chunk(op.device))
+    inner = n if chunk_size is not None or max_memory is not None else None
+    parts: list[NNLSResult] = []
+    for s in range(0, P, n):
+        sl = slice(s, min(P, s + n))
+        sub = op.select(sl)
+        prob = prepare_nnls(sub, mask=None if mask is None else mask[sl], beta=beta,
+                            diff_order=diff_order, chunk_size=inner, num_threads=workers)
+        parts.append(prob.solve(y[sl], chunk_size=inner, x0=None if x0 is None else x0[sl],
+                                **kw))
+    if len(parts) == 1:
+        return parts[0]
+    return NNLSResult(
+        torch.cat([r.x for r in parts]),
+        torch.cat([r.converged for r in parts]),
+        torch.cat([r.iterations for r in parts]),
+        torch.cat([r.kkt_residual for r in parts]),
+        torch.cat([r.no_data for r in parts]),
+        method,
+    )

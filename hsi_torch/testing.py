@@ -1,0 +1,106 @@
+"""Helpers for tests and benchmarks: realistic random problems with the camera's structure."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
+
+__all__ = ["synthetic_brf_problem"]
+
+
+def synthetic_brf_problem(
+    num_pixels: int,
+    *,
+    grid: SpectralGrid = DEFAULT_GRID,
+    num_views: int = 10,
+    opd_range_nm: tuple[float, float] = (1500.0, 6000.0),
+    mask_fraction: float = 0.1,
+    noise_dn: float = 1.0,
+    peak_dn: float = 255.0,
+    shared: bool = False,
+    spectra: str = "bumps",
+    seed: int = 0,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """A realistic random test/benchmark problem with the camera's sensing structure.
+
+    ``A_p[(v, c), m] = g_v(p) · T_v(p, λ_m) · Δλ_m · φ^c(λ_m)`` with BRF-like transmittances
+    ``T = ½[1 − cos(2π·OPD/λ)]`` (view OPDs spread over ``opd_range_nm``, ±2 % per pixel unless
+    ``shared``), smooth Gaussian "RGB" curves ``φ^c`` (peaks 600/540/460 nm), per-pixel gains
+    0.6…1 (1 when ``shared``). ``A`` is scaled so that a white reflectance (1 in every band) gives
+    at most about ``peak_dn``. Spectra (times a brightness 0.03…1):
+
+    * ``spectra="bumps"`` (hard case): 1–3 Gaussian bumps on a small floor, normalised to peak 1
+      — many bands near 0, so ~30 % of the pixels need the active-set correction;
+    * ``spectra="reflectance"`` (realistic): random convex mixtures of 2–3 of the 24 ColorChecker
+      reflectances (:func:`hsi_torch.refdata.colorchecker_reflectances`) lit by CIE D65,
+      normalised to peak 1 — smooth and positive in every band, like real scenes.
+
+    ``y = A x + N(0, noise_dn²)``; ``mask`` drops a random
+    ``mask_fraction`` of the observations and every observation above ``peak_dn`` (saturation).
+    Generated in float64 in chunks (memory ≈ the outputs), then cast.
+
+    Returns:
+        ``A`` ``(P, 3V, M)`` (``(3V, M)`` when ``shared``), ``y (P, 3V)``, ``mask (P, 3V)`` bool,
+        ``x_true (P, M)``, in ``dtype`` on ``device``.
+    """
+    if num_pixels < 1 or num_views < 1:
+        raise ValueError(f"need num_pixels >= 1 and num_views >= 1, got {num_pixels}, {num_views}")
+    gen = torch.Generator().manual_seed(int(seed))
+    f64 = torch.float64
+    lam = grid.wavelengths(dtype=f64)
+    dl = grid.band_widths(dtype=f64)
+    m, v, P = lam.numel(), num_views, num_pixels
+    opd = torch.linspace(opd_range_nm[0], opd_range_nm[1], v, dtype=f64)
+    opd = opd[torch.randperm(v, generator=gen)].view(1, v, 1)
+    centres = torch.tensor([600.0, 540.0, 460.0], dtype=f64).view(3, 1)
+    widths = torch.tensor([40.0, 40.0, 30.0], dtype=f64).view(3, 1)
+    phi_dl = (dl * torch.exp(-0.5 * ((lam - centres) / widths) ** 2)).view(1, 1, 3, m)
+
+    def sensing(n: int, jitter: bool) -> Tensor:
+        rnd = torch.rand(n, v, 1, generator=gen, dtype=f64) if jitter else torch.full(
+            (n, v, 1), 0.5, dtype=f64)
+        trans = 0.5 * (1 - torch.cos(2 * torch.pi * opd * (1 + 0.02 * (2 * rnd - 1)) / lam))
+        gain = 0.6 + 0.4 * torch.rand(n, v, 1, 1, generator=gen, dtype=f64) if jitter else 1.0
+        return (gain * trans.unsqueeze(2) * phi_dl).reshape(n, 3 * v, m)
+
+    if spectra not in ("bumps", "reflectance"):
+        raise ValueError(f"spectra must be 'bumps' or 'reflectance', got {spectra!r}")
+    scale = peak_dn / float(sensing(1, False).sum(2).amax())
+    t = (lam - lam[0]) / (lam[-1] - lam[0])
+    if spectra == "reflectance":
+        from hsi_torch.refdata import colorchecker_reflectances, illuminant
+
+        refl, _ = colorchecker_reflectances(lam)
+        lit = refl.to(f64) * illuminant("D65", lam).to(f64)  # (24, M)
+    A_shared = sensing(1, False)[0] * scale if shared else None
+    outs: list[list[Tensor]] = [[], [], [], []]
+    for s in range(0, P, 16384):
+        n = min(P, s + 16384) - s
+        a = A_shared.expand(n, -1, -1) if shared else sensing(n, True) * scale
+        if spectra == "bumps":
+            c = torch.rand(n, 3, 1, generator=gen, dtype=f64) * 1.2 - 0.1
+            w = 0.08 + 0.3 * torch.rand(n, 3, 1, generator=gen, dtype=f64)
+            h = torch.rand(n, 3, 1, generator=gen, dtype=f64)
+            h = h * (torch.rand(n, 3, 1, generator=gen, dtype=f64) < 0.8)
+            x = (h * torch.exp(-0.5 * ((t - c) / w) ** 2)).sum(1)
+            x = x + 0.05 * torch.rand(n, 1, generator=gen, dtype=f64)
+        else:
+            pick = torch.randint(0, lit.shape[0], (n, 3), generator=gen)
+            wts = -torch.log(torch.rand(n, 3, generator=gen, dtype=f64).clamp_min(1e-12))
+            wts = wts * (torch.rand(n, 3, generator=gen, dtype=f64) < 0.8)
+            wts[:, 0] += 1e-3  # at least one patch
+            x = (wts.unsqueeze(2) * lit[pick]).sum(1) / wts.sum(1, keepdim=True)
+        x = x / x.amax(1, keepdim=True).clamp_min(1e-12)
+        x = x * (0.03 + 0.97 * torch.rand(n, 1, generator=gen, dtype=f64))
+        y = torch.bmm(a, x.unsqueeze(2)).squeeze(2)
+        y = y + noise_dn * torch.randn(n, 3 * v, generator=gen, dtype=f64)
+        mk = (torch.rand(n, 3 * v, generator=gen, dtype=f64) >= mask_fraction) & (y <= peak_dn)
+        for lst, val in zip(outs, (a, y, mk, x), strict=True):
+            if not (shared and val is a):
+                lst.append(val.to(device=device, dtype=dtype if val.is_floating_point() else None))
+    A = A_shared.to(device=device, dtype=dtype) if shared else torch.cat(outs[0])
+    return A, torch.cat(outs[1]), torch.cat(outs[2]), torch.cat(outs[3])
