@@ -53,7 +53,7 @@ class GeometryConfig:
     """Tapered kaleidoscope (fields of :class:`~hsi_torch.optics.KaleidoscopeGeometry`)."""
 
     a_in_mm: float = field(default=16.0, metadata=_h("entrance side at the diffuser, mm"))
-    a_out_mm: float = field(default=28.0, metadata=_h("exit side, mm (taper: a_out > a_in)"))
+    a_out_mm: float = field(default=40.0, metadata=_h("exit side, mm (taper: a_out > a_in)"))
     length_mm: float = field(default=160.0, metadata=_h("tube length, mm"))
     pupil_distance_mm: float = field(default=12.0, metadata=_h("camera pupil beyond the exit, mm"))
     mirror_reflectance: float = field(default=0.92, metadata=_h("reflectance per bounce"))
@@ -86,9 +86,9 @@ class BRFSection:
     """Birefringent filter between polarizers (fields of :class:`~hsi_torch.optics.BRFConfig`)."""
 
     material: str = field(default="quartz", metadata=_h("quartz | calcite | polymer"))
-    thickness_mm: float = field(default=2.0, metadata=_h("plate thickness, mm"))
-    axis_tilt_deg: float = field(default=65.0, metadata=_h("optic axis tilt out of the plate"))
-    axis_azimuth_deg: float = field(default=10.0, metadata=_h("azimuth of the projected axis"))
+    thickness_mm: float = field(default=2.5, metadata=_h("plate thickness, mm"))
+    axis_tilt_deg: float = field(default=70.0, metadata=_h("optic axis tilt out of the plate"))
+    axis_azimuth_deg: float = field(default=40.0, metadata=_h("azimuth of the projected axis"))
     psi_deg: float = field(default=45.0, metadata=_h("retarder axis vs polarizer"))
     chi_deg: float = field(default=90.0, metadata=_h("analyser vs polarizer (90 = crossed)"))
     outside_index: float = field(default=1.0, metadata=_h("index of the outside medium"))
@@ -145,7 +145,7 @@ class DiffuserConfig:
     """Diffuser (fields of :class:`~hsi_torch.optics.sensor.DiffuserModel`)."""
 
     falloff_k: float = field(default=2.0, metadata=_h("angular fall-off D(α) = cos^k α"))
-    blur_sigma_mm: float = field(default=0.0, metadata=_h("scene blur on the diffuser, mm"))
+    blur_sigma_mm: float = field(default=0.1, metadata=_h("scene blur on the diffuser, mm"))
 
     def __post_init__(self) -> None:
         if self.falloff_k < 0 or self.blur_sigma_mm < 0:
