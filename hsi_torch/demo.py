@@ -2,11 +2,11 @@
 
 End to end on the virtual prototype, from nothing to scored spectral cubes:
 
-1. **simulate** the default prototype (``configs/simulate.yaml``, 400 × 384 px sensor) into
+1. **simulate** the default prototype (the shipped ``simulate.yaml``, 400 × 384 px sensor) into
    ``OUT/captures``: monochromator scan, white and circle-grid shots, dark frame, and the scenes —
    the ColorChecker, plus the real CAVE cube (``../shared/data/real/cave_stuffed_toys``) when it
    is present, otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
-2. **calibrate** from those captures only (``configs/calibrate.yaml``) → ``OUT/calib.npz``;
+2. **calibrate** from those captures only (the shipped ``calibrate.yaml``) → ``OUT/calib.npz``;
 3. **reconstruct** every scene with the calibrated bundle and, for comparison, with the *oracle*
    bundle made of the simulator's true B, φ, g and homographies (so the cost of calibration is
    visible), at a fixed β (``beta``, default 1e4, see below);
@@ -57,10 +57,10 @@ class DemoConfig:
     """Settings of ``hsi-torch demo`` (``--set key=value`` overrides any of them)."""
 
     simulate_config: Path | None = field(
-        default=None, metadata=_h("simulator config; null: configs/simulate.yaml of the checkout")
+        default=None, metadata=_h("simulator config; null: the shipped simulate.yaml")
     )
     calibrate_config: Path | None = field(
-        default=None, metadata=_h("calibration config; null: configs/calibrate.yaml")
+        default=None, metadata=_h("calibration config; null: the shipped calibrate.yaml")
     )
     beta: float = field(default=1e4, metadata=_h("reconstruction smoothness weight (DN^2)"))
     diff_order: int = field(default=1, metadata=_h("order of the difference operator"))
@@ -313,6 +313,7 @@ def demo(
     from hsi_torch.io import save_cube_formats
     from hsi_torch.io.atomic import atomic_write_json
     from hsi_torch.recon import Reconstructor
+    from hsi_torch.resources import shipped_config
     from hsi_torch.simulate import SimulateConfig, simulate_capture_set
     from hsi_torch.simulate.oracle import bundle_from_truth, load_truth
 
@@ -324,7 +325,7 @@ def demo(
 
     # ---- 1. simulate -------------------------------------------------------------------------
     t0 = time.perf_counter()
-    sim_path = cfg.simulate_config or (_ROOT / "configs" / "simulate.yaml")
+    sim_path = cfg.simulate_config or shipped_config("simulate")
     if not Path(sim_path).is_file():
         raise FileNotFoundError(f"simulator config {sim_path} not found (set simulate_config)")
     grid_wl = np.arange(430.0, 670.0 + 1e-9, 10.0)
@@ -343,8 +344,8 @@ def demo(
 
     # ---- 2. calibrate ------------------------------------------------------------------------
     t0 = time.perf_counter()
-    cal_path = cfg.calibrate_config or (_ROOT / "configs" / "calibrate.yaml")
-    ccfg = load_config(cal_path if Path(cal_path).is_file() else None, CalibrateConfig,
+    cal_path = cfg.calibrate_config or shipped_config("calibrate")
+    ccfg = load_config(cal_path, CalibrateConfig,
                        [f"progress={'true' if cfg.progress else 'false'}"])  # fmt: skip
     log(f"[2/4] calibrating from {cap_dir} ...")
     bundle, report = calibrate_capture_set(cap_dir, ccfg, device=cfg.device)

@@ -21,8 +21,7 @@ from hsi_torch.calibrate.pipeline import (
     wavelength_from_name,
 )
 from hsi_torch.cli import main
-
-REPO = Path(__file__).resolve().parents[1]
+from hsi_torch.resources import shipped_config
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +29,7 @@ def sim(tmp_path_factory) -> Path:
     """The default small capture set (configs/simulate.yaml, realistic noise), no scene captures,
     rendered in float32 (the simulator's documented fast setting) to keep the test short."""
     out = tmp_path_factory.mktemp("sim")
-    rc = main(["simulate", "--config", str(REPO / "configs" / "simulate.yaml"), "--out", str(out),
+    rc = main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
                "--set", "captures.scenes=[]", "--set", "render.figures=false",
                "--set", "render.progress=false", "--set", "render.dtype=float32"])  # fmt: skip
     assert rc == 0
@@ -40,7 +39,7 @@ def sim(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def calibrated(sim: Path, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("cal") / "calib.npz"
-    rc = main(["calibrate", "--config", str(REPO / "configs" / "calibrate.yaml"),
+    rc = main(["calibrate", "--config", str(shipped_config("calibrate")),
                "--captures", str(sim), "--out", str(out), "--set", "progress=false"])  # fmt: skip
     assert rc == 0
     return out

@@ -22,8 +22,7 @@ from hsi_torch.batch import expand_inputs
 from hsi_torch.cli import main
 from hsi_torch.io import load_cube, write_capture
 from hsi_torch.io.raw import mosaic
-
-REPO = Path(__file__).resolve().parents[1]
+from hsi_torch.resources import shipped_config
 
 
 @pytest.fixture
@@ -148,7 +147,7 @@ def test_shipped_reconstruct_config_is_the_schema_default():
     from hsi_torch.config import load_config
     from hsi_torch.recon.config import ReconstructConfig
 
-    cfg = load_config(REPO / "configs" / "reconstruct.yaml", ReconstructConfig)
+    cfg = load_config(shipped_config("reconstruct"), ReconstructConfig)
     assert cfg == ReconstructConfig()
     # beta = 1 gave 17 dB on the default prototype's ColorChecker interiors, 1e4 gives 35.5 dB
     assert cfg.beta == 1e4
