@@ -11,8 +11,14 @@ calibrate      ``hsi_torch.calibrate.cli_entry.run_calibrate``  captures → cal
 reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + captures → cubes
 experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
 demo           ``hsi_torch.demo.run_demo``                      the README's main command
+config         ``hsi_torch.resources.run_config``               show / copy a shipped config
 bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
 =============  ===============================================  ==============================
+
+Without ``--config`` a command runs with its shipped configuration file
+(``hsi_torch/configs/<command>.yaml``, ``<NAME>.yaml`` for ``experiment NAME``; see
+:func:`config_source`). ``--data-dir DIR`` (any position) names the real-data folder
+(:func:`hsi_torch.resources.set_real_data_dir`; default ``HSI_TORCH_DATA``).
 
 The entry function returns an exit status (``int``), ``None`` (= 0), or a
 :class:`hsi_torch.batch.BatchSummary` (its report is printed; status 1 if any input failed).
@@ -34,7 +40,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config"]
+__all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config", "config_source"]
 
 PROG = "hsi-torch"
 
@@ -44,6 +50,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "reconstruct": ("hsi_torch.recon.cli_entry", "run_reconstruct"),
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
     "demo": ("hsi_torch.demo", "run_demo"),
+    "config": ("hsi_torch.resources", "run_config"),
 }
 BENCH_TARGETS = ("solver", "pipeline")
 _FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")  # commands whose --out is a folder
@@ -59,7 +66,8 @@ def _add_common(p: argparse.ArgumentParser, config: bool = True, device: bool = 
     if config:
         p.add_argument(
             "--config", "-c", type=Path, default=None, metavar="YAML",
-            help="YAML configuration file (default: built-in defaults)",
+            help="YAML configuration file, or the name of a shipped one (default: the "
+                 "command's shipped file; see 'hsi-torch config list')",
         )  # fmt: skip
         p.add_argument(
             "--set", "-s", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -69,9 +77,19 @@ def _add_common(p: argparse.ArgumentParser, config: bool = True, device: bool = 
         p.add_argument(
             "--device", default=None, help="torch device, e.g. cpu, cuda, cuda:1 (default: cpu)"
         )
+    _add_global(p, argparse.SUPPRESS)
+
+
+def _add_global(p: argparse.ArgumentParser, default: Any) -> None:
+    """Options accepted before and after the sub-command (``default=SUPPRESS`` on the
+    sub-parsers, so that they do not overwrite a value given before the sub-command)."""
     p.add_argument(
-        "--debug", action="store_true", default=argparse.SUPPRESS,
-        help="show full tracebacks on errors",
+        "--debug", action="store_true", default=default, help="show full tracebacks on errors"
+    )
+    p.add_argument(
+        "--data-dir", type=Path, default=default, metavar="DIR",
+        help="real-data folder (CAVE scene, real RAW files, ...; default: $HSI_TORCH_DATA, else "
+             "../shared/data/real beside a source checkout)",
     )  # fmt: skip
 
 
@@ -83,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
         "kaleidoscope: simulate, calibrate, reconstruct, evaluate.",
     )
     parser.add_argument("--version", action="version", version=f"{PROG} {_version()}")
-    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    _add_global(parser, None)
+    parser.set_defaults(debug=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser(
@@ -121,6 +140,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="smaller, faster run")
 
     p = sub.add_parser(
+        "config", help="list, show or copy the shipped configuration files",
+        description="The configuration files shipped with hsi_torch (each command's default).",
+    )  # fmt: skip
+    p.add_argument(
+        "action", nargs="?", choices=("list", "show", "copy"), default="list",
+        help="list the names (default), show NAME, or copy NAME to DEST",
+    )  # fmt: skip
+    p.add_argument("name", nargs="?", metavar="NAME", help="e.g. simulate, calibrate, synthetic")
+    p.add_argument("dest", nargs="?", type=Path, metavar="DEST", help="file or folder (copy)")
+    p.add_argument("--force", action="store_true", help="copy: overwrite an existing DEST")
+    _add_global(p, argparse.SUPPRESS)
+
+    p = sub.add_parser(
         "bench", help="timing benchmarks (extra arguments go to the script)", add_help=False,
         description="Runs scripts/bench_<target>.py; unknown arguments are passed to it. "
         "'hsi-torch bench <target> --help' lists the script's own options.",
@@ -140,11 +172,36 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def load_args_config(args: argparse.Namespace, schema_cls: type) -> Any:
-    """Convenience for entry functions: ``load_config(args.config, schema_cls, args.overrides)``."""
+def config_source(args: argparse.Namespace, default: str | None = None) -> Path | None:
+    """The configuration file a command runs with: ``--config`` if given, else the shipped file
+    ``default`` (e.g. ``"simulate"``) when there is one, else ``None`` (the schema's defaults).
+
+    ``--config NAME`` with the name of a shipped file (``simulate_full``, ``simulate_full.yaml``)
+    and no such file or folder here means the shipped file."""
+    from hsi_torch.resources import shipped_config, shipped_config_names
+
+    given = getattr(args, "config", None)
+    if given is not None:
+        p = Path(given)
+        stem = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
+        if not p.exists() and p.parent == Path(".") and stem in shipped_config_names():
+            return shipped_config(stem)
+        return p
+    if default is None:
+        return None
+    return shipped_config(default) if default in shipped_config_names() else None
+
+
+def load_args_config(
+    args: argparse.Namespace, schema_cls: type, default: str | None = None
+) -> Any:
+    """Convenience for entry functions: ``load_config(config_source(args, default), schema_cls,
+    args.overrides)`` (``default``: the shipped config used without ``--config``)."""
     from hsi_torch.config import load_config
 
-    return load_config(getattr(args, "config", None), schema_cls, getattr(args, "overrides", []))
+    return load_config(
+        config_source(args, default), schema_cls, getattr(args, "overrides", [])
+    )
 
 
 def _err(msg: str) -> None:
@@ -257,9 +314,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get("HSI_TORCH_DEBUG") == "1"
     args.debug = debug
+    from hsi_torch import resources
     from hsi_torch.config import ConfigError
 
+    data_dir_before = resources.get_real_data_dir_setting()
     try:
+        if getattr(args, "data_dir", None) is not None:
+            resources.set_real_data_dir(args.data_dir)
         if args.command == "bench":
             if extra[:1] == ["--"]:
                 extra = extra[1:]
@@ -300,6 +361,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             _err(f"{_one_line(exc)} (unexpected error; run with --debug for the traceback)")
         return 1
+    finally:
+        resources.set_real_data_dir(data_dir_before)
 
 
 def _one_line(exc: BaseException) -> str:

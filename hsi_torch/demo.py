@@ -4,8 +4,9 @@ End to end on the virtual prototype, from nothing to scored spectral cubes:
 
 1. **simulate** the default prototype (the shipped ``simulate.yaml``, 400 × 384 px sensor) into
    ``OUT/captures``: monochromator scan, white and circle-grid shots, dark frame, and the scenes —
-   the ColorChecker, plus the real CAVE cube (``../shared/data/real/cave_stuffed_toys``) when it
-   is present, otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
+   the ColorChecker, plus the real CAVE cube (``cave_stuffed_toys`` in the real-data folder:
+   ``HSI_TORCH_DATA``, else ``../shared/data/real`` beside a source checkout) when it is present,
+   otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
 2. **calibrate** from those captures only (the shipped ``calibrate.yaml``) → ``OUT/calib.npz``;
 3. **reconstruct** every scene with the calibrated bundle and, for comparison, with the *oracle*
    bundle made of the simulator's true B, φ, g and homographies (so the cost of calibration is
@@ -44,9 +45,6 @@ from hsi_torch.experiments.metrics import psnr_from_mse
 
 __all__ = ["DemoConfig", "run_demo", "demo", "colorchecker_scores", "cube_scores"]
 
-_ROOT = Path(__file__).resolve().parents[1]
-_REAL = _ROOT.parent / "shared" / "data" / "real"
-
 
 def _h(text: str) -> dict[str, str]:
     return {"help": text}
@@ -68,7 +66,7 @@ class DemoConfig:
         default=2.0, metadata=_h("ColorChecker: score pixels at least this far inside a patch")
     )
     cave: bool = field(
-        default=True, metadata=_h("add the real CAVE scene when ../shared/data/real is present")
+        default=True, metadata=_h("add the real CAVE scene when the real-data folder has it")
     )
     quick_scale: float = field(
         default=0.75, metadata=_h("--quick: camera.scale of the simulated sensor")
@@ -202,15 +200,18 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
         {"kind": "colorchecker", "name": "colorchecker",
          "params": {"width_mm": 8.4, "center_mm": [0.0, 1.4]}},
     ]  # fmt: skip
-    cave_dir = _REAL / "cave_stuffed_toys"
-    if cfg.cave and cave_dir.is_dir():
+    from hsi_torch.resources import DATA_ENV, real_data_dir
+
+    cave_dir = real_data_dir("cave_stuffed_toys")
+    if cfg.cave and cave_dir is not None and cave_dir.is_dir():
         specs.append({"kind": "cave", "name": "cave", "optional": True,
                       "params": {"folder": str(cave_dir), "width_mm": 7.0,
                                  "center_mm": [0.0, 0.9]}})  # fmt: skip
     else:
         from hsi_torch.io import save_cube
 
-        why = "disabled (cave=false)" if not cfg.cave else f"{cave_dir} not found"
+        why = ("disabled (cave=false)" if not cfg.cave else
+               f"not found (no cave_stuffed_toys in the real-data folder; set {DATA_ENV})")
         log(f"CAVE scene {why}: using the built-in synthetic cube instead")
         path = out / "synthetic_scene.npz"
         save_cube(path, _synthetic_cube(wl), wl)

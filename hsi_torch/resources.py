@@ -20,8 +20,11 @@ scene, real RAW files, circle-grid photos, camera sensitivities) is, in this ord
 from __future__ import annotations
 
 import os
+import shutil
+import sys
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 __all__ = [
     "DATA_ENV",
@@ -29,7 +32,9 @@ __all__ = [
     "shipped_config_names",
     "shipped_data",
     "set_real_data_dir",
+    "get_real_data_dir_setting",
     "real_data_dir",
+    "run_config",
     "source_checkout",
 ]
 
@@ -49,17 +54,9 @@ def _package_dir(sub: str) -> Path:
     return res
 
 
-def _configs_dir() -> Path:
-    folder = _package_dir("configs")
-    root = source_checkout()
-    if not folder.is_dir() and root is not None:  # transitional: configs/ not moved yet
-        return root / "configs"
-    return folder
-
-
 def shipped_config_names() -> list[str]:
     """Names of the shipped configuration files, without ``.yaml`` (e.g. ``"simulate"``)."""
-    folder = _configs_dir()
+    folder = _package_dir("configs")
     return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
@@ -71,7 +68,7 @@ def shipped_config(name: str) -> Path:
         FileNotFoundError: no such shipped file (the message lists the available names).
     """
     stem = name[: -len(".yaml")] if name.endswith(".yaml") else name
-    path = _configs_dir() / f"{stem}.yaml"
+    path = _package_dir("configs") / f"{stem}.yaml"
     if not path.is_file():
         raise FileNotFoundError(
             f"no shipped config {name!r}; available: {', '.join(shipped_config_names())}"
@@ -109,6 +106,11 @@ def set_real_data_dir(path: str | os.PathLike | None) -> None:
     _data_dir_setting = p
 
 
+def get_real_data_dir_setting() -> Path | None:
+    """The folder set with :func:`set_real_data_dir` (``None``: not set)."""
+    return _data_dir_setting
+
+
 def real_data_dir(sub: str | None = None) -> Path | None:
     """The real-data folder (see the module docstring), or ``sub`` inside it; ``None`` when there
     is none (or ``sub`` is absent there).
@@ -132,3 +134,38 @@ def real_data_dir(sub: str | None = None) -> Path | None:
         return base
     p = base / sub
     return p if p.exists() else None
+
+
+def run_config(args: Any) -> int:
+    """``hsi-torch config [list | show NAME | copy NAME DEST [--force]]``.
+
+    ``copy`` writes ``DEST`` (or ``DEST/NAME.yaml`` when ``DEST`` is a folder) and refuses to
+    overwrite an existing file without ``--force``; the copy then runs with ``--config DEST``.
+    """
+    action, name, dest = args.action, getattr(args, "name", None), getattr(args, "dest", None)
+    if action == "list":
+        if name is not None:
+            raise ValueError(f"'config list' takes no NAME (got {name!r}); try "
+                             f"'config show {name}'")
+        for n in shipped_config_names():
+            print(n)
+        return 0
+    if name is None:
+        raise ValueError(f"'config {action}' needs a NAME, one of: "
+                         f"{', '.join(shipped_config_names())}")
+    src = shipped_config(name)
+    if action == "show":
+        if dest is not None:
+            raise ValueError(f"'config show' takes no DEST (got {dest}); did you mean "
+                             "'config copy'?")
+        sys.stdout.write(src.read_text(encoding="utf-8"))
+        return 0
+    if dest is None:
+        raise ValueError(f"'config copy {name}' needs a DEST file or folder")
+    target = Path(dest) / src.name if Path(dest).is_dir() else Path(dest)
+    if target.exists() and not getattr(args, "force", False):
+        raise FileExistsError(f"{target} exists; use --force to overwrite it")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, target)
+    print(f"wrote {target} (run with --config {target})")
+    return 0

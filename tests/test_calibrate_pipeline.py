@@ -26,7 +26,7 @@ from hsi_torch.resources import shipped_config
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory) -> Path:
-    """The default small capture set (configs/simulate.yaml, realistic noise), no scene captures,
+    """The default small capture set (shipped simulate.yaml, realistic noise), no scene captures,
     rendered in float32 (the simulator's documented fast setting) to keep the test short."""
     out = tmp_path_factory.mktemp("sim")
     rc = main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),

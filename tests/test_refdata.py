@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from hsi_torch import refdata
+from hsi_torch.resources import real_data_dir
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
 
 colour = pytest.importorskip("colour")
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-CAM_DIR = REAL / "camera_sensitivities"
+CAM_DIR = real_data_dir("camera_sensitivities") or Path("<real-data>/camera_sensitivities")
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]

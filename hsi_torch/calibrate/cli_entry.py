@@ -34,7 +34,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.config import write_resolved_config
     from hsi_torch.io.atomic import atomic_write_json
 
-    cfg = load_args_config(args, CalibrateConfig)
+    cfg = load_args_config(args, CalibrateConfig, default="calibrate")
     device = getattr(args, "device", None)
     if Path(args.out).is_dir():  # checked before '.npz' is appended (DIR would become DIR.npz)
         raise ValueError(

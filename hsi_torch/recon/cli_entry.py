@@ -162,7 +162,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     from hsi_torch.config import write_resolved_config
     from hsi_torch.recon.sensing import load_bundle
 
-    cfg: ReconstructConfig = load_args_config(args, ReconstructConfig)
+    cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
     inputs = expand_inputs(args.inputs)  # a glob matching nothing fails before anything is written
     if getattr(args, "device", None):
         cfg.device = str(args.device)

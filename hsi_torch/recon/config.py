@@ -1,4 +1,4 @@
-"""``ReconstructConfig``: the schema of ``configs/reconstruct.yaml`` (``hsi-torch reconstruct``).
+"""``ReconstructConfig``: schema of the shipped ``reconstruct.yaml`` (``hsi-torch reconstruct``).
 
 Loaded and validated by :func:`hsi_torch.config.load_config`; every key can be overridden on the
 command line (``--set beta=100``). ``describe_schema(ReconstructConfig)`` prints the reference.

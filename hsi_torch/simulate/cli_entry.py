@@ -1,4 +1,5 @@
-"""``hsi-torch simulate --config C --out DIR [--set key=value ...] [--device D]``."""
+"""``hsi-torch simulate [--config C] --out DIR [--set key=value ...] [--device D]`` (without
+``--config``: the shipped ``simulate.yaml``, the README's default prototype)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     from hsi_torch.simulate.capture_sets import simulate_capture_set
     from hsi_torch.simulate.config import SimulateConfig
 
-    cfg = load_args_config(args, SimulateConfig)
+    cfg = load_args_config(args, SimulateConfig, default="simulate")
     device = getattr(args, "device", None)
     summary = simulate_capture_set(
         cfg, args.out, device=device, log=lambda m: print(m, file=sys.stderr))

@@ -220,8 +220,8 @@ class SceneSpec:
     ``cube``. ``params`` go to the scene constructor (:func:`hsi_torch.simulate.scenes.make_scene`;
     ``*_deg`` keys are converted). ``cube``: ``path`` to a cube file read with
     :func:`hsi_torch.io.load_cube`, placed with ``params`` ``width_mm``/``center_mm``.
-    ``optional``: skip (with a message) when the data is missing, e.g. CAVE without
-    ``../shared/data/real``.
+    ``optional``: skip (with a message) when the data is missing, e.g. CAVE without the real-data
+    folder (:func:`hsi_torch.resources.real_data_dir`).
     """
 
     kind: Literal["colorchecker", "usaf", "white", "flat", "circle_grid", "cave", "cube"]
