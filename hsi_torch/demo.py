@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -486,8 +485,9 @@ def run_demo(args: argparse.Namespace) -> int:
     if getattr(args, "device", None):
         cfg.device = args.device
     out = Path(getattr(args, "out", None) or "demo_output")
-    demo(out, cfg, quick=bool(getattr(args, "quick", False)),
-         log=lambda m: print(m, file=sys.stdout, flush=True))  # fmt: skip
+    from hsi_torch.console import info
+
+    demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
     from hsi_torch.config import write_resolved_config
 
     write_resolved_config(cfg, out)

@@ -167,5 +167,7 @@ def run_config(args: Any) -> int:
         raise FileExistsError(f"{target} exists; use --force to overwrite it")
     target.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, target)
-    print(f"wrote {target} (run with --config {target})")
+    from hsi_torch.console import info
+
+    info(f"wrote {target} (run with --config {target})")
     return 0

@@ -64,6 +64,7 @@ def run_experiment(args: argparse.Namespace) -> int:
     from hsi_torch.batch import ensure_out_dir
     from hsi_torch.cli import load_args_config
     from hsi_torch.config import write_resolved_config
+    from hsi_torch.console import info
 
     schema, run = resolve_experiment(args.name)
     cfg = load_args_config(args, schema, default=args.name)
@@ -72,6 +73,6 @@ def run_experiment(args: argparse.Namespace) -> int:
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
-    print(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
-          f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
+    info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
+         f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
     return 0

@@ -160,6 +160,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     from hsi_torch.batch import ensure_out_dir, expand_inputs, fingerprint_of, run_batch
     from hsi_torch.cli import load_args_config
     from hsi_torch.config import write_resolved_config
+    from hsi_torch.console import warn
     from hsi_torch.recon.sensing import load_bundle
 
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
@@ -212,7 +213,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
             white_level=cfg.white_level,
         )  # fmt: skip
         for msg in frame_warnings(res.stats, cfg):
-            _warn(f"WARNING {path}: {msg}", progress)
+            warn(f"WARNING {path}: {msg}")
         cap_meta = res.stats.pop("metadata", {})
         meta = {
             "source": os.path.abspath(path),
@@ -252,13 +253,3 @@ def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
         )
     return out
 
-
-def _warn(msg: str, progress: bool) -> None:
-    import sys
-
-    if progress:
-        from tqdm import tqdm
-
-        tqdm.write(msg, file=sys.stderr)
-    else:
-        print(msg, file=sys.stderr)

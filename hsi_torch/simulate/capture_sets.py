@@ -310,12 +310,13 @@ class SimulationSummary:
 
 
 def _tqdm(enabled: bool):
-    if not enabled:
+    from hsi_torch.console import progress_bar, progress_enabled
+
+    if not progress_enabled(enabled):
         return None
-    from tqdm.auto import tqdm
 
     def wrap(it, **kw):
-        return tqdm(it, leave=False, **kw)
+        return progress_bar(it, leave=False, **kw)
 
     return wrap
 
