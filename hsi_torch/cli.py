@@ -88,7 +88,7 @@ EXAMPLES: dict[str | None, list[str]] = {
     "reconstruct": [
         "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ 'shots/*.tif' extra.dng",
         "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ --set beta=1000 "
-        "--set 'formats=[tiff, npz]' scene.tif",
+        "--set 'formats=[tiff, envi, netcdf]' scene.tif",
     ],
     "experiment": [
         "hsi-torch experiment synthetic --out out/synthetic",

@@ -1,7 +1,8 @@
 """``hsi-torch reconstruct``: captures (files or globs) + a calibration bundle → spectral cubes.
 
-For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif``,
-``<stem>.hdr/.img``, ``<stem>.npz``), ``<stem>_preview.png`` (sRGB, D65) and, with
+For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
+its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
+``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65) and, with
 ``spectra_points``, ``<stem>_spectra.png``. Every file is written atomically; if writing an input's
 outputs fails, the files already written for that input are removed. ``DIR/resolved_config.yaml``
 records the configuration. Runs through :func:`hsi_torch.batch.run_batch` (progress bar, continues
@@ -29,7 +30,8 @@ from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
 __all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings"]
 
-_SUFFIXES = {"tiff": [".tif"], "envi": [".hdr", ".img"], "npz": [".npz"]}
+_SUFFIXES = {"tiff": [".tif", ".vrt"], "envi": [".hdr", ".img"], "npz": [".npz"],
+             "netcdf": [".nc"], "zarr": [".zarr"]}
 
 
 def output_paths(stem: Path, cfg: ReconstructConfig) -> list[Path]:
@@ -70,6 +72,7 @@ def write_outputs(
     """
     from hsi_torch.colour import save_preview_png
     from hsi_torch.io import save_cube_formats
+    from hsi_torch.io.cube import remove_output
 
     s = Path(stem)
     cube = result.cube.detach().to("cpu", torch.float32)
@@ -113,7 +116,7 @@ def write_outputs(
     written = [p for r in results for p in r]
     if errors:
         for p in written:
-            p.unlink(missing_ok=True)
+            remove_output(p)
         raise errors[0]
     return written
 
@@ -164,6 +167,13 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     from hsi_torch.recon.sensing import load_bundle
 
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
+    from hsi_torch.io.cube import require_format
+
+    for fmt in cfg.formats:  # an optional package that is missing fails before any work
+        try:
+            require_format(fmt)
+        except ModuleNotFoundError as exc:
+            raise ValueError(f"config key 'formats': {exc}") from None
     inputs = expand_inputs(args.inputs)  # a glob matching nothing fails before anything is written
     if getattr(args, "device", None):
         cfg.device = str(args.device)

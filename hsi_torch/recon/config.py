@@ -11,7 +11,7 @@ from typing import Literal
 
 __all__ = ["ReconstructConfig"]
 
-CubeFormatName = Literal["tiff", "envi", "npz"]
+CubeFormatName = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 
 
 def _help(text: str) -> dict[str, str]:
@@ -42,7 +42,9 @@ class ReconstructConfig:
     )
     formats: list[CubeFormatName] = field(
         default_factory=lambda: ["tiff", "envi", "npz"],
-        metadata=_help("cube files written per input: tiff, envi (.hdr/.img), npz"),
+        metadata=_help("cube files written per input: tiff (OME-TIFF .tif + GDAL .vrt), envi "
+                       "(.hdr/.img), npz, netcdf (.nc), zarr (.zarr); netcdf/zarr need "
+                       "pip install 'hsi-torch[formats]'"),
     )
     preview: bool = field(default=True, metadata=_help("write an sRGB preview PNG (D65)"))
     spectra_points: list[tuple[int, int]] = field(

@@ -104,6 +104,15 @@ class ReconstructionResult:
     stats: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
+    def to_xarray(self, metadata: dict[str, Any] | None = None):
+        """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
+        valid mask as a coordinate (:func:`hsi_torch.io.cube.cube_to_xarray`; needs
+        ``pip install 'hsi-torch[formats]'``)."""
+        from hsi_torch.io.cube import cube_to_xarray
+
+        return cube_to_xarray(self.cube.detach().cpu(), self.wavelengths_nm.detach().cpu(),
+                              self.valid.detach().cpu(), metadata)  # fmt: skip
+
 
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
