@@ -287,6 +287,49 @@ def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -
     atomic_write_bytes(path, buf.getvalue())
 
 
+def _score_text(e: dict[str, Any], key: str) -> str:
+    s = e[key]
+    if "mean_psnr_db" in s:
+        return f"{s['mean_psnr_db']:.1f} dB / {s['mean_sam_deg']:.2f} deg"
+    return f"{s['psnr_db']:.1f} dB / {s['mean_sam_deg']:.2f} deg"
+
+
+def _previews(out: Path, name: str, wl, truth: np.ndarray, cubes: dict[str, np.ndarray],
+              entry: dict[str, Any], beta: float) -> None:
+    """``<name>_preview.png`` (calibrated), ``<name>_oracle_preview.png``,
+    ``<name>_truth_preview.png`` (enlarged, captioned) and ``<name>_panel.png`` (the three side by
+    side). All three are rendered on one exposure (the
+    truth's 99.5th-percentile luminance is white), so that they compare."""
+    from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
+
+    t = torch.from_numpy(np.asarray(truth, np.float64))
+    ref = float(np.percentile(cube_to_xyz(t, wl)[1].numpy(), 99.5))
+    exposure = 1.0 / ref if ref > 0 else 1.0
+    rgbs = {
+        "truth": cube_to_srgb(t, wl, exposure=exposure),
+        "calibrated": cube_to_srgb(torch.from_numpy(np.nan_to_num(cubes["calibrated"])), wl,
+                                   exposure=exposure),  # fmt: skip
+        "oracle": cube_to_srgb(torch.from_numpy(np.nan_to_num(cubes["oracle"])), wl,
+                               exposure=exposure),  # fmt: skip
+    }
+    files = {"calibrated": f"{name}_preview.png", "oracle": f"{name}_oracle_preview.png",
+             "truth": f"{name}_truth_preview.png"}  # fmt: skip
+    for key, rgb in rgbs.items():
+        what = {"truth": "ground truth", "calibrated": "calibrated bundle (calib.npz)",
+                "oracle": "oracle bundle (true B, phi, g)"}[key]  # fmt: skip
+        cap = f"{name} | {what}" + ("" if key == "truth" else
+                                    f" | beta {beta:g} | {_score_text(entry, key)}")
+        save_labelled_png(rgb, out / files[key], caption=cap, min_size=512)
+    save_preview_panel(
+        [("truth", rgbs["truth"]),
+         (f"calibrated: {_score_text(entry, 'calibrated')}", rgbs["calibrated"]),
+         (f"oracle: {_score_text(entry, 'oracle')}", rgbs["oracle"])],
+        out / f"{name}_panel.png",
+        caption=f"{name}: truth | reconstruction with the calibrated bundle | with the oracle "
+                f"bundle; beta {beta:g}, sRGB D65, one exposure for all three",
+    )  # fmt: skip
+
+
 # =============================================================================================
 # the demo
 # =============================================================================================
@@ -308,7 +351,6 @@ def demo(
     """
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.pipeline import calibrate_capture_set, score_against_truth
-    from hsi_torch.colour import save_preview_png
     from hsi_torch.config import load_config
     from hsi_torch.io import save_cube_formats
     from hsi_torch.io.atomic import atomic_write_json
@@ -352,6 +394,9 @@ def demo(
     bundle_path = out / "calib.npz"
     bundle.save(bundle_path)
     atomic_write_json(out / "calib.report.json", report.to_dict())
+    from hsi_torch.calibrate.figures import plot_calibration
+
+    plot_calibration(bundle, out / "calib_diagnostics.png", report=report)
     log("      " + str(report).replace("\n", "\n      "))
     cal_scores = score_against_truth(bundle, cap_dir)
     from hsi_torch.calibrate.pipeline import format_scores
@@ -430,11 +475,7 @@ def demo(
         save_cube_formats(out / name, cube_t, wl, torch.from_numpy(valids["calibrated"]),
                           metadata={"scene": name, "bundle": str(bundle_path), "beta": cfg.beta},
                           formats=("npz", "tiff"))  # fmt: skip
-        save_preview_png(torch.nan_to_num(cube_t, nan=0.0), wl, out / f"{name}_preview.png")
-        save_preview_png(torch.nan_to_num(torch.from_numpy(cubes["oracle"]).float(), nan=0.0), wl,
-                         out / f"{name}_oracle_preview.png")  # fmt: skip
-        save_preview_png(torch.from_numpy(true_cube * both[None]).float(), wl,
-                         out / f"{name}_truth_preview.png")  # fmt: skip
+        _previews(out, name, wl, true_cube * both[None], cubes, entry, cfg.beta)
         results[name] = entry
     tm["reconstruct+score"] = time.perf_counter() - t0
     tm["total"] = time.perf_counter() - t_all

@@ -2,7 +2,7 @@
 
 For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
 its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
-``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65) and, with
+``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65, enlarged, with a caption) and, with
 ``spectra_points``, ``<stem>_spectra.png``. Every file is written atomically; if writing an input's
 outputs fails, the files already written for that input are removed. ``DIR/resolved_config.yaml``
 records the configuration. Runs through :func:`hsi_torch.batch.run_batch` (progress bar, continues
@@ -28,7 +28,7 @@ import torch
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
-__all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings"]
+__all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings", "preview_caption"]
 
 _SUFFIXES = {"tiff": [".tif", ".vrt"], "envi": [".hdr", ".img"], "npz": [".npz"],
              "netcdf": [".nc"], "zarr": [".zarr"]}
@@ -42,6 +42,18 @@ def output_paths(stem: Path, cfg: ReconstructConfig) -> list[Path]:
     if cfg.spectra_points:
         out.append(stem.with_name(stem.name + "_spectra.png"))
     return out
+
+
+def preview_caption(
+    name: str, cfg: ReconstructConfig, metadata: dict[str, Any] | None = None
+) -> str:
+    """The preview's caption: scene (the input's stem), bundle file, β, rendering."""
+    parts = [name]
+    bundle = (metadata or {}).get("bundle")
+    if bundle:
+        parts.append(f"bundle {Path(bundle).name}")
+    parts += [f"beta {cfg.beta:g}", "sRGB D65"]
+    return " | ".join(parts)
 
 
 def _check_points(points: Sequence[tuple[int, int]], h: int, w: int) -> None:
@@ -99,7 +111,9 @@ def write_outputs(
     if cfg.preview:
         # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
         path = s.with_name(s.name + "_preview.png")
-        jobs.append(timed("preview", lambda: [save_preview_png(cube, wl, path, valid=valid)]))
+        caption = preview_caption(s.name, cfg, metadata)
+        jobs.append(timed("preview", lambda: [save_preview_png(
+            cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size)]))
     if cfg.spectra_points:
         jobs.append(timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,

@@ -47,6 +47,9 @@ class ReconstructConfig:
                        "pip install 'hsi-torch[formats]'"),
     )
     preview: bool = field(default=True, metadata=_help("write an sRGB preview PNG (D65)"))
+    preview_size: int = field(
+        default=512, metadata=_help("the preview's longer side is enlarged (integer factor, "
+                                    "nearest neighbour) to at least this many px; 0: native"))
     spectra_points: list[tuple[int, int]] = field(
         default_factory=list,
         metadata=_help("reference-frame pixels [x, y] whose spectra are plotted (PNG)"),
@@ -105,6 +108,8 @@ class ReconstructConfig:
             raise ValueError(
                 f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
             )
+        if self.preview_size < 0:
+            raise ValueError(f"preview_size must be >= 0, got {self.preview_size}")
         if not self.formats and not self.preview:
             raise ValueError("nothing to write: formats is empty and preview is false")
         if len(set(self.formats)) != len(self.formats):
