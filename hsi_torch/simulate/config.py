@@ -11,6 +11,11 @@ same name and unit as the field it sets (lengths in mm, angles in degrees, wavel
 - ``objective``, ``illuminant``, ``camera_sensitivity``, ``render``, ``captures``: this package.
 
 ``describe_schema(SimulateConfig)`` prints one line per key with its default and help text.
+
+The README's default prototype (exit 40 mm; quartz 2.5 mm, axis 70° / 40°; 0.1 mm diffuser blur)
+is the shipped ``simulate.yaml`` (``hsi_torch.resources.shipped_config("simulate")``), which every
+command uses by default; the schema's own geometry/BRF/diffuser defaults are those of the first
+prototype (exit 28 mm; quartz 2 mm, 65° / 10°; no blur), which ``simulate_full.yaml`` inherits.
 """
 
 from __future__ import annotations
