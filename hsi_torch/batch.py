@@ -246,13 +246,13 @@ def run_batch(
     Raises:
         ValueError: a glob matches nothing or an input is a directory (before any processing).
     """
-    from tqdm import tqdm
+    from hsi_torch.console import progress_bar
 
     paths = expand_inputs(inputs)
     out = ensure_out_dir(out_dir)
     summary = BatchSummary()
     t0 = time.perf_counter()
-    bar = tqdm(paths, desc=desc, unit="file", disable=not progress, file=sys.stderr, leave=True)
+    bar = progress_bar(paths, enabled=progress, desc=desc, unit="file", leave=True)
     try:
         for inp in bar:
             if resume and _is_done(inp, out, expected_outputs, fingerprint):

@@ -11,8 +11,17 @@ calibrate      ``hsi_torch.calibrate.cli_entry.run_calibrate``  captures → cal
 reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + captures → cubes
 experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
 demo           ``hsi_torch.demo.run_demo``                      the README's main command
+config         ``hsi_torch.resources.run_config``               show / copy a shipped config
 bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
 =============  ===============================================  ==============================
+
+Without ``--config`` a command runs with its shipped configuration file
+(``hsi_torch/configs/<command>.yaml``, ``<NAME>.yaml`` for ``experiment NAME``; see
+:func:`config_source`). ``--data-dir DIR`` (any position) names the real-data folder
+(:func:`hsi_torch.resources.set_real_data_dir`; default ``HSI_TORCH_DATA``); ``-q/--quiet``
+(only warnings and errors) and ``--no-progress`` (no bars) likewise, through
+:mod:`hsi_torch.console` (bars are also off whenever stderr is not a terminal). Every ``--out``
+is a folder (``calibrate --out FILE.npz`` also names the bundle file directly).
 
 The entry function returns an exit status (``int``), ``None`` (= 0), or a
 :class:`hsi_torch.batch.BatchSummary` (its report is printed; status 1 if any input failed).
@@ -34,7 +43,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config"]
+__all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config", "config_source"]
 
 PROG = "hsi-torch"
 
@@ -44,9 +53,11 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "reconstruct": ("hsi_torch.recon.cli_entry", "run_reconstruct"),
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
     "demo": ("hsi_torch.demo", "run_demo"),
+    "config": ("hsi_torch.resources", "run_config"),
 }
 BENCH_TARGETS = ("solver", "pipeline")
-_FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")  # commands whose --out is a folder
+#: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
+_FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")
 
 
 def _version() -> str:
@@ -55,49 +66,122 @@ def _version() -> str:
     return __version__
 
 
+#: Examples shown by each command's ``--help`` (a test parses every one, validates its config
+#: and ``--set`` keys, and runs the cheap ones).
+EXAMPLES: dict[str | None, list[str]] = {
+    None: [
+        "hsi-torch demo --quick                 # simulate -> calibrate -> reconstruct, scored",
+        "hsi-torch simulate --out sim/",
+        "hsi-torch calibrate --captures sim/ --out calib/",
+        "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ sim/scenes/colorchecker.tif",
+    ],
+    "simulate": [
+        "hsi-torch simulate --out sim/                  # the README's default prototype",
+        "hsi-torch simulate --out sim/ --set camera.scale=0.5 --set render.dtype=float32",
+        "hsi-torch simulate --config simulate_full --out sim_full/   # original scale, minutes",
+    ],
+    "calibrate": [
+        "hsi-torch calibrate --captures sim/ --out calib/           # writes calib/calib.npz",
+        "hsi-torch calibrate --captures sim/ --out calib/ --set response.beta_phi=1e3",
+        "hsi-torch calibrate --captures sim/ --out bundles/day1.npz  # a file name works too",
+    ],
+    "reconstruct": [
+        "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ 'shots/*.tif' extra.dng",
+        "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ --set beta=1000 "
+        "--set 'formats=[tiff, envi, netcdf]' scene.tif",
+    ],
+    "experiment": [
+        "hsi-torch experiment synthetic --out out/synthetic",
+        "hsi-torch experiment synthetic --out out/quick --set num_seeds=1 --set 'noise_sigmas=[1]'",
+        "hsi-torch experiment usaf --out out/usaf --set bundle=calibrated",
+    ],
+    "demo": [
+        "hsi-torch demo --quick --out demo_quick/",
+        "hsi-torch demo --set beta=1e3 --no-progress",
+    ],
+    "config": [
+        "hsi-torch config list",
+        "hsi-torch config show simulate",
+        "hsi-torch config copy simulate my_sim.yaml    # then: --config my_sim.yaml",
+    ],
+}
+
+
+def _epilog(command: str | None) -> str:
+    return "examples:\n" + "\n".join(f"  {e}" for e in EXAMPLES[command])
+
+
 def _add_common(p: argparse.ArgumentParser, config: bool = True, device: bool = True) -> None:
     if config:
         p.add_argument(
             "--config", "-c", type=Path, default=None, metavar="YAML",
-            help="YAML configuration file (default: built-in defaults)",
+            help="YAML configuration file, or the name of a shipped one (default: the "
+                 "command's shipped file; see 'hsi-torch config list')",
         )  # fmt: skip
         p.add_argument(
             "--set", "-s", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-            help="override a config key, e.g. --set solver.beta=10 (repeatable; value is YAML)",
+            help="override a config key (repeatable; the value is YAML; see the examples)",
         )  # fmt: skip
     if device:
         p.add_argument(
             "--device", default=None, help="torch device, e.g. cpu, cuda, cuda:1 (default: cpu)"
         )
+    _add_global(p, argparse.SUPPRESS)
+
+
+def _add_global(p: argparse.ArgumentParser, default: Any) -> None:
+    """Options accepted before and after the sub-command (``default=SUPPRESS`` on the
+    sub-parsers, so that they do not overwrite a value given before the sub-command)."""
     p.add_argument(
-        "--debug", action="store_true", default=argparse.SUPPRESS,
-        help="show full tracebacks on errors",
+        "-q", "--quiet", action="store_true", default=default,
+        help="print only warnings and errors (no progress bars, no reports)",
+    )  # fmt: skip
+    p.add_argument(
+        "--no-progress", dest="progress", action="store_false", default=default,
+        help="no progress bars (they are also off when stderr is not a terminal)",
+    )  # fmt: skip
+    p.add_argument(
+        "--debug", action="store_true", default=default, help="show full tracebacks on errors"
+    )
+    p.add_argument(
+        "--data-dir", type=Path, default=default, metavar="DIR",
+        help="real-data folder (CAVE scene, real RAW files, ...; default: $HSI_TORCH_DATA, else "
+             "../shared/data/real beside a source checkout)",
     )  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``hsi-torch`` (sub-command stored in ``args.command``)."""
+    raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog=PROG,
         description="Snapshot hyperspectral imaging with a birefringent filter and a tapered "
         "kaleidoscope: simulate, calibrate, reconstruct, evaluate.",
-    )
+        epilog=_epilog(None), formatter_class=raw,
+    )  # fmt: skip
     parser.add_argument("--version", action="version", version=f"{PROG} {_version()}")
-    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    _add_global(parser, None)
+    parser.set_defaults(debug=False, quiet=False, progress=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser(
-        "simulate", help="render captures and ground truth with the virtual prototype"
-    )
+    def command(name: str, help_text: str, **kw: Any) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help_text, epilog=_epilog(name), formatter_class=raw,
+                              **kw)  # fmt: skip
+
+    p = command("simulate", "render captures and ground truth with the virtual prototype")
     _add_common(p)
     p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
 
-    p = sub.add_parser("calibrate", help="build a calibration bundle from calibration captures")
+    p = command("calibrate", "build a calibration bundle from calibration captures")
     _add_common(p)
     p.add_argument("--captures", type=Path, required=True, help="folder of calibration captures")
-    p.add_argument("--out", "-o", type=Path, required=True, help="output bundle (.npz)")
+    p.add_argument(
+        "--out", "-o", type=Path, required=True,
+        help="output folder (writes calib.npz, calib.report.json, calib_diagnostics.png and "
+             "resolved_config.yaml there); a name ending in .npz is the bundle file itself",
+    )  # fmt: skip
 
-    p = sub.add_parser("reconstruct", help="reconstruct spectral cubes from captures")
+    p = command("reconstruct", "reconstruct spectral cubes from captures")
     _add_common(p)
     p.add_argument("--bundle", "-b", type=Path, required=True, help="calibration bundle (.npz)")
     p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
@@ -105,20 +189,30 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-resume", dest="resume", action="store_false",
         help="re-process inputs whose outputs already exist",
     )  # fmt: skip
-    p.add_argument(
-        "--no-progress", dest="progress", action="store_false", help="hide the progress bar"
-    )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="capture files or glob patterns")
 
-    p = sub.add_parser("experiment", help="run a named experiment (synthetic, opd, usaf, design)")
+    p = command("experiment", "run a named experiment (synthetic, opd, usaf, design)")
     p.add_argument("name", metavar="NAME", help="experiment name")
     _add_common(p)
     p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
 
-    p = sub.add_parser("demo", help="simulate, calibrate and reconstruct end to end")
+    p = command("demo", "simulate, calibrate and reconstruct end to end")
     _add_common(p)
     p.add_argument("--out", "-o", type=Path, default=Path("demo_output"), help="output folder")
     p.add_argument("--quick", action="store_true", help="smaller, faster run")
+
+    p = command(
+        "config", "list, show or copy the shipped configuration files",
+        description="The configuration files shipped with hsi_torch (each command's default).",
+    )  # fmt: skip
+    p.add_argument(
+        "action", nargs="?", choices=("list", "show", "copy"), default="list",
+        help="list the names (default), show NAME, or copy NAME to DEST",
+    )  # fmt: skip
+    p.add_argument("name", nargs="?", metavar="NAME", help="e.g. simulate, calibrate, synthetic")
+    p.add_argument("dest", nargs="?", type=Path, metavar="DEST", help="file or folder (copy)")
+    p.add_argument("--force", action="store_true", help="copy: overwrite an existing DEST")
+    _add_global(p, argparse.SUPPRESS)
 
     p = sub.add_parser(
         "bench", help="timing benchmarks (extra arguments go to the script)", add_help=False,
@@ -140,11 +234,36 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def load_args_config(args: argparse.Namespace, schema_cls: type) -> Any:
-    """Convenience for entry functions: ``load_config(args.config, schema_cls, args.overrides)``."""
+def config_source(args: argparse.Namespace, default: str | None = None) -> Path | None:
+    """The configuration file a command runs with: ``--config`` if given, else the shipped file
+    ``default`` (e.g. ``"simulate"``) when there is one, else ``None`` (the schema's defaults).
+
+    ``--config NAME`` with the name of a shipped file (``simulate_full``, ``simulate_full.yaml``)
+    and no such file or folder here means the shipped file."""
+    from hsi_torch.resources import shipped_config, shipped_config_names
+
+    given = getattr(args, "config", None)
+    if given is not None:
+        p = Path(given)
+        stem = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
+        if not p.exists() and p.parent == Path(".") and stem in shipped_config_names():
+            return shipped_config(stem)
+        return p
+    if default is None:
+        return None
+    return shipped_config(default) if default in shipped_config_names() else None
+
+
+def load_args_config(
+    args: argparse.Namespace, schema_cls: type, default: str | None = None
+) -> Any:
+    """Convenience for entry functions: ``load_config(config_source(args, default), schema_cls,
+    args.overrides)`` (``default``: the shipped config used without ``--config``)."""
     from hsi_torch.config import load_config
 
-    return load_config(getattr(args, "config", None), schema_cls, getattr(args, "overrides", []))
+    return load_config(
+        config_source(args, default), schema_cls, getattr(args, "overrides", [])
+    )
 
 
 def _err(msg: str) -> None:
@@ -157,7 +276,10 @@ def _exit_code(result: Any) -> int:
     if result is None:
         return 0
     if isinstance(result, BatchSummary):
-        print_summary(result)
+        from hsi_torch.console import is_quiet
+
+        if result.exit_code != 0 or not is_quiet():  # failures are reported even when quiet
+            print_summary(result)
         return result.exit_code
     if isinstance(result, bool):
         return 0 if result else 1
@@ -257,9 +379,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get("HSI_TORCH_DEBUG") == "1"
     args.debug = debug
+    from hsi_torch import console, resources
     from hsi_torch.config import ConfigError
 
+    data_dir_before = resources.get_real_data_dir_setting()
+    console_before = console.configure(
+        quiet=bool(getattr(args, "quiet", False)), progress=bool(getattr(args, "progress", True))
+    )
     try:
+        if getattr(args, "data_dir", None) is not None:
+            resources.set_real_data_dir(args.data_dir)
         if args.command == "bench":
             if extra[:1] == ["--"]:
                 extra = extra[1:]
@@ -300,6 +429,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             _err(f"{_one_line(exc)} (unexpected error; run with --debug for the traceback)")
         return 1
+    finally:
+        resources.set_real_data_dir(data_dir_before)
+        console.configure(**console_before)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -36,7 +36,10 @@ __all__ = [
     "cube_to_xyz",
     "cube_to_srgb",
     "save_preview_png",
+    "save_preview_panel",
     "save_png_rgb",
+    "labelled_image",
+    "save_labelled_png",
     "plot_spectra",
 ]
 
@@ -249,15 +252,94 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
     atomic_write_bytes(path, data)
 
 
-def save_png_rgb(rgb: torch.Tensor, path: str | os.PathLike) -> Path:
-    """Write a ``(3, H, W)`` image in [0, 1] (already encoded) as an 8-bit PNG, atomically."""
-    import cv2
-
+def _to_u8_hwc(rgb: torch.Tensor) -> np.ndarray:
     rgb = torch.as_tensor(rgb)
     if rgb.ndim != 3 or rgb.shape[0] != 3:
         raise ValueError(f"rgb must have shape (3, H, W), got {tuple(rgb.shape)}")
     arr = (rgb.detach().to("cpu", torch.float64).clamp(0, 1) * 255.0).round().to(torch.uint8)
-    bgr = np.ascontiguousarray(arr.permute(1, 2, 0).numpy()[..., ::-1])
+    return np.ascontiguousarray(arr.permute(1, 2, 0).numpy())
+
+
+def _text_lines(text: str, width: int, scale: float) -> list[str]:
+    """``text`` wrapped (at spaces) to lines of at most ``width`` px in the caption font."""
+    import cv2
+
+    lines: list[str] = []
+    for para in text.splitlines() or [""]:
+        cur = ""
+        for word in para.split(" "):
+            trial = f"{cur} {word}" if cur else word
+            if cur and cv2.getTextSize(trial, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width:
+                lines.append(cur)
+                cur = word
+            else:
+                cur = trial
+        lines.append(cur)
+    return lines
+
+
+def _text_strip(text: str, width: int, scale: float = 0.5) -> np.ndarray:
+    """A dark ``(h, width, 3)`` uint8 strip with ``text`` in white (wrapped to the width)."""
+    import cv2
+
+    lines = _text_lines(text, width - 12, scale)
+    (_, th), base = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    step = th + base + 6
+    strip = np.full((step * len(lines) + 6, width, 3), 32, np.uint8)
+    for i, line in enumerate(lines):
+        cv2.putText(strip, line, (6, 6 + th + i * step), cv2.FONT_HERSHEY_SIMPLEX, scale,
+                    (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
+    return strip
+
+
+def labelled_image(
+    rgb: torch.Tensor, *, caption: str | None = None, min_size: int = 0, label: str | None = None
+) -> np.ndarray:
+    """A ``(3, H, W)`` image in [0, 1] as an ``(H', W', 3)`` uint8 RGB array for people to look
+    at: enlarged by the smallest integer factor (nearest neighbour: pixels stay sharp) that
+    makes its longer side at least ``min_size`` px, ``label`` in a strip above and ``caption`` in
+    a strip below (ASCII text, wrapped to the width)."""
+    img = _to_u8_hwc(rgb)
+    h, w = img.shape[:2]
+    f = max(1, -(-int(min_size) // max(h, w))) if min_size else 1
+    if f > 1:
+        img = np.repeat(np.repeat(img, f, axis=0), f, axis=1)
+    parts = [img]
+    if label:
+        parts.insert(0, _text_strip(label, img.shape[1], 0.6))
+    if caption:
+        parts.append(_text_strip(caption, img.shape[1]))
+    return np.ascontiguousarray(np.concatenate(parts, axis=0))
+
+
+def _write_png(arr_rgb: np.ndarray, path: str | os.PathLike) -> Path:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr_rgb[..., ::-1]))
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for {path}")
+    path = Path(path)
+    _atomic_write_bytes(path, buf.tobytes())
+    return path
+
+
+def save_labelled_png(
+    rgb: torch.Tensor,
+    path: str | os.PathLike,
+    *,
+    caption: str | None = None,
+    min_size: int = 0,
+    label: str | None = None,
+) -> Path:
+    """:func:`labelled_image` written as an 8-bit PNG, atomically."""
+    return _write_png(labelled_image(rgb, caption=caption, min_size=min_size, label=label), path)
+
+
+def save_png_rgb(rgb: torch.Tensor, path: str | os.PathLike) -> Path:
+    """Write a ``(3, H, W)`` image in [0, 1] (already encoded) as an 8-bit PNG, atomically."""
+    import cv2
+
+    bgr = np.ascontiguousarray(_to_u8_hwc(rgb)[..., ::-1])
     ok, buf = cv2.imencode(".png", bgr)
     if not ok:
         raise RuntimeError(f"PNG encoding failed for {path}")
@@ -276,19 +358,54 @@ def save_preview_png(
     percentile: float = 99.5,
     exposure: float = 1.0,
     valid: torch.Tensor | None = None,
+    caption: str | None = None,
+    min_size: int = 0,
 ) -> Path:
     """Render an ``(M, H, W)`` cube to sRGB and write an 8-bit PNG (temp file + ``os.replace``).
 
     Defaults normalise the image so its 99.5th-percentile luminance is white. ``valid``
     (``(H, W)`` bool): pixels where it is False are black and count as 0 in the normalisation
-    (see :func:`cube_to_srgb`).
+    (see :func:`cube_to_srgb`). ``min_size`` > 0 enlarges the image (integer factor, nearest
+    neighbour) until its longer side has at least that many px; ``caption`` adds a text strip
+    below (:func:`labelled_image`). Without both, the PNG has the cube's pixels only.
     """
     cube = torch.as_tensor(cube)
     if cube.ndim != 3:
         raise ValueError(f"cube must have shape (M, H, W), got {tuple(cube.shape)}")
     rgb = cube_to_srgb(cube, wavelengths, illuminant, normalise=normalise,
                        percentile=percentile, exposure=exposure, valid=valid)
-    return save_png_rgb(rgb, path)
+    if caption is None and not min_size:
+        return save_png_rgb(rgb, path)
+    return save_labelled_png(rgb, path, caption=caption, min_size=min_size)
+
+
+def save_preview_panel(
+    images: Sequence[tuple[str, torch.Tensor]],
+    path: str | os.PathLike,
+    *,
+    caption: str | None = None,
+    min_size: int = 360,
+    gap: int = 8,
+) -> Path:
+    """Write sRGB images side by side, each enlarged and labelled, with a caption below.
+
+    Args:
+        images: ``(label, rgb (3, H, W) in [0, 1])`` pairs, all the same size (e.g. truth,
+            calibrated, oracle rendered on one exposure with :func:`cube_to_srgb`).
+        caption: text below the panel (scene, bundle, β, scores ...).
+        min_size: each tile's longer side is enlarged to at least this many px.
+    """
+    if not images:
+        raise ValueError("save_preview_panel needs at least one image")
+    tiles = [labelled_image(rgb, label=label, min_size=min_size) for label, rgb in images]
+    if len({t.shape for t in tiles}) != 1:
+        raise ValueError(f"panel images differ in size: {[tuple(r.shape) for _, r in images]}")
+    h = tiles[0].shape[0]
+    sep = np.full((h, gap, 3), 255, np.uint8)
+    row = np.concatenate([x for t in tiles for x in (t, sep)][:-1], axis=1)
+    if caption:
+        row = np.concatenate([row, _text_strip(caption, row.shape[1])], axis=0)
+    return _write_png(row, path)
 
 
 def plot_spectra(

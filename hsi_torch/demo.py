@@ -2,11 +2,12 @@
 
 End to end on the virtual prototype, from nothing to scored spectral cubes:
 
-1. **simulate** the default prototype (``configs/simulate.yaml``, 400 × 384 px sensor) into
+1. **simulate** the default prototype (the shipped ``simulate.yaml``, 400 × 384 px sensor) into
    ``OUT/captures``: monochromator scan, white and circle-grid shots, dark frame, and the scenes —
-   the ColorChecker, plus the real CAVE cube (``../shared/data/real/cave_stuffed_toys``) when it
-   is present, otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
-2. **calibrate** from those captures only (``configs/calibrate.yaml``) → ``OUT/calib.npz``;
+   the ColorChecker, plus the real CAVE cube (``cave_stuffed_toys`` in the real-data folder:
+   ``HSI_TORCH_DATA``, else ``../shared/data/real`` beside a source checkout) when it is present,
+   otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
+2. **calibrate** from those captures only (the shipped ``calibrate.yaml``) → ``OUT/calib.npz``;
 3. **reconstruct** every scene with the calibrated bundle and, for comparison, with the *oracle*
    bundle made of the simulator's true B, φ, g and homographies (so the cost of calibration is
    visible), at a fixed β (``beta``, default 1e4, see below);
@@ -31,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,9 +44,6 @@ from hsi_torch.experiments.metrics import psnr_from_mse
 
 __all__ = ["DemoConfig", "run_demo", "demo", "colorchecker_scores", "cube_scores"]
 
-_ROOT = Path(__file__).resolve().parents[1]
-_REAL = _ROOT.parent / "shared" / "data" / "real"
-
 
 def _h(text: str) -> dict[str, str]:
     return {"help": text}
@@ -57,10 +54,10 @@ class DemoConfig:
     """Settings of ``hsi-torch demo`` (``--set key=value`` overrides any of them)."""
 
     simulate_config: Path | None = field(
-        default=None, metadata=_h("simulator config; null: configs/simulate.yaml of the checkout")
+        default=None, metadata=_h("simulator config; null: the shipped simulate.yaml")
     )
     calibrate_config: Path | None = field(
-        default=None, metadata=_h("calibration config; null: configs/calibrate.yaml")
+        default=None, metadata=_h("calibration config; null: the shipped calibrate.yaml")
     )
     beta: float = field(default=1e4, metadata=_h("reconstruction smoothness weight (DN^2)"))
     diff_order: int = field(default=1, metadata=_h("order of the difference operator"))
@@ -68,7 +65,7 @@ class DemoConfig:
         default=2.0, metadata=_h("ColorChecker: score pixels at least this far inside a patch")
     )
     cave: bool = field(
-        default=True, metadata=_h("add the real CAVE scene when ../shared/data/real is present")
+        default=True, metadata=_h("add the real CAVE scene when the real-data folder has it")
     )
     quick_scale: float = field(
         default=0.75, metadata=_h("--quick: camera.scale of the simulated sensor")
@@ -202,15 +199,18 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
         {"kind": "colorchecker", "name": "colorchecker",
          "params": {"width_mm": 8.4, "center_mm": [0.0, 1.4]}},
     ]  # fmt: skip
-    cave_dir = _REAL / "cave_stuffed_toys"
-    if cfg.cave and cave_dir.is_dir():
+    from hsi_torch.resources import DATA_ENV, real_data_dir
+
+    cave_dir = real_data_dir("cave_stuffed_toys")
+    if cfg.cave and cave_dir is not None and cave_dir.is_dir():
         specs.append({"kind": "cave", "name": "cave", "optional": True,
                       "params": {"folder": str(cave_dir), "width_mm": 7.0,
                                  "center_mm": [0.0, 0.9]}})  # fmt: skip
     else:
         from hsi_torch.io import save_cube
 
-        why = "disabled (cave=false)" if not cfg.cave else f"{cave_dir} not found"
+        why = ("disabled (cave=false)" if not cfg.cave else
+               f"not found (no cave_stuffed_toys in the real-data folder; set {DATA_ENV})")
         log(f"CAVE scene {why}: using the built-in synthetic cube instead")
         path = out / "synthetic_scene.npz"
         save_cube(path, _synthetic_cube(wl), wl)
@@ -287,6 +287,49 @@ def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -
     atomic_write_bytes(path, buf.getvalue())
 
 
+def _score_text(e: dict[str, Any], key: str) -> str:
+    s = e[key]
+    if "mean_psnr_db" in s:
+        return f"{s['mean_psnr_db']:.1f} dB / {s['mean_sam_deg']:.2f} deg"
+    return f"{s['psnr_db']:.1f} dB / {s['mean_sam_deg']:.2f} deg"
+
+
+def _previews(out: Path, name: str, wl, truth: np.ndarray, cubes: dict[str, np.ndarray],
+              entry: dict[str, Any], beta: float) -> None:
+    """``<name>_preview.png`` (calibrated), ``<name>_oracle_preview.png``,
+    ``<name>_truth_preview.png`` (enlarged, captioned) and ``<name>_panel.png`` (the three side by
+    side). All three are rendered on one exposure (the
+    truth's 99.5th-percentile luminance is white), so that they compare."""
+    from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
+
+    t = torch.from_numpy(np.asarray(truth, np.float64))
+    ref = float(np.percentile(cube_to_xyz(t, wl)[1].numpy(), 99.5))
+    exposure = 1.0 / ref if ref > 0 else 1.0
+    rgbs = {
+        "truth": cube_to_srgb(t, wl, exposure=exposure),
+        "calibrated": cube_to_srgb(torch.from_numpy(np.nan_to_num(cubes["calibrated"])), wl,
+                                   exposure=exposure),  # fmt: skip
+        "oracle": cube_to_srgb(torch.from_numpy(np.nan_to_num(cubes["oracle"])), wl,
+                               exposure=exposure),  # fmt: skip
+    }
+    files = {"calibrated": f"{name}_preview.png", "oracle": f"{name}_oracle_preview.png",
+             "truth": f"{name}_truth_preview.png"}  # fmt: skip
+    for key, rgb in rgbs.items():
+        what = {"truth": "ground truth", "calibrated": "calibrated bundle (calib.npz)",
+                "oracle": "oracle bundle (true B, phi, g)"}[key]  # fmt: skip
+        cap = f"{name} | {what}" + ("" if key == "truth" else
+                                    f" | beta {beta:g} | {_score_text(entry, key)}")
+        save_labelled_png(rgb, out / files[key], caption=cap, min_size=512)
+    save_preview_panel(
+        [("truth", rgbs["truth"]),
+         (f"calibrated: {_score_text(entry, 'calibrated')}", rgbs["calibrated"]),
+         (f"oracle: {_score_text(entry, 'oracle')}", rgbs["oracle"])],
+        out / f"{name}_panel.png",
+        caption=f"{name}: truth | reconstruction with the calibrated bundle | with the oracle "
+                f"bundle; beta {beta:g}, sRGB D65, one exposure for all three",
+    )  # fmt: skip
+
+
 # =============================================================================================
 # the demo
 # =============================================================================================
@@ -308,11 +351,11 @@ def demo(
     """
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.pipeline import calibrate_capture_set, score_against_truth
-    from hsi_torch.colour import save_preview_png
     from hsi_torch.config import load_config
     from hsi_torch.io import save_cube_formats
     from hsi_torch.io.atomic import atomic_write_json
     from hsi_torch.recon import Reconstructor
+    from hsi_torch.resources import shipped_config
     from hsi_torch.simulate import SimulateConfig, simulate_capture_set
     from hsi_torch.simulate.oracle import bundle_from_truth, load_truth
 
@@ -324,7 +367,7 @@ def demo(
 
     # ---- 1. simulate -------------------------------------------------------------------------
     t0 = time.perf_counter()
-    sim_path = cfg.simulate_config or (_ROOT / "configs" / "simulate.yaml")
+    sim_path = cfg.simulate_config or shipped_config("simulate")
     if not Path(sim_path).is_file():
         raise FileNotFoundError(f"simulator config {sim_path} not found (set simulate_config)")
     grid_wl = np.arange(430.0, 670.0 + 1e-9, 10.0)
@@ -343,14 +386,17 @@ def demo(
 
     # ---- 2. calibrate ------------------------------------------------------------------------
     t0 = time.perf_counter()
-    cal_path = cfg.calibrate_config or (_ROOT / "configs" / "calibrate.yaml")
-    ccfg = load_config(cal_path if Path(cal_path).is_file() else None, CalibrateConfig,
+    cal_path = cfg.calibrate_config or shipped_config("calibrate")
+    ccfg = load_config(cal_path, CalibrateConfig,
                        [f"progress={'true' if cfg.progress else 'false'}"])  # fmt: skip
     log(f"[2/4] calibrating from {cap_dir} ...")
     bundle, report = calibrate_capture_set(cap_dir, ccfg, device=cfg.device)
     bundle_path = out / "calib.npz"
     bundle.save(bundle_path)
     atomic_write_json(out / "calib.report.json", report.to_dict())
+    from hsi_torch.calibrate.figures import plot_calibration
+
+    plot_calibration(bundle, out / "calib_diagnostics.png", report=report)
     log("      " + str(report).replace("\n", "\n      "))
     cal_scores = score_against_truth(bundle, cap_dir)
     from hsi_torch.calibrate.pipeline import format_scores
@@ -429,11 +475,7 @@ def demo(
         save_cube_formats(out / name, cube_t, wl, torch.from_numpy(valids["calibrated"]),
                           metadata={"scene": name, "bundle": str(bundle_path), "beta": cfg.beta},
                           formats=("npz", "tiff"))  # fmt: skip
-        save_preview_png(torch.nan_to_num(cube_t, nan=0.0), wl, out / f"{name}_preview.png")
-        save_preview_png(torch.nan_to_num(torch.from_numpy(cubes["oracle"]).float(), nan=0.0), wl,
-                         out / f"{name}_oracle_preview.png")  # fmt: skip
-        save_preview_png(torch.from_numpy(true_cube * both[None]).float(), wl,
-                         out / f"{name}_truth_preview.png")  # fmt: skip
+        _previews(out, name, wl, true_cube * both[None], cubes, entry, cfg.beta)
         results[name] = entry
     tm["reconstruct+score"] = time.perf_counter() - t0
     tm["total"] = time.perf_counter() - t_all
@@ -484,8 +526,9 @@ def run_demo(args: argparse.Namespace) -> int:
     if getattr(args, "device", None):
         cfg.device = args.device
     out = Path(getattr(args, "out", None) or "demo_output")
-    demo(out, cfg, quick=bool(getattr(args, "quick", False)),
-         log=lambda m: print(m, file=sys.stdout, flush=True))  # fmt: skip
+    from hsi_torch.console import info
+
+    demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
     from hsi_torch.config import write_resolved_config
 
     write_resolved_config(cfg, out)

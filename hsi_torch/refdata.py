@@ -6,7 +6,7 @@ be given as a :class:`~hsi_torch.spectral.SpectralGrid`, a 1-D tensor (its devic
 used for the result) or a sequence of floats. Requests outside the tabulated range raise
 ``ValueError`` unless ``extrapolate="zero"`` or ``"edge"`` is passed.
 
-Sources (all real, measured data shipped in PyPI packages):
+Sources (all real, measured data shipped in PyPI packages or in this package):
 
 - illuminants ``'D65'``, ``'A'``: CIE tables in ``colour.SDS_ILLUMINANTS``;
 - cameras: ``colour.MSDS_CAMERA_SENSITIVITIES`` (``'Nikon 5100 (NPL)'``, ``'Sigma SDMerill
@@ -19,8 +19,11 @@ Sources (all real, measured data shipped in PyPI packages):
 - reflectances: ``colour.SDS_COLOURCHECKERS`` (default ``'ColorChecker N Ohta'``) and the 190
   training patches ``190_Patches.csv`` of rawtoaces;
 - CIE 1931 2° colour matching functions: ``colour.MSDS_CMFS``;
-- Lee (and other brands') gel filter transmittances: ``dataset/filters.json`` of the MIT package
-  ``lighting_filters`` (optional dependency; CSV files work without it).
+- gel filter transmittances: Lee 068 *Sky Blue* (``'L068'``, the Faced Reflectors baseline's
+  filter) ships with this package (``hsi_torch/data/lee_068_sky_blue.csv``, the manufacturer's
+  curve as compiled in the MIT-licensed PyPI package ``lighting_filters`` 0.1.1; source and
+  licence in ``hsi_torch/data/README.md``). Other brands' codes are read from
+  ``lighting_filters`` when it is installed (optional, not a dependency); any CSV file works.
 """
 
 from __future__ import annotations
@@ -480,6 +483,12 @@ def cie_1931_cmfs(
 # --------------------------------------------------------------------------------------------
 
 
+#: Gel filters shipped in ``hsi_torch/data`` (code → (file, brand, name)).
+SHIPPED_FILTERS: dict[str, tuple[str, str, str]] = {
+    "L068": ("lee_068_sky_blue.csv", "Lee", "Sky Blue"),
+}
+
+
 @functools.lru_cache(maxsize=1)
 def _lighting_filters_table() -> dict:
     try:
@@ -499,11 +508,16 @@ def _lighting_filters_table() -> dict:
 
 
 def list_filters(brand: str | None = None) -> list[str]:
-    """Codes of the gel filters with measured spectra in ``lighting_filters`` (e.g. ``'L068'``)."""
-    table = _lighting_filters_table()
-    return sorted(
-        k for k, v in table.items() if v.get("sd") and (brand is None or v.get("brand") == brand)
-    )
+    """Codes of the gel filters with a measured spectrum: the shipped ones (``'L068'``), plus
+    those of ``lighting_filters`` when that optional package is installed."""
+    codes = {k for k, (_, b, _) in SHIPPED_FILTERS.items() if brand is None or b == brand}
+    try:
+        table = _lighting_filters_table()
+    except (ModuleNotFoundError, FileNotFoundError):
+        table = {}
+    codes |= {k for k, v in table.items()
+              if v.get("sd") and (brand is None or v.get("brand") == brand)}  # fmt: skip
+    return sorted(codes)
 
 
 def filter_transmittance(
@@ -518,13 +532,21 @@ def filter_transmittance(
 
     Args:
         name_or_path: a CSV file ``wavelength_nm, transmittance`` (transmittance in 0…1, or in
-            percent if any value exceeds 1.5), or a filter code of the ``lighting_filters``
-            package (e.g. ``'L068'`` = Lee 068 Sky Blue, measured 405–700 nm every 5 nm).
+            percent if any value exceeds 1.5), or a filter code: ``'L068'`` = Lee 068 Sky Blue
+            (shipped, measured 405–700 nm every 5 nm), or any code of the optional
+            ``lighting_filters`` package when it is installed.
 
     Returns:
         ``(M,)`` transmittance.
     """
     name = os.fspath(name_or_path)
+    if name in SHIPPED_FILTERS and not _is_table_file(name):
+        from hsi_torch.resources import shipped_data
+
+        fname, brand, title = SHIPPED_FILTERS[name]
+        src, table, _ = read_spectral_csv(shipped_data(fname))
+        return _resample(src, table[:, 0], wavelengths, extrapolate,
+                         f"filter {name!r} ({brand} {title})", device, dtype)
     if _is_table_file(name):
         src, table, _ = read_spectral_csv(name)
         if table.shape[1] != 1:
@@ -533,10 +555,17 @@ def filter_transmittance(
         if vals.max() > 1.5:
             vals = vals / 100.0
     else:
-        table = _lighting_filters_table()
+        try:
+            table = _lighting_filters_table()
+        except ModuleNotFoundError:
+            raise ValueError(
+                f"unknown filter {name!r}: not a CSV file and not a shipped filter "
+                f"({', '.join(SHIPPED_FILTERS)}); other gel codes need the optional package "
+                "lighting_filters (pip install lighting_filters)") from None
         entry = table.get(name)
         if entry is None:
-            raise ValueError(f"unknown filter {name!r}: not a CSV file and not a code in "
+            raise ValueError(f"unknown filter {name!r}: not a CSV file, not a shipped filter "
+                             f"({', '.join(SHIPPED_FILTERS)}) and not a code in "
                              "lighting_filters (see list_filters())")
         if not entry.get("sd"):
             raise ValueError(f"filter {name!r} ({entry.get('brand')} {entry.get('name')}) has no "

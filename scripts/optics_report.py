@@ -247,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(
         "BRF/taper design sweep (ranked by condition number and simulated PSNR): "
-        "hsi-torch experiment design --config configs/design.yaml --out DIR"
+        "hsi-torch experiment design --out DIR"
     )
 
     if args.full:

@@ -3,7 +3,7 @@
     python scripts/score_calibration.py BUNDLE.npz CAPTURES_DIR [--json OUT.json]
     python scripts/score_calibration.py --calibrate CAPTURES_DIR [--set key=value ...]
 
-With ``--calibrate`` the bundle is made first (``configs/calibrate.yaml`` + overrides, nothing
+With ``--calibrate`` the bundle is made first (the shipped ``calibrate.yaml`` + overrides, nothing
 written). Prints the issue's targets (B < 2 % RMS, φ correlation > 0.99, g < 2 %, homography
 < 0.3 px) with the definitions of :func:`hsi_torch.calibrate.pipeline.score_against_truth`;
 exit status 1 when a target is missed.
@@ -18,8 +18,7 @@ import time
 from pathlib import Path
 
 from hsi_torch.calibrate.pipeline import format_scores, score_against_truth, targets_met
-
-ROOT = Path(__file__).resolve().parents[1]
+from hsi_torch.resources import shipped_config
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,7 +26,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("bundle", nargs="?", type=Path, help="calibration bundle (.npz)")
     ap.add_argument("captures", nargs="?", type=Path, help="simulated capture set (with truth)")
     ap.add_argument("--calibrate", type=Path, metavar="CAPTURES", help="calibrate this set first")
-    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "calibrate.yaml")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="calibration config (default: the shipped calibrate.yaml)")
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--json", type=Path, help="also write the scores as JSON")
     a = ap.parse_args(argv)
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
         from hsi_torch.calibrate.pipeline import calibrate_capture_set
         from hsi_torch.config import load_config
 
-        cfg = load_config(a.config, CalibrateConfig, a.overrides)
+        cfg = load_config(a.config or shipped_config("calibrate"), CalibrateConfig, a.overrides)
         t0 = time.perf_counter()
         bundle, report = calibrate_capture_set(a.calibrate, cfg, progress=False)
         print(report)

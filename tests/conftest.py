@@ -7,8 +7,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from hsi_torch.resources import DATA_ENV, real_data_dir
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-REAL_DATA = REPO_ROOT.parent / "shared" / "data" / "real"
+#: the real-data folder: HSI_TORCH_DATA, else ../shared/data/real beside the checkout (or None)
+REAL_DATA = real_data_dir()
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
@@ -25,7 +28,8 @@ def dtype(request) -> torch.dtype:
 
 @pytest.fixture
 def real_data() -> Path:
-    """The folder of real data beside the project; skips the test when it is absent."""
-    if not REAL_DATA.is_dir():
-        pytest.skip(f"real data folder {REAL_DATA} is absent (../shared not checked out)")
+    """The folder of real data (``HSI_TORCH_DATA`` or ``../shared/data/real`` beside the project);
+    skips the test when there is none."""
+    if REAL_DATA is None:
+        pytest.skip(f"no real-data folder ({DATA_ENV} unset and ../shared/data/real absent)")
     return REAL_DATA

@@ -85,7 +85,10 @@ def test_run_batch_continues_and_resumes(tmp_path, inputs, capsys):
     assert calls == ["a.txt", "b.txt", "bad.txt", "c.txt"]
 
 
-def test_run_batch_expected_outputs_and_progress(tmp_path, inputs, capsys):
+def test_run_batch_expected_outputs_and_progress(tmp_path, inputs, capsys, monkeypatch):
+    from hsi_torch import console
+
+    monkeypatch.setattr(console, "_stderr_is_terminal", lambda: True)  # bars need a terminal
     out = tmp_path / "o2"
     out.mkdir()
     (out / "a.out").write_text("done earlier")

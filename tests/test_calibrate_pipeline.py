@@ -21,16 +21,15 @@ from hsi_torch.calibrate.pipeline import (
     wavelength_from_name,
 )
 from hsi_torch.cli import main
-
-REPO = Path(__file__).resolve().parents[1]
+from hsi_torch.resources import shipped_config
 
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory) -> Path:
-    """The default small capture set (configs/simulate.yaml, realistic noise), no scene captures,
+    """The default small capture set (shipped simulate.yaml, realistic noise), no scene captures,
     rendered in float32 (the simulator's documented fast setting) to keep the test short."""
     out = tmp_path_factory.mktemp("sim")
-    rc = main(["simulate", "--config", str(REPO / "configs" / "simulate.yaml"), "--out", str(out),
+    rc = main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
                "--set", "captures.scenes=[]", "--set", "render.figures=false",
                "--set", "render.progress=false", "--set", "render.dtype=float32"])  # fmt: skip
     assert rc == 0
@@ -39,11 +38,11 @@ def sim(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def calibrated(sim: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("cal") / "calib.npz"
-    rc = main(["calibrate", "--config", str(REPO / "configs" / "calibrate.yaml"),
-               "--captures", str(sim), "--out", str(out), "--set", "progress=false"])  # fmt: skip
+    """``calibrate --out DIR`` (the shipped calibrate.yaml); returns ``DIR/calib.npz``."""
+    out = tmp_path_factory.mktemp("cal") / "run"
+    rc = main(["calibrate", "--captures", str(sim), "--out", str(out), "--no-progress"])
     assert rc == 0
-    return out
+    return out / "calib.npz"
 
 
 def test_targets_on_default_simulated_set(sim: Path, calibrated: Path):
@@ -59,8 +58,10 @@ def test_targets_on_default_simulated_set(sim: Path, calibrated: Path):
 
 def test_cli_outputs_settings_and_provenance(sim: Path, calibrated: Path):
     b = CalibrationBundle.load(calibrated)
-    bundle_path, report_path, cfg_path = output_paths(calibrated)
-    assert report_path.is_file() and cfg_path.is_file()
+    bundle_path, report_path, cfg_path = output_paths(calibrated.parent)
+    assert bundle_path == calibrated and report_path.is_file() and cfg_path.is_file()
+    assert sorted(p.name for p in calibrated.parent.iterdir()) == [
+        "calib.npz", "calib.report.json", "calib_diagnostics.png", "resolved_config.yaml"]
     manifest = json.loads((sim / "manifest.json").read_text())
     s = b.settings
     assert s["cfa_pattern"] == manifest["cfa_pattern"] == "RGGB"
@@ -79,6 +80,24 @@ def test_cli_outputs_settings_and_provenance(sim: Path, calibrated: Path):
     assert rep["valid"]["num_valid"] == int(b.valid.sum())
     # the bundle's phi/gain reproduce the white shots' level through the forward model
     assert np.all(b.gain[b.view_mask] > 0.5) and np.all(b.gain[b.view_mask] < 1.5)
+
+
+def test_diagnostics_figure_and_registration_residuals(calibrated: Path):
+    """The figure is a PNG of a readable size; the residual vectors stored in the bundle give
+    back, per view, the inlier count and RMS of the registration report."""
+    import cv2
+
+    img = cv2.imread(str(calibrated.with_name("calib_diagnostics.png")))
+    assert img is not None and img.shape[0] >= 500 and img.shape[1] >= 1000
+    res = CalibrationBundle.load(calibrated).extras["registration_residuals"]
+    rep = json.loads(calibrated.with_name("calib.report.json").read_text())
+    for r in rep["registration"][1:]:
+        rows = res[res[:, 0] == r["view"]]
+        inl = rows[:, 5] > 0.5
+        assert len(rows) == r["points_used"] and int(inl.sum()) == r["inliers"]
+        rms = np.sqrt(np.mean(np.sum(rows[inl, 3:5] ** 2, axis=1)))
+        assert rms == pytest.approx(r["rms_px"], rel=1e-9)
+    assert not np.any(res[:, 0] == 0)  # the reference view has no residual (identity)
 
 
 def test_reconstruct_refuses_bundle_of_other_geometry(calibrated: Path):

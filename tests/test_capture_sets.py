@@ -11,9 +11,9 @@ import pytest
 from hsi_torch.cli import main
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.io import read_capture
+from hsi_torch.resources import shipped_config
 from hsi_torch.simulate.config import SimulateConfig
 
-REPO = Path(__file__).resolve().parents[1]
 TINY = [
     "camera.scale=0.5", "render.supersample=1", "render.dtype=float32",
     "render.progress=false", "captures.scan_wavelengths_nm=[450, 550, 650]",
@@ -24,7 +24,7 @@ TINY = [
 @pytest.fixture(scope="module")
 def capture_set(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sim") / "set"
-    args = ["simulate", "--config", str(REPO / "configs" / "simulate.yaml"), "--out", str(out)]
+    args = ["simulate", "--config", str(shipped_config("simulate")), "--out", str(out)]
     for o in [*TINY, "render.figures=true"]:
         args += ["--set", o]
     assert main(args) == 0
@@ -80,7 +80,7 @@ def test_truth_file(capture_set: Path):
 def test_deterministic_with_seed(capture_set: Path, tmp_path: Path):
     from hsi_torch.simulate.capture_sets import simulate_capture_set
 
-    cfg = load_config(REPO / "configs" / "simulate.yaml", SimulateConfig,
+    cfg = load_config(shipped_config("simulate"), SimulateConfig,
                       [*TINY, "captures.scenes=[]", "captures.grid.poses=[]"])
     simulate_capture_set(cfg, tmp_path / "a", progress=False, log=lambda m: None)
     a, _ = read_capture(tmp_path / "a" / "white" / "white_00.tif")
@@ -105,12 +105,12 @@ def test_deterministic_with_seed(capture_set: Path, tmp_path: Path):
 ])
 def test_config_errors_name_the_key(override: str, key: str):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        load_config(REPO / "configs" / "simulate.yaml", SimulateConfig, [override])
+        load_config(shipped_config("simulate"), SimulateConfig, [override])
 
 
 def test_configs_load():
     for name in ("simulate.yaml", "simulate_full.yaml"):
-        cfg = load_config(REPO / "configs" / name, SimulateConfig)
+        cfg = load_config(shipped_config(name), SimulateConfig)
         assert cfg.captures.scan_wavelengths_nm is None
-    full = load_config(REPO / "configs" / "simulate_full.yaml", SimulateConfig)
+    full = load_config(shipped_config("simulate_full"), SimulateConfig)
     assert (full.camera.width_px, full.camera.height_px) == (2896, 2784)

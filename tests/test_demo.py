@@ -53,7 +53,13 @@ def test_demo_quick_meets_targets(tmp_path: Path, capsys):
     assert syn["calibrated"]["pixels"] > 500 and np.isfinite(syn["calibrated"]["psnr_db"])
     for f in ("calib.npz", "colorchecker.npz", "colorchecker.tif", "colorchecker_preview.png",
               "colorchecker_spectra.png", "synthetic_preview.png", "synthetic_spectra.png",
-              "resolved_config.yaml"):  # fmt: skip
+              "resolved_config.yaml", "calib_diagnostics.png", "colorchecker_panel.png",
+              "synthetic_truth_preview.png", "synthetic_oracle_preview.png"):  # fmt: skip
         assert (out / f).is_file(), f
+    import cv2
+
+    panel = cv2.imread(str(out / "synthetic_panel.png"))
+    prev = cv2.imread(str(out / "synthetic_preview.png"))
+    assert prev.shape[1] >= 512 and panel.shape[1] > 3 * 360  # enlarged, three tiles
     cal = s["calibration"]
     assert cal["B_rel_rms"] < 0.03 and min(cal["phi_corr"]) > 0.99

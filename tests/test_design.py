@@ -22,6 +22,7 @@ from hsi_torch.experiments.design import (
 )
 from hsi_torch.experiments.systems import brf_sensing_matrices, phi_matrix
 from hsi_torch.optics import DEFAULT_GEOMETRY, BRFConfig, KaleidoscopeGeometry
+from hsi_torch.resources import shipped_config
 from hsi_torch.spectral import DEFAULT_GRID
 
 SMALL = dict(
@@ -160,7 +161,7 @@ def test_cli_dispatch(tmp_path, capsys):
 
     out = tmp_path / "cli"
     code = main([
-        "experiment", "design", "--config", "configs/design.yaml", "--out", str(out),
+        "experiment", "design", "--config", str(shipped_config("design")), "--out", str(out),
         "--set", "materials={quartz: [2.5]}", "--set", "tilts_deg=[65, 70]",
         "--set", "azimuths_deg=[40]", "--set", "a_out_mm=[40]", "--set", "top_k=1",
         "--set", "psnr.num_seeds=1", "--set", "psnr.betas=[1000]", "--set", "progress=false",

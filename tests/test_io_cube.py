@@ -1,4 +1,5 @@
-"""Tests of spectral cube files (TIFF, ENVI via `spectral`, NPZ) and atomic writes."""
+"""Tests of spectral cube files (TIFF, ENVI via `spectral`, NPZ) and atomic writes (the readers
+other tools use, NetCDF and Zarr: tests/test_cube_formats.py)."""
 
 from __future__ import annotations
 
@@ -85,7 +86,8 @@ def test_load_third_party_envi_micrometres(tmp_path):
 def test_save_cube_formats_and_errors(tmp_path, cube_and_valid):
     cube, valid = cube_and_valid
     paths = save_cube_formats(tmp_path / "out" / "frame", cube, WL, valid)
-    assert sorted(p.name for p in paths) == ["frame.hdr", "frame.img", "frame.npz", "frame.tif"]
+    assert sorted(p.name for p in paths) == ["frame.hdr", "frame.img", "frame.npz", "frame.tif",
+                                             "frame.vrt"]
     with pytest.raises(ValueError, match=r"wavelengths must have shape \(25,\)"):
         save_cube(tmp_path / "x.npz", cube, WL[:-1])
     with pytest.raises(ValueError, match=r"\(M, H, W\)"):

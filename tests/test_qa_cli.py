@@ -22,8 +22,7 @@ from hsi_torch.batch import expand_inputs
 from hsi_torch.cli import main
 from hsi_torch.io import load_cube, write_capture
 from hsi_torch.io.raw import mosaic
-
-REPO = Path(__file__).resolve().parents[1]
+from hsi_torch.resources import shipped_config
 
 
 @pytest.fixture
@@ -148,29 +147,36 @@ def test_shipped_reconstruct_config_is_the_schema_default():
     from hsi_torch.config import load_config
     from hsi_torch.recon.config import ReconstructConfig
 
-    cfg = load_config(REPO / "configs" / "reconstruct.yaml", ReconstructConfig)
+    cfg = load_config(shipped_config("reconstruct"), ReconstructConfig)
     assert cfg == ReconstructConfig()
     # beta = 1 gave 17 dB on the default prototype's ColorChecker interiors, 1e4 gives 35.5 dB
     assert cfg.beta == 1e4
 
 
-def test_calibrate_out_folder_is_refused_not_renamed(tmp_path, capsys):
+def test_calibrate_out_is_a_folder_like_every_out(tmp_path, capsys):
+    """--out DIR means DIR/calib.npz (+ report, figure, resolved config); a bad capture folder
+    writes nothing, neither there nor a DIR.npz beside it."""
     d = tmp_path / "bundles"
     d.mkdir()
-    rc = main(["calibrate", "--captures", str(tmp_path), "--out", str(d)])
+    rc = main(["calibrate", "--captures", str(tmp_path / "nothing"), "--out", str(d)])
     assert rc == 1
-    err = capsys.readouterr().err
-    assert f"--out {d} is a folder" in err and str(d / "calib.npz") in err
-    assert not (tmp_path / "bundles.npz").exists()  # used to write DIR.npz beside the folder
+    assert list(d.iterdir()) == [] and not (tmp_path / "bundles.npz").exists()
+    (d / "calib.npz").mkdir()  # the bundle's own path taken by a folder: refused, named
+    assert main(["calibrate", "--captures", str(tmp_path), "--out", str(d)]) == 1
+    assert f"--out {d / 'calib.npz'} is a folder" in capsys.readouterr().err
 
 
-def test_calibrate_resolved_config_named_after_bundle():
-    from hsi_torch.calibrate.cli_entry import output_paths
+def test_calibrate_output_paths_folder_and_file_forms():
+    from hsi_torch.calibrate.cli_entry import figure_path, output_paths
 
-    a = output_paths("cal/first.npz")[2]
-    b = output_paths("cal/second")[2]
-    assert a == Path("cal/first.resolved_config.yaml")
-    assert b == Path("cal/second.resolved_config.yaml") and a != b  # no overwrite in one folder
+    assert output_paths("cal/first.npz") == (
+        Path("cal/first.npz"), Path("cal/first.report.json"),
+        Path("cal/first.resolved_config.yaml"))  # fmt: skip
+    assert output_paths("cal/second") == (
+        Path("cal/second/calib.npz"), Path("cal/second/calib.report.json"),
+        Path("cal/second/resolved_config.yaml"))  # fmt: skip
+    assert figure_path("cal/first.npz") == Path("cal/first_diagnostics.png")
+    assert figure_path(output_paths("cal/second")[0]) == Path("cal/second/calib_diagnostics.png")
 
 
 def test_bench_help_reaches_the_script(capsys):

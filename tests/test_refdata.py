@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from hsi_torch import refdata
+from hsi_torch.resources import real_data_dir
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
 
 colour = pytest.importorskip("colour")
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-CAM_DIR = REAL / "camera_sensitivities"
+CAM_DIR = real_data_dir("camera_sensitivities") or Path("<real-data>/camera_sensitivities")
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
@@ -173,15 +173,18 @@ def test_filter_transmittance_csv(tmp_path):
     torch.testing.assert_close(got, torch.tensor([0.3, 0.9]))
 
 
-def test_lee_filter_from_lighting_filters():
-    pytest.importorskip("lighting_filters")
-    assert "L068" in refdata.list_filters("Lee")
-    import importlib.metadata as md
+def test_lee_filter_shipped_csv():
+    """L068 comes from the CSV shipped in the package (no lighting_filters needed): values at the
+    tabulated wavelengths, linear in between, the documented range."""
+    from hsi_torch.resources import shipped_data
 
-    path = next(f for f in md.files("lighting_filters") if f.name == "filters.json").locate()
-    sd = json.loads(Path(path).read_text())["filters"]["L068"]["sd"]
-    got = refdata.filter_transmittance("L068", [440.0, 560.0, 700.0], dtype=torch.float64)
-    expected = torch.tensor([float(sd["440"]), float(sd["560"]), float(sd["700"])],
+    table = np.loadtxt(shipped_data("lee_068_sky_blue.csv"), delimiter=",", comments="#",
+                       skiprows=6)
+    assert table.shape == (60, 2) and table[0, 0] == 405 and table[-1, 0] == 700
+    assert "L068" in refdata.list_filters("Lee")
+    got = refdata.filter_transmittance("L068", [440.0, 562.5, 700.0], dtype=torch.float64)
+    row = {w: t for w, t in table}
+    expected = torch.tensor([row[440.0], 0.5 * (row[560.0] + row[565.0]), row[700.0]],
                             dtype=torch.float64)
     torch.testing.assert_close(got, expected)
     assert float(got[0]) > 0.7 > 0.1 > float(got[1])  # Sky Blue: passes blue, blocks yellow
@@ -189,3 +192,50 @@ def test_lee_filter_from_lighting_filters():
         refdata.filter_transmittance("L9999", [500.0])
     with pytest.raises(ValueError, match="outside the tabulated range"):
         refdata.filter_transmittance("L068", [400.0])
+
+
+def test_shipped_lee_filter_matches_lighting_filters():
+    """The shipped table is the optional package's L068 entry, value for value."""
+    pytest.importorskip("lighting_filters")
+    import importlib.metadata as md
+
+    path = next(f for f in md.files("lighting_filters") if f.name == "filters.json").locate()
+    sd = json.loads(Path(path).read_text())["filters"]["L068"]["sd"]
+    wl = sorted(float(k) for k in sd)
+    got = refdata.filter_transmittance("L068", wl, dtype=torch.float64)
+    expected = torch.tensor([float(sd[f"{w:g}"]) for w in wl], dtype=torch.float64)
+    torch.testing.assert_close(got, expected, rtol=0, atol=0)
+
+
+
+
+def test_lee_filter_without_lighting_filters(monkeypatch):
+    """Without the optional package: L068 still works, other codes say what to install."""
+
+    def missing():
+        raise ModuleNotFoundError("lighting_filters is not installed")
+
+    monkeypatch.setattr(refdata, "_lighting_filters_table", missing)
+    assert refdata.list_filters() == ["L068"]
+    assert float(refdata.filter_transmittance("L068", [440.0])[0]) > 0.7
+    with pytest.raises(ValueError, match="pip install lighting_filters"):
+        refdata.filter_transmittance("R80", [500.0])
+
+
+def test_package_never_imports_scipy_or_lighting_filters():
+    """scipy is a test/benchmark dependency only (the independent NNLS reference), and the gel
+    filter ships as a CSV: no module of the package imports either (colour-science, a runtime
+    dependency, may still pull scipy in for itself)."""
+    import ast
+
+    import hsi_torch
+
+    root = Path(hsi_torch.__file__).parent
+    offenders = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{path.relative_to(root)}: {n}" for n in names
+                          if n.split(".")[0] in ("scipy", "lighting_filters")]
+    assert offenders == []

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from hsi_torch import refdata
+from hsi_torch.resources import real_data_dir
 from hsi_torch.simulate.scenes import (
     CircleGridScene,
     ColorCheckerScene,
@@ -25,8 +26,7 @@ from hsi_torch.simulate.scenes import (
 )
 from hsi_torch.spectral import DEFAULT_GRID
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-CAVE = REAL / "cave_stuffed_toys"
+CAVE = real_data_dir("cave_stuffed_toys") or Path("<real-data>/cave_stuffed_toys")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
 

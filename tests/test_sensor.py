@@ -22,8 +22,9 @@ from hsi_torch.optics.sensor import (
     gaussian_blur,
     mosaic,
 )
+from hsi_torch.resources import real_data_dir
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+REAL = real_data_dir() or Path("<real-data>")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
 

@@ -1,11 +1,17 @@
-"""``hsi-torch calibrate [--config C] --captures DIR --out BUNDLE.npz [--set k=v] [--device D]``.
+"""``hsi-torch calibrate [--config C] --captures DIR --out OUT [--set k=v] [--device D]``.
 
-Writes, only after the whole calibration succeeded (each file atomically):
+``--out`` is a folder, like every command's: it is created and receives, only after the whole
+calibration succeeded (each file atomically):
 
-- ``BUNDLE.npz`` — the :class:`~hsi_torch.calibrate.CalibrationBundle`;
-- ``BUNDLE.report.json`` — the per-view registration report, valid-region statistics, timings;
-- ``BUNDLE.resolved_config.yaml`` — the configuration (rerun with ``--config``); named after the
-  bundle so that several bundles can share a folder without overwriting each other's record.
+- ``OUT/calib.npz`` — the :class:`~hsi_torch.calibrate.CalibrationBundle`;
+- ``OUT/calib.report.json`` — the per-view registration report, valid-region statistics, timings;
+- ``OUT/calib_diagnostics.png`` — the diagnostics figure
+  (:func:`hsi_torch.calibrate.figures.plot_calibration`);
+- ``OUT/resolved_config.yaml`` — the configuration (rerun with ``--config``).
+
+``--out NAME.npz`` names the bundle file itself (the earlier form, kept): ``NAME.npz``,
+``NAME.report.json``, ``NAME_diagnostics.png`` and ``NAME.resolved_config.yaml`` beside it, so
+that several bundles can share a folder without overwriting each other's record.
 
 On any error nothing is written (an existing bundle is left untouched).
 """
@@ -15,41 +21,63 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["run_calibrate", "output_paths"]
+__all__ = ["run_calibrate", "output_paths", "figure_path", "BUNDLE_NAME"]
+
+#: File name of the bundle inside an ``--out`` folder.
+BUNDLE_NAME = "calib.npz"
 
 
 def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
-    """``(bundle, report_json, resolved_config)`` for ``--out`` (``.npz`` added if missing)."""
+    """``(bundle, report_json, resolved_config)`` for ``--out``: a folder ``DIR`` gives
+    ``DIR/calib.npz``, ``DIR/calib.report.json``, ``DIR/resolved_config.yaml``; a name ending in
+    ``.npz`` gives ``NAME.npz``, ``NAME.report.json``, ``NAME.resolved_config.yaml``."""
     p = Path(out)
-    if p.suffix.lower() != ".npz":
-        p = p.with_name(p.name + ".npz")
-    return p, p.with_name(p.stem + ".report.json"), p.with_name(p.stem + ".resolved_config.yaml")
+    if p.suffix.lower() == ".npz":
+        return (p, p.with_name(p.stem + ".report.json"),
+                p.with_name(p.stem + ".resolved_config.yaml"))  # fmt: skip
+    bundle = p / BUNDLE_NAME
+    return bundle, bundle.with_name(bundle.stem + ".report.json"), p / "resolved_config.yaml"
+
+
+def figure_path(bundle_path: str | Path) -> Path:
+    """The diagnostics figure written beside a bundle: ``<stem>_diagnostics.png``."""
+    b = Path(bundle_path)
+    return b.with_name(b.stem + "_diagnostics.png")
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point called by :mod:`hsi_torch.cli`: calibrate a capture folder into a bundle."""
+    from hsi_torch.batch import check_out_dir
     from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.calibrate.figures import plot_calibration
     from hsi_torch.calibrate.pipeline import calibrate_capture_set
     from hsi_torch.cli import load_args_config
     from hsi_torch.config import write_resolved_config
+    from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_json
 
-    cfg = load_args_config(args, CalibrateConfig)
+    cfg = load_args_config(args, CalibrateConfig, default="calibrate")
     device = getattr(args, "device", None)
-    if Path(args.out).is_dir():  # checked before '.npz' is appended (DIR would become DIR.npz)
-        raise ValueError(
-            f"--out {args.out} is a folder; give the bundle's file name, e.g. "
-            f"{Path(args.out) / 'calib.npz'}"
-        )
     bundle_path, report_path, config_path = output_paths(args.out)
     if bundle_path.is_dir():
-        raise ValueError(f"--out {bundle_path} is a folder; give the bundle's file name")
+        raise ValueError(f"--out {bundle_path} is a folder; give a folder (the bundle is written "
+                         f"as {BUNDLE_NAME} inside) or a file name ending in .npz")  # fmt: skip
+    check_out_dir(bundle_path.parent)  # before the calibration: it takes a while
     bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
     bundle_path.parent.mkdir(parents=True, exist_ok=True)
-    bundle.save(bundle_path)
-    atomic_write_json(report_path, report.to_dict())
-    write_resolved_config(cfg, config_path.parent, name=config_path.name)
-    print(report)
-    print(bundle.summary())
-    print(f"wrote {bundle_path} (+ {report_path.name}, {config_path.name})")
+    fig = figure_path(bundle_path)
+    written: list[Path] = []
+    try:  # all four files or none
+        written.append(plot_calibration(bundle, fig, report=report))
+        bundle.save(bundle_path)
+        written.append(bundle_path)
+        written.append(atomic_write_json(report_path, report.to_dict()))
+        written.append(write_resolved_config(cfg, config_path.parent, name=config_path.name))
+    except BaseException:
+        for p in written:
+            Path(p).unlink(missing_ok=True)
+        raise
+    info(str(report))
+    info(bundle.summary())
+    info(f"wrote {bundle_path} (+ {report_path.name}, {fig.name}, {config_path.name})")
     return 0

@@ -1,4 +1,4 @@
-"""``CalibrateConfig``: the schema of ``configs/calibrate.yaml`` (``hsi-torch calibrate``).
+"""``CalibrateConfig``: the schema of the shipped ``calibrate.yaml`` (``hsi-torch calibrate``).
 
 Loaded and validated by :func:`hsi_torch.config.load_config`; every key can be overridden on the
 command line (``--set response.beta_phi=1e2``). ``describe_schema(CalibrateConfig)`` prints the

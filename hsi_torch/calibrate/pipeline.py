@@ -380,11 +380,11 @@ def _camera_prior(name: str, wl: torch.Tensor) -> torch.Tensor:
 
 
 def _progress(enabled: bool, total: int):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
+    from hsi_torch.console import progress_bar, progress_enabled
 
-    return tqdm(total=total, desc="calibrating", unit="step", leave=False)
+    if not progress_enabled(enabled):
+        return None
+    return progress_bar(total=total, desc="calibrating", unit="step", leave=False)
 
 
 # =============================================================================================
@@ -661,7 +661,8 @@ def calibrate_capture_set(
             settings=settings,
             provenance=prov,
             extras={"gain_coefficients": resp.coefficients.cpu().numpy(),
-                    "patch_mean_dn": patch_mean.cpu().numpy()},  # fmt: skip
+                    "patch_mean_dn": patch_mean.cpu().numpy(),
+                    "registration_residuals": reg.residuals},  # fmt: skip
         )
         tm["bundle"] = time.perf_counter() - t0
         tick(1, "bundle")

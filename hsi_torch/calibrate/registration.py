@@ -333,10 +333,15 @@ class RegistrationResult:
     Attributes:
         view_homographies: ``(V, 3, 3)`` float64 tensor, view-v sensor px → reference sensor px.
         reports: one :class:`ViewRegistrationReport` per view.
+        residuals: every correspondence of the non-reference views as an ``(N, 6)`` float64
+            array of rows ``(view, x_ref, y_ref, dx, dy, inlier)``: the detected grid point in
+            the reference view (sensor px) and ``H_v(x_v) − x_ref`` (px); for the diagnostics
+            figure (:func:`hsi_torch.calibrate.figures.plot_calibration`).
     """
 
     view_homographies: torch.Tensor
     reports: list[ViewRegistrationReport]
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
     def __str__(self) -> str:
         return "\n".join(str(r) for r in self.reports)
@@ -357,6 +362,7 @@ def fit_homography(
     dst: Sequence[np.ndarray],
     ransac_threshold_px: float = 1.0,
     check_reversed: bool = True,
+    points: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, int]:
     """RANSAC homography from grid correspondences aggregated over several images.
 
@@ -371,6 +377,7 @@ def fit_homography(
             detector returned them.
         ransac_threshold_px: RANSAC inlier threshold.
         check_reversed: try the reversed order of each ``src[k]``.
+        points: if given, receives ``(src (N, 2), dst (N, 2))`` in the chosen order.
 
     Returns:
         ``(H (3, 3) float64 with H[2, 2] = 1, inliers (ΣN_k,) bool, rms_px over inliers,
@@ -398,6 +405,8 @@ def fit_homography(
         raise ValueError("cv2.findHomography found no homography (degenerate correspondences)")
     inl = inl.ravel().astype(bool)
     H = H / H[2, 2]
+    if points is not None:
+        points += [s_np, d_np]
     res = apply_homography(H, s_np[inl]) - d_np[inl]
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if inl.any() else float("inf")
     return H, inl, rms, n_rev
@@ -448,6 +457,7 @@ def register_views(
     Hs = np.tile(np.eye(3), (V, 1, 1))
     reports: list[ViewRegistrationReport] = []
     failed: list[int] = []
+    residuals: list[np.ndarray] = []
     for v in range(V):
         pairs = [
             (det[v], det[reference_view])
@@ -461,14 +471,19 @@ def register_views(
             src = np.concatenate([p[0] for p in pairs])
             reports.append(ViewRegistrationReport(v, len(pairs), len(src), len(src), 0.0))
             continue
+        pts: list[np.ndarray] = []
         try:
             H, inl, rms, n_rev = fit_homography(
-                [p[0] for p in pairs], [p[1] for p in pairs], cfg.ransac_threshold_px
-            )
+                [p[0] for p in pairs], [p[1] for p in pairs], cfg.ransac_threshold_px,
+                points=pts,
+            )  # fmt: skip
         except ValueError:
             failed.append(v)
             continue
         Hs[v] = H
+        src_v, dst_v = pts
+        res = apply_homography(H, src_v) - dst_v
+        residuals.append(np.column_stack([np.full(len(dst_v), v), dst_v, res, inl]))
         reports.append(ViewRegistrationReport(v, len(pairs), len(inl), int(inl.sum()), rms, n_rev))
     if failed:
         raise ValueError(
@@ -476,7 +491,8 @@ def register_views(
             f"view) for view(s) {failed} of {V}; check the triangles, parity, pattern_size and "
             "blob-detector area limits"
         )
-    return RegistrationResult(torch.from_numpy(Hs), reports)
+    rows = np.concatenate(residuals) if residuals else np.zeros((0, 6))
+    return RegistrationResult(torch.from_numpy(Hs), reports, rows.astype(np.float64))
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,7 @@
-"""``hsi-torch experiment NAME --config C --out DIR``: dispatch to the named experiment.
+"""``hsi-torch experiment NAME [--config C] --out DIR``: dispatch to the named experiment.
+
+Without ``--config`` the shipped ``NAME.yaml`` is used (``hsi-torch config show NAME``), or the
+schema's defaults for an experiment that ships none.
 
 The registry maps a name to ``(module, schema class name, run function name)``; the module is
 imported only when its experiment runs. A run function has the signature
@@ -55,18 +58,21 @@ def resolve_experiment(name: str) -> tuple[type, Any]:
 
 
 def run_experiment(args: argparse.Namespace) -> int:
-    """CLI entry: ``args.name``, ``args.config`` (Path or None = the schema's defaults),
+    """CLI entry: ``args.name``, ``args.config`` (Path or None = the shipped ``<name>.yaml``,
+    else the schema's defaults),
     ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
     from hsi_torch.batch import ensure_out_dir
-    from hsi_torch.config import load_config, write_resolved_config
+    from hsi_torch.cli import load_args_config
+    from hsi_torch.config import write_resolved_config
+    from hsi_torch.console import info
 
     schema, run = resolve_experiment(args.name)
-    cfg = load_config(getattr(args, "config", None), schema, getattr(args, "overrides", None))
+    cfg = load_args_config(args, schema, default=args.name)
     out = ensure_out_dir(args.out)
     t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
-    print(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
-          f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
+    info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
+         f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
     return 0

@@ -22,7 +22,7 @@ diffuser centre. The best configuration (highest PSNR among those) is written as
 config ``best_prototype.yaml`` (keys ``geometry``, ``brf``, ``illuminant`` and
 ``camera_sensitivity`` of :class:`hsi_torch.simulate.config.SimulateConfig`; the rest default).
 
-Command: ``hsi-torch experiment design --config configs/design.yaml --out DIR``.
+Command: ``hsi-torch experiment design --out DIR`` (the shipped ``design.yaml``).
 """
 
 from __future__ import annotations

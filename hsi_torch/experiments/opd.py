@@ -614,7 +614,8 @@ class OPDConfig:
     """``hsi-torch experiment opd`` configuration (see docs/experiments.md)."""
 
     prototype: Path | None = field(
-        default=None, metadata={"help": "SimulateConfig YAML of the design (null: defaults)"})
+        default=None, metadata={"help": "SimulateConfig YAML of the design (null: the shipped "
+                                        "simulate.yaml, the default prototype)"})
     prototype_overrides: list[str] = field(
         default_factory=list, metadata={"help": "key=value overrides of the prototype config"})
     capture_set: Path | None = field(
@@ -638,9 +639,11 @@ def _needs_capture_set(kind: str) -> bool:
 
 def _load_prototype(cfg: OPDConfig):
     from hsi_torch.config import load_config
+    from hsi_torch.resources import shipped_config
     from hsi_torch.simulate.config import SimulateConfig
 
-    return load_config(cfg.prototype, SimulateConfig, list(cfg.prototype_overrides))
+    return load_config(cfg.prototype or shipped_config("simulate"), SimulateConfig,
+                       list(cfg.prototype_overrides))
 
 
 def _bundle_points(bundle, pts: OPDPointsSpec) -> MeasuredPoints:
@@ -655,7 +658,8 @@ def calibrated_bundle(capture_set: str | Path, calibrate_config: str | Path | No
                       device: str | None = None, progress: bool = False,
                       save_to: str | Path | None = None) -> tuple[Any, str]:
     """``(bundle, note)``: ``hsi_torch.calibrate.pipeline.calibrate_capture_set`` on a capture set
-    (``calibrate_config``: a ``CalibrateConfig`` YAML, else its defaults), or the oracle bundle
+    (``calibrate_config``: a ``CalibrateConfig`` YAML, else the shipped ``calibrate.yaml``), or the
+    oracle bundle
     (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) when that pipeline is not installed.
     ``save_to`` writes the bundle."""
     from hsi_torch.simulate.oracle import bundle_from_truth
@@ -667,13 +671,14 @@ def calibrated_bundle(capture_set: str | Path, calibrate_config: str | Path | No
         return bundle_from_truth(capture_set), (
             "hsi_torch.calibrate.pipeline is not available: the oracle bundle (true B) was used")
     from hsi_torch.config import load_config
+    from hsi_torch.resources import shipped_config
 
-    ccfg = load_config(calibrate_config, CalibrateConfig)
+    ccfg = load_config(calibrate_config or shipped_config("calibrate"), CalibrateConfig)
     bundle, rep = calibrate_capture_set(capture_set, ccfg, device=device, progress=progress)
     if save_to is not None:
         bundle.save(save_to)
     return bundle, ("calibrated with hsi_torch.calibrate.pipeline.calibrate_capture_set "
-                    f"({calibrate_config or 'default CalibrateConfig'}; {rep.valid.num_valid} "
+                    f"({calibrate_config or 'the shipped calibrate.yaml'}; {rep.valid.num_valid} "
                     "valid pixels)" if hasattr(rep.valid, "num_valid") else
                     "calibrated with hsi_torch.calibrate.pipeline.calibrate_capture_set")
 
@@ -1034,7 +1039,8 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     k0 = band_centre_nm(per_input[0][1].wavelengths_nm)
     md = [
         "# OPD validation\n",
-        f"Predicted views: ray tracer of the prototype ({cfg.prototype or 'defaults'}). "
+        f"Predicted views: ray tracer of the prototype "
+        f"({cfg.prototype or 'the shipped simulate.yaml'}). "
         f"Prediction compared: **group OPD Δ_g = Δ − λ dΔ/dλ at the band-centre wavenumber "
         f"(λ₀ = {k0:.1f} nm)** of the ray through each measured point (a single-frequency fit "
         f"over the band measures this, not the phase OPD); the phase OPD at "

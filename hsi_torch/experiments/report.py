@@ -10,7 +10,6 @@ import csv
 import io
 import math
 import os
-import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -124,11 +123,10 @@ def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110) -> Path:
 def progress(
     iterable: Iterable[T], *, desc: str = "", total: int | None = None, enable: bool = True
 ) -> Iterable[T]:
-    """A tqdm progress bar on stderr (plain iteration when disabled or tqdm is missing)."""
-    if not enable:
+    """A tqdm progress bar on stderr (:func:`hsi_torch.console.progress_bar`: plain iteration
+    when ``enable`` is False, ``--no-progress``/``--quiet`` is given or stderr is no terminal)."""
+    from hsi_torch.console import progress_bar, progress_enabled
+
+    if not progress_enabled(enable):
         return iterable
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover
-        return iterable
-    return tqdm(iterable, desc=desc, total=total, file=sys.stderr, dynamic_ncols=True)
+    return progress_bar(iterable, desc=desc, total=total)

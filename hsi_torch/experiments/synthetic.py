@@ -19,7 +19,7 @@ Protocol, for every design (a ``(O, M)`` matrix ``A``, see :mod:`hsi_torch.exper
    σ the best β maximises the PSNR averaged over seeds; the table reports that mean, its standard
    deviation over seeds and the mean spectral angle at that β.
 
-Command: ``hsi-torch experiment synthetic --config configs/synthetic.yaml --out DIR``.
+Command: ``hsi-torch experiment synthetic --out DIR`` (the shipped ``synthetic.yaml``).
 """
 
 from __future__ import annotations

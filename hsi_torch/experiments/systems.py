@@ -58,7 +58,7 @@ DEFAULT_3CAMERA: tuple[str, str, str] = (
     "Nikon 5100 (NPL)",
     "Sigma SDMerill (NPL)",
 )
-#: Default filter of the Faced Reflectors baseline: Lee 068 Sky Blue (``lighting_filters``).
+#: Default filter of the Faced Reflectors baseline: Lee 068 Sky Blue (shipped, see refdata).
 DEFAULT_FACED_FILTER = "L068"
 #: Default highest bounce order N of the Faced Reflectors baseline (channels i = 0 … N).
 DEFAULT_FACED_BOUNCES = 4
@@ -397,7 +397,8 @@ def faced_reflectors_design(
     dtype: torch.dtype = torch.float64,
 ) -> SensingDesign:
     """``3(N+1)`` channels ``T_{i,c} = f^c τ^i`` for bounces ``i = 0 … N`` (``N = bounces``),
-    τ a filter transmittance (Lee code of ``lighting_filters`` or a CSV), × illuminant × Δλ."""
+    τ a filter transmittance (a gel code such as ``'L068'``, see
+    :func:`hsi_torch.refdata.filter_transmittance`, or a CSV), × illuminant × Δλ."""
     if int(bounces) < 0:
         raise ValueError(f"bounces must be >= 0, got {bounces}")
     tau = refdata.filter_transmittance(filter_name, grid, device=device, dtype=dtype)

@@ -30,7 +30,7 @@ the chosen orientations (``both`` by default). The limit is the finest element o
 coarse-to-fine sequence before the first unresolved one (elements not fully inside the valid
 reconstruction region are skipped).
 
-Command: ``hsi-torch experiment usaf --config configs/usaf.yaml --out DIR``.
+Command: ``hsi-torch experiment usaf --out DIR`` (the shipped ``usaf.yaml``).
 """
 
 from __future__ import annotations
@@ -226,7 +226,8 @@ class USAFConfig:
     """``hsi-torch experiment usaf`` configuration (see docs/experiments.md)."""
 
     prototype: Path | None = field(
-        default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: defaults)"})
+        default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: the "
+                                        "shipped simulate.yaml, the default prototype)"})
     prototype_overrides: list[str] = field(
         default_factory=lambda: ["camera.scale=2"],
         metadata={"help": "overrides of the prototype config (default: 2x finer sensor, so the "
@@ -250,9 +251,11 @@ class USAFConfig:
 
 def _sim_config(cfg: USAFConfig, calibrated: bool):
     from hsi_torch.config import load_config
+    from hsi_torch.resources import shipped_config
     from hsi_torch.simulate.config import SceneSpec, SimulateConfig
 
-    proto = load_config(cfg.prototype, SimulateConfig, list(cfg.prototype_overrides))
+    proto = load_config(cfg.prototype or shipped_config("simulate"), SimulateConfig,
+                        list(cfg.prototype_overrides))
     t = cfg.target
     scene = SceneSpec("usaf", "usaf", params={
         "groups": list(t.groups), "magnification": t.magnification,

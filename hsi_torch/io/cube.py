@@ -1,39 +1,69 @@
-"""Spectral cubes on disk: multi-page float32 TIFF, ENVI ``.hdr/.img``, NPZ. All writes atomic.
+"""Spectral cubes on disk, in files that the usual tools open. All writes atomic.
 
 Convention:
     - In memory a cube is ``(M, H, W)`` (band-first, like every image tensor in hsi_torch) with
       wavelengths ``(M,)`` in nm and an optional validity mask ``(H, W)`` bool.
-    - **TIFF**: one float32 page per band, in wavelength order. The first page's
-      ``ImageDescription`` is JSON: ``{"hsi_torch_cube": 1, "wavelengths_nm": [...],
-      "wavelength_units": "nm", ...metadata}``.
-    - **ENVI**: ``<stem>.hdr`` + ``<stem>.img``, BSQ, float32 little-endian (``data type = 4``,
-      ``byte order = 0``), with ``wavelength = {...}`` and ``wavelength units = nm``, readable by
-      ``spectral.envi.open`` and ENVI/QGIS/GDAL. The ``.img`` is written first, then the ``.hdr``.
-    - **NPZ**: arrays ``cube (M,H,W) float32``, ``wavelengths_nm (M,) float64``,
+    - **TIFF** (``tiff``): ``<stem>.tif`` is an **OME-TIFF**, one float32 page per band in
+      wavelength order, each an OME ``Channel`` named by its wavelength (``"550 nm"``) with
+      ``EmissionWavelength`` in nm: Fiji/Bio-Formats, napari and ``tifffile`` see 25 named
+      channels. The OME ``Image/Description`` holds our JSON (``{"hsi_torch_cube": 1,
+      "wavelengths_nm": [...], "wavelength_units": "nm", ...metadata}``). Beside it,
+      ``<stem>.vrt`` (a few kB of XML) lets **GDAL/QGIS/rasterio** open the cube as 25 bands named
+      by wavelength (``wavelength``/``wavelength_units`` band metadata, NaN no-data), reading the
+      TIFF's pages: GDAL maps the pages of a multi-page TIFF to sub-datasets, and an OME-TIFF
+      keeps one plane per page, so one file cannot be both (an OME-TIFF and 25 bands to GDAL).
+      Older files whose first page's description is our JSON are still read.
+    - **ENVI** (``envi``): ``<stem>.hdr`` + ``<stem>.img``, BSQ, float32 little-endian
+      (``data type = 4``, ``byte order = 0``), with ``wavelength = {...}``, ``wavelength units =
+      nm``, ``band names`` and ``data ignore value = nan``, readable by ``spectral.envi.open`` and
+      ENVI/QGIS/GDAL. The ``.img`` is written first, then the ``.hdr``.
+    - **NPZ** (``npz``): arrays ``cube (M,H,W) float32``, ``wavelengths_nm (M,) float64``,
       ``valid (H,W) bool``, ``metadata`` (JSON string).
-    - TIFF and ENVI have no mask plane: pixels where ``valid`` is False are written as NaN, and on
-      loading ``valid`` is "all bands finite". NPZ stores cube values untouched plus the mask.
+    - **NetCDF** (``netcdf``, ``<stem>.nc``) and **Zarr** (``zarr``, the folder ``<stem>.zarr``):
+      the :func:`cube_to_xarray` DataArray ``cube (wavelength, y, x)`` with the ``wavelength``
+      coordinate in nm and the ``valid`` mask as a coordinate; they need the optional extra
+      ``pip install 'hsi-torch[formats]'`` (xarray, netCDF4, zarr), imported only when used.
+    - TIFF, ENVI, NetCDF and Zarr have no separate mask plane in the cube: pixels where ``valid``
+      is False are written as NaN (NetCDF/Zarr also keep ``valid``), and on loading ``valid`` is
+      "all bands finite" (or the stored mask). NPZ stores cube values untouched plus the mask.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import json
 import os
+import shutil
+import tempfile
 import time
+import uuid
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+from xml.sax.saxutils import escape as _xml_escape
 
 import numpy as np
 import torch
 
 from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, atomic_write, json_default
 
-__all__ = ["Cube", "save_cube", "save_cube_formats", "load_cube", "CubeFormat"]
+__all__ = [
+    "Cube",
+    "save_cube",
+    "save_cube_formats",
+    "load_cube",
+    "cube_to_xarray",
+    "require_format",
+    "remove_output",
+    "CubeFormat",
+    "CUBE_FORMATS",
+    "OPTIONAL_FORMATS",
+]
 
-CubeFormat = Literal["tiff", "envi", "npz"]
+CubeFormat = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 CUBE_FORMAT_VERSION = 1
 _SUFFIX_FORMAT: dict[str, CubeFormat] = {
     ".tif": "tiff",
@@ -41,8 +71,53 @@ _SUFFIX_FORMAT: dict[str, CubeFormat] = {
     ".hdr": "envi",
     ".img": "envi",
     ".npz": "npz",
+    ".nc": "netcdf",
+    ".zarr": "zarr",
 }
-_FORMAT_SUFFIX = {"tiff": ".tif", "envi": ".hdr", "npz": ".npz"}
+_FORMAT_SUFFIX = {"tiff": ".tif", "envi": ".hdr", "npz": ".npz", "netcdf": ".nc", "zarr": ".zarr"}
+#: Every cube format, in the order of :data:`CubeFormat`.
+CUBE_FORMATS: tuple[str, ...] = tuple(_FORMAT_SUFFIX)
+#: Formats that need the optional extra ``hsi-torch[formats]``: format → the modules they import.
+OPTIONAL_FORMATS: dict[str, tuple[str, ...]] = {
+    "netcdf": ("xarray", "netCDF4"),
+    "zarr": ("xarray", "zarr"),
+}
+_EXTRA_HINT = "pip install 'hsi-torch[formats]'"
+
+
+def remove_output(path: Path) -> None:
+    """Remove a written cube file (or a Zarr folder); absent is fine."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def require_format(fmt: str) -> None:
+    """Check that the optional packages of a cube format are installed (before any work).
+
+    Raises:
+        ValueError: unknown format.
+        ModuleNotFoundError: a package is missing (the message says what to install).
+    """
+    if fmt not in _FORMAT_SUFFIX:
+        raise ValueError(f"unknown cube format {fmt!r}; one of {', '.join(CUBE_FORMATS)}")
+    for mod in OPTIONAL_FORMATS.get(fmt, ()):
+        if importlib.util.find_spec(mod) is None:
+            raise ModuleNotFoundError(
+                f"the cube format {fmt!r} needs the optional package {mod!r}: {_EXTRA_HINT}",
+                name=mod,
+            )
+
+
+def _import_xarray(what: str):
+    try:
+        import xarray as xr
+    except ModuleNotFoundError:
+        raise ModuleNotFoundError(
+            f"{what} needs the optional package 'xarray': {_EXTRA_HINT}", name="xarray"
+        ) from None
+    return xr
 
 
 @dataclass
@@ -63,6 +138,10 @@ class Cube:
     metadata: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
 
+    def to_xarray(self):
+        """This cube as an ``xarray.DataArray`` (see :func:`cube_to_xarray`)."""
+        return cube_to_xarray(self.cube, self.wavelengths, self.valid, self.metadata)
+
 
 def _np(x: Any) -> np.ndarray:
     if isinstance(x, torch.Tensor):
@@ -73,14 +152,14 @@ def _np(x: Any) -> np.ndarray:
 def _format_of(p: Path, fmt: CubeFormat | None) -> CubeFormat:
     if fmt is not None:
         if fmt not in _FORMAT_SUFFIX:
-            raise ValueError(f"fmt must be one of 'tiff', 'envi', 'npz', got {fmt!r}")
+            raise ValueError(f"fmt must be one of {', '.join(CUBE_FORMATS)}, got {fmt!r}")
         return fmt
     try:
         return _SUFFIX_FORMAT[p.suffix.lower()]
     except KeyError:
         raise ValueError(
             f"{p}: cannot tell the cube format from suffix {p.suffix!r}; use .tif/.tiff, "
-            ".hdr/.img (ENVI) or .npz"
+            ".hdr/.img (ENVI), .npz, .nc (NetCDF) or .zarr"
         ) from None
 
 
@@ -128,18 +207,25 @@ def save_cube(
     metadata: dict[str, Any] | None = None,
     fmt: CubeFormat | None = None,
 ) -> list[Path]:
-    """Write a spectral cube atomically as TIFF, ENVI or NPZ (format from the suffix or ``fmt``).
+    """Write a spectral cube atomically as OME-TIFF (+ GDAL ``.vrt``), ENVI, NPZ, NetCDF or Zarr
+    (format from the suffix or ``fmt``; see the module docstring).
 
     Args:
-        path: ``*.tif``/``*.tiff``, ``*.hdr``/``*.img`` (ENVI pair) or ``*.npz``.
+        path: ``*.tif``/``*.tiff``, ``*.hdr``/``*.img`` (ENVI pair), ``*.npz``, ``*.nc`` or
+            ``*.zarr`` (a folder).
         cube: ``(M, H, W)`` tensor or array (stored as float32).
         wavelengths: ``(M,)`` band centres in nm.
         valid: optional ``(H, W)`` bool mask; default: pixels whose bands are all finite.
-        metadata: JSON-serialisable extras (TIFF/NPZ; ENVI keeps only ``description``).
+        metadata: JSON-serialisable extras (TIFF/NPZ/NetCDF/Zarr; ENVI keeps only
+            ``description``).
         fmt: force a format.
 
     Returns:
-        The files written (two for ENVI: ``.img`` then ``.hdr``).
+        The files written (two for TIFF: ``.tif`` then ``.vrt``; two for ENVI: ``.img`` then
+        ``.hdr``).
+
+    Raises:
+        ModuleNotFoundError: NetCDF/Zarr without the optional packages (``hsi-torch[formats]``).
     """
     p = Path(path)
     kind = _format_of(p, fmt)
@@ -161,6 +247,8 @@ def _save_prepared(
     meta = dict(metadata or {})
     if kind != "npz":
         c = c_nan if c_nan is not None else _nan_where_invalid(c, v)
+    if kind in OPTIONAL_FORMATS:
+        return _save_xarray(p, kind, c, wl, v, meta)
     if kind == "npz":
         meta_json = json.dumps(
             {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=json_default
@@ -170,20 +258,172 @@ def _save_prepared(
         )
         return [p]
     if kind == "tiff":
-        import tifffile
-
-        desc = {
-            "hsi_torch_cube": CUBE_FORMAT_VERSION,
-            "wavelengths_nm": wl.tolist(),
-            "wavelength_units": "nm",
-            "shape": list(c.shape),
-            **meta,
-        }
-        text = json.dumps(desc, default=json_default)
-        with atomic_write(p, "wb") as f:
-            tifffile.imwrite(f, c, photometric="minisblack", description=text, metadata=None)
-        return [p]
+        return _save_tiff(p, c, wl, meta)
     return _save_envi(p, c, wl, meta)
+
+
+def _band_name(w: float) -> str:
+    return f"{w:.10g} nm"
+
+
+def _save_tiff(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> list[Path]:
+    """OME-TIFF (one named channel per band) + the GDAL ``.vrt`` beside it."""
+    import tifffile
+
+    desc = {
+        "hsi_torch_cube": CUBE_FORMAT_VERSION,
+        "wavelengths_nm": wl.tolist(),
+        "wavelength_units": "nm",
+        "shape": list(c.shape),
+        **meta,
+    }
+    text = json.dumps(desc, default=json_default)
+    # a UUID derived from the content description: the same cube and metadata give the same bytes
+    file_uuid = uuid.uuid5(uuid.NAMESPACE_URL, f"hsi_torch_cube:{text}:{c.dtype}")
+    ome = {
+        "axes": "CYX",
+        "UUID": f"urn:uuid:{file_uuid}",
+        "Creator": "hsi_torch",
+        "Description": text,
+        "Channel": {
+            "Name": [_band_name(w) for w in wl],
+            "EmissionWavelength": [float(w) for w in wl],
+            "EmissionWavelengthUnit": ["nm"] * len(wl),
+        },
+    }
+    if meta.get("scene"):
+        ome["Name"] = str(meta["scene"])
+    with atomic_write(p, "wb") as f:
+        tifffile.imwrite(f, c, ome=True, photometric="minisblack", metadata=ome)
+    try:
+        vrt = _save_vrt(p, c.shape, wl)
+    except BaseException:
+        p.unlink(missing_ok=True)  # no TIFF without its VRT
+        raise
+    return [p, vrt]
+
+
+def _tif_stem(tif: Path) -> str:
+    name = tif.name
+    for suffix in (".ome.tiff", ".ome.tif", ".tiff", ".tif"):
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)]
+    return tif.stem
+
+
+def _vrt_path(tif: Path) -> Path:
+    return tif.with_name(_tif_stem(tif) + ".vrt")
+
+
+def _save_vrt(tif: Path, shape: tuple[int, ...], wl: np.ndarray) -> Path:
+    """GDAL virtual dataset: the TIFF's pages (``GTIFF_DIR:k:``) as bands named by wavelength."""
+    m, h, w = shape
+    src = _xml_escape(tif.name)
+    bands = []
+    for k, lam in enumerate(wl):
+        bands.append(
+            f'  <VRTRasterBand dataType="Float32" band="{k + 1}">\n'
+            f"    <Description>{_band_name(lam)}</Description>\n"
+            "    <NoDataValue>nan</NoDataValue>\n"
+            f'    <Metadata><MDI key="wavelength">{lam:.10g}</MDI>'
+            '<MDI key="wavelength_units">nm</MDI></Metadata>\n'
+            f'    <Metadata domain="IMAGERY"><MDI key="CENTRAL_WAVELENGTH_UM">{lam / 1000:.10g}'
+            "</MDI></Metadata>\n"
+            "    <SimpleSource>\n"
+            f'      <SourceFilename relativeToVRT="1">GTIFF_DIR:{k + 1}:{src}</SourceFilename>\n'
+            "      <SourceBand>1</SourceBand>\n"
+            f'      <SourceProperties RasterXSize="{w}" RasterYSize="{h}" DataType="Float32" '
+            f'BlockXSize="{w}" BlockYSize="1"/>\n'
+            "    </SimpleSource>\n"
+            "  </VRTRasterBand>"
+        )
+    text = (
+        f'<VRTDataset rasterXSize="{w}" rasterYSize="{h}">\n'
+        "  <!-- hsi_torch spectral cube: the bands are the pages of the OME-TIFF beside this "
+        "file -->\n" + "\n".join(bands) + "\n</VRTDataset>\n"
+    )
+    vrt = _vrt_path(tif)
+    with atomic_write(vrt, "w") as f:
+        f.write(text)
+    return vrt
+
+
+def cube_to_xarray(
+    cube: Any, wavelengths: Any, valid: Any | None = None, metadata: dict[str, Any] | None = None
+):
+    """A cube as an ``xarray.DataArray`` named ``cube`` with dims ``(wavelength, y, x)``.
+
+    Coordinates: ``wavelength`` (nm, float64, ``units: nm``), ``y``/``x`` (pixel indices of the
+    reference frame) and ``valid`` ``(y, x)`` bool. Values are float32, NaN where invalid. The
+    metadata go, as JSON, to the attribute ``hsi_torch_metadata``. Needs ``xarray``
+    (``pip install 'hsi-torch[formats]'``).
+
+    Example:
+        >>> da = cube_to_xarray(cube, wl, valid)              # doctest: +SKIP
+        >>> da.sel(wavelength=550).plot()                     # doctest: +SKIP
+    """
+    c, wl, v = _prepare(cube, wavelengths, valid)
+    return _xarray_of(_nan_where_invalid(c, v), wl, v, dict(metadata or {}))
+
+
+def _xarray_of(c: np.ndarray, wl: np.ndarray, v: np.ndarray, meta: dict[str, Any]):
+    xr = _import_xarray("the xarray export")
+    m, h, w = c.shape
+    return xr.DataArray(
+        c,
+        dims=("wavelength", "y", "x"),
+        coords={
+            "wavelength": ("wavelength", wl, {"units": "nm",
+                                              "long_name": "band centre wavelength"}),
+            "y": ("y", np.arange(h), {"long_name": "reference-frame row", "units": "pixel"}),
+            "x": ("x", np.arange(w), {"long_name": "reference-frame column", "units": "pixel"}),
+            "valid": (("y", "x"), v, {"long_name": "pixel reconstructed (>= min_views views)"}),
+        },
+        name="cube",
+        attrs={
+            "long_name": "spectral cube (reflectance relative to the white reference)",
+            "hsi_torch_cube": CUBE_FORMAT_VERSION,
+            "hsi_torch_metadata": json.dumps(meta, default=json_default),
+        },
+    )
+
+
+@contextlib.contextmanager
+def _atomic_dir(dest: Path):
+    """A temporary folder beside ``dest``, renamed onto it on success (an old ``dest`` is
+    replaced; a reader never sees a half-written folder under ``dest``)."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    try:
+        yield tmp
+        if dest.exists():
+            old = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.old")
+            os.replace(dest, old)
+            os.replace(tmp, dest)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, dest)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _save_xarray(
+    p: Path, kind: str, c: np.ndarray, wl: np.ndarray, v: np.ndarray, meta: dict[str, Any]
+) -> list[Path]:
+    require_format(kind)
+    da = _xarray_of(c, wl, v, meta)
+    if kind == "netcdf":
+        with atomic_write(p, "wb") as f:  # netCDF4 writes by file name: the temporary one
+            da.to_netcdf(f.name, engine="netcdf4")
+        return [p]
+    import zarr
+
+    # Zarr format 2 (with consolidated metadata): what every Zarr reader opens
+    kw = {"zarr_format": 2} if int(zarr.__version__.split(".")[0]) >= 3 else {}
+    with _atomic_dir(p) as tmp:
+        da.to_dataset().to_zarr(tmp, mode="w", **kw)
+    return [p]
 
 
 def _envi_paths(p: Path) -> tuple[Path, Path]:
@@ -210,7 +450,8 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
         "byte order = 0",
         "wavelength units = nm",
         "wavelength = {" + ", ".join(f"{x:.10g}" for x in wl) + "}",
-        "band names = {" + ", ".join(f"{x:.10g} nm" for x in wl) + "}",
+        "band names = {" + ", ".join(_band_name(x) for x in wl) + "}",
+        "data ignore value = nan",
     ]
     with atomic_write(img, "wb") as f:  # the array's own buffer, no bytes copy
         f.write(memoryview(np.ascontiguousarray(c, dtype="<f4")).cast("B"))
@@ -232,7 +473,8 @@ def save_cube_formats(
     formats: Sequence[CubeFormat] = ("npz", "tiff", "envi"),
     timings: dict[str, float] | None = None,
 ) -> list[Path]:
-    """Write the cube in several formats: ``<stem>.npz``, ``<stem>.tif``, ``<stem>.hdr/.img``.
+    """Write the cube in several formats: ``<stem>.npz``, ``<stem>.tif`` (+ ``.vrt``),
+    ``<stem>.hdr/.img``, ``<stem>.nc``, ``<stem>.zarr``.
 
     The same files as :func:`save_cube` per format; the cube is converted (and NaN-filled for
     TIFF/ENVI) once. If one format fails, the files already written by this call are removed.
@@ -242,7 +484,8 @@ def save_cube_formats(
     s = Path(stem)
     for fmt in formats:
         if fmt not in _FORMAT_SUFFIX:
-            raise ValueError(f"formats: unknown cube format {fmt!r} (tiff, envi, npz)")
+            raise ValueError(f"formats: unknown cube format {fmt!r} ({', '.join(CUBE_FORMATS)})")
+        require_format(fmt)  # a missing optional package fails before anything is written
     t0 = time.perf_counter()
     c, wl, v = _prepare(cube, wavelengths, valid)
     c_nan = _nan_where_invalid(c, v) if any(f != "npz" for f in formats) else None
@@ -257,7 +500,7 @@ def save_cube_formats(
             tm[fmt] = time.perf_counter() - t0
     except BaseException:
         for q in out:
-            q.unlink(missing_ok=True)
+            remove_output(q)
         raise
     return out
 
@@ -290,6 +533,8 @@ def load_cube(
             raise FileNotFoundError(f"ENVI header not found: {hdr}")
     elif not p.exists():
         raise FileNotFoundError(f"cube file not found: {p}")
+    if kind in OPTIONAL_FORMATS:
+        require_format(kind)
     valid: np.ndarray | None = None
     meta: dict[str, Any] = {}
     wl: np.ndarray | None = None
@@ -305,20 +550,9 @@ def load_cube(
                 valid = z["valid"].astype(bool) if "valid" in z else None
                 meta = json.loads(str(z["metadata"])) if "metadata" in z else {}
         elif kind == "tiff":
-            import tifffile
-
-            with tifffile.TiffFile(p) as tif:
-                c = tif.asarray()
-                desc = tif.pages[0].description if len(tif.pages) else ""
-            try:
-                parsed = json.loads(desc) if desc else {}
-            except json.JSONDecodeError:
-                parsed = {}
-            meta = parsed if isinstance(parsed, dict) else {}
-            if "wavelengths_nm" in meta:
-                wl = np.asarray(meta["wavelengths_nm"], dtype=np.float64)
-            if c.ndim == 2:
-                c = c[None]
+            c, wl, meta = _load_tiff(p)
+        elif kind in OPTIONAL_FORMATS:
+            c, wl, valid, meta = _load_xarray(p, kind)
         else:
             c, wl, meta = _load_envi(p)
     except FileFormatError:
@@ -351,6 +585,80 @@ def load_cube(
         metadata=meta,
         path=p,
     )
+
+
+def _json_dict(text: str | None) -> dict[str, Any]:
+    try:
+        parsed = json.loads(text) if text else {}
+    except json.JSONDecodeError:
+        return {}
+    return parsed if isinstance(parsed, dict) else {}
+
+
+def _load_tiff(p: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """Our OME-TIFF (JSON in the OME Image Description), any OME-TIFF whose channels carry
+    emission wavelengths or ``"<λ> nm"`` names, or an older file with JSON in the page
+    description; other TIFF stacks ``(M, H, W)`` without wavelengths."""
+    import tifffile
+
+    with tifffile.TiffFile(p) as tif:
+        c = tif.asarray()
+        ome = tif.ome_metadata if tif.is_ome else None
+        desc = tif.pages[0].description if len(tif.pages) else ""
+    meta: dict[str, Any] = {}
+    wl = None
+    if ome:
+        image = tifffile.xml2dict(ome).get("OME", {}).get("Image", {})
+        image = image[0] if isinstance(image, list) else image
+        meta = _json_dict(image.get("Description"))
+        if "wavelengths_nm" not in meta:
+            chans = image.get("Pixels", {}).get("Channel", [])
+            chans = chans if isinstance(chans, list) else [chans]
+            wl = _ome_channel_wavelengths(chans)
+    else:
+        meta = _json_dict(desc)
+    if "wavelengths_nm" in meta:
+        wl = np.asarray(meta["wavelengths_nm"], dtype=np.float64)
+    if c.ndim == 2:
+        c = c[None]
+    return c, wl, meta
+
+
+def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:
+    out = []
+    for ch in chans:
+        if "EmissionWavelength" in ch:
+            scale = _UNIT_TO_NM.get(str(ch.get("EmissionWavelengthUnit", "nm")).lower())
+            if scale is None:
+                return None
+            out.append(float(ch["EmissionWavelength"]) * scale)
+        else:
+            name = str(ch.get("Name", "")).strip()
+            if not name.endswith("nm"):
+                return None
+            try:
+                out.append(float(name[:-2]))
+            except ValueError:
+                return None
+    return np.asarray(out, dtype=np.float64) if out else None
+
+
+def _load_xarray(p: Path, kind: str):
+    xr = _import_xarray(f"reading {p}")
+    opener = xr.open_dataset if kind == "netcdf" else xr.open_zarr
+    with opener(p) as ds:
+        if "cube" not in ds:
+            raise FileFormatError(f"{p}: no variable 'cube' (found {sorted(ds.data_vars)})")
+        da = ds["cube"].transpose("wavelength", ...)
+        c = np.asarray(da.values)
+        wl = np.asarray(da["wavelength"].values, dtype=np.float64)
+        scale = _UNIT_TO_NM.get(str(da["wavelength"].attrs.get("units", "nm")).lower())
+        if scale is None:
+            raise FileFormatError(f"{p}: unknown wavelength units "
+                                  f"{da['wavelength'].attrs.get('units')!r}")  # fmt: skip
+        valid = np.asarray(da["valid"].values, dtype=bool) if "valid" in da.coords else None
+        meta = _json_dict(da.attrs.get("hsi_torch_metadata"))
+    return c, wl * scale, valid, meta
 
 
 _UNIT_TO_NM = {

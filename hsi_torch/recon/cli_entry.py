@@ -1,7 +1,8 @@
 """``hsi-torch reconstruct``: captures (files or globs) + a calibration bundle → spectral cubes.
 
-For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif``,
-``<stem>.hdr/.img``, ``<stem>.npz``), ``<stem>_preview.png`` (sRGB, D65) and, with
+For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
+its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
+``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65, enlarged, with a caption) and, with
 ``spectra_points``, ``<stem>_spectra.png``. Every file is written atomically; if writing an input's
 outputs fails, the files already written for that input are removed. ``DIR/resolved_config.yaml``
 records the configuration. Runs through :func:`hsi_torch.batch.run_batch` (progress bar, continues
@@ -27,9 +28,10 @@ import torch
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
-__all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings"]
+__all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings", "preview_caption"]
 
-_SUFFIXES = {"tiff": [".tif"], "envi": [".hdr", ".img"], "npz": [".npz"]}
+_SUFFIXES = {"tiff": [".tif", ".vrt"], "envi": [".hdr", ".img"], "npz": [".npz"],
+             "netcdf": [".nc"], "zarr": [".zarr"]}
 
 
 def output_paths(stem: Path, cfg: ReconstructConfig) -> list[Path]:
@@ -40,6 +42,18 @@ def output_paths(stem: Path, cfg: ReconstructConfig) -> list[Path]:
     if cfg.spectra_points:
         out.append(stem.with_name(stem.name + "_spectra.png"))
     return out
+
+
+def preview_caption(
+    name: str, cfg: ReconstructConfig, metadata: dict[str, Any] | None = None
+) -> str:
+    """The preview's caption: scene (the input's stem), bundle file, β, rendering."""
+    parts = [name]
+    bundle = (metadata or {}).get("bundle")
+    if bundle:
+        parts.append(f"bundle {Path(bundle).name}")
+    parts += [f"beta {cfg.beta:g}", "sRGB D65"]
+    return " | ".join(parts)
 
 
 def _check_points(points: Sequence[tuple[int, int]], h: int, w: int) -> None:
@@ -70,6 +84,7 @@ def write_outputs(
     """
     from hsi_torch.colour import save_preview_png
     from hsi_torch.io import save_cube_formats
+    from hsi_torch.io.cube import remove_output
 
     s = Path(stem)
     cube = result.cube.detach().to("cpu", torch.float32)
@@ -96,7 +111,9 @@ def write_outputs(
     if cfg.preview:
         # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
         path = s.with_name(s.name + "_preview.png")
-        jobs.append(timed("preview", lambda: [save_preview_png(cube, wl, path, valid=valid)]))
+        caption = preview_caption(s.name, cfg, metadata)
+        jobs.append(timed("preview", lambda: [save_preview_png(
+            cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size)]))
     if cfg.spectra_points:
         jobs.append(timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
@@ -113,7 +130,7 @@ def write_outputs(
     written = [p for r in results for p in r]
     if errors:
         for p in written:
-            p.unlink(missing_ok=True)
+            remove_output(p)
         raise errors[0]
     return written
 
@@ -160,9 +177,17 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     from hsi_torch.batch import ensure_out_dir, expand_inputs, fingerprint_of, run_batch
     from hsi_torch.cli import load_args_config
     from hsi_torch.config import write_resolved_config
+    from hsi_torch.console import warn
     from hsi_torch.recon.sensing import load_bundle
 
-    cfg: ReconstructConfig = load_args_config(args, ReconstructConfig)
+    cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
+    from hsi_torch.io.cube import require_format
+
+    for fmt in cfg.formats:  # an optional package that is missing fails before any work
+        try:
+            require_format(fmt)
+        except ModuleNotFoundError as exc:
+            raise ValueError(f"config key 'formats': {exc}") from None
     inputs = expand_inputs(args.inputs)  # a glob matching nothing fails before anything is written
     if getattr(args, "device", None):
         cfg.device = str(args.device)
@@ -212,7 +237,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
             white_level=cfg.white_level,
         )  # fmt: skip
         for msg in frame_warnings(res.stats, cfg):
-            _warn(f"WARNING {path}: {msg}", progress)
+            warn(f"WARNING {path}: {msg}")
         cap_meta = res.stats.pop("metadata", {})
         meta = {
             "source": os.path.abspath(path),
@@ -252,13 +277,3 @@ def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
         )
     return out
 
-
-def _warn(msg: str, progress: bool) -> None:
-    import sys
-
-    if progress:
-        from tqdm import tqdm
-
-        tqdm.write(msg, file=sys.stderr)
-    else:
-        print(msg, file=sys.stderr)

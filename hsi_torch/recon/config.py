@@ -1,4 +1,4 @@
-"""``ReconstructConfig``: the schema of ``configs/reconstruct.yaml`` (``hsi-torch reconstruct``).
+"""``ReconstructConfig``: schema of the shipped ``reconstruct.yaml`` (``hsi-torch reconstruct``).
 
 Loaded and validated by :func:`hsi_torch.config.load_config`; every key can be overridden on the
 command line (``--set beta=100``). ``describe_schema(ReconstructConfig)`` prints the reference.
@@ -11,7 +11,7 @@ from typing import Literal
 
 __all__ = ["ReconstructConfig"]
 
-CubeFormatName = Literal["tiff", "envi", "npz"]
+CubeFormatName = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 
 
 def _help(text: str) -> dict[str, str]:
@@ -42,9 +42,14 @@ class ReconstructConfig:
     )
     formats: list[CubeFormatName] = field(
         default_factory=lambda: ["tiff", "envi", "npz"],
-        metadata=_help("cube files written per input: tiff, envi (.hdr/.img), npz"),
+        metadata=_help("cube files written per input: tiff (OME-TIFF .tif + GDAL .vrt), envi "
+                       "(.hdr/.img), npz, netcdf (.nc), zarr (.zarr); netcdf/zarr need "
+                       "pip install 'hsi-torch[formats]'"),
     )
     preview: bool = field(default=True, metadata=_help("write an sRGB preview PNG (D65)"))
+    preview_size: int = field(
+        default=512, metadata=_help("the preview's longer side is enlarged (integer factor, "
+                                    "nearest neighbour) to at least this many px; 0: native"))
     spectra_points: list[tuple[int, int]] = field(
         default_factory=list,
         metadata=_help("reference-frame pixels [x, y] whose spectra are plotted (PNG)"),
@@ -103,6 +108,8 @@ class ReconstructConfig:
             raise ValueError(
                 f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
             )
+        if self.preview_size < 0:
+            raise ValueError(f"preview_size must be >= 0, got {self.preview_size}")
         if not self.formats and not self.preview:
             raise ValueError("nothing to write: formats is empty and preview is false")
         if len(set(self.formats)) != len(self.formats):

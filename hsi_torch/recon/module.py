@@ -10,6 +10,14 @@ precision (the factorisation is then recomputed in the new dtype). The forward p
 Differentiable with respect to the input: see :mod:`hsi_torch.recon.pipeline` (straight-through
 reduced solve on the solver's free set for the active-set method; fixed-iteration ADMM is
 differentiated through its iterations).
+
+``torch.compile``: the forward pass does no timing and computes no statistics (no ``.item()``);
+the input checks and the Bayer demosaic are traced, and the warp + observations + solve +
+assembly run in :meth:`HSIReconstructor.reconstruct_prepared`, wrapped with
+``torch.compiler.disable``: the exact active-set solver's data-dependent control flow (which
+pixels need pivoting, grouped by the size of their zero set) would otherwise break the graph
+dozens of times and recompile for every frame. A network around the module therefore compiles
+with one graph break at the solver, and the result equals the eager one (tested).
 """
 
 from __future__ import annotations
@@ -273,12 +281,22 @@ class HSIReconstructor(nn.Module):
             )
         out_dtype = x.dtype
         rgb, sat = prepare_input(x, saturated, self.cfa_pattern)
-        cube, valid, _, _ = reconstruct_batch(
-            self.sensing(), rgb, sat, scale=exposure_scale, solver=self.solver,
-            admm_iters=self.admm_iters, chunk_size=self.chunk_size, min_views=self.min_views,
-            nan_invalid=self.nan_invalid, sat_threshold=self.sat_threshold,
-        )  # fmt: skip
+        cube, valid = self.reconstruct_prepared(rgb, sat, exposure_scale)
         return ReconstructionOutput(cube.to(out_dtype), valid)
+
+    @torch.compiler.disable
+    def reconstruct_prepared(
+        self, rgb: Tensor, saturated: Tensor | None, exposure_scale: Tensor | float | None
+    ) -> tuple[Tensor, Tensor]:
+        """Warp, observations, exact solve and assembly of ``(B, 3, H, W)`` linear RGB (the part
+        of :meth:`forward` that ``torch.compile`` leaves to eager mode; no statistics, no
+        timing)."""
+        cube, valid, _, _ = reconstruct_batch(
+            self.sensing(), rgb, saturated, scale=exposure_scale, solver=self.solver,
+            admm_iters=self.admm_iters, chunk_size=self.chunk_size, min_views=self.min_views,
+            nan_invalid=self.nan_invalid, sat_threshold=self.sat_threshold, stats=False,
+        )  # fmt: skip
+        return cube, valid
 
     def extra_repr(self) -> str:
         h, w = self.frame_size

@@ -105,10 +105,33 @@ class ReconstructionResult:
     stats: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
+    def to_xarray(self, metadata: dict[str, Any] | None = None):
+        """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
+        valid mask as a coordinate (:func:`hsi_torch.io.cube.cube_to_xarray`; needs
+        ``pip install 'hsi-torch[formats]'``)."""
+        from hsi_torch.io.cube import cube_to_xarray
+
+        return cube_to_xarray(self.cube.detach().cpu(), self.wavelengths_nm.detach().cpu(),
+                              self.valid.detach().cpu(), metadata)  # fmt: skip
+
 
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+class _Clock:
+    """Stage timer: ``clock()`` syncs the device and returns ``time.perf_counter()``; disabled,
+    it returns 0.0 without touching the device."""
+
+    def __init__(self, device: torch.device, enabled: bool) -> None:
+        self.device, self.enabled = device, enabled
+
+    def __call__(self) -> float:
+        if not self.enabled:
+            return 0.0
+        _sync(self.device)
+        return time.perf_counter()
 
 
 def exposure_scale(capture_exposure_s: Any, white_exposure_s: float | None) -> float:
@@ -308,6 +331,7 @@ def solve_observations(
     chunk_size: int | None = None,
     min_views: int = 3,
     premasked: bool = False,
+    stats: bool = True,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Solve one frame's ``P`` pixels with the precomputed factorisation (+ exact re-solves).
 
@@ -318,6 +342,8 @@ def solve_observations(
         min_views: views (with ≥ 1 usable colour) a pixel needs to stay valid.
         premasked: ``y`` is already 0 wherever ``mask`` is False (and in ``sens.dtype``): used
             as is, without a masked copy.
+        stats: compute ``info`` (host syncs: counts, KKT statistics, fit residual); ``False``:
+            ``info`` is empty and only the solve's own control flow reads the device.
 
     Returns:
         ``x (P, M)`` (0 where invalid), ``ok (P,)`` bool, ``info`` (counts, KKT statistics).
@@ -352,6 +378,8 @@ def solve_observations(
     if torch.is_grad_enabled() and yc.requires_grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
     x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
+    if not stats:
+        return x, ok, {}
     okc = conv & ok
     n_ok = int(ok.sum())
     info = {
@@ -440,6 +468,7 @@ def reconstruct_batch(
     min_views: int = 3,
     nan_invalid: bool = True,
     sat_threshold: float = 1e-3,
+    stats: bool = True,
 ) -> tuple[Tensor, Tensor, list[dict[str, Any]], dict[str, float]]:
     """Shared core of :class:`Reconstructor` and :class:`~hsi_torch.recon.module.HSIReconstructor`.
 
@@ -447,21 +476,24 @@ def reconstruct_batch(
         images: ``(B, 3, H, W)`` linear RGB on ``sens.device`` (cast to ``sens.dtype``).
         saturated: ``(B, 3, H, W)`` bool or ``None``.
         scale: scalar or ``(B,)`` factor on the observations (exposure correction).
+        stats: per-frame statistics and stage timings (each stage ends with a device sync);
+            ``False`` (the ``nn.Module``): no timing, no statistics, no extra sync.
 
     Returns:
-        ``cube (B, M, h, w)``, ``valid (B, h, w)``, per-frame stats, stage timings (s, summed).
+        ``cube (B, M, h, w)``, ``valid (B, h, w)``, per-frame stats, stage timings (s, summed;
+        both empty when ``stats`` is False).
     """
     dev = sens.device
     if images.device != dev:
         raise ValueError(f"input is on {images.device} but the bundle tensors are on {dev}")
     t: dict[str, float] = {}
-    t0 = time.perf_counter()
+    clock = _Clock(dev, stats)
+    t0 = clock()
     imgs = images.to(sens.dtype)
     if saturated is not None and not bool(saturated.any()):
         saturated = None  # nothing saturated: the mask channels would sample to 0 everywhere
     samples, wsat = sample_views(sens, imgs, saturated)
-    _sync(dev)
-    t1 = time.perf_counter()
+    t1 = clock()
     t["warp"] = t1 - t0
     y, mask, sat = observations_from_samples(sens, samples, wsat, sat_threshold)
     inplace = not (torch.is_grad_enabled() and y.requires_grad)  # y is this function's own copy
@@ -471,29 +503,27 @@ def reconstruct_batch(
         y = y.mul_(s) if inplace else y * s
     if inplace:
         y.masked_fill_(~mask, 0)  # masked observations are never used (they may be NaN)
-    _sync(dev)
-    t2 = time.perf_counter()
+    t2 = clock()
     t["observations"] = t2 - t1
-    xs, oks, stats = [], [], []
+    xs, oks, infos = [], [], []
     for i in range(y.shape[0]):
         x, ok, info = solve_observations(
             sens, y[i], mask[i], solver=solver, admm_iters=admm_iters, chunk_size=chunk_size,
-            min_views=min_views, premasked=inplace,
+            min_views=min_views, premasked=inplace, stats=stats,
         )  # fmt: skip
-        info["saturated_observations"] = int(sat[i].sum())
+        if stats:
+            info["saturated_observations"] = int(sat[i].sum())
+            infos.append(info)
         xs.append(x)
         oks.append(ok)
-        stats.append(info)
-    _sync(dev)
-    t3 = time.perf_counter()
+    t3 = clock()
     t["solve"] = t3 - t2
     if len(xs) == 1:  # no stacked copy for a single frame
         cube, valid = assemble_cube(sens, xs[0][None], oks[0][None], nan_invalid)
     else:
         cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
-    _sync(dev)
-    t["assemble"] = time.perf_counter() - t3
-    return cube, valid, stats, t
+    t["assemble"] = clock() - t3
+    return cube, valid, infos, (t if stats else {})
 
 
 class Reconstructor:

@@ -54,10 +54,6 @@ MANIFEST_SCHEMA_VERSION = 1
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
-def _real_data_dir() -> Path:
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
-
-
 # =============================================================================================
 # building blocks from the config
 # =============================================================================================
@@ -105,7 +101,9 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
 def build_scene(spec: SceneSpec) -> Any | None:
     """The scene of a :class:`SceneSpec`; ``None`` when it is optional and its data is missing.
 
-    ``cave`` reads ``../shared/data/real/cave_stuffed_toys`` unless ``params.folder`` is given.
+    ``cave`` reads ``cave_stuffed_toys`` in the real-data folder
+    (:func:`hsi_torch.resources.real_data_dir`: ``HSI_TORCH_DATA``, else ``../shared/data/real``
+    beside a source checkout) unless ``params.folder`` is given.
     """
     params = dict(spec.params)
     if spec.kind == "cube":
@@ -124,12 +122,18 @@ def build_scene(spec: SceneSpec) -> Any | None:
                          center_mm=tuple(params.get("center_mm", (0.0, 0.9))),
                          extrapolate=params.get("extrapolate", "edge"))
     if spec.kind == "cave":
-        folder = Path(params.pop("folder", _real_data_dir() / "cave_stuffed_toys"))
-        if not folder.is_dir():
+        from hsi_torch.resources import DATA_ENV, real_data_dir
+
+        given = params.pop("folder", None)
+        folder = Path(given) if given is not None else real_data_dir("cave_stuffed_toys")
+        if folder is None or not folder.is_dir():
             if spec.optional:
                 return None
+            where = folder if folder is not None else (
+                f"cave_stuffed_toys in the real-data folder (none found: set {DATA_ENV} or "
+                "params.folder)")
             raise FileNotFoundError(f"scene {spec.name or 'cave'!r}: CAVE folder not found: "
-                                    f"{folder}")
+                                    f"{where}")
         params.setdefault("width_mm", 7.0)
         params.setdefault("center_mm", (0.0, 0.9))
         params.setdefault("extrapolate", "edge")
@@ -306,12 +310,13 @@ class SimulationSummary:
 
 
 def _tqdm(enabled: bool):
-    if not enabled:
+    from hsi_torch.console import progress_bar, progress_enabled
+
+    if not progress_enabled(enabled):
         return None
-    from tqdm.auto import tqdm
 
     def wrap(it, **kw):
-        return tqdm(it, leave=False, **kw)
+        return progress_bar(it, leave=False, **kw)
 
     return wrap
 

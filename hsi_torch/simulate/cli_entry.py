@@ -1,4 +1,5 @@
-"""``hsi-torch simulate --config C --out DIR [--set key=value ...] [--device D]``."""
+"""``hsi-torch simulate [--config C] --out DIR [--set key=value ...] [--device D]`` (without
+``--config``: the shipped ``simulate.yaml``, the README's default prototype)."""
 
 from __future__ import annotations
 
@@ -9,12 +10,13 @@ import sys
 def run_simulate(args: argparse.Namespace) -> int:
     """Entry point called by :mod:`hsi_torch.cli`: render a capture set with ground truth."""
     from hsi_torch.cli import load_args_config
+    from hsi_torch.console import info
     from hsi_torch.simulate.capture_sets import simulate_capture_set
     from hsi_torch.simulate.config import SimulateConfig
 
-    cfg = load_args_config(args, SimulateConfig)
+    cfg = load_args_config(args, SimulateConfig, default="simulate")
     device = getattr(args, "device", None)
     summary = simulate_capture_set(
-        cfg, args.out, device=device, log=lambda m: print(m, file=sys.stderr))
-    print(summary.report())
+        cfg, args.out, device=device, log=lambda m: info(m, file=sys.stderr))
+    info(summary.report())
     return 0

@@ -11,6 +11,11 @@ same name and unit as the field it sets (lengths in mm, angles in degrees, wavel
 - ``objective``, ``illuminant``, ``camera_sensitivity``, ``render``, ``captures``: this package.
 
 ``describe_schema(SimulateConfig)`` prints one line per key with its default and help text.
+
+The schema's defaults are the README's default prototype (exit 40 mm; quartz 2.5 mm, axis
+70° / 40°; 0.1 mm diffuser blur), equal to the optics dataclasses' defaults and to the shipped
+``simulate.yaml`` (``hsi_torch.resources.shipped_config("simulate")``); ``simulate_full.yaml``
+changes only the camera (the original prototype's sensor) and the render settings.
 """
 
 from __future__ import annotations
@@ -220,8 +225,8 @@ class SceneSpec:
     ``cube``. ``params`` go to the scene constructor (:func:`hsi_torch.simulate.scenes.make_scene`;
     ``*_deg`` keys are converted). ``cube``: ``path`` to a cube file read with
     :func:`hsi_torch.io.load_cube`, placed with ``params`` ``width_mm``/``center_mm``.
-    ``optional``: skip (with a message) when the data is missing, e.g. CAVE without
-    ``../shared/data/real``.
+    ``optional``: skip (with a message) when the data is missing, e.g. CAVE without the real-data
+    folder (:func:`hsi_torch.resources.real_data_dir`).
     """
 
     kind: Literal["colorchecker", "usaf", "white", "flat", "circle_grid", "cave", "cube"]

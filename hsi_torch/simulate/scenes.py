@@ -598,8 +598,15 @@ class CubeScene:
 
 
 def _default_cave_folder() -> Path:
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / \
-        "cave_stuffed_toys"
+    from hsi_torch.resources import DATA_ENV, real_data_dir
+
+    folder = real_data_dir("cave_stuffed_toys")
+    if folder is None:
+        raise FileNotFoundError(
+            f"the CAVE folder cave_stuffed_toys was not found in the real-data folder ({DATA_ENV} "
+            "or ../shared/data/real beside the source checkout); pass folder="
+        )
+    return folder
 
 
 def load_cave_cube(
