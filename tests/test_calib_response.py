@@ -106,15 +106,16 @@ def test_estimate_response_scalar_gains_noise_free():
     clean = g_scalar[:, None, None, None] * torch.einsum("vmhw,cm->vchw", d["b"], d["phi"])
     I = clean.permute(2, 3, 0, 1).reshape(-1, V, 3)
     b = d["b"].permute(2, 3, 0, 1).reshape(-1, V, 25)
-    res = estimate_response(I, b, d["f"], beta_phi=1e-3, gamma_h=1e-3, gain_reg=0.0)
+    res = estimate_response(I, b, d["f"], beta_phi=1e-3, gamma_h=1e-3, normalise=False,
+                            gain_reg=0.0)
     gt = g_scalar / g_scalar[0]
     assert res.gain[0] == 1.0
     torch.testing.assert_close(res.gain, gt, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(res.phi, d["phi"] * g_scalar[0], rtol=1e-3, atol=1.0)  # max ~1500
     assert res.residual_rms[-1] < 1e-4 * float(I.mean())
     # the plain 3-step alternation (refine_steps=0) is much further from the truth
-    plain = estimate_response(I, b, d["f"], beta_phi=1e-3, gamma_h=1e-3, gain_reg=0.0,
-                              refine_steps=0)
+    plain = estimate_response(I, b, d["f"], beta_phi=1e-3, gamma_h=1e-3, normalise=False,
+                              gain_reg=0.0, refine_steps=0)
     assert float((plain.gain - gt).abs().max()) > 10 * float((res.gain - gt).abs().max())
 
 
@@ -133,7 +134,7 @@ def test_fit_gain_field_exact_for_polynomial_gain():
 def test_estimate_response_field_noisy_meets_targets():
     d = _truth(noise=0.01, h=20, w=20)
     res = estimate_response_field(d["white"], d["b"], d["f"], d["mask"], beta_phi=1.0,
-                                  gamma_h=1.0, degree=2, smoothness=1e-3)
+                                  gamma_h=1.0, normalise=False, degree=2, smoothness=1e-3)
     m = d["mask"]
     gerr = ((res.gain - d["gain"]).abs() / d["gain"])[m]
     assert float(gerr.max()) < 0.02, float(gerr.max())
@@ -160,3 +161,28 @@ def test_shape_errors(bad):
             solve_phi(I, b, torch.ones(4), torch.ones(3, 8, dtype=torch.float64))
         else:
             estimate_response_field(d["white"], d["b"], d["f"], d["mask"][:, :-1])
+
+
+def test_normalised_weights_do_not_depend_on_the_number_of_observations():
+    """The same white data seen 4x (a 4x larger sensor of the same scene) gives the same φ and g
+    with normalised weights; absolute weights then weaken the prior 4x and the answer moves."""
+    from hsi_torch.calibrate.response import data_scale
+
+    d = _truth(noise=0.02, h=12, w=12)
+    V = d["b"].shape[0]
+    I = d["white"].mean(0).permute(2, 3, 0, 1).reshape(-1, V, 3)
+    b = d["b"].permute(2, 3, 0, 1).reshape(-1, V, 25)
+    I4, b4 = I.repeat(4, 1, 1), b.repeat(4, 1, 1)
+    assert data_scale(b4) == pytest.approx(4 * data_scale(b), rel=1e-12)
+    kw = dict(beta_phi=0.05, gamma_h=0.05, refine_steps=5)
+    one = estimate_response(I, b, d["f"], **kw)
+    four = estimate_response(I4, b4, d["f"], **kw)
+    torch.testing.assert_close(four.phi, one.phi, rtol=1e-7, atol=1e-7 * float(one.phi.abs().max()))
+    torch.testing.assert_close(four.gain, one.gain, rtol=1e-7, atol=1e-9)
+    assert four.beta_phi_effective == pytest.approx(4 * one.beta_phi_effective, rel=1e-12)
+    absolute = dict(kw, beta_phi=one.beta_phi_effective, gamma_h=one.gamma_h_effective,
+                    normalise=False)
+    same = estimate_response(I, b, d["f"], **absolute)
+    torch.testing.assert_close(same.phi, one.phi, rtol=1e-9, atol=1e-9 * float(one.phi.abs().max()))
+    weaker = estimate_response(I4, b4, d["f"], **absolute)
+    assert float((weaker.phi - one.phi).abs().max()) > 1e-4 * float(one.phi.abs().max())

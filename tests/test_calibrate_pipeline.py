@@ -66,7 +66,7 @@ def test_cli_outputs_settings_and_provenance(sim: Path, calibrated: Path):
     s = b.settings
     assert s["cfa_pattern"] == manifest["cfa_pattern"] == "RGGB"
     assert s["white_exposure_s"] == pytest.approx(manifest["exposure"])
-    assert s["beta_phi"] == 1e4 and s["gamma_h"] == 1e2
+    assert s["beta_phi"] == 1e-2 and s["gamma_h"] == 1e-2 and s["beta_phi_effective"] > 1e3
     assert s["detector"]["pattern_size"] == [4, 5] and s["detector"]["blob"]["min_area"] == 5.0
     h = b.provenance["inputs_sha256"]
     assert h["scan/scan_550nm.tif"] == file_sha256(sim / "scan" / "scan_550nm.tif")

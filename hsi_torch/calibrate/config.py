@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from hsi_torch.calibrate.response import DEFAULT_BETA_PHI, DEFAULT_GAMMA_H
+
 __all__ = [
     "BlobSection",
     "RegistrationSection",
@@ -113,13 +115,19 @@ class ResponseSection:
     """φ^c(λ) and the gain field g_v(p) from the white shots (:func:`estimate_response_field`)."""
 
     beta_phi: float = field(
-        default=1e4,
-        metadata=_h("smoothness weight on ||D phi||^2 (original prototype: 8e5, too strong on "
-                    "DN-scale data; see docs/calibration.md)"),
+        default=DEFAULT_BETA_PHI,
+        metadata=_h("smoothness weight on ||D phi||^2, relative to the data scale "
+                    "s = sum w ||b||^2 / M when normalise (the original prototype's absolute 8e5 "
+                    "is 0.6 on the small simulated set, 0.011 at full size)"),
     )
     gamma_h: float = field(
-        default=1e2,
-        metadata=_h("weight of the shape prior ||phi - alpha f~||^2 (original prototype: 8e5)"),
+        default=DEFAULT_GAMMA_H,
+        metadata=_h("weight of the shape prior ||phi - alpha f~||^2 (relative as beta_phi)"),
+    )
+    normalise: bool = field(
+        default=True,
+        metadata=_h("beta_phi, gamma_h relative to the data scale (one setting for every sensor "
+                    "size); false: absolute weights, as the original prototype"),
     )
     n_iter: int = field(default=3, metadata=_h("alternations (original prototype: 3)"))
     refine_steps: int = field(
@@ -138,6 +146,11 @@ class ResponseSection:
     saturation_margin: float = field(
         default=1e-3, metadata=_h("white sample counts as saturated above this warped weight")
     )
+    max_pixels: int | None = field(
+        default=100_000,
+        metadata=_h("estimate phi and the gain field on a regular sub-grid of at most this many "
+                    "reference-frame pixels (null: all; the small prototype has ~12 500)"),
+    )
 
     def __post_init__(self) -> None:
         if self.beta_phi < 0 or self.gamma_h < 0:
@@ -146,6 +159,8 @@ class ResponseSection:
             raise ValueError("degree, n_iter and refine_steps must be >= 0")
         if self.diff_order not in (1, 2):
             raise ValueError(f"diff_order must be 1 or 2, got {self.diff_order}")
+        if self.max_pixels is not None and self.max_pixels < 1:
+            raise ValueError(f"max_pixels must be >= 1 or null, got {self.max_pixels}")
 
 
 @dataclass

@@ -531,17 +531,30 @@ def calibrate_capture_set(
         tm["registration"] = time.perf_counter() - t0
 
         # ---- BRF transmittance --------------------------------------------------------------
+        # Frames are read a chunk at a time; each chunk's ratio to the BRF-free patch is carried
+        # into the reference frame at once (the warp is linear per wavelength), so no
+        # full-sensor (M, H, W) stack is ever held. What needs every wavelength — the "lit" test
+        # (max over λ), the reliable mask (all λ), the BRF-free plausibility check — is
+        # accumulated per sensor pixel and applied through the warped mask at the end.
         t0 = time.perf_counter()
         tcfg = cfg.transmittance
-        B_parts, rel_parts, patch_means = [], [], []
+        tri_t = torch.as_tensor(tri, device=dev, dtype=dt)
+        B_ref = torch.empty((V, M, h, w), dtype=dt, device=dev)
+        patch_means = []
+        b_max = torch.full(size, -math.inf, dtype=dt, device=dev)
+        rel_all = torch.ones(size, dtype=torch.bool, device=dev)
+        ref_view = torch.from_numpy(ref_tri_mask & ~disk_np).to(dev)
+        ref_sum = torch.zeros(int(ref_view.sum()), dtype=torch.float64, device=dev)
         chunk = tcfg.frames_per_chunk
         for s in range(0, M, chunk):
             frames = []
             for p, _ in scan_sel[s : s + chunk]:
                 img, sat, _ = reader.read(p)
                 frames.append(torch.where(sat, torch.full_like(img, _SAT_SENTINEL), img))
+                del img, sat
                 tick(1, "scan")
             x = torch.stack(frames)
+            del frames
             psat = (x >= _SAT_SENTINEL)[:, :, patch_mask].any(-1)  # (J, 3)
             if bool(psat.all(dim=1).any()):
                 bad = [scan_sel[s + int(j)][0].name for j in torch.nonzero(psat.all(1)).flatten()]
@@ -554,20 +567,23 @@ def calibrate_capture_set(
                 )  # fmt: skip
             except ValueError as exc:
                 raise ValueError(f"monochromator scan ({mask_src}): {exc}") from exc
-            B_parts.append(tr.transmittance)
-            rel_parts.append(tr.reliable)
+            del x
+            torch.maximum(b_max, tr.transmittance.amax(0), out=b_max)
+            rel_all &= tr.reliable.all(0)
+            ref_sum += tr.transmittance[:, ref_view].sum(0, dtype=torch.float64)
             patch_means.append(tr.patch_mean)
-            del x, frames
-        B_s = torch.cat(B_parts)  # (M, H, W)
-        lit = B_s.amax(0) >= tcfg.lit_threshold
-        reliable = torch.cat(rel_parts).all(0) & lit
-        B_s = torch.where(lit[None], B_s, torch.zeros_like(B_s))
+            B_ref[:, s : s + chunk] = to_reference_frame(
+                tr.transmittance, Hs, tri_t, bbox, inset_px=cfg.registration.inset_px,
+            )[0]  # fmt: skip
+            del tr
+        lit = b_max >= tcfg.lit_threshold
+        reliable = rel_all & lit
         patch_mean = torch.cat(patch_means)
         # the patch must be BRF-free: elsewhere in the reference view the filter stack (two
         # polarizers) passes at most ~half of it
-        ref_view = torch.from_numpy(ref_tri_mask).to(dev) & lit & ~torch.from_numpy(disk_np).to(dev)
-        if bool(ref_view.any()):
-            level = float(B_s[:, ref_view].mean(0).median())
+        lit_ref = lit[ref_view]
+        if bool(lit_ref.any()):
+            level = float((ref_sum[lit_ref] / M).median())
             if level > tcfg.max_patch_ratio:
                 raise ValueError(
                     f"BRF-free mask ({mask_src}) does not mark a BRF-free patch: the rest of the "
@@ -575,12 +591,11 @@ def calibrate_capture_set(
                     f"filter stack is ~2x brighter; limit transmittance.max_patch_ratio = "
                     f"{tcfg.max_patch_ratio})"
                 )
-        B_ref, vmask = to_reference_frame(
-            B_s, Hs, torch.as_tensor(tri, device=dev, dtype=dt), bbox, source_mask=reliable,
+        _, vmask = to_reference_frame(
+            reliable[None].to(dt), Hs, tri_t, bbox, source_mask=reliable,
             inset_px=cfg.registration.inset_px,
         )  # fmt: skip
-        del B_s
-        B_ref = B_ref.clamp_min(0) * vmask[:, None]
+        B_ref.clamp_min_(0).mul_(vmask[:, None])
         tm["transmittance"] = time.perf_counter() - t0
 
         # ---- response φ and gain field ------------------------------------------------------
@@ -609,6 +624,7 @@ def calibrate_capture_set(
         rc = cfg.response
         resp = estimate_response_field(
             white_ref, b, f_prior, obs_mask, beta_phi=rc.beta_phi, gamma_h=rc.gamma_h,
+            normalise=rc.normalise, max_pixels=rc.max_pixels,
             n_iter=rc.n_iter, degree=rc.degree, smoothness=rc.smoothness,
             diff_order=rc.diff_order, refine_steps=rc.refine_steps,
         )  # fmt: skip
@@ -637,6 +653,8 @@ def calibrate_capture_set(
             "detector": det_cfg.to_dict(),
             "beta_phi": rc.beta_phi,
             "gamma_h": rc.gamma_h,
+            "beta_phi_effective": resp.beta_phi_effective,
+            "gamma_h_effective": resp.gamma_h_effective,
             "response": {**to_dict(rc), "alpha": resp.alpha.cpu().tolist()},
             "transmittance": to_dict(tcfg),
             "min_views": cfg.min_views,

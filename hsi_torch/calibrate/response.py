@@ -18,13 +18,22 @@ Scale ambiguity: ``(s·g, φ/s)`` explain the data equally well. After every g-s
 normalised so that the **reference view's gain has mean 1** (over its masked pixels for a field)
 and φ is multiplied by the same factor, so ``g·φ`` — what the sensing matrix uses — is unchanged.
 
-The data term is a *sum* over observations (shots × pixels × views), on the intensity scale of the
-data, so the defaults ``β_φ = γ_h = 8·10⁵`` of the original prototype assume many per-pixel
-observations in DN; scale them with the number of observations when using few.
+Normalised weights (``normalise=True``, the default of :func:`estimate_response` and
+:func:`estimate_response_field`): the data term is a *sum* over observations (shots × pixels ×
+views), so absolute weights ``β_φ``, ``γ_h`` weaken the prior in proportion to the number of
+observations — a full-size sensor has ~55× the pixels of the small simulated one, and the
+calibration's systematic errors (transmittance, demosaicing, registration) do not average out
+with more pixels. The weights are therefore given relative to the data:
+``β_eff = β_φ · s``, ``γ_eff = γ_h · s`` with ``s = Σ_obs w ‖b_obs‖² / M`` the mean diagonal of the
+data's Gram matrix ``Σ w b bᵀ`` (:func:`data_scale`). ``s`` grows with the number of observations
+and does not depend on the signal level (``I`` and ``φ`` scale together, so both sides of the
+objective scale alike). The original prototype's absolute ``β_φ = γ_h = 8·10⁵`` is
+``normalise=False``; :attr:`ResponseResult.beta_phi_effective` reports the absolute weights used.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -32,6 +41,9 @@ import torch
 from hsi_torch.spectral import difference_matrix
 
 __all__ = [
+    "DEFAULT_BETA_PHI",
+    "DEFAULT_GAMMA_H",
+    "data_scale",
     "ResponseResult",
     "solve_phi",
     "solve_gain",
@@ -40,6 +52,13 @@ __all__ = [
     "fit_gain_field",
     "estimate_response_field",
 ]
+
+
+#: Relative smoothness weight on ‖D φ‖² (times :func:`data_scale`); chosen on the small and the
+#: full-size simulated sets (docs/calibration.md).
+DEFAULT_BETA_PHI = 1e-2
+#: Relative weight of the shape prior ‖φ − α f̃‖² (times :func:`data_scale`).
+DEFAULT_GAMMA_H = 1e-2
 
 
 @dataclass
@@ -52,6 +71,8 @@ class ResponseResult:
         gain: ``(V,)`` scalar gains, or ``(V, h, w)`` gain field; reference mean = 1.
         coefficients: ``(V, K)`` Legendre coefficients of the gain field (``None`` for scalars).
         residual_rms: RMS of the weighted data residual after each alternation.
+        beta_phi_effective, gamma_h_effective: the absolute weights used (the relative ones
+            times :func:`data_scale` when normalised).
     """
 
     phi: torch.Tensor
@@ -59,6 +80,8 @@ class ResponseResult:
     gain: torch.Tensor
     coefficients: torch.Tensor | None = None
     residual_rms: list[float] = field(default_factory=list)
+    beta_phi_effective: float = float("nan")
+    gamma_h_effective: float = float("nan")
 
 
 def _check_obs(I: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -99,6 +122,34 @@ def _check_white(
     if b.ndim != 4 or b.shape[0] != V or b.shape[2:] != (h, w):
         raise ValueError(f"b must be (V, M, h, w) = ({V}, M, {h}, {w}), got {tuple(b.shape)}")
     return white, S, V, h, w
+
+
+def data_scale(b: torch.Tensor, weights: torch.Tensor | None = None) -> float:
+    """Mean diagonal of the white data's Gram matrix: ``s = Σ_obs w ‖b_obs‖² / M``.
+
+    Args:
+        b: ``(N, V, M)`` (or ``(V, M)``) ``B_v(λ_m) Δλ_m`` per observation.
+        weights: ``(N, V)`` observation weights (default 1).
+
+    The reference scale of the normalised weights (module docstring): it counts the observations
+    and their filter throughput, not the signal level.
+    """
+    if b.ndim == 2:
+        b = b[None]
+    N, V, M = b.shape
+    w = _obs_weights(weights, N, V, b)
+    return float(torch.einsum("nv,nvm->", w.to(torch.float64), b.to(torch.float64) ** 2) / M)
+
+
+def _weights(beta_phi: float, gamma_h: float, normalise: bool, b: torch.Tensor,
+             weights: torch.Tensor | None) -> tuple[float, float]:
+    """Absolute ``(β_φ, γ_h)``: relative ones times :func:`data_scale` when ``normalise``."""
+    if beta_phi < 0 or gamma_h < 0:
+        raise ValueError(f"beta_phi and gamma_h must be >= 0, got {beta_phi}, {gamma_h}")
+    if not normalise:
+        return float(beta_phi), float(gamma_h)
+    s = data_scale(b, weights)
+    return float(beta_phi) * s, float(gamma_h) * s
 
 
 def solve_phi(
@@ -308,8 +359,9 @@ def estimate_response(
     f_prior: torch.Tensor,
     *,
     weights: torch.Tensor | None = None,
-    beta_phi: float = 8e5,
-    gamma_h: float = 8e5,
+    beta_phi: float = DEFAULT_BETA_PHI,
+    gamma_h: float = DEFAULT_GAMMA_H,
+    normalise: bool = True,
     n_iter: int = 3,
     gain_reg: float = 1e-4,
     reference_view: int = 0,
@@ -327,7 +379,9 @@ def estimate_response(
         b: ``(V, M)`` or ``(N, V, M)``, ``B_v(λ_m) Δλ_m``.
         f_prior: ``(3, M)`` shape prior.
         weights: optional ``(N, V)`` observation weights (0 = missing).
-        beta_phi, gamma_h: regularisation weights (defaults of the original prototype).
+        beta_phi, gamma_h: regularisation weights, relative to :func:`data_scale` when
+            ``normalise`` (default), else absolute (the original prototype: ``8e5``, ``8e5``).
+        normalise: interpret ``beta_phi``/``gamma_h`` relative to the data (module docstring).
         n_iter: number of alternations.
         gain_reg: relative ridge of the g-step towards 1.
         reference_view: the view whose gain is fixed to 1.
@@ -350,6 +404,7 @@ def estimate_response(
         else torch.as_tensor(g_init, dtype=dt, device=dev).clone()
     )
     hist: list[float] = []
+    beta_phi, gamma_h = _weights(beta_phi, gamma_h, normalise, b, w)
     kw = dict(weights=w, beta_phi=beta_phi, gamma_h=gamma_h, diff_order=diff_order)
     for _ in range(n_iter):
         phi, alpha = solve_phi(I, b, g, f_prior, **kw)
@@ -380,7 +435,7 @@ def estimate_response(
         )
         g = C[:, 0] / C[reference_view, 0]
     hist.append(_residual_rms(I, b, g.expand(N, V), phi, w))
-    return ResponseResult(phi, alpha, g, None, hist)
+    return ResponseResult(phi, alpha, g, None, hist, beta_phi, gamma_h)
 
 
 def legendre_basis_2d(
@@ -388,27 +443,29 @@ def legendre_basis_2d(
     w: int,
     degree: int,
     *,
+    stride: int = 1,
     device: torch.device | str | None = None,
     dtype: torch.dtype | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Products of Legendre polynomials ``P_i(x̂) P_j(ŷ)``, ``i + j ≤ degree``, on an h×w grid.
 
-    ``x̂, ŷ ∈ [−1, 1]`` span the pixel centres. Returns ``(basis (K, h, w), total_degree (K,))``
-    with ``K = (degree+1)(degree+2)/2``; the first function is the constant 1.
+    ``x̂, ŷ ∈ [−1, 1]`` span the pixel centres of the h×w frame. With ``stride = s`` the functions
+    are sampled at every ``s``-th pixel only (rows and columns ``0, s, 2s, …``), in the same
+    coordinates. Returns ``(basis (K, ⌈h/s⌉, ⌈w/s⌉), total_degree (K,))`` with
+    ``K = (degree+1)(degree+2)/2``; the first function is the constant 1.
     """
     if degree < 0:
         raise ValueError(f"degree must be >= 0, got {degree}")
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
     dtype = dtype or torch.get_default_dtype()
-    xs = (
-        torch.linspace(-1, 1, w, device=device, dtype=dtype)
-        if w > 1
-        else torch.zeros(1, device=device, dtype=dtype)
-    )
-    ys = (
-        torch.linspace(-1, 1, h, device=device, dtype=dtype)
-        if h > 1
-        else torch.zeros(1, device=device, dtype=dtype)
-    )
+
+    def coords(n: int) -> torch.Tensor:
+        if n <= 1:
+            return torch.zeros(1, device=device, dtype=dtype)
+        return torch.linspace(-1, 1, n, device=device, dtype=dtype)[::stride]
+
+    xs, ys = coords(w), coords(h)
 
     def leg(t: torch.Tensor) -> list[torch.Tensor]:
         out = [torch.ones_like(t), t]
@@ -434,6 +491,7 @@ def fit_gain_field(
     *,
     degree: int = 2,
     smoothness: float = 1e-3,
+    basis: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Smooth gain field g_v(p) on the reference frame by penalised least squares (φ fixed).
 
@@ -449,6 +507,8 @@ def fit_gain_field(
         mask: ``(V, h, w)`` bool/float observation weights.
         degree: total polynomial degree.
         smoothness: relative ridge on non-constant coefficients.
+        basis: ``(basis (K, h, w), total_degree (K,))`` to use instead of
+            ``legendre_basis_2d(h, w, degree)`` (e.g. a strided sub-grid of a larger frame).
 
     Returns:
         ``(gain (V, h, w), coefficients (V, K))``.
@@ -460,7 +520,7 @@ def fit_gain_field(
         raise ValueError(f"mask must be (V, h, w) = ({V}, {h}, {w}), got {tuple(m.shape)}")
     a = torch.einsum("vmhw,cm->vchw", b.to(dt), phi.to(dt))
     Ibar = white.mean(0)
-    L, deg = legendre_basis_2d(h, w, degree, device=dev, dtype=dt)
+    L, deg = legendre_basis_2d(h, w, degree, device=dev, dtype=dt) if basis is None else basis
     K = L.shape[0]
     saa = S * m * (a * a).sum(1)  # (V, h, w)
     sai = S * m * (a * Ibar).sum(1)
@@ -484,14 +544,16 @@ def estimate_response_field(
     f_prior: torch.Tensor,
     mask: torch.Tensor,
     *,
-    beta_phi: float = 8e5,
-    gamma_h: float = 8e5,
+    beta_phi: float = DEFAULT_BETA_PHI,
+    gamma_h: float = DEFAULT_GAMMA_H,
+    normalise: bool = True,
     n_iter: int = 3,
     degree: int = 2,
     smoothness: float = 1e-3,
     reference_view: int = 0,
     diff_order: int = 1,
     refine_steps: int = 20,
+    max_pixels: int | None = None,
 ) -> ResponseResult:
     """Alternating estimation of φ^c and a smooth gain field g_v(p) from registered white shots.
 
@@ -505,24 +567,47 @@ def estimate_response_field(
         b: ``(V, M, h, w)`` ``B_v(p, λ_m) Δλ_m`` in the reference frame.
         f_prior: ``(3, M)``.
         mask: ``(V, h, w)`` bool: pixel present in view v (and reliable).
-        beta_phi, gamma_h, n_iter, diff_order: see :func:`estimate_response`.
+        beta_phi, gamma_h, normalise, n_iter, diff_order: see :func:`estimate_response`.
         degree, smoothness: see :func:`fit_gain_field`.
         reference_view: the view normalised to mean gain 1.
         refine_steps: joint refinement steps after the alternations (see
             :func:`estimate_response`).
+        max_pixels: estimate on a regular sub-grid (every ``s``-th row and column,
+            ``s = ⌈sqrt(h·w / max_pixels)⌉``) when the frame has more pixels; the gain field is
+            then evaluated on the whole frame from its coefficients and the gauge (mean reference
+            gain 1) re-applied there. The white shots of every pixel are averaged anyway, the
+            unknowns (``3M`` values of φ, ``V·K`` gain coefficients) are few, and calibration
+            errors are systematic, so the sub-grid costs nothing measurable while bounding time
+            and memory at full sensor size. ``None``: every pixel.
 
     Returns:
         :class:`ResponseResult` with ``gain (V, h, w)`` and its coefficients.
     """
     white, S, V, h, w = _check_white(white, b)
     dt, dev = white.dtype, white.device
-    M = b.shape[1]
     mask_b = torch.as_tensor(mask, device=dev).to(torch.bool)
     if mask_b.shape != (V, h, w):
         raise ValueError(f"mask must be (V, h, w) = ({V}, {h}, {w}), got {tuple(mask_b.shape)}")
-    ref = mask_b[reference_view]
-    if not bool(ref.any()):
+    if not bool(mask_b[reference_view].any()):
         raise ValueError(f"the reference view {reference_view} has an empty mask")
+    if max_pixels is not None and max_pixels < 1:
+        raise ValueError(f"max_pixels must be >= 1 or None, got {max_pixels}")
+    stride = 1 if max_pixels is None else max(1, math.ceil(math.sqrt(h * w / max_pixels)))
+    full_basis = None
+    if stride > 1:
+        full_basis = legendre_basis_2d(h, w, degree, device=dev, dtype=dt)
+        full_ref = mask_b[reference_view]
+        white = white[..., ::stride, ::stride]
+        b = b[..., ::stride, ::stride]
+        mask_b = mask_b[:, ::stride, ::stride]
+        h, w = mask_b.shape[1:]
+        if not bool(mask_b[reference_view].any()):
+            raise ValueError(f"the reference view {reference_view} has no pixel on the "
+                             f"sub-grid of stride {stride} (max_pixels={max_pixels})")
+    basis = legendre_basis_2d(*(full_ref.shape if stride > 1 else (h, w)), degree, stride=stride,
+                              device=dev, dtype=dt)
+    M = b.shape[1]
+    ref = mask_b[reference_view]
     b = b.to(dt)
     Iobs = white.mean(0).permute(2, 3, 0, 1).reshape(h * w, V, 3)
     bobs = b.permute(2, 3, 0, 1).reshape(h * w, V, M)
@@ -530,6 +615,7 @@ def estimate_response_field(
     gain = torch.ones(V, h, w, dtype=dt, device=dev)
     coef = None
     hist: list[float] = []
+    beta_phi, gamma_h = _weights(beta_phi, gamma_h, normalise, bobs, wobs)
     kw = dict(weights=wobs, beta_phi=beta_phi, gamma_h=gamma_h, diff_order=diff_order)
 
     def gobs(gf: torch.Tensor) -> torch.Tensor:
@@ -537,14 +623,15 @@ def estimate_response_field(
 
     for _ in range(n_iter):
         phi, alpha = solve_phi(Iobs, bobs, gobs(gain), f_prior, **kw)
-        gain, coef = fit_gain_field(white, b, phi, mask_b, degree=degree, smoothness=smoothness)
+        gain, coef = fit_gain_field(white, b, phi, mask_b, degree=degree, smoothness=smoothness,
+                                    basis=basis)
         s = gain[reference_view][ref].mean()
         gain = gain / s
         coef = coef / s
         hist.append(_residual_rms(Iobs, bobs, gobs(gain), phi * s, wobs / S))
     phi, alpha = solve_phi(Iobs, bobs, gobs(gain), f_prior, **kw)
     if refine_steps > 0:
-        L, deg = legendre_basis_2d(h, w, degree, device=dev, dtype=dt)
+        L, deg = basis
         Lobs = L.reshape(L.shape[0], -1).T  # (h*w, K)
         ref_coef = Lobs[ref.reshape(-1)].mean(0)
         phi, alpha, coef = _refine_joint(
@@ -568,4 +655,8 @@ def estimate_response_field(
         )
         gain = torch.einsum("vk,khw->vhw", coef, L)
     hist.append(_residual_rms(Iobs, bobs, gobs(gain), phi, wobs / S))
-    return ResponseResult(phi, alpha, gain, coef, hist)
+    if full_basis is not None:  # the field on the whole frame, gauge over the whole reference mask
+        gain = torch.einsum("vk,khw->vhw", coef, full_basis[0])
+        s0 = gain[reference_view][full_ref].mean()
+        gain, coef, phi = gain / s0, coef / s0, phi * s0
+    return ResponseResult(phi, alpha, gain, coef, hist, beta_phi, gamma_h)
