@@ -84,6 +84,7 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch calibrate --captures sim/ --out calib/           # writes calib/calib.npz",
         "hsi-torch calibrate --captures sim/ --out calib/ --set response.beta_phi=1e3",
         "hsi-torch calibrate --captures sim/ --out bundles/day1.npz  # a file name works too",
+        "hsi-torch calibrate --oracle --captures sim/ --out oracle.npz  # the simulator's truth",
     ],
     "reconstruct": [
         "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ 'shots/*.tif' extra.dng",
@@ -175,6 +176,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("calibrate", "build a calibration bundle from calibration captures")
     _add_common(p)
     p.add_argument("--captures", type=Path, required=True, help="folder of calibration captures")
+    p.add_argument(
+        "--oracle", action="store_true",
+        help="build the bundle from a simulated capture set's ground truth (true B, phi, g, "
+             "homographies, masks) instead of calibrating: reconstructing with both measures "
+             "what calibration costs",
+    )  # fmt: skip
     p.add_argument(
         "--out", "-o", type=Path, required=True,
         help="output folder (writes calib.npz, calib.report.json, calib_diagnostics.png and "

@@ -208,3 +208,24 @@ def test_plain_folders_without_manifest(sim: Path, calibrated: Path, tmp_path: P
     np.testing.assert_array_equal(a.view_homographies, b.view_homographies)
     np.testing.assert_array_equal(a.B, b.B)
     np.testing.assert_array_equal(a.valid, b.valid)
+
+
+def test_cli_oracle_bundle_is_the_truth(sim: Path, tmp_path):
+    """``calibrate --oracle`` writes the ground truth as a bundle: it scores perfectly against the
+    truth it came from, and the calibrated bundle scores worse (what calibration costs)."""
+    out = tmp_path / "oracle.npz"
+    assert main(["calibrate", "--oracle", "--captures", str(sim), "--out", str(out)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["oracle.npz", "oracle_diagnostics.png"]
+    b = CalibrationBundle.load(out)
+    assert b.settings["oracle"] is True
+    s = score_against_truth(out, sim)
+    assert s["B_rel_rms"] == 0 and s["gain_max_rel_rms"] < 1e-6 and s["valid_iou"] == 1
+    assert min(s["phi_corr"]) > 1 - 1e-12 and s["homography_worst_rms_px"] < 1e-6
+    # not a simulated set: a one-line error naming the missing truth, nothing written
+    with pytest.raises(FileNotFoundError, match="ground truth"):
+        import argparse
+
+        from hsi_torch.calibrate.cli_entry import run_calibrate
+
+        run_calibrate(argparse.Namespace(captures=tmp_path, out=tmp_path / "x", oracle=True))
+    assert not (tmp_path / "x").exists()

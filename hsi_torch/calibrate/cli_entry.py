@@ -14,6 +14,11 @@ calibration succeeded (each file atomically):
 that several bundles can share a folder without overwriting each other's record.
 
 On any error nothing is written (an existing bundle is left untouched).
+
+``--oracle``: for a capture set written by ``hsi-torch simulate``, the bundle is built from its
+ground truth (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) instead of calibrated; only
+the bundle and its diagnostics figure are written (no configuration is used). Reconstructing the
+same captures with both bundles shows what calibration costs.
 """
 
 from __future__ import annotations
@@ -56,13 +61,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_json
 
-    cfg = load_args_config(args, CalibrateConfig, default="calibrate")
-    device = getattr(args, "device", None)
     bundle_path, report_path, config_path = output_paths(args.out)
     if bundle_path.is_dir():
         raise ValueError(f"--out {bundle_path} is a folder; give a folder (the bundle is written "
                          f"as {BUNDLE_NAME} inside) or a file name ending in .npz")  # fmt: skip
     check_out_dir(bundle_path.parent)  # before the calibration: it takes a while
+    if getattr(args, "oracle", False):
+        return _write_oracle(args.captures, bundle_path)
+    cfg = load_args_config(args, CalibrateConfig, default="calibrate")
+    device = getattr(args, "device", None)
     bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
     bundle_path.parent.mkdir(parents=True, exist_ok=True)
     fig = figure_path(bundle_path)
@@ -80,4 +87,28 @@ def run_calibrate(args: argparse.Namespace) -> int:
     info(str(report))
     info(bundle.summary())
     info(f"wrote {bundle_path} (+ {report_path.name}, {fig.name}, {config_path.name})")
+    return 0
+
+
+def _write_oracle(captures: Path, bundle_path: Path) -> int:
+    """``--oracle``: the bundle of a simulated capture set's ground truth and its figure."""
+    from hsi_torch.calibrate.figures import plot_calibration
+    from hsi_torch.console import info
+    from hsi_torch.simulate.oracle import bundle_from_truth
+
+    bundle = bundle_from_truth(captures)
+    bundle_path.parent.mkdir(parents=True, exist_ok=True)
+    fig = figure_path(bundle_path)
+    written: list[Path] = []
+    try:  # both files or none
+        written.append(plot_calibration(bundle, fig))
+        bundle.save(bundle_path)
+        written.append(bundle_path)
+    except BaseException:
+        for p in written:
+            Path(p).unlink(missing_ok=True)
+        raise
+    info(bundle.summary())
+    info(f"wrote the oracle bundle {bundle_path} (+ {fig.name}) from the ground truth of "
+         f"{captures}")
     return 0
