@@ -45,7 +45,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
     "demo": ("hsi_torch.demo", "run_demo"),
 }
-BENCH_TARGETS = ("solver", "pipeline")
+BENCH_TARGETS = ("solver", "pipeline", "simulate")
 _FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")  # commands whose --out is a folder
 
 
