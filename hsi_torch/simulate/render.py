@@ -289,8 +289,13 @@ class SubpixelTrace:
 # =============================================================================================
 
 
-def _select_rays(tr: SubpixelTrace, idx: torch.Tensor) -> SubpixelTrace:
-    """The rays ``idx`` of a trace."""
+# rays shaded together: their (rays, L) cosine matrix (4 MB in float32) stays in the CPU cache
+# between the phase product, the cosine and the weight product (≈ 1.7× faster than whole bands)
+_SHADE_BATCH = 8192
+
+
+def _select_rays(tr: SubpixelTrace, idx: torch.Tensor | slice) -> SubpixelTrace:
+    """The rays ``idx`` (index tensor or slice) of a trace."""
     return SubpixelTrace(pixel=tr.pixel[idx], alpha=tr.alpha[idx], sigma=tr.sigma[idx],
                          hit_xy=tr.hit_xy[idx], throughput=tr.throughput[idx],
                          brf_free=tr.brf_free[idx], view=tr.view[idx], samples=tr.samples,
@@ -593,116 +598,111 @@ class CaptureRenderer:
 
     def _shading_plan(self, specs: Sequence[CaptureSpec]) -> dict[str, Any]:
         """Per-render constants: the lit captures (scans first, then scenes, in spec order) and
-        the spectral weights ``W[l, col, c]`` that every ray's ``cos(2π OPD/λ)`` row meets.
+        the spectral weights ``W[l, column, c]`` that every ray's ``cos(2π OPD/λ)`` row meets.
 
-        Columns: one per scan line (``g_j f^c Δλ κ_scan``), one per white or single-endmember
-        scene (``e(λ) φ^c Δλ κ``), and for each multi-endmember scene its own ``(L, K, 3)`` block
-        ``E_k(λ) φ^c(λ) Δλ κ``. All built in float64, then cast to the render dtype.
+        Blocks: the scan lines (``g_j f^c Δλ κ_scan``, one column each); the white target
+        (``φ^c Δλ κ``), shared by the targets whose single endmember is flat (USAF, circle
+        grids: their abundance is the reflectance); and per other scene its ``K`` endmember
+        columns ``E_k(λ) φ^c(λ) Δλ κ``. Built in float64, then cast to the render dtype. Each
+        capture's numbers come from its own block only, so a capture is bit-identical whatever
+        else the set contains.
         """
         dev, dt, f64 = self.device, self.dtype, torch.float64
         scan = [i for i, sp in enumerate(specs) if sp.kind == "scan"]
         lit_scenes = [i for i, sp in enumerate(specs) if sp.kind == "scene"]
         phi_w = (self.phi_fine * self.fine_widths * self.kappa).T  # (L, 3) float64
-        lin: list[torch.Tensor] = []  # (L, 3) columns applied to every ray
+
+        def block(w: torch.Tensor) -> dict[str, torch.Tensor]:  # w: (L, columns, 3) float64
+            return {"w": w.to(dt), "w_sum": w.sum(0).to(dt)}
+
+        plan: dict[str, Any] = {"order": scan + lit_scenes, "num_scan": len(scan),
+                                "scan": None, "white": None, "scenes": []}
         if scan:
             centres = torch.tensor([float(specs[i].wavelength_nm) for i in scan],
                                    device=dev, dtype=f64)
             lines = line_profile(centres, self.fine, self.scan_fwhm_nm, self.scan_line)
-            w_scan = torch.einsum("jl,cl->ljc", lines * self.fine_widths * self.kappa_scan,
-                                  self.camera_sens)  # (L, J, 3)
-            lin.extend(w_scan.unbind(1))
-        scenes: list[dict[str, Any]] = []
+            plan["scan"] = block(torch.einsum("jl,cl->ljc", lines * self.fine_widths
+                                              * self.kappa_scan, self.camera_sens))
         for i in lit_scenes:
             sc = self._scene_for_render(specs[i].scene)
             entry: dict[str, Any] = {"scene": sc}
-            if sc is None:  # white: S = 1
-                entry.update(kind="flat", col=len(lin))
-                lin.append(phi_w)
+            if sc is None:
+                entry["kind"] = "white"
             elif has_abundances(sc):
                 em = sc.endmember_spectra(self.fine).to(f64)  # (K, L)
-                if em.shape[0] == 1:  # S(X, λ) = a(X)·e(λ): one column shared by all rays
-                    entry.update(kind="mix1", col=len(lin))
-                    lin.append(phi_w * em[0, :, None])
+                if em.shape[0] == 1 and bool((em == 1).all()):
+                    entry["kind"] = "flat"  # S = a(X): the white block times the abundance
                 else:
-                    w_mix = em.T[:, :, None] * phi_w[:, None, :]  # (L, K, 3)
-                    entry.update(kind="mix", w=w_mix.to(dt), w_sum=w_mix.sum(0).to(dt))
+                    entry.update(kind="mix", **block(em.T[:, :, None] * phi_w[:, None, :]))
             else:
                 entry.update(kind="generic", fine=self.fine.to(dt), phi_w=phi_w.to(dt))
-            scenes.append(entry)
-        plan: dict[str, Any] = {"order": scan + lit_scenes, "num_scan": len(scan),
-                                "scenes": scenes}
-        if lin:
-            w_lin = torch.stack(lin, dim=1)  # (L, n_lin, 3)
-            plan["w_lin"], plan["w_lin_sum"] = w_lin.to(dt), w_lin.sum(0).to(dt)
+            if entry["kind"] in ("white", "flat") and plan["white"] is None:
+                plan["white"] = block(phi_w[:, None, :])
+            plan["scenes"].append(entry)
         return plan
 
     def _shade(
-        self, plan: dict[str, Any], tr: SubpixelTrace, channels: Sequence[int]
-    ) -> torch.Tensor:
-        """``(N, K_lit, len(channels))`` relative irradiance of every lit capture (order
-        ``plan['order']``) in the given colour channels, for a set of rays.
+        self, plan: dict[str, Any], tr: SubpixelTrace, channels: Sequence[int],
+        out: torch.Tensor,
+    ) -> None:
+        """Relative irradiance of every lit capture (order ``plan['order']``) in the given
+        colour channels for a batch of rays, written into ``out (N, K_lit, len(channels))``.
 
         Per ray ``Tstack(λ) = A + B · cos(2π OPD/λ)`` (``A = a, B = b`` behind the filter,
         ``A = 1, B = 0`` in the BRF-free disk, :meth:`stack_cosine_form`), so every spectral
-        integral ``Σ_l Tstack_l W_l`` is ``A · Σ_l W_l + B · (cos @ W)``. One matrix product
-        serves all scan lines, white and single-endmember targets; a multi-endmember scene
-        (``S = Σ_k a_k(X) E_k(λ)``) adds one product with its ``K`` columns, for the rays where
-        its abundances are not all zero, contracted with the abundances afterwards.
+        integral ``Σ_l Tstack_l W_l`` is ``A · Σ_l W_l + B · (cos @ W)``: one product for all
+        scan lines, one for the white and flat targets, one per multi-spectral scene
+        (``S = Σ_k a_k(X) E_k(λ)``: its ``K`` columns, contracted with the abundances; only on
+        the rays where they are not all zero when those are at most half).
         """
         a, b = self.stack_cosine_form()
         n, nc = tr.num_rays, len(channels)
         ch = list(channels)
         cos = self.retardance_cosine(tr.alpha, tr.sigma, tr.brf_free)  # (n, L)
-        dt = cos.dtype
-        coef_a = torch.full((n, 1), a, dtype=dt, device=cos.device).masked_fill_(
-            tr.brf_free[:, None], 1.0)
-        coef_b = torch.full((n, 1), b, dtype=dt, device=cos.device).masked_fill_(
-            tr.brf_free[:, None], 0.0)
-        out = torch.zeros(n, len(plan["order"]), nc, dtype=dt, device=cos.device)
-        lin = None
-        if "w_lin" in plan:
-            w = plan["w_lin"][:, :, ch]
-            lin = (cos @ w.reshape(w.shape[0], -1)).mul_(coef_b)
-            lin = lin.add_(coef_a * plan["w_lin_sum"][:, ch].reshape(1, -1)).view(n, -1, nc)
-        t_path = tr.throughput
+        dt, dev = cos.dtype, cos.device
+        coef_a = torch.full((n, 1), a, dtype=dt, device=dev).masked_fill_(tr.brf_free[:, None], 1.0)
+        coef_b = torch.full((n, 1), b, dtype=dt, device=dev).masked_fill_(tr.brf_free[:, None], 0.0)
+
+        def integrate(blk: dict[str, torch.Tensor], rows: torch.Tensor | None = None
+                      ) -> torch.Tensor:
+            """``(n, columns, nc)`` ``A Σ W + B cos @ W`` of a block (on ``rows`` if given)."""
+            w, w_sum = blk["w"][:, :, ch], blk["w_sum"][:, ch]
+            c, ca, cb = (cos, coef_a, coef_b) if rows is None else (
+                cos[rows], coef_a[rows], coef_b[rows])
+            y = (c @ w.reshape(w.shape[0], -1)).mul_(cb).add_(ca * w_sum.reshape(1, -1))
+            return y.view(c.shape[0], w.shape[1], nc)
+
         j = plan["num_scan"]
         if j:
-            out[:, :j] = lin[:, :j] * t_path[:, None, None]
+            out[:, :j] = integrate(plan["scan"]).mul_(tr.throughput[:, None, None])
         if not plan["scenes"]:
-            return out
-        g_obj = t_path * self.diffuser.falloff(tr.alpha) * self.vignetting_factor(tr.hit_xy)
+            return
+        g_obj = tr.throughput * self.diffuser.falloff(tr.alpha) * self.vignetting_factor(
+            tr.hit_xy)
+        white = integrate(plan["white"])[:, 0] if plan["white"] is not None else None
         for k, e in enumerate(plan["scenes"]):
             kind, col = e["kind"], j + k
-            if kind == "flat":
-                out[:, col] = lin[:, e["col"]] * g_obj[:, None]
-            elif kind == "mix1":
+            if kind == "white":
+                out[:, col] = white * g_obj[:, None]
+            elif kind == "flat":
                 ab = e["scene"].abundances(tr.hit_xy).to(dt)  # (n, 1)
-                out[:, col] = lin[:, e["col"]] * (ab * g_obj[:, None])
+                out[:, col] = white * (ab * g_obj[:, None])
             elif kind == "mix":
                 ab = e["scene"].abundances(tr.hit_xy).to(dt)  # (n, K)
                 rows = torch.nonzero(ab.ne(0).any(1)).squeeze(1)
-                if rows.numel() == 0:
-                    continue
-                every = rows.numel() == n
-                c_r, a_r, b_r, g_r = ((cos, coef_a, coef_b, g_obj) if every else
-                                      (cos[rows], coef_a[rows], coef_b[rows], g_obj[rows]))
-                if not every:
-                    ab = ab[rows]
-                w = e["w"][:, :, ch]
-                g = (c_r @ w.reshape(w.shape[0], -1)).view(-1, w.shape[1], nc)
-                y = torch.einsum("nk,nkc->nc", ab, g).mul_(b_r)
-                y = y.add_((ab @ e["w_sum"][:, ch]).mul_(a_r))
-                if every:
-                    out[:, col] = y * g_r[:, None]
+                if 2 * rows.numel() > n:
+                    y = torch.einsum("nk,nkc->nc", ab, integrate(e))
+                    out[:, col] = y.mul_(g_obj[:, None])
                 else:
-                    out[rows, col] = y * g_r[:, None]
-            else:  # any other Scene: its reflectance on the fine grid, per ray
+                    y = torch.einsum("nk,nkc->nc", ab[rows], integrate(e, rows))
+                    out[:, col] = 0.0
+                    out[rows, col] = y.mul_(g_obj[rows, None])
+            else:  # any other Scene: its reflectance on the fine grid
                 refl = e["scene"].reflectance(tr.hit_xy, e["fine"]).to(dt)  # (n, L)
                 phi = e["phi_w"][:, ch]
                 y = (refl @ phi).mul_(coef_a)
                 y = y.add_((refl.mul_(cos) @ phi).mul_(coef_b))
                 out[:, col] = y * g_obj[:, None]
-        return out
 
     def render_captures(
         self, specs: Sequence[CaptureSpec], progress: Callable | None = None
@@ -743,15 +743,19 @@ class CaptureRenderer:
                 continue
             p0, p1 = y0 * w, y1 * w
             acc = torch.zeros(p1 - p0, k * c_out, device=dev, dtype=dt)
-            if self.mosaic_early:
+            if self.mosaic_early:  # each ray in its pixel's colour
                 ch = cfa[(tr.pixel // w % 2) * 2 + tr.pixel % w % 2]
-                for c in range(3):
-                    sel = torch.nonzero(ch == c).squeeze(1)
-                    if sel.numel():
-                        sub = _select_rays(tr, sel)
-                        acc.index_add_(0, sub.pixel - p0, self._shade(plan, sub, [c])[..., 0])
+                groups = [(_select_rays(tr, torch.nonzero(ch == c).squeeze(1)), [c])
+                          for c in range(3)]
             else:
-                acc.index_add_(0, tr.pixel - p0, self._shade(plan, tr, [0, 1, 2]).reshape(n, -1))
+                groups = [(tr, [0, 1, 2])]
+            for sub, chans in groups:
+                m = sub.num_rays
+                e = torch.empty(m, k, len(chans), device=dev, dtype=dt)
+                for r0 in range(0, m, _SHADE_BATCH):  # the (rays, L) work stays in cache
+                    r1 = min(m, r0 + _SHADE_BATCH)
+                    self._shade(plan, _select_rays(sub, slice(r0, r1)), chans, e[r0:r1])
+                acc.index_add_(0, sub.pixel - p0, e.reshape(m, -1))
             acc = acc.mul_(inv_s2).T
             for j, i in enumerate(order):
                 out[i][:, p0:p1] = acc[j * c_out:(j + 1) * c_out]
