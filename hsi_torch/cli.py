@@ -55,7 +55,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "demo": ("hsi_torch.demo", "run_demo"),
     "config": ("hsi_torch.resources", "run_config"),
 }
-BENCH_TARGETS = ("solver", "pipeline")
+BENCH_TARGETS = ("solver", "pipeline", "simulate")
 #: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
 _FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")
 

@@ -114,3 +114,24 @@ def test_configs_load():
         assert cfg.captures.scan_wavelengths_nm is None
     full = load_config(shipped_config("simulate_full"), SimulateConfig)
     assert (full.camera.width_px, full.camera.height_px) == (2896, 2784)
+
+
+def test_bench_simulate_reports_stages_and_peak_memory(tmp_path: Path, capsys):
+    """scripts/bench_simulate.py on a tiny set: child process, every stage timed, peak RSS."""
+    import runpy
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_simulate.py"
+    bench = runpy.run_path(str(script))
+    args = ["--config", str(shipped_config("simulate")), "--out", str(tmp_path / "b")]
+    for o in ["camera.scale=0.25", "render.supersample=1", "captures.scan_wavelengths_nm=[550]",
+              "captures.white_shots=1", "captures.grid.poses=[]", "render.figures=false"]:
+        args += ["--set", o]
+    assert bench["main"](args) == 0
+    out = capsys.readouterr().out
+    for stage in ("setup", "trace+render", "sensor+write", "truth", "peak GiB"):
+        assert stage in out
+    row = next(line for line in out.splitlines() if line.startswith("simulate.yaml"))
+    assert row.split()[1] == "100x96"
+    peak = float(row.split()[-1])
+    assert 0.1 < peak < 4.0  # GiB of the child (torch alone is > 0.1)
+    assert (tmp_path / "b" / "simulate" / "manifest.json").is_file()  # --out keeps the set

@@ -18,9 +18,11 @@ from hsi_torch.simulate.scenes import (
     FlatScene,
     Scene,
     USAF1951Scene,
+    has_abundances,
     load_cave_cube,
     make_scene,
     pixel_centres_mm,
+    render_scene_abundances,
     render_scene_image,
     usaf_frequency,
 )
@@ -182,6 +184,59 @@ def test_cube_scene_sampling(device, dtype):
         sc.reflectance(xy, [700.0])
     with pytest.raises(ValueError, match="bands but wavelengths_nm"):
         CubeScene(cube, [1.0, 2.0])
+
+
+def _mixture_scenes() -> dict[str, Scene]:
+    g = torch.Generator().manual_seed(2)
+    cube = torch.rand(5, 7, 9, generator=g, dtype=torch.float64)
+    wl5 = [420.0, 480.0, 540.0, 600.0, 680.0]
+    return {
+        "colorchecker": ColorCheckerScene(width_mm=6.0, center_mm=(0.5, -0.5)),
+        "flat": FlatScene(value=0.7),
+        "flat_spectrum": FlatScene(spectrum_nm=[400, 550, 700], spectrum_values=[0.2, 0.8, 0.4]),
+        "usaf": USAF1951Scene(groups=(0, 1), center_mm=(0.2, 0.1)),
+        "circle_grid": CircleGridScene(radius_mm=0.3, rotation_rad=0.2, tilt_x_rad=0.1),
+        "cube": CubeScene(cube, wl5, width_mm=4.0, extrapolate="edge"),
+        "cube_outside": CubeScene(cube, wl5, width_mm=4.0, outside_value=0.3,
+                                  extrapolate="zero"),
+        "cube_one_band": CubeScene(cube[:1], [550.0], width_mm=4.0, extrapolate="edge"),
+        "cube_endmembers": CubeScene(cube[:2], wl5, width_mm=4.0, extrapolate="edge",
+                                     endmembers=torch.rand(2, 5, generator=g,
+                                                           dtype=torch.float64)),
+    }
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_abundances_times_endmembers_is_the_reflectance(device, dtype):
+    """Every scene's linear-mixture form reproduces its reflectance (the renderer uses it)."""
+    g = torch.Generator().manual_seed(0)
+    xy = ((torch.rand(4000, 2, generator=g, dtype=torch.float64) - 0.5) * 8).to(device, dtype)
+    wl = torch.linspace(410.0, 690.0, 57, device=device, dtype=dtype)
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    for name, sc in _mixture_scenes().items():
+        assert has_abundances(sc), name
+        ab, em = sc.abundances(xy), sc.endmember_spectra(wl)
+        assert ab.dtype == em.dtype == dtype and ab.device.type == device, name
+        assert ab.shape[0] == 4000 and em.shape == (ab.shape[1], 57), name
+        ref = sc.reflectance(xy, wl)
+        if name != "flat":
+            assert float(ref.max() - ref.min()) > 0.05, name  # the points see structure
+        torch.testing.assert_close(ab @ em, ref, rtol=0, atol=tol, msg=name)
+    assert not has_abundances(object())
+    with pytest.raises(ValueError, match="endmembers must have shape"):
+        CubeScene(torch.zeros(2, 3, 3), [500.0, 600.0], endmembers=torch.zeros(3, 2))
+
+
+def test_abundance_raster_matches_reflectance_raster():
+    sc = _mixture_scenes()["colorchecker"]
+    wl = torch.tensor([450.0, 550.0, 650.0], dtype=torch.float64)
+    img = render_scene_image(sc, sc.extent, 40, 60, wl, supersample=3, chunk_points=1000)
+    ab = render_scene_abundances(sc, sc.extent, 40, 60, supersample=3, chunk_points=1000)
+    assert ab.shape == (25, 40, 60)
+    torch.testing.assert_close(torch.einsum("khw,kl->lhw", ab, sc.endmember_spectra(wl)), img)
+    with pytest.raises(TypeError, match="abundances"):
+        render_scene_abundances(object(), (0.0, 1.0, 0.0, 1.0), 4, 4)
 
 
 def test_pixel_centres_and_make_scene():

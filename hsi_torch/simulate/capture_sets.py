@@ -364,20 +364,27 @@ def simulate_capture_set(
     tm["setup"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    renderer.trace(bar)
-    tm["trace"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    irr = renderer.render(specs, bar)
-    tm["render"] = time.perf_counter() - t0
+    irr = renderer.render_captures(specs, bar)
+    tm["trace+render"] = time.perf_counter() - t0
 
+    # expose and write each capture, and free its irradiance after its last shot
     t0 = time.perf_counter()
     files: list[str] = []
     entries: list[dict[str, Any]] = []
+    last_use = {pc.render_key: k for k, pc in enumerate(planned)}
     it = planned if bar is None else bar(planned, desc="sensor + write", unit="capture")
     first_scene = None
-    for pc in it:
+    h, w = renderer.sensor_size
+    for k, pc in enumerate(it):
         exposure = renderer.exposure_of(pc.spec)
-        dn, sat = renderer.expose(irr[pc.render_key], exposure, pc.seed)
+        img = irr[pc.render_key]
+        if img is None:  # dark: no light
+            img = torch.zeros(1 if renderer.mosaic_early else 3, h, w,
+                              device=renderer.device, dtype=renderer.dtype)
+        dn, sat = renderer.expose(img, exposure, pc.seed)
+        del img
+        if last_use[pc.render_key] == k:
+            irr[pc.render_key] = None
         meta = _capture_metadata(renderer, pc, exposure)
         meta["saturated_pixels"] = int(sat.sum())
         write_capture(out / pc.file, dn, meta)
@@ -386,6 +393,7 @@ def simulate_capture_set(
                         "seed": pc.seed, "saturated_pixels": int(sat.sum()), **pc.entry})
         if pc.type == "scene" and first_scene is None:
             first_scene = (pc, dn)
+    del irr
     tm["sensor+write"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -422,6 +430,7 @@ def simulate_capture_set(
     atomic_write_json(out / "ground_truth" / "truth.json", tj)
     atomic_write_bytes(out / "brf_free_mask.png", _png_mask(patch))
     atomic_write_json(out / "nominal_layout.json", nominal_layout(renderer, patch))
+    renderer.release_scenes()  # the blurred scene rasters are no longer needed
     tm["truth"] = time.perf_counter() - t0
 
     s = renderer.sensor
@@ -459,7 +468,7 @@ def simulate_capture_set(
         out_dir=out, files=files, num_views=lay.num_views,
         valid_pixels=int(truth["valid"].sum()), reference_bbox=lay.reference_bbox,
         sensor_size=renderer.sensor_size, timings_s=tm,
-        rays=renderer.trace().num_rays)
+        rays=renderer.num_rays)
 
 
 _TRUTH_DOC = {

@@ -34,14 +34,21 @@ def _save(fig, path: Path) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def camera_preview(dn: torch.Tensor, renderer, percentile: float = 99.5) -> np.ndarray:
+def camera_preview(
+    dn: torch.Tensor, renderer, percentile: float = 99.5, max_side: int | None = None
+) -> np.ndarray:
     """``(H, W, 3)`` display image of a raw capture ``dn (C, H, W)``: black subtracted,
     demosaiced (bilinear), white-balanced with the true ``φ`` channel sums, scaled so the
-    ``percentile`` of the brightest channel is 1, sRGB-encoded."""
+    ``percentile`` of the brightest channel is 1, sRGB-encoded. Computed in float32 (a display
+    image); with ``max_side`` it is box-averaged by the smallest integer factor that brings
+    its longer side to at most ``max_side`` (the last partial block is averaged as it is)."""
     s = renderer.sensor
-    x = dn.to(torch.float64) - s.black_level
+    x = dn.to(torch.float32) - s.black_level
     if x.shape[0] == 1:
         x = demosaic_bilinear(x, s.cfa_pattern)
+    if max_side is not None and max(x.shape[-2:]) > max_side:
+        k = -(-max(x.shape[-2:]) // max_side)
+        x = torch.nn.functional.avg_pool2d(x[None], k, ceil_mode=True)[0]
     wb = renderer.phi_true().sum(1)
     x = x / (wb / wb.max()).to(x)[:, None, None]
     ref = torch.quantile(x.amax(0).reshape(-1)[:: max(1, x[0].numel() // 1_000_000)],
@@ -49,16 +56,22 @@ def camera_preview(dn: torch.Tensor, renderer, percentile: float = 99.5) -> np.n
     return srgb_encode((x / ref).clamp(0, 1)).permute(1, 2, 0).cpu().numpy()
 
 
-def plot_capture_views(dn: torch.Tensor, renderer, path: Path, title: str = "") -> Path:
-    """Scene capture with the view triangles outlined and labelled (index, sequence, OPD)."""
+def plot_capture_views(
+    dn: torch.Tensor, renderer, path: Path, title: str = "", max_side: int = 1600
+) -> Path:
+    """Scene capture with the view triangles outlined and labelled (index, sequence, OPD).
+
+    The image is shown at most ``max_side`` pixels a side (box-averaged; axes stay in sensor
+    pixels), which keeps a full-size capture's preview small in memory.
+    """
     from matplotlib.figure import Figure
 
     lay = renderer.layout
-    img = camera_preview(dn, renderer)
-    h, w = img.shape[:2]
+    img = camera_preview(dn, renderer, max_side=max_side)
+    h, w = dn.shape[-2:]
     fig = Figure(figsize=(9, 9 * h / w + 0.4), dpi=110)
     ax = fig.add_subplot(111)
-    ax.imshow(img, interpolation="nearest")
+    ax.imshow(img, interpolation="nearest", extent=(-0.5, w - 0.5, h - 0.5, -0.5))
     tris = lay.triangles.cpu().numpy()
     for v in range(lay.num_views):
         t = np.vstack([tris[v], tris[v][:1]])

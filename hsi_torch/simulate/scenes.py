@@ -9,6 +9,12 @@ A scene is a spectral reflectance field ``r(X, Y, λ)`` on the diffuser plane ``
 
 is a :class:`Scene`. Results take the device and floating dtype of ``xy_mm``.
 
+Every scene here is also a *linear mixture*: ``reflectance(xy, λ) = abundances(xy) @
+endmember_spectra(λ)`` with ``abundances (N, K)`` and ``endmember_spectra (K, M)`` (a ColorChecker
+is 25 one-hot patches, a CAVE cube its 31 bands, the bar/circle targets one flat spectrum). The
+renderer samples the ``K`` abundance planes on the diffuser and goes to the 2 nm grid with a
+``(K, L)`` matrix afterwards (:func:`render_scene_abundances`, :func:`has_abundances`).
+
 Scenes: :class:`ColorCheckerScene`, :class:`FlatScene`, :class:`USAF1951Scene`,
 :class:`CircleGridScene` (OpenCV asymmetric grid), :class:`CubeScene` (any cube, e.g. the CAVE
 scene via :func:`load_cave_scene`). :func:`render_scene_image` samples a scene on a pixel grid.
@@ -42,6 +48,8 @@ __all__ = [
     "load_cave_cube",
     "load_cave_scene",
     "render_scene_image",
+    "render_scene_abundances",
+    "has_abundances",
     "pixel_centres_mm",
     "make_scene",
     "CAVE_WAVELENGTHS_NM",
@@ -164,10 +172,22 @@ class ColorCheckerScene:
 
     def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
         xy_mm, wl = _prep(xy_mm, wavelengths_nm)
-        spectra = self.patch_spectra(wl)  # (24, M)
-        table = torch.cat([spectra, _constant_spectrum(self.gap_reflectance, 1, wl)], dim=0)
+        table = self.endmember_spectra(wl)
         idx = self.patch_index(xy_mm)
         return table[torch.where(idx < 0, torch.full_like(idx, 24), idx)]
+
+    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
+        """``(25, M)``: the 24 patch spectra, then the flat gap reflectance."""
+        wl = refdata.as_wavelengths(wavelengths_nm)
+        spectra = self.patch_spectra(wl)  # (24, M)
+        return torch.cat([spectra, _constant_spectrum(self.gap_reflectance, 1, wl)], dim=0)
+
+    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """``(N, 25)`` one-hot: the patch under each point (column 24: gap or outside)."""
+        xy_mm, _ = _prep(xy_mm, [550.0])
+        idx = self.patch_index(xy_mm)
+        idx = torch.where(idx < 0, torch.full_like(idx, 24), idx)
+        return F.one_hot(idx, 25).to(xy_mm.dtype)
 
 
 # =============================================================================================
@@ -207,12 +227,21 @@ class FlatScene:
 
     def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
         xy_mm, wl = _prep(xy_mm, wavelengths_nm)
+        return self.endmember_spectra(wl).expand(xy_mm.shape[0], -1).clone()
+
+    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
+        """``(1, M)``: the flat value or the tabulated spectrum."""
+        wl = refdata.as_wavelengths(wavelengths_nm)
         if self.spectrum_nm is None:
-            return _constant_spectrum(self.value, xy_mm.shape[0], wl)
+            return _constant_spectrum(self.value, 1, wl)
         src = torch.as_tensor(np.asarray(self.spectrum_nm, np.float64), device=wl.device)
         val = torch.as_tensor(np.asarray(self.spectrum_values, np.float64), device=wl.device)
-        s = resample_spectra(val, src, wl.to(torch.float64)).to(wl.dtype)
-        return s.unsqueeze(0).expand(xy_mm.shape[0], -1).clone()
+        return resample_spectra(val, src, wl.to(torch.float64)).to(wl.dtype)[None]
+
+    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """``(N, 1)`` ones."""
+        xy_mm, _ = _prep(xy_mm, [550.0])
+        return torch.ones(xy_mm.shape[0], 1, device=xy_mm.device, dtype=xy_mm.dtype)
 
 
 # =============================================================================================
@@ -346,6 +375,16 @@ class USAF1951Scene:
         r = torch.where(mask, torch.tensor(self.bar_reflectance, dtype=wl.dtype, device=wl.device),
                         torch.tensor(self.background_reflectance, dtype=wl.dtype, device=wl.device))
         return r.unsqueeze(1).expand(-1, wl.numel()).clone()
+
+    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
+        """``(1, M)`` ones (the target is spectrally flat)."""
+        return _constant_spectrum(1.0, 1, refdata.as_wavelengths(wavelengths_nm))
+
+    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """``(N, 1)``: the bar or background reflectance under each point."""
+        xy_mm, _ = _prep(xy_mm, [550.0])
+        return self.reflectance(xy_mm, torch.tensor([550.0], dtype=xy_mm.dtype,
+                                                    device=xy_mm.device))
 
 
 # =============================================================================================
@@ -482,6 +521,16 @@ class CircleGridScene:
                         torch.tensor(self.background_reflectance, dtype=wl.dtype, device=wl.device))
         return r.unsqueeze(1).expand(-1, wl.numel()).clone()
 
+    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
+        """``(1, M)`` ones (the target is spectrally flat)."""
+        return _constant_spectrum(1.0, 1, refdata.as_wavelengths(wavelengths_nm))
+
+    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """``(N, 1)``: the circle or background reflectance under each point."""
+        xy_mm, _ = _prep(xy_mm, [550.0])
+        return self.reflectance(xy_mm, torch.tensor([550.0], dtype=xy_mm.dtype,
+                                                    device=xy_mm.device))
+
 
 # =============================================================================================
 # User cube
@@ -497,14 +546,19 @@ class CubeScene:
     pixel of the border it is held constant, outside it is ``outside_value``. Spectra are
     interpolated linearly from ``wavelengths_nm`` to the requested wavelengths.
 
+    With ``endmembers (K, M_s)`` the cube holds ``K`` abundance planes ``(K, H, W)`` instead of
+    bands: the spectrum at a point is ``Σ_k a_k · endmembers[k]`` on ``wavelengths_nm`` (a
+    low-rank cube; the renderer keeps blurred scenes this way).
+
     Args:
-        cube: ``(M_s, H, W)`` tensor or array (reflectance).
+        cube: ``(M_s, H, W)`` tensor or array (reflectance), or ``(K, H, W)`` abundances.
         wavelengths_nm: ``(M_s,)`` increasing wavelengths of the cube's bands.
         extent_mm: placement; default: ``width_mm`` wide (height from the aspect ratio), centred
             at ``center_mm``.
         width_mm, center_mm: used when ``extent_mm`` is ``None``.
         outside_value: reflectance outside the extent.
         extrapolate: ``'error'`` | ``'zero'`` | ``'edge'`` for wavelengths outside the cube's.
+        endmembers: optional ``(K, M_s)`` spectra of the abundance planes.
     """
 
     def __init__(
@@ -517,6 +571,7 @@ class CubeScene:
         center_mm: tuple[float, float] = (0.0, 0.0),
         outside_value: float = 0.0,
         extrapolate: str = "error",
+        endmembers: torch.Tensor | None = None,
     ) -> None:
         cube_t = torch.as_tensor(cube)
         if not cube_t.is_floating_point():
@@ -524,7 +579,13 @@ class CubeScene:
         if cube_t.ndim != 3:
             raise ValueError(f"cube must have shape (M_s, H, W), got {tuple(cube_t.shape)}")
         wl = torch.as_tensor(np.asarray(wavelengths_nm, dtype=np.float64)).reshape(-1)
-        if wl.numel() != cube_t.shape[0]:
+        if endmembers is not None:
+            endmembers = torch.as_tensor(endmembers)
+            if endmembers.shape != (cube_t.shape[0], wl.numel()):
+                raise ValueError(f"endmembers must have shape (K, M_s) = ({cube_t.shape[0]}, "
+                                 f"{wl.numel()}) for a cube of {cube_t.shape[0]} abundance planes "
+                                 f"and {wl.numel()} wavelengths, got {tuple(endmembers.shape)}")
+        elif wl.numel() != cube_t.shape[0]:
             raise ValueError(f"cube has {cube_t.shape[0]} bands but wavelengths_nm has "
                              f"{wl.numel()} values")
         if wl.numel() > 1 and bool((wl[1:] <= wl[:-1]).any()):
@@ -546,6 +607,7 @@ class CubeScene:
         self._extent = (x0, x1, y0, y1)
         self.outside_value = float(outside_value)
         self.extrapolate = extrapolate
+        self.endmembers = endmembers
         self._cache: tuple[tuple, torch.Tensor] | None = None
 
     @property
@@ -562,34 +624,78 @@ class CubeScene:
             self._cache = (key, self.cube.to(device=device, dtype=dtype).unsqueeze(0))
         return self._cache[1]
 
-    def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
-        xy_mm, wl = _prep(xy_mm, wavelengths_nm)
-        x0, x1, y0, y1 = self._extent
-        _, h, w = self.cube.shape
+    def _check_wavelengths(self, wl: torch.Tensor) -> torch.Tensor:
         src = self.wavelengths_nm.to(device=wl.device, dtype=torch.float64)
         if self.extrapolate == "error":
             bad = (wl < src[0] - 1e-9) | (wl > src[-1] + 1e-9)
             if bool(bad.any()):
                 raise ValueError(f"cube covers [{float(src[0])}, {float(src[-1])}] nm; requested "
                                  f"{wl[bad].tolist()} nm (set extrapolate='zero' or 'edge')")
+        return src
+
+    def _resample(self, vals: torch.Tensor, src: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
+        """``(..., M_s)`` spectra on the cube's wavelengths → ``(..., M)`` on ``wl``."""
+        if src.numel() == 1:
+            return vals.expand(*vals.shape[:-1], wl.numel()).clone()
+        return resample_spectra(vals, src.to(vals.dtype), wl, dim=-1,
+                                extrapolate="zero" if self.extrapolate == "error"
+                                else self.extrapolate)
+
+    def _sample(self, xy_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Bilinear samples ``(N, C)`` of the stored planes (0 outside the extent) and the
+        inside-extent mask ``(N,)``."""
+        x0, x1, y0, y1 = self._extent
+        _, h, w = self.cube.shape
         cube = self._cube_on(xy_mm.device, xy_mm.dtype)
         # pixel coordinates (centres at integers), then align_corners=True normalisation
         px = (xy_mm[:, 0] - x0) / (x1 - x0) * w - 0.5
         py = (xy_mm[:, 1] - y0) / (y1 - y0) * h - 0.5
         gx = 2 * px / max(w - 1, 1) - 1 if w > 1 else torch.zeros_like(px)
         gy = 2 * py / max(h - 1, 1) - 1 if h > 1 else torch.zeros_like(py)
-        grid = torch.stack([gx, gy], dim=-1).view(1, 1, -1, 2)
-        vals = F.grid_sample(cube, grid, mode="bilinear", padding_mode="border",
-                             align_corners=True)[0, :, 0, :].T  # (N, M_s)
-        if src.numel() == 1:
-            out = vals.expand(-1, wl.numel()).clone()
-        else:
-            out = resample_spectra(vals, src.to(vals.dtype), wl, dim=-1,
-                                   extrapolate="zero" if self.extrapolate == "error"
-                                   else self.extrapolate)
+        grid = torch.stack([gx, gy], dim=-1)
         inside = ((xy_mm[:, 0] >= x0) & (xy_mm[:, 0] <= x1)
                   & (xy_mm[:, 1] >= y0) & (xy_mm[:, 1] <= y1))
+        idx = torch.nonzero(inside).squeeze(1)
+        if idx.numel() < inside.numel():  # sample only the points inside (outside: 0)
+            grid = grid[idx]
+        vals = F.grid_sample(cube, grid.view(1, 1, -1, 2), mode="bilinear",
+                             padding_mode="border", align_corners=True)[0, :, 0, :].T  # (n, C)
+        if idx.numel() < inside.numel():
+            full = vals.new_zeros(inside.numel(), vals.shape[1])
+            full[idx] = vals
+            vals = full
+        return vals, inside
+
+    def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
+        xy_mm, wl = _prep(xy_mm, wavelengths_nm)
+        src = self._check_wavelengths(wl)
+        vals, inside = self._sample(xy_mm)
+        if self.endmembers is not None:
+            vals = vals @ self.endmembers.to(vals)
+        out = self._resample(vals, src, wl)
         return torch.where(inside.unsqueeze(1), out, torch.full_like(out, self.outside_value))
+
+    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
+        """``(K, M)``: the endmembers (or the identity over the bands) resampled to
+        ``wavelengths_nm``; one more row ``outside_value`` when that is not 0."""
+        wl = refdata.as_wavelengths(wavelengths_nm)
+        src = self._check_wavelengths(wl)
+        em = (self.endmembers.to(device=wl.device, dtype=wl.dtype) if self.endmembers is not None
+              else torch.eye(src.numel(), device=wl.device, dtype=wl.dtype))
+        out = self._resample(em, src, wl)
+        if self.outside_value != 0.0:
+            out = torch.cat([out, _constant_spectrum(self.outside_value, 1, wl)])
+        return out
+
+    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """``(N, K)``: bilinear samples of the planes inside the extent, 0 outside (plus a last
+        column, 1 outside the extent, when ``outside_value`` is not 0)."""
+        xy_mm, _ = _prep(xy_mm, [550.0])
+        vals, inside = self._sample(xy_mm)
+        vals = vals * inside.unsqueeze(1).to(vals.dtype)
+        if self.outside_value != 0.0:
+            vals = torch.cat([vals, (~inside).to(vals.dtype).unsqueeze(1)], dim=1)
+        return vals
 
 
 # =============================================================================================
@@ -722,6 +828,50 @@ def pixel_centres_mm(
     return torch.stack([xx, yy], dim=-1)
 
 
+def has_abundances(scene: object) -> bool:
+    """Whether ``scene`` exposes the linear-mixture form (``abundances`` and
+    ``endmember_spectra``, see the module docstring)."""
+    return callable(getattr(scene, "abundances", None)) and callable(
+        getattr(scene, "endmember_spectra", None))
+
+
+def _raster(
+    fn,
+    extent: Extent,
+    height: int,
+    width: int,
+    supersample: int,
+    device: torch.device | str | None,
+    dtype: torch.dtype,
+    chunk_points: int,
+) -> torch.Tensor:
+    """``fn(points (N, 2)) -> (N, C)`` averaged over ``s × s`` samples per pixel → ``(C, H, W)``.
+
+    Evaluated a band of output rows at a time (≈ ``chunk_points`` samples), so memory stays at
+    the output image plus one band.
+    """
+    if height < 1 or width < 1:
+        raise ValueError(f"height and width must be >= 1, got {height}x{width}")
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    s = int(supersample)
+    pts = pixel_centres_mm(extent, height * s, width * s, device=device, dtype=dtype)
+    rows = max(1, chunk_points // (width * s * s))
+    out: torch.Tensor | None = None
+    for r0 in range(0, height, rows):
+        r1 = min(height, r0 + rows)
+        band = pts[r0 * s:r1 * s].reshape(-1, 2)
+        vals = fn(band)  # (n, C)
+        img = vals.T.reshape(vals.shape[1], (r1 - r0) * s, width * s)
+        if s > 1:
+            img = F.avg_pool2d(img.unsqueeze(0), s)[0]
+        if out is None:
+            out = torch.empty(vals.shape[1], height, width, device=img.device, dtype=img.dtype)
+        out[:, r0:r1] = img
+    assert out is not None
+    return out
+
+
 def render_scene_image(
     scene: Scene,
     extent: Extent | None = None,
@@ -745,30 +895,39 @@ def render_scene_image(
         supersample: ``s``: average ``s × s`` regularly spaced samples per pixel (box filter,
             anti-aliasing).
         device, dtype: of the result (default: of ``wavelengths`` if a tensor, else CPU/default).
-        chunk_points: scene evaluations per call (memory bound).
+        chunk_points: scene evaluations per call (memory bound: one band of rows at a time).
 
     Returns:
         ``(M, H, W)`` reflectance image.
     """
-    if height < 1 or width < 1:
-        raise ValueError(f"height and width must be >= 1, got {height}x{width}")
-    if supersample < 1:
-        raise ValueError(f"supersample must be >= 1, got {supersample}")
     if isinstance(wavelengths, torch.Tensor):
         device = device or wavelengths.device
         dtype = dtype or (wavelengths.dtype if wavelengths.is_floating_point() else None)
     wl = refdata.as_wavelengths(wavelengths, device=device, dtype=dtype)
     extent = tuple(float(v) for v in (extent if extent is not None else scene.extent))
-    s = int(supersample)
-    pts = pixel_centres_mm(extent, height * s, width * s, device=wl.device, dtype=wl.dtype)
-    pts = pts.reshape(-1, 2)
-    out = torch.empty(pts.shape[0], wl.numel(), device=wl.device, dtype=wl.dtype)
-    for a in range(0, pts.shape[0], chunk_points):
-        out[a:a + chunk_points] = scene.reflectance(pts[a:a + chunk_points], wl)
-    img = out.T.reshape(wl.numel(), height * s, width * s)
-    if s > 1:
-        img = F.avg_pool2d(img.unsqueeze(0), s)[0]
-    return img
+    return _raster(lambda p: scene.reflectance(p, wl), extent, height, width, supersample,
+                   wl.device, wl.dtype, chunk_points)
+
+
+def render_scene_abundances(
+    scene: Scene,
+    extent: Extent | None = None,
+    height: int = 256,
+    width: int = 256,
+    *,
+    supersample: int = 1,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+    chunk_points: int = 1 << 18,
+) -> torch.Tensor:
+    """The ``K`` abundance planes of a linear-mixture scene (:func:`has_abundances`) on a pixel
+    grid, ``(K, H, W)``; same sampling as :func:`render_scene_image`, and
+    ``render_scene_image(...)[:, y, x] = endmember_spectra(wl).T @ result[:, y, x]``."""
+    if not has_abundances(scene):
+        raise TypeError(f"{type(scene).__name__} has no abundances()/endmember_spectra()")
+    extent = tuple(float(v) for v in (extent if extent is not None else scene.extent))
+    return _raster(scene.abundances, extent, height, width, supersample, device, dtype,
+                   chunk_points)
 
 
 def make_scene(kind: str, **kwargs) -> Scene:
