@@ -4,8 +4,9 @@ A reader (or a resumed batch run) therefore sees either the complete old file, t
 file, or no file — never a partial one. On any error inside the ``with`` block the temporary file
 is removed and the destination is left untouched.
 
-Also defines :class:`FileFormatError`, the error raised by :mod:`hsi_torch.io` for unreadable,
-truncated or inconsistent files (a ``ValueError`` whose message names the file).
+Also re-exports :class:`~hsi_torch.errors.FileFormatError`, the error raised by
+:mod:`hsi_torch.io` for unreadable, truncated or inconsistent files (a ``ValueError`` whose message
+names the file).
 """
 
 from __future__ import annotations
@@ -13,12 +14,15 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+
+from hsi_torch.errors import FileFormatError
 
 __all__ = [
     "FileFormatError",
@@ -27,14 +31,11 @@ __all__ = [
     "atomic_write_text",
     "atomic_write_json",
     "atomic_save_npz",
+    "clean_stale_temp_files",
 ]
 
-
-class FileFormatError(ValueError):
-    """A file exists but cannot be read as the expected format (corrupt, truncated, mismatched).
-
-    The message always names the file.
-    """
+#: Name of a temporary file of :func:`atomic_write`: ``.<name>.<pid>-<random>.tmp``.
+TEMP_FILE_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.tmp$")
 
 
 @contextlib.contextmanager
@@ -42,8 +43,11 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
     """Open a temporary file beside ``path`` for writing; rename it onto ``path`` on success.
 
     The temporary file lives in the same folder (same file system, so ``os.replace`` is atomic)
-    and is named ``.<name>.<random>.tmp``. Parent folders are created. If the block raises, the
-    temporary file is deleted and ``path`` keeps its previous content (or stays absent).
+    and is named ``.<name>.<pid>-<random>.tmp`` (``pid``: the writing process, so that
+    :func:`clean_stale_temp_files` can tell a killed writer's leftover from a live one). Parent
+    folders are created. If the block raises, the temporary file is deleted and ``path`` keeps its
+    previous content (or stays absent); a process killed inside the block (SIGKILL, power loss)
+    leaves only the temporary file.
 
     Args:
         path: destination file.
@@ -61,7 +65,8 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.{os.getpid()}-", suffix=".tmp",
+                               dir=dest.parent)
     try:
         kwargs: dict[str, Any] = {} if mode == "wb" else {"encoding": "utf-8", "newline": ""}
         os.close(fd)
@@ -136,3 +141,43 @@ def atomic_save_npz(
     with atomic_write(path, "wb") as f:
         (np.savez_compressed if compressed else np.savez)(f, **converted)
     return Path(path)
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (``True`` when that cannot be told, e.g. on Windows)."""
+    if os.name == "nt":  # os.kill(pid, 0) would send CTRL_C_EVENT there
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists (another user's), or unknown: keep its file
+    return True
+
+
+def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files that killed :func:`atomic_write` callers left in ``folder``.
+
+    Only files named like this module's own temporary files (``.<name>.<pid>-<random>.tmp``, see
+    :data:`TEMP_FILE_RE`) whose writing process no longer exists are removed; a live writer's file
+    (a concurrent run into the same folder) and every other file are left alone. Not recursive.
+
+    Returns:
+        The files removed (a missing or unreadable folder gives ``[]``).
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        m = TEMP_FILE_RE.match(entry.name)
+        if m is None or not entry.is_file(follow_symlinks=False):
+            continue
+        if _pid_alive(int(m["pid"])):
+            continue
+        with contextlib.suppress(FileNotFoundError):  # a concurrent cleaner got it first
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+    return removed
