@@ -23,8 +23,12 @@ from test_pipeline import make_bundle, render_capture, true_spectra
 from hsi_torch.cli import main
 from hsi_torch.errors import (
     ConfigError,
+    FileFormatError,
+    HSIError,
+    MissingFileError,
+    NoValidPixelsError,
 )
-from hsi_torch.io import atomic, write_capture
+from hsi_torch.io import atomic, read_any, read_capture, write_capture
 
 
 @pytest.fixture
@@ -104,6 +108,44 @@ def test_non_finite_numbers_are_refused_by_every_float_key():
 # 8. smaller ones
 
 
+def test_npz_capture_with_bad_json_metadata(tmp_path):
+    p = tmp_path / "c.npz"
+    np.savez(p, image=np.zeros((3, 8, 8), np.uint16), metadata=np.array("{not json"))
+    with pytest.raises(FileFormatError, match=r"c\.npz.*'metadata'"):
+        read_capture(p)
+    np.savez(p, image=np.zeros((3, 8, 8), np.uint16), metadata=np.array("[1, 2]"))
+    with pytest.raises(FileFormatError, match="JSON object"):
+        read_any(p)
+    side = tmp_path / "d.npy"
+    np.save(side, np.zeros((3, 8, 8), np.uint16))
+    side.with_name("d.npy.json").write_text('"a string"')
+    with pytest.raises(FileFormatError, match="JSON object"):
+        read_any(side)
+
+
+@pytest.mark.parametrize("key", ["black_level", "white_level"])
+def test_tiff_metadata_level_that_is_not_a_number(tmp_path, key):
+    p = write_capture(tmp_path / "c.tif", np.zeros((3, 8, 8), np.uint16), {key: "abc"})
+    with pytest.raises(FileFormatError, match=rf"c\.tif.*{key}.*'abc'"):
+        read_any(p)
+    p = write_capture(tmp_path / "d.tif", np.zeros((3, 8, 8), np.uint16), {key: [1, [2, 3]]})
+    with pytest.raises(FileFormatError, match=rf"d\.tif.*{key}"):
+        read_any(p)
+
+
+def test_bundle_path_that_is_a_folder(ws, capsys):
+    tmp, _, caps, _ = ws
+    assert _rec(tmp / "caps", tmp / "out", str(caps / "a.npy")) == 1
+    err = capsys.readouterr().err
+    assert f"calibration bundle {caps} is a folder" in err and "does not exist" not in err
+    from hsi_torch.calibrate import CalibrationBundle
+
+    with pytest.raises(FileFormatError, match="is a folder"):
+        CalibrationBundle.load(caps)
+    with pytest.raises(MissingFileError, match="does not exist"):
+        CalibrationBundle.load(tmp / "nope.npz")
+
+
 def test_simulate_failing_on_its_geometry_leaves_no_folder(tmp_path, capsys):
     out = tmp_path / "sim"
     assert main(["simulate", "--out", str(out), "--set", "geometry.pupil_distance_mm=0"]) == 1
@@ -128,3 +170,41 @@ def _tiff_claiming(path: Path, height: int, width: int) -> Path:
             fmt = "<H" if dtypes[name] == 3 else "<I"
             f.write(struct.pack(fmt, value))
     return path
+
+
+def test_huge_tiff_header_is_refused_before_decoding(tmp_path, monkeypatch):
+    p = _tiff_claiming(tmp_path / "huge.tif", 30000, 30000)
+    calls = []
+    real = tifffile.TiffPage.asarray
+
+    def spy(self, *a, **k):
+        calls.append(self.shape)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(tifffile.TiffPage, "asarray", spy)
+    with pytest.raises(FileFormatError, match=r"huge\.tif.*\(30000, 30000\).*\(40, 40\)"):
+        read_any(p, expected_size=(40, 40))
+    with pytest.raises(FileFormatError, match=r"huge\.tif"):
+        read_capture(p)  # no expected size: the header claims more data than the file holds
+    assert calls == []
+
+
+def test_huge_npy_header_is_refused_before_loading(tmp_path):
+    p = tmp_path / "huge.npy"
+    with open(p, "wb") as f:
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<u2", "fortran_order": False, "shape": (3, 30000, 30000)})
+        f.write(b"\0" * 64)
+    with pytest.raises(FileFormatError, match=r"huge\.npy.*\(30000, 30000\).*\(40, 40\)"):
+        read_any(p, expected_size=(40, 40))
+    with pytest.raises(FileFormatError, match=r"huge\.npy"):
+        read_capture(p)
+
+
+def test_error_classes_keep_their_builtin_bases():
+    assert issubclass(FileFormatError, ValueError) and issubclass(FileFormatError, HSIError)
+    assert issubclass(MissingFileError, FileNotFoundError)
+    assert issubclass(ConfigError, ValueError) and issubclass(ConfigError, HSIError)
+    assert issubclass(NoValidPixelsError, ValueError)
+    with pytest.raises(MissingFileError):
+        read_any("/nonexistent/capture.tif")
