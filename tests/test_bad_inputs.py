@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+import torch
 from test_pipeline import make_bundle, render_capture, true_spectra
 
 from hsi_torch.cli import main
@@ -25,10 +26,13 @@ from hsi_torch.errors import (
     ConfigError,
     FileFormatError,
     HSIError,
+    InputError,
     MissingFileError,
     NoValidPixelsError,
 )
 from hsi_torch.io import atomic, read_any, read_capture, write_capture
+from hsi_torch.recon.module import HSIReconstructor
+from hsi_torch.recon.solvers import solve_nnls
 
 
 @pytest.fixture
@@ -52,10 +56,74 @@ def _files(d: Path) -> list[str]:
     return sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file())
 
 
+# ---------------------------------------------------------------------------------------------
+# 2. HSIReconstructor.load_state_dict
+
+
 def _doubled_gain(bundle):
     b = make_bundle()
     b.gain = 2.0 * bundle.gain
     return b
+
+
+def test_load_state_dict_rebuilds_the_derived_tensors():
+    b1 = make_bundle()
+    b2 = _doubled_gain(b1)
+    x = render_capture(b1, true_spectra())[None]
+    m1 = HSIReconstructor.from_bundle(b1, beta=0.0, dtype=torch.float64)
+    m2 = HSIReconstructor.from_bundle(b2, beta=0.0, dtype=torch.float64)
+    before = m1(x).cube
+    m1.load_state_dict(m2.state_dict())
+    after = m1(x).cube
+    # doubled gain → A doubled → the (β = 0) spectra halve; equal to a module built from it
+    v = m1(x).valid[0]
+    torch.testing.assert_close(after[0][:, v], before[0][:, v] / 2, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(after, m2(x).cube, equal_nan=True, rtol=0, atol=0)
+    for name in ("A", "gram", "gram_inv", "sample_grid"):
+        assert torch.equal(getattr(m1, name), getattr(m2, name)), name
+
+
+def test_load_state_dict_of_another_geometry_leaves_the_module_untouched():
+    b1 = make_bundle()
+    m1 = HSIReconstructor.from_bundle(b1, beta=1.0, dtype=torch.float64)
+    x = render_capture(b1, true_spectra())[None]
+    ref = m1(x).cube
+    state = {k: v.clone() for k, v in m1.state_dict().items() if isinstance(v, torch.Tensor)}
+    derived = {n: b.clone() for n, b in m1.named_buffers()}
+    other = HSIReconstructor.from_bundle(make_bundle(t=16), beta=1.0, dtype=torch.float64)
+    with pytest.raises(InputError, match="another geometry") as info:
+        m1.load_state_dict(other.state_dict())
+    assert "(4, 8, 16, 16)" in str(info.value) and "(4, 8, 20, 20)" in str(info.value)
+    for k, v in m1.state_dict().items():
+        if isinstance(v, torch.Tensor):
+            assert torch.equal(v, state[k]), k  # nothing half-loaded
+    assert m1.state_dict()["_extra_state"]["reference_bbox"] == [0, 0, 20, 20]
+    for n, b in m1.named_buffers():
+        assert torch.equal(b, derived[n]), n
+    torch.testing.assert_close(m1(x).cube, ref, equal_nan=True, rtol=0, atol=0)
+    # a state dict with a key missing is refused as a whole, too
+    partial = dict(other.state_dict())
+    sd = {k: v for k, v in m1.state_dict().items() if k != "gain"}
+    with pytest.raises(RuntimeError, match="gain"):
+        m1.load_state_dict(sd)
+    assert partial  # (kept alive for the comparison above)
+    torch.testing.assert_close(m1(x).cube, ref, equal_nan=True, rtol=0, atol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. a frame with nothing usable
+
+
+def test_no_valid_pixel_from_the_api():
+    from hsi_torch.recon.pipeline import Reconstructor
+
+    b = make_bundle()
+    rec = Reconstructor(b, beta=0.0, dtype=torch.float64)
+    img = render_capture(b, true_spectra())
+    res = rec.reconstruct_frame(img, torch.ones_like(img, dtype=torch.bool))
+    assert res.stats["num_valid"] == 0 and res.stats["usable_observations"] == 0
+    assert "saturated" in res.stats["no_valid_reason"]
+    assert rec.reconstruct_frame(img).stats["no_valid_reason"] is None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -104,6 +172,19 @@ def test_non_finite_numbers_are_refused_by_every_float_key():
         load_config({"beta": 10**400}, ReconstructConfig)  # was a raw OverflowError
 
 
+@pytest.mark.parametrize("scale", [float("nan"), float("inf"), -1.0, 0.0])
+def test_module_refuses_a_non_finite_or_non_positive_exposure_scale(scale):
+    b = make_bundle()
+    mod = HSIReconstructor.from_bundle(b, beta=1.0)
+    x = render_capture(b, true_spectra()).float()[None]
+    with pytest.raises(InputError, match="exposure_scale"):
+        mod(x, exposure_scale=scale)
+    with pytest.raises(InputError, match="exposure_scale"):
+        mod(x, exposure_scale=torch.tensor([scale]))
+    with pytest.raises(InputError, match="exposure_scale"):
+        mod(x, exposure_scale=torch.ones(3))  # 3 factors for a batch of 1
+
+
 # ---------------------------------------------------------------------------------------------
 # 8. smaller ones
 
@@ -133,6 +214,15 @@ def test_tiff_metadata_level_that_is_not_a_number(tmp_path, key):
         read_any(p)
 
 
+def test_capture_exposure_that_is_not_a_number_names_the_file(tmp_path):
+    from hsi_torch.recon.pipeline import Reconstructor
+
+    b = make_bundle(white_exposure_s=0.01)
+    p = write_capture(tmp_path / "c.tif", np.zeros((3, 40, 40), np.uint16), {"exposure_s": "x"})
+    with pytest.raises(FileFormatError, match=r"c\.tif.*exposure_s"):
+        Reconstructor(b, beta=0.0).reconstruct_file(p)
+
+
 def test_bundle_path_that_is_a_folder(ws, capsys):
     tmp, _, caps, _ = ws
     assert _rec(tmp / "caps", tmp / "out", str(caps / "a.npy")) == 1
@@ -144,6 +234,23 @@ def test_bundle_path_that_is_a_folder(ws, capsys):
         CalibrationBundle.load(caps)
     with pytest.raises(MissingFileError, match="does not exist"):
         CalibrationBundle.load(tmp / "nope.npz")
+
+
+def test_solve_nnls_with_zero_pixels():
+    for A in (torch.rand(0, 6, 4, dtype=torch.float64), torch.rand(6, 4, dtype=torch.float64)):
+        for mask in (None, torch.ones(0, 6, dtype=torch.bool)):
+            res = solve_nnls(A, torch.zeros(0, 6, dtype=torch.float64), beta=1.0, mask=mask)
+            assert res.x.shape == (0, 4) and res.converged.shape == (0,)
+            assert res.no_data.shape == (0,) and res.kkt_residual.shape == (0,)
+
+
+def test_module_with_an_empty_batch():
+    b = make_bundle(cfa_pattern="RGGB")
+    mod = HSIReconstructor.from_bundle(b, beta=1.0)
+    cube, valid = mod(torch.zeros(0, 3, 40, 40))
+    assert cube.shape == (0, 8, 20, 20) and valid.shape == (0, 20, 20)
+    cube, valid = mod(torch.zeros(0, 1, 40, 40))  # Bayer
+    assert cube.shape == (0, 8, 20, 20)
 
 
 def test_simulate_failing_on_its_geometry_leaves_no_folder(tmp_path, capsys):
