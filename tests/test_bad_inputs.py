@@ -9,6 +9,7 @@ batches, ...); see ``docs/bad_inputs.md`` for the table of cases and what each g
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 import subprocess
@@ -19,8 +20,10 @@ import numpy as np
 import pytest
 import tifffile
 import torch
+import yaml
 from test_pipeline import make_bundle, render_capture, true_spectra
 
+from hsi_torch.batch import DONE_DIR, run_batch
 from hsi_torch.cli import main
 from hsi_torch.errors import (
     ConfigError,
@@ -30,7 +33,8 @@ from hsi_torch.errors import (
     MissingFileError,
     NoValidPixelsError,
 )
-from hsi_torch.io import atomic, read_any, read_capture, write_capture
+from hsi_torch.io import atomic, load_cube, read_any, read_capture, write_capture
+from hsi_torch.io.atomic import atomic_write_text
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.recon.solvers import solve_nnls
 
@@ -54,6 +58,97 @@ def _rec(bpath, out, *extra):
 
 def _files(d: Path) -> list[str]:
     return sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file())
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. outputs keyed by the stem: an input of the same name from another folder
+
+
+def test_same_stem_from_another_folder_is_refused_not_overwritten(ws, capsys):
+    tmp, bpath, _, img = ws
+    a, b = tmp / "A" / "x.npy", tmp / "B" / "x.npy"
+    a.parent.mkdir()
+    b.parent.mkdir()
+    np.save(a, img.numpy())
+    np.save(b, 0.5 * img.numpy())
+    out = tmp / "O"
+    assert _rec(bpath, out, str(a)) == 0
+    first = load_cube(out / "x.npz")
+    capsys.readouterr()
+    assert _rec(bpath, out, str(b)) == 1  # used to overwrite O/x.* silently
+    err = capsys.readouterr().err
+    assert str(a) in err and str(b) in err and "1 failed" in err
+    kept = load_cube(out / "x.npz")
+    assert kept.metadata["source"] == os.path.abspath(a)
+    torch.testing.assert_close(kept.cube, first.cube, equal_nan=True, rtol=0, atol=0)
+    # the first input is still recognised as done (used to keep B's cube and skip A)
+    assert _rec(bpath, out, str(a)) == 0
+    assert "1 skipped" in capsys.readouterr().err
+    # removing the old outputs frees the name for the other input
+    for f in out.glob("x*"):
+        f.unlink()
+    assert _rec(bpath, out, str(b)) == 0
+    assert load_cube(out / "x.npz").metadata["source"] == os.path.abspath(b)
+    # both in one run: the second is refused, the first is written
+    out2 = tmp / "O2"
+    assert _rec(bpath, out2, str(a), str(b)) == 1
+    err = capsys.readouterr().err
+    assert "1 processed" in err and "1 failed" in err and str(a) in err
+    assert load_cube(out2 / "x.npz").metadata["source"] == os.path.abspath(a)
+
+
+def test_run_batch_refuses_outputs_claimed_by_another_input(tmp_path):
+    """The ownership check is part of run_batch (any ``planned_outputs`` user)."""
+    a, b = tmp_path / "A" / "x.txt", tmp_path / "B" / "x.txt"
+    for p, text in ((a, "from A"), (b, "from B")):
+        p.parent.mkdir()
+        p.write_text(text)
+    out = tmp_path / "out"
+
+    def process(p: Path) -> Path:
+        return atomic_write_text(out / f"{p.stem}.out", p.read_text())
+
+    planned = {"planned_outputs": lambda p: [out / f"{p.stem}.out"]}
+    assert run_batch([a], process, out, progress=False, **planned).ok
+    s = run_batch([b], process, out, progress=False, **planned)
+    assert len(s.failed) == 1 and str(a) in s.failed[0].error
+    assert (out / "x.out").read_text() == "from A"
+
+
+def test_concurrent_runs_never_mix_the_outputs_of_one_name(ws, capsys):
+    """A run writing the outputs named 'a' holds a lock; another run meanwhile fails that input
+    (naming the holder) instead of interleaving its files with the first run's."""
+    from hsi_torch.batch import _name_lock
+
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    out.mkdir()
+    with _name_lock(out, "a"):  # as a concurrent run would while it writes a.*
+        assert _rec(bpath, out, str(caps / "a.npy")) == 1
+        err = capsys.readouterr().err
+        assert "being written by another run" in err and f"process {os.getpid()}" in err
+        assert not list(out.glob("a.*"))
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0  # once it is done: fine
+    assert not list((out / DONE_DIR).glob("*.lock"))  # no lock file left behind
+
+
+def test_claims_made_by_a_concurrent_run_are_seen(tmp_path):
+    """An input of the same name that another run claimed after this run started is refused."""
+    a1, a2, b = tmp_path / "A" / "y.txt", tmp_path / "A" / "x.txt", tmp_path / "B" / "x.txt"
+    for p in (a1, a2, b):
+        p.parent.mkdir(exist_ok=True)
+        p.write_text(p.parent.name)
+    out = tmp_path / "out"
+
+    def process(p: Path) -> Path:
+        if p == a1:  # meanwhile, "another run" reconstructs B/x.txt into the same folder
+            assert run_batch([b], process, out, progress=False, **planned).ok
+        return atomic_write_text(out / f"{p.stem}.out", p.read_text())
+
+    planned = {"planned_outputs": lambda p: [out / f"{p.stem}.out"]}
+    s = run_batch([a1, a2], process, out, progress=False, **planned)
+    assert [f.input for f in s.failed] == [a2] and str(b) in s.failed[0].error
+    assert (out / "x.out").read_text() == "B"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -114,6 +209,27 @@ def test_load_state_dict_of_another_geometry_leaves_the_module_untouched():
 # 3. a frame with nothing usable
 
 
+def test_all_saturated_capture_is_a_failure_with_its_reason(ws, capsys):
+    tmp, bpath, caps, img = ws
+    np.save(caps / "white.npy", np.full(tuple(img.shape), 65535, np.uint16))
+    out = tmp / "out"
+    assert _rec(bpath, out, str(caps / "a.npy"), str(caps / "white.npy")) == 1
+    err = capsys.readouterr().err
+    assert "1 processed" in err and "1 failed" in err
+    line = next(x for x in err.splitlines() if "FAILED" in x)
+    assert "white.npy" in line and "no valid pixel" in line and "saturated" in line
+    assert not list(out.glob("white*"))  # no all-NaN cube
+
+
+def test_min_views_above_the_bundles_views_is_a_config_error(ws, capsys):
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    assert _rec(bpath, out, "--set", "min_views=100", str(caps / "a.npy")) == 1
+    err = capsys.readouterr().err
+    assert "min_views" in err and "4 views" in err and err.count("\n") == 1
+    assert not out.exists()
+
+
 def test_no_valid_pixel_from_the_api():
     from hsi_torch.recon.pipeline import Reconstructor
 
@@ -136,6 +252,22 @@ def _dead_pid() -> int:
     return p.pid
 
 
+def test_stale_temp_files_are_cleaned_at_the_start_of_a_run(ws, capsys):
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    (out / DONE_DIR).mkdir(parents=True)
+    dead, alive = _dead_pid(), os.getpid()
+    stale = [out / f".a.npz.{dead}-k3j2h1g0.tmp", out / DONE_DIR / f".a-1.json.{dead}-abc_1234.tmp"]
+    keep = [out / f".a.tif.{alive}-zzzzzzzz.tmp", out / "notes.tmp", out / ".x.tmp",
+            out / "a.npz.tmp"]
+    for f in stale + keep:
+        f.write_bytes(b"partial")
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    assert not any(f.exists() for f in stale)
+    assert all(f.exists() for f in keep)  # a live writer's file, and files that are not ours
+    assert "removed 2 stale temporary file(s)" in capsys.readouterr().err
+
+
 def test_atomic_write_temp_names_carry_the_writer_pid(tmp_path):
     from hsi_torch.io.atomic import atomic_write
 
@@ -143,6 +275,34 @@ def test_atomic_write_temp_names_carry_the_writer_pid(tmp_path):
         name = Path(f.name).name
         assert name.startswith(f".f.bin.{os.getpid()}-") and name.endswith(".tmp")
     assert atomic.clean_stale_temp_files(tmp_path) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. one resolved configuration per run
+
+
+def test_every_run_keeps_its_own_resolved_config(ws, capsys):
+    tmp, bpath, caps, img = ws
+    np.save(caps / "b.npy", img.numpy())
+    out = tmp / "out"
+    assert _rec(bpath, out, "--set", "beta=0", str(caps / "a.npy")) == 0
+    assert _rec(bpath, out, "--set", "beta=5", str(caps / "b.npy")) == 0
+    runs = sorted((out / "runs").glob("*.yaml"))
+    assert len(runs) == 2 and not (out / "resolved_config.yaml").exists()
+    betas = {}
+    for r in runs:
+        betas[r.name] = yaml.safe_load(r.read_text())["beta"]
+    assert sorted(betas.values()) == [0.0, 5.0]
+    for stem, beta in (("a", 0.0), ("b", 5.0)):
+        meta = load_cube(out / f"{stem}.npz").metadata
+        assert meta["config"]["beta"] == beta
+        assert betas[Path(meta["run_config"]).name] == beta  # the cube names its run's file
+        assert (out / meta["run_config"]).is_file()
+    # the file reproduces the run
+    capsys.readouterr()
+    first = next(r for r in runs if betas[r.name] == 5.0)
+    assert main(["reconstruct", "--bundle", str(bpath), "--out", str(tmp / "again"),
+                 "--no-progress", "--config", str(first), str(caps / "b.npy")]) == 0  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -253,6 +413,23 @@ def test_module_with_an_empty_batch():
     assert cube.shape == (0, 8, 20, 20)
 
 
+def test_emptied_output_is_redone_on_resume(ws, capsys):
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    (out / "a.npz").write_bytes(b"")  # emptied (disk full, a killed copy, ...)
+    capsys.readouterr()
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    assert "1 processed" in capsys.readouterr().err
+    assert load_cube(out / "a.npz").cube.shape == (8, 20, 20)
+    # an output truncated to another non-zero size is redone too
+    with open(out / "a.tif", "r+b") as f:
+        f.truncate(100)
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    assert "1 processed" in capsys.readouterr().err
+    load_cube(out / "a.tif")
+
+
 def test_simulate_failing_on_its_geometry_leaves_no_folder(tmp_path, capsys):
     out = tmp_path / "sim"
     assert main(["simulate", "--out", str(out), "--set", "geometry.pupil_distance_mm=0"]) == 1
@@ -315,3 +492,15 @@ def test_error_classes_keep_their_builtin_bases():
     assert issubclass(NoValidPixelsError, ValueError)
     with pytest.raises(MissingFileError):
         read_any("/nonexistent/capture.tif")
+
+
+def test_run_records_are_json(ws):
+    """Done-markers stay readable JSON with the fields resume relies on."""
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    (marker,) = (out / DONE_DIR).glob("*.json")
+    rec = json.loads(marker.read_text())
+    assert rec["status"] == "done" and rec["input"] == os.path.abspath(caps / "a.npy")
+    assert {Path(p).name for p in rec["outputs"]} >= {"a.npz", "a.tif"}
+    assert all(len(v) == 2 for v in rec["output_stamps"].values())
