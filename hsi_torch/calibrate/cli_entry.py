@@ -13,9 +13,13 @@ On any error nothing is written (an existing bundle is left untouched).
 from __future__ import annotations
 
 import argparse
+import sys
+import warnings
 from pathlib import Path
 
 __all__ = ["run_calibrate", "output_paths"]
+
+_PACKAGE_DIR = str(Path(__file__).resolve().parents[1])
 
 
 def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
@@ -44,7 +48,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
     bundle_path, report_path, config_path = output_paths(args.out)
     if bundle_path.is_dir():
         raise ValueError(f"--out {bundle_path} is a folder; give the bundle's file name")
-    bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
+    for w in caught:  # ours as one plain line each (e.g. a saturated white shot dropped)
+        if str(Path(w.filename).resolve()).startswith(_PACKAGE_DIR):
+            print(f"hsi-torch: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     bundle_path.parent.mkdir(parents=True, exist_ok=True)
     bundle.save(bundle_path)
     atomic_write_json(report_path, report.to_dict())

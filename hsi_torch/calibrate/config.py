@@ -138,6 +138,11 @@ class ResponseSection:
     saturation_margin: float = field(
         default=1e-3, metadata=_h("white sample counts as saturated above this warped weight")
     )
+    max_saturated_fraction: float = field(
+        default=0.05,
+        metadata=_h("a white shot with more of its registered view pixels saturated is dropped "
+                    "(with a warning) while another shot is below; all above: an error"),
+    )
 
     def __post_init__(self) -> None:
         if self.beta_phi < 0 or self.gamma_h < 0:
@@ -146,6 +151,10 @@ class ResponseSection:
             raise ValueError("degree, n_iter and refine_steps must be >= 0")
         if self.diff_order not in (1, 2):
             raise ValueError(f"diff_order must be 1 or 2, got {self.diff_order}")
+        if not 0 <= self.max_saturated_fraction <= 1:
+            raise ValueError(
+                f"max_saturated_fraction must be in [0, 1], got {self.max_saturated_fraction}"
+            )
 
 
 @dataclass
