@@ -492,6 +492,14 @@ def test_error_classes_keep_their_builtin_bases():
     assert issubclass(NoValidPixelsError, ValueError)
     with pytest.raises(MissingFileError):
         read_any("/nonexistent/capture.tif")
+    with pytest.raises(MissingFileError):
+        load_cube("/nonexistent/cube.npz")
+    with pytest.raises(MissingFileError):
+        load_cube("/nonexistent/cube.hdr")
+    from hsi_torch.io import load_raw
+
+    with pytest.raises(MissingFileError):
+        load_raw("/nonexistent/shot.dng")
 
 
 def test_run_records_are_json(ws):

@@ -392,7 +392,8 @@ def read_capture(path: str | os.PathLike) -> tuple[torch.Tensor, dict[str, Any]]
         stored JSON (``{}`` for a file without it) with ``kind`` filled in.
 
     Raises:
-        FileNotFoundError, FileFormatError (corrupt/truncated file, wrong shape or dtype, NaNs).
+        MissingFileError (a FileNotFoundError), FileFormatError (corrupt/truncated file, wrong
+        shape or dtype, NaNs, bad metadata).
     """
     arr, meta = _read_stored(Path(path))
     out_dtype = np.float64 if arr.dtype == np.float64 else np.float32
@@ -462,8 +463,8 @@ def read_any(
         mask ``(3, H', W')`` and metadata.
 
     Raises:
-        FileNotFoundError, FileFormatError (``ValueError``) for unreadable, truncated, NaN-holding,
-        wrongly shaped/typed or wrong-size files.
+        MissingFileError (a ``FileNotFoundError``), FileFormatError (``ValueError``) for unreadable,
+        truncated, NaN-holding, wrongly shaped/typed or wrong-size files and bad metadata.
     """
     p = Path(path)
     _check_exists(p)

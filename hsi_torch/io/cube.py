@@ -29,7 +29,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, atomic_write, json_default
+from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.io.atomic import atomic_save_npz, atomic_write, json_default
 
 __all__ = ["Cube", "save_cube", "save_cube_formats", "load_cube", "CubeFormat"]
 
@@ -280,16 +281,17 @@ def load_cube(
         ``(H, W)``).
 
     Raises:
-        FileNotFoundError, FileFormatError (unreadable/truncated, no wavelengths, shape mismatch).
+        MissingFileError (a FileNotFoundError), FileFormatError (unreadable/truncated, no
+            wavelengths, shape mismatch).
     """
     p = Path(path)
     kind = _format_of(p, None)
     if kind == "envi":
         hdr, _ = _envi_paths(p)
         if not hdr.exists():
-            raise FileNotFoundError(f"ENVI header not found: {hdr}")
+            raise MissingFileError(f"ENVI header not found: {hdr}")
     elif not p.exists():
-        raise FileNotFoundError(f"cube file not found: {p}")
+        raise MissingFileError(f"cube file not found: {p}")
     valid: np.ndarray | None = None
     meta: dict[str, Any] = {}
     wl: np.ndarray | None = None
