@@ -512,3 +512,16 @@ def test_run_records_are_json(ws):
     assert rec["status"] == "done" and rec["input"] == os.path.abspath(caps / "a.npy")
     assert {Path(p).name for p in rec["outputs"]} >= {"a.npz", "a.tif"}
     assert all(len(v) == 2 for v in rec["output_stamps"].values())
+
+
+def test_damaged_tiff_gives_our_error_without_tifffile_log_lines(tmp_path, caplog):
+    """tifffile logged unnamed lines ("incorrect StripOffsets count") to stderr beside our
+    error; the reader now keeps them quiet and its own error names the file."""
+    p = tmp_path / "bad.tif"
+    tifffile.imwrite(p, np.zeros((6, 8), np.uint16), photometric="minisblack", metadata=None)
+    data = bytearray(p.read_bytes())
+    data[10] = 1  # the first IFD entry's count: the strip tables no longer match
+    p.write_bytes(bytes(data))
+    with pytest.raises(FileFormatError, match=r"bad\.tif"):
+        read_any(p)
+    assert not [r for r in caplog.records if r.name.startswith("tifffile")]

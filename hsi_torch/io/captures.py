@@ -20,8 +20,11 @@ and camera RAW (``.dng``, ``.cr2``, ``.nef``, ``.kdc``, ...; through rawpy, line
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -227,13 +230,26 @@ def _check_header(
         )
 
 
+@contextlib.contextmanager
+def quiet_tifffile() -> Iterator[None]:
+    """Silence tifffile's log messages about a damaged file (unnamed lines such as
+    "incorrect StripOffsets count") while reading: our own error names the file instead."""
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
 def _read_tiff(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     import tifffile
 
     try:
-        with tifffile.TiffFile(p) as tif:
+        with quiet_tifffile(), tifffile.TiffFile(p) as tif:
             if not tif.series:
                 raise FileFormatError(f"{p}: TIFF file has no image data")
             if len(tif.series) > 1:

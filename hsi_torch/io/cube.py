@@ -309,7 +309,9 @@ def load_cube(
         elif kind == "tiff":
             import tifffile
 
-            with tifffile.TiffFile(p) as tif:
+            from hsi_torch.io.captures import quiet_tifffile
+
+            with quiet_tifffile(), tifffile.TiffFile(p) as tif:
                 c = tif.asarray()
                 desc = tif.pages[0].description if len(tif.pages) else ""
             try:
