@@ -63,6 +63,7 @@ __all__ = [
     "apply_overrides",
     "to_dict",
     "dump_config",
+    "config_yaml",
     "write_resolved_config",
     "RESOLVED_CONFIG_NAME",
     "describe_schema",
@@ -476,13 +477,18 @@ def to_dict(instance: Any) -> Any:
     return instance
 
 
-def dump_config(instance: Any, path: str | os.PathLike, header: str | None = None) -> Path:
-    """Write the resolved configuration as YAML, atomically (loadable again by
-    :func:`load_config` with the same schema). ``header`` becomes leading ``#`` comment lines."""
+def config_yaml(instance: Any, header: str | None = None) -> str:
+    """The YAML text :func:`dump_config` writes (``header`` as leading ``#`` comment lines)."""
     text = yaml.safe_dump(to_dict(instance), sort_keys=False, default_flow_style=None, width=100)
     if header:
         text = "".join(f"# {line}\n" for line in header.splitlines()) + text
-    return atomic_write_text(path, text)
+    return text
+
+
+def dump_config(instance: Any, path: str | os.PathLike, header: str | None = None) -> Path:
+    """Write the resolved configuration as YAML, atomically (loadable again by
+    :func:`load_config` with the same schema). ``header`` becomes leading ``#`` comment lines."""
+    return atomic_write_text(path, config_yaml(instance, header))
 
 
 def write_resolved_config(

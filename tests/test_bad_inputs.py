@@ -257,7 +257,9 @@ def test_stale_temp_files_are_cleaned_at_the_start_of_a_run(ws, capsys):
     out = tmp / "out"
     (out / DONE_DIR).mkdir(parents=True)
     dead, alive = _dead_pid(), os.getpid()
-    stale = [out / f".a.npz.{dead}-k3j2h1g0.tmp", out / DONE_DIR / f".a-1.json.{dead}-abc_1234.tmp"]
+    (out / "runs").mkdir()
+    stale = [out / f".a.npz.{dead}-k3j2h1g0.tmp", out / DONE_DIR / f".a-1.json.{dead}-abc_1234.tmp",
+             out / "runs" / f".20250101-000000-{dead}.yaml.{dead}-abcdefgh.tmp"]
     keep = [out / f".a.tif.{alive}-zzzzzzzz.tmp", out / "notes.tmp", out / ".x.tmp",
             out / "a.npz.tmp"]
     for f in stale + keep:
@@ -265,7 +267,18 @@ def test_stale_temp_files_are_cleaned_at_the_start_of_a_run(ws, capsys):
     assert _rec(bpath, out, str(caps / "a.npy")) == 0
     assert not any(f.exists() for f in stale)
     assert all(f.exists() for f in keep)  # a live writer's file, and files that are not ours
+    # (the count covers OUT and the marker folder; runs/ is cleaned before the run record)
     assert "removed 2 stale temporary file(s)" in capsys.readouterr().err
+
+
+def test_atomic_write_new_never_replaces_and_appears_complete(tmp_path):
+    (tmp_path / "a.yaml").write_text("earlier run")
+    p = atomic.atomic_write_new(tmp_path, ["a.yaml", "a-2.yaml", "a-3.yaml"], b"this run")
+    assert p == tmp_path / "a-2.yaml"
+    assert (tmp_path / "a.yaml").read_text() == "earlier run" and p.read_bytes() == b"this run"
+    with pytest.raises(FileExistsError):
+        atomic.atomic_write_new(tmp_path, ["a.yaml", "a-2.yaml"], b"x")
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a-2.yaml", "a.yaml"]  # no temp file
 
 
 def test_atomic_write_temp_names_carry_the_writer_pid(tmp_path):

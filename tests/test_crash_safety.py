@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from test_pipeline import make_bundle, render_capture, true_spectra
 
 from hsi_torch.batch import DONE_DIR
@@ -88,6 +89,8 @@ def _wait_for_run_record(out: Path, proc: subprocess.Popen, t0: float) -> float:
 def _finished(out: Path) -> int:
     """Inputs whose marker says done."""
     n = 0
+    for r in (out / "runs").glob("*.yaml") if (out / "runs").is_dir() else []:
+        assert yaml.safe_load(r.read_text())["beta"] == 0.0, r  # the run's record, complete
     for m in (out / DONE_DIR).glob("*.json") if (out / DONE_DIR).is_dir() else []:
         try:
             n += json.loads(m.read_text()).get("status") == "done"
@@ -112,6 +115,8 @@ def _check_readable(out: Path) -> None:
             assert load_cube(p).cube.shape == (8, 20, 20), p
         elif p.suffix == ".png":
             assert cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None, p
+    for r in (out / "runs").glob("*.yaml") if (out / "runs").is_dir() else []:
+        assert yaml.safe_load(r.read_text())["beta"] == 0.0, r  # the run's record, complete
     for m in (out / DONE_DIR).glob("*.json") if (out / DONE_DIR).is_dir() else []:
         rec = json.loads(m.read_text())
         if rec["status"] == "done":

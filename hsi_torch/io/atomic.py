@@ -12,11 +12,12 @@ names the file).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import re
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -31,6 +32,7 @@ __all__ = [
     "atomic_write_text",
     "atomic_write_json",
     "atomic_save_npz",
+    "atomic_write_new",
     "clean_stale_temp_files",
 ]
 
@@ -97,6 +99,56 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     with atomic_write(path, "w") as f:
         f.write(text)
     return Path(path)
+
+
+def atomic_write_new(folder: str | os.PathLike, names: Iterable[str], data: bytes) -> Path:
+    """Write ``data`` as a *new* file: the first of ``names`` (in ``folder``) that does not exist.
+
+    The content goes to a temporary file first (named as :func:`atomic_write`'s, so
+    :func:`clean_stale_temp_files` removes it if the process is killed), which is then
+    hard-linked under the name: atomic and exclusive. An existing file is never replaced (a
+    concurrent writer gets the next name) and the file only ever appears complete. Where hard
+    links are not supported, the name is created exclusively and written in place.
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: every name is taken.
+    """
+    d = Path(folder)
+    d.mkdir(parents=True, exist_ok=True)
+    it = iter(names)
+    first = next(it, None)
+    if first is None:
+        raise ValueError("atomic_write_new: no file name given")
+    fd, tmp = tempfile.mkstemp(prefix=f".{first}.{os.getpid()}-", suffix=".tmp", dir=d)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        for name in itertools.chain([first], it):
+            dest = d / name
+            try:
+                os.link(tmp, dest)
+                return dest
+            except FileExistsError:
+                continue
+            except OSError:  # no hard links on this file system: exclusive create, then write
+                try:
+                    with open(dest, "xb") as g:
+                        g.write(data)
+                    return dest
+                except FileExistsError:
+                    continue
+        raise FileExistsError(f"no free file name in {d} (from {first!r} on)")
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
 
 
 def json_default(obj: Any) -> Any:

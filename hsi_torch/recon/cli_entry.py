@@ -254,12 +254,15 @@ def write_run_config(
 ) -> Path:
     """Write this run's resolved configuration to ``out/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml`` (a
     new file per run, never one of an earlier or concurrent run; ``-2``, ``-3``, ... if a run of
-    the same process already used the name) and return its path."""
+    the same process already used the name) and return its path. The file appears complete or
+    not at all (:func:`hsi_torch.io.atomic.atomic_write_new`); temporary files that killed runs
+    left in ``out/runs`` are removed first."""
     from hsi_torch import __version__
-    from hsi_torch.config import dump_config
+    from hsi_torch.config import config_yaml
+    from hsi_torch.io.atomic import atomic_write_new, clean_stale_temp_files
 
     folder = out / RUNS_DIR
-    folder.mkdir(exist_ok=True)
+    clean_stale_temp_files(folder)
     base = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     header = (
         f"resolved configuration of a 'hsi-torch reconstruct' run, hsi_torch {__version__}\n"
@@ -267,16 +270,8 @@ def write_run_config(
         f"{os.path.abspath(bundle_path)}\n"
         f"rerun with: hsi-torch reconstruct --config <this file> --bundle BUNDLE --out DIR INPUTS"
     )
-    for i in range(1, 10_000):
-        path = folder / (base if i == 1 else f"{base}-{i}")
-        path = path.with_name(path.name + ".yaml")
-        try:  # reserve the name (exclusive create), then write the content atomically
-            with open(path, "x", encoding="utf-8"):
-                pass
-        except FileExistsError:
-            continue
-        return dump_config(cfg, path, header=header)
-    raise OSError(f"cannot find a free run-configuration name in {folder}")
+    names = (f"{base}.yaml" if i == 1 else f"{base}-{i}.yaml" for i in range(1, 10_000))
+    return atomic_write_new(folder, names, config_yaml(cfg, header).encode("utf-8"))
 
 
 def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
