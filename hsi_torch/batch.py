@@ -4,14 +4,28 @@
 recorded (exception type and message) and the batch continues; ``KeyboardInterrupt`` stops it.
 With ``resume=True`` an input is skipped when its outputs already exist:
 
-- if ``expected_outputs(input)`` is given: when every path it returns exists;
-- otherwise: when the *done-marker* written after the input's last success exists and every
-  output it lists still exists. Markers live in ``out_dir/.hsi_torch_done/`` (one small JSON per
-  input, named ``<stem>-<hash of the absolute input path>.json``, written atomically *after*
-  ``process`` returned), so an interrupted or failed input is never mistaken for a finished one.
-  The marker also records the input file's size and modification time and the run's
-  ``fingerprint`` (e.g. a hash of the configuration and the bundle): an input that changed since,
-  or a rerun with different settings, is processed again instead of being skipped.
+- if ``expected_outputs(input)`` is given: when every path it returns is a non-empty file;
+- otherwise: when the input's *done-marker* says it finished and every output it lists is still
+  the file that was written (same size and modification time: an emptied, truncated or replaced
+  output is not "done"). Markers live in ``out_dir/.hsi_torch_done/`` (one small JSON per input,
+  named ``<stem>-<hash of the absolute input path>.json``). Before ``process`` runs, the marker is
+  written as a *claim* (``"status": "started"``, the planned outputs); after ``process`` returned,
+  atomically, as ``"status": "done"`` with the outputs and their sizes and times — so an
+  interrupted or failed input is never mistaken for a finished one. The marker also records the
+  input file's size and modification time and the run's ``fingerprint`` (e.g. a hash of the
+  configuration and the bundle): an input that changed since, or a rerun with different
+  settings, is processed again instead of being skipped.
+
+**Outputs belong to one input.** With ``planned_outputs(input)`` (the files ``process`` will
+write), an input whose outputs were claimed by *another* input — e.g. ``A/x.tif`` and
+``B/x.tif`` both writing ``out/x.*`` — fails with an error naming both inputs, in the same run or
+a later one, instead of overwriting the other's files. The claim lapses once none of the other
+input's outputs exists any more (delete them to hand the names over).
+
+**Leftovers of killed runs.** At the start of a run the temporary files that killed writers left
+in ``out_dir`` and the marker folder (:func:`hsi_torch.io.atomic.clean_stale_temp_files`: only
+this package's own ``.<name>.<pid>-<random>.tmp`` files whose process is gone) are deleted;
+:attr:`BatchSummary.cleaned` lists them.
 
 ``process`` should write its files atomically (:func:`hsi_torch.io.atomic.atomic_write`) so a
 crash leaves no partial output. Inputs run sequentially in this process; the per-frame work
@@ -21,6 +35,7 @@ can deadlock under ``fork`` — use the ``spawn`` start method.)
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import hashlib
 import json
@@ -28,12 +43,13 @@ import os
 import sys
 import time
 import traceback
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from hsi_torch.io.atomic import atomic_write_json
+from hsi_torch.errors import InputError
+from hsi_torch.io.atomic import atomic_write_json, clean_stale_temp_files
 
 __all__ = [
     "BatchFailure",
@@ -51,6 +67,7 @@ DONE_DIR = ".hsi_torch_done"
 _GLOB_CHARS = set("*?[")
 
 ProcessFn = Callable[[Path], "Path | str | Sequence[Path | str] | None"]
+PathsFn = Callable[[Path], Sequence["Path | str"]]
 
 
 @dataclass
@@ -72,6 +89,7 @@ class BatchSummary:
         failed: the failures, in input order.
         outputs: input → output paths reported by ``process`` (processed inputs only).
         elapsed_s: wall time of the batch in seconds.
+        cleaned: stale temporary files of killed runs removed at the start.
     """
 
     processed: list[Path] = field(default_factory=list)
@@ -79,6 +97,7 @@ class BatchSummary:
     failed: list[BatchFailure] = field(default_factory=list)
     outputs: dict[Path, list[Path]] = field(default_factory=dict)
     elapsed_s: float = 0.0
+    cleaned: list[Path] = field(default_factory=list)
 
     @property
     def total(self) -> int:
@@ -100,6 +119,9 @@ class BatchSummary:
             f"(outputs exist), {len(self.failed)} failed in {self.elapsed_s:.1f} s"
         )
         lines = [head]
+        if self.cleaned:
+            lines.append(f"  removed {len(self.cleaned)} stale temporary file(s) of an "
+                         "interrupted run")
         lines += [f"  FAILED {f.input}: {f.error}" for f in self.failed]
         return "\n".join(lines)
 
@@ -185,28 +207,168 @@ def _input_stamp(inp: Path) -> list[int]:
     return [int(st.st_size), int(st.st_mtime_ns)]
 
 
+def _file_stamp(path: str | os.PathLike) -> list[int] | None:
+    """``[size, mtime_ns]`` of a regular file, ``None`` when it is missing or not a file."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    if not os.path.isfile(path):
+        return None
+    return [int(st.st_size), int(st.st_mtime_ns)]
+
+
+def _read_marker(path: Path) -> dict[str, Any] | None:
+    try:
+        rec = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
+def _outputs_intact(rec: dict[str, Any]) -> bool:
+    """Every output the marker lists is still the (non-empty) file that was written."""
+    outputs = rec.get("outputs")
+    if not isinstance(outputs, list):
+        return False
+    stamps = rec.get("output_stamps")
+    for p in outputs:
+        now = _file_stamp(p)
+        if now is None or now[0] == 0:
+            return False
+        if isinstance(stamps, dict) and stamps.get(str(p)) != now:  # truncated or replaced
+            return False
+    return True
+
+
 def _is_done(
     inp: Path,
     out_dir: Path,
-    expected_outputs: Callable[[Path], Sequence[Path | str]] | None,
+    expected_outputs: PathsFn | None,
     fingerprint: str | None = None,
 ) -> bool:
     if expected_outputs is not None:
         paths = [Path(p) for p in expected_outputs(inp)]
-        return bool(paths) and all(p.exists() for p in paths)
-    marker = _marker_path(out_dir, inp)
-    if not marker.is_file():
+        return bool(paths) and all((_file_stamp(p) or [0])[0] > 0 for p in paths)
+    rec = _read_marker(_marker_path(out_dir, inp))
+    if rec is None or rec.get("status", "done") != "done":  # none, unreadable, or interrupted
         return False
     try:
-        rec = json.loads(marker.read_text(encoding="utf-8"))
         stamp = _input_stamp(inp)
-    except (OSError, json.JSONDecodeError):
+    except OSError:
         return False
     if rec.get("input_stamp") != stamp:  # the input changed since it was processed
         return False
     if fingerprint is not None and rec.get("fingerprint") != fingerprint:  # other settings
         return False
-    return all(Path(p).exists() for p in rec.get("outputs", []))
+    return _outputs_intact(rec)
+
+
+class _Owners:
+    """Which input each output path of ``out_dir`` belongs to, from the markers."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.by_output: dict[str, tuple[str, Path]] = {}
+        self.outputs_of: dict[Path, list[str]] = {}
+        folder = out_dir / DONE_DIR
+        markers = sorted(folder.glob("*.json")) if folder.is_dir() else []
+        for m in markers:
+            rec = _read_marker(m)
+            if rec is None or not isinstance(rec.get("input"), str):
+                continue
+            outs = [str(p) for p in rec.get("outputs", []) if isinstance(p, str)]
+            self.claim(m, rec["input"], outs)
+
+    def refresh(self, out_dir: Path, stem: str) -> None:
+        """Re-read the markers of inputs named ``stem`` (another run may have written some)."""
+        for m in (out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"):
+            rec = _read_marker(m)
+            if rec is not None and isinstance(rec.get("input"), str):
+                outs = [str(p) for p in rec.get("outputs", []) if isinstance(p, str)]
+                self.claim(m, rec["input"], outs)
+
+    def claim(self, marker: Path, inp: str, outputs: Sequence[str]) -> None:
+        self.outputs_of[marker] = list(outputs)
+        for p in outputs:
+            self.by_output[p] = (inp, marker)
+
+    def conflict(self, inp: str, outputs: Sequence[str]) -> tuple[str, list[str]] | None:
+        """The other input that holds some of ``outputs`` (one of its outputs still exists),
+        and the outputs in question; lapsed claims are dropped (their marker deleted)."""
+        for p in outputs:
+            owner = self.by_output.get(p)
+            if owner is None or owner[0] == inp:
+                continue
+            other, marker = owner
+            held = self.outputs_of.get(marker, [])
+            if any(os.path.lexists(q) for q in held):
+                return other, [q for q in outputs if self.by_output.get(q, ("",))[0] == other]
+            for q in held:  # nothing of it is left: the names are free again
+                if self.by_output.get(q, ("",))[0] == other:
+                    del self.by_output[q]
+            self.outputs_of.pop(marker, None)
+            marker.unlink(missing_ok=True)
+        return None
+
+
+@contextlib.contextmanager
+def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
+    """Hold ``out_dir/.hsi_torch_done/<stem>.lock`` (an exclusive ``flock``) while the outputs
+    named ``stem`` are written; another run holding it makes this input fail at once, naming
+    that run's process id. (No locking where ``fcntl`` does not exist.)"""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        yield
+        return
+    folder = out_dir / DONE_DIR
+    folder.mkdir(exist_ok=True)
+    path = folder / f"{stem}.lock"
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise InputError(
+                f"outputs named '{stem}' in {out_dir} are being written by another run (process "
+                f"{holder}) right now; run again when it has finished"
+            ) from None
+        try:  # still the file at that name? (its holder removes it when done)
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # while still held: a waiting run re-checks the name (above)
+        os.close(fd)  # releases the lock
+
+
+def _release_claim(
+    owners: _Owners | None, marker: Path, inp: str, previous: dict[str, Any] | None
+) -> None:
+    """After a failed input: its earlier marker back (its earlier outputs, if any are left,
+    are still its own), or no marker at all."""
+    try:
+        if previous is not None:
+            atomic_write_json(marker, previous)
+            if owners is not None:
+                outs = [str(p) for p in previous.get("outputs", []) if isinstance(p, str)]
+                owners.claim(marker, inp, outs)
+        else:
+            marker.unlink(missing_ok=True)
+            if owners is not None:
+                owners.outputs_of.pop(marker, None)
+    except OSError:
+        pass  # the claim stays: the input is redone next time, never skipped
 
 
 def _as_paths(result: Any) -> list[Path]:
@@ -223,9 +385,10 @@ def run_batch(
     out_dir: str | os.PathLike,
     resume: bool = True,
     progress: bool = True,
-    expected_outputs: Callable[[Path], Sequence[Path | str]] | None = None,
+    expected_outputs: PathsFn | None = None,
     desc: str = "processing",
     fingerprint: str | None = None,
+    planned_outputs: PathsFn | None = None,
 ) -> BatchSummary:
     """Run ``process`` over every input, continuing past failures.
 
@@ -235,10 +398,14 @@ def run_batch(
         out_dir: output folder (created); holds the resume markers.
         resume: skip inputs whose outputs exist (see the module docstring).
         progress: show a tqdm progress bar on stderr.
-        expected_outputs: optional ``input -> output paths`` used to decide resumption.
+        expected_outputs: optional ``input -> output paths`` used to decide resumption (no
+            markers, no ownership check).
         desc: progress-bar label.
         fingerprint: identifies the settings of this run (see :func:`fingerprint_of`); with the
             done-markers, an input finished under a different fingerprint is processed again.
+        planned_outputs: optional ``input -> output paths`` that ``process`` will write; an input
+            whose planned outputs belong to another input (a claim by its marker, one of its
+            outputs still on disk) fails with an error naming both, before ``process`` runs.
 
     Returns:
         :class:`BatchSummary` (use ``.report()`` / :func:`print_summary` and ``.exit_code``).
@@ -251,6 +418,8 @@ def run_batch(
     paths = expand_inputs(inputs)
     out = ensure_out_dir(out_dir)
     summary = BatchSummary()
+    summary.cleaned = clean_stale_temp_files(out) + clean_stale_temp_files(out / DONE_DIR)
+    owners = _Owners(out) if expected_outputs is None else None
     t0 = time.perf_counter()
     bar = progress_bar(paths, enabled=progress, desc=desc, unit="file", leave=True)
     try:
@@ -258,27 +427,68 @@ def run_batch(
             if resume and _is_done(inp, out, expected_outputs, fingerprint):
                 summary.skipped.append(inp)
                 continue
+            key = os.path.abspath(inp)
+            marker = _marker_path(out, inp)
+            previous: dict[str, Any] | None = None
+            claimed = False
+            lock = contextlib.ExitStack()
             try:
                 if not inp.exists():
                     raise FileNotFoundError(f"input file not found: {inp}")
                 stamp = _input_stamp(inp)
-                outputs = _as_paths(process(inp))
-                if expected_outputs is None:
-                    record = {
-                        "input": os.path.abspath(inp),
+                if owners is not None:
+                    # one run at a time writes the outputs of a name into this folder
+                    lock.enter_context(_name_lock(out, inp.stem))
+                    owners.refresh(out, inp.stem)  # claims a concurrent run made meanwhile
+                    planned = [os.path.abspath(p) for p in planned_outputs(inp)] \
+                        if planned_outputs is not None else []  # fmt: skip
+                    clash = owners.conflict(key, planned)
+                    if clash is not None:
+                        other, names = clash
+                        shown = ", ".join(Path(n).name for n in names[:4])
+                        raise InputError(
+                            f"{inp}: its outputs ({shown}) in {out} already belong to another "
+                            f"input, {other}; rename one of the two, write into another folder, "
+                            "or delete those outputs first"
+                        )
+                    record: dict[str, Any] = {
+                        "status": "started",
+                        "input": key,
                         "input_stamp": stamp,
                         "fingerprint": fingerprint,
-                        "outputs": [os.path.abspath(p) for p in outputs],
-                        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                        "outputs": planned,
+                        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
                     }
-                    atomic_write_json(_marker_path(out, inp), record)
-            except Exception as exc:  # noqa: BLE001 - every input failure is collected
+                    previous = _read_marker(marker)
+                    atomic_write_json(marker, record)  # the claim, before any output exists
+                    claimed = True
+                    owners.claim(marker, key, planned)
+                outputs = _as_paths(process(inp))
+                if owners is not None:
+                    done = [os.path.abspath(p) for p in outputs]
+                    record.update(
+                        status="done", outputs=done,
+                        output_stamps={p: _file_stamp(p) for p in done},
+                        finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
+                    )  # fmt: skip
+                    atomic_write_json(marker, record)
+                    owners.claim(marker, key, sorted(set(done) | set(planned)))
+            except BaseException as exc:
+                if claimed:  # failed or interrupted (Ctrl-C): no claim of an unfinished input
+                    _release_claim(owners, marker, key, previous)
+                lock.close()
+                with contextlib.suppress(OSError):  # the marker folder, if nothing is in it
+                    (out / DONE_DIR).rmdir()
+                if not isinstance(exc, Exception):
+                    raise
                 summary.failed.append(
                     BatchFailure(inp, f"{type(exc).__name__}: {exc}", traceback.format_exc())
                 )
                 if progress:
                     bar.set_postfix(failed=len(summary.failed))
                 continue
+            finally:
+                lock.close()
             summary.processed.append(inp)
             summary.outputs[inp] = outputs
     finally:

@@ -26,8 +26,9 @@ is a folder (``calibrate --out FILE.npz`` also names the bundle file directly).
 The entry function returns an exit status (``int``), ``None`` (= 0), or a
 :class:`hsi_torch.batch.BatchSummary` (its report is printed; status 1 if any input failed).
 
-Exit status: 0 success; 1 an error (``ConfigError``, ``ValueError``, ``OSError`` such as
-``FileNotFoundError``, ... printed as one line on stderr; the traceback only with ``--debug``);
+Exit status: 0 success; 1 an error (any :class:`hsi_torch.errors.HSIError` such as ``ConfigError``
+or ``FileFormatError``, a ``ValueError``, an ``OSError`` such as ``FileNotFoundError``, ... printed
+as one line on stderr; the traceback only with ``--debug``);
 2 usage error or a sub-command whose module is not part of this installation; 130 interrupted.
 """
 
@@ -386,8 +387,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get("HSI_TORCH_DEBUG") == "1"
     args.debug = debug
+    created: list[Path] = []  # an --out folder this command creates
+    rc = 1
+    try:
+        rc = _dispatch(args, extra, debug, created)
+    finally:
+        if rc != 0 and created:  # a failed command leaves no empty folder behind
+            _remove_if_empty(created[0])
+    return rc
+
+
+def _remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` and its sub-folders if no file is in any of them."""
+    if not folder.is_dir() or any(p.is_file() or p.is_symlink() for p in folder.rglob("*")):
+        return
+    for d in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
+        d.rmdir()
+    folder.rmdir()
+
+
+def _dispatch(
+    args: argparse.Namespace, extra: list[str], debug: bool, created: list[Path]
+) -> int:
+    """Run the sub-command; every error becomes one line on stderr and an exit status."""
     from hsi_torch import console, resources
     from hsi_torch.config import ConfigError
+    from hsi_torch.errors import HSIError
 
     data_dir_before = resources.get_real_data_dir_setting()
     console_before = console.configure(
@@ -414,11 +439,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             from hsi_torch.batch import check_out_dir
 
             check_out_dir(out)
+            if not Path(out).exists():  # a folder that existed before is never removed
+                created.append(Path(out))
         return _run_entry(args)
     except KeyboardInterrupt:
         _err("interrupted")
         return 130
-    except (ConfigError, ValueError, OSError) as exc:
+    except (HSIError, ConfigError, ValueError, OSError) as exc:
         if debug:
             traceback.print_exc()
         _err(_one_line(exc))
@@ -445,8 +472,11 @@ def _one_line(exc: BaseException) -> str:
     text = str(exc) or type(exc).__name__
     if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in text:
         text = f"{text}: {exc.filename}"
-    if type(exc).__name__ not in ("ConfigError", "ValueError", "FileFormatError"):
-        text = f"{type(exc).__name__}: {text}" if not isinstance(exc, OSError) else text
+    from hsi_torch.errors import HSIError
+
+    plain = isinstance(exc, (HSIError, OSError)) or type(exc) is ValueError
+    if not plain:
+        text = f"{type(exc).__name__}: {text}"
     return " | ".join(line.strip() for line in text.splitlines() if line.strip())
 
 

@@ -11,7 +11,9 @@ and unions, ``Literal[...]``, ``Enum`` subclasses, ``list[X]``, ``tuple[X, ...]`
 :data:`ExistingPath` (a ``Path`` that must exist).
 
 Conversions: ``int`` → ``float`` is allowed; numeric strings are accepted for ``float``/``int``
-(PyYAML reads ``1e-3`` as a string); ``bool`` is never coerced from or to numbers; a ``Path``
+(PyYAML reads ``1e-3`` as a string); a ``float`` must be finite (``.inf``, ``.nan``, ``1e999``
+are refused: no setting means "infinite"; optional keys use ``null``); ``bool`` is never coerced
+from or to numbers; a ``Path``
 that is relative is joined to the config file's folder (for a dict source: ``base_dir``, default
 the current directory; for a command-line override: the current directory); ``~`` is expanded.
 
@@ -38,6 +40,7 @@ import copy
 import dataclasses
 import difflib
 import enum
+import math
 import os
 import types
 import typing
@@ -48,6 +51,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union
 
 import yaml
 
+from hsi_torch.errors import HSIError
 from hsi_torch.io.atomic import atomic_write_text
 
 __all__ = [
@@ -59,6 +63,7 @@ __all__ = [
     "apply_overrides",
     "to_dict",
     "dump_config",
+    "config_yaml",
     "write_resolved_config",
     "RESOLVED_CONFIG_NAME",
     "describe_schema",
@@ -70,7 +75,7 @@ T = TypeVar("T")
 KeyPath = tuple[str | int, ...]
 
 
-class ConfigError(ValueError):
+class ConfigError(HSIError, ValueError):
     """Invalid configuration. ``key`` is the dotted key at fault (or ``None``), ``source`` the file.
 
     The message is a single line: ``"<source>: key 'a.b': <problem>"``.
@@ -141,7 +146,9 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
     key = key.strip()
     if not key or any(not p for p in key.split(".")):
         raise ConfigError(f"override {text!r} has an empty key part")
-    parts: list[str | int] = [int(p) if p.isdigit() else p for p in key.split(".")]
+    parts: list[str | int] = [
+        int(p) if p.isascii() and p.isdigit() else p for p in key.split(".")
+    ]
     try:
         value = yaml.safe_load(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
@@ -227,7 +234,10 @@ def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
         for marker in args[1:]:
             if isinstance(marker, MustExist) and out is not None:
                 p = Path(out)
-                ok = {"any": p.exists(), "file": p.is_file(), "dir": p.is_dir()}[marker.kind]
+                try:
+                    ok = {"any": p.exists, "file": p.is_file, "dir": p.is_dir}[marker.kind]()
+                except (OSError, ValueError) as exc:  # e.g. an embedded NUL, a too-long name
+                    raise ctx.error(path, f"invalid path {str(p)!r} ({exc})") from None
                 if not ok:
                     what = {"any": "path", "file": "file", "dir": "folder"}[marker.kind]
                     raise ctx.error(path, f"{what} not found: {p}")
@@ -240,11 +250,15 @@ def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
             return _convert(value, candidates[0], path, ctx)
         # exact-type matches first, so that e.g. int | str keeps "3" a str and 3 an int
         candidates.sort(key=lambda a: 0 if isinstance(a, type) and type(value) is a else 1)
+        errors: list[ConfigError] = []
         for cand in candidates:
             try:
                 return _convert(value, cand, path, ctx)
-            except ConfigError:
-                continue
+            except ConfigError as exc:
+                errors.append(exc)
+        for exc in errors:  # a number of the right kind but not finite: say so
+            if "finite" in exc.problem:
+                raise exc
         raise ctx.error(path, f"expected {_type_name(tp)}, got {_got(value)}")
     if tp is type(None):
         if value is not None:
@@ -281,14 +295,22 @@ def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
     if tp is float:
         if isinstance(value, bool):
             raise ctx.error(path, f"expected float, got {_got(value)}")
+        num: float | None = None
         if isinstance(value, (int, float)):
-            return float(value)
-        if isinstance(value, str):
             try:
-                return float(value)
+                num = float(value)
+            except OverflowError:  # an int beyond float range
+                num = math.inf
+        elif isinstance(value, str):
+            try:
+                num = float(value)
             except ValueError:
                 pass
-        raise ctx.error(path, f"expected float, got {_got(value)}")
+        if num is None:
+            raise ctx.error(path, f"expected float, got {_got(value)}")
+        if not math.isfinite(num):
+            raise ctx.error(path, f"expected a finite float, got {_got(value)}")
+        return num
     if tp is str:
         if not isinstance(value, str):
             raise ctx.error(path, f"expected str, got {_got(value)} (quote it in YAML)")
@@ -455,13 +477,18 @@ def to_dict(instance: Any) -> Any:
     return instance
 
 
-def dump_config(instance: Any, path: str | os.PathLike, header: str | None = None) -> Path:
-    """Write the resolved configuration as YAML, atomically (loadable again by
-    :func:`load_config` with the same schema). ``header`` becomes leading ``#`` comment lines."""
+def config_yaml(instance: Any, header: str | None = None) -> str:
+    """The YAML text :func:`dump_config` writes (``header`` as leading ``#`` comment lines)."""
     text = yaml.safe_dump(to_dict(instance), sort_keys=False, default_flow_style=None, width=100)
     if header:
         text = "".join(f"# {line}\n" for line in header.splitlines()) + text
-    return atomic_write_text(path, text)
+    return text
+
+
+def dump_config(instance: Any, path: str | os.PathLike, header: str | None = None) -> Path:
+    """Write the resolved configuration as YAML, atomically (loadable again by
+    :func:`load_config` with the same schema). ``header`` becomes leading ``#`` comment lines."""
+    return atomic_write_text(path, config_yaml(instance, header))
 
 
 def write_resolved_config(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -229,3 +230,48 @@ def test_cli_oracle_bundle_is_the_truth(sim: Path, tmp_path):
 
         run_calibrate(argparse.Namespace(captures=tmp_path, out=tmp_path / "x", oracle=True))
     assert not (tmp_path / "x").exists()
+
+
+def _saturate_whites(sim: Path, dst: Path, which: Sequence[int]) -> Path:
+    """A copy of the set whose white shots ``which`` are overexposed: every sample at the white
+    level (the other shots copied as they are)."""
+    from hsi_torch.io import read_capture, write_capture
+
+    d = _copy_set(sim, dst)
+    (d / "white").unlink()
+    (d / "white").mkdir()
+    for i, f in enumerate(sorted((sim / "white").iterdir())):
+        if i in which:
+            img, meta = read_capture(f)
+            write_capture(d / "white" / f.name, torch.full_like(img, meta["white_level"]), meta)
+        else:
+            shutil.copy(f, d / "white" / f.name)
+    return d
+
+
+def test_one_saturated_white_shot_is_dropped_with_a_warning(sim: Path, calibrated: Path,
+                                                            tmp_path: Path, capsys):
+    d = _saturate_whites(sim, tmp_path / "set", which=[1])
+    out = tmp_path / "sat.npz"
+    assert main(["calibrate", "--captures", str(d), "--out", str(out),
+                 "--set", "progress=false"]) == 0  # fmt: skip
+    cap = capsys.readouterr()
+    warn = [ln for ln in cap.err.splitlines() if "warning" in ln]
+    assert len(warn) == 1 and "white_01.tif" in warn[0] and "saturated" in warn[0]
+    assert "dropped" in warn[0] and "100.0 %" in warn[0]
+    assert "white_01.tif dropped" in cap.out  # also in the report's notes
+    a, b = CalibrationBundle.load(out), CalibrationBundle.load(calibrated)
+    # the other two shots give the same calibration, up to their own noise
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert np.corrcoef(a.phi.ravel(), b.phi.ravel())[0, 1] > 0.999
+    m = a.view_mask
+    assert np.abs(a.gain[m] / b.gain[m] - 1).max() < 0.02
+
+
+def test_all_white_shots_saturated_is_an_error_naming_them(sim: Path, tmp_path: Path, capsys):
+    d = _saturate_whites(sim, tmp_path / "set", which=[0, 1, 2])
+    err = _calibrate_fails(d, tmp_path, capsys)
+    assert "all 3 white-reference shot(s) are saturated" in err
+    for i in range(3):
+        assert f"white_0{i}.tif 100.0 % saturated" in err
+    assert "reduce the exposure" in err and err.count("\n") == 1

@@ -56,11 +56,12 @@ def test_resume_redoes_inputs_when_config_bundle_or_input_change(ws, capsys):
     assert "1 processed" in capsys.readouterr().err
     assert _rec(bpath, out, "--set", "beta=0", a) == 0  # same settings: skipped
     assert "1 skipped" in capsys.readouterr().err
-    # another beta: the old cube must not be kept while resolved_config.yaml claims beta=5
+    # another beta: the old cube must not be kept while the run records claim beta=5
     assert _rec(bpath, out, "--set", "beta=5", a) == 0
     assert "1 processed" in capsys.readouterr().err
-    assert load_cube(out / "a.npz").metadata["config"]["beta"] == 5.0
-    assert "beta: 5.0" in (out / "resolved_config.yaml").read_text()
+    meta = load_cube(out / "a.npz").metadata
+    assert meta["config"]["beta"] == 5.0
+    assert "beta: 5.0" in (out / meta["run_config"]).read_text()  # this run's own record
     # the input file was replaced (re-simulated): redone, and the new content is in the cube
     np.save(caps / "a.npy", 0.5 * img.numpy())
     _bump_mtime(caps / "a.npy")
@@ -81,7 +82,7 @@ def test_failing_before_processing_leaves_nothing(ws, capsys):
     assert _rec(bpath, out, str(caps / "*.tif")) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "matches no files" in err
-    assert not out.exists()  # no folder with a resolved_config.yaml of a run that never ran
+    assert not out.exists()  # no folder with the record of a run that never ran
     assert _rec(bpath, out, "--set", "betta=1", str(caps / "a.npy")) == 1
     assert "did you mean 'beta'" in capsys.readouterr().err and not out.exists()
 

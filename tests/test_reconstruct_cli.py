@@ -53,7 +53,8 @@ def test_reconstruct_cli_end_to_end(workspace, capsys):
     assert not any(f.startswith(("corrupt", "small")) for f in files)
     assert not any(f.endswith(".tmp") or "/." in f or f.startswith(".") and "done" not in f
                    for f in files)
-    assert "resolved_config.yaml" in files
+    (run_cfg,) = [f for f in files if f.startswith("runs/") and f.endswith(".yaml")]
+    assert load_cube(out / "a.npz").metadata["run_config"] == run_cfg
     valid = torch.as_tensor(make_bundle().valid)
     a = load_cube(out / "a.npz")
     torch.testing.assert_close(a.cube[:, valid].double(), s[:, valid], rtol=1e-5, atol=1e-5)
@@ -74,7 +75,7 @@ def test_reconstruct_cli_end_to_end(workspace, capsys):
     np.testing.assert_allclose(np.asarray(img.load())[10, 10, :], a.cube[:, 10, 10].numpy())
 
     # resume: nothing recomputed, outputs untouched; the bad files fail again
-    mtimes = {f: (out / f).stat().st_mtime_ns for f in files if f != "resolved_config.yaml"}
+    mtimes = {f: (out / f).stat().st_mtime_ns for f in files if not f.startswith("runs/")}
     code = main(argv)
     err = capsys.readouterr().err
     assert code == 1 and "3 skipped" in err

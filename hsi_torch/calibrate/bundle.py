@@ -41,7 +41,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, json_default
+from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.io.atomic import atomic_save_npz, json_default
 from hsi_torch.spectral import band_widths
 
 __all__ = [
@@ -49,6 +50,7 @@ __all__ = [
     "CalibrationBundle",
     "file_sha256",
     "make_provenance",
+    "sensing_matrices",
 ]
 
 SCHEMA_VERSION = 1
@@ -205,6 +207,17 @@ class CalibrationBundle:
             fail("sensor_size", f"must be (H, W) > 0, got {self.sensor_size.tolist()}")
         if self.reference_bbox.shape != (4,) or np.any(self.reference_bbox[2:] <= 0):
             fail("reference_bbox", f"must be (x0, y0, w, h), got {self.reference_bbox.tolist()}")
+        x0, y0, bw, bh = (int(v) for v in self.reference_bbox)
+        H, W = (int(v) for v in self.sensor_size)
+        if x0 < 0 or y0 < 0 or x0 + bw > W or y0 + bh > H:
+            fail("reference_bbox", f"{[x0, y0, bw, bh]} (x0, y0, w, h) is not inside the "
+                                   f"{H}x{W} sensor")  # fmt: skip
+        if V < 1:
+            fail("triangles", "holds no view (V = 0)")
+        with np.errstate(all="ignore"):
+            det = np.linalg.det(self.view_homographies.astype(np.float64))
+        if not np.all(np.isfinite(det)) or np.any(np.abs(det) < 1e-12):
+            fail("view_homographies", "must be invertible (a view's homography is singular)")
         h, w = self.frame_size
         expect = {
             "B": (V, M, h, w),
@@ -254,8 +267,13 @@ class CalibrationBundle:
     def load(cls, path: str | os.PathLike) -> CalibrationBundle:
         """Read and validate a bundle; errors name the file and the offending key."""
         p = Path(path)
+        if p.is_dir():
+            raise FileFormatError(
+                f"calibration bundle {p} is a folder, not a bundle file (give the .npz written by "
+                "'hsi-torch calibrate')"
+            )
         if not p.is_file():
-            raise FileNotFoundError(f"calibration bundle {p} does not exist")
+            raise MissingFileError(f"calibration bundle {p} does not exist")
         if not zipfile.is_zipfile(p):  # np.load would guess .npy/pickle and say something odd
             raise FileFormatError(
                 f"calibration bundle {p}: not a readable NPZ file (not a zip archive: corrupt, "
@@ -268,19 +286,33 @@ class CalibrationBundle:
             raise FileFormatError(
                 f"calibration bundle {p}: not a readable NPZ file ({exc})"
             ) from exc
+        for k, v in data.items():  # np.load gives the raw bytes of a member that is no array
+            if not isinstance(v, np.ndarray):
+                raise FileFormatError(f"calibration bundle {p}: member '{k}' is not an array")
         if "meta" not in data:
             raise FileFormatError(
                 f"calibration bundle {p}: missing key 'meta' (not a bundle written by "
                 "'hsi-torch calibrate')"
             )
+        raw_meta = data["meta"]
+        if raw_meta.ndim != 0 or raw_meta.dtype.kind != "U":
+            raise FileFormatError(
+                f"calibration bundle {p}: 'meta' must be a JSON string (0-d str array), got a "
+                f"{raw_meta.dtype} array of shape {raw_meta.shape}"
+            )
         try:
-            meta = json.loads(str(data["meta"]))
-        except json.JSONDecodeError as exc:
+            meta = json.loads(str(raw_meta))
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise FileFormatError(
                 f"calibration bundle {p}: 'meta' is not valid JSON ({exc})"
             ) from exc
+        if not isinstance(meta, dict):
+            raise FileFormatError(
+                f"calibration bundle {p}: 'meta' must be a JSON object, got "
+                f"{type(meta).__name__}"
+            )
         ver = meta.get("schema_version")
-        if ver != SCHEMA_VERSION:
+        if type(ver) is not int or ver != SCHEMA_VERSION:
             raise FileFormatError(
                 f"calibration bundle {p}: schema_version {ver!r} is not supported "
                 f"(this software reads version {SCHEMA_VERSION})"
@@ -293,9 +325,22 @@ class CalibrationBundle:
         bundle = cls.__new__(cls)  # bypass __post_init__ so errors can name the file
         for k, v in kw.items():
             setattr(bundle, k, v)
-        bundle.reflection_sequences = [
-            tuple(int(i) for i in s) for s in meta.get("reflection_sequences", [])
-        ]
+        seqs = meta.get("reflection_sequences", [])
+        ok = isinstance(seqs, list) and all(
+            isinstance(q, list) and all(type(i) is int for i in q) for q in seqs
+        )
+        if not ok:
+            raise FileFormatError(
+                f"calibration bundle {p}: meta 'reflection_sequences' must be a list of lists of "
+                "mirror indices (integers)"
+            )
+        bundle.reflection_sequences = [tuple(q) for q in seqs]
+        for key in ("settings", "provenance"):
+            if not isinstance(meta.get(key, {}), dict):
+                raise FileFormatError(
+                    f"calibration bundle {p}: meta '{key}' must be a JSON object, got "
+                    f"{type(meta[key]).__name__}"
+                )
         bundle.settings = meta.get("settings", {})
         bundle.provenance = meta.get("provenance", {})
         bundle.software_version = str(meta.get("software_version", "unknown"))
@@ -349,19 +394,13 @@ class CalibrationBundle:
         ``A[p, 3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]``; pixels are the reference
         frame in row-major order (``P = h·w``) or the subset ``pixel_index`` (long, flat indices).
         """
-        V, M = self.num_views, self.num_bands
-        dl = band_widths(torch.as_tensor(self.wavelengths_nm, dtype=torch.float64)).to(
-            device=device, dtype=dtype
+        return sensing_matrices(
+            torch.as_tensor(self.B, device=device, dtype=dtype),
+            torch.as_tensor(self.gain, device=device, dtype=dtype),
+            torch.as_tensor(self.phi, device=device, dtype=dtype),
+            torch.as_tensor(self.wavelengths_nm, dtype=torch.float64),
+            pixel_index,
         )
-        B = torch.as_tensor(self.B, device=device, dtype=dtype).reshape(V, M, -1)
-        g = torch.as_tensor(self.gain, device=device, dtype=dtype).reshape(V, -1)
-        phi = torch.as_tensor(self.phi, device=device, dtype=dtype)
-        if pixel_index is not None:
-            idx = torch.as_tensor(pixel_index, device=B.device, dtype=torch.long)
-            B, g = B[..., idx], g[:, idx]
-        gb = (g[:, None, :] * B).permute(2, 0, 1)  # (P, V, M)
-        A = gb[:, :, None, :] * (dl * phi)[None, None]  # (P, V, 3, M)
-        return A.reshape(A.shape[0], 3 * V, M)
 
     def observation_mask(
         self, device: torch.device | str | None = None, pixel_index: torch.Tensor | None = None
@@ -386,3 +425,28 @@ class CalibrationBundle:
         )
 
 
+def sensing_matrices(
+    B: torch.Tensor,
+    gain: torch.Tensor,
+    phi: torch.Tensor,
+    wavelengths_nm: torch.Tensor,
+    pixel_index: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Per-pixel sensing matrices ``A (P, 3V, M)`` from a bundle's tensors.
+
+    ``A[p, 3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (Δλ from the wavelengths in
+    float64, then cast). ``B (V, M, h, w)``, ``gain (V, h, w)``, ``phi (3, M)`` in the result's
+    dtype and device; pixels are the reference frame row-major (``P = h·w``) or the flat indices
+    ``pixel_index``. Used by :meth:`CalibrationBundle.sensing_matrices` and by
+    :class:`~hsi_torch.recon.module.HSIReconstructor` when it rebuilds ``A`` from its buffers.
+    """
+    V, M = B.shape[:2]
+    dl = band_widths(wavelengths_nm.to(torch.float64)).to(device=B.device, dtype=B.dtype)
+    Bf = B.reshape(V, M, -1)
+    g = gain.reshape(V, -1)
+    if pixel_index is not None:
+        idx = torch.as_tensor(pixel_index, device=Bf.device, dtype=torch.long)
+        Bf, g = Bf[..., idx], g[:, idx]
+    gb = (g[:, None, :] * Bf).permute(2, 0, 1)  # (P, V, M)
+    A = gb[:, :, None, :] * (dl * phi)[None, None]  # (P, V, 3, M)
+    return A.reshape(A.shape[0], 3 * V, M)

@@ -24,12 +24,16 @@ same captures with both bundles shows what calibration costs.
 from __future__ import annotations
 
 import argparse
+import sys
+import warnings
 from pathlib import Path
 
 __all__ = ["run_calibrate", "output_paths", "figure_path", "BUNDLE_NAME"]
 
 #: File name of the bundle inside an ``--out`` folder.
 BUNDLE_NAME = "calib.npz"
+
+_PACKAGE_DIR = str(Path(__file__).resolve().parents[1])
 
 
 def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
@@ -70,7 +74,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
         return _write_oracle(args.captures, bundle_path)
     cfg = load_args_config(args, CalibrateConfig, default="calibrate")
     device = getattr(args, "device", None)
-    bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        bundle, report = calibrate_capture_set(args.captures, cfg, device=device)
+    for w in caught:  # ours as one plain line each (e.g. a saturated white shot dropped)
+        if str(Path(w.filename).resolve()).startswith(_PACKAGE_DIR):
+            print(f"hsi-torch: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     bundle_path.parent.mkdir(parents=True, exist_ok=True)
     fig = figure_path(bundle_path)
     written: list[Path] = []

@@ -151,6 +151,11 @@ class ResponseSection:
         metadata=_h("estimate phi and the gain field on a regular sub-grid of at most this many "
                     "reference-frame pixels (null: all; the small prototype has ~12 500)"),
     )
+    max_saturated_fraction: float = field(
+        default=0.05,
+        metadata=_h("a white shot with more of its registered view pixels saturated is dropped "
+                    "(with a warning) while another shot is below; all above: an error"),
+    )
 
     def __post_init__(self) -> None:
         if self.beta_phi < 0 or self.gamma_h < 0:
@@ -161,6 +166,10 @@ class ResponseSection:
             raise ValueError(f"diff_order must be 1 or 2, got {self.diff_order}")
         if self.max_pixels is not None and self.max_pixels < 1:
             raise ValueError(f"max_pixels must be >= 1 or null, got {self.max_pixels}")
+        if not 0 <= self.max_saturated_fraction <= 1:
+            raise ValueError(
+                f"max_saturated_fraction must be in [0, 1], got {self.max_saturated_fraction}"
+            )
 
 
 @dataclass

@@ -28,6 +28,7 @@ import json
 import math
 import re
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +53,7 @@ from hsi_torch.calibrate.transmittance import (
     to_reference_frame,
 )
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
+from hsi_torch.errors import CalibrationError
 from hsi_torch.spectral import SpectralGrid, band_widths
 
 __all__ = [
@@ -617,11 +619,21 @@ def calibrate_capture_set(
         W_sat = torch.stack(wsats).to(dt)
         both, _ = warp_views(torch.cat([W_img, W_sat], 1), Hs, bbox)  # (S, V, 6, h, w)
         white_ref, sat_ref = both[:, :, :3], both[:, :, 3:]
-        ok = (sat_ref <= cfg.response.saturation_margin).all(2).all(0)  # (V, h, w)
-        obs_mask = vmask & ok
-        b = B_ref * band_widths(wl)[None, :, None, None]
-        f_prior = _camera_prior(cfg.response.camera_sensitivity, wl)
         rc = cfg.response
+        white_ref, sat_ref, sat_text = _drop_saturated_whites(
+            white_ref, sat_ref, vmask, cs.white, rc.saturation_margin, rc.max_saturated_fraction,
+            notes,
+        )  # fmt: skip
+        ok = (sat_ref <= rc.saturation_margin).all(2).all(0)  # (V, h, w)
+        obs_mask = vmask & ok
+        empty = [v for v in range(V) if bool(vmask[v].any()) and not bool(obs_mask[v].any())]
+        if empty:
+            raise CalibrationError(
+                f"white-reference shots: no unsaturated sample left in view(s) {empty} "
+                f"({sat_text}); reduce the exposure of the white shots"
+            )
+        b = B_ref * band_widths(wl)[None, :, None, None]
+        f_prior = _camera_prior(rc.camera_sensitivity, wl)
         resp = estimate_response_field(
             white_ref, b, f_prior, obs_mask, beta_phi=rc.beta_phi, gamma_h=rc.gamma_h,
             normalise=rc.normalise, max_pixels=rc.max_pixels,
@@ -707,6 +719,53 @@ def calibrate_capture_set(
         notes=notes,
     )
     return bundle, report
+
+
+def _drop_saturated_whites(
+    white_ref: torch.Tensor,
+    sat_ref: torch.Tensor,
+    vmask: torch.Tensor,
+    files: Sequence[Path],
+    margin: float,
+    max_fraction: float,
+    notes: list[str],
+) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """Leave out the white shots with more than ``max_fraction`` of their registered view pixels
+    saturated, as long as another shot is below (a warning and a note name each one dropped).
+
+    Args:
+        white_ref, sat_ref: ``(S, V, 3, h, w)`` warped shots and saturation weights.
+        vmask: ``(V, h, w)`` registered view pixels.
+
+    Returns:
+        The kept shots and weights, and a text of every shot's saturated fraction (for errors).
+
+    Raises:
+        CalibrationError: every shot is above the limit (naming them and their fractions).
+    """
+    n_px = max(1, int(vmask.sum()))
+    frac = [float(((s > margin).any(1) & vmask).sum()) / n_px for s in sat_ref]
+    text = ", ".join(f"{p.name} {100 * f:.1f} % saturated" for p, f in zip(files, frac,
+                                                                          strict=True))
+    bad = [f > max_fraction for f in frac]
+    if all(bad):
+        raise CalibrationError(
+            f"all {len(files)} white-reference shot(s) are saturated ({text} of the registered "
+            f"view pixels; limit response.max_saturated_fraction = {max_fraction:g}); reduce the "
+            "exposure of the white shots"
+        )
+    if not any(bad):
+        return white_ref, sat_ref, text
+    kept = sum(1 for x in bad if not x)
+    for p, f, x in zip(files, frac, bad, strict=True):
+        if x:
+            msg = (f"white-reference shot {p} dropped: {100 * f:.1f} % of its registered view "
+                   f"pixels are saturated (limit response.max_saturated_fraction = "
+                   f"{max_fraction:g}); the other {kept} shot(s) are used")  # fmt: skip
+            warnings.warn(msg, UserWarning, stacklevel=3)
+            notes.append(msg)
+    keep = torch.tensor([not x for x in bad], device=white_ref.device)
+    return white_ref[keep], sat_ref[keep], text
 
 
 def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:

@@ -4,21 +4,26 @@ A reader (or a resumed batch run) therefore sees either the complete old file, t
 file, or no file — never a partial one. On any error inside the ``with`` block the temporary file
 is removed and the destination is left untouched.
 
-Also defines :class:`FileFormatError`, the error raised by :mod:`hsi_torch.io` for unreadable,
-truncated or inconsistent files (a ``ValueError`` whose message names the file).
+Also re-exports :class:`~hsi_torch.errors.FileFormatError`, the error raised by
+:mod:`hsi_torch.io` for unreadable, truncated or inconsistent files (a ``ValueError`` whose message
+names the file).
 """
 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
+import re
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+
+from hsi_torch.errors import FileFormatError
 
 __all__ = [
     "FileFormatError",
@@ -27,14 +32,12 @@ __all__ = [
     "atomic_write_text",
     "atomic_write_json",
     "atomic_save_npz",
+    "atomic_write_new",
+    "clean_stale_temp_files",
 ]
 
-
-class FileFormatError(ValueError):
-    """A file exists but cannot be read as the expected format (corrupt, truncated, mismatched).
-
-    The message always names the file.
-    """
+#: Name of a temporary file of :func:`atomic_write`: ``.<name>.<pid>-<random>.tmp``.
+TEMP_FILE_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.tmp$")
 
 
 @contextlib.contextmanager
@@ -42,8 +45,11 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
     """Open a temporary file beside ``path`` for writing; rename it onto ``path`` on success.
 
     The temporary file lives in the same folder (same file system, so ``os.replace`` is atomic)
-    and is named ``.<name>.<random>.tmp``. Parent folders are created. If the block raises, the
-    temporary file is deleted and ``path`` keeps its previous content (or stays absent).
+    and is named ``.<name>.<pid>-<random>.tmp`` (``pid``: the writing process, so that
+    :func:`clean_stale_temp_files` can tell a killed writer's leftover from a live one). Parent
+    folders are created. If the block raises, the temporary file is deleted and ``path`` keeps its
+    previous content (or stays absent); a process killed inside the block (SIGKILL, power loss)
+    leaves only the temporary file.
 
     Args:
         path: destination file.
@@ -61,7 +67,8 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.{os.getpid()}-", suffix=".tmp",
+                               dir=dest.parent)
     try:
         kwargs: dict[str, Any] = {} if mode == "wb" else {"encoding": "utf-8", "newline": ""}
         os.close(fd)
@@ -92,6 +99,56 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     with atomic_write(path, "w") as f:
         f.write(text)
     return Path(path)
+
+
+def atomic_write_new(folder: str | os.PathLike, names: Iterable[str], data: bytes) -> Path:
+    """Write ``data`` as a *new* file: the first of ``names`` (in ``folder``) that does not exist.
+
+    The content goes to a temporary file first (named as :func:`atomic_write`'s, so
+    :func:`clean_stale_temp_files` removes it if the process is killed), which is then
+    hard-linked under the name: atomic and exclusive. An existing file is never replaced (a
+    concurrent writer gets the next name) and the file only ever appears complete. Where hard
+    links are not supported, the name is created exclusively and written in place.
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: every name is taken.
+    """
+    d = Path(folder)
+    d.mkdir(parents=True, exist_ok=True)
+    it = iter(names)
+    first = next(it, None)
+    if first is None:
+        raise ValueError("atomic_write_new: no file name given")
+    fd, tmp = tempfile.mkstemp(prefix=f".{first}.{os.getpid()}-", suffix=".tmp", dir=d)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        for name in itertools.chain([first], it):
+            dest = d / name
+            try:
+                os.link(tmp, dest)
+                return dest
+            except FileExistsError:
+                continue
+            except OSError:  # no hard links on this file system: exclusive create, then write
+                try:
+                    with open(dest, "xb") as g:
+                        g.write(data)
+                    return dest
+                except FileExistsError:
+                    continue
+        raise FileExistsError(f"no free file name in {d} (from {first!r} on)")
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
 
 
 def json_default(obj: Any) -> Any:
@@ -136,3 +193,43 @@ def atomic_save_npz(
     with atomic_write(path, "wb") as f:
         (np.savez_compressed if compressed else np.savez)(f, **converted)
     return Path(path)
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (``True`` when that cannot be told, e.g. on Windows)."""
+    if os.name == "nt":  # os.kill(pid, 0) would send CTRL_C_EVENT there
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists (another user's), or unknown: keep its file
+    return True
+
+
+def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files that killed :func:`atomic_write` callers left in ``folder``.
+
+    Only files named like this module's own temporary files (``.<name>.<pid>-<random>.tmp``, see
+    :data:`TEMP_FILE_RE`) whose writing process no longer exists are removed; a live writer's file
+    (a concurrent run into the same folder) and every other file are left alone. Not recursive.
+
+    Returns:
+        The files removed (a missing or unreadable folder gives ``[]``).
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        m = TEMP_FILE_RE.match(entry.name)
+        if m is None or not entry.is_file(follow_symlinks=False):
+            continue
+        if _pid_alive(int(m["pid"])):
+            continue
+        with contextlib.suppress(FileNotFoundError):  # a concurrent cleaner got it first
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+    return removed

@@ -20,8 +20,11 @@ and camera RAW (``.dng``, ``.cr2``, ``.nef``, ``.kdc``, ...; through rawpy, line
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_write, json_default
+from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.io.atomic import atomic_write, json_default
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
@@ -154,7 +158,7 @@ def write_capture(
 
 def _check_exists(p: Path) -> None:
     if not p.exists():
-        raise FileNotFoundError(f"capture file not found: {p}")
+        raise MissingFileError(f"capture file not found: {p}")
     if p.is_dir():
         raise FileFormatError(f"{p}: is a directory, expected a capture file")
 
@@ -173,6 +177,8 @@ def _as_chw(arr: np.ndarray, p: Path, meta: dict[str, Any]) -> tuple[np.ndarray,
             f"{p}: image has shape {tuple(arr.shape)}; expected (H, W) or (1, H, W) for a Bayer "
             "mosaic, or (3, H, W) / (H, W, 3) for RGB"
         )
+    if min(arr.shape) == 0:
+        raise FileFormatError(f"{p}: the image is empty (shape {tuple(arr.shape)})")
     inferred = "bayer" if arr.shape[0] == 1 else "rgb"
     if kind is not None and kind != inferred:
         raise FileFormatError(
@@ -194,19 +200,73 @@ def _check_dtype(arr: np.ndarray, p: Path) -> None:
         raise FileFormatError(f"{p}: image contains negative stored values (min {arr.min()})")
 
 
-def _read_tiff(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+#: Largest decoded capture accepted (bytes); a header asking for more is refused before reading.
+MAX_CAPTURE_BYTES = 8 << 30
+
+
+def _check_header(
+    p: Path, shape: tuple[int, ...], dtype: np.dtype, expected_size: tuple[int, int] | None,
+    available: int | None = None,
+) -> None:
+    """Size checks from a file's header, before any pixel is decoded: a usable image shape, the
+    expected sensor size (``H, W`` = the two largest of the last three axes' leading pair), a
+    sane byte count, and (uncompressed data) no more bytes than the file holds."""
+    shape = tuple(int(v) for v in shape)
+    if not 2 <= len(shape) <= 3 or min(shape) < 1:
+        return  # left to the shape check after reading (it names the expected layouts)
+    hw = shape[-2:] if len(shape) == 2 or shape[0] in (1, 3) else shape[:2]
+    _check_size(p, hw, expected_size)
+    nbytes = int(np.prod(shape, dtype=np.float64) * max(1, dtype.itemsize))
+    if nbytes > MAX_CAPTURE_BYTES:
+        raise FileFormatError(
+            f"{p}: the header describes a {'x'.join(map(str, shape))} {dtype} image "
+            f"({nbytes / 2**30:.1f} GiB), more than a capture can be "
+            f"({MAX_CAPTURE_BYTES / 2**30:.0f} GiB)"
+        )
+    if available is not None and nbytes > available:
+        raise FileFormatError(
+            f"{p}: the header describes a {'x'.join(map(str, shape))} {dtype} image "
+            f"({nbytes} bytes) but the file holds only {available} bytes of data: truncated"
+        )
+
+
+@contextlib.contextmanager
+def quiet_tifffile() -> Iterator[None]:
+    """Silence tifffile's log messages about a damaged file (unnamed lines such as
+    "incorrect StripOffsets count") while reading: our own error names the file instead."""
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
+def _read_tiff(
+    p: Path, expected_size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     import tifffile
 
     try:
-        with tifffile.TiffFile(p) as tif:
+        with quiet_tifffile(), tifffile.TiffFile(p) as tif:
             if not tif.series:
                 raise FileFormatError(f"{p}: TIFF file has no image data")
-            desc = tif.pages[0].description if len(tif.pages) else ""
-            arr = tif.series[0].asarray()
             if len(tif.series) > 1:
                 raise FileFormatError(
                     f"{p}: TIFF holds {len(tif.series)} image series; a capture has exactly one"
                 )
+            desc = tif.pages[0].description if len(tif.pages) else ""
+            series = tif.series[0]
+            page = series.pages[0] if len(series.pages) else None
+            raw = None
+            if page is not None and getattr(page, "compression", None) == 1:  # uncompressed
+                end = max((o + c for o, c in zip(page.dataoffsets, page.databytecounts,
+                                                 strict=False)), default=0)  # fmt: skip
+                raw = min(p.stat().st_size, end) - min(page.dataoffsets, default=0)
+                raw = max(0, raw) * max(1, len(series.pages))
+            _check_header(p, series.shape, np.dtype(series.dtype), expected_size, raw)
+            arr = series.asarray()
     except FileFormatError:
         raise
     except Exception as exc:  # tifffile raises many types for corrupt/truncated data
@@ -214,19 +274,48 @@ def _read_tiff(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
             f"{p}: cannot read TIFF ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
         ) from exc
     meta: dict[str, Any] = {}
-    if desc:
+    if desc:  # a foreign TIFF's description (not our JSON) is not metadata: ignored
         try:
             parsed = json.loads(desc)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             parsed = None
         if isinstance(parsed, dict):
             meta = parsed
     return arr, meta
 
 
-def _read_npy(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+def _parse_metadata(text: str, where: str) -> dict[str, Any]:
+    """Our JSON metadata (an object); errors name ``where`` (file and key)."""
     try:
+        meta = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise FileFormatError(f"{where} is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise FileFormatError(f"{where} must be a JSON object, got {type(meta).__name__}")
+    return meta
+
+
+def _npy_header(f: Any) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype from an open ``.npy`` stream's header (no data read)."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    else:
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    return tuple(shape), np.dtype(dtype)
+
+
+def _read_npy(
+    p: Path, expected_size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    try:
+        with open(p, "rb") as f:
+            shape, dtype = _npy_header(f)
+            available = p.stat().st_size - f.tell()
+        _check_header(p, shape, dtype, expected_size, available)
         arr = np.load(p, allow_pickle=False)
+    except FileFormatError:
+        raise
     except Exception as exc:
         raise FileFormatError(
             f"{p}: cannot read NPY ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
@@ -235,45 +324,69 @@ def _read_npy(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
     side = p.with_name(p.name + ".json")
     if side.exists():
         try:
-            meta = json.loads(side.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise FileFormatError(f"{side}: invalid JSON metadata sidecar ({exc})") from exc
+            text = side.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise FileFormatError(f"{side}: cannot read the metadata sidecar ({exc})") from None
+        meta = _parse_metadata(text, f"{side}: the metadata sidecar")
     return arr, meta
 
 
-def _read_npz(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
+def _read_npz(
+    p: Path, expected_size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     try:
         with np.load(p, allow_pickle=False) as z:
             keys = list(z.keys())
             if "image" in keys:
-                arr = z["image"]
+                key = "image"
             elif len([k for k in keys if k != "metadata"]) == 1:
-                arr = z[next(k for k in keys if k != "metadata")]
+                key = next(k for k in keys if k != "metadata")
             else:
                 raise FileFormatError(
                     f"{p}: NPZ must hold an array named 'image' (found {sorted(keys)})"
                 )
-            meta_raw = str(z["metadata"]) if "metadata" in keys else ""
+            info = z.zip.getinfo(key + ".npy")
+            with z.zip.open(info) as f:
+                shape, dtype = _npy_header(f)
+                header_len = f.tell()
+            raw = info.file_size - header_len if info.compress_type == 0 else None
+            _check_header(p, shape, dtype, expected_size, raw)
+            arr = z[key]
+            meta_raw = z["metadata"] if "metadata" in keys else None
+            meta_text = None
+            if meta_raw is not None and meta_raw.ndim == 0 and meta_raw.dtype.kind in "US":
+                item = meta_raw.item()
+                meta_text = item.decode("utf-8") if isinstance(item, bytes) else str(item)
+            elif meta_raw is not None:
+                raise FileFormatError(
+                    f"{p}: 'metadata' must be a JSON string (0-d str array), got a "
+                    f"{meta_raw.dtype} array of shape {meta_raw.shape}"
+                )
     except FileFormatError:
         raise
     except Exception as exc:
         raise FileFormatError(
             f"{p}: cannot read NPZ ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
         ) from exc
-    meta = json.loads(meta_raw) if meta_raw else {}
+    meta = _parse_metadata(meta_text, f"{p}: 'metadata'") if meta_text else {}
     return arr, meta
 
 
-def _read_stored(p: Path) -> tuple[np.ndarray, dict[str, Any]]:
-    """Stored array as (C, H, W) numpy (file dtype) and metadata with ``kind`` filled in."""
+def _read_stored(
+    p: Path, expected_size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Stored array as (C, H, W) numpy (file dtype) and metadata with ``kind`` filled in.
+
+    ``expected_size``: the ``(H, W)`` the image must have, checked from the file's header before
+    the pixels are read (and again after reading)."""
     _check_exists(p)
     suffix = p.suffix.lower()
     if suffix in _TIFF_SUFFIXES:
-        arr, meta = _read_tiff(p)
+        arr, meta = _read_tiff(p, expected_size)
     elif suffix == ".npy":
-        arr, meta = _read_npy(p)
+        arr, meta = _read_npy(p, expected_size)
     elif suffix == ".npz":
-        arr, meta = _read_npz(p)
+        arr, meta = _read_npz(p, expected_size)
     else:
         raise FileFormatError(f"{p}: unsupported capture suffix {p.suffix!r} for read_capture")
     _check_dtype(arr, p)
@@ -295,7 +408,8 @@ def read_capture(path: str | os.PathLike) -> tuple[torch.Tensor, dict[str, Any]]
         stored JSON (``{}`` for a file without it) with ``kind`` filled in.
 
     Raises:
-        FileNotFoundError, FileFormatError (corrupt/truncated file, wrong shape or dtype, NaNs).
+        MissingFileError (a FileNotFoundError), FileFormatError (corrupt/truncated file, wrong
+        shape or dtype, NaNs, bad metadata).
     """
     arr, meta = _read_stored(Path(path))
     out_dtype = np.float64 if arr.dtype == np.float64 else np.float32
@@ -308,7 +422,15 @@ def read_capture(path: str | os.PathLike) -> tuple[torch.Tensor, dict[str, Any]]
 
 def _level_map(value: Any, kind: str, shape: tuple[int, int], p: Path, name: str) -> torch.Tensor:
     """A black/white level (scalar, 4 per Bayer cell position, or 3 per RGB channel) as (C,H,W)."""
-    vals = np.atleast_1d(np.asarray(value, dtype=np.float64)).ravel()
+    try:
+        vals = np.atleast_1d(np.asarray(value, dtype=np.float64)).ravel()
+    except (TypeError, ValueError, OverflowError):
+        raise FileFormatError(
+            f"{p}: {name} {value!r} is not a number or a list of numbers (metadata key "
+            f"'{name}', or the {name} setting)"
+        ) from None
+    if not np.all(np.isfinite(vals)):
+        raise FileFormatError(f"{p}: {name} must be finite, got {vals.tolist()}")
     h, w = shape
     if vals.size == 1:
         return torch.full((1, 1, 1), float(vals[0]), dtype=torch.float64)
@@ -357,8 +479,8 @@ def read_any(
         mask ``(3, H', W')`` and metadata.
 
     Raises:
-        FileNotFoundError, FileFormatError (``ValueError``) for unreadable, truncated, NaN-holding,
-        wrongly shaped/typed or wrong-size files.
+        MissingFileError (a ``FileNotFoundError``), FileFormatError (``ValueError``) for unreadable,
+        truncated, NaN-holding, wrongly shaped/typed or wrong-size files and bad metadata.
     """
     p = Path(path)
     _check_exists(p)
@@ -386,7 +508,7 @@ def read_any(
         }
         stored_dtype = "uint16"
     else:
-        arr, meta = _read_stored(p)
+        arr, meta = _read_stored(p, expected_size)
         stored_dtype = str(arr.dtype)
         stored = None
     kind = meta["kind"]
@@ -444,8 +566,11 @@ def read_any(
         except (TypeError, ValueError) as exc:
             raise FileFormatError(f"{p}: {exc}") from exc
         out_meta.update(cfa_pattern=pattern, demosaic=demosaic)
-        rgb = _demosaic(lin, pattern, demosaic)
-        rgb_sat = demosaic_saturation(sat, pattern, demosaic)
+        try:
+            rgb = _demosaic(lin, pattern, demosaic)
+            rgb_sat = demosaic_saturation(sat, pattern, demosaic)
+        except ValueError as exc:  # e.g. a mosaic too small for 2x2 binning
+            raise FileFormatError(f"{p}: cannot demosaic the {h}x{w} mosaic ({exc})") from None
         return LinearCapture(rgb, rgb_sat, out_meta, p, lin, sat)
     return LinearCapture(lin, sat, out_meta, p)
 

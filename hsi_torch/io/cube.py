@@ -48,7 +48,8 @@ from xml.sax.saxutils import escape as _xml_escape
 import numpy as np
 import torch
 
-from hsi_torch.io.atomic import FileFormatError, atomic_save_npz, atomic_write, json_default
+from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.io.atomic import atomic_save_npz, atomic_write, json_default
 
 __all__ = [
     "Cube",
@@ -523,16 +524,17 @@ def load_cube(
         ``(H, W)``).
 
     Raises:
-        FileNotFoundError, FileFormatError (unreadable/truncated, no wavelengths, shape mismatch).
+        MissingFileError (a FileNotFoundError), FileFormatError (unreadable/truncated, no
+            wavelengths, shape mismatch).
     """
     p = Path(path)
     kind = _format_of(p, None)
     if kind == "envi":
         hdr, _ = _envi_paths(p)
         if not hdr.exists():
-            raise FileNotFoundError(f"ENVI header not found: {hdr}")
+            raise MissingFileError(f"ENVI header not found: {hdr}")
     elif not p.exists():
-        raise FileNotFoundError(f"cube file not found: {p}")
+        raise MissingFileError(f"cube file not found: {p}")
     if kind in OPTIONAL_FORMATS:
         require_format(kind)
     valid: np.ndarray | None = None
@@ -601,7 +603,9 @@ def _load_tiff(p: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
     description; other TIFF stacks ``(M, H, W)`` without wavelengths."""
     import tifffile
 
-    with tifffile.TiffFile(p) as tif:
+    from hsi_torch.io.captures import quiet_tifffile
+
+    with quiet_tifffile(), tifffile.TiffFile(p) as tif:
         c = tif.asarray()
         ome = tif.ome_metadata if tif.is_ome else None
         desc = tif.pages[0].description if len(tif.pages) else ""

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from hsi_torch.io.atomic import FileFormatError
+from hsi_torch.errors import FileFormatError, MissingFileError
 
 __all__ = [
     "RawImage",
@@ -329,7 +329,7 @@ def load_raw(
         :class:`RawImage`.
 
     Raises:
-        FileNotFoundError: ``path`` does not exist.
+        MissingFileError: ``path`` does not exist (a ``FileNotFoundError``).
         FileFormatError: the file is not a readable RAW (corrupt, truncated, unsupported), or its
             sensor is not a 2×2 R/G/B Bayer sensor (X-Trans, Foveon and CMYG are not supported).
     """
@@ -337,7 +337,7 @@ def load_raw(
 
     p = Path(path)
     if not p.exists():
-        raise FileNotFoundError(f"RAW file not found: {p}")
+        raise MissingFileError(f"RAW file not found: {p}")
     if p.is_dir():
         raise FileFormatError(f"{p}: is a directory, expected a camera RAW file")
     if demosaic not in (None, "half", "bilinear"):

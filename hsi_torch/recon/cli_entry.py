@@ -4,12 +4,19 @@ For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif
 its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
 ``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65, enlarged, with a caption) and, with
 ``spectra_points``, ``<stem>_spectra.png``. Every file is written atomically; if writing an input's
-outputs fails, the files already written for that input are removed. ``DIR/resolved_config.yaml``
-records the configuration. Runs through :func:`hsi_torch.batch.run_batch` (progress bar, continues
-past bad files, every failure reported at the end, non-zero exit; resume skips inputs whose
-outputs exist and were made from the same input file, configuration and bundle — anything else
-is reconstructed again). Inputs, configuration and bundle are all checked before the output
-folder is created or ``resolved_config.yaml`` is written.
+outputs fails, the files already written for that input are removed. Each run records its
+configuration in a file of its own, ``DIR/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml`` (rerun it with
+``--config``; a later run into the same folder never overwrites it), and every cube's metadata
+holds its configuration and the name of that file (``run_config``). Runs through
+:func:`hsi_torch.batch.run_batch` (progress bar, continues past bad files, every failure reported
+at the end, non-zero exit; resume skips inputs whose outputs exist unchanged and were made from the
+same input file, configuration and bundle — anything else is reconstructed again). Two inputs with
+the same stem from different folders would write the same files: the later one fails with an error
+naming both (in the same run or a later one) and the earlier one's outputs are kept. A capture of
+which not a single pixel could be reconstructed (all saturated, no finite data, ...) fails with
+the reason; no all-NaN cube is written. Inputs, configuration (``min_views`` against the bundle's
+views included) and bundle are all checked before the output folder or the run's configuration
+file are created.
 """
 
 from __future__ import annotations
@@ -28,7 +35,10 @@ import torch
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
-__all__ = ["run_reconstruct", "write_outputs", "output_paths", "frame_warnings", "preview_caption"]
+__all__ = [
+    "run_reconstruct", "write_outputs", "output_paths", "frame_warnings", "preview_caption",
+    "write_run_config", "RUNS_DIR",
+]
 
 _SUFFIXES = {"tiff": [".tif", ".vrt"], "envi": [".hdr", ".img"], "npz": [".npz"],
              "netcdf": [".nc"], "zarr": [".zarr"]}
@@ -176,8 +186,9 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     """
     from hsi_torch.batch import ensure_out_dir, expand_inputs, fingerprint_of, run_batch
     from hsi_torch.cli import load_args_config
-    from hsi_torch.config import write_resolved_config
+    from hsi_torch.config import ConfigError
     from hsi_torch.console import warn
+    from hsi_torch.errors import NoValidPixelsError
     from hsi_torch.recon.sensing import load_bundle
 
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
@@ -198,8 +209,14 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     h, w = bundle.frame_size
     if cfg.spectra_points:
         _check_points(cfg.spectra_points, h, w)
+    if cfg.min_views > bundle.num_views:
+        raise ConfigError(
+            f"{cfg.min_views} exceeds the {bundle.num_views} views of the calibration bundle "
+            f"{bundle_path}: no pixel could be valid", key="min_views",
+            source=str(args.config) if getattr(args, "config", None) else None,
+        )  # fmt: skip
     out = ensure_out_dir(args.out)
-    write_resolved_config(cfg, out)
+    run_config = write_run_config(cfg, out, bundle_path, len(inputs))
     st = bundle_path.stat()
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
     ignored = ("device", "chunk_size", "fit_residual_warning")
@@ -210,7 +227,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     })  # fmt: skip
 
     progress = getattr(args, "progress", True)
-    state: dict[str, Any] = {"rec": None, "stems": {}}
+    state: dict[str, Any] = {"rec": None}
 
     def reconstructor() -> Reconstructor:  # built on the first input that needs it
         if state["rec"] is None:
@@ -224,18 +241,15 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
 
     def process(path: Path) -> list[Path]:
         stem = out / path.stem
-        prev = state["stems"].get(path.stem)
-        if prev is not None and prev != os.path.abspath(path):
-            raise ValueError(
-                f"{path}: output name '{path.stem}' is already used by {prev} in this run; "
-                "rename one of the inputs or reconstruct them into different folders"
-            )
-        state["stems"][path.stem] = os.path.abspath(path)
         rec = reconstructor()
         res = rec.reconstruct_file(
             path, cfg.demosaic, cfa_pattern=cfg.cfa_pattern, black_level=cfg.black_level,
             white_level=cfg.white_level,
         )  # fmt: skip
+        if res.stats.get("num_valid", 0) == 0:
+            raise NoValidPixelsError(
+                f"{path}: no valid pixel: {res.stats.get('no_valid_reason') or 'unknown reason'}"
+            )
         for msg in frame_warnings(res.stats, cfg):
             warn(f"WARNING {path}: {msg}")
         cap_meta = res.stats.pop("metadata", {})
@@ -244,6 +258,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
             "bundle": os.path.abspath(bundle_path),
             "capture_exposure_s": cap_meta.get("exposure_s"),
             "config": {k: v for k, v in vars(cfg).items()},
+            "run_config": run_config.relative_to(out).as_posix(),
             "stats": res.stats,
             "timings_s": res.timings,
         }
@@ -252,7 +267,36 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     return run_batch(
         inputs, process, out, resume=getattr(args, "resume", True), progress=progress,
         desc="reconstruct", fingerprint=fingerprint,
+        planned_outputs=lambda p: output_paths(out / p.stem, cfg),
     )  # fmt: skip
+
+
+RUNS_DIR = "runs"
+
+
+def write_run_config(
+    cfg: ReconstructConfig, out: Path, bundle_path: Path, num_inputs: int
+) -> Path:
+    """Write this run's resolved configuration to ``out/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml`` (a
+    new file per run, never one of an earlier or concurrent run; ``-2``, ``-3``, ... if a run of
+    the same process already used the name) and return its path. The file appears complete or
+    not at all (:func:`hsi_torch.io.atomic.atomic_write_new`); temporary files that killed runs
+    left in ``out/runs`` are removed first."""
+    from hsi_torch import __version__
+    from hsi_torch.config import config_yaml
+    from hsi_torch.io.atomic import atomic_write_new, clean_stale_temp_files
+
+    folder = out / RUNS_DIR
+    clean_stale_temp_files(folder)
+    base = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    header = (
+        f"resolved configuration of a 'hsi-torch reconstruct' run, hsi_torch {__version__}\n"
+        f"started {time.strftime('%Y-%m-%d %H:%M:%S')}, {num_inputs} input(s), bundle "
+        f"{os.path.abspath(bundle_path)}\n"
+        f"rerun with: hsi-torch reconstruct --config <this file> --bundle BUNDLE --out DIR INPUTS"
+    )
+    names = (f"{base}.yaml" if i == 1 else f"{base}-{i}.yaml" for i in range(1, 10_000))
+    return atomic_write_new(folder, names, config_yaml(cfg, header).encode("utf-8"))
 
 
 def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:

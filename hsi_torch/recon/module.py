@@ -18,6 +18,14 @@ assembly run in :meth:`HSIReconstructor.reconstruct_prepared`, wrapped with
 pixels need pivoting, grouped by the size of their zero set) would otherwise break the graph
 dozens of times and recompile for every frame. A network around the module therefore compiles
 with one graph break at the solver, and the result equals the eager one (tested).
+
+``state_dict()`` holds the calibration (``B``, ``phi``, ``gain``, masks, homographies, wavelengths,
+the reconstructed pixels) and, as extra state, the sensor size, reference-frame box and white
+exposure. ``load_state_dict`` checks the whole state dict first and then rebuilds everything
+derived from it (the factored sensing model, observation mask, sampling grid, Gram matrices
+and their inverses), so the output is exactly that of a module built from the other bundle; a
+state dict of another geometry (views, bands, reference frame, sensor) raises
+:class:`~hsi_torch.errors.InputError` and leaves the module as it was.
 """
 
 from __future__ import annotations
@@ -29,10 +37,17 @@ import torch
 from torch import Tensor, nn
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
+from hsi_torch.errors import InputError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
-from hsi_torch.recon.pipeline import DEFAULT_BETA, prepare_input, reconstruct_batch
+from hsi_torch.recon.pipeline import (
+    DEFAULT_BETA,
+    check_min_views,
+    prepare_input,
+    reconstruct_batch,
+)
 from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing, source_grid
+from hsi_torch.spectral import band_widths
 
 __all__ = ["HSIReconstructor", "ReconstructionOutput"]
 
@@ -97,6 +112,7 @@ class HSIReconstructor(nn.Module):
         if solver not in ("active_set", "admm"):
             raise ValueError(f"solver must be 'active_set' or 'admm', got {solver!r}")
         dev, dt = sensing.device, sensing.dtype
+        check_min_views(min_views, sensing.num_views)
         self.solver = solver
         self.admm_iters = admm_iters
         self.cfa_pattern = cfa_pattern or sensing.cfa_pattern
@@ -192,6 +208,129 @@ class HSIReconstructor(nn.Module):
             )
             self.singular, self.no_data = p.singular, p.no_data
         return out
+
+    # ------------------------------------------------------------------------------ state
+    def get_extra_state(self) -> dict[str, Any]:
+        """The bundle's geometry and white exposure (plain values, saved in ``state_dict``)."""
+        return {
+            "sensor_size": list(self.sensor_size),
+            "reference_bbox": list(self.reference_bbox),
+            "exposure_s": self.exposure_s,
+        }
+
+    def set_extra_state(self, state: Any) -> None:
+        """Set by :meth:`_load_from_state_dict` (checked there); kept for the ``nn.Module``
+        protocol."""
+        self.exposure_s = state.get("exposure_s") if isinstance(state, dict) else None
+
+    def _load_from_state_dict(
+        self,
+        state_dict: dict[str, Any],
+        prefix: str,
+        local_metadata: dict[str, Any],
+        strict: bool,
+        missing_keys: list[str],
+        unexpected_keys: list[str],
+        error_msgs: list[str],
+    ) -> None:
+        """All or nothing: check every entry, rebuild the derived tensors, then swap them in.
+
+        Missing or unexpected keys under ``strict`` load nothing (torch then raises naming
+        them); a state dict of another geometry raises :class:`InputError`. With
+        ``strict=False`` missing entries keep their current values.
+        """
+        names = [n for n in self._buffers if n not in self._non_persistent_buffers_set]
+        extra_key = prefix + "_extra_state"
+        given = {n: state_dict[prefix + n] for n in names if prefix + n in state_dict}
+        missing = [prefix + n for n in names if prefix + n not in state_dict]
+        unexpected = [
+            k for k in state_dict
+            if k.startswith(prefix) and k[len(prefix):] not in names and k != extra_key
+            and "." not in k[len(prefix):]
+        ]  # fmt: skip
+        missing_keys.extend(missing)
+        if strict:
+            unexpected_keys.extend(unexpected)
+            if missing or unexpected:
+                return  # nothing changes; load_state_dict raises naming the keys
+        new, extra = self._rebuilt(given, state_dict.get(extra_key))
+        for name, tensor in new.items():
+            setattr(self, name, tensor)
+        self.exposure_s = extra.get("exposure_s", self.exposure_s)
+        self._sensing_cache = None
+
+    def _rebuilt(
+        self, given: dict[str, Any], extra: Any
+    ) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """Checked persistent buffers (``given`` over the current ones) and every derived tensor
+        rebuilt from them; raises :class:`InputError` before anything is changed."""
+        V, M, h, w = (int(v) for v in self.B.shape)
+        geometry = f"{V} views, {M} bands, reference frame {h}x{w}"
+
+        def fail(what: str) -> InputError:
+            return InputError(
+                f"HSIReconstructor.load_state_dict: a state dict of another geometry: {what}; "
+                f"this module has {geometry} (build a new module with "
+                "HSIReconstructor.from_bundle for that bundle)"
+            )
+
+        shapes = {
+            "wavelengths_nm": (M,), "B": (V, M, h, w), "phi": (3, M), "gain": (V, h, w),
+            "view_mask": (V, h, w), "valid_region": (h, w), "homographies": (V, 3, 3),
+        }  # fmt: skip
+        vals: dict[str, Tensor] = {}
+        for name, cur in self._buffers.items():
+            if name in self._non_persistent_buffers_set or cur is None:
+                continue
+            v = given.get(name, cur)
+            if not isinstance(v, Tensor):
+                raise InputError(
+                    f"HSIReconstructor.load_state_dict: '{name}' must be a tensor, got "
+                    f"{type(v).__name__}"
+                )
+            if name in shapes and tuple(v.shape) != shapes[name]:
+                raise fail(f"'{name}' has shape {tuple(v.shape)}, expected {shapes[name]}")
+            if cur.dtype == torch.bool and v.dtype != torch.bool:
+                raise InputError(f"HSIReconstructor.load_state_dict: '{name}' must be bool, got "
+                                 f"{v.dtype}")  # fmt: skip
+            if cur.is_floating_point() and not (v.is_floating_point() and
+                                                bool(torch.isfinite(v).all())):
+                raise InputError(f"HSIReconstructor.load_state_dict: '{name}' must be finite "
+                                 f"floating point ({v.dtype})")  # fmt: skip
+            vals[name] = v.detach().to(device=cur.device, dtype=cur.dtype).clone()
+        pix = vals["valid_region"].reshape(-1).nonzero().squeeze(1)
+        if not torch.equal(vals["pixel_index"].to(pix.device), pix):
+            raise InputError(
+                "HSIReconstructor.load_state_dict: 'pixel_index' is not the set of pixels of "
+                "'valid_region' (an inconsistent state dict)"
+            )
+        ex: dict[str, Any] = {}
+        if extra is not None:
+            if not isinstance(extra, dict):
+                raise InputError("HSIReconstructor.load_state_dict: '_extra_state' must be a "
+                                 f"dict, got {type(extra).__name__}")  # fmt: skip
+            for key, mine in (("sensor_size", self.sensor_size),
+                              ("reference_bbox", self.reference_bbox)):  # fmt: skip
+                theirs = extra.get(key)
+                if theirs is not None and tuple(int(v) for v in theirs) != tuple(mine):
+                    raise fail(f"{key} {tuple(int(v) for v in theirs)}, expected {tuple(mine)}")
+            exp = extra.get("exposure_s")
+            ex["exposure_s"] = float(exp) if isinstance(exp, (int, float)) else None
+        wl = vals["wavelengths_nm"].to("cpu", torch.float64)
+        model = SensingModel.from_factors(
+            vals["B"], vals["gain"], vals["phi"], band_widths(wl), pixel_index=pix,
+            device=self.gram.device, dtype=self.gram.dtype,
+        )  # fmt: skip
+        obs = vals["view_mask"].reshape(V, -1)[:, pix].T.repeat_interleave(3, dim=1)
+        grid = source_grid(vals["homographies"], self.reference_bbox, self.sensor_size, pix,
+                           dtype=model.dtype)  # fmt: skip
+        p = prepare_nnls(model, mask=obs, beta=self.beta, diff_order=self.diff_order,
+                         chunk_size=self.chunk_size)  # fmt: skip
+        vals.update(model_transmittance=model.transmittance, model_gain=model.gain,
+                    model_response=model.response, obs_mask=obs, sample_grid=grid,
+                    gram=p.gram, gram_inv=p.gram_inv, gram_diag=p.gram_diag,
+                    gram_norm=p.gram_norm, singular=p.singular, no_data=p.no_data)  # fmt: skip
+        return vals, ex
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickling / ``copy.deepcopy``: the derived views are rebuilt on use."""

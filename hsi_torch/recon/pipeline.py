@@ -49,6 +49,7 @@ from torch import Tensor
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.calibrate.registration import warp_views
+from hsi_torch.errors import FileFormatError, InputError
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
 
@@ -67,6 +68,7 @@ __all__ = [
     "exposure_scale",
     "prepare_input",
     "fit_residual",
+    "check_min_views",
 ]
 
 _SOLVERS = ("active_set", "admm")
@@ -94,7 +96,10 @@ class ReconstructionResult:
             ``max_kkt``, ``fit_residual`` (median over up to :data:`FIT_RESIDUAL_SAMPLES` evenly
             spaced valid pixels of ``‖W(A s − y)‖ / ‖W y‖``, W = the frame mask; ≈ the noise
             level for a matching bundle, large when the bundle belongs to another geometry),
-            ``exposure_scale``, ``saturated_observations``.
+            ``exposure_scale``, ``observations`` (the bundle's static observations),
+            ``usable_observations`` (of those: unsaturated and finite in this frame),
+            ``saturated_observations``, ``no_valid_reason`` (``None``, or why not a single pixel
+            is valid: saturation, non-finite data, ``min_views``).
         timings: seconds per stage (``load`` when read from a file, ``warp``, ``observations``,
             ``solve``, ``assemble``, ``total``).
     """
@@ -146,13 +151,38 @@ def exposure_scale(capture_exposure_s: Any, white_exposure_s: float | None) -> f
         return 1.0
     try:
         t = float(capture_exposure_s)
-    except (TypeError, ValueError):
-        raise ValueError(
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(
             f"capture metadata 'exposure_s' is not a number: {capture_exposure_s!r}"
         ) from None
     if not t > 0 or t == float("inf"):
-        raise ValueError(f"capture metadata 'exposure_s' must be > 0, got {capture_exposure_s!r}")
+        raise InputError(f"capture metadata 'exposure_s' must be > 0, got {capture_exposure_s!r}")
     return float(white_exposure_s) / t
+
+
+def _check_scale(scale: Tensor | float | None, batch: int) -> None:
+    """``exposure_scale`` must be finite and > 0: a scalar, or one factor per frame."""
+    if scale is None:
+        return
+    if isinstance(scale, Tensor):
+        if scale.ndim > 1 or scale.numel() not in (1, batch):
+            raise InputError(
+                f"exposure_scale must be a scalar or have shape ({batch},) (one factor per "
+                f"frame), got shape {tuple(scale.shape)}"
+            )
+        if scale.is_floating_point() or scale.is_complex():
+            bad = not bool((torch.isfinite(scale) & (scale > 0)).all())
+        else:
+            bad = not bool((scale > 0).all())
+        if bad:
+            raise InputError(f"exposure_scale must be finite and > 0, got {scale.tolist()}")
+        return
+    try:
+        v = float(scale)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"exposure_scale must be a number, got {scale!r}") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise InputError(f"exposure_scale must be finite and > 0, got {scale!r}")
 
 
 def prepare_input(
@@ -486,6 +516,11 @@ def reconstruct_batch(
     dev = sens.device
     if images.device != dev:
         raise ValueError(f"input is on {images.device} but the bundle tensors are on {dev}")
+    _check_scale(scale, images.shape[0])
+    if images.shape[0] == 0:  # an empty batch: empty outputs of the right shapes
+        h, w = sens.frame_size
+        cube = images.new_empty((0, sens.num_bands, h, w), dtype=sens.dtype)
+        return cube, torch.zeros((0, h, w), dtype=torch.bool, device=dev), [], {}
     t: dict[str, float] = {}
     clock = _Clock(dev, stats)
     t0 = clock()
@@ -506,13 +541,17 @@ def reconstruct_batch(
     t2 = clock()
     t["observations"] = t2 - t1
     xs, oks, infos = [], [], []
+    num_obs = int(sens.obs_mask.sum()) if stats else 0
     for i in range(y.shape[0]):
         x, ok, info = solve_observations(
             sens, y[i], mask[i], solver=solver, admm_iters=admm_iters, chunk_size=chunk_size,
             min_views=min_views, premasked=inplace, stats=stats,
         )  # fmt: skip
         if stats:
+            info["observations"] = num_obs
+            info["usable_observations"] = int(mask[i].sum())
             info["saturated_observations"] = int(sat[i].sum())
+            info["no_valid_reason"] = _no_valid_reason(info, min_views, sens.num_views)
             infos.append(info)
         xs.append(x)
         oks.append(ok)
@@ -524,6 +563,36 @@ def reconstruct_batch(
         cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
     t["assemble"] = clock() - t3
     return cube, valid, infos, (t if stats else {})
+
+
+def check_min_views(min_views: int, num_views: int) -> None:
+    """``1 <= min_views <= num_views`` (more views than the bundle has: no pixel could be valid)."""
+    if not 1 <= int(min_views) <= num_views:
+        raise InputError(
+            f"min_views must be between 1 and the bundle's {num_views} views, got {min_views}"
+        )
+
+
+def _no_valid_reason(info: dict[str, Any], min_views: int, num_views: int) -> str | None:
+    """Why a frame has no valid pixel (``None`` when it has some), from its statistics."""
+    if info.get("num_valid", 0) > 0:
+        return None
+    if min_views > num_views:
+        return f"min_views={min_views} exceeds the bundle's {num_views} views"
+    total = int(info.get("observations", 0))
+    if total == 0:
+        return "the calibration bundle has no usable observation"
+    sat = int(info.get("saturated_observations", 0))
+    usable = int(info.get("usable_observations", 0))
+    other = max(0, total - usable - sat)
+    parts = []
+    if sat:
+        parts.append(f"{sat} of {total} observations are saturated (at the white level; reduce "
+                     "the exposure or check white_level)")
+    if other:
+        parts.append(f"{other} of {total} observations are not finite (NaN/inf samples)")
+    parts.append(f"no pixel has min_views={min_views} views with a usable observation")
+    return "; ".join(parts)
 
 
 class Reconstructor:
@@ -573,6 +642,7 @@ class Reconstructor:
                 bundle, beta=beta, diff_order=diff_order, device=device, dtype=dtype,
                 chunk_size=chunk_size,
             )  # fmt: skip
+        check_min_views(min_views, self.sensing.num_views)
         self.solver = solver
         self.admm_iters = admm_iters
         self.chunk_size = chunk_size
@@ -638,10 +708,15 @@ class Reconstructor:
         """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``,
         ``metadata["exposure_s"]``)."""
         src = str(getattr(capture, "path", "capture"))
-        return self.reconstruct_frame(
-            capture.image, capture.saturated, exposure_s=capture.metadata.get("exposure_s"),
-            source=src,
-        )  # fmt: skip
+        try:
+            return self.reconstruct_frame(
+                capture.image, capture.saturated, exposure_s=capture.metadata.get("exposure_s"),
+                source=src,
+            )  # fmt: skip
+        except InputError as exc:
+            if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
+                raise FileFormatError(f"{src}: {exc}") from None  # the file's metadata at fault
+            raise
 
     def reconstruct_file(
         self,
@@ -687,8 +762,6 @@ class Reconstructor:
 def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:
     """``demosaic="half"``: a Bayer mosaic must be exactly twice the bundle's sensor size (odd
     sizes included, which binning would silently crop); an RGB file is not binned."""
-    from hsi_torch.io.atomic import FileFormatError
-
     H, W = sens.sensor_size
     if cap.mosaic is not None:
         full = tuple(int(v) for v in cap.mosaic.shape[-2:])

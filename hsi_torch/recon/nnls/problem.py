@@ -71,6 +71,18 @@ class NNLSResult:
 
 
 
+def _empty_result(m: int, dtype: torch.dtype, device: torch.device, method: str) -> NNLSResult:
+    """The result for zero pixels: ``x (0, M)`` and empty per-pixel fields."""
+    return NNLSResult(
+        torch.zeros((0, m), dtype=dtype, device=device),
+        torch.zeros((0,), dtype=torch.bool, device=device),
+        torch.zeros((0,), dtype=torch.long, device=device),
+        torch.zeros((0,), dtype=dtype, device=device),
+        torch.zeros((0,), dtype=torch.bool, device=device),
+        method,
+    )
+
+
 def _as_sensing(A: Tensor | Sensing) -> Sensing:
     if isinstance(A, (SensingModel, DenseSensing)):
         return A
@@ -298,6 +310,8 @@ class NNLSProblem:
             raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
         y = self._check_y(y)
         P, m = y.shape[0], self.num_bands
+        if P == 0:
+            return _empty_result(m, self.dtype, self.device, method)
         if tol is None:
             tol = _default_tol(self.dtype, m) if method == "active_set" else _admm_tol(self.dtype)
         tol = float(tol)
@@ -791,6 +805,10 @@ def solve_nnls(
         raise ValueError(f"A has {op.num_pixels} pixels but y has {P}")
     if mask is not None and mask.shape[0] != P:
         raise ValueError(f"mask has {mask.shape[0]} pixels but y has {P}")
+    if P == 0:  # nothing to solve: empty results of the right shapes
+        if method not in _METHODS:
+            raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+        return _empty_result(op.num_bands, op.dtype, op.device, method)
     workers = workers_for(op.device, num_threads)
     kw = dict(method=method, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
               rho=rho, num_threads=workers, backend=backend)

@@ -1,0 +1,68 @@
+"""The errors hsi_torch raises for bad input: one base class, a few kinds.
+
+Every error about the *user's* input (a file, a configuration, a bundle, a capture, an argument
+value) is an :class:`HSIError`, and also the builtin exception it refines, so existing
+``except ValueError`` / ``except FileNotFoundError`` code keeps working:
+
+- :class:`HSIError` (``Exception``): the base; catch it for "any bad input".
+- :class:`FileFormatError` (``ValueError``): a file exists but cannot be read as the expected
+  format (corrupt, truncated, foreign, inconsistent, too large).
+- :class:`MissingFileError` (``FileNotFoundError``): a required file does not exist.
+- :class:`ConfigError` (``ValueError``): invalid configuration (file, key, value).
+- :class:`InputError` (``ValueError``): an invalid argument value or shape passed to the API
+  (a non-finite exposure scale, a state dict of another geometry, ...).
+- :class:`NoValidPixelsError` (an :class:`InputError`): a capture from which not a single pixel
+  could be reconstructed (the message says why).
+- :class:`CalibrationError` (``ValueError``): calibration captures that cannot give a bundle
+  (e.g. saturated white shots).
+
+Messages are one line and name the file, key or shape at fault. :class:`ConfigError` is defined
+in :mod:`hsi_torch.config` (it carries the key and source) and re-exported here; the command line
+prints an :class:`HSIError` as ``hsi-torch: error: <message>`` without a traceback.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "HSIError",
+    "FileFormatError",
+    "MissingFileError",
+    "InputError",
+    "NoValidPixelsError",
+    "CalibrationError",
+]  # and ConfigError, importable from here too (module __getattr__)
+
+
+class HSIError(Exception):
+    """Base class of the errors hsi_torch raises for bad input (files, configs, arguments)."""
+
+
+class FileFormatError(HSIError, ValueError):
+    """A file exists but cannot be read as the expected format (corrupt, truncated, mismatched).
+
+    The message always names the file.
+    """
+
+
+class MissingFileError(HSIError, FileNotFoundError):
+    """A required file does not exist (the message names it)."""
+
+
+class InputError(HSIError, ValueError):
+    """An invalid argument value or shape (the message names the argument and what it got)."""
+
+
+class NoValidPixelsError(InputError):
+    """Not a single pixel of a capture could be reconstructed; the message says why."""
+
+
+class CalibrationError(HSIError, ValueError):
+    """Calibration captures that cannot give a bundle (the message names the files at fault)."""
+
+
+def __getattr__(name: str) -> type:
+    if name == "ConfigError":  # defined beside the config loader; imported lazily (no cycle)
+        from hsi_torch.config import ConfigError
+
+        return ConfigError
+    raise AttributeError(f"module 'hsi_torch.errors' has no attribute {name!r}")

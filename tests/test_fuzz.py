@@ -1,0 +1,478 @@
+"""Property-based fuzzing (hypothesis) of the readers, the config loader and the solver.
+
+Every reader, given random bytes, a truncated file, random headers or random metadata, either
+returns a valid result or raises an :class:`hsi_torch.errors.HSIError` (whose message names the
+file) — never a raw exception, never a hang (each call runs under an alarm). The config loader,
+given random keys and values, returns a checked instance (every float finite) or raises
+``ConfigError``. ``solve_nnls`` on random, rank-deficient and masked problems (β = 0 included)
+returns a finite ``x ≥ 0`` whose converged pixels satisfy the KKT conditions, checked here
+independently in numpy; the others are flagged. The bundle reader survives random key removals,
+dtype and shape changes and version numbers.
+
+The examples are derandomized (a fixed seed: the same cases every run) with small budgets, so
+this file runs in well under a minute on two cores. For a longer campaign set
+``HSI_FUZZ_EXAMPLES=<n>``: every test then draws ``n`` random (not derandomized) examples, e.g.
+``HSI_FUZZ_EXAMPLES=2000 python -m pytest tests/test_fuzz.py --hypothesis-seed=1``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import signal
+import tempfile
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_pipeline import make_bundle
+
+from hsi_torch.calibrate.bundle import CalibrationBundle
+from hsi_torch.config import ConfigError, load_config
+from hsi_torch.errors import HSIError
+from hsi_torch.io import load_cube, read_any, save_cube
+from hsi_torch.io.captures import LinearCapture
+from hsi_torch.recon.solvers import solve_nnls
+from hsi_torch.spectral import difference_matrix
+
+_BUDGET = os.environ.get("HSI_FUZZ_EXAMPLES")
+settings.register_profile(
+    "hsi_fuzz", derandomize=not _BUDGET, database=None, deadline=None, print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)  # fmt: skip
+
+
+def fuzz(n: int):
+    """``@settings`` of this file: fixed seed, ``n`` examples (or ``$HSI_FUZZ_EXAMPLES``)."""
+    return settings(settings.get_profile("hsi_fuzz"), max_examples=int(_BUDGET or n))
+
+
+@contextlib.contextmanager
+def no_hang(seconds: float = 20.0) -> Iterator[None]:
+    """Fail (``TimeoutError``) when the block runs longer than ``seconds`` (SIGALRM)."""
+    if not hasattr(signal, "setitimer"):
+        yield
+        return
+
+    def on_alarm(signum, frame):
+        raise TimeoutError(f"no answer within {seconds} s (a hang)")
+
+    old = signal.signal(signal.SIGALRM, on_alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def clear_or_valid(fn, *args, **kwargs):
+    """``fn(*args)``; an exception must be an HSIError that names the file (if one is given)."""
+    with no_hang():
+        try:
+            return fn(*args, **kwargs)
+        except HSIError as exc:
+            path = args[0] if args and isinstance(args[0], Path) else None
+            if path is not None:  # the file, or its ENVI companion (.hdr/.img)
+                assert path.stem in str(exc), f"the error does not name the file: {exc}"
+            assert "\n" not in str(exc).strip() or len(str(exc)) < 2000
+            return None
+
+
+@pytest.fixture(scope="module")
+def scratch() -> Iterator[Path]:
+    with tempfile.TemporaryDirectory(prefix="hsi_fuzz_") as d:
+        yield Path(d)
+
+
+def _check_capture(cap: LinearCapture | None) -> None:
+    if cap is None:
+        return
+    assert cap.image.ndim == 3 and cap.image.shape[0] == 3
+    assert cap.saturated.shape == cap.image.shape and cap.saturated.dtype == torch.bool
+    assert isinstance(cap.metadata, dict)
+
+
+# ---------------------------------------------------------------------------------------------
+# capture and cube readers
+
+_CAPTURE_SUFFIXES = [".tif", ".npy", ".npz"]
+
+
+def _valid_capture_bytes(kind: str, suffix: str, meta: dict, seed: int = 0) -> bytes:
+    rng = np.random.default_rng(seed)
+    shape = (6, 8) if kind == "bayer" else (6, 8, 3)
+    arr = rng.integers(0, 4096, size=shape).astype(np.uint16)
+    buf = io.BytesIO()
+    if suffix == ".tif":
+        tifffile.imwrite(buf, arr, description=json.dumps(meta), metadata=None,
+                         photometric="minisblack" if kind == "bayer" else "rgb")  # fmt: skip
+    elif suffix == ".npy":
+        np.save(buf, arr)
+    else:
+        np.savez(buf, image=arr, metadata=np.array(json.dumps(meta)))
+    return buf.getvalue()
+
+
+_json_scalars = (st.none() | st.booleans() | st.integers(-(2**70), 2**70)
+                 | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=8))
+_json_values = st.recursive(
+    _json_scalars, lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c,
+                                                                          max_size=3),
+    max_leaves=8,
+)
+_meta_keys = st.sampled_from(["kind", "cfa_pattern", "black_level", "white_level", "exposure_s",
+                              "hsi_torch_capture", "wavelength_nm", "role", "x"])
+_metadata = st.dictionaries(_meta_keys, _json_values | st.sampled_from(
+    ["bayer", "rgb", "RGGB", "gbrg", "XYZW", [64, 64, 64, 64], [1, 2, 3], 4095, 0.01]),
+    max_size=5)
+
+
+@fuzz(120)
+@given(data=st.binary(max_size=600), suffix=st.sampled_from([*_CAPTURE_SUFFIXES, ".dng"]))
+def test_capture_reader_on_random_bytes(scratch, data, suffix):
+    p = scratch / f"random{suffix}"
+    p.write_bytes(data)
+    _check_capture(clear_or_valid(read_any, p))
+
+
+@fuzz(120)
+@given(kind=st.sampled_from(["bayer", "rgb"]), suffix=st.sampled_from(_CAPTURE_SUFFIXES),
+       cut=st.floats(0, 1), flips=st.lists(st.tuples(st.integers(0, 400), st.integers(0, 255)),
+                                           max_size=6))
+def test_capture_reader_on_truncated_and_corrupted_headers(scratch, kind, suffix, cut, flips):
+    data = bytearray(_valid_capture_bytes(kind, suffix, {"kind": kind, "cfa_pattern": "RGGB"}))
+    for pos, val in flips:  # header/IFD bytes changed
+        if pos < len(data):
+            data[pos] = val
+    data = data[: int(round(cut * len(data)))] if cut < 0.97 else data
+    p = scratch / f"cut{suffix}"
+    p.write_bytes(bytes(data))
+    _check_capture(clear_or_valid(read_any, p))
+    _check_capture(clear_or_valid(read_any, p, expected_size=(6, 8), demosaic="half"))
+
+
+@fuzz(150)
+@given(kind=st.sampled_from(["bayer", "rgb"]), suffix=st.sampled_from([".tif", ".npz"]),
+       meta=_metadata)
+def test_capture_reader_on_random_metadata(scratch, kind, suffix, meta):
+    try:
+        text = json.dumps(meta)
+    except ValueError:
+        text = json.dumps(meta, allow_nan=True)
+    p = scratch / f"meta{suffix}"
+    raw = _valid_capture_bytes(kind, suffix, {}, seed=1)
+    if suffix == ".tif":
+        arr = tifffile.imread(io.BytesIO(raw))
+        tifffile.imwrite(p, arr, description=text, metadata=None,
+                         photometric="minisblack" if kind == "bayer" else "rgb")  # fmt: skip
+    else:
+        with np.load(io.BytesIO(raw)) as z:
+            np.savez(p, image=z["image"], metadata=np.array(text))
+    cap = clear_or_valid(read_any, p, default_cfa_pattern="RGGB")
+    _check_capture(cap)
+    if cap is not None:  # what was accepted is what the file says
+        assert cap.metadata["kind"] == kind
+
+
+@fuzz(60)
+@given(fmt=st.sampled_from([".npz", ".tif", ".hdr"]), cut=st.floats(0, 1),
+       data=st.binary(max_size=300), flips=st.lists(st.tuples(st.integers(0, 300),
+                                                               st.integers(0, 255)), max_size=4))
+def test_cube_reader_on_truncated_and_random_files(scratch, fmt, cut, data, flips):
+    d = scratch / "cubes"
+    d.mkdir(exist_ok=True)
+    cube = np.random.default_rng(0).random((3, 4, 5)).astype(np.float32)
+    paths = save_cube(d / f"c{fmt}", cube, [450.0, 550.0, 650.0])
+    for p in paths:  # each file of the format (ENVI: .img and .hdr) cut and changed
+        b = bytearray(p.read_bytes())
+        for pos, val in flips:
+            if pos < len(b):
+                b[pos] = val
+        p.write_bytes(bytes(b[: int(round(cut * len(b)))]))
+    res = clear_or_valid(load_cube, d / f"c{fmt}")
+    if res is not None:
+        assert res.cube.ndim == 3 and res.wavelengths.shape == (res.cube.shape[0],)
+    r = d / f"r{fmt}"
+    r.write_bytes(data)
+    clear_or_valid(load_cube, r, wavelengths=[450.0, 550.0, 650.0])
+
+
+# ---------------------------------------------------------------------------------------------
+# the config loader
+
+
+def _finite_everywhere(obj) -> bool:
+    import dataclasses
+
+    if dataclasses.is_dataclass(obj):
+        return all(_finite_everywhere(getattr(obj, f.name)) for f in dataclasses.fields(obj))
+    if isinstance(obj, float):
+        return math.isfinite(obj)
+    if isinstance(obj, (list, tuple)):
+        return all(_finite_everywhere(v) for v in obj)
+    if isinstance(obj, dict):
+        return all(_finite_everywhere(v) for v in obj.values())
+    return True
+
+
+def _schemas():
+    from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.recon.config import ReconstructConfig
+    from hsi_torch.simulate.config import SimulateConfig
+
+    return [ReconstructConfig, CalibrateConfig, SimulateConfig]
+
+
+def _keys_of(cls, prefix=""):
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        out.append(prefix + f.name)
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            out += _keys_of(tp, prefix + f.name + ".")
+    return out
+
+
+_SCHEMA_KEYS = {cls.__name__: _keys_of(cls) for cls in _schemas()}
+_yaml_values = st.sampled_from([
+    "1", "-3", "0", "1e3", ".inf", "-.inf", ".nan", "1e999", "null", "true", "abc", "[1, 2]",
+    "[[1, 2], [3, 4]]", "{a: 1}", "''", "[", "RGGB", "float64", "cpu", "'1e-3'", "0x10",
+    "[.nan]", "99999999999999999999999999", "!!python/object:os.system ls",
+])
+
+
+@fuzz(150)
+@given(which=st.integers(0, 2), items=st.lists(st.tuples(st.integers(0, 200),
+                                                         _json_values), max_size=4),
+       extra=st.dictionaries(st.text(max_size=5), _json_scalars, max_size=2))
+def test_config_loader_on_random_keys_and_values(which, items, extra):
+    cls = _schemas()[which]
+    keys = _SCHEMA_KEYS[cls.__name__]
+    data: dict = dict(extra)
+    for i, value in items:
+        node = data
+        parts = keys[i % len(keys)].split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {}) if isinstance(node.get(part, {}), dict) else {}
+        node[parts[-1]] = value
+    with no_hang():
+        try:
+            cfg = load_config(data, cls)
+        except ConfigError as exc:
+            assert str(exc).startswith("<dict>")
+            return
+    assert isinstance(cfg, cls) and _finite_everywhere(cfg)
+
+
+@fuzz(150)
+@given(which=st.integers(0, 2), picks=st.lists(st.tuples(st.integers(0, 200), _yaml_values),
+                                               min_size=1, max_size=3),
+       junk=st.text(max_size=12))
+def test_config_overrides_and_yaml_files(scratch, which, picks, junk):
+    cls = _schemas()[which]
+    keys = _SCHEMA_KEYS[cls.__name__]
+    overrides = [f"{keys[i % len(keys)]}={v}" for i, v in picks]
+    with no_hang():
+        for src, ov in ((None, overrides), (None, [junk]), (None, [f"{junk}={junk}"])):
+            try:
+                cfg = load_config(src, cls, overrides=ov)
+                assert _finite_everywhere(cfg)
+            except ConfigError:
+                pass
+        p = scratch / "cfg.yaml"
+        p.write_text("\n".join(f"{o.replace('=', ': ', 1)}" for o in overrides) + "\n" + junk)
+        try:
+            assert _finite_everywhere(load_config(p, cls))
+        except ConfigError as exc:
+            assert str(p) in str(exc)
+
+
+# ---------------------------------------------------------------------------------------------
+# the solver
+
+
+def _kkt_violation(A, y, w, beta, order, x) -> np.ndarray:
+    """Per pixel ``‖min(diag(G)·x, g)‖ / (‖G‖₂‖x‖ + ‖b‖)``, from scratch in float64 numpy."""
+    P, O, M = A.shape
+    D = difference_matrix(M, order, dtype=torch.float64).numpy() if beta > 0 else np.zeros((1, M))
+    out = np.zeros(P)
+    for p in range(P):
+        Aw = A[p] * w[p][:, None]
+        G = Aw.T @ A[p] + beta * D.T @ D
+        b = Aw.T @ np.where(w[p], y[p], 0.0)
+        g = G @ x[p] - b
+        r = np.minimum(np.diag(G) * x[p], g)
+        out[p] = np.linalg.norm(r) / (np.linalg.norm(G, 2) * np.linalg.norm(x[p])
+                                      + np.linalg.norm(b) + 1e-300)
+    return out
+
+
+@st.composite
+def nnls_problems(draw):
+    P = draw(st.integers(0, 6))
+    O = draw(st.integers(1, 9))
+    M = draw(st.integers(1, 7))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    A = rng.random((P, O, M)) * 10.0 ** draw(st.integers(-3, 3))
+    kind = draw(st.sampled_from(["plain", "zero_column", "duplicate_column", "low_rank"]))
+    if kind == "zero_column" and M > 1:
+        A[:, :, rng.integers(M)] = 0.0
+    elif kind == "duplicate_column" and M > 1:
+        A[:, :, -1] = A[:, :, 0]
+    elif kind == "low_rank":
+        A = rng.random((P, O, 1)) @ rng.random((P, 1, M))
+    x_true = np.where(rng.random((P, M)) < 0.4, 0.0, rng.random((P, M)))
+    y = np.einsum("pom,pm->po", A, x_true) + draw(st.sampled_from([0.0, 0.01, 1.0])) * \
+        rng.standard_normal((P, O))  # fmt: skip
+    w = rng.random((P, O)) < draw(st.sampled_from([1.0, 0.7, 0.3, 0.0]))
+    y = np.where(w | (rng.random((P, O)) < 0.5), y, np.nan)  # NaN only where masked
+    beta = draw(st.sampled_from([0.0, 0.0, 1e-3, 1.0, 1e3]))
+    order = draw(st.sampled_from([0, 1, 2]))
+    if beta > 0 and M < order + 1:
+        order = 0
+    return A, y, w, beta, order
+
+
+@fuzz(150)
+@given(problem=nnls_problems(), method=st.sampled_from(["active_set", "active_set", "admm"]))
+def test_solve_nnls_kkt_or_flagged_never_nan(problem, method):
+    A, y, w, beta, order = problem
+    with no_hang():
+        res = solve_nnls(torch.from_numpy(A), torch.from_numpy(y), mask=torch.from_numpy(w),
+                         beta=beta, diff_order=order, method=method)  # fmt: skip
+    x = res.x.numpy()
+    assert x.shape == (A.shape[0], A.shape[2]) and np.all(np.isfinite(x)) and np.all(x >= 0)
+    assert not np.any(np.isnan(res.kkt_residual.numpy()))
+    nod = res.no_data.numpy()
+    assert np.array_equal(nod, ~w.any(1)) and np.all(x[nod] == 0)
+    conv = res.converged.numpy() & ~nod
+    viol = _kkt_violation(A, y, w, beta, order, x)
+    tol = 1e-8 if method == "active_set" else 1e-4
+    assert np.all(viol[conv] <= tol), (viol[conv], res.kkt_residual.numpy()[conv])
+
+
+# ---------------------------------------------------------------------------------------------
+# the bundle reader
+
+
+@pytest.fixture(scope="module")
+def bundle_arrays() -> dict[str, np.ndarray]:
+    """The arrays of a small valid bundle file (4 views, 8 bands, 6x6 reference frame)."""
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "b.npz"
+        make_bundle(t=6, missing=1).save(p)
+        with np.load(p) as z:
+            return {k: z[k] for k in z.files}
+
+
+_array_keys = ["wavelengths_nm", "layout_triangles", "layout_parity", "layout_view_homographies",
+               "layout_sensor_size", "layout_reference_bbox", "B", "phi", "gain", "view_mask",
+               "modulated", "valid", "meta"]
+_dtypes = st.sampled_from(["float32", "float16", "int64", "int8", "uint8", "bool", "complex64",
+                           "U3"])
+_change = st.one_of(
+    st.tuples(st.just("drop"), st.sampled_from(_array_keys)),
+    st.tuples(st.just("dtype"), st.sampled_from(_array_keys), _dtypes),
+    st.tuples(st.just("shape"), st.sampled_from(_array_keys),
+              st.sampled_from(["add_axis", "drop_axis", "transpose", "half", "empty", "scalar"])),
+    st.tuples(st.just("value"), st.sampled_from(_array_keys),
+              st.sampled_from([np.nan, np.inf, -1.0, 0.0, 1e30])),
+    st.tuples(st.just("meta"), st.sampled_from(["schema_version", "reflection_sequences",
+                                                "settings", "provenance", "software_version",
+                                                "whole"]), _json_values),
+)
+
+
+def _mutated(arrays: dict[str, np.ndarray], change: tuple) -> dict[str, np.ndarray]:
+    a = dict(arrays)
+    op, key = change[0], change[1]
+    if (key if op != "meta" else "meta") not in a:
+        return a  # dropped by an earlier change
+    if op == "drop":
+        a.pop(key, None)
+    elif op == "dtype":
+        with np.errstate(all="ignore"), contextlib.suppress(ValueError, TypeError, OverflowError):
+            a[key] = a[key].astype(change[2])
+    elif op == "shape":
+        v = a[key]
+        how = change[2]
+        if how == "add_axis":
+            v = v[None]
+        elif how == "drop_axis" and v.ndim:
+            v = v[0]
+        elif how == "transpose":
+            v = v.T
+        elif how == "half" and v.ndim:
+            v = v[: max(0, v.shape[0] // 2)]
+        elif how == "empty":
+            v = v.reshape(-1)[:0]
+        elif how == "scalar":
+            v = np.asarray(v.reshape(-1)[0] if v.size else 0)
+        a[key] = v
+    elif op == "value":
+        v = np.array(a[key], copy=True)
+        if v.size and v.dtype.kind in "fiu":
+            with np.errstate(all="ignore"), contextlib.suppress(ValueError, OverflowError):
+                v.reshape(-1)[0] = change[2]
+        a[key] = v
+    else:  # meta
+        try:
+            meta = json.loads(str(a["meta"]))
+        except ValueError:
+            meta = {}
+        meta = meta if isinstance(meta, dict) else {}
+        if key == "whole":
+            meta = change[2]
+        else:
+            meta[key] = change[2]
+        a["meta"] = np.array(json.dumps(meta, allow_nan=True))
+    return a
+
+
+@fuzz(200)
+@given(changes=st.lists(_change, min_size=1, max_size=3))
+def test_bundle_reader_on_changed_keys_dtypes_shapes_and_versions(scratch, bundle_arrays,
+                                                                  changes):
+    arrays = bundle_arrays
+    for c in changes:
+        arrays = _mutated(arrays, c)
+    p = scratch / "bundle.npz"
+    np.savez(p, **arrays)
+    b = clear_or_valid(CalibrationBundle.load, p)
+    if b is not None:  # accepted: consistent, usable
+        b.validate()
+        A = b.sensing_matrices(dtype=torch.float64)
+        assert A.shape == (b.frame_size[0] * b.frame_size[1], 3 * b.num_views, b.num_bands)
+
+
+@fuzz(40)
+@given(cut=st.floats(0, 0.999), data=st.binary(max_size=400))
+def test_bundle_reader_on_truncated_and_random_files(scratch, bundle_arrays, cut, data):
+    p = scratch / "cut.npz"
+    np.savez(p, **bundle_arrays)
+    raw = p.read_bytes()
+    p.write_bytes(raw[: int(cut * len(raw))])
+    clear_or_valid(CalibrationBundle.load, p)
+    q = scratch / "junk.npz"
+    q.write_bytes(data)
+    clear_or_valid(CalibrationBundle.load, q)
+    z = scratch / "zip.npz"  # a zip archive of random members
+    with zipfile.ZipFile(z, "w") as f:
+        f.writestr("meta.npy", data)
+        f.writestr("B.npy", data[::-1])
+    clear_or_valid(CalibrationBundle.load, z)
