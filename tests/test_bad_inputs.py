@@ -174,7 +174,7 @@ def test_load_state_dict_rebuilds_the_derived_tensors():
     v = m1(x).valid[0]
     torch.testing.assert_close(after[0][:, v], before[0][:, v] / 2, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(after, m2(x).cube, equal_nan=True, rtol=0, atol=0)
-    for name in ("A", "gram", "gram_inv", "sample_grid"):
+    for name in ("model_transmittance", "model_gain", "gram", "gram_inv", "sample_grid"):
         assert torch.equal(getattr(m1, name), getattr(m2, name)), name
 
 
