@@ -53,6 +53,10 @@ def test_targets_on_default_simulated_set(sim: Path, calibrated: Path):
     assert min(s["phi_corr"]) > 0.99
     assert s["gain_max_rel_rms"] < 0.02  # after the same (g, phi) gauge on both sides
     assert s["homography_worst_rms_px"] < 0.3  # against the true mapping, reference px
+    # the grid shots are flat-fielded by the mean white shot before detection: without it the
+    # views' transmittance fringes bias the blob centres (0.13 px worst view here, 0.49 px at
+    # full size); with it 0.03 px at both sizes
+    assert s["homography_worst_rms_px"] < 0.08
     assert s["valid_iou"] > 0.95
     assert targets_met(s) == {"B": True, "phi": True, "gain": True, "homography": True}
 
@@ -261,8 +265,9 @@ def test_one_saturated_white_shot_is_dropped_with_a_warning(sim: Path, calibrate
     assert "dropped" in warn[0] and "100.0 %" in warn[0]
     assert "white_01.tif dropped" in cap.out  # also in the report's notes
     a, b = CalibrationBundle.load(out), CalibrationBundle.load(calibrated)
-    # the other two shots give the same calibration, up to their own noise
-    np.testing.assert_array_equal(a.valid, b.valid)
+    # the other two shots give the same calibration, up to their own noise (they also flat-field
+    # the grid shots, so a few edge pixels of the valid region may differ)
+    assert int((a.valid != b.valid).sum()) <= 0.001 * a.valid.size
     assert np.corrcoef(a.phi.ravel(), b.phi.ravel())[0, 1] > 0.999
     m = a.view_mask
     assert np.abs(a.gain[m] / b.gain[m] - 1).max() < 0.02

@@ -62,6 +62,11 @@ class RegistrationSection:
         default=True, metadata=_h("paint pixels outside the triangle with the background")
     )
     ransac_threshold_px: float = field(default=1.0, metadata=_h("RANSAC inlier threshold, px"))
+    flat_field: bool = field(
+        default=True,
+        metadata=_h("divide the grid shots by the mean white shot before detection (removes the "
+                    "views' transmittance fringes and vignetting from the target)"),
+    )
     inset_px: float = field(
         default=1.0, metadata=_h("view masks: source point at least this far inside the triangle")
     )
@@ -100,7 +105,7 @@ class TransmittanceSection:
                     "fraction of its brightness (median over the view): the patch is filtered"),
     )
     frames_per_chunk: int = field(
-        default=8, metadata=_h("scan frames processed together (memory bound at full scale)")
+        default=4, metadata=_h("scan frames processed together (memory bound at full scale)")
     )
 
     def __post_init__(self) -> None:
@@ -209,7 +214,9 @@ class CalibrateConfig:
     )
     device: str = field(default="cpu", metadata=_h("torch device"))
     dtype: Literal["float32", "float64"] = field(
-        default="float64", metadata=_h("precision of the calibration arrays")
+        default="float32",
+        metadata=_h("precision of the images and maps (float32 halves the memory at full size; "
+                    "the response estimation always runs in float64)"),
     )
     min_views: int = field(default=3, metadata=_h("modulated views a valid pixel needs"))
     registration: RegistrationSection = field(default_factory=RegistrationSection)
@@ -232,4 +239,5 @@ class CalibrateConfig:
 
         d = to_dict(self.registration)
         d.pop("inset_px")
+        d.pop("flat_field")
         return d

@@ -60,22 +60,26 @@ def plot_calibration(
 
     b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
     wl = np.asarray(b.wavelengths_nm, dtype=np.float64)
-    B = np.asarray(b.B, dtype=np.float64)  # (V, M, h, w)
-    gain = np.asarray(b.gain, dtype=np.float64)  # (V, h, w)
-    vmask = np.asarray(b.view_mask, dtype=bool)
-    V = B.shape[0]
     bands = _nearest(wl, wavelengths_nm)
+    # the maps are drawn a few hundred pixels wide: subsample full-size frames (and keep only the
+    # drawn bands, in float32) rather than copying the whole (V, M, h, w) transmittance
+    fh, fw = (int(v) for v in np.shape(b.valid))
+    st = max(1, -(-max(fh, fw) // 320))
+    B = np.asarray(b.B)[:, bands, ::st, ::st].astype(np.float32)  # (V, len(bands), h', w')
+    gain = np.asarray(b.gain)[:, ::st, ::st].astype(np.float32)  # (V, h', w')
+    vmask = np.asarray(b.view_mask, dtype=bool)[:, ::st, ::st]
+    V = B.shape[0]
     rows = len(bands) + 1
     fig = Figure(figsize=(1.55 * V + 1.0, 1.45 * rows + 3.6), dpi=dpi)
     FigureCanvasAgg(fig)
     gs = fig.add_gridspec(rows + 1, V, height_ratios=[1.0] * rows + [2.3], hspace=0.35,
                           wspace=0.08)  # fmt: skip
-    mod = np.asarray(b.modulated, dtype=bool)  # the scale of the modulation, not the BRF-free
-    b_max = float(np.percentile(B.transpose(1, 0, 2, 3)[:, mod], 99.5)) if mod.any() else 1.0
+    mod_s = np.asarray(b.modulated, dtype=bool)[:, ::st, ::st]  # scale of the modulation
+    b_max = float(np.percentile(B.transpose(1, 0, 2, 3)[:, mod_s], 99.5)) if mod_s.any() else 1.0
     g_in = gain[vmask]
     g_dev = float(np.nanmax(np.abs(g_in - 1.0))) if g_in.size else 0.1
     g_dev = max(g_dev, 1e-3)
-    for r, m in enumerate([*bands, None]):
+    for r, m in enumerate([*range(len(bands)), None]):
         for v in range(V):
             ax = fig.add_subplot(gs[r, v])
             ax.set_xticks([])
@@ -90,7 +94,7 @@ def plot_calibration(
             if r == 0:
                 ax.set_title(f"view {v}" + (" (ref)" if v == 0 else ""), fontsize=8)
             if v == 0:
-                label = "gain g_v" if m is None else f"B at {wl[m]:g} nm"
+                label = "gain g_v" if m is None else f"B at {wl[bands[m]]:g} nm"
                 ax.set_ylabel(label, fontsize=8)
     cax = fig.add_axes((0.915, 0.55, 0.008, 0.3))
     fig.colorbar(im_b, cax=cax).ax.tick_params(labelsize=7)
@@ -144,7 +148,7 @@ def plot_calibration(
 
     # valid region
     ax = fig.add_subplot(gs[rows, mid.stop :])
-    nmod = mod.sum(0)
+    nmod = np.asarray(b.modulated, dtype=bool).sum(0)
     im = ax.imshow(nmod, cmap="magma", vmin=0, vmax=max(int(nmod.max()), 1))
     ax.contour(valid.astype(float), levels=[0.5], colors="cyan", linewidths=1.0)
     fig.colorbar(im, ax=ax, fraction=0.04).ax.tick_params(labelsize=7)

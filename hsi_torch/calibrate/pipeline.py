@@ -516,11 +516,37 @@ def calibrate_capture_set(
         # ---- registration -------------------------------------------------------------------
         t0 = time.perf_counter()
         det_cfg = GridDetectorConfig.from_dict(cfg.detector_dict())
+        flat = None
+        if cfg.registration.flat_field and cs.white:
+            # the grid shots divided by the mean white shot: the target's own reflectance, free
+            # of the views' transmittance fringes, vignetting and fall-off (which otherwise bias
+            # circle centres by a few tenths of a pixel at full sensor size)
+            # (saturated samples left out of the mean, shot by shot)
+            count = None
+            for p in cs.white:
+                img, sat, _ = reader.read(p)
+                ok = (~sat).to(img.dtype)
+                flat = img.mul_(ok) if flat is None else flat.addcmul_(img, ok)
+                count = ok if count is None else count.add_(ok)
+            lost = float((count == 0).float().mean())
+            flat = flat.div_(count.clamp_min_(1))
+            del count
+            lim = 0.02 * float(torch.quantile(flat.flatten()[:: max(1, flat.numel() // 200_000)],
+                                              0.99))
+            if lost > cfg.response.max_saturated_fraction or not lim > 0:
+                # saturated white shots are reported (or dropped) by the response stage; the
+                # grid shots are then registered as they are
+                notes.append(f"grid shots not flat-fielded: {100 * lost:.1f} % of the white "
+                             "samples saturated in every shot")
+                flat = None
+            else:
+                flat = torch.where(flat > lim, flat.reciprocal(), torch.zeros_like(flat))
         grid_imgs = []
         for p in cs.grid:
             img, _, _ = reader.read(p)
-            grid_imgs.append(img)
+            grid_imgs.append(img if flat is None else img.mul_(flat))
             tick(1, "grid")
+        del flat
         try:
             reg = register_views(grid_imgs, tri, par, det_cfg)
         except ValueError as exc:
@@ -615,9 +641,12 @@ def calibrate_capture_set(
             t_ref = float(w_exp[0])
             whites = [im * (t_ref / float(e)) for im, e in zip(whites, w_exp, strict=True)]
             notes.append(f"white shots scaled to the exposure of the first ({w_exp[0]})")
-        W_img = torch.stack(whites)
-        W_sat = torch.stack(wsats).to(dt)
-        both, _ = warp_views(torch.cat([W_img, W_sat], 1), Hs, bbox)  # (S, V, 6, h, w)
+        # each shot warped on its own (image + saturation as 6 channels): no (S, 6, H, W) stack
+        both = torch.cat([
+            warp_views(torch.cat([im, sm.to(dt)])[None], Hs, bbox)[0]
+            for im, sm in zip(whites, wsats, strict=True)
+        ])  # (S, V, 6, h, w)  # fmt: skip
+        del whites, wsats
         white_ref, sat_ref = both[:, :, :3], both[:, :, 3:]
         rc = cfg.response
         white_ref, sat_ref, sat_text = _drop_saturated_whites(
@@ -632,10 +661,11 @@ def calibrate_capture_set(
                 f"white-reference shots: no unsaturated sample left in view(s) {empty} "
                 f"({sat_text}); reduce the exposure of the white shots"
             )
-        b = B_ref * band_widths(wl)[None, :, None, None]
+        del ok
         f_prior = _camera_prior(rc.camera_sensitivity, wl)
         resp = estimate_response_field(
-            white_ref, b, f_prior, obs_mask, beta_phi=rc.beta_phi, gamma_h=rc.gamma_h,
+            white_ref, B_ref, f_prior, obs_mask, band_widths_nm=band_widths(wl),
+            beta_phi=rc.beta_phi, gamma_h=rc.gamma_h,
             normalise=rc.normalise, max_pixels=rc.max_pixels,
             n_iter=rc.n_iter, degree=rc.degree, smoothness=rc.smoothness,
             diff_order=rc.diff_order, refine_steps=rc.refine_steps,

@@ -554,6 +554,7 @@ def estimate_response_field(
     diff_order: int = 1,
     refine_steps: int = 20,
     max_pixels: int | None = None,
+    band_widths_nm: torch.Tensor | None = None,
 ) -> ResponseResult:
     """Alternating estimation of φ^c and a smooth gain field g_v(p) from registered white shots.
 
@@ -579,12 +580,15 @@ def estimate_response_field(
             unknowns (``3M`` values of φ, ``V·K`` gain coefficients) are few, and calibration
             errors are systematic, so the sub-grid costs nothing measurable while bounding time
             and memory at full sensor size. ``None``: every pixel.
+        band_widths_nm: ``(M,)`` ``Δλ_m``: ``b`` is then the transmittance ``B`` itself and is
+            multiplied by ``Δλ`` after the sub-sampling (no full-frame copy).
 
     Returns:
-        :class:`ResponseResult` with ``gain (V, h, w)`` and its coefficients.
+        :class:`ResponseResult` with ``gain (V, h, w)`` and its coefficients, float64 (the
+        estimation runs in float64 whatever the input dtype).
     """
     white, S, V, h, w = _check_white(white, b)
-    dt, dev = white.dtype, white.device
+    dt, dev = torch.float64, white.device  # the normal equations sum ~1e6 terms: float64
     mask_b = torch.as_tensor(mask, device=dev).to(torch.bool)
     if mask_b.shape != (V, h, w):
         raise ValueError(f"mask must be (V, h, w) = ({V}, {h}, {w}), got {tuple(mask_b.shape)}")
@@ -608,7 +612,9 @@ def estimate_response_field(
                               device=dev, dtype=dt)
     M = b.shape[1]
     ref = mask_b[reference_view]
-    b = b.to(dt)
+    white, b = white.to(dt), b.to(dt)
+    if band_widths_nm is not None:
+        b = b * torch.as_tensor(band_widths_nm, dtype=dt, device=dev).view(1, -1, 1, 1)
     Iobs = white.mean(0).permute(2, 3, 0, 1).reshape(h * w, V, 3)
     bobs = b.permute(2, 3, 0, 1).reshape(h * w, V, M)
     wobs = (S * mask_b.to(dt)).permute(1, 2, 0).reshape(h * w, V)

@@ -153,16 +153,19 @@ def brf_transmittance(
         if dark is not None and dark.ndim == 4:
             dark = dark[idx.to(dark.device)]
         J = scan.shape[0]
-    sat = None
-    if saturation_level is not None:
-        sat = scan >= saturation_level
-    x = scan
     if dark is not None:
         dark = torch.as_tensor(dark, device=scan.device, dtype=scan.dtype)
         if dark.shape not in ((3, H, W), (J, 3, H, W)):
             raise ValueError(f"dark must be (3, H, W) or (J, 3, H, W), got {tuple(dark.shape)}")
-        x = x - dark
-    patch = (x * mask).sum(dim=(-2, -1)) / n_patch  # (J, 3)
+
+    def channel(c: int) -> torch.Tensor:  # (J, H, W) dark-subtracted colour c
+        xc = scan[:, c]
+        if dark is None:
+            return xc
+        return xc - (dark[c] if dark.ndim == 3 else dark[:, c])
+
+    # one colour at a time: (J, H, W) temporaries, never a second (J, 3, H, W) copy
+    patch = torch.stack([(channel(c) * mask).sum(dim=(-2, -1)) / n_patch for c in range(3)], 1)
     bad = (patch <= 0).all(dim=1)
     if bool(bad.any()):
         raise ValueError(
@@ -171,13 +174,19 @@ def brf_transmittance(
     usable_c = patch > 0  # (J, 3)
     w = torch.where(usable_c, patch.clamp_min(0) ** weight_power, torch.zeros_like(patch))
     w = w / w.sum(dim=1, keepdim=True)
-    ratio = x / torch.where(usable_c, patch, torch.ones_like(patch))[..., None, None]
-    u = usable_c[..., None, None].expand_as(x)
-    if sat is not None:
-        u = u & ~sat
-    wu = w[..., None, None] * u
-    den = wu.sum(dim=1)
-    B = (wu * ratio).sum(dim=1) / den.clamp_min(torch.finfo(x.dtype).tiny)
+    num = torch.zeros((J, H, W), dtype=scan.dtype, device=scan.device)
+    den = torch.zeros_like(num)
+    for c in range(3):
+        if not bool(usable_c[:, c].any()):
+            continue
+        wu = torch.where(usable_c[:, c], w[:, c], 0.0).to(scan.dtype)[:, None, None].expand(J, H, W)
+        if saturation_level is not None:
+            wu = wu * (scan[:, c] < saturation_level)
+        ratio = channel(c) / torch.where(usable_c[:, c], patch[:, c], 1.0)[:, None, None]
+        num.addcmul_(wu, ratio)
+        den.add_(wu)
+        del wu, ratio
+    B = num.div_(den.clamp_min(torch.finfo(scan.dtype).tiny))
     B = torch.where(den > 0, B, torch.zeros_like(B))
     lit = B.amax(dim=0) >= lit_threshold
     reliable = (den > 0) & lit[None]
