@@ -174,16 +174,22 @@ class SensingModel:
         With a shared model (``P = 1``) every row of ``s`` uses the same matrix.
         """
         B, g = self._factors(idx, s.shape[0])
-        t = B * s.unsqueeze(1)  # (n, V, M)
-        y = torch.matmul(t, self.response.T) * g.unsqueeze(2)  # (n, V, C)
-        return y.reshape(s.shape[0], -1)
+        n = s.shape[0]
+        rs = s.unsqueeze(2) * self.response.T  # (n, M, C): r_cm s_m
+        if B.shape[0] == 1:
+            y = torch.matmul(B, rs)  # (n, V, C)
+        else:
+            y = torch.bmm(B, rs)  # reads B once; no (n, V, M) temporary
+        return (y * g.unsqueeze(2)).reshape(n, -1)
 
     def A_adjoint(self, y: Tensor, idx: Tensor | slice | None = None) -> Tensor:
         """``Aᵀ y``: ``(n, 3V)`` → ``(n, M)``. Masked observations must be zero in ``y``."""
         B, g = self._factors(idx, y.shape[0])
         n = y.shape[0]
         u = y.reshape(n, self.num_views, self.num_channels) * g.unsqueeze(2)  # (n, V, C)
-        return (torch.matmul(u, self.response) * B).sum(1)
+        # Σ_c r_cm Σ_v u_vc B_vm: one (C, V) × (V, M) product per pixel reads B once
+        ub = torch.matmul(u.transpose(1, 2), B)  # (n, C, M)
+        return (ub * self.response).sum(1)
 
     def dense(self, idx: Tensor | slice | None = None) -> Tensor:
         """Dense sensing matrices ``(n, 3V, M)`` of pixels ``idx`` (``(1, 3V, M)`` if shared)."""

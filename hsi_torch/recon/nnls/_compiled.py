@@ -42,7 +42,7 @@ DONE, NOT_FINISHED, FACTOR_FAILED = 0, 1, 2
 
 if AVAILABLE:
 
-    @_nb.njit(cache=True, inline="always")
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
     def _chol_solve(S, rhs, k):  # pragma: no cover - compiled
         """In-place Cholesky of ``S[:k, :k]`` (lower) and solve ``S x = rhs`` into ``rhs``."""
         for j in range(k):
@@ -70,9 +70,10 @@ if AVAILABLE:
             rhs[i] = t / S[i, i]
         return True
 
-    @_nb.njit(cache=True)
-    def _bpp_pixel(G, H, p, x0, b, gd, t, max_rounds, S, rhs, idx, x, lam, Z):  # pragma: no cover
-        """One pixel's rounds; returns ``(status, rounds)``; ``x``, ``Z`` hold the answer."""
+    @_nb.njit(cache=True, error_model="numpy")
+    def _bpp_pixel(G, H, x0, b, gd, t, max_rounds, S, rhs, idx, x, lam, Z):  # pragma: no cover
+        """One pixel's rounds (``G``, ``H``: its ``(M, M)`` matrices); returns
+        ``(status, rounds)``; ``x``, ``Z`` hold the answer."""
         m = x0.shape[0]
         half = m // 2
         for j in range(m):
@@ -94,7 +95,7 @@ if AVAILABLE:
                         k += 1
                 for a in range(k):
                     for c in range(a + 1):
-                        S[a, c] = H[p, idx[a], idx[c]]
+                        S[a, c] = H[idx[a], idx[c]]
                     rhs[a] = -x0[idx[a]]
                 if not _chol_solve(S, rhs, k):
                     return FACTOR_FAILED, rnd
@@ -104,7 +105,7 @@ if AVAILABLE:
                 for a in range(k):
                     ra = rhs[a]
                     for j in range(m):
-                        x[j] += H[p, idx[a], j] * ra
+                        x[j] += H[idx[a], j] * ra
                 for a in range(k):
                     x[idx[a]] = 0.0
                     lam[idx[a]] = rhs[a]
@@ -115,7 +116,7 @@ if AVAILABLE:
                         k += 1
                 for a in range(k):
                     for c in range(a + 1):
-                        S[a, c] = G[p, idx[a], idx[c]]
+                        S[a, c] = G[idx[a], idx[c]]
                     rhs[a] = b[idx[a]]
                 if not _chol_solve(S, rhs, k):
                     return FACTOR_FAILED, rnd
@@ -126,7 +127,7 @@ if AVAILABLE:
                     ra = rhs[a]
                     x[idx[a]] = ra
                     for j in range(m):
-                        lam[j] += G[p, idx[a], j] * ra
+                        lam[j] += G[idx[a], j] * ra
                 for j in range(m):
                     if not Z[j]:
                         lam[j] = 0.0
@@ -151,7 +152,7 @@ if AVAILABLE:
                 Z[last] = not Z[last]
         return NOT_FINISHED, rnd
 
-    @_nb.njit(parallel=True, cache=True)
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _bpp_kernel(G, H, gi, x0, b, gd, thr, max_rounds, x_out, z_out, status, rounds,
                     num_chunks):  # pragma: no cover - compiled
         n, m = x0.shape
@@ -165,8 +166,8 @@ if AVAILABLE:
             Z = np.empty(m, np.bool_)
             for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
                 p = 0 if shared else gi[r]
-                st, rnd = _bpp_pixel(G, H, p, x0[r], b[r], gd[r], thr[r], max_rounds, S, rhs,
-                                     idx, x, lam, Z)
+                st, rnd = _bpp_pixel(G[p], H[p], x0[r], b[r], gd[r], thr[r], max_rounds, S,
+                                     rhs, idx, x, lam, Z)
                 for j in range(m):
                     x_out[r, j] = x[j] if x[j] > 0.0 else 0.0
                     z_out[r, j] = Z[j]
