@@ -100,6 +100,7 @@ EXAMPLES: dict[str | None, list[str]] = {
     "demo": [
         "hsi-torch demo --quick --out demo_quick/",
         "hsi-torch demo --set beta=1e3 --no-progress",
+        "hsi-torch demo --full --out demo_full/   # original scale, each stage timed",
     ],
     "config": [
         "hsi-torch config list",
@@ -208,6 +209,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.add_argument("--out", "-o", type=Path, default=Path("demo_output"), help="output folder")
     p.add_argument("--quick", action="store_true", help="smaller, faster run")
+    p.add_argument(
+        "--full", action="store_true",
+        help="the original prototype's size (simulate_full.yaml): every stage in its own "
+             "process, timed, peak memory measured; a few minutes",
+    )  # fmt: skip
 
     p = command(
         "config", "list, show or copy the shipped configuration files",

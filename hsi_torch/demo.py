@@ -146,21 +146,35 @@ def colorchecker_scores(
 def cube_scores(
     cube: np.ndarray, truth: np.ndarray, mask: np.ndarray, sam_min_reflectance: float = 0.01
 ) -> dict[str, Any]:
-    """Per-pixel scores over ``mask``: PSNR of the pooled MSE and the mean SAM (SAM only where
-    the true mean reflectance is ≥ ``sam_min_reflectance``)."""
-    e = cube[:, mask].T
-    t = truth[:, mask].T
-    if e.size == 0:
-        return {"pixels": 0, "psnr_db": float("nan"), "mean_sam_deg": float("nan")}
-    mse = float(((e - t) ** 2).mean())
-    bright = t.mean(1) >= sam_min_reflectance
-    return {
-        "pixels": int(mask.sum()),
-        "psnr_db": psnr_from_mse(mse),
-        "rmse": math.sqrt(mse),
-        "mean_sam_deg": float(_sam_deg(e[bright], t[bright]).mean()) if bright.any() else math.nan,
-        "sam_pixels": int(bright.sum()),
-    }
+    """Per-pixel scores over ``mask``: PSNR of the pooled MSE, mean and median SAM (SAM only
+    where the true mean reflectance is ≥ ``sam_min_reflectance``), and the same on the brighter
+    half (``bright_half``: pixels whose true mean reflectance is at least the median over
+    ``mask``; in shadows and dark regions a spectral angle measures noise, not colour)."""
+
+    def scores(m: np.ndarray) -> dict[str, Any]:
+        e = cube[:, m].T
+        t = truth[:, m].T
+        if e.size == 0:
+            return {"pixels": 0, "psnr_db": float("nan"), "mean_sam_deg": float("nan"),
+                    "median_sam_deg": float("nan")}  # fmt: skip
+        mse = float(((e - t) ** 2).mean())
+        bright = t.mean(1) >= sam_min_reflectance
+        sam = _sam_deg(e[bright], t[bright]) if bright.any() else np.array([math.nan])
+        return {
+            "pixels": int(m.sum()),
+            "psnr_db": psnr_from_mse(mse),
+            "rmse": math.sqrt(mse),
+            "mean_sam_deg": float(np.mean(sam)),
+            "median_sam_deg": float(np.median(sam)),
+            "sam_pixels": int(bright.sum()),
+        }
+
+    out = scores(mask)
+    level = truth.mean(0)
+    if mask.any():
+        half = mask & (level >= np.median(level[mask]))
+        out["bright_half"] = scores(half)
+    return out
 
 
 # =============================================================================================
@@ -330,6 +344,70 @@ def _previews(out: Path, name: str, wl, truth: np.ndarray, cubes: dict[str, np.n
     )  # fmt: skip
 
 
+def score_scene(
+    spec: dict[str, Any], cubes: dict[str, np.ndarray], valids: dict[str, np.ndarray],
+    truth: dict[str, np.ndarray], out: Path, erode_px: float, log,
+) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+    """Score one scene's ``calibrated`` and ``oracle`` cubes against the simulator's truth.
+
+    ColorChecker: the per-patch mean spectrum over the patch interiors (≥ ``erode_px`` inside)
+    and over whole patches, and per pixel over the interiors; other scenes: per pixel over the
+    valid pixels on the scene, and on its brighter half (:func:`cube_scores`). Writes the spectra
+    plot ``<name>_spectra.png``.
+
+    Returns:
+        ``(entry, both, true_cube)``: the scores, the pixels valid in both cubes, the truth.
+    """
+    name = spec["name"]
+    wl = np.asarray(truth["wavelengths_nm"], np.float64)
+    both = valids["calibrated"] & valids["oracle"]
+    true_cube = np.asarray(truth[f"scene_{name}"], np.float64)
+    entry: dict[str, Any] = {"valid_pixels": int(both.sum())}
+    if spec["kind"] == "colorchecker":
+        pidx = truth[f"{name}_patch_index"]
+        spectra = np.asarray(truth[f"{name}_spectra"], np.float64)
+        sc = {k: colorchecker_scores(cubes[k], both, pidx, spectra, erode_px)
+              for k in cubes}  # fmt: skip
+        whole = {k: colorchecker_scores(cubes[k], both, pidx, spectra, 0.0) for k in cubes}
+        inner = both & (pidx >= 0)
+        inner &= np.logical_or.reduce([_interior(pidx == k, erode_px) for k in range(len(spectra))])
+        per_pixel = {k: cube_scores(cubes[k], true_cube, inner) for k in cubes}
+        entry.update(
+            metric="per-patch mean spectrum over patch interiors "
+                   f"(>= {erode_px:g} px inside), mean over patches",
+            calibrated=sc["calibrated"], oracle=sc["oracle"],
+            whole_patch={k: {"mean_psnr_db": v["mean_psnr_db"],
+                             "mean_sam_deg": v["mean_sam_deg"]} for k, v in whole.items()},
+            per_pixel_interiors=per_pixel,
+        )  # fmt: skip
+        _plot_colorchecker(out / f"{name}_spectra.png", wl, spectra,
+                           np.asarray(sc["calibrated"]["estimated_spectra"]),
+                           np.asarray(sc["oracle"]["estimated_spectra"]),
+                           sc["calibrated"], sc["oracle"])  # fmt: skip
+    else:
+        on_scene = both.copy()
+        try:
+            from hsi_torch.simulate.capture_sets import build_scene
+            from hsi_torch.simulate.config import SceneSpec
+
+            sobj = build_scene(SceneSpec(kind=spec["kind"], name=name, path=spec.get("path"),
+                                         params=dict(spec.get("params", {}))))
+            x_min, x_max, y_min, y_max = sobj.extent
+            xy = truth["diffuser_xy"]
+            on_scene &= ((xy[..., 0] >= x_min) & (xy[..., 0] <= x_max)
+                         & (xy[..., 1] >= y_min) & (xy[..., 1] <= y_max))  # fmt: skip
+        except Exception as exc:  # noqa: BLE001 - the extent only narrows the scored pixels
+            log(f"      scene {name}: extent unknown ({exc}); scoring every valid pixel")
+        entry.update(
+            metric="per pixel over valid pixels on the scene (SAM where mean truth >= 0.01)",
+            calibrated=cube_scores(cubes["calibrated"], true_cube, on_scene),
+            oracle=cube_scores(cubes["oracle"], true_cube, on_scene),
+        )
+        _plot_pixels(out / f"{name}_spectra.png", wl, true_cube, cubes["calibrated"],
+                     cubes["oracle"], on_scene & (true_cube.mean(0) > 0.05), name)  # fmt: skip
+    return entry, both, true_cube
+
+
 # =============================================================================================
 # the demo
 # =============================================================================================
@@ -429,48 +507,8 @@ def demo(
             cubes[key] = res.cube.detach().cpu().double().numpy()
             valids[key] = res.valid.detach().cpu().numpy()
             tims[key] = res.timings.get("total", float("nan"))
-        both = valids["calibrated"] & valids["oracle"]
-        true_cube = np.asarray(truth[f"scene_{name}"], np.float64)
-        entry: dict[str, Any] = {"capture": str(cap), "valid_pixels": int(both.sum()),
-                                 "reconstruct_s": tims}  # fmt: skip
-        if spec["kind"] == "colorchecker":
-            pidx = truth[f"{name}_patch_index"]
-            spectra = np.asarray(truth[f"{name}_spectra"], np.float64)
-            sc = {k: colorchecker_scores(cubes[k], both, pidx, spectra, cfg.erode_px)
-                  for k in cubes}  # fmt: skip
-            whole = {k: colorchecker_scores(cubes[k], both, pidx, spectra, 0.0) for k in cubes}
-            entry.update(
-                metric="per-patch mean spectrum over patch interiors "
-                       f"(>= {cfg.erode_px:g} px inside), mean over patches",
-                calibrated=sc["calibrated"], oracle=sc["oracle"],
-                whole_patch={k: {"mean_psnr_db": v["mean_psnr_db"],
-                                 "mean_sam_deg": v["mean_sam_deg"]} for k, v in whole.items()},
-            )  # fmt: skip
-            _plot_colorchecker(out / f"{name}_spectra.png", wl, spectra,
-                               np.asarray(sc["calibrated"]["estimated_spectra"]),
-                               np.asarray(sc["oracle"]["estimated_spectra"]),
-                               sc["calibrated"], sc["oracle"])  # fmt: skip
-        else:
-            on_scene = both.copy()
-            try:
-                from hsi_torch.simulate.capture_sets import build_scene
-                from hsi_torch.simulate.config import SceneSpec
-
-                sobj = build_scene(SceneSpec(kind=spec["kind"], name=name, path=spec.get("path"),
-                                             params=dict(spec.get("params", {}))))
-                x_min, x_max, y_min, y_max = sobj.extent
-                xy = truth["diffuser_xy"]
-                on_scene &= ((xy[..., 0] >= x_min) & (xy[..., 0] <= x_max)
-                             & (xy[..., 1] >= y_min) & (xy[..., 1] <= y_max))  # fmt: skip
-            except Exception as exc:  # noqa: BLE001 - the extent only narrows the scored pixels
-                log(f"      scene {name}: extent unknown ({exc}); scoring every valid pixel")
-            entry.update(
-                metric="per pixel over valid pixels on the scene (SAM where mean truth >= 0.01)",
-                calibrated=cube_scores(cubes["calibrated"], true_cube, on_scene),
-                oracle=cube_scores(cubes["oracle"], true_cube, on_scene),
-            )
-            _plot_pixels(out / f"{name}_spectra.png", wl, true_cube, cubes["calibrated"],
-                         cubes["oracle"], on_scene & (true_cube.mean(0) > 0.05), name)  # fmt: skip
+        entry, both, true_cube = score_scene(spec, cubes, valids, truth, out, cfg.erode_px, log)
+        entry.update(capture=str(cap), reconstruct_s=tims)
         cube_t = torch.from_numpy(cubes["calibrated"]).float()
         save_cube_formats(out / name, cube_t, wl, torch.from_numpy(valids["calibrated"]),
                           metadata={"scene": name, "bundle": str(bundle_path), "beta": cfg.beta},
@@ -528,7 +566,14 @@ def run_demo(args: argparse.Namespace) -> int:
     out = Path(getattr(args, "out", None) or "demo_output")
     from hsi_torch.console import info
 
-    demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
+    if getattr(args, "full", False):
+        if getattr(args, "quick", False):
+            raise ValueError("--full and --quick exclude each other")
+        from hsi_torch.demo_full import demo_full
+
+        demo_full(out, cfg, log=info)
+    else:
+        demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
     from hsi_torch.config import write_resolved_config
 
     write_resolved_config(cfg, out)

@@ -30,13 +30,12 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
+from hsi_torch.profiling import RssSampler, run_child  # noqa: E402
 from hsi_torch.resources import shipped_config  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,36 +48,6 @@ STAGES = ("setup", "trace+render", "sensor+write", "truth", "figures")
 # =============================================================================================
 
 
-class _RssSampler(threading.Thread):
-    """Samples the process's resident set size (bytes) every ``period_s`` (Linux ``statm``)."""
-
-    def __init__(self, period_s: float = 0.02) -> None:
-        super().__init__(daemon=True)
-        self.period_s = period_s
-        self.samples: list[tuple[float, int]] = []
-        self._halt = threading.Event()
-        self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-
-    def _rss(self) -> int | None:
-        try:
-            with open("/proc/self/statm") as f:
-                return int(f.read().split()[1]) * self._page
-        except OSError:
-            return None
-
-    def run(self) -> None:
-        while not self._halt.is_set():
-            rss = self._rss()
-            if rss is None:
-                return
-            self.samples.append((time.perf_counter(), rss))
-            self._halt.wait(self.period_s)
-
-    def stop(self) -> None:
-        self._halt.set()
-        self.join()
-
-
 def _child(config: str, out: str, report: str, overrides: list[str], threads: int | None) -> int:
     import torch
 
@@ -89,7 +58,7 @@ def _child(config: str, out: str, report: str, overrides: list[str], threads: in
     if threads:
         torch.set_num_threads(threads)
     cfg = load_config(config, SimulateConfig, overrides)
-    sampler = _RssSampler()
+    sampler = RssSampler()
     sampler.start()
     t0 = time.perf_counter()
     summary = simulate_capture_set(cfg, out, progress=False,
@@ -102,9 +71,9 @@ def _child(config: str, out: str, report: str, overrides: list[str], threads: in
         dur = summary.timings_s.get(stage)
         if dur is None:
             continue
-        inside = [r for t, r in sampler.samples if start <= t <= start + dur]
-        if inside:
-            peaks[stage] = max(inside) / 2**30
+        peak = sampler.peak(start, start + dur)
+        if peak is not None:
+            peaks[stage] = peak
         start += dur
     h, w = summary.sensor_size
     Path(report).write_text(json.dumps({
@@ -131,21 +100,15 @@ def _run_one(config: Path, out: Path, overrides: list[str], threads: int | None)
         cmd += ["--threads", str(threads)]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH")) if p)
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    run = run_child(cmd, env=env)
     try:
-        if proc.returncode != 0:
-            raise SystemExit(f"simulation of {config} failed (exit code {proc.returncode})")
+        if run.returncode != 0:
+            raise SystemExit(f"simulation of {config} failed (exit code {run.returncode})")
         res = json.loads(report.read_text())
     finally:
         report.unlink(missing_ok=True)
-    # ru_maxrss: KiB on Linux, bytes on macOS
-    scale = 1 if sys.platform == "darwin" else 1024
-    res.update(config=str(config), wall_s=wall, cpu_s=usage.ru_utime + usage.ru_stime,
-               peak_rss_gib=usage.ru_maxrss * scale / 2**30)
+    res.update(config=str(config), wall_s=run.wall_s, cpu_s=run.cpu_s,
+               peak_rss_gib=run.peak_rss_gib)
     return res
 
 

@@ -201,6 +201,29 @@ def _bilinear_num_den(
     return num, den_rb, den_g
 
 
+#: rows of the mosaic demosaiced at a time (bilinear): bounds the temporaries to a band
+_BAND_ROWS = 256
+
+
+def _in_bands(fn, x: torch.Tensor, out_dtype: torch.dtype) -> torch.Tensor:
+    """Apply a 3×3-stencil demosaic ``fn`` ((N, 1, h, w) → (N, 3, h, w)) band by band.
+
+    Bands start on even rows (the CFA phase is kept) and carry two rows of context on each side
+    that are cropped, so every output row is computed from exactly the rows it would see in one
+    pass, with the same arithmetic: the result equals the whole-image one exactly, with
+    temporaries of one band instead of the image.
+    """
+    n, _, h, w = x.shape
+    if h <= 2 * _BAND_ROWS:
+        return fn(x)
+    out = torch.empty((n, 3, h, w), dtype=out_dtype, device=x.device)
+    for r0 in range(0, h, _BAND_ROWS):
+        r1 = min(h, r0 + _BAND_ROWS)
+        a, b = max(0, r0 - 2), min(h, r1 + 2)
+        out[:, :, r0:r1] = fn(x[:, :, a:b])[:, :, r0 - a : r0 - a + (r1 - r0)]
+    return out
+
+
 def demosaic_bilinear(x: torch.Tensor, pattern: str) -> torch.Tensor:
     """Bilinear demosaic by normalised convolution (see the module docstring).
 
@@ -217,9 +240,12 @@ def demosaic_bilinear(x: torch.Tensor, pattern: str) -> torch.Tensor:
     lead, (h, w) = x.shape[:-3], x.shape[-2:]
     if h < 2 or w < 2:
         raise ValueError(f"mosaic must be at least 2x2, got {tuple(x.shape)}")
-    num, den_rb, den_g = _bilinear_num_den(x.reshape(-1, 1, h, w), pattern)
-    den = torch.stack([den_rb[0], den_g, den_rb[1]])
-    return (num / den).reshape(*lead, 3, h, w)
+
+    def one(xb: torch.Tensor) -> torch.Tensor:
+        num, den_rb, den_g = _bilinear_num_den(xb, pattern)
+        return num / torch.stack([den_rb[0], den_g, den_rb[1]])
+
+    return _in_bands(one, x.reshape(-1, 1, h, w), x.dtype).reshape(*lead, 3, h, w)
 
 
 def demosaic(x: torch.Tensor, pattern: str, method: DemosaicMethod = "bilinear") -> torch.Tensor:
@@ -255,18 +281,22 @@ def demosaic_saturation(
     lead, (h, w) = sat.shape[:-3], sat.shape[-2:]
     if h < 2 or w < 2:
         raise ValueError(f"mask must be at least 2x2, got {tuple(sat.shape)}")
-    # the stencils of demosaic_bilinear, evaluated with logical OR on bool planes
-    flat = sat.reshape(-1, 1, h, w)
-    m = cfa_masks(pattern, h, w, device=sat.device, dtype=torch.float32).bool()
-    rb = flat & m[[0, 2]]
-    pw = F.pad(rb, (1, 1))
-    rb = pw[..., 1:-1] | pw[..., :-2] | pw[..., 2:]
-    ph = F.pad(rb, (0, 0, 1, 1))
-    rb = ph[..., 1:-1, :] | ph[..., :-2, :] | ph[..., 2:, :]
-    g = flat & m[1]
-    gp = F.pad(g, (1, 1, 1, 1))
-    g = g | gp[..., :-2, 1:-1] | gp[..., 2:, 1:-1] | gp[..., 1:-1, :-2] | gp[..., 1:-1, 2:]
-    return torch.cat([rb[:, :1], g, rb[:, 1:]], dim=1).reshape(*lead, 3, h, w)
+
+    def one(flat: torch.Tensor) -> torch.Tensor:
+        # the stencils of demosaic_bilinear, evaluated with logical OR on bool planes
+        hb = flat.shape[-2]
+        m = cfa_masks(pattern, hb, w, device=sat.device, dtype=torch.float32).bool()
+        rb = flat & m[[0, 2]]
+        pw = F.pad(rb, (1, 1))
+        rb = pw[..., 1:-1] | pw[..., :-2] | pw[..., 2:]
+        ph = F.pad(rb, (0, 0, 1, 1))
+        rb = ph[..., 1:-1, :] | ph[..., :-2, :] | ph[..., 2:, :]
+        g = flat & m[1]
+        gp = F.pad(g, (1, 1, 1, 1))
+        g = g | gp[..., :-2, 1:-1] | gp[..., 2:, 1:-1] | gp[..., 1:-1, :-2] | gp[..., 1:-1, 2:]
+        return torch.cat([rb[:, :1], g, rb[:, 1:]], dim=1)
+
+    return _in_bands(one, sat.reshape(-1, 1, h, w), torch.bool).reshape(*lead, 3, h, w)
 
 
 @dataclass

@@ -189,6 +189,7 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     from hsi_torch.config import ConfigError
     from hsi_torch.console import warn
     from hsi_torch.errors import NoValidPixelsError
+    from hsi_torch.profiling import release_freed_memory
     from hsi_torch.recon.sensing import load_bundle
 
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
@@ -227,12 +228,15 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
     })  # fmt: skip
 
     progress = getattr(args, "progress", True)
+    # the reconstructor reads the bundle again from its file: what it keeps is the valid pixels'
+    # factors, and the full-frame arrays are freed before the factorisation takes its memory
+    del bundle
     state: dict[str, Any] = {"rec": None}
 
     def reconstructor() -> Reconstructor:  # built on the first input that needs it
         if state["rec"] is None:
             state["rec"] = Reconstructor(
-                bundle, beta=cfg.beta, diff_order=cfg.diff_order, solver=cfg.solver,
+                bundle_path, beta=cfg.beta, diff_order=cfg.diff_order, solver=cfg.solver,
                 admm_iters=cfg.admm_iters, device=device, dtype=dtype,
                 chunk_size=cfg.chunk_size, min_views=cfg.min_views, nan_invalid=cfg.nan_invalid,
                 exposure_correction=cfg.exposure_correction,
@@ -262,7 +266,10 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
             "stats": res.stats,
             "timings_s": res.timings,
         }
-        return write_outputs(res, stem, cfg, meta)
+        written = write_outputs(res, stem, cfg, meta)
+        del res
+        release_freed_memory()  # frames do not pile up freed blocks in the allocator's arenas
+        return written
 
     return run_batch(
         inputs, process, out, resume=getattr(args, "resume", True), progress=progress,

@@ -46,6 +46,7 @@ from torch import Tensor
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.spectral import band_widths
 
@@ -338,27 +339,27 @@ def precompute_sensing(
     pix = valid.reshape(-1).nonzero().squeeze(1)
     model = sensing_model(b, pix, device=dev, dtype=dtype)
     obs = b.observation_mask(device=dev, pixel_index=pix)
-    problem = _factorise(model, obs, float(beta), int(diff_order), chunk_size)
     x0, y0, w, h = (int(v) for v in b.reference_bbox)
-    sens = BundleSensing(
+    fields = dict(
         wavelengths_nm=torch.as_tensor(b.wavelengths_nm, dtype=torch.float64),
         sensor_size=(int(b.sensor_size[0]), int(b.sensor_size[1])),
         reference_bbox=(x0, y0, w, h),
         homographies=torch.as_tensor(b.view_homographies, device=dev, dtype=torch.float64),
-        valid=valid,
-        pixel_index=pix,
-        model=model,
-        obs_mask=obs,
-        beta=float(beta),
-        diff_order=int(diff_order),
-        problem=problem,
-        exposure_s=bundle_exposure(b),
-        cfa_pattern=_cfa_from_settings(b),
-    )
+        exposure_s=bundle_exposure(b), cfa_pattern=_cfa_from_settings(b),
+    )  # fmt: skip
+    # identity check for the cache, without keeping the bundle's full-frame arrays alive: a
+    # bundle loaded here from a path is freed before the factorisation's memory is taken
+    ref = weakref.ref(b)
+    del b
+    problem = _factorise(model, obs, float(beta), int(diff_order), chunk_size)
+    sens = BundleSensing(
+        valid=valid, pixel_index=pix, model=model, obs_mask=obs, beta=float(beta),
+        diff_order=int(diff_order), problem=problem, **fields,
+    )  # fmt: skip
     sens._problems[(float(beta), int(diff_order))] = problem
     sens.grid()  # the frames' sampling positions, once per bundle
-    # identity check for the cache, without keeping the bundle's full-frame arrays alive
-    sens._bundle_ref = weakref.ref(b)  # type: ignore[attr-defined]
+    sens._bundle_ref = ref  # type: ignore[attr-defined]
+    release_freed_memory()  # the factorisation's chunk temporaries (≈ 0.3 GiB at full size)
     if cache:
         _CACHE[key] = sens
         while len(_CACHE) > _CACHE_SIZE:

@@ -1,0 +1,106 @@
+"""Time and memory of a piece of work: a resident-set sampler and a child-process runner.
+
+Used by the benchmarks (``scripts/bench_*.py``) and by ``hsi-torch demo --full``, which runs each
+stage (simulate, calibrate, reconstruct) in its own process so that each stage's peak memory is
+its own: a process's peak resident set size only grows, so stages sharing a process could not be
+told apart.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+__all__ = ["RssSampler", "ChildRun", "run_child", "peak_rss_gib", "release_freed_memory"]
+
+
+def peak_rss_gib() -> float:
+    """Peak resident set size of this process so far (GiB; ``ru_maxrss``)."""
+    import resource
+
+    scale = 1 if sys.platform == "darwin" else 1024  # ru_maxrss: bytes on macOS, KiB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale / 2**30
+
+
+class RssSampler(threading.Thread):
+    """Samples this process's resident set size (bytes) every ``period_s`` (Linux ``statm``).
+
+    ``peak(t0, t1)`` is the largest sample in a time window (``time.perf_counter`` clock), so the
+    stages of one process can be told apart by their start and end times.
+    """
+
+    def __init__(self, period_s: float = 0.02) -> None:
+        super().__init__(daemon=True)
+        self.period_s = period_s
+        self.samples: list[tuple[float, int]] = []
+        self._halt = threading.Event()
+        self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+
+    def _rss(self) -> int | None:
+        try:
+            with open("/proc/self/statm") as f:
+                return int(f.read().split()[1]) * self._page
+        except OSError:
+            return None
+
+    def run(self) -> None:
+        while not self._halt.is_set():
+            rss = self._rss()
+            if rss is None:
+                return
+            self.samples.append((time.perf_counter(), rss))
+            self._halt.wait(self.period_s)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join()
+
+    def peak(self, t0: float = float("-inf"), t1: float = float("inf")) -> float | None:
+        """Largest sample in ``[t0, t1]`` in GiB (``None`` without samples there)."""
+        inside = [r for t, r in self.samples if t0 <= t <= t1]
+        return max(inside) / 2**30 if inside else None
+
+
+@dataclass
+class ChildRun:
+    """What :func:`run_child` measured: exit code, wall and CPU seconds, peak RSS (GiB)."""
+
+    returncode: int
+    wall_s: float
+    cpu_s: float
+    peak_rss_gib: float
+
+
+def run_child(cmd: Sequence[str], *, env: dict[str, str] | None = None,
+              stdout=None, stderr=None) -> ChildRun:
+    """Run ``cmd`` in a child process and measure it (``os.wait4``: its own peak RSS and CPU)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(list(cmd), env=env, stdout=stdout, stderr=stderr)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    scale = 1 if sys.platform == "darwin" else 1024
+    return ChildRun(proc.returncode, wall, usage.ru_utime + usage.ru_stime,
+                    usage.ru_maxrss * scale / 2**30)
+
+
+def release_freed_memory() -> None:
+    """Give memory that was freed back to the operating system (glibc ``malloc_trim``).
+
+    Work done in chunks by several threads (the per-bundle factorisation, a frame's solve)
+    leaves freed blocks in the allocator's per-thread arenas that still count as resident:
+    ~0.3 GiB after the full-size factorisation. A no-op where glibc is not the C library.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # pragma: no cover - another C library
+        pass
