@@ -393,7 +393,7 @@ def solve_observations(
         kw["admm_iters"] = int(admm_iters)
     res = sens.problem.solve(yc, **kw)
     x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
-    n_changed = int(changed.sum())
+    n_changed = int(torch.count_nonzero(changed))
     if n_changed:
         idx = changed.nonzero().squeeze(1)
         sub = solve_nnls(
@@ -411,14 +411,16 @@ def solve_observations(
     if not stats:
         return x, ok, {}
     okc = conv & ok
-    n_ok = int(ok.sum())
+    n_ok = int(torch.count_nonzero(ok))
+    n_conv = int(torch.count_nonzero(okc))
     info = {
         "num_valid": n_ok,
         "num_lost": P - n_ok,
         "num_resolved": n_changed,
-        "num_pivoted": int((iters[ok] > 0).sum()) if solver == "active_set" else 0,
-        "num_not_converged": n_ok - int(okc.sum()),
-        "converged_fraction": float(okc.sum()) / max(1, n_ok),
+        "num_pivoted": (int(torch.count_nonzero((iters > 0) & ok)) if solver == "active_set"
+                        else 0),
+        "num_not_converged": n_ok - n_conv,
+        "converged_fraction": n_conv / max(1, n_ok),
         "max_kkt": float(kkt[ok].max()) if n_ok else 0.0,
         "fit_residual": fit_residual(sens, x.detach(), yc.detach(), mask, ok),
     }
@@ -541,7 +543,7 @@ def reconstruct_batch(
     t2 = clock()
     t["observations"] = t2 - t1
     xs, oks, infos = [], [], []
-    num_obs = int(sens.obs_mask.sum()) if stats else 0
+    num_obs = int(torch.count_nonzero(sens.obs_mask)) if stats else 0
     for i in range(y.shape[0]):
         x, ok, info = solve_observations(
             sens, y[i], mask[i], solver=solver, admm_iters=admm_iters, chunk_size=chunk_size,
@@ -549,8 +551,8 @@ def reconstruct_batch(
         )  # fmt: skip
         if stats:
             info["observations"] = num_obs
-            info["usable_observations"] = int(mask[i].sum())
-            info["saturated_observations"] = int(sat[i].sum())
+            info["usable_observations"] = int(torch.count_nonzero(mask[i]))
+            info["saturated_observations"] = int(torch.count_nonzero(sat[i]))
             info["no_valid_reason"] = _no_valid_reason(info, min_views, sens.num_views)
             infos.append(info)
         xs.append(x)
