@@ -35,9 +35,9 @@ except ImportError:  # pragma: no cover - exercised when numba is absent
     _nb = None
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "bpp_cpu"]
+__all__ = ["AVAILABLE", "solve_frame_cpu"]
 
-#: status codes of :func:`bpp_cpu`
+#: status codes of :func:`solve_frame_cpu`
 DONE, NOT_FINISHED, FACTOR_FAILED = 0, 1, 2
 
 if AVAILABLE:
@@ -152,59 +152,131 @@ if AVAILABLE:
                 Z[last] = not Z[last]
         return NOT_FINISHED, rnd
 
+    @_nb.njit(cache=True, error_model="numpy")
+    def _kkt(G, x, b, gd, gn, bn, g):  # pragma: no cover - compiled
+        """``g = G x − b`` into ``g``; returns the relative KKT residual (``_kkt_ratio``)."""
+        m = x.shape[0]
+        num = 0.0
+        xn = 0.0
+        for i in range(m):
+            v = -b[i]
+            for j in range(m):
+                v += G[i, j] * x[j]
+            g[i] = v
+            t = gd[i] * x[i]
+            t = t if t < v else v
+            num += t * t
+            xn += x[i] * x[i]
+        den = gn * np.sqrt(xn) + bn
+        return np.sqrt(num) / (den if den > 1e-300 else 1e-300)
+
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _bpp_kernel(G, H, gi, x0, b, gd, thr, max_rounds, x_out, z_out, status, rounds,
-                    num_chunks):  # pragma: no cover - compiled
-        n, m = x0.shape
+    def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, x_out, z_out, r_out,
+                      status, rounds, num_chunks):  # pragma: no cover - compiled
+        n, m = b.shape
         shared = G.shape[0] == 1
         for ch in _nb.prange(num_chunks):
             S = np.empty((m, m))
             rhs = np.empty(m)
             idx = np.empty(m, np.int64)
             x = np.empty(m)
+            x0 = np.empty(m)
+            xn = np.empty(m)
             lam = np.empty(m)
+            g = np.empty(m)
             Z = np.empty(m, np.bool_)
             for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
-                p = 0 if shared else gi[r]
-                st, rnd = _bpp_pixel(G[p], H[p], x0[r], b[r], gd[r], thr[r], max_rounds, S,
-                                     rhs, idx, x, lam, Z)
+                p = 0 if shared else r
+                Gp, Hp, gdp, br = G[p], H[p], gd[p], b[r]
+                bn = 0.0
                 for j in range(m):
-                    x_out[r, j] = x[j] if x[j] > 0.0 else 0.0
+                    bn += br[j] * br[j]
+                bn = np.sqrt(bn)
+                nrm = 0.0
+                for i in range(m):  # x0 = H b
+                    v = 0.0
+                    for j in range(m):
+                        v += Hp[i, j] * br[j]
+                    x0[i] = v
+                    nrm += v * v
+                t = 0.25 * tol * (gn[p] * np.sqrt(nrm) + bn)
+                t = t if t > 1e-300 else 1e-300
+                need = False
+                if not skip[r]:
+                    for j in range(m):
+                        if x0[j] * gdp[j] < -t:
+                            need = True
+                st, rnd = DONE, 0
+                if need:
+                    st, rnd = _bpp_pixel(Gp, Hp, x0, br, gdp, t, max_rounds, S, rhs, idx, x,
+                                         lam, Z)
+                    for j in range(m):
+                        x[j] = x[j] if x[j] > 0.0 else 0.0
+                else:
+                    for j in range(m):
+                        x[j] = x0[j] if x0[j] > 0.0 else 0.0
+                        Z[j] = False
+                res = _kkt(Gp, x, br, gdp, gn[p], bn, g)
+                if not need and not skip[r]:  # all-free pixels: refinement x <- max(0, x - H g)
+                    for _ in range(refine):
+                        if res <= tol:
+                            break
+                        for i in range(m):
+                            v = x[i]
+                            for j in range(m):
+                                v -= Hp[i, j] * g[j]
+                            xn[i] = v if v > 0.0 else 0.0
+                        rn = _kkt(Gp, xn, br, gdp, gn[p], bn, lam)
+                        if rn < res:
+                            res = rn
+                            for i in range(m):
+                                x[i] = xn[i]
+                                g[i] = lam[i]
+                        else:
+                            break
+                for j in range(m):
+                    x_out[r, j] = x[j]
                     z_out[r, j] = Z[j]
+                r_out[r] = res
                 status[r] = st
                 rounds[r] = rnd
 
 
-def bpp_cpu(
-    G: np.ndarray, H: np.ndarray, gi: np.ndarray, x0: np.ndarray, b: np.ndarray, gd: np.ndarray,
-    thr: np.ndarray, max_rounds: int, num_threads: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Run the compiled correction on ``n`` pixels.
+def solve_frame_cpu(
+    G: np.ndarray, H: np.ndarray, b: np.ndarray, gd: np.ndarray, gn: np.ndarray,
+    skip: np.ndarray, tol: float, max_rounds: int, refine: int, num_threads: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 1–3 of the active-set solve for every pixel in one compiled pass.
+
+    Per pixel: ``x0 = H b``; the infeasibility threshold ``t = ¼·tol·(‖G‖‖x0‖ + ‖b‖)``; block
+    principal pivoting where ``x0`` has an entry with ``x0_m G_mm < −t`` (unless ``skip``);
+    the KKT residual of the answer with the exact ``G`` and ``b``; for pixels without a zero set,
+    up to ``refine`` refinement steps ``x ← max(0, x − H(Gx − b))`` kept while they lower it.
+    Each matrix is read once per pixel and nothing of frame size is allocated.
 
     Args:
-        G, H: ``(P|1, M, M)`` Gram matrices and inverses (float32/float64, C-contiguous).
-        gi: ``(n,)`` int64 rows of ``G``/``H``; x0, b, gd: ``(n, M)`` ``H b``, ``b``, ``diag G``;
-        thr: ``(n,)`` infeasibility thresholds; max_rounds: exchange rounds before giving up.
-        num_threads: numba threads.
+        G, H: ``(P|1, M, M)``; b: ``(P, M)``; gd: ``(P|1, M)`` ``diag G``; gn: ``(P|1,)`` the
+        ``‖G‖₂`` bound; skip: ``(P,)`` bool (singular or without data: no pivoting).
 
     Returns:
-        ``x (n, M)`` (dtype of ``x0``, ≥ 0), ``Z (n, M)`` bool, ``status (n,)`` int8
-        (:data:`DONE`, :data:`NOT_FINISHED`, :data:`FACTOR_FAILED`), ``rounds (n,)`` int32.
+        ``x (P, M) ≥ 0``, ``Z (P, M)`` bool zero sets, ``residual (P,)`` float64, ``status (P,)``
+        int8 (:data:`DONE` also for pixels that needed no pivoting), ``rounds (P,)`` int32.
     """
     if not AVAILABLE:  # pragma: no cover
         raise RuntimeError("numba is not installed")
-    n, m = x0.shape
-    x = np.empty((n, m), x0.dtype)
+    n, m = b.shape
+    x = np.empty((n, m), b.dtype)
     z = np.empty((n, m), np.bool_)
+    res = np.empty(n, np.float64)
     status = np.empty(n, np.int8)
     rounds = np.empty(n, np.int32)
     if n == 0:
-        return x, z, status, rounds
+        return x, z, res, status, rounds
     old = _nb.get_num_threads()
     _nb.set_num_threads(max(1, min(int(num_threads), _nb.config.NUMBA_NUM_THREADS)))
     try:
-        _bpp_kernel(G, H, gi, x0, b, gd, thr, int(max_rounds), x, z, status, rounds,
-                    min(n, 256))
+        _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine), x, z, res,
+                      status, rounds, min(n, 512))
     finally:
         _nb.set_num_threads(old)
-    return x, z, status, rounds
+    return x, z, res, status, rounds

@@ -381,7 +381,6 @@ class NNLSProblem:
         dev, dt = y.device, self.dtype
         H = self.gram_inv
         tiny = torch.finfo(dt).tiny
-        zero = torch.zeros((), dtype=dt, device=dev)
         gn_all = self.gram_norm
         # 1. right-hand sides and unconstrained solutions x = H b, streamed over pixel chunks
         #    (cache-sized on CPU), with the per-pixel norms the thresholds need
@@ -390,6 +389,28 @@ class NNLSProblem:
         bnorm = torch.empty((P,), dtype=dt, device=dev)
         xnorm = torch.empty((P,), dtype=dt, device=dev)
         xneg = torch.empty((P,), dtype=dt, device=dev)
+        sing = _expand_rows(self.singular, P)
+        nod = _expand_rows(self.no_data, P)
+        irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
+        if self._use_compiled(backend):  # steps 1-3 pixel by pixel in one compiled pass
+            def rhs(sl: slice) -> None:
+                b[sl] = self.rhs(y, sl)
+
+            for_chunks(rhs, P, n, workers)
+            out = _compiled.solve_frame_cpu(
+                self.gram.numpy(), H.numpy(), b.numpy(), self.gram_diag.numpy(),
+                gn_all.numpy(), irregular.numpy(), tol, min(max_iter, _BPP_ROUNDS), refine,
+                workers,
+            )  # fmt: skip
+            x, zset = torch.from_numpy(out[0]), torch.from_numpy(out[1])
+            r = torch.from_numpy(out[2]).to(dt)
+            status = torch.from_numpy(out[3])
+            iters = torch.from_numpy(out[4]).long()
+            done = status == _compiled.DONE
+            redo = (sing & ~nod) | ~done
+            plain = ~zset.any(1) & ~irregular
+            return self._finish_as(x, b, r, zset, done, iters, redo, plain, irregular, nod, tol,
+                                   max_iter, refine, n_corr)
 
         def stage1(sl: slice) -> None:
             bs, xs = b[sl], x[sl]
@@ -404,9 +425,6 @@ class NNLSProblem:
         # Σ_m min(x_m, 0) · max_m G_mm < −thr: a cheap test that selects a superset
         thr = (0.25 * tol * (_expand_rows(gn_all, P) * xnorm + bnorm)).clamp_min(tiny)
         need = xneg * _expand_rows(self.gram_diag_max, P) < -thr
-        sing = _expand_rows(self.singular, P)
-        nod = _expand_rows(self.no_data, P)
-        irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
         any_irregular = bool(irregular.any())
         if any_irregular:
             need &= ~irregular
@@ -427,12 +445,9 @@ class NNLSProblem:
                 x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
                 redo[ic] |= fs | ~ds
 
-            if self._use_compiled(backend):
-                self._correct_compiled(idx, x, b, gd, thr, min(max_iter, _BPP_ROUNDS), workers,
-                                       zset, done, iters, redo)
-            else:  # split between the workers (compacted sub-batches of at most n_corr pixels)
-                nw = min(workers, max(1, idx.numel() // 2048))
-                for_chunks(correct, idx.numel(), min(n_corr, -(-idx.numel() // nw)), nw)
+            # split between the workers (compacted sub-batches of at most n_corr pixels)
+            nw = min(workers, max(1, idx.numel() // 2048))
+            for_chunks(correct, idx.numel(), min(n_corr, -(-idx.numel() // nw)), nw)
         # 3. independent KKT check with the exact G and b (streamed); refine where it fails
         r = torch.empty((P,), dtype=dt, device=dev)
 
@@ -473,6 +488,22 @@ class NNLSProblem:
             r[sl] = rs
 
         for_chunks(stage3, P, n, workers)
+        return self._finish_as(x, b, r, zset, done, iters, redo, plain, irregular, nod, tol,
+                               max_iter, refine, n_corr)
+
+    def _finish_as(
+        self, x: Tensor, b: Tensor, r: Tensor, zset: Tensor, done: Tensor, iters: Tensor,
+        redo: Tensor, plain: Tensor, irregular: Tensor, nod: Tensor, tol: float, max_iter: int,
+        refine: int, n_corr: int,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Steps 3–4 for the pixels that still fail: refinement on their zero set, then the
+        Lawson–Hanson fallback (with singular and unfinished pixels)."""
+        m, dt, dev = x.shape[1], x.dtype, x.device
+        tiny = torch.finfo(dt).tiny
+        zero = torch.zeros((), dtype=dt, device=dev)
+        gn_all = self.gram_norm
+        any_irregular = bool(irregular.any())
+        bnorm = _norm2(b)
         bad = ~(r <= tol) & ~irregular & ~redo & ~plain
         for _ in range(refine):
             idx = bad.nonzero().squeeze(1)
@@ -521,25 +552,6 @@ class NNLSProblem:
                 f"(numba installed: {_compiled.AVAILABLE}, device: {self.device})"
             )
         return ok
-
-    def _correct_compiled(
-        self, idx: Tensor, x: Tensor, b: Tensor, gd: Tensor, thr: Tensor, rounds: int,
-        workers: int, zset: Tensor, done: Tensor, iters: Tensor, redo: Tensor,
-    ) -> None:
-        """Step 2 with :func:`hsi_torch.recon.nnls._compiled.bpp_cpu` (CPU, numba), in place."""
-        x0 = x[idx]
-        z0_empty = ~(x0 * gd[idx] < -thr[idx].unsqueeze(1)).any(1)
-        xs, zs, st, rn = _compiled.bpp_cpu(
-            self.gram.numpy(), self.gram_inv.numpy(), idx.numpy(), x0.numpy(), b[idx].numpy(),
-            gd[idx].numpy(), thr[idx].numpy(), rounds, workers,
-        )  # fmt: skip
-        status = torch.from_numpy(st)
-        ok = status == _compiled.DONE
-        x[idx] = torch.from_numpy(xs)
-        zset[idx] = torch.from_numpy(zs)
-        done[idx] = ok
-        iters[idx] = torch.from_numpy(rn).long() - z0_empty.long()
-        redo[idx] |= ~ok
 
     def _refine_rows(
         self, idx: Tensor, x: Tensor, Z: Tensor, b: Tensor
