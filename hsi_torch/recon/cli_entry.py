@@ -315,7 +315,7 @@ def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
     lim = cfg.fit_residual_warning
     if lim is not None and isinstance(fit, float) and fit > lim:
         out.append(
-            f"median relative fit residual {fit:.3f} > {lim:g}: the spectra do not explain the "
+            f"relative fit residual {fit:.3f} > {lim:g}: the spectra do not explain the "
             "capture; is the calibration bundle from this camera and geometry (and are the black "
             "level and exposure right)?"
         )

@@ -87,10 +87,11 @@ class ReconstructConfig:
     )
 
     fit_residual_warning: float | None = field(
-        default=0.1,
-        metadata=_help("warn when a frame's median relative fit residual ||W(A s - y)|| / ||W y|| "
-                       "exceeds this (a bundle from another geometry; default prototype: "
-                       "0.01-0.05 with its own bundle, 0.21-0.24 with another's); null: never"),
+        default=0.15,
+        metadata=_help("warn when a frame's relative fit residual (pooled over its brighter half, "
+                       "see recon.pipeline.fit_residual) exceeds this: a bundle of another "
+                       "geometry gives 0.21-0.25, the right bundle 0.01-0.03 (0.11 with 1/20 of "
+                       "the exposure); null: never"),
     )
 
     def __post_init__(self) -> None:
