@@ -41,14 +41,14 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
 
     Args:
         out: output folder (created).
-        cfg: :class:`hsi_torch.demo.DemoConfig` (``beta``, ``diff_order``, ``erode_px``, ``cave``,
-            ``seed``, ``device``, ``simulate_config``/``calibrate_config``: default the shipped
-            ``simulate_full.yaml`` and ``calibrate.yaml``).
+        cfg: :class:`hsi_torch.demo.DemoConfig` (``beta``, ``diff_order``, ``erode_mm``,
+            ``cave``, ``seed``, ``device``, ``simulate_config``/``calibrate_config``: default the
+            shipped ``simulate_full.yaml`` and ``calibrate.yaml``).
     """
     import torch
 
     from hsi_torch.calibrate.pipeline import format_scores, score_against_truth, targets_met
-    from hsi_torch.demo import _previews, _scene_specs, score_scene
+    from hsi_torch.demo import _previews, _scene_specs, erode_px, score_scene
     from hsi_torch.io import load_cube
     from hsi_torch.io.atomic import atomic_write_json
     from hsi_torch.profiling import run_child
@@ -118,7 +118,8 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
             cubes[key] = np.asarray(c.cube, np.float64)
             valids[key] = np.asarray(c.valid, bool)
             timings[key] = c.metadata.get("timings_s", {})
-        entry, both, true_cube = score_scene(spec, cubes, valids, truth, out, cfg.erode_px, log)
+        entry, both, true_cube = score_scene(spec, cubes, valids, truth, out,
+                                             erode_px(truth, cfg.erode_mm), log)
         entry["reconstruct_timings_s"] = timings
         _previews(out, name, wl, true_cube * both[None], cubes, entry, cfg.beta)
         results[name] = entry

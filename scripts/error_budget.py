@@ -20,7 +20,7 @@ against the truth; each cause's cost is the score difference of consecutive rows
 6. the same captures with the **calibrated** bundle (calibrated from a full capture set):
    row 5 − row 6 is what **calibration** costs.
 
-Scores (reflectance, peak 1): ColorChecker per pixel over the patch interiors (≥ 2 px inside) and
+Scores (reflectance, peak 1): ColorChecker per pixel over the patch interiors (≥ 0.3 mm inside) and
 the patch-interior means; CAVE per pixel over the valid pixels on the scene and on its brighter
 half. PSNR = 10·log10(1/MSE), spectral angle in degrees.
 
@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hsi_torch.demo import _interior, colorchecker_scores, cube_scores
+from hsi_torch.demo import _interior, colorchecker_scores, cube_scores, erode_px
 from hsi_torch.profiling import run_child
 from hsi_torch.recon.pipeline import DEFAULT_BETA, Reconstructor, assemble_cube
 from hsi_torch.resources import real_data_dir, shipped_config
@@ -78,10 +78,11 @@ def _scores(cubes: dict[str, np.ndarray], valid: np.ndarray, truth: dict, scenes
         if name == "colorchecker":
             pidx = truth[f"{name}_patch_index"]
             spectra = np.asarray(truth[f"{name}_spectra"], np.float64)
+            e = erode_px(truth, 0.3)  # 0.3 mm: 3 sigma of the diffuser blur
             inner = valid & (pidx >= 0) & np.logical_or.reduce(
-                [_interior(pidx == k, 2.0) for k in range(len(spectra))])
+                [_interior(pidx == k, e) for k in range(len(spectra))])
             px = cube_scores(cube, true_cube, inner)
-            means = colorchecker_scores(cube, valid, pidx, spectra, 2.0)
+            means = colorchecker_scores(cube, valid, pidx, spectra, e)
             out[name] = {"per_pixel_db": px["psnr_db"], "per_pixel_sam": px["mean_sam_deg"],
                          "means_db": means["mean_psnr_db"], "means_sam": means["mean_sam_deg"]}
         else:
