@@ -63,3 +63,34 @@ def test_demo_quick_meets_targets(tmp_path: Path, capsys):
     assert prev.shape[1] >= 512 and panel.shape[1] > 3 * 360  # enlarged, three tiles
     cal = s["calibration"]
     assert cal["B_rel_rms"] < 0.03 and min(cal["phi_corr"]) > 0.99
+
+
+@pytest.mark.slow
+def test_demo_full_orchestration_on_the_small_prototype(tmp_path):
+    """``demo --full`` (every stage its own process, measured) run on the small prototype's
+    config to stay quick: the summary holds every stage's time and peak memory, the calibration
+    scores, and both bundles' scores of every scene in the documented forms."""
+    import json
+
+    from hsi_torch.cli import main
+    from hsi_torch.resources import shipped_config
+
+    out = tmp_path / "full"
+    assert main(["-q", "demo", "--full", "--out", str(out), "--no-progress",
+                 "--set", f"simulate_config={shipped_config('simulate')}",
+                 "--set", "cave=false"]) == 0  # fmt: skip
+    s = json.loads((out / "summary.json").read_text())
+    for stage in ("simulate", "calibrate", "oracle", "reconstruct_calibrated",
+                  "reconstruct_oracle"):
+        st = s["stages"][stage]
+        assert st["wall_s"] > 0 and 0.05 < st["peak_rss_gib"] < 8, (stage, st)
+    assert all(s["calibration_targets_met"].values())
+    assert set(s["scenes"]) == {"colorchecker", "usaf", "synthetic"}
+    cc = s["scenes"]["colorchecker"]
+    for key in ("calibrated", "oracle"):
+        assert cc[key]["mean_psnr_db"] > 30  # patch-interior means
+        assert cc["per_pixel_interiors"][key]["psnr_db"] > 20
+        syn = s["scenes"]["synthetic"][key]
+        assert syn["bright_half"]["pixels"] >= syn["pixels"] // 2 > 0
+    assert (out / "oracle" / "oracle.npz").is_file() and (out / "calib" / "calib.npz").is_file()
+    assert (out / "colorchecker_panel.png").is_file() and (out / "usaf_spectra.png").is_file()
