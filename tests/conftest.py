@@ -1,4 +1,14 @@
-"""Shared pytest fixtures: devices (cpu, plus cuda when present), dtypes, real-data location."""
+"""Shared pytest options and fixtures: devices, dtypes, real-data location.
+
+Devices and dtypes are chosen on the command line, as in kornia's test suite::
+
+    pytest                                   # cpu, float32 and float64
+    pytest --device cuda                     # the GPU only
+    pytest --device all --dtype float64      # every available device, float64 only
+
+A test asks for the ``device`` and/or ``dtype`` fixture and runs once per selected value; no test
+file keeps its own device list.
+"""
 
 from __future__ import annotations
 
@@ -13,17 +23,65 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 #: the real-data folder: HSI_TORCH_DATA, else ../shared/data/real beside the checkout (or None)
 REAL_DATA = real_data_dir()
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+_DTYPE_IDS = {torch.float32: "f32", torch.float64: "f64"}
 
 
-@pytest.fixture(params=DEVICES)
-def device(request) -> torch.device:
-    return torch.device(request.param)
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--device", action="store", default="cpu",
+        help="torch devices the tests run on: cpu (default), cuda, cuda:N, a comma-separated "
+             "list, or 'all' (cpu and cuda when available)",
+    )  # fmt: skip
+    parser.addoption(
+        "--dtype", action="store", default="float32,float64",
+        help="floating dtypes of the dtype-parametrised tests: float32, float64, a "
+             "comma-separated list, or 'all' (default: float32,float64)",
+    )  # fmt: skip
 
 
-@pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])
-def dtype(request) -> torch.dtype:
-    return request.param
+def _selected_devices(config: pytest.Config) -> list[str]:
+    raw = str(config.getoption("--device"))
+    if raw == "all":
+        return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    names = [d.strip() for d in raw.split(",") if d.strip()]
+    for d in names:
+        if d.startswith("cuda") and not torch.cuda.is_available():
+            raise pytest.UsageError(f"--device {d}: CUDA is not available on this machine")
+        try:
+            torch.device(d)
+        except RuntimeError as exc:
+            raise pytest.UsageError(f"--device {d}: not a torch device ({exc})") from None
+    return names
+
+
+def _selected_dtypes(config: pytest.Config) -> list[torch.dtype]:
+    raw = str(config.getoption("--dtype"))
+    names = list(_DTYPES) if raw == "all" else [d.strip() for d in raw.split(",") if d.strip()]
+    unknown = [d for d in names if d not in _DTYPES]
+    if unknown:
+        raise pytest.UsageError(f"--dtype: unknown {unknown}; choose from {list(_DTYPES)}")
+    return [_DTYPES[d] for d in names]
+
+
+def _explicit(metafunc: pytest.Metafunc, name: str) -> bool:
+    """The test parametrises ``name`` itself (e.g. integer dtypes of a file reader)."""
+    for mark in metafunc.definition.iter_markers("parametrize"):
+        names = mark.args[0]
+        names = names.split(",") if isinstance(names, str) else names
+        if name in (n.strip() for n in names):
+            return True
+    return False
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Parametrise every test that asks for ``device`` / ``dtype`` with the selected values."""
+    if "device" in metafunc.fixturenames and not _explicit(metafunc, "device"):
+        devs = _selected_devices(metafunc.config)
+        metafunc.parametrize("device", [torch.device(d) for d in devs], ids=devs)
+    if "dtype" in metafunc.fixturenames and not _explicit(metafunc, "dtype"):
+        dts = _selected_dtypes(metafunc.config)
+        metafunc.parametrize("dtype", dts, ids=[_DTYPE_IDS[d] for d in dts])
 
 
 @pytest.fixture

@@ -22,8 +22,6 @@ from hsi_torch.colour import (
 from hsi_torch.spectral import DEFAULT_GRID
 
 colour = pytest.importorskip("colour")
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-DTYPES = [torch.float32, torch.float64]
 WL_FULL = np.arange(380.0, 781.0, 5.0)
 
 
@@ -38,13 +36,11 @@ def _colour_science_srgb(illuminant: str = "D65") -> tuple[np.ndarray, np.ndarra
     return xyz, np.asarray(colour.cctf_encoding(np.clip(rgb, 0, 1)))
 
 
-@pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("dtype", DTYPES)
 def test_patch_xyz_and_srgb_match_colour_science(device, dtype):
     refl, _ = refdata.colorchecker_reflectances(WL_FULL, device=device, dtype=dtype)
     xyz_ref, srgb_ref = _colour_science_srgb()
     xyz = spectra_to_xyz(refl, torch.tensor(WL_FULL, device=device, dtype=dtype))
-    assert xyz.dtype == dtype and xyz.device.type == device
+    assert xyz.dtype == dtype and xyz.device.type == device.type
     # same grid, same integration rule: agreement to 1e-4 (measured 8e-5)
     np.testing.assert_allclose(xyz.cpu().double().numpy(), xyz_ref, atol=2e-4)
     srgb = spectra_to_srgb(refl, WL_FULL, adapt=False)
@@ -83,7 +79,6 @@ def test_srgb_transfer_curve():
     assert float(got[1]) == pytest.approx(0.04045, abs=1e-5)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_cube_functions_are_batched(device):
     refl, _ = refdata.colorchecker_reflectances(DEFAULT_GRID, device=device)
     cube = refl.T.reshape(25, 4, 6)  # patch k at row k // 6, column k % 6

@@ -25,12 +25,8 @@ from hsi_torch.optics.sensor import (
 from hsi_torch.resources import real_data_dir
 
 REAL = real_data_dir() or Path("<real-data>")
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-DTYPES = [torch.float32, torch.float64]
 
 
-@pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("shot", [True, False])
 def test_noise_statistics_match_theory(device, dtype, shot):
     gain, read, mu, black = 2.0, 5.0, 1000.0, 100.0
@@ -39,7 +35,7 @@ def test_noise_statistics_match_theory(device, dtype, shot):
                     bit_depth=16, seed=1)
     x = torch.full((1, 3, 256, 256), mu, device=device, dtype=dtype)
     dn, sat = s.expose(x)
-    assert dn.shape == x.shape and dn.dtype == dtype and dn.device.type == device
+    assert dn.shape == x.shape and dn.dtype == dtype and dn.device.type == device.type
     assert not bool(sat.any())
     assert torch.equal(dn, dn.round())
     n = dn.numel()
@@ -62,7 +58,6 @@ def test_pure_shot_noise_is_poisson():
     torch.testing.assert_close(d.var(1), mu.flatten(), rtol=0.05, atol=0.01)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_saturation_at_white_level(device):
     s = SensorModel(seed=0)  # relative units: 1.0 = full well = white level
     assert s.white == 2**14 - 1
@@ -115,8 +110,6 @@ def test_mosaic_pattern_layout(pattern):
     assert torch.equal(m.sum(0), torch.ones(4, 6)) and float(m[1].sum()) == 12
 
 
-@pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
 def test_mosaic_demosaic_round_trip(device, dtype, pattern):
     h, w = 48, 64
@@ -170,7 +163,6 @@ def test_cfa_from_rawpy_and_real_raw():
     assert abs(float(half[0].mean()) - img[0::2, 1::2].mean()) < 1e-9
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_gaussian_blur_matches_scipy(device):
     from scipy.ndimage import gaussian_filter
 
