@@ -15,8 +15,6 @@ __version__ = "0.1.0"
 _LAZY = {
     "SpectralGrid": "hsi_torch.spectral",
     "DEFAULT_GRID": "hsi_torch.spectral",
-    "solve_nnls": "hsi_torch.recon.solvers",
-    "NNLSResult": "hsi_torch.recon.solvers",
     "HSIReconstructor": "hsi_torch.recon.module",
     "Reconstructor": "hsi_torch.recon.pipeline",
     "CalibrationBundle": "hsi_torch.calibrate.bundle",

@@ -39,8 +39,9 @@ import numpy as np
 import torch
 from scipy.optimize import nnls
 
-from hsi_torch.recon.solvers import prepare_nnls, solve_nnls, synthetic_brf_problem
+from hsi_torch.recon.nnls import prepare_nnls, solve_nnls
 from hsi_torch.spectral import difference_matrix
+from hsi_torch.testing import synthetic_brf_problem
 
 
 def _sync(device: torch.device) -> None:

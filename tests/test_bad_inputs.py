@@ -36,7 +36,7 @@ from hsi_torch.errors import (
 from hsi_torch.io import atomic, load_cube, read_any, read_capture, write_capture
 from hsi_torch.io.atomic import atomic_write_text
 from hsi_torch.recon.module import HSIReconstructor
-from hsi_torch.recon.solvers import solve_nnls
+from hsi_torch.recon.nnls import solve_nnls
 
 
 @pytest.fixture

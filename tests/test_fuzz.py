@@ -41,7 +41,7 @@ from hsi_torch.config import ConfigError, load_config
 from hsi_torch.errors import HSIError
 from hsi_torch.io import load_cube, read_any, save_cube
 from hsi_torch.io.captures import LinearCapture
-from hsi_torch.recon.solvers import solve_nnls
+from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.spectral import difference_matrix
 
 _BUDGET = os.environ.get("HSI_FUZZ_EXAMPLES")
@@ -349,12 +349,12 @@ def nnls_problems(draw):
 
 
 @fuzz(150)
-@given(problem=nnls_problems(), method=st.sampled_from(["active_set", "active_set", "admm"]))
-def test_solve_nnls_kkt_or_flagged_never_nan(problem, method):
+@given(problem=nnls_problems(), solver=st.sampled_from(["active_set", "active_set", "admm"]))
+def test_solve_nnls_kkt_or_flagged_never_nan(problem, solver):
     A, y, w, beta, order = problem
     with no_hang():
         res = solve_nnls(torch.from_numpy(A), torch.from_numpy(y), mask=torch.from_numpy(w),
-                         beta=beta, diff_order=order, method=method)  # fmt: skip
+                         beta=beta, diff_order=order, solver=solver)  # fmt: skip
     x = res.x.numpy()
     assert x.shape == (A.shape[0], A.shape[2]) and np.all(np.isfinite(x)) and np.all(x >= 0)
     assert not np.any(np.isnan(res.kkt_residual.numpy()))
@@ -362,7 +362,7 @@ def test_solve_nnls_kkt_or_flagged_never_nan(problem, method):
     assert np.array_equal(nod, ~w.any(1)) and np.all(x[nod] == 0)
     conv = res.converged.numpy() & ~nod
     viol = _kkt_violation(A, y, w, beta, order, x)
-    tol = 1e-8 if method == "active_set" else 1e-4
+    tol = 1e-8 if solver == "active_set" else 1e-4
     assert np.all(viol[conv] <= tol), (viol[conv], res.kkt_residual.numpy()[conv])
 
 

@@ -7,14 +7,9 @@ import pytest
 import torch
 from scipy.optimize import nnls
 
-from hsi_torch.recon.solvers import (
-    NNLSResult,
-    prepare_nnls,
-    solve_nnls,
-    synthetic_brf_problem,
-)
-from hsi_torch.solvers import solve_nnls as solve_nnls_alias
+from hsi_torch.recon.nnls import NNLSResult, prepare_nnls, solve_nnls
 from hsi_torch.spectral import difference_matrix
+from hsi_torch.testing import synthetic_brf_problem
 
 # relative (per-pixel L2) agreement with SciPy on well-conditioned problems
 RTOL = {torch.float64: 1e-8, torch.float32: 1e-4}
@@ -182,13 +177,13 @@ def test_all_masked_pixel_returns_zero_and_is_flagged(device, dtype):
     y[10, ~mask[10]] = float("inf")
     A, y, mask = A.to(device, dtype), y.to(device, dtype), mask.to(device)
     for beta in (0.0, 2.0):
-        for method in ("active_set", "admm"):
-            res = solve_nnls(A, y, beta=beta, mask=mask, method=method, max_iter=300)
+        for solver in ("active_set", "admm"):
+            res = solve_nnls(A, y, beta=beta, mask=mask, solver=solver, max_iter=300)
             assert torch.isfinite(res.x).all()
             assert res.no_data.tolist() == [i in (3, 17) for i in range(50)]
             assert (res.x[[3, 17]] == 0).all()
             assert res.converged[[3, 17]].all()
-            if beta > 0 and method == "active_set":  # the other pixels are unaffected
+            if beta > 0 and solver == "active_set":  # the other pixels are unaffected
                 ref = scipy_reference(A[8:12], torch.nan_to_num(y[8:12], posinf=0.0), beta,
                                       mask[8:12])
                 assert rel_err(res.x[8:12], ref).max() < RTOL[dtype] * 5
@@ -261,15 +256,15 @@ def test_shared_A_with_mask_equals_per_pixel_A():
 def test_admm_converges_to_active_set(device):
     A, y, mask, _ = synthetic_brf_problem(400, seed=14, device=device)
     exact = solve_nnls(A, y, beta=1e2, mask=mask)
-    res = solve_nnls(A, y, beta=1e2, mask=mask, method="admm", tol=1e-11, max_iter=20000)
+    res = solve_nnls(A, y, beta=1e2, mask=mask, solver="admm", tol=1e-11, max_iter=20000)
     assert bool(res.converged.all())
     torch.testing.assert_close(res.x, exact.x, rtol=0, atol=1e-7 * float(exact.x.abs().max()))
     # warm start from the exact answer: ADMM is at its fixed point and stops at the first check
-    warm = solve_nnls(A, y, beta=1e2, mask=mask, method="admm", x0=exact.x, tol=1e-11)
+    warm = solve_nnls(A, y, beta=1e2, mask=mask, solver="admm", x0=exact.x, tol=1e-11)
     assert int(warm.iterations.max()) <= 10
     torch.testing.assert_close(warm.x, exact.x, rtol=0, atol=1e-9 * float(exact.x.abs().max()))
     # fixed-iteration mode gets close too
-    fixed = solve_nnls(A, y, beta=1e2, mask=mask, method="admm", admm_iters=300)
+    fixed = solve_nnls(A, y, beta=1e2, mask=mask, solver="admm", admm_iters=300)
     assert (fixed.iterations == 300).all()
     assert float((fixed.x - exact.x).abs().max()) < 1e-3 * float(exact.x.abs().max())
 
@@ -283,13 +278,13 @@ def test_admm_fixed_iterations_gradcheck():
     prob = prepare_nnls(A, beta=0.5)
 
     def f(y):
-        return prob.solve(y, method="admm", admm_iters=25).x
+        return prob.solve(y, solver="admm", admm_iters=25).x
 
     y = y0.clone().requires_grad_(True)
     assert f(y).requires_grad
     assert torch.autograd.gradcheck(f, (y,), eps=1e-6, atol=1e-6)
     # and through solve_nnls directly
-    out = solve_nnls(A, y, beta=0.5, method="admm", admm_iters=25).x.sum()
+    out = solve_nnls(A, y, beta=0.5, solver="admm", admm_iters=25).x.sum()
     (grad,) = torch.autograd.grad(out, y)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
 
@@ -298,8 +293,7 @@ def test_admm_fixed_iterations_gradcheck():
 # API and errors
 
 
-def test_alias_and_errors():
-    assert solve_nnls_alias is solve_nnls
+def test_errors():
     A, y, mask = random_problem(10, seed=1)
     with pytest.raises(ValueError, match="y"):
         solve_nnls(A, y[:, :5])
@@ -311,8 +305,8 @@ def test_alias_and_errors():
         solve_nnls(A.long(), y)
     with pytest.raises(ValueError, match="beta"):
         solve_nnls(A, y, beta=-1.0)
-    with pytest.raises(ValueError, match="method"):
-        solve_nnls(A, y, method="lbfgs")
+    with pytest.raises(ValueError, match="solver"):
+        solve_nnls(A, y, solver="lbfgs")
     with pytest.raises(ValueError, match="diff_order"):
         solve_nnls(A, y, diff_order=3)
     with pytest.raises(ValueError, match="chunk_size"):
@@ -378,7 +372,7 @@ def test_worker_threads_identical_and_restored():
 def test_kkt_residual_is_a_backward_error():
     """The residual is ~eps at SciPy's answers, large for a wrong answer; ‖G‖₂ bound is below
     the largest eigenvalue."""
-    from hsi_torch.recon.solvers import nnls_kkt_residual
+    from hsi_torch.recon.nnls import nnls_kkt_residual
 
     A, y, mask, _ = synthetic_brf_problem(300, seed=2)
     prob = prepare_nnls(A, mask=mask, beta=1.0)

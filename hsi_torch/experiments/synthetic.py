@@ -10,7 +10,7 @@ Protocol, for every design (a ``(O, M)`` matrix ``A``, see :mod:`hsi_torch.exper
    ``torch.Generator("cpu").manual_seed(s)`` (``torch.randn``, float64); the observation at noise
    level σ is ``y = R Aᵀ + σ ε_s`` (the same ε_s for every σ: common random numbers).
 4. **Reconstruction**: ``x = argmin_{x≥0} ||A x − y||² + β ||D x||²`` (first difference by
-   default) with :func:`hsi_torch.recon.solvers.solve_nnls`, for every β of
+   default) with :func:`hsi_torch.recon.nnls.solve_nnls`, for every β of
    ``{0} ∪ logspace(−2, 6, 17)``. All patches × seeds × σ × β are *one* batch per design: β
    enters through the stacked matrix ``[A; √β D]`` with observations ``[y; 0]``.
 5. **Scores**: PSNR = 10·log10(1/MSE) on reflectance over all patches and bands, per seed
@@ -351,10 +351,10 @@ def evaluate_design(
         keep_estimates: keep the reconstructions at the best β.
 
     Returns:
-        :class:`DesignEvaluation`. One :func:`~hsi_torch.recon.solvers.solve_nnls` call solves
+        :class:`DesignEvaluation`. One :func:`~hsi_torch.recon.nnls.solve_nnls` call solves
         all ``S·N·B·K`` problems (stacked ``[A; √β D]`` per β, ``beta=0`` in the solver).
     """
-    from hsi_torch.recon.solvers import solve_nnls
+    from hsi_torch.recon.nnls import solve_nnls
 
     if matrix.ndim != 2:
         raise ValueError(f"matrix must have shape (O, M), got {tuple(matrix.shape)}")

@@ -10,10 +10,6 @@ import importlib
 from typing import Any
 
 _LAZY = {
-    "solve_nnls": "hsi_torch.recon.solvers",
-    "prepare_nnls": "hsi_torch.recon.solvers",
-    "NNLSProblem": "hsi_torch.recon.solvers",
-    "NNLSResult": "hsi_torch.recon.solvers",
     "BundleSensing": "hsi_torch.recon.sensing",
     "precompute_sensing": "hsi_torch.recon.sensing",
     "Reconstructor": "hsi_torch.recon.pipeline",

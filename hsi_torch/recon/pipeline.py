@@ -388,7 +388,7 @@ def solve_observations(
     static = sens.obs_mask
     changed = ok & (mask != static).any(1)
     yc = y if premasked else torch.where(mask, y, zero).to(sens.dtype)
-    kw: dict[str, Any] = dict(method=solver, chunk_size=chunk_size)
+    kw: dict[str, Any] = dict(solver=solver, chunk_size=chunk_size)
     if solver == "admm" and admm_iters is not None:
         kw["admm_iters"] = int(admm_iters)
     res = sens.problem.solve(yc, **kw)

@@ -122,7 +122,7 @@ class BundleSensing:
             matrices of a subset with ``model.dense(idx)``.
         obs_mask: ``(P, 3V)`` bool static observation mask.
         beta, diff_order: the regularisation the factorisation was made for.
-        problem: :class:`~hsi_torch.recon.solvers.NNLSProblem` for ``A``, ``obs_mask``, ``beta``.
+        problem: :class:`~hsi_torch.recon.nnls.NNLSProblem` for ``A``, ``obs_mask``, ``beta``.
         exposure_s: white-reference exposure of the calibration (s) or ``None``.
         cfa_pattern: the bundle's CFA pattern (``settings["cfa_pattern"]``) or ``None``.
         sample_grid: ``(1, V, P, 2)`` (``dtype``, ``device``) sensor position of valid pixel ``p``

@@ -12,7 +12,7 @@ normal-equation form this is the convex quadratic programme ``min ½ xᵀGx − 
 ``G = Aᵀ W A + β DᵀD`` and ``b = Aᵀ W y``; its KKT conditions are ``x ≥ 0``, ``g = Gx − b ≥ 0`` and
 ``x ⊙ g = 0``.
 
-Method (``method="active_set"``, exact, finite termination):
+Solver ``"active_set"`` (exact, finite termination):
 
 1. Per calibration (:func:`prepare_nnls`, done once when ``A``, mask and ``beta`` are fixed):
    the Gram matrices ``G_p``, their explicit inverses ``H_p = G_p⁻¹`` (batched Cholesky) and a
@@ -40,9 +40,10 @@ On CPU every kernel runs single-threaded and the pixels are split between ``num_
 threads instead (default ``torch.get_num_threads()``): thousands of small multi-threaded kernels
 stall at their barriers whenever another process holds a core (see :func:`_workers`).
 
-``method="admm"``: ADMM on ``x = z, z ≥ 0`` with per-pixel ``(G + ρI)⁻¹`` precomputed, warm started
-from the clamped unconstrained solution (or a given ``x0``). With ``admm_iters=N`` it runs exactly
-``N`` iterations with out-of-place torch ops only, so the result is differentiable w.r.t. ``y``.
+``solver="admm"`` (:mod:`hsi_torch.recon.nnls.admm`): ADMM on ``x = z, z ≥ 0`` with per-pixel
+``(G + ρI)⁻¹`` precomputed, warm started from the clamped unconstrained solution (or a given
+``x0``). With ``admm_iters=N`` it runs exactly ``N`` iterations with out-of-place torch ops
+only, so the result is differentiable w.r.t. ``y``.
 
 Convention:
     ``A``: ``(O, M)`` shared by all pixels or ``(P, O, M)`` one per pixel; ``y``: ``(P, O)``;
@@ -51,6 +52,14 @@ Convention:
     as in the rest of the package, but the solver itself is agnostic of it. No per-pixel Python
     loops: all loops run over iterations or pivots of a whole (sub-)batch; memory is bounded by
     chunking over pixels.
+
+Modules: :mod:`~hsi_torch.recon.nnls.problem` (:class:`NNLSProblem`, :func:`prepare_nnls`,
+:func:`solve_nnls`, the frame-level active-set solve), :mod:`~hsi_torch.recon.nnls.kkt` (Gram
+matrices, KKT residuals, chunk sizes), :mod:`~hsi_torch.recon.nnls.active_set` (block principal
+pivoting and Lawson–Hanson kernels), :mod:`~hsi_torch.recon.nnls.admm`,
+:mod:`~hsi_torch.recon.nnls._compiled` (the numba CPU kernel) and
+:mod:`~hsi_torch.recon.nnls._threads` (CPU thread pools). This package is the one import path of
+the solver: ``from hsi_torch.recon.nnls import solve_nnls, prepare_nnls``.
 """
 
 from hsi_torch.recon.nnls._threads import cpu_threads

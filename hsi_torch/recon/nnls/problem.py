@@ -24,6 +24,7 @@ from hsi_torch.recon.nnls.active_set import (
     _lawson_hanson,
     _zero_set_solve_any,
 )
+from hsi_torch.recon.nnls.admm import solve_admm
 from hsi_torch.recon.nnls.kkt import (
     _admm_tol,
     _chunk_len,
@@ -42,9 +43,11 @@ from hsi_torch.recon.nnls.kkt import (
 
 __all__ = ["NNLSResult", "NNLSProblem", "prepare_nnls", "solve_nnls"]
 
-_METHODS = ("active_set", "admm")
+_SOLVERS = ("active_set", "admm")
 _BACKENDS = ("auto", "torch", "compiled")
 Sensing = SensingModel | DenseSensing
+
+
 @dataclass
 class NNLSResult:
     """Output of :func:`solve_nnls` / :meth:`NNLSProblem.solve`.
@@ -59,7 +62,7 @@ class NNLSResult:
             ``‖min(diag(G) ⊙ x, g)‖₂ / (‖G‖₂ ‖x‖₂ + ‖b‖₂)`` with ``g = Gx − b`` (see
             :func:`nnls_kkt_residual`; 0 for an exact solution, O(eps) for a well-solved one).
         no_data: ``(P,)`` bool, pixel had no usable observation (all masked): ``x = 0``.
-        method: the method used.
+        solver: the solver used (``"active_set"`` or ``"admm"``).
     """
 
     x: Tensor
@@ -67,11 +70,9 @@ class NNLSResult:
     iterations: Tensor
     kkt_residual: Tensor
     no_data: Tensor
-    method: str = "active_set"
+    solver: str = "active_set"
 
-
-
-def _empty_result(m: int, dtype: torch.dtype, device: torch.device, method: str) -> NNLSResult:
+def _empty_result(m: int, dtype: torch.dtype, device: torch.device, solver: str) -> NNLSResult:
     """The result for zero pixels: ``x (0, M)`` and empty per-pixel fields."""
     return NNLSResult(
         torch.zeros((0, m), dtype=dtype, device=device),
@@ -79,7 +80,7 @@ def _empty_result(m: int, dtype: torch.dtype, device: torch.device, method: str)
         torch.zeros((0,), dtype=torch.long, device=device),
         torch.zeros((0,), dtype=dtype, device=device),
         torch.zeros((0,), dtype=torch.bool, device=device),
-        method,
+        solver,
     )
 
 
@@ -253,7 +254,7 @@ class NNLSProblem:
         self,
         y: Tensor,
         *,
-        method: str = "active_set",
+        solver: str = "active_set",
         tol: float | None = None,
         max_iter: int | None = None,
         refine: int | None = None,
@@ -269,7 +270,7 @@ class NNLSProblem:
 
         Args:
             y: ``(P, O)`` observations (same device as ``A``; cast to ``A``'s dtype).
-            method: ``"active_set"`` (exact) or ``"admm"``.
+            solver: ``"active_set"`` (exact) or ``"admm"``.
             tol: active set: tolerance on the KKT residual (a backward error, see
                 :class:`NNLSResult`), default ``M·eps(dtype)``; ADMM: relative primal/dual
                 residual tolerance (``‖x − z‖∞`` and ``‖z − z_prev‖∞`` over ``‖z‖∞``), default
@@ -298,22 +299,22 @@ class NNLSProblem:
             raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
         workers = workers_for(self.device, num_threads)
         with cpu_threads(self.device, 1):
-            return self._solve(y, method, tol, max_iter, refine, chunk_size, max_memory, x0,
+            return self._solve(y, solver, tol, max_iter, refine, chunk_size, max_memory, x0,
                                admm_iters, rho, workers, backend)
 
     def _solve(
-        self, y: Tensor, method: str, tol: float | None, max_iter: int | None,
+        self, y: Tensor, solver: str, tol: float | None, max_iter: int | None,
         refine: int | None, chunk_size: int | None, max_memory: int | None, x0: Tensor | None,
         admm_iters: int | None, rho: float | None, workers: int, backend: str = "auto",
     ) -> NNLSResult:
-        if method not in _METHODS:
-            raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+        if solver not in _SOLVERS:
+            raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
         y = self._check_y(y)
         P, m = y.shape[0], self.num_bands
         if P == 0:
-            return _empty_result(m, self.dtype, self.device, method)
+            return _empty_result(m, self.dtype, self.device, solver)
         if tol is None:
-            tol = _default_tol(self.dtype, m) if method == "active_set" else _admm_tol(self.dtype)
+            tol = _default_tol(self.dtype, m) if solver == "active_set" else _admm_tol(self.dtype)
         tol = float(tol)
         if not tol > 0:
             raise ValueError(f"tol must be > 0, got {tol}")
@@ -327,7 +328,7 @@ class NNLSProblem:
         if admm_iters is not None and int(admm_iters) < 0:
             raise ValueError(f"admm_iters must be >= 0, got {admm_iters}")
         item = torch.finfo(self.dtype).bits // 8
-        if method == "active_set":
+        if solver == "active_set":
             per_px = item * (2 * self.num_obs + 16 * m + 3 * m * m)
             n = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
                            default=_default_stream_chunk(self.device))
@@ -336,37 +337,10 @@ class NNLSProblem:
             with torch.no_grad():
                 out = self._solve_as(y, tol, max_iter or 10 * m, int(refine), n, n_corr,
                                      workers, backend)
-            return NNLSResult(*out, method)
-        per_px = item * (2 * self.num_obs + 16 * m + 4 * m * m)
-        n = _chunk_len(P, per_px, chunk_size, max_memory, self.device)
-        outs = []
-        for s in range(0, P, n):
-            sl = slice(s, min(P, s + n))
-            fixed = admm_iters is not None
-            with torch.set_grad_enabled(fixed and torch.is_grad_enabled()):
-                outs.append(self._solve_chunk_admm(
-                    y, sl, tol, max_iter or 5000, admm_iters, rho,
-                    None if x0 is None else x0[sl]))
-        cat = [torch.cat([o[i] for o in outs]) for i in range(5)]
-        return NNLSResult(cat[0], cat[1], cat[2], cat[3], cat[4], method)
-
-    def _chunk_parts(self, sl: slice, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        G = self.gram_matrices(sl)
-        Gi = _take(self.gram_inv, sl)
-        sing = _expand_rows(_take(self.singular, sl), n)
-        nod = _expand_rows(_take(self.no_data, sl), n)
-        return G, Gi, sing, nod
-
-    def _finish(
-        self, G: Tensor, b: Tensor, x: Tensor, nod: Tensor, done: Tensor, tol: float
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        zero = torch.zeros((), dtype=x.dtype, device=x.device)
-        x = torch.where(nod.view(-1, 1), zero, x)
-        with torch.no_grad():
-            r = nnls_kkt_residual(G, b, x.detach())
-            r = torch.where(nod, zero, r)
-            r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
-        return x, done & (r <= tol), r
+            return NNLSResult(*out, solver)
+        out = solve_admm(self, y, tol, max_iter or 5000, chunk_size, max_memory, admm_iters, rho,
+                         x0)
+        return NNLSResult(*out, solver)
 
     def _solve_as(
         self, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int,
@@ -572,94 +546,6 @@ class NNLSProblem:
         gn = self.gram_norm if self.gram_norm.shape[0] == 1 else self.gram_norm[idx]
         return xs, nnls_kkt_residual(Gs, b, xs, gn)
 
-    # -- ADMM ---------------------------------------------------------------------------------
-    def _admm_factors(self, rho: float | None) -> tuple[Tensor, Tensor]:
-        key = "auto" if rho is None else repr(float(rho))
-        if key in self._admm_cache:
-            return self._admm_cache[key]
-        H = self.gram_inv
-        m = self.num_bands
-        gd = self.gram_diag
-        if rho is None:
-            r = gd.mean(1)
-            r = torch.where(r > 0, r, torch.ones_like(r))
-        else:
-            if not float(rho) > 0:
-                raise ValueError(f"rho must be > 0, got {rho}")
-            r = torch.full((gd.shape[0],), float(rho), dtype=H.dtype, device=H.device)
-        K = torch.empty_like(H)
-        eye = torch.eye(m, dtype=H.dtype, device=H.device)
-        n = _chunk_len(H.shape[0], 8 * m * m * H.element_size(), None, None, H.device)
-        with torch.no_grad():
-            for s in range(0, H.shape[0], n):
-                sl = slice(s, s + n)
-                G = self.gram_matrices(sl)
-                L, _ = torch.linalg.cholesky_ex(G + r[sl].view(-1, 1, 1) * eye)
-                K[sl] = torch.cholesky_inverse(L)
-        self._admm_cache[key] = (K, r)
-        return K, r
-
-    def _solve_chunk_admm(
-        self, y: Tensor, sl: slice, tol: float, max_iter: int, admm_iters: int | None,
-        rho: float | None, x0: Tensor | None,
-    ) -> tuple[Tensor, ...]:
-        K, r = self._admm_factors(rho)
-        K, r = _take(K, sl), _take(r, sl)
-        b = self.rhs(y, sl)
-        n, m = b.shape
-        dev, dt = b.device, b.dtype
-        G, Gi, sing, nod = self._chunk_parts(sl, n)
-        r = _expand_rows(r.view(-1, 1), n)
-        zero = torch.zeros((), dtype=dt, device=dev)
-        if x0 is None:
-            z = torch.where((sing | nod).view(-1, 1), zero, _rowvec(b, Gi)).clamp_min(0)
-        else:
-            z = x0.to(dt).clamp_min(0)
-        u = (b - _rowvec(z, G)) / r
-        if admm_iters is not None:  # fixed iterations, out of place: differentiable
-            for _ in range(int(admm_iters)):
-                x = _rowvec(b + r * (z - u), K)
-                z = (x + u).clamp_min(0)
-                u = u + x - z
-            iters = torch.full((n,), int(admm_iters), dtype=torch.long, device=dev)
-            done = torch.ones((n,), dtype=torch.bool, device=dev)
-            x, conv, res = self._finish(G, b, z, nod, done, tol)
-            return x, conv, iters, res, nod.clone()
-        # tolerance-driven: iterate on the sub-batch that has not converged
-        iters = torch.zeros((n,), dtype=torch.long, device=dev)
-        done = torch.zeros((n,), dtype=torch.bool, device=dev)
-        act = torch.arange(n, device=dev)
-        Ka, ra, ba, za, ua = _expand_rows(K, n), r, b, z, u
-        check = 10
-        it = 0
-        while act.numel() > 0 and it < max_iter:
-            z_prev = za
-            for _ in range(check):
-                x = _rowvec(ba + ra * (za - ua), Ka)
-                z_prev = za
-                za = (x + ua).clamp_min(0)
-                ua = ua + x - za
-            it += check
-            xs = za.abs().amax(1).clamp_min(torch.finfo(dt).tiny)
-            prim = (x - za).abs().amax(1) / xs
-            dual = (za - z_prev).abs().amax(1) / xs
-            ok = (prim <= tol) & (dual <= tol)
-            iters[act] = it
-            if bool(ok.any()):
-                fin = act[ok]
-                z[fin] = za[ok]
-                done[fin] = True
-                keep = ~ok
-                act, Ka, ra = act[keep], Ka[keep], ra[keep]
-                ba, za, ua = ba[keep], za[keep], ua[keep]
-        if act.numel() > 0:
-            z[act] = za
-        x, _, res = self._finish(G, b, z, nod, done, tol)
-        return x, done | nod, iters, res, nod.clone()
-
-
-
-
 def prepare_nnls(
     A: Tensor | Sensing,
     *,
@@ -764,7 +650,7 @@ def solve_nnls(
     beta: float = 0.0,
     mask: Tensor | None = None,
     diff_order: int = 1,
-    method: str = "active_set",
+    solver: str = "active_set",
     tol: float | None = None,
     max_iter: int | None = None,
     refine: int | None = None,
@@ -789,7 +675,7 @@ def solve_nnls(
         beta: smoothness weight (≥ 0) on the data's scale.
         mask: ``(P, O)`` bool, True = observation used; None = all.
         diff_order: 0, 1 (default) or 2.
-        method: ``"active_set"`` (exact, finite termination) or ``"admm"``.
+        solver: ``"active_set"`` (exact, finite termination) or ``"admm"``.
         tol, max_iter, refine, x0, admm_iters, rho: see :meth:`NNLSProblem.solve`.
         chunk_size / max_memory: pixels per chunk or a working-memory budget in bytes; each chunk
             is factorised and solved on its own, so memory stays bounded (per-pixel ``A``;
@@ -818,11 +704,11 @@ def solve_nnls(
     if mask is not None and mask.shape[0] != P:
         raise ValueError(f"mask has {mask.shape[0]} pixels but y has {P}")
     if P == 0:  # nothing to solve: empty results of the right shapes
-        if method not in _METHODS:
-            raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
-        return _empty_result(op.num_bands, op.dtype, op.device, method)
+        if solver not in _SOLVERS:
+            raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
+        return _empty_result(op.num_bands, op.dtype, op.device, solver)
     workers = workers_for(op.device, num_threads)
-    kw = dict(method=method, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
+    kw = dict(solver=solver, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
               rho=rho, num_threads=workers, backend=backend)
     if op.shared and mask is None:
         prob = prepare_nnls(op, beta=beta, diff_order=diff_order, num_threads=workers)
@@ -850,5 +736,5 @@ def solve_nnls(
         torch.cat([r.iterations for r in parts]),
         torch.cat([r.kkt_residual for r in parts]),
         torch.cat([r.no_data for r in parts]),
-        method,
+        solver,
     )
