@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
 
 __all__ = ["synthetic_brf_problem"]
@@ -27,7 +28,8 @@ def synthetic_brf_problem(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """A realistic random test/benchmark problem with the camera's sensing structure.
 
-    ``A_p[(v, c), m] = g_v(p) · T_v(p, λ_m) · Δλ_m · φ^c(λ_m)`` with BRF-like transmittances
+    ``A_p[(v, c), m] = g_v(p) · T_v(p, λ_m) · Δλ_m · φ^c(λ_m)`` (the dense matrices of a
+    :class:`~hsi_torch.forward_model.SensingModel`) with BRF-like transmittances
     ``T = ½[1 − cos(2π·OPD/λ)]`` (view OPDs spread over ``opd_range_nm``, ±2 % per pixel unless
     ``shared``), smooth Gaussian "RGB" curves ``φ^c`` (peaks 600/540/460 nm), per-pixel gains
     0.6…1 (1 when ``shared``). ``A`` is scaled so that a white reflectance (1 in every band) gives
@@ -53,19 +55,20 @@ def synthetic_brf_problem(
     f64 = torch.float64
     lam = grid.wavelengths(dtype=f64)
     dl = grid.band_widths(dtype=f64)
-    m, v, P = lam.numel(), num_views, num_pixels
+    v, P = num_views, num_pixels
     opd = torch.linspace(opd_range_nm[0], opd_range_nm[1], v, dtype=f64)
     opd = opd[torch.randperm(v, generator=gen)].view(1, v, 1)
     centres = torch.tensor([600.0, 540.0, 460.0], dtype=f64).view(3, 1)
     widths = torch.tensor([40.0, 40.0, 30.0], dtype=f64).view(3, 1)
-    phi_dl = (dl * torch.exp(-0.5 * ((lam - centres) / widths) ** 2)).view(1, 1, 3, m)
+    phi_dl = dl * torch.exp(-0.5 * ((lam - centres) / widths) ** 2)  # (3, M)
 
     def sensing(n: int, jitter: bool) -> Tensor:
         rnd = torch.rand(n, v, 1, generator=gen, dtype=f64) if jitter else torch.full(
             (n, v, 1), 0.5, dtype=f64)
         trans = 0.5 * (1 - torch.cos(2 * torch.pi * opd * (1 + 0.02 * (2 * rnd - 1)) / lam))
-        gain = 0.6 + 0.4 * torch.rand(n, v, 1, 1, generator=gen, dtype=f64) if jitter else 1.0
-        return (gain * trans.unsqueeze(2) * phi_dl).reshape(n, 3 * v, m)
+        gain = (0.6 + 0.4 * torch.rand(n, v, generator=gen, dtype=f64) if jitter
+                else torch.ones(n, v, dtype=f64))  # fmt: skip
+        return SensingModel(trans, gain, phi_dl).dense()
 
     if spectra not in ("bumps", "reflectance"):
         raise ValueError(f"spectra must be 'bumps' or 'reflectance', got {spectra!r}")

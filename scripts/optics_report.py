@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from hsi_torch.experiments.systems import (  # noqa: E402
-    brf_sensing_matrices,
+    brf_sensing_model,
     phi_matrix,
     scene_points,
     view_rays,
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     phi = phi_matrix(grid=grid)
     pts = scene_points(geom)
     alpha, sigma, thr = view_rays(geom, cam, layout, pts)
-    a_design = brf_sensing_matrices(brf, alpha, sigma, thr, grid, phi)
+    a_design = brf_sensing_model(brf, alpha, sigma, thr, grid, phi).dense()
     cond_design = torch.linalg.cond(a_design)
     rgb10 = (grid.band_widths(dtype=torch.float64) * phi).repeat(layout.num_views, 1)
     sv = torch.linalg.svdvals(rgb10)

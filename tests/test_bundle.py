@@ -118,9 +118,10 @@ def test_check_compatible():
         b.check_compatible((3, 100, 160))
 
 
-def test_sensing_matrices_formula(device, dtype):
+def test_sensing_model_formula(device, dtype):
     b = _bundle()
-    A = b.sensing_matrices(device=device, dtype=dtype)
+    model = b.sensing_model(device=device, dtype=dtype)
+    A = model.dense()
     V, M, h, w = b.B.shape
     assert A.shape == (h * w, 3 * V, M) and A.dtype == dtype and A.device.type == device.type
     dl = np.full(M, 60.0)  # uniform 60 nm grid
@@ -133,7 +134,8 @@ def test_sensing_matrices_formula(device, dtype):
     tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-7, "atol": 0}
     torch.testing.assert_close(A.cpu().double(), torch.from_numpy(expect), **tol)
     idx = torch.tensor([0, 7, 23])
-    torch.testing.assert_close(b.sensing_matrices(device, dtype, idx), A[idx.to(device)])
+    torch.testing.assert_close(b.sensing_model(idx, device=device, dtype=dtype).dense(),
+                               A[idx.to(device)])
     mask = b.observation_mask(device)
     assert mask.shape == (h * w, 3 * V) and mask.dtype == torch.bool
     for v in range(V):

@@ -20,7 +20,7 @@ from hsi_torch.experiments.design import (
     rank_designs,
     run_design,
 )
-from hsi_torch.experiments.systems import brf_sensing_matrices, phi_matrix
+from hsi_torch.experiments.systems import brf_sensing_model, phi_matrix
 from hsi_torch.optics import DEFAULT_GEOMETRY, BRFConfig, KaleidoscopeGeometry
 from hsi_torch.resources import shipped_config
 from hsi_torch.spectral import DEFAULT_GRID
@@ -50,7 +50,7 @@ def small_run(tmp_path_factory):
 
 def _numpy_cond(rays, brf: BRFConfig) -> np.ndarray:
     phi = phi_matrix(grid=DEFAULT_GRID)
-    a = brf_sensing_matrices(brf, rays.alpha, rays.sigma, rays.throughput, DEFAULT_GRID, phi)
+    a = brf_sensing_model(brf, rays.alpha, rays.sigma, rays.throughput, DEFAULT_GRID, phi).dense()
     return np.array([np.linalg.cond(m) for m in a.numpy()])
 
 

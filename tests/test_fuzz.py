@@ -456,7 +456,7 @@ def test_bundle_reader_on_changed_keys_dtypes_shapes_and_versions(scratch, bundl
     b = clear_or_valid(CalibrationBundle.load, p)
     if b is not None:  # accepted: consistent, usable
         b.validate()
-        A = b.sensing_matrices(dtype=torch.float64)
+        A = b.sensing_model(dtype=torch.float64).dense()
         assert A.shape == (b.frame_size[0] * b.frame_size[1], 3 * b.num_views, b.num_bands)
 
 

@@ -239,7 +239,7 @@ def test_matches_scipy_with_regularisation_and_noise():
     res = Reconstructor(bundle, beta=beta, diff_order=2, dtype=dt).reconstruct_frame(img)
     assert res.stats["num_pivoted"] > 0  # the non-negativity constraints were active
     pix = torch.as_tensor(bundle.valid).reshape(-1).nonzero().squeeze(1)
-    A = bundle.sensing_matrices(dtype=dt, pixel_index=pix).numpy()
+    A = bundle.sensing_model(pix, dtype=dt).dense().numpy()
     msk = bundle.observation_mask(pixel_index=pix).numpy()
     D = difference_matrix(WL.size, 2, dtype=dt).numpy()
     # observations straight from the sensor image (integer maps)
@@ -345,7 +345,7 @@ def test_fit_residual_flags_a_bundle_from_another_geometry():
     pix = torch.as_tensor(bundle.valid).reshape(-1).nonzero().squeeze(1)
     k = min(pix.numel(), FIT_RESIDUAL_SAMPLES)
     sel = torch.linspace(0, pix.numel() - 1, k).round().long()
-    A = bundle.sensing_matrices(dtype=dt, pixel_index=pix[sel]).numpy()
+    A = bundle.sensing_model(pix[sel], dtype=dt).dense().numpy()
     W = bundle.observation_mask(pixel_index=pix[sel]).numpy()
     x = good.cube.reshape(WL.size, -1)[:, pix[sel]].T.numpy()
     t = 20

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
 from hsi_torch.spectral import band_widths
 
@@ -50,7 +51,6 @@ __all__ = [
     "CalibrationBundle",
     "file_sha256",
     "make_provenance",
-    "sensing_matrices",
 ]
 
 SCHEMA_VERSION = 1
@@ -124,7 +124,7 @@ class CalibrationBundle:
     Example:
         >>> bundle = CalibrationBundle.load("calib.npz")  # doctest: +SKIP
         >>> bundle.check_compatible(capture.shape)  # doctest: +SKIP
-        >>> A = bundle.sensing_matrices(device="cuda")  # (h*w, 3V, M)  # doctest: +SKIP
+        >>> A = bundle.sensing_model(device="cuda").dense()  # (h*w, 3V, M)  # doctest: +SKIP
     """
 
     wavelengths_nm: np.ndarray
@@ -383,24 +383,25 @@ class CalibrationBundle:
             ),
         }
 
-    def sensing_matrices(
+    def sensing_model(
         self,
+        pixel_index: torch.Tensor | None = None,
+        *,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
-        pixel_index: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """Per-pixel sensing matrices ``A (P, 3V, M)``.
-
-        ``A[p, 3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]``; pixels are the reference
-        frame in row-major order (``P = h·w``) or the subset ``pixel_index`` (long, flat indices).
+    ) -> SensingModel:
+        """The forward model of reference-frame pixels ``pixel_index`` (flat row-major, long;
+        default every pixel, ``P = h·w``): a :class:`~hsi_torch.forward_model.SensingModel` with
+        ``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (``Δλ`` from the
+        wavelengths; ``Δλ·φ`` formed in float64, then cast). Dense ``(P, 3V, M)`` matrices:
+        ``.dense()``.
         """
-        return sensing_matrices(
-            torch.as_tensor(self.B, device=device, dtype=dtype),
-            torch.as_tensor(self.gain, device=device, dtype=dtype),
-            torch.as_tensor(self.phi, device=device, dtype=dtype),
-            torch.as_tensor(self.wavelengths_nm, dtype=torch.float64),
-            pixel_index,
-        )
+        wl = torch.as_tensor(self.wavelengths_nm, dtype=torch.float64)
+        idx = None if pixel_index is None else torch.as_tensor(pixel_index).cpu()
+        return SensingModel.from_factors(
+            torch.as_tensor(self.B), torch.as_tensor(self.gain), torch.as_tensor(self.phi),
+            band_widths(wl), pixel_index=idx, device=device, dtype=dtype,
+        )  # fmt: skip
 
     def observation_mask(
         self, device: torch.device | str | None = None, pixel_index: torch.Tensor | None = None
@@ -424,29 +425,3 @@ class CalibrationBundle:
             f"({100 * nv / (h * w):.1f} %)"
         )
 
-
-def sensing_matrices(
-    B: torch.Tensor,
-    gain: torch.Tensor,
-    phi: torch.Tensor,
-    wavelengths_nm: torch.Tensor,
-    pixel_index: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """Per-pixel sensing matrices ``A (P, 3V, M)`` from a bundle's tensors.
-
-    ``A[p, 3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]`` (Δλ from the wavelengths in
-    float64, then cast). ``B (V, M, h, w)``, ``gain (V, h, w)``, ``phi (3, M)`` in the result's
-    dtype and device; pixels are the reference frame row-major (``P = h·w``) or the flat indices
-    ``pixel_index``. Used by :meth:`CalibrationBundle.sensing_matrices` and by
-    :class:`~hsi_torch.recon.module.HSIReconstructor` when it rebuilds ``A`` from its buffers.
-    """
-    V, M = B.shape[:2]
-    dl = band_widths(wavelengths_nm.to(torch.float64)).to(device=B.device, dtype=B.dtype)
-    Bf = B.reshape(V, M, -1)
-    g = gain.reshape(V, -1)
-    if pixel_index is not None:
-        idx = torch.as_tensor(pixel_index, device=Bf.device, dtype=torch.long)
-        Bf, g = Bf[..., idx], g[:, idx]
-    gb = (g[:, None, :] * Bf).permute(2, 0, 1)  # (P, V, M)
-    A = gb[:, :, None, :] * (dl * phi)[None, None]  # (P, V, 3, M)
-    return A.reshape(A.shape[0], 3 * V, M)

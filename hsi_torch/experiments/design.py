@@ -41,11 +41,12 @@ from hsi_torch import refdata
 from hsi_torch.experiments import report
 from hsi_torch.experiments.synthetic import GridSpec, default_betas, evaluate_design
 from hsi_torch.experiments.systems import (
-    brf_sensing_matrices,
+    brf_sensing_model,
     phi_matrix,
     scene_points,
     view_rays,
 )
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.spectral import SpectralGrid
 
@@ -206,8 +207,10 @@ def condition_sweep(
     delta = sigma[None, None, :, :, None] - az
     opd = uniaxial_opd(n_o, n_e, alpha[None, None, :, :, None], delta, tilt, thickness_mm)
     t = polarizer_transmittance(opd, wl, math.radians(psi_deg), math.radians(chi_deg))
-    a = thr[..., None, None] * t[..., None, :] * (dl * phi.to(t))  # (T, A, P, V, 3, M)
-    a = a.reshape(*a.shape[:3], -1, wl.numel())
+    lead, (V, M) = t.shape[:3], t.shape[3:]  # t: (T, A, P, V, M)
+    model = SensingModel(t.reshape(-1, V, M), thr.to(t).expand(*lead, V).reshape(-1, V),
+                         dl * phi.to(t))  # fmt: skip
+    a = model.dense().reshape(*lead, 3 * V, M)
     cond = torch.linalg.cond(a)
     cond = torch.where(torch.isfinite(cond), cond, torch.full_like(cond, math.inf))
     max_opd = opd[..., 0].abs().amax((-1, -2))
@@ -386,8 +389,8 @@ def run_design(
     cand += [r for r in ranked if r["is_default"] and r not in cand]
     for r in report.progress(cand, desc="design: PSNR of top-K", enable=cfg.progress):
         rays = rays_of[(r["a_out_mm"], r["length_mm"])]
-        a = brf_sensing_matrices(_brf_of(r), rays.alpha[:1], rays.sigma[:1],
-                                 rays.throughput[:1], grid, phi)[0]
+        a = brf_sensing_model(_brf_of(r), rays.alpha[:1], rays.sigma[:1],
+                              rays.throughput[:1], grid, phi).dense()[0]
         ev = evaluate_design(a.to(dev), refl.to(dev), [ps.noise_sigma], seeds, betas,
                              peak_dn=ps.peak_dn, diff_order=ps.diff_order)
         row = ev.summary_rows()[0]

@@ -15,7 +15,7 @@ Designs (DESIGN.md §5):
 - **Faced Reflectors** (:func:`faced_reflectors_design`): ``T_{i,c} = f^c τ^i``, ``i = 0 … N``.
 - any design from a CSV of channel responses (:func:`csv_design`).
 
-The helpers :func:`scene_points`, :func:`view_rays` and :func:`brf_sensing_matrices` are shared
+The helpers :func:`scene_points`, :func:`view_rays` and :func:`brf_sensing_model` are shared
 with the BRF design sweep (:mod:`hsi_torch.experiments.design`) and ``scripts/optics_report.py``.
 All builders return float tensors on the requested ``device``/``dtype``.
 """
@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch import refdata
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
 
 __all__ = [
@@ -43,7 +44,7 @@ __all__ = [
     "phi_matrix",
     "scene_points",
     "view_rays",
-    "brf_sensing_matrices",
+    "brf_sensing_model",
     "this_system_design",
     "this_system_matrices",
     "bundle_design",
@@ -167,29 +168,29 @@ def view_rays(
     return tr.alpha.reshape(p, v), tr.sigma.reshape(p, v), tr.throughput.reshape(p, v)
 
 
-def brf_sensing_matrices(
+def brf_sensing_model(
     brf: Any,
     alpha: Tensor,
     sigma: Tensor,
     throughput: Tensor,
     grid: SpectralGrid,
     phi: Tensor,
-) -> Tensor:
-    """``(P, 3V, M)`` stacked sensing matrices ``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)``.
+) -> SensingModel:
+    """The forward model ``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` of ``P`` scene points.
 
     Args:
-        brf: a :class:`~hsi_torch.optics.BRFConfig`.
+        brf: a :class:`~hsi_torch.optics.BRFConfig` (``B_v`` its transmittance along each ray).
         alpha, sigma, throughput: ``(P, V)`` rays (rad) and ``g_v`` per scene point and view.
         grid: wavelength grid (``M``); phi: ``(3, M)``.
 
     Returns:
-        ``(P, 3V, M)``, rows view-major ``o = 3v + c``; dtype/device of ``alpha``.
+        :class:`~hsi_torch.forward_model.SensingModel` of ``P`` pixels (``.dense()``:
+        ``(P, 3V, M)``, rows view-major ``o = 3v + c``), dtype/device of ``alpha``.
     """
     wl = grid.wavelengths(device=alpha.device, dtype=alpha.dtype)
     dl = grid.band_widths(device=alpha.device, dtype=alpha.dtype)
     t = brf.transmittance(alpha[..., None], sigma[..., None], wl)  # (P, V, M)
-    a = throughput[..., None, None] * t[:, :, None, :] * (dl * phi.to(t))  # (P, V, 3, M)
-    return a.reshape(alpha.shape[0], -1, wl.numel())
+    return SensingModel(t, throughput.to(t), dl * phi.to(t))
 
 
 def _optics(
@@ -260,7 +261,7 @@ def this_system_matrices(
     pts = scene_points(geom) if points_mm is None else points_mm.to("cpu", torch.float64)
     alpha, sigma, thr = view_rays(geom, cam, layout, pts)
     phi = phi_matrix(camera, illuminant, grid)
-    a = brf_sensing_matrices(brf_, alpha, sigma, thr, grid, phi)
+    a = brf_sensing_model(brf_, alpha, sigma, thr, grid, phi).dense()
     return a.to(device=device, dtype=dtype), pts.to(device=device, dtype=dtype), layout
 
 
@@ -353,8 +354,7 @@ def bundle_design(
         idx = np.flatnonzero(full)
         if idx.size == 0:
             raise ValueError(f"calibration bundle {path}: no valid pixel is seen by every view")
-    a = b.sensing_matrices(device=device, dtype=torch.float64,
-                           pixel_index=torch.as_tensor(idx)).mean(0)
+    a = b.sensing_model(torch.as_tensor(idx), device=device, dtype=torch.float64).dense().mean(0)
     names = [f"v{v}/{c}" for v in range(b.num_views) for c in "RGB"]
     info = {"kind": "bundle", "path": os.fspath(path),
             "pixel": None if pixel is None else [int(v) for v in pixel], "pixels": int(idx.size)}

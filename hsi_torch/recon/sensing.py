@@ -48,14 +48,12 @@ from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
-from hsi_torch.spectral import band_widths
 
 __all__ = [
     "BundleSensing",
     "precompute_sensing",
     "source_grid",
     "load_bundle",
-    "sensing_model",
     "bundle_exposure",
     "clear_sensing_cache",
     "BUILD_COUNTS",
@@ -284,19 +282,6 @@ def _factorise(
                         chunk_size=chunk_size)
 
 
-def sensing_model(
-    bundle: CalibrationBundle, pixel_index: Tensor, *, device: torch.device | str | None = None,
-    dtype: torch.dtype = torch.float32,
-) -> SensingModel:
-    """The bundle's :class:`~hsi_torch.forward_model.SensingModel` at reference-frame pixels
-    ``pixel_index`` (flat row-major)."""
-    wl = torch.as_tensor(bundle.wavelengths_nm, dtype=torch.float64)
-    return SensingModel.from_factors(
-        torch.as_tensor(bundle.B), torch.as_tensor(bundle.gain), torch.as_tensor(bundle.phi),
-        band_widths(wl), pixel_index=pixel_index.cpu(), device=device, dtype=dtype,
-    )  # fmt: skip
-
-
 def _cfa_from_settings(bundle: CalibrationBundle) -> str | None:
     s = bundle.settings
     v = s.get("cfa_pattern") if isinstance(s, dict) else None
@@ -337,7 +322,7 @@ def precompute_sensing(
     BUILD_COUNTS["sensing"] += 1
     valid = torch.as_tensor(b.valid, device=dev)
     pix = valid.reshape(-1).nonzero().squeeze(1)
-    model = sensing_model(b, pix, device=dev, dtype=dtype)
+    model = b.sensing_model(pix, device=dev, dtype=dtype)
     obs = b.observation_mask(device=dev, pixel_index=pix)
     x0, y0, w, h = (int(v) for v in b.reference_bbox)
     fields = dict(

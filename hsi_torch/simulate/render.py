@@ -59,6 +59,7 @@ from typing import Any
 import torch
 
 from hsi_torch import refdata
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.optics import (
     BRFConfig,
     CameraModel,
@@ -918,7 +919,8 @@ class CaptureRenderer:
         }
 
     def forward_model(self, truth: dict[str, torch.Tensor], cube: torch.Tensor) -> torch.Tensor:
-        """Reference-frame forward model ``y[v, c] = gain_v · Σ_m B_vm Δλ_m φ_cm s_m``.
+        """Reference-frame forward model ``y[v, c] = gain_v · Σ_m B_vm Δλ_m φ_cm s_m``: the
+        true :class:`~hsi_torch.forward_model.SensingModel` of every reference pixel (float64).
 
         Args:
             truth: :meth:`ground_truth` output.
@@ -927,12 +929,11 @@ class CaptureRenderer:
         Returns:
             ``(V, 3, h, w)`` float64 noise-free DN above black.
         """
-        B = truth["B"].to(torch.float64)
-        dl = truth["band_widths_nm"].to(B)
-        phi = truth["phi"].to(B)
-        s = cube.to(B)
-        y = torch.einsum("vmhw,m,cm,mhw->vchw", B, dl, phi, s)
-        return y * truth["gain"].to(B)[:, None]
+        V, M, h, w = truth["B"].shape
+        model = SensingModel.from_factors(truth["B"], truth["gain"], truth["phi"],
+                                          truth["band_widths_nm"], dtype=torch.float64)
+        y = model.A(cube.to(torch.float64).reshape(M, h * w).T)  # (h·w, 3V)
+        return y.T.reshape(V, 3, h, w)
 
     def sample_views(self, image: torch.Tensor) -> torch.Tensor:
         """Bilinearly sample a sensor image ``(C, H, W)`` at every view's source point of every
