@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from hsi_torch.calibrate.registration import view_masks
 from hsi_torch.calibrate.transmittance import (
     brf_transmittance,
     match_wavelengths,
     to_reference_frame,
 )
+from hsi_torch.optics.geometry import view_masks
 
 
 def _tol(dtype):

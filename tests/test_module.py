@@ -114,15 +114,15 @@ def test_inside_a_torch_pipeline(device):
 def test_sampling_grid_buffer_recomputed_in_new_dtype():
     from test_pipeline import _tilted
 
-    from hsi_torch.recon.sensing import source_grid
+    from hsi_torch.optics.geometry import view_sample_grid
 
     bundle = _tilted(make_bundle())  # non-integer sampling positions
     mod = HSIReconstructor.from_bundle(bundle, beta=1.0)
     assert mod.sample_grid.dtype == torch.float32 and mod.sample_grid.shape[:2] == (1, 4)
     assert mod.sensing() is mod.sensing()  # view (and its work buffer) kept between calls
     mod = mod.double()
-    ref = source_grid(torch.as_tensor(bundle.view_homographies), mod.reference_bbox,
-                      mod.sensor_size, mod.pixel_index, dtype=torch.float64)
+    ref = view_sample_grid(torch.as_tensor(bundle.view_homographies), mod.reference_bbox,
+                           mod.sensor_size, mod.pixel_index, dtype=torch.float64)
     assert torch.equal(mod.sample_grid, ref)  # float64 positions, not float32 ones upcast
     assert not torch.equal(mod.sample_grid, ref.float().double())
     x = torch.rand(2, 3, 40, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(1))

@@ -10,14 +10,12 @@ import torch
 from hsi_torch.calibrate import registration as reg
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
-    apply_homography,
     detect_circle_grid,
     fit_homography,
     register_views,
     to_gray_uint8,
-    view_masks,
-    warp_views,
 )
+from hsi_torch.optics.geometry import apply_homography, view_masks, warp_views
 
 # ----------------------------------------------------------------------------- synthetic target
 

@@ -18,7 +18,6 @@ from hsi_torch.simulate.render import (
     fine_wavelengths,
     hat_weights,
     line_profile,
-    points_in_triangle,
 )
 from hsi_torch.simulate.scenes import ColorCheckerScene
 from hsi_torch.spectral import DEFAULT_GRID, band_widths
@@ -43,14 +42,6 @@ def test_line_profile_fwhm():
         torch.testing.assert_close(p, torch.tensor([0.5, 1.0, 0.5], dtype=torch.float64))
     with pytest.raises(ValueError, match="line shape"):
         line_profile(torch.tensor([550.0]), wl, 10.0, "box")
-
-
-def test_points_in_triangle_inset():
-    tri = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]], dtype=torch.float64)
-    p = torch.tensor([[1.0, 1.0], [0.5, 5.0], [6.0, 6.0]], dtype=torch.float64)
-    assert points_in_triangle(p, tri).tolist() == [True, True, False]
-    assert points_in_triangle(p, tri, inset=0.8).tolist() == [True, False, False]
-    assert points_in_triangle(p, tri.flip(0), inset=0.8).tolist() == [True, False, False]
 
 
 @pytest.fixture(scope="module")

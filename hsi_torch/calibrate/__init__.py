@@ -19,8 +19,6 @@ from hsi_torch.calibrate.registration import (
     detect_circle_grid,
     detect_in_views,
     register_views,
-    view_masks,
-    warp_views,
 )
 from hsi_torch.calibrate.response import (
     ResponseResult,
@@ -50,8 +48,6 @@ __all__ = [
     "detect_circle_grid",
     "detect_in_views",
     "register_views",
-    "view_masks",
-    "warp_views",
     "ResponseResult",
     "estimate_response",
     "estimate_response_field",

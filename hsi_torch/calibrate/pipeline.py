@@ -42,9 +42,7 @@ from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
     ViewRegistrationReport,
-    apply_homography,
     register_views,
-    warp_views,
 )
 from hsi_torch.calibrate.response import estimate_response_field
 from hsi_torch.calibrate.transmittance import (
@@ -54,6 +52,7 @@ from hsi_torch.calibrate.transmittance import (
 )
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
 from hsi_torch.errors import CalibrationError
+from hsi_torch.optics.geometry import apply_homography, warp_views
 from hsi_torch.spectral import SpectralGrid, band_widths
 
 __all__ = [

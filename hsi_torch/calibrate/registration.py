@@ -1,4 +1,4 @@
-"""Inter-view registration from asymmetric circle-grid captures, and batched warping of views.
+"""Inter-view registration from asymmetric circle-grid captures (OpenCV).
 
 Each view-channel of the kaleidoscope is a (possibly mirrored) projective copy of the reference
 view. Registration crops each view's triangle from every target image, undoes its mirror parity,
@@ -12,7 +12,8 @@ Convention:
     px of the reference view** (homogeneous column vectors), ``H_0 = I``; mirrored views have
     ``det(H_v) < 0`` (the parity flip is part of the homography). The reference frame is the sensor
     crop ``reference_bbox = (x0, y0, w, h)``: reference-frame pixel ``(j, i)`` is reference-sensor
-    pixel ``(x0 + j, y0 + i)``.
+    pixel ``(x0 + j, y0 + i)``. Applying the homographies, testing triangles and warping views
+    into the reference frame are :mod:`hsi_torch.optics.geometry`.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from dataclasses import asdict, dataclass, field
 import cv2
 import numpy as np
 import torch
-from kornia.geometry.transform import warp_perspective
+
+from hsi_torch.optics.geometry import apply_homography, triangle_edge_distance
 
 __all__ = [
     "BlobDetectorParams",
@@ -36,10 +38,6 @@ __all__ = [
     "detect_in_views",
     "register_views",
     "fit_homography",
-    "reference_to_source_matrices",
-    "view_masks",
-    "warp_views",
-    "apply_homography",
 ]
 
 
@@ -225,7 +223,7 @@ def crop_triangle(
     if fill_outside:
         ys, xs = np.mgrid[y0 : y1 + 1, x0 : x1 + 1]
         pts = np.stack([xs, ys], axis=-1).reshape(-1, 2).astype(np.float64)
-        dist = _signed_edge_distance(pts, tri).reshape(crop.shape)
+        dist = triangle_edge_distance(pts, tri).reshape(crop.shape)
         inside = dist >= 0
         if inside.any():
             fill = np.percentile(crop[inside], 95)
@@ -238,26 +236,6 @@ def crop_triangle(
     elif int(parity) != 1:
         raise ValueError(f"parity must be +1 or -1, got {parity}")
     return crop, T
-
-
-def _signed_edge_distance(pts: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Minimum signed distance (px, positive inside) of ``(N, 2)`` points to a triangle's edges."""
-    a, b, c = tri
-    area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-    s = 1.0 if area >= 0 else -1.0
-    out = np.full(len(pts), np.inf)
-    for p, q in ((a, b), (b, c), (c, a)):
-        e = q - p
-        cross = e[0] * (pts[:, 1] - p[1]) - e[1] * (pts[:, 0] - p[0])
-        out = np.minimum(out, s * cross / max(np.hypot(*e), 1e-12))
-    return out
-
-
-def apply_homography(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Apply a ``(3, 3)`` homography to ``(N, 2)`` points (numpy, float64)."""
-    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-    q = np.concatenate([p, np.ones((len(p), 1))], axis=1) @ np.asarray(H, dtype=np.float64).T
-    return q[:, :2] / q[:, 2:3]
 
 
 def detect_in_views(
@@ -495,161 +473,7 @@ def register_views(
     return RegistrationResult(torch.from_numpy(Hs), reports, rows.astype(np.float64))
 
 
-# --------------------------------------------------------------------------------------------
-# warping into the reference frame
-# --------------------------------------------------------------------------------------------
-
-
 def _as_numpy(x: np.ndarray | torch.Tensor | Sequence) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().numpy()
     return np.asarray(x)
-
-
-def _check_bbox(reference_bbox: Sequence[int] | torch.Tensor) -> tuple[int, int, int, int]:
-    bb = [int(v) for v in _as_numpy(reference_bbox).reshape(-1).tolist()]
-    if len(bb) != 4 or bb[2] <= 0 or bb[3] <= 0:
-        raise ValueError(f"reference_bbox must be (x0, y0, w, h) with w, h > 0, got {bb}")
-    return bb[0], bb[1], bb[2], bb[3]
-
-
-def _check_homographies(view_homographies: torch.Tensor) -> None:
-    if not isinstance(view_homographies, torch.Tensor):
-        raise TypeError(f"view_homographies must be a tensor, got {type(view_homographies)}")
-    if view_homographies.ndim != 3 or view_homographies.shape[1:] != (3, 3):
-        raise ValueError(
-            f"view_homographies must be (V, 3, 3), got {tuple(view_homographies.shape)}"
-        )
-
-
-def reference_to_source_matrices(
-    view_homographies: torch.Tensor, reference_bbox: Sequence[int] | torch.Tensor
-) -> torch.Tensor:
-    """Matrices ``M_v = T_crop · H_v`` mapping view-v sensor px → reference-frame px.
-
-    ``T_crop`` translates by ``(−x0, −y0)``. These are the ``M`` that
-    ``kornia.geometry.transform.warp_perspective`` expects (it samples ``src(M⁻¹ x)``).
-
-    Args:
-        view_homographies: ``(V, 3, 3)``.
-        reference_bbox: ``(x0, y0, w, h)``.
-
-    Returns:
-        ``(V, 3, 3)`` tensor, dtype/device of ``view_homographies``.
-    """
-    _check_homographies(view_homographies)
-    x0, y0, _, _ = _check_bbox(reference_bbox)
-    T = torch.eye(3, dtype=view_homographies.dtype, device=view_homographies.device)
-    T[0, 2] = -float(x0)
-    T[1, 2] = -float(y0)
-    return T @ view_homographies
-
-
-def view_masks(
-    view_homographies: torch.Tensor,
-    triangles: torch.Tensor,
-    reference_bbox: Sequence[int] | torch.Tensor,
-    sensor_size: Sequence[int] | None = None,
-    inset_px: float = 1.0,
-) -> torch.Tensor:
-    """Analytic per-view masks in the reference frame: pixels whose source lies inside the view.
-
-    A reference-frame pixel ``q`` belongs to view ``v`` when ``H_v⁻¹ (q + (x0, y0))`` lies inside
-    triangle ``v`` by at least ``inset_px`` (so bilinear sampling does not mix in the dark border)
-    and inside the sensor ``[0, W−1] × [0, H−1]`` when ``sensor_size = (H, W)`` is given.
-
-    Args:
-        view_homographies: ``(V, 3, 3)`` view sensor px → reference sensor px.
-        triangles: ``(V, 3, 2)`` sensor px.
-        reference_bbox: ``(x0, y0, w, h)``.
-        sensor_size: optional ``(H, W)``.
-        inset_px: inward margin from the triangle edges (px of the view's sensor image).
-
-    Returns:
-        ``(V, h, w)`` bool tensor on the device of ``view_homographies``.
-    """
-    _check_homographies(view_homographies)
-    x0, y0, w, h = _check_bbox(reference_bbox)
-    V = view_homographies.shape[0]
-    dev = view_homographies.device
-    tri = torch.as_tensor(triangles, device=dev, dtype=torch.float64)
-    if tri.shape != (V, 3, 2):
-        raise ValueError(f"triangles must be (V, 3, 2) = ({V}, 3, 2), got {tuple(tri.shape)}")
-    Hinv = torch.linalg.inv(view_homographies.to(torch.float64))  # ref sensor -> view sensor
-    ys, xs = torch.meshgrid(
-        torch.arange(h, device=dev, dtype=torch.float64) + y0,
-        torch.arange(w, device=dev, dtype=torch.float64) + x0,
-        indexing="ij",
-    )
-    P = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.ones_like(xs.reshape(-1))], 0)
-    Q = Hinv @ P  # (V, 3, h*w)
-    qz = Q[:, 2]
-    ok = qz.abs() > 1e-12
-    qx = Q[:, 0] / torch.where(ok, qz, torch.ones_like(qz))
-    qy = Q[:, 1] / torch.where(ok, qz, torch.ones_like(qz))
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]  # (V, 2)
-    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    sgn = torch.where(area >= 0, 1.0, -1.0).to(torch.float64)[:, None]
-    inside = ok.clone()
-    for p, q in ((a, b), (b, c), (c, a)):
-        e = q - p
-        cross = e[:, 0:1] * (qy - p[:, 1:2]) - e[:, 1:2] * (qx - p[:, 0:1])
-        dist = sgn * cross / e.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        inside &= dist >= inset_px
-    if sensor_size is not None:
-        Hs, Ws = (int(s) for s in sensor_size)
-        inside &= (qx >= 0) & (qx <= Ws - 1) & (qy >= 0) & (qy <= Hs - 1)
-    return inside.reshape(V, h, w)
-
-
-def warp_views(
-    image: torch.Tensor,
-    view_homographies: torch.Tensor,
-    reference_bbox: Sequence[int] | torch.Tensor,
-    triangles: torch.Tensor | None = None,
-    inset_px: float = 1.0,
-    mode: str = "bilinear",
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Warp every view of a sensor image into the reference frame with ONE kornia call.
-
-    The image is expanded (not copied) along the view axis and warped with
-    ``kornia.geometry.transform.warp_perspective(align_corners=True)`` using
-    ``M_v = T_crop · H_v`` (see :func:`reference_to_source_matrices`).
-
-    Args:
-        image: ``(C, H, W)`` or ``(B, C, H, W)`` sensor image(s), any float dtype/device.
-        view_homographies: ``(V, 3, 3)`` view sensor px → reference sensor px.
-        reference_bbox: ``(x0, y0, w, h)``.
-        triangles: optional ``(V, 3, 2)``; when given, the per-view validity masks are returned.
-        inset_px: inward triangle margin of the masks (see :func:`view_masks`).
-        mode: ``"bilinear"`` or ``"nearest"``.
-
-    Returns:
-        ``(warped, masks)``: ``warped`` is ``(V, C, h, w)`` for a ``(C, H, W)`` input or
-        ``(B, V, C, h, w)`` for a batch; ``masks`` is ``(V, h, w)`` bool (or ``None``).
-    """
-    if not isinstance(image, torch.Tensor):
-        raise TypeError(f"image must be a torch.Tensor, got {type(image)}")
-    if image.ndim not in (3, 4):
-        raise ValueError(f"image must be (C, H, W) or (B, C, H, W), got {tuple(image.shape)}")
-    if not image.is_floating_point():
-        raise TypeError(f"image must be floating point, got {image.dtype}")
-    _check_homographies(view_homographies)
-    x0, y0, w, h = _check_bbox(reference_bbox)
-    batched = image.ndim == 4
-    img4 = image if batched else image[None]
-    B, C, H, W = img4.shape
-    V = view_homographies.shape[0]
-    M = reference_to_source_matrices(
-        view_homographies.to(device=image.device, dtype=image.dtype), (x0, y0, w, h)
-    )
-    src = img4.reshape(1, B * C, H, W).expand(V, B * C, H, W)
-    out = warp_perspective(src, M, (h, w), mode=mode, align_corners=True)  # (V, B*C, h, w)
-    out = out.reshape(V, B, C, h, w)
-    out = out.permute(1, 0, 2, 3, 4) if batched else out[:, 0]
-    masks = None
-    if triangles is not None:
-        masks = view_masks(
-            view_homographies.to(image.device), triangles, (x0, y0, w, h), (H, W), inset_px
-        )
-    return out, masks

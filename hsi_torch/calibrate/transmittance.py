@@ -19,14 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from kornia.geometry.transform import warp_perspective
 
-from hsi_torch.calibrate.registration import (
-    _check_bbox,
-    _check_homographies,
-    reference_to_source_matrices,
-    view_masks,
-)
+from hsi_torch.optics.geometry import warp_views
 
 __all__ = [
     "TransmittanceResult",
@@ -226,28 +220,22 @@ def to_reference_frame(
     """
     if not isinstance(per_pixel_map, torch.Tensor) or per_pixel_map.ndim < 2:
         raise ValueError("per_pixel_map must be a tensor of shape (..., H, W)")
-    _check_homographies(view_homographies)
-    x0, y0, w, h = _check_bbox(reference_bbox)
     m = per_pixel_map if per_pixel_map.is_floating_point() else per_pixel_map.float()
     lead = m.shape[:-2]
     H, W = m.shape[-2:]
-    V = view_homographies.shape[0]
     C = 1
     for s in lead:
         C *= int(s)
     extra = 0
-    src = m.reshape(1, C, H, W)
+    src = m.reshape(C, H, W)
     if source_mask is not None:
         sm = torch.as_tensor(source_mask, device=m.device)
         if sm.shape != (H, W):
             raise ValueError(f"source_mask must be (H, W) = ({H}, {W}), got {tuple(sm.shape)}")
-        src = torch.cat([src, sm.to(m.dtype)[None, None]], dim=1)
+        src = torch.cat([src, sm.to(m.dtype)[None]], dim=0)
         extra = 1
-    M = reference_to_source_matrices(
-        view_homographies.to(device=m.device, dtype=m.dtype), (x0, y0, w, h)
-    )
-    out = warp_perspective(src.expand(V, C + extra, H, W), M, (h, w), mode=mode, align_corners=True)
-    masks = view_masks(view_homographies.to(m.device), triangles, (x0, y0, w, h), (H, W), inset_px)
+    out, masks = warp_views(src, view_homographies, reference_bbox, triangles, inset_px, mode)
+    V, h, w = out.shape[0], out.shape[-2], out.shape[-1]
     if extra:
         masks = masks & (out[:, C] >= 1.0 - 1e-3)
     maps = out[:, :C].reshape(V, *lead, h, w)

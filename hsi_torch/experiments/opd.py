@@ -379,7 +379,7 @@ def points_from_reference_frame(
     image-plane position is ``H_v⁻¹ (q + (x0, y0))`` (sensor px of view ``v``). Points where
     ``usable[v]`` (``(V, h, w)`` bool, e.g. the modulated mask) is False are dropped.
     """
-    from hsi_torch.optics.layout import apply_homography
+    from hsi_torch.optics.geometry import apply_homography
 
     V, M, h, w = B.shape
     x0, y0 = int(reference_bbox[0]), int(reference_bbox[1])
@@ -527,7 +527,7 @@ def match_points(pred: PredictedViews, xy: Tensor, wavelength_nm: float, k0_nm: 
         ``view_opd_group_nm`` (at the view's mean angles).
     """
     from hsi_torch.optics import trace_rays
-    from hsi_torch.simulate.render import points_in_triangle
+    from hsi_torch.optics.geometry import points_in_triangle
 
     lay = pred.layout
     xy = xy.to(torch.float64).cpu()

@@ -1,4 +1,5 @@
-"""Optics of the virtual prototype: birefringent filter, tapered kaleidoscope, view layout.
+"""Optics of the virtual prototype: birefringent filter, tapered kaleidoscope, view layout, and
+the plane geometry (homographies, triangles, view warping) every later stage shares.
 
 See ``docs/architecture.md`` for the coordinate conventions and ``docs/optics.md`` for the
 physics and default numbers.
@@ -15,6 +16,15 @@ from .birefringence import (
     sellmeier_index,
     uniaxial_opd,
     uniaxial_opd_small_angle,
+)
+from .geometry import (
+    apply_homography,
+    points_in_triangle,
+    reference_to_source_matrices,
+    triangle_edge_distance,
+    view_masks,
+    view_sample_grid,
+    warp_views,
 )
 from .kaleidoscope import (
     DEFAULT_CAMERA,
@@ -33,7 +43,6 @@ from .kaleidoscope import (
 )
 from .layout import (
     ViewLayout,
-    apply_homography,
     brf_free_mask,
     build_view_layout,
     fit_homography_dlt,
@@ -63,8 +72,14 @@ __all__ = [
     "sequence_codes",
     "trace_rays",
     "trace_sensor",
-    "ViewLayout",
     "apply_homography",
+    "points_in_triangle",
+    "reference_to_source_matrices",
+    "triangle_edge_distance",
+    "view_masks",
+    "view_sample_grid",
+    "warp_views",
+    "ViewLayout",
     "brf_free_mask",
     "build_view_layout",
     "fit_homography_dlt",

@@ -29,6 +29,8 @@ from typing import Any
 
 import torch
 
+from .geometry import points_in_triangle
+
 __all__ = [
     "KaleidoscopeGeometry",
     "CameraModel",
@@ -413,16 +415,6 @@ def diffuser_to_sensor_homography(
     return hmat.to(dtype or torch.get_default_dtype())
 
 
-def _point_in_triangle(p: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
-    """``p (N, 2)`` inside the counter-clockwise triangle ``tri (3, 2)`` (edges inclusive)."""
-    inside = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
-    for i in range(3):
-        a, b = tri[i], tri[(i + 1) % 3]
-        cross = (b[0] - a[0]) * (p[:, 1] - a[1]) - (b[1] - a[1]) * (p[:, 0] - a[0])
-        inside &= cross >= 0
-    return inside
-
-
 def _trace_chunk(
     geometry: KaleidoscopeGeometry,
     camera: CameraModel,
@@ -450,7 +442,7 @@ def _trace_chunk(
     p = torch.zeros(n, 3, device=device, dtype=dtype)
     p[:, 2] = geometry.pupil_z
     p = p + t_exit[:, None] * d
-    active = _point_in_triangle(p[:, :2], exit_tri)
+    active = points_in_triangle(p[:, :2], exit_tri)
     done = torch.zeros(n, dtype=torch.bool, device=device)
     code = torch.zeros(n, dtype=torch.long, device=device)
     nref = torch.zeros(n, dtype=torch.long, device=device)

@@ -20,22 +20,15 @@ import numpy as np
 import torch
 
 from .birefringence import BRFConfig
+from .geometry import apply_homography, points_in_triangle
 from .kaleidoscope import CameraModel, KaleidoscopeGeometry, RayTrace, trace_sensor
 
 __all__ = [
     "ViewLayout",
     "build_view_layout",
     "fit_homography_dlt",
-    "apply_homography",
     "brf_free_mask",
 ]
-
-
-def apply_homography(h: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Map ``pts (..., 2)`` by ``h (3, 3)`` (homogeneous column-vector convention)."""
-    h = h.to(device=pts.device, dtype=pts.dtype)
-    ph = torch.cat([pts, torch.ones_like(pts[..., :1])], dim=-1) @ h.T
-    return ph[..., :2] / ph[..., 2:]
 
 
 def _normaliser(p: torch.Tensor) -> torch.Tensor:
@@ -187,12 +180,7 @@ class ViewLayout:
             indexing="ij",
         )
         tri = self.triangles[view].to(device=device, dtype=torch.float64)
-        crosses = []
-        for i in range(3):
-            a, b = tri[i], tri[(i + 1) % 3]
-            crosses.append((b[0] - a[0]) * (ys - a[1]) - (b[1] - a[1]) * (xs - a[0]))
-        c = torch.stack(crosses)
-        return (c >= 0).all(0) | (c <= 0).all(0)
+        return points_in_triangle(torch.stack([xs, ys], -1).reshape(-1, 2), tri).reshape(h, w)
 
     def brf_free_mask_sensor(
         self, view: int = 0, device: torch.device | str | None = None

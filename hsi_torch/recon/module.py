@@ -39,6 +39,7 @@ from torch import Tensor, nn
 from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.errors import InputError
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.pipeline import (
     DEFAULT_BETA,
@@ -46,7 +47,7 @@ from hsi_torch.recon.pipeline import (
     prepare_input,
     reconstruct_batch,
 )
-from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing, source_grid
+from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing
 from hsi_torch.spectral import band_widths
 
 __all__ = ["HSIReconstructor", "ReconstructionOutput"]
@@ -195,7 +196,7 @@ class HSIReconstructor(nn.Module):
         self._sensing_cache = None
         if self.model_transmittance.dtype != dt:  # precision changed: refactorise in the new dtype
             # sampling positions recomputed in float64 from the bundle, not re-rounded
-            self.sample_grid = source_grid(
+            self.sample_grid = view_sample_grid(
                 self.homographies, self.reference_bbox, self.sensor_size, self.pixel_index,
                 dtype=self.model_transmittance.dtype,
             )  # fmt: skip
@@ -322,7 +323,7 @@ class HSIReconstructor(nn.Module):
             device=self.gram.device, dtype=self.gram.dtype,
         )  # fmt: skip
         obs = vals["view_mask"].reshape(V, -1)[:, pix].T.repeat_interleave(3, dim=1)
-        grid = source_grid(vals["homographies"], self.reference_bbox, self.sensor_size, pix,
+        grid = view_sample_grid(vals["homographies"], self.reference_bbox, self.sensor_size, pix,
                            dtype=model.dtype)  # fmt: skip
         p = prepare_nnls(model, mask=obs, beta=self.beta, diff_order=self.diff_order,
                          chunk_size=self.chunk_size)  # fmt: skip

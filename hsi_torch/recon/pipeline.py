@@ -7,7 +7,7 @@ Per frame (all pixels at once, no per-pixel Python):
    valid pixel in every view (:attr:`BundleSensing.sample_grid`, ``(1, V, P, 2)``) by *one*
    batched kornia call (``kornia.geometry.transform.remap``, bilinear, ``align_corners=True``,
    zero padding) → ``(B, 6, V, P)``. This equals the full-frame warp
-   (:func:`warp_capture`: :func:`hsi_torch.calibrate.registration.warp_views`, kornia
+   (:func:`warp_capture`: :func:`hsi_torch.optics.geometry.warp_views`, kornia
    ``warp_perspective``) at the valid pixels, without warping the invalid ones. A sample is
    *saturated* when any saturated sensor sample contributes to its bilinear footprint (warped
    weight ``> sat_threshold``, default ``1e-3``: weights that are 0 up to rounding of the
@@ -48,8 +48,8 @@ import torch
 from torch import Tensor
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
-from hsi_torch.calibrate.registration import warp_views
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
 

@@ -10,9 +10,9 @@ once and reused by every frame that shares the bundle:
   ``V·M`` numbers a pixel instead of the dense ``3V·M``);
 - the static observation mask ``obs_mask (P, 3V)`` (view ``v`` present and BRF-modulated at ``p``);
 - the sampling grid ``sample_grid (1, V, P, 2)``: where every valid pixel of every view lies on the
-  sensor (``H_v⁻¹`` applied to the reference sensor px, kornia's ``transform_points``, float64),
-  in grid_sample's normalised ``align_corners=True`` coordinates (:func:`source_grid`), so a frame
-  is warped by *one* ``kornia.geometry.transform.remap`` call over the valid pixels only;
+  sensor (``H_v⁻¹`` applied to the reference sensor px in float64), in grid_sample's normalised
+  ``align_corners=True`` coordinates (:func:`~hsi_torch.optics.geometry.view_sample_grid`), so a
+  frame is warped by *one* ``kornia.geometry.transform.remap`` call over the valid pixels only;
 - the solver factorisation (:func:`hsi_torch.recon.nnls.prepare_nnls`): per-pixel Gram matrices
   and their inverses for the static mask, one per ``(beta, diff_order)``.
 
@@ -46,13 +46,13 @@ from torch import Tensor
 
 from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 
 __all__ = [
     "BundleSensing",
     "precompute_sensing",
-    "source_grid",
     "load_bundle",
     "bundle_exposure",
     "clear_sensing_cache",
@@ -125,7 +125,7 @@ class BundleSensing:
         cfa_pattern: the bundle's CFA pattern (``settings["cfa_pattern"]``) or ``None``.
         sample_grid: ``(1, V, P, 2)`` (``dtype``, ``device``) sensor position of valid pixel ``p``
             in view ``v`` as normalised ``(x, y)`` (``align_corners=True``; see
-            :func:`source_grid`); ``None``: computed on first use.
+            :func:`~hsi_torch.optics.geometry.view_sample_grid`); ``None``: computed on first use.
         staging_lock: guards the per-bundle work buffer of :meth:`staging` (frames of one bundle
             may be reconstructed from several threads).
     """
@@ -174,7 +174,7 @@ class BundleSensing:
     def grid(self) -> Tensor:
         """:attr:`sample_grid`, computed (and kept) on first use."""
         if self.sample_grid is None:
-            self.sample_grid = source_grid(
+            self.sample_grid = view_sample_grid(
                 self.homographies, self.reference_bbox, self.sensor_size, self.pixel_index,
                 dtype=self.dtype,
             )  # fmt: skip
@@ -233,45 +233,6 @@ class BundleSensing:
             ts.append(self.sample_grid)
         return int(sum(t.numel() * t.element_size() for t in ts) + self.model.memory_bytes()
                    + self.problem.memory_bytes())
-
-
-def source_grid(
-    homographies: Tensor,
-    reference_bbox: Sequence[int],
-    sensor_size: Sequence[int],
-    pixel_index: Tensor,
-    dtype: torch.dtype | None = None,
-) -> Tensor:
-    """Sensor positions of the reconstructed pixels in every view, as a grid_sample grid.
-
-    Reference-frame pixel ``p = i·w + j`` is reference sensor px ``q = (j + x0, i + y0)``; in view
-    ``v`` it lies at ``H_v⁻¹ q`` (kornia ``transform_points``, float64), normalised for
-    ``grid_sample(align_corners=True)``: ``x_n = 2x/(W − 1) − 1``, ``y_n = 2y/(H − 1) − 1``
-    (kornia's ``normalize_pixel_coordinates``). Sampling the sensor image there is exactly what
-    :func:`hsi_torch.calibrate.registration.warp_views` (kornia ``warp_perspective`` with
-    ``M_v = T_crop·H_v``) computes at those pixels.
-
-    Args:
-        homographies: ``(V, 3, 3)`` view-v sensor px → reference sensor px.
-        reference_bbox: ``(x0, y0, w, h)``; sensor_size: ``(H, W)``.
-        pixel_index: ``(P,)`` flat row-major reference-frame indices.
-        dtype: of the result (default: ``homographies``' dtype).
-
-    Returns:
-        ``(1, V, P, 2)`` normalised ``(x, y)`` on ``pixel_index``'s device.
-    """
-    from kornia.geometry.conversions import normalize_pixel_coordinates
-    from kornia.geometry.linalg import transform_points
-
-    dev = pixel_index.device
-    x0, y0, w, _ = (int(v) for v in reference_bbox)
-    H, W = (int(v) for v in sensor_size)
-    Hv = homographies.to(device=dev, dtype=torch.float64)
-    V = Hv.shape[0]
-    q = torch.stack([pixel_index % w + x0, pixel_index // w + y0], dim=1).to(torch.float64)
-    src = transform_points(torch.linalg.inv(Hv), q.unsqueeze(0).expand(V, -1, -1))  # (V, P, 2)
-    grid = normalize_pixel_coordinates(src, H, W)
-    return grid.unsqueeze(0).to(dtype or homographies.dtype)
 
 
 def _factorise(

@@ -32,6 +32,7 @@ import torch
 from hsi_torch.config import to_dict, write_resolved_config
 from hsi_torch.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, write_capture
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
+from hsi_torch.optics.geometry import apply_homography
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
 from hsi_torch.simulate.config import SceneSpec, SimulateConfig
 from hsi_torch.simulate.render import CaptureRenderer, CaptureSpec, subpixel_offsets
@@ -241,8 +242,6 @@ def nominal_layout(renderer: CaptureRenderer, patch_mask: torch.Tensor) -> dict[
     c = torch.tensor(lay.brf_free_center_mm, dtype=torch.float64, device=hd.device)
     ang = torch.linspace(0, 2 * math.pi, 65, dtype=torch.float64, device=hd.device)[:-1]
     circ = c + lay.brf_free_radius_mm * torch.stack([ang.cos(), ang.sin()], -1)
-    from hsi_torch.optics.layout import apply_homography
-
     poly = apply_homography(hd, circ)
     centre = apply_homography(hd, c[None])[0]
     r_px = float((poly - centre).norm(dim=1).mean())

@@ -71,7 +71,12 @@ from hsi_torch.optics import (
     trace_rays,
 )
 from hsi_torch.optics.birefringence import polarizer_transmittance
-from hsi_torch.optics.layout import apply_homography
+from hsi_torch.optics.geometry import (
+    apply_homography,
+    points_in_triangle,
+    reference_pixel_points,
+    view_sample_grid,
+)
 from hsi_torch.optics.sensor import DiffuserModel, Exposure, SensorModel, cfa_index
 from hsi_torch.simulate.scenes import (
     CubeScene,
@@ -90,7 +95,6 @@ __all__ = [
     "hat_weights",
     "line_profile",
     "subpixel_offsets",
-    "points_in_triangle",
     "blur_scene",
 ]
 
@@ -156,21 +160,6 @@ def subpixel_offsets(s: int, device=None, dtype=None) -> torch.Tensor:
     o = (torch.arange(s, device=device, dtype=dtype or torch.float64) + 0.5) / s - 0.5
     yy, xx = torch.meshgrid(o, o, indexing="ij")
     return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
-
-
-def points_in_triangle(p: torch.Tensor, tri: torch.Tensor, inset: float = 0.0) -> torch.Tensor:
-    """``(N,)`` bool: ``p (N, 2)`` lies inside triangle ``tri (3, 2)`` (any orientation) at a
-    distance ≥ ``inset`` from all three edges."""
-    tri = tri.to(p)
-    c = tri.mean(0)
-    ok = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
-    for i in range(3):
-        a, b = tri[i], tri[(i + 1) % 3]
-        e = b - a
-        n = torch.stack([-e[1], e[0]]) / e.norm()
-        sgn = torch.sign(((c - a) * n).sum())
-        ok &= ((p - a) @ n) * sgn >= inset
-    return ok
 
 
 def blur_scene(
@@ -801,11 +790,7 @@ class CaptureRenderer:
     # ------------------------------------------------------------------ ground truth
     def reference_pixels(self) -> torch.Tensor:
         """``(h·w, 2)`` float64 sensor coordinates of the reference frame's pixels (row-major)."""
-        x0, y0, w, h = self.layout.reference_bbox
-        ys, xs = torch.meshgrid(
-            torch.arange(y0, y0 + h, device=self.device, dtype=torch.float64),
-            torch.arange(x0, x0 + w, device=self.device, dtype=torch.float64), indexing="ij")
-        return torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+        return reference_pixel_points(self.layout.reference_bbox, device=self.device)
 
     def reference_diffuser_points(self, supersample: int = 1) -> torch.Tensor:
         """``(h·w, s², 2)`` diffuser points (mm) of the reference pixels' sub-samples."""
@@ -938,16 +923,12 @@ class CaptureRenderer:
     def sample_views(self, image: torch.Tensor) -> torch.Tensor:
         """Bilinearly sample a sensor image ``(C, H, W)`` at every view's source point of every
         reference pixel → ``(V, C, h, w)`` (NaN outside the sensor)."""
-        x0, y0, w, h = self.layout.reference_bbox
-        H, W = self.sensor_size
-        q = self.reference_pixels()
-        grids = []
-        for v in range(self.layout.num_views):
-            p = self.layout.reference_to_view(v, q)
-            g = torch.stack([2 * p[:, 0] / (W - 1) - 1, 2 * p[:, 1] / (H - 1) - 1], -1)
-            grids.append(g.reshape(h, w, 2))
-        g = torch.stack(grids).to(image)
-        img = image.unsqueeze(0).expand(len(grids), -1, -1, -1)
+        _, _, w, h = self.layout.reference_bbox
+        V = self.layout.num_views
+        g = view_sample_grid(self.layout.view_homographies.to(self.device),
+                             self.layout.reference_bbox, self.sensor_size)  # (1, V, h·w, 2)
+        g = g[0].reshape(V, h, w, 2).to(image)
+        img = image.unsqueeze(0).expand(V, -1, -1, -1)
         out = torch.nn.functional.grid_sample(img, g, mode="bilinear", padding_mode="zeros",
                                               align_corners=True)
         outside = (g.abs() > 1).any(-1)
