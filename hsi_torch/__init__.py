@@ -17,7 +17,7 @@ _LAZY = {
     "DEFAULT_GRID": "hsi_torch.spectral",
     "HSIReconstructor": "hsi_torch.recon.module",
     "Reconstructor": "hsi_torch.recon.pipeline",
-    "CalibrationBundle": "hsi_torch.calibrate.bundle",
+    "CalibrationBundle": "hsi_torch.io.bundle",
 }
 
 __all__ = ["__version__", *_LAZY]

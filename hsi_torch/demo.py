@@ -440,14 +440,16 @@ def demo(
         The summary dict written to ``OUT/summary.json``.
     """
     from hsi_torch.calibrate.config import CalibrateConfig
-    from hsi_torch.calibrate.pipeline import calibrate_capture_set, score_against_truth
+    from hsi_torch.calibrate.pipeline import calibrate_capture_set
     from hsi_torch.config import load_config
+    from hsi_torch.experiments.calibration_scores import score_against_truth
     from hsi_torch.io import save_cube_formats
     from hsi_torch.io.atomic import atomic_write_json
+    from hsi_torch.io.capture_set import read_truth
     from hsi_torch.recon import Reconstructor
     from hsi_torch.resources import shipped_config
     from hsi_torch.simulate import SimulateConfig, simulate_capture_set
-    from hsi_torch.simulate.oracle import bundle_from_truth, load_truth
+    from hsi_torch.simulate.oracle import bundle_from_truth
 
     cfg = cfg or DemoConfig()
     out = Path(out)
@@ -489,14 +491,14 @@ def demo(
     plot_calibration(bundle, out / "calib_diagnostics.png", report=report)
     log("      " + str(report).replace("\n", "\n      "))
     cal_scores = score_against_truth(bundle, cap_dir)
-    from hsi_torch.calibrate.pipeline import format_scores
+    from hsi_torch.experiments.calibration_scores import format_scores
 
     log("      calibration vs truth:\n      " + format_scores(cal_scores).replace("\n", "\n      "))
     tm["calibrate"] = time.perf_counter() - t0
 
     # ---- 3./4. reconstruct and score ---------------------------------------------------------
     t0 = time.perf_counter()
-    truth, tmeta = load_truth(cap_dir)
+    truth, tmeta = read_truth(cap_dir)
     oracle = bundle_from_truth(cap_dir)
     recs = {
         "calibrated": Reconstructor(bundle, beta=cfg.beta, diff_order=cfg.diff_order,

@@ -47,13 +47,17 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
     """
     import torch
 
-    from hsi_torch.calibrate.pipeline import format_scores, score_against_truth, targets_met
     from hsi_torch.demo import _previews, _scene_specs, erode_px, score_scene
+    from hsi_torch.experiments.calibration_scores import (
+        format_scores,
+        score_against_truth,
+        targets_met,
+    )
     from hsi_torch.io import load_cube
     from hsi_torch.io.atomic import atomic_write_json
+    from hsi_torch.io.capture_set import read_truth
     from hsi_torch.profiling import run_child
     from hsi_torch.resources import shipped_config
-    from hsi_torch.simulate.oracle import load_truth
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -103,7 +107,7 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
     t0 = time.perf_counter()
     cal_scores = score_against_truth(cal_dir / "calib.npz", cap_dir)
     log("      calibration vs truth:\n      " + format_scores(cal_scores).replace("\n", "\n      "))
-    truth, _ = load_truth(cap_dir)
+    truth, _ = read_truth(cap_dir)
     wl = np.asarray(truth["wavelengths_nm"], np.float64)
     results: dict[str, Any] = {}
     for spec in scenes:

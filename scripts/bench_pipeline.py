@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from scipy.optimize import nnls
 
-from hsi_torch.calibrate import CalibrationBundle
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.profiling import RssSampler, peak_rss_gib
 from hsi_torch.recon.pipeline import (
     Reconstructor,

@@ -44,10 +44,11 @@ import numpy as np
 import torch
 
 from hsi_torch.demo import _interior, colorchecker_scores, cube_scores, erode_px
+from hsi_torch.io.capture_set import read_truth
 from hsi_torch.profiling import run_child
 from hsi_torch.recon.pipeline import DEFAULT_BETA, Reconstructor, assemble_cube
 from hsi_torch.resources import real_data_dir, shipped_config
-from hsi_torch.simulate.oracle import bundle_from_truth, load_truth
+from hsi_torch.simulate.oracle import bundle_from_truth
 
 NO_NOISE = ["sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false"]
 
@@ -155,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
                              str(noisy), "--out", str(calibrated.parent), "--no-progress"])
             if run.returncode != 0:
                 raise SystemExit("calibration failed")
-    truth, _ = load_truth(noisy)
+    truth, _ = read_truth(noisy)
     oracle = bundle_from_truth(noisy)
     rows = []
 

@@ -4,9 +4,10 @@
     python scripts/score_calibration.py --calibrate CAPTURES_DIR [--set key=value ...]
 
 With ``--calibrate`` the bundle is made first (the shipped ``calibrate.yaml`` + overrides, nothing
-written). Prints the issue's targets (B < 2 % RMS, φ correlation > 0.99, g < 2 %, homography
-< 0.3 px) with the definitions of :func:`hsi_torch.calibrate.pipeline.score_against_truth`;
-exit status 1 when a target is missed.
+written). Prints the calibration targets (B < 2 % RMS, φ correlation > 0.99, g < 2 %,
+homography < 0.3 px) with the definitions of
+:func:`hsi_torch.experiments.calibration_scores.score_against_truth`; exit status 1 when a target
+is missed.
 """
 
 from __future__ import annotations
@@ -17,7 +18,11 @@ import sys
 import time
 from pathlib import Path
 
-from hsi_torch.calibrate.pipeline import format_scores, score_against_truth, targets_met
+from hsi_torch.experiments.calibration_scores import (
+    format_scores,
+    score_against_truth,
+    targets_met,
+)
 from hsi_torch.resources import shipped_config
 
 

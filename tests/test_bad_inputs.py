@@ -401,7 +401,7 @@ def test_bundle_path_that_is_a_folder(ws, capsys):
     assert _rec(tmp / "caps", tmp / "out", str(caps / "a.npy")) == 1
     err = capsys.readouterr().err
     assert f"calibration bundle {caps} is a folder" in err and "does not exist" not in err
-    from hsi_torch.calibrate import CalibrationBundle
+    from hsi_torch.io.bundle import CalibrationBundle
 
     with pytest.raises(FileFormatError, match="is a folder"):
         CalibrationBundle.load(caps)

@@ -10,13 +10,13 @@ import pytest
 import torch
 
 import hsi_torch
-from hsi_torch.calibrate.bundle import (
+from hsi_torch.calibrate.validity import valid_region
+from hsi_torch.io.bundle import (
     SCHEMA_VERSION,
     CalibrationBundle,
     file_sha256,
     make_provenance,
 )
-from hsi_torch.calibrate.validity import valid_region
 
 
 def _bundle(V=3, M=5, h=4, w=6, seed=0, **kw) -> CalibrationBundle:

@@ -12,16 +12,15 @@ import numpy as np
 import pytest
 import torch
 
-from hsi_torch.calibrate import CalibrationBundle, file_sha256
 from hsi_torch.calibrate.cli_entry import output_paths
-from hsi_torch.calibrate.pipeline import (
-    find_captures,
+from hsi_torch.cli import main
+from hsi_torch.experiments.calibration_scores import (
     format_scores,
     score_against_truth,
     targets_met,
-    wavelength_from_name,
 )
-from hsi_torch.cli import main
+from hsi_torch.io.bundle import CalibrationBundle, file_sha256
+from hsi_torch.io.capture_set import read_capture_set, wavelength_from_name
 from hsi_torch.resources import shipped_config
 
 
@@ -201,7 +200,7 @@ def test_plain_folders_without_manifest(sim: Path, calibrated: Path, tmp_path: P
     (or the TIFF metadata): same bundle as with the manifest."""
     d = _copy_set(sim, tmp_path / "set")
     (d / "manifest.json").unlink()
-    cs = find_captures(d)
+    cs = read_capture_set(d)
     assert cs.manifest is None and len(cs.scan) == 25 and len(cs.white) == 3
     assert sorted(w for _, w in cs.scan) == [430.0 + 10 * k for k in range(25)]
     assert wavelength_from_name("mono_552p5nm.dng") == 552.5

@@ -36,10 +36,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_pipeline import make_bundle
 
-from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.errors import HSIError
 from hsi_torch.io import load_cube, read_any, save_cube
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.captures import LinearCapture
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.spectral import difference_matrix

@@ -8,16 +8,9 @@ import math
 import pytest
 import torch
 
-from hsi_torch.experiments.opd import (
-    OPDConfig,
-    band_centre_nm,
-    estimate_opd,
-    group_opd_nm,
-    match_points,
-    predicted_views,
-    read_points_csv,
-    run_opd,
-)
+from hsi_torch.experiments.opd import OPDConfig, run_opd
+from hsi_torch.experiments.opd_estimate import band_centre_nm, estimate_opd, group_opd_nm
+from hsi_torch.experiments.opd_points import match_points, predicted_views, read_points_csv
 
 WL = torch.arange(430.0, 671.0, 10.0, dtype=torch.float64)
 OPDS = [2000.0, 2600.0, 3300.0, 4100.0, 4800.0, 5500.0]

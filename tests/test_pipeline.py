@@ -16,7 +16,7 @@ import pytest
 import torch
 from scipy.optimize import nnls
 
-from hsi_torch.calibrate import CalibrationBundle
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.raw import demosaic_bilinear, mosaic
 from hsi_torch.recon import sensing as sensing_mod
 from hsi_torch.recon.pipeline import (

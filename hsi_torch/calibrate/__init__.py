@@ -1,16 +1,11 @@
 """Calibration: monochromator scan → B_v(p, λ), white shots → φ^c and g_v(p), circle grids →
-view homographies, valid region, and the versioned :class:`CalibrationBundle`.
+view homographies, valid region → the versioned calibration bundle
+(:class:`hsi_torch.io.bundle.CalibrationBundle`, the file format reconstruction reads).
 
 All functions are array-in/array-out (torch tensors, numpy for OpenCV detections); the
 ``hsi-torch calibrate`` command wires them to capture sets.
 """
 
-from hsi_torch.calibrate.bundle import (
-    SCHEMA_VERSION,
-    CalibrationBundle,
-    file_sha256,
-    make_provenance,
-)
 from hsi_torch.calibrate.registration import (
     BlobDetectorParams,
     GridDetectorConfig,
@@ -37,10 +32,6 @@ from hsi_torch.calibrate.transmittance import (
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
 
 __all__ = [
-    "SCHEMA_VERSION",
-    "CalibrationBundle",
-    "file_sha256",
-    "make_provenance",
     "BlobDetectorParams",
     "GridDetectorConfig",
     "RegistrationResult",

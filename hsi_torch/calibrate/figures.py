@@ -55,8 +55,8 @@ def plot_calibration(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from hsi_torch.calibrate.bundle import CalibrationBundle
     from hsi_torch.io.atomic import atomic_write_bytes
+    from hsi_torch.io.bundle import CalibrationBundle
 
     b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
     wl = np.asarray(b.wavelengths_nm, dtype=np.float64)

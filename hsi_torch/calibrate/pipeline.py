@@ -1,219 +1,107 @@
-"""Calibration captures → :class:`CalibrationBundle`: the work behind ``hsi-torch calibrate``.
+"""Calibration captures → :class:`~hsi_torch.io.bundle.CalibrationBundle`: the work behind
+``hsi-torch calibrate``, one function per stage, all on the device/dtype of the config.
 
-Steps (DESIGN §2, issue 4), all on the device/dtype of the config:
-
-1. **Inputs.** A capture folder with ``manifest.json`` (as written by ``hsi-torch simulate``) or,
-   for a real device, the folders ``scan/``, ``white/``, ``grid/`` and optionally ``dark/`` (scan
-   wavelengths from the file's metadata key ``wavelength_nm`` or its name, e.g.
-   ``scan_550nm.tif``, ``scan_552p5nm.dng``). Always needed: ``nominal_layout.json`` (view
-   triangles, parity, reference bbox, BRF-free patch) and the BRF-free mask (``brf_free_mask.png``
-   or the layout's disk polygon, eroded). Every capture is read linearly with
+1. **Inputs** (:func:`hsi_torch.io.capture_set.read_capture_set`): a capture folder with
+   ``manifest.json`` (as written by ``hsi-torch simulate``) or, for a real device, the folders
+   ``scan/``, ``white/``, ``grid/`` and optionally ``dark/``, plus ``nominal_layout.json`` (view
+   triangles, parity, reference bbox, BRF-free patch) and the BRF-free mask
+   (``brf_free_mask.png`` or the layout's disk polygon, eroded). :func:`select_scan_frames`
+   gives every band of the grid its scan frame (wavelength from the manifest entry, the file name
+   such as ``scan_550nm.tif``, or the file's metadata ``wavelength_nm``);
+   :func:`brf_free_patch` builds the patch masks. Every capture is read linearly with
    :func:`hsi_torch.io.read_any` (black level subtracted, Bayer → **bilinear demosaic**,
    saturation mask) and checked against the layout's sensor size; the dark frames' mean is then
    subtracted (``dark: per_pixel | mean | none``).
-2. **Registration** from the circle-grid shots (:func:`register_views`), per-view report.
-3. **BRF transmittance** from the scan (:func:`brf_transmittance`, chunked over frames), carried
-   into the reference frame (:func:`to_reference_frame`, one kornia call) with its masks.
-4. **Response** φ^c and the gain field g_v(p) from the white shots, registered with
-   :func:`warp_views` (:func:`estimate_response_field`).
+2. **Registration** (:func:`register_grid_shots`) from the circle-grid shots, flat-fielded by the
+   white shots (:func:`~hsi_torch.calibrate.registration.register_views`), per-view report.
+3. **BRF transmittance** (:func:`calibrate_transmittance`) from the scan
+   (:func:`~hsi_torch.calibrate.transmittance.brf_transmittance`, chunked over frames), carried
+   into the reference frame (:func:`~hsi_torch.calibrate.transmittance.to_reference_frame`, one
+   kornia call) with its masks.
+4. **Response** φ^c and the gain field g_v(p) (:func:`calibrate_response`) from the white shots,
+   registered with :func:`~hsi_torch.optics.geometry.warp_views`
+   (:func:`~hsi_torch.calibrate.response.estimate_response_field`).
 5. **Valid region** (≥ ``min_views`` BRF-modulated views) and the bundle with settings and
-   provenance (SHA-256 of every input, software version).
+   provenance (SHA-256 of every input, software version) (:func:`assemble_bundle`).
 
-:func:`score_against_truth` compares a bundle with a simulated set's ground truth.
+:func:`calibrate_capture_set` runs the stages in order. Scoring a bundle against a simulated
+set's ground truth is :mod:`hsi_torch.experiments.calibration_scores`.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import re
 import time
 import warnings
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
-from hsi_torch.calibrate.bundle import CalibrationBundle, make_provenance
+from hsi_torch import refdata
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
+    RegistrationResult,
     ViewRegistrationReport,
     register_views,
 )
-from hsi_torch.calibrate.response import estimate_response_field
+from hsi_torch.calibrate.response import ResponseResult, estimate_response_field
 from hsi_torch.calibrate.transmittance import (
     brf_transmittance,
     match_wavelengths,
     to_reference_frame,
 )
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
+from hsi_torch.config import to_dict
+from hsi_torch.console import progress_bar, progress_enabled
 from hsi_torch.errors import CalibrationError
-from hsi_torch.optics.geometry import apply_homography, warp_views
+from hsi_torch.io import read_any, read_capture
+from hsi_torch.io.bundle import CalibrationBundle, make_provenance
+from hsi_torch.io.capture_set import (
+    CaptureSet,
+    NominalLayout,
+    read_capture_set,
+    read_mask_png,
+    wavelength_from_name,
+)
+from hsi_torch.optics.geometry import warp_views
 from hsi_torch.spectral import SpectralGrid, band_widths
 
 __all__ = [
-    "CaptureSet",
     "CalibrationReport",
-    "find_captures",
-    "wavelength_from_name",
+    "PatchMasks",
+    "TransmittanceStage",
+    "ResponseStage",
+    "select_scan_frames",
+    "brf_free_patch",
+    "register_grid_shots",
+    "calibrate_transmittance",
+    "calibrate_response",
+    "assemble_bundle",
     "calibrate_capture_set",
-    "score_against_truth",
-    "format_scores",
-    "targets_met",
 ]
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
-_SUFFIXES = (
-    ".tif", ".tiff", ".npy", ".npz", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".kdc", ".raf",
-    ".orf", ".rw2", ".pef", ".srw", ".raw", ".3fr", ".iiq", ".erf", ".mrw", ".nrw", ".x3f",
-)  # fmt: skip
-_WL_RE = re.compile(r"(\d+(?:[.p]\d+)?)\s*nm", re.IGNORECASE)
 #: Saturated samples are replaced by this value before :func:`brf_transmittance` (which then
 #: excludes them through ``saturation_level``); it never enters a mean.
 _SAT_SENTINEL = 1e20
 
+Tick = Callable[..., None]
+
+
+def _no_tick(n: int = 1, stage: str | None = None) -> None:
+    """A progress callback that does nothing."""
+
 
 # =============================================================================================
-# inputs
+# reading captures
 # =============================================================================================
-
-
-@dataclass
-class CaptureSet:
-    """The files of one calibration capture set.
-
-    Attributes:
-        root: the captures folder.
-        scan: ``[(file, wavelength_nm or None)]`` monochromator frames.
-        white, grid, dark: files of the white-reference shots, circle-grid shots, dark frames.
-        layout: the parsed nominal layout; ``layout_path`` its file.
-        brf_free_mask_path: PNG of usable BRF-free pixels, or ``None`` (use the layout polygon).
-        manifest: the parsed ``manifest.json`` or ``None`` (plain folders).
-    """
-
-    root: Path
-    scan: list[tuple[Path, float | None]]
-    white: list[Path]
-    grid: list[Path]
-    dark: list[Path]
-    layout: dict[str, Any]
-    layout_path: Path
-    brf_free_mask_path: Path | None
-    manifest: dict[str, Any] | None = None
-
-    def files(self) -> dict[str, Path]:
-        """Every input file, labelled by its path relative to the folder (for provenance)."""
-        out: dict[str, Path] = {}
-        paths = [p for p, _ in self.scan] + self.white + self.grid + self.dark + [self.layout_path]
-        if self.brf_free_mask_path is not None:
-            paths.append(self.brf_free_mask_path)
-        for p in paths:
-            try:
-                key = str(p.resolve().relative_to(self.root.resolve()))
-            except ValueError:
-                key = str(p)
-            out[key] = p
-        return out
-
-
-def wavelength_from_name(name: str) -> float | None:
-    """Wavelength (nm) in a file name such as ``scan_550nm.tif`` or ``mono_552p5nm.dng``."""
-    m = _WL_RE.findall(Path(name).stem)
-    if not m:
-        return None
-    return float(m[-1].replace("p", "."))
-
-
-def _folder_files(folder: Path) -> list[Path]:
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _SUFFIXES)
-
-
-def find_captures(captures_dir: str | Path, cfg: CalibrateConfig | None = None) -> CaptureSet:
-    """Locate the calibration inputs of a capture folder (manifest or plain folders).
-
-    Raises:
-        FileNotFoundError: the folder, the layout or a listed capture is missing.
-        ValueError: no scan / white / grid captures (naming what is missing).
-    """
-    cfg = cfg or CalibrateConfig()
-    root = Path(captures_dir)
-    if not root.is_dir():
-        raise FileNotFoundError(f"captures folder {root} does not exist")
-    manifest = None
-    mpath = root / "manifest.json"
-    scan: list[tuple[Path, float | None]] = []
-    white: list[Path] = []
-    grid: list[Path] = []
-    dark: list[Path] = []
-    if mpath.is_file():
-        try:
-            manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{mpath}: not valid JSON ({exc})") from exc
-        for k, e in enumerate(manifest.get("captures", [])):
-            if "file" not in e or "type" not in e:
-                raise ValueError(f"{mpath}: captures[{k}] needs 'file' and 'type'")
-            p = root / e["file"]
-            if not p.is_file():
-                raise FileNotFoundError(f"{mpath}: captures[{k}] file {p} does not exist")
-            t = e["type"]
-            if t == "scan":
-                wl = e.get("wavelength_nm")
-                scan.append((p, None if wl is None else float(wl)))
-            elif t == "white":
-                white.append(p)
-            elif t == "grid":
-                grid.append(p)
-            elif t == "dark":
-                dark.append(p)
-    else:
-        scan = [(p, wavelength_from_name(p.name)) for p in _folder_files(root / "scan")]
-        white = _folder_files(root / "white")
-        grid = _folder_files(root / "grid")
-        dark = _folder_files(root / "dark")
-    where = "manifest.json" if manifest is not None else "folders scan/, white/, grid/"
-    for name, lst in (("monochromator scan", scan), ("white-reference", white),
-                      ("circle-grid", grid)):  # fmt: skip
-        if not lst:
-            raise ValueError(f"captures folder {root}: no {name} captures (looked in {where})")
-
-    lpath = Path(cfg.layout) if cfg.layout is not None else root / "nominal_layout.json"
-    if manifest is not None and cfg.layout is None and manifest.get("nominal_layout"):
-        lpath = root / manifest["nominal_layout"]
-    if not lpath.is_file():
-        raise FileNotFoundError(
-            f"nominal layout {lpath} not found: calibration needs the view triangles, parity, "
-            "reference_bbox and BRF-free patch (see docs/calibration.md)"
-        )
-    try:
-        layout = json.loads(lpath.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{lpath}: not valid JSON ({exc})") from exc
-    for key in ("sensor_size", "triangles_px", "parity", "reference_bbox"):
-        if key not in layout:
-            raise ValueError(f"nominal layout {lpath}: missing key '{key}'")
-
-    mask_path: Path | None = None
-    if cfg.brf_free_mask is not None:
-        mask_path = Path(cfg.brf_free_mask)
-        if not mask_path.is_file():
-            raise FileNotFoundError(f"BRF-free mask {mask_path} (config brf_free_mask) not found")
-    else:
-        patch = layout.get("brf_free_patch") or {}
-        cands = []
-        if patch.get("usable_mask"):
-            cands.append(lpath.parent / patch["usable_mask"])
-        if manifest is not None and manifest.get("brf_free_mask"):
-            cands.append(root / manifest["brf_free_mask"])
-        cands.append(root / "brf_free_mask.png")
-        mask_path = next((c for c in cands if c.is_file()), None)
-    return CaptureSet(root, scan, white, grid, dark, layout, lpath, mask_path, manifest)
 
 
 class _Reader:
@@ -225,8 +113,6 @@ class _Reader:
         self.cfa_pattern: str | None = None
 
     def read(self, path: Path) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
-        from hsi_torch.io import read_any
-
         cap = read_any(
             path, expected_size=self.size, demosaic=self.cfg.demosaic,
             cfa_pattern=self.cfg.cfa_pattern, black_level=self.cfg.black_level,
@@ -274,8 +160,6 @@ class CalibrationReport:
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        from dataclasses import asdict
-
         d = asdict(self)
         d["valid"] = asdict(self.valid)
         return d
@@ -321,31 +205,9 @@ class CalibrationReport:
 # =============================================================================================
 
 
-def _layout_arrays(layout: dict[str, Any], path: Path):
-    tri = np.asarray(layout["triangles_px"], dtype=np.float64)
-    par = np.asarray(layout["parity"], dtype=np.int64).reshape(-1)
-    bbox = [int(v) for v in layout["reference_bbox"]]
-    size = tuple(int(v) for v in layout["sensor_size"])
-    if tri.ndim != 3 or tri.shape[1:] != (3, 2):
-        raise ValueError(f"nominal layout {path}: triangles_px must be (V, 3, 2), got {tri.shape}")
-    if par.shape != (tri.shape[0],) or not np.all(np.isin(par, (-1, 1))):
-        raise ValueError(f"nominal layout {path}: parity must be {tri.shape[0]} values of ±1")
-    if len(bbox) != 4 or bbox[2] <= 0 or bbox[3] <= 0:
-        raise ValueError(f"nominal layout {path}: reference_bbox must be (x0, y0, w, h)")
-    if len(size) != 2:
-        raise ValueError(f"nominal layout {path}: sensor_size must be (H, W)")
-    ref = int(layout.get("reference_view", 0))
-    if ref != 0:
-        raise ValueError(f"nominal layout {path}: reference_view must be 0 (got {ref})")
-    seqs = [tuple(int(i) for i in s) for s in layout.get("reflection_sequences", [])]
-    return tri, par, bbox, size, seqs
-
-
 def _polygon_mask(poly: np.ndarray, size: tuple[int, int], offset_px: float) -> np.ndarray:
     """``(H, W)`` bool: pixel centres inside the polygon by at least ``offset_px`` (negative:
     dilated by ``−offset_px``)."""
-    import cv2
-
     H, W = size
     inside = np.zeros((H, W), np.uint8)
     cv2.fillPoly(inside, [np.round(poly * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
@@ -358,396 +220,17 @@ def _polygon_mask(poly: np.ndarray, size: tuple[int, int], offset_px: float) -> 
     return dist <= -offset_px
 
 
-def _read_mask_png(path: Path, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
-    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise ValueError(f"BRF-free mask {path}: not a readable image")
-    if m.shape != tuple(size):
-        raise ValueError(
-            f"BRF-free mask {path}: size {m.shape} does not match the sensor size {tuple(size)}"
-        )
-    return m > 127
-
-
 def _camera_prior(name: str, wl: torch.Tensor) -> torch.Tensor:
     if name.lower() == "flat":
         return torch.ones(3, wl.numel(), dtype=wl.dtype, device=wl.device)
-    from hsi_torch import refdata
-
     f = refdata.camera_sensitivities(name, wl.cpu().to(torch.float64), extrapolate="edge")
     return torch.as_tensor(f, dtype=wl.dtype).to(wl.device)
 
 
 def _progress(enabled: bool, total: int):
-    from hsi_torch.console import progress_bar, progress_enabled
-
     if not progress_enabled(enabled):
         return None
     return progress_bar(total=total, desc="calibrating", unit="step", leave=False)
-
-
-# =============================================================================================
-# the calibration
-# =============================================================================================
-
-
-def calibrate_capture_set(
-    captures_dir: str | Path,
-    cfg: CalibrateConfig | None = None,
-    *,
-    device: str | None = None,
-    progress: bool | None = None,
-) -> tuple[CalibrationBundle, CalibrationReport]:
-    """Calibrate from a capture folder (see the module docstring); writes nothing.
-
-    Args:
-        captures_dir: folder with ``manifest.json`` or ``scan/``, ``white/``, ``grid/`` folders,
-            plus ``nominal_layout.json`` (or ``cfg.layout``).
-        cfg: settings (:class:`CalibrateConfig`; defaults when ``None``).
-        device: overrides ``cfg.device``.
-        progress: overrides ``cfg.progress`` (tqdm bar on stderr, one step per file read).
-
-    Returns:
-        ``(bundle, report)``: the :class:`CalibrationBundle` (``settings`` hold the grid, β's,
-        ``white_exposure_s``, ``cfa_pattern``, detector parameters; ``provenance`` the SHA-256 of
-        every input) and a :class:`CalibrationReport`.
-
-    Raises:
-        ValueError / FileNotFoundError naming the file, wavelength, view or key at fault: missing
-        grid wavelengths, no BRF-free patch (or one that is not BRF-free), a grid found in no
-        image for some view, captures of another sensor size, unreadable files.
-    """
-    from hsi_torch.config import to_dict
-
-    cfg = cfg or CalibrateConfig()
-    t_all = time.perf_counter()
-    tm: dict[str, float] = {}
-    notes: list[str] = []
-    dev = torch.device(device or cfg.device)
-    dt = _DTYPES[cfg.dtype]
-    cs = find_captures(captures_dir, cfg)
-    tri, par, bbox, size, seqs = _layout_arrays(cs.layout, cs.layout_path)
-    V = tri.shape[0]
-    x0, y0, w, h = bbox
-    grid = SpectralGrid.uniform(cfg.grid_start_nm, cfg.grid_stop_nm, cfg.grid_step_nm)
-    wl = grid.wavelengths(device=dev, dtype=dt)
-    M = wl.numel()
-
-    # ---- scan wavelengths (checked before any image is read) --------------------------------
-    scan = list(cs.scan)
-    for i, (p, lam) in enumerate(scan):
-        if lam is None:
-            from hsi_torch.io import read_capture
-
-            lam = wavelength_from_name(p.name)
-            if lam is None and p.suffix.lower() in (".tif", ".tiff", ".npy", ".npz"):
-                _, meta = read_capture(p)
-                lam = meta.get("wavelength_nm")
-            if lam is None:
-                raise ValueError(
-                    f"scan frame {p}: wavelength unknown (no 'wavelength_nm' in its manifest "
-                    "entry or metadata, and no '<number>nm' in the file name, e.g. scan_550nm.tif)"
-                )
-            scan[i] = (p, float(lam))
-    scan_nm = [float(lam) for _, lam in scan]  # type: ignore[arg-type]
-    try:
-        idx = match_wavelengths(scan_nm, wl.cpu(), cfg.transmittance.wavelength_tol_nm)
-    except ValueError as exc:
-        raise ValueError(f"captures {cs.root}: {exc}") from exc
-    scan_sel = [scan[int(i)] for i in idx]
-
-    # ---- BRF-free patch -----------------------------------------------------------------------
-    patch_info = cs.layout.get("brf_free_patch") or {}
-    poly_list = patch_info.get("polygon_px")
-    poly = np.asarray(poly_list, np.float64) if poly_list else None
-    if cs.brf_free_mask_path is not None:
-        patch_mask_np = _read_mask_png(cs.brf_free_mask_path, size)
-        mask_src = str(cs.brf_free_mask_path)
-    elif poly is not None:
-        patch_mask_np = _polygon_mask(poly, size, cfg.transmittance.brf_free_erode_px)
-        mask_src = f"{cs.layout_path}: brf_free_patch.polygon_px eroded by " \
-                   f"{cfg.transmittance.brf_free_erode_px} px"  # fmt: skip
-    else:
-        raise ValueError(
-            f"captures {cs.root}: no BRF-free patch: neither a mask (brf_free_mask.png, config "
-            f"brf_free_mask) nor brf_free_patch.polygon_px in {cs.layout_path}; B is the ratio to "
-            "that patch and cannot be calibrated without it"
-        )
-    if not patch_mask_np.any():
-        raise ValueError(f"BRF-free mask ({mask_src}) selects no pixels: the scan has no BRF-free "
-                         "patch")  # fmt: skip
-    # the whole disk (dilated) in the reference frame: not BRF-modulated
-    if poly is not None:
-        disk_np = _polygon_mask(poly, size, -cfg.transmittance.brf_free_margin_px)
-    else:
-        disk_np = _polygon_mask_from_mask(patch_mask_np, cfg.transmittance.brf_free_erode_px
-                                          + cfg.transmittance.brf_free_margin_px)
-    ref_tri_mask = _polygon_mask(tri[0], size, 0.0)
-    outside = patch_mask_np & ~ref_tri_mask
-    if outside.sum() > 0.05 * patch_mask_np.sum():
-        raise ValueError(
-            f"BRF-free mask ({mask_src}): {int(outside.sum())} of {int(patch_mask_np.sum())} "
-            "pixels lie outside the reference view's triangle; the patch must be in view 0"
-        )
-    patch_mask = torch.from_numpy(patch_mask_np).to(dev)
-    disk_ref = torch.from_numpy(disk_np[y0 : y0 + h, x0 : x0 + w].copy()).to(dev)
-
-    files_total = len(cs.dark) + len(cs.grid) + len(scan_sel) + len(cs.white) + 3  # + 3 fits
-    bar = _progress(cfg.progress if progress is None else progress, files_total)
-
-    def tick(n: int = 1, stage: str | None = None) -> None:
-        if bar is not None:
-            if stage:
-                bar.set_postfix_str(stage)
-            bar.update(n)
-
-    reader = _Reader(cfg, size, dev, dt)
-    try:
-        # ---- dark ---------------------------------------------------------------------------
-        t0 = time.perf_counter()
-        reader.set_dark(cs.dark, cfg.dark)
-        tick(len(cs.dark), "dark")
-        dark_mode = cfg.dark if cs.dark else "none (no dark frames; black level only)"
-        tm["dark"] = time.perf_counter() - t0
-
-        # ---- registration -------------------------------------------------------------------
-        t0 = time.perf_counter()
-        det_cfg = GridDetectorConfig.from_dict(cfg.detector_dict())
-        flat = None
-        if cfg.registration.flat_field and cs.white:
-            # the grid shots divided by the mean white shot: the target's own reflectance, free
-            # of the views' transmittance fringes, vignetting and fall-off (which otherwise bias
-            # circle centres by a few tenths of a pixel at full sensor size)
-            # (saturated samples left out of the mean, shot by shot)
-            count = None
-            for p in cs.white:
-                img, sat, _ = reader.read(p)
-                ok = (~sat).to(img.dtype)
-                flat = img.mul_(ok) if flat is None else flat.addcmul_(img, ok)
-                count = ok if count is None else count.add_(ok)
-            lost = float((count == 0).float().mean())
-            flat = flat.div_(count.clamp_min_(1))
-            del count
-            lim = 0.02 * float(torch.quantile(flat.flatten()[:: max(1, flat.numel() // 200_000)],
-                                              0.99))
-            if lost > cfg.response.max_saturated_fraction or not lim > 0:
-                # saturated white shots are reported (or dropped) by the response stage; the
-                # grid shots are then registered as they are
-                notes.append(f"grid shots not flat-fielded: {100 * lost:.1f} % of the white "
-                             "samples saturated in every shot")
-                flat = None
-            else:
-                flat = torch.where(flat > lim, flat.reciprocal(), torch.zeros_like(flat))
-        grid_imgs = []
-        for p in cs.grid:
-            img, _, _ = reader.read(p)
-            grid_imgs.append(img if flat is None else img.mul_(flat))
-            tick(1, "grid")
-        del flat
-        try:
-            reg = register_views(grid_imgs, tri, par, det_cfg)
-        except ValueError as exc:
-            names = ", ".join(p.name for p in cs.grid)
-            raise ValueError(f"registration from {len(cs.grid)} grid image(s) ({names}): {exc}") \
-                from exc  # fmt: skip
-        Hs = reg.view_homographies.to(device=dev, dtype=dt)
-        del grid_imgs
-        tick(1, "registered")
-        tm["registration"] = time.perf_counter() - t0
-
-        # ---- BRF transmittance --------------------------------------------------------------
-        # Frames are read a chunk at a time; each chunk's ratio to the BRF-free patch is carried
-        # into the reference frame at once (the warp is linear per wavelength), so no
-        # full-sensor (M, H, W) stack is ever held. What needs every wavelength — the "lit" test
-        # (max over λ), the reliable mask (all λ), the BRF-free plausibility check — is
-        # accumulated per sensor pixel and applied through the warped mask at the end.
-        t0 = time.perf_counter()
-        tcfg = cfg.transmittance
-        tri_t = torch.as_tensor(tri, device=dev, dtype=dt)
-        B_ref = torch.empty((V, M, h, w), dtype=dt, device=dev)
-        patch_means = []
-        b_max = torch.full(size, -math.inf, dtype=dt, device=dev)
-        rel_all = torch.ones(size, dtype=torch.bool, device=dev)
-        ref_view = torch.from_numpy(ref_tri_mask & ~disk_np).to(dev)
-        ref_sum = torch.zeros(int(ref_view.sum()), dtype=torch.float64, device=dev)
-        chunk = tcfg.frames_per_chunk
-        for s in range(0, M, chunk):
-            frames = []
-            for p, _ in scan_sel[s : s + chunk]:
-                img, sat, _ = reader.read(p)
-                frames.append(torch.where(sat, torch.full_like(img, _SAT_SENTINEL), img))
-                del img, sat
-                tick(1, "scan")
-            x = torch.stack(frames)
-            del frames
-            psat = (x >= _SAT_SENTINEL)[:, :, patch_mask].any(-1)  # (J, 3)
-            if bool(psat.all(dim=1).any()):
-                bad = [scan_sel[s + int(j)][0].name for j in torch.nonzero(psat.all(1)).flatten()]
-                raise ValueError(f"scan frame(s) {bad}: the BRF-free patch is saturated in every "
-                                 "colour channel; reduce the exposure")  # fmt: skip
-            try:
-                tr = brf_transmittance(
-                    x, wl[s : s + chunk], patch_mask, saturation_level=_SAT_SENTINEL,
-                    lit_threshold=-math.inf, weight_power=tcfg.weight_power,
-                )  # fmt: skip
-            except ValueError as exc:
-                raise ValueError(f"monochromator scan ({mask_src}): {exc}") from exc
-            del x
-            torch.maximum(b_max, tr.transmittance.amax(0), out=b_max)
-            rel_all &= tr.reliable.all(0)
-            ref_sum += tr.transmittance[:, ref_view].sum(0, dtype=torch.float64)
-            patch_means.append(tr.patch_mean)
-            B_ref[:, s : s + chunk] = to_reference_frame(
-                tr.transmittance, Hs, tri_t, bbox, inset_px=cfg.registration.inset_px,
-            )[0]  # fmt: skip
-            del tr
-        lit = b_max >= tcfg.lit_threshold
-        reliable = rel_all & lit
-        patch_mean = torch.cat(patch_means)
-        # the patch must be BRF-free: elsewhere in the reference view the filter stack (two
-        # polarizers) passes at most ~half of it
-        lit_ref = lit[ref_view]
-        if bool(lit_ref.any()):
-            level = float((ref_sum[lit_ref] / M).median())
-            if level > tcfg.max_patch_ratio:
-                raise ValueError(
-                    f"BRF-free mask ({mask_src}) does not mark a BRF-free patch: the rest of the "
-                    f"reference view transmits {level:.2f} of it on average (a patch without the "
-                    f"filter stack is ~2x brighter; limit transmittance.max_patch_ratio = "
-                    f"{tcfg.max_patch_ratio})"
-                )
-        _, vmask = to_reference_frame(
-            reliable[None].to(dt), Hs, tri_t, bbox, source_mask=reliable,
-            inset_px=cfg.registration.inset_px,
-        )  # fmt: skip
-        B_ref.clamp_min_(0).mul_(vmask[:, None])
-        tm["transmittance"] = time.perf_counter() - t0
-
-        # ---- response φ and gain field ------------------------------------------------------
-        t0 = time.perf_counter()
-        whites, wsats, w_exp = [], [], []
-        for p in cs.white:
-            img, sat, meta = reader.read(p)
-            whites.append(img)
-            wsats.append(sat)
-            w_exp.append(meta.get("exposure_s", meta.get("exposure")))
-            tick(1, "white")
-        exp_known = all(e is not None for e in w_exp)
-        white_exposure = float(w_exp[0]) if exp_known else None
-        if exp_known and any(abs(float(e) / float(w_exp[0]) - 1) > 1e-6 for e in w_exp):
-            t_ref = float(w_exp[0])
-            whites = [im * (t_ref / float(e)) for im, e in zip(whites, w_exp, strict=True)]
-            notes.append(f"white shots scaled to the exposure of the first ({w_exp[0]})")
-        # each shot warped on its own (image + saturation as 6 channels): no (S, 6, H, W) stack
-        both = torch.cat([
-            warp_views(torch.cat([im, sm.to(dt)])[None], Hs, bbox)[0]
-            for im, sm in zip(whites, wsats, strict=True)
-        ])  # (S, V, 6, h, w)  # fmt: skip
-        del whites, wsats
-        white_ref, sat_ref = both[:, :, :3], both[:, :, 3:]
-        rc = cfg.response
-        white_ref, sat_ref, sat_text = _drop_saturated_whites(
-            white_ref, sat_ref, vmask, cs.white, rc.saturation_margin, rc.max_saturated_fraction,
-            notes,
-        )  # fmt: skip
-        ok = (sat_ref <= rc.saturation_margin).all(2).all(0)  # (V, h, w)
-        obs_mask = vmask & ok
-        empty = [v for v in range(V) if bool(vmask[v].any()) and not bool(obs_mask[v].any())]
-        if empty:
-            raise CalibrationError(
-                f"white-reference shots: no unsaturated sample left in view(s) {empty} "
-                f"({sat_text}); reduce the exposure of the white shots"
-            )
-        del ok
-        f_prior = _camera_prior(rc.camera_sensitivity, wl)
-        resp = estimate_response_field(
-            white_ref, B_ref, f_prior, obs_mask, band_widths_nm=band_widths(wl),
-            beta_phi=rc.beta_phi, gamma_h=rc.gamma_h,
-            normalise=rc.normalise, max_pixels=rc.max_pixels,
-            n_iter=rc.n_iter, degree=rc.degree, smoothness=rc.smoothness,
-            diff_order=rc.diff_order, refine_steps=rc.refine_steps,
-        )  # fmt: skip
-        tick(1, "response")
-        white_signal = float(white_ref.mean(0)[obs_mask[:, None].expand(V, 3, h, w)].mean())
-        tm["response"] = time.perf_counter() - t0
-
-        # ---- valid region and bundle --------------------------------------------------------
-        t0 = time.perf_counter()
-        modulated = vmask & ~disk_ref[None]
-        valid, vsum = valid_region(vmask, modulated, cfg.min_views)
-        if vsum.num_valid == 0:
-            raise ValueError(
-                f"no reference-frame pixel has >= {cfg.min_views} BRF-modulated registered views"
-            )
-        settings = {
-            "grid": grid.to_dict(),
-            "wavelengths_nm": wl.cpu().tolist(),
-            "white_exposure_s": white_exposure,
-            "white_exposure_note": "the white shots' metadata 'exposure_s' (s), else their "
-                                   "relative 'exposure' (simulator)",
-            "cfa_pattern": reader.cfa_pattern,
-            "demosaic": cfg.demosaic,
-            "dark": dark_mode,
-            "brf_free_mask": mask_src,
-            "detector": det_cfg.to_dict(),
-            "beta_phi": rc.beta_phi,
-            "gamma_h": rc.gamma_h,
-            "beta_phi_effective": resp.beta_phi_effective,
-            "gamma_h_effective": resp.gamma_h_effective,
-            "response": {**to_dict(rc), "alpha": resp.alpha.cpu().tolist()},
-            "transmittance": to_dict(tcfg),
-            "min_views": cfg.min_views,
-            "config": json.loads(json.dumps(to_dict(cfg), default=str)),
-        }
-        prov = make_provenance(cs.files(), captures_dir=str(cs.root.resolve()),
-                               generator="hsi-torch calibrate")  # fmt: skip
-        bundle = CalibrationBundle(
-            wavelengths_nm=wl.cpu().to(torch.float64),
-            triangles=tri,
-            parity=par,
-            view_homographies=reg.view_homographies.cpu().numpy(),
-            sensor_size=np.asarray(size, np.int64),
-            reference_bbox=np.asarray(bbox, np.int64),
-            B=B_ref.to(torch.float32).cpu(),
-            phi=resp.phi.to(torch.float64).cpu(),
-            gain=resp.gain.to(torch.float32).cpu(),
-            view_mask=vmask.cpu(),
-            modulated=modulated.cpu(),
-            valid=valid.cpu(),
-            reflection_sequences=seqs if len(seqs) == V else [],
-            settings=settings,
-            provenance=prov,
-            extras={"gain_coefficients": resp.coefficients.cpu().numpy(),
-                    "patch_mean_dn": patch_mean.cpu().numpy(),
-                    "registration_residuals": reg.residuals},  # fmt: skip
-        )
-        tm["bundle"] = time.perf_counter() - t0
-        tick(1, "bundle")
-    finally:
-        if bar is not None:
-            bar.close()
-    tm["total"] = time.perf_counter() - t_all
-    report = CalibrationReport(
-        captures_dir=str(cs.root),
-        counts={"scan": len(scan_sel), "white": len(cs.white), "grid": len(cs.grid),
-                "dark": len(cs.dark)},  # fmt: skip
-        registration=reg.reports,
-        valid=vsum,
-        view_pixels=[int(n) for n in vmask.sum((1, 2)).cpu()],
-        modulated_pixels=[int(n) for n in modulated.sum((1, 2)).cpu()],
-        patch_pixels=int(patch_mask_np.sum()),
-        patch_mean_dn=patch_mean.cpu().tolist(),
-        response_residual_rms=[float(r) for r in resp.residual_rms],
-        white_signal_dn=white_signal,
-        white_exposure_s=white_exposure,
-        dark=dark_mode,
-        cfa_pattern=reader.cfa_pattern,
-        timings_s=tm,
-        notes=notes,
-    )
-    return bundle, report
 
 
 def _drop_saturated_whites(
@@ -791,7 +274,7 @@ def _drop_saturated_whites(
             msg = (f"white-reference shot {p} dropped: {100 * f:.1f} % of its registered view "
                    f"pixels are saturated (limit response.max_saturated_fraction = "
                    f"{max_fraction:g}); the other {kept} shot(s) are used")  # fmt: skip
-            warnings.warn(msg, UserWarning, stacklevel=3)
+            warnings.warn(msg, UserWarning, stacklevel=4)  # the caller of calibrate_capture_set
             notes.append(msg)
     keep = torch.tensor([not x for x in bad], device=white_ref.device)
     return white_ref[keep], sat_ref[keep], text
@@ -799,142 +282,521 @@ def _drop_saturated_whites(
 
 def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
     """Dilate a bool mask by ``dilate_px`` (Euclidean)."""
-    import cv2
-
     dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
     return dist <= dilate_px
 
 
 # =============================================================================================
-# scoring against the simulator's truth
+# the stages
 # =============================================================================================
 
 
-def score_against_truth(
-    bundle: CalibrationBundle | str | Path, capture_dir: str | Path
-) -> dict[str, Any]:
-    """Compare a calibration bundle with the ground truth of a simulated capture set.
+def select_scan_frames(
+    cs: CaptureSet, wavelengths_nm: torch.Tensor, tol_nm: float
+) -> list[tuple[Path, float]]:
+    """The scan frame of every band of the grid (checked before any image is read).
 
-    Definitions (all over the **common valid region** ``Q = valid_true ∧ valid_est`` unless
-    stated):
+    A frame's wavelength is its manifest entry's, else the ``<number>nm`` in its name, else the
+    ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
 
-    - ``B_rel_rms``: ``RMS(B_est − B_true) / RMS(B_true)`` over every band and every (view,
-      pixel) with ``q ∈ Q`` and the view present in both bundles; per view too.
-    - ``phi_corr``: Pearson correlation of ``φ^c_est`` and ``φ^c_true`` per colour (shape).
-    - gauge: ``(g, φ)`` and ``(s·g, φ/s)`` are equivalent, so both sides are normalised the same
-      way: ``g ← g / mean_{q ∈ Q, v=0}(g_0)``, ``φ ← φ · that mean``. Then ``gain_rel_rms[v]`` =
-      ``RMS((g_est − g_true)/g_true)`` over ``q ∈ Q`` where view v is present in both,
-      ``gain_max_rel_rms`` their maximum, and ``phi_rel_rms`` = ``RMS(φ_est−φ_true)/RMS(φ_true)``
-      (scale included: the product ``g·φ`` is what reconstruction uses).
-    - ``homography_rms_px`` / ``homography_max_px`` per view: ``|H_est(p) − q|`` in reference
-      px for ``p = H_true⁻¹(q)`` over the reference-frame pixels where the view is truly present.
-    - valid-region sizes and their intersection over union.
+    Raises:
+        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``.
     """
-    from hsi_torch.simulate.oracle import load_truth
+    scan = list(cs.scan)
+    for i, (p, lam) in enumerate(scan):
+        if lam is None:
+            lam = wavelength_from_name(p.name)
+            if lam is None and p.suffix.lower() in (".tif", ".tiff", ".npy", ".npz"):
+                _, meta = read_capture(p)
+                lam = meta.get("wavelength_nm")
+            if lam is None:
+                raise ValueError(
+                    f"scan frame {p}: wavelength unknown (no 'wavelength_nm' in its manifest "
+                    "entry or metadata, and no '<number>nm' in the file name, e.g. scan_550nm.tif)"
+                )
+            scan[i] = (p, float(lam))
+    scan_nm = [float(lam) for _, lam in scan]  # type: ignore[arg-type]
+    try:
+        idx = match_wavelengths(scan_nm, wavelengths_nm.cpu(), tol_nm)
+    except ValueError as exc:
+        raise ValueError(f"captures {cs.root}: {exc}") from exc
+    return [scan[int(i)] for i in idx]  # type: ignore[misc]
 
-    b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
-    t, _ = load_truth(capture_dir)
-    if tuple(t["B"].shape) != tuple(b.B.shape):
+
+@dataclass
+class PatchMasks:
+    """The BRF-free patch in sensor and reference-frame coordinates.
+
+    Attributes:
+        usable: ``(H, W)`` bool numpy, usable BRF-free pixels (the ratio's denominator).
+        source: where ``usable`` came from (a file, or the layout's polygon), for messages.
+        disk: ``(H, W)`` bool numpy, the whole disk dilated by the margin (not BRF-modulated).
+        reference_triangle: ``(H, W)`` bool numpy, the reference view's triangle.
+        usable_t: ``usable`` as a tensor on the device; disk_reference: ``(h, w)`` bool tensor,
+            ``disk`` cropped to the reference frame.
+    """
+
+    usable: np.ndarray
+    source: str
+    disk: np.ndarray
+    reference_triangle: np.ndarray
+    usable_t: torch.Tensor
+    disk_reference: torch.Tensor
+
+
+def brf_free_patch(
+    cs: CaptureSet, lay: NominalLayout, cfg: CalibrateConfig, device: torch.device
+) -> PatchMasks:
+    """The BRF-free patch: the capture set's mask PNG, else the layout's disk polygon eroded by
+    ``transmittance.brf_free_erode_px``; checked to lie in the reference view.
+
+    Raises:
+        ValueError: no patch, an empty one, or one mostly outside the reference triangle.
+    """
+    size = lay.sensor_size
+    x0, y0, w, h = lay.reference_bbox
+    tcfg = cfg.transmittance
+    poly = lay.brf_free_polygon()
+    if cs.brf_free_mask_path is not None:
+        patch_mask_np = read_mask_png(cs.brf_free_mask_path, size)
+        mask_src = str(cs.brf_free_mask_path)
+    elif poly is not None:
+        patch_mask_np = _polygon_mask(poly, size, tcfg.brf_free_erode_px)
+        mask_src = f"{lay.path}: brf_free_patch.polygon_px eroded by " \
+                   f"{tcfg.brf_free_erode_px} px"  # fmt: skip
+    else:
         raise ValueError(
-            f"bundle B {tuple(b.B.shape)} and truth B {tuple(t['B'].shape)} differ in shape: "
-            "the bundle was not made from this capture set's geometry"
+            f"captures {cs.root}: no BRF-free patch: neither a mask (brf_free_mask.png, config "
+            f"brf_free_mask) nor brf_free_patch.polygon_px in {lay.path}; B is the ratio to "
+            "that patch and cannot be calibrated without it"
         )
-    Q = t["valid"] & b.valid
-    both = t["view_mask"] & b.view_mask & Q[None]  # (V, h, w)
-    V = b.num_views
-    Bt = t["B"].astype(np.float64)
-    Be = b.B.astype(np.float64)
-    d = (Be - Bt).transpose(1, 0, 2, 3)[:, both]  # (M, n)
-    ref = Bt.transpose(1, 0, 2, 3)[:, both]
-    out: dict[str, Any] = {
-        "B_rel_rms": float(np.sqrt((d**2).mean()) / np.sqrt((ref**2).mean())),
-        "B_rel_rms_per_view": [
-            float(np.sqrt(((Be[v] - Bt[v])[:, both[v]] ** 2).mean())
-                  / np.sqrt((Bt[v][:, both[v]] ** 2).mean()))
-            if both[v].any() else float("nan")
-            for v in range(V)
-        ],  # fmt: skip
-        "B_abs_rms": float(np.sqrt((d**2).mean())),
+    if not patch_mask_np.any():
+        raise ValueError(f"BRF-free mask ({mask_src}) selects no pixels: the scan has no BRF-free "
+                         "patch")  # fmt: skip
+    # the whole disk (dilated) in the reference frame: not BRF-modulated
+    if poly is not None:
+        disk_np = _polygon_mask(poly, size, -tcfg.brf_free_margin_px)
+    else:
+        disk_np = _polygon_mask_from_mask(patch_mask_np, tcfg.brf_free_erode_px
+                                          + tcfg.brf_free_margin_px)
+    ref_tri_mask = _polygon_mask(lay.triangles[0], size, 0.0)
+    outside = patch_mask_np & ~ref_tri_mask
+    if outside.sum() > 0.05 * patch_mask_np.sum():
+        raise ValueError(
+            f"BRF-free mask ({mask_src}): {int(outside.sum())} of {int(patch_mask_np.sum())} "
+            "pixels lie outside the reference view's triangle; the patch must be in view 0"
+        )
+    return PatchMasks(
+        patch_mask_np, mask_src, disk_np, ref_tri_mask, torch.from_numpy(patch_mask_np).to(device),
+        torch.from_numpy(disk_np[y0 : y0 + h, x0 : x0 + w].copy()).to(device),
+    )  # fmt: skip
+
+
+def register_grid_shots(
+    cs: CaptureSet, reader: _Reader, lay: NominalLayout, cfg: CalibrateConfig,
+    notes: list[str], tick: Tick = _no_tick,
+) -> RegistrationResult:
+    """View homographies from the circle-grid shots (:func:`register_views`), each shot divided
+    by the mean white shot first when ``registration.flat_field`` (the target's own reflectance,
+    free of the views' transmittance fringes, vignetting and fall-off).
+
+    Raises:
+        ValueError: the grid was found in no shot for some view (naming the files).
+    """
+    det_cfg = GridDetectorConfig.from_dict(cfg.detector_dict())
+    flat = None
+    if cfg.registration.flat_field and cs.white:
+        # the grid shots divided by the mean white shot: the target's own reflectance, free
+        # of the views' transmittance fringes, vignetting and fall-off (which otherwise bias
+        # circle centres by a few tenths of a pixel at full sensor size)
+        # (saturated samples left out of the mean, shot by shot)
+        count = None
+        for p in cs.white:
+            img, sat, _ = reader.read(p)
+            ok = (~sat).to(img.dtype)
+            flat = img.mul_(ok) if flat is None else flat.addcmul_(img, ok)
+            count = ok if count is None else count.add_(ok)
+        lost = float((count == 0).float().mean())
+        flat = flat.div_(count.clamp_min_(1))
+        del count
+        lim = 0.02 * float(torch.quantile(flat.flatten()[:: max(1, flat.numel() // 200_000)],
+                                          0.99))
+        if lost > cfg.response.max_saturated_fraction or not lim > 0:
+            # saturated white shots are reported (or dropped) by the response stage; the
+            # grid shots are then registered as they are
+            notes.append(f"grid shots not flat-fielded: {100 * lost:.1f} % of the white "
+                         "samples saturated in every shot")
+            flat = None
+        else:
+            flat = torch.where(flat > lim, flat.reciprocal(), torch.zeros_like(flat))
+    grid_imgs = []
+    for p in cs.grid:
+        img, _, _ = reader.read(p)
+        grid_imgs.append(img if flat is None else img.mul_(flat))
+        tick(1, "grid")
+    del flat
+    try:
+        reg = register_views(grid_imgs, lay.triangles, lay.parity, det_cfg)
+    except ValueError as exc:
+        names = ", ".join(p.name for p in cs.grid)
+        raise ValueError(f"registration from {len(cs.grid)} grid image(s) ({names}): {exc}") \
+            from exc  # fmt: skip
+    return reg
+
+
+@dataclass
+class TransmittanceStage:
+    """Output of :func:`calibrate_transmittance`.
+
+    Attributes:
+        B: ``(V, M, h, w)`` BRF transmittance in the reference frame (0 outside ``view_mask``).
+        view_mask: ``(V, h, w)`` bool, view present (registered, inside its triangle, reliably
+            lit).
+        patch_mean: ``(M, 3)`` mean signal of the BRF-free patch per frame and colour (DN).
+    """
+
+    B: torch.Tensor
+    view_mask: torch.Tensor
+    patch_mean: torch.Tensor
+
+
+def calibrate_transmittance(
+    scan: Sequence[tuple[Path, float]], reader: _Reader, lay: NominalLayout,
+    homographies: torch.Tensor, patch: PatchMasks, wavelengths_nm: torch.Tensor,
+    cfg: CalibrateConfig, tick: Tick = _no_tick,
+) -> TransmittanceStage:
+    """B_v(p, λ) from the scan frames (one per band), in the reference frame.
+
+    Frames are read a chunk at a time; each chunk's ratio to the BRF-free patch is carried into
+    the reference frame at once (the warp is linear per wavelength), so no full-sensor
+    ``(M, H, W)`` stack is ever held. What needs every wavelength — the "lit" test (max over λ),
+    the reliable mask (all λ), the BRF-free plausibility check — is accumulated per sensor pixel
+    and applied through the warped mask at the end.
+
+    Raises:
+        ValueError: the patch is saturated in every channel of a frame, or is not BRF-free.
+    """
+    wl, Hs = wavelengths_nm, homographies
+    dev, dt = wl.device, wl.dtype
+    size = lay.sensor_size
+    bbox = list(lay.reference_bbox)
+    V, M = lay.num_views, wl.numel()
+    _, _, w, h = bbox
+    tcfg = cfg.transmittance
+    patch_mask, mask_src = patch.usable_t, patch.source
+    tri_t = torch.as_tensor(lay.triangles, device=dev, dtype=dt)
+    B_ref = torch.empty((V, M, h, w), dtype=dt, device=dev)
+    patch_means = []
+    b_max = torch.full(size, -math.inf, dtype=dt, device=dev)
+    rel_all = torch.ones(size, dtype=torch.bool, device=dev)
+    ref_view = torch.from_numpy(patch.reference_triangle & ~patch.disk).to(dev)
+    ref_sum = torch.zeros(int(ref_view.sum()), dtype=torch.float64, device=dev)
+    chunk = tcfg.frames_per_chunk
+    for s in range(0, M, chunk):
+        frames = []
+        for p, _ in scan[s : s + chunk]:
+            img, sat, _ = reader.read(p)
+            frames.append(torch.where(sat, torch.full_like(img, _SAT_SENTINEL), img))
+            del img, sat
+            tick(1, "scan")
+        x = torch.stack(frames)
+        del frames
+        psat = (x >= _SAT_SENTINEL)[:, :, patch_mask].any(-1)  # (J, 3)
+        if bool(psat.all(dim=1).any()):
+            bad = [scan[s + int(j)][0].name for j in torch.nonzero(psat.all(1)).flatten()]
+            raise ValueError(f"scan frame(s) {bad}: the BRF-free patch is saturated in every "
+                             "colour channel; reduce the exposure")  # fmt: skip
+        try:
+            tr = brf_transmittance(
+                x, wl[s : s + chunk], patch_mask, saturation_level=_SAT_SENTINEL,
+                lit_threshold=-math.inf, weight_power=tcfg.weight_power,
+            )  # fmt: skip
+        except ValueError as exc:
+            raise ValueError(f"monochromator scan ({mask_src}): {exc}") from exc
+        del x
+        torch.maximum(b_max, tr.transmittance.amax(0), out=b_max)
+        rel_all &= tr.reliable.all(0)
+        ref_sum += tr.transmittance[:, ref_view].sum(0, dtype=torch.float64)
+        patch_means.append(tr.patch_mean)
+        B_ref[:, s : s + chunk] = to_reference_frame(
+            tr.transmittance, Hs, tri_t, bbox, inset_px=cfg.registration.inset_px,
+        )[0]  # fmt: skip
+        del tr
+    lit = b_max >= tcfg.lit_threshold
+    reliable = rel_all & lit
+    patch_mean = torch.cat(patch_means)
+    # the patch must be BRF-free: elsewhere in the reference view the filter stack (two
+    # polarizers) passes at most ~half of it
+    lit_ref = lit[ref_view]
+    if bool(lit_ref.any()):
+        level = float((ref_sum[lit_ref] / M).median())
+        if level > tcfg.max_patch_ratio:
+            raise ValueError(
+                f"BRF-free mask ({mask_src}) does not mark a BRF-free patch: the rest of the "
+                f"reference view transmits {level:.2f} of it on average (a patch without the "
+                f"filter stack is ~2x brighter; limit transmittance.max_patch_ratio = "
+                f"{tcfg.max_patch_ratio})"
+            )
+    _, vmask = to_reference_frame(
+        reliable[None].to(dt), Hs, tri_t, bbox, source_mask=reliable,
+        inset_px=cfg.registration.inset_px,
+    )  # fmt: skip
+    B_ref.clamp_min_(0).mul_(vmask[:, None])
+    return TransmittanceStage(B_ref, vmask, patch_mean)
+
+
+@dataclass
+class ResponseStage:
+    """Output of :func:`calibrate_response`.
+
+    Attributes:
+        response: the fitted φ, gain field and diagnostics
+            (:class:`~hsi_torch.calibrate.response.ResponseResult`).
+        white_exposure_s: the white shots' exposure (s), or ``None`` when unknown.
+        white_signal_dn: mean white signal over the fitted samples (DN).
+    """
+
+    response: ResponseResult
+    white_exposure_s: float | None
+    white_signal_dn: float
+
+
+def calibrate_response(
+    white: Sequence[Path], reader: _Reader, homographies: torch.Tensor,
+    reference_bbox: Sequence[int], trans: TransmittanceStage, wavelengths_nm: torch.Tensor,
+    cfg: CalibrateConfig, notes: list[str], tick: Tick = _no_tick,
+) -> ResponseStage:
+    """φ^c(λ) and g_v(p) from the white-reference shots, registered into the reference frame.
+
+    Shots of different exposures are scaled to the first one's; shots saturated over more than
+    ``response.max_saturated_fraction`` of the view pixels are dropped while another one is
+    below (:func:`_drop_saturated_whites`).
+
+    Raises:
+        CalibrationError: every shot is saturated, or a view has no unsaturated sample.
+    """
+    wl, Hs = wavelengths_nm, homographies
+    dt = wl.dtype
+    bbox = list(reference_bbox)
+    vmask, B_ref = trans.view_mask, trans.B
+    V, _, h, w = B_ref.shape
+    whites, wsats, w_exp = [], [], []
+    for p in white:
+        img, sat, meta = reader.read(p)
+        whites.append(img)
+        wsats.append(sat)
+        w_exp.append(meta.get("exposure_s", meta.get("exposure")))
+        tick(1, "white")
+    exp_known = all(e is not None for e in w_exp)
+    white_exposure = float(w_exp[0]) if exp_known else None
+    if exp_known and any(abs(float(e) / float(w_exp[0]) - 1) > 1e-6 for e in w_exp):
+        t_ref = float(w_exp[0])
+        whites = [im * (t_ref / float(e)) for im, e in zip(whites, w_exp, strict=True)]
+        notes.append(f"white shots scaled to the exposure of the first ({w_exp[0]})")
+    # each shot warped on its own (image + saturation as 6 channels): no (S, 6, H, W) stack
+    both = torch.cat([
+        warp_views(torch.cat([im, sm.to(dt)])[None], Hs, bbox)[0]
+        for im, sm in zip(whites, wsats, strict=True)
+    ])  # (S, V, 6, h, w)  # fmt: skip
+    del whites, wsats
+    white_ref, sat_ref = both[:, :, :3], both[:, :, 3:]
+    rc = cfg.response
+    white_ref, sat_ref, sat_text = _drop_saturated_whites(
+        white_ref, sat_ref, vmask, white, rc.saturation_margin, rc.max_saturated_fraction,
+        notes,
+    )  # fmt: skip
+    ok = (sat_ref <= rc.saturation_margin).all(2).all(0)  # (V, h, w)
+    obs_mask = vmask & ok
+    empty = [v for v in range(V) if bool(vmask[v].any()) and not bool(obs_mask[v].any())]
+    if empty:
+        raise CalibrationError(
+            f"white-reference shots: no unsaturated sample left in view(s) {empty} "
+            f"({sat_text}); reduce the exposure of the white shots"
+        )
+    del ok
+    f_prior = _camera_prior(rc.camera_sensitivity, wl)
+    resp = estimate_response_field(
+        white_ref, B_ref, f_prior, obs_mask, band_widths_nm=band_widths(wl),
+        beta_phi=rc.beta_phi, gamma_h=rc.gamma_h,
+        normalise=rc.normalise, max_pixels=rc.max_pixels,
+        n_iter=rc.n_iter, degree=rc.degree, smoothness=rc.smoothness,
+        diff_order=rc.diff_order, refine_steps=rc.refine_steps,
+    )  # fmt: skip
+    tick(1, "response")
+    white_signal = float(white_ref.mean(0)[obs_mask[:, None].expand(V, 3, h, w)].mean())
+    return ResponseStage(resp, white_exposure, white_signal)
+
+
+def assemble_bundle(
+    cs: CaptureSet, lay: NominalLayout, grid: SpectralGrid, wavelengths_nm: torch.Tensor,
+    reg: RegistrationResult, trans: TransmittanceStage, resp: ResponseStage, patch: PatchMasks,
+    reader: _Reader, dark_mode: str, cfg: CalibrateConfig,
+) -> tuple[CalibrationBundle, torch.Tensor, ValidRegionSummary]:
+    """The valid region (≥ ``min_views`` BRF-modulated views) and the bundle with its settings and
+    provenance; returns ``(bundle, modulated (V, h, w), valid-region summary)``.
+
+    Raises:
+        ValueError: no pixel has ``min_views`` modulated views.
+    """
+    wl, vmask = wavelengths_nm, trans.view_mask
+    V = lay.num_views
+    rc, tcfg, r = cfg.response, cfg.transmittance, resp.response
+    modulated = vmask & ~patch.disk_reference[None]
+    valid, vsum = valid_region(vmask, modulated, cfg.min_views)
+    if vsum.num_valid == 0:
+        raise ValueError(
+            f"no reference-frame pixel has >= {cfg.min_views} BRF-modulated registered views"
+        )
+    det_cfg = GridDetectorConfig.from_dict(cfg.detector_dict())
+    settings = {
+        "grid": grid.to_dict(),
+        "wavelengths_nm": wl.cpu().tolist(),
+        "white_exposure_s": resp.white_exposure_s,
+        "white_exposure_note": "the white shots' metadata 'exposure_s' (s), else their "
+                               "relative 'exposure' (simulator)",
+        "cfa_pattern": reader.cfa_pattern,
+        "demosaic": cfg.demosaic,
+        "dark": dark_mode,
+        "brf_free_mask": patch.source,
+        "detector": det_cfg.to_dict(),
+        "beta_phi": rc.beta_phi,
+        "gamma_h": rc.gamma_h,
+        "beta_phi_effective": r.beta_phi_effective,
+        "gamma_h_effective": r.gamma_h_effective,
+        "response": {**to_dict(rc), "alpha": r.alpha.cpu().tolist()},
+        "transmittance": to_dict(tcfg),
+        "min_views": cfg.min_views,
+        "config": json.loads(json.dumps(to_dict(cfg), default=str)),
     }
-    pe, pt = b.phi.astype(np.float64), t["phi"].astype(np.float64)
-    out["phi_corr"] = [float(np.corrcoef(pe[c], pt[c])[0, 1]) for c in range(3)]
-    m0 = both[0]
-    if not m0.any():
-        m0 = b.view_mask[0] & t["view_mask"][0]
-    se = float(b.gain[0][m0].mean())
-    st = float(t["gain"][0][m0].mean())
-    ge, gt = b.gain / se, t["gain"] / st
-    pe, pt = pe * se, pt * st
-    out["phi_rel_rms"] = float(np.sqrt(((pe - pt) ** 2).mean()) / np.sqrt((pt**2).mean()))
-    rel = []
-    for v in range(V):
-        m = both[v] & (gt[v] > 0)
-        r = (ge[v][m] - gt[v][m]) / gt[v][m]
-        rel.append(float(np.sqrt((r**2).mean())) if m.any() else float("nan"))
-    out["gain_rel_rms_per_view"] = rel
-    out["gain_max_rel_rms"] = float(np.nanmax(rel))
-    # homographies
-    x0, y0, w, h = (int(v) for v in b.reference_bbox)
-    ys, xs = np.mgrid[0:h, 0:w]
-    He, Ht = b.view_homographies, t["view_homographies"]
-    rms, mx = [], []
-    for v in range(V):
-        m = t["view_mask"][v]
-        q = np.stack([xs[m] + x0, ys[m] + y0], 1).astype(np.float64)
-        if not len(q):
-            rms.append(float("nan"))
-            mx.append(float("nan"))
-            continue
-        p = apply_homography(np.linalg.inv(Ht[v]), q)
-        e = np.linalg.norm(apply_homography(He[v], p) - q, axis=1)
-        rms.append(float(np.sqrt((e**2).mean())))
-        mx.append(float(e.max()))
-    out["homography_rms_px"] = rms
-    out["homography_max_px"] = mx
-    out["homography_worst_rms_px"] = float(np.nanmax(rms))
-    nv_t, nv_e = int(t["valid"].sum()), int(b.valid.sum())
-    union = int((t["valid"] | b.valid).sum())
-    out["valid_true"] = nv_t
-    out["valid_est"] = nv_e
-    out["valid_iou"] = float(Q.sum() / union) if union else 0.0
-    out["pixels_scored"] = int(Q.sum())
-    return out
+    prov = make_provenance(cs.files(), captures_dir=str(cs.root.resolve()),
+                           generator="hsi-torch calibrate")  # fmt: skip
+    seqs = lay.reflection_sequences
+    bundle = CalibrationBundle(
+        wavelengths_nm=wl.cpu().to(torch.float64),
+        triangles=lay.triangles,
+        parity=lay.parity,
+        view_homographies=reg.view_homographies.cpu().numpy(),
+        sensor_size=np.asarray(lay.sensor_size, np.int64),
+        reference_bbox=np.asarray(lay.reference_bbox, np.int64),
+        B=trans.B.to(torch.float32).cpu(),
+        phi=r.phi.to(torch.float64).cpu(),
+        gain=r.gain.to(torch.float32).cpu(),
+        view_mask=vmask.cpu(),
+        modulated=modulated.cpu(),
+        valid=valid.cpu(),
+        reflection_sequences=seqs if len(seqs) == V else [],
+        settings=settings,
+        provenance=prov,
+        extras={"gain_coefficients": r.coefficients.cpu().numpy(),
+                "patch_mean_dn": trans.patch_mean.cpu().numpy(),
+                "registration_residuals": reg.residuals},  # fmt: skip
+    )
+    return bundle, modulated, vsum
 
 
-def targets_met(s: dict[str, Any]) -> dict[str, bool]:
-    """The issue's targets on :func:`score_against_truth`'s result: ``{"B", "phi", "gain",
-    "homography"} → met`` (B < 2 % RMS, φ correlation > 0.99, g < 2 %, homography < 0.3 px)."""
-    return {
-        "B": s["B_rel_rms"] < 0.02,
-        "phi": min(s["phi_corr"]) > 0.99,
-        "gain": s["gain_max_rel_rms"] < 0.02,
-        "homography": s["homography_worst_rms_px"] < 0.3,
-    }
+# =============================================================================================
+# the calibration
+# =============================================================================================
 
 
-def format_scores(s: dict[str, Any], targets: bool = True) -> str:
-    """Readable lines of :func:`score_against_truth`'s result (with the issue's targets)."""
-    met = targets_met(s)
+def calibrate_capture_set(
+    captures_dir: str | Path,
+    cfg: CalibrateConfig | None = None,
+    *,
+    device: str | None = None,
+    progress: bool | None = None,
+) -> tuple[CalibrationBundle, CalibrationReport]:
+    """Calibrate from a capture folder (see the module docstring); writes nothing.
 
-    def ok(key: str) -> str:
-        return (" ok" if met[key] else " MISSED") if targets else ""
+    Args:
+        captures_dir: folder with ``manifest.json`` or ``scan/``, ``white/``, ``grid/`` folders,
+            plus ``nominal_layout.json`` (or ``cfg.layout``).
+        cfg: settings (:class:`CalibrateConfig`; defaults when ``None``).
+        device: overrides ``cfg.device``.
+        progress: overrides ``cfg.progress`` (tqdm bar on stderr, one step per file read).
 
-    lines = [
-        f"B: RMS(B_est - B_true)/RMS(B_true) = {100 * s['B_rel_rms']:.2f} % over the common valid "
-        f"region (target < 2 %){ok('B')}",
-        "   per view: " + ", ".join(f"{100 * x:.2f}" for x in s["B_rel_rms_per_view"]) + " %",
-        "phi shape correlation R/G/B: " + ", ".join(f"{x:.5f}" for x in s["phi_corr"])
-        + f" (target > 0.99){ok('phi')}",
-        f"phi (same gauge) RMS rel. error {100 * s['phi_rel_rms']:.2f} %",
-        f"gain (same gauge) worst view RMS rel. error {100 * s['gain_max_rel_rms']:.2f} % "
-        f"(target < 2 %){ok('gain')}",
-        "   per view: " + ", ".join(f"{100 * x:.2f}" for x in s["gain_rel_rms_per_view"]) + " %",
-        f"homography vs true mapping: worst view RMS {s['homography_worst_rms_px']:.3f} px "
-        f"(target < 0.3 px){ok('homography')}",
-        "   RMS per view: " + ", ".join(f"{x:.3f}" for x in s["homography_rms_px"]) + " px",
-        "   max per view: " + ", ".join(f"{x:.3f}" for x in s["homography_max_px"]) + " px",
-        f"valid region: {s['valid_est']} px calibrated vs {s['valid_true']} px true "
-        f"(IoU {s['valid_iou']:.3f}); {s['pixels_scored']} px scored",
-    ]
-    return "\n".join(lines)
+    Returns:
+        ``(bundle, report)``: the :class:`CalibrationBundle` (``settings`` hold the grid, β's,
+        ``white_exposure_s``, ``cfa_pattern``, detector parameters; ``provenance`` the SHA-256 of
+        every input) and a :class:`CalibrationReport`.
 
+    Raises:
+        ValueError / FileNotFoundError naming the file, wavelength, view or key at fault: missing
+        grid wavelengths, no BRF-free patch (or one that is not BRF-free), a grid found in no
+        image for some view, captures of another sensor size, unreadable files.
+    """
+    cfg = cfg or CalibrateConfig()
+    t_all = time.perf_counter()
+    tm: dict[str, float] = {}
+    notes: list[str] = []
+    dev = torch.device(device or cfg.device)
+    dt = _DTYPES[cfg.dtype]
+    cs = read_capture_set(captures_dir, layout=cfg.layout, brf_free_mask=cfg.brf_free_mask)
+    cs.require_calibration_captures()
+    lay = cs.layout()
+    grid = SpectralGrid.uniform(cfg.grid_start_nm, cfg.grid_stop_nm, cfg.grid_step_nm)
+    wl = grid.wavelengths(device=dev, dtype=dt)
+    scan_sel = select_scan_frames(cs, wl, cfg.transmittance.wavelength_tol_nm)
+    patch = brf_free_patch(cs, lay, cfg, dev)
+
+    files_total = len(cs.dark) + len(cs.grid) + len(scan_sel) + len(cs.white) + 3  # + 3 fits
+    bar = _progress(cfg.progress if progress is None else progress, files_total)
+
+    def tick(n: int = 1, stage: str | None = None) -> None:
+        if bar is not None:
+            if stage:
+                bar.set_postfix_str(stage)
+            bar.update(n)
+
+    reader = _Reader(cfg, lay.sensor_size, dev, dt)
+    try:
+        t0 = time.perf_counter()
+        reader.set_dark(cs.dark, cfg.dark)
+        tick(len(cs.dark), "dark")
+        dark_mode = cfg.dark if cs.dark else "none (no dark frames; black level only)"
+        tm["dark"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        reg = register_grid_shots(cs, reader, lay, cfg, notes, tick)
+        Hs = reg.view_homographies.to(device=dev, dtype=dt)
+        tick(1, "registered")
+        tm["registration"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        trans = calibrate_transmittance(scan_sel, reader, lay, Hs, patch, wl, cfg, tick)
+        tm["transmittance"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        resp = calibrate_response(cs.white, reader, Hs, lay.reference_bbox, trans, wl, cfg,
+                                  notes, tick)  # fmt: skip
+        tm["response"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        bundle, modulated, vsum = assemble_bundle(cs, lay, grid, wl, reg, trans, resp, patch,
+                                                  reader, dark_mode, cfg)  # fmt: skip
+        tm["bundle"] = time.perf_counter() - t0
+        tick(1, "bundle")
+    finally:
+        if bar is not None:
+            bar.close()
+    tm["total"] = time.perf_counter() - t_all
+    vmask = trans.view_mask
+    report = CalibrationReport(
+        captures_dir=str(cs.root),
+        counts={"scan": len(scan_sel), "white": len(cs.white), "grid": len(cs.grid),
+                "dark": len(cs.dark)},  # fmt: skip
+        registration=reg.reports,
+        valid=vsum,
+        view_pixels=[int(n) for n in vmask.sum((1, 2)).cpu()],
+        modulated_pixels=[int(n) for n in modulated.sum((1, 2)).cpu()],
+        patch_pixels=int(patch.usable.sum()),
+        patch_mean_dn=trans.patch_mean.cpu().tolist(),
+        response_residual_rms=[float(r) for r in resp.response.residual_rms],
+        white_signal_dn=resp.white_signal_dn,
+        white_exposure_s=resp.white_exposure_s,
+        dark=dark_mode,
+        cfa_pattern=reader.cfa_pattern,
+        timings_s=tm,
+        notes=notes,
+    )
+    return bundle, report

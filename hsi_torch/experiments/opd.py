@@ -1,32 +1,6 @@
-"""OPD validation (DESIGN.md §2, §5): the optical path difference of every view-channel estimated
-from its transmittance spectrum, matched to the ray tracer's predicted views on the image plane.
-
-Estimator (batched over spectra, any device/dtype; :func:`estimate_opd`). Between crossed
-polarizers ``T(k) ∝ ½[1 − cos(2π Δ k)]`` with ``k = 1/λ`` (nm⁻¹), so the modulation frequency in
-``k`` *is* the OPD ``Δ`` in nm:
-
-1. **coarse**: ``T`` is resampled linearly onto ``N`` uniform samples in ``k`` (``N`` = the number
-   of input samples by default), the mean removed, a window applied (Hann by default) and the
-   largest non-DC FFT bin taken. One bin is ``1/(N δk)`` ≈ 1.2 µm of OPD over 430–670 nm.
-2. **fft**: the same windowed signal zero-padded ``pad_factor``× and the peak refined by parabolic
-   interpolation of the magnitude.
-3. **fit**: a least-squares cosine ``T ≈ a + b·cos(2π Δ (k − k_c) + φ)`` on the *original*
-   ``(1/λ_m, T_m)`` samples (no resampling error): a grid search over ``Δ`` within ± one coarse
-   bin of the FFT estimate (the model is linear in ``a, b cos φ, b sin φ`` for fixed ``Δ``), then
-   Levenberg–Marquardt on all four parameters.
-
-With only 2–5 fringes in the band the FFT peak is biased by the negative-frequency image and the
-window; the cosine fit is unbiased for a pure cosine (tests: < 1e-4 relative).
-
-**Dispersion.** ``Δ`` depends on λ (the plate's birefringence disperses), so the fringe phase is
-``2π Δ(k) k`` and its local frequency in ``k`` is the *group* OPD
-``Δ_g = d(Δ k)/dk = Δ − λ dΔ/dλ`` (≈ 10 % above ``Δ`` for quartz). A single-frequency fit over
-the band measures ``Δ_g`` near the band-centre wavenumber ``k_0 = ½(1/λ_min + 1/λ_max)``
-(λ_0 ≈ 523.8 nm for 430–670 nm). The experiment therefore compares the estimates with the ray
-tracer's **group OPD at k_0** (the dispersion-aware prediction, :func:`group_opd_nm`) and also
-lists the phase OPD at 550 nm (the :class:`~hsi_torch.optics.ViewLayout` convention).
-The calibrated ``B`` is averaged over the monochromator line: that damps the modulation but does
-not move its frequency.
+"""OPD validation: the optical path difference of every view-channel estimated from its
+transmittance spectrum (:mod:`hsi_torch.experiments.opd_estimate`), matched to the ray tracer's
+predicted views on the image plane (:mod:`hsi_torch.experiments.opd_points`).
 
 Experiment (:func:`run_opd`, ``hsi-torch experiment opd``): inputs are a simulated capture set's
 ground truth ``B`` (reference frame), calibration bundles (oracle, calibrated, or any file), the
@@ -39,8 +13,6 @@ whose triangle contains it (else the nearest view centroid), and the ray through
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -51,22 +23,36 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.calibrate import brf_transmittance
+from hsi_torch.calibrate.config import CalibrateConfig
+from hsi_torch.calibrate.pipeline import calibrate_capture_set
+from hsi_torch.config import load_config
 from hsi_torch.experiments import report
+from hsi_torch.experiments.opd_estimate import (
+    OPDEstimate,
+    band_centre_nm,
+    estimate_opd,
+    group_opd_nm,
+)
+from hsi_torch.experiments.opd_points import (
+    MeasuredPoints,
+    PredictedViews,
+    match_points,
+    points_from_reference_frame,
+    points_from_sensor_map,
+    predicted_views,
+    read_points_csv,
+)
+from hsi_torch.io import read_any
 from hsi_torch.io.atomic import atomic_write_json
-from hsi_torch.spectral import resample_spectra
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.capture_set import read_capture_set, read_truth
+from hsi_torch.resources import shipped_config
+from hsi_torch.simulate.capture_sets import build_renderer, simulate_capture_set
+from hsi_torch.simulate.config import SimulateConfig
+from hsi_torch.simulate.oracle import bundle_from_truth
 
 __all__ = [
-    "OPDEstimate",
-    "estimate_opd",
-    "group_opd_nm",
-    "band_centre_nm",
-    "MeasuredPoints",
-    "PredictedViews",
-    "predicted_views",
-    "match_points",
-    "points_from_reference_frame",
-    "points_from_sensor_map",
-    "read_points_csv",
     "calibrated_bundle",
     "OPDInputSpec",
     "OPDPointsSpec",
@@ -74,482 +60,6 @@ __all__ = [
     "OPDConfig",
     "run_opd",
 ]
-
-
-# =============================================================================================
-# estimator
-# =============================================================================================
-
-
-@dataclass
-class OPDEstimate:
-    """OPD estimates of ``P`` spectra (all tensors ``(P,)`` in the input's dtype/device).
-
-    Attributes:
-        coarse_nm: FFT bin of the largest non-DC peak × ``bin_nm``.
-        fft_nm: zero-padded FFT peak refined by parabolic interpolation.
-        fit_nm: least-squares cosine fit (``NaN`` when ``fit=False``).
-        offset, amplitude, phase: the fit ``T ≈ offset + amplitude·cos(2π fit_nm (k − k_c) +
-            phase)``, ``amplitude ≥ 0``.
-        modulation: ``amplitude / offset`` (≈ 1 for an ideal crossed-polarizer fringe).
-        rms: root-mean-square residual of the fit.
-        bin_nm: one coarse FFT bin in nm of OPD; k_c: centre wavenumber of the fit (nm⁻¹).
-    """
-
-    coarse_nm: Tensor
-    fft_nm: Tensor
-    fit_nm: Tensor
-    offset: Tensor
-    amplitude: Tensor
-    phase: Tensor
-    modulation: Tensor
-    rms: Tensor
-    bin_nm: float
-    k_c: float
-
-    def model(self, wavelengths_nm: Tensor) -> Tensor:
-        """``(P, L)`` fitted cosine at ``wavelengths_nm (L,)``."""
-        k = 1.0 / wavelengths_nm.to(self.fit_nm) - self.k_c
-        arg = 2 * math.pi * self.fit_nm[:, None] * k[None] + self.phase[:, None]
-        return self.offset[:, None] + self.amplitude[:, None] * torch.cos(arg)
-
-
-def _window(name: str, n: int, device, dtype) -> Tensor:
-    if name == "hann":
-        return torch.hann_window(n, periodic=False, device=device, dtype=dtype)
-    if name in ("none", "rect", "boxcar"):
-        return torch.ones(n, device=device, dtype=dtype)
-    raise ValueError(f"window must be 'hann' or 'none', got {name!r}")
-
-
-def _cosine_lstsq(x: Tensor, t: Tensor, f: Tensor) -> tuple[Tensor, Tensor]:
-    """Linear LS of ``t (P, M)`` on ``[1, cos 2πfx, sin 2πfx]`` for frequencies ``f (P, F)``.
-
-    Returns ``coef (P, F, 3)`` and the residual sum of squares ``(P, F)``."""
-    arg = 2 * math.pi * f[..., None] * x[:, None, :]  # (P, F, M)
-    basis = torch.stack([torch.ones_like(arg), torch.cos(arg), torch.sin(arg)], -1)  # (P,F,M,3)
-    g = torch.einsum("pfmi,pfmj->pfij", basis, basis)
-    g = g + 1e-12 * g.diagonal(dim1=-2, dim2=-1).mean(-1)[..., None, None] * torch.eye(
-        3, device=x.device, dtype=x.dtype)
-    rhs = torch.einsum("pfmi,pm->pfi", basis, t)
-    coef = torch.linalg.solve(g, rhs.unsqueeze(-1)).squeeze(-1)
-    res = t[:, None, :] - torch.einsum("pfmi,pfi->pfm", basis, coef)
-    return coef, res.pow(2).sum(-1)
-
-
-def _lm_refine(x: Tensor, t: Tensor, p: Tensor, iters: int) -> tuple[Tensor, Tensor]:
-    """Levenberg–Marquardt on ``t ≈ a + c cos 2πfx + s sin 2πfx``, ``p = (a, c, s, f) (P, 4)``.
-
-    Returns the refined parameters and the residual sum of squares ``(P,)``."""
-
-    def residual(q: Tensor) -> Tensor:
-        arg = 2 * math.pi * q[:, 3:4] * x
-        return t - (q[:, 0:1] + q[:, 1:2] * torch.cos(arg) + q[:, 2:3] * torch.sin(arg))
-
-    r = residual(p)
-    cost = r.pow(2).sum(-1)
-    mu = torch.full_like(cost, 1e-3)
-    eye = torch.eye(4, device=x.device, dtype=x.dtype)
-    for _ in range(iters):
-        arg = 2 * math.pi * p[:, 3:4] * x
-        cs, sn = torch.cos(arg), torch.sin(arg)
-        dfr = 2 * math.pi * x * (-p[:, 1:2] * sn + p[:, 2:3] * cs)
-        jac = torch.stack([torch.ones_like(cs), cs, sn, dfr], -1)  # (P, M, 4)
-        jtj = jac.transpose(1, 2) @ jac
-        jtr = (jac.transpose(1, 2) @ r.unsqueeze(-1)).squeeze(-1)
-        d = jtj.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(x.dtype).tiny)
-        lhs = jtj + mu[:, None, None] * torch.diag_embed(d) + 1e-30 * eye
-        step = torch.linalg.solve(lhs, jtr.unsqueeze(-1)).squeeze(-1)
-        cand = p + step
-        r_c = residual(cand)
-        c_c = r_c.pow(2).sum(-1)
-        ok = c_c <= cost
-        p = torch.where(ok[:, None], cand, p)
-        r = torch.where(ok[:, None], r_c, r)
-        cost = torch.where(ok, c_c, cost)
-        mu = torch.where(ok, mu * 0.3, mu * 10.0).clamp(1e-9, 1e9)
-    return p, cost
-
-
-def estimate_opd(
-    transmittance: Tensor,
-    wavelengths_nm: Tensor,
-    *,
-    num_k: int | None = None,
-    window: str = "hann",
-    pad_factor: int = 32,
-    fit: bool = True,
-    search_bins: float = 1.0,
-    search_points: int = 41,
-    iters: int = 20,
-) -> OPDEstimate:
-    """OPD (nm) of transmittance spectra from their modulation in wavenumber ``k = 1/λ``.
-
-    Args:
-        transmittance: ``(P, M)`` (or ``(M,)``) spectra ``T(λ_m)``, any scale (a throughput or
-            the line average of a monochromator scan only scales/damps the fringe).
-        wavelengths_nm: ``(M,)`` strictly increasing wavelengths (nm), ``M ≥ 4``.
-        num_k: samples of the uniform ``k`` grid (default ``M``); sets the coarse bin.
-        window: ``'hann'`` or ``'none'`` (applied after the mean is removed).
-        pad_factor: zero-padding factor of the refined FFT.
-        fit: also run the least-squares cosine fit.
-        search_bins, search_points: the fit's grid search spans ``fft ± search_bins`` coarse
-            bins with ``search_points`` frequencies (then ``iters`` LM steps).
-
-    Returns:
-        :class:`OPDEstimate`; OPDs in nm (``|Δ|``: the sign of an OPD is not observable).
-
-    Convention:
-        ``T(k) = a + b cos(2π Δ (k − k_c) + φ)``, ``k`` in nm⁻¹, ``k_c`` the mean of ``1/λ_m``.
-    """
-    if not isinstance(transmittance, Tensor):
-        raise TypeError(f"transmittance must be a tensor, got {type(transmittance).__name__}")
-    t = transmittance if transmittance.is_floating_point() else transmittance.double()
-    if t.ndim == 1:
-        t = t[None]
-    if t.ndim != 2:
-        raise ValueError(f"transmittance must be (P, M) or (M,), got {tuple(transmittance.shape)}")
-    dev, dt = t.device, t.dtype
-    wl = torch.as_tensor(wavelengths_nm, device=dev, dtype=dt).reshape(-1)
-    m = wl.numel()
-    if m != t.shape[1]:
-        raise ValueError(f"wavelengths_nm has {m} samples but transmittance has {t.shape[1]}")
-    if m < 4:
-        raise ValueError(f"need at least 4 wavelengths, got {m}")
-    if not bool((wl[1:] > wl[:-1]).all()) or bool((wl <= 0).any()):
-        raise ValueError("wavelengths_nm must be positive and strictly increasing")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError("transmittance holds non-finite values")
-    n = int(num_k or m)
-    k_src = torch.flip(1.0 / wl, [0])  # ascending
-    t_k = torch.flip(t, [1])
-    kg = torch.linspace(float(k_src[0]), float(k_src[-1]), n, device=dev, dtype=dt)
-    tu = resample_spectra(t_k, k_src, kg, dim=-1, extrapolate="edge")
-    dk = float(kg[1] - kg[0])
-    bin_nm = 1.0 / (n * dk)
-    x = (tu - tu.mean(-1, keepdim=True)) * _window(window, n, dev, dt)
-    spec = torch.fft.rfft(x, n=n).abs()
-    spec[:, 0] = -1.0
-    coarse = spec.argmax(-1).to(dt) * bin_nm
-    # refined FFT: zero padding + parabolic interpolation, peak searched near the coarse bin
-    npad = int(pad_factor) * n
-    sp = torch.fft.rfft(x, n=npad).abs()
-    fr = torch.arange(sp.shape[1], device=dev, dtype=dt) / (npad * dk)
-    near = (fr[None] - coarse[:, None]).abs() <= bin_nm
-    near &= fr[None] >= 0.5 * bin_nm
-    j = torch.where(near, sp, torch.full_like(sp, -1.0)).argmax(-1)
-    j = j.clamp(1, sp.shape[1] - 2)
-    a, b, c = (sp.gather(1, (j + o)[:, None])[:, 0] for o in (-1, 0, 1))
-    den = a - 2 * b + c
-    delta = torch.where(den.abs() > 0, 0.5 * (a - c) / torch.where(den == 0, 1, den), 0)
-    fft_nm = (j.to(dt) + delta.clamp(-1, 1)) / (npad * dk)
-
-    k = 1.0 / wl
-    k_c = float(k.mean())
-    xs = (k - k_c)[None].expand(t.shape[0], -1)
-    nan = torch.full_like(fft_nm, float("nan"))
-    if not fit:
-        return OPDEstimate(coarse, fft_nm, nan, nan, nan, nan, nan, nan, bin_nm, k_c)
-    steps = torch.linspace(-1.0, 1.0, int(search_points), device=dev, dtype=dt)
-    f_grid = (fft_nm[:, None] + search_bins * bin_nm * steps[None]).clamp_min(0.25 * bin_nm)
-    coef, rss = _cosine_lstsq(xs, t, f_grid)
-    best = rss.argmin(-1)
-    c0 = coef[torch.arange(t.shape[0], device=dev), best]  # (P, 3)
-    f0 = f_grid.gather(1, best[:, None])
-    p, cost = _lm_refine(xs, t, torch.cat([c0, f0], -1), iters)
-    off, cc, ss, f = p.unbind(-1)
-    amp = torch.sqrt(cc**2 + ss**2)
-    phase = -torch.atan2(ss, cc)
-    neg = f < 0
-    f = f.abs()
-    phase = torch.where(neg, -phase, phase)
-    modulation = amp / off.abs().clamp_min(torch.finfo(dt).tiny)
-    rms = (cost / m).sqrt()
-    return OPDEstimate(coarse, fft_nm, f, off, amp, phase, modulation, rms, bin_nm, k_c)
-
-
-def band_centre_nm(wavelengths_nm: Tensor | list[float]) -> float:
-    """Wavelength of the band-centre wavenumber ``k_0 = ½(1/λ_min + 1/λ_max)`` (nm)."""
-    wl = torch.as_tensor(wavelengths_nm, dtype=torch.float64)
-    return float(2.0 / (1.0 / wl.min() + 1.0 / wl.max()))
-
-
-def group_opd_nm(brf: Any, alpha: Tensor, sigma: Tensor, wavelength_nm: float,
-                 h_nm: float = 0.5) -> Tensor:
-    """Group OPD ``Δ_g = d(Δ k)/dk = Δ − λ dΔ/dλ`` (nm) at ``wavelength_nm`` (central difference).
-
-    This is the local frequency in ``k`` of the fringe ``cos(2π Δ(λ)/λ)``: what a
-    single-frequency estimate over a band around ``wavelength_nm`` measures.
-
-    Args:
-        brf: :class:`~hsi_torch.optics.BRFConfig`.
-        alpha, sigma: ray angles at the filter (rad), any broadcastable shape.
-    """
-    lam = torch.tensor([wavelength_nm - h_nm, wavelength_nm, wavelength_nm + h_nm],
-                       dtype=torch.float64, device=alpha.device)
-    d = brf.opd_nm(alpha.to(torch.float64)[..., None], sigma.to(torch.float64)[..., None], lam)
-    dd = (d[..., 2] - d[..., 0]) / (2 * h_nm)
-    return (d[..., 1] - wavelength_nm * dd).to(alpha.dtype)
-
-
-# =============================================================================================
-# measured points and predicted views
-# =============================================================================================
-
-
-@dataclass
-class MeasuredPoints:
-    """``P`` measured transmittance spectra at image-plane (sensor px) positions.
-
-    Attributes:
-        xy: ``(P, 2)`` sensor px ``(x, y)``.
-        T: ``(P, M)`` transmittance on ``wavelengths_nm (M,)``.
-        view: ``(P,)`` long: the input's own view label (−1 unknown, e.g. CSV).
-        point: ``(P,)`` long: the sample-point id within the view (or row number).
-        label: text per point (CSV labels or ``v<view>p<point>``).
-    """
-
-    xy: Tensor
-    T: Tensor
-    wavelengths_nm: Tensor
-    view: Tensor
-    point: Tensor
-    label: list[str]
-
-    def select(self, keep: Tensor) -> MeasuredPoints:
-        idx = torch.nonzero(keep.to(torch.bool)).squeeze(1)
-        return MeasuredPoints(self.xy[idx], self.T[idx], self.wavelengths_nm, self.view[idx],
-                              self.point[idx], [self.label[i] for i in idx.tolist()])
-
-
-def sample_offsets(num_ring: int, ring_fraction: float) -> list[tuple[float, float]]:
-    """Barycentric-free sample pattern of a triangle: the centroid plus, when ``num_ring`` is
-    3 or 6, points ``ring_fraction`` of the way to the vertices (and the edge midpoints).
-
-    Returns ``(weight_vertex_or_mid_index, fraction)`` pairs; index ``-1`` = centroid, 0–2 =
-    vertices, 3–5 = edge midpoints ``P_i P_{i+1}``."""
-    out = [(-1, 0.0)]
-    if num_ring not in (0, 3, 6):
-        raise ValueError(f"points.num_ring must be 0, 3 or 6, got {num_ring}")
-    if num_ring >= 3:
-        out += [(i, ring_fraction) for i in range(3)]
-    if num_ring == 6:
-        out += [(3 + i, ring_fraction) for i in range(3)]
-    return out
-
-
-def triangle_sample_points(tri: Tensor, num_ring: int = 6, ring_fraction: float = 0.35) -> Tensor:
-    """``(K, 2)`` sample points of triangles ``tri (3, 2)``: centroid (+ ring, see
-    :func:`sample_offsets`)."""
-    c = tri.mean(0)
-    targets = torch.cat([tri, 0.5 * (tri + tri.roll(-1, 0))], 0)  # vertices, edge midpoints
-    pts = []
-    for idx, frac in sample_offsets(num_ring, ring_fraction):
-        pts.append(c if idx < 0 else c + frac * (targets[idx] - c))
-    return torch.stack(pts)
-
-
-def _collect_points(xs: list[Tensor], ts: list[Tensor], vs: list[Tensor], ps: list[Tensor],
-                    wavelengths_nm: Tensor) -> MeasuredPoints:
-    """:class:`MeasuredPoints` from per-view lists (positions, spectra, view and point ids),
-    labelled ``v<view>p<point>``."""
-    view = torch.cat(vs)
-    point = torch.cat(ps)
-    return MeasuredPoints(torch.cat(xs), torch.cat(ts).to(torch.float64),
-                          torch.as_tensor(wavelengths_nm, dtype=torch.float64).cpu(), view,
-                          point, [f"v{a}p{b}" for a, b in
-                                  zip(view.tolist(), point.tolist(), strict=True)])
-
-
-def points_from_reference_frame(
-    B: Tensor,
-    wavelengths_nm: Tensor,
-    view_homographies: Tensor,
-    triangles: Tensor,
-    reference_bbox: tuple[int, int, int, int],
-    usable: Tensor,
-    *,
-    num_ring: int = 6,
-    ring_fraction: float = 0.35,
-) -> MeasuredPoints:
-    """Sample points of a reference-frame ``B (V, M, h, w)`` (ground truth or a bundle).
-
-    The points are the reference triangle's centroid and ring (:func:`triangle_sample_points`),
-    rounded to reference-frame pixels; for view ``v`` the spectrum is ``B[v, :, q]`` and the
-    image-plane position is ``H_v⁻¹ (q + (x0, y0))`` (sensor px of view ``v``). Points where
-    ``usable[v]`` (``(V, h, w)`` bool, e.g. the modulated mask) is False are dropped.
-    """
-    from hsi_torch.optics.geometry import apply_homography
-
-    V, M, h, w = B.shape
-    x0, y0 = int(reference_bbox[0]), int(reference_bbox[1])
-    tri0 = triangles[0].to(torch.float64).cpu()
-    q = triangle_sample_points(tri0, num_ring, ring_fraction) - torch.tensor(
-        [x0, y0], dtype=torch.float64)
-    qi = q.round().long()
-    qi[:, 0] = qi[:, 0].clamp(0, w - 1)
-    qi[:, 1] = qi[:, 1].clamp(0, h - 1)
-    xs, ts, vs, ps = [], [], [], []
-    hom = view_homographies.to(torch.float64).cpu()
-    for v in range(V):
-        ok = usable[v].cpu()[qi[:, 1], qi[:, 0]]
-        idx = torch.nonzero(ok).squeeze(1)
-        if idx.numel() == 0:
-            continue
-        q_s = qi[idx].to(torch.float64) + torch.tensor([x0, y0], dtype=torch.float64)
-        xs.append(apply_homography(torch.linalg.inv(hom[v]), q_s))
-        ts.append(B[v][:, qi[idx, 1].to(B.device), qi[idx, 0].to(B.device)].T.cpu())
-        vs.append(torch.full((idx.numel(),), v, dtype=torch.long))
-        ps.append(idx)
-    if not xs:
-        raise ValueError("no usable sample point in any view (check the masks)")
-    return _collect_points(xs, ts, vs, ps, wavelengths_nm)
-
-
-def points_from_sensor_map(
-    B_sensor: Tensor,
-    wavelengths_nm: Tensor,
-    triangles: Tensor,
-    usable: Tensor | None = None,
-    *,
-    num_ring: int = 6,
-    ring_fraction: float = 0.35,
-) -> MeasuredPoints:
-    """Sample points of a sensor-coordinate transmittance ``B_sensor (M, H, W)`` (a scan):
-    centroid and ring of every triangle ``(V, 3, 2)`` (e.g. the nominal layout), nearest pixel.
-    ``usable (H, W)`` bool drops points (e.g. unlit or BRF-free pixels)."""
-    M, H, W = B_sensor.shape
-    xs, ts, vs, ps = [], [], [], []
-    for v in range(triangles.shape[0]):
-        pts = triangle_sample_points(triangles[v].to(torch.float64).cpu(), num_ring,
-                                     ring_fraction).round()
-        pts[:, 0] = pts[:, 0].clamp(0, W - 1)
-        pts[:, 1] = pts[:, 1].clamp(0, H - 1)
-        pi = pts.long()
-        ok = torch.ones(pi.shape[0], dtype=torch.bool)
-        if usable is not None:
-            ok = usable.cpu()[pi[:, 1], pi[:, 0]]
-        idx = torch.nonzero(ok).squeeze(1)
-        xs.append(pts[idx])
-        ts.append(B_sensor[:, pi[idx, 1].to(B_sensor.device), pi[idx, 0].to(B_sensor.device)]
-                  .T.cpu())
-        vs.append(torch.full((idx.numel(),), v, dtype=torch.long))
-        ps.append(idx)
-    return _collect_points(xs, ts, vs, ps, wavelengths_nm)
-
-
-def read_points_csv(path: str | Path) -> MeasuredPoints:
-    """Measured spectra from a CSV: columns ``x_px, y_px`` (sensor px), optional ``label``, and
-    one column per wavelength whose header is the wavelength in nm (e.g. ``430``, ``440.5``).
-
-    Raises:
-        FileNotFoundError, ValueError: missing file/columns, non-numeric values (file and row
-        named).
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"OPD points CSV not found: {p}")
-    with p.open(newline="") as fh:
-        rows = list(csv.reader(fh))
-    rows = [r for r in rows if r and not r[0].lstrip().startswith("#")]
-    if len(rows) < 2:
-        raise ValueError(f"{p}: needs a header and at least one row")
-    head = [h.strip() for h in rows[0]]
-    for need in ("x_px", "y_px"):
-        if need not in head:
-            raise ValueError(f"{p}: missing column {need!r} (header: {head})")
-    wl_cols, wls = [], []
-    for i, h in enumerate(head):
-        if h in ("x_px", "y_px", "label"):
-            continue
-        try:
-            wls.append(float(h.removesuffix("nm")))
-        except ValueError as exc:
-            raise ValueError(f"{p}: column {h!r} is neither x_px/y_px/label nor a wavelength "
-                             "in nm") from exc
-        wl_cols.append(i)
-    if len(wl_cols) < 4:
-        raise ValueError(f"{p}: needs at least 4 wavelength columns, got {len(wl_cols)}")
-    order = np.argsort(wls)
-    ix, iy = head.index("x_px"), head.index("y_px")
-    il = head.index("label") if "label" in head else None
-    xy, T, labels = [], [], []
-    for n, r in enumerate(rows[1:], start=2):
-        try:
-            xy.append((float(r[ix]), float(r[iy])))
-            T.append([float(r[wl_cols[o]]) for o in order])
-        except (ValueError, IndexError) as exc:
-            raise ValueError(f"{p}: row {n}: {exc}") from exc
-        labels.append(r[il] if il is not None else f"row{n}")
-    n_pts = len(xy)
-    return MeasuredPoints(torch.tensor(xy, dtype=torch.float64),
-                          torch.tensor(T, dtype=torch.float64),
-                          torch.tensor(np.asarray(wls)[order], dtype=torch.float64),
-                          torch.full((n_pts,), -1, dtype=torch.long), torch.arange(n_pts), labels)
-
-
-@dataclass
-class PredictedViews:
-    """The ray tracer's views: ``layout`` (:class:`~hsi_torch.optics.ViewLayout`), ``centres
-    (V, 2)`` triangle centroids (sensor px), and the optics to trace measured points with."""
-
-    layout: Any
-    centres: Tensor
-    geometry: Any
-    camera: Any
-    brf: Any
-
-
-def predicted_views(geometry: Any, camera: Any, brf: Any, layout: Any | None = None
-                    ) -> PredictedViews:
-    """Predicted view layout of a design (built with :func:`hsi_torch.optics.build_view_layout`
-    when not given)."""
-    from hsi_torch.optics import build_view_layout
-
-    lay = layout if layout is not None else build_view_layout(geometry, camera, brf)
-    lay = lay.to("cpu", torch.float64)
-    return PredictedViews(lay, lay.triangles.mean(1), geometry, camera, brf)
-
-
-def match_points(pred: PredictedViews, xy: Tensor, wavelength_nm: float, k0_nm: float
-                 ) -> dict[str, Tensor]:
-    """Match image-plane points ``xy (P, 2)`` to predicted views and predict their OPD.
-
-    A point belongs to the predicted view whose triangle contains it; points outside every
-    triangle go to the nearest centroid. The ray traced through the point gives ``(α, σ)``
-    when it lands in the matched view, else the view's mean angles are used
-    (``traced = False``).
-
-    Returns:
-        dict of ``(P,)`` tensors: ``view``, ``distance_px`` (to the matched centre),
-        ``inside``, ``traced``, ``alpha``, ``sigma`` (rad), ``opd_phase_nm`` (Δ at
-        ``wavelength_nm``), ``opd_group_nm`` (Δ_g at ``k0_nm``), ``view_opd_phase_nm`` and
-        ``view_opd_group_nm`` (at the view's mean angles).
-    """
-    from hsi_torch.optics import trace_rays
-    from hsi_torch.optics.geometry import points_in_triangle
-
-    lay = pred.layout
-    xy = xy.to(torch.float64).cpu()
-    V = lay.num_views
-    inside = torch.stack([points_in_triangle(xy, lay.triangles[v]) for v in range(V)], 1)
-    dist = torch.cdist(xy, pred.centres)  # (P, V)
-    big = torch.where(inside, dist, dist + 1e9)
-    view = big.argmin(1)
-    ins = inside.gather(1, view[:, None])[:, 0]
-    tr = trace_rays(pred.geometry, pred.camera, xy, sequences=lay.reflection_sequences)
-    traced = tr.view_index == view
-    alpha = torch.where(traced, tr.alpha.to(torch.float64), lay.mean_alpha[view])
-    sigma = torch.where(traced, tr.sigma.to(torch.float64), lay.mean_sigma[view])
-    lam = torch.tensor([wavelength_nm], dtype=torch.float64)
-    phase = pred.brf.opd_nm(alpha[:, None], sigma[:, None], lam)[:, 0]
-    group = group_opd_nm(pred.brf, alpha, sigma, k0_nm)
-    v_phase = pred.brf.opd_nm(lay.mean_alpha[:, None], lay.mean_sigma[:, None], lam)[:, 0]
-    v_group = group_opd_nm(pred.brf, lay.mean_alpha, lay.mean_sigma, k0_nm)
-    return {"view": view, "distance_px": dist.gather(1, view[:, None])[:, 0], "inside": ins,
-            "traced": traced, "alpha": alpha, "sigma": sigma, "opd_phase_nm": phase,
-            "opd_group_nm": group, "view_opd_phase_nm": v_phase[view],
-            "view_opd_group_nm": v_group[view]}
 
 
 # =============================================================================================
@@ -638,10 +148,6 @@ def _needs_capture_set(kind: str) -> bool:
 
 
 def _load_prototype(cfg: OPDConfig):
-    from hsi_torch.config import load_config
-    from hsi_torch.resources import shipped_config
-    from hsi_torch.simulate.config import SimulateConfig
-
     return load_config(cfg.prototype or shipped_config("simulate"), SimulateConfig,
                        list(cfg.prototype_overrides))
 
@@ -656,31 +162,17 @@ def _bundle_points(bundle, pts: OPDPointsSpec) -> MeasuredPoints:
 
 def calibrated_bundle(capture_set: str | Path, calibrate_config: str | Path | None = None, *,
                       device: str | None = None, progress: bool = False,
-                      save_to: str | Path | None = None) -> tuple[Any, str]:
-    """``(bundle, note)``: ``hsi_torch.calibrate.pipeline.calibrate_capture_set`` on a capture set
-    (``calibrate_config``: a ``CalibrateConfig`` YAML, else the shipped ``calibrate.yaml``), or the
-    oracle bundle
-    (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) when that pipeline is not installed.
-    ``save_to`` writes the bundle."""
-    from hsi_torch.simulate.oracle import bundle_from_truth
-
-    try:
-        from hsi_torch.calibrate.config import CalibrateConfig
-        from hsi_torch.calibrate.pipeline import calibrate_capture_set
-    except ImportError:
-        return bundle_from_truth(capture_set), (
-            "hsi_torch.calibrate.pipeline is not available: the oracle bundle (true B) was used")
-    from hsi_torch.config import load_config
-    from hsi_torch.resources import shipped_config
-
+                      save_to: str | Path | None = None) -> tuple[CalibrationBundle, str]:
+    """``(bundle, note)``: :func:`hsi_torch.calibrate.pipeline.calibrate_capture_set` on a
+    capture set (``calibrate_config``: a ``CalibrateConfig`` YAML, else the shipped
+    ``calibrate.yaml``); ``note`` says how it was made. ``save_to`` writes the bundle."""
     ccfg = load_config(calibrate_config or shipped_config("calibrate"), CalibrateConfig)
     bundle, rep = calibrate_capture_set(capture_set, ccfg, device=device, progress=progress)
     if save_to is not None:
         bundle.save(save_to)
     return bundle, ("calibrated with hsi_torch.calibrate.pipeline.calibrate_capture_set "
-                    f"({calibrate_config or 'the shipped calibrate.yaml'}; {rep.valid.num_valid} "
-                    "valid pixels)" if hasattr(rep.valid, "num_valid") else
-                    "calibrated with hsi_torch.calibrate.pipeline.calibrate_capture_set")
+                    f"({calibrate_config or 'the shipped calibrate.yaml'}; "
+                    f"{rep.valid.num_valid} valid pixels)")
 
 
 def _scan_points(capture_set: Path, pts: OPDPointsSpec, device: torch.device,
@@ -688,32 +180,23 @@ def _scan_points(capture_set: Path, pts: OPDPointsSpec, device: torch.device,
     """``B`` in sensor coordinates from the capture set's monochromator scan
     (:func:`hsi_torch.calibrate.brf_transmittance`, dark frame subtracted, the usable BRF-free
     mask of the reference view), sampled in the *nominal* triangles."""
-    import cv2
-
-    from hsi_torch.calibrate import brf_transmittance
-    from hsi_torch.io import read_any
-
-    root = Path(capture_set)
-    manifest = json.loads((root / "manifest.json").read_text())
-    nominal = json.loads((root / manifest.get("nominal_layout", "nominal_layout.json"))
-                         .read_text())
-    scans = [c for c in manifest["captures"] if c.get("type") == "scan"]
+    cs = read_capture_set(capture_set)
+    scans = cs.scan
     if len(scans) < 4:
-        raise ValueError(f"{root}: needs >= 4 monochromator scan frames, found {len(scans)}")
-    darks = [c for c in manifest["captures"] if c.get("type") == "dark"]
+        raise ValueError(f"{cs.root}: needs >= 4 monochromator scan frames, found {len(scans)}")
+    unknown = [p.name for p, lam in scans if lam is None]
+    if unknown:
+        raise ValueError(f"{cs.root}: scan frame(s) {unknown} without a wavelength")
     it = report.progress(scans, desc="opd: reading scan", enable=progress)
-    frames = [read_any(root / c["file"], dtype=torch.float64, device=device).image for c in it]
-    wl = [float(c["wavelength_nm"]) for c in scans]
+    frames = [read_any(p, dtype=torch.float64, device=device).image for p, _ in it]
+    wl = [float(lam) for _, lam in scans]
     dark = None
-    if darks:
-        dark = read_any(root / darks[0]["file"], dtype=torch.float64, device=device).image
-    mpath = root / manifest.get("brf_free_mask", "brf_free_mask.png")
-    mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
-    if mask is None:
-        raise FileNotFoundError(f"BRF-free mask not readable: {mpath}")
-    res = brf_transmittance(torch.stack(frames), wl, torch.from_numpy(mask > 127).to(device),
+    if cs.dark:
+        dark = read_any(cs.dark[0], dtype=torch.float64, device=device).image
+    mask = cs.read_brf_free_mask()
+    res = brf_transmittance(torch.stack(frames), wl, torch.from_numpy(mask).to(device),
                             dark=dark, grid_nm=sorted(wl))
-    tris = torch.tensor(nominal["triangles_px"], dtype=torch.float64)
+    tris = torch.from_numpy(cs.layout().triangles)
     return points_from_sensor_map(res.transmittance, res.wavelengths_nm, tris, res.lit,
                                   num_ring=pts.num_ring, ring_fraction=pts.ring_fraction)
 
@@ -941,9 +424,6 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     Returns:
         The summary dict (statistics per input, notes, timings).
     """
-    from hsi_torch.simulate.capture_sets import build_renderer, simulate_capture_set
-    from hsi_torch.simulate.oracle import bundle_from_truth, load_truth
-
     t_all = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -983,7 +463,7 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
             raise ValueError(f"opd input {name!r}: kind {spec.kind!r} needs `path`")
         if spec.kind == "truth":
             if capture_set is not None:
-                arrays, _ = load_truth(capture_set)
+                arrays, _ = read_truth(capture_set)
                 mp = _truth_points(arrays, cfg.points)
             else:
                 mp = _truth_points(_memory_truth(renderer, cfg.progress), cfg.points)
@@ -998,8 +478,6 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
         elif spec.kind == "scan":
             mp = _scan_points(Path(capture_set), cfg.points, dev, cfg.progress)
         elif spec.kind == "bundle":
-            from hsi_torch.calibrate import CalibrationBundle
-
             mp = _bundle_points(CalibrationBundle.load(spec.path), cfg.points)
         else:
             mp = read_points_csv(spec.path)

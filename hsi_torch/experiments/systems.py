@@ -324,14 +324,14 @@ def bundle_design(
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float64,
 ) -> SensingDesign:
-    """This system's channels from a calibration bundle (``hsi_torch.calibrate.bundle``).
+    """This system's channels from a calibration bundle (:class:`~hsi_torch.io.CalibrationBundle`).
 
     ``A_p[(v,c), m] = gain[v,p] B[v,m,p] Δλ_m phi[c,m]`` averaged over the valid pixels where every
     view is present, or at ``pixel = (x, y)`` of the reference frame. ``phi`` is the calibrated
     φ = l·f, so the calibration's illuminant is used as is. The bundle's wavelengths must equal
     ``grid``.
     """
-    from hsi_torch.calibrate.bundle import CalibrationBundle
+    from hsi_torch.io.bundle import CalibrationBundle
 
     b = CalibrationBundle.load(path)
     wl = np.asarray(b.wavelengths_nm, dtype=np.float64)

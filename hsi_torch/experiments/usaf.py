@@ -323,7 +323,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         bundle, note = calibrated_bundle(cs, cfg.calibrate_config, device=dev,
                                          progress=cfg.progress, save_to=out / "bundle.npz")
     else:
-        from hsi_torch.calibrate import CalibrationBundle
+        from hsi_torch.io.bundle import CalibrationBundle
 
         bundle, note = CalibrationBundle.load(cfg.bundle), f"bundle {cfg.bundle}"
     tm["bundle"] = time.perf_counter() - t0

@@ -1,7 +1,8 @@
-"""File I/O: camera RAW (linear, via rawpy), capture TIFF/NPY/NPZ, spectral cubes, atomic writes.
+"""File I/O: camera RAW (linear, via rawpy), capture TIFF/NPY/NPZ, spectral cubes, the calibration
+bundle, atomic writes.
 
-See :mod:`hsi_torch.io.raw`, :mod:`hsi_torch.io.captures`, :mod:`hsi_torch.io.cube` and
-:mod:`hsi_torch.io.atomic` for the file formats and conventions.
+See :mod:`hsi_torch.io.raw`, :mod:`hsi_torch.io.captures`, :mod:`hsi_torch.io.cube`,
+:mod:`hsi_torch.io.bundle` and :mod:`hsi_torch.io.atomic` for the file formats and conventions.
 """
 
 from hsi_torch.io.atomic import (
@@ -12,6 +13,7 @@ from hsi_torch.io.atomic import (
     atomic_write_json,
     atomic_write_text,
 )
+from hsi_torch.io.bundle import CalibrationBundle, file_sha256, make_provenance
 from hsi_torch.io.captures import LinearCapture, read_any, read_capture, write_capture
 from hsi_torch.io.cube import Cube, load_cube, save_cube, save_cube_formats
 from hsi_torch.io.raw import (
@@ -33,6 +35,9 @@ __all__ = [
     "atomic_write_text",
     "atomic_write_json",
     "atomic_save_npz",
+    "CalibrationBundle",
+    "file_sha256",
+    "make_provenance",
     "LinearCapture",
     "read_any",
     "read_capture",

@@ -36,9 +36,9 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.errors import InputError
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.pipeline import (

@@ -47,8 +47,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing

@@ -44,8 +44,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hsi_torch.calibrate.bundle import CalibrationBundle
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls

@@ -4,7 +4,6 @@ See ``docs/simulate.md``. Heavy imports are lazy (``hsi_torch.simulate.render`` 
 """
 
 from hsi_torch.simulate.capture_sets import (
-    MANIFEST_SCHEMA_VERSION,
     SimulationSummary,
     build_renderer,
     build_scene,
@@ -14,7 +13,6 @@ from hsi_torch.simulate.config import SimulateConfig
 from hsi_torch.simulate.render import CaptureRenderer, CaptureSpec
 
 __all__ = [
-    "MANIFEST_SCHEMA_VERSION",
     "CaptureRenderer",
     "CaptureSpec",
     "SimulateConfig",

@@ -1,6 +1,6 @@
 """Calibration and scene capture sets of the virtual prototype, written with their ground truth.
 
-Folder format (read by calibration and reconstruction; see ``docs/simulate.md``)::
+Folder format (:mod:`hsi_torch.io.capture_set` writes and reads it; see ``docs/simulate.md``)::
 
     OUT/manifest.json            schema version, sensor, levels, exposures, list of captures
     OUT/nominal_layout.json      what a user knows before calibration (no homographies)
@@ -30,7 +30,8 @@ import numpy as np
 import torch
 
 from hsi_torch.config import to_dict, write_resolved_config
-from hsi_torch.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, write_capture
+from hsi_torch.io import write_capture
+from hsi_torch.io.capture_set import write_capture_set_index, write_truth
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
 from hsi_torch.optics.geometry import apply_homography
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
@@ -40,7 +41,6 @@ from hsi_torch.simulate.scenes import CircleGridScene, ColorCheckerScene, CubeSc
 from hsi_torch.spectral import SpectralGrid
 
 __all__ = [
-    "MANIFEST_SCHEMA_VERSION",
     "PlannedCapture",
     "SimulationSummary",
     "build_renderer",
@@ -51,7 +51,6 @@ __all__ = [
     "simulate_capture_set",
 ]
 
-MANIFEST_SCHEMA_VERSION = 1
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -247,7 +246,6 @@ def nominal_layout(renderer: CaptureRenderer, patch_mask: torch.Tensor) -> dict[
     r_px = float((poly - centre).norm(dim=1).mean())
     ys, xs = torch.nonzero(patch_mask, as_tuple=True)
     return {
-        "schema_version": MANIFEST_SCHEMA_VERSION,
         "sensor_size": list(lay.sensor_size),
         "num_views": lay.num_views,
         "reflection_sequences": [list(s) for s in lay.reflection_sequences],
@@ -269,15 +267,6 @@ def nominal_layout(renderer: CaptureRenderer, patch_mask: torch.Tensor) -> dict[
         "conventions": "pixel (x, y) = (column, row), centres at integers; triangle vertices "
                        "are the images of entrance vertices P0, P1, P2",
     }
-
-
-def _png_mask(mask: torch.Tensor) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", mask.to(torch.uint8).cpu().numpy() * 255)
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
 
 
 # =============================================================================================
@@ -424,17 +413,12 @@ def simulate_capture_set(
             x0, y0, w, h = lay.reference_bbox
             arrays[f"{name}_patch_index"] = sc.patch_index(xy).reshape(h, w).to(torch.int16)
             arrays[f"{name}_spectra"] = sc.patch_spectra(renderer.wavelengths)
-    atomic_save_npz(out / "ground_truth" / "truth.npz", arrays)
-    tj = _truth_json(cfg, renderer, truth, scene_names, arrays)
-    atomic_write_json(out / "ground_truth" / "truth.json", tj)
-    atomic_write_bytes(out / "brf_free_mask.png", _png_mask(patch))
-    atomic_write_json(out / "nominal_layout.json", nominal_layout(renderer, patch))
+    write_truth(out, arrays, _truth_json(cfg, renderer, truth, scene_names, arrays))
     renderer.release_scenes()  # the blurred scene rasters are no longer needed
     tm["truth"] = time.perf_counter() - t0
 
     s = renderer.sensor
     manifest = {
-        "schema_version": MANIFEST_SCHEMA_VERSION,
         "generator": "hsi-torch simulate",
         "sensor_size": list(renderer.sensor_size),
         "output": s.output,
@@ -446,10 +430,6 @@ def simulate_capture_set(
         "wavelengths_nm": renderer.wavelengths.tolist(),
         "scan_fwhm_nm": renderer.scan_fwhm_nm,
         "scan_line": renderer.scan_line,
-        "nominal_layout": "nominal_layout.json",
-        "brf_free_mask": "brf_free_mask.png",
-        "ground_truth": "ground_truth/truth.npz",
-        "captures": entries,
     }
 
     if cfg.render.figures:
@@ -460,7 +440,8 @@ def simulate_capture_set(
                                      {n: arrays[f"scene_{n}"] for n in scene_names})
         manifest["figures"] = [str(Path(f).relative_to(out)) for f in figs]
         tm["figures"] = time.perf_counter() - t0
-    atomic_write_json(out / "manifest.json", manifest)
+    write_capture_set_index(out, captures=entries, nominal_layout=nominal_layout(renderer, patch),
+                            brf_free_mask=patch, **manifest)  # manifest.json written last
     write_resolved_config(cfg, out)
     tm["total"] = time.perf_counter() - t_all
     return SimulationSummary(
@@ -504,7 +485,6 @@ _TRUTH_DOC = {
 def _truth_json(cfg, renderer: CaptureRenderer, truth, scene_names, arrays) -> dict[str, Any]:
     lay = renderer.layout
     return {
-        "schema_version": MANIFEST_SCHEMA_VERSION,
         "forward_model": "y[v,c,q] = gain[v,q] * sum_m B[v,m,q] * band_widths_nm[m] * phi[c,m] "
                          "* s[m,q]  (DN above black, reference frame = sensor crop "
                          "reference_bbox)",

@@ -1,0 +1,428 @@
+"""Capture sets: the folder of captures a calibration (and an experiment) starts from.
+
+One reader and one writer for the whole package: the simulator writes capture sets with
+:func:`write_capture_set_index` and :func:`write_truth`; calibration, the experiments and the
+oracle bundle read them with :func:`read_capture_set` and :func:`read_truth`.
+
+Folder format (manifest schema version :data:`CAPTURE_SET_SCHEMA_VERSION` = 1)::
+
+    ROOT/manifest.json          {"schema_version": 1, "captures": [{"file", "type", ...}], ...}
+    ROOT/nominal_layout.json    what is known before calibration: sensor_size (H, W),
+                                triangles_px (V, 3, 2), parity (V,), reference_bbox (x0, y0, w, h),
+                                reflection_sequences, brf_free_patch {polygon_px, usable_mask, ...}
+    ROOT/brf_free_mask.png      (H, W) 8-bit, 255 = usable BRF-free pixel of the reference view
+    ROOT/scan/ white/ grid/ dark/ scenes/   the captures (any file :func:`hsi_torch.io.read_any`
+                                reads)
+    ROOT/ground_truth/truth.npz + truth.json   simulated sets only
+
+A capture entry's ``type`` is ``scan`` (with ``wavelength_nm``), ``white``, ``grid``, ``dark`` or
+``scene`` (with ``name``); other keys (``exposure``, ``seed``, …) are kept as they are. A folder
+without ``manifest.json`` (a real device) is read from its sub-folders ``scan/``, ``white/``,
+``grid/``, ``dark/``, ``scenes/``; a scan frame's wavelength then comes from its name
+(``scan_550nm.tif``, ``mono_552p5nm.dng``) or from its own metadata.
+
+The BRF-free mask is a PNG; OpenCV, which decodes and encodes it, is imported only where that
+happens, so reading a bundle or a capture never loads it.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
+
+__all__ = [
+    "CAPTURE_SET_SCHEMA_VERSION",
+    "CAPTURE_SUFFIXES",
+    "CAPTURE_TYPES",
+    "MANIFEST",
+    "NOMINAL_LAYOUT",
+    "BRF_FREE_MASK",
+    "TRUTH_NPZ",
+    "TRUTH_JSON",
+    "NominalLayout",
+    "CaptureSet",
+    "read_capture_set",
+    "read_nominal_layout",
+    "read_mask_png",
+    "read_truth",
+    "wavelength_from_name",
+    "write_capture_set_index",
+    "write_truth",
+    "encode_mask_png",
+]
+
+#: Version of ``manifest.json`` (and ``truth.json``) this software reads and writes.
+CAPTURE_SET_SCHEMA_VERSION = 1
+MANIFEST = "manifest.json"
+NOMINAL_LAYOUT = "nominal_layout.json"
+BRF_FREE_MASK = "brf_free_mask.png"
+TRUTH_NPZ = "ground_truth/truth.npz"
+TRUTH_JSON = "ground_truth/truth.json"
+CAPTURE_TYPES = ("scan", "white", "grid", "dark", "scene")
+#: File suffixes of captures found in the sub-folders of a folder without a manifest.
+CAPTURE_SUFFIXES = (
+    ".tif", ".tiff", ".npy", ".npz", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".kdc", ".raf",
+    ".orf", ".rw2", ".pef", ".srw", ".raw", ".3fr", ".iiq", ".erf", ".mrw", ".nrw", ".x3f",
+)  # fmt: skip
+_WL_RE = re.compile(r"(\d+(?:[.p]\d+)?)\s*nm", re.IGNORECASE)
+_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
+
+
+def wavelength_from_name(name: str) -> float | None:
+    """Wavelength (nm) in a file name such as ``scan_550nm.tif`` or ``mono_552p5nm.dng``."""
+    m = _WL_RE.findall(Path(name).stem)
+    if not m:
+        return None
+    return float(m[-1].replace("p", "."))
+
+
+def _read_json(path: Path, what: str) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise FileFormatError(f"{path}: not valid JSON ({exc})") from exc
+    except OSError as exc:
+        raise MissingFileError(f"{what} {path} cannot be read ({exc})") from exc
+
+
+@dataclass
+class NominalLayout:
+    """The view layout known before calibration (``nominal_layout.json``), checked.
+
+    Attributes:
+        path: the file.
+        sensor_size: ``(H, W)``; triangles: ``(V, 3, 2)`` float64 sensor px; parity: ``(V,)``
+            int64 ±1; reference_bbox: ``(x0, y0, w, h)``; reflection_sequences: per view (may
+            be empty when unknown); brf_free_patch: the patch description (``polygon_px``,
+            ``usable_mask``, …) or ``{}``; data: the whole parsed object.
+    """
+
+    path: Path
+    sensor_size: tuple[int, int]
+    triangles: np.ndarray
+    parity: np.ndarray
+    reference_bbox: tuple[int, int, int, int]
+    reflection_sequences: list[tuple[int, ...]]
+    brf_free_patch: dict[str, Any]
+    data: dict[str, Any] = field(repr=False)
+
+    @property
+    def num_views(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def brf_free_polygon(self) -> np.ndarray | None:
+        """``(K, 2)`` float64 sensor px of the BRF-free disk's outline, or ``None``."""
+        poly = self.brf_free_patch.get("polygon_px")
+        return np.asarray(poly, np.float64) if poly else None
+
+
+def read_nominal_layout(path: str | Path) -> NominalLayout:
+    """Read and check ``nominal_layout.json``; errors name the file and the key at fault."""
+    p = Path(path)
+    if not p.is_file():
+        raise MissingFileError(
+            f"nominal layout {p} not found: calibration needs the view triangles, parity, "
+            "reference_bbox and BRF-free patch (see docs/calibration.md)"
+        )
+    d = _read_json(p, "nominal layout")
+    if not isinstance(d, dict):
+        raise FileFormatError(f"nominal layout {p}: must be a JSON object")
+    for key in ("sensor_size", "triangles_px", "parity", "reference_bbox"):
+        if key not in d:
+            raise FileFormatError(f"nominal layout {p}: missing key '{key}'")
+    tri = np.asarray(d["triangles_px"], dtype=np.float64)
+    par = np.asarray(d["parity"], dtype=np.int64).reshape(-1)
+    bbox = [int(v) for v in d["reference_bbox"]]
+    size = tuple(int(v) for v in d["sensor_size"])
+    if tri.ndim != 3 or tri.shape[1:] != (3, 2):
+        raise FileFormatError(f"nominal layout {p}: triangles_px must be (V, 3, 2), got "
+                              f"{tri.shape}")  # fmt: skip
+    if par.shape != (tri.shape[0],) or not np.all(np.isin(par, (-1, 1))):
+        raise FileFormatError(f"nominal layout {p}: parity must be {tri.shape[0]} values of ±1")
+    if len(bbox) != 4 or bbox[2] <= 0 or bbox[3] <= 0:
+        raise FileFormatError(f"nominal layout {p}: reference_bbox must be (x0, y0, w, h)")
+    if len(size) != 2:
+        raise FileFormatError(f"nominal layout {p}: sensor_size must be (H, W)")
+    ref = int(d.get("reference_view", 0))
+    if ref != 0:
+        raise FileFormatError(f"nominal layout {p}: reference_view must be 0 (got {ref})")
+    seqs = [tuple(int(i) for i in s) for s in d.get("reflection_sequences", [])]
+    patch = d.get("brf_free_patch") or {}
+    return NominalLayout(p, (size[0], size[1]), tri, par, (bbox[0], bbox[1], bbox[2], bbox[3]),
+                         seqs, dict(patch), d)  # fmt: skip
+
+
+@dataclass
+class CaptureSet:
+    """The files of one capture set (see the module docstring).
+
+    Attributes:
+        root: the folder.
+        scan: ``[(file, wavelength_nm or None)]`` monochromator frames, in manifest (or name)
+            order; ``None`` when neither the manifest nor the name tells the wavelength.
+        white, grid, dark: files of the white-reference shots, circle-grid shots, dark frames.
+        scenes: ``{name: file}`` scene captures.
+        manifest: the parsed ``manifest.json`` or ``None`` (a folder without one).
+        layout_path: the nominal layout to use (it may not exist: see :meth:`layout`).
+        brf_free_mask_path: the PNG of usable BRF-free pixels, or ``None``.
+    """
+
+    root: Path
+    scan: list[tuple[Path, float | None]] = field(default_factory=list)
+    white: list[Path] = field(default_factory=list)
+    grid: list[Path] = field(default_factory=list)
+    dark: list[Path] = field(default_factory=list)
+    scenes: dict[str, Path] = field(default_factory=dict)
+    manifest: dict[str, Any] | None = None
+    layout_path: Path | None = None
+    brf_free_mask_path: Path | None = None
+
+    def layout(self) -> NominalLayout:
+        """The nominal layout (:func:`read_nominal_layout`)."""
+        if self.layout_path is None:
+            raise MissingFileError(f"capture set {self.root}: no nominal layout")
+        return read_nominal_layout(self.layout_path)
+
+    def require_calibration_captures(self) -> None:
+        """Raise naming what is missing when there is no scan, white or grid capture."""
+        where = f"{MANIFEST}" if self.manifest is not None else "folders scan/, white/, grid/"
+        for name, lst in (("monochromator scan", self.scan), ("white-reference", self.white),
+                          ("circle-grid", self.grid)):  # fmt: skip
+            if not lst:
+                raise FileFormatError(
+                    f"captures folder {self.root}: no {name} captures (looked in {where})"
+                )
+
+    def scene(self, name: str) -> Path:
+        """The capture of scene ``name``."""
+        if name not in self.scenes:
+            raise MissingFileError(
+                f"capture set {self.root}: no scene {name!r} (it has {sorted(self.scenes)})"
+            )
+        return self.scenes[name]
+
+    @property
+    def truth_path(self) -> Path:
+        return self.root / TRUTH_NPZ
+
+    def has_truth(self) -> bool:
+        """The set was simulated and holds its ground truth."""
+        return (self.root / TRUTH_NPZ).is_file() and (self.root / TRUTH_JSON).is_file()
+
+    def read_brf_free_mask(self, size: tuple[int, int] | None = None) -> np.ndarray:
+        """The usable BRF-free pixels, ``(H, W)`` bool (:func:`read_mask_png`)."""
+        if self.brf_free_mask_path is None:
+            raise MissingFileError(f"capture set {self.root}: no BRF-free mask ({BRF_FREE_MASK})")
+        return read_mask_png(self.brf_free_mask_path, size)
+
+    def files(self) -> dict[str, Path]:
+        """Every calibration input file, labelled by its path relative to the folder (for
+        provenance): scan, white, grid and dark captures, the layout and the BRF-free mask."""
+        out: dict[str, Path] = {}
+        paths = [p for p, _ in self.scan] + self.white + self.grid + self.dark
+        paths += [p for p in (self.layout_path, self.brf_free_mask_path) if p is not None]
+        for p in paths:
+            try:
+                key = str(p.resolve().relative_to(self.root.resolve()))
+            except ValueError:
+                key = str(p)
+            out[key] = p
+        return out
+
+
+def _folder_files(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.suffix.lower() in CAPTURE_SUFFIXES)  # fmt: skip
+
+
+def _check_version(d: Mapping[str, Any], path: Path) -> None:
+    ver = d.get("schema_version", CAPTURE_SET_SCHEMA_VERSION)
+    if type(ver) is not int or ver != CAPTURE_SET_SCHEMA_VERSION:
+        raise FileFormatError(
+            f"{path}: schema_version {ver!r} is not supported (this software reads version "
+            f"{CAPTURE_SET_SCHEMA_VERSION})"
+        )
+
+
+def read_capture_set(
+    root: str | Path,
+    *,
+    layout: str | Path | None = None,
+    brf_free_mask: str | Path | None = None,
+) -> CaptureSet:
+    """Find the files of a capture set (manifest, or the sub-folders of a real device's folder).
+
+    Args:
+        root: the folder.
+        layout: a nominal layout to use instead of the set's (``manifest["nominal_layout"]``,
+            else ``ROOT/nominal_layout.json``).
+        brf_free_mask: a BRF-free mask PNG to use instead of the set's (the layout's
+            ``brf_free_patch.usable_mask``, the manifest's ``brf_free_mask``, else
+            ``ROOT/brf_free_mask.png``; ``None`` when none exists).
+
+    Raises:
+        MissingFileError: the folder, a listed capture or the given ``brf_free_mask`` is missing.
+        FileFormatError: the manifest is not valid JSON, has another schema version or an entry
+            without ``file``/``type``.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise MissingFileError(f"captures folder {root} does not exist")
+    cs = CaptureSet(root)
+    mpath = root / MANIFEST
+    if mpath.is_file():
+        manifest = _read_json(mpath, "manifest")
+        if not isinstance(manifest, dict):
+            raise FileFormatError(f"{mpath}: must be a JSON object")
+        _check_version(manifest, mpath)
+        cs.manifest = manifest
+        for k, e in enumerate(manifest.get("captures", [])):
+            if not isinstance(e, dict) or "file" not in e or "type" not in e:
+                raise FileFormatError(f"{mpath}: captures[{k}] needs 'file' and 'type'")
+            p = root / e["file"]
+            if not p.is_file():
+                raise MissingFileError(f"{mpath}: captures[{k}] file {p} does not exist")
+            t = e["type"]
+            if t == "scan":
+                wl = e.get("wavelength_nm")
+                cs.scan.append((p, None if wl is None else float(wl)))
+            elif t == "scene":
+                cs.scenes[str(e.get("name", p.stem))] = p
+            elif t in ("white", "grid", "dark"):
+                getattr(cs, t).append(p)
+    else:
+        cs.scan = [(p, wavelength_from_name(p.name)) for p in _folder_files(root / "scan")]
+        cs.white = _folder_files(root / "white")
+        cs.grid = _folder_files(root / "grid")
+        cs.dark = _folder_files(root / "dark")
+        cs.scenes = {p.stem: p for p in _folder_files(root / "scenes")}
+    if layout is not None:
+        cs.layout_path = Path(layout)
+    elif cs.manifest is not None and cs.manifest.get("nominal_layout"):
+        cs.layout_path = root / cs.manifest["nominal_layout"]
+    else:
+        cs.layout_path = root / NOMINAL_LAYOUT
+    if brf_free_mask is not None:
+        cs.brf_free_mask_path = Path(brf_free_mask)
+        if not cs.brf_free_mask_path.is_file():
+            raise MissingFileError(f"BRF-free mask {cs.brf_free_mask_path} not found")
+    else:
+        cands = []
+        if cs.layout_path.is_file():  # the layout is checked where it is used (CaptureSet.layout)
+            d = _read_json(cs.layout_path, "nominal layout")
+            patch = d.get("brf_free_patch") if isinstance(d, dict) else None
+            if isinstance(patch, dict) and patch.get("usable_mask"):
+                cands.append(cs.layout_path.parent / patch["usable_mask"])
+        if cs.manifest is not None and cs.manifest.get("brf_free_mask"):
+            cands.append(root / cs.manifest["brf_free_mask"])
+        cands.append(root / BRF_FREE_MASK)
+        cs.brf_free_mask_path = next((c for c in cands if c.is_file()), None)
+    return cs
+
+
+def read_mask_png(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """``(H, W)`` bool of an 8-bit mask PNG (pixels > 127); ``size`` checks ``(H, W)``."""
+    import cv2  # lazy: OpenCV only where a PNG mask is decoded (see the module docstring)
+
+    p = Path(path)
+    m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    if m is None:
+        raise FileFormatError(f"BRF-free mask {p}: not a readable image")
+    if size is not None and m.shape != tuple(size):
+        raise FileFormatError(
+            f"BRF-free mask {p}: size {m.shape} does not match the sensor size {tuple(size)}"
+        )
+    return m > 127
+
+
+def encode_mask_png(mask: Any) -> bytes:
+    """PNG bytes of a bool ``(H, W)`` mask (tensor or array): 255 where True."""
+    import cv2  # lazy: OpenCV only where a PNG mask is encoded (see the module docstring)
+
+    a = mask.detach().cpu().numpy() if hasattr(mask, "detach") else np.asarray(mask)
+    ok, buf = cv2.imencode(".png", a.astype(np.uint8) * 255)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def write_capture_set_index(
+    root: str | Path,
+    *,
+    captures: list[dict[str, Any]],
+    nominal_layout: Mapping[str, Any],
+    brf_free_mask: Any,
+    **manifest_fields: Any,
+) -> Path:
+    """Write ``manifest.json``, ``nominal_layout.json`` and ``brf_free_mask.png`` of a capture
+    set whose captures are already written (atomically, each file).
+
+    Args:
+        captures: manifest entries (``file`` relative to ``root``, ``type``, …).
+        nominal_layout: the layout object (``schema_version`` is added).
+        brf_free_mask: ``(H, W)`` bool usable BRF-free pixels.
+        **manifest_fields: further manifest keys (``sensor_size``, ``cfa_pattern``, …).
+
+    Returns:
+        The manifest's path.
+    """
+    root = Path(root)
+    for k, e in enumerate(captures):
+        if e.get("type") not in CAPTURE_TYPES:
+            raise ValueError(f"captures[{k}]: type {e.get('type')!r} is not one of "
+                             f"{CAPTURE_TYPES}")  # fmt: skip
+    atomic_write_bytes(root / BRF_FREE_MASK, encode_mask_png(brf_free_mask))
+    atomic_write_json(root / NOMINAL_LAYOUT,
+                      {"schema_version": CAPTURE_SET_SCHEMA_VERSION, **nominal_layout})
+    manifest = {
+        "schema_version": CAPTURE_SET_SCHEMA_VERSION,
+        **manifest_fields,
+        "nominal_layout": NOMINAL_LAYOUT,
+        "brf_free_mask": BRF_FREE_MASK,
+        "ground_truth": TRUTH_NPZ if (root / TRUTH_NPZ).is_file() else None,
+        "captures": captures,
+    }
+    return atomic_write_json(root / MANIFEST, manifest)
+
+
+def write_truth(root: str | Path, arrays: Mapping[str, Any], meta: Mapping[str, Any]) -> Path:
+    """Write a simulated set's ground truth: ``truth.npz`` (arrays) and ``truth.json`` (``meta``
+    with ``schema_version``). Returns the NPZ's path."""
+    root = Path(root)
+    npz = atomic_save_npz(root / TRUTH_NPZ, dict(arrays))
+    atomic_write_json(root / TRUTH_JSON, {"schema_version": CAPTURE_SET_SCHEMA_VERSION, **meta})
+    return npz
+
+
+def read_truth(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read ``ground_truth/truth.npz`` and ``truth.json`` of a simulated capture set.
+
+    Returns:
+        ``(arrays, meta)``: every array of ``truth.npz`` and the parsed ``truth.json``.
+    """
+    root = Path(root)
+    npz, js = root / TRUTH_NPZ, root / TRUTH_JSON
+    for p in (npz, js):
+        if not p.is_file():
+            raise MissingFileError(
+                f"{p} not found: {root} is not a simulated capture set with ground truth "
+                "(run `hsi-torch simulate` first)"
+            )
+    meta = _read_json(js, "ground truth")
+    if not isinstance(meta, dict):
+        raise FileFormatError(f"{js}: must be a JSON object")
+    _check_version(meta, js)
+    with np.load(npz, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    return arrays, meta
