@@ -10,7 +10,7 @@ simulate       ``hsi_torch.simulate.cli_entry.run_simulate``    render captures 
 calibrate      ``hsi_torch.calibrate.cli_entry.run_calibrate``  captures → calibration bundle
 reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + captures → cubes
 experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
-demo           ``hsi_torch.demo.run_demo``                      the README's main command
+demo           ``hsi_torch.experiments.cli_entry.run_demo``     the README's main command
 config         ``hsi_torch.resources.run_config``               show / copy a shipped config
 bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
 =============  ===============================================  ==============================
@@ -53,7 +53,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "calibrate": ("hsi_torch.calibrate.cli_entry", "run_calibrate"),
     "reconstruct": ("hsi_torch.recon.cli_entry", "run_reconstruct"),
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
-    "demo": ("hsi_torch.demo", "run_demo"),
+    "demo": ("hsi_torch.experiments.cli_entry", "run_demo"),
     "config": ("hsi_torch.resources", "run_config"),
 }
 BENCH_TARGETS = ("solver", "pipeline", "simulate")

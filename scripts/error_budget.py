@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hsi_torch.demo import _interior, colorchecker_scores, cube_scores, erode_px
+from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.profiling import run_child
 from hsi_torch.recon.pipeline import DEFAULT_BETA, Reconstructor, assemble_cube
@@ -81,7 +81,7 @@ def _scores(cubes: dict[str, np.ndarray], valid: np.ndarray, truth: dict, scenes
             spectra = np.asarray(truth[f"{name}_spectra"], np.float64)
             e = erode_px(truth, 0.3)  # 0.3 mm: 3 sigma of the diffuser blur
             inner = valid & (pidx >= 0) & np.logical_or.reduce(
-                [_interior(pidx == k, e) for k in range(len(spectra))])
+                [interior_mask(pidx == k, e) for k in range(len(spectra))])
             px = cube_scores(cube, true_cube, inner)
             means = colorchecker_scores(cube, valid, pidx, spectra, e)
             out[name] = {"per_pixel_db": px["psnr_db"], "per_pixel_sam": px["mean_sam_deg"],

@@ -119,7 +119,7 @@ def _schema_and_default(args):
 
         return ReconstructConfig, "reconstruct"
     if args.command == "demo":
-        from hsi_torch.demo import DemoConfig
+        from hsi_torch.experiments.demo import DemoConfig
 
         return DemoConfig, None
     if args.command == "experiment":

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hsi_torch.cli import main
-from hsi_torch.demo import colorchecker_scores, cube_scores
+from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores
 
 
 def test_colorchecker_scores_against_formula():

@@ -1,4 +1,8 @@
-"""``hsi-torch experiment NAME [--config C] --out DIR``: dispatch to the named experiment.
+"""``hsi-torch experiment NAME [--config C] --out DIR``: dispatch to the named experiment; and
+``hsi-torch demo`` (:func:`run_demo`).
+
+Command modules import lazily (so ``hsi-torch --help`` starts fast): the experiment's module,
+and everything a command needs, is imported when the command runs.
 
 Without ``--config`` the shipped ``NAME.yaml`` is used (``hsi-torch config show NAME``), or the
 schema's defaults for an experiment that ships none.
@@ -17,9 +21,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import time
+from pathlib import Path
 from typing import Any
 
-__all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment"]
+__all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment",
+           "run_demo"]
 
 #: name → (module, schema class, run function)
 EXPERIMENTS: dict[str, tuple[str, str, str]] = {
@@ -75,4 +81,29 @@ def run_experiment(args: argparse.Namespace) -> int:
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
          f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
+    return 0
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
+    :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
+    :func:`hsi_torch.experiments.demo_full.demo_full`."""
+    from hsi_torch.cli import load_args_config
+    from hsi_torch.config import write_resolved_config
+    from hsi_torch.console import info
+    from hsi_torch.experiments.demo import DemoConfig, demo
+
+    cfg = load_args_config(args, DemoConfig)
+    if getattr(args, "device", None):
+        cfg.device = args.device
+    out = Path(getattr(args, "out", None) or "demo_output")
+    if getattr(args, "full", False):
+        if getattr(args, "quick", False):
+            raise ValueError("--full and --quick exclude each other")
+        from hsi_torch.experiments.demo_full import demo_full
+
+        demo_full(out, cfg, log=info)
+    else:
+        demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
+    write_resolved_config(cfg, out)
     return 0

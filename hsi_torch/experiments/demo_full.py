@@ -27,6 +27,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+
+from hsi_torch.experiments.calibration_scores import (
+    format_scores,
+    score_against_truth,
+    targets_met,
+)
+from hsi_torch.experiments.demo import _previews, _scene_specs, score_scene
+from hsi_torch.experiments.metrics import erode_px
+from hsi_torch.io import load_cube
+from hsi_torch.io.atomic import atomic_write_json
+from hsi_torch.io.capture_set import read_truth
+from hsi_torch.profiling import run_child
+from hsi_torch.resources import shipped_config
 
 __all__ = ["demo_full"]
 
@@ -41,24 +55,10 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
 
     Args:
         out: output folder (created).
-        cfg: :class:`hsi_torch.demo.DemoConfig` (``beta``, ``diff_order``, ``erode_mm``,
-            ``cave``, ``seed``, ``device``, ``simulate_config``/``calibrate_config``: default the
-            shipped ``simulate_full.yaml`` and ``calibrate.yaml``).
+        cfg: :class:`hsi_torch.experiments.demo.DemoConfig` (``beta``, ``diff_order``,
+            ``erode_mm``, ``cave``, ``seed``, ``device``, ``simulate_config``/``calibrate_config``:
+            default the shipped ``simulate_full.yaml`` and ``calibrate.yaml``).
     """
-    import torch
-
-    from hsi_torch.demo import _previews, _scene_specs, erode_px, score_scene
-    from hsi_torch.experiments.calibration_scores import (
-        format_scores,
-        score_against_truth,
-        targets_met,
-    )
-    from hsi_torch.io import load_cube
-    from hsi_torch.io.atomic import atomic_write_json
-    from hsi_torch.io.capture_set import read_truth
-    from hsi_torch.profiling import run_child
-    from hsi_torch.resources import shipped_config
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()

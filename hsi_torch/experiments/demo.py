@@ -1,4 +1,5 @@
-"""``hsi-torch demo [--out DIR] [--quick] [--set key=value ...]``: the README's main command.
+"""``hsi-torch demo [--out DIR] [--quick] [--set key=value ...]``: the README's main command
+(the command line is :func:`hsi_torch.experiments.cli_entry.run_demo`).
 
 End to end on the virtual prototype, from nothing to scored spectral cubes:
 
@@ -14,7 +15,8 @@ End to end on the virtual prototype, from nothing to scored spectral cubes:
 4. **score** against the ground truth and write cubes, sRGB previews, spectra plots and
    ``OUT/summary.json``.
 
-Metrics (reflectance, peak 1): PSNR = 10·log10(1/MSE), spectral angle (SAM) in degrees.
+Metrics (reflectance, peak 1; :mod:`hsi_torch.experiments.metrics`, shared with the
+experiments): PSNR = 10·log10(1/MSE), spectral angle (SAM) in degrees.
 ColorChecker: per patch, the mean reconstructed spectrum over the patch **interior** (pixels at
 least ``erode_mm`` = 0.3 mm inside the patch on the diffuser — 3 σ of the diffuser's 0.1 mm blur,
 which mixes neighbouring patches near their edges; 2.2 px on the small sensor, 16 px at full
@@ -23,16 +25,14 @@ means are reported too). Other scenes: per pixel, over the valid pixels that lie
 (SAM only where the true mean reflectance is ≥ 0.01).
 
 β rule: a fixed default ``beta = 1e4`` (DN² scale of the default prototype's observations; the
-DESIGN range is 1e-2…1e6). It is the value the lead measured best for the oracle bundle on this
+useful range is 1e-2…1e6). It is the value measured best for the oracle bundle on this
 set (interiors 39.2 dB at 1e4 vs 33.9 dB at 1e3) and the solver is fast there; override with
 ``--set beta=...``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,9 +41,25 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsi_torch.experiments.metrics import psnr_from_mse
+from hsi_torch.calibrate.config import CalibrateConfig
+from hsi_torch.calibrate.figures import plot_calibration
+from hsi_torch.calibrate.pipeline import calibrate_capture_set
+from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
+from hsi_torch.config import load_config
+from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
+from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
+from hsi_torch.io import save_cube, save_cube_formats
+from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json
+from hsi_torch.io.capture_set import read_truth
+from hsi_torch.recon import Reconstructor
+from hsi_torch.refdata import colorchecker_reflectances
+from hsi_torch.resources import DATA_ENV, real_data_dir, shipped_config
+from hsi_torch.simulate import SimulateConfig, simulate_capture_set
+from hsi_torch.simulate.capture_sets import build_scene
+from hsi_torch.simulate.config import SceneSpec
+from hsi_torch.simulate.oracle import bundle_from_truth
 
-__all__ = ["DemoConfig", "run_demo", "demo", "colorchecker_scores", "cube_scores"]
+__all__ = ["DemoConfig", "demo", "score_scene"]
 
 
 def _h(text: str) -> dict[str, str]:
@@ -79,116 +95,6 @@ class DemoConfig:
 
 
 # =============================================================================================
-# metrics
-# =============================================================================================
-
-
-def erode_px(truth: dict[str, np.ndarray], erode_mm: float) -> float:
-    """``erode_mm`` on the diffuser in reference-frame pixels (from the truth's diffuser
-    coordinates of the reference pixels: the median pixel spacing along x)."""
-    xy = np.asarray(truth["diffuser_xy"], np.float64)
-    step = np.linalg.norm(np.diff(xy, axis=1), axis=-1)
-    return float(erode_mm / np.median(step))
-
-
-def _interior(mask: np.ndarray, erode_px: float) -> np.ndarray:
-    """Pixels of a bool mask at least ``erode_px`` from its outside (Euclidean)."""
-    import cv2
-
-    if erode_px <= 0:
-        return mask
-    padded = np.pad(mask.astype(np.uint8), 1)  # the frame border counts as outside
-    d = cv2.distanceTransform(padded, cv2.DIST_L2, 5)[1:-1, 1:-1]
-    return d > erode_px
-
-
-def _sam_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1),
-                                       1e-12)  # fmt: skip
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-def colorchecker_scores(
-    cube: np.ndarray,
-    valid: np.ndarray,
-    patch_index: np.ndarray,
-    spectra: np.ndarray,
-    erode_px: float = 2.0,
-) -> dict[str, Any]:
-    """Per-patch scores of a reconstructed ColorChecker.
-
-    Args:
-        cube: ``(M, h, w)`` reconstruction (NaN allowed where invalid).
-        valid: ``(h, w)`` bool pixels to use.
-        patch_index: ``(h, w)`` patch under each pixel (−1 off-patch).
-        spectra: ``(24, M)`` true patch reflectances.
-        erode_px: interior margin (0: whole patches).
-
-    Returns:
-        ``{"psnr_db": [...], "sam_deg": [...], "pixels": [...], "mean_psnr_db", "mean_sam_deg",
-        "patches"}``; a patch with no usable pixel gets NaN and is left out of the means.
-    """
-    K = spectra.shape[0]
-    ps, sa, npx, est = [], [], [], []
-    for k in range(K):
-        m = _interior(patch_index == k, erode_px) & valid
-        npx.append(int(m.sum()))
-        if not m.any():
-            ps.append(float("nan"))
-            sa.append(float("nan"))
-            est.append([float("nan")] * spectra.shape[1])
-            continue
-        s = cube[:, m].mean(1)
-        est.append(s.tolist())
-        ps.append(psnr_from_mse(float(((s - spectra[k]) ** 2).mean())))
-        sa.append(float(_sam_deg(s, spectra[k])))
-    ok = [i for i in range(K) if npx[i] > 0]
-    return {
-        "psnr_db": ps,
-        "sam_deg": sa,
-        "pixels": npx,
-        "estimated_spectra": est,
-        "patches": len(ok),
-        "mean_psnr_db": float(np.mean([ps[i] for i in ok])) if ok else float("nan"),
-        "mean_sam_deg": float(np.mean([sa[i] for i in ok])) if ok else float("nan"),
-    }
-
-
-def cube_scores(
-    cube: np.ndarray, truth: np.ndarray, mask: np.ndarray, sam_min_reflectance: float = 0.01
-) -> dict[str, Any]:
-    """Per-pixel scores over ``mask``: PSNR of the pooled MSE, mean and median SAM (SAM only
-    where the true mean reflectance is ≥ ``sam_min_reflectance``), and the same on the brighter
-    half (``bright_half``: pixels whose true mean reflectance is at least the median over
-    ``mask``; in shadows and dark regions a spectral angle measures noise, not colour)."""
-
-    def scores(m: np.ndarray) -> dict[str, Any]:
-        e = cube[:, m].T
-        t = truth[:, m].T
-        if e.size == 0:
-            return {"pixels": 0, "psnr_db": float("nan"), "mean_sam_deg": float("nan"),
-                    "median_sam_deg": float("nan")}  # fmt: skip
-        mse = float(((e - t) ** 2).mean())
-        bright = t.mean(1) >= sam_min_reflectance
-        sam = _sam_deg(e[bright], t[bright]) if bright.any() else np.array([math.nan])
-        return {
-            "pixels": int(m.sum()),
-            "psnr_db": psnr_from_mse(mse),
-            "rmse": math.sqrt(mse),
-            "mean_sam_deg": float(np.mean(sam)),
-            "median_sam_deg": float(np.median(sam)),
-            "sam_pixels": int(bright.sum()),
-        }
-
-    out = scores(mask)
-    level = truth.mean(0)
-    if mask.any():
-        half = mask & (level >= np.median(level[mask]))
-        out["bright_half"] = scores(half)
-    return out
-
-
-# =============================================================================================
 # scenes
 # =============================================================================================
 
@@ -196,8 +102,6 @@ def cube_scores(
 def _synthetic_cube(wavelengths_nm: np.ndarray, size: int = 96) -> np.ndarray:
     """A built-in test cube ``(M, size, size)``: smooth blends of six ColorChecker spectra plus
     four flat-spectrum discs (so both smooth and sharp structures appear)."""
-    from hsi_torch.refdata import colorchecker_reflectances
-
     refl_t, _ = colorchecker_reflectances(torch.as_tensor(wavelengths_nm, dtype=torch.float64),
                                           extrapolate="edge")
     refl = refl_t.detach().cpu().numpy()
@@ -224,16 +128,12 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
         {"kind": "colorchecker", "name": "colorchecker",
          "params": {"width_mm": 8.4, "center_mm": [0.0, 1.4]}},
     ]  # fmt: skip
-    from hsi_torch.resources import DATA_ENV, real_data_dir
-
     cave_dir = real_data_dir("cave_stuffed_toys")
     if cfg.cave and cave_dir is not None and cave_dir.is_dir():
         specs.append({"kind": "cave", "name": "cave", "optional": True,
                       "params": {"folder": str(cave_dir), "width_mm": 7.0,
                                  "center_mm": [0.0, 0.9]}})  # fmt: skip
     else:
-        from hsi_torch.io import save_cube
-
         why = ("disabled (cave=false)" if not cfg.cave else
                f"not found (no cave_stuffed_toys in the real-data folder; set {DATA_ENV})")
         log(f"CAVE scene {why}: using the built-in synthetic cube instead")
@@ -254,8 +154,6 @@ def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scor
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from hsi_torch.io.atomic import atomic_write_bytes
 
     fig, axes = plt.subplots(4, 6, figsize=(15, 9), sharex=True, sharey=True)
     for k, ax in enumerate(axes.flat):
@@ -288,8 +186,6 @@ def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from hsi_torch.io.atomic import atomic_write_bytes
 
     ys, xs = np.nonzero(mask)
     if not len(ys):
@@ -325,8 +221,6 @@ def _previews(out: Path, name: str, wl, truth: np.ndarray, cubes: dict[str, np.n
     ``<name>_truth_preview.png`` (enlarged, captioned) and ``<name>_panel.png`` (the three side by
     side). All three are rendered on one exposure (the
     truth's 99.5th-percentile luminance is white), so that they compare."""
-    from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
-
     t = torch.from_numpy(np.asarray(truth, np.float64))
     ref = float(np.percentile(cube_to_xyz(t, wl)[1].numpy(), 99.5))
     exposure = 1.0 / ref if ref > 0 else 1.0
@@ -382,7 +276,8 @@ def score_scene(
               for k in cubes}  # fmt: skip
         whole = {k: colorchecker_scores(cubes[k], both, pidx, spectra, 0.0) for k in cubes}
         inner = both & (pidx >= 0)
-        inner &= np.logical_or.reduce([_interior(pidx == k, erode_px) for k in range(len(spectra))])
+        inner &= np.logical_or.reduce([interior_mask(pidx == k, erode_px)
+                                       for k in range(len(spectra))])  # fmt: skip
         per_pixel = {k: cube_scores(cubes[k], true_cube, inner) for k in cubes}
         entry.update(
             metric="per-patch mean spectrum over patch interiors "
@@ -399,9 +294,6 @@ def score_scene(
     else:
         on_scene = both.copy()
         try:
-            from hsi_torch.simulate.capture_sets import build_scene
-            from hsi_torch.simulate.config import SceneSpec
-
             sobj = build_scene(SceneSpec(kind=spec["kind"], name=name, path=spec.get("path"),
                                          params=dict(spec.get("params", {}))))
             x_min, x_max, y_min, y_max = sobj.extent
@@ -439,18 +331,6 @@ def demo(
     Returns:
         The summary dict written to ``OUT/summary.json``.
     """
-    from hsi_torch.calibrate.config import CalibrateConfig
-    from hsi_torch.calibrate.pipeline import calibrate_capture_set
-    from hsi_torch.config import load_config
-    from hsi_torch.experiments.calibration_scores import score_against_truth
-    from hsi_torch.io import save_cube_formats
-    from hsi_torch.io.atomic import atomic_write_json
-    from hsi_torch.io.capture_set import read_truth
-    from hsi_torch.recon import Reconstructor
-    from hsi_torch.resources import shipped_config
-    from hsi_torch.simulate import SimulateConfig, simulate_capture_set
-    from hsi_torch.simulate.oracle import bundle_from_truth
-
     cfg = cfg or DemoConfig()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -486,13 +366,9 @@ def demo(
     bundle_path = out / "calib.npz"
     bundle.save(bundle_path)
     atomic_write_json(out / "calib.report.json", report.to_dict())
-    from hsi_torch.calibrate.figures import plot_calibration
-
     plot_calibration(bundle, out / "calib_diagnostics.png", report=report)
     log("      " + str(report).replace("\n", "\n      "))
     cal_scores = score_against_truth(bundle, cap_dir)
-    from hsi_torch.experiments.calibration_scores import format_scores
-
     log("      calibration vs truth:\n      " + format_scores(cal_scores).replace("\n", "\n      "))
     tm["calibrate"] = time.perf_counter() - t0
 
@@ -569,27 +445,3 @@ def demo(
     )
     log("\n".join(lines))
     return summary_d
-
-
-def run_demo(args: argparse.Namespace) -> int:
-    """Entry point called by :mod:`hsi_torch.cli` (``--out DIR``, ``--quick``, ``--set``)."""
-    from hsi_torch.cli import load_args_config
-
-    cfg = load_args_config(args, DemoConfig)
-    if getattr(args, "device", None):
-        cfg.device = args.device
-    out = Path(getattr(args, "out", None) or "demo_output")
-    from hsi_torch.console import info
-
-    if getattr(args, "full", False):
-        if getattr(args, "quick", False):
-            raise ValueError("--full and --quick exclude each other")
-        from hsi_torch.demo_full import demo_full
-
-        demo_full(out, cfg, log=info)
-    else:
-        demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
-    from hsi_torch.config import write_resolved_config
-
-    write_resolved_config(cfg, out)
-    return 0
