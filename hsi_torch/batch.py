@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from hsi_torch.console import progress_bar
 from hsi_torch.errors import InputError
 from hsi_torch.io.atomic import atomic_write_json, clean_stale_temp_files
 
@@ -413,8 +414,6 @@ def run_batch(
     Raises:
         ValueError: a glob matches nothing or an input is a directory (before any processing).
     """
-    from hsi_torch.console import progress_bar
-
     paths = expand_inputs(inputs)
     out = ensure_out_dir(out_dir)
     summary = BatchSummary()

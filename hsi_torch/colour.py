@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from hsi_torch import refdata
+from hsi_torch.io.atomic import atomic_write_bytes
 from hsi_torch.spectral import band_widths
 
 __all__ = [
@@ -247,7 +248,6 @@ def _masked_xyz(
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
     # hsi_torch.io.atomic gives the file ordinary permissions (mkstemp alone makes them 0600)
-    from hsi_torch.io.atomic import atomic_write_bytes
 
     atomic_write_bytes(path, data)
 
@@ -262,7 +262,7 @@ def _to_u8_hwc(rgb: torch.Tensor) -> np.ndarray:
 
 def _text_lines(text: str, width: int, scale: float) -> list[str]:
     """``text`` wrapped (at spaces) to lines of at most ``width`` px in the caption font."""
-    import cv2
+    import cv2  # lazy: OpenCV only to write PNGs; reconstruction does not load it
 
     lines: list[str] = []
     for para in text.splitlines() or [""]:
@@ -280,7 +280,7 @@ def _text_lines(text: str, width: int, scale: float) -> list[str]:
 
 def _text_strip(text: str, width: int, scale: float = 0.5) -> np.ndarray:
     """A dark ``(h, width, 3)`` uint8 strip with ``text`` in white (wrapped to the width)."""
-    import cv2
+    import cv2  # lazy: OpenCV only to write PNGs; reconstruction does not load it
 
     lines = _text_lines(text, width - 12, scale)
     (_, th), base = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
@@ -313,7 +313,7 @@ def labelled_image(
 
 
 def _write_png(arr_rgb: np.ndarray, path: str | os.PathLike) -> Path:
-    import cv2
+    import cv2  # lazy: OpenCV only to write PNGs; reconstruction does not load it
 
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr_rgb[..., ::-1]))
     if not ok:
@@ -337,7 +337,7 @@ def save_labelled_png(
 
 def save_png_rgb(rgb: torch.Tensor, path: str | os.PathLike) -> Path:
     """Write a ``(3, H, W)`` image in [0, 1] (already encoded) as an 8-bit PNG, atomically."""
-    import cv2
+    import cv2  # lazy: OpenCV only to write PNGs; reconstruction does not load it
 
     bgr = np.ascontiguousarray(_to_u8_hwc(rgb)[..., ::-1])
     ok, buf = cv2.imencode(".png", bgr)

@@ -51,6 +51,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union
 
 import yaml
 
+from hsi_torch import __version__
 from hsi_torch.errors import HSIError
 from hsi_torch.io.atomic import atomic_write_text
 
@@ -496,8 +497,6 @@ def write_resolved_config(
 ) -> Path:
     """Write ``instance`` as ``out_dir/resolved_config.yaml`` (every run does this beside its
     outputs, so a result can be reproduced with ``--config out_dir/resolved_config.yaml``)."""
-    from hsi_torch import __version__
-
     return dump_config(
         instance, Path(out_dir) / name, header=f"resolved configuration, hsi_torch {__version__}"
     )

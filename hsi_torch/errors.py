@@ -62,7 +62,7 @@ class CalibrationError(HSIError, ValueError):
 
 def __getattr__(name: str) -> type:
     if name == "ConfigError":  # defined beside the config loader; imported lazily (no cycle)
-        from hsi_torch.config import ConfigError
+        from hsi_torch.config import ConfigError  # lazy: config imports errors (a cycle)
 
         return ConfigError
     raise AttributeError(f"module 'hsi_torch.errors' has no attribute {name!r}")

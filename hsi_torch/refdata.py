@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hsi_torch.resources import shipped_data
 from hsi_torch.spectral import SpectralGrid, resample_spectra
 
 __all__ = [
@@ -541,8 +542,6 @@ def filter_transmittance(
     """
     name = os.fspath(name_or_path)
     if name in SHIPPED_FILTERS and not _is_table_file(name):
-        from hsi_torch.resources import shipped_data
-
         fname, brand, title = SHIPPED_FILTERS[name]
         src, table, _ = read_spectral_csv(shipped_data(fname))
         return _resample(src, table[:, 0], wavelengths, extrapolate,

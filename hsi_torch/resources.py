@@ -26,6 +26,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from hsi_torch.console import info
+
 __all__ = [
     "DATA_ENV",
     "shipped_config",
@@ -167,7 +169,6 @@ def run_config(args: Any) -> int:
         raise FileExistsError(f"{target} exists; use --force to overwrite it")
     target.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, target)
-    from hsi_torch.console import info
 
     info(f"wrote {target} (run with --config {target})")
     return 0

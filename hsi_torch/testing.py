@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.refdata import colorchecker_reflectances, illuminant
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
 
 __all__ = ["synthetic_brf_problem"]
@@ -75,8 +76,6 @@ def synthetic_brf_problem(
     scale = peak_dn / float(sensing(1, False).sum(2).amax())
     t = (lam - lam[0]) / (lam[-1] - lam[0])
     if spectra == "reflectance":
-        from hsi_torch.refdata import colorchecker_reflectances, illuminant
-
         refl, _ = colorchecker_reflectances(lam)
         lit = refl.to(f64) * illuminant("D65", lam).to(f64)  # (24, M)
     A_shared = sensing(1, False)[0] * scale if shared else None

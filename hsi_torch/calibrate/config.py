@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from hsi_torch.calibrate.response import DEFAULT_BETA_PHI, DEFAULT_GAMMA_H
+from hsi_torch.config import to_dict
 
 __all__ = [
     "BlobSection",
@@ -235,8 +236,6 @@ class CalibrateConfig:
 
     def detector_dict(self) -> dict[str, Any]:
         """The registration settings as :meth:`GridDetectorConfig.from_dict` expects."""
-        from hsi_torch.config import to_dict
-
         d = to_dict(self.registration)
         d.pop("inset_px")
         d.pop("flat_field")

@@ -23,6 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from hsi_torch.io.atomic import atomic_write_bytes
+from hsi_torch.io.bundle import CalibrationBundle
+
 __all__ = ["plot_calibration"]
 
 
@@ -55,8 +58,6 @@ def plot_calibration(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from hsi_torch.io.atomic import atomic_write_bytes
-    from hsi_torch.io.bundle import CalibrationBundle
 
     b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
     wl = np.asarray(b.wavelengths_nm, dtype=np.float64)

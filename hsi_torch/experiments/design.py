@@ -48,6 +48,17 @@ from hsi_torch.experiments.systems import (
 )
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
+from hsi_torch.optics import (
+    DEFAULT_CAMERA,
+    DEFAULT_GEOMETRY,
+    BRFConfig,
+    KaleidoscopeGeometry,
+    build_view_layout,
+    get_material,
+    polarizer_transmittance,
+    trace_sensor,
+    uniaxial_opd,
+)
 from hsi_torch.spectral import SpectralGrid
 
 __all__ = [
@@ -162,8 +173,6 @@ class GeometryRays:
 
 def geometry_rays(geometry: Any, camera: Any | None = None) -> GeometryRays:
     """Trace ``geometry`` and return the rays seeing the 7 scene points in every view."""
-    from hsi_torch.optics import DEFAULT_CAMERA, build_view_layout, trace_sensor
-
     cam = camera or DEFAULT_CAMERA
     pts = scene_points(geometry)
     trace = trace_sensor(geometry, cam, dtype=torch.float64)
@@ -195,8 +204,6 @@ def condition_sweep(
         point) and ``max_opd_nm (T, A)`` (largest |OPD| over points and views at the first
         wavelength of ``grid``).
     """
-    from hsi_torch.optics import get_material, polarizer_transmittance, uniaxial_opd
-
     alpha, sigma, thr = rays.alpha, rays.sigma, rays.throughput
     dev, dt = alpha.device, alpha.dtype
     wl = grid.wavelengths(device=dev, dtype=dt)
@@ -239,8 +246,6 @@ def _design_key(r: dict[str, Any]) -> tuple:
 
 
 def _brf_of(r: dict[str, Any]) -> Any:
-    from hsi_torch.optics import BRFConfig
-
     return BRFConfig(material=r["material"], thickness_mm=r["thickness_mm"],
                      axis_tilt_deg=r["axis_tilt_deg"], axis_azimuth_deg=r["axis_azimuth_deg"])
 
@@ -309,7 +314,6 @@ def run_design(
     """
     import yaml
 
-    from hsi_torch.optics import DEFAULT_GEOMETRY, BRFConfig, KaleidoscopeGeometry
 
     t0 = time.perf_counter()
     out = Path(out)

@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from hsi_torch.console import progress_bar, progress_enabled
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = [
@@ -125,8 +126,6 @@ def progress(
 ) -> Iterable[T]:
     """A tqdm progress bar on stderr (:func:`hsi_torch.console.progress_bar`: plain iteration
     when ``enable`` is False, ``--no-progress``/``--quiet`` is given or stderr is no terminal)."""
-    from hsi_torch.console import progress_bar, progress_enabled
-
     if not progress_enabled(enable):
         return iterable
     return progress_bar(iterable, desc=desc, total=total)

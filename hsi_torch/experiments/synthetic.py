@@ -49,6 +49,7 @@ from hsi_torch.experiments.systems import (
     three_camera_design,
 )
 from hsi_torch.io.atomic import atomic_write_json
+from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.spectral import SpectralGrid, difference_matrix
 
 __all__ = [
@@ -354,8 +355,6 @@ def evaluate_design(
         :class:`DesignEvaluation`. One :func:`~hsi_torch.recon.nnls.solve_nnls` call solves
         all ``S·N·B·K`` problems (stacked ``[A; √β D]`` per β, ``beta=0`` in the solver).
     """
-    from hsi_torch.recon.nnls import solve_nnls
-
     if matrix.ndim != 2:
         raise ValueError(f"matrix must have shape (O, M), got {tuple(matrix.shape)}")
     o, m = matrix.shape

@@ -34,7 +34,19 @@ from torch import Tensor
 
 from hsi_torch import refdata
 from hsi_torch.forward_model import SensingModel
-from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.optics import (
+    DEFAULT_CAMERA,
+    DEFAULT_GEOMETRY,
+    BRFConfig,
+    CameraModel,
+    KaleidoscopeGeometry,
+    apply_homography,
+    build_view_layout,
+    trace_rays,
+    trace_sensor,
+)
+from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid, resample_spectra
 
 __all__ = [
     "SensingDesign",
@@ -152,8 +164,6 @@ def view_rays(
     Raises:
         ValueError: a point is not seen by every view (off the sensor or outside the triangle).
     """
-    from hsi_torch.optics import apply_homography, trace_rays
-
     p, v = points_mm.shape[0], layout.num_views
     hd = layout.diffuser_homographies.to(points_mm)
     px = torch.stack([apply_homography(hd[i], points_mm) for i in range(v)], 1)
@@ -198,14 +208,6 @@ def _optics(
     camera: Any | Mapping[str, Any] | None,
     brf: Any | Mapping[str, Any] | None,
 ) -> tuple[Any, Any, Any]:
-    from hsi_torch.optics import (
-        DEFAULT_CAMERA,
-        DEFAULT_GEOMETRY,
-        BRFConfig,
-        CameraModel,
-        KaleidoscopeGeometry,
-    )
-
     def build(value: Any, default: Any, cls: type, what: str) -> Any:
         if value is None:
             return default
@@ -253,8 +255,6 @@ def this_system_matrices(
     Returns:
         ``(A (P, 3V, M), points_mm (P, 2), layout)``.
     """
-    from hsi_torch.optics import build_view_layout, trace_sensor
-
     geom, cam, brf_ = _optics(geometry, camera_model, brf)
     trace = trace_sensor(geom, cam, dtype=torch.float64)
     layout = build_view_layout(geom, cam, brf_, trace=trace)
@@ -331,8 +331,6 @@ def bundle_design(
     φ = l·f, so the calibration's illuminant is used as is. The bundle's wavelengths must equal
     ``grid``.
     """
-    from hsi_torch.io.bundle import CalibrationBundle
-
     b = CalibrationBundle.load(path)
     wl = np.asarray(b.wavelengths_nm, dtype=np.float64)
     if wl.shape != (grid.num_bands,) or not np.allclose(wl, grid.wavelengths_nm):
@@ -430,7 +428,6 @@ def csv_design(
     """
     src, table, cols = refdata.read_spectral_csv(path)
     vals = torch.as_tensor(np.ascontiguousarray(table.T), dtype=torch.float64)
-    from hsi_torch.spectral import resample_spectra
 
     wl = grid.wavelengths(dtype=torch.float64)
     src_t = torch.as_tensor(np.ascontiguousarray(src, dtype=np.float64))

@@ -46,8 +46,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from hsi_torch.config import load_config
 from hsi_torch.experiments import report
+from hsi_torch.experiments.opd import calibrated_bundle
 from hsi_torch.io.atomic import atomic_write_json
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.recon import Reconstructor
+from hsi_torch.resources import shipped_config
+from hsi_torch.simulate.capture_sets import build_renderer, build_scene, simulate_capture_set
+from hsi_torch.simulate.config import SceneSpec, SimulateConfig
+from hsi_torch.simulate.oracle import bundle_from_truth
 
 __all__ = [
     "michelson_bar_contrast",
@@ -250,10 +258,6 @@ class USAFConfig:
 
 
 def _sim_config(cfg: USAFConfig, calibrated: bool):
-    from hsi_torch.config import load_config
-    from hsi_torch.resources import shipped_config
-    from hsi_torch.simulate.config import SceneSpec, SimulateConfig
-
     proto = load_config(cfg.prototype or shipped_config("simulate"), SimulateConfig,
                         list(cfg.prototype_overrides))
     t = cfg.target
@@ -297,11 +301,6 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     Returns:
         The summary dict (limits per band and for the RGB reference, scale, timings).
     """
-    from hsi_torch.experiments.opd import calibrated_bundle
-    from hsi_torch.recon import Reconstructor
-    from hsi_torch.simulate.capture_sets import build_renderer, build_scene, simulate_capture_set
-    from hsi_torch.simulate.oracle import bundle_from_truth
-
     t_all = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -323,8 +322,6 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         bundle, note = calibrated_bundle(cs, cfg.calibrate_config, device=dev,
                                          progress=cfg.progress, save_to=out / "bundle.npz")
     else:
-        from hsi_torch.io.bundle import CalibrationBundle
-
         bundle, note = CalibrationBundle.load(cfg.bundle), f"bundle {cfg.bundle}"
     tm["bundle"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+import hsi_torch
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
@@ -109,8 +110,6 @@ def _np(x: Any) -> np.ndarray:
 
 
 def _software_version() -> str:
-    import hsi_torch
-
     return str(getattr(hsi_torch, "__version__", "unknown"))
 
 

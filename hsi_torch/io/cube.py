@@ -50,6 +50,7 @@ import torch
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write, json_default
+from hsi_torch.io.captures import quiet_tifffile
 
 __all__ = [
     "Cube",
@@ -603,7 +604,6 @@ def _load_tiff(p: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
     description; other TIFF stacks ``(M, H, W)`` without wavelengths."""
     import tifffile
 
-    from hsi_torch.io.captures import quiet_tifffile
 
     with quiet_tifffile(), tifffile.TiffFile(p) as tif:
         c = tif.asarray()

@@ -48,7 +48,10 @@ import torch
 from torch import Tensor
 
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.cube import cube_to_xarray
+from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
@@ -114,8 +117,6 @@ class ReconstructionResult:
         """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
         valid mask as a coordinate (:func:`hsi_torch.io.cube.cube_to_xarray`; needs
         ``pip install 'hsi-torch[formats]'``)."""
-        from hsi_torch.io.cube import cube_to_xarray
-
         return cube_to_xarray(self.cube.detach().cpu(), self.wavelengths_nm.detach().cpu(),
                               self.valid.detach().cpu(), metadata)  # fmt: skip
 
@@ -203,7 +204,6 @@ def prepare_input(
         )
     if image.shape[-3] == 3:
         return image, saturated
-    from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 
     if cfa_pattern is None:
         raise ValueError(
@@ -737,8 +737,6 @@ class Reconstructor:
         override the file's metadata; a Bayer file without a pattern gets the bundle's.
         ``timings["load"]`` is the read (and demosaic).
         """
-        from hsi_torch.io import read_any
-
         if demosaic not in ("bilinear", "half"):
             raise ValueError(f"demosaic must be 'bilinear' or 'half', got {demosaic!r}")
         p = Path(path)

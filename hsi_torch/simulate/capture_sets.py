@@ -30,11 +30,15 @@ import numpy as np
 import torch
 
 from hsi_torch.config import to_dict, write_resolved_config
-from hsi_torch.io import write_capture
+from hsi_torch.console import progress_bar, progress_enabled
+from hsi_torch.io import load_cube, write_capture
 from hsi_torch.io.capture_set import write_capture_set_index, write_truth
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
 from hsi_torch.optics.geometry import apply_homography
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
+from hsi_torch.refdata import read_spectral_csv
+from hsi_torch.resources import DATA_ENV, real_data_dir
+from hsi_torch.simulate import figures
 from hsi_torch.simulate.config import SceneSpec, SimulateConfig
 from hsi_torch.simulate.render import CaptureRenderer, CaptureSpec, subpixel_offsets
 from hsi_torch.simulate.scenes import CircleGridScene, ColorCheckerScene, CubeScene, make_scene
@@ -79,8 +83,6 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
                          "(sensor.bit_depth <= 16)")
     tau: Any = cfg.objective.transmission
     if cfg.objective.transmission_csv:
-        from hsi_torch.refdata import read_spectral_csv
-
         src, table, _ = read_spectral_csv(cfg.objective.transmission_csv)
         tau = (src, table[:, 0])
     r = cfg.render
@@ -114,7 +116,6 @@ def build_scene(spec: SceneSpec) -> Any | None:
                 return None
             raise FileNotFoundError(f"scene {spec.name or 'cube'!r}: cube file not found: "
                                     f"{spec.path}")
-        from hsi_torch.io import load_cube
 
         c = load_cube(spec.path)
         cube = torch.nan_to_num(torch.as_tensor(c.cube), nan=0.0)
@@ -122,8 +123,6 @@ def build_scene(spec: SceneSpec) -> Any | None:
                          center_mm=tuple(params.get("center_mm", (0.0, 0.9))),
                          extrapolate=params.get("extrapolate", "edge"))
     if spec.kind == "cave":
-        from hsi_torch.resources import DATA_ENV, real_data_dir
-
         given = params.pop("folder", None)
         folder = Path(given) if given is not None else real_data_dir("cave_stuffed_toys")
         if folder is None or not folder.is_dir():
@@ -298,8 +297,6 @@ class SimulationSummary:
 
 
 def _tqdm(enabled: bool):
-    from hsi_torch.console import progress_bar, progress_enabled
-
     if not progress_enabled(enabled):
         return None
 
@@ -434,7 +431,6 @@ def simulate_capture_set(
 
     if cfg.render.figures:
         t0 = time.perf_counter()
-        from hsi_torch.simulate import figures
 
         figs = figures.write_figures(out / "figures", renderer, truth, first_scene,
                                      {n: arrays[f"scene_{n}"] for n in scene_names})

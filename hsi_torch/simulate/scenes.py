@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from hsi_torch import refdata
+from hsi_torch.resources import DATA_ENV, real_data_dir
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid, resample_spectra
 
 __all__ = [
@@ -704,8 +705,6 @@ class CubeScene:
 
 
 def _default_cave_folder() -> Path:
-    from hsi_torch.resources import DATA_ENV, real_data_dir
-
     folder = real_data_dir("cave_stuffed_toys")
     if folder is None:
         raise FileNotFoundError(
