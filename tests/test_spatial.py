@@ -1,0 +1,240 @@
+"""Spatial-spectral (TV) reconstruction: optimality against an independent primal-dual reference,
+λ = 0 is per-pixel NNLS, non-negativity, TV decreasing in λ, the TV operator's adjoint, the
+noise/λ scale, and gradients of the fixed-iteration mode."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hsi_torch.recon.nnls import solve_nnls
+from hsi_torch.recon.spatial import (
+    effective_dof,
+    estimate_noise,
+    grid_edges,
+    grid_gradient,
+    grid_gradient_adjoint,
+    lam_scale,
+    prepare_spatial,
+    prox_tv_nonneg,
+    solve_spatial,
+    total_variation,
+)
+
+
+def _tiny(device, dtype, h=5, w=6, m=4, o=6, noise=0.05, seed=0, holes=True):
+    """Two-region piecewise-constant scene, per-pixel random A, noisy y; a few inactive pixels."""
+    g = torch.Generator().manual_seed(seed)
+    P = h * w
+    A = torch.rand(P, o, m, generator=g, dtype=torch.float64)
+    truth = torch.zeros(m, h, w, dtype=torch.float64)
+    truth[:, :, : w // 2] = torch.rand(m, 1, 1, generator=g, dtype=torch.float64)
+    truth[:, :, w // 2:] = torch.rand(m, 1, 1, generator=g, dtype=torch.float64)
+    y = torch.einsum("pom,pm->po", A, truth.reshape(m, -1).T)
+    y = y + noise * torch.randn(P, o, generator=g, dtype=torch.float64)
+    active = torch.ones(P, dtype=torch.bool)
+    if holes:
+        active[[0, 7, 20]] = False
+    A, y, active = A.to(device, dtype), y.to(device, dtype), active.to(device)
+    G = A.transpose(1, 2) @ A
+    b = torch.einsum("pom,po->pm", A, y)
+    return A, y, G, b, active, (h, w)
+
+
+def _objective(G, b, x, lam, cube_active, to_cube):
+    quad = torch.einsum("pm,pmn,pn->", x, G, x) - 2 * (b * x).sum()
+    return float(quad + lam * total_variation(to_cube(x), cube_active))
+
+
+def _condat_vu(G, b, lam, active_grid, iters):
+    """Independent reference (numpy, float64): Condat–Vũ primal-dual splitting for
+    ``min_{x≥0} Σ ½xᵀGx − bᵀx + (λ/2) TV(x)`` — gradient steps on the quadratic, projection for
+    ``x ≥ 0``, the TV through its dual ball; no Cholesky, no prox of TV."""
+    P, m = b.shape
+    h, w = active_grid.shape
+    ex = np.zeros((h, w), bool)
+    ey = np.zeros((h, w), bool)
+    ex[:, :-1] = active_grid[:, :-1] & active_grid[:, 1:]
+    ey[:-1, :] = active_grid[:-1, :] & active_grid[1:, :]
+
+    def D(c):
+        dx = np.zeros_like(c)
+        dy = np.zeros_like(c)
+        dx[:, :, :-1] = c[:, :, 1:] - c[:, :, :-1]
+        dy[:, :-1, :] = c[:, 1:, :] - c[:, :-1, :]
+        return np.stack([dx * ex, dy * ey])
+
+    def DT(p):
+        px, py = p[0] * ex, p[1] * ey
+        out = -px - py
+        out[:, :, 1:] += px[:, :, :-1]
+        out[:, 1:, :] += py[:, :-1, :]
+        return out
+
+    L = float(np.linalg.eigvalsh(G).max())
+    tv = lam / 2
+    x = np.zeros((P, m))
+    yd = np.zeros((2, m, h, w))
+    sig = L / 8
+    tau = 0.99 / (L / 2 + 8 * sig)
+    for _ in range(iters):
+        grad = np.einsum("pmn,pn->pm", G, x) - b
+        xn = np.maximum(x - tau * (grad + DT(yd).reshape(m, -1).T), 0)
+        yd = yd + sig * D((2 * xn - x).T.reshape(m, h, w))
+        nrm = np.sqrt((yd**2).sum((0, 1), keepdims=True))
+        yd = yd / np.maximum(1, nrm / tv)
+        x = xn
+    return x
+
+
+def test_gradient_adjoint(device, dtype):
+    """<D c, p> = <c, Dᵀ p> on a grid with holes."""
+    g = torch.Generator().manual_seed(1)
+    active = torch.rand(7, 9, generator=g) > 0.25
+    ex, ey = grid_edges(active.to(device))
+    c = torch.randn(3, 7, 9, generator=g, dtype=torch.float64).to(device, dtype)
+    p = torch.randn(2, 3, 7, 9, generator=g, dtype=torch.float64).to(device, dtype)
+    lhs = float((grid_gradient(c, ex, ey) * p).sum())
+    rhs = float((c * grid_gradient_adjoint(p, ex, ey)).sum())
+    tol = 1e-4 if dtype == torch.float32 else 1e-12
+    assert abs(lhs - rhs) <= tol * max(1.0, abs(lhs))
+    # no edge touches an inactive pixel: changing it leaves the gradient unchanged
+    c2 = c.clone()
+    c2[:, ~active.to(device)] = 123.0
+    assert torch.equal(grid_gradient(c, ex, ey), grid_gradient(c2, ex, ey))
+
+
+def test_prox_matches_brute_force(device):
+    """The TV prox (with z ≥ 0) agrees with the Condat–Vũ reference for G = I."""
+    dtype = torch.float64
+    g = torch.Generator().manual_seed(2)
+    h, w, m = 4, 5, 3
+    v = torch.randn(m, h, w, generator=g, dtype=dtype)
+    active = np.ones((h, w), bool)
+    ex, ey = grid_edges(torch.from_numpy(active).to(device))
+    z, _ = prox_tv_nonneg(v.to(device), 0.3, ex, ey, 3000)
+    G = np.broadcast_to(np.eye(m), (h * w, m, m)).copy()
+    ref = _condat_vu(G, v.reshape(m, -1).T.numpy(), 0.6, active, 6000)
+    assert float(z.min()) >= 0
+    np.testing.assert_allclose(z.cpu().reshape(m, -1).T.numpy(), ref, atol=1e-6)
+
+
+def test_admm_matches_independent_reference(device):
+    """The ADMM answer is the minimiser: same point and objective as a long primal-dual run."""
+    dtype = torch.float64
+    A, y, G, b, active, (h, w) = _tiny(device, dtype)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w), active)
+    x0 = solve_nnls(A, y).x
+    lam = 0.5
+    res = solve_spatial(prob, b, lam, x0=x0, tol=1e-9, max_iter=20000)
+    assert res.converged
+    grid = active.view(h, w).cpu().numpy()
+    ref = _condat_vu(G.cpu().numpy(), b.cpu().numpy(), lam, grid, 30000)
+    ref_t = torch.from_numpy(ref).to(device, dtype)
+    cube_active = active.view(h, w)
+    f_admm = _objective(G, b, res.x, lam, cube_active, prob.to_cube)
+    f_ref = _objective(G, b, ref_t, lam, cube_active, prob.to_cube)
+    f_pp = _objective(G, b, x0, lam, cube_active, prob.to_cube)
+    assert f_admm <= f_ref + 1e-9 * abs(f_ref)
+    assert f_admm < f_pp - 1e-3 * abs(f_pp)  # TV did change the answer
+    assert float((res.x - ref_t).abs().max()) < 1e-5
+    assert float(res.x.min()) >= 0
+
+
+def test_lam_zero_is_per_pixel_nnls(device, dtype):
+    A, y, G, b, active, (h, w) = _tiny(device, dtype, seed=3)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w), active)
+    ref = solve_nnls(A.double(), y.double()).x
+    res = solve_spatial(prob, b, 0.0, tol=1e-6 if dtype == torch.float32 else 1e-10,
+                        max_iter=20000)
+    tol = 2e-3 if dtype == torch.float32 else 1e-6
+    assert float((res.x.double() - ref).abs().max()) <= tol * max(1.0, float(ref.abs().max()))
+    # and started at the per-pixel answer it stays there
+    res0 = solve_spatial(prob, b, 0.0, x0=ref.to(dtype), iters=20)
+    assert float((res0.x.double() - ref).abs().max()) <= tol * max(1.0, float(ref.abs().max()))
+
+
+def test_larger_lam_lowers_tv_and_stays_nonneg(device, dtype):
+    A, y, G, b, active, (h, w) = _tiny(device, dtype, noise=0.2, seed=4)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w), active)
+    x0 = solve_nnls(A, y).x
+    grid = active.view(h, w)
+    tvs = []
+    for lam in (0.0, 0.3, 1.0, 3.0):
+        res = solve_spatial(prob, b, lam, x0=x0, tol=1e-5, max_iter=5000)
+        assert float(res.x.min()) >= 0
+        assert torch.isfinite(res.x).all()
+        tvs.append(float(total_variation(prob.to_cube(res.x), grid)))
+    assert all(a > b_ for a, b_ in zip(tvs, tvs[1:], strict=False)), tvs
+    assert tvs[-1] < 0.5 * tvs[0]
+
+
+def test_inactive_pixels_are_solved_alone(device):
+    """A pixel outside the TV graph gets its own NNLS answer, whatever λ."""
+    dtype = torch.float64
+    A, y, G, b, active, (h, w) = _tiny(device, dtype, seed=5)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w), active)
+    res = solve_spatial(prob, b, 5.0, tol=1e-10, max_iter=20000)
+    ref = solve_nnls(A, y).x
+    off = ~active
+    assert float((res.x[off] - ref[off]).abs().max()) < 1e-6
+
+
+def test_fixed_iterations_gradcheck(device):
+    dtype = torch.float64
+    A, y, G, b, active, (h, w) = _tiny(device, dtype, h=3, w=3, m=3, o=4, holes=False, seed=6)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w))
+    x0 = solve_nnls(A, y).x.detach()
+    lam = torch.tensor(0.3, dtype=dtype, device=device, requires_grad=True)
+    bb = b.clone().requires_grad_(True)
+
+    def f(bv, lv):
+        return solve_spatial(prob, bv, lv, x0=x0, iters=8, inner_iters=4).x
+
+    assert torch.autograd.gradcheck(f, (bb, lam), eps=1e-6, atol=1e-5)
+
+
+def test_noise_estimate_and_scale(device):
+    """σ̂ from the residuals with the effective dof recovers the simulated noise level (a truth
+    that β does not bias, so the residual is noise only)."""
+    dtype = torch.float64
+    g = torch.Generator().manual_seed(7)
+    P, o, m, sigma = 4000, 12, 5, 0.3
+    A = torch.rand(P, o, m, generator=g, dtype=dtype)
+    x = (torch.rand(P, 1, generator=g, dtype=dtype) + 0.5).expand(P, m)  # D x = 0: no bias
+    y = torch.einsum("pom,pm->po", A, x) + sigma * torch.randn(P, o, generator=g, dtype=dtype)
+    A, y = A.to(device), y.to(device)
+    beta = 2.0
+    res = solve_nnls(A, y, beta=beta)
+    D = torch.diff(torch.eye(m, dtype=dtype, device=device), dim=0)
+    R = beta * D.T @ D
+    G = A.transpose(1, 2) @ A + R
+    dof = effective_dof(G, R, res.x)
+    assert float(dof.min()) > 0 and float(dof.max()) <= m + 1e-9
+    assert float(dof.mean()) < m - 0.05  # β shrinks the fit
+    r2 = (torch.einsum("pom,pm->po", A, res.x) - y).square().sum(1)
+    s = estimate_noise(r2, torch.full((P,), o, device=device), dof)
+    assert abs(s - sigma) < 0.03 * sigma
+    # λ's scale: σ · sqrt(median trace G), exactly
+    tr = G.diagonal(dim1=1, dim2=2).sum(1)
+    assert lam_scale(s, G) == pytest.approx(s * float(tr.median()) ** 0.5)
+
+
+def test_bad_inputs(device):
+    G = torch.eye(3, device=device).expand(4, 3, 3).contiguous()
+    pix = torch.arange(4, device=device)
+    with pytest.raises(ValueError, match="pixel_index"):
+        prepare_spatial(G, torch.arange(5, device=device), (2, 2))
+    with pytest.raises(ValueError, match="out of range"):
+        prepare_spatial(G, pix + 1, (2, 2))
+    prob = prepare_spatial(G, pix, (2, 2))
+    with pytest.raises(ValueError, match="b must be"):
+        solve_spatial(prob, torch.zeros(4, 2, device=device), 1.0)
+    with pytest.raises(ValueError, match="lam"):
+        solve_spatial(prob, torch.zeros(4, 3, device=device), -1.0)
