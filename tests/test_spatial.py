@@ -238,3 +238,17 @@ def test_bad_inputs(device):
         solve_spatial(prob, torch.zeros(4, 2, device=device), 1.0)
     with pytest.raises(ValueError, match="lam"):
         solve_spatial(prob, torch.zeros(4, 3, device=device), -1.0)
+
+
+def test_inplace_and_differentiable_paths_agree(device, dtype):
+    """The tolerance-driven solve (in-place prox) and the fixed-iteration one (out of place) run
+    the same iterations."""
+    A, y, G, b, active, (h, w) = _tiny(device, dtype, seed=8)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w), active)
+    x0 = solve_nnls(A, y).x
+    a = solve_spatial(prob, b, 0.7, x0=x0, tol=1e-30, max_iter=20, inner_iters=5)
+    f = solve_spatial(prob, b, 0.7, x0=x0, iters=20, inner_iters=5)
+    assert a.iterations == 20 and not a.converged
+    tol = 1e-4 if dtype == torch.float32 else 1e-10
+    assert float((a.x - f.x).abs().max()) <= tol * float(f.x.abs().max())

@@ -246,6 +246,11 @@ class USAFConfig:
     calibrate_config: Path | None = None
     beta: float = field(default=1000.0, metadata={"help": "smoothness weight (DN² scale)"})
     diff_order: int = 1
+    prior: Literal["none", "tv"] = field(
+        default="none", metadata={"help": "none: per-pixel NNLS; tv: spatial-spectral (TV)"})
+    lam: float | Literal["auto"] = field(
+        default=0.3, metadata={"help": "prior=tv: relative TV weight (see the reconstruct "
+                                       "config), or auto (discrepancy principle)"})
     threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})
     orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
     length_fraction: float = 0.6
@@ -325,7 +330,8 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         bundle, note = CalibrationBundle.load(cfg.bundle), f"bundle {cfg.bundle}"
     tm["bundle"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rec = Reconstructor(bundle, beta=cfg.beta, diff_order=cfg.diff_order, device=dev, dtype=dt)
+    rec = Reconstructor(bundle, beta=cfg.beta, diff_order=cfg.diff_order, device=dev, dtype=dt,
+                        prior=cfg.prior, lam=cfg.lam)
     res = rec.reconstruct_file(cs / "scenes" / "usaf.tif")
     tm["reconstruct"] = time.perf_counter() - t0
 

@@ -62,7 +62,10 @@ def preview_caption(
     bundle = (metadata or {}).get("bundle")
     if bundle:
         parts.append(f"bundle {Path(bundle).name}")
-    parts += [f"beta {cfg.beta:g}", "sRGB D65"]
+    parts.append(f"beta {cfg.beta:g}")
+    if cfg.prior == "tv":
+        parts.append(f"TV lam {cfg.lam}")
+    parts.append("sRGB D65")
     return " | ".join(parts)
 
 
@@ -239,7 +242,8 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
                 bundle_path, beta=cfg.beta, diff_order=cfg.diff_order, solver=cfg.solver,
                 admm_iters=cfg.admm_iters, device=device, dtype=dtype,
                 chunk_size=cfg.chunk_size, min_views=cfg.min_views, nan_invalid=cfg.nan_invalid,
-                exposure_correction=cfg.exposure_correction,
+                exposure_correction=cfg.exposure_correction, prior=cfg.prior, lam=cfg.lam,
+                spatial_iters=cfg.spatial_iters,
             )  # fmt: skip
         return state["rec"]
 

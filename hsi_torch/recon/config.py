@@ -36,6 +36,21 @@ class ReconstructConfig:
     admm_iters: int | None = field(
         default=None, metadata=_help("ADMM: fixed iteration count (null: run to tolerance)")
     )
+    prior: Literal["none", "tv"] = field(
+        default="none",
+        metadata=_help("none: per-pixel NNLS; tv: spatial-spectral reconstruction with a "
+                       "vectorial total-variation prior, warm-started from the per-pixel answer"),
+    )
+    lam: float | Literal["auto"] = field(
+        default=0.3,  # = hsi_torch.recon.spatial.DEFAULT_LAM (kept importable without torch)
+        metadata=_help("prior=tv: relative TV weight, lambda = lam * sigma * sqrt(median "
+                       "trace G) with sigma the frame's noise level (DN) from its per-pixel "
+                       "residuals; auto: chosen per frame by the discrepancy principle"),
+    )
+    spatial_iters: int | None = field(
+        default=None,
+        metadata=_help("prior=tv: fixed ADMM iterations (null: run to tolerance)"),
+    )
     device: str = field(default="cpu", metadata=_help("torch device (cpu, cuda, cuda:1, ...)"))
     dtype: Literal["float32", "float64"] = field(
         default="float32", metadata=_help("precision of the sensing matrices and the solve")
@@ -99,6 +114,10 @@ class ReconstructConfig:
             raise ValueError(f"beta must be >= 0, got {self.beta}")
         if self.diff_order not in (0, 1, 2):
             raise ValueError(f"diff_order must be 0, 1 or 2, got {self.diff_order}")
+        if self.lam != "auto" and not self.lam >= 0:
+            raise ValueError(f"lam must be >= 0 or 'auto', got {self.lam}")
+        if self.spatial_iters is not None and self.spatial_iters < 1:
+            raise ValueError(f"spatial_iters must be >= 1 or null, got {self.spatial_iters}")
         if self.admm_iters is not None and self.admm_iters < 1:
             raise ValueError(f"admm_iters must be >= 1 or null, got {self.admm_iters}")
         if self.chunk_size is not None and self.chunk_size < 1:

@@ -44,10 +44,12 @@ from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.pipeline import (
     DEFAULT_BETA,
     check_min_views,
+    check_prior,
     prepare_input,
     reconstruct_batch,
 )
 from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing
+from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.spectral import band_widths
 
 __all__ = ["HSIReconstructor", "ReconstructionOutput"]
@@ -108,10 +110,15 @@ class HSIReconstructor(nn.Module):
         min_views: int = 3,
         nan_invalid: bool = True,
         sat_threshold: float = 1e-3,
+        prior: str = "none",
+        lam: float | str = DEFAULT_LAM,
+        spatial_iters: int | None = None,
     ) -> None:
         super().__init__()
         if solver not in ("active_set", "admm"):
             raise ValueError(f"solver must be 'active_set' or 'admm', got {solver!r}")
+        check_prior(prior, lam, spatial_iters)
+        self.prior, self.lam, self.spatial_iters = prior, lam, spatial_iters
         dev, dt = sensing.device, sensing.dtype
         check_min_views(min_views, sensing.num_views)
         self.solver = solver
@@ -166,6 +173,9 @@ class HSIReconstructor(nn.Module):
         chunk_size: int | None = None,
         min_views: int = 3,
         nan_invalid: bool = True,
+        prior: str = "none",
+        lam: float | str = DEFAULT_LAM,
+        spatial_iters: int | None = None,
     ) -> HSIReconstructor:
         """Build from a bundle (object or ``.npz`` path).
 
@@ -179,6 +189,10 @@ class HSIReconstructor(nn.Module):
             cfa_pattern: for ``(B, 1, H, W)`` Bayer inputs (default: the bundle's
                 ``settings["cfa_pattern"]``).
             device, dtype: of the buffers (movable later with ``.to``).
+            prior, lam, spatial_iters: ``prior="tv"``: spatial-spectral reconstruction with a
+                vectorial TV prior (:class:`~hsi_torch.recon.pipeline.Reconstructor`); for
+                gradients give ``spatial_iters=N`` (exactly ``N`` differentiable ADMM
+                iterations).
         """
         b = load_bundle(bundle)
         sens = precompute_sensing(
@@ -187,7 +201,8 @@ class HSIReconstructor(nn.Module):
         )  # fmt: skip
         return cls(
             sens, b, solver=solver, admm_iters=admm_iters, cfa_pattern=cfa_pattern,
-            chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid,
+            chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid, prior=prior,
+            lam=lam, spatial_iters=spatial_iters,
         )  # fmt: skip
 
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
@@ -435,6 +450,7 @@ class HSIReconstructor(nn.Module):
             self.sensing(), rgb, saturated, scale=exposure_scale, solver=self.solver,
             admm_iters=self.admm_iters, chunk_size=self.chunk_size, min_views=self.min_views,
             nan_invalid=self.nan_invalid, sat_threshold=self.sat_threshold, stats=False,
+            prior=self.prior, lam=self.lam, spatial_iters=self.spatial_iters,
         )  # fmt: skip
         return cube, valid
 
@@ -444,4 +460,5 @@ class HSIReconstructor(nn.Module):
             f"views={self.homographies.shape[0]}, bands={self.num_bands}, "
             f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
             f"beta={self.beta:g}, diff_order={self.diff_order}, solver={self.solver!r}"
+            + (f", prior='tv', lam={self.lam}" if self.prior == "tv" else "")
         )

@@ -55,6 +55,8 @@ from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cf
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
+from hsi_torch.recon.spatial import DEFAULT_LAM
+from hsi_torch.recon.spatial import solve_frame as spatial_solve_frame
 
 __all__ = [
     "ReconstructionResult",
@@ -72,9 +74,27 @@ __all__ = [
     "prepare_input",
     "fit_residual",
     "check_min_views",
+    "check_prior",
+    "PRIORS",
 ]
 
 _SOLVERS = ("active_set", "admm")
+#: spatial priors: ``"none"`` (per-pixel NNLS) or ``"tv"`` (:mod:`hsi_torch.recon.spatial`)
+PRIORS = ("none", "tv")
+
+
+def check_prior(prior: str, lam: float | str, spatial_iters: int | None) -> None:
+    """``prior`` in :data:`PRIORS`, ``lam`` finite ``≥ 0`` or ``"auto"``, ``spatial_iters``
+    None or ``≥ 1``."""
+    if prior not in PRIORS:
+        raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
+    if isinstance(lam, str):
+        if lam != "auto":
+            raise ValueError(f"lam must be a number >= 0 or 'auto', got {lam!r}")
+    elif not (float(lam) >= 0 and math.isfinite(float(lam))):
+        raise ValueError(f"lam must be finite and >= 0 or 'auto', got {lam}")
+    if spatial_iters is not None and int(spatial_iters) < 1:
+        raise ValueError(f"spatial_iters must be >= 1 or None, got {spatial_iters}")
 
 #: Default smoothness weight β on ‖D s‖² (DN² scale), shared by the Python API and
 #: :class:`~hsi_torch.recon.config.ReconstructConfig` (best measured on the default prototype).
@@ -362,6 +382,9 @@ def solve_observations(
     min_views: int = 3,
     premasked: bool = False,
     stats: bool = True,
+    prior: str = "none",
+    lam: float | str = DEFAULT_LAM,
+    spatial_iters: int | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Solve one frame's ``P`` pixels with the precomputed factorisation (+ exact re-solves).
 
@@ -374,6 +397,12 @@ def solve_observations(
             as is, without a masked copy.
         stats: compute ``info`` (host syncs: counts, KKT statistics, fit residual); ``False``:
             ``info`` is empty and only the solve's own control flow reads the device.
+        prior: ``"none"`` (per-pixel NNLS) or ``"tv"``: then the per-pixel answer warm-starts
+            the spatial-spectral solve (:func:`hsi_torch.recon.spatial.solve_frame`) over the
+            valid pixels; ``info`` gains its ``lam``, ``lam_abs``, ``noise_sigma``, iterations
+            and residuals, and KKT statistics stay those of the per-pixel warm start.
+        lam: relative TV weight (``prior="tv"``); spatial_iters: fixed spatial ADMM iterations
+            (differentiable; ``None``: to tolerance, not differentiable).
 
     Returns:
         ``x (P, M)`` (0 where invalid), ``ok (P,)`` bool, ``info`` (counts, KKT statistics).
@@ -405,7 +434,15 @@ def solve_observations(
         kkt = kkt.index_copy(0, idx, sub.kkt_residual)
         iters = iters.index_copy(0, idx, sub.iterations)
     native_grad = solver == "admm" and admm_iters is not None
-    if torch.is_grad_enabled() and yc.requires_grad and not native_grad:
+    grad = torch.is_grad_enabled() and yc.requires_grad
+    sinfo: dict[str, Any] = {}
+    if prior == "tv":
+        if grad and spatial_iters is None:
+            raise ValueError("prior='tv' with gradients needs spatial_iters=N (fixed, "
+                             "differentiable iterations)")
+        x, sinfo = spatial_solve_frame(sens, yc, mask, ok, changed, x, lam=lam,
+                                       iters=spatial_iters)
+    elif grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
     x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
     if not stats:
@@ -423,6 +460,7 @@ def solve_observations(
         "converged_fraction": n_conv / max(1, n_ok),
         "max_kkt": float(kkt[ok].max()) if n_ok else 0.0,
         "fit_residual": fit_residual(sens, x.detach(), yc.detach(), mask, ok),
+        **sinfo,
     }
     return x, ok, info
 
@@ -501,6 +539,9 @@ def reconstruct_batch(
     nan_invalid: bool = True,
     sat_threshold: float = 1e-3,
     stats: bool = True,
+    prior: str = "none",
+    lam: float | str = DEFAULT_LAM,
+    spatial_iters: int | None = None,
 ) -> tuple[Tensor, Tensor, list[dict[str, Any]], dict[str, float]]:
     """Shared core of :class:`Reconstructor` and :class:`~hsi_torch.recon.module.HSIReconstructor`.
 
@@ -510,6 +551,7 @@ def reconstruct_batch(
         scale: scalar or ``(B,)`` factor on the observations (exposure correction).
         stats: per-frame statistics and stage timings (each stage ends with a device sync);
             ``False`` (the ``nn.Module``): no timing, no statistics, no extra sync.
+        prior, lam, spatial_iters: see :func:`solve_observations`.
 
     Returns:
         ``cube (B, M, h, w)``, ``valid (B, h, w)``, per-frame stats, stage timings (s, summed;
@@ -547,7 +589,8 @@ def reconstruct_batch(
     for i in range(y.shape[0]):
         x, ok, info = solve_observations(
             sens, y[i], mask[i], solver=solver, admm_iters=admm_iters, chunk_size=chunk_size,
-            min_views=min_views, premasked=inplace, stats=stats,
+            min_views=min_views, premasked=inplace, stats=stats, prior=prior, lam=lam,
+            spatial_iters=spatial_iters,
         )  # fmt: skip
         if stats:
             info["observations"] = num_obs
@@ -612,6 +655,15 @@ class Reconstructor:
         nan_invalid: invalid pixels hold NaN (else 0) in the cube.
         exposure_correction: scale observations by ``t_white / t_capture`` when both are known.
         sat_threshold: warped saturation weight above which an observation is saturated.
+        prior: ``"none"`` (per-pixel NNLS, the default) or ``"tv"``: spatial-spectral
+            reconstruction with a vectorial total-variation prior, warm-started from the
+            per-pixel answer (:mod:`hsi_torch.recon.spatial`).
+        lam: relative TV weight for ``prior="tv"``: ``λ = lam · σ̂ · sqrt(median trace G)`` with
+            ``σ̂`` the frame's noise level estimated from its per-pixel residuals (default
+            :data:`~hsi_torch.recon.spatial.DEFAULT_LAM`), or ``"auto"`` (discrepancy
+            principle, per frame); the ``lam`` used, the absolute ``λ`` and ``σ̂`` are in the
+            result's ``stats``.
+        spatial_iters: fixed iterations of the spatial solve (``None``: to tolerance).
 
     Example:
         >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
@@ -634,9 +686,14 @@ class Reconstructor:
         nan_invalid: bool = True,
         exposure_correction: bool = True,
         sat_threshold: float = 1e-3,
+        prior: str = "none",
+        lam: float | str = DEFAULT_LAM,
+        spatial_iters: int | None = None,
     ) -> None:
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
+        check_prior(prior, lam, spatial_iters)
+        self.prior, self.lam, self.spatial_iters = prior, lam, spatial_iters
         if isinstance(bundle, BundleSensing):
             self.sensing = bundle.with_regularisation(beta, diff_order)
         else:
@@ -698,7 +755,8 @@ class Reconstructor:
                 scale=None if scale == 1.0 else scale, solver=self.solver,
                 admm_iters=self.admm_iters, chunk_size=self.chunk_size,
                 min_views=self.min_views, nan_invalid=self.nan_invalid,
-                sat_threshold=self.sat_threshold,
+                sat_threshold=self.sat_threshold, prior=self.prior, lam=self.lam,
+                spatial_iters=self.spatial_iters,
             )  # fmt: skip
         st = stats[0]
         st["exposure_scale"] = scale
