@@ -15,7 +15,7 @@ from test_pipeline import make_bundle, render_capture
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.recon.pipeline import Reconstructor
-from hsi_torch.recon.spatial import DEFAULT_LAM, total_variation
+from hsi_torch.recon.spatial import DEFAULT_LAM, SURE_LAMS, total_variation
 
 WL_M = 8
 
@@ -91,11 +91,48 @@ def test_saturated_pixels_use_their_own_gram(device):
     assert float(tv.cube[:, v].max()) < 2.0  # the garbage value never entered
 
 
-def test_auto_lam_meets_the_discrepancy(device):
+def test_auto_lam_sure_tracks_the_prediction_risk(device):
+    """lam="auto": the SURE values match the true prediction risk ``‖W A (s_λ − s_true)‖²/N``
+    at every weight evaluated (to 0.15 σ²), and the chosen weight's true risk is within 1.5× of
+    the best one's; the spectra beat per-pixel by far."""
+    bundle = make_bundle()
+    s = _piecewise()
+    sigma = 10.0
+    img = _noisy(bundle, s, sigma=sigma).to(device, torch.float64)
+    kw = dict(beta=1.0, device=device, dtype=torch.float64)
+    rec = Reconstructor(bundle, prior="tv", lam="auto", **kw)
+    res = rec.reconstruct_frame(img)
+    st = res.stats
+    assert st["lam_rule"] == "sure" and len(st["sure_curve"]) == len(SURE_LAMS)
+    sens = rec.sensing
+    pix = sens.pixel_index
+    ok = res.valid.reshape(-1)[pix]
+    w = (sens.obs_mask & ok[:, None]).double()
+    m = s.shape[0]
+    pred_true = sens.model.A(s.to(device).reshape(m, -1)[:, pix].T) * w
+
+    def risk(cube):
+        x = torch.nan_to_num(cube.reshape(m, -1)[:, pix].T)
+        return float(((sens.model.A(x) * w - pred_true) ** 2).sum() / w.sum())
+
+    risks = []
+    for lam, sure in st["sure_curve"]:
+        r = risk(Reconstructor(sens, prior="tv", lam=lam).reconstruct_frame(img).cube)
+        assert abs(sure - r) <= 0.15 * sigma**2, (lam, sure, r)
+        risks.append(r)
+    assert risk(res.cube) <= 1.5 * min(risks)
+    v = res.valid
+    truth = s.to(device)[:, v]
+    per_pixel = Reconstructor(sens).reconstruct_frame(img).cube[:, v]
+    assert float((res.cube[:, v] - truth).square().mean()) < 0.2 * float(
+        (per_pixel - truth).square().mean())
+
+
+def test_discrepancy_lam_meets_the_discrepancy(device):
     bundle = make_bundle()
     s = _piecewise()
     img = _noisy(bundle, s, sigma=2.0).to(device, torch.float64)
-    rec = Reconstructor(bundle, beta=1.0, prior="tv", lam="auto", device=device,
+    rec = Reconstructor(bundle, beta=1.0, prior="tv", lam="discrepancy", device=device,
                         dtype=torch.float64)
     st = rec.reconstruct_frame(img).stats
     assert st["lam_rule"] == "discrepancy" and st["lam"] > 0
@@ -152,7 +189,7 @@ def test_cli_reconstruct_with_tv(tmp_path):
     out = tmp_path / "out"
     r = subprocess.run(
         [sys.executable, "-m", "hsi_torch", "reconstruct", "--bundle", str(bpath), "--out",
-         str(out), "--set", "prior=tv", "--set", "lam=auto", "--set", "formats=[npz]",
+         str(out), "--set", "prior=tv", "--set", "lam=discrepancy", "--set", "formats=[npz]",
          "--set", "preview=false", "--set", "beta=1.0", str(cap)],
         capture_output=True, text=True,
     )  # fmt: skip

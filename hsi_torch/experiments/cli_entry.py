@@ -33,6 +33,7 @@ EXPERIMENTS: dict[str, tuple[str, str, str]] = {
     "design": ("hsi_torch.experiments.design", "DesignSweepConfig", "run_design"),
     "opd": ("hsi_torch.experiments.opd", "OPDConfig", "run_opd"),
     "usaf": ("hsi_torch.experiments.usaf", "USAFConfig", "run_usaf"),
+    "spatial": ("hsi_torch.experiments.spatial", "SpatialConfig", "run_spatial"),
 }
 
 

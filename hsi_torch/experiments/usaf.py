@@ -248,7 +248,7 @@ class USAFConfig:
     diff_order: int = 1
     prior: Literal["none", "tv"] = field(
         default="none", metadata={"help": "none: per-pixel NNLS; tv: spatial-spectral (TV)"})
-    lam: float | Literal["auto"] = field(
+    lam: float | Literal["auto", "discrepancy"] = field(
         default=0.3, metadata={"help": "prior=tv: relative TV weight (see the reconstruct "
                                        "config), or auto (discrepancy principle)"})
     threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})

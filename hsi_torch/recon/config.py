@@ -41,11 +41,12 @@ class ReconstructConfig:
         metadata=_help("none: per-pixel NNLS; tv: spatial-spectral reconstruction with a "
                        "vectorial total-variation prior, warm-started from the per-pixel answer"),
     )
-    lam: float | Literal["auto"] = field(
+    lam: float | Literal["auto", "discrepancy"] = field(
         default=0.3,  # = hsi_torch.recon.spatial.DEFAULT_LAM (kept importable without torch)
         metadata=_help("prior=tv: relative TV weight, lambda = lam * sigma * sqrt(median "
                        "trace G) with sigma the frame's noise level (DN) from its per-pixel "
-                       "residuals; auto: chosen per frame by the discrepancy principle"),
+                       "residuals; auto: per frame, minimum of a Monte-Carlo SURE risk "
+                       "estimate; discrepancy: per frame, Morozov's discrepancy principle"),
     )
     spatial_iters: int | None = field(
         default=None,
@@ -114,8 +115,8 @@ class ReconstructConfig:
             raise ValueError(f"beta must be >= 0, got {self.beta}")
         if self.diff_order not in (0, 1, 2):
             raise ValueError(f"diff_order must be 0, 1 or 2, got {self.diff_order}")
-        if self.lam != "auto" and not self.lam >= 0:
-            raise ValueError(f"lam must be >= 0 or 'auto', got {self.lam}")
+        if not isinstance(self.lam, str) and not self.lam >= 0:
+            raise ValueError(f"lam must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
         if self.spatial_iters is not None and self.spatial_iters < 1:
             raise ValueError(f"spatial_iters must be >= 1 or null, got {self.spatial_iters}")
         if self.admm_iters is not None and self.admm_iters < 1:

@@ -84,15 +84,15 @@ PRIORS = ("none", "tv")
 
 
 def check_prior(prior: str, lam: float | str, spatial_iters: int | None) -> None:
-    """``prior`` in :data:`PRIORS`, ``lam`` finite ``≥ 0`` or ``"auto"``, ``spatial_iters``
-    None or ``≥ 1``."""
+    """``prior`` in :data:`PRIORS`, ``lam`` finite ``≥ 0``, ``"auto"`` or ``"discrepancy"``,
+    ``spatial_iters`` None or ``≥ 1``."""
     if prior not in PRIORS:
         raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
     if isinstance(lam, str):
-        if lam != "auto":
-            raise ValueError(f"lam must be a number >= 0 or 'auto', got {lam!r}")
+        if lam not in ("auto", "discrepancy"):
+            raise ValueError(f"lam must be a number >= 0, 'auto' or 'discrepancy', got {lam!r}")
     elif not (float(lam) >= 0 and math.isfinite(float(lam))):
-        raise ValueError(f"lam must be finite and >= 0 or 'auto', got {lam}")
+        raise ValueError(f"lam must be finite and >= 0, 'auto' or 'discrepancy', got {lam}")
     if spatial_iters is not None and int(spatial_iters) < 1:
         raise ValueError(f"spatial_iters must be >= 1 or None, got {spatial_iters}")
 
@@ -660,9 +660,9 @@ class Reconstructor:
             per-pixel answer (:mod:`hsi_torch.recon.spatial`).
         lam: relative TV weight for ``prior="tv"``: ``λ = lam · σ̂ · sqrt(median trace G)`` with
             ``σ̂`` the frame's noise level estimated from its per-pixel residuals (default
-            :data:`~hsi_torch.recon.spatial.DEFAULT_LAM`), or ``"auto"`` (discrepancy
-            principle, per frame); the ``lam`` used, the absolute ``λ`` and ``σ̂`` are in the
-            result's ``stats``.
+            :data:`~hsi_torch.recon.spatial.DEFAULT_LAM`), or chosen per frame: ``"auto"``
+            (minimum of a Monte-Carlo SURE risk estimate) or ``"discrepancy"`` (Morozov); the
+            ``lam`` used, the absolute ``λ`` and ``σ̂`` are in the result's ``stats``.
         spatial_iters: fixed iterations of the spatial solve (``None``: to tolerance).
 
     Example:
