@@ -90,6 +90,7 @@ __all__ = [
     "SURE_LAMS",
     "mean_square_residual",
     "bundle_spatial_problem",
+    "guide_weights",
     "frame_noise_level",
     "solve_frame",
 ]
@@ -128,14 +129,19 @@ def grid_gradient(cube: Tensor, ex: Tensor, ey: Tensor) -> Tensor:
     zero = torch.zeros((), dtype=cube.dtype, device=cube.device)
     dx = torch.nn.functional.pad(cube[..., :, 1:] - cube[..., :, :-1], (0, 1))
     dy = torch.nn.functional.pad(cube[..., 1:, :] - cube[..., :-1, :], (0, 0, 0, 1))
-    return torch.stack([torch.where(ex, dx, zero), torch.where(ey, dy, zero)], dim=-4)
+    if ex.dtype == torch.bool:
+        return torch.stack([torch.where(ex, dx, zero), torch.where(ey, dy, zero)], dim=-4)
+    return torch.stack([dx * ex, dy * ey], dim=-4)  # edge weights
 
 
 def grid_gradient_adjoint(p: Tensor, ex: Tensor, ey: Tensor) -> Tensor:
     """Adjoint of :func:`grid_gradient`: ``(…, 2, M, h, w)`` → ``(…, M, h, w)`` (= −divergence)."""
     zero = torch.zeros((), dtype=p.dtype, device=p.device)
-    px = torch.where(ex, p[..., 0, :, :, :], zero)
-    py = torch.where(ey, p[..., 1, :, :, :], zero)
+    if ex.dtype == torch.bool:
+        px = torch.where(ex, p[..., 0, :, :, :], zero)
+        py = torch.where(ey, p[..., 1, :, :, :], zero)
+    else:  # edge weights
+        px, py = p[..., 0, :, :, :] * ex, p[..., 1, :, :, :] * ey
     out = -px - py
     out = out + torch.nn.functional.pad(px[..., :, :-1], (1, 0))
     return out + torch.nn.functional.pad(py[..., :-1, :], (0, 0, 1, 0))
@@ -210,6 +216,8 @@ class _ProxWorkspace:
         self.r = torch.empty_like(self.p)
         self.g = torch.empty_like(self.p)
         self.z = torch.empty(shape, dtype=dtype, device=device)
+        self.weighted = ex.dtype != torch.bool
+        self.wq = torch.empty_like(self.p) if self.weighted else self.p
         self.n2 = torch.empty((1, 1, *shape[-2:]), dtype=dtype, device=device)
         self.ex = ex.to(dtype)
         self.ey = ey.to(dtype)
@@ -217,6 +225,10 @@ class _ProxWorkspace:
     def primal(self, v: Tensor, t: float, q: Tensor, nonneg: bool) -> Tensor:
         """``z = max(v − t Dᵀq, 0)`` into :attr:`z` (``q`` is 0 off the edges)."""
         z = self.z
+        if self.weighted:  # Dᵀ of the weighted gradient: weights first
+            torch.mul(q[0], self.ex, out=self.wq[0])
+            torch.mul(q[1], self.ey, out=self.wq[1])
+            q = self.wq
         px, py = q[0], q[1]
         torch.add(px, py, out=z)  # Dᵀq = −px − py + shifted px, py
         z[:, :, 1:] -= px[:, :, :-1]
@@ -357,11 +369,13 @@ class SpatialProblem:
         return int(self.gram.shape[-1])
 
     def for_frame(
-        self, active: Tensor, rows: Tensor | None = None, row_gram: Tensor | None = None
+        self, active: Tensor, rows: Tensor | None = None, row_gram: Tensor | None = None,
+        weights: tuple[Tensor, Tensor] | None = None,
     ) -> SpatialProblem:
         """This problem for one frame: its ``active (P,)`` pixels and, for the pixels ``rows``,
         the frame's own Gram matrices ``row_gram (k, M, M)`` (factorised here, ``k`` systems;
-        the stored factor of the other pixels is shared, not copied)."""
+        the stored factor of the other pixels is shared, not copied). ``weights``: ``(h, w)``
+        edge weights in ``[0, 1]`` along x and y (guided TV, :func:`guide_weights`)."""
         P = self.num_pixels
         if active.shape != (P,):
             raise ValueError(f"active must be ({P},), got {tuple(active.shape)}")
@@ -370,6 +384,9 @@ class SpatialProblem:
         grid = torch.zeros(h * w, dtype=torch.bool, device=self.gram.device)
         grid[self.pixel_index[active]] = True
         ex, ey = grid_edges(grid.view(h, w))
+        if weights is not None:
+            ex = ex.to(self.gram.dtype) * weights[0].to(self.gram.dtype)
+            ey = ey.to(self.gram.dtype) * weights[1].to(self.gram.dtype)
         r_inv = None
         if rows is not None and rows.numel():
             eye = torch.eye(self.num_bands, dtype=self.gram.dtype, device=self.gram.device)
@@ -627,6 +644,34 @@ SURE_LAMS = (0.03, 0.1, 0.3, 1.0, 3.0)
 _FACTORS: weakref.WeakKeyDictionary[NNLSProblem, SpatialProblem] = weakref.WeakKeyDictionary()
 
 
+def guide_weights(sp: SpatialProblem, y: Tensor, mask: Tensor, sigma: float,
+                  contrast: float = 3.0) -> tuple[Tensor, Tensor]:
+    """Edge weights of a guided TV from the reference view's own RGB samples (``o = 0, 1, 2``).
+
+    ``w = 1 / (1 + (‖Δrgb‖ / (contrast · sqrt(6) σ̂))²)`` between 4-neighbours: 1 where the
+    reference view's colour step is within the noise (``sqrt(6)·σ̂`` is the noise of ``‖Δrgb‖``),
+    small across real edges, so TV smooths less across edges the RGB image shows. 1 where the
+    reference view is masked.
+
+    Returns:
+        ``(wx, wy)``, each ``(h, w)``.
+    """
+    ref = torch.where(mask[:, :3], y[:, :3], torch.zeros((), dtype=y.dtype, device=y.device))
+    ok = mask[:, :3].all(1, keepdim=True).to(y.dtype)
+    c = sp.to_cube(torch.cat([ref.to(sp.gram.dtype), ok.to(sp.gram.dtype)], 1))
+    rgb, have = c[:3], c[3]
+    scale = contrast * math.sqrt(6.0) * max(float(sigma), 1e-12)
+    dx = (rgb[:, :, 1:] - rgb[:, :, :-1]).square().sum(0).sqrt() / scale
+    dy = (rgb[:, 1:, :] - rgb[:, :-1, :]).square().sum(0).sqrt() / scale
+    wx = torch.ones_like(have)
+    wy = torch.ones_like(have)
+    hx = (have[:, 1:] * have[:, :-1]) > 0
+    hy = (have[1:, :] * have[:-1, :]) > 0
+    wx[:, :-1] = torch.where(hx, 1.0 / (1.0 + dx.square()), wx[:, :-1])
+    wy[:-1, :] = torch.where(hy, 1.0 / (1.0 + dy.square()), wy[:-1, :])
+    return wx, wy
+
+
 def bundle_spatial_problem(sens: BundleSensing) -> SpatialProblem:
     """The bundle's :class:`SpatialProblem` for its static mask and ``(β, diff_order)``: one
     batched factorisation of ``G_p + ρI``, cached with the bundle's NNLS factorisation (so every
@@ -771,6 +816,7 @@ def solve_frame(
     inner_iters: int = 10,
     tol: float | None = None,
     max_iter: int = 2000,
+    guided: bool = False,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -787,6 +833,8 @@ def solve_frame(
             (:func:`mean_square_residual` = ``σ̂²``; nine solves).
         iters, inner_iters, tol, max_iter: see :func:`solve_spatial` (``iters``: fixed,
             differentiable with respect to ``y``).
+        guided: weight the TV's edges by the reference view's own colour steps
+            (:func:`guide_weights`): less smoothing across edges the RGB image shows.
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -798,12 +846,13 @@ def solve_frame(
     """
     with cpu_threads(y.device, 1):  # small kernels: see solve_spatial's num_threads
         return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol,
-                            max_iter)
+                            max_iter, guided)
 
 
 def _solve_frame(
     sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, changed: Tensor, x0: Tensor,
     lam: float | str, iters: int | None, inner_iters: int, tol: float | None, max_iter: int,
+    guided: bool = False,
 ) -> tuple[Tensor, dict[str, Any]]:
     auto = isinstance(lam, str)
     if auto and lam not in ("auto", "discrepancy"):
@@ -816,10 +865,12 @@ def _solve_frame(
     base = bundle_spatial_problem(sens)
     rows = changed.nonzero().squeeze(1)
     row_gram = model.gram(mask.index_select(0, rows), rows, prob.reg) if rows.numel() else None
-    with torch.no_grad():
-        sp = base.for_frame(ok, rows, row_gram)
     x0 = x0.detach()
     sigma = frame_noise_level(sens, y, mask, ok, x0)
+    with torch.no_grad():
+        sp = base.for_frame(ok, rows, row_gram)
+        if guided and math.isfinite(sigma):
+            sp = base.for_frame(ok, rows, row_gram, guide_weights(sp, y.detach(), mask, sigma))
     scale = lam_scale(sigma, prob.gram, ok) if math.isfinite(sigma) else 0.0
     b = model.A_adjoint(y.to(model.dtype))
     extra: dict[str, Any] = {"lam_rule": "fixed"}
