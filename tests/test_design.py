@@ -149,10 +149,10 @@ def test_best_prototype_loads_as_simulator_config(small_run):
 
 
 def test_registry_and_unknown_name():
-    assert {"synthetic", "design", "opd", "usaf"} <= set(EXPERIMENTS)
+    assert {"synthetic", "design", "opd", "usaf", "spatial"} <= set(EXPERIMENTS)
     schema, run = resolve_experiment("design")
     assert schema is DesignSweepConfig and run is run_design
-    with pytest.raises(ValueError, match="available: design, opd, synthetic, usaf"):
+    with pytest.raises(ValueError, match="available: design, opd, spatial, synthetic, usaf"):
         resolve_experiment("nope")
 
 
