@@ -9,13 +9,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from hsi_torch.config import help_meta
+
 __all__ = ["ReconstructConfig"]
 
 CubeFormatName = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 
 
-def _help(text: str) -> dict[str, str]:
-    return {"help": text}
+_help = help_meta
 
 
 @dataclass
