@@ -59,7 +59,6 @@ from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
 __all__ = [
     "ReconstructionResult",
     "Reconstructor",
-    "reconstruct_frame",
     "warp_capture",
     "build_observations",
     "sample_views",
@@ -778,22 +777,3 @@ def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:
                 f"{path}: RGB image size (H, W) = {full} does not match the calibration bundle's "
                 f"sensor size {(H, W)} (demosaic='half' bins Bayer mosaics only)"
             )
-
-
-def reconstruct_frame(
-    image: Tensor,
-    saturated: Tensor | None,
-    bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
-    *,
-    beta: float = DEFAULT_BETA,
-    diff_order: int = 1,
-    solver: str = "active_set",
-    exposure_s: float | None = None,
-    **kwargs: Any,
-) -> ReconstructionResult:
-    """One-call form of :meth:`Reconstructor.reconstruct_frame` (the per-bundle precomputation is
-    cached, so repeated calls with the same bundle object reuse it). ``beta`` is on the DN² scale
-    (default :data:`DEFAULT_BETA` = 1e4, as ``ReconstructConfig``). ``kwargs`` go to
-    :class:`Reconstructor` (``device``, ``dtype``, ``chunk_size``, ``min_views``, …)."""
-    rec = Reconstructor(bundle, beta=beta, diff_order=diff_order, solver=solver, **kwargs)
-    return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s)
