@@ -10,10 +10,11 @@ sensing matrices are not kept: right-hand sides ``Aᵀ W y`` go through the oper
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TypedDict, Unpack
+from typing import TypedDict
 
 import torch
 from torch import Tensor
+from typing_extensions import Unpack  # Python 3.10 (a dependency of torch)
 
 from hsi_torch.forward_model import DenseSensing, SensingModel
 from hsi_torch.recon.nnls import _compiled
