@@ -17,10 +17,15 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_pipeline import WL, _tilted, make_bundle, render_capture
+from test_pipeline import WL, _tilted, make_bundle, render_capture, true_spectra
 
+from hsi_torch.cli import main
+from hsi_torch.config import load_config
+from hsi_torch.io import load_cube, write_capture
 from hsi_torch.io.raw import bayer_half, demosaic_bilinear, mosaic
 from hsi_torch.optics.sensor import SensorModel
+from hsi_torch.recon.cli_entry import output_paths
+from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.nnls import smoothness_gram, solve_nnls
 from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.recon.uncertainty import (
@@ -211,3 +216,47 @@ def test_monte_carlo_coverage(layout, device, dtype):
     assert abs(cover2 - 0.9545) < 0.02, cover2
     ratio = c.std(0)[free] / sd.mean(0)[free]  # empirical / predicted spread per band
     assert 0.95 < float(ratio.median()) < 1.05
+
+
+def test_exposure_ratio_scales_the_std():
+    """A capture taken with twice the white reference's exposure is scaled by k = 1/2: its
+    spectra and their standard deviations are half those of the same DN at k = 1."""
+    bundle = make_bundle(white_exposure_s=0.01)
+    img = render_capture(bundle, true_spectra()).float() + 20.0
+    rec = Reconstructor(bundle, beta=1e4, uncertainty=True)
+    r1 = rec.reconstruct_frame(img, exposure_s=0.01)
+    r2 = rec.reconstruct_frame(img, exposure_s=0.02)
+    assert r1.stats["exposure_scale"] == 1.0 and r2.stats["exposure_scale"] == 0.5
+    torch.testing.assert_close(r2.std, 0.5 * r1.std, equal_nan=True)
+    assert "uncertainty" in r1.timings
+    assert Reconstructor(bundle, beta=1e4).reconstruct_frame(img).std is None
+
+
+def test_reconstruct_cli_writes_the_std(tmp_path):
+    bundle = make_bundle(white_exposure_s=0.01)
+    bpath = tmp_path / "calib.npz"
+    bundle.save(bpath)
+    img = np.round(render_capture(bundle, true_spectra()).numpy() + 30).astype(np.uint16)
+    write_capture(tmp_path / "c.tif", img, {"kind": "rgb", "exposure_s": 0.02})
+    out = tmp_path / "out"
+    code = main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
+                 "--set", "uncertainty=true", "--set", "noise_read_e=5", "--set",
+                 "formats=[npz, tiff, envi]", str(tmp_path / "c.tif")])  # fmt: skip
+    assert code == 0
+    written = {p.name for p in out.iterdir() if p.is_file()}
+    expected = {p.name for p in output_paths(out / "c", load_config({"uncertainty": True},
+                                                                    ReconstructConfig))}
+    assert expected <= written
+    assert {"c_std.tif", "c_std.vrt", "c_std.hdr", "c_std.img", "c_std.png"} <= written
+    with np.load(out / "c.npz") as z:
+        std = torch.from_numpy(z["std"])
+    cube = load_cube(out / "c.npz")
+    assert std.shape == cube.cube.shape and std.dtype == torch.float32
+    assert bool(torch.isnan(std[:, ~cube.valid]).all())
+    # the same numbers as the Python API with the same settings
+    rec = Reconstructor(bpath, uncertainty=True, noise=SensorNoise(read_noise_e=5.0))
+    ref = rec.reconstruct_file(tmp_path / "c.tif").std
+    torch.testing.assert_close(std, ref.float(), equal_nan=True)
+    assert bool((std[:, cube.valid] >= 0).all()) and bool((std[:, cube.valid] > 0).any())
+    torch.testing.assert_close(load_cube(out / "c_std.tif").cube, std, equal_nan=True)
+    torch.testing.assert_close(load_cube(out / "c_std.hdr").cube, std, equal_nan=True)
