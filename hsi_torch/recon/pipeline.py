@@ -583,7 +583,7 @@ def reconstruct_batch(
         for i in range(y.shape[0]):
             var = observation_variance(y[i].detach(), noise, scale=ks[i],
                                        sampling_factor=sampling_factor)  # fmt: skip
-            std = nnls_band_std(sens.model, xs[i].detach(), var, mask[i], sens.problem.reg)
+            std = nnls_band_std(sens.model, xs[i].detach(), var, mask[i], problem=sens.problem)
             stds.append(torch.where(oks[i].unsqueeze(1), std, torch.zeros((), dtype=std.dtype,
                                                                           device=std.device)))
         t4 = clock()

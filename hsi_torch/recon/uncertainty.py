@@ -67,6 +67,8 @@ from torch import Tensor
 
 from hsi_torch.forward_model import DenseSensing, SensingModel
 from hsi_torch.io.raw import demosaic_bilinear, validate_cfa_pattern
+from hsi_torch.recon.nnls import NNLSProblem, cpu_threads
+from hsi_torch.recon.nnls._threads import for_chunks, workers_for
 
 __all__ = [
     "SensorNoise",
@@ -241,10 +243,6 @@ def sampling_variance_factor(
     return f.permute(1, 0, 2).reshape(P, 3 * V).to(grid.dtype)
 
 
-def _chunks(n: int, size: int) -> list[slice]:
-    return [slice(s, min(n, s + size)) for s in range(0, n, size)]
-
-
 def nnls_band_std(
     sensing: SensingModel | DenseSensing | Tensor,
     x: Tensor,
@@ -252,13 +250,17 @@ def nnls_band_std(
     weights: Tensor | None = None,
     reg: Tensor | None = None,
     *,
-    chunk_size: int = 8192,
+    problem: NNLSProblem | None = None,
+    chunk_size: int = 1024,
     compute_dtype: torch.dtype | None = torch.float64,
+    num_threads: int | None = None,
 ) -> Tensor:
     """Standard deviation of every band of per-pixel NNLS solutions (module docstring).
 
     ``std_F = sqrt(diag(G_FF⁻¹ (A_Fᵀ W Σ_y W A_F) G_FF⁻¹))``, ``std_Z = 0``, with
-    ``G = AᵀWA + reg``, ``F = {m : x_m > 0}`` per pixel and ``Σ_y = diag(obs_var)``.
+    ``G = AᵀWA + reg``, ``F = {m : x_m > 0}`` per pixel and ``Σ_y = diag(obs_var)``, computed as
+    the squared column norms of ``E G_FF⁻¹`` with ``E = Σ_y^{1/2} W A_F`` (``G_FF`` factorised per
+    pixel by Cholesky).
 
     Args:
         sensing: the ``P`` pixels' operator (:class:`~hsi_torch.forward_model.SensingModel`,
@@ -268,9 +270,14 @@ def nnls_band_std(
             (may be NaN there).
         weights: ``(P, O)`` bool mask or non-negative float weights ``w_o`` (``None``: all 1).
         reg: ``(M, M)`` regulariser Gram ``β DᵀD`` the solutions were computed with
-            (:func:`~hsi_torch.recon.nnls.smoothness_gram`; ``None``: none).
-        chunk_size: pixels per batch (memory ≈ ``chunk_size · (O·M + 5·M²)`` floats).
+            (:func:`~hsi_torch.recon.nnls.smoothness_gram`; ``None``: none, or ``problem``'s).
+        problem: the :class:`~hsi_torch.recon.nnls.NNLSProblem` the solutions came from, if
+            any: pixels whose bands are all free and whose weights are the problem's mask reuse
+            its stored ``G⁻¹`` instead of a factorisation (same result, to rounding).
+        chunk_size: pixels per batch (memory ≈ ``chunk_size · (3·O·M + 4·M²)`` floats).
         compute_dtype: dtype of the ``M × M`` algebra (float64 by default; ``None``: ``x``'s).
+        num_threads: CPU threads (default ``torch.get_num_threads()``), each running
+            single-threaded kernels on its share of the chunks, as the solver does.
 
     Returns:
         ``(P, M)`` in ``x``'s dtype and device: ≥ 0 and finite on free bands, 0 on bound bands,
@@ -289,6 +296,8 @@ def nnls_band_std(
         raise ValueError(f"weights must have shape ({P}, {O}), got {tuple(weights.shape)}")
     if not sensing.shared and sensing.num_pixels != P:
         raise ValueError(f"the sensing operator has {sensing.num_pixels} pixels but x has {P}")
+    if reg is None and problem is not None:
+        reg = problem.reg
     if reg is not None and reg.shape != (M, M):
         raise ValueError(f"reg must have shape ({M}, {M}), got {tuple(reg.shape)}")
     cd = compute_dtype or x.dtype
@@ -298,37 +307,62 @@ def nnls_band_std(
     inf = torch.full((), float("inf"), dtype=cd, device=dev)
     eps = torch.finfo(cd).eps
     R = None if reg is None else reg.to(device=dev, dtype=cd)
+    stored = None  # (P,) bool: the problem's G⁻¹ is this pixel's G_FF⁻¹
+    if problem is not None and (problem.num_pixels in (None, P)):
+        same = torch.ones((P,), dtype=torch.bool, device=dev)
+        if problem.mask is not None or weights is not None:
+            one = torch.ones((), dtype=cd, device=dev)
+            wf = one.expand(P, O) if weights is None else weights.to(cd)
+            pm = one.expand(P, O) if problem.mask is None else problem.mask.to(cd)
+            same = (wf == pm).all(1)
+        sing = problem.singular
+        stored = same & (x > 0).all(1) & ~(sing.expand(P) if sing.shape[0] == 1 else sing)
     out = torch.empty((P, M), dtype=x.dtype, device=dev)
-    for sl in _chunks(P, max(1, int(chunk_size))):
+
+    def chunk(sl: slice) -> None:
         a = sensing.dense(sl).to(cd)
         n = sl.stop - sl.start
         if a.shape[0] == 1:
             a = a.expand(n, -1, -1)
-        if weights is None:
-            w = torch.ones((n, O), dtype=cd, device=dev)
-        else:
-            w = weights[sl].to(cd)
-        var = torch.where(w > 0, obs_var[sl].to(cd), zero)
-        aw = a * w.unsqueeze(2)  # W A
-        G = torch.matmul(a.transpose(1, 2), aw)
+        w = torch.ones((n, O), dtype=cd, device=dev) if weights is None else weights[sl].to(cd)
+        sd = torch.where(w > 0, obs_var[sl].to(cd).clamp_min(0).sqrt(), zero) * w  # w σ
+        free = x[sl] > 0
+        E = a * (sd.unsqueeze(2) * free.unsqueeze(1).to(cd))  # Σ^{1/2} W A_F (0 on Z)
+        fast = None if stored is None else stored[sl]
+        nf = 0 if fast is None else int(torch.count_nonzero(fast))
+        std = torch.zeros((n, M), dtype=cd, device=dev)
+        if nf:  # all bands free, the problem's mask: G⁻¹ is stored
+            H = problem.gram_inv
+            i = fast.nonzero().squeeze(1)
+            Hs = H.expand(nf, -1, -1) if H.shape[0] == 1 else H.index_select(0, i + sl.start)
+            std[i] = torch.matmul(E[i], Hs.to(cd)).square().sum(1).sqrt()
+        if nf == n:
+            out[sl] = std.to(x.dtype)
+            return
+        j = torch.arange(n, device=dev) if fast is None else (~fast).nonzero().squeeze(1)
+        a, w, E, fr = a[j], w[j], E[j], free[j]
+        G = torch.matmul(a.transpose(1, 2), a * w.unsqueeze(2))  # Aᵀ W A
         if R is not None:
             G = G + R
-        C = torch.matmul(aw.transpose(1, 2), aw * var.unsqueeze(2))  # Aᵀ W Σ W A
-        free = x[sl] > 0
-        ff = free.unsqueeze(2) & free.unsqueeze(1)
+        ff = fr.unsqueeze(2) & fr.unsqueeze(1)
         Gh = torch.where(ff, G, eye)  # G_FF ⊕ I_Z
         L, info = torch.linalg.cholesky_ex(Gh)
         # singular G_FF: a failed factorisation or a pivot at rounding level (as prepare_nnls)
-        piv = torch.where(free, L.diagonal(dim1=1, dim2=2).square(), inf)
-        top = torch.where(free, Gh.diagonal(dim1=1, dim2=2), zero).amax(1)
-        bad = (info != 0) | (~(piv.amin(1) > 20.0 * M * eps * top) & free.any(1))
+        piv = torch.where(fr, L.diagonal(dim1=1, dim2=2).square(), inf)
+        top = torch.where(fr, Gh.diagonal(dim1=1, dim2=2), zero).amax(1)
+        bad = (info != 0) | (~(piv.amin(1) > 20.0 * M * eps * top) & fr.any(1))
         if bool(bad.any()):
             L = torch.where(bad.view(-1, 1, 1), eye, L)
         Ginv = torch.cholesky_inverse(L)  # symmetric: G_FF⁻¹ ⊕ I_Z
-        d = (torch.matmul(Ginv, torch.where(ff, C, zero)) * Ginv).sum(2)  # diag(K C K)
-        std = d.clamp_min(0).sqrt()
-        std = torch.where(bad.unsqueeze(1), torch.full_like(std, float("inf")), std)
-        out[sl] = torch.where(free, std, zero).to(x.dtype)
+        # Cov_F = G_FF⁻¹ Eᵀ E G_FF⁻¹: its diagonal is the squared column norms of E G_FF⁻¹
+        # (the columns of E on Z are 0, so those bands get 0)
+        sj = torch.matmul(E, Ginv).square().sum(1).sqrt()
+        sj = torch.where(bad.unsqueeze(1) & fr, inf, sj)
+        std[j] = sj
+        out[sl] = std.to(x.dtype)
+
+    with cpu_threads(dev, 1):
+        for_chunks(chunk, P, max(1, int(chunk_size)), workers_for(dev, num_threads))
     return out
 
 
