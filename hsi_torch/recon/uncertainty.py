@@ -331,14 +331,16 @@ def nnls_band_std(
         fast = None if stored is None else stored[sl]
         nf = 0 if fast is None else int(torch.count_nonzero(fast))
         std = torch.zeros((n, M), dtype=cd, device=dev)
-        if nf:  # all bands free, the problem's mask: G⁻¹ is stored
+        if nf == n:  # all bands free, the problem's mask: G⁻¹ is stored (the common case)
+            H = problem.gram_inv
+            Hs = H if H.shape[0] == 1 else H[sl]
+            out[sl] = torch.matmul(E, Hs.to(cd)).square().sum(1).sqrt().to(x.dtype)
+            return
+        if nf:
             H = problem.gram_inv
             i = fast.nonzero().squeeze(1)
             Hs = H.expand(nf, -1, -1) if H.shape[0] == 1 else H.index_select(0, i + sl.start)
             std[i] = torch.matmul(E[i], Hs.to(cd)).square().sum(1).sqrt()
-        if nf == n:
-            out[sl] = std.to(x.dtype)
-            return
         j = torch.arange(n, device=dev) if fast is None else (~fast).nonzero().squeeze(1)
         a, w, E, fr = a[j], w[j], E[j], free[j]
         G = torch.matmul(a.transpose(1, 2), a * w.unsqueeze(2))  # Aᵀ W A
