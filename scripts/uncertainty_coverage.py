@@ -11,7 +11,8 @@ standard deviation: the fraction of ``|ŝ − mean(ŝ)| ≤ kσ·sqrt((N−1)/N)
 over the bands that are free (``> 0``) in every realisation, and the median ratio of empirical to
 predicted standard deviation. For comparison it also reports the standard deviation computed as
 if the demosaiced RGB samples were independent raw samples (``raw_layout="rgb"``), i.e. without
-the demosaic's correlations.
+the demosaic's correlations, and times one frame with and without the uncertainty (interleaved,
+same process: min / median of the stage timings and the ratio of the frame times).
 
 Usage::
 
@@ -27,6 +28,7 @@ from __future__ import annotations
 import argparse
 import math
 import resource
+import statistics
 import time
 from pathlib import Path
 
@@ -65,6 +67,8 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=100)
     ap.add_argument("--beta", type=float, default=1e4)
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--bench-reps", type=int, default=15,
+                    help="frames timed with and without the uncertainty (interleaved)")
     args = ap.parse_args()
     dtype = torch.float64 if args.dtype == "float64" else torch.float32
 
@@ -106,6 +110,14 @@ def main() -> None:
         r2 = rec.reconstruct_frame(rgb, demosaic_saturation(sat, pattern), raw_layout="rgb")
         stds_rgb.append(r2.std[:, valid].double())
     t_all = time.perf_counter() - t0
+    # cost: the same frame with and without the uncertainty, interleaved, in this process
+    plain = Reconstructor(bundle, beta=args.beta, dtype=dtype)
+    dn, sat = renderer.expose(irr, exposure, 10_000)
+    lin = (dn - sensor.black_level).to(dtype)
+    runs: dict[bool, list[dict[str, float]]] = {False: [], True: []}
+    for _ in range(args.bench_reps):
+        for u, r in ((False, plain), (True, rec)):
+            runs[u].append(r.reconstruct_frame(lin, sat, cfa_pattern=pattern).timings)
     c = torch.stack(cubes)
     full = coverage(c, torch.stack(stds))
     naive = coverage(c, torch.stack(stds_rgb))
@@ -116,6 +128,14 @@ def main() -> None:
     print(f"per frame: solve {t_solve / args.draws * 1e3:.1f} ms, uncertainty "
           f"{t_unc / args.draws * 1e3:.1f} ms (ratio {t_unc / max(t_solve, 1e-12):.2f}); "
           f"peak RSS {peak:.0f} MiB")
+    for u in (False, True):
+        keys = ("solve", "uncertainty", "total") if u else ("solve", "total")
+        txt = ", ".join(f"{k} {1e3 * min(t[k] for t in runs[u]):.1f} / "
+                        f"{1e3 * statistics.median(t[k] for t in runs[u]):.1f}" for k in keys)
+        print(f"{'uncertainty=True ' if u else 'uncertainty=False'} ms (min / median of "
+              f"{args.bench_reps}): {txt}")
+    tot = [statistics.median(t["total"] for t in runs[u]) for u in (False, True)]
+    print(f"frame time with / without the uncertainty (medians): {tot[1] / tot[0]:.2f}")
     for name, r in (("bayer sampling factor", full), ("demosaic ignored (rgb)", naive)):
         print(f"  {name:24s} free {100 * r['free_fraction']:.1f} %  within 1 sigma "
               f"{100 * r['cover1']:.1f} % (68.3)  within 2 sigma {100 * r['cover2']:.1f} % (95.4)"
