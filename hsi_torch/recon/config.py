@@ -86,6 +86,20 @@ class ReconstructConfig:
         metadata=_help("saturation level, DN (null: the file's metadata, else the integer "
                        "type's maximum)"),
     )
+    uncertainty: bool = field(
+        default=False,
+        metadata=_help("also write the standard deviation of every band from the sensor noise: "
+                       "<stem>_std.* beside the cube in the non-NPZ formats, the key 'std' in "
+                       "<stem>.npz and a map <stem>_std.png (see docs/reconstruct.md)"),
+    )
+    noise_electrons_per_dn: float | None = field(
+        default=None,
+        metadata=_help("uncertainty: sensor conversion gain, e-/DN (null: the simulator's default "
+                       "sensor, 30000 e- / (16383 - 512) DN = 1.89)"),
+    )
+    noise_read_e: float = field(
+        default=3.0, metadata=_help("uncertainty: sensor read noise sigma, electrons")
+    )
 
     fit_residual_warning: float | None = field(
         default=0.15,
@@ -110,6 +124,12 @@ class ReconstructConfig:
             raise ValueError(
                 f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
             )
+        if self.noise_electrons_per_dn is not None and not self.noise_electrons_per_dn > 0:
+            raise ValueError(
+                f"noise_electrons_per_dn must be > 0 or null, got {self.noise_electrons_per_dn}"
+            )
+        if not self.noise_read_e >= 0:
+            raise ValueError(f"noise_read_e must be >= 0, got {self.noise_read_e}")
         if self.preview_size < 0:
             raise ValueError(f"preview_size must be >= 0, got {self.preview_size}")
         if not self.formats and not self.preview:

@@ -55,6 +55,13 @@ from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cf
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
+from hsi_torch.recon.uncertainty import (
+    RAW_LAYOUTS,
+    SensorNoise,
+    nnls_band_std,
+    observation_variance,
+    sampling_variance_factor,
+)
 
 __all__ = [
     "ReconstructionResult",
@@ -103,7 +110,10 @@ class ReconstructionResult:
             ``saturated_observations``, ``no_valid_reason`` (``None``, or why not a single pixel
             is valid: saturation, non-finite data, ``min_views``).
         timings: seconds per stage (``load`` when read from a file, ``warp``, ``observations``,
-            ``solve``, ``assemble``, ``total``).
+            ``solve``, ``uncertainty`` (with ``uncertainty=True``), ``assemble``, ``total``).
+        std: ``(M, h, w)`` standard deviation of every band from the sensor noise
+            (:mod:`hsi_torch.recon.uncertainty`; 0 on bands at the bound, NaN where ``valid``
+            is False), or ``None`` when the reconstructor was made without ``uncertainty=True``.
     """
 
     cube: Tensor
@@ -111,6 +121,7 @@ class ReconstructionResult:
     wavelengths_nm: Tensor
     stats: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    std: Tensor | None = None
 
     def to_xarray(self, metadata: dict[str, Any] | None = None):
         """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
@@ -500,7 +511,9 @@ def reconstruct_batch(
     nan_invalid: bool = True,
     sat_threshold: float = 1e-3,
     stats: bool = True,
-) -> tuple[Tensor, Tensor, list[dict[str, Any]], dict[str, float]]:
+    noise: SensorNoise | None = None,
+    sampling_factor: Tensor | None = None,
+) -> tuple[Tensor, ...]:
     """Shared core of :class:`Reconstructor` and :class:`~hsi_torch.recon.module.HSIReconstructor`.
 
     Args:
@@ -509,10 +522,14 @@ def reconstruct_batch(
         scale: scalar or ``(B,)`` factor on the observations (exposure correction).
         stats: per-frame statistics and stage timings (each stage ends with a device sync);
             ``False`` (the ``nn.Module``): no timing, no statistics, no extra sync.
+        noise: the raw sensor's noise: also return the standard deviation of every band
+            (:mod:`hsi_torch.recon.uncertainty`); sampling_factor: ``(P, 3V)`` variance factor
+            of the observations (:func:`~hsi_torch.recon.uncertainty.sampling_variance_factor`;
+            ``None``: 1).
 
     Returns:
         ``cube (B, M, h, w)``, ``valid (B, h, w)``, per-frame stats, stage timings (s, summed;
-        both empty when ``stats`` is False).
+        both empty when ``stats`` is False); with ``noise``, a fifth item ``std (B, M, h, w)``.
     """
     dev = sens.device
     if images.device != dev:
@@ -558,12 +575,28 @@ def reconstruct_batch(
         oks.append(ok)
     t3 = clock()
     t["solve"] = t3 - t2
+    stds = []
+    if noise is not None:
+        ks = torch.ones((), dtype=y.dtype, device=dev) if scale is None else scale
+        ks = torch.as_tensor(ks, dtype=y.dtype, device=dev).reshape(-1).expand(y.shape[0])
+        for i in range(y.shape[0]):
+            var = observation_variance(y[i].detach(), noise, scale=ks[i],
+                                       sampling_factor=sampling_factor)  # fmt: skip
+            std = nnls_band_std(sens.model, xs[i].detach(), var, mask[i], problem=sens.problem)
+            stds.append(torch.where(oks[i].unsqueeze(1), std, torch.zeros((), dtype=std.dtype,
+                                                                          device=std.device)))
+        t4 = clock()
+        t["uncertainty"] = t4 - t3
+        t3 = t4
     if len(xs) == 1:  # no stacked copy for a single frame
         cube, valid = assemble_cube(sens, xs[0][None], oks[0][None], nan_invalid)
     else:
         cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
     t["assemble"] = clock() - t3
-    return cube, valid, infos, (t if stats else {})
+    if noise is None:
+        return cube, valid, infos, (t if stats else {})
+    std_cube, _ = assemble_cube(sens, torch.stack(stds), torch.stack(oks), nan_invalid)
+    return cube, valid, infos, (t if stats else {}), std_cube
 
 
 def check_min_views(min_views: int, num_views: int) -> None:
@@ -611,6 +644,10 @@ class Reconstructor:
         nan_invalid: invalid pixels hold NaN (else 0) in the cube.
         exposure_correction: scale observations by ``t_white / t_capture`` when both are known.
         sat_threshold: warped saturation weight above which an observation is saturated.
+        uncertainty: also compute the standard deviation of every band
+            (:attr:`ReconstructionResult.std`, :mod:`hsi_torch.recon.uncertainty`) from
+            ``noise`` (default :class:`~hsi_torch.recon.uncertainty.SensorNoise`: the
+            simulator's default sensor).
 
     Example:
         >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
@@ -633,6 +670,8 @@ class Reconstructor:
         nan_invalid: bool = True,
         exposure_correction: bool = True,
         sat_threshold: float = 1e-3,
+        uncertainty: bool = False,
+        noise: SensorNoise | None = None,
     ) -> None:
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
@@ -651,10 +690,23 @@ class Reconstructor:
         self.nan_invalid = bool(nan_invalid)
         self.exposure_correction = bool(exposure_correction)
         self.sat_threshold = float(sat_threshold)
+        self.uncertainty = bool(uncertainty)
+        self.noise = noise if noise is not None else SensorNoise()
+        self._factors: dict[tuple[str, str | None, torch.dtype], Tensor] = {}
 
     @property
     def wavelengths_nm(self) -> Tensor:
         return self.sensing.wavelengths_nm
+
+    def sampling_factor(self, layout: str, cfa_pattern: str | None = None) -> Tensor:
+        """``(P, 3V)`` variance factor of the observations for captures made as ``layout``
+        (:func:`~hsi_torch.recon.uncertainty.sampling_variance_factor`); kept per layout."""
+        sens = self.sensing
+        key = (layout, cfa_pattern if layout == "bayer" else None, sens.dtype)
+        if key not in self._factors:
+            self._factors[key] = sampling_variance_factor(
+                sens.grid(), sens.sensor_size, layout, cfa_pattern)  # type: ignore[arg-type]
+        return self._factors[key]
 
     def reconstruct_frame(
         self,
@@ -664,6 +716,7 @@ class Reconstructor:
         exposure_s: float | None = None,
         cfa_pattern: str | None = None,
         source: str = "capture",
+        raw_layout: str | None = None,
     ) -> ReconstructionResult:
         """Reconstruct one capture.
 
@@ -673,6 +726,10 @@ class Reconstructor:
             saturated: same shape, bool, or ``None``.
             exposure_s: the capture's exposure time (s); see :func:`exposure_scale`.
             source: name used in error messages (the file).
+            raw_layout: with ``uncertainty``, how an RGB ``image`` was made from raw samples:
+                ``"rgb"`` (independent samples, the default), ``"bayer"`` (bilinear demosaic
+                with ``cfa_pattern``) or ``"half"`` (2 × 2 binning); a ``(1, H, W)`` mosaic is
+                ``"bayer"``.
 
         Returns:
             :class:`ReconstructionResult`.
@@ -687,32 +744,49 @@ class Reconstructor:
         t0 = time.perf_counter()
         img = image.to(device=sens.device)
         sat = None if saturated is None else saturated.to(device=sens.device)
-        img, sat = prepare_input(img, sat, cfa_pattern or sens.cfa_pattern)
+        pattern = cfa_pattern or sens.cfa_pattern
+        img, sat = prepare_input(img, sat, pattern)
         scale = exposure_scale(exposure_s, sens.exposure_s) if self.exposure_correction else 1.0
+        factor = None
+        if self.uncertainty:
+            layout = "bayer" if image.shape[0] == 1 else (raw_layout or "rgb")
+            if layout not in RAW_LAYOUTS:
+                raise ValueError(f"raw_layout must be one of {RAW_LAYOUTS}, got {raw_layout!r}")
+            if layout == "bayer" and pattern is None:
+                raise ValueError(f"{source}: raw_layout='bayer' needs a CFA pattern")
+            factor = self.sampling_factor(layout, pattern)
         _sync(sens.device)
         t_demosaic = time.perf_counter() - t0
         with torch.no_grad():
-            cube, valid, stats, t = reconstruct_batch(
+            out = reconstruct_batch(
                 sens, img.unsqueeze(0), None if sat is None else sat.unsqueeze(0),
                 scale=None if scale == 1.0 else scale, solver=self.solver,
                 admm_iters=self.admm_iters, chunk_size=self.chunk_size,
                 min_views=self.min_views, nan_invalid=self.nan_invalid,
                 sat_threshold=self.sat_threshold,
+                noise=self.noise if self.uncertainty else None, sampling_factor=factor,
             )  # fmt: skip
+        cube, valid, stats, t = out[:4]
         st = stats[0]
         st["exposure_scale"] = scale
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         timings["total"] = time.perf_counter() - t0
-        return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings)
+        std = out[4][0] if self.uncertainty else None
+        return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)
 
     def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
         """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``,
         ``metadata["exposure_s"]``)."""
         src = str(getattr(capture, "path", "capture"))
+        meta = capture.metadata
+        layout, pattern = "rgb", None
+        if meta.get("kind") == "bayer":  # demosaiced by the reader: the noise went through it
+            layout = "half" if meta.get("demosaic") == "half" else "bayer"
+            pattern = meta.get("cfa_pattern")
         try:
             return self.reconstruct_frame(
-                capture.image, capture.saturated, exposure_s=capture.metadata.get("exposure_s"),
-                source=src,
+                capture.image, capture.saturated, exposure_s=meta.get("exposure_s"),
+                source=src, raw_layout=layout, cfa_pattern=pattern,
             )  # fmt: skip
         except InputError as exc:
             if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
