@@ -135,6 +135,11 @@ class _Ctx:
 # overrides
 
 
+def help_meta(text: str) -> dict[str, str]:
+    """``field(metadata=help_meta("..."))``: the help text :func:`describe_schema` prints."""
+    return {"help": text}
+
+
 def parse_override(text: str) -> tuple[KeyPath, Any]:
     """Parse ``"a.b.c=value"`` into ``(("a", "b", "c"), yaml.safe_load("value"))``.
 

@@ -23,7 +23,6 @@ from hsi_torch.recon.pipeline import (
     Reconstructor,
     build_observations,
     observations_from_samples,
-    reconstruct_frame,
     sample_views,
     warp_capture,
 )
@@ -198,7 +197,7 @@ def test_second_frame_reuses_precomputation():
     r1 = rec.reconstruct_frame(render_capture(bundle, s).float())
     r2 = rec.reconstruct_frame(render_capture(bundle, 0.5 * s).float())
     rec2 = Reconstructor(bundle, beta=2.0)  # another reconstructor, same bundle object
-    r3 = reconstruct_frame(render_capture(bundle, s).float(), None, bundle, beta=2.0)
+    r3 = Reconstructor(bundle, beta=2.0).reconstruct_frame(render_capture(bundle, s).float())
     after = sensing_mod.BUILD_COUNTS
     assert after["sensing"] - before["sensing"] == 1
     assert after["factorisation"] - before["factorisation"] == 1
@@ -371,7 +370,7 @@ def test_default_beta_is_the_config_default():
     from hsi_torch.recon.pipeline import DEFAULT_BETA
 
     assert DEFAULT_BETA == ReconstructConfig().beta == 1e4
-    for fn in (Reconstructor.__init__, reconstruct_frame, HSIReconstructor.from_bundle):
+    for fn in (Reconstructor.__init__, HSIReconstructor.from_bundle):
         assert inspect.signature(fn).parameters["beta"].default == DEFAULT_BETA, fn
     sensing_mod.clear_sensing_cache()
     assert Reconstructor(make_bundle()).sensing.beta == 1e4

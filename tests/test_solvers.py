@@ -460,3 +460,19 @@ def test_compiled_and_torch_kernels_agree():
     torch.testing.assert_close(a.x, b.x, rtol=1e-9, atol=1e-9 * float(a.x.abs().max()))
     with pytest.raises(ValueError, match="backend"):
         prob.solve(y, backend="numba")
+
+
+def test_solve_nnls_takes_the_problems_options_and_refuses_others():
+    """``solve_nnls`` takes exactly :meth:`NNLSProblem.solve`'s options (one list of them)."""
+    import inspect
+
+    from hsi_torch.recon.nnls import NNLSProblem, SolveOptions
+
+    params = inspect.signature(NNLSProblem.solve).parameters
+    assert set(SolveOptions.__annotations__) == set(params) - {"self", "y"}
+    A = torch.rand(4, 6, 3, dtype=torch.float64)
+    y = torch.rand(4, 6, dtype=torch.float64)
+    with pytest.raises(TypeError, match=r"\['method'\]"):
+        solve_nnls(A, y, method="admm")
+    res = solve_nnls(A, y, beta=0.1, solver="admm", admm_iters=5)
+    assert res.solver == "admm" and res.x.shape == (4, 3)

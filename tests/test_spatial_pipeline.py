@@ -170,6 +170,10 @@ def test_bad_options():
         Reconstructor(bundle, prior="tv", lam="gcv")
     with pytest.raises(ValueError, match="spatial_iters"):
         Reconstructor(bundle, prior="tv", spatial_iters=0)
+    with pytest.raises(ValueError, match="uncertainty"):
+        Reconstructor(bundle, prior="tv", uncertainty=True)
+    with pytest.raises(ValueError, match="uncertainty"):
+        ReconstructConfig(prior="tv", uncertainty=True)
 
 
 def test_config_default_is_the_api_default():

@@ -16,8 +16,8 @@ from hsi_torch.experiments.synthetic import (
     SyntheticConfig,
     default_betas,
     evaluate_design,
-    exposure_scale,
     noise_realisation,
+    peak_matching_gain,
     run_synthetic,
 )
 from hsi_torch.experiments.systems import (
@@ -86,7 +86,7 @@ def test_csv_design_matches_three_camera(tmp_path):
 def test_exposure_matching_peak_255(builder, refl, device, dtype):
     d = {"three_camera": three_camera_design, "faced": faced_reflectors_design,
          "this_system": this_system_design}[builder](device=device, dtype=dtype)
-    s = exposure_scale(d.matrix, refl.to(device, dtype))
+    s = peak_matching_gain(d.matrix, refl.to(device, dtype))
     y = refl.to(device, dtype) @ (s * d.matrix).T
     tol = 1e-4 if dtype == torch.float32 else 1e-10
     assert abs(float(y.max()) - 255.0) < tol * 255

@@ -11,8 +11,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from hsi_torch.calibrate.registration import BlobDetectorParams
 from hsi_torch.calibrate.response import DEFAULT_BETA_PHI, DEFAULT_GAMMA_H
-from hsi_torch.config import to_dict
+from hsi_torch.config import help_meta, to_dict
 
 __all__ = [
     "BlobSection",
@@ -23,8 +24,8 @@ __all__ = [
 ]
 
 
-def _h(text: str) -> dict[str, str]:
-    return {"help": text}
+_h = help_meta
+_BLOBS = BlobDetectorParams()
 
 
 @dataclass
@@ -32,19 +33,31 @@ class BlobSection:
     """``cv2.SimpleBlobDetector`` limits (areas in px² of the parity-corrected view crop)."""
 
     min_area: float = field(
-        default=5.0,
-        metadata=_h("smallest blob area, px^2 (simulator default circles: r ~ 2.8 px, ~25 px^2)"),
+        default=_BLOBS.min_area,
+        metadata=_h("smallest blob area, px^2 (small prototype's circles: r ~ 2.8 px, ~25 px^2)"),
     )
-    max_area: float = field(default=2000.0, metadata=_h("largest blob area, px^2"))
-    min_circularity: float = field(default=0.6, metadata=_h("0 disables the filter"))
-    min_convexity: float = field(default=0.8, metadata=_h("0 disables the filter"))
-    min_inertia_ratio: float = field(default=0.1, metadata=_h("0 disables the filter"))
-    min_threshold: float = field(default=10.0, metadata=_h("first binarisation threshold"))
-    max_threshold: float = field(default=230.0, metadata=_h("last binarisation threshold"))
-    threshold_step: float = field(default=10.0, metadata=_h("threshold step"))
-    min_dist_between_blobs: float = field(default=2.0, metadata=_h("px"))
-    min_repeatability: int = field(default=2, metadata=_h("thresholds a blob must survive"))
-    blob_color: int = field(default=0, metadata=_h("0: dark circles, 255: light circles"))
+    max_area: float = field(default=_BLOBS.max_area, metadata=_h("largest blob area, px^2"))
+    min_circularity: float = field(
+        default=_BLOBS.min_circularity, metadata=_h("0 disables the filter")
+    )
+    min_convexity: float = field(default=_BLOBS.min_convexity, metadata=_h("0 disables the filter"))
+    min_inertia_ratio: float = field(
+        default=_BLOBS.min_inertia_ratio, metadata=_h("0 disables the filter")
+    )
+    min_threshold: float = field(
+        default=_BLOBS.min_threshold, metadata=_h("first binarisation threshold")
+    )
+    max_threshold: float = field(
+        default=_BLOBS.max_threshold, metadata=_h("last binarisation threshold")
+    )
+    threshold_step: float = field(default=_BLOBS.threshold_step, metadata=_h("threshold step"))
+    min_dist_between_blobs: float = field(default=_BLOBS.min_dist_between_blobs, metadata=_h("px"))
+    min_repeatability: int = field(
+        default=_BLOBS.min_repeatability, metadata=_h("thresholds a blob must survive")
+    )
+    blob_color: int = field(
+        default=_BLOBS.blob_color, metadata=_h("0: dark circles, 255: light circles")
+    )
 
 
 @dataclass
@@ -65,8 +78,10 @@ class RegistrationSection:
     ransac_threshold_px: float = field(default=1.0, metadata=_h("RANSAC inlier threshold, px"))
     flat_field: bool = field(
         default=True,
-        metadata=_h("divide the grid shots by the mean white shot before detection (removes the "
-                    "views' transmittance fringes and vignetting from the target)"),
+        metadata=_h(
+            "divide the grid shots by the mean white shot before detection (removes the "
+            "views' transmittance fringes and vignetting from the target)"
+        ),
     )
     inset_px: float = field(
         default=1.0, metadata=_h("view masks: source point at least this far inside the triangle")
@@ -102,8 +117,10 @@ class TransmittanceSection:
     )
     max_patch_ratio: float = field(
         default=0.8,
-        metadata=_h("refuse a 'BRF-free' patch when the reference view elsewhere reaches this "
-                    "fraction of its brightness (median over the view): the patch is filtered"),
+        metadata=_h(
+            "refuse a 'BRF-free' patch when the reference view elsewhere reaches this "
+            "fraction of its brightness (median over the view): the patch is filtered"
+        ),
     )
     frames_per_chunk: int = field(
         default=4, metadata=_h("scan frames processed together (memory bound at full scale)")
@@ -122,9 +139,11 @@ class ResponseSection:
 
     beta_phi: float = field(
         default=DEFAULT_BETA_PHI,
-        metadata=_h("smoothness weight on ||D phi||^2, relative to the data scale "
-                    "s = sum w ||b||^2 / M when normalise (the original prototype's absolute 8e5 "
-                    "is 0.6 on the small simulated set, 0.011 at full size)"),
+        metadata=_h(
+            "smoothness weight on ||D phi||^2, relative to the data scale "
+            "s = sum w ||b||^2 / M when normalise (the original prototype's absolute 8e5 "
+            "is 0.6 on the small simulated set, 0.011 at full size)"
+        ),
     )
     gamma_h: float = field(
         default=DEFAULT_GAMMA_H,
@@ -132,8 +151,10 @@ class ResponseSection:
     )
     normalise: bool = field(
         default=True,
-        metadata=_h("beta_phi, gamma_h relative to the data scale (one setting for every sensor "
-                    "size); false: absolute weights, as the original prototype"),
+        metadata=_h(
+            "beta_phi, gamma_h relative to the data scale (one setting for every sensor "
+            "size); false: absolute weights, as the original prototype"
+        ),
     )
     n_iter: int = field(default=3, metadata=_h("alternations (original prototype: 3)"))
     refine_steps: int = field(
@@ -146,21 +167,27 @@ class ResponseSection:
     diff_order: int = field(default=1, metadata=_h("order of D in the phi smoothness term"))
     camera_sensitivity: str = field(
         default="Canon EOS 5D Mark II",
-        metadata=_h("shape prior f~: a camera name (hsi_torch.refdata.list_cameras), CSV or "
-                    "JSON file, or 'flat'"),
+        metadata=_h(
+            "shape prior f~: a camera name (hsi_torch.refdata.list_cameras), CSV or "
+            "JSON file, or 'flat'"
+        ),
     )
     saturation_margin: float = field(
         default=1e-3, metadata=_h("white sample counts as saturated above this warped weight")
     )
     max_pixels: int | None = field(
         default=100_000,
-        metadata=_h("estimate phi and the gain field on a regular sub-grid of at most this many "
-                    "reference-frame pixels (null: all; the small prototype has ~12 500)"),
+        metadata=_h(
+            "estimate phi and the gain field on a regular sub-grid of at most this many "
+            "reference-frame pixels (null: all; the small prototype has ~12 500)"
+        ),
     )
     max_saturated_fraction: float = field(
         default=0.05,
-        metadata=_h("a white shot with more of its registered view pixels saturated is dropped "
-                    "(with a warning) while another shot is below; all above: an error"),
+        metadata=_h(
+            "a white shot with more of its registered view pixels saturated is dropped "
+            "(with a warning) while another shot is below; all above: an error"
+        ),
     )
 
     def __post_init__(self) -> None:
@@ -184,13 +211,17 @@ class CalibrateConfig:
 
     layout: Path | None = field(
         default=None,
-        metadata=_h("nominal layout JSON (triangles, parity, reference_bbox, BRF-free patch); "
-                    "null: CAPTURES/nominal_layout.json"),
+        metadata=_h(
+            "nominal layout JSON (triangles, parity, reference_bbox, BRF-free patch); "
+            "null: CAPTURES/nominal_layout.json"
+        ),
     )
     brf_free_mask: Path | None = field(
         default=None,
-        metadata=_h("PNG of usable BRF-free pixels (255 = use); null: the layout's usable_mask / "
-                    "CAPTURES/brf_free_mask.png, else the layout's polygon eroded"),
+        metadata=_h(
+            "PNG of usable BRF-free pixels (255 = use); null: the layout's usable_mask / "
+            "CAPTURES/brf_free_mask.png, else the layout's polygon eroded"
+        ),
     )
     grid_start_nm: float = field(default=430.0, metadata=_h("first band centre, nm"))
     grid_stop_nm: float = field(default=670.0, metadata=_h("last band centre, nm"))
@@ -210,14 +241,18 @@ class CalibrateConfig:
     )
     dark: Literal["per_pixel", "mean", "none"] = field(
         default="per_pixel",
-        metadata=_h("dark frames: subtract their per-pixel mean, their per-channel mean, or "
-                    "nothing (the black level is always subtracted)"),
+        metadata=_h(
+            "dark frames: subtract their per-pixel mean, their per-channel mean, or "
+            "nothing (the black level is always subtracted)"
+        ),
     )
     device: str = field(default="cpu", metadata=_h("torch device"))
     dtype: Literal["float32", "float64"] = field(
         default="float32",
-        metadata=_h("precision of the images and maps (float32 halves the memory at full size; "
-                    "the response estimation always runs in float64)"),
+        metadata=_h(
+            "precision of the images and maps (float32 halves the memory at full size; "
+            "the response estimation always runs in float64)"
+        ),
     )
     min_views: int = field(default=3, metadata=_h("modulated views a valid pixel needs"))
     registration: RegistrationSection = field(default_factory=RegistrationSection)

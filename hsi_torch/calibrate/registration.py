@@ -50,11 +50,14 @@ __all__ = [
 class BlobDetectorParams:
     """Parameters of ``cv2.SimpleBlobDetector`` (areas in px² of the image it runs on).
 
-    The defaults accept dark circles of roughly 3…180 px radius on a light background; narrow
-    ``min_area``/``max_area`` to the circle size of your target when clutter is detected.
+    The defaults accept dark circles of roughly 1.3…180 px radius on a light background (the
+    simulated small prototype's circles have r ≈ 2.8 px, the full-size prototype's ≈ 20 px);
+    narrow ``min_area``/``max_area`` to the circle size of your target when clutter is detected
+    (real photos with r ≥ 10 px circles and dark specks: ``min_area=20``).
+    ``hsi-torch calibrate`` takes these defaults (section ``registration.blob``).
     """
 
-    min_area: float = 20.0
+    min_area: float = 5.0
     max_area: float = 1.0e5
     min_circularity: float = 0.6
     min_convexity: float = 0.8
@@ -62,7 +65,7 @@ class BlobDetectorParams:
     min_threshold: float = 10.0
     max_threshold: float = 230.0
     threshold_step: float = 10.0
-    min_dist_between_blobs: float = 3.0
+    min_dist_between_blobs: float = 2.0
     min_repeatability: int = 2
     blob_color: int = 0  # 0: dark blobs, 255: light blobs
 

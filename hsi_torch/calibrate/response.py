@@ -1,6 +1,6 @@
 """Illumination × sensor response φ^c(λ) and view throughput g_v from white-reference shots.
 
-Model (DESIGN §2): the white observation of view ``v``, colour ``c`` is
+Model: the white observation of view ``v``, colour ``c`` is
 ``I_v^c = g_v · b_vᵀ φ^c + ε`` with ``(b_v)_m = B_v(λ_m) Δλ_m``. The estimation alternates:
 
 * **φ-step** (g fixed), for each colour independently and exactly (one batched linear solve)::

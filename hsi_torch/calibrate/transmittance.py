@@ -1,6 +1,6 @@
 """View-channel BRF transmittance B_v(p, λ) from a monochromator scan.
 
-Procedure (DESIGN §2): one sensor image per wavelength λ_j with the objective removed and the
+Procedure: one sensor image per wavelength λ_j with the objective removed and the
 diffuser evenly lit. Every pixel is divided by the mean of the BRF-free patch of the reference view
 at the same λ_j and colour channel; the colour channels are then combined with weights
 proportional to their signal (the patch mean to the power ``weight_power``), ignoring saturated

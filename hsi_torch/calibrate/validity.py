@@ -52,7 +52,7 @@ def valid_region(
             reference-frame pixel.
         modulated: ``(V, h, w)`` bool: view v is BRF-modulated there (``False`` on the BRF-free
             patch); ``None`` means every present view is modulated.
-        min_views: threshold (3 by default, DESIGN §2).
+        min_views: threshold (3 by default: three views, nine colour observations, per pixel).
 
     Returns:
         ``(valid (h, w) bool, summary)``.

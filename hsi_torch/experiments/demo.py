@@ -45,7 +45,7 @@ from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.figures import plot_calibration
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
-from hsi_torch.config import load_config
+from hsi_torch.config import help_meta, load_config
 from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
 from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
 from hsi_torch.io import save_cube, save_cube_formats
@@ -62,8 +62,7 @@ from hsi_torch.simulate.oracle import bundle_from_truth
 __all__ = ["DemoConfig", "demo", "score_scene"]
 
 
-def _h(text: str) -> dict[str, str]:
-    return {"help": text}
+_h = help_meta
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Synthetic comparison of sensing designs under one reconstruction model (DESIGN.md §5).
+"""Synthetic comparison of sensing designs under one reconstruction model.
 
 Protocol, for every design (a ``(O, M)`` matrix ``A``, see :mod:`hsi_torch.experiments.systems`):
 
@@ -58,7 +58,7 @@ __all__ = [
     "SyntheticConfig",
     "DesignEvaluation",
     "default_betas",
-    "exposure_scale",
+    "peak_matching_gain",
     "noise_realisation",
     "evaluate_design",
     "build_design",
@@ -242,7 +242,7 @@ def build_design(
 # the experiment's machinery
 
 
-def exposure_scale(matrix: Tensor, reflectances: Tensor, peak_dn: float = 255.0) -> Tensor:
+def peak_matching_gain(matrix: Tensor, reflectances: Tensor, peak_dn: float = 255.0) -> Tensor:
     """Scalar factor so that ``max(reflectances @ (factor·matrix)ᵀ) = peak_dn``.
 
     Args:
@@ -366,7 +366,7 @@ def evaluate_design(
     k = r.shape[0]
     S, N, B = len(sigmas), len(seeds), len(betas)
 
-    scale = exposure_scale(matrix, r, peak_dn)
+    scale = peak_matching_gain(matrix, r, peak_dn)
     a = matrix * scale  # (O, M)
     y0 = r @ a.T  # (K, O)
     eps = torch.stack([noise_realisation(k, o, s, device=dev, dtype=dt) for s in seeds])  # N,K,O
@@ -511,7 +511,7 @@ def run_synthetic(
         evals.append(ev)
         for r in ev.summary_rows():
             r.update(kind=d.info.get("kind", ""), num_channels=d.num_channels,
-                     exposure_scale=ev.scale, converged=ev.converged)
+                     peak_gain=ev.scale, converged=ev.converged)
             rows.append(r)
         sweep += ev.sweep_rows()
 
@@ -527,7 +527,7 @@ def run_synthetic(
             r[f"margin_vs_{cfg.reference}_db"] = r["psnr_db"] - ref[r["noise_sigma"]]
 
     cols = ["method", "kind", "num_channels", "noise_sigma", "best_beta", "psnr_db",
-            "psnr_std_db", "sam_deg", "sam_std_deg", "num_seeds", "exposure_scale", "converged"]
+            "psnr_std_db", "sam_deg", "sam_std_deg", "num_seeds", "peak_gain", "converged"]
     if margins:
         cols.append(f"margin_vs_{cfg.reference}_db")
     report.write_csv(out / "results.csv", rows, cols)

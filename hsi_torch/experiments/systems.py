@@ -5,7 +5,7 @@ A *sensing design* is a linear map from a reflectance spectrum ``r (M,)`` on a w
 ``T_k(λ_m) · l(λ_m) · Δλ_m``: the channel's spectral response to radiance ``T_k`` times the
 illuminant ``l`` times the band width, so observations are radiances of reflectances under ``l``.
 
-Designs (DESIGN.md §5):
+Designs:
 
 - **this system** (:func:`this_system_design`): ``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` with
   the BRF transmittance ``B_v`` of the ray that sees a scene point in view ``v``, ``φ^c = l f^c``

@@ -1,4 +1,4 @@
-"""Spatial resolution with a USAF 1951 target (DESIGN.md §5): the finest resolvable group/element
+"""Spatial resolution with a USAF 1951 target: the finest resolvable group/element
 per reconstructed band, compared with an RGB reference imaged without the add-on.
 
 **Target and scale.** The simulator's :class:`~hsi_torch.simulate.scenes.USAF1951Scene` (bars 0.9,

@@ -94,6 +94,17 @@ def _read_json(path: Path, what: str) -> Any:
         raise MissingFileError(f"{what} {path} cannot be read ({exc})") from exc
 
 
+def _read_json_object(path: Path, what: str, missing: str | None = None) -> dict[str, Any]:
+    """A JSON object file; ``missing``: the message when the file is absent (default: the
+    file's name and kind)."""
+    if not path.is_file():
+        raise MissingFileError(missing or f"{what} {path} not found")
+    d = _read_json(path, what)
+    if not isinstance(d, dict):
+        raise FileFormatError(f"{what} {path}: must be a JSON object")
+    return d
+
+
 @dataclass
 class NominalLayout:
     """The view layout known before calibration (``nominal_layout.json``), checked.
@@ -128,14 +139,11 @@ class NominalLayout:
 def read_nominal_layout(path: str | Path) -> NominalLayout:
     """Read and check ``nominal_layout.json``; errors name the file and the key at fault."""
     p = Path(path)
-    if not p.is_file():
-        raise MissingFileError(
-            f"nominal layout {p} not found: calibration needs the view triangles, parity, "
-            "reference_bbox and BRF-free patch (see docs/calibration.md)"
-        )
-    d = _read_json(p, "nominal layout")
-    if not isinstance(d, dict):
-        raise FileFormatError(f"nominal layout {p}: must be a JSON object")
+    d = _read_json_object(
+        p, "nominal layout",
+        missing=f"nominal layout {p} not found: calibration needs the view triangles, parity, "
+        "reference_bbox and BRF-free patch (see docs/calibration.md)",
+    )  # fmt: skip
     for key in ("sensor_size", "triangles_px", "parity", "reference_bbox"):
         if key not in d:
             raise FileFormatError(f"nominal layout {p}: missing key '{key}'")
@@ -282,9 +290,7 @@ def read_capture_set(
     cs = CaptureSet(root)
     mpath = root / MANIFEST
     if mpath.is_file():
-        manifest = _read_json(mpath, "manifest")
-        if not isinstance(manifest, dict):
-            raise FileFormatError(f"{mpath}: must be a JSON object")
+        manifest = _read_json_object(mpath, "manifest")
         _check_version(manifest, mpath)
         cs.manifest = manifest
         for k, e in enumerate(manifest.get("captures", [])):
@@ -413,15 +419,10 @@ def read_truth(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]
     """
     root = Path(root)
     npz, js = root / TRUTH_NPZ, root / TRUTH_JSON
-    for p in (npz, js):
-        if not p.is_file():
-            raise MissingFileError(
-                f"{p} not found: {root} is not a simulated capture set with ground truth "
-                "(run `hsi-torch simulate` first)"
-            )
-    meta = _read_json(js, "ground truth")
-    if not isinstance(meta, dict):
-        raise FileFormatError(f"{js}: must be a JSON object")
+    hint = "is not a simulated capture set with ground truth (run `hsi-torch simulate` first)"
+    if not npz.is_file():
+        raise MissingFileError(f"{npz} not found: {root} {hint}")
+    meta = _read_json_object(js, "ground truth", missing=f"{js} not found: {root} {hint}")
     _check_version(meta, js)
     with np.load(npz, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}

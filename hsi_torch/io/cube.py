@@ -243,9 +243,11 @@ def _save_prepared(
     v: np.ndarray,
     metadata: dict[str, Any] | None,
     c_nan: np.ndarray | None = None,
+    extra_arrays: dict[str, np.ndarray] | None = None,
 ) -> list[Path]:
     """:func:`save_cube` after :func:`_prepare`; ``c_nan``: ``c`` with NaN where invalid, if
-    already made (TIFF/ENVI)."""
+    already made (TIFF/ENVI); ``extra_arrays``: more arrays stored in an NPZ (other formats
+    ignore them)."""
     meta = dict(metadata or {})
     if kind != "npz":
         c = c_nan if c_nan is not None else _nan_where_invalid(c, v)
@@ -256,8 +258,9 @@ def _save_prepared(
             {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=json_default
         )
         atomic_save_npz(
-            p, {"cube": c, "wavelengths_nm": wl, "valid": v, "metadata": np.array(meta_json)}
-        )
+            p, {"cube": c, "wavelengths_nm": wl, "valid": v, "metadata": np.array(meta_json),
+                **(extra_arrays or {})},
+        )  # fmt: skip
         return [p]
     if kind == "tiff":
         return _save_tiff(p, c, wl, meta)
@@ -474,6 +477,7 @@ def save_cube_formats(
     metadata: dict[str, Any] | None = None,
     formats: Sequence[CubeFormat] = ("npz", "tiff", "envi"),
     timings: dict[str, float] | None = None,
+    npz_arrays: dict[str, Any] | None = None,
 ) -> list[Path]:
     """Write the cube in several formats: ``<stem>.npz``, ``<stem>.tif`` (+ ``.vrt``),
     ``<stem>.hdr/.img``, ``<stem>.nc``, ``<stem>.zarr``.
@@ -481,7 +485,8 @@ def save_cube_formats(
     The same files as :func:`save_cube` per format; the cube is converted (and NaN-filled for
     TIFF/ENVI) once. If one format fails, the files already written by this call are removed.
     ``timings``: if given, receives the seconds spent per format (``"prepare"`` for the shared
-    conversion).
+    conversion). ``npz_arrays``: more arrays (tensors or arrays, by key; not the cube's own keys)
+    stored in the NPZ, e.g. the reconstruction's per-band standard deviation ``"std"``.
     """
     s = Path(stem)
     for fmt in formats:
@@ -491,6 +496,10 @@ def save_cube_formats(
     t0 = time.perf_counter()
     c, wl, v = _prepare(cube, wavelengths, valid)
     c_nan = _nan_where_invalid(c, v) if any(f != "npz" for f in formats) else None
+    extra = {k: _np(a) for k, a in (npz_arrays or {}).items()}
+    taken = {"cube", "wavelengths_nm", "valid", "metadata"} & set(extra)
+    if taken:
+        raise ValueError(f"npz_arrays: {sorted(taken)} are the cube's own keys")
     tm = timings if timings is not None else {}
     tm["prepare"] = time.perf_counter() - t0
     out: list[Path] = []
@@ -498,7 +507,7 @@ def save_cube_formats(
         for fmt in formats:
             t0 = time.perf_counter()
             p = s.with_name(s.name + _FORMAT_SUFFIX[fmt])
-            out += _save_prepared(p, fmt, c, wl, v, metadata, c_nan)
+            out += _save_prepared(p, fmt, c, wl, v, metadata, c_nan, extra)
             tm[fmt] = time.perf_counter() - t0
     except BaseException:
         for q in out:

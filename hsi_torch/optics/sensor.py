@@ -186,11 +186,11 @@ class DiffuserModel:
             Default 2: a mildly forward-scattering ground-glass diffuser (an assumed value; the
             calibration absorbs it into the per-view throughput ``g_v``).
         blur_sigma_mm: Gaussian blur of the scene by the diffuser, σ in mm on the diffuser plane
-            (default 0 = none).
+            (default 0.1 mm, the default prototype's ground glass; 0 = none).
     """
 
     falloff_k: float = 2.0
-    blur_sigma_mm: float = 0.0
+    blur_sigma_mm: float = 0.1
 
     def __post_init__(self) -> None:
         if self.falloff_k < 0:

@@ -14,7 +14,6 @@ _LAZY = {
     "precompute_sensing": "hsi_torch.recon.sensing",
     "Reconstructor": "hsi_torch.recon.pipeline",
     "ReconstructionResult": "hsi_torch.recon.pipeline",
-    "reconstruct_frame": "hsi_torch.recon.pipeline",
     "HSIReconstructor": "hsi_torch.recon.module",
     "ReconstructionOutput": "hsi_torch.recon.module",
     "ReconstructConfig": "hsi_torch.recon.config",

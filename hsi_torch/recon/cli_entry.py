@@ -3,8 +3,10 @@
 For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
 its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
 ``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65, enlarged, with a caption) and, with
-``spectra_points``, ``<stem>_spectra.png``. Every file is written atomically; if writing an input's
-outputs fails, the files already written for that input are removed. Each run records its
+``spectra_points``, ``<stem>_spectra.png``; with ``uncertainty``, the per-band standard deviation
+as ``<stem>_std.*`` in the non-NPZ formats, the key ``std`` in ``<stem>.npz`` and a map of the mean
+relative standard deviation, ``<stem>_std.png``. Every file is written atomically; if writing an
+input's outputs fails, the files already written for that input are removed. Each run records its
 configuration in a file of its own, ``DIR/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml`` (rerun it with
 ``--config``; a later run into the same folder never overwrites it), and every cube's metadata
 holds its configuration and the name of that file (``run_config``). Runs through
@@ -13,10 +15,10 @@ at the end, non-zero exit; resume skips inputs whose outputs exist unchanged and
 same input file, configuration and bundle — anything else is reconstructed again). Two inputs with
 the same stem from different folders would write the same files: the later one fails with an error
 naming both (in the same run or a later one) and the earlier one's outputs are kept. A capture of
-which not a single pixel could be reconstructed (all saturated, no finite data, ...) fails with
-the reason; no all-NaN cube is written. Inputs, configuration (``min_views`` against the bundle's
-views included) and bundle are all checked before the output folder or the run's configuration
-file are created.
+which not a single pixel could be reconstructed (all saturated, no finite data, ...) fails with the
+reason; no all-NaN cube is written. Inputs, configuration (``min_views`` against the bundle's views
+included) and bundle are all checked before the output folder or the run's configuration file are
+created.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import torch
 
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
+from hsi_torch.recon.uncertainty import DEFAULT_ELECTRONS_PER_DN, SensorNoise, relative_std_map
 
 __all__ = [
     "run_reconstruct", "write_outputs", "output_paths", "frame_warnings", "preview_caption",
@@ -47,8 +50,13 @@ _SUFFIXES = {"tiff": [".tif", ".vrt"], "envi": [".hdr", ".img"], "npz": [".npz"]
 def output_paths(stem: Path, cfg: ReconstructConfig) -> list[Path]:
     """The files :func:`write_outputs` produces for ``stem`` under ``cfg``."""
     out = [stem.with_name(stem.name + s) for f in cfg.formats for s in _SUFFIXES[f]]
+    if cfg.uncertainty:
+        out += [stem.with_name(stem.name + "_std" + s) for f in cfg.formats if f != "npz"
+                for s in _SUFFIXES[f]]  # fmt: skip
     if cfg.preview:
         out.append(stem.with_name(stem.name + "_preview.png"))
+        if cfg.uncertainty:
+            out.append(stem.with_name(stem.name + "_std.png"))
     if cfg.spectra_points:
         out.append(stem.with_name(stem.name + "_spectra.png"))
     return out
@@ -117,16 +125,28 @@ def write_outputs(
 
         return run
 
+    std = None if result.std is None else result.std.detach().to("cpu", torch.float32)
+    npz_std = None if std is None else {"std": std}
     jobs = [
-        timed(f, partial(save_cube_formats, s, cube, wl, valid, metadata, formats=(f,)))
+        timed(f, partial(save_cube_formats, s, cube, wl, valid, metadata, formats=(f,),
+                         npz_arrays=npz_std if f == "npz" else None))
         for f in cfg.formats
     ]
+    if std is not None:  # the standard deviation as a cube of its own beside the cube
+        s_std = s.with_name(s.name + "_std")
+        meta_std = {**(metadata or {}), "quantity": "standard deviation of every band "
+                    "(sensor noise, free-set linearisation; 0 on bands at the bound)"}
+        jobs += [timed(f"{f}_std", partial(save_cube_formats, s_std, std, wl, valid, meta_std,
+                                           formats=(f,)))
+                 for f in cfg.formats if f != "npz"]  # fmt: skip
     if cfg.preview:
         # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
         path = s.with_name(s.name + "_preview.png")
         caption = preview_caption(s.name, cfg, metadata)
         jobs.append(timed("preview", lambda: [save_preview_png(
             cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size)]))
+        if std is not None:
+            jobs.append(timed("std_preview", lambda: [_save_std_map(cube, std, valid, s, cfg)]))
     if cfg.spectra_points:
         jobs.append(timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
@@ -146,6 +166,28 @@ def write_outputs(
             remove_output(p)
         raise errors[0]
     return written
+
+
+def _save_std_map(
+    cube: torch.Tensor, std: torch.Tensor, valid: torch.Tensor, s: Path, cfg: ReconstructConfig
+) -> Path:
+    """``<stem>_std.png``: the mean relative standard deviation ``Σσ / Σŝ`` per pixel, grey
+    (black 0, white the 99th percentile of the valid pixels), invalid pixels dark red."""
+    from hsi_torch.colour import save_labelled_png
+
+    rel = relative_std_map(cube, std, valid)
+    ok = torch.isfinite(rel)
+    top = float(torch.quantile(rel[ok].double(), 0.99)) if bool(ok.any()) else 0.0
+    grey = (rel / top if top > 0 else torch.zeros_like(rel)).clamp(0, 1)
+    bad = torch.tensor([0.35, 0.0, 0.0]).view(3, 1, 1)
+    img = torch.where(ok, grey, torch.zeros_like(grey)).expand(3, -1, -1)
+    img = torch.where(ok, img, bad)
+    med = float(rel[ok].median()) if bool(ok.any()) else float("nan")
+    caption = (f"{s.name} | mean relative std (sum of band std / sum of bands) from sensor noise"
+               f" | black 0 %, white {100 * top:.3g} % (99th pct), median {100 * med:.3g} %"
+               " | dark red: invalid")
+    return save_labelled_png(img, s.with_name(s.name + "_std.png"), caption=caption,
+                             min_size=cfg.preview_size)
 
 
 def _plot_points(
@@ -243,7 +285,9 @@ def run_reconstruct(args: argparse.Namespace) -> Any:
                 admm_iters=cfg.admm_iters, device=device, dtype=dtype,
                 chunk_size=cfg.chunk_size, min_views=cfg.min_views, nan_invalid=cfg.nan_invalid,
                 exposure_correction=cfg.exposure_correction, prior=cfg.prior, lam=cfg.lam,
-                spatial_iters=cfg.spatial_iters,
+                spatial_iters=cfg.spatial_iters, uncertainty=cfg.uncertainty,
+                noise=SensorNoise(cfg.noise_electrons_per_dn or DEFAULT_ELECTRONS_PER_DN,
+                                  cfg.noise_read_e),
             )  # fmt: skip
         return state["rec"]
 

@@ -9,13 +9,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from hsi_torch.config import help_meta
+
 __all__ = ["ReconstructConfig"]
 
 CubeFormatName = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 
 
-def _help(text: str) -> dict[str, str]:
-    return {"help": text}
+_help = help_meta
 
 
 @dataclass
@@ -101,6 +102,20 @@ class ReconstructConfig:
         metadata=_help("saturation level, DN (null: the file's metadata, else the integer "
                        "type's maximum)"),
     )
+    uncertainty: bool = field(
+        default=False,
+        metadata=_help("also write the standard deviation of every band from the sensor noise: "
+                       "<stem>_std.* beside the cube in the non-NPZ formats, the key 'std' in "
+                       "<stem>.npz and a map <stem>_std.png (see docs/reconstruct.md)"),
+    )
+    noise_electrons_per_dn: float | None = field(
+        default=None,
+        metadata=_help("uncertainty: sensor conversion gain, e-/DN (null: the simulator's default "
+                       "sensor, 30000 e- / (16383 - 512) DN = 1.89)"),
+    )
+    noise_read_e: float = field(
+        default=3.0, metadata=_help("uncertainty: sensor read noise sigma, electrons")
+    )
 
     fit_residual_warning: float | None = field(
         default=0.15,
@@ -117,6 +132,9 @@ class ReconstructConfig:
             raise ValueError(f"diff_order must be 0, 1 or 2, got {self.diff_order}")
         if not isinstance(self.lam, str) and not self.lam >= 0:
             raise ValueError(f"lam must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
+        if self.prior != "none" and self.uncertainty:
+            raise ValueError("uncertainty: true is the per-pixel solver's noise model; it does "
+                             f"not hold for prior={self.prior} (use prior: none)")
         if self.spatial_iters is not None and self.spatial_iters < 1:
             raise ValueError(f"spatial_iters must be >= 1 or null, got {self.spatial_iters}")
         if self.admm_iters is not None and self.admm_iters < 1:
@@ -129,6 +147,12 @@ class ReconstructConfig:
             raise ValueError(
                 f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
             )
+        if self.noise_electrons_per_dn is not None and not self.noise_electrons_per_dn > 0:
+            raise ValueError(
+                f"noise_electrons_per_dn must be > 0 or null, got {self.noise_electrons_per_dn}"
+            )
+        if not self.noise_read_e >= 0:
+            raise ValueError(f"noise_read_e must be >= 0, got {self.noise_read_e}")
         if self.preview_size < 0:
             raise ValueError(f"preview_size must be >= 0, got {self.preview_size}")
         if not self.formats and not self.preview:

@@ -57,11 +57,17 @@ from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.recon.spatial import solve_frame as spatial_solve_frame
+from hsi_torch.recon.uncertainty import (
+    RAW_LAYOUTS,
+    SensorNoise,
+    nnls_band_std,
+    observation_variance,
+    sampling_variance_factor,
+)
 
 __all__ = [
     "ReconstructionResult",
     "Reconstructor",
-    "reconstruct_frame",
     "warp_capture",
     "build_observations",
     "sample_views",
@@ -124,7 +130,10 @@ class ReconstructionResult:
             ``saturated_observations``, ``no_valid_reason`` (``None``, or why not a single pixel
             is valid: saturation, non-finite data, ``min_views``).
         timings: seconds per stage (``load`` when read from a file, ``warp``, ``observations``,
-            ``solve``, ``assemble``, ``total``).
+            ``solve``, ``uncertainty`` (with ``uncertainty=True``), ``assemble``, ``total``).
+        std: ``(M, h, w)`` standard deviation of every band from the sensor noise
+            (:mod:`hsi_torch.recon.uncertainty`; 0 on bands at the bound, NaN where ``valid``
+            is False), or ``None`` when the reconstructor was made without ``uncertainty=True``.
     """
 
     cube: Tensor
@@ -132,6 +141,7 @@ class ReconstructionResult:
     wavelengths_nm: Tensor
     stats: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    std: Tensor | None = None
 
     def to_xarray(self, metadata: dict[str, Any] | None = None):
         """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
@@ -542,7 +552,9 @@ def reconstruct_batch(
     prior: str = "none",
     lam: float | str = DEFAULT_LAM,
     spatial_iters: int | None = None,
-) -> tuple[Tensor, Tensor, list[dict[str, Any]], dict[str, float]]:
+    noise: SensorNoise | None = None,
+    sampling_factor: Tensor | None = None,
+) -> tuple[Tensor, ...]:
     """Shared core of :class:`Reconstructor` and :class:`~hsi_torch.recon.module.HSIReconstructor`.
 
     Args:
@@ -552,10 +564,14 @@ def reconstruct_batch(
         stats: per-frame statistics and stage timings (each stage ends with a device sync);
             ``False`` (the ``nn.Module``): no timing, no statistics, no extra sync.
         prior, lam, spatial_iters: see :func:`solve_observations`.
+        noise: the raw sensor's noise: also return the standard deviation of every band
+            (:mod:`hsi_torch.recon.uncertainty`); sampling_factor: ``(P, 3V)`` variance factor
+            of the observations (:func:`~hsi_torch.recon.uncertainty.sampling_variance_factor`;
+            ``None``: 1).
 
     Returns:
         ``cube (B, M, h, w)``, ``valid (B, h, w)``, per-frame stats, stage timings (s, summed;
-        both empty when ``stats`` is False).
+        both empty when ``stats`` is False); with ``noise``, a fifth item ``std (B, M, h, w)``.
     """
     dev = sens.device
     if images.device != dev:
@@ -602,12 +618,28 @@ def reconstruct_batch(
         oks.append(ok)
     t3 = clock()
     t["solve"] = t3 - t2
+    stds = []
+    if noise is not None:
+        ks = torch.ones((), dtype=y.dtype, device=dev) if scale is None else scale
+        ks = torch.as_tensor(ks, dtype=y.dtype, device=dev).reshape(-1).expand(y.shape[0])
+        for i in range(y.shape[0]):
+            var = observation_variance(y[i].detach(), noise, scale=ks[i],
+                                       sampling_factor=sampling_factor)  # fmt: skip
+            std = nnls_band_std(sens.model, xs[i].detach(), var, mask[i], problem=sens.problem)
+            stds.append(torch.where(oks[i].unsqueeze(1), std, torch.zeros((), dtype=std.dtype,
+                                                                          device=std.device)))
+        t4 = clock()
+        t["uncertainty"] = t4 - t3
+        t3 = t4
     if len(xs) == 1:  # no stacked copy for a single frame
         cube, valid = assemble_cube(sens, xs[0][None], oks[0][None], nan_invalid)
     else:
         cube, valid = assemble_cube(sens, torch.stack(xs), torch.stack(oks), nan_invalid)
     t["assemble"] = clock() - t3
-    return cube, valid, infos, (t if stats else {})
+    if noise is None:
+        return cube, valid, infos, (t if stats else {})
+    std_cube, _ = assemble_cube(sens, torch.stack(stds), torch.stack(oks), nan_invalid)
+    return cube, valid, infos, (t if stats else {}), std_cube
 
 
 def check_min_views(min_views: int, num_views: int) -> None:
@@ -664,6 +696,10 @@ class Reconstructor:
             (minimum of a Monte-Carlo SURE risk estimate) or ``"discrepancy"`` (Morozov); the
             ``lam`` used, the absolute ``λ`` and ``σ̂`` are in the result's ``stats``.
         spatial_iters: fixed iterations of the spatial solve (``None``: to tolerance).
+        uncertainty: also compute the standard deviation of every band
+            (:attr:`ReconstructionResult.std`, :mod:`hsi_torch.recon.uncertainty`) from
+            ``noise`` (default :class:`~hsi_torch.recon.uncertainty.SensorNoise`: the
+            simulator's default sensor).
 
     Example:
         >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
@@ -689,10 +725,15 @@ class Reconstructor:
         prior: str = "none",
         lam: float | str = DEFAULT_LAM,
         spatial_iters: int | None = None,
+        uncertainty: bool = False,
+        noise: SensorNoise | None = None,
     ) -> None:
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
         check_prior(prior, lam, spatial_iters)
+        if prior != "none" and uncertainty:
+            raise ValueError("uncertainty=True is the per-pixel solver's noise model; it does not "
+                             f"hold for prior={prior!r} (use prior='none')")
         self.prior, self.lam, self.spatial_iters = prior, lam, spatial_iters
         if isinstance(bundle, BundleSensing):
             self.sensing = bundle.with_regularisation(beta, diff_order)
@@ -709,10 +750,23 @@ class Reconstructor:
         self.nan_invalid = bool(nan_invalid)
         self.exposure_correction = bool(exposure_correction)
         self.sat_threshold = float(sat_threshold)
+        self.uncertainty = bool(uncertainty)
+        self.noise = noise if noise is not None else SensorNoise()
+        self._factors: dict[tuple[str, str | None, torch.dtype], Tensor] = {}
 
     @property
     def wavelengths_nm(self) -> Tensor:
         return self.sensing.wavelengths_nm
+
+    def sampling_factor(self, layout: str, cfa_pattern: str | None = None) -> Tensor:
+        """``(P, 3V)`` variance factor of the observations for captures made as ``layout``
+        (:func:`~hsi_torch.recon.uncertainty.sampling_variance_factor`); kept per layout."""
+        sens = self.sensing
+        key = (layout, cfa_pattern if layout == "bayer" else None, sens.dtype)
+        if key not in self._factors:
+            self._factors[key] = sampling_variance_factor(
+                sens.grid(), sens.sensor_size, layout, cfa_pattern)  # type: ignore[arg-type]
+        return self._factors[key]
 
     def reconstruct_frame(
         self,
@@ -722,6 +776,7 @@ class Reconstructor:
         exposure_s: float | None = None,
         cfa_pattern: str | None = None,
         source: str = "capture",
+        raw_layout: str | None = None,
     ) -> ReconstructionResult:
         """Reconstruct one capture.
 
@@ -731,6 +786,10 @@ class Reconstructor:
             saturated: same shape, bool, or ``None``.
             exposure_s: the capture's exposure time (s); see :func:`exposure_scale`.
             source: name used in error messages (the file).
+            raw_layout: with ``uncertainty``, how an RGB ``image`` was made from raw samples:
+                ``"rgb"`` (independent samples, the default), ``"bayer"`` (bilinear demosaic
+                with ``cfa_pattern``) or ``"half"`` (2 × 2 binning); a ``(1, H, W)`` mosaic is
+                ``"bayer"``.
 
         Returns:
             :class:`ReconstructionResult`.
@@ -745,33 +804,50 @@ class Reconstructor:
         t0 = time.perf_counter()
         img = image.to(device=sens.device)
         sat = None if saturated is None else saturated.to(device=sens.device)
-        img, sat = prepare_input(img, sat, cfa_pattern or sens.cfa_pattern)
+        pattern = cfa_pattern or sens.cfa_pattern
+        img, sat = prepare_input(img, sat, pattern)
         scale = exposure_scale(exposure_s, sens.exposure_s) if self.exposure_correction else 1.0
+        factor = None
+        if self.uncertainty:
+            layout = "bayer" if image.shape[0] == 1 else (raw_layout or "rgb")
+            if layout not in RAW_LAYOUTS:
+                raise ValueError(f"raw_layout must be one of {RAW_LAYOUTS}, got {raw_layout!r}")
+            if layout == "bayer" and pattern is None:
+                raise ValueError(f"{source}: raw_layout='bayer' needs a CFA pattern")
+            factor = self.sampling_factor(layout, pattern)
         _sync(sens.device)
         t_demosaic = time.perf_counter() - t0
         with torch.no_grad():
-            cube, valid, stats, t = reconstruct_batch(
+            out = reconstruct_batch(
                 sens, img.unsqueeze(0), None if sat is None else sat.unsqueeze(0),
                 scale=None if scale == 1.0 else scale, solver=self.solver,
                 admm_iters=self.admm_iters, chunk_size=self.chunk_size,
                 min_views=self.min_views, nan_invalid=self.nan_invalid,
                 sat_threshold=self.sat_threshold, prior=self.prior, lam=self.lam,
                 spatial_iters=self.spatial_iters,
+                noise=self.noise if self.uncertainty else None, sampling_factor=factor,
             )  # fmt: skip
+        cube, valid, stats, t = out[:4]
         st = stats[0]
         st["exposure_scale"] = scale
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         timings["total"] = time.perf_counter() - t0
-        return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings)
+        std = out[4][0] if self.uncertainty else None
+        return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)
 
     def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
         """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``,
         ``metadata["exposure_s"]``)."""
         src = str(getattr(capture, "path", "capture"))
+        meta = capture.metadata
+        layout, pattern = "rgb", None
+        if meta.get("kind") == "bayer":  # demosaiced by the reader: the noise went through it
+            layout = "half" if meta.get("demosaic") == "half" else "bayer"
+            pattern = meta.get("cfa_pattern")
         try:
             return self.reconstruct_frame(
-                capture.image, capture.saturated, exposure_s=capture.metadata.get("exposure_s"),
-                source=src,
+                capture.image, capture.saturated, exposure_s=meta.get("exposure_s"),
+                source=src, raw_layout=layout, cfa_pattern=pattern,
             )  # fmt: skip
         except InputError as exc:
             if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
@@ -836,22 +912,3 @@ def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:
                 f"{path}: RGB image size (H, W) = {full} does not match the calibration bundle's "
                 f"sensor size {(H, W)} (demosaic='half' bins Bayer mosaics only)"
             )
-
-
-def reconstruct_frame(
-    image: Tensor,
-    saturated: Tensor | None,
-    bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
-    *,
-    beta: float = DEFAULT_BETA,
-    diff_order: int = 1,
-    solver: str = "active_set",
-    exposure_s: float | None = None,
-    **kwargs: Any,
-) -> ReconstructionResult:
-    """One-call form of :meth:`Reconstructor.reconstruct_frame` (the per-bundle precomputation is
-    cached, so repeated calls with the same bundle object reuse it). ``beta`` is on the DN² scale
-    (default :data:`DEFAULT_BETA` = 1e4, as ``ReconstructConfig``). ``kwargs`` go to
-    :class:`Reconstructor` (``device``, ``dtype``, ``chunk_size``, ``min_views``, …)."""
-    rec = Reconstructor(bundle, beta=beta, diff_order=diff_order, solver=solver, **kwargs)
-    return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s)

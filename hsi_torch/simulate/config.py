@@ -24,6 +24,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from hsi_torch.config import help_meta
+from hsi_torch.optics.birefringence import BRFConfig
+from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
+from hsi_torch.optics.sensor import DiffuserModel, SensorModel
+
 __all__ = [
     "GeometryConfig",
     "CameraConfig",
@@ -42,8 +47,12 @@ __all__ = [
 ]
 
 
-def _h(text: str) -> dict[str, str]:
-    return {"help": text}
+_h = help_meta
+_GEOMETRY = KaleidoscopeGeometry()
+_CAMERA = CameraModel()
+_BRF = BRFConfig()
+_SENSOR = SensorModel()
+_DIFFUSER = DiffuserModel()
 
 
 def _positive(obj: Any, *names: str) -> None:
@@ -57,27 +66,41 @@ def _positive(obj: Any, *names: str) -> None:
 class GeometryConfig:
     """Tapered kaleidoscope (fields of :class:`~hsi_torch.optics.KaleidoscopeGeometry`)."""
 
-    a_in_mm: float = field(default=16.0, metadata=_h("entrance side at the diffuser, mm"))
-    a_out_mm: float = field(default=40.0, metadata=_h("exit side, mm (taper: a_out > a_in)"))
-    length_mm: float = field(default=160.0, metadata=_h("tube length, mm"))
-    pupil_distance_mm: float = field(default=12.0, metadata=_h("camera pupil beyond the exit, mm"))
-    mirror_reflectance: float = field(default=0.92, metadata=_h("reflectance per bounce"))
-    max_reflections: int = field(default=2, metadata=_h("reflections that count as views"))
+    a_in_mm: float = field(
+        default=_GEOMETRY.a_in_mm, metadata=_h("entrance side at the diffuser, mm")
+    )
+    a_out_mm: float = field(
+        default=_GEOMETRY.a_out_mm, metadata=_h("exit side, mm (taper: a_out > a_in)")
+    )
+    length_mm: float = field(default=_GEOMETRY.length_mm, metadata=_h("tube length, mm"))
+    pupil_distance_mm: float = field(
+        default=_GEOMETRY.pupil_distance_mm, metadata=_h("camera pupil beyond the exit, mm")
+    )
+    mirror_reflectance: float = field(
+        default=_GEOMETRY.mirror_reflectance, metadata=_h("reflectance per bounce")
+    )
+    max_reflections: int = field(
+        default=_GEOMETRY.max_reflections, metadata=_h("reflections that count as views")
+    )
     vertices_in: list[tuple[float, float]] | None = field(
-        default=None, metadata=_h("3 entrance vertices (mm, counter-clockwise) or null"))
+        default=None, metadata=_h("3 entrance vertices (mm, counter-clockwise) or null")
+    )
     brf_free_center_mm: tuple[float, float] | None = field(
-        default=None, metadata=_h("BRF-free disk centre (mm); null = 60 % towards vertex 0"))
-    brf_free_radius_mm: float = field(default=1.0, metadata=_h("BRF-free disk radius, mm"))
+        default=None, metadata=_h("BRF-free disk centre (mm); null = 60 % towards vertex 0")
+    )
+    brf_free_radius_mm: float = field(
+        default=_GEOMETRY.brf_free_radius_mm, metadata=_h("BRF-free disk radius, mm")
+    )
 
 
 @dataclass
 class CameraConfig:
     """Pinhole camera (fields of :class:`~hsi_torch.optics.CameraModel`)."""
 
-    width_px: int = field(default=400, metadata=_h("sensor width, px"))
-    height_px: int = field(default=384, metadata=_h("sensor height, px"))
-    pixel_pitch_mm: float = field(default=0.0275, metadata=_h("pixel pitch, mm"))
-    focal_length_mm: float = field(default=35.0, metadata=_h("focal length, mm"))
+    width_px: int = field(default=_CAMERA.width_px, metadata=_h("sensor width, px"))
+    height_px: int = field(default=_CAMERA.height_px, metadata=_h("sensor height, px"))
+    pixel_pitch_mm: float = field(default=_CAMERA.pixel_pitch_mm, metadata=_h("pixel pitch, mm"))
+    focal_length_mm: float = field(default=_CAMERA.focal_length_mm, metadata=_h("focal length, mm"))
     cx: float | None = field(default=None, metadata=_h("principal point x, px (null = centre)"))
     cy: float | None = field(default=None, metadata=_h("principal point y, px (null = centre)"))
     scale: float = field(default=1.0, metadata=_h("resample the sensor (CameraModel.scaled)"))
@@ -90,41 +113,65 @@ class CameraConfig:
 class BRFSection:
     """Birefringent filter between polarizers (fields of :class:`~hsi_torch.optics.BRFConfig`)."""
 
-    material: str = field(default="quartz", metadata=_h("quartz | calcite | polymer"))
-    thickness_mm: float = field(default=2.5, metadata=_h("plate thickness, mm"))
-    axis_tilt_deg: float = field(default=70.0, metadata=_h("optic axis tilt out of the plate"))
-    axis_azimuth_deg: float = field(default=40.0, metadata=_h("azimuth of the projected axis"))
-    psi_deg: float = field(default=45.0, metadata=_h("retarder axis vs polarizer"))
-    chi_deg: float = field(default=90.0, metadata=_h("analyser vs polarizer (90 = crossed)"))
-    outside_index: float = field(default=1.0, metadata=_h("index of the outside medium"))
+    material: str = field(default=str(_BRF.material), metadata=_h("quartz | calcite | polymer"))
+    thickness_mm: float = field(default=_BRF.thickness_mm, metadata=_h("plate thickness, mm"))
+    axis_tilt_deg: float = field(
+        default=_BRF.axis_tilt_deg, metadata=_h("optic axis tilt out of the plate")
+    )
+    axis_azimuth_deg: float = field(
+        default=_BRF.axis_azimuth_deg, metadata=_h("azimuth of the projected axis")
+    )
+    psi_deg: float = field(default=_BRF.psi_deg, metadata=_h("retarder axis vs polarizer"))
+    chi_deg: float = field(
+        default=_BRF.chi_deg, metadata=_h("analyser vs polarizer (90 = crossed)")
+    )
+    outside_index: float = field(
+        default=_BRF.outside_index, metadata=_h("index of the outside medium")
+    )
     polarizer_efficiency: float = field(
-        default=0.9, metadata=_h("transmission of the polarizer pair for the passed "
-                                 "polarization (stack = ½·eff·T_BRF)"))
+        default=0.9,
+        metadata=_h(
+            "transmission of the polarizer pair for the passed polarization (stack = ½·eff·T_BRF)"
+        ),
+    )
 
     def __post_init__(self) -> None:
         if not 0 < self.polarizer_efficiency <= 1:
-            raise ValueError(f"polarizer_efficiency must be in (0, 1], got "
-                             f"{self.polarizer_efficiency}")
+            raise ValueError(
+                f"polarizer_efficiency must be in (0, 1], got {self.polarizer_efficiency}"
+            )
 
 
 @dataclass
 class SensorSection:
     """Raw sensor (fields of :class:`~hsi_torch.optics.sensor.SensorModel`)."""
 
-    output: Literal["bayer", "rgb"] = field(default="bayer", metadata=_h("bayer | rgb"))
-    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = "RGGB"
-    bit_depth: int = field(default=14, metadata=_h("ADC bits"))
-    white_level: float | None = field(default=None, metadata=_h("DN; null = 2^bits - 1"))
-    black_level: float = field(default=512.0, metadata=_h("DN offset"))
-    full_well_e: float | None = field(default=30000.0, metadata=_h("electrons"))
-    electrons_per_dn: float | None = field(default=None, metadata=_h("null = full well/range"))
-    read_noise_e: float = field(default=3.0, metadata=_h("read noise sigma, electrons"))
-    shot_noise: bool = field(default=True, metadata=_h("Poisson photon noise"))
+    output: Literal["bayer", "rgb"] = field(default=_SENSOR.output, metadata=_h("bayer | rgb"))
+    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = _SENSOR.cfa_pattern  # type: ignore[assignment]
+    bit_depth: int = field(default=_SENSOR.bit_depth, metadata=_h("ADC bits"))
+    white_level: float | None = field(
+        default=_SENSOR.white_level, metadata=_h("DN; null = 2^bits - 1")
+    )
+    black_level: float = field(default=_SENSOR.black_level, metadata=_h("DN offset"))
+    full_well_e: float | None = field(default=_SENSOR.full_well_e, metadata=_h("electrons"))
+    electrons_per_dn: float | None = field(
+        default=_SENSOR.electrons_per_dn, metadata=_h("null = full well/range")
+    )
+    read_noise_e: float = field(
+        default=_SENSOR.read_noise_e, metadata=_h("read noise sigma, electrons")
+    )
+    shot_noise: bool = field(default=_SENSOR.shot_noise, metadata=_h("Poisson photon noise"))
     exposure: float = field(
-        default=0.8, metadata=_h("scene/white/grid exposure: a white target seen without the "
-                                 "filter stack fills this fraction of the full well"))
-    quantize: bool = field(default=True, metadata=_h("round to integer DN"))
-    psf_sigma_px: float = field(default=0.0, metadata=_h("lens PSF sigma, px (0 = none)"))
+        default=0.8,
+        metadata=_h(
+            "scene/white/grid exposure: a white target seen without the "
+            "filter stack fills this fraction of the full well"
+        ),
+    )
+    quantize: bool = field(default=_SENSOR.quantize, metadata=_h("round to integer DN"))
+    psf_sigma_px: float = field(
+        default=_SENSOR.psf_sigma_px, metadata=_h("lens PSF sigma, px (0 = none)")
+    )
 
 
 @dataclass
@@ -132,11 +179,13 @@ class ObjectiveConfig:
     """Objective lens in front of the diffuser (absent during the monochromator scan)."""
 
     vignetting: float = field(
-        default=0.2, metadata=_h("V(X) = 1 - vignetting·(|X|/R)², R = circumradius of the "
-                                 "entrance triangle"))
+        default=0.2,
+        metadata=_h("V(X) = 1 - vignetting·(|X|/R)², R = circumradius of the entrance triangle"),
+    )
     transmission: float = field(default=0.9, metadata=_h("flat transmission tau_obj"))
     transmission_csv: str | None = field(
-        default=None, metadata=_h("CSV wavelength_nm,value (replaces `transmission`)"))
+        default=None, metadata=_h("CSV wavelength_nm,value (replaces `transmission`)")
+    )
 
     def __post_init__(self) -> None:
         if not 0 <= self.vignetting < 1:
@@ -149,8 +198,12 @@ class ObjectiveConfig:
 class DiffuserConfig:
     """Diffuser (fields of :class:`~hsi_torch.optics.sensor.DiffuserModel`)."""
 
-    falloff_k: float = field(default=2.0, metadata=_h("angular fall-off D(α) = cos^k α"))
-    blur_sigma_mm: float = field(default=0.1, metadata=_h("scene blur on the diffuser, mm"))
+    falloff_k: float = field(
+        default=_DIFFUSER.falloff_k, metadata=_h("angular fall-off D(α) = cos^k α")
+    )
+    blur_sigma_mm: float = field(
+        default=_DIFFUSER.blur_sigma_mm, metadata=_h("scene blur on the diffuser, mm")
+    )
 
     def __post_init__(self) -> None:
         if self.falloff_k < 0 or self.blur_sigma_mm < 0:
@@ -165,12 +218,16 @@ class RenderConfig:
     grid_stop_nm: float = field(default=670.0, metadata=_h("reconstruction grid stop, nm"))
     grid_step_nm: float = field(default=10.0, metadata=_h("reconstruction grid step, nm"))
     fine_step_nm: float = field(
-        default=2.0, metadata=_h("internal wavelength step; the band-pass is the grid +- half a "
-                                 "grid step"))
+        default=2.0,
+        metadata=_h("internal wavelength step; the band-pass is the grid +- half a grid step"),
+    )
     supersample: int = field(default=2, metadata=_h("s: s×s rays per sensor pixel"))
     max_reflections: int = field(
-        default=3, metadata=_h("reflections traced for the image (higher-order tiles are drawn "
-                               "but are no views)"))
+        default=3,
+        metadata=_h(
+            "reflections traced for the image (higher-order tiles are drawn but are no views)"
+        ),
+    )
     chunk: int = field(default=1 << 16, metadata=_h("rays per batch (memory bound)"))
     device: str = field(default="cpu", metadata=_h("torch device (--device overrides)"))
     dtype: Literal["float32", "float64"] = field(default="float64", metadata=_h("render dtype"))
@@ -178,8 +235,12 @@ class RenderConfig:
     progress: bool = field(default=True, metadata=_h("tqdm progress bars on stderr"))
     figures: bool = field(default=True, metadata=_h("write OUT/figures/*.png"))
     view_inset_px: float = field(
-        default=1.0, metadata=_h("truth view_mask: distance a reference pixel's source point "
-                                 "must keep from its triangle's edges, px"))
+        default=1.0,
+        metadata=_h(
+            "truth view_mask: distance a reference pixel's source point "
+            "must keep from its triangle's edges, px"
+        ),
+    )
 
     def __post_init__(self) -> None:
         _positive(self, "grid_step_nm", "fine_step_nm", "supersample", "chunk")
@@ -213,8 +274,9 @@ class GridConfig:
     pattern_size: tuple[int, int] = field(default=(4, 5), metadata=_h("(cols, rows) as OpenCV"))
     spacing_mm: float = field(default=1.0, metadata=_h("OpenCV squareSize on the diffuser, mm"))
     radius_mm: float = field(default=0.38, metadata=_h("circle radius, mm"))
-    poses: list[GridPose] = field(default_factory=lambda: list(DEFAULT_GRID_POSES),
-                                  metadata=_h("poses (>= 3 recommended)"))
+    poses: list[GridPose] = field(
+        default_factory=lambda: list(DEFAULT_GRID_POSES), metadata=_h("poses (>= 3 recommended)")
+    )
 
 
 @dataclass
@@ -246,13 +308,19 @@ class CapturesConfig:
     """Which captures to render."""
 
     scan_wavelengths_nm: list[float] | None = field(
-        default=None, metadata=_h("monochromator wavelengths; null = the reconstruction grid"))
+        default=None, metadata=_h("monochromator wavelengths; null = the reconstruction grid")
+    )
     scan_fwhm_nm: float = field(default=10.0, metadata=_h("monochromator line FWHM, nm"))
     scan_line: Literal["gaussian", "triangle"] = field(
-        default="gaussian", metadata=_h("line shape (triangle = equal entrance/exit slits)"))
+        default="gaussian", metadata=_h("line shape (triangle = equal entrance/exit slits)")
+    )
     scan_exposure: float = field(
-        default=0.8, metadata=_h("the BRF-free patch at the brightest scan line and colour "
-                                 "fills this fraction of the full well"))
+        default=0.8,
+        metadata=_h(
+            "the BRF-free patch at the brightest scan line and colour "
+            "fills this fraction of the full well"
+        ),
+    )
     white_shots: int = field(default=3, metadata=_h("white-reference captures"))
     dark_frames: int = field(default=1, metadata=_h("dark frames (type 'dark')"))
     grid: GridConfig = field(default_factory=GridConfig)
@@ -278,7 +346,8 @@ class SimulateConfig:
     sensor: SensorSection = field(default_factory=SensorSection)
     illuminant: str = field(default="D65", metadata=_h("CIE name (D65, A, ...) or CSV path"))
     camera_sensitivity: str = field(
-        default="Canon EOS 5D Mark II", metadata=_h("camera name, CSV or rawtoaces JSON path"))
+        default="Canon EOS 5D Mark II", metadata=_h("camera name, CSV or rawtoaces JSON path")
+    )
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     diffuser: DiffuserConfig = field(default_factory=DiffuserConfig)
     render: RenderConfig = field(default_factory=RenderConfig)

@@ -255,6 +255,30 @@ def usaf_frequency(group: int | float, element: int | float) -> float:
     return float(2.0 ** (group + (element - 1) / 6.0))
 
 
+class _FlatTarget:
+    """A spectrally flat target (one endmember of ones; its abundance is the reflectance)."""
+
+    def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
+        raise NotImplementedError
+
+    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
+        """``(1, M)`` ones (the target is spectrally flat)."""
+        return _constant_spectrum(1.0, 1, refdata.as_wavelengths(wavelengths_nm))
+
+    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
+        """``(N, 1)``: the target's reflectance under each point."""
+        xy_mm, _ = _prep(xy_mm, [550.0])
+        return self.reflectance(xy_mm, torch.tensor([550.0], dtype=xy_mm.dtype,
+                                                    device=xy_mm.device))
+
+
+def _two_level(mask: torch.Tensor, inside: float, outside: float, wl: torch.Tensor) -> torch.Tensor:
+    """``(N, M)`` flat spectra: ``inside`` where ``mask (N,)`` holds, else ``outside``."""
+    r = torch.where(mask, torch.tensor(inside, dtype=wl.dtype, device=wl.device),
+                    torch.tensor(outside, dtype=wl.dtype, device=wl.device))
+    return r.unsqueeze(1).expand(-1, wl.numel()).clone()
+
+
 @dataclass(frozen=True)
 class USAFElement:
     """Geometry of one bar triplet of the USAF target, in diffuser-plane mm.
@@ -275,7 +299,7 @@ class USAFElement:
 
 
 @dataclass
-class USAF1951Scene:
+class USAF1951Scene(_FlatTarget):
     """Analytic USAF 1951 resolution target.
 
     Element ``(G, E)`` has ``r = 2^(G + (E−1)/6)`` line pairs per target mm; on the diffuser the
@@ -372,20 +396,8 @@ class USAF1951Scene:
 
     def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
         xy_mm, wl = _prep(xy_mm, wavelengths_nm)
-        mask = self.bar_mask(xy_mm)
-        r = torch.where(mask, torch.tensor(self.bar_reflectance, dtype=wl.dtype, device=wl.device),
-                        torch.tensor(self.background_reflectance, dtype=wl.dtype, device=wl.device))
-        return r.unsqueeze(1).expand(-1, wl.numel()).clone()
-
-    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
-        """``(1, M)`` ones (the target is spectrally flat)."""
-        return _constant_spectrum(1.0, 1, refdata.as_wavelengths(wavelengths_nm))
-
-    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
-        """``(N, 1)``: the bar or background reflectance under each point."""
-        xy_mm, _ = _prep(xy_mm, [550.0])
-        return self.reflectance(xy_mm, torch.tensor([550.0], dtype=xy_mm.dtype,
-                                                    device=xy_mm.device))
+        return _two_level(self.bar_mask(xy_mm), self.bar_reflectance,
+                          self.background_reflectance, wl)  # fmt: skip
 
 
 # =============================================================================================
@@ -394,7 +406,7 @@ class USAF1951Scene:
 
 
 @dataclass
-class CircleGridScene:
+class CircleGridScene(_FlatTarget):
     """OpenCV asymmetric circle grid placed on the diffuser with a planar pose.
 
     Pattern coordinates follow OpenCV's calibration sample for ``ASYMMETRIC_CIRCLES_GRID`` with
@@ -516,21 +528,8 @@ class CircleGridScene:
 
     def reflectance(self, xy_mm: torch.Tensor, wavelengths_nm) -> torch.Tensor:
         xy_mm, wl = _prep(xy_mm, wavelengths_nm)
-        mask = self.circle_mask(xy_mm)
-        r = torch.where(mask,
-                        torch.tensor(self.circle_reflectance, dtype=wl.dtype, device=wl.device),
-                        torch.tensor(self.background_reflectance, dtype=wl.dtype, device=wl.device))
-        return r.unsqueeze(1).expand(-1, wl.numel()).clone()
-
-    def endmember_spectra(self, wavelengths_nm) -> torch.Tensor:
-        """``(1, M)`` ones (the target is spectrally flat)."""
-        return _constant_spectrum(1.0, 1, refdata.as_wavelengths(wavelengths_nm))
-
-    def abundances(self, xy_mm: torch.Tensor) -> torch.Tensor:
-        """``(N, 1)``: the circle or background reflectance under each point."""
-        xy_mm, _ = _prep(xy_mm, [550.0])
-        return self.reflectance(xy_mm, torch.tensor([550.0], dtype=xy_mm.dtype,
-                                                    device=xy_mm.device))
+        return _two_level(self.circle_mask(xy_mm), self.circle_reflectance,
+                          self.background_reflectance, wl)  # fmt: skip
 
 
 # =============================================================================================

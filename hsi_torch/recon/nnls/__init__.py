@@ -64,13 +64,20 @@ the solver: ``from hsi_torch.recon.nnls import solve_nnls, prepare_nnls``.
 
 from hsi_torch.recon.nnls._threads import cpu_threads
 from hsi_torch.recon.nnls.kkt import masked_gram, nnls_kkt_residual, smoothness_gram
-from hsi_torch.recon.nnls.problem import NNLSProblem, NNLSResult, prepare_nnls, solve_nnls
+from hsi_torch.recon.nnls.problem import (
+    NNLSProblem,
+    NNLSResult,
+    SolveOptions,
+    prepare_nnls,
+    solve_nnls,
+)
 
 __all__ = [
     "NNLSResult",
     "NNLSProblem",
     "prepare_nnls",
     "solve_nnls",
+    "SolveOptions",
     "nnls_kkt_residual",
     "smoothness_gram",
     "masked_gram",

@@ -10,9 +10,11 @@ sensing matrices are not kept: right-hand sides ``Aᵀ W y`` go through the oper
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypedDict
 
 import torch
 from torch import Tensor
+from typing_extensions import Unpack  # Python 3.10 (a dependency of torch)
 
 from hsi_torch.forward_model import DenseSensing, SensingModel
 from hsi_torch.recon.nnls import _compiled
@@ -41,7 +43,7 @@ from hsi_torch.recon.nnls.kkt import (
     smoothness_gram,
 )
 
-__all__ = ["NNLSResult", "NNLSProblem", "prepare_nnls", "solve_nnls"]
+__all__ = ["NNLSResult", "NNLSProblem", "SolveOptions", "prepare_nnls", "solve_nnls"]
 
 _SOLVERS = ("active_set", "admm")
 _BACKENDS = ("auto", "torch", "compiled")
@@ -643,6 +645,27 @@ def _prepare(
                        singular, no_data)
 
 
+class SolveOptions(TypedDict, total=False):
+    """The options of :meth:`NNLSProblem.solve` (documented there), which :func:`solve_nnls`
+    takes as keywords too: ``solver``, ``tol``, ``max_iter``, ``refine``, ``chunk_size``,
+    ``max_memory``, ``x0``, ``admm_iters``, ``rho``, ``num_threads``, ``backend``."""
+
+    solver: str
+    tol: float | None
+    max_iter: int | None
+    refine: int | None
+    chunk_size: int | None
+    max_memory: int | None
+    x0: Tensor | None
+    admm_iters: int | None
+    rho: float | None
+    num_threads: int | None
+    backend: str
+
+
+_SOLVE_OPTIONS = frozenset(SolveOptions.__annotations__)
+
+
 def solve_nnls(
     A: Tensor | Sensing,
     y: Tensor,
@@ -650,17 +673,7 @@ def solve_nnls(
     beta: float = 0.0,
     mask: Tensor | None = None,
     diff_order: int = 1,
-    solver: str = "active_set",
-    tol: float | None = None,
-    max_iter: int | None = None,
-    refine: int | None = None,
-    chunk_size: int | None = None,
-    max_memory: int | None = None,
-    x0: Tensor | None = None,
-    admm_iters: int | None = None,
-    rho: float | None = None,
-    num_threads: int | None = None,
-    backend: str = "auto",
+    **options: Unpack[SolveOptions],
 ) -> NNLSResult:
     """Batched non-negative smoothness-regularised least squares, one problem per pixel.
 
@@ -675,14 +688,12 @@ def solve_nnls(
         beta: smoothness weight (≥ 0) on the data's scale.
         mask: ``(P, O)`` bool, True = observation used; None = all.
         diff_order: 0, 1 (default) or 2.
-        solver: ``"active_set"`` (exact, finite termination) or ``"admm"``.
-        tol, max_iter, refine, x0, admm_iters, rho: see :meth:`NNLSProblem.solve`.
-        chunk_size / max_memory: pixels per chunk or a working-memory budget in bytes; each chunk
-            is factorised and solved on its own, so memory stays bounded (per-pixel ``A``;
-            default 131 072 pixels per outer chunk on CPU).
-        num_threads: CPU threads (default ``torch.get_num_threads()``), see
-            :meth:`NNLSProblem.solve`.
-        backend: ``"auto"``, ``"torch"`` or ``"compiled"``, see :meth:`NNLSProblem.solve`.
+        **options: :class:`SolveOptions`, as :meth:`NNLSProblem.solve` takes them (``solver``:
+            ``"active_set"`` exact, or ``"admm"``; ``tol``, ``max_iter``, ``refine``, ``x0``,
+            ``admm_iters``, ``rho``, ``num_threads``, ``backend``). ``chunk_size`` /
+            ``max_memory`` (pixels per chunk or a working-memory budget in bytes) also bound the
+            outer chunks here: each is factorised and solved on its own, so memory stays bounded
+            (per-pixel ``A``; default 131 072 pixels per outer chunk on CPU).
 
     Returns:
         :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
@@ -695,6 +706,13 @@ def solve_nnls(
         >>> bool(res.converged.all()), bool((res.x >= 0).all())
         (True, True)
     """
+    unknown = sorted(set(options) - _SOLVE_OPTIONS)
+    if unknown:
+        raise TypeError(f"solve_nnls() got unexpected keyword argument(s) {unknown}; the "
+                        f"options are {sorted(_SOLVE_OPTIONS)}")
+    solver = options.get("solver", "active_set")
+    chunk_size, max_memory = options.get("chunk_size"), options.get("max_memory")
+    x0 = options.get("x0")
     op, mask, beta = _check_inputs(A, mask, beta, diff_order)
     if not isinstance(y, Tensor) or y.ndim != 2:
         raise ValueError(f"y must be a (P, O) tensor, got {getattr(y, 'shape', type(y))}")
@@ -707,9 +725,9 @@ def solve_nnls(
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
         return _empty_result(op.num_bands, op.dtype, op.device, solver)
-    workers = workers_for(op.device, num_threads)
-    kw = dict(solver=solver, tol=tol, max_iter=max_iter, refine=refine, admm_iters=admm_iters,
-              rho=rho, num_threads=workers, backend=backend)
+    workers = workers_for(op.device, options.get("num_threads"))
+    kw = {k: v for k, v in options.items() if k not in ("chunk_size", "max_memory", "x0")}
+    kw["num_threads"] = workers
     if op.shared and mask is None:
         prob = prepare_nnls(op, beta=beta, diff_order=diff_order, num_threads=workers)
         return prob.solve(y, chunk_size=chunk_size, max_memory=max_memory, x0=x0, **kw)
