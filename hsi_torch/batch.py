@@ -62,6 +62,9 @@ __all__ = [
     "check_out_dir",
     "ensure_out_dir",
     "fingerprint_of",
+    "OutputClaims",
+    "InputClaim",
+    "clean_run_leftovers",
 ]
 
 DONE_DIR = ".hsi_torch_done"
@@ -380,6 +383,122 @@ def _as_paths(result: Any) -> list[Path]:
     return [Path(p) for p in result]
 
 
+class InputClaim:
+    """What :func:`run_batch` does around one input, in steps, for drivers that run the input
+    elsewhere (the distributed run of :mod:`hsi_torch.recon.many`): :meth:`begin` before the
+    work (input exists; with markers: the name lock, the ownership check, the ``"started"``
+    claim), :meth:`finish` after it (the ``"done"`` marker with the outputs' stamps) or
+    :meth:`abandon` when it failed or was interrupted (the earlier marker back, the lock freed).
+    Made by :meth:`OutputClaims.claim`."""
+
+    def __init__(self, claims: OutputClaims, inp: Path) -> None:
+        self.claims = claims
+        self.input = inp
+        self.key = os.path.abspath(inp)
+        self.marker = _marker_path(claims.out, inp)
+        self.planned: list[str] = []
+        self._record: dict[str, Any] = {}
+        self._previous: dict[str, Any] | None = None
+        self._claimed = False
+        self._lock = contextlib.ExitStack()
+
+    def begin(self) -> None:
+        """Check the input and claim its planned outputs (see :func:`run_batch`).
+
+        Raises:
+            FileNotFoundError: the input is missing.
+            InputError: another input owns the outputs, or another run writes them right now.
+        """
+        inp, out, owners = self.input, self.claims.out, self.claims.owners
+        if not inp.exists():
+            raise FileNotFoundError(f"input file not found: {inp}")
+        stamp = _input_stamp(inp)
+        if owners is None:
+            return
+        # one run at a time writes the outputs of a name into this folder
+        self._lock.enter_context(_name_lock(out, inp.stem))
+        owners.refresh(out, inp.stem)  # claims a concurrent run made meanwhile
+        planned_fn = self.claims.planned_outputs
+        self.planned = [os.path.abspath(p) for p in planned_fn(inp)] \
+            if planned_fn is not None else []  # fmt: skip
+        clash = owners.conflict(self.key, self.planned)
+        if clash is not None:
+            other, names = clash
+            shown = ", ".join(Path(n).name for n in names[:4])
+            raise InputError(
+                f"{inp}: its outputs ({shown}) in {out} already belong to another "
+                f"input, {other}; rename one of the two, write into another folder, "
+                "or delete those outputs first"
+            )
+        self._record = {
+            "status": "started",
+            "input": self.key,
+            "input_stamp": stamp,
+            "fingerprint": self.claims.fingerprint,
+            "outputs": self.planned,
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        self._previous = _read_marker(self.marker)
+        atomic_write_json(self.marker, self._record)  # the claim, before any output exists
+        self._claimed = True
+        owners.claim(self.marker, self.key, self.planned)
+
+    def finish(self, outputs: Sequence[Path]) -> None:
+        """The input's outputs are written: mark it done (then the lock is freed)."""
+        owners = self.claims.owners
+        try:
+            if owners is not None:
+                done = [os.path.abspath(p) for p in outputs]
+                self._record.update(
+                    status="done", outputs=done,
+                    output_stamps={p: _file_stamp(p) for p in done},
+                    finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
+                )  # fmt: skip
+                atomic_write_json(self.marker, self._record)
+                owners.claim(self.marker, self.key, sorted(set(done) | set(self.planned)))
+        finally:
+            self._lock.close()
+
+    def abandon(self) -> None:
+        """The input failed or was interrupted: no claim of an unfinished input is left."""
+        if self._claimed:
+            _release_claim(self.claims.owners, self.marker, self.key, self._previous)
+            self._claimed = False
+        self._lock.close()
+        with contextlib.suppress(OSError):  # the marker folder, if nothing is in it
+            (self.claims.out / DONE_DIR).rmdir()
+
+
+class OutputClaims:
+    """The resume and ownership bookkeeping of one output folder (see the module docstring):
+    :meth:`is_done` decides resumption, :meth:`claim` makes an :class:`InputClaim`. Arguments
+    as :func:`run_batch`'s."""
+
+    def __init__(
+        self,
+        out: Path,
+        fingerprint: str | None = None,
+        planned_outputs: PathsFn | None = None,
+        expected_outputs: PathsFn | None = None,
+    ) -> None:
+        self.out = out
+        self.fingerprint = fingerprint
+        self.planned_outputs = planned_outputs
+        self.expected_outputs = expected_outputs
+        self.owners = _Owners(out) if expected_outputs is None else None
+
+    def is_done(self, inp: Path) -> bool:
+        return _is_done(inp, self.out, self.expected_outputs, self.fingerprint)
+
+    def claim(self, inp: Path) -> InputClaim:
+        return InputClaim(self, inp)
+
+
+def clean_run_leftovers(out: Path) -> list[Path]:
+    """Remove the temporary files of killed runs from ``out`` and its marker folder."""
+    return clean_stale_temp_files(out) + clean_stale_temp_files(out / DONE_DIR)
+
+
 def run_batch(
     inputs: Iterable[str | os.PathLike],
     process: ProcessFn,
@@ -417,67 +536,22 @@ def run_batch(
     paths = expand_inputs(inputs)
     out = ensure_out_dir(out_dir)
     summary = BatchSummary()
-    summary.cleaned = clean_stale_temp_files(out) + clean_stale_temp_files(out / DONE_DIR)
-    owners = _Owners(out) if expected_outputs is None else None
+    summary.cleaned = clean_run_leftovers(out)
+    claims = OutputClaims(out, fingerprint, planned_outputs, expected_outputs)
     t0 = time.perf_counter()
     bar = progress_bar(paths, enabled=progress, desc=desc, unit="file", leave=True)
     try:
         for inp in bar:
-            if resume and _is_done(inp, out, expected_outputs, fingerprint):
+            if resume and claims.is_done(inp):
                 summary.skipped.append(inp)
                 continue
-            key = os.path.abspath(inp)
-            marker = _marker_path(out, inp)
-            previous: dict[str, Any] | None = None
-            claimed = False
-            lock = contextlib.ExitStack()
+            claim = claims.claim(inp)
             try:
-                if not inp.exists():
-                    raise FileNotFoundError(f"input file not found: {inp}")
-                stamp = _input_stamp(inp)
-                if owners is not None:
-                    # one run at a time writes the outputs of a name into this folder
-                    lock.enter_context(_name_lock(out, inp.stem))
-                    owners.refresh(out, inp.stem)  # claims a concurrent run made meanwhile
-                    planned = [os.path.abspath(p) for p in planned_outputs(inp)] \
-                        if planned_outputs is not None else []  # fmt: skip
-                    clash = owners.conflict(key, planned)
-                    if clash is not None:
-                        other, names = clash
-                        shown = ", ".join(Path(n).name for n in names[:4])
-                        raise InputError(
-                            f"{inp}: its outputs ({shown}) in {out} already belong to another "
-                            f"input, {other}; rename one of the two, write into another folder, "
-                            "or delete those outputs first"
-                        )
-                    record: dict[str, Any] = {
-                        "status": "started",
-                        "input": key,
-                        "input_stamp": stamp,
-                        "fingerprint": fingerprint,
-                        "outputs": planned,
-                        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                    }
-                    previous = _read_marker(marker)
-                    atomic_write_json(marker, record)  # the claim, before any output exists
-                    claimed = True
-                    owners.claim(marker, key, planned)
+                claim.begin()
                 outputs = _as_paths(process(inp))
-                if owners is not None:
-                    done = [os.path.abspath(p) for p in outputs]
-                    record.update(
-                        status="done", outputs=done,
-                        output_stamps={p: _file_stamp(p) for p in done},
-                        finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
-                    )  # fmt: skip
-                    atomic_write_json(marker, record)
-                    owners.claim(marker, key, sorted(set(done) | set(planned)))
+                claim.finish(outputs)
             except BaseException as exc:
-                if claimed:  # failed or interrupted (Ctrl-C): no claim of an unfinished input
-                    _release_claim(owners, marker, key, previous)
-                lock.close()
-                with contextlib.suppress(OSError):  # the marker folder, if nothing is in it
-                    (out / DONE_DIR).rmdir()
+                claim.abandon()  # failed or interrupted (Ctrl-C)
                 if not isinstance(exc, Exception):
                     raise
                 summary.failed.append(
@@ -486,8 +560,6 @@ def run_batch(
                 if progress:
                     bar.set_postfix(failed=len(summary.failed))
                 continue
-            finally:
-                lock.close()
             summary.processed.append(inp)
             summary.outputs[inp] = outputs
     finally:
