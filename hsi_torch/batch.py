@@ -65,6 +65,7 @@ __all__ = [
     "OutputClaims",
     "InputClaim",
     "clean_run_leftovers",
+    "input_stamp",
 ]
 
 DONE_DIR = ".hsi_torch_done"
@@ -206,7 +207,12 @@ def fingerprint_of(obj: Any) -> str:
     return hashlib.sha1(text.encode("utf-8")).hexdigest()
 
 
-def _input_stamp(inp: Path) -> list[int]:
+def input_stamp(inp: Path) -> list[int]:
+    """``[size, mtime_ns]`` of an input file (how resume tells that it changed).
+
+    Raises:
+        OSError: it cannot be read (missing, ...).
+    """
     st = inp.stat()
     return [int(st.st_size), int(st.st_mtime_ns)]
 
@@ -258,7 +264,7 @@ def _is_done(
     if rec is None or rec.get("status", "done") != "done":  # none, unreadable, or interrupted
         return False
     try:
-        stamp = _input_stamp(inp)
+        stamp = input_stamp(inp)
     except OSError:
         return False
     if rec.get("input_stamp") != stamp:  # the input changed since it was processed
@@ -321,7 +327,7 @@ def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
     named ``stem`` are written; another run holding it makes this input fail at once, naming
     that run's process id. (No locking where ``fcntl`` does not exist.)"""
     try:
-        import fcntl
+        import fcntl  # lazy: POSIX only
     except ImportError:  # not POSIX
         yield
         return
@@ -412,7 +418,7 @@ class InputClaim:
         inp, out, owners = self.input, self.claims.out, self.claims.owners
         if not inp.exists():
             raise FileNotFoundError(f"input file not found: {inp}")
-        stamp = _input_stamp(inp)
+        stamp = input_stamp(inp)
         if owners is None:
             return
         # one run at a time writes the outputs of a name into this folder

@@ -91,6 +91,10 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ 'shots/*.tif' extra.dng",
         "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ --set beta=1000 "
         "--set 'formats=[tiff, envi, netcdf]' scene.tif",
+        "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ --scheduler local:2 "
+        "'shots/*.tif'",
+        "hsi-torch reconstruct --bundle calib/calib.npz --out run1/ --format zarr "
+        "--scheduler tcp://head:8786 'shots/*.dng'",
     ],
     "experiment": [
         "hsi-torch experiment synthetic --out out/synthetic",
@@ -153,6 +157,40 @@ def _add_global(p: argparse.ArgumentParser, default: Any) -> None:
     )  # fmt: skip
 
 
+def _add_cluster_options(p: argparse.ArgumentParser) -> None:
+    """``reconstruct``'s options for a run on a Dask cluster and for the dataset store."""
+    g = p.add_argument_group(
+        "many captures (Dask cluster, dataset store; pip install 'hsi-torch[cluster]')"
+    )
+    where = g.add_mutually_exclusive_group()
+    where.add_argument(
+        "--scheduler", metavar="SPEC", default=None,
+        help="reconstruct on Dask workers: local:N (N worker processes on this machine, started "
+             "and stopped by the command) or a running scheduler's address, tcp://host:8786",
+    )  # fmt: skip
+    where.add_argument(
+        "--scheduler-file", type=Path, default=None, metavar="FILE",
+        help="the scheduler's address from the file it wrote (dask scheduler "
+             "--scheduler-file, dask-mpi, ...)",
+    )  # fmt: skip
+    g.add_argument(
+        "--threads-per-worker", type=int, default=None, metavar="K",
+        help="torch and numba threads per frame in each worker (default: cores / N for "
+             "local:N, else the worker's own thread count)",
+    )  # fmt: skip
+    g.add_argument(
+        "--send-bundle", action="store_true",
+        help="send the bundle's bytes to the workers instead of its path (workers that do "
+             "not see this file system)",
+    )  # fmt: skip
+    g.add_argument(
+        "--format", choices=("files", "zarr"), default="files",
+        help="files: the configured cube files per input (default); zarr: one chunked Zarr "
+             "store OUT/cubes.zarr for the whole run (one frame per input, opens with "
+             "xarray.open_zarr; no previews)",
+    )  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``hsi-torch`` (sub-command stored in ``args.command``)."""
     raw = argparse.RawDescriptionHelpFormatter
@@ -198,6 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-resume", dest="resume", action="store_false",
         help="re-process inputs whose outputs already exist",
     )  # fmt: skip
+    _add_cluster_options(p)
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="capture files or glob patterns")
 
     p = command("experiment", "run a named experiment (synthetic, opd, usaf, design)")

@@ -1,0 +1,185 @@
+"""The Dask side of a distributed batch run: connecting to a cluster, handing tasks to workers.
+
+:func:`connect` gives a ``distributed.Client`` for ``--scheduler local:N`` (a ``LocalCluster`` of
+N worker processes, one task thread each, started and stopped here), ``--scheduler
+tcp://host:8786`` (a running scheduler: ``dask scheduler``, ``dask-jobqueue``, ``dask-mpi``,
+...) or ``--scheduler-file FILE`` (the file such a scheduler wrote). :class:`DaskExecutor` runs the
+tasks of :func:`hsi_torch.recon.many.run_many` on its workers: a bounded number in flight (twice
+the cluster's task threads, at least 4, re-read as workers come and go), results taken as they
+complete, the not-yet-started ones cancelled on Ctrl-C.
+
+Threads: ``local:N`` gives every frame ``cores // N`` torch and numba threads (at least 1) unless
+``threads_per_worker`` says otherwise; on an existing cluster a frame gets its worker's Dask
+thread count (``dask worker --nthreads``), since a worker process runs one frame at a time.
+
+Needs the optional extra ``pip install 'hsi-torch[cluster]'`` (``dask[distributed]``), imported
+only here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import re
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+__all__ = ["connect", "parse_scheduler", "DaskExecutor", "in_dask_worker"]
+
+_HINT = "pip install 'hsi-torch[cluster]'"
+_ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc|ws|wss)://\S+$")
+
+
+def _distributed() -> Any:
+    try:
+        import distributed  # lazy: optional dependency (the cluster extra)
+    except ModuleNotFoundError:
+        raise ModuleNotFoundError(
+            f"a distributed run needs the optional package 'distributed' (Dask): {_HINT}",
+            name="distributed",
+        ) from None
+    return distributed
+
+
+def in_dask_worker() -> Any | None:
+    """The Dask worker running this code, or ``None`` (Dask is never imported here: only a
+    process in which it is already loaded can be a worker)."""
+    mod = sys.modules.get("distributed")
+    if mod is None:
+        return None
+    try:
+        return mod.get_worker()
+    except ValueError:  # not in a worker
+        return None
+
+
+def parse_scheduler(spec: str) -> tuple[str, Any]:
+    """``"local:N"`` → ``("local", N)``; ``"tcp://host:port"`` (or ``tls://``, ...) →
+    ``("address", spec)``.
+
+    Raises:
+        ValueError: anything else (the message shows the accepted forms).
+    """
+    text = str(spec).strip()
+    m = re.fullmatch(r"local:(\d+)", text)
+    if m:
+        n = int(m.group(1))
+        if n < 1:
+            raise ValueError(f"--scheduler {text!r}: local:N needs N >= 1 worker processes")
+        return "local", n
+    if _ADDRESS.match(text):
+        return "address", text
+    raise ValueError(
+        f"--scheduler {text!r}: expected local:N (N worker processes on this machine) or a "
+        "scheduler address such as tcp://host:8786 (or use --scheduler-file FILE)"
+    )
+
+
+@contextlib.contextmanager
+def connect(
+    scheduler: str | None = None,
+    scheduler_file: str | os.PathLike | None = None,
+    *,
+    threads_per_worker: int | None = None,
+    timeout_s: float = 30.0,
+) -> Iterator[tuple[Any, int | None]]:
+    """A ``distributed.Client`` for the run, and the torch/numba threads per frame.
+
+    Args:
+        scheduler: ``local:N`` or a scheduler address (see :func:`parse_scheduler`).
+        scheduler_file: the JSON file a scheduler wrote (``dask scheduler --scheduler-file``).
+        threads_per_worker: torch/numba threads per frame (default: ``cores // N`` for
+            ``local:N``; ``None`` otherwise: each worker's Dask thread count).
+        timeout_s: how long to wait for the scheduler.
+
+    Yields:
+        ``(client, threads)``; on exit the client is closed and a ``local:N`` cluster shut down.
+
+    Raises:
+        ValueError: bad ``scheduler``, both or neither given, ``threads_per_worker < 1``.
+        FileNotFoundError: the scheduler file does not exist.
+        OSError: the scheduler cannot be reached (the message names it).
+    """
+    if bool(scheduler) == bool(scheduler_file):
+        raise ValueError("give one of --scheduler and --scheduler-file")
+    if threads_per_worker is not None and threads_per_worker < 1:
+        raise ValueError(f"--threads-per-worker must be >= 1, got {threads_per_worker}")
+    kind, value = parse_scheduler(scheduler) if scheduler else ("file", Path(scheduler_file))
+    if kind == "file" and not Path(value).is_file():
+        raise FileNotFoundError(f"scheduler file not found: {value}")
+    distributed = _distributed()
+    cluster = None
+    threads = threads_per_worker
+    with contextlib.ExitStack() as stack:
+        if kind == "local":
+            cluster = distributed.LocalCluster(
+                n_workers=value, threads_per_worker=1, processes=True, dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )  # fmt: skip
+            stack.callback(cluster.close)
+            client = distributed.Client(cluster)
+            if threads is None:
+                threads = max(1, (os.cpu_count() or 1) // value)
+        else:
+            where = f"scheduler {value}" if kind == "address" else f"scheduler file {value}"
+            try:
+                client = (distributed.Client(value, timeout=timeout_s) if kind == "address"
+                          else distributed.Client(scheduler_file=str(value), timeout=timeout_s))
+            except (OSError, TimeoutError) as exc:
+                raise OSError(f"cannot connect to the {where}: {exc}") from None
+        stack.callback(client.close)
+        yield client, threads
+
+
+class DaskExecutor:
+    """Runs the tasks of :func:`hsi_torch.recon.many.run_many` on a cluster's workers (see the
+    module docstring). :meth:`share` scatters data (the bundle's bytes) to every worker once; the
+    copies are kept while the executor lives, and workers that join later fetch one from
+    another."""
+
+    def __init__(self, client: Any) -> None:
+        distributed = _distributed()
+        self.client = client
+        self._ac = distributed.as_completed()
+        self._shared: list[Any] = []
+        self._window = 4
+        self._window_at = float("-inf")
+
+    def share(self, data: bytes) -> Any:
+        fut = self.client.scatter(data, broadcast=True, hash=False)
+        self._shared.append(fut)
+        return fut
+
+    def window(self) -> int:
+        """Tasks in flight: twice the cluster's task threads (at least 4), re-read every 2 s."""
+        now = time.monotonic()
+        if now - self._window_at > 2.0:
+            with contextlib.suppress(Exception):  # keep the last value if the scheduler is busy
+                self._window = max(4, 2 * sum(self.client.nthreads().values()))
+            self._window_at = now
+        return self._window
+
+    def submit(self, fn: Callable[..., dict[str, Any]], *args: Any, name: str) -> Any:
+        key = f"hsi-reconstruct-{name}-{uuid.uuid4().hex[:8]}"
+        fut = self.client.submit(fn, *args, key=key, pure=False)
+        self._ac.add(fut)
+        return fut
+
+    def wait_one(self) -> tuple[Any, dict[str, Any] | None, BaseException | None]:
+        fut = next(self._ac)
+        try:
+            return fut, fut.result(), None
+        except Exception as exc:  # noqa: BLE001 - KilledWorker, CancelledError, ...
+            return fut, None, exc
+
+    def cancel(self, tokens: Iterable[Any]) -> None:
+        futs = list(tokens)
+        if futs:
+            with contextlib.suppress(Exception):
+                self.client.cancel(futs, force=True)
+
