@@ -40,10 +40,11 @@ def frames(tmp_path_factory) -> tuple[Path, list[Path]]:
     (brightness x 1.0 ... 0.55, each with its own Poisson noise): ``(bundle, [capture, ...])``."""
     root = tmp_path_factory.mktemp("frames")
     sim = root / "sim"
-    assert main(["-q", "simulate", "--out", str(sim),
-                 "--set", "captures.scan_wavelengths_nm=[550]", "--set", "captures.white_shots=0",
-                 "--set", "captures.grid.poses=[]", "--set", "render.figures=false",
-                 "--set", "render.dtype=float32"]) == 0  # fmt: skip
+    rc = main(["-q", "simulate", "--out", str(sim),
+               "--set", "captures.scan_wavelengths_nm=[]", "--set", "captures.white_shots=0",
+               "--set", "captures.grid.poses=[]", "--set", "captures.dark_frames=0",
+               "--set", "render.figures=false", "--set", "render.dtype=float32"])  # fmt: skip
+    assert rc == 0
     bundle = root / "oracle.npz"
     bundle_from_truth(sim).save(bundle)
     img, meta = read_capture(sim / "scenes" / "colorchecker.tif")

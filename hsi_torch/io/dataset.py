@@ -17,8 +17,8 @@ wavelength   (wavelength,) coordinate     float64                 band centres, 
 y, x         coordinates                  int64                   reference-frame pixel indices
 ===========  ===========================  ========  ============  ================================
 
-``cube`` is compressed with Zstandard (level 1: ~0.16 s and 27 % of the raw 64 MB for a
-full-size frame). The root attributes hold ``hsi_torch_dataset`` (layout version),
+``cube`` is compressed with Zstandard (level 1: 0.1–0.2 s and 27–43 % of the raw 61 MiB for the
+full-size demo's three scenes). The root attributes hold ``hsi_torch_dataset`` (layout version),
 ``wavelengths_nm``, ``frame_size`` and ``bundle``.
 
 **Written concurrently, without a lock on the store.** One frame is one chunk of each variable,

@@ -62,6 +62,7 @@ def run_reconstruct(args: argparse.Namespace) -> BatchSummary:
         args.inputs, args.bundle, args.out, cfg, device=getattr(args, "device", None),
         formats=output_format == "files",
         config_source=str(args.config) if getattr(args, "config", None) else None,
+        device_here=not (scheduler or scheduler_file),
     )  # fmt: skip
     if scheduler or scheduler_file or output_format != "files":
         return run_many_cli(run, args, output_format=output_format)

@@ -190,8 +190,8 @@ def set_threads(n: int | None) -> None:
     per thread; ``None``: leave both)."""
     if not n:
         return
-    if torch.get_num_threads() != n:
-        torch.set_num_threads(n)
+    # always: torch's OpenMP setting is per thread too, and a task may run in a new thread
+    torch.set_num_threads(n)
     numba.set_num_threads(max(1, min(int(n), int(numba.config.NUMBA_NUM_THREADS))))
 
 
@@ -704,7 +704,7 @@ def reconstruct_many(
     if client is None and (threads_per_worker or send_bundle):
         raise ValueError("threads_per_worker and send_bundle need a client (a cluster)")
     run = check_run(inputs, bundle, out_dir, cfg, device=device,
-                    formats=output_format == "files")  # fmt: skip
+                    formats=output_format == "files", device_here=client is None)  # fmt: skip
     if client is None:
         if output_format == "files":
             run.start()

@@ -229,12 +229,12 @@ def _plot_points(
     return path
 
 
-def _resolve_device(name: str) -> torch.device:
+def _resolve_device(name: str, here: bool = True) -> torch.device:
     try:
         dev = torch.device(name)
     except RuntimeError as exc:
         raise ValueError(f"config key 'device': invalid torch device {name!r} ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
+    if here and dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"config key 'device': {name!r} requested but CUDA is not available")
     return dev
 
@@ -301,12 +301,13 @@ def check_run(
     device: str | None = None,
     formats: bool = True,
     config_source: str | None = None,
+    device_here: bool = True,
 ) -> ReconstructRun:
     """Check everything a run needs before anything is written: the cube formats' optional
     packages (unless ``formats=False``: a run writing a dataset store instead), the inputs (a
-    glob matching nothing fails here), the device, the bundle, ``spectra_points`` and
-    ``min_views`` against the bundle."""
-
+    glob matching nothing fails here), the device (``device_here=False``: only its name — the
+    frames run on other machines, e.g. GPU workers of a driver without one), the bundle,
+    ``spectra_points`` and ``min_views`` against the bundle."""
     if formats:
         for fmt in cfg.formats:  # an optional package that is missing fails before any work
             try:
@@ -316,7 +317,7 @@ def check_run(
     paths = expand_inputs(inputs)  # a glob matching nothing fails before anything is written
     if device:
         cfg.device = str(device)
-    dev = _resolve_device(cfg.device)
+    dev = _resolve_device(cfg.device, here=device_here)
     dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
     bundle_path = Path(os.path.abspath(bundle))
     b = load_bundle(bundle_path)
