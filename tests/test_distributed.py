@@ -193,7 +193,9 @@ def test_dask_resume(frames, serial, client, tmp_path):
     stale.write_bytes(b"partial")
     with open(out / "shot1.npz", "r+b") as f:  # damaged after the run
         f.truncate(100)
-    s2 = reconstruct_many(caps, bundle, out, client=client, overrides=_FILES, progress=False)
+    # (the bundle's bytes sent to the workers this time: the same content, the same outputs)
+    s2 = reconstruct_many(caps, bundle, out, client=client, overrides=_FILES, progress=False,
+                          send_bundle=True)  # fmt: skip
     assert s2.exit_code == 0
     assert s2.skipped == [caps[0], caps[2]]
     assert s2.processed == [caps[1]] + caps[3:]
@@ -233,8 +235,12 @@ def test_cli_zarr_store_on_a_running_scheduler(frames, serial, client, tmp_path,
         assert meta["stats"] == c.metadata["stats"]
     assert np.isnan(ds.cube[1].values).all() and not ds.valid[1].values.any()
     ds.close()
-    # resume: the complete frames are skipped, the bad one fails again
-    assert main(argv) == 1
+    # resume, through the scheduler file a scheduler writes (dask scheduler --scheduler-file):
+    # the complete frames are skipped, the bad one fails again
+    sched = tmp_path / "scheduler.json"
+    sched.write_text(json.dumps({"type": "Scheduler", "address": client.scheduler.address}))
+    i = argv.index("--scheduler")
+    assert main(argv[:i] + ["--scheduler-file", str(sched)] + argv[i + 2:]) == 1
     assert "3 skipped" in capsys.readouterr().err
 
 
