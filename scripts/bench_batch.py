@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import glob
 import json
-import logging
 import os
 import shutil
 import sys
@@ -118,8 +117,7 @@ def _import_package() -> float:
 
 
 def child_dask(spec: dict[str, Any]) -> dict[str, Any]:
-    import distributed
-
+    from hsi_torch.recon.distributed import connect
     from hsi_torch.recon.many import reconstruct_many
 
     n = int(spec["workers"])
@@ -127,9 +125,8 @@ def child_dask(spec: dict[str, Any]) -> dict[str, Any]:
     out = Path(spec["out"])
     threads = max(1, (os.cpu_count() or 1) // n)
     t0 = time.perf_counter()
-    cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
-    client = distributed.Client(cluster)
+    ctx = connect(f"local:{n}")  # the cluster of hsi-torch reconstruct --scheduler local:N
+    client, _ = ctx.__enter__()
     client.wait_for_workers(n)
     start_s = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -148,8 +145,7 @@ def child_dask(spec: dict[str, Any]) -> dict[str, Any]:
         warm_s = time.perf_counter() - t3
         workers_rss = client.run(peak_rss_gib)
     finally:
-        client.close()
-        cluster.close()
+        ctx.__exit__(None, None, None)
     if cold.failed or warm.failed:
         raise SystemExit(f"failures: {cold.report()}\n{warm.report()}")
     return {"workers": n, "threads": threads, "start_s": start_s, "imports_s": imports,

@@ -9,7 +9,6 @@ bundle. The cluster tests share one ``LocalCluster`` of 2 worker processes with 
 from __future__ import annotations
 
 import json
-import logging
 import os
 import signal
 import subprocess
@@ -24,7 +23,7 @@ import torch
 
 from hsi_torch.cli import main
 from hsi_torch.io import load_cube, read_capture, write_capture
-from hsi_torch.recon.distributed import parse_scheduler
+from hsi_torch.recon.distributed import connect, parse_scheduler
 from hsi_torch.recon.many import reconstruct_many
 from hsi_torch.simulate.oracle import bundle_from_truth
 
@@ -71,12 +70,16 @@ def serial(frames, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def client():
-    """A ``LocalCluster`` of 2 worker processes, one thread each, for the module."""
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None, silence_logs=logging.ERROR) as cluster:
-        with distributed.Client(cluster) as cl:
-            yield cl
+    """A ``LocalCluster`` of 2 worker processes, one task thread each, for the module (as
+    ``--scheduler local:2`` makes it)."""
+    pytest.importorskip("distributed")
+    nanny_vars = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                  "MALLOC_TRIM_THRESHOLD_", "PYTHONHASHSEED")  # fmt: skip
+    before = {k: os.environ.get(k) for k in nanny_vars}
+    with connect("local:2") as (cl, _):
+        yield cl
+    # the variables a nanny sets in its parent's environment do not leak into later tests
+    assert {k: os.environ.get(k) for k in nanny_vars} == before
 
 
 def _same_cube(a: Path, b: Path) -> None:
