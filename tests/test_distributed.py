@@ -118,6 +118,8 @@ def test_dask_two_workers_same_outputs_as_serial(frames, serial, client, tmp_pat
     # the bundle was prepared once per worker process, not once per frame, and both worked
     assert 1 <= len(s.prepare_s) <= 2 < len(caps)
     assert len(set(s.workers.values())) == 2
+    # the workers run without the nanny's malloc setting (see docs/cluster.md)
+    assert set(client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_").values()) == {None}
     # one torch and one numba thread per frame (2 workers on 2 cores)
     assert all(t == {"torch": 1, "numba": 1} for t in s.threads.values()), s.threads
     # a second run on the warm workers: nothing prepared again (resume off: every frame redone)
