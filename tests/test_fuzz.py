@@ -413,7 +413,7 @@ def _mutated(arrays: dict[str, np.ndarray], change: tuple) -> dict[str, np.ndarr
         how = change[2]
         if how == "add_axis":
             v = v[None]
-        elif how == "drop_axis" and v.ndim:
+        elif how == "drop_axis" and v.ndim and v.shape[0]:
             v = v[0]
         elif how == "transpose":
             v = v.T

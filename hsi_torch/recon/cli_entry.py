@@ -18,27 +18,9 @@ from hsi_torch.batch import BatchSummary
 from hsi_torch.cli import load_args_config
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.many import run_many_cli
-from hsi_torch.recon.run import (
-    RUNS_DIR,
-    ReconstructRun,
-    check_run,
-    frame_warnings,
-    output_paths,
-    preview_caption,
-    reconstruct_input,
-    reconstruct_to_files,
-    run_serial,
-    write_outputs,
-    write_run_config,
-)
+from hsi_torch.recon.run import check_run, run_serial
 
-__all__ = [
-    "run_reconstruct",
-    # the run's pieces, defined in hsi_torch.recon.run (re-exported for existing callers)
-    "write_outputs", "output_paths", "frame_warnings", "preview_caption", "write_run_config",
-    "RUNS_DIR", "ReconstructRun", "check_run", "reconstruct_input", "reconstruct_to_files",
-    "run_serial",
-]  # fmt: skip
+__all__ = ["run_reconstruct"]
 
 
 def run_reconstruct(args: argparse.Namespace) -> BatchSummary:
