@@ -54,7 +54,7 @@ from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.nnls import solve_nnls
-from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
+from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.recon.spatial import solve_frame as spatial_solve_frame
 from hsi_torch.recon.uncertainty import (
@@ -498,13 +498,8 @@ def fit_residual(
         x: ``(P, M)`` solution; y: ``(P, 3V)`` observations (zero where masked); mask, ok: as in
             :func:`solve_observations`.
     """
-    P = x.shape[0]
-    k = min(P, int(num_samples))
-    if k == 0:
-        return float("nan")
-    idx = torch.linspace(0, P - 1, k, device=x.device).round().long()
-    idx = idx[ok[idx]]
-    if idx.numel() == 0:
+    idx = sample_pixels(ok, num_samples)
+    if idx is None:
         return float("nan")
     model = sens.model
     w = mask.index_select(0, idx).to(model.dtype)

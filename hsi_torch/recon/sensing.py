@@ -312,3 +312,14 @@ def precompute_sensing(
             _CACHE.popitem(last=False)
     return sens
 
+
+def sample_pixels(ok: Tensor, num_samples: int) -> Tensor | None:
+    """Up to ``num_samples`` indices evenly spaced over the ``P`` pixels of ``ok (P,)`` — the same
+    ones every frame of a bundle — of which those ``ok`` keeps (``None`` when none is left)."""
+    P = int(ok.shape[0])
+    k = min(P, int(num_samples))
+    if k == 0:
+        return None
+    idx = torch.linspace(0, P - 1, k, device=ok.device).round().long()
+    idx = idx[ok[idx]]
+    return idx if idx.numel() else None

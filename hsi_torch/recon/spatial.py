@@ -60,16 +60,14 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from hsi_torch.recon.nnls import NNLSProblem
 from hsi_torch.recon.nnls._threads import cpu_threads
-
-if TYPE_CHECKING:
-    from hsi_torch.recon.sensing import BundleSensing
+from hsi_torch.recon.sensing import BundleSensing, sample_pixels
 
 __all__ = [
     "CHECK_EVERY",
@@ -694,13 +692,8 @@ def frame_noise_level(
     """Noise standard deviation (DN) of one frame's observations from its per-pixel solution
     ``x (P, M)``: :func:`estimate_noise` on up to ``num_samples`` evenly spaced valid pixels
     (residual ``‖W(A x − y)‖²``, ``n_p`` used observations, :func:`effective_dof`)."""
-    P = x.shape[0]
-    k = min(P, int(num_samples))
-    if k == 0:
-        return float("nan")
-    idx = torch.linspace(0, P - 1, k, device=x.device).round().long()
-    idx = idx[ok[idx]]
-    if idx.numel() == 0:
+    idx = sample_pixels(ok, num_samples)
+    if idx is None:
         return float("nan")
     model, prob = sens.model, sens.problem
     with torch.no_grad():
