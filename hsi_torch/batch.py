@@ -50,7 +50,12 @@ from typing import IO, Any
 
 from hsi_torch.console import progress_bar
 from hsi_torch.errors import InputError
-from hsi_torch.io.atomic import atomic_write_json, clean_stale_temp_files
+from hsi_torch.io.atomic import (
+    atomic_write_json,
+    clean_stale_temp_files,
+    lock_or_refuse,
+    mark_lock_holder,
+)
 
 __all__ = [
     "BatchFailure",
@@ -326,9 +331,7 @@ def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
     """Hold ``out_dir/.hsi_torch_done/<stem>.lock`` (an exclusive ``flock``) while the outputs
     named ``stem`` are written; another run holding it makes this input fail at once, naming
     that run's process id. (No locking where ``fcntl`` does not exist.)"""
-    try:
-        import fcntl  # lazy: POSIX only
-    except ImportError:  # not POSIX
+    if os.name != "posix":  # no fcntl
         yield
         return
     folder = out_dir / DONE_DIR
@@ -336,15 +339,9 @@ def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
     path = folder / f"{stem}.lock"
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
-            os.close(fd)
-            raise InputError(
-                f"outputs named '{stem}' in {out_dir} are being written by another run (process "
-                f"{holder}) right now; run again when it has finished"
-            ) from None
+        lock_or_refuse(fd, lambda holder: (
+            f"outputs named '{stem}' in {out_dir} are being written by another run (process "
+            f"{holder}) right now; run again when it has finished"))
         try:  # still the file at that name? (its holder removes it when done)
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
@@ -353,8 +350,7 @@ def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
             break
         os.close(fd)
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)
+        mark_lock_holder(fd)
         yield
     finally:
         with contextlib.suppress(OSError):

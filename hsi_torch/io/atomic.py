@@ -17,13 +17,13 @@ import json
 import os
 import re
 import tempfile
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
-from hsi_torch.errors import FileFormatError
+from hsi_torch.errors import FileFormatError, InputError
 
 __all__ = [
     "FileFormatError",
@@ -34,6 +34,8 @@ __all__ = [
     "atomic_save_npz",
     "atomic_write_new",
     "clean_stale_temp_files",
+    "lock_or_refuse",
+    "mark_lock_holder",
 ]
 
 #: Name of a temporary file of :func:`atomic_write`: ``.<name>.<pid>-<random>.tmp``.
@@ -233,3 +235,26 @@ def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
             os.unlink(entry.path)
             removed.append(Path(entry.path))
     return removed
+
+
+def lock_or_refuse(fd: int, busy: Callable[[str], str]) -> None:
+    """Take an exclusive, non-blocking ``flock`` on the open file ``fd``; when another process
+    holds it, close ``fd`` and raise :class:`~hsi_torch.errors.InputError` with ``busy(holder)``
+    (``holder``: the process id that :func:`mark_lock_holder` wrote, or ``"?"``). No locking where
+    ``fcntl`` does not exist."""
+    try:
+        import fcntl  # lazy: POSIX only
+    except ImportError:  # not POSIX
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+        os.close(fd)
+        raise InputError(busy(holder)) from None
+
+
+def mark_lock_holder(fd: int) -> None:
+    """Write this process's id into a lock file it holds (read by :func:`lock_or_refuse`)."""
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)

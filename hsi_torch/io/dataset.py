@@ -59,7 +59,13 @@ from typing import Any
 import numpy as np
 
 from hsi_torch.errors import FileFormatError, InputError
-from hsi_torch.io.atomic import atomic_write, atomic_write_text, json_default
+from hsi_torch.io.atomic import (
+    atomic_write,
+    atomic_write_text,
+    json_default,
+    lock_or_refuse,
+    mark_lock_holder,
+)
 from hsi_torch.io.cube import _nan_where_invalid, _np
 
 __all__ = [
@@ -427,21 +433,10 @@ def _read_json(path: Path) -> dict[str, Any]:
 def _lock(store: Path) -> int:
     """An exclusive ``flock`` on the store's lock file (no locking without ``fcntl``)."""
     fd = os.open(store / _LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        import fcntl  # lazy: POSIX only
-    except ImportError:  # not POSIX
-        return fd
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
-        os.close(fd)
-        raise InputError(
-            f"the dataset store {store} is being written by another run (process {holder}) "
-            "right now; run again when it has finished, or write into another folder"
-        ) from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)
+    lock_or_refuse(fd, lambda holder: (
+        f"the dataset store {store} is being written by another run (process {holder}) "
+        "right now; run again when it has finished, or write into another folder"))
+    mark_lock_holder(fd)
     return fd
 
 
