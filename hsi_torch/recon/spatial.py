@@ -397,21 +397,21 @@ class SpatialProblem:
         return SpatialProblem(self.gram, self.rho, self.inv, self.pixel_index, self.frame_size,
                               active, ex, ey, rows, row_gram, r_inv)
 
-    def apply_inv(self, x: Tensor) -> Tensor:
-        """``(G_p + ρI)⁻¹ x_p`` for all pixels ``(P, M)``."""
-        out = _rowvec(x, self.inv)
+    def _apply(self, x: Tensor, matrices: Tensor, row_matrices: Tensor | None) -> Tensor:
+        """``matrices_p x_p`` for all pixels, the frame's own ``row_matrices`` on ``row_index``."""
+        out = _rowvec(x, matrices)
         if self.row_index is not None:
             out = out.index_copy(0, self.row_index,
-                                 _rowvec(x.index_select(0, self.row_index), self.row_inv))
+                                 _rowvec(x.index_select(0, self.row_index), row_matrices))
         return out
+
+    def apply_inv(self, x: Tensor) -> Tensor:
+        """``(G_p + ρI)⁻¹ x_p`` for all pixels ``(P, M)``."""
+        return self._apply(x, self.inv, self.row_inv)
 
     def apply_gram(self, x: Tensor) -> Tensor:
         """``G_p x_p`` for all pixels ``(P, M)``."""
-        out = _rowvec(x, self.gram)
-        if self.row_index is not None:
-            out = out.index_copy(0, self.row_index,
-                                 _rowvec(x.index_select(0, self.row_index), self.row_gram))
-        return out
+        return self._apply(x, self.gram, self.row_gram)
 
     def to_cube(self, x: Tensor) -> Tensor:
         """``(P, M)`` → ``(M, h, w)`` (0 off the pixel set). Differentiable."""
