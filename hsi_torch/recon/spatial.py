@@ -59,18 +59,23 @@ from __future__ import annotations
 
 import math
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.recon import _spatial_compiled as compiled
 from hsi_torch.recon.nnls import NNLSProblem
 from hsi_torch.recon.nnls._threads import cpu_threads
 from hsi_torch.recon.sensing import BundleSensing, sample_pixels
 
 __all__ = [
     "CHECK_EVERY",
+    "RHO_SCALE",
+    "FRAME_TOL",
+    "FRAME_INNER_ITERS",
     "SpatialResult",
     "SpatialProblem",
     "grid_edges",
@@ -97,6 +102,21 @@ __all__ = [
 
 #: ADMM iterations between two checks of the stopping rule (tolerance-driven mode).
 CHECK_EVERY = 10
+
+#: The default ADMM penalty ``ρ`` relative to the median of ``trace(G_p)/M`` (the mean
+#: eigenvalue of the per-pixel Gram matrices). ``G``'s poorly determined spectral directions,
+#: where the prior does its work, have eigenvalues far below the mean and converge at a rate
+#: ``≈ 1 − g/ρ``: measured on the full-size prototype's frames, 10 iterations at 0.1 reach the
+#: quality (PSNR against the truth) of the converged answer, which 1.0 needed 40–130 for.
+RHO_SCALE = 0.1
+
+#: Tolerance of :func:`solve_frame` (the pipeline) on the relative primal/dual residuals, and its
+#: dual iterations per ADMM step. The relative primal residual mostly measures the
+#: well-determined directions, where ``x`` and ``z`` agree slowly with a small ``ρ`` but the
+#: answer hardly moves: at this tolerance (10 iterations on the full-size frames) the answers
+#: score within 0.15 dB of the ``tol = 1e-6`` answers (100–400 iterations).
+FRAME_TOL = 1e-2
+FRAME_INNER_ITERS = 5
 
 
 # -- the grid operator -------------------------------------------------------------------------
@@ -359,6 +379,8 @@ class SpatialProblem:
     row_index: Tensor | None = None
     row_gram: Tensor | None = None
     row_inv: Tensor | None = None
+    #: the compiled path's packed ``(G + ρI)⁻¹`` (shared by the frames of one bundle)
+    packed: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
     def num_pixels(self) -> int:
@@ -395,7 +417,42 @@ class SpatialProblem:
         else:
             rows, row_gram = None, None
         return SpatialProblem(self.gram, self.rho, self.inv, self.pixel_index, self.frame_size,
-                              active, ex, ey, rows, row_gram, r_inv)
+                              active, ex, ey, rows, row_gram, r_inv, self.packed)
+
+    def compiled_inputs(self) -> tuple[np.ndarray, tuple[np.ndarray, ...]] | None:
+        """The compiled CPU path's inputs: the packed ``(G + ρI)⁻¹`` and the graph (neighbour
+        positions and edge weights per pixel, see :mod:`hsi_torch.recon._spatial_compiled`);
+        ``None`` where that path does not apply (numba absent, not on the CPU, or the pixels not
+        in row-major order)."""
+        if not compiled.AVAILABLE or self.gram.device.type != "cpu":
+            return None
+        pix = self.pixel_index.numpy()
+        if pix.size > 1 and not bool((pix[1:] > pix[:-1]).all()):
+            return None
+        if "inv" not in self.packed:
+            self.packed["inv"] = compiled.pack_symmetric(self.inv.numpy())
+        return self.packed["inv"], self._graph()
+
+    def _graph(self) -> tuple[np.ndarray, ...]:
+        h, w = self.frame_size
+        pix = self.pixel_index.numpy()
+        n = pix.size
+        dt = self.gram.numpy().dtype
+        pos = np.full(h * w, -1, np.int64)
+        pos[pix] = np.arange(n)
+        ex = self.ex.reshape(-1).numpy().astype(dt)
+        ey = self.ey.reshape(-1).numpy().astype(dt)
+        own = np.arange(n)
+        wx, wy = ex[pix], ey[pix]
+        right = np.where(wx != 0, pos[np.minimum(pix + 1, h * w - 1)], own)
+        down = np.where(wy != 0, pos[np.minimum(pix + w, h * w - 1)], own)
+        has_left = pix % w > 0
+        wl = np.where(has_left, ex[np.maximum(pix - 1, 0)], 0).astype(dt)
+        left = np.where(wl != 0, pos[np.maximum(pix - 1, 0)], own)
+        wu = np.where(pix >= w, ey[np.maximum(pix - w, 0)], 0).astype(dt)
+        up = np.where(wu != 0, pos[np.maximum(pix - w, 0)], own)
+        row_ptr = np.searchsorted(pix // w, np.arange(h + 1)).astype(np.int64)
+        return row_ptr, right, down, left, up, wx, wy, wl, wu
 
     def _apply(self, x: Tensor, matrices: Tensor, row_matrices: Tensor | None) -> Tensor:
         """``matrices_p x_p`` for all pixels, the frame's own ``row_matrices`` on ``row_index``."""
@@ -441,7 +498,8 @@ def prepare_spatial(
         frame_size: ``(h, w)``.
         active: ``(P,)`` bool, pixels coupled by TV (default all). Inactive pixels (e.g. too few
             views) are solved alone (their prox is the projection on ``≥ 0``).
-        rho: ADMM penalty (default the median of ``trace(G_p)/M`` over the active pixels).
+        rho: ADMM penalty (default :data:`RHO_SCALE` × the median of ``trace(G_p)/M`` over the
+            active pixels).
 
     Returns:
         :class:`SpatialProblem`.
@@ -470,7 +528,7 @@ def prepare_spatial(
         if rho is None:
             tr = gram.diagonal(dim1=1, dim2=2).sum(1) / m
             sel = tr[active] if tr.shape[0] == P and bool(active.any()) else tr
-            rho = float(sel.median()) if sel.numel() else 1.0
+            rho = RHO_SCALE * float(sel.median()) if sel.numel() else 1.0
             if not rho > 0:
                 rho = 1.0
     if not float(rho) > 0:
@@ -522,6 +580,7 @@ def solve_spatial(
     iters: int | None = None,
     inner_iters: int = 10,
     num_threads: int | None = 1,
+    backend: str = "auto",
 ) -> SpatialResult:
     """ADMM for ``min_{s ≥ 0} Σ_p s_pᵀG_p s_p − 2 b_pᵀ s_p + λ·TV(s)`` (see the module docstring).
 
@@ -538,22 +597,32 @@ def solve_spatial(
         iters: run exactly this many iterations, out of place (differentiable w.r.t. ``b``,
             ``G`` and a tensor ``lam``).
         inner_iters: dual iterations of the TV prox per ADMM iteration (warm-started).
-        num_threads: torch's CPU intra-op threads while solving (default 1: the kernels are
-            small, and on a loaded machine multi-threaded kernels wait at their barriers — one
-            gradient of a 25 × 104 × 120 cube took 44 ms with 2 threads under load vs 0.24 ms
-            with one); ``None`` keeps torch's setting. No effect on other devices.
+        num_threads: torch's CPU intra-op threads in the torch path's iterations (default 1:
+            its kernels are small, and on a loaded machine multi-threaded kernels wait at their
+            barriers — one gradient of a 25 × 104 × 120 cube took 44 ms with 2 threads under
+            load vs 0.24 ms with one); ``None`` keeps torch's setting. No effect on other
+            devices. The compiled kernels run on torch's intra-op thread count at the call (as
+            the per-pixel solver's do).
+        backend: ``"auto"`` (the compiled CPU kernels of
+            :mod:`hsi_torch.recon._spatial_compiled` for the tolerance-driven mode on the CPU
+            when numba is installed, else torch), ``"torch"`` or ``"compiled"`` (an error where
+            it does not apply). Both run the same iterations; they agree to rounding.
 
     Returns:
         :class:`SpatialResult`.
     """
-    with cpu_threads(b.device, num_threads):
-        return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters)
+    if backend not in ("auto", "torch", "compiled"):
+        raise ValueError(f"backend must be 'auto', 'torch' or 'compiled', got {backend!r}")
+    return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters, backend,
+                          num_threads)
 
 
 def _solve_spatial(
     problem: SpatialProblem, b: Tensor, lam: float | Tensor, x0: Tensor | None,
     tol: float | None, max_iter: int, iters: int | None, inner_iters: int,
+    backend: str = "auto", num_threads: int | None = 1,
 ) -> SpatialResult:
+    kernel_threads = torch.get_num_threads()
     P, m = problem.num_pixels, problem.num_bands
     if b.shape != (P, m):
         raise ValueError(f"b must be ({P}, {m}), got {tuple(b.shape)}")
@@ -592,18 +661,28 @@ def _solve_spatial(
         return torch.where(act, zp, v.clamp_min(0)), pd
 
     if iters is not None:  # fixed iterations, out of place: differentiable
-        for _ in range(int(iters)):
-            x = problem.apply_inv(b + rho * (z - u))
-            z, pdual = z_update(x + u, pdual)
-            u = u + x - z
+        with cpu_threads(b.device, num_threads):
+            for _ in range(int(iters)):
+                x = problem.apply_inv(b + rho * (z - u))
+                z, pdual = z_update(x + u, pdual)
+                u = u + x - z
         return SpatialResult(z, int(iters), True, float("nan"), float("nan"), lam_f, rho)
+    inputs = problem.compiled_inputs() if backend != "torch" else None
+    if backend == "compiled" and inputs is None:
+        raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
+                         "row-major order")
+    if inputs is not None:
+        with torch.no_grad():
+            return _admm_compiled(problem, inputs, b, z, u, float(t), lam_f, tol, max_iter,
+                                  inner_iters, kernel_threads)
+
     def z_update_inplace(v: Tensor) -> Tensor:
         if lam_f == 0.0:
             return v.clamp_min(0)
         zc = ws.prox(problem.to_cube(v), t, inner_iters)
         return torch.where(act, problem.from_cube(zc), v.clamp_min(0))
 
-    with torch.no_grad():
+    with torch.no_grad(), cpu_threads(b.device, num_threads):
         if lam_f > 0:
             ws = _ProxWorkspace((m, *problem.frame_size), problem.ex, problem.ey, b.dtype,
                                 b.device)
@@ -624,6 +703,63 @@ def _solve_spatial(
                 done = True
                 break
     return SpatialResult(z, it, done, prim, dual, lam_f, rho)
+
+
+def _admm_compiled(
+    problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]], b: Tensor,
+    z0: Tensor, u0: Tensor, t: float, lam: float, tol: float, max_iter: int, inner_iters: int,
+    kernel_threads: int,
+) -> SpatialResult:
+    """The tolerance-driven ADMM of :func:`solve_spatial` with the compiled CPU kernels (same
+    iterations, same stopping rule as the torch loop)."""
+    inv, graph = inputs
+    rho = problem.rho
+    bn = np.ascontiguousarray(b.detach().numpy())
+    z = np.ascontiguousarray(z0.numpy()).copy()
+    u = np.ascontiguousarray(u0.numpy()).copy()
+    x, v = np.empty_like(z), np.empty_like(z)
+    P, m = z.shape
+    duals = [np.zeros((P, 2, m), z.dtype)] + [np.empty((P, 2, m), z.dtype) for _ in range(3)]
+    p = duals[0]
+    rows = problem.row_index.numpy() if problem.row_index is not None else None
+    row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
+    step = 1.0 / (8.0 * t) if t > 0 else 0.0
+    bnorm = float(np.linalg.norm(bn)) or 1.0
+    threads = compiled.threads(kernel_threads)
+    it, prim, dual, done, first = 0, float("inf"), float("inf"), False, True
+    with threads:
+        while it < max_iter:
+            for k in range(CHECK_EVERY):
+                if k == CHECK_EVERY - 1:
+                    z_prev = z.copy()
+                compiled.x_update(inv, bn, z, u, x, v, rho, not first)
+                first = False
+                if rows is not None:  # the frame's own factor on the changed pixels
+                    rhs = bn[rows] + rho * (z[rows] - u[rows])
+                    x[rows] = np.einsum("kij,kj->ki", row_inv, rhs)
+                    v[rows] = x[rows] + u[rows]
+                if lam == 0.0:
+                    np.maximum(v, 0, out=z)
+                    continue
+                p_cur = r_cur = p
+                kk = 1.0
+                for _ in range(inner_iters):
+                    p_new, r_new = [d for d in duals if d is not p_cur and d is not r_cur][:2]
+                    k_new = (1.0 + math.sqrt(1.0 + 4.0 * kk * kk)) / 2.0
+                    compiled.fgp_step(v, t, step, (kk - 1.0) / k_new, r_cur, p_cur, p_new, r_new,
+                                      z, graph)
+                    p_cur, r_cur, kk = p_new, r_new, k_new
+                p = p_cur
+                compiled.fgp_primal(v, t, p, z, graph)
+            it += CHECK_EVERY
+            zn = float(np.linalg.norm(z)) or 1.0
+            prim = float(np.linalg.norm(x - z)) / zn
+            dual = rho * float(np.linalg.norm(z - z_prev)) / bnorm
+            if prim <= tol and dual <= tol:
+                done = True
+                break
+    out = torch.from_numpy(z).to(b.device)
+    return SpatialResult(out, it, done, prim, dual, lam, rho)
 
 
 # -- one frame of the pipeline ------------------------------------------------------------------
@@ -808,8 +944,8 @@ def solve_frame(
     *,
     lam: float | str = DEFAULT_LAM,
     iters: int | None = None,
-    inner_iters: int = 10,
-    tol: float | None = None,
+    inner_iters: int = FRAME_INNER_ITERS,
+    tol: float | None = FRAME_TOL,
     max_iter: int = 2000,
     guided: bool = False,
 ) -> tuple[Tensor, dict[str, Any]]:
@@ -827,7 +963,8 @@ def solve_frame(
             solves); ``"discrepancy"``: Morozov's discrepancy principle
             (:func:`mean_square_residual` = ``σ̂²``; nine solves).
         iters, inner_iters, tol, max_iter: see :func:`solve_spatial` (``iters``: fixed,
-            differentiable with respect to ``y``).
+            differentiable with respect to ``y``); defaults :data:`FRAME_INNER_ITERS` and
+            :data:`FRAME_TOL` (``None``: :func:`solve_spatial`'s own).
         guided: weight the TV's edges by the reference view's own colour steps
             (:func:`guide_weights`): less smoothing across edges the RGB image shows.
 
@@ -839,9 +976,8 @@ def solve_frame(
         ``mean_square_residual`` (DN², of the answer), ``spatial_iterations``,
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``.
     """
-    with cpu_threads(y.device, 1):  # small kernels: see solve_spatial's num_threads
-        return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol,
-                            max_iter, guided)
+    return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
+                        guided)
 
 
 def _solve_frame(

@@ -1,0 +1,180 @@
+"""Compiled CPU kernels of the spatial (TV) solve (numba): the ADMM x-update and the TV prox.
+
+The torch path of :mod:`hsi_torch.recon.spatial` runs every step as ~20 whole-cube kernels on the
+``(M, h, w)`` frame (the invalid corners included) and a batched ``(P, M, M)`` matrix–vector
+product; at the full-size prototype's frame (25 × 744 × 858, 306 000 valid pixels) one ADMM
+iteration streams several GB through memory. These kernels run the same iterations on the valid
+pixels only, in their ``(P, M)`` storage (bands contiguous), each step in one pass:
+
+* :func:`x_update`: ``u ← u + x − z`` (from the second iteration on), ``x = (G + ρI)⁻¹
+  (b + ρ(z − u))``, ``v = x + u``, pixel by pixel with the packed symmetric inverse (``M(M+1)/2``
+  numbers per pixel: half the memory of the full matrix).
+* :func:`fgp_step`: one dual iteration of the fast gradient projection (the same formulas as
+  :func:`hsi_torch.recon.spatial.prox_tv_nonneg`), row by row: the primal ``z`` of row ``k + 1``
+  is formed just before the dual update of row ``k`` needs it, so ``z`` stays in cache. The dual
+  is double-buffered (read the old arrays, write new ones), so chunks of rows run on ``prange``
+  threads without ordering constraints.
+* :func:`fgp_primal`: ``z = max(v − t Dᵀp, 0)``.
+
+The graph is stored per pixel (sorted by the flat frame index): the right, lower, left and upper
+neighbour's position and the edge weight (0: no edge, the position is then the pixel itself).
+Arithmetic in the arrays' dtype; numba is optional (the torch path runs without it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+
+from hsi_torch.recon.nnls._compiled import AVAILABLE, _nb
+
+__all__ = ["AVAILABLE", "threads", "pack_symmetric", "x_update", "fgp_step", "fgp_primal"]
+
+
+@contextmanager
+def threads(num: int) -> Iterator[None]:
+    """numba's thread count for the kernels run in the block (restored afterwards)."""
+    old = _nb.get_num_threads()
+    _nb.set_num_threads(max(1, min(int(num), _nb.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        _nb.set_num_threads(old)
+
+
+def pack_symmetric(mat: np.ndarray) -> np.ndarray:
+    """``(P, M, M)`` symmetric → ``(P, M(M+1)/2)`` lower triangle, row by row."""
+    m = mat.shape[-1]
+    rows, cols = np.tril_indices(m)
+    return np.ascontiguousarray(mat[:, rows, cols])
+
+
+if AVAILABLE:
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _x_update(inv, b, z, u, x, v, rho, update_u, num_chunks):  # pragma: no cover - compiled
+        n, m = b.shape
+        shared = inv.shape[0] == 1
+        for ch in _nb.prange(num_chunks):
+            rhs = np.empty(m, b.dtype)
+            acc = np.empty(m, b.dtype)
+            for i in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+                if update_u:
+                    for j in range(m):
+                        u[i, j] += x[i, j] - z[i, j]
+                for j in range(m):
+                    rhs[j] = b[i, j] + rho * (z[i, j] - u[i, j])
+                    acc[j] = 0
+                S = inv[0] if shared else inv[i]
+                k = 0
+                for r in range(m):
+                    xr = rhs[r]
+                    a = acc[r]
+                    for c in range(r):
+                        s = S[k + c]
+                        a += s * rhs[c]
+                        acc[c] += s * xr
+                    k += r
+                    acc[r] = a + S[k] * xr
+                    k += 1
+                for j in range(m):
+                    x[i, j] = acc[j]
+                    v[i, j] = acc[j] + u[i, j]
+
+    @_nb.njit(inline="always", error_model="numpy")
+    def _primal_row(v, t, r, z, lo, hi, left, up, wx, wy, wl, wu):  # pragma: no cover
+        m = v.shape[1]
+        for i in range(lo, hi):
+            li, ui = left[i], up[i]
+            a, bb, cl, cu = wx[i], wy[i], wl[i], wu[i]
+            for j in range(m):
+                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j]
+                val = v[i, j] - t * d
+                z[i, j] = val if val > 0 else 0
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _fgp_step(v, t, step, mom, r_old, p_old, p_new, r_new, z, row_ptr, right, down, left, up,
+                  wx, wy, wl, wu, num_chunks):  # pragma: no cover - compiled
+        m = v.shape[1]
+        h = row_ptr.shape[0] - 1
+        for ch in _nb.prange(num_chunks):
+            ra, rb = ch * h // num_chunks, (ch + 1) * h // num_chunks
+            if ra >= rb:
+                continue
+            q = np.empty((2, m), v.dtype)
+            _primal_row(v, t, r_old, z, row_ptr[ra], row_ptr[ra + 1], left, up, wx, wy, wl, wu)
+            for k in range(ra, rb):
+                if k + 1 < h:
+                    _primal_row(v, t, r_old, z, row_ptr[k + 1], row_ptr[k + 2], left, up, wx, wy,
+                                wl, wu)
+                for i in range(row_ptr[k], row_ptr[k + 1]):
+                    ri, di = right[i], down[i]
+                    a, bb = wx[i], wy[i]
+                    n2 = 0.0
+                    for j in range(m):
+                        zi = z[i, j]
+                        q0 = r_old[i, 0, j] + step * a * (z[ri, j] - zi)
+                        q1 = r_old[i, 1, j] + step * bb * (z[di, j] - zi)
+                        q[0, j] = q0
+                        q[1, j] = q1
+                        n2 += q0 * q0 + q1 * q1
+                    sc = 1.0 / np.sqrt(n2) if n2 > 1.0 else 1.0
+                    for j in range(m):
+                        a0 = q[0, j] * sc
+                        a1 = q[1, j] * sc
+                        p_new[i, 0, j] = a0
+                        p_new[i, 1, j] = a1
+                        r_new[i, 0, j] = a0 + mom * (a0 - p_old[i, 0, j])
+                        r_new[i, 1, j] = a1 + mom * (a1 - p_old[i, 1, j])
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _fgp_primal(v, t, p, z, row_ptr, left, up, wx, wy, wl, wu,
+                    num_chunks):  # pragma: no cover - compiled
+        h = row_ptr.shape[0] - 1
+        for ch in _nb.prange(num_chunks):
+            ra, rb = ch * h // num_chunks, (ch + 1) * h // num_chunks
+            if ra < rb:
+                _primal_row(v, t, p, z, row_ptr[ra], row_ptr[rb], left, up, wx, wy, wl, wu)
+
+
+def _chunks(n: int) -> int:
+    return max(1, min(n, 64))
+
+
+def x_update(inv_packed: np.ndarray, b: np.ndarray, z: np.ndarray, u: np.ndarray, x: np.ndarray,
+             v: np.ndarray, rho: float, update_u: bool) -> None:
+    """In place: (``u += x − z`` if ``update_u``), ``x = S (b + ρ(z − u))``, ``v = x + u``.
+
+    Args:
+        inv_packed: ``(P|1, M(M+1)/2)`` :func:`pack_symmetric` of ``(G + ρI)⁻¹``; b, z, u, x, v:
+            ``(P, M)`` C-contiguous, one dtype.
+    """
+    n = b.shape[0]
+    if n:
+        _x_update(inv_packed, b, z, u, x, v, b.dtype.type(rho), bool(update_u), _chunks(n // 256))
+
+
+def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_old: np.ndarray,
+             p_old: np.ndarray, p_new: np.ndarray, r_new: np.ndarray, z: np.ndarray,
+             graph: tuple[np.ndarray, ...]) -> None:
+    """One FGP dual iteration: ``p_new = Π(r_old + step·D z(r_old))``, ``r_new = p_new +
+    mom·(p_new − p_old)`` with ``z(r) = max(v − t Dᵀr, 0)`` (left in ``z``).
+
+    Args:
+        v, z: ``(P, M)``; r_old, p_old, p_new, r_new: ``(P, 2, M)`` (the old ones may be one
+            array); graph: ``(row_ptr, right, down, left, up, wx, wy, wl, wu)``.
+    """
+    row_ptr, right, down, left, up, wx, wy, wl, wu = graph
+    ty = v.dtype.type
+    _fgp_step(v, ty(t), ty(step), ty(mom), r_old, p_old, p_new, r_new, z, row_ptr, right, down,
+              left, up, wx, wy, wl, wu, _chunks((row_ptr.shape[0] - 1) // 4))
+
+
+def fgp_primal(v: np.ndarray, t: float, p: np.ndarray, z: np.ndarray,
+               graph: tuple[np.ndarray, ...]) -> None:
+    """``z = max(v − t Dᵀp, 0)`` in place."""
+    row_ptr, _, _, left, up, wx, wy, wl, wu = graph
+    _fgp_primal(v, v.dtype.type(t), p, z, row_ptr, left, up, wx, wy, wl, wu,
+                _chunks((row_ptr.shape[0] - 1) // 4))
