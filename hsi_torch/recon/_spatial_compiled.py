@@ -30,7 +30,8 @@ import numpy as np
 
 from hsi_torch.recon.nnls._compiled import AVAILABLE, _nb
 
-__all__ = ["AVAILABLE", "threads", "pack_symmetric", "x_update", "fgp_step", "fgp_primal"]
+__all__ = ["AVAILABLE", "threads", "pack_symmetric", "x_update", "fgp_workspace", "fgp_step",
+           "fgp_primal"]
 
 
 @contextmanager
@@ -50,6 +51,10 @@ def pack_symmetric(mat: np.ndarray) -> np.ndarray:
     rows, cols = np.tril_indices(m)
     return np.ascontiguousarray(mat[:, rows, cols])
 
+
+#: numba's fast-math flags for the TV kernels: reassociation lets the per-pixel sums over bands
+#: vectorise (no assumptions about NaN or infinities)
+_FAST = {"reassoc", "contract", "nsz", "arcp"}
 
 if AVAILABLE:
 
@@ -94,40 +99,71 @@ if AVAILABLE:
                 val = v[i, j] - t * d
                 z[i, j] = val if val > 0 else 0
 
+    @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
+    def _primal_ring(v, t, r, zr, lo, hi, left, up, wx, wy, wl, wu):  # pragma: no cover
+        m = v.shape[1]
+        for i in range(lo, hi):
+            li, ui = left[i], up[i]
+            a, bb, cl, cu = wx[i], wy[i], wl[i], wu[i]
+            o = i - lo
+            for j in range(m):
+                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j]
+                val = v[i, j] - t * d
+                zr[o, j] = val if val > 0 else 0
+
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _fgp_step(v, t, step, mom, r_old, p_old, p_new, r_new, z, row_ptr, right, down, left, up,
+    def _fgp_first_rows(v, t, r_in, zb, row_ptr, left, up, wx, wy, wl, wu,
+                        num_chunks):  # pragma: no cover - compiled
+        h = row_ptr.shape[0] - 1
+        for ch in _nb.prange(num_chunks):
+            ra = ch * h // num_chunks
+            if ra < h:
+                _primal_ring(v, t, r_in, zb[ch], row_ptr[ra], row_ptr[ra + 1], left, up, wx, wy,
+                             wl, wu)
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
+    def _fgp_step(v, t, step, mom, one, r_in, p, r_out, zb, row_ptr, right, down, left, up,
                   wx, wy, wl, wu, num_chunks):  # pragma: no cover - compiled
         m = v.shape[1]
         h = row_ptr.shape[0] - 1
+        width = zb.shape[1]
         for ch in _nb.prange(num_chunks):
             ra, rb = ch * h // num_chunks, (ch + 1) * h // num_chunks
             if ra >= rb:
                 continue
+            ring = np.zeros((2, width, m), v.dtype)  # finite everywhere (weight-0 reads)
             q = np.empty((2, m), v.dtype)
-            _primal_row(v, t, r_old, z, row_ptr[ra], row_ptr[ra + 1], left, up, wx, wy, wl, wu)
+            ring[ra & 1] = zb[ch]
             for k in range(ra, rb):
-                if k + 1 < h:
-                    _primal_row(v, t, r_old, z, row_ptr[k + 1], row_ptr[k + 2], left, up, wx, wy,
-                                wl, wu)
-                for i in range(row_ptr[k], row_ptr[k + 1]):
-                    ri, di = right[i], down[i]
-                    a, bb = wx[i], wy[i]
-                    n2 = 0.0
+                lo, hi = row_ptr[k], row_ptr[k + 1]
+                if k + 1 < h:  # the next row's primal, from the dual before this row's update
+                    if k + 1 < rb:
+                        _primal_ring(v, t, r_in, ring[(k + 1) & 1], hi, row_ptr[k + 2], left,
+                                     up, wx, wy, wl, wu)
+                    else:
+                        ring[(k + 1) & 1] = zb[ch + 1]
+                zk, zn = ring[k & 1], ring[(k + 1) & 1]
+                for i in range(lo, hi):
+                    sa, sb = step * wx[i], step * wy[i]
+                    o = i - lo
+                    ro = right[i] - lo
+                    do = down[i] - hi if sb != 0 else 0  # 0: a finite entry, weight 0
+                    n2 = one - one
                     for j in range(m):
-                        zi = z[i, j]
-                        q0 = r_old[i, 0, j] + step * a * (z[ri, j] - zi)
-                        q1 = r_old[i, 1, j] + step * bb * (z[di, j] - zi)
+                        zi = zk[o, j]
+                        q0 = r_in[i, 0, j] + sa * (zk[ro, j] - zi)
+                        q1 = r_in[i, 1, j] + sb * (zn[do, j] - zi)
                         q[0, j] = q0
                         q[1, j] = q1
                         n2 += q0 * q0 + q1 * q1
-                    sc = 1.0 / np.sqrt(n2) if n2 > 1.0 else 1.0
+                    sc = one / np.sqrt(n2) if n2 > one else one
                     for j in range(m):
                         a0 = q[0, j] * sc
                         a1 = q[1, j] * sc
-                        p_new[i, 0, j] = a0
-                        p_new[i, 1, j] = a1
-                        r_new[i, 0, j] = a0 + mom * (a0 - p_old[i, 0, j])
-                        r_new[i, 1, j] = a1 + mom * (a1 - p_old[i, 1, j])
+                        r_out[i, 0, j] = a0 + mom * (a0 - p[i, 0, j])
+                        r_out[i, 1, j] = a1 + mom * (a1 - p[i, 1, j])
+                        p[i, 0, j] = a0
+                        p[i, 1, j] = a1
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _fgp_primal(v, t, p, z, row_ptr, left, up, wx, wy, wl, wu,
@@ -156,20 +192,35 @@ def x_update(inv_packed: np.ndarray, b: np.ndarray, z: np.ndarray, u: np.ndarray
         _x_update(inv_packed, b, z, u, x, v, b.dtype.type(rho), bool(update_u), _chunks(n // 256))
 
 
-def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_old: np.ndarray,
-             p_old: np.ndarray, p_new: np.ndarray, r_new: np.ndarray, z: np.ndarray,
-             graph: tuple[np.ndarray, ...]) -> None:
-    """One FGP dual iteration: ``p_new = Π(r_old + step·D z(r_old))``, ``r_new = p_new +
-    mom·(p_new − p_old)`` with ``z(r) = max(v − t Dᵀr, 0)`` (left in ``z``).
+def fgp_workspace(graph: tuple[np.ndarray, ...], m: int, dtype: np.dtype) -> np.ndarray:
+    """The first-row buffer of :func:`fgp_step`: ``(chunks, widest row, M)``."""
+    row_ptr = graph[0]
+    width = int(np.diff(row_ptr).max()) if row_ptr.size > 1 else 0
+    return np.empty((_chunks((row_ptr.shape[0] - 1) // 4), max(width, 1), m), dtype)
+
+
+def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_in: np.ndarray, p: np.ndarray,
+             r_out: np.ndarray, first_rows: np.ndarray, graph: tuple[np.ndarray, ...]) -> None:
+    """One FGP dual iteration in place: ``p ← Π(r_in + step·D z(r_in))``, ``r_out ← p_new +
+    mom·(p_new − p_old)``, with ``z(r) = max(v − t Dᵀr, 0)`` formed row by row in a two-row
+    buffer (never stored whole).
+
+    Row ``k``'s update needs the primal of rows ``k`` and ``k + 1``, formed from the dual before
+    either row is updated: within a chunk of rows the next row's primal is formed just before
+    the current row is updated; each chunk's first row is formed by all chunks beforehand
+    (``first_rows``, :func:`fgp_workspace`), so neighbouring chunks never read a row another
+    thread has updated. ``r_in`` may be ``p`` (the first iteration of a prox, where ``r = p``).
 
     Args:
-        v, z: ``(P, M)``; r_old, p_old, p_new, r_new: ``(P, 2, M)`` (the old ones may be one
-            array); graph: ``(row_ptr, right, down, left, up, wx, wy, wl, wu)``.
+        v: ``(P, M)``; r_in, p, r_out: ``(P, 2, M)``; graph: ``(row_ptr, right, down, left, up,
+            wx, wy, wl, wu)``.
     """
     row_ptr, right, down, left, up, wx, wy, wl, wu = graph
     ty = v.dtype.type
-    _fgp_step(v, ty(t), ty(step), ty(mom), r_old, p_old, p_new, r_new, z, row_ptr, right, down,
-              left, up, wx, wy, wl, wu, _chunks((row_ptr.shape[0] - 1) // 4))
+    chunks = first_rows.shape[0]
+    _fgp_first_rows(v, ty(t), r_in, first_rows, row_ptr, left, up, wx, wy, wl, wu, chunks)
+    _fgp_step(v, ty(t), ty(step), ty(mom), ty(1), r_in, p, r_out, first_rows, row_ptr, right,
+              down, left, up, wx, wy, wl, wu, chunks)
 
 
 def fgp_primal(v: np.ndarray, t: float, p: np.ndarray, z: np.ndarray,

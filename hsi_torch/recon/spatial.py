@@ -719,8 +719,9 @@ def _admm_compiled(
     u = np.ascontiguousarray(u0.numpy()).copy()
     x, v = np.empty_like(z), np.empty_like(z)
     P, m = z.shape
-    duals = [np.zeros((P, 2, m), z.dtype)] + [np.empty((P, 2, m), z.dtype) for _ in range(3)]
-    p = duals[0]
+    p = np.zeros((P, 2, m), z.dtype)
+    r = np.empty_like(p)
+    first_rows = compiled.fgp_workspace(graph, m, z.dtype)
     rows = problem.row_index.numpy() if problem.row_index is not None else None
     row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
     step = 1.0 / (8.0 * t) if t > 0 else 0.0
@@ -741,15 +742,12 @@ def _admm_compiled(
                 if lam == 0.0:
                     np.maximum(v, 0, out=z)
                     continue
-                p_cur = r_cur = p
                 kk = 1.0
-                for _ in range(inner_iters):
-                    p_new, r_new = [d for d in duals if d is not p_cur and d is not r_cur][:2]
+                for j in range(inner_iters):  # FISTA from r = p (the last step's dual)
                     k_new = (1.0 + math.sqrt(1.0 + 4.0 * kk * kk)) / 2.0
-                    compiled.fgp_step(v, t, step, (kk - 1.0) / k_new, r_cur, p_cur, p_new, r_new,
-                                      z, graph)
-                    p_cur, r_cur, kk = p_new, r_new, k_new
-                p = p_cur
+                    compiled.fgp_step(v, t, step, (kk - 1.0) / k_new, p if j == 0 else r, p, r,
+                                      first_rows, graph)
+                    kk = k_new
                 compiled.fgp_primal(v, t, p, z, graph)
             it += CHECK_EVERY
             zn = float(np.linalg.norm(z)) or 1.0
@@ -842,12 +840,20 @@ def frame_noise_level(
 
 
 def mean_square_residual(sens: BundleSensing, x: Tensor, y: Tensor, mask: Tensor,
-                         ok: Tensor) -> float:
+                         ok: Tensor, num_samples: int | None = None) -> float:
     """``Σ_p ‖W_p(A_p x_p − y_p)‖² / Σ_p n_p`` over the valid pixels ``ok`` (DN²; ``n_p`` the
-    pixel's used observations)."""
+    pixel's used observations); ``num_samples``: over that many evenly spaced valid pixels
+    (:func:`~hsi_torch.recon.sensing.sample_pixels`) instead of all."""
     with torch.no_grad():
+        if num_samples is not None:
+            idx = sample_pixels(ok, num_samples)
+            if idx is None:
+                return float("nan")
+            x, y, mask, ok = x[idx], y[idx], mask[idx], ok[idx]
+        else:
+            idx = None
         w = (mask & ok.unsqueeze(1)).to(sens.dtype)
-        r = (sens.model.A(x.detach().to(sens.dtype)) - y.to(sens.dtype)) * w
+        r = (sens.model.A(x.detach().to(sens.dtype), idx) - y.to(sens.dtype)) * w
         n = float(w.sum())
         return float(r.double().square().sum()) / n if n > 0 else float("nan")
 
@@ -855,11 +861,12 @@ def mean_square_residual(sens: BundleSensing, x: Tensor, y: Tensor, mask: Tensor
 def _discrepancy_lam(
     sp: SpatialProblem, sens: BundleSensing, b: Tensor, y: Tensor, mask: Tensor, ok: Tensor,
     x0: Tensor, sigma: float, scale: float, inner_iters: int, max_iter: int,
+    tol: float | None = None, changed: Tensor | None = None,
 ) -> tuple[float, Tensor, dict[str, Any]]:
     """Morozov's discrepancy principle: the relative ``lam`` whose solution leaves a mean square
     residual per observation equal to ``σ̂²`` (log-bisection over :data:`AUTO_LAM_RANGE`,
-    :data:`AUTO_LAM_STEPS` steps, each solve warm-started from the nearest one at tolerance
-    1e-3). Returns ``lam``, the last solution and the search's record."""
+    :data:`AUTO_LAM_STEPS` steps, each solve warm-started from the nearest one at the frame's
+    tolerance ``tol``). Returns ``lam``, the last solution and the search's record."""
     target = sigma * sigma
     lo, hi = (math.log(v) for v in AUTO_LAM_RANGE)
     x_lo, x_hi = x0, None
@@ -867,7 +874,7 @@ def _discrepancy_lam(
     for _ in range(AUTO_LAM_STEPS):
         mid = 0.5 * (lo + hi)
         start = x_lo if x_hi is None else x_hi
-        res = solve_spatial(sp, b, math.exp(mid) * scale, x0=start, tol=1e-3,
+        res = solve_spatial(sp, b, math.exp(mid) * scale, x0=start, tol=tol,
                             max_iter=max_iter, inner_iters=inner_iters)
         r2 = mean_square_residual(sens, res.x, y, mask, ok)
         tried.append((math.exp(mid), r2))
@@ -884,16 +891,22 @@ def _discrepancy_lam(
 def _sure_lam(
     sp: SpatialProblem, sens: BundleSensing, b: Tensor, y: Tensor, mask: Tensor, ok: Tensor,
     x0: Tensor, sigma: float, scale: float, inner_iters: int, max_iter: int,
+    tol: float | None = None, changed: Tensor | None = None,
 ) -> tuple[float, Tensor, dict[str, Any]]:
     """Monte-Carlo SURE (Stein's unbiased risk estimate of the prediction error
     ``E‖W A(s_λ − s_true)‖²``): ``SURE(λ) = ‖W(A s_λ − y)‖² − N σ̂² + 2 σ̂² div``, the
     divergence of ``y ↦ W A s_λ(y)`` estimated with one random probe ``δ ~ N(0, I)`` on the used
-    observations, ``div ≈ δᵀ W A (s_λ(y + εδ) − s_λ(y)) / ε`` with ``ε = 0.1 σ̂`` (both solves
-    warm-started, tolerance 1e-5). It estimates the error of the predicted observations, not of
-    the spectra: where ``A`` hardly sees a direction, the spectral error at the chosen ``λ`` can
-    be larger than at the best ``λ``. Evaluated at :data:`SURE_LAMS`; the minimum is refined by a
-    parabola in ``log λ`` through it and its neighbours. Returns ``lam``, the solution at the
-    best grid point and the record (``[lam, SURE / N]`` pairs)."""
+    observations, ``div ≈ δᵀ W A (s_λ(y + εδ) − s_λ(y)) / ε`` with ``ε = 0.1 σ̂``.
+
+    ``s_λ(y)`` is the estimator the pipeline returns: the per-pixel NNLS warm start followed by
+    the ADMM iterations to the tolerance ``tol``. The perturbed answer re-solves the per-pixel
+    warm start for ``y + εδ`` (pixels with their own frame mask keep the unperturbed one) and
+    runs the same number of ADMM iterations, so ``div`` is that estimator's divergence whatever
+    its convergence. It estimates the error of the predicted observations, not of the spectra:
+    where ``A`` hardly sees a direction, the spectral error at the chosen ``λ`` can be larger
+    than at the best ``λ``. Evaluated at :data:`SURE_LAMS`; the minimum is refined by a parabola
+    in ``log λ`` through it and its neighbours. Returns ``lam``, the per-pixel warm start ``x0``
+    and the record (``[lam, SURE / N]`` pairs)."""
     model = sens.model
     w = (mask & ok.unsqueeze(1)).to(b.dtype)
     n_obs = float(w.sum())
@@ -903,21 +916,21 @@ def _sure_lam(
     eps = 0.1 * sigma
     b_pert = b + eps * model.A_adjoint(delta)
     y32 = y.to(b.dtype)
+    x0_pert = sens.problem.solve(torch.where(mask, y32 + eps * delta, 0)).x
+    x0_pert = torch.where(ok.unsqueeze(1), x0_pert, x0)
+    if changed is not None:
+        x0_pert = torch.where(changed.unsqueeze(1), x0, x0_pert)
     curve: list[tuple[float, float]] = []
-    sols: list[Tensor] = []
-    start = x0
     for lam in SURE_LAMS:
-        r0 = solve_spatial(sp, b, lam * scale, x0=start, tol=1e-5, max_iter=max_iter,
+        r0 = solve_spatial(sp, b, lam * scale, x0=x0, tol=tol, max_iter=max_iter,
                            inner_iters=inner_iters)
-        r1 = solve_spatial(sp, b_pert, lam * scale, x0=r0.x, tol=1e-5, max_iter=max_iter,
-                           inner_iters=inner_iters)
+        r1 = solve_spatial(sp, b_pert, lam * scale, x0=x0_pert, tol=0.0,
+                           max_iter=r0.iterations, inner_iters=inner_iters)
         pred0 = model.A(r0.x) * w
         pred1 = model.A(r1.x) * w
         div = float((delta * (pred1 - pred0)).double().sum()) / eps
         rss = float(((pred0 - y32 * w).double()).square().sum())
         curve.append((lam, (rss - n_obs * sigma**2 + 2 * sigma**2 * div) / n_obs))
-        sols.append(r0.x)
-        start = r0.x
     vals = [c for _, c in curve]
     k = int(min(range(len(vals)), key=vals.__getitem__))
     lam = SURE_LAMS[k]
@@ -931,7 +944,7 @@ def _sure_lam(
         if a > 0:
             lam = math.exp(min(max(-bb / (2 * a), xs[0]), xs[2]))
     info = {"lam_rule": "sure", "sure_curve": [[a_, c] for a_, c in curve]}
-    return lam, sols[k], info
+    return lam, x0, info
 
 
 def solve_frame(
@@ -959,9 +972,10 @@ def solve_frame(
         x0: ``(P, M)`` per-pixel NNLS solution (warm start and noise estimate; detached).
         lam: relative TV weight: ``λ = lam · σ̂ · sqrt(median trace G)`` (:func:`lam_scale`) with
             ``σ̂`` = :func:`frame_noise_level`; ``"auto"``: chosen per frame by minimising a
-            Monte-Carlo SURE estimate of the prediction risk over :data:`SURE_LAMS` (eleven
-            solves); ``"discrepancy"``: Morozov's discrepancy principle
-            (:func:`mean_square_residual` = ``σ̂²``; nine solves).
+            Monte-Carlo SURE estimate of the prediction risk of this very estimator over
+            :data:`SURE_LAMS` (one more per-pixel solve, eleven spatial solves);
+            ``"discrepancy"``: Morozov's discrepancy principle (:func:`mean_square_residual` =
+            ``σ̂²``; nine solves).
         iters, inner_iters, tol, max_iter: see :func:`solve_spatial` (``iters``: fixed,
             differentiable with respect to ``y``); defaults :data:`FRAME_INNER_ITERS` and
             :data:`FRAME_TOL` (``None``: :func:`solve_spatial`'s own).
@@ -973,7 +987,8 @@ def solve_frame(
         (``"fixed"``, ``"sure"`` with the ``sure_curve`` ``[lam, SURE per observation]`` pairs,
         or ``"discrepancy"`` with ``discrepancy_target`` and the search's
         ``[lam, mean square residual]`` pairs), ``noise_sigma`` (``σ̂``, DN),
-        ``mean_square_residual`` (DN², of the answer), ``spatial_iterations``,
+        ``mean_square_residual`` (DN², of the answer, on the noise estimate's
+        :data:`NOISE_SAMPLES` pixels), ``spatial_iterations``,
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``.
     """
     return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
@@ -1010,7 +1025,7 @@ def _solve_frame(
             rule = _sure_lam if lam == "auto" else _discrepancy_lam
             with torch.no_grad():
                 lam, x0, extra = rule(sp, sens, b.detach(), y, mask, ok, x0, sigma, scale,
-                                      inner_iters, max_iter)
+                                      inner_iters, max_iter, tol, changed)
         else:
             lam, extra = 0.0, {"lam_rule": f"{lam} (no noise estimate: lam = 0)"}
     lam_abs = lam * scale
@@ -1018,7 +1033,7 @@ def _solve_frame(
                         inner_iters=inner_iters)
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
-        "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok),
+        "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok, NOISE_SAMPLES),
         "spatial_iterations": res.iterations, "spatial_converged": res.converged,
         "spatial_primal_residual": res.primal_residual,
         "spatial_dual_residual": res.dual_residual, "rho": res.rho,
