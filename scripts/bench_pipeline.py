@@ -49,6 +49,7 @@ from hsi_torch.recon.pipeline import (
     observations_from_samples,
     sample_views,
 )
+from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.spectral import DEFAULT_GRID, band_widths, difference_matrix
 
 
@@ -321,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--spatial-frames", type=int, default=3,
                     help="frames timed in the spatial-spectral (TV) mode (0: skip it)")
-    ap.add_argument("--lam", default="0.3", help="TV mode: relative weight, or auto")
+    ap.add_argument("--lam", default=str(DEFAULT_LAM), help="TV mode: relative weight, or auto")
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
     dtype = torch.float64 if args.dtype == "float64" else torch.float32

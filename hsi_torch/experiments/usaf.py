@@ -52,6 +52,7 @@ from hsi_torch.experiments.opd import calibrated_bundle
 from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.recon import Reconstructor
+from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.resources import shipped_config
 from hsi_torch.simulate.capture_sets import build_renderer, build_scene, simulate_capture_set
 from hsi_torch.simulate.config import SceneSpec, SimulateConfig
@@ -249,8 +250,9 @@ class USAFConfig:
     prior: Literal["none", "tv"] = field(
         default="none", metadata={"help": "none: per-pixel NNLS; tv: spatial-spectral (TV)"})
     lam: float | Literal["auto", "discrepancy"] = field(
-        default=0.3, metadata={"help": "prior=tv: relative TV weight (see the reconstruct "
-                                       "config), or auto (discrepancy principle)"})
+        default=DEFAULT_LAM, metadata={"help": "prior=tv: relative TV weight (see the "
+                                               "reconstruct config), auto (SURE) or "
+                                               "discrepancy"})
     threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})
     orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
     length_fraction: float = 0.6

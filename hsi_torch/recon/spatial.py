@@ -761,8 +761,11 @@ def _admm_compiled(
 
 
 # -- one frame of the pipeline ------------------------------------------------------------------
-#: Default relative TV weight ``lam`` (``λ = lam · σ̂ · sqrt(median trace G)``, :func:`lam_scale`).
-DEFAULT_LAM = 0.3
+#: Default relative TV weight ``lam`` (``λ = lam · σ̂ · sqrt(median trace G)``, :func:`lam_scale`):
+#: about what ``lam="auto"`` picks on the full-size prototype's ColorChecker and CAVE frames
+#: (0.46–0.56); it improves every per-pixel score but the small prototype's patch interiors at
+#: both sizes (docs/spatial.md).
+DEFAULT_LAM = 0.5
 
 #: Pixels (evenly spaced over the valid ones) on which the noise level is estimated.
 NOISE_SAMPLES = 4096
