@@ -43,15 +43,16 @@ def _tiny(device, dtype, h=5, w=6, m=4, o=6, noise=0.05, seed=0, holes=True):
     return A, y, G, b, active, (h, w)
 
 
-def _objective(G, b, x, lam, cube_active, to_cube):
+def _objective(G, b, x, lam, cube_active, to_cube, alpha=1.0):
     quad = torch.einsum("pm,pmn,pn->", x, G, x) - 2 * (b * x).sum()
-    return float(quad + lam * total_variation(to_cube(x), cube_active))
+    return float(quad + lam * total_variation(to_cube(x), cube_active, alpha))
 
 
-def _condat_vu(G, b, lam, active_grid, iters):
+def _condat_vu(G, b, lam, active_grid, iters, alpha=1.0):
     """Independent reference (numpy, float64): Condat–Vũ primal-dual splitting for
     ``min_{x≥0} Σ ½xᵀGx − bᵀx + (λ/2) TV(x)`` — gradient steps on the quadratic, projection for
-    ``x ≥ 0``, the TV through its dual ball; no Cholesky, no prox of TV."""
+    ``x ≥ 0``, the TV through its dual ball; no Cholesky, no prox of TV. ``alpha``: the
+    brightness weight, ``K = I − (1 − α)𝟙𝟙ᵀ/M`` applied to every band vector of the gradient."""
     P, m = b.shape
     h, w = active_grid.shape
     ex = np.zeros((h, w), bool)
@@ -64,9 +65,11 @@ def _condat_vu(G, b, lam, active_grid, iters):
         dy = np.zeros_like(c)
         dx[:, :, :-1] = c[:, :, 1:] - c[:, :, :-1]
         dy[:, :-1, :] = c[:, 1:, :] - c[:, :-1, :]
-        return np.stack([dx * ex, dy * ey])
+        g = np.stack([dx * ex, dy * ey])
+        return g - (1 - alpha) * g.mean(1, keepdims=True)
 
     def DT(p):
+        p = p - (1 - alpha) * p.mean(1, keepdims=True)
         px, py = p[0] * ex, p[1] * ey
         out = -px - py
         out[:, :, 1:] += px[:, :, :-1]
@@ -121,23 +124,25 @@ def test_prox_matches_brute_force(device):
     np.testing.assert_allclose(z.cpu().reshape(m, -1).T.numpy(), ref, atol=1e-6)
 
 
-def test_admm_matches_independent_reference(device):
-    """The ADMM answer is the minimiser: same point and objective as a long primal-dual run."""
+@pytest.mark.parametrize("alpha", [1.0, 0.3])
+def test_admm_matches_independent_reference(device, alpha):
+    """The ADMM answer is the minimiser: same point and objective as a long primal-dual run
+    (plain vectorial TV and the brightness-weighted one)."""
     dtype = torch.float64
     A, y, G, b, active, (h, w) = _tiny(device, dtype)
     pix = torch.arange(h * w, device=device)
     prob = prepare_spatial(G, pix, (h, w), active)
     x0 = solve_nnls(A, y).x
     lam = 0.5
-    res = solve_spatial(prob, b, lam, x0=x0, tol=1e-9, max_iter=20000)
+    res = solve_spatial(prob, b, lam, x0=x0, tol=1e-9, max_iter=20000, brightness_weight=alpha)
     assert res.converged
     grid = active.view(h, w).cpu().numpy()
-    ref = _condat_vu(G.cpu().numpy(), b.cpu().numpy(), lam, grid, 30000)
+    ref = _condat_vu(G.cpu().numpy(), b.cpu().numpy(), lam, grid, 30000, alpha)
     ref_t = torch.from_numpy(ref).to(device, dtype)
     cube_active = active.view(h, w)
-    f_admm = _objective(G, b, res.x, lam, cube_active, prob.to_cube)
-    f_ref = _objective(G, b, ref_t, lam, cube_active, prob.to_cube)
-    f_pp = _objective(G, b, x0, lam, cube_active, prob.to_cube)
+    f_admm = _objective(G, b, res.x, lam, cube_active, prob.to_cube, alpha)
+    f_ref = _objective(G, b, ref_t, lam, cube_active, prob.to_cube, alpha)
+    f_pp = _objective(G, b, x0, lam, cube_active, prob.to_cube, alpha)
     assert f_admm <= f_ref + 1e-9 * abs(f_ref)
     assert f_admm < f_pp - 1e-3 * abs(f_pp)  # TV did change the answer
     assert float((res.x - ref_t).abs().max()) < 1e-5
@@ -287,8 +292,8 @@ def test_edge_weights(device):
     assert jump(g.x) > jump(p.x)
 
 
-@pytest.mark.parametrize("weighted", [False, True])
-def test_compiled_and_torch_backends_agree(dtype, weighted):
+@pytest.mark.parametrize("weighted,alpha", [(False, 1.0), (True, 1.0), (True, 0.3)])
+def test_compiled_and_torch_backends_agree(dtype, weighted, alpha):
     """The compiled CPU kernels run the torch path's iterations: same answer to rounding, with
     inactive pixels, edge weights and pixels with their own Gram matrix in this frame."""
     from hsi_torch.recon import _spatial_compiled
@@ -307,10 +312,11 @@ def test_compiled_and_torch_backends_agree(dtype, weighted):
     prob = base.for_frame(active, rows, row_gram, weights)
     assert prob.compiled_inputs() is not None
     x0 = solve_nnls(A, y).x
-    a = solve_spatial(prob, b, 0.7, x0=x0, tol=1e-30, max_iter=30, inner_iters=4,
-                      backend="compiled")
-    t = solve_spatial(prob, b, 0.7, x0=x0, tol=1e-30, max_iter=30, inner_iters=4,
-                      backend="torch")
+    kw = dict(x0=x0, tol=1e-30, max_iter=30, inner_iters=4, brightness_weight=alpha)
+    a = solve_spatial(prob, b, 0.7, backend="compiled", **kw)
+    t = solve_spatial(prob, b, 0.7, backend="torch", **kw)
+    f = solve_spatial(prob, b, 0.7, x0=x0, iters=30, inner_iters=4, brightness_weight=alpha)
+    torch.testing.assert_close(f.x, t.x, atol=1e-5 if dtype == torch.float32 else 1e-11, rtol=0)
     assert a.iterations == t.iterations == 30
     torch.testing.assert_close(a.x, t.x, atol=1e-5 if dtype == torch.float32 else 1e-11,
                                rtol=0)
@@ -333,3 +339,32 @@ def test_compiled_backend_refuses_what_it_cannot_run():
     ref = prepare_spatial(G, torch.arange(h * w), (h, w))
     sorted_ = solve_spatial(ref, b, 0.5, tol=1e-30, max_iter=20)
     torch.testing.assert_close(auto.x, sorted_.x[perm], atol=1e-10, rtol=0)
+
+
+def test_brightness_weighting_is_symmetric_and_weights_only_the_flat_spectrum(dtype):
+    """``K`` is symmetric, scales the flat spectrum by α and keeps zero-mean spectra; the
+    weighted TV charges a brightness step α times a shape step of the same size."""
+    from hsi_torch.recon.spatial import brightness_weighted
+
+    g = torch.Generator().manual_seed(5)
+    a = torch.randn(2, 6, 3, 4, generator=g, dtype=torch.float64).to(dtype=dtype)
+    c = torch.randn(2, 6, 3, 4, generator=g, dtype=torch.float64).to(dtype=dtype)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    lhs = float((brightness_weighted(a, 0.3) * c).sum())
+    rhs = float((a * brightness_weighted(c, 0.3)).sum())
+    assert abs(lhs - rhs) <= tol * max(1.0, abs(lhs))
+    flat = torch.ones(2, 6, 3, 4, dtype=dtype)
+    torch.testing.assert_close(brightness_weighted(flat, 0.3), 0.3 * flat)
+    shape = a - a.mean(1, keepdim=True)
+    torch.testing.assert_close(brightness_weighted(shape, 0.3), shape)
+    active = torch.ones(2, 2, dtype=torch.bool)
+    step_b = torch.zeros(6, 2, 2, dtype=dtype)
+    step_b[:, :, 1] = 1.0  # a brightness step, norm sqrt(6) per edge
+    step_s = torch.zeros(6, 2, 2, dtype=dtype)
+    step_s[:3, :, 1], step_s[3:, :, 1] = 1.0, -1.0  # a shape step of the same norm
+    tb = float(total_variation(step_b, active, 0.3))
+    ts = float(total_variation(step_s, active, 0.3))
+    assert tb == pytest.approx(0.3 * ts, rel=1e-5)
+    with pytest.raises(ValueError, match="brightness_weight"):
+        solve_spatial(prepare_spatial(torch.eye(2, dtype=dtype)[None], torch.arange(1), (1, 1)),
+                      torch.zeros(1, 2, dtype=dtype), 1.0, brightness_weight=0.0)

@@ -89,41 +89,50 @@ if AVAILABLE:
                     v[i, j] = acc[j] + u[i, j]
 
     @_nb.njit(inline="always", error_model="numpy")
-    def _primal_row(v, t, r, z, lo, hi, left, up, wx, wy, wl, wu):  # pragma: no cover
+    def _kt_offset(rs, i, li, ui, a, bb, cl, cu, c):  # pragma: no cover - compiled
+        """The brightness weighting's part of ``(Dᵀ K r)_i`` (the same for every band):
+        ``c·(cl Σr_l,x + cu Σr_u,y − a Σr_i,x − bb Σr_i,y)``, ``c = (α − 1)/M``, from the band
+        sums ``rs (P, 2)`` of ``r``."""
+        return c * (cl * rs[li, 0] + cu * rs[ui, 1] - a * rs[i, 0] - bb * rs[i, 1])
+
+    @_nb.njit(inline="always", error_model="numpy")
+    def _primal_row(v, t, r, rs, z, lo, hi, left, up, wx, wy, wl, wu, c):  # pragma: no cover
         m = v.shape[1]
         for i in range(lo, hi):
             li, ui = left[i], up[i]
             a, bb, cl, cu = wx[i], wy[i], wl[i], wu[i]
+            off = _kt_offset(rs, i, li, ui, a, bb, cl, cu, c)
             for j in range(m):
-                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j]
+                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j] + off
                 val = v[i, j] - t * d
                 z[i, j] = val if val > 0 else 0
 
     @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
-    def _primal_ring(v, t, r, zr, lo, hi, left, up, wx, wy, wl, wu):  # pragma: no cover
+    def _primal_ring(v, t, r, rs, zr, lo, hi, left, up, wx, wy, wl, wu, c):  # pragma: no cover
         m = v.shape[1]
         for i in range(lo, hi):
             li, ui = left[i], up[i]
             a, bb, cl, cu = wx[i], wy[i], wl[i], wu[i]
             o = i - lo
+            off = _kt_offset(rs, i, li, ui, a, bb, cl, cu, c)
             for j in range(m):
-                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j]
+                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j] + off
                 val = v[i, j] - t * d
                 zr[o, j] = val if val > 0 else 0
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _fgp_first_rows(v, t, r_in, zb, row_ptr, left, up, wx, wy, wl, wu,
+    def _fgp_first_rows(v, t, r_in, rin_sum, zb, row_ptr, left, up, wx, wy, wl, wu, c,
                         num_chunks):  # pragma: no cover - compiled
         h = row_ptr.shape[0] - 1
         for ch in _nb.prange(num_chunks):
             ra = ch * h // num_chunks
             if ra < h:
-                _primal_ring(v, t, r_in, zb[ch], row_ptr[ra], row_ptr[ra + 1], left, up, wx, wy,
-                             wl, wu)
+                _primal_ring(v, t, r_in, rin_sum, zb[ch], row_ptr[ra], row_ptr[ra + 1], left, up,
+                             wx, wy, wl, wu, c)
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
-    def _fgp_step(v, t, step, mom, one, r_in, p, r_out, zb, row_ptr, right, down, left, up,
-                  wx, wy, wl, wu, num_chunks):  # pragma: no cover - compiled
+    def _fgp_step(v, t, step, mom, one, c, r_in, rin_sum, p, psum, r_out, rsum, zb, row_ptr,
+                  right, down, left, up, wx, wy, wl, wu, num_chunks):  # pragma: no cover
         m = v.shape[1]
         h = row_ptr.shape[0] - 1
         width = zb.shape[1]
@@ -138,8 +147,8 @@ if AVAILABLE:
                 lo, hi = row_ptr[k], row_ptr[k + 1]
                 if k + 1 < h:  # the next row's primal, from the dual before this row's update
                     if k + 1 < rb:
-                        _primal_ring(v, t, r_in, ring[(k + 1) & 1], hi, row_ptr[k + 2], left,
-                                     up, wx, wy, wl, wu)
+                        _primal_ring(v, t, r_in, rin_sum, ring[(k + 1) & 1], hi, row_ptr[k + 2],
+                                     left, up, wx, wy, wl, wu, c)
                     else:
                         ring[(k + 1) & 1] = zb[ch + 1]
                 zk, zn = ring[k & 1], ring[(k + 1) & 1]
@@ -148,31 +157,51 @@ if AVAILABLE:
                     o = i - lo
                     ro = right[i] - lo
                     do = down[i] - hi if sb != 0 else 0  # 0: a finite entry, weight 0
-                    n2 = one - one
+                    zero = one - one
+                    s0, s1 = zero, zero  # Σ_j (D z)_j per direction: K's part c·Σ
                     for j in range(m):
                         zi = zk[o, j]
-                        q0 = r_in[i, 0, j] + sa * (zk[ro, j] - zi)
-                        q1 = r_in[i, 1, j] + sb * (zn[do, j] - zi)
+                        d0 = sa * (zk[ro, j] - zi)
+                        d1 = sb * (zn[do, j] - zi)
+                        q[0, j] = d0
+                        q[1, j] = d1
+                        s0 += d0
+                        s1 += d1
+                    k0, k1 = c * s0, c * s1
+                    n2 = zero
+                    for j in range(m):
+                        q0 = r_in[i, 0, j] + q[0, j] + k0
+                        q1 = r_in[i, 1, j] + q[1, j] + k1
                         q[0, j] = q0
                         q[1, j] = q1
                         n2 += q0 * q0 + q1 * q1
                     sc = one / np.sqrt(n2) if n2 > one else one
+                    p0, p1, r0, r1 = zero, zero, zero, zero
                     for j in range(m):
                         a0 = q[0, j] * sc
                         a1 = q[1, j] * sc
-                        r_out[i, 0, j] = a0 + mom * (a0 - p[i, 0, j])
-                        r_out[i, 1, j] = a1 + mom * (a1 - p[i, 1, j])
+                        b0 = a0 + mom * (a0 - p[i, 0, j])
+                        b1 = a1 + mom * (a1 - p[i, 1, j])
+                        r_out[i, 0, j] = b0
+                        r_out[i, 1, j] = b1
                         p[i, 0, j] = a0
                         p[i, 1, j] = a1
+                        p0 += a0
+                        p1 += a1
+                        r0 += b0
+                        r1 += b1
+                    psum[i, 0], psum[i, 1] = p0, p1
+                    rsum[i, 0], rsum[i, 1] = r0, r1
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _fgp_primal(v, t, p, z, row_ptr, left, up, wx, wy, wl, wu,
+    def _fgp_primal(v, t, p, psum, z, row_ptr, left, up, wx, wy, wl, wu, c,
                     num_chunks):  # pragma: no cover - compiled
         h = row_ptr.shape[0] - 1
         for ch in _nb.prange(num_chunks):
             ra, rb = ch * h // num_chunks, (ch + 1) * h // num_chunks
             if ra < rb:
-                _primal_row(v, t, p, z, row_ptr[ra], row_ptr[rb], left, up, wx, wy, wl, wu)
+                _primal_row(v, t, p, psum, z, row_ptr[ra], row_ptr[rb], left, up, wx, wy, wl, wu,
+                            c)
 
 
 def _chunks(n: int) -> int:
@@ -199,8 +228,10 @@ def fgp_workspace(graph: tuple[np.ndarray, ...], m: int, dtype: np.dtype) -> np.
     return np.empty((_chunks((row_ptr.shape[0] - 1) // 4), max(width, 1), m), dtype)
 
 
-def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_in: np.ndarray, p: np.ndarray,
-             r_out: np.ndarray, first_rows: np.ndarray, graph: tuple[np.ndarray, ...]) -> None:
+def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_in: np.ndarray,
+             rin_sum: np.ndarray, p: np.ndarray, psum: np.ndarray, r_out: np.ndarray,
+             rsum: np.ndarray, first_rows: np.ndarray, graph: tuple[np.ndarray, ...],
+             brightness_weight: float = 1.0) -> None:
     """One FGP dual iteration in place: ``p ← Π(r_in + step·D z(r_in))``, ``r_out ← p_new +
     mom·(p_new − p_old)``, with ``z(r) = max(v − t Dᵀr, 0)`` formed row by row in a two-row
     buffer (never stored whole).
@@ -210,6 +241,10 @@ def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_in: np.ndarray,
     the current row is updated; each chunk's first row is formed by all chunks beforehand
     (``first_rows``, :func:`fgp_workspace`), so neighbouring chunks never read a row another
     thread has updated. ``r_in`` may be ``p`` (the first iteration of a prox, where ``r = p``).
+    ``brightness_weight`` ``α``: the operator is ``K D`` with ``K = I − (1 − α) u uᵀ`` on the
+    bands (``u`` the flat spectrum), applied through band sums: ``rin_sum``, ``psum``, ``rsum``
+    ``(P, 2)`` hold the band sums of ``r_in``, ``p`` and ``r_out`` (the last two are written
+    with them; ``rin_sum`` is ``psum`` when ``r_in`` is ``p``).
 
     Args:
         v: ``(P, M)``; r_in, p, r_out: ``(P, 2, M)``; graph: ``(row_ptr, right, down, left, up,
@@ -218,14 +253,17 @@ def fgp_step(v: np.ndarray, t: float, step: float, mom: float, r_in: np.ndarray,
     row_ptr, right, down, left, up, wx, wy, wl, wu = graph
     ty = v.dtype.type
     chunks = first_rows.shape[0]
-    _fgp_first_rows(v, ty(t), r_in, first_rows, row_ptr, left, up, wx, wy, wl, wu, chunks)
-    _fgp_step(v, ty(t), ty(step), ty(mom), ty(1), r_in, p, r_out, first_rows, row_ptr, right,
-              down, left, up, wx, wy, wl, wu, chunks)
+    c = ty((brightness_weight - 1.0) / v.shape[1])
+    _fgp_first_rows(v, ty(t), r_in, rin_sum, first_rows, row_ptr, left, up, wx, wy, wl, wu, c,
+                    chunks)
+    _fgp_step(v, ty(t), ty(step), ty(mom), ty(1), c, r_in, rin_sum, p, psum, r_out, rsum,
+              first_rows, row_ptr, right, down, left, up, wx, wy, wl, wu, chunks)
 
 
-def fgp_primal(v: np.ndarray, t: float, p: np.ndarray, z: np.ndarray,
-               graph: tuple[np.ndarray, ...]) -> None:
-    """``z = max(v − t Dᵀp, 0)`` in place."""
+def fgp_primal(v: np.ndarray, t: float, p: np.ndarray, psum: np.ndarray, z: np.ndarray,
+               graph: tuple[np.ndarray, ...], brightness_weight: float = 1.0) -> None:
+    """``z = max(v − t (KD)ᵀp, 0)`` in place (``K``, ``psum``: see :func:`fgp_step`)."""
     row_ptr, _, _, left, up, wx, wy, wl, wu = graph
-    _fgp_primal(v, v.dtype.type(t), p, z, row_ptr, left, up, wx, wy, wl, wu,
-                _chunks((row_ptr.shape[0] - 1) // 4))
+    ty = v.dtype.type
+    _fgp_primal(v, ty(t), p, psum, z, row_ptr, left, up, wx, wy, wl, wu,
+                ty((brightness_weight - 1.0) / v.shape[1]), _chunks((row_ptr.shape[0] - 1) // 4))

@@ -43,7 +43,7 @@ class ReconstructConfig:
                        "vectorial total-variation prior, warm-started from the per-pixel answer"),
     )
     lam: float | Literal["auto", "discrepancy"] = field(
-        default=0.5,  # = hsi_torch.recon.spatial.DEFAULT_LAM (kept importable without torch)
+        default=1.0,  # = hsi_torch.recon.spatial.DEFAULT_LAM (kept importable without torch)
         metadata=_help("prior=tv: relative TV weight, lambda = lam * sigma * sqrt(median "
                        "trace G) with sigma the frame's noise level (DN) from its per-pixel "
                        "residuals; auto: per frame, minimum of a Monte-Carlo SURE risk "
