@@ -20,8 +20,8 @@ over all bands per pixel keeps edges aligned across bands and penalises a jump b
 magnitude, so an edge between two spectra costs ``λ·‖s₁ − s₂‖₂`` per unit length.
 
 Method (ADMM, scaled form, splitting ``x = z``; ``x`` carries the data terms, ``z`` the prior and
-``z ≥ 0``), with a scalar penalty ``ρ`` (default the median of ``trace(G_p)/M`` over the active
-pixels):
+``z ≥ 0``), with a scalar penalty ``ρ`` (default :data:`RHO_SCALE` × the median of
+``trace(G_p)/M`` over the active pixels):
 
     ``x ← (G + ρI)⁻¹ (b + ρ (z − u))``   per pixel
     ``z ← prox_{(λ/2ρ)(TV + ι_{≥0})}(x + u)``   on the cube
@@ -31,14 +31,17 @@ pixels):
   computed once per problem and ``ρ``; its inverse ``(L Lᵀ)⁻¹`` is formed once
   (``torch.cholesky_inverse``) and applied by a batched matrix–vector product (4× faster than
   ``torch.cholesky_solve`` for 100 000 25×25 systems on a CPU, same factorisation).
+  On the CPU the tolerance-driven mode runs compiled kernels
+  (:mod:`hsi_torch.recon._spatial_compiled`) on the valid pixels, same iterations.
 * z-update: the proximal operator of TV restricted to ``z ≥ 0`` (no closed form) by the fast
   gradient projection on the dual (Beck & Teboulle's constrained TV denoising; Chambolle's dual with
   FISTA acceleration): ``z = max(v − t Dᵀp, 0)``, ``p ← Π_{‖p_ij‖ ≤ 1}(p + D z / (8t))``, all bands
-  at once. Each step runs ``inner_iters`` (10) dual iterations warm-started from the previous
-  step's dual, so the prox is inexact early and its accuracy improves as ADMM settles (with 5
-  instead of 10 the answers on the small prototype move by ≤ 1e-3 in reflectance; the tests
-  check optimality against an independent solver). Non-negativity is exact (the prox's
-  projection), so the returned ``z`` is ``≥ 0``.
+  at once. Each step runs ``inner_iters`` dual iterations (10; the pipeline's
+  :func:`solve_frame` 5) warm-started from the previous step's dual, so the prox is inexact early
+  and its accuracy improves as ADMM settles (the tests check optimality against an independent
+  solver). Non-negativity is exact (the prox's projection), so the returned ``z`` is ``≥ 0``.
+  With ``brightness_weight`` ``α < 1`` the TV is ``Σ‖K ∇s‖`` (:func:`brightness_weighted`) and
+  ``D`` becomes ``K D`` throughout.
 * Warm start from the per-pixel NNLS solution ``x0``: ``z = x0``, ``u = (b − G x0)/ρ`` (the
   multiplier of the per-pixel optimum). With ``λ = 0`` this is already the fixed point.
 * Stopping (Boyd et al.): relative primal residual ``‖x − z‖ / ‖z‖`` and relative dual residual
