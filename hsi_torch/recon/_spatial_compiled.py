@@ -95,30 +95,20 @@ if AVAILABLE:
         sums ``rs (P, 2)`` of ``r``."""
         return c * (cl * rs[li, 0] + cu * rs[ui, 1] - a * rs[i, 0] - bb * rs[i, 1])
 
-    @_nb.njit(inline="always", error_model="numpy")
-    def _primal_row(v, t, r, rs, z, lo, hi, left, up, wx, wy, wl, wu, c):  # pragma: no cover
-        m = v.shape[1]
-        for i in range(lo, hi):
-            li, ui = left[i], up[i]
-            a, bb, cl, cu = wx[i], wy[i], wl[i], wu[i]
-            off = _kt_offset(rs, i, li, ui, a, bb, cl, cu, c)
-            for j in range(m):
-                d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j] + off
-                val = v[i, j] - t * d
-                z[i, j] = val if val > 0 else 0
-
     @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
-    def _primal_ring(v, t, r, rs, zr, lo, hi, left, up, wx, wy, wl, wu, c):  # pragma: no cover
+    def _primal(v, t, r, rs, out, base, lo, hi, left, up, wx, wy, wl, wu, c):  # pragma: no cover
+        """``max(v − t (KD)ᵀr, 0)`` of pixels ``lo:hi`` into ``out[i − base]`` (``base`` 0: the
+        whole ``(P, M)`` array; ``lo``: a row buffer)."""
         m = v.shape[1]
         for i in range(lo, hi):
             li, ui = left[i], up[i]
             a, bb, cl, cu = wx[i], wy[i], wl[i], wu[i]
-            o = i - lo
+            o = i - base
             off = _kt_offset(rs, i, li, ui, a, bb, cl, cu, c)
             for j in range(m):
                 d = cl * r[li, 0, j] + cu * r[ui, 1, j] - a * r[i, 0, j] - bb * r[i, 1, j] + off
                 val = v[i, j] - t * d
-                zr[o, j] = val if val > 0 else 0
+                out[o, j] = val if val > 0 else 0
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _fgp_first_rows(v, t, r_in, rin_sum, zb, row_ptr, left, up, wx, wy, wl, wu, c,
@@ -127,8 +117,9 @@ if AVAILABLE:
         for ch in _nb.prange(num_chunks):
             ra = ch * h // num_chunks
             if ra < h:
-                _primal_ring(v, t, r_in, rin_sum, zb[ch], row_ptr[ra], row_ptr[ra + 1], left, up,
-                             wx, wy, wl, wu, c)
+                lo = row_ptr[ra]
+                _primal(v, t, r_in, rin_sum, zb[ch], lo, lo, row_ptr[ra + 1], left, up, wx, wy,
+                        wl, wu, c)
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
     def _fgp_step(v, t, step, mom, one, c, r_in, rin_sum, p, psum, r_out, rsum, zb, row_ptr,
@@ -147,8 +138,8 @@ if AVAILABLE:
                 lo, hi = row_ptr[k], row_ptr[k + 1]
                 if k + 1 < h:  # the next row's primal, from the dual before this row's update
                     if k + 1 < rb:
-                        _primal_ring(v, t, r_in, rin_sum, ring[(k + 1) & 1], hi, row_ptr[k + 2],
-                                     left, up, wx, wy, wl, wu, c)
+                        _primal(v, t, r_in, rin_sum, ring[(k + 1) & 1], hi, hi, row_ptr[k + 2],
+                                left, up, wx, wy, wl, wu, c)
                     else:
                         ring[(k + 1) & 1] = zb[ch + 1]
                 zk, zn = ring[k & 1], ring[(k + 1) & 1]
@@ -200,8 +191,8 @@ if AVAILABLE:
         for ch in _nb.prange(num_chunks):
             ra, rb = ch * h // num_chunks, (ch + 1) * h // num_chunks
             if ra < rb:
-                _primal_row(v, t, p, psum, z, row_ptr[ra], row_ptr[rb], left, up, wx, wy, wl, wu,
-                            c)
+                _primal(v, t, p, psum, z, 0, row_ptr[ra], row_ptr[rb], left, up, wx, wy, wl, wu,
+                        c)
 
 
 def _chunks(n: int) -> int:

@@ -60,6 +60,7 @@ residuals with the effective degrees of freedom of the regularised fit.
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from dataclasses import dataclass, field
@@ -181,6 +182,11 @@ def grid_gradient_adjoint(p: Tensor, ex: Tensor, ey: Tensor) -> Tensor:
     return out + torch.nn.functional.pad(py[..., :-1, :], (0, 0, 1, 0))
 
 
+def _brightness_weight_(g: Tensor, alpha: float) -> Tensor:
+    """:func:`brightness_weighted` of ``g (2, M, h, w)`` in place (bands along dim 1)."""
+    return g.add_(g.sum(1, keepdim=True), alpha=(alpha - 1.0) / g.shape[1])
+
+
 def brightness_weighted(g: Tensor, brightness_weight: float | Tensor, dim: int = -3) -> Tensor:
     """``K g`` with ``K = I − (1 − α) u uᵀ``, ``u = (1, …, 1)/√M`` along ``dim`` (the bands):
     the flat-spectrum (brightness) component of every band vector scaled by ``α``, the rest
@@ -278,8 +284,7 @@ class _ProxWorkspace:
         """``z = max(v − t Dᵀq, 0)`` into :attr:`z` (``q`` is 0 off the edges)."""
         z = self.z
         if self.kq is not None:  # (K D)ᵀ = Dᵀ K
-            self.kq.copy_(q).add_(q.sum(1, keepdim=True), alpha=(self.alpha - 1.0) / q.shape[1])
-            q = self.kq
+            q = _brightness_weight_(self.kq.copy_(q), self.alpha)
         if self.weighted:  # Dᵀ of the weighted gradient: weights first
             torch.mul(q[0], self.ex, out=self.wq[0])
             torch.mul(q[1], self.ey, out=self.wq[1])
@@ -300,9 +305,7 @@ class _ProxWorkspace:
         g[1, :, -1, :] = 0
         g[0].mul_(self.ex)
         g[1].mul_(self.ey)
-        if self.alpha != 1.0:
-            g.add_(g.sum(1, keepdim=True), alpha=(self.alpha - 1.0) / g.shape[1])
-        return g
+        return g if self.alpha == 1.0 else _brightness_weight_(g, self.alpha)
 
     def prox(self, v: Tensor, t: float, iters: int, nonneg: bool = True) -> Tensor:
         """:func:`prox_tv_nonneg` in place, warm-started from the last call's dual."""
@@ -468,9 +471,12 @@ class SpatialProblem:
             return None
         if "inv" not in self.packed:
             self.packed["inv"] = compiled.pack_symmetric(self.inv.numpy())
-        return self.packed["inv"], self._graph()
+        return self.packed["inv"], self._graph
 
+    @functools.cached_property
     def _graph(self) -> tuple[np.ndarray, ...]:
+        """Per pixel: neighbour positions and edge weights (built once per frame problem: the
+        λ searches solve one frame many times)."""
         h, w = self.frame_size
         pix = self.pixel_index.numpy()
         n = pix.size
@@ -771,15 +777,14 @@ def _admm_compiled(
     row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
     step = 1.0 / (8.0 * t) if t > 0 else 0.0
     bnorm = float(np.linalg.norm(bn)) or 1.0
-    threads = compiled.threads(kernel_threads)
-    it, prim, dual, done, first = 0, float("inf"), float("inf"), False, True
-    with threads:
+    it, prim, dual, done = 0, float("inf"), float("inf"), False
+    with compiled.threads(kernel_threads):
         while it < max_iter:
             for k in range(CHECK_EVERY):
                 if k == CHECK_EVERY - 1:
                     z_prev = z.copy()
-                compiled.x_update(inv, bn, z, u, x, v, rho, not first)
-                first = False
+                # u ← u + x − z from the second iteration on (x and z of the previous one)
+                compiled.x_update(inv, bn, z, u, x, v, rho, it + k > 0)
                 if rows is not None:  # the frame's own factor on the changed pixels
                     rhs = bn[rows] + rho * (z[rows] - u[rows])
                     x[rows] = np.einsum("kij,kj->ki", row_inv, rhs)
@@ -895,13 +900,12 @@ def mean_square_residual(sens: BundleSensing, x: Tensor, y: Tensor, mask: Tensor
     pixel's used observations); ``num_samples``: over that many evenly spaced valid pixels
     (:func:`~hsi_torch.recon.sensing.sample_pixels`) instead of all."""
     with torch.no_grad():
+        idx = None
         if num_samples is not None:
             idx = sample_pixels(ok, num_samples)
             if idx is None:
                 return float("nan")
             x, y, mask, ok = x[idx], y[idx], mask[idx], ok[idx]
-        else:
-            idx = None
         w = (mask & ok.unsqueeze(1)).to(sens.dtype)
         r = (sens.model.A(x.detach().to(sens.dtype), idx) - y.to(sens.dtype)) * w
         n = float(w.sum())
