@@ -2,19 +2,22 @@
 
 Stages, bottom to top, and what each may import::
 
-    foundation   errors, spectral, config, io, forward_model, console, profiling, resources,
-                 refdata, colour, batch, testing     → foundation only
-    optics       (virtual prototype optics, plane geometry)  → foundation
+    foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
+                 resources, refdata, colour, batch, testing, cli_common  → foundation only
+    optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
     recon        (bundle + capture → cube)                    → foundation, optics
     experiments  (evaluations, the demo)                      → everything above
-    commands     (cli.py, __main__, */cli_entry.py)           → anything
+    commands     (cli.py, __main__, */cli_entry.py)           → anything, but nothing imports cli
 
 So reconstruction needs neither calibration nor the simulator (nor OpenCV), calibration does not
-need the simulator, and nothing below the experiments imports them. Library modules import at
-module level; an import inside a function of a library module carries a ``# lazy:`` comment that
-says why (start-up time, an optional dependency, a cycle).
+need the simulator, and nothing below the experiments imports them. The optics are physics with no
+file I/O (the Bayer mosaic they and the readers share is the foundation's ``bayer``). The command
+line reaches the ``*/cli_entry.py`` modules by name and they take what they share from
+``cli_common``, so no module imports ``cli`` back (only ``__main__`` runs it). Library modules
+import at module level; an import inside a function of a library module carries a ``# lazy:``
+comment that says why (start-up time, an optional dependency, a cycle).
 """
 
 from __future__ import annotations
@@ -28,8 +31,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
-FOUNDATION = ("errors", "spectral", "config", "io", "forward_model", "console", "profiling",
-              "resources", "refdata", "colour", "batch", "testing")  # fmt: skip
+FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
+              "profiling", "resources", "refdata", "colour", "batch", "testing",
+              "cli_common")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},
@@ -114,6 +118,30 @@ def test_every_import_follows_the_data_flow():
             if theirs not in ALLOWED[mine]:
                 bad.append(f"{path.relative_to(ROOT)}:{line} ({mine}) imports {mod} ({theirs})")
     assert not bad, "imports against the data flow:\n" + "\n".join(bad)
+
+
+def test_the_optics_do_no_file_io():
+    """The device's physics reads and writes no files: nothing in ``optics`` imports ``io``."""
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {mod}" for p in _files()
+           if stage_of(_module_name(p)) == "optics"
+           for mod, line, _ in _imports(p)
+           if mod == "hsi_torch.io" or mod.startswith("hsi_torch.io.")]  # fmt: skip
+    assert not bad, "optics import hsi_torch.io:\n" + "\n".join(bad)
+
+
+def test_nothing_imports_the_command_line_back():
+    """``cli`` calls the entry functions by name; they (and everything else) never import it."""
+    bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
+           if _module_name(p) != "hsi_torch.__main__"
+           for mod, line, _ in _imports(p)
+           if mod == "hsi_torch.cli"]  # fmt: skip
+    assert not bad, "modules importing hsi_torch.cli: " + ", ".join(bad)
+
+
+def test_no_import_cycle_between_errors_and_config():
+    """``errors`` is the bottom of the package: it imports nothing from ``hsi_torch``."""
+    mods = [m for m, _, _ in _imports(PKG / "errors.py")]
+    assert not [m for m in mods if m.startswith("hsi_torch")], mods
 
 
 def test_no_opencv_in_reconstruction_and_the_simulator_core():

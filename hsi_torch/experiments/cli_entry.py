@@ -69,7 +69,7 @@ def run_experiment(args: argparse.Namespace) -> int:
     else the schema's defaults),
     ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
     from hsi_torch.batch import ensure_out_dir
-    from hsi_torch.cli import load_args_config
+    from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
 
@@ -89,7 +89,7 @@ def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
     :func:`hsi_torch.experiments.demo_full.demo_full`."""
-    from hsi_torch.cli import load_args_config
+    from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.experiments.demo import DemoConfig, demo

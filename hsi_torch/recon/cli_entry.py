@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 
 from hsi_torch.batch import BatchSummary
-from hsi_torch.cli import load_args_config
+from hsi_torch.cli_common import load_args_config
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.many import run_many_cli
 from hsi_torch.recon.run import check_run, run_serial
