@@ -17,7 +17,7 @@ file I/O (the Bayer mosaic they and the readers share is the foundation's ``baye
 line reaches the ``*/cli_entry.py`` modules by name and they take what they share from
 ``cli_common``, so no module imports ``cli`` back (only ``__main__`` runs it). Library modules
 import at module level; an import inside a function of a library module carries a ``# lazy:``
-comment that says why (start-up time, an optional dependency, a cycle).
+comment that says why (start-up time, an optional dependency).
 """
 
 from __future__ import annotations
