@@ -47,7 +47,12 @@ from torch import Tensor
 from hsi_torch.recon._numba import threads
 from hsi_torch.recon.nnls._threads import cpu_threads
 from hsi_torch.recon.spatial import _compiled as compiled
-from hsi_torch.recon.spatial.operators import _ProxWorkspace, prox_tv_nonneg
+from hsi_torch.recon.spatial.operators import (
+    _ProxWorkspace,
+    fgp_dual_step,
+    fista_momentum,
+    prox_tv_nonneg,
+)
 from hsi_torch.recon.spatial.problem import SpatialProblem
 
 __all__ = ["CHECK_EVERY", "SpatialResult", "solve_spatial"]
@@ -301,7 +306,7 @@ class _CompiledStep:
         self.first_rows = compiled.fgp_workspace(self.graph, m, self.z.dtype)
         self.rows = problem.row_index.numpy() if problem.row_index is not None else None
         self.row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
-        self.step = 1.0 / (8.0 * t) if t > 0 else 0.0
+        self.step = fgp_dual_step(t) if t > 0 else 0.0
 
     def __call__(self, i: int, keep: bool) -> None:
         b, z, u, x, v, rho = self.b, self.z, self.u, self.x, self.v, self.rho
@@ -320,9 +325,9 @@ class _CompiledStep:
         kk = 1.0
         p, psum, r, rsum = self.p, self.psum, self.r, self.rsum
         for j in range(self.inner_iters):  # FISTA from r = p (the last step's dual)
-            k_new = (1.0 + math.sqrt(1.0 + 4.0 * kk * kk)) / 2.0
+            k_new, mom = fista_momentum(kk)
             r_in, rin_sum = (p, psum) if j == 0 else (r, rsum)
-            compiled.fgp_step(v, self.t, self.step, (kk - 1.0) / k_new, r_in, rin_sum, p, psum,
+            compiled.fgp_step(v, self.t, self.step, mom, r_in, rin_sum, p, psum,
                               r, rsum, self.first_rows, self.graph, self.alpha)
             kk = k_new
         compiled.fgp_primal(v, self.t, p, psum, z, self.graph, self.alpha)

@@ -104,6 +104,23 @@ def total_variation(cube: Tensor, active: Tensor, brightness_weight: float = 1.0
     return g.square().sum((-4, -3)).sqrt().sum((-2, -1))
 
 
+#: ``‖D‖² ≤ 8`` on the 2-D grid (``‖K‖ ≤ 1``, edge weights ``≤ 1``): the dual step of the fast
+#: gradient projection is ``1 / (8t)`` (:func:`fgp_dual_step`).
+GRADIENT_NORM_BOUND_SQ = 8.0
+
+
+def fgp_dual_step(t: float | Tensor) -> float | Tensor:
+    """The FGP dual step ``1 / (8t)`` of the prox with weight ``t > 0`` (every backend)."""
+    return 1.0 / (GRADIENT_NORM_BOUND_SQ * t)
+
+
+def fista_momentum(k: float) -> tuple[float, float]:
+    """FISTA's next ``k' = (1 + sqrt(1 + 4k²)) / 2`` and the extrapolation weight ``(k − 1)/k'``
+    (every backend of the prox; ``k = 1`` at the start of a prox)."""
+    k_new = (1.0 + math.sqrt(1.0 + 4.0 * k * k)) / 2.0
+    return k_new, (k - 1.0) / k_new
+
+
 def _project_unit(p: Tensor) -> Tensor:
     """Project every pixel's ``(2, M)`` dual vector onto the unit ball (out of place)."""
     n2 = p.square().sum((-4, -3), keepdim=True)
@@ -137,7 +154,7 @@ def prox_tv_nonneg(
         ``z (M, h, w)`` and the final dual ``p (2, M, h, w)``.
     """
     p = torch.zeros((2, *v.shape), dtype=v.dtype, device=v.device) if p0 is None else p0
-    step = 1.0 / (8.0 * t)
+    step = fgp_dual_step(t)
 
     def primal(q: Tensor) -> Tensor:
         z = v - t * grid_gradient_adjoint(brightness_weighted(q, brightness_weight), ex, ey)
@@ -147,8 +164,8 @@ def prox_tv_nonneg(
     for _ in range(int(iters)):
         g = brightness_weighted(grid_gradient(primal(r), ex, ey), brightness_weight)
         p_new = _project_unit(r + step * g)
-        k_new = (1.0 + math.sqrt(1.0 + 4.0 * k * k)) / 2.0
-        r = p_new + ((k - 1.0) / k_new) * (p_new - p)
+        k_new, mom = fista_momentum(k)
+        r = p_new + mom * (p_new - p)
         p, k = p_new, k_new
     return primal(p), p
 
@@ -202,7 +219,7 @@ class _ProxWorkspace:
 
     def prox(self, v: Tensor, t: float, iters: int, nonneg: bool = True) -> Tensor:
         """:func:`prox_tv_nonneg` in place, warm-started from the last call's dual."""
-        step = 1.0 / (8.0 * t)
+        step = fgp_dual_step(t)
         p, p_new, r = self.p, self.p_new, self.r
         r.copy_(p)
         k = 1.0
@@ -211,10 +228,10 @@ class _ProxWorkspace:
             torch.add(r, g, alpha=step, out=p_new)
             torch.sum(p_new.square(), dim=(0, 1), keepdim=True, out=self.n2)
             p_new.mul_(self.n2.clamp_min_(1.0).rsqrt_())
-            k_new = (1.0 + math.sqrt(1.0 + 4.0 * k * k)) / 2.0
+            k_new, mom = fista_momentum(k)
             # r = p_new + ((k − 1)/k_new)(p_new − p); then p ← p_new
             torch.sub(p_new, p, out=r)
-            r.mul_((k - 1.0) / k_new).add_(p_new)
+            r.mul_(mom).add_(p_new)
             p.copy_(p_new)
             k = k_new
         return self.primal(v, t, p, nonneg)
