@@ -214,3 +214,55 @@ def test_the_solver_has_one_import_path():
                 if names & {"solve_nnls", "prepare_nnls"}:
                     exporters.append(_module_name(path))
     assert sorted(exporters) == ["hsi_torch.recon.nnls", "hsi_torch.recon.nnls.problem"]
+
+
+#: modules still importing numba themselves (their thread helpers are
+#: ``hsi_torch.recon._numba.set_threads`` / ``thread_counts``; drop the entry when they use them)
+_NUMBA_PENDING = {"hsi_torch.recon.many"}
+
+
+def test_numba_is_imported_in_one_place():
+    """numba is optional: only ``hsi_torch.recon._numba`` imports it (availability, the
+    ``HSI_TORCH_NO_NUMBA`` switch, thread counts); the kernels take it from there."""
+    bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
+           if _module_name(p) not in {"hsi_torch.recon._numba", *_NUMBA_PENDING}
+           for mod, line, _ in _imports(p) if mod == "numba" or mod.startswith("numba.")]
+    assert not bad, "numba imported outside hsi_torch/recon/_numba.py: " + ", ".join(bad)
+
+
+def test_the_solver_rules_are_defined_once():
+    """The exchange rules of the active-set solver (the ¼·tol threshold, Murty's counter, the
+    zero-set/free-set switch at M // 2, the compiled kernel's floor) appear as numbers only in
+    ``hsi_torch/recon/nnls/constants.py``; the torch and the compiled kernels import them."""
+    bad = []
+    for path in sorted((PKG / "recon" / "nnls").glob("*.py")):
+        if path.name == "constants.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Constant) and node.value in (0.25, 1e-300):
+                bad.append(f"{path.name}:{node.lineno} literal {node.value}")
+            if (isinstance(node, ast.BinOp) and isinstance(node.op, ast.FloorDiv)
+                    and isinstance(node.right, ast.Constant) and node.right.value == 2):
+                bad.append(f"{path.name}:{node.lineno} '// 2'")
+            if (isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "backup"
+                                                     for t in node.targets)
+                    and isinstance(node.value, ast.Constant)):
+                bad.append(f"{path.name}:{node.lineno} Murty's counter as a literal")
+    assert not bad, "solver rules written outside nnls/constants.py: " + ", ".join(bad)
+    from hsi_torch.recon.nnls import _compiled, active_set, constants, frame  # noqa: F401
+
+    assert constants.MURTY_PATIENCE == 3 and constants.INFEASIBILITY_FRACTION == 0.25
+    assert constants.zero_set_limit(25) == 12
+
+
+def test_the_spatial_admm_loop_is_written_once():
+    """One ADMM loop and stopping rule in ``recon/spatial/admm.py`` for every backend: the
+    residuals are compared with the tolerance in one function, and no module of the package
+    but it iterates over ``CHECK_EVERY``."""
+    spatial = PKG / "recon" / "spatial"
+    hits = []
+    for path in sorted(spatial.glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        hits += [f"{path.name}:{i + 1}" for i, ln in enumerate(text.splitlines())
+                 if "range(CHECK_EVERY)" in ln or "prim <= tol" in ln]
+    assert len(hits) == 2 and all(h.startswith("admm.py:") for h in hits), hits
