@@ -18,7 +18,6 @@ from hsi_torch.cli import main
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
 from hsi_torch.experiments.metrics import cube_scores, erode_px, interior_mask
 from hsi_torch.io import read_any, read_capture
-from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_import import (
     check_capture_set,
     import_captures,
@@ -288,7 +287,7 @@ def test_published_schema_accepts_the_manifests_we_write(sim: Path):
         assert f"`{k}`" in doc, k
 
 
-def test_bundle_from_imported_set_round_trips(tmp_path: Path):
+def test_copy_makes_a_self_contained_set(tmp_path: Path):
     """A set imported with --copy is self-contained (the files under the set's folder)."""
     m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
     (tmp_path / "lab").mkdir()
@@ -299,4 +298,67 @@ def test_bundle_from_imported_set_round_trips(tmp_path: Path):
     man = json.loads((tmp_path / "set/manifest.json").read_text())
     assert "files_root" not in man and man["captures"][0]["file"] == "scan/a_430nm.dng"
     assert (tmp_path / "set/scan/a_430nm.dng").is_file()
-    assert CalibrationBundle  # imported for the module's users; nothing else here
+    cs = read_capture_set(tmp_path / "set")
+    assert cs.scan == [(tmp_path / "set/scan/a_430nm.dng", 430.0)]
+    md = cs.read(cs.scan[0][0]).metadata
+    assert (md["black_level"], md["black_level_source"]) == ([BLACK] * 4, "file")
+
+
+def test_read_any_metadata_contract(tmp_path: Path):
+    """exposure_s / black_level / camera identity with their sources, for a machine-vision TIFF
+    with EXIF tags, our TIFF with JSON metadata, a PNG, and keyword overrides."""
+    import tifffile
+
+    from hsi_torch.io import write_capture
+
+    m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "mv.tif", m, metadata=None, extratags=[
+        (33434, "2I", 1, (1, 250)), (271, "s", 0, "Vision Co"), (272, "s", 0, "MV-1")])
+    c = read_any(tmp_path / "mv.tif", cfa_pattern="GRBG")
+    md = c.metadata
+    assert (md["exposure_s"], md["exposure_source"]) == (0.004, "file")
+    assert (md["camera_make"], md["camera_model"]) == ("Vision Co", "MV-1")
+    assert (md["black_level"], md["black_level_source"]) == (0.0, "default")
+    assert md["white_level"] == 65535 and md["cfa_pattern"] == "GRBG"
+    c = read_any(tmp_path / "mv.tif", cfa_pattern="GRBG", black_level=64, exposure_s=0.01,
+                 camera_model="X", sources={"black_level": "sheet", "exposure_s": "manifest"})
+    md = c.metadata
+    assert (md["black_level"], md["black_level_source"]) == (64.0, "sheet")
+    assert (md["exposure_s"], md["exposure_source"]) == (0.01, "manifest")
+    assert md["camera_model"] == "X" and float(c.mosaic[0, 0, 0]) == 600 - 64
+    write_capture(tmp_path / "ours.tif", m, {"cfa_pattern": "RGGB", "black_level": 100,
+                                            "exposure_s": 0.5, "camera_make": "Sim"})
+    md = read_any(tmp_path / "ours.tif").metadata
+    assert (md["black_level_source"], md["exposure_s"], md["exposure_source"]) == ("file", 0.5,
+                                                                                  "file")
+    assert md["camera_make"] == "Sim" and md["camera_model"] is None
+    cv2.imwrite(str(tmp_path / "p.png"), np.stack([m, m // 2, m // 3], -1))  # B, G, R on disk
+    md = read_any(tmp_path / "p.png").metadata
+    assert md["kind"] == "rgb" and md["cfa_pattern"] is None and md["exposure_s"] is None
+    assert md["exposure_source"] is None and md["camera_make"] is None
+    assert float(read_any(tmp_path / "p.png").image[0, 0, 0]) == 600 // 3  # R first
+    with pytest.raises(FileFormatError, match="exposure_s must be a number > 0"):
+        read_any(tmp_path / "p.png", exposure_s=-1)
+    with pytest.raises(ValueError, match="is not one of"):
+        read_any(tmp_path / "p.png", sources={"black_level": "guess"})
+    with pytest.raises(FileFormatError, match="does not match the expected sensor size"):
+        read_any(tmp_path / "p.png", expected_size=(31, 32))  # from the header
+
+
+def test_check_exits_1_when_calibration_would_refuse(tmp_path: Path, capsys):
+    m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
+    for f in ("mono/s_430nm.png", "mono/s_700nm.png", "w/w.png"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(tmp_path / f), m)
+    (tmp_path / "sheet.csv").write_text("file,role,cfa_pattern\nmono/s_430nm.png,scan,RGGB\n"
+                                        "mono/s_700nm.png,scan,RGGB\nw/w.png,white,RGGB\n")
+    assert main(["captures", "import", "--sheet", str(tmp_path / "sheet.csv"),
+                 "--out", str(tmp_path / "set")]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "warning: no scan frame for 440, 450" in out and "no grid captures" in out
+    assert "s_700nm.png (700 nm)" in out and "no nominal layout" in out
+    assert main(["captures", "check", str(tmp_path / "set")]) == 1
+    out = capsys.readouterr().out
+    assert "error: no grid captures" in out and "error: no scan frame for 440" in out
+    assert "note: scan frames near no band (not used): s_700nm.png (700 nm)" in out
+    assert "note: 3 capture(s) with no black level given" in out

@@ -57,7 +57,7 @@ from hsi_torch.io.capture_set import (
     read_nominal_layout,
     wavelength_from_name,
 )
-from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_any, read_capture
+from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_capture
 
 __all__ = [
     "SHEET_COLUMNS",
@@ -328,6 +328,11 @@ class ImportReport:
         return "\n".join(lines)
 
 
+def _set_value(v: Any) -> str:
+    return "[" + ",".join(f"{x:g}" for x in v) + "]" if isinstance(v, list) else (
+        f"{v:g}" if isinstance(v, float) else str(v))
+
+
 def _grid(grid_nm: tuple[float, float, float]) -> list[float]:
     start, stop, step = grid_nm
     n = int(round((stop - start) / step)) + 1
@@ -407,6 +412,16 @@ def import_captures(
             warnings.append(f"no {role} captures: calibration needs them")
     if not counts["dark"]:
         warnings.append("no dark frame: calibration subtracts the black level only (check it)")
+    for r in rows:
+        if r.role == "scene" and r.settings:
+            sets = " ".join(f"--set {k}={_set_value(v)}" for k, v in r.settings.items()
+                            if k in ("cfa_pattern", "black_level", "white_level"))  # fmt: skip
+            warnings.append(
+                f"scene {r.file.name}: its settings ({', '.join(r.settings)}) apply when it is "
+                "read through the capture set (CaptureSet.read, captures check); 'hsi-torch "
+                "reconstruct' reads the file alone" + (f": give them there with {sets}" if sets
+                                                       else "")  # fmt: skip
+            )
 
     lay_src = Path(layout) if layout is not None else None
     if lay_src is not None:
@@ -472,21 +487,25 @@ def check_capture_set(
     Returns:
         ``(rows, problems)``: per capture ``{"file", "role", "band_nm", "kind", "size",
         "cfa_pattern", "black_level", "black_level_source", "white_level", "exposure_s",
-        "exposure_source", "camera"}``; ``problems``: what calibration will refuse or the lab
-        should check (missing bands, sizes other than the layout's, mixed cameras or black
-        levels, captures without a known exposure when others have one).
+        "exposure_source", "camera"}``; ``problems``: ``(level, text)`` with level ``"error"``
+        (calibration will refuse the set: no layout, a band without a frame, no white or grid
+        shots) or ``"note"`` (repeated frames, frames near no band, mixed cameras, black levels
+        that are the default 0, captures without a known exposure when others have one).
 
     Raises:
         HSIError: the set cannot be read (naming the file and key).
     """
     cs = read_capture_set(root, layout=layout)
     grid = _grid(grid_nm)
-    problems: list[str] = []
+    problems: list[tuple[str, str]] = []
     size = None
     if cs.layout_path is not None and cs.layout_path.is_file():
         size = read_nominal_layout(cs.layout_path).sensor_size
     else:
-        problems.append(f"no nominal layout ({cs.layout_path}): calibration needs one")
+        problems.append(("error", f"no nominal layout ({cs.layout_path}): calibration needs one"))
+    for role in ("white", "grid"):
+        if not getattr(cs, role):
+            problems.append(("error", f"no {role} captures: calibration needs them"))
     files: list[tuple[Path, str, float | None]] = []
     for p, lam in cs.scan:
         files.append((p, "scan", lam if lam is not None else wavelength_from_name(p.name)))
@@ -496,10 +515,7 @@ def check_capture_set(
     rows = []
     seen_bands: dict[float, int] = {}
     for p, role, lam in files:
-        given = cs.settings.get(p, {})
-        kw = {k: v for k, (v, _) in given.items() if k != "exposure"}
-        cap = read_any(p, expected_size=size, sources={k: s for k, (_, s) in given.items()},
-                       **kw)  # fmt: skip
+        cap = cs.read(p, expected_size=size)
         m = cap.metadata
         band = None
         if role == "scan":
@@ -518,37 +534,38 @@ def check_capture_set(
             "cfa_pattern": m.get("cfa_pattern"), "black_level": m.get("black_level"),
             "black_level_source": m.get("black_level_source"), "white_level": m.get("white_level"),
             "exposure_s": exposure, "exposure_source": m.get("exposure_source"),
-            "relative_exposure": (given.get("exposure") or (m.get("exposure"), None))[0],
+            "relative_exposure": m.get("exposure"),
             "camera": make,
         })  # fmt: skip
     missing = [g for g in grid if g not in seen_bands]
     if missing:
-        problems.append("no scan frame for " + ", ".join(f"{g:g}" for g in missing) + " nm "
-                        "(calibration refuses the set)")
+        problems.append(("error", "no scan frame for " + ", ".join(f"{g:g}" for g in missing)
+                         + " nm (calibration refuses the set)"))
     for g, n in seen_bands.items():
         if n > 1:
-            problems.append(f"{n} scan frames at {g:g} nm: calibration averages them")
+            problems.append(("note", f"{n} scan frames at {g:g} nm: calibration averages them"))
     off = [r for r in rows if r["role"] == "scan" and r["band_nm"] is None]
     if off:
-        problems.append("scan frames near no band (not used): " + ", ".join(
-            f"{Path(r['file']).name} ({r['wavelength_nm']} nm)" for r in off))
+        problems.append(("note", "scan frames near no band (not used): " + ", ".join(
+            f"{Path(r['file']).name} ({r['wavelength_nm']:g} nm)" for r in off)))
     cams = {r["camera"] for r in rows if r["camera"]}
     if len(cams) > 1:
-        problems.append(f"captures of {len(cams)} cameras: {sorted(cams)}")
+        problems.append(("note", f"captures of {len(cams)} cameras: {sorted(cams)}"))
     defaults = [Path(r["file"]).name for r in rows if r["black_level_source"] == "default"]
     if defaults:
-        problems.append(f"{len(defaults)} capture(s) with no black level given or in the file "
-                        f"(0 subtracted): {', '.join(defaults[:5])}"
-                        + (" ..." if len(defaults) > 5 else ""))
+        problems.append(("note", f"{len(defaults)} capture(s) with no black level given or in "
+                         f"the file (0 subtracted): {', '.join(defaults[:5])}"
+                         + (" ..." if len(defaults) > 5 else "")))
     known = [r for r in rows if r["exposure_s"] is not None]
     if known and len(known) < len(rows):
         unk = [Path(r["file"]).name for r in rows if r["exposure_s"] is None]
-        problems.append(f"exposure unknown for {len(unk)} capture(s) ({', '.join(unk[:5])}"
-                        + (" ..." if len(unk) > 5 else "") + "): no exposure ratio for them")
+        problems.append(("note", f"exposure unknown for {len(unk)} capture(s) "
+                         f"({', '.join(unk[:5])}" + (" ..." if len(unk) > 5 else "")
+                         + "): no exposure ratio for them"))
     return rows, problems
 
 
-def _format_check(rows: list[dict[str, Any]], problems: list[str]) -> str:
+def _format_check(rows: list[dict[str, Any]], problems: list[tuple[str, str]]) -> str:
     def lv(v: Any) -> str:
         if v is None:
             return "-"
@@ -568,7 +585,7 @@ def _format_check(rows: list[dict[str, Any]], problems: list[str]) -> str:
             f"{lv(r['white_level']):>7} {r['cfa_pattern'] or 'RGB':<5} {exp:<22} "
             f"{r['camera'] or '-'}"
         )
-    lines += [f"note: {p}" for p in problems]
+    lines += [f"{level}: {text}" for level, text in problems]
     return "\n".join(lines)
 
 
@@ -594,4 +611,4 @@ def run_captures(args: Any) -> int:
         return 0
     rows, problems = check_capture_set(args.dir, layout=args.layout)
     print(_format_check(rows, problems))
-    return 0
+    return 1 if any(level == "error" for level, _ in problems) else 0

@@ -44,6 +44,7 @@ import numpy as np
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_manifest import check_manifest, entry_settings
+from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_any
 
 __all__ = [
     "CAPTURE_SET_SCHEMA_VERSION",
@@ -75,10 +76,7 @@ TRUTH_NPZ = "ground_truth/truth.npz"
 TRUTH_JSON = "ground_truth/truth.json"
 CAPTURE_TYPES = ("scan", "white", "grid", "dark", "scene")
 #: File suffixes of captures found in the sub-folders of a folder without a manifest.
-CAPTURE_SUFFIXES = (
-    ".tif", ".tiff", ".png", ".npy", ".npz", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".kdc", ".raf",
-    ".orf", ".rw2", ".pef", ".srw", ".raw", ".3fr", ".iiq", ".erf", ".mrw", ".nrw", ".x3f",
-)  # fmt: skip
+CAPTURE_SUFFIXES = SUPPORTED_SUFFIXES  # every file read_any reads
 _WL_RE = re.compile(r"(\d+(?:[.p]\d+)?)\s*nm", re.IGNORECASE)
 _FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
 
@@ -221,6 +219,25 @@ class CaptureSet:
                 raise FileFormatError(
                     f"captures folder {self.root}: no {name} captures (looked in {where})"
                 )
+
+    def read(self, path: str | Path, **kwargs: Any) -> Any:
+        """:func:`hsi_torch.io.read_any` of one of the set's captures with the manifest's settings
+        for it (:attr:`settings`, their sources labelled); keyword arguments given here win (and
+        count as ``"config"`` unless ``sources`` says otherwise). Returns the
+        :class:`~hsi_torch.io.captures.LinearCapture` (the manifest's relative ``exposure`` is
+        put into its metadata)."""
+        p = Path(path)
+        given = self.settings.get(p, {})
+        kw = {k: v for k, (v, _) in given.items() if k != "exposure"}
+        sources = {k: src for k, (_, src) in given.items() if k != "exposure"}
+        for k in kwargs:
+            sources.pop(k, None)
+        sources.update(kwargs.pop("sources", None) or {})
+        kw.update(kwargs)
+        cap = read_any(p, sources=sources, **kw)
+        if "exposure" in given:
+            cap.metadata["exposure"] = given["exposure"][0]
+        return cap
 
     def scene(self, name: str) -> Path:
         """The capture of scene ``name``."""
