@@ -150,12 +150,17 @@ class _Reader:
         self, paths: Path | Sequence[Path]
     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
         """:meth:`read` of one file, or the mean of several (repeated frames of one scan
-        wavelength): a sample is saturated when it is in any of them."""
+        wavelength): a sample is saturated when it is in any of them; frames of other exposures
+        (``exposure_s``, when every frame has one) are scaled to the first frame's first."""
         if isinstance(paths, Path):
             return self.read(paths)
         img, sat, meta = self.read(paths[0])
+        t0 = meta.get("exposure_s")
         for p in paths[1:]:
-            i2, s2, _ = self.read(p)
+            i2, s2, m2 = self.read(p)
+            t = m2.get("exposure_s")
+            if t0 is not None and t is not None and float(t) != float(t0):
+                i2 = i2 * (float(t0) / float(t))
             img = img + i2
             sat = sat | s2
         return img / len(paths), sat, meta
