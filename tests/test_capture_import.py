@@ -362,3 +362,27 @@ def test_check_exits_1_when_calibration_would_refuse(tmp_path: Path, capsys):
     assert "error: no grid captures" in out and "error: no scan frame for 440" in out
     assert "note: scan frames near no band (not used): s_700nm.png (700 nm)" in out
     assert "note: 3 capture(s) with no black level given" in out
+
+
+def test_repeated_scan_frames_are_averaged_at_one_exposure(tmp_path: Path):
+    """Two frames of one band: the mean image (the second, at twice the exposure, scaled to the
+    first's first), a sample saturated in either is saturated."""
+    import torch
+
+    from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.calibrate.pipeline import _Reader
+
+    a = np.full((24, 26), 1000, np.uint16)
+    b = np.full((24, 26), 2000, np.uint16)
+    b[3, 4] = 65535
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), b)
+    pa, pb = tmp_path / "a.png", tmp_path / "b.png"
+    settings = {pa: {"exposure_s": (0.01, "sheet"), "cfa_pattern": ("RGGB", "sheet")},
+                pb: {"exposure_s": (0.02, "sheet"), "cfa_pattern": ("RGGB", "sheet")}}
+    r = _Reader(CalibrateConfig(black_level=0.0), (24, 26), "cpu", torch.float64, settings)
+    img, sat, meta = r.read_mean((pa, pb))
+    assert meta["black_level_source"] == "config" and meta["exposure_source"] == "sheet"
+    ok = ~sat.any(0)
+    assert torch.allclose(img[:, ok], torch.full_like(img[:, ok], 1000.0))
+    assert bool(sat[:, 3, 4].any()) and int((~ok).sum()) < 30
