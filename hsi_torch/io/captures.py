@@ -643,7 +643,8 @@ def read_any(
     out_meta.update(_contract_metadata(
         p, meta, srcs, black_given=black_level is not None, exposure_s=exposure_s,
         camera_make=camera_make, camera_model=camera_model,
-        exif=_file_exif(p) if suffix in RAW_SUFFIXES or suffix in _TIFF_SUFFIXES else {},
+        exif=_file_exif(p) if suffix in RAW_SUFFIXES or (
+            suffix in _TIFF_SUFFIXES and "hsi_torch_capture" not in meta) else {},
     ))  # fmt: skip
     out_meta.setdefault("cfa_pattern", None)
     if kind == "bayer":
@@ -669,7 +670,9 @@ def read_any(
 
 def _file_exif(p: Path) -> dict[str, Any]:
     """``exposure_s``, ``camera_make``, ``camera_model`` from a TIFF's or camera RAW's EXIF tags
-    (``exifread``); keys absent when the file has no such tag or no readable EXIF at all."""
+    (``exifread``); keys absent when the file has no such tag or no readable EXIF at all.
+    (Our own capture TIFFs, written by :func:`write_capture`, hold no EXIF and are not parsed:
+    ~30 ms for a full-size TIFF's tags.)"""
     import exifread  # lazy: only TIFF and RAW files have EXIF to read
 
     log = logging.getLogger("exifread")
