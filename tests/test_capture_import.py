@@ -354,12 +354,17 @@ def test_check_exits_1_when_calibration_would_refuse(tmp_path: Path, capsys):
                                         "mono/s_700nm.png,scan,RGGB\nw/w.png,white,RGGB\n")
     assert main(["captures", "import", "--sheet", str(tmp_path / "sheet.csv"),
                  "--out", str(tmp_path / "set")]) == 0  # fmt: skip
-    out = capsys.readouterr().out
-    assert "warning: no scan frame for 440, 450" in out and "no grid captures" in out
-    assert "s_700nm.png (700 nm)" in out and "no nominal layout" in out
+    cap = capsys.readouterr()
+    assert "hsi-torch: warning: no scan frame for 440, 450" in cap.err
+    assert "no grid captures" in cap.err and "no nominal layout" in cap.err
+    assert "s_700nm.png (700 nm)" in cap.out
+    assert main(["-q", "captures", "check", str(tmp_path / "set")]) == 1
+    cap = capsys.readouterr()
+    assert cap.out == ""  # quiet: only the errors
+    assert "hsi-torch: error: no grid captures" in cap.err
+    assert "error: no scan frame for 440" in cap.err
     assert main(["captures", "check", str(tmp_path / "set")]) == 1
     out = capsys.readouterr().out
-    assert "error: no grid captures" in out and "error: no scan frame for 440" in out
     assert "note: scan frames near no band (not used): s_700nm.png (700 nm)" in out
     assert "note: 3 capture(s) with no black level given" in out
 

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hsi_torch.console import info, warn
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
 from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.capture_manifest import CAPTURE_SETTINGS
@@ -324,7 +325,6 @@ class ImportReport:
         if self.outside:
             lines.append(f"  {len(self.outside)} frame(s) near no band (not used): "
                          + ", ".join(f"{n} ({lam:g} nm)" for n, lam in self.outside))
-        lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -607,8 +607,13 @@ def run_captures(args: Any) -> int:
             source, layout = "manifest", args.layout
         rep = import_captures(rows, args.out, layout=layout, copy=args.copy, source=source,
                               origin=origin)  # fmt: skip
-        print(rep)
+        info(str(rep))
+        for w in rep.warnings:
+            warn(f"hsi-torch: warning: {w}")
         return 0
     rows, problems = check_capture_set(args.dir, layout=args.layout)
-    print(_format_check(rows, problems))
+    info(_format_check(rows, [p for p in problems if p[0] == "note"]))
+    for level, text in problems:
+        if level == "error":
+            warn(f"hsi-torch: error: {text}")
     return 1 if any(level == "error" for level, _ in problems) else 0
