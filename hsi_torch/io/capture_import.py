@@ -457,11 +457,11 @@ def import_captures(
         for r, e in entries:
             e["file"] = r.file.resolve().relative_to(common).as_posix()
     if lay is not None:
-        shutil.copyfile(lay_src, out / NOMINAL_LAYOUT)
+        _copy_unless_same(lay_src, out / NOMINAL_LAYOUT)
         mask = lay.brf_free_patch.get("usable_mask")
         if mask and (lay_src.parent / mask).is_file():
             (out / mask).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(lay_src.parent / mask, out / mask)
+            _copy_unless_same(lay_src.parent / mask, out / mask)
         manifest["nominal_layout"] = NOMINAL_LAYOUT
         manifest["sensor_size"] = list(lay.sensor_size)
     manifest["import"] = {
@@ -475,6 +475,13 @@ def import_captures(
     mpath = atomic_write_json(out / MANIFEST, manifest)
     read_capture_set(out)  # the set reads back (every file found, every key known)
     return ImportReport(mpath, counts, bands, repeated, outside, missing, warnings)
+
+
+def _copy_unless_same(src: Path, dst: Path) -> None:
+    """Copy ``src`` to ``dst`` (a set imported into the folder that holds its layout keeps it)."""
+    if dst.exists() and dst.resolve() == src.resolve():
+        return
+    shutil.copyfile(src, dst)
 
 
 def check_capture_set(
