@@ -652,7 +652,8 @@ def read_any(
         if not pattern:
             raise FileFormatError(
                 f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
-                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB)"
+                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB; "
+                "in a capture sheet or manifest: its cfa_pattern)"
             )
         try:
             pattern = validate_cfa_pattern(pattern)
