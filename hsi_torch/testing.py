@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +34,8 @@ def write_dng(
     """Write a minimal, uncompressed CFA DNG (what a camera's RAW would be) with tifffile.
 
     Tags: ``DNGVersion`` 1.4, ``CFARepeatPatternDim`` 2×2, ``CFAPattern``, ``BlackLevel``,
-    ``WhiteLevel``, an identity ``ColorMatrix1``, and optionally ``ExposureTime`` (a rational of
-    microseconds), ``Make``, ``Model``. LibRaw (rawpy) opens it — the mosaic, black and white
+    ``WhiteLevel``, an identity ``ColorMatrix1``, and optionally ``ExposureTime`` (a rational,
+    denominator ≤ 10⁶), ``Make``, ``Model``. LibRaw (rawpy) opens it — the mosaic, black and white
     level read back exactly — when the image is at least 22 × 22 px (LibRaw's smallest).
 
     Args:
@@ -64,7 +65,8 @@ def write_dng(
         (50778, "H", 1, 21),  # CalibrationIlluminant1: D65
     ]
     if exposure_s is not None:
-        tags.append((33434, "2I", 1, (int(round(exposure_s * 1e6)), 1_000_000)))  # ExposureTime
+        t = Fraction(exposure_s).limit_denominator(1_000_000)  # 1/60 s stays 1/60
+        tags.append((33434, "2I", 1, (t.numerator, t.denominator)))  # ExposureTime
     for code, text in ((271, make), (272, model)):
         if text:
             tags.append((code, "s", 0, text))

@@ -391,3 +391,22 @@ def test_repeated_scan_frames_are_averaged_at_one_exposure(tmp_path: Path):
     ok = ~sat.any(0)
     assert torch.allclose(img[:, ok], torch.full_like(img[:, ok], 1000.0))
     assert bool(sat[:, 3, 4].any()) and int((~ok).sum()) < 30
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GRBG", "BGGR", "GBRG"])
+def test_write_dng_reads_back_through_libraw(tmp_path: Path, pattern: str):
+    """The tests' DNG writer: LibRaw returns the same mosaic, black and white level and CFA
+    pattern; the EXIF gives the exposure and the camera."""
+    import rawpy
+
+    m = np.random.default_rng(3).integers(BLACK, WHITE + 1, (40, 46))
+    f = write_dng(tmp_path / "x.dng", m, cfa_pattern=pattern, black_level=BLACK,
+                  white_level=WHITE, exposure_s=1 / 60, make="Lab", model="Cam")  # fmt: skip
+    with rawpy.imread(str(f)) as r:
+        np.testing.assert_array_equal(r.raw_image_visible, m)
+        assert list(r.black_level_per_channel) == [BLACK] * 4 and r.white_level == WHITE
+    c = read_any(f)
+    md = c.metadata
+    assert md["cfa_pattern"] == pattern and md["exposure_s"] == pytest.approx(1 / 60, rel=1e-6)
+    assert (md["camera_make"], md["camera_model"]) == ("Lab", "Cam")
+    np.testing.assert_array_equal(c.mosaic[0].numpy(), m - BLACK)
