@@ -248,9 +248,9 @@ def rows_from_patterns(
 ) -> list[SheetRow]:
     """Captures from file-name patterns, by role (``{"scan": ["mono/*_{nm}nm.dng"], ...}``).
 
-    A scan pattern may hold ``{nm}`` where the wavelength is (else it comes from a
-    ``<number>nm`` in the name or the file's metadata at calibration); scenes are named by the
-    file's stem. Patterns are relative to ``base``.
+    A scan pattern may hold ``{nm}`` in its file name where the wavelength is (else it comes
+    from a ``<number>nm`` in the name or the file's metadata); scenes are named by the file's
+    stem. Patterns are relative to ``base``.
 
     Raises:
         InputError: an unknown role, or a pattern matching no file (naming it).
