@@ -12,6 +12,7 @@ reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + capture
 experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
 demo           ``hsi_torch.experiments.cli_entry.run_demo``     the README's main command
 config         ``hsi_torch.resources.run_config``               show / copy a shipped config
+captures       ``hsi_torch.io.capture_import.run_captures``     a lab's photos → a capture set
 bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
 =============  ===============================================  ==============================
 
@@ -59,6 +60,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
     "demo": ("hsi_torch.experiments.cli_entry", "run_demo"),
     "config": ("hsi_torch.resources", "run_config"),
+    "captures": ("hsi_torch.io.capture_import", "run_captures"),
 }
 BENCH_TARGETS = ("solver", "pipeline", "simulate")
 #: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
@@ -109,6 +111,13 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch demo --quick --out demo_quick/",
         "hsi-torch demo --set beta=1e3 --no-progress",
         "hsi-torch demo --full --out demo_full/   # original scale, each stage timed",
+    ],
+    "captures": [
+        "hsi-torch captures import --sheet lab/captures.csv --layout lab/nominal_layout.json "
+        "--out capset/",
+        "hsi-torch captures import --scan 'mono/*_{nm}nm.dng' --white 'flat/*.dng' "
+        "--grid 'dots/*.png' --dark 'dark/*.dng' --scene 'shots/*.dng' --out capset/",
+        "hsi-torch captures check capset/    # what calibration will use, file by file",
     ],
     "config": [
         "hsi-torch config list",
@@ -257,6 +266,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="the original prototype's size (simulate_full.yaml): every stage in its own "
              "process, timed, peak memory measured; a few minutes",
     )  # fmt: skip
+
+    p = command("captures", "build a capture set from a lab's photos (import), or check one")
+    cap = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    q = cap.add_parser("import", help="sheet (CSV) or name patterns -> CAPSET/manifest.json")
+    q.add_argument("--sheet", type=Path, help="CSV: file,role[,wavelength_nm,exposure_s,...]")
+    for role in ("scan", "white", "grid", "dark", "scene"):
+        q.add_argument(f"--{role}", action="append", default=[], metavar="PATTERN",
+                       help=f"{role} files (glob; repeatable" + ("; {nm} = the wavelength)"
+                                                                 if role == "scan" else ")"))
+    q.add_argument("--layout", type=Path, help="nominal_layout.json (copied into the set)")
+    q.add_argument("--copy", action="store_true", help="copy the files (default: reference)")
+    q.add_argument("--out", "-o", type=Path, required=True, help="the capture-set folder")
+    _add_global(q, argparse.SUPPRESS)
+    q = cap.add_parser("check", help="validate a set; print what calibration will use")
+    q.add_argument("dir", type=Path, metavar="DIR", help="the capture-set folder")
+    q.add_argument("--layout", type=Path, help="a nominal layout other than the set's")
+    _add_global(q, argparse.SUPPRESS)
+    _add_global(p, argparse.SUPPRESS)
 
     p = command(
         "config", "list, show or copy the shipped configuration files",

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -9,7 +15,65 @@ from hsi_torch.forward_model import SensingModel
 from hsi_torch.refdata import colorchecker_reflectances, illuminant
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid
 
-__all__ = ["synthetic_brf_problem"]
+__all__ = ["synthetic_brf_problem", "write_dng"]
+
+_CFA_CODES = {"R": 0, "G": 1, "B": 2}
+
+
+def write_dng(
+    path: str | os.PathLike,
+    mosaic: Any,
+    *,
+    cfa_pattern: str = "RGGB",
+    black_level: int = 0,
+    white_level: int = 65535,
+    exposure_s: float | None = None,
+    make: str | None = None,
+    model: str | None = None,
+) -> Path:
+    """Write a minimal, uncompressed CFA DNG (what a camera's RAW would be) with tifffile.
+
+    Tags: ``DNGVersion`` 1.4, ``CFARepeatPatternDim`` 2×2, ``CFAPattern``, ``BlackLevel``,
+    ``WhiteLevel``, an identity ``ColorMatrix1``, and optionally ``ExposureTime`` (a rational,
+    denominator ≤ 10⁶), ``Make``, ``Model``. LibRaw (rawpy) opens it — the mosaic, black and white
+    level read back exactly — when the image is at least 22 × 22 px (LibRaw's smallest).
+
+    Args:
+        mosaic: ``(H, W)`` or ``(1, H, W)`` stored values (DN, 0…65535), array or tensor.
+
+    Returns:
+        The path written (its folder is created when missing).
+    """
+    import tifffile  # lazy: only the tests and examples write DNG files
+
+    a = mosaic.detach().cpu().numpy() if isinstance(mosaic, torch.Tensor) else np.asarray(mosaic)
+    a = np.asarray(np.rint(a), dtype=np.float64).reshape(a.shape[-2:])
+    if a.min() < 0 or a.max() > 65535:
+        raise ValueError(f"mosaic values must lie in [0, 65535], got [{a.min()}, {a.max()}]")
+    pat = cfa_pattern.upper()
+    tags: list[tuple[int, str, int, Any]] = [
+        (50706, "B", 4, (1, 4, 0, 0)),  # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0)),  # DNGBackwardVersion
+        (33421, "H", 2, (2, 2)),  # CFARepeatPatternDim
+        (33422, "B", 4, tuple(_CFA_CODES[c] for c in pat)),  # CFAPattern
+        (50710, "B", 3, (0, 1, 2)),  # CFAPlaneColor
+        (50711, "H", 1, 1),  # CFALayout: rectangular
+        (50713, "H", 2, (1, 1)),  # BlackLevelRepeatDim
+        (50714, "I", 1, int(black_level)),  # BlackLevel
+        (50717, "I", 1, int(white_level)),  # WhiteLevel
+        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1)),  # ColorMatrix1
+        (50778, "H", 1, 21),  # CalibrationIlluminant1: D65
+    ]
+    if exposure_s is not None:
+        t = Fraction(exposure_s).limit_denominator(1_000_000)  # 1/60 s stays 1/60
+        tags.append((33434, "2I", 1, (t.numerator, t.denominator)))  # ExposureTime
+    for code, text in ((271, make), (272, model)):
+        if text:
+            tags.append((code, "s", 0, text))
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tifffile.imwrite(p, a.astype(np.uint16), photometric=32803, extratags=tags, metadata=None)
+    return p
 
 
 def synthetic_brf_problem(

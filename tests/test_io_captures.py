@@ -142,8 +142,11 @@ def test_read_any_bad_files(tmp_path, bayer16):
     (tmp_path / "trunc.npz").write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(FileFormatError, match="trunc.npz"):
         read_any(tmp_path / "trunc.npz")
-    (tmp_path / "pic.png").write_bytes(b"\x89PNG")
+    (tmp_path / "pic.jpg").write_bytes(b"\xff\xd8\xff")
     with pytest.raises(FileFormatError, match="unsupported file type"):
+        read_any(tmp_path / "pic.jpg")
+    (tmp_path / "pic.png").write_bytes(b"\x89PNG")  # a PNG cut inside its header
+    with pytest.raises(FileFormatError, match="pic.png: not a PNG file"):
         read_any(tmp_path / "pic.png")
     with pytest.raises(FileNotFoundError, match="missing.tif"):
         read_any(tmp_path / "missing.tif")

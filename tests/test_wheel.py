@@ -94,6 +94,7 @@ def test_wheel_holds_configs_and_data(installed):
         assert f"hsi_torch/configs/{cfg}.yaml" in names, cfg
     assert "hsi_torch/data/lee_068_sky_blue.csv" in names
     assert "hsi_torch/data/README.md" in names
+    assert "hsi_torch/io/capture_set.schema.json" in names  # the manifest's published schema
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("/METADATA")))
     requires = [ln for ln in meta.decode().splitlines() if ln.startswith("Requires-Dist:")]
     base = [r for r in requires if "extra ==" not in r]

@@ -5,13 +5,16 @@
    ``manifest.json`` (as written by ``hsi-torch simulate``) or, for a real device, the folders
    ``scan/``, ``white/``, ``grid/`` and optionally ``dark/``, plus ``nominal_layout.json`` (view
    triangles, parity, reference bbox, BRF-free patch) and the BRF-free mask
-   (``brf_free_mask.png`` or the layout's disk polygon, eroded). :func:`select_scan_frames`
-   gives every band of the grid its scan frame (wavelength from the manifest entry, the file name
-   such as ``scan_550nm.tif``, or the file's metadata ``wavelength_nm``);
+   (``brf_free_mask.png`` or the layout's disk polygon, eroded). :func:`group_scan_frames`
+   gives every band of the grid its scan frames (wavelength from the manifest entry, the file
+   name such as ``scan_550nm.tif``, or the file's metadata ``wavelength_nm``; repeated frames of
+   a band are averaged, frames near no band listed in the report);
    :func:`brf_free_patch` builds the patch masks. Every capture is read linearly with
    :func:`hsi_torch.io.read_any` (black level subtracted, Bayer → **bilinear demosaic**,
-   saturation mask) and checked against the layout's sensor size; the dark frames' mean is then
-   subtracted (``dark: per_pixel | mean | none``).
+   saturation mask), with the manifest's per-file and set-level settings (``cfa_pattern``,
+   ``black_level``, ``white_level``, ``exposure_s``; the config's overrides win), and checked
+   against the layout's sensor size; the dark frames' mean is then subtracted
+   (``dark: per_pixel | mean | none``).
 2. **Registration** (:func:`register_grid_shots`) from the circle-grid shots, flat-fielded by the
    white shots (:func:`~hsi_torch.calibrate.registration.register_views`), per-view report.
 3. **BRF transmittance** (:func:`calibrate_transmittance`) from the scan
@@ -60,7 +63,7 @@ from hsi_torch.calibrate.transmittance import (
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
 from hsi_torch.config import to_dict
 from hsi_torch.console import progress_bar, progress_enabled
-from hsi_torch.errors import CalibrationError
+from hsi_torch.errors import CalibrationError, FileFormatError
 from hsi_torch.io import read_any, read_capture
 from hsi_torch.io.bundle import CalibrationBundle, make_provenance
 from hsi_torch.io.capture_set import (
@@ -79,6 +82,10 @@ __all__ = [
     "TransmittanceStage",
     "ResponseStage",
     "select_scan_frames",
+    "ScanSelection",
+    "scan_wavelengths",
+    "group_scan_frames",
+    "check_sensor_size",
     "brf_free_patch",
     "register_grid_shots",
     "calibrate_transmittance",
@@ -105,23 +112,58 @@ def _no_tick(n: int = 1, stage: str | None = None) -> None:
 
 
 class _Reader:
-    """read_any with the config's overrides, the layout's sensor size and dark subtraction."""
+    """read_any with the per-file settings of the capture set's manifest (``settings``:
+    :attr:`CaptureSet.settings`), the config's overrides (which win), the layout's sensor size
+    and dark subtraction."""
 
-    def __init__(self, cfg: CalibrateConfig, sensor_size: tuple[int, int], device, dtype):
+    def __init__(self, cfg: CalibrateConfig, sensor_size: tuple[int, int], device, dtype,
+                 settings: dict[Path, dict[str, Any]] | None = None):  # fmt: skip
         self.cfg, self.size, self.device, self.dtype = cfg, sensor_size, device, dtype
+        self.settings = settings or {}
         self.dark: torch.Tensor | None = None
         self.cfa_pattern: str | None = None
 
+    def overrides(self, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
+        """read_any's keyword overrides for ``path`` and their sources: the manifest's settings
+        for the file, then the config's ``cfa_pattern``/``black_level``/``white_level``."""
+        given = {k: v for k, v in self.settings.get(path, {}).items() if k != "exposure"}
+        for key in ("cfa_pattern", "black_level", "white_level"):
+            if getattr(self.cfg, key) is not None:
+                given[key] = (getattr(self.cfg, key), "config")
+        return {k: v for k, (v, _) in given.items()}, {k: s for k, (_, s) in given.items()}
+
     def read(self, path: Path) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+        kw, sources = self.overrides(path)
         cap = read_any(
-            path, expected_size=self.size, demosaic=self.cfg.demosaic,
-            cfa_pattern=self.cfg.cfa_pattern, black_level=self.cfg.black_level,
-            white_level=self.cfg.white_level, dtype=self.dtype, device=self.device,
+            path, expected_size=self.size, demosaic=self.cfg.demosaic, dtype=self.dtype,
+            device=self.device, sources=sources, **kw,
         )  # fmt: skip
+        rel = self.settings.get(path, {}).get("exposure")
+        if rel is not None:  # the manifest's relative exposure of the file wins over the file's
+            cap.metadata["exposure"] = rel[0]
         if cap.metadata.get("kind") == "bayer":
             self.cfa_pattern = cap.metadata.get("cfa_pattern")
         img = cap.image if self.dark is None else cap.image - self.dark
         return img, cap.saturated, cap.metadata
+
+    def read_mean(
+        self, paths: Path | Sequence[Path]
+    ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+        """:meth:`read` of one file, or the mean of several (repeated frames of one scan
+        wavelength): a sample is saturated when it is in any of them; frames of other exposures
+        (``exposure_s``, when every frame has one) are scaled to the first frame's first."""
+        if isinstance(paths, Path):
+            return self.read(paths)
+        img, sat, meta = self.read(paths[0])
+        t0 = meta.get("exposure_s")
+        for p in paths[1:]:
+            i2, s2, m2 = self.read(p)
+            t = m2.get("exposure_s")
+            if t0 is not None and t is not None and float(t) != float(t0):
+                i2 = i2 * (float(t0) / float(t))
+            img = img + i2
+            sat = sat | s2
+        return img / len(paths), sat, meta
 
     def set_dark(self, files: Sequence[Path], mode: str) -> None:
         if mode == "none" or not files:
@@ -280,6 +322,11 @@ def _drop_saturated_whites(
     return white_ref[keep], sat_ref[keep], text
 
 
+def _names(p: Path | Sequence[Path]) -> str:
+    """A file's name, or the names of a band's repeated frames joined by '+'."""
+    return p.name if isinstance(p, Path) else "+".join(q.name for q in p)
+
+
 def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
     """Dilate a bool mask by ``dilate_px`` (Euclidean)."""
     dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
@@ -291,16 +338,51 @@ def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
 # =============================================================================================
 
 
-def select_scan_frames(
-    cs: CaptureSet, wavelengths_nm: torch.Tensor, tol_nm: float
-) -> list[tuple[Path, float]]:
-    """The scan frame of every band of the grid (checked before any image is read).
+@dataclass
+class ScanSelection:
+    """The scan frames calibration uses (:func:`group_scan_frames`).
 
-    A frame's wavelength is its manifest entry's, else the ``<number>nm`` in its name, else the
-    ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
+    Attributes:
+        frames: per band of the grid, ``(files, band wavelength nm)``: one file, or the
+            repeated frames of that wavelength (averaged when read).
+        outside: ``(file, wavelength nm)`` of the frames no band uses (outside the grid or
+            between its bands by more than the tolerance).
+        repeated: ``(band wavelength nm, files)`` of the bands with more than one frame.
+    """
+
+    frames: list[tuple[tuple[Path, ...], float]]
+    outside: list[tuple[Path, float]]
+    repeated: list[tuple[float, tuple[Path, ...]]]
+
+    @property
+    def num_files(self) -> int:
+        return sum(len(f) for f, _ in self.frames)
+
+    def notes(self, grid_text: str) -> list[str]:
+        """One line each for the averaged bands and the frames left out (for the report)."""
+        out = []
+        if self.repeated:
+            out.append(
+                "scan: repeated frames averaged: " + "; ".join(
+                    f"{lam:g} nm: {len(fs)} frames ({', '.join(p.name for p in fs)})"
+                    for lam, fs in self.repeated
+                )
+            )  # fmt: skip
+        if self.outside:
+            out.append(
+                f"scan: {len(self.outside)} frame(s) not used (no band of the grid {grid_text} "
+                "within the wavelength tolerance): "
+                + ", ".join(f"{p.name} ({lam:g} nm)" for p, lam in self.outside)
+            )
+        return out
+
+
+def scan_wavelengths(cs: CaptureSet) -> list[tuple[Path, float]]:
+    """Every scan frame with its wavelength: its manifest entry's, else the ``<number>nm`` in its
+    name, else the ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
 
     Raises:
-        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``.
+        ValueError: a frame's wavelength is unknown (naming the file).
     """
     scan = list(cs.scan)
     for i, (p, lam) in enumerate(scan):
@@ -315,12 +397,72 @@ def select_scan_frames(
                     "entry or metadata, and no '<number>nm' in the file name, e.g. scan_550nm.tif)"
                 )
             scan[i] = (p, float(lam))
-    scan_nm = [float(lam) for _, lam in scan]  # type: ignore[arg-type]
+    return scan  # type: ignore[return-value]
+
+
+def group_scan_frames(
+    cs: CaptureSet, wavelengths_nm: torch.Tensor | Sequence[float], tol_nm: float
+) -> ScanSelection:
+    """Every band's scan frames (checked before any image is read): each frame goes to the band
+    within ``tol_nm`` of its wavelength (:func:`scan_wavelengths`); a band with several frames
+    averages them; frames near no band are listed in ``outside``, never silently dropped.
+
+    Raises:
+        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``
+            (naming the missing wavelengths).
+    """
+    scan = scan_wavelengths(cs)
+    grid = [float(v) for v in torch.as_tensor(wavelengths_nm).reshape(-1).cpu().tolist()]
+    try:
+        match_wavelengths([lam for _, lam in scan], grid, tol_nm)  # names missing bands
+    except ValueError as exc:
+        raise ValueError(f"captures {cs.root}: {exc}") from exc
+    groups: list[list[Path]] = [[] for _ in grid]
+    outside = []
+    for p, lam in scan:
+        d = [abs(lam - g) for g in grid]
+        j = min(range(len(grid)), key=d.__getitem__)
+        if d[j] <= tol_nm:
+            groups[j].append(p)
+        else:
+            outside.append((p, lam))
+    frames = [(tuple(g), lam) for g, lam in zip(groups, grid, strict=True)]
+    repeated = [(lam, fs) for fs, lam in frames if len(fs) > 1]
+    return ScanSelection(frames, outside, repeated)
+
+
+def select_scan_frames(
+    cs: CaptureSet, wavelengths_nm: torch.Tensor, tol_nm: float
+) -> list[tuple[Path, float]]:
+    """The nearest scan frame of every band of the grid (checked before any image is read);
+    :func:`group_scan_frames` gives all of them (repeated frames, frames outside the grid).
+
+    A frame's wavelength is its manifest entry's, else the ``<number>nm`` in its name, else the
+    ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
+
+    Raises:
+        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``.
+    """
+    scan = scan_wavelengths(cs)
+    scan_nm = [float(lam) for _, lam in scan]
     try:
         idx = match_wavelengths(scan_nm, wavelengths_nm.cpu(), tol_nm)
     except ValueError as exc:
         raise ValueError(f"captures {cs.root}: {exc}") from exc
-    return [scan[int(i)] for i in idx]  # type: ignore[misc]
+    return [scan[int(i)] for i in idx]
+
+
+def check_sensor_size(cs: CaptureSet, lay: NominalLayout) -> None:
+    """The manifest's ``sensor_size`` (when it has one) must be the layout's.
+
+    Raises:
+        FileFormatError: naming both sizes and files."""
+    size = (cs.manifest or {}).get("sensor_size")
+    if size is not None and tuple(size) != tuple(lay.sensor_size):
+        raise FileFormatError(
+            f"{cs.root / 'manifest.json'}: sensor_size {list(size)} (H, W) does not match the "
+            f"nominal layout {lay.path}'s {list(lay.sensor_size)}"
+        )
 
 
 @dataclass
@@ -461,7 +603,7 @@ class TransmittanceStage:
 
 
 def calibrate_transmittance(
-    scan: Sequence[tuple[Path, float]], reader: _Reader, lay: NominalLayout,
+    scan: Sequence[tuple[Path | Sequence[Path], float]], reader: _Reader, lay: NominalLayout,
     homographies: torch.Tensor, patch: PatchMasks, wavelengths_nm: torch.Tensor,
     cfg: CalibrateConfig, tick: Tick = _no_tick,
 ) -> TransmittanceStage:
@@ -494,8 +636,8 @@ def calibrate_transmittance(
     chunk = tcfg.frames_per_chunk
     for s in range(0, M, chunk):
         frames = []
-        for p, _ in scan[s : s + chunk]:
-            img, sat, _ = reader.read(p)
+        for p, _ in scan[s : s + chunk]:  # a band's repeated frames are averaged
+            img, sat, _ = reader.read_mean(p)
             frames.append(torch.where(sat, torch.full_like(img, _SAT_SENTINEL), img))
             del img, sat
             tick(1, "scan")
@@ -503,7 +645,7 @@ def calibrate_transmittance(
         del frames
         psat = (x >= _SAT_SENTINEL)[:, :, patch_mask].any(-1)  # (J, 3)
         if bool(psat.all(dim=1).any()):
-            bad = [scan[s + int(j)][0].name for j in torch.nonzero(psat.all(1)).flatten()]
+            bad = [_names(scan[s + int(j)][0]) for j in torch.nonzero(psat.all(1)).flatten()]
             raise ValueError(f"scan frame(s) {bad}: the BRF-free patch is saturated in every "
                              "colour channel; reduce the exposure")  # fmt: skip
         try:
@@ -585,7 +727,8 @@ def calibrate_response(
         img, sat, meta = reader.read(p)
         whites.append(img)
         wsats.append(sat)
-        w_exp.append(meta.get("exposure_s", meta.get("exposure")))
+        t = meta.get("exposure_s")  # seconds (file, sheet, manifest), else the relative one
+        w_exp.append(t if t is not None else meta.get("exposure"))
         tick(1, "white")
     exp_known = all(e is not None for e in w_exp)
     white_exposure = float(w_exp[0]) if exp_known else None
@@ -736,7 +879,11 @@ def calibrate_capture_set(
     lay = cs.layout()
     grid = SpectralGrid.uniform(cfg.grid_start_nm, cfg.grid_stop_nm, cfg.grid_step_nm)
     wl = grid.wavelengths(device=dev, dtype=dt)
-    scan_sel = select_scan_frames(cs, wl, cfg.transmittance.wavelength_tol_nm)
+    check_sensor_size(cs, lay)
+    scan_groups = group_scan_frames(cs, wl, cfg.transmittance.wavelength_tol_nm)
+    scan_sel = scan_groups.frames
+    notes += scan_groups.notes(f"{cfg.grid_start_nm:g}-{cfg.grid_stop_nm:g} nm every "
+                               f"{cfg.grid_step_nm:g} nm")  # fmt: skip
     patch = brf_free_patch(cs, lay, cfg, dev)
 
     files_total = len(cs.dark) + len(cs.grid) + len(scan_sel) + len(cs.white) + 3  # + 3 fits
@@ -748,7 +895,7 @@ def calibrate_capture_set(
                 bar.set_postfix_str(stage)
             bar.update(n)
 
-    reader = _Reader(cfg, lay.sensor_size, dev, dt)
+    reader = _Reader(cfg, lay.sensor_size, dev, dt, cs.settings)
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
@@ -783,7 +930,7 @@ def calibrate_capture_set(
     vmask = trans.view_mask
     report = CalibrationReport(
         captures_dir=str(cs.root),
-        counts={"scan": len(scan_sel), "white": len(cs.white), "grid": len(cs.grid),
+        counts={"scan": scan_groups.num_files, "white": len(cs.white), "grid": len(cs.grid),
                 "dark": len(cs.dark)},  # fmt: skip
         registration=reg.reports,
         valid=vsum,

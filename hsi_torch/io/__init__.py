@@ -2,7 +2,10 @@
 bundle, atomic writes.
 
 See :mod:`hsi_torch.io.raw`, :mod:`hsi_torch.io.captures`, :mod:`hsi_torch.io.cube`,
-:mod:`hsi_torch.io.bundle` and :mod:`hsi_torch.io.atomic` for the file formats and conventions.
+:mod:`hsi_torch.io.bundle` and :mod:`hsi_torch.io.atomic` for the file formats and conventions;
+:mod:`hsi_torch.io.capture_set` (capture-set folders), :mod:`hsi_torch.io.capture_manifest` (the
+manifest's published schema) and :mod:`hsi_torch.io.capture_import` (a lab's folder → a capture
+set: ``hsi-torch captures import|check``).
 """
 
 from hsi_torch.io.atomic import (

@@ -16,9 +16,14 @@ Folder format (manifest schema version :data:`CAPTURE_SET_SCHEMA_VERSION` = 1)::
     ROOT/ground_truth/truth.npz + truth.json   simulated sets only
 
 A capture entry's ``type`` is ``scan`` (with ``wavelength_nm``), ``white``, ``grid``, ``dark`` or
-``scene`` (with ``name``); other keys (``exposure``, ``seed``, …) are kept as they are. A folder
-without ``manifest.json`` (a real device) is read from its sub-folders ``scan/``, ``white/``,
-``grid/``, ``dark/``, ``scenes/``; a scan frame's wavelength then comes from its name
+``scene`` (with ``name``). The manifest's keys are published as a JSON Schema
+(:mod:`hsi_torch.io.capture_manifest`): per-file and set-level settings (``cfa_pattern``,
+``black_level``, ``white_level``, ``exposure_s``, …) are honoured by calibration
+(:attr:`CaptureSet.settings`), descriptive keys (``seed``, ``pose``, …) are recorded, and any
+other key is refused by name. ``files_root`` (optional) is the folder the entries' ``file`` paths
+are relative to (``hsi-torch captures import`` writes it to reference a lab's files in place).
+A folder without ``manifest.json`` (a real device) is read from its sub-folders ``scan/``,
+``white/``, ``grid/``, ``dark/``, ``scenes/``; a scan frame's wavelength then comes from its name
 (``scan_550nm.tif``, ``mono_552p5nm.dng``) or from its own metadata.
 
 The BRF-free mask is a PNG; OpenCV, which decodes and encodes it, is imported only where that
@@ -38,6 +43,8 @@ import numpy as np
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
+from hsi_torch.io.capture_manifest import check_manifest, entry_settings
+from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_any
 
 __all__ = [
     "CAPTURE_SET_SCHEMA_VERSION",
@@ -69,10 +76,7 @@ TRUTH_NPZ = "ground_truth/truth.npz"
 TRUTH_JSON = "ground_truth/truth.json"
 CAPTURE_TYPES = ("scan", "white", "grid", "dark", "scene")
 #: File suffixes of captures found in the sub-folders of a folder without a manifest.
-CAPTURE_SUFFIXES = (
-    ".tif", ".tiff", ".npy", ".npz", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".kdc", ".raf",
-    ".orf", ".rw2", ".pef", ".srw", ".raw", ".3fr", ".iiq", ".erf", ".mrw", ".nrw", ".x3f",
-)  # fmt: skip
+CAPTURE_SUFFIXES = SUPPORTED_SUFFIXES  # every file read_any reads
 _WL_RE = re.compile(r"(\d+(?:[.p]\d+)?)\s*nm", re.IGNORECASE)
 _FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
 
@@ -182,6 +186,11 @@ class CaptureSet:
         manifest: the parsed ``manifest.json`` or ``None`` (a folder without one).
         layout_path: the nominal layout to use (it may not exist: see :meth:`layout`).
         brf_free_mask_path: the PNG of usable BRF-free pixels, or ``None``.
+        settings: per capture file, the manifest's settings for it (entry, else set level):
+            ``{file: {key: (value, source)}}`` with keys of
+            :data:`hsi_torch.io.capture_manifest.CAPTURE_SETTINGS` and ``exposure``, source
+            ``"manifest"`` or ``"sheet"`` (:func:`~hsi_torch.io.capture_manifest.entry_settings`);
+            empty for a folder without a manifest.
     """
 
     root: Path
@@ -193,6 +202,7 @@ class CaptureSet:
     manifest: dict[str, Any] | None = None
     layout_path: Path | None = None
     brf_free_mask_path: Path | None = None
+    settings: dict[Path, dict[str, Any]] = field(default_factory=dict)
 
     def layout(self) -> NominalLayout:
         """The nominal layout (:func:`read_nominal_layout`)."""
@@ -209,6 +219,25 @@ class CaptureSet:
                 raise FileFormatError(
                     f"captures folder {self.root}: no {name} captures (looked in {where})"
                 )
+
+    def read(self, path: str | Path, **kwargs: Any) -> Any:
+        """:func:`hsi_torch.io.read_any` of one of the set's captures with the manifest's settings
+        for it (:attr:`settings`, their sources labelled); keyword arguments given here win (and
+        count as ``"config"`` unless ``sources`` says otherwise). Returns the
+        :class:`~hsi_torch.io.captures.LinearCapture` (the manifest's relative ``exposure`` is
+        put into its metadata)."""
+        p = Path(path)
+        given = self.settings.get(p, {})
+        kw = {k: v for k, (v, _) in given.items() if k != "exposure"}
+        sources = {k: src for k, (_, src) in given.items() if k != "exposure"}
+        for k in kwargs:
+            sources.pop(k, None)
+        sources.update(kwargs.pop("sources", None) or {})
+        kw.update(kwargs)
+        cap = read_any(p, sources=sources, **kw)
+        if "exposure" in given:
+            cap.metadata["exposure"] = given["exposure"][0]
+        return cap
 
     def scene(self, name: str) -> Path:
         """The capture of scene ``name``."""
@@ -293,10 +322,13 @@ def read_capture_set(
         manifest = _read_json_object(mpath, "manifest")
         _check_version(manifest, mpath)
         cs.manifest = manifest
+        check_manifest(manifest, mpath)
+        files_root = root / manifest.get("files_root", ".")
         for k, e in enumerate(manifest.get("captures", [])):
             if not isinstance(e, dict) or "file" not in e or "type" not in e:
                 raise FileFormatError(f"{mpath}: captures[{k}] needs 'file' and 'type'")
-            p = root / e["file"]
+            p = files_root / e["file"]
+            cs.settings[p] = entry_settings(manifest, e)
             if not p.is_file():
                 raise MissingFileError(f"{mpath}: captures[{k}] file {p} does not exist")
             t = e["type"]

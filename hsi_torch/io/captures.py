@@ -13,9 +13,12 @@ File format written by :func:`write_capture` (read back by :func:`read_capture`)
 :func:`read_any` turns any supported file into *linear* RGB ``(3, H, W)`` (value = stored − black,
 float, DN; or normalised to the white level), a saturation mask and the metadata. Bayer inputs are
 demosaiced (``"bilinear"``, full resolution, the default; or ``"half"``, see
-:mod:`hsi_torch.io.raw`). Supported suffixes: ``.tif/.tiff``, ``.npy`` (optional sidecar
-``<file>.npy.json`` with metadata), ``.npz`` (array ``image`` + optional JSON string ``metadata``)
-and camera RAW (``.dng``, ``.cr2``, ``.nef``, ``.kdc``, ...; through rawpy, linear).
+:mod:`hsi_torch.io.raw`). Supported suffixes: ``.tif/.tiff``, ``.png`` (8/16-bit grey or RGB,
+decoded by OpenCV, imported only for PNGs), ``.npy`` (optional sidecar ``<file>.npy.json`` with
+metadata), ``.npz`` (array ``image`` + optional JSON string ``metadata``) and camera RAW
+(``.dng``, ``.cr2``, ``.nef``, ``.kdc``, ...; through rawpy, linear). The exposure time and the
+camera's make and model of a TIFF or RAW/DNG come from its EXIF tags (``exifread``) when our JSON
+metadata does not give them.
 """
 
 from __future__ import annotations
@@ -23,8 +26,9 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,11 +54,17 @@ __all__ = [
     "read_capture",
     "read_any",
     "SUPPORTED_SUFFIXES",
+    "SETTING_SOURCES",
 ]
 
 CAPTURE_FORMAT_VERSION = 1
 _TIFF_SUFFIXES = (".tif", ".tiff")
-SUPPORTED_SUFFIXES = (*_TIFF_SUFFIXES, ".npy", ".npz", *RAW_SUFFIXES)
+_PNG_SUFFIXES = (".png",)
+SUPPORTED_SUFFIXES = (*_TIFF_SUFFIXES, *_PNG_SUFFIXES, ".npy", ".npz", *RAW_SUFFIXES)
+#: Where a setting in a capture's metadata came from (``exposure_source``, ``black_level_source``):
+#: the file itself, a capture sheet, a capture-set manifest, the command's configuration, or the
+#: reader's default.
+SETTING_SOURCES = ("file", "sheet", "manifest", "config", "default")
 
 
 @dataclass
@@ -372,6 +382,49 @@ def _read_npz(
     return arr, meta
 
 
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+#: PNG colour types: 0 grey, 2 RGB, 3 palette, 4 grey + alpha, 6 RGB + alpha
+_PNG_CHANNELS = {0: 1, 2: 3}
+
+
+def _read_png(
+    p: Path, expected_size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """An 8- or 16-bit grey (Bayer mosaic) or RGB PNG as ``(H, W)`` / ``(H, W, 3)`` R, G, B.
+
+    The header (``IHDR``) is checked before the pixels are decoded (sensor size, byte count);
+    palette and alpha PNGs are refused (a capture is raw sensor data). PNGs carry no metadata
+    here: black level, CFA pattern and exposure come from the caller (sheet, manifest, config)."""
+    try:
+        with open(p, "rb") as f:
+            head = f.read(33)
+    except OSError as exc:
+        raise FileFormatError(f"{p}: cannot read PNG ({exc})") from None
+    if len(head) < 33 or head[:8] != _PNG_MAGIC or head[12:16] != b"IHDR":
+        raise FileFormatError(f"{p}: not a PNG file (no PNG signature and IHDR header)")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    depth, ctype = head[24], head[25]
+    if ctype not in _PNG_CHANNELS or depth not in (8, 16):
+        raise FileFormatError(
+            f"{p}: PNG of colour type {ctype}, bit depth {depth} is not a capture; expected an "
+            "8- or 16-bit grey (Bayer mosaic) or RGB PNG without alpha or palette"
+        )
+    nch = _PNG_CHANNELS[ctype]
+    shape = (height, width) if nch == 1 else (height, width, 3)
+    _check_header(p, shape, np.dtype(np.uint16 if depth == 16 else np.uint8), expected_size)
+    import cv2  # lazy: OpenCV decodes PNG captures only (see the module docstring)
+
+    try:
+        arr = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise FileFormatError(f"{p}: cannot decode PNG ({exc}); the file is corrupt") from None
+    if arr is None or arr.shape[:2] != (height, width):
+        raise FileFormatError(f"{p}: cannot decode PNG; the file is corrupt or truncated")
+    if arr.ndim == 3:
+        arr = np.ascontiguousarray(arr[..., ::-1])  # OpenCV's B, G, R -> R, G, B
+    return arr, {}
+
+
 def _read_stored(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -383,6 +436,8 @@ def _read_stored(
     suffix = p.suffix.lower()
     if suffix in _TIFF_SUFFIXES:
         arr, meta = _read_tiff(p, expected_size)
+    elif suffix in _PNG_SUFFIXES:
+        arr, meta = _read_png(p, expected_size)
     elif suffix == ".npy":
         arr, meta = _read_npy(p, expected_size)
     elif suffix == ".npz":
@@ -456,8 +511,12 @@ def read_any(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
     default_cfa_pattern: str | None = None,
+    exposure_s: float | None = None,
+    camera_make: str | None = None,
+    camera_model: str | None = None,
+    sources: Mapping[str, str] | None = None,
 ) -> LinearCapture:
-    """Read any supported capture (TIFF, NPY, NPZ, camera RAW) as linear RGB.
+    """Read any supported capture (TIFF, PNG, NPY, NPZ, camera RAW) as linear RGB.
 
     Args:
         path: the capture file; the reader is chosen by suffix (case-insensitive).
@@ -473,10 +532,33 @@ def read_any(
         dtype, device: of the returned tensors.
         default_cfa_pattern: CFA pattern of a Bayer file that has none in its metadata (when
             ``cfa_pattern`` is not given), e.g. the pattern the calibration bundle was made with.
+        exposure_s, camera_make, camera_model: override (or supply) the exposure time (s) and
+            the camera identity; by default they come from the file (our JSON metadata, else the
+            EXIF ``ExposureTime``/``Make``/``Model`` tags of a TIFF or camera RAW/DNG, read with
+            ``exifread``).
+        sources: where each keyword override came from, by name (``{"black_level": "sheet",
+            "exposure_s": "manifest"}``): one of :data:`SETTING_SOURCES`; an override not named
+            here counts as ``"config"``.
 
     Returns:
         :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
         mask ``(3, H', W')`` and metadata.
+
+    Metadata contract — besides the file's own keys, ``metadata`` always holds:
+
+    - ``kind`` (``"bayer"``/``"rgb"``), ``source`` (the path), ``demosaic`` (Bayer);
+    - ``cfa_pattern``: the pattern used (Bayer), ``None`` for RGB files without one;
+    - ``black_level``: what was subtracted (DN: a number, 4 Bayer-cell or 3 RGB values) and
+      ``black_level_source``: ``"file"`` (RAW/DNG black level, our JSON metadata), ``"sheet"``,
+      ``"manifest"``, ``"config"`` (a keyword override, labelled by ``sources``) or
+      ``"default"`` (nothing given: 0 was subtracted);
+    - ``white_level``: the saturation level used (DN) or ``None`` (a float file without one);
+    - ``exposure_s``: the exposure time in seconds (``float``) or ``None`` when unknown, and
+      ``exposure_source``: ``"file"`` (JSON ``exposure_s`` or EXIF ``ExposureTime``), ``"sheet"``,
+      ``"manifest"``, ``"config"``, or ``None`` when unknown. (The simulator's relative
+      ``exposure`` key is kept as it is and is not an ``exposure_s``.)
+    - ``camera_make``, ``camera_model``: ``str`` or ``None`` (override, else our JSON metadata,
+      else EXIF ``Make``/``Model`` of a TIFF or RAW/DNG).
 
     Raises:
         MissingFileError (a ``FileNotFoundError``), FileFormatError (``ValueError``) for unreadable,
@@ -491,9 +573,13 @@ def read_any(
     suffix = p.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES:
         raise FileFormatError(
-            f"{p}: unsupported file type {p.suffix!r}; expected one of .tif, .tiff, .npy, .npz or "
-            "a camera RAW suffix (.dng, .cr2, .nef, .arw, .kdc, ...)"
+            f"{p}: unsupported file type {p.suffix!r}; expected one of .tif, .tiff, .png, .npy, "
+            ".npz or a camera RAW suffix (.dng, .cr2, .nef, .arw, .kdc, ...)"
         )
+    srcs = dict(sources or {})
+    for key, src in srcs.items():
+        if src not in SETTING_SOURCES:
+            raise ValueError(f"sources[{key!r}] = {src!r} is not one of {SETTING_SOURCES}")
 
     if suffix in RAW_SUFFIXES:
         raw = load_raw(p, demosaic=None, dtype=torch.float64)
@@ -554,12 +640,20 @@ def read_any(
 
     out_meta = dict(meta)
     out_meta.update(kind=kind, black_level=_jsonable(bl), white_level=_jsonable(wl), source=str(p))
+    out_meta.update(_contract_metadata(
+        p, meta, srcs, black_given=black_level is not None, exposure_s=exposure_s,
+        camera_make=camera_make, camera_model=camera_model,
+        exif=_file_exif(p) if suffix in RAW_SUFFIXES or (
+            suffix in _TIFF_SUFFIXES and "hsi_torch_capture" not in meta) else {},
+    ))  # fmt: skip
+    out_meta.setdefault("cfa_pattern", None)
     if kind == "bayer":
         pattern = cfa_pattern or meta.get("cfa_pattern") or default_cfa_pattern
         if not pattern:
             raise FileFormatError(
                 f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
-                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB)"
+                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB; "
+                "in a capture sheet or manifest: its cfa_pattern)"
             )
         try:
             pattern = validate_cfa_pattern(pattern)
@@ -573,6 +667,80 @@ def read_any(
             raise FileFormatError(f"{p}: cannot demosaic the {h}x{w} mosaic ({exc})") from None
         return LinearCapture(rgb, rgb_sat, out_meta, p, lin, sat)
     return LinearCapture(lin, sat, out_meta, p)
+
+
+def _file_exif(p: Path) -> dict[str, Any]:
+    """``exposure_s``, ``camera_make``, ``camera_model`` from a TIFF's or camera RAW's EXIF tags
+    (``exifread``); keys absent when the file has no such tag or no readable EXIF at all.
+    (Our own capture TIFFs, written by :func:`write_capture`, hold no EXIF and are not parsed:
+    ~30 ms for a full-size TIFF's tags.)"""
+    import exifread  # lazy: only TIFF and RAW files have EXIF to read
+
+    log = logging.getLogger("exifread")
+    level = log.level
+    log.setLevel(logging.CRITICAL)  # a foreign file's odd tags are not the user's problem
+    try:
+        with open(p, "rb") as f:
+            tags = exifread.process_file(f, details=False)
+    except Exception:  # noqa: BLE001 - EXIF is optional information; the pixels are read elsewhere
+        return {}
+    finally:
+        log.setLevel(level)
+    out: dict[str, Any] = {}
+    for name in ("EXIF ExposureTime", "Image ExposureTime"):
+        tag = tags.get(name)
+        if tag is None or not getattr(tag, "values", None):
+            continue
+        v = tag.values[0]
+        try:
+            t = float(v.num) / float(v.den) if hasattr(v, "num") else float(v)
+        except (TypeError, ValueError, ZeroDivisionError):
+            continue
+        if np.isfinite(t) and t > 0:
+            out["exposure_s"] = t
+            break
+    for name, key in (("Image Make", "camera_make"), ("Image Model", "camera_model")):
+        tag = tags.get(name)
+        text = str(tag.printable).strip().strip("\x00").strip() if tag is not None else ""
+        if text:
+            out[key] = text
+    return out
+
+
+def _contract_metadata(
+    p: Path, meta: Mapping[str, Any], sources: Mapping[str, str], *, black_given: bool,
+    exposure_s: float | None, camera_make: str | None, camera_model: str | None,
+    exif: Mapping[str, Any],
+) -> dict[str, Any]:
+    """The metadata keys every :class:`LinearCapture` carries (see :func:`read_any`)."""
+    out: dict[str, Any] = {}
+    if black_given:
+        out["black_level_source"] = sources.get("black_level", "config")
+    else:
+        out["black_level_source"] = "file" if meta.get("black_level") is not None else "default"
+    if exposure_s is not None:
+        try:
+            t = float(exposure_s)
+        except (TypeError, ValueError):
+            t = math.nan
+        if not (math.isfinite(t) and t > 0):
+            raise FileFormatError(f"{p}: exposure_s must be a number > 0 (seconds), got "
+                                  f"{exposure_s!r}")  # fmt: skip
+        out.update(exposure_s=t, exposure_source=sources.get("exposure_s", "config"))
+    elif meta.get("exposure_s") is not None:
+        out.update(exposure_s=meta["exposure_s"], exposure_source="file")
+    elif exif.get("exposure_s") is not None:
+        out.update(exposure_s=exif["exposure_s"], exposure_source="file")
+    else:
+        out.update(exposure_s=None, exposure_source=None)
+    for key, given in (("camera_make", camera_make), ("camera_model", camera_model)):
+        if given is not None:
+            out[key] = str(given)
+        elif isinstance(meta.get(key), str) and meta[key]:
+            out[key] = meta[key]
+        else:
+            out[key] = exif.get(key)
+    return out
 
 
 def _exact_in(

@@ -1,0 +1,412 @@
+"""``hsi-torch captures import`` / ``check``: a lab's own folder of photos (DNG with black level and
+ExposureTime, 16-bit PNG, its own names, no simulator metadata) → a capture set that calibrates
+and reconstructs like the simulator's own; the sheet's and the manifest's errors; the schema."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from hsi_torch.calibrate.pipeline import calibrate_capture_set
+from hsi_torch.cli import main
+from hsi_torch.errors import FileFormatError, InputError, MissingFileError
+from hsi_torch.experiments.metrics import cube_scores, erode_px, interior_mask
+from hsi_torch.io import read_any, read_capture
+from hsi_torch.io.capture_import import (
+    check_capture_set,
+    import_captures,
+    read_sheet,
+    rows_from_patterns,
+)
+from hsi_torch.io.capture_manifest import check_manifest, manifest_keys, manifest_schema
+from hsi_torch.io.capture_set import read_capture_set, read_truth
+from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.resources import shipped_config
+from hsi_torch.testing import write_dng
+
+BLACK, WHITE = 512, 16383  # the simulated sensor: 14 bit, black level 512
+T_WHITE = 0.02  # the lab's white shots: 20 ms; the scene at half of it
+MINIMAL_MANIFEST = {  # the docs' example (docs/calibration.md, "The manifest")
+    "schema_version": 1,
+    "cfa_pattern": "RGGB",
+    "captures": [
+        {"file": "mono/m01.png", "type": "scan", "wavelength_nm": 430, "black_level": 512},
+        {"file": "flat/flat1.tif", "type": "white", "black_level": 512, "exposure_s": 0.02},
+        {"file": "dots/d1.png", "type": "grid", "black_level": 512},
+        {"file": "shots/chart.dng", "type": "scene", "name": "chart"},
+    ],
+}
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Path:
+    """The default small set with its ColorChecker scene (float32 render, no figures)."""
+    out = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
+                 "--set", "render.figures=false", "--set", "render.progress=false",
+                 "--set", "render.dtype=float32"]) == 0  # fmt: skip
+    return out
+
+
+def _mosaic(path: Path) -> np.ndarray:
+    img, meta = read_capture(path)
+    assert meta["black_level"] == BLACK and meta["white_level"] == WHITE
+    return img[0].numpy().astype(np.float64)
+
+
+def _lab_folder(sim: Path, lab: Path) -> Path:
+    """The simulated set as a lab would have it: DNGs (black 512, ExposureTime, Make/Model) for
+    the scan, white, dark and scene, 16-bit PNGs (no metadata at all) for the grid shots, its own
+    folder and file names, a repeated scan frame at 550 nm and an extra one at 700 nm, the scene
+    shot at half the white's exposure; the sheet says the rest. Returns the sheet."""
+    man = json.loads((sim / "manifest.json").read_text())
+    rows = [["file", "role", "wavelength_nm", "exposure_s", "black_level", "cfa_pattern", "name"]]
+    cam = {"make": "Lab Optics", "model": "KaleidoCam 1"}
+    k = 0
+    for e in man["captures"]:
+        m = _mosaic(sim / e["file"])
+        if e["type"] == "scan":
+            lam = e["wavelength_nm"]
+            k += 1
+            f = f"Monochromator/frame_{k:03d}.dng"
+            write_dng(lab / f, m, black_level=BLACK, white_level=WHITE, exposure_s=0.5, **cam)
+            rows.append([f, "scan", f"{lam:g}", "", "", "", ""])
+            if lam == 550:  # the lab took it twice: the same frame again (averaged)
+                write_dng(lab / "Monochromator/frame_550_again.dng", m, black_level=BLACK,
+                          white_level=WHITE, exposure_s=0.5, **cam)  # fmt: skip
+                rows.append(["Monochromator/frame_550_again.dng", "scan", "550", "", "", "", ""])
+            if lam == 670:  # and went on past the grid
+                write_dng(lab / "Monochromator/frame_700.dng", m, black_level=BLACK,
+                          white_level=WHITE, exposure_s=0.5, **cam)  # fmt: skip
+                rows.append(["Monochromator/frame_700.dng", "scan", "700", "", "", "", ""])
+        elif e["type"] in ("white", "dark"):
+            f = f"{'Flat field' if e['type'] == 'white' else 'Dark'}/{Path(e['file']).stem}.dng"
+            write_dng(lab / f, m, black_level=BLACK, white_level=WHITE, exposure_s=T_WHITE, **cam)
+            rows.append([f, e["type"], "", "", "", "", ""])
+        elif e["type"] == "grid":
+            f = f"Dots/pose {Path(e['file']).stem[-1]}.png"
+            (lab / f).parent.mkdir(parents=True, exist_ok=True)
+            assert cv2.imwrite(str(lab / f), m.astype(np.uint16))
+            rows.append([f, "grid", "", "", str(BLACK), "RGGB", ""])
+        elif e["type"] == "scene":
+            half = np.rint((m - BLACK) / 2 + BLACK).clip(0, WHITE)  # half the white's exposure
+            f = "Shots/IMG_0042.dng"
+            write_dng(lab / f, half, black_level=BLACK, white_level=WHITE,
+                      exposure_s=T_WHITE / 2, **cam)  # fmt: skip
+            rows.append([f, "scene", "", "", "", "", e["name"]])
+    shutil.copy(sim / "nominal_layout.json", lab / "nominal_layout.json")
+    shutil.copy(sim / "brf_free_mask.png", lab / "brf_free_mask.png")
+    sheet = lab / "captures.csv"
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return sheet
+
+
+def _score(cube: np.ndarray, valid: np.ndarray, truth: dict) -> float:
+    """Per-pixel PSNR over the ColorChecker's patch interiors (0.3 mm inside, as the demo)."""
+    pidx = truth["colorchecker_patch_index"]
+    e = erode_px(truth, 0.3)
+    inner = valid & (pidx >= 0) & np.logical_or.reduce(
+        [interior_mask(pidx == k, e) for k in range(24)])  # fmt: skip
+    return cube_scores(cube, np.asarray(truth["scene_colorchecker"], np.float64),
+                       inner)["psnr_db"]  # fmt: skip
+
+
+def test_lab_folder_imported_calibrates_and_reconstructs_like_the_simulators(
+    sim: Path, tmp_path: Path, capsys
+):
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    out = capsys.readouterr().out
+    assert "25 of 25 bands" in out
+    assert "550 nm: 2 frames, averaged by calibration" in out
+    assert "frame_700.dng (700 nm)" in out
+    man = json.loads((capset / "manifest.json").read_text())
+    assert man["settings_source"] == "sheet" and man["files_root"] == "../lab"
+    assert sorted(p.name for p in capset.rglob("*")) == [  # the captures are referenced
+        "brf_free_mask.png", "manifest.json", "nominal_layout.json"]
+    assert man["sensor_size"] == [384, 400]  # the layout beside the sheet was taken
+    check_manifest(man, capset / "manifest.json")
+
+    # what calibration will use, file by file
+    assert main(["captures", "check", str(capset)]) == 0
+    out = capsys.readouterr().out
+    assert "frame_550_again.dng" in out and "2 scan frames at 550 nm" in out
+    assert "512 (sheet)" in out and "512 (file)" in out and "0.01 s (file)" in out
+    assert "Lab Optics KaleidoCam 1" in out
+
+    bundle, report = calibrate_capture_set(capset, progress=False)
+    native, _ = calibrate_capture_set(sim, progress=False)
+    assert report.counts["scan"] == 26  # 25 bands, one of them two frames
+    assert any("550 nm: 2 frames" in n for n in report.notes)
+    assert any("frame_700.dng (700 nm)" in n for n in report.notes)
+    assert bundle.settings["white_exposure_s"] == pytest.approx(T_WHITE)
+    assert bundle.settings["cfa_pattern"] == "RGGB"
+    # the same images: the same calibration up to the PNG/DNG round trip (exact) and the averaged
+    # duplicate (identical frames)
+    np.testing.assert_allclose(bundle.B, native.B, atol=1e-5)
+    np.testing.assert_array_equal(bundle.view_homographies, native.view_homographies)
+
+    truth, _ = read_truth(sim)
+    rec_lab = Reconstructor(bundle, beta=1e4)
+    res = rec_lab.reconstruct_file(lab / "Shots/IMG_0042.dng")
+    assert res.stats["exposure_scale"] == pytest.approx(2.0)  # t_white / t_scene from EXIF
+    assert res.stats["metadata"]["exposure_source"] == "file"
+    res_native = Reconstructor(native, beta=1e4).reconstruct_file(sim / "scenes/colorchecker.tif")
+    p_lab = _score(res.cube.numpy(), res.valid.numpy(), truth)
+    p_nat = _score(res_native.cube.numpy(), res_native.valid.numpy(), truth)
+    print(f"ColorChecker interiors per pixel: lab set {p_lab:.2f} dB, native {p_nat:.2f} dB")
+    assert p_nat > 25
+    assert abs(p_lab - p_nat) < 0.5
+
+
+def test_sheet_errors_name_the_line_and_column(tmp_path: Path):
+    (tmp_path / "a.png").write_bytes(b"x")
+    sheet = tmp_path / "s.csv"
+
+    def bad(text: str, err: type, match: str) -> None:
+        sheet.write_text(text)
+        with pytest.raises(err, match=match):
+            read_sheet(sheet)
+
+    bad("", FileFormatError, "empty; the first line is the header")
+    bad("file,role,wavelenght_nm\na.png,scan,430\n", FileFormatError,
+        "unknown column 'wavelenght_nm' \\(did you mean 'wavelength_nm'\\?\\)")
+    bad("file,wavelength_nm\na.png,430\n", FileFormatError, "no 'role' column")
+    bad("file,role\na.png,flat\n", FileFormatError, r"s.csv:2: role 'flat' is not one of")
+    bad("file,role\nb.png,white\n", MissingFileError, r"s.csv:2: file .*b.png does not exist")
+    bad("file,role,exposure_s\n# comment,,\na.png,white,1/50\n", FileFormatError,
+        r"s.csv:3: column 'exposure_s': '1/50' is not a number")
+    bad("file,role,black_level\na.png,white,512 512\n", FileFormatError,
+        r"s.csv:2: column 'black_level' must be one number >= 0, or 3")
+    bad("file,role,cfa_pattern\na.png,grid,RGGG\n", FileFormatError, "must be RGGB, BGGR")
+    bad("file,role,wavelength_nm\na.png,white,430\n", FileFormatError,
+        "'wavelength_nm' is given for a white capture")
+    (tmp_path / "a.jpg").write_bytes(b"x")
+    bad("file,role\na.jpg,white\n", FileFormatError, "unsupported file type '.jpg'")
+    # empty cells are "not given"; lists of black levels; comments skipped
+    sheet.write_text("file,role,black_level,exposure_s,cfa_pattern,name\n"
+                     "a.png,grid,512;510;509;511,,rggb,\n#x.png,white,,,,\n"
+                     "a.png,scene,,0.01,,chart\n")  # fmt: skip
+    rows = read_sheet(sheet)
+    assert [r.role for r in rows] == ["grid", "scene"]
+    assert rows[0].settings == {"black_level": [512.0, 510.0, 509.0, 511.0], "cfa_pattern": "RGGB"}
+    assert rows[1].settings == {"exposure_s": 0.01} and rows[1].name == "chart"
+
+
+def test_patterns_and_a_plain_png_folder(tmp_path: Path, capsys):
+    """Name patterns with {nm}; a folder of 16-bit PNGs in scan/ (no manifest) is found."""
+    m = (np.arange(24 * 26).reshape(24, 26) % 4000 + 600).astype(np.uint16)
+    for lam in (430, 440, 440.5, 800):
+        f = tmp_path / "lab/mono" / f"m_{lam:g}nm.png".replace(".5", "p5")
+        f.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(f), m)
+    cv2.imwrite(str(tmp_path / "lab/w.png"), m)
+    rows = rows_from_patterns({"scan": ["lab/mono/m_{nm}nm.png"], "white": ["lab/w.png"]},
+                              base=tmp_path)  # fmt: skip
+    assert sorted(r.wavelength_nm for r in rows if r.role == "scan") == [430, 440, 440.5, 800]
+    rep = import_captures(rows, tmp_path / "set", grid_nm=(430, 450, 10), source="manifest")
+    assert rep.repeated == {440.0: ["m_440nm.png", "m_440p5nm.png"]}
+    assert rep.outside == [("m_800nm.png", 800.0)] and rep.missing == [450.0]
+    assert any("no scan frame for 450 nm" in w for w in rep.warnings)
+    with pytest.raises(InputError, match="matches no file"):
+        rows_from_patterns({"grid": ["lab/none*.png"]}, base=tmp_path)
+    with pytest.raises(InputError, match="manifest.json exists"):
+        import_captures(rows, tmp_path / "set")
+
+    plain = tmp_path / "plain"
+    for lam in range(430, 680, 10):
+        (plain / "scan").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(plain / "scan" / f"scan_{lam}nm.png"), m)
+    for d in ("white", "grid"):
+        (plain / d).mkdir()
+        cv2.imwrite(str(plain / d / "x.png"), m)
+    cs = read_capture_set(plain)
+    cs.require_calibration_captures()  # was: "no monochromator scan captures"
+    assert len(cs.scan) == 25
+    cap = read_any(cs.scan[0][0], cfa_pattern="RGGB", black_level=512)
+    assert cap.metadata["black_level_source"] == "config" and cap.mosaic[0, 0, 0] == 600 - 512
+
+
+def test_hand_written_manifest_settings_are_honoured_or_refused(sim: Path, tmp_path: Path):
+    """Per-file cfa_pattern / black_level / exposure_s of a hand-written manifest reach the
+    reader; a key the schema does not know is refused by name."""
+    d = tmp_path / "set"
+    (d / "white").mkdir(parents=True)
+    m = _mosaic(sim / "white/white_00.tif")
+    cv2.imwrite(str(d / "white/w.png"), m.astype(np.uint16))  # a PNG knows nothing
+    write_dng(d / "white/w.dng", m, black_level=BLACK, white_level=WHITE, exposure_s=0.5)
+    man = {"schema_version": 1, "black_level": 500, "captures": [
+        {"file": "white/w.png", "type": "white", "cfa_pattern": "RGGB", "black_level": BLACK,
+         "exposure_s": 0.02, "white_level": WHITE},
+        {"file": "white/w.dng", "type": "white", "exposure_s": 0.03}]}
+    (d / "manifest.json").write_text(json.dumps(man))
+    shutil.copy(sim / "nominal_layout.json", d / "nominal_layout.json")
+    rows, problems = check_capture_set(d)
+    png, dng = rows
+    assert (png["black_level"], png["black_level_source"]) == (BLACK, "manifest")
+    assert (png["exposure_s"], png["exposure_source"]) == (0.02, "manifest")
+    assert png["cfa_pattern"] == "RGGB" and png["white_level"] == WHITE
+    # the set-level black_level applies to every capture without its own (the DNG's is
+    # overridden: the manifest wins over the file), the entry's exposure over the EXIF's
+    assert (dng["black_level"], dng["black_level_source"]) == (500, "manifest")
+    assert (dng["exposure_s"], dng["exposure_source"]) == (0.03, "manifest")
+    for bad_key, match in (({"exposure_time": 0.01}, "unknown key 'exposure_time'"),
+                           ({"cfa": "RGGB"}, "unknown key 'cfa'"),
+                           ({"black_level": "x"}, "'black_level' must be a number")):
+        man2 = {**man, "captures": [{**man["captures"][0], **bad_key}]}
+        (d / "manifest.json").write_text(json.dumps(man2))
+        with pytest.raises(FileFormatError, match=match):
+            read_capture_set(d)
+    (d / "manifest.json").write_text(json.dumps({**man, "exposure_time_s": 1}))
+    with pytest.raises(FileFormatError, match=r"manifest.json: unknown key 'exposure_time_s'"):
+        read_capture_set(d)
+
+
+def test_published_schema_accepts_the_manifests_we_write(sim: Path):
+    jsonschema = pytest.importorskip("jsonschema")
+    schema = manifest_schema()
+    jsonschema.Draft202012Validator.check_schema(schema)
+    v = jsonschema.Draft202012Validator(schema)
+    v.validate(json.loads((sim / "manifest.json").read_text()))
+    v.validate(MINIMAL_MANIFEST)
+    assert not v.is_valid({**MINIMAL_MANIFEST, "exposure_time": 1})
+    check_manifest(MINIMAL_MANIFEST, "example")
+    keys = manifest_keys()
+    assert {"cfa_pattern", "black_level", "exposure_s", "wavelength_nm"} <= set(keys["entry"])
+    doc = (Path(__file__).resolve().parents[1] / "docs/calibration.md").read_text()
+    for k in set(keys["set"]) | set(keys["entry"]):  # every key documented
+        assert f"`{k}`" in doc, k
+
+
+def test_copy_makes_a_self_contained_set(tmp_path: Path):
+    """A set imported with --copy is self-contained (the files under the set's folder)."""
+    m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
+    (tmp_path / "lab").mkdir()
+    write_dng(tmp_path / "lab/a_430nm.dng", m, black_level=BLACK, white_level=WHITE,
+              exposure_s=0.01)  # fmt: skip
+    rows = rows_from_patterns({"scan": ["lab/a_*nm.dng"]}, base=tmp_path)
+    import_captures(rows, tmp_path / "set", copy=True, grid_nm=(430, 430, 10))
+    man = json.loads((tmp_path / "set/manifest.json").read_text())
+    assert "files_root" not in man and man["captures"][0]["file"] == "scan/a_430nm.dng"
+    assert (tmp_path / "set/scan/a_430nm.dng").is_file()
+    cs = read_capture_set(tmp_path / "set")
+    assert cs.scan == [(tmp_path / "set/scan/a_430nm.dng", 430.0)]
+    md = cs.read(cs.scan[0][0]).metadata
+    assert (md["black_level"], md["black_level_source"]) == ([BLACK] * 4, "file")
+
+
+def test_read_any_metadata_contract(tmp_path: Path):
+    """exposure_s / black_level / camera identity with their sources, for a machine-vision TIFF
+    with EXIF tags, our TIFF with JSON metadata, a PNG, and keyword overrides."""
+    import tifffile
+
+    from hsi_torch.io import write_capture
+
+    m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "mv.tif", m, metadata=None, extratags=[
+        (33434, "2I", 1, (1, 250)), (271, "s", 0, "Vision Co"), (272, "s", 0, "MV-1")])
+    c = read_any(tmp_path / "mv.tif", cfa_pattern="GRBG")
+    md = c.metadata
+    assert (md["exposure_s"], md["exposure_source"]) == (0.004, "file")
+    assert (md["camera_make"], md["camera_model"]) == ("Vision Co", "MV-1")
+    assert (md["black_level"], md["black_level_source"]) == (0.0, "default")
+    assert md["white_level"] == 65535 and md["cfa_pattern"] == "GRBG"
+    c = read_any(tmp_path / "mv.tif", cfa_pattern="GRBG", black_level=64, exposure_s=0.01,
+                 camera_model="X", sources={"black_level": "sheet", "exposure_s": "manifest"})
+    md = c.metadata
+    assert (md["black_level"], md["black_level_source"]) == (64.0, "sheet")
+    assert (md["exposure_s"], md["exposure_source"]) == (0.01, "manifest")
+    assert md["camera_model"] == "X" and float(c.mosaic[0, 0, 0]) == 600 - 64
+    write_capture(tmp_path / "ours.tif", m, {"cfa_pattern": "RGGB", "black_level": 100,
+                                            "exposure_s": 0.5, "camera_make": "Sim"})
+    md = read_any(tmp_path / "ours.tif").metadata
+    assert (md["black_level_source"], md["exposure_s"], md["exposure_source"]) == ("file", 0.5,
+                                                                                  "file")
+    assert md["camera_make"] == "Sim" and md["camera_model"] is None
+    cv2.imwrite(str(tmp_path / "p.png"), np.stack([m, m // 2, m // 3], -1))  # B, G, R on disk
+    md = read_any(tmp_path / "p.png").metadata
+    assert md["kind"] == "rgb" and md["cfa_pattern"] is None and md["exposure_s"] is None
+    assert md["exposure_source"] is None and md["camera_make"] is None
+    assert float(read_any(tmp_path / "p.png").image[0, 0, 0]) == 600 // 3  # R first
+    with pytest.raises(FileFormatError, match="exposure_s must be a number > 0"):
+        read_any(tmp_path / "p.png", exposure_s=-1)
+    with pytest.raises(ValueError, match="is not one of"):
+        read_any(tmp_path / "p.png", sources={"black_level": "guess"})
+    with pytest.raises(FileFormatError, match="does not match the expected sensor size"):
+        read_any(tmp_path / "p.png", expected_size=(31, 32))  # from the header
+
+
+def test_check_exits_1_when_calibration_would_refuse(tmp_path: Path, capsys):
+    m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
+    for f in ("mono/s_430nm.png", "mono/s_700nm.png", "w/w.png"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(tmp_path / f), m)
+    (tmp_path / "sheet.csv").write_text("file,role,cfa_pattern\nmono/s_430nm.png,scan,RGGB\n"
+                                        "mono/s_700nm.png,scan,RGGB\nw/w.png,white,RGGB\n")
+    assert main(["captures", "import", "--sheet", str(tmp_path / "sheet.csv"),
+                 "--out", str(tmp_path / "set")]) == 0  # fmt: skip
+    cap = capsys.readouterr()
+    assert "hsi-torch: warning: no scan frame for 440, 450" in cap.err
+    assert "no grid captures" in cap.err and "no nominal layout" in cap.err
+    assert "s_700nm.png (700 nm)" in cap.out
+    assert main(["-q", "captures", "check", str(tmp_path / "set")]) == 1
+    cap = capsys.readouterr()
+    assert cap.out == ""  # quiet: only the errors
+    assert "hsi-torch: error: no grid captures" in cap.err
+    assert "error: no scan frame for 440" in cap.err
+    assert main(["captures", "check", str(tmp_path / "set")]) == 1
+    out = capsys.readouterr().out
+    assert "note: scan frames near no band (not used): s_700nm.png (700 nm)" in out
+    assert "note: 3 capture(s) with no black level given" in out
+
+
+def test_repeated_scan_frames_are_averaged_at_one_exposure(tmp_path: Path):
+    """Two frames of one band: the mean image (the second, at twice the exposure, scaled to the
+    first's first), a sample saturated in either is saturated."""
+    import torch
+
+    from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.calibrate.pipeline import _Reader
+
+    a = np.full((24, 26), 1000, np.uint16)
+    b = np.full((24, 26), 2000, np.uint16)
+    b[3, 4] = 65535
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), b)
+    pa, pb = tmp_path / "a.png", tmp_path / "b.png"
+    settings = {pa: {"exposure_s": (0.01, "sheet"), "cfa_pattern": ("RGGB", "sheet")},
+                pb: {"exposure_s": (0.02, "sheet"), "cfa_pattern": ("RGGB", "sheet")}}
+    r = _Reader(CalibrateConfig(black_level=0.0), (24, 26), "cpu", torch.float64, settings)
+    img, sat, meta = r.read_mean((pa, pb))
+    assert meta["black_level_source"] == "config" and meta["exposure_source"] == "sheet"
+    ok = ~sat.any(0)
+    assert torch.allclose(img[:, ok], torch.full_like(img[:, ok], 1000.0))
+    assert bool(sat[:, 3, 4].any()) and int((~ok).sum()) < 30
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GRBG", "BGGR", "GBRG"])
+def test_write_dng_reads_back_through_libraw(tmp_path: Path, pattern: str):
+    """The tests' DNG writer: LibRaw returns the same mosaic, black and white level and CFA
+    pattern; the EXIF gives the exposure and the camera."""
+    import rawpy
+
+    m = np.random.default_rng(3).integers(BLACK, WHITE + 1, (40, 46))
+    f = write_dng(tmp_path / "x.dng", m, cfa_pattern=pattern, black_level=BLACK,
+                  white_level=WHITE, exposure_s=1 / 60, make="Lab", model="Cam")  # fmt: skip
+    with rawpy.imread(str(f)) as r:
+        np.testing.assert_array_equal(r.raw_image_visible, m)
+        assert list(r.black_level_per_channel) == [BLACK] * 4 and r.white_level == WHITE
+    c = read_any(f)
+    md = c.metadata
+    assert md["cfa_pattern"] == pattern and md["exposure_s"] == pytest.approx(1 / 60, rel=1e-6)
+    assert (md["camera_make"], md["camera_model"]) == ("Lab", "Cam")
+    np.testing.assert_array_equal(c.mosaic[0].numpy(), m - BLACK)
