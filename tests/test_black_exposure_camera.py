@@ -377,6 +377,29 @@ def test_unknown_exposure_is_relative_with_a_warning(lab, bundle, tmp_path, caps
     assert st["capture_exposure_source"] == "config" and st["exposure_scale"] == 2.0
 
 
+def test_simulated_camera_is_recorded_and_another_cameras_scene_warns(lab, bundle, tmp_path,
+                                                                       capsys):
+    """The simulator names its camera in every capture (``camera_model``); a ColorChecker
+    rendered through another camera's sensitivities (same geometry), reconstructed with this
+    camera's bundle, is warned about, naming both cameras."""
+    sim = lab["sim"]
+    meta = json.loads(tifffile.TiffFile(sim / "white" / "white_00.tif").pages[0].description)
+    assert meta["camera_model"] == "Canon EOS 5D Mark II"
+    other = tmp_path / "nikon"
+    assert main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(other),
+                 "--set", "render.figures=false", "--set", "render.progress=false",
+                 "--set", "render.dtype=float32", "--set", "camera_sensitivity=Nikon 5100 (NPL)",
+                 "--set", "captures.white_shots=1"]) == 0  # fmt: skip
+    capsys.readouterr()
+    scene = other / "scenes" / "colorchecker.tif"
+    assert _reconstruct(bundle, tmp_path / "n", scene) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" in err and "Nikon 5100 (NPL)" in err and "Canon EOS 5D Mark II" in err
+    st = load_cube(tmp_path / "n" / "colorchecker.npz").metadata["stats"]
+    assert st["camera"] == "Nikon 5100 (NPL)" and len(st["camera_mismatch"]) == 1
+    assert st["fit_residual"] < 0.15  # the fit residual alone would not have said it
+
+
 def test_another_cameras_capture_warns_naming_both(lab, bundle, tmp_path, capsys):
     assert _reconstruct(bundle, tmp_path / "n", lab["scenes"] / "nikon.tif") == 0
     err = capsys.readouterr().err
