@@ -406,3 +406,36 @@ def test_another_cameras_capture_warns_naming_both(lab, bundle, tmp_path, capsys
     assert "WARNING" in err and "Nikon D700" in err and "Canon EOS 5D Mark II" in err
     st = load_cube(tmp_path / "n" / "nikon.npz").metadata["stats"]
     assert st["camera"] == "Nikon D700" and len(st["camera_mismatch"]) == 1
+
+
+def test_calibrate_pedestal_check_modes(tmp_path):
+    """``pedestal_check``: error names the level and the fix (a pedestal, or a black level set too
+    high), warn warns and notes, off says nothing; the frame closest to 0 decides (stray light
+    in bright frames does not)."""
+    import warnings
+
+    from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.calibrate.pipeline import _Reader, check_pedestal
+    from hsi_torch.errors import CalibrationError
+
+    def reader(levels: list[float], black: float = 0.0) -> _Reader:
+        r = _Reader(CalibrateConfig(), (10, 10), "cpu", torch.float32, np.arange(100))
+        r.black_rgb, r.black_source = [black] * 3, "default"
+        r.pedestals = [(tmp_path / f"f{i}.tif", [v] * 3, [2.0] * 3, 16383.0 - black)
+                       for i, v in enumerate(levels)]  # fmt: skip
+        return r
+
+    notes: list[str] = []
+    ped = check_pedestal(reader([1.5, 30.0, 250.0]), "error", notes)  # stray light in 2 frames
+    assert ped["ok"] and ped["pedestal_dn"] == [1.5] * 3 and notes == []
+    with pytest.raises(CalibrationError, match=r"reads 512\.0 DN after black subtraction .*"
+                       r"black pedestal of ~512 DN.*--set black_level=512\) or add a dark frame"):
+        check_pedestal(reader([512.0, 700.0]), "error", notes)
+    with pytest.raises(CalibrationError, match=r"reads -300\.0 DN.*subtracted \(812 DN\) is "
+                                               r"~300 DN too high.*black_level=512"):
+        check_pedestal(reader([-300.0], black=812.0), "error", notes)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert not check_pedestal(reader([512.0]), "warn", notes)["ok"]
+    assert len(w) == 1 and "black pedestal" in str(w[0].message) and len(notes) == 1
+    assert not check_pedestal(reader([512.0]), "off", notes)["ok"] and len(notes) == 1
