@@ -944,6 +944,11 @@ def calibrate_capture_set(
         trans = calibrate_transmittance(scan_sel, reader, lay, Hs, patch, wl, cfg, tick)
         tm["transmittance"] = time.perf_counter() - t0
         pedestal = check_pedestal(reader, cfg.pedestal_check, notes)
+        if len(reader.cameras) > 1:
+            msg = ("the captures name more than one camera (" + ", ".join(sorted(reader.cameras))
+                   + "); the bundle records the first one's")  # fmt: skip
+            warnings.warn(msg, UserWarning, stacklevel=2)
+            notes.append(msg)
 
         t0 = time.perf_counter()
         resp = calibrate_response(cs.white, reader, Hs, lay.reference_bbox, trans, wl, cfg,
