@@ -168,7 +168,8 @@ class _Reader:
     def _note_identity(self, meta: dict[str, Any], src: str) -> None:
         cam = CameraIdentity.from_metadata(meta, self.size, levels_from_file=src == "file")
         self.camera = cam if self.camera is None else self.camera.merged(cam)
-        if cam.name:
+        if cam.name and " ".join(cam.name.lower().split()) not in {
+                " ".join(c.lower().split()) for c in self.cameras}:  # fmt: skip
             self.cameras.add(cam.name)
         self.black_sources.add(src)
         if self.black_rgb is None:
