@@ -246,6 +246,14 @@ class CalibrateConfig:
             "nothing (the black level is always subtracted)"
         ),
     )
+    pedestal_check: Literal["error", "warn", "off"] = field(
+        default="error",
+        metadata=_h(
+            "the sensor outside every view must read ~0 after black (and dark) subtraction: "
+            "error refuses captures that carry a black pedestal (a missing black level), "
+            "warn only says so"
+        ),
+    )
     device: str = field(default="cpu", metadata=_h("torch device"))
     dtype: Literal["float32", "float64"] = field(
         default="float32",

@@ -73,6 +73,15 @@ from hsi_torch.io.capture_set import (
     read_mask_png,
     wavelength_from_name,
 )
+from hsi_torch.io.radiometry import (
+    CameraIdentity,
+    black_level_rgb,
+    capture_exposure,
+    file_has_black_level,
+    outside_views_index,
+    pedestal_level,
+    pedestal_limit,
+)
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.spectral import SpectralGrid, band_widths
 
@@ -114,14 +123,35 @@ def _no_tick(n: int = 1, stage: str | None = None) -> None:
 class _Reader:
     """read_any with the per-file settings of the capture set's manifest (``settings``:
     :attr:`CaptureSet.settings`), the config's overrides (which win), the layout's sensor size
-    and dark subtraction."""
+    and dark subtraction; it also records what the captures say about the camera and the black
+    level, and the pedestal of every frame read after the dark subtraction (:meth:`pedestal`)."""
 
     def __init__(self, cfg: CalibrateConfig, sensor_size: tuple[int, int], device, dtype,
-                 settings: dict[Path, dict[str, Any]] | None = None):  # fmt: skip
+                 settings: dict[Path, dict[str, Any]] | None = None,
+                 outside_index: np.ndarray | None = None):  # fmt: skip
         self.cfg, self.size, self.device, self.dtype = cfg, sensor_size, device, dtype
         self.settings = settings or {}
         self.dark: torch.Tensor | None = None
+        self.dark_files: list[Path] = []
         self.cfa_pattern: str | None = None
+        self.outside = outside_index
+        self.camera: CameraIdentity | None = None
+        self.cameras: set[str] = set()
+        #: the black level the files were read with (R, G, B) and its source, first capture
+        self.black_rgb: list[float] | None = None
+        self.black_source: str | None = None
+        self.black_sources: set[str] = set()
+        #: (file, median (3,), robust sigma (3,), white span) per frame read after the dark
+        self.pedestals: list[tuple[Path, list[float], list[float], float | None]] = []
+        self._recording = True
+
+    def _black_source(self, path: Path, meta: dict[str, Any]) -> str:
+        src = meta.get("black_level_source")
+        if isinstance(src, str) and src:
+            return src
+        if self.cfg.black_level is not None:
+            return "config"
+        return "file" if file_has_black_level(path) else "default"
 
     def overrides(self, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
         """read_any's keyword overrides for ``path`` and their sources: the manifest's settings
@@ -141,10 +171,32 @@ class _Reader:
         rel = self.settings.get(path, {}).get("exposure")
         if rel is not None:  # the manifest's relative exposure of the file wins over the file's
             cap.metadata["exposure"] = rel[0]
-        if cap.metadata.get("kind") == "bayer":
-            self.cfa_pattern = cap.metadata.get("cfa_pattern")
+        meta = cap.metadata
+        if meta.get("kind") == "bayer":
+            self.cfa_pattern = meta.get("cfa_pattern")
+        src = self._black_source(path, meta)
+        meta["black_level_source"] = src
+        self._note_identity(meta, src)
         img = cap.image if self.dark is None else cap.image - self.dark
-        return img, cap.saturated, cap.metadata
+        if self._recording and self.outside is not None and self.outside.size:
+            st = pedestal_level(img, self.outside)
+            if st is not None:
+                black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern")) or [0.0]
+                wl = meta.get("white_level")
+                span = float(wl) - float(np.mean(black)) if isinstance(wl, (int, float)) else None
+                self.pedestals.append((path, st[0], st[1], span))
+        return img, cap.saturated, meta
+
+    def _note_identity(self, meta: dict[str, Any], src: str) -> None:
+        cam = CameraIdentity.from_metadata(meta, self.size, levels_from_file=src == "file")
+        self.camera = cam if self.camera is None else self.camera.merged(cam)
+        if cam.name and " ".join(cam.name.lower().split()) not in {
+                " ".join(c.lower().split()) for c in self.cameras}:  # fmt: skip
+            self.cameras.add(cam.name)
+        self.black_sources.add(src)
+        if self.black_rgb is None:
+            self.black_rgb = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
+            self.black_source = src
 
     def read_mean(
         self, paths: Path | Sequence[Path]
@@ -169,11 +221,99 @@ class _Reader:
         if mode == "none" or not files:
             return
         acc = None
-        for p in files:
-            img, _, _ = self.read(p)
-            acc = img if acc is None else acc + img
+        self._recording = False  # the dark frames themselves read the pedestal, by definition
+        try:
+            for p in files:
+                img, _, _ = self.read(p)
+                acc = img if acc is None else acc + img
+        finally:
+            self._recording = True
         d = acc / len(files)
         self.dark = d.mean(dim=(-2, -1), keepdim=True).expand_as(d) if mode == "mean" else d
+        self.dark_files = list(files)
+
+    def black_level_record(self) -> dict[str, Any]:
+        """What a capture without a black level of its own must have subtracted to match the
+        calibration: ``black_level_rgb`` (the files' black level plus the dark frames' mean, per
+        colour, DN), ``black_level_source`` (a sentence), ``dark_level_rgb`` (the dark frames'
+        mean above the black level, or ``None``) and ``files_black_level_source``."""
+        base = self.black_rgb if self.black_rgb is not None else [0.0, 0.0, 0.0]
+        src = self.black_source or "default"
+        if len(self.black_sources) > 1:
+            src = "mixed (" + ", ".join(sorted(self.black_sources)) + ")"
+        what = {"file": "the files' metadata", "config": "the black_level setting",
+                "default": "none given: 0", "bundle": "the bundle"}.get(src, src)  # fmt: skip
+        dark = None
+        total = list(base)
+        text = f"black level {_levels_text(base)} DN ({what})"
+        if self.dark is not None:
+            dark = [float(v) for v in self.dark.mean(dim=(-2, -1)).double().cpu()]
+            total = [a + b for a, b in zip(base, dark, strict=True)]
+            names = ", ".join(p.name for p in self.dark_files)
+            text += (f" + dark frame mean {_levels_text(dark)} DN ({names}; "
+                     f"dark: {self.cfg.dark})")  # fmt: skip
+        return {"black_level_rgb": total, "black_level_source": text,
+                "dark_level_rgb": dark, "files_black_level_source": src}  # fmt: skip
+
+    def pedestal(self) -> dict[str, Any] | None:
+        """The pedestal of the captures: per colour, the frame level closest to 0 over every
+        frame read after the dark subtraction (stray light only adds to it; a missed black level
+        is in every frame), its limit (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and
+        ``ok``. ``None`` when no frame had sensor pixels outside the views."""
+        if not self.pedestals:
+            return None
+        level, limit = [], []
+        for c in range(3):
+            f = min(self.pedestals, key=lambda r: abs(r[1][c]))
+            level.append(f[1][c])
+            limit.append(pedestal_limit(f[3], f[2][c]))
+        ok = all(abs(v) <= lim for v, lim in zip(level, limit, strict=True))
+        n_out = 0 if self.outside is None else int(self.outside.size)
+        return {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
+                "frames": len(self.pedestals), "outside_pixels": n_out}  # fmt: skip
+
+
+def _levels_text(v: Sequence[float]) -> str:
+    if max(v) - min(v) < 0.05:
+        return f"{v[0]:.4g}"
+    return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+
+
+def check_pedestal(reader: _Reader, mode: str, notes: list[str]) -> dict[str, Any] | None:
+    """Refuse (``mode="error"``) or warn (``"warn"``) when the sensor outside every view reads
+    more than the limit after black subtraction in every frame: the captures carry a black
+    pedestal the black level did not remove (or too much was subtracted). Returns the
+    measurement (:meth:`_Reader.pedestal`).
+
+    Raises:
+        CalibrationError: naming the level measured and the fix.
+    """
+    ped = reader.pedestal()
+    if mode == "off" or ped is None:
+        if ped is None:
+            notes.append("pedestal not checked: every sensor pixel is within the margin of a view")
+        return ped
+    if ped["ok"]:
+        return ped
+    c = max(range(3), key=lambda i: abs(ped["pedestal_dn"][i]) / ped["pedestal_limit_dn"][i])
+    lvl, lim = ped["pedestal_dn"][c], ped["pedestal_limit_dn"][c]
+    sub = reader.black_level_record()["black_level_rgb"][c]
+    if lvl > 0:
+        what = (f"the captures carry a black pedestal of ~{lvl:.0f} DN; give black_level in the "
+                f"sheet/manifest/--set (e.g. --set black_level={sub + lvl:.0f}) or add a dark "
+                "frame")  # fmt: skip
+    else:
+        what = (f"the black level subtracted ({sub:.0f} DN) is ~{-lvl:.0f} DN too high; give the "
+                "right black_level in the sheet/manifest/--set (e.g. --set "
+                f"black_level={sub + lvl:.0f})")  # fmt: skip
+    msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
+           f"({'RGB'[c]} channel, the frame closest to 0 of {ped['frames']}; limit {lim:.3g} DN): "
+           f"{what}")  # fmt: skip
+    if mode == "error":
+        raise CalibrationError(msg + " (pedestal_check=warn only warns)")
+    warnings.warn(msg, UserWarning, stacklevel=3)
+    notes.append(msg)
+    return ped
 
 
 # =============================================================================================
@@ -200,6 +340,9 @@ class CalibrationReport:
     cfa_pattern: str | None
     timings_s: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    black_level: str = ""
+    pedestal: dict[str, Any] | None = None
+    camera: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -230,6 +373,16 @@ class CalibrationReport:
             + " DN"
         )
         lines.append(str(self.valid))
+        if self.black_level:
+            lines.append(f"black: {self.black_level}; camera {self.camera or 'unknown'}")
+        if self.pedestal is not None:
+            lines.append(
+                "outside the views (after black subtraction): "
+                + ", ".join(f"{c} {v:.1f}" for c, v in zip("RGB", self.pedestal["pedestal_dn"],
+                                                            strict=True))
+                + f" DN (limit {max(self.pedestal['pedestal_limit_dn']):.3g} DN, "
+                f"{self.pedestal['outside_pixels']} px sampled per frame)"
+            )
         for n in self.notes:
             lines.append(f"note: {n}")
         if self.timings_s:
@@ -696,11 +849,17 @@ class ResponseStage:
             (:class:`~hsi_torch.calibrate.response.ResponseResult`).
         white_exposure_s: the white shots' exposure (s), or ``None`` when unknown.
         white_signal_dn: mean white signal over the fitted samples (DN).
+        white_exposure_unit: ``"s"`` (metadata ``exposure_s``), ``"relative"`` (the
+            simulator's ``exposure``) or ``None``.
+        white_exposure_source: where the first shot's exposure came from (``"file"``,
+            ``"manifest"``, ...), or ``None``.
     """
 
     response: ResponseResult
     white_exposure_s: float | None
     white_signal_dn: float
+    white_exposure_unit: str | None = None
+    white_exposure_source: str | None = None
 
 
 def calibrate_response(
@@ -722,15 +881,19 @@ def calibrate_response(
     bbox = list(reference_bbox)
     vmask, B_ref = trans.view_mask, trans.B
     V, _, h, w = B_ref.shape
-    whites, wsats, w_exp = [], [], []
+    whites, wsats, w_exp, units, sources = [], [], [], set(), []
     for p in white:
         img, sat, meta = reader.read(p)
         whites.append(img)
         wsats.append(sat)
-        t = meta.get("exposure_s")  # seconds (file, sheet, manifest), else the relative one
-        w_exp.append(t if t is not None else meta.get("exposure"))
+        # seconds (file, sheet, manifest), else the simulator's relative exposure
+        t, unit, src = capture_exposure(meta)
+        w_exp.append(t)
+        units.add(unit)
+        sources.append(src)
         tick(1, "white")
-    exp_known = all(e is not None for e in w_exp)
+    # one unit for all (seconds, or the simulator's relative exposure), else unknown
+    exp_known = all(e is not None for e in w_exp) and len(units) == 1
     white_exposure = float(w_exp[0]) if exp_known else None
     if exp_known and any(abs(float(e) / float(w_exp[0]) - 1) > 1e-6 for e in w_exp):
         t_ref = float(w_exp[0])
@@ -767,16 +930,25 @@ def calibrate_response(
     )  # fmt: skip
     tick(1, "response")
     white_signal = float(white_ref.mean(0)[obs_mask[:, None].expand(V, 3, h, w)].mean())
-    return ResponseStage(resp, white_exposure, white_signal)
+    return ResponseStage(resp, white_exposure, white_signal,
+                         units.pop() if exp_known else None,
+                         sources[0] if exp_known else None)  # fmt: skip
 
 
 def assemble_bundle(
     cs: CaptureSet, lay: NominalLayout, grid: SpectralGrid, wavelengths_nm: torch.Tensor,
     reg: RegistrationResult, trans: TransmittanceStage, resp: ResponseStage, patch: PatchMasks,
     reader: _Reader, dark_mode: str, cfg: CalibrateConfig,
+    pedestal: dict[str, Any] | None = None,
 ) -> tuple[CalibrationBundle, torch.Tensor, ValidRegionSummary]:
     """The valid region (≥ ``min_views`` BRF-modulated views) and the bundle with its settings and
     provenance; returns ``(bundle, modulated (V, h, w), valid-region summary)``.
+
+    Besides the grid, β's and detector settings, ``settings`` record the white shots' exposure
+    (``white_exposure_s``, ``white_exposure_unit``, ``white_exposure_source``), the black level
+    a capture without its own must get (``black_level_rgb``, ``black_level_source``,
+    ``dark_level_rgb``, :meth:`_Reader.black_level_record`), the camera's identity (``camera``:
+    :class:`~hsi_torch.io.radiometry.CameraIdentity`) and the pedestal measured (``pedestal``).
 
     Raises:
         ValueError: no pixel has ``min_views`` modulated views.
@@ -797,9 +969,14 @@ def assemble_bundle(
         "white_exposure_s": resp.white_exposure_s,
         "white_exposure_note": "the white shots' metadata 'exposure_s' (s), else their "
                                "relative 'exposure' (simulator)",
+        "white_exposure_unit": resp.white_exposure_unit,
+        "white_exposure_source": resp.white_exposure_source,
         "cfa_pattern": reader.cfa_pattern,
         "demosaic": cfg.demosaic,
         "dark": dark_mode,
+        **reader.black_level_record(),
+        "camera": None if reader.camera is None else reader.camera.to_dict(),
+        "pedestal": pedestal,
         "brf_free_mask": patch.source,
         "detector": det_cfg.to_dict(),
         "beta_phi": rc.beta_phi,
@@ -895,7 +1072,8 @@ def calibrate_capture_set(
                 bar.set_postfix_str(stage)
             bar.update(n)
 
-    reader = _Reader(cfg, lay.sensor_size, dev, dt, cs.settings)
+    outside = outside_views_index(lay.triangles, lay.sensor_size)
+    reader = _Reader(cfg, lay.sensor_size, dev, dt, cs.settings, outside)
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
@@ -912,6 +1090,12 @@ def calibrate_capture_set(
         t0 = time.perf_counter()
         trans = calibrate_transmittance(scan_sel, reader, lay, Hs, patch, wl, cfg, tick)
         tm["transmittance"] = time.perf_counter() - t0
+        pedestal = check_pedestal(reader, cfg.pedestal_check, notes)
+        if len(reader.cameras) > 1:
+            msg = ("the captures name more than one camera (" + ", ".join(sorted(reader.cameras))
+                   + "); the bundle records the first one's")  # fmt: skip
+            warnings.warn(msg, UserWarning, stacklevel=2)
+            notes.append(msg)
 
         t0 = time.perf_counter()
         resp = calibrate_response(cs.white, reader, Hs, lay.reference_bbox, trans, wl, cfg,
@@ -920,7 +1104,7 @@ def calibrate_capture_set(
 
         t0 = time.perf_counter()
         bundle, modulated, vsum = assemble_bundle(cs, lay, grid, wl, reg, trans, resp, patch,
-                                                  reader, dark_mode, cfg)  # fmt: skip
+                                                  reader, dark_mode, cfg, pedestal)  # fmt: skip
         tm["bundle"] = time.perf_counter() - t0
         tick(1, "bundle")
     finally:
@@ -945,5 +1129,8 @@ def calibrate_capture_set(
         cfa_pattern=reader.cfa_pattern,
         timings_s=tm,
         notes=notes,
+        black_level=bundle.settings["black_level_source"],
+        pedestal=pedestal,
+        camera=None if reader.camera is None else reader.camera.name,
     )
     return bundle, report

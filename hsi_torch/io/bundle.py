@@ -1,8 +1,27 @@
 """The calibration bundle: everything reconstruction needs, in one versioned NPZ file.
 
-File format (schema version 1): an uncompressed ``.npz`` with the arrays below and ``meta``, a
+File format (schema version 2): an uncompressed ``.npz`` with the arrays below and ``meta``, a
 0-d unicode array holding a JSON object ``{schema_version, software_version, settings,
 provenance, reflection_sequences}``. Loading needs no pickle.
+
+Version 2 adds entries to ``settings`` (the arrays are those of version 1, which still loads;
+its bundles simply lack these, and reconstruction then assumes nothing about them):
+
+=========================  ==================================================================
+settings key               meaning
+=========================  ==================================================================
+black_level_rgb            ``[R, G, B]`` DN the calibration subtracted (black level + dark
+                           frames' mean): what a capture without a black level of its own gets
+black_level_source         how it was found (a sentence: files' metadata, setting, dark frames)
+dark_level_rgb             the dark frames' mean above the black level, or null
+files_black_level_source   ``file`` / ``config`` / ``default`` / ``manifest`` / ``sheet`` / mixed
+white_exposure_unit        ``s`` (``exposure_s``) or ``relative`` (the simulator's ``exposure``)
+white_exposure_source      where the white shots' exposure came from (``file``, ``manifest``, …)
+camera                     ``{make, model, cfa_pattern, sensor_size, black_level, white_level}``
+                           (:class:`~hsi_torch.io.radiometry.CameraIdentity`; null = unknown)
+pedestal                   ``{pedestal_dn, pedestal_limit_dn, ok, frames, outside_pixels}``: the
+                           sensor outside every view after black subtraction, or null
+=========================  ==================================================================
 
 =========================  =================  ==================================================
 key                        shape, dtype       meaning
@@ -45,16 +64,20 @@ import hsi_torch
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
+from hsi_torch.io.radiometry import CameraIdentity
 from hsi_torch.spectral import band_widths
 
 __all__ = [
+    "READABLE_SCHEMA_VERSIONS",
     "SCHEMA_VERSION",
     "CalibrationBundle",
     "file_sha256",
     "make_provenance",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Schema versions this software loads (version 1: no radiometric settings, see the docstring).
+READABLE_SCHEMA_VERSIONS = (1, 2)
 
 _FLOAT_KEYS = ("wavelengths_nm", "triangles", "view_homographies", "B", "phi", "gain")
 _INT_KEYS = ("parity", "sensor_size", "reference_bbox")
@@ -101,6 +124,30 @@ def make_provenance(
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         **extra,
     }
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _check_radiometry_settings(settings: Any, fail: Any) -> None:
+    """The version-2 settings, where present: ``black_level_rgb`` / ``dark_level_rgb`` 3 finite
+    numbers or null, ``camera`` / ``pedestal`` objects or null, the texts strings or null."""
+    if not isinstance(settings, dict):
+        return
+    for key in ("black_level_rgb", "dark_level_rgb"):
+        v = settings.get(key)
+        if v is not None and not (isinstance(v, list) and len(v) == 3 and all(map(_is_num, v))):
+            fail(f"settings.{key}", f"must be 3 finite numbers (R, G, B DN) or null, got {v!r}")
+    for key in ("camera", "pedestal"):
+        v = settings.get(key)
+        if v is not None and not isinstance(v, dict):
+            fail(f"settings.{key}", f"must be a JSON object or null, got {type(v).__name__}")
+    for key in ("black_level_source", "white_exposure_unit", "white_exposure_source",
+                "files_black_level_source"):  # fmt: skip
+        v = settings.get(key)
+        if v is not None and not isinstance(v, str):
+            fail(f"settings.{key}", f"must be a string or null, got {type(v).__name__}")
 
 
 def _np(x: Any) -> np.ndarray:
@@ -235,10 +282,12 @@ class CalibrationBundle:
                 )
         if self.reflection_sequences and len(self.reflection_sequences) != V:
             fail("reflection_sequences", f"has {len(self.reflection_sequences)} entries, not {V}")
-        if int(self.schema_version) != SCHEMA_VERSION:
+        if int(self.schema_version) not in READABLE_SCHEMA_VERSIONS:
             fail(
-                "schema_version", f"is {self.schema_version}; this software reads {SCHEMA_VERSION}"
+                "schema_version",
+                f"is {self.schema_version}; this software reads {list(READABLE_SCHEMA_VERSIONS)}",
             )
+        _check_radiometry_settings(self.settings, fail)
 
     # ---------------------------------------------------------------- I/O
     def meta(self) -> dict[str, Any]:
@@ -311,10 +360,10 @@ class CalibrationBundle:
                 f"{type(meta).__name__}"
             )
         ver = meta.get("schema_version")
-        if type(ver) is not int or ver != SCHEMA_VERSION:
+        if type(ver) is not int or ver not in READABLE_SCHEMA_VERSIONS:
             raise FileFormatError(
                 f"calibration bundle {p}: schema_version {ver!r} is not supported "
-                f"(this software reads version {SCHEMA_VERSION})"
+                f"(this software reads versions {', '.join(map(str, READABLE_SCHEMA_VERSIONS))})"
             )
         missing = [fk for fk in _FILE_KEYS.values() if fk not in data]
         if missing:
@@ -349,6 +398,19 @@ class CalibrationBundle:
         return bundle
 
     # ---------------------------------------------------------------- use
+    @property
+    def black_level_rgb(self) -> list[float] | None:
+        """``[R, G, B]`` DN the calibration subtracted (``settings["black_level_rgb"]``), or
+        ``None`` (a version-1 bundle)."""
+        v = self.settings.get("black_level_rgb") if isinstance(self.settings, dict) else None
+        return [float(x) for x in v] if isinstance(v, list) else None
+
+    @property
+    def camera(self) -> CameraIdentity | None:
+        """The camera the bundle was calibrated with (``settings["camera"]``), or ``None``."""
+        s = self.settings if isinstance(self.settings, dict) else {}
+        return CameraIdentity.from_dict(s.get("camera"))
+
     def check_compatible(self, image_shape: Sequence[int] | torch.Size) -> None:
         """Refuse a capture whose sensor size differs from the bundle's.
 

@@ -95,7 +95,15 @@ class ReconstructConfig:
     black_level: float | list[float] | None = field(
         default=None,
         metadata=_help("black level subtracted from the stored values, DN: scalar, 4 values "
-                       "(Bayer cell) or 3 (R, G, B) (null: the file's metadata, else 0)"),
+                       "(Bayer cell) or 3 (R, G, B) (null: the file's metadata, else the "
+                       "calibration's, recorded in the bundle, else 0)"),
+    )
+    exposure_s: float | None = field(
+        default=None,
+        metadata=_help("exposure time of the captures, s, for a file whose metadata has none "
+                       "(RAW/DNG/TIFF EXIF, exposure_s); scaled by t_white / t_capture against "
+                       "the bundle's white reference (null: unknown, the cube's scale is "
+                       "relative)"),
     )
     white_level: float | None = field(
         default=None,
@@ -147,6 +155,8 @@ class ReconstructConfig:
             raise ValueError(
                 f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
             )
+        if self.exposure_s is not None and not (0 < self.exposure_s < float("inf")):
+            raise ValueError(f"exposure_s must be > 0 and finite or null, got {self.exposure_s}")
         if self.noise_electrons_per_dn is not None and not self.noise_electrons_per_dn > 0:
             raise ValueError(
                 f"noise_electrons_per_dn must be > 0 or null, got {self.noise_electrons_per_dn}"

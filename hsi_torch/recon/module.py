@@ -20,10 +20,12 @@ dozens of times and recompile for every frame. A network around the module there
 with one graph break at the solver, and the result equals the eager one (tested).
 
 ``state_dict()`` holds the calibration (``B``, ``phi``, ``gain``, masks, homographies, wavelengths,
-the reconstructed pixels) and, as extra state, the sensor size, reference-frame box and white
-exposure. ``load_state_dict`` checks the whole state dict first and then rebuilds everything
-derived from it (the factored sensing model, observation mask, sampling grid, Gram matrices
-and their inverses), so the output is exactly that of a module built from the other bundle; a
+the reconstructed pixels) and, as extra state, the sensor size, reference-frame box, white
+exposure and ``phi`` in the bundle's float64. ``load_state_dict`` checks the whole state dict
+first and then rebuilds everything derived from it (the factored sensing model, observation mask,
+sampling grid, Gram matrices and their inverses) exactly as :meth:`HSIReconstructor.from_bundle`
+does, so the output is bit for bit that of a module built from the other bundle (float32 and
+float64, tested); a
 state dict of another geometry (views, bands, reference frame, sensor) raises
 :class:`~hsi_torch.errors.InputError` and leaves the module as it was.
 """
@@ -52,7 +54,10 @@ from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensi
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.spectral import band_widths
 
-__all__ = ["HSIReconstructor", "ReconstructionOutput"]
+__all__ = ["HSIReconstructor", "ReconstructionOutput", "OUTPUTS"]
+
+#: What ``forward`` returns: ``"result"`` (cube and valid mask) or ``"cube"`` (the cube alone).
+OUTPUTS = ("result", "cube")
 
 
 class ReconstructionOutput(NamedTuple):
@@ -68,14 +73,18 @@ class HSIReconstructor(nn.Module):
     Build with :meth:`from_bundle`. ``forward(x)`` takes ``(B, 3, H, W)`` linear RGB (DN above
     black, on the calibration's exposure scale) or ``(B, 1, H, W)`` Bayer mosaics, ``H×W`` the
     bundle's sensor size, and returns :class:`ReconstructionOutput` ``(cube (B, M, h, w),
-    valid (B, h, w))``. The input may have any float dtype; the output has the input's dtype. The
-    input must be on the module's device.
+    valid (B, h, w))`` — or, built with ``output="cube"``, the cube tensor alone with invalid
+    pixels set to ``fill_value``, so that it drops into ``nn.Sequential``. The input may have any
+    float dtype; the output has the input's dtype. The input must be on the module's device.
 
     Example:
         >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=1e4).to("cuda")  # doctest: +SKIP
         >>> cube, valid = rec(rgb)          # rgb (B, 3, H, W) on cuda  # doctest: +SKIP
         >>> loss = cube[valid.unsqueeze(1).expand_as(cube)].mean()  # doctest: +SKIP
         >>> loss.backward()  # doctest: +SKIP
+        >>> net = nn.Sequential(HSIReconstructor.from_bundle("calib.npz", output="cube",
+        ...                                                  fill_value=0.0),
+        ...                     nn.Conv2d(25, 8, 3))  # doctest: +SKIP
     """
 
     wavelengths_nm: Tensor
@@ -113,10 +122,16 @@ class HSIReconstructor(nn.Module):
         prior: str = "none",
         lam: float | str = DEFAULT_LAM,
         spatial_iters: int | None = None,
+        output: str = "result",
+        fill_value: float = 0.0,
     ) -> None:
         super().__init__()
         if solver not in ("active_set", "admm"):
             raise ValueError(f"solver must be 'active_set' or 'admm', got {solver!r}")
+        if output not in OUTPUTS:
+            raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
+        self.output = output
+        self.fill_value = float(fill_value)
         check_prior(prior, lam, spatial_iters)
         self.prior, self.lam, self.spatial_iters = prior, lam, spatial_iters
         dev, dt = sensing.device, sensing.dtype
@@ -133,6 +148,9 @@ class HSIReconstructor(nn.Module):
         self.sensor_size = sensing.sensor_size
         self.reference_bbox = sensing.reference_bbox
         self.exposure_s = sensing.exposure_s
+        # φ as the bundle holds it (float64): the sensing model is formed from it, so a module
+        # rebuilt from a state dict forms the same model bit for bit in any buffer precision
+        self._phi64 = torch.as_tensor(bundle.phi, dtype=torch.float64).cpu()
         # calibration products (persistent)
         self.register_buffer("wavelengths_nm", sensing.wavelengths_nm.to(dev, dt))
         self.register_buffer("B", torch.as_tensor(bundle.B, device=dev, dtype=dt))
@@ -176,6 +194,8 @@ class HSIReconstructor(nn.Module):
         prior: str = "none",
         lam: float | str = DEFAULT_LAM,
         spatial_iters: int | None = None,
+        output: str = "result",
+        fill_value: float = 0.0,
     ) -> HSIReconstructor:
         """Build from a bundle (object or ``.npz`` path).
 
@@ -193,6 +213,11 @@ class HSIReconstructor(nn.Module):
                 vectorial TV prior (:class:`~hsi_torch.recon.pipeline.Reconstructor`); for
                 gradients give ``spatial_iters=N`` (exactly ``N`` differentiable ADMM
                 iterations).
+            output: ``"result"`` (default): ``forward`` returns
+                :class:`ReconstructionOutput` ``(cube, valid)``; ``"cube"``: the cube tensor
+                alone, ``(B, M, h, w)``, invalid pixels set to ``fill_value`` — the form for
+                ``nn.Sequential(rec, nn.Conv2d(M, …))``.
+            fill_value: the value of invalid pixels with ``output="cube"`` (default 0.0).
         """
         b = load_bundle(bundle)
         sens = precompute_sensing(
@@ -202,7 +227,7 @@ class HSIReconstructor(nn.Module):
         return cls(
             sens, b, solver=solver, admm_iters=admm_iters, cfa_pattern=cfa_pattern,
             chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid, prior=prior,
-            lam=lam, spatial_iters=spatial_iters,
+            lam=lam, spatial_iters=spatial_iters, output=output, fill_value=fill_value,
         )  # fmt: skip
 
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
@@ -232,6 +257,7 @@ class HSIReconstructor(nn.Module):
             "sensor_size": list(self.sensor_size),
             "reference_bbox": list(self.reference_bbox),
             "exposure_s": self.exposure_s,
+            "phi_float64": self._phi64.tolist(),
         }
 
     def set_extra_state(self, state: Any) -> None:
@@ -273,6 +299,7 @@ class HSIReconstructor(nn.Module):
         for name, tensor in new.items():
             setattr(self, name, tensor)
         self.exposure_s = extra.get("exposure_s", self.exposure_s)
+        self._phi64 = extra["phi_float64"]
         self._sensing_cache = None
 
     def _rebuilt(
@@ -332,9 +359,21 @@ class HSIReconstructor(nn.Module):
                     raise fail(f"{key} {tuple(int(v) for v in theirs)}, expected {tuple(mine)}")
             exp = extra.get("exposure_s")
             ex["exposure_s"] = float(exp) if isinstance(exp, (int, float)) else None
+        # the float64 φ of the extra state when it is the φ buffer (not one changed since)
+        phi64 = vals["phi"].to("cpu", torch.float64)
+        given64 = extra.get("phi_float64") if isinstance(extra, dict) else None
+        if given64 is not None:
+            try:
+                g = torch.as_tensor(given64, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                g = None
+            if g is not None and g.shape == phi64.shape and torch.equal(
+                    g.to(vals["phi"].dtype), vals["phi"].cpu()):  # fmt: skip
+                phi64 = g
+        ex["phi_float64"] = phi64
         wl = vals["wavelengths_nm"].to("cpu", torch.float64)
         model = SensingModel.from_factors(
-            vals["B"], vals["gain"], vals["phi"], band_widths(wl), pixel_index=pix,
+            vals["B"], vals["gain"], phi64, band_widths(wl), pixel_index=pix,
             device=self.gram.device, dtype=self.gram.dtype,
         )  # fmt: skip
         obs = vals["view_mask"].reshape(V, -1)[:, pix].T.repeat_interleave(3, dim=1)
@@ -405,7 +444,7 @@ class HSIReconstructor(nn.Module):
         x: Tensor,
         saturated: Tensor | None = None,
         exposure_scale: Tensor | float | None = None,
-    ) -> ReconstructionOutput:
+    ) -> ReconstructionOutput | Tensor:
         """Reconstruct a batch.
 
         Args:
@@ -415,7 +454,8 @@ class HSIReconstructor(nn.Module):
             exposure_scale: optional scalar or ``(B,)`` factor on the observations.
 
         Returns:
-            :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``.
+            :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``; built with
+            ``output="cube"``: the cube alone, ``(B, M, h, w)``, ``fill_value`` where invalid.
         """
         if not isinstance(x, Tensor) or x.ndim != 4:
             raise ValueError(
@@ -437,6 +477,9 @@ class HSIReconstructor(nn.Module):
         out_dtype = x.dtype
         rgb, sat = prepare_input(x, saturated, self.cfa_pattern)
         cube, valid = self.reconstruct_prepared(rgb, sat, exposure_scale)
+        if self.output == "cube":
+            fill = torch.full((), self.fill_value, dtype=cube.dtype, device=cube.device)
+            return torch.where(valid.unsqueeze(1), cube, fill).to(out_dtype)
         return ReconstructionOutput(cube.to(out_dtype), valid)
 
     @torch.compiler.disable
@@ -461,4 +504,5 @@ class HSIReconstructor(nn.Module):
             f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
             f"beta={self.beta:g}, diff_order={self.diff_order}, solver={self.solver!r}"
             + (f", prior='tv', lam={self.lam}" if self.prior == "tv" else "")
+            + (f", output='cube', fill_value={self.fill_value:g}" if self.output == "cube" else "")
         )

@@ -53,6 +53,7 @@ from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 from hsi_torch.optics.geometry import warp_views
+from hsi_torch.recon.checks import exposure_info, prepare_capture
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
 from hsi_torch.recon.spatial import DEFAULT_LAM
@@ -831,19 +832,27 @@ class Reconstructor:
         return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)
 
     def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
-        """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``,
-        ``metadata["exposure_s"]``)."""
+        """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``, the
+        exposure from ``metadata``: ``exposure_s``, else the simulator's relative ``exposure``,
+        compared with the bundle's white reference in the same unit; the statistics say
+        ``radiometric_scale`` and ``exposure_note``, :func:`hsi_torch.recon.checks.exposure_info`).
+        """
         src = str(getattr(capture, "path", "capture"))
         meta = capture.metadata
         layout, pattern = "rgb", None
         if meta.get("kind") == "bayer":  # demosaiced by the reader: the noise went through it
             layout = "half" if meta.get("demosaic") == "half" else "bayer"
             pattern = meta.get("cfa_pattern")
+        sens = self.sensing
         try:
-            return self.reconstruct_frame(
-                capture.image, capture.saturated, exposure_s=meta.get("exposure_s"),
+            t, exp_stats = exposure_info(meta, sens.radiometry, sens.exposure_s,
+                                         self.exposure_correction)  # fmt: skip
+            res = self.reconstruct_frame(
+                capture.image, capture.saturated, exposure_s=t,
                 source=src, raw_layout=layout, cfa_pattern=pattern,
             )  # fmt: skip
+            res.stats.update(exp_stats)
+            return res
         except InputError as exc:
             if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
                 raise FileFormatError(f"{src}: {exc}") from None  # the file's metadata at fault
@@ -857,14 +866,19 @@ class Reconstructor:
         cfa_pattern: str | None = None,
         black_level: float | list[float] | None = None,
         white_level: float | None = None,
+        exposure_s: float | None = None,
     ) -> ReconstructionResult:
         """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it.
 
         The file's full-resolution size is checked against the bundle (errors name the file):
         the sensor size, or for Bayer files read with ``demosaic="half"`` (a bundle made at half
         resolution) twice the sensor size. ``cfa_pattern``, ``black_level``, ``white_level``
-        override the file's metadata; a Bayer file without a pattern gets the bundle's.
-        ``timings["load"]`` is the read (and demosaic).
+        override the file's metadata; a Bayer file without a pattern gets the bundle's, a file
+        without a black level the calibration's (``settings["black_level_rgb"]``), a file without
+        an exposure ``exposure_s`` (s). The statistics also hold the black level used and its
+        source, the pedestal outside the views, the camera and its differences from the bundle's
+        (:func:`hsi_torch.recon.checks.prepare_capture`); :func:`hsi_torch.recon.checks.
+        check_warnings` turns them into warnings. ``timings["load"]`` is the read (and demosaic).
         """
         if demosaic not in ("bilinear", "half"):
             raise ValueError(f"demosaic must be 'bilinear' or 'half', got {demosaic!r}")
@@ -879,11 +893,14 @@ class Reconstructor:
         )  # fmt: skip
         if demosaic == "half":
             _check_half_size(cap, sens, p)
+        checks = prepare_capture(cap, sens.radiometry, black_level=black_level,
+                                 exposure_s=exposure_s, sensor_size=sens.sensor_size)  # fmt: skip
         _sync(sens.device)
         t_load = time.perf_counter() - t0
         res = self.reconstruct_capture(cap)
         res.timings = {"load": t_load, **res.timings}
         res.timings["total"] += t_load
+        res.stats.update(checks)
         res.stats["metadata"] = cap.metadata
         return res
 

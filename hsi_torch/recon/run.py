@@ -49,11 +49,12 @@ from hsi_torch.batch import (
     run_batch,
 )
 from hsi_torch.config import ConfigError, config_yaml
-from hsi_torch.console import warn
+from hsi_torch.console import info, warn
 from hsi_torch.errors import NoValidPixelsError
 from hsi_torch.io.atomic import atomic_write_new, clean_stale_temp_files
 from hsi_torch.io.cube import remove_output, require_format, save_cube_formats
 from hsi_torch.profiling import release_freed_memory
+from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 from hsi_torch.recon.sensing import load_bundle
@@ -361,7 +362,7 @@ def reconstruct_input(
     cfg = run.cfg
     res = rec.reconstruct_file(
         path, cfg.demosaic, cfa_pattern=cfg.cfa_pattern, black_level=cfg.black_level,
-        white_level=cfg.white_level,
+        white_level=cfg.white_level, exposure_s=cfg.exposure_s,
     )  # fmt: skip
     if res.stats.get("num_valid", 0) == 0:
         raise NoValidPixelsError(
@@ -374,6 +375,8 @@ def reconstruct_input(
         "source": os.path.abspath(path),
         "bundle": os.path.abspath(run.bundle_path),
         "capture_exposure_s": cap_meta.get("exposure_s"),
+        "radiometric_scale": res.stats.get("radiometric_scale"),
+        "notes": check_notes(res.stats),
         "config": {k: v for k, v in vars(cfg).items()},
         "run_config": run_config.relative_to(run.out_dir).as_posix() if run_config else None,
         "stats": res.stats,
@@ -387,6 +390,8 @@ def reconstruct_to_files(rec: Reconstructor, path: Path, run: ReconstructRun) ->
     warnings are printed. Returns the files written."""
 
     res, meta, warnings = reconstruct_input(rec, path, run)
+    for msg in meta.get("notes", []):
+        info(f"{path.name}: {msg}")
     for msg in warnings:
         warn(f"WARNING {path}: {msg}")
     written = write_outputs(res, run.out_dir / path.stem, run.cfg, meta)
@@ -445,8 +450,10 @@ def write_run_config(
 def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
     """Warnings about one reconstructed frame: a fit residual above
     ``cfg.fit_residual_warning`` (the bundle probably belongs to another geometry, or the
-    black level / exposure is wrong) and pixels whose solve did not converge."""
-    out: list[str] = []
+    black level / exposure is wrong), pixels whose solve did not converge, and the capture
+    checks (:func:`hsi_torch.recon.checks.check_warnings`: a pedestal outside the views, an
+    unknown exposure ratio, another camera)."""
+    out: list[str] = check_warnings(stats)
     fit = stats.get("fit_residual")
     lim = cfg.fit_residual_warning
     if lim is not None and isinstance(fit, float) and fit > lim:

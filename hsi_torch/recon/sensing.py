@@ -48,6 +48,7 @@ from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.profiling import release_freed_memory
+from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 
 __all__ = [
@@ -123,6 +124,9 @@ class BundleSensing:
         problem: :class:`~hsi_torch.recon.nnls.NNLSProblem` for ``A``, ``obs_mask``, ``beta``.
         exposure_s: white-reference exposure of the calibration (s) or ``None``.
         cfa_pattern: the bundle's CFA pattern (``settings["cfa_pattern"]``) or ``None``.
+        radiometry: what the bundle records about the calibration's black level, exposure unit
+            and camera, and the sensor pixels no view reaches
+            (:class:`~hsi_torch.recon.checks.BundleRadiometry`), or ``None``.
         sample_grid: ``(1, V, P, 2)`` (``dtype``, ``device``) sensor position of valid pixel ``p``
             in view ``v`` as normalised ``(x, y)`` (``align_corners=True``; see
             :func:`~hsi_torch.optics.geometry.view_sample_grid`); ``None``: computed on first use.
@@ -143,6 +147,7 @@ class BundleSensing:
     problem: NNLSProblem
     exposure_s: float | None = None
     cfa_pattern: str | None = None
+    radiometry: BundleRadiometry | None = None
     _problems: dict[tuple[float, int], NNLSProblem] = field(default_factory=dict, repr=False)
     sample_grid: Tensor | None = field(default=None, repr=False)
     staging_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -292,6 +297,7 @@ def precompute_sensing(
         reference_bbox=(x0, y0, w, h),
         homographies=torch.as_tensor(b.view_homographies, device=dev, dtype=torch.float64),
         exposure_s=bundle_exposure(b), cfa_pattern=_cfa_from_settings(b),
+        radiometry=BundleRadiometry.from_bundle(b, bundle_exposure(b)),
     )  # fmt: skip
     # identity check for the cache, without keeping the bundle's full-frame arrays alive: a
     # bundle loaded here from a path is freed before the factorisation's memory is taken

@@ -306,6 +306,12 @@ def _tqdm(enabled: bool):
     return wrap
 
 
+def _camera_name(sensitivity: str) -> str:
+    """A camera sensitivity's name: itself for a reference-data name, a file's stem."""
+    p = Path(sensitivity)
+    return p.stem if p.suffix.lower() in (".csv", ".json") else sensitivity
+
+
 def _capture_metadata(renderer: CaptureRenderer, pc: PlannedCapture, exposure: float) -> dict:
     s = renderer.sensor
     meta = {
@@ -316,6 +322,9 @@ def _capture_metadata(renderer: CaptureRenderer, pc: PlannedCapture, exposure: f
         "type": pc.type,
         "seed": pc.seed,
         "source": "hsi_torch virtual prototype",
+        # the camera's identity, as RAW/EXIF metadata would give it: the sensitivity's name
+        # (the file's stem for a CSV/JSON file), compared by reconstruction with the bundle's
+        "camera_model": _camera_name(renderer.camera_sensitivity),
         **pc.entry,
     }
     if s.output == "bayer":

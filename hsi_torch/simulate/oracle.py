@@ -36,6 +36,7 @@ def bundle_from_truth(capture_dir: str | Path) -> CalibrationBundle:
         "source": str(root),
         "cfa_pattern": manifest.get("cfa_pattern"),
         "white_exposure_s": manifest.get("exposure", meta.get("exposure")),
+        "white_exposure_unit": "relative",  # the simulator's exposure, as its captures carry it
     }
     return CalibrationBundle(
         wavelengths_nm=truth["wavelengths_nm"],

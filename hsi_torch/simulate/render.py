@@ -358,6 +358,8 @@ class CaptureRenderer:
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.geometry, self.camera, self.brf, self.sensor = geometry, camera, brf, sensor
+        #: the camera sensitivity's name or file (the captures' ``camera_model``)
+        self.camera_sensitivity = str(camera_sensitivity)
         self.diffuser = diffuser if diffuser is not None else DiffuserModel()
         self.grid = grid
         self.polarizer_efficiency = float(polarizer_efficiency)

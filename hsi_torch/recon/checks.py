@@ -1,0 +1,278 @@
+"""What reconstruction checks about a capture against its calibration bundle, and says.
+
+- **Black level.** A file that carries no black level of its own (a plain TIFF, PNG or NPY; camera
+  RAW always carries one) gets the one the calibration used: the bundle's ``black_level_rgb``
+  (the files' black level plus the dark frames' mean, per colour). An explicit ``black_level``
+  setting wins over both.
+- **Pedestal.** After black subtraction, the sensor outside every view must read ≈ 0
+  (:mod:`hsi_torch.io.radiometry`); a frame that reads more carries a black pedestal that was not
+  removed, and gets a warning naming the level.
+- **Exposure.** A capture's observations are scaled by ``t_white / t_capture``
+  (:func:`~hsi_torch.recon.pipeline.exposure_scale`) when both exposures are known in the same
+  unit; the result's statistics then say ``radiometric_scale: "reflectance"`` and the ratio.
+  Otherwise ``radiometric_scale: "relative"`` and a warning: the cube is not reflectance.
+- **Camera.** The capture's camera identity (make/model, CFA pattern, the file's own black and
+  white levels) is compared with the bundle's; every difference is a warning.
+
+:func:`prepare_capture` and :func:`exposure_info` fill a frame's statistics,
+:func:`check_warnings` and :func:`check_notes` turn them into the lines a run prints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.radiometry import (
+    CameraIdentity,
+    black_level_rgb,
+    camera_mismatches,
+    capture_exposure,
+    file_has_black_level,
+    outside_views_index,
+    pedestal_level,
+    pedestal_limit,
+    subtract_black_rgb,
+)
+
+__all__ = [
+    "BundleRadiometry",
+    "check_notes",
+    "check_warnings",
+    "exposure_info",
+    "prepare_capture",
+]
+
+
+@dataclass(frozen=True)
+class BundleRadiometry:
+    """What a bundle says about the calibration's captures (``None``: not recorded, e.g. a bundle
+    written before these were kept).
+
+    Attributes:
+        white_exposure_s: the white reference's exposure; white_exposure_unit: ``"s"`` or
+            ``"relative"`` (the simulator's ``exposure``), ``None`` when not recorded.
+        black_level_rgb: ``[R, G, B]`` DN subtracted at calibration (black level + dark mean);
+            black_level_source: how it was found (a sentence).
+        camera: the camera's identity.
+        outside_index: flat indices of sampled sensor pixels that no view reaches.
+    """
+
+    white_exposure_s: float | None = None
+    white_exposure_unit: str | None = None
+    black_level_rgb: tuple[float, float, float] | None = None
+    black_level_source: str | None = None
+    camera: CameraIdentity | None = None
+    outside_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+
+    @classmethod
+    def from_bundle(cls, bundle: CalibrationBundle, white_exposure_s: float | None = None
+                    ) -> BundleRadiometry:  # fmt: skip
+        """From a bundle's ``settings`` and layout (``white_exposure_s``: as found by
+        :func:`~hsi_torch.recon.sensing.bundle_exposure`)."""
+        s = bundle.settings if isinstance(bundle.settings, Mapping) else {}
+        unit = s.get("white_exposure_unit")
+        black = black_level_rgb(s.get("black_level_rgb"))
+        src = s.get("black_level_source")
+        return cls(
+            white_exposure_s=white_exposure_s,
+            white_exposure_unit=unit if unit in ("s", "relative") else None,
+            black_level_rgb=None if black is None else (black[0], black[1], black[2]),
+            black_level_source=src if isinstance(src, str) else None,
+            camera=CameraIdentity.from_dict(s.get("camera")),
+            outside_index=outside_views_index(bundle.triangles, tuple(bundle.sensor_size)),
+        )  # fmt: skip
+
+
+def _span(meta: Mapping[str, Any]) -> float | None:
+    wl = meta.get("white_level")
+    if not isinstance(wl, (int, float)) or isinstance(wl, bool):
+        return None
+    black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern")) or [0.0]
+    return float(wl) - float(np.mean(black))
+
+
+def prepare_capture(
+    capture: Any,
+    radiometry: BundleRadiometry | None,
+    *,
+    black_level: Any = None,
+    exposure_s: float | None = None,
+    sensor_size: tuple[int, int] | None = None,
+) -> dict[str, Any]:
+    """Complete a capture read with :func:`~hsi_torch.io.read_any` from what the bundle knows,
+    in place, and measure it; returns the statistics to add to the frame's.
+
+    - ``black_level_source``: ``"config"`` when ``black_level`` was given, else the metadata's
+      (``"file"``, …), else whether the file carries one; a capture with none gets the bundle's
+      ``black_level_rgb`` subtracted (source ``"bundle"``).
+    - ``exposure_s`` (the ``exposure_s`` setting): the capture's exposure when its metadata has
+      none (source ``"config"``).
+    - ``pedestal_dn`` / ``pedestal_limit_dn``: per colour, the median outside every view and its
+      limit (full-resolution captures of the bundle's sensor size only).
+    - ``camera`` and ``camera_mismatch``: the capture's camera and its differences from the
+      bundle's.
+
+    Args:
+        capture: a :class:`~hsi_torch.io.LinearCapture` (``image (3, H, W)``, ``metadata``,
+            ``path``).
+        radiometry: the bundle's (``None``: nothing to complete or compare).
+        sensor_size: ``(H, W)`` the outside-view indices refer to.
+    """
+    meta = capture.metadata
+    path = getattr(capture, "path", None)
+    if black_level is not None:
+        src = "config"
+    else:
+        given = meta.get("black_level_source")
+        if isinstance(given, str) and given:
+            src = given
+        else:
+            src = "file" if path is not None and file_has_black_level(Path(path)) else "default"
+    meta["black_level_source"] = src
+    stats: dict[str, Any] = {}
+    rad = radiometry
+    if src == "default" and rad is not None and rad.black_level_rgb is not None \
+            and any(v != 0 for v in rad.black_level_rgb):  # fmt: skip
+        subtract_black_rgb(capture, rad.black_level_rgb)
+        meta["black_level"] = list(rad.black_level_rgb)
+        meta["black_level_source"] = src = "bundle"
+    stats["black_level"] = meta.get("black_level")
+    stats["black_level_source"] = src
+    if capture_exposure(meta)[0] is None and exposure_s is not None:
+        meta["exposure_s"] = float(exposure_s)
+        meta["exposure_source"] = "config"
+    if rad is None:
+        return stats
+    img = capture.image
+    if rad.outside_index.size and (sensor_size is None
+                                   or tuple(img.shape[-2:]) == tuple(sensor_size)):  # fmt: skip
+        st = pedestal_level(img, rad.outside_index)
+        if st is not None:
+            span = _span(meta)
+            stats["pedestal_dn"] = [round(v, 3) for v in st[0]]
+            stats["pedestal_limit_dn"] = [round(pedestal_limit(span, s), 3) for s in st[1]]
+    cam = CameraIdentity.from_metadata(meta, tuple(img.shape[-2:]) if capture.mosaic is None
+                                       else tuple(capture.mosaic.shape[-2:]),
+                                       levels_from_file=src == "file")  # fmt: skip
+    stats["camera"] = cam.name
+    mism = camera_mismatches(rad.camera, cam)
+    if mism:
+        stats["camera_mismatch"] = mism
+    return stats
+
+
+def _ratio_text(r: float) -> str:
+    """``t_capture / t_white`` as words: ``"1/2"``, ``"2x"``, ``"0.37x"``."""
+    for v, fmt in ((1 / r, "1/{}"), (r, "{}x")):
+        n = round(v)
+        if v >= 1.5 and abs(v - n) < 1e-3 * v:
+            return fmt.format(n)
+    return f"{r:.3g}x"
+
+
+def exposure_info(
+    metadata: Mapping[str, Any], radiometry: BundleRadiometry | None,
+    white_exposure_s: float | None, correction: bool = True,
+) -> tuple[Any, dict[str, Any]]:
+    """The exposure to scale a capture by and what to say about it.
+
+    Returns:
+        ``(exposure, stats)``: the capture's exposure to pass on (``None``: no scaling) and
+        ``radiometric_scale`` (``"reflectance"``: relative to the white reference,
+        ``"relative"``: unknown ratio, ``"uncorrected"``: ``exposure_correction`` off),
+        ``exposure_note`` (a sentence), ``capture_exposure``, ``capture_exposure_unit``,
+        ``capture_exposure_source``, ``white_exposure``, ``white_exposure_unit``.
+    """
+    t, unit, src = capture_exposure(metadata)
+    w = white_exposure_s
+    w_unit = radiometry.white_exposure_unit if radiometry is not None else None
+    stats: dict[str, Any] = {
+        "capture_exposure": t if isinstance(t, (int, float)) else None,
+        "capture_exposure_unit": unit, "capture_exposure_source": src,
+        "white_exposure": w, "white_exposure_unit": w_unit,
+    }  # fmt: skip
+    if not correction:
+        stats.update(radiometric_scale="uncorrected",
+                     exposure_note="exposure correction off (exposure_correction=false)")
+        return None, stats
+    missing = []
+    if t is None:
+        missing.append("the capture's (no exposure_s in its metadata; give --set exposure_s=...)")
+    if w is None:
+        missing.append("the white reference's (not in the calibration bundle; give exposure_s "
+                       "for the white shots in the sheet/manifest/metadata and calibrate again)")
+    if missing:
+        stats.update(radiometric_scale="relative",
+                     exposure_note="exposure unknown: " + " and ".join(missing) + "; the cube's "
+                     "scale is relative, not reflectance")  # fmt: skip
+        return None, stats
+    if unit and w_unit and unit != w_unit:
+        words = {"s": "in seconds", "relative": "relative (the simulator's 'exposure')"}
+        stats.update(radiometric_scale="relative",
+                     exposure_note=f"the capture's exposure is {words[unit]} and the white "
+                     f"reference's {words[w_unit]}: not comparable, not scaled; the cube's scale "
+                     "is relative, not reflectance")  # fmt: skip
+        return None, stats
+    from hsi_torch.recon.pipeline import exposure_scale  # lazy: the pipeline imports this module
+
+    k = exposure_scale(t, w)
+    r = 1.0 / k
+    if abs(r - 1) < 1e-9:
+        note = "exposure equal to the white reference's"
+    else:
+        note = f"exposure {_ratio_text(r)} of the white's: scaled x{1 / r:.4g}"
+    stats.update(radiometric_scale="reflectance", exposure_note=note)
+    return t, stats
+
+
+def check_notes(stats: Mapping[str, Any]) -> list[str]:
+    """Informational lines about a frame: the exposure scaling (when not 1) and a black level
+    taken from the bundle."""
+    out = []
+    if stats.get("radiometric_scale") == "reflectance" and \
+            abs(float(stats.get("exposure_scale", 1.0)) - 1) > 1e-9:  # fmt: skip
+        out.append(str(stats.get("exposure_note")))
+    if stats.get("black_level_source") == "bundle":
+        b = black_level_rgb(stats.get("black_level")) or [0.0]
+        lv = f"{b[0]:.4g}" if max(b) - min(b) < 0.05 else "[" + ", ".join(f"{v:.4g}"
+                                                                          for v in b) + "]"
+        out.append(f"black level {lv} DN from the calibration bundle (the file carries none)")
+    return out
+
+
+def check_warnings(stats: Mapping[str, Any]) -> list[str]:
+    """Warnings about a frame from :func:`prepare_capture` and :func:`exposure_info`'s
+    statistics: a pedestal outside the views, an exposure ratio that is unknown, a camera that
+    differs from the bundle's."""
+    out: list[str] = []
+    ped, lim = stats.get("pedestal_dn"), stats.get("pedestal_limit_dn")
+    if isinstance(ped, list) and isinstance(lim, list) and len(ped) == len(lim) == 3:
+        c = max(range(3), key=lambda i: abs(ped[i]) / max(lim[i], 1e-12))
+        if abs(ped[c]) > lim[c]:
+            b = black_level_rgb(stats.get("black_level")) or [0.0, 0.0, 0.0]
+            src = stats.get("black_level_source", "?")
+            sub = b[c]
+            if ped[c] > 0:
+                fix = (f"the capture carries a black pedestal of ~{ped[c]:.0f} DN; give "
+                       f"black_level (e.g. --set black_level={sub + ped[c]:.0f})")  # fmt: skip
+            else:
+                fix = (f"the black level subtracted is ~{-ped[c]:.0f} DN too high; give the right "
+                       f"black_level (e.g. --set black_level={sub + ped[c]:.0f})")  # fmt: skip
+            out.append(
+                f"the sensor outside the views reads {ped[c]:.1f} DN after black subtraction "
+                f"({'RGB'[c]} channel, limit {lim[c]:.3g} DN; black level subtracted "
+                f"{sub:.4g} DN, source: {src}): {fix}"
+            )
+    if stats.get("radiometric_scale") == "relative":
+        out.append(str(stats.get("exposure_note")))
+    mism = stats.get("camera_mismatch")
+    if isinstance(mism, list) and mism:
+        out.append("camera: " + "; ".join(str(m) for m in mism) + " (a bundle of another "
+                   "camera gives wrong spectra; calibrate this camera)")
+    return out
