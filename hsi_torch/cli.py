@@ -91,8 +91,8 @@ EXAMPLES: dict[str | None, list[str]] = {
     ],
     "layout": [
         "hsi-torch layout --captures lab/ --out lab/nominal_layout.json   # + _overlay.png",
-        "hsi-torch layout --white w1.dng w2.dng --grid 'g*.dng' --config my_design.yaml "
-        "--out layout/",
+        "hsi-torch layout --white w1.dng w2.dng --grid g1.dng g2.dng --dark d.dng "
+        "--set camera.focal_length_mm=35.5 --out layout/   # the design, adjusted",
         "hsi-torch layout --captures sim/ --config simulate_full --out full_layout.json",
     ],
     "reconstruct": [

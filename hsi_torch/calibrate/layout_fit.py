@@ -203,22 +203,24 @@ def _blur(x: torch.Tensor, sigma_px: float) -> torch.Tensor:
     return F.conv2d(F.conv2d(y, k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))[0, 0]
 
 
-def edge_map(image: torch.Tensor, sigma_px: float, clip: float = 0.5) -> torch.Tensor:
+def edge_map(image: torch.Tensor, sigma_px: float, clip: float = 1.0) -> torch.Tensor:
     """Relative edge strength of a white shot:
-    ``min(√(2π)·σ·|∇ G_σ * I| / (G_3σ * I + ε), clip)``.
+    ``clip·tanh(√(2π)·σ·|∇ G_σ * I| / (G_3σ * I + ε) / clip)``.
 
     The gradient is taken on the linear image (its maximum sits on the middle of a blurred
     step, where the tile boundary is; a log image would move it towards the darker side) and
     divided by the local mean brightness (vignetting, fall-off and the views' throughputs do
     not weight the edges). With the factor ``√(2π)·σ`` a step from ``a`` to ``b`` reads
-    ``≈ |b − a| / ((a + b)/2)`` on its edge whatever ``σ``; the clip keeps the edge of the lit
-    region (a jump into the dark, ≈ 2) from outweighing the tile boundaries and BRF-free disks
-    the fit aligns. ``ε`` = 2 % of the 99th percentile (dark areas do not amplify noise).
+    ``≈ |b − a| / ((a + b)/2)`` on its edge whatever ``σ``; the soft clip (a strictly
+    increasing function: every ridge stays where it is) keeps the edge of the lit region (a
+    jump into the dark, ≈ 2) from outweighing the tile boundaries (0.05-0.3) and BRF-free
+    disks (≈ 0.7) the fit aligns. ``ε`` = 2 % of the 99th percentile (dark areas do not
+    amplify noise).
 
     Args:
         image: ``(H, W)`` linear grey image (any scale).
         sigma_px: Gaussian σ (px of ``image``).
-        clip: the largest edge strength.
+        clip: the soft limit of the edge strength.
 
     Returns:
         ``(H, W)`` float32 edge strength.
@@ -233,7 +235,7 @@ def edge_map(image: torch.Tensor, sigma_px: float, clip: float = 0.5) -> torch.T
     gy[1:-1] = 0.5 * (b[2:] - b[:-2])
     mean = _blur(x, 3 * sigma_px) + eps
     g = torch.sqrt(gx * gx + gy * gy) * (math.sqrt(2 * math.pi) * sigma_px) / mean
-    return g.clamp_max(clip)
+    return clip * torch.tanh(g / clip)
 
 
 def _downsample(image: torch.Tensor, factor: float) -> torch.Tensor:
