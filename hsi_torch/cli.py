@@ -238,10 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command(
         "layout", "propose nominal_layout.json: the design's ray trace fitted to a white shot",
-        description="Fits the design's view layout (ray trace of --config, a simulate-style "
-        "config: geometry + camera) to the white shot by a similarity (scale, rotation, shift "
-        "of the optical axis), checks every view's parity on the circle-grid shots and writes "
-        "nominal_layout.json with an overlay PNG to check by eye.",
+        description="Fits the design's view layout (the ray trace of --config, a simulate-style\n"
+        "config: its geometry and camera; default the shipped simulate.yaml) to the white\n"
+        "shot by a similarity (scale, rotation, shift of the optical axis), checks every\n"
+        "view's parity on the circle-grid shots and writes nominal_layout.json with an\n"
+        "overlay PNG to check by eye (see docs/calibration.md).",
     )  # fmt: skip
     _add_common(p, device=False)
     p.add_argument("--captures", type=Path, default=None,

@@ -49,9 +49,9 @@ import torch.nn.functional as F
 
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
-    _orientation,
     detect_in_views,
     fit_homography,
+    view_orientation,
 )
 from hsi_torch.errors import InputError
 from hsi_torch.io.atomic import atomic_write_bytes
@@ -517,7 +517,7 @@ def confirm_parity(
             except ValueError:
                 continue
             ev.inliers[key] = [int(inl.sum()), int(len(inl))]
-            ev.orientation[key] = _orientation(h, tris[v])
+            ev.orientation[key] = view_orientation(h, tris[v])
             frac = inl.sum() / max(1, len(inl))
             if frac >= min_inlier_fraction and ev.orientation[key] == p:
                 support[p] = frac

@@ -39,6 +39,7 @@ __all__ = [
     "register_views",
     "fit_homography",
     "check_registration",
+    "view_orientation",
 ]
 
 
@@ -478,7 +479,7 @@ def register_views(
     return RegistrationResult(torch.from_numpy(Hs), reports, rows.astype(np.float64))
 
 
-def _orientation(h: np.ndarray, triangle: np.ndarray) -> int:
+def view_orientation(h: np.ndarray, triangle: np.ndarray) -> int:
     """``+1`` when ``h`` keeps the orientation of ``triangle (3, 2)``, ``−1`` when it reverses
     it (a mirrored view), 0 when degenerate."""
     def area(t: np.ndarray) -> float:
@@ -531,7 +532,7 @@ def check_registration(
                 f"its parity in {layout_name} is probably flipped (or its triangle is off)"
             )
             continue
-        o = _orientation(hs[v], tris[v])
+        o = view_orientation(hs[v], tris[v])
         if o != 0 and o != int(par[v]):
             problems.append(
                 f"view {v}: the grid shows it {'mirrored' if o < 0 else 'upright'} but its "
