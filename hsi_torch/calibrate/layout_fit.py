@@ -11,13 +11,15 @@ principal point (shift, rotation, scale; exact for a pinhole camera on the tube'
    with their diffuser homographies (diffuser mm → sensor px) and the BRF-free disk's image in
    each. Tracing runs on a reduced copy of the sensor (at most ``max_trace_pixels``); the
    triangles are exact projective images, so nothing is lost.
-2. :func:`fit_similarity` finds the similarity ``T`` that puts the traced tile edges and disk
-   outlines on the edges of the white shot: the edge map is the gradient magnitude of the
-   Gaussian-smoothed **log** of the white shot (vignetting, fall-off and the views' different
-   throughputs are smooth or piecewise constant in it; only the tile boundaries and the disks
-   are sharp). A coarse search over rotation × scale with the shift found by one FFT
-   cross-correlation each, then a coarse-to-fine gradient refinement (Adam on the mean edge
-   strength sampled at the transformed edge points; pyramid of edge maps down to 1 px).
+2. :func:`fit_similarity` finds the similarity ``T`` that puts the traced view edges and disk
+   outlines on the edges of the white shot: the edge map (:func:`edge_map`) is the gradient
+   magnitude of the Gaussian-smoothed white shot divided by the local mean brightness and
+   softly limited (vignetting, fall-off and the views' different throughputs are smooth or
+   piecewise constant; the tile boundaries and the BRF-free disks are sharp; the edge of the lit
+   region does not dominate). A coarse search over rotation × scale with the shift found by one
+   FFT cross-correlation each, then a coarse-to-fine gradient refinement (Adam on the mean edge
+   strength sampled at the transformed points; pyramid of edge maps down to 1 px, the two
+   finest levels on the views' BRF-free disks alone).
 3. :func:`confirm_parity` checks every view's mirror parity on the circle-grid shots: the grid
    is detected in the view with and without undoing a mirror flip and fitted to the reference
    view's detections by RANSAC (:func:`~hsi_torch.calibrate.registration.fit_homography`); a
@@ -306,12 +308,11 @@ class SimilarityFit:
 
     Attributes:
         matrix: ``(3, 3)`` float64, design sensor px → this sensor's px.
-        scale: relative to the design; rotation_deg: about the principal point (counter-clockwise
-            in the image as displayed, i.e. from +x towards +y); shift_px: ``(dx, dy)`` of the
+        scale: relative to the design; rotation_deg: about the principal point, from +x
+            towards +y (clockwise as displayed, rows going down); shift_px: ``(dx, dy)`` of the
             principal point.
-        edge_score: mean edge strength at the fitted edge points relative to the 99th
-            percentile of the edge map (1-px level); the design's own score is
-            ``design_edge_score``.
+        edge_score: mean edge strength (:func:`edge_map`, σ = 1 px) at the fitted edge points
+            (views' edges, disks); ``design_edge_score`` the same for the design as traced.
         coarse: the coarse search's best ``(scale, rotation_deg, dx, dy)``.
     """
 
