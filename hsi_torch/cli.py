@@ -8,6 +8,7 @@ command        function called                                  typical use
 =============  ===============================================  ==============================
 simulate       ``hsi_torch.simulate.cli_entry.run_simulate``    render captures + ground truth
 calibrate      ``hsi_torch.calibrate.cli_entry.run_calibrate``  captures → calibration bundle
+layout         ``hsi_torch.calibrate.cli_entry.run_layout``     white/grid shots → nominal layout
 reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + captures → cubes
 experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
 demo           ``hsi_torch.experiments.cli_entry.run_demo``     the README's main command
@@ -56,6 +57,7 @@ PROG = "hsi-torch"
 ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "simulate": ("hsi_torch.simulate.cli_entry", "run_simulate"),
     "calibrate": ("hsi_torch.calibrate.cli_entry", "run_calibrate"),
+    "layout": ("hsi_torch.calibrate.cli_entry", "run_layout"),
     "reconstruct": ("hsi_torch.recon.cli_entry", "run_reconstruct"),
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
     "demo": ("hsi_torch.experiments.cli_entry", "run_demo"),
@@ -92,6 +94,12 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch calibrate --captures sim/ --out calib/ --set response.beta_phi=1e3",
         "hsi-torch calibrate --captures sim/ --out bundles/day1.npz  # a file name works too",
         "hsi-torch calibrate --oracle --captures sim/ --out oracle.npz  # the simulator's truth",
+    ],
+    "layout": [
+        "hsi-torch layout --captures lab/ --out lab/nominal_layout.json   # + _overlay.png",
+        "hsi-torch layout --white w1.dng w2.dng --grid g1.dng g2.dng --dark d.dng "
+        "--set camera.focal_length_mm=35.5 --out layout/   # the design, adjusted",
+        "hsi-torch layout --captures sim/ --config simulate_full --out full_layout.json",
     ],
     "reconstruct": [
         "hsi-torch reconstruct --bundle calib/calib.npz --out cubes/ 'shots/*.tif' extra.dng",
@@ -239,6 +247,29 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", "-o", type=Path, required=True,
         help="output folder (writes calib.npz, calib.report.json, calib_diagnostics.png and "
              "resolved_config.yaml there); a name ending in .npz is the bundle file itself",
+    )  # fmt: skip
+
+    p = command(
+        "layout", "propose nominal_layout.json: the design's ray trace fitted to a white shot",
+        description="Fits the design's view layout (the ray trace of --config, a simulate-style\n"
+        "config: its geometry and camera; default the shipped simulate.yaml) to the white\n"
+        "shot by a similarity (scale, rotation, shift of the optical axis), checks every\n"
+        "view's parity on the circle-grid shots and writes nominal_layout.json with an\n"
+        "overlay PNG to check by eye (see docs/calibration.md).",
+    )  # fmt: skip
+    _add_common(p, device=False)
+    p.add_argument("--captures", type=Path, default=None,
+                   help="capture folder: its white/, grid/ and dark/ shots (or manifest)")
+    p.add_argument("--white", nargs="+", metavar="FILE", help="white shot(s)")
+    p.add_argument("--grid", nargs="+", metavar="FILE", help="circle-grid shot(s) (parity)")
+    p.add_argument("--dark", nargs="+", metavar="FILE", help="dark frame(s)")
+    p.add_argument("--calib-config", type=Path, default=None, metavar="YAML",
+                   help="calibrate config for reading and grid detection (default: shipped)")
+    p.add_argument("--force", action="store_true", help="replace an existing layout/overlay")
+    p.add_argument(
+        "--out", "-o", type=Path, required=True,
+        help="the layout file (NAME.json; the overlay is NAME_overlay.png beside it) or a "
+             "folder (nominal_layout.json + nominal_layout_overlay.png)",
     )  # fmt: skip
 
     p = command("reconstruct", "reconstruct spectral cubes from captures")

@@ -23,10 +23,12 @@ from hsi_torch import cli, console
 from hsi_torch.config import load_config
 
 REPO = Path(__file__).resolve().parents[1]
-COMMANDS = ["simulate", "calibrate", "reconstruct", "experiment", "demo", "config", "captures"]
+COMMANDS = ["simulate", "calibrate", "layout", "reconstruct", "experiment", "demo", "config",
+            "captures"]
 REQUIRED = {
     "simulate": ["--out", "o"],
     "calibrate": ["--captures", "c", "--out", "o"],
+    "layout": ["--captures", "c", "--out", "o.json"],
     "reconstruct": ["--bundle", "b.npz", "--out", "o", "x.tif"],
     "experiment": ["synthetic", "--out", "o"],
     "demo": [],
@@ -115,6 +117,10 @@ def _schema_and_default(args):
         from hsi_torch.calibrate.config import CalibrateConfig
 
         return CalibrateConfig, "calibrate"
+    if args.command == "layout":  # --config is the design: a simulate-style config
+        from hsi_torch.simulate.config import SimulateConfig
+
+        return SimulateConfig, "simulate"
     if args.command == "reconstruct":
         from hsi_torch.recon.config import ReconstructConfig
 

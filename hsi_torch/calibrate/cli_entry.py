@@ -28,7 +28,8 @@ import sys
 import warnings
 from pathlib import Path
 
-__all__ = ["run_calibrate", "output_paths", "figure_path", "BUNDLE_NAME"]
+__all__ = ["run_calibrate", "run_layout", "layout_paths", "output_paths", "figure_path",
+           "BUNDLE_NAME"]
 
 #: File name of the bundle inside an ``--out`` folder.
 BUNDLE_NAME = "calib.npz"
@@ -122,4 +123,122 @@ def _write_oracle(captures: Path, bundle_path: Path) -> int:
     info(bundle.summary())
     info(f"wrote the oracle bundle {bundle_path} (+ {fig.name}) from the ground truth of "
          f"{captures}")
+    return 0
+
+
+# =============================================================================================
+# hsi-torch layout
+# =============================================================================================
+
+
+def layout_paths(out: str | Path) -> tuple[Path, Path]:
+    """``(layout_json, overlay_png)`` for ``layout --out``: a name ending in ``.json`` is the
+    layout file itself (overlay ``<stem>_overlay.png`` beside it); anything else is a folder
+    receiving ``nominal_layout.json`` and ``nominal_layout_overlay.png``."""
+    p = Path(out)
+    if p.suffix.lower() != ".json":
+        p = p / "nominal_layout.json"
+    return p, p.with_name(p.stem + "_overlay.png")
+
+
+def run_layout(args: argparse.Namespace) -> int:
+    """Entry point of ``hsi-torch layout``: propose ``nominal_layout.json`` from the design
+    (a simulate-style config: geometry + camera) fitted to the white shot(s), parities checked
+    on the grid shots (:mod:`hsi_torch.calibrate.layout_fit`); writes the layout and its
+    overlay PNG, nothing on an error."""
+    import torch
+
+    from hsi_torch.batch import check_out_dir
+    from hsi_torch.calibrate.config import CalibrateConfig
+    from hsi_torch.calibrate.layout_fit import (
+        draw_layout_overlay,
+        layout_document,
+        propose_layout,
+        trace_design,
+    )
+    from hsi_torch.calibrate.registration import GridDetectorConfig
+    from hsi_torch.cli import config_source, load_args_config
+    from hsi_torch.config import load_config, to_dict
+    from hsi_torch.console import info
+    from hsi_torch.errors import InputError
+    from hsi_torch.io import read_any
+    from hsi_torch.io.atomic import atomic_write_json
+    from hsi_torch.io.capture_set import read_capture_set
+    from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
+    from hsi_torch.resources import shipped_config
+    from hsi_torch.simulate.config import SimulateConfig
+
+    out_json, overlay = layout_paths(args.out)
+    check_out_dir(out_json.parent)
+    for p in (out_json, overlay):
+        if p.exists() and not args.force:
+            raise ValueError(f"{p} exists; give another --out or --force to replace it")
+    white_files = [Path(p) for p in (args.white or [])]
+    grid_files = [Path(p) for p in (args.grid or [])]
+    dark_files = [Path(p) for p in (args.dark or [])]
+    if args.captures is not None:
+        cs = read_capture_set(args.captures)
+        white_files = white_files or list(cs.white)
+        grid_files = grid_files or list(cs.grid)
+        dark_files = dark_files or list(cs.dark)
+    if not white_files:
+        raise InputError("hsi-torch layout needs a white shot: --white FILE(s), or --captures "
+                         "DIR with white-reference captures")  # fmt: skip
+    # the design: geometry and camera of a simulate-style config
+    design = load_args_config(args, SimulateConfig, default="simulate")
+    g = to_dict(design.geometry)
+    if g["vertices_in"] is not None:
+        g["vertices_in"] = tuple(tuple(p) for p in g["vertices_in"])
+    geometry = KaleidoscopeGeometry.from_dict(g)
+    cam_d = to_dict(design.camera)
+    scale = cam_d.pop("scale")
+    camera = CameraModel.from_dict(cam_d)
+    camera = camera.scaled(scale) if scale != 1.0 else camera
+    ccfg = load_config(args.calib_config or shipped_config("calibrate"), CalibrateConfig)
+    det = GridDetectorConfig.from_dict(ccfg.detector_dict())
+
+    def read(p: Path, size: tuple[int, int] | None) -> torch.Tensor:
+        return read_any(p, expected_size=size, demosaic=ccfg.demosaic,
+                        cfa_pattern=ccfg.cfa_pattern, black_level=ccfg.black_level,
+                        white_level=ccfg.white_level).image  # fmt: skip
+
+    first = read(white_files[0], None)
+    size = (int(first.shape[-2]), int(first.shape[-1]))
+    dark = None
+    if dark_files:
+        dark = sum(read(p, size) for p in dark_files) / len(dark_files)
+    white = sum([first] + [read(p, size) for p in white_files[1:]]) / len(white_files)
+    white = white if dark is None else white - dark
+    grids = []
+    if grid_files:
+        # flat-fielded by the white shot, as calibration detects them
+        lim = 0.02 * float(torch.quantile(white.flatten()[:: max(1, white.numel() // 200_000)],
+                                          0.99))  # fmt: skip
+        inv = torch.where(white > lim, 1.0 / white.clamp_min(1e-12), torch.zeros_like(white))
+        for p in grid_files:
+            img = read(p, size)
+            grids.append((img if dark is None else img - dark) * inv)
+    tiles = trace_design(geometry, camera)
+    proposal = propose_layout(
+        white.mean(0), tiles, grids, det,
+        min_inlier_fraction=ccfg.registration.min_inlier_fraction,
+    )  # fmt: skip
+    src = config_source(args, "simulate")
+    doc = layout_document(proposal, sources={
+        "design": str(src) if src is not None else "defaults",
+        "design_overrides": list(getattr(args, "overrides", [])),
+        "white": [str(p) for p in white_files], "grid": [str(p) for p in grid_files],
+        "dark": [str(p) for p in dark_files],
+    })  # fmt: skip
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    try:  # both files or none
+        written.append(draw_layout_overlay(white.mean(0), proposal, overlay))
+        written.append(atomic_write_json(out_json, doc))
+    except BaseException:
+        for p in written:
+            Path(p).unlink(missing_ok=True)
+        raise
+    info(str(proposal))
+    info(f"wrote {out_json} (+ {overlay.name}): check the overlay, then calibrate with it")
     return 0

@@ -76,6 +76,13 @@ class RegistrationSection:
         default=True, metadata=_h("paint pixels outside the triangle with the background")
     )
     ransac_threshold_px: float = field(default=1.0, metadata=_h("RANSAC inlier threshold, px"))
+    min_inlier_fraction: float = field(
+        default=0.8,
+        metadata=_h(
+            "a view whose grid fit keeps fewer RANSAC inliers is refused (a flipped parity "
+            "in the nominal layout keeps about a third)"
+        ),
+    )
     flat_field: bool = field(
         default=True,
         metadata=_h(
@@ -92,6 +99,10 @@ class RegistrationSection:
             raise ValueError(f"pattern_size must be (cols, rows) >= 2, got {self.pattern_size}")
         if not self.ransac_threshold_px > 0:
             raise ValueError(f"ransac_threshold_px must be > 0, got {self.ransac_threshold_px}")
+        if not 0 <= self.min_inlier_fraction <= 1:
+            raise ValueError(
+                f"min_inlier_fraction must lie in [0, 1], got {self.min_inlier_fraction}"
+            )
 
 
 @dataclass
@@ -282,4 +293,5 @@ class CalibrateConfig:
         d = to_dict(self.registration)
         d.pop("inset_px")
         d.pop("flat_field")
+        d.pop("min_inlier_fraction")
         return d

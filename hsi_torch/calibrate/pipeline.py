@@ -52,6 +52,7 @@ from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
     RegistrationResult,
     ViewRegistrationReport,
+    check_registration,
     register_views,
 )
 from hsi_torch.calibrate.response import ResponseResult, estimate_response_field
@@ -401,9 +402,37 @@ class CalibrationReport:
 
 
 def _polygon_mask(poly: np.ndarray, size: tuple[int, int], offset_px: float) -> np.ndarray:
-    """``(H, W)`` bool: pixel centres inside the polygon by at least ``offset_px`` (negative:
-    dilated by ``−offset_px``)."""
+    """``(H, W)`` bool: pixel centres inside the polygon by more than ``offset_px`` (negative:
+    dilated by ``−offset_px``).
+
+    Erosion (``offset_px > 0``) of a convex polygon (the BRF-free disk's outline) uses the
+    exact distance of each pixel centre to the polygon's edges, so the usable BRF-free pixels
+    are those whose centre lies ``offset_px`` inside the disk, as in the simulator's mask;
+    otherwise the polygon is rasterised and the distance transform of the raster is used (it
+    measures between pixel centres: it erodes by up to a pixel less, and dilates by up to a
+    pixel more, a safe margin for the dilated disk)."""
     H, W = size
+    poly = np.asarray(poly, np.float64).reshape(-1, 2)
+    e = np.roll(poly, -1, axis=0) - poly
+    cross = e[:, 0] * np.roll(e[:, 1], -1) - e[:, 1] * np.roll(e[:, 0], -1)
+    convex = len(poly) >= 3 and (np.all(cross > 0) or np.all(cross < 0))
+    if offset_px > 0 and convex:
+        sign = 1.0 if cross[0] > 0 else -1.0  # inward normal of edge (p -> q): sign*(-e_y, e_x)
+        nrm = sign * np.stack([-e[:, 1], e[:, 0]], 1) / np.linalg.norm(e, axis=1)[:, None]
+        pad = 2
+        x0 = int(max(0, np.floor(poly[:, 0].min() - pad)))
+        x1 = int(min(W - 1, np.ceil(poly[:, 0].max() + pad)))
+        y0 = int(max(0, np.floor(poly[:, 1].min() - pad)))
+        y1 = int(min(H - 1, np.ceil(poly[:, 1].max() + pad)))
+        out = np.zeros((H, W), bool)
+        if x1 < x0 or y1 < y0:
+            return out
+        ys, xs = np.mgrid[y0 : y1 + 1, x0 : x1 + 1].astype(np.float64)
+        d = np.full(xs.shape, np.inf)
+        for p, n in zip(poly, nrm, strict=True):
+            d = np.minimum(d, (xs - p[0]) * n[0] + (ys - p[1]) * n[1])
+        out[y0 : y1 + 1, x0 : x1 + 1] = d > offset_px
+        return out
     inside = np.zeros((H, W), np.uint8)
     cv2.fillPoly(inside, [np.round(poly * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
     if offset_px == 0:
@@ -736,6 +765,11 @@ def register_grid_shots(
         names = ", ".join(p.name for p in cs.grid)
         raise ValueError(f"registration from {len(cs.grid)} grid image(s) ({names}): {exc}") \
             from exc  # fmt: skip
+    try:
+        check_registration(reg, lay.triangles, lay.parity,
+                           cfg.registration.min_inlier_fraction, str(lay.path))  # fmt: skip
+    except ValueError as exc:
+        raise CalibrationError(f"registration: {exc}") from exc
     return reg
 
 

@@ -38,6 +38,8 @@ __all__ = [
     "detect_in_views",
     "register_views",
     "fit_homography",
+    "check_registration",
+    "view_orientation",
 ]
 
 
@@ -470,10 +472,78 @@ def register_views(
         raise ValueError(
             f"circle grid {tuple(cfg.pattern_size)} found in no image (together with the reference "
             f"view) for view(s) {failed} of {V}; check the triangles, parity, pattern_size and "
-            "blob-detector area limits"
+            "blob-detector area limits (`hsi-torch layout` proposes triangles and parities "
+            "fitted to your white and grid shots)"
         )
     rows = np.concatenate(residuals) if residuals else np.zeros((0, 6))
     return RegistrationResult(torch.from_numpy(Hs), reports, rows.astype(np.float64))
+
+
+def view_orientation(h: np.ndarray, triangle: np.ndarray) -> int:
+    """``+1`` when ``h`` keeps the orientation of ``triangle (3, 2)``, ``−1`` when it reverses
+    it (a mirrored view), 0 when degenerate."""
+    def area(t: np.ndarray) -> float:
+        e1, e2 = t[1] - t[0], t[2] - t[0]
+        return float(e1[0] * e2[1] - e1[1] * e2[0])
+
+    tri = np.asarray(triangle, np.float64).reshape(3, 2)
+    a0, a1 = area(tri), area(apply_homography(np.asarray(h, np.float64), tri))
+    if a0 == 0 or a1 == 0 or not np.isfinite(a1):
+        return 0
+    return 1 if (a0 > 0) == (a1 > 0) else -1
+
+
+def check_registration(
+    result: RegistrationResult,
+    triangles: np.ndarray | torch.Tensor,
+    parity: np.ndarray | torch.Tensor | Sequence[int],
+    min_inlier_fraction: float = 0.8,
+    layout_name: str = "nominal_layout.json",
+) -> None:
+    """Refuse a registration that a wrong nominal layout produced.
+
+    A view whose parity is flipped in the layout is still "detected" (a mirrored asymmetric grid
+    is an asymmetric grid) but in mirrored order, so its homography keeps about a third of the
+    points; a view whose homography reverses orientation while its parity says upright (or the
+    reverse) contradicts the layout too.
+
+    Args:
+        result: :func:`register_views`' output.
+        triangles: ``(V, 3, 2)`` sensor px; parity: ``(V,)`` ±1 (as given to
+            :func:`register_views`).
+        min_inlier_fraction: the smallest fraction of RANSAC inliers accepted per view.
+        layout_name: how the layout is named in the message.
+
+    Raises:
+        ValueError: naming every view at fault, its inliers / parity, and the fix.
+    """
+    tris = _as_numpy(triangles).reshape(-1, 3, 2)
+    par = _as_numpy(parity).reshape(-1)
+    hs = result.view_homographies.detach().cpu().numpy()
+    problems = []
+    for r in result.reports:
+        v = r.view
+        if v == 0:
+            continue
+        frac = r.inliers / max(1, r.points_used)
+        if frac < min_inlier_fraction:
+            problems.append(
+                f"view {v}: {r.inliers}/{r.points_used} RANSAC inliers ({100 * frac:.0f} %) — "
+                f"its parity in {layout_name} is probably flipped (or its triangle is off)"
+            )
+            continue
+        o = view_orientation(hs[v], tris[v])
+        if o != 0 and o != int(par[v]):
+            problems.append(
+                f"view {v}: the grid shows it {'mirrored' if o < 0 else 'upright'} but its "
+                f"parity in {layout_name} is {int(par[v]):+d}"
+            )
+    if problems:
+        raise ValueError(
+            "; ".join(problems) + f" (limit registration.min_inlier_fraction = "
+            f"{min_inlier_fraction:g}); run `hsi-torch layout` to propose a layout fitted to "
+            "your white and grid shots, or correct the parity by hand"
+        )
 
 
 def _as_numpy(x: np.ndarray | torch.Tensor | Sequence) -> np.ndarray:

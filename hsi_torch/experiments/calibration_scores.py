@@ -9,6 +9,7 @@ demo, ``scripts/score_calibration.py`` and the calibration tests.
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -43,11 +44,14 @@ def score_against_truth(
     """
     b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
     t, _ = read_truth(capture_dir)
-    if tuple(t["B"].shape) != tuple(b.B.shape):
+    if tuple(t["B"].shape[:2]) != tuple(b.B.shape[:2]) or (
+            "reference_bbox" not in t and tuple(t["B"].shape) != tuple(b.B.shape)):
         raise ValueError(
             f"bundle B {tuple(b.B.shape)} and truth B {tuple(t['B'].shape)} differ in shape: "
             "the bundle was not made from this capture set's geometry"
         )
+    if "reference_bbox" in t:
+        b, t = _common_frame(b, t)
     Q = t["valid"] & b.valid
     both = t["view_mask"] & b.view_mask & Q[None]  # (V, h, w)
     V = b.num_views
@@ -108,6 +112,37 @@ def score_against_truth(
     out["valid_iou"] = float(Q.sum() / union) if union else 0.0
     out["pixels_scored"] = int(Q.sum())
     return out
+
+
+def _common_frame(
+    b: CalibrationBundle, t: dict[str, np.ndarray]
+) -> tuple[CalibrationBundle, dict[str, np.ndarray]]:
+    """Bundle and truth cropped to the overlap of their reference frames (a bundle calibrated
+    with a fitted layout may choose its reference frame a pixel off the simulator's; both are
+    crops of the same reference-view sensor pixels). The homographies map to sensor px and
+    need no change."""
+    bx, by, bw, bh = (int(v) for v in b.reference_bbox)
+    tx, ty, tw, th = (int(v) for v in t["reference_bbox"])
+    x0, y0 = max(bx, tx), max(by, ty)
+    x1, y1 = min(bx + bw, tx + tw), min(by + bh, ty + th)
+    if (bx, by, bw, bh) == (tx, ty, tw, th):
+        return b, t
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        raise ValueError(f"bundle reference frame {[bx, by, bw, bh]} and the truth's "
+                         f"{[tx, ty, tw, th]} hardly overlap")  # fmt: skip
+
+    def crop(a: np.ndarray, ox: int, oy: int) -> np.ndarray:
+        return a[..., y0 - oy : y1 - oy, x0 - ox : x1 - ox]
+
+    t = dict(t)
+    for k in ("B", "gain", "view_mask", "valid"):
+        t[k] = crop(t[k], tx, ty)
+    t["reference_bbox"] = np.asarray([x0, y0, x1 - x0, y1 - y0])
+    b = copy.copy(b)
+    for k in ("B", "gain", "view_mask", "modulated", "valid"):
+        setattr(b, k, crop(np.asarray(getattr(b, k)), bx, by))
+    b.reference_bbox = np.asarray([x0, y0, x1 - x0, y1 - y0])
+    return b, t
 
 
 def targets_met(s: dict[str, Any]) -> dict[str, bool]:
