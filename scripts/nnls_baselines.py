@@ -24,13 +24,18 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import sys
 import time
+import types
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
+from nnls_scipy_worker import solve_chunk, worker_info
+
+if TYPE_CHECKING:
+    import torch
 
 try:  # optional, as in the package (this script is outside the package's import rules)
     import numba as nb
@@ -53,35 +58,13 @@ __all__ = [
 
 
 # ---- the SciPy loop -----------------------------------------------------------------------------
-def _scipy_chunk(task: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
-    """Solve one chunk of stacked problems with ``scipy.optimize.nnls`` (in a pool worker).
-
-    ``task = (A (n, O, M), mask (n, O) bool, y (n, O), sD (K, M))`` → ``x (n, M)``.
-    """
-    from scipy.optimize import nnls
-
-    A, mask, y, sD = task
-    zeros = np.zeros(sD.shape[0])
-    x = np.empty((A.shape[0], A.shape[2]))
-    for j in range(A.shape[0]):
-        m = mask[j]
-        x[j], _ = nnls(np.vstack([A[j][m], sD]), np.concatenate([y[j][m], zeros]))
-    return x
-
-
-def _worker_info(_: int) -> tuple[int, str]:
-    import scipy
-
-    return os.getpid(), scipy.__version__
-
-
 def scipy_serial(A: np.ndarray, mask: np.ndarray, y: np.ndarray, sD: np.ndarray,
                  repeats: int = 1) -> tuple[float, np.ndarray]:
     """The SciPy loop in this process: best wall time of ``repeats`` (s) and ``x (n, M)``."""
     best, x = float("inf"), np.empty((A.shape[0], A.shape[2]))
     for _ in range(max(1, repeats)):
         t = time.perf_counter()
-        x = _scipy_chunk((A, mask, y, sD))
+        x = solve_chunk((A, mask, y, sD))
         best = min(best, time.perf_counter() - t)
     return best, x
 
@@ -124,12 +107,14 @@ def scipy_pool(A: np.ndarray, mask: np.ndarray, y: np.ndarray, sD: np.ndarray, *
     ctx = mp.get_context("spawn")
     best, xs = float("inf"), None
     with _env(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1"), \
-            ctx.Pool(workers) as pool:
-        info = pool.map(_worker_info, range(workers), chunksize=1)  # start-up, imports
-        pool.map(_scipy_chunk, tasks[:workers], chunksize=1)  # warm-up
+            _bare_main():
+        pool = ctx.Pool(workers)
+    with pool:
+        info = pool.map(worker_info, range(workers), chunksize=1)  # start-up, imports
+        pool.map(solve_chunk, tasks[:workers], chunksize=1)  # warm-up
         for _ in range(max(1, repeats)):
             t = time.perf_counter()
-            out = pool.map(_scipy_chunk, tasks, chunksize=1)
+            out = pool.map(solve_chunk, tasks, chunksize=1)
             dt = time.perf_counter() - t
             if dt < best:
                 best, xs = dt, np.concatenate(out)
@@ -137,6 +122,19 @@ def scipy_pool(A: np.ndarray, mask: np.ndarray, y: np.ndarray, sD: np.ndarray, *
         rss = pool_peak_rss_gib(pids)
     return {"time_s": best, "x": xs, "workers": workers, "chunk": chunk, "scipy": info[0][1],
             "peak_rss_gib": rss}
+
+
+@contextmanager
+def _bare_main() -> Iterator[None]:
+    """Hide the calling script from ``spawn``: the workers then import only this module (NumPy,
+    SciPy), not the benchmark and torch, as a stand-alone SciPy script's workers would."""
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
 
 
 @contextmanager
@@ -392,6 +390,8 @@ def solve_inputs(problem: Any, y: torch.Tensor) -> dict[str, torch.Tensor]:
     all pixels (one row) are left out; so are the outputs (``b``, ``x``, the zero sets, the
     residuals), which are written.
     """
+    import torch
+
     P = y.shape[0]
     cand: dict[str, Any] = {"y": y, "mask": problem.mask}
     sens = problem.sensing
@@ -412,17 +412,6 @@ def nbytes(ts: dict[str, torch.Tensor]) -> int:
 
 
 if HAVE_NUMBA:
-
-    @nb.njit(cache=True, parallel=True, fastmath=True)
-    def _sum_f32(a, num_chunks):  # pragma: no cover - compiled
-        n = a.shape[0]
-        part = np.zeros(num_chunks)
-        for c in nb.prange(num_chunks):
-            s = np.float32(0.0)
-            for i in range(c * n // num_chunks, (c + 1) * n // num_chunks):
-                s += a[i]
-            part[c] = s
-        return part.sum()
 
     @nb.njit(cache=True, parallel=True)
     def _rhs_matvec(y, mask, Bt, gain, resp, H, x, num_chunks):  # pragma: no cover - compiled
@@ -452,23 +441,20 @@ if HAVE_NUMBA:
                     x[p, i] = t
 
 
-def _flat_f32(t: torch.Tensor) -> np.ndarray | None:
-    if t.dtype == torch.float32 and t.is_contiguous() and t.device.type == "cpu":
-        return t.reshape(-1).numpy()
-    return None
-
-
 def read_pass(ts: dict[str, torch.Tensor], threads: int, repeats: int = 3) -> dict[str, Any]:
     """A pass that only reads the tensors ``ts`` (a sum over each), best of ``repeats``.
 
-    Two ways, the faster counts: torch's ``sum`` with ``threads`` intra-op threads (booleans as
-    bytes), and (float32 on CPU, numba) a ``prange`` sum in ``threads`` threads.
+    Two ways, the faster counts: torch's ``sum`` with ``threads`` intra-op threads, and NumPy's
+    (CPU only, one thread); booleans are summed as bytes.
 
     Returns:
         ``{"time_s", "bytes", "gbps", "how"}``.
     """
+    import torch
+
     total = nbytes(ts)
     dev = next(iter(ts.values())).device
+    vals = [t.view(torch.uint8) if t.dtype == torch.bool else t for t in ts.values()]
     old = torch.get_num_threads()
     torch.set_num_threads(max(1, threads))
     best, how = float("inf"), "torch"
@@ -477,34 +463,18 @@ def read_pass(ts: dict[str, torch.Tensor], threads: int, repeats: int = 3) -> di
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
             t = time.perf_counter()
-            acc = [(t_.view(torch.uint8) if t_.dtype == torch.bool else t_).sum()
-                   for t_ in ts.values()]
-            float(sum(a.double() for a in acc))
-            best = min(best, time.perf_counter() - t)
-    finally:
-        torch.set_num_threads(old)
-    if HAVE_NUMBA and dev.type == "cpu":
-        flat = [_flat_f32(t_) for t_ in ts.values()]
-        others = {k: t_ for (k, t_), f in zip(ts.items(), flat, strict=True) if f is None}
-        old_nb = nb.get_num_threads()
-        nb.set_num_threads(min(max(1, threads), nb.config.NUMBA_NUM_THREADS))
-        try:
-            for f in flat:  # compile / warm
-                if f is not None:
-                    _sum_f32(f[:1024], 4)
-            for _ in range(max(1, repeats)):
+            float(sum(v.sum().double() for v in vals))
+            dt = time.perf_counter() - t
+            if dt < best:
+                best, how = dt, f"torch sum, {threads} threads"
+            if dev.type == "cpu":
                 t = time.perf_counter()
-                s = 0.0
-                for f in flat:
-                    if f is not None:
-                        s += _sum_f32(f, 64 * threads)
-                s += float(sum(float((t_.view(torch.uint8) if t_.dtype == torch.bool
-                                      else t_).sum()) for t_ in others.values()))
+                float(sum(float(v.numpy().sum()) for v in vals))
                 dt = time.perf_counter() - t
                 if dt < best:
-                    best, how = dt, "numba"
-        finally:
-            nb.set_num_threads(old_nb)
+                    best, how = dt, "NumPy sum, 1 thread"
+    finally:
+        torch.set_num_threads(old)
     return {"time_s": best, "bytes": total, "gbps": total / best / 1e9, "how": how}
 
 
