@@ -1,6 +1,6 @@
 #!/usr/bin/env python
-"""Benchmark: one full-size frame through the reconstruction pipeline, stage by stage, against the
-same pipeline with a per-pixel ``scipy.optimize.nnls`` loop as the solver — in one run.
+"""Benchmark: one full-size frame through the reconstruction pipeline, stage by stage, against
+what a skilled user would run instead and against the machine's limit — in one run.
 
 Synthetic bundle at the original prototype's scale: ten views as ``w × h`` tiles (translations,
 some mirrored or rotated by 180°) on a ``2h × 5w`` sensor; the valid region is the equilateral
@@ -11,20 +11,41 @@ gains 0.7–1.1, Gaussian ``φ`` (peak 255 DN for a white pixel). The capture (u
 
 Stages timed (hsi_torch) on ``--frames`` frames: load (``read_any``), warp (one batched kornia
 ``remap`` of the valid pixels), observations, solve (factorisation reused + exact re-solves of
-saturated pixels), assemble, write (NPZ + TIFF + ENVI + preview PNG, concurrently). The baseline
-replaces *solve* by the SciPy loop on the stacked system ``[A_p[mask]; √β D]``, timed on
-``--subset`` random pixels (best of ``--scipy-repeats``) and scaled to the frame; the other stages
-are the same. The best frame (by total) and the median frame are compared. The one-off per-bundle
-precomputation is reported separately. β defaults to the reconstruct configuration's (1e4).
+saturated pixels), assemble, write (NPZ + TIFF + ENVI + preview PNG, concurrently). The best
+frame (by total) and the median frame are compared. The one-off per-bundle precomputation is
+reported separately. β defaults to the reconstruct configuration's (1e4).
+
+Baselines (``scripts/nnls_baselines.py``), each on this frame's stacked problems
+``[A_p[mask_p]; √β D] x ≈ [y_p[mask_p]; 0]`` in float64, best of ``--scipy-repeats``, scaled to the
+frame's pixels; the other stages are charged at our times:
+
+* ``SciPy loop``: ``scipy.optimize.nnls`` per pixel in this process (``--subset`` pixels);
+* ``SciPy pool (N)``: the same loop over all N CPUs — a ``spawn`` process pool, chunks of
+  ``--pool-chunk`` pixels (``--pool-subset`` pixels; the pool is started and warmed up first);
+* ``compiled LH (1 thr)`` / ``(N thr)``: a compiled (numba) Lawson–Hanson loop in the ``fnnls``
+  form, one pixel after another (its answers are checked against SciPy's on the first subset),
+  in one thread and with the pixels split between torch's thread count of threads.
+
+The headline is our solve stage against the fastest of them.
+
+The machine's limit: the prepared problem's own solve (``NNLSProblem.solve``, no re-solves)
+against a pass that only reads the per-pixel tensors that solve reads (``y``, the static mask,
+the factored ``B`` and gains, ``G``, ``G⁻¹``, ``diag G``, the ``‖G‖`` bound, the flags: a torch
+or NumPy sum, the faster) and one that does the unavoidable arithmetic (``b = Aᵀ W y`` from the
+factors and ``x₀ = G⁻¹ b``, one fused numba pass), with the same threads, interleaved with the
+solve so that a busy machine slows all alike; bytes and GB/s are printed.
 
 The spatial-spectral mode (``prior="tv"``, relative weight ``--lam``) is timed on the same frames
 beside it (``--spatial-frames``, after one warm-up that factorises ``G + ρI``): its solve stage
-(per-pixel warm start + ADMM) and whole frame, and their ratios to the per-pixel ones.
+(per-pixel warm start + ADMM) and whole frame, and their ratios to the per-pixel ones. Peak RSS
+is reported per mode (the per-pixel frames, the TV frames, each baseline; the SciPy pool's is
+this process's plus its workers' peaks).
 
 Usage::
 
     python scripts/bench_pipeline.py                 # full size, float32, cpu
-    python scripts/bench_pipeline.py --tile 300 260  # small quick run
+    python scripts/bench_pipeline.py --tile 300 260 --natural skip --frames 2 \
+        --spatial-frames 1 --subset 200 --pool-subset 1000     # small quick run
     hsi-torch bench pipeline -- --device cuda
 """
 
@@ -525,6 +546,10 @@ def main(argv: list[str] | None = None) -> int:
               + "".join(f"{f(bs.get(k), '.3f'):>13} "
                         f"{f(bs.get(k, nan) / r['best']['solve'], '.1f'):>7}x" for k in names)
               + f"{r['best_ratio']:>15.1f}x")
+    for r in results:
+        print(f"  headline, {r['label']}: solve {r['best']['solve']:.3f} s, the best baseline "
+              f"({r['best_baseline']}) {r['best_baseline_s']:.3f} s: {r['best_ratio']:.1f}x; "
+              f"whole frame {r['whole_best_ratio']:.1f}x")
     print("  the machine's limit (our solve = the prepared problem's solve alone; a pass that "
           "reads its per-pixel bytes; the fused b = AᵀWy, x0 = G⁻¹b pass)")
     print(f"    {'frame':<44}{'B/pixel':>8}{'GB':>6}{'solve':>8}{'GB/s':>6}{'read':>8}{'GB/s':>6}"
