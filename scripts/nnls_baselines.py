@@ -51,6 +51,7 @@ __all__ = [
     "scipy_serial",
     "fnnls",
     "solve_inputs",
+    "nbytes",
     "read_pass",
     "arithmetic_pass",
     "pool_peak_rss_gib",
