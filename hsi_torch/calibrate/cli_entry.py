@@ -56,7 +56,7 @@ def figure_path(bundle_path: str | Path) -> Path:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point called by :mod:`hsi_torch.cli`: calibrate a capture folder into a bundle."""
-    from hsi_torch.batch import check_out_dir
+    from hsi_torch.io.paths import check_out_dir
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.figures import plot_calibration
     from hsi_torch.calibrate.pipeline import calibrate_capture_set

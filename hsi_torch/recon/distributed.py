@@ -4,7 +4,7 @@
 N worker processes, one task thread each, started and stopped here), ``--scheduler
 tcp://host:8786`` (a running scheduler: ``dask scheduler``, ``dask-jobqueue``, ``dask-mpi``,
 ...) or ``--scheduler-file FILE`` (the file such a scheduler wrote). :class:`DaskExecutor` runs the
-tasks of :func:`hsi_torch.recon.many.run_many` on its workers: a bounded number in flight (twice
+tasks of :func:`hsi_torch.recon.runs.driver.drive` on its workers: a bounded number in flight (twice
 the cluster's task threads, at least 4, re-read as workers come and go), results taken as they
 complete, the not-yet-started ones cancelled on Ctrl-C.
 
@@ -168,7 +168,7 @@ def connect(
 
 
 class DaskExecutor:
-    """Runs the tasks of :func:`hsi_torch.recon.many.run_many` on a cluster's workers (see the
+    """Runs the tasks of :func:`hsi_torch.recon.runs.driver.drive` on a cluster's workers (see the
     module docstring). :meth:`share` scatters data (the bundle's bytes) to every worker once; the
     copies are kept while the executor lives, and workers that join later fetch one from
     another."""

@@ -369,8 +369,19 @@ class ReconstructSettings:
         return {k: _thaw(getattr(getattr(self, g), f)) for k, (g, f) in FLAT_KEYS.items()}
 
     def replace(self, **keywords: Any) -> ReconstructSettings:
-        """A copy with some flat keys changed (validated again)."""
-        return type(self).from_flat({**self.flat(), **keywords})
+        """A copy with some flat keys changed (the groups changed are validated again).
+
+        Raises:
+            ConfigError: an unknown key or an invalid value (naming the key).
+        """
+        groups: dict[str, dict[str, Any]] = {}
+        for k, v in keywords.items():
+            where = FLAT_KEYS.get(k)
+            if where is None:
+                raise _bad(k, "unknown reconstruction setting")
+            groups.setdefault(where[0], {})[where[1]] = _frozen(v)
+        changed = {g: dataclasses.replace(getattr(self, g), **kw) for g, kw in groups.items()}
+        return dataclasses.replace(self, **changed)
 
     def key(self) -> str:
         """A stable digest of every field of every group (hex SHA-256 of the JSON form)."""
