@@ -3,7 +3,7 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, config, io, forward_model, console, profiling, resources,
-                 refdata, colour, batch, testing     → foundation only
+                 refdata, colour, testing            → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
@@ -12,9 +12,14 @@ Stages, bottom to top, and what each may import::
     commands     (cli.py, __main__, */cli_entry.py)           → anything
 
 So reconstruction needs neither calibration nor the simulator (nor OpenCV), calibration does not
-need the simulator, and nothing below the experiments imports them. Library modules import at
-module level; an import inside a function of a library module carries a ``# lazy:`` comment that
-says why (start-up time, an optional dependency, a cycle).
+need the simulator, and nothing below the experiments imports them. Inside the reconstruction,
+the run layer (``recon.runs``: the driver loop, output targets, tasks) sits on top: the
+reconstructor, the module and the solvers never import it; Dask is imported only by
+``recon.distributed``; the settings and the configuration schema load without the
+reconstructor.
+
+Library modules import at module level; an import inside a function of a library module carries
+a ``# lazy:`` comment that says why (start-up time, an optional dependency, a cycle).
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "config", "io", "forward_model", "console", "profiling",
-              "resources", "refdata", "colour", "batch", "testing")  # fmt: skip
+              "resources", "refdata", "colour", "testing")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},
@@ -186,3 +191,36 @@ def test_the_solver_has_one_import_path():
                 if names & {"solve_nnls", "prepare_nnls"}:
                     exporters.append(_module_name(path))
     assert sorted(exporters) == ["hsi_torch.recon.nnls", "hsi_torch.recon.nnls.problem"]
+
+
+def test_the_run_layer_sits_on_top_of_the_reconstruction():
+    """``recon.runs`` (driver, targets, tasks, entry) may import the reconstruction; nothing
+    else of the reconstruction imports it (only the commands and the experiments may)."""
+    bad = []
+    for path in _files():
+        me = _module_name(path)
+        if stage_of(me) != "recon" or me.startswith("hsi_torch.recon.runs"):
+            continue
+        for mod, line, _ in _imports(path):
+            if mod.startswith("hsi_torch.recon.runs"):
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {mod}")
+    assert not bad, "the reconstruction imports its run layer:\n" + "\n".join(bad)
+
+
+def test_dask_is_imported_only_by_the_distributed_module():
+    bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
+           for mod, line, _ in _imports(p)
+           if mod.split(".")[0] in ("dask", "distributed")
+           and _module_name(p) != "hsi_torch.recon.distributed"]  # fmt: skip
+    assert not bad, "dask imported outside hsi_torch.recon.distributed: " + ", ".join(bad)
+    mods = _loaded_after("import hsi_torch.recon.runs.entry, hsi_torch.recon.cli_entry")
+    assert "hsi_torch.recon.distributed" in mods
+    assert not {"dask", "distributed"} & mods, "a serial run's modules load Dask"
+
+
+def test_the_settings_and_the_config_load_without_the_reconstructor():
+    mods = _loaded_after("import hsi_torch.recon.settings, hsi_torch.recon.config")
+    assert "hsi_torch.recon.settings" in mods
+    leaked = sorted(m for m in mods if m.startswith("hsi_torch.recon.")
+                    and m not in ("hsi_torch.recon.settings", "hsi_torch.recon.config"))
+    assert not leaked, f"the settings load {leaked}"
