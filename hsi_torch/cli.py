@@ -24,7 +24,8 @@ Without ``--config`` a command runs with its shipped configuration file
 is a folder (``calibrate --out FILE.npz`` also names the bundle file directly).
 
 The entry function returns an exit status (``int``), ``None`` (= 0), or a
-:class:`hsi_torch.recon.runs.driver.RunSummary` (its report is printed; status 1 if any input failed).
+:class:`hsi_torch.recon.batch.driver.RunSummary` (its report is printed; status 1 if any input
+failed).
 
 Exit status: 0 success; 1 an error (any :class:`hsi_torch.errors.HSIError` such as ``ConfigError``
 or ``FileFormatError``, a ``ValueError``, an ``OSError`` such as ``FileNotFoundError``, ... printed
@@ -324,7 +325,7 @@ def _err(msg: str) -> None:
 
 
 def _exit_code(result: Any) -> int:
-    from hsi_torch.recon.runs.driver import RunSummary, print_summary
+    from hsi_torch.recon.batch.driver import RunSummary, print_summary
 
     if result is None:
         return 0

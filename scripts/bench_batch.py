@@ -12,7 +12,7 @@ preview, unless ``--set`` says otherwise).
   the machine: a *cold* pass (the first frame loads numba's compiled kernels) and a *warm* one.
 - **dask local:N**: a ``LocalCluster`` of N worker processes (one task thread each, ``cores / N``
   torch and numba threads per frame) — started (*processes*), the package imported on every
-  worker (*imports*), then :func:`hsi_torch.recon.runs.reconstruct_many` twice: a *cold* pass
+  worker (*imports*), then :func:`hsi_torch.recon.batch.reconstruct_many` twice: a *cold* pass
   (each worker prepares the bundle on its first frame: *preparation*, per worker) and a *warm*
   pass (``resume=False``: every frame again, bundles already prepared).
 
@@ -85,9 +85,9 @@ def _bytes_per_frame(out: Path, n: int) -> float:
 def child_serial(spec: dict[str, Any]) -> dict[str, Any]:
     import torch
 
+    from hsi_torch.recon.batch.entry import load_run_config
+    from hsi_torch.recon.batch.run import check_run, reconstruct_to_files
     from hsi_torch.recon.config import ReconstructConfig
-    from hsi_torch.recon.runs.entry import load_run_config
-    from hsi_torch.recon.runs.run import check_run, reconstruct_to_files
 
     cfg: ReconstructConfig = load_run_config(None, spec["overrides"])
     inputs = [Path(p) for p in spec["inputs"]]
@@ -111,14 +111,14 @@ def child_serial(spec: dict[str, Any]) -> dict[str, Any]:
 
 def _import_package() -> float:
     t0 = time.perf_counter()
-    import hsi_torch.recon.runs.entry  # noqa: F401
+    import hsi_torch.recon.batch.entry  # noqa: F401
 
     return time.perf_counter() - t0
 
 
 def child_dask(spec: dict[str, Any]) -> dict[str, Any]:
+    from hsi_torch.recon.batch import reconstruct_many
     from hsi_torch.recon.distributed import connect
-    from hsi_torch.recon.runs import reconstruct_many
 
     n = int(spec["workers"])
     inputs = [Path(p) for p in spec["inputs"]]

@@ -35,9 +35,9 @@ from hsi_torch.errors import (
 )
 from hsi_torch.io import atomic, load_cube, read_any, read_capture, write_capture
 from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.recon.batch.targets import DONE_DIR
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.recon.nnls import solve_nnls
-from hsi_torch.recon.runs.targets import DONE_DIR
 
 
 @pytest.fixture
@@ -119,7 +119,7 @@ def test_run_batch_refuses_outputs_claimed_by_another_input(tmp_path):
 def test_concurrent_runs_never_mix_the_outputs_of_one_name(ws, capsys):
     """A run writing the outputs named 'a' holds a lock; another run meanwhile fails that input
     (naming the holder) instead of interleaving its files with the first run's."""
-    from hsi_torch.recon.runs.targets import _name_lock
+    from hsi_torch.recon.batch.targets import _name_lock
 
     tmp, bpath, caps, _ = ws
     out = tmp / "out"

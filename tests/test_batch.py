@@ -1,8 +1,8 @@
 """Tests of the run's driver loop over files: globs, failures collected, resume, summaries.
 
 :func:`run_batch` below drives a plain ``process(path)`` through the driver of every
-reconstruction run (:func:`hsi_torch.recon.runs.driver.drive`, in this process, into a
-:class:`~hsi_torch.recon.runs.targets.FilesTarget`); other test files import it.
+reconstruction run (:func:`hsi_torch.recon.batch.driver.drive`, in this process, into a
+:class:`~hsi_torch.recon.batch.targets.FilesTarget`); other test files import it.
 """
 
 from __future__ import annotations
@@ -14,14 +14,14 @@ import pytest
 
 from hsi_torch.io.atomic import atomic_write_text
 from hsi_torch.io.paths import ensure_out_dir, expand_inputs
-from hsi_torch.recon.runs.driver import (
+from hsi_torch.recon.batch.driver import (
     InlineExecutor,
     RunSummary,
     call_process,
     drive,
     print_summary,
 )
-from hsi_torch.recon.runs.targets import DONE_DIR, FilesTarget
+from hsi_torch.recon.batch.targets import DONE_DIR, FilesTarget
 
 
 def run_batch(inputs, process, out_dir, *, resume=True, progress=True, planned_outputs=None,

@@ -13,7 +13,7 @@ Stages, bottom to top, and what each may import::
 
 So reconstruction needs neither calibration nor the simulator (nor OpenCV), calibration does not
 need the simulator, and nothing below the experiments imports them. Inside the reconstruction,
-the run layer (``recon.runs``: the driver loop, output targets, tasks) sits on top: the
+the run layer (``recon.batch``: the driver loop, output targets, tasks) sits on top: the
 reconstructor, the module and the solvers never import it; Dask is imported only by
 ``recon.distributed``; the settings and the configuration schema load without the
 reconstructor.
@@ -194,15 +194,15 @@ def test_the_solver_has_one_import_path():
 
 
 def test_the_run_layer_sits_on_top_of_the_reconstruction():
-    """``recon.runs`` (driver, targets, tasks, entry) may import the reconstruction; nothing
+    """``recon.batch`` (driver, targets, tasks, entry) may import the reconstruction; nothing
     else of the reconstruction imports it (only the commands and the experiments may)."""
     bad = []
     for path in _files():
         me = _module_name(path)
-        if stage_of(me) != "recon" or me.startswith("hsi_torch.recon.runs"):
+        if stage_of(me) != "recon" or me.startswith("hsi_torch.recon.batch"):
             continue
         for mod, line, _ in _imports(path):
-            if mod.startswith("hsi_torch.recon.runs"):
+            if mod.startswith("hsi_torch.recon.batch"):
                 bad.append(f"{path.relative_to(ROOT)}:{line} imports {mod}")
     assert not bad, "the reconstruction imports its run layer:\n" + "\n".join(bad)
 
@@ -213,7 +213,7 @@ def test_dask_is_imported_only_by_the_distributed_module():
            if mod.split(".")[0] in ("dask", "distributed")
            and _module_name(p) != "hsi_torch.recon.distributed"]  # fmt: skip
     assert not bad, "dask imported outside hsi_torch.recon.distributed: " + ", ".join(bad)
-    mods = _loaded_after("import hsi_torch.recon.runs.entry, hsi_torch.recon.cli_entry")
+    mods = _loaded_after("import hsi_torch.recon.batch.entry, hsi_torch.recon.cli_entry")
     assert "hsi_torch.recon.distributed" in mods
     assert not {"dask", "distributed"} & mods, "a serial run's modules load Dask"
 

@@ -10,11 +10,11 @@ import torch
 from test_pipeline import make_bundle, render_capture, true_spectra
 
 from hsi_torch.config import ConfigError, load_config
+from hsi_torch.recon.batch import tasks
+from hsi_torch.recon.batch.run import check_run
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.recon.pipeline import Reconstructor
-from hsi_torch.recon.runs import tasks
-from hsi_torch.recon.runs.run import check_run
 from hsi_torch.recon.settings import (
     FLAT_KEYS,
     ReconstructSettings,

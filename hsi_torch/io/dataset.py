@@ -34,7 +34,7 @@ store's lock file (``.hsi_torch.lock``, one run per store at a time).
 **Frames belong to inputs.** A frame index is given to each input (by absolute path) when it is
 first added; a later run with more inputs appends frames, one with the same inputs reuses them
 (resume: a frame whose ``done`` is True, made from the same input file and settings, is skipped;
-see :class:`hsi_torch.recon.runs.targets.StoreTarget`).
+see :class:`hsi_torch.recon.batch.targets.StoreTarget`).
 
 Reading::
 

@@ -1,6 +1,6 @@
 """``hsi-torch reconstruct``: captures (files or globs) + a calibration bundle → spectral cubes.
 
-The run is :func:`hsi_torch.recon.runs.entry.run_reconstruction` (the same as
+The run is :func:`hsi_torch.recon.batch.entry.run_reconstruction` (the same as
 ``reconstruct_many`` in Python): inputs, configuration (``min_views`` against the bundle's views
 included) and bundle are all checked before the output folder or the run's configuration file
 are created. Without ``--scheduler``/``--scheduler-file`` the inputs run one after another in
@@ -14,9 +14,9 @@ from __future__ import annotations
 import argparse
 
 from hsi_torch.cli import load_args_config
+from hsi_torch.recon.batch.driver import RunSummary
+from hsi_torch.recon.batch.entry import run_reconstruction
 from hsi_torch.recon.config import ReconstructConfig
-from hsi_torch.recon.runs.driver import RunSummary
-from hsi_torch.recon.runs.entry import run_reconstruction
 
 __all__ = ["run_reconstruct"]
 
@@ -26,7 +26,7 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
 
     ``args``: ``bundle``, ``out``, ``inputs``, ``config``, ``overrides``, ``device``, ``resume``,
     ``progress``, ``format``, ``scheduler``, ``scheduler_file``, ``threads_per_worker``,
-    ``send_bundle``. Returns the :class:`hsi_torch.recon.runs.driver.RunSummary`.
+    ``send_bundle``. Returns the :class:`hsi_torch.recon.batch.driver.RunSummary`.
     """
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
     return run_reconstruction(

@@ -5,8 +5,8 @@ optional packages, the inputs — files or globs —, the device, the bundle, ``
 ``min_views`` against the bundle) and gives a :class:`ReconstructRun`; :meth:`ReconstructRun.start`
 creates the output folder and the run's configuration file. :func:`reconstruct_input` reads and
 reconstructs one input, :func:`write_outputs` writes its files; a task
-(:func:`hsi_torch.recon.runs.tasks.reconstruct_task`) does both, in this process or on a
-cluster's workers, so every run writes the same files (:mod:`hsi_torch.recon.runs`).
+(:func:`hsi_torch.recon.batch.tasks.reconstruct_task`) does both, in this process or on a
+cluster's workers, so every run writes the same files (:mod:`hsi_torch.recon.batch`).
 
 For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
 its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
@@ -247,7 +247,7 @@ def _resolve_device(name: str, here: bool = True) -> torch.device:
 @dataclass
 class ReconstructRun:
     """A checked ``reconstruct`` run: inputs expanded, configuration, device and bundle validated,
-    nothing written yet. What every task of the run gets (:mod:`hsi_torch.recon.runs.tasks`);
+    nothing written yet. What every task of the run gets (:mod:`hsi_torch.recon.batch.tasks`);
     :meth:`start` creates the output folder and the run's configuration file.
 
     Attributes:
