@@ -16,8 +16,10 @@ bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
 =============  ===============================================  ==============================
 
 Without ``--config`` a command runs with its shipped configuration file
-(``hsi_torch/configs/<command>.yaml``, ``<NAME>.yaml`` for ``experiment NAME``; see
-:func:`config_source`). ``--data-dir DIR`` (any position) names the real-data folder
+(``configs/<command>.yaml``, ``<NAME>.yaml`` for ``experiment NAME``; see
+:func:`hsi_torch.cli_common.config_source`, re-exported here with :func:`load_args_config`: the
+entry functions import them from :mod:`hsi_torch.cli_common`, and nothing in the package imports
+this module). ``--data-dir DIR`` (any position) names the real-data folder
 (:func:`hsi_torch.resources.set_real_data_dir`; default ``HSI_TORCH_DATA``); ``-q/--quiet``
 (only warnings and errors) and ``--no-progress`` (no bars) likewise, through
 :mod:`hsi_torch.console` (bars are also off whenever stderr is not a terminal). Every ``--out``
@@ -44,6 +46,8 @@ import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+from hsi_torch.cli_common import config_source, load_args_config
 
 __all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config", "config_source"]
 
@@ -288,38 +292,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def config_source(args: argparse.Namespace, default: str | None = None) -> Path | None:
-    """The configuration file a command runs with: ``--config`` if given, else the shipped file
-    ``default`` (e.g. ``"simulate"``) when there is one, else ``None`` (the schema's defaults).
-
-    ``--config NAME`` with the name of a shipped file (``simulate_full``, ``simulate_full.yaml``)
-    and no such file or folder here means the shipped file."""
-    from hsi_torch.resources import shipped_config, shipped_config_names
-
-    given = getattr(args, "config", None)
-    if given is not None:
-        p = Path(given)
-        stem = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
-        if not p.exists() and p.parent == Path(".") and stem in shipped_config_names():
-            return shipped_config(stem)
-        return p
-    if default is None:
-        return None
-    return shipped_config(default) if default in shipped_config_names() else None
-
-
-def load_args_config(
-    args: argparse.Namespace, schema_cls: type, default: str | None = None
-) -> Any:
-    """Convenience for entry functions: ``load_config(config_source(args, default), schema_cls,
-    args.overrides)`` (``default``: the shipped config used without ``--config``)."""
-    from hsi_torch.config import load_config
-
-    return load_config(
-        config_source(args, default), schema_cls, getattr(args, "overrides", [])
-    )
-
-
 def _err(msg: str) -> None:
     print(f"{PROG}: error: {msg}", file=sys.stderr)
 
@@ -457,8 +429,7 @@ def _dispatch(
 ) -> int:
     """Run the sub-command; every error becomes one line on stderr and an exit status."""
     from hsi_torch import console, resources
-    from hsi_torch.config import ConfigError
-    from hsi_torch.errors import HSIError
+    from hsi_torch.errors import ConfigError, HSIError
 
     data_dir_before = resources.get_real_data_dir_setting()
     console_before = console.configure(

@@ -52,7 +52,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union
 import yaml
 
 from hsi_torch import __version__
-from hsi_torch.errors import HSIError
+from hsi_torch.errors import ConfigError  # defined with the other errors; re-exported here
 from hsi_torch.io.atomic import atomic_write_text
 
 __all__ = [
@@ -74,20 +74,6 @@ RESOLVED_CONFIG_NAME = "resolved_config.yaml"
 
 T = TypeVar("T")
 KeyPath = tuple[str | int, ...]
-
-
-class ConfigError(HSIError, ValueError):
-    """Invalid configuration. ``key`` is the dotted key at fault (or ``None``), ``source`` the file.
-
-    The message is a single line: ``"<source>: key 'a.b': <problem>"``.
-    """
-
-    def __init__(self, message: str, key: str | None = None, source: str | None = None):
-        self.key = key
-        self.source = source
-        self.problem = message
-        parts = [p for p in (source, f"key '{key}'" if key else None, message) if p]
-        super().__init__(": ".join(parts))
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,10 @@ value) is an :class:`HSIError`, and also the builtin exception it refines, so ex
 - :class:`CalibrationError` (``ValueError``): calibration captures that cannot give a bundle
   (e.g. saturated white shots).
 
-Messages are one line and name the file, key or shape at fault. :class:`ConfigError` is defined
-in :mod:`hsi_torch.config` (it carries the key and source) and re-exported here; the command line
-prints an :class:`HSIError` as ``hsi-torch: error: <message>`` without a traceback.
+Messages are one line and name the file, key or shape at fault (a :class:`ConfigError` also
+carries the key and the source file as attributes; :mod:`hsi_torch.config`, which raises it,
+re-exports it); the command line prints an :class:`HSIError` as ``hsi-torch: error: <message>``
+without a traceback.
 """
 
 from __future__ import annotations
@@ -27,10 +28,11 @@ __all__ = [
     "HSIError",
     "FileFormatError",
     "MissingFileError",
+    "ConfigError",
     "InputError",
     "NoValidPixelsError",
     "CalibrationError",
-]  # and ConfigError, importable from here too (module __getattr__)
+]
 
 
 class HSIError(Exception):
@@ -48,6 +50,20 @@ class MissingFileError(HSIError, FileNotFoundError):
     """A required file does not exist (the message names it)."""
 
 
+class ConfigError(HSIError, ValueError):
+    """Invalid configuration. ``key`` is the dotted key at fault (or ``None``), ``source`` the file.
+
+    The message is a single line: ``"<source>: key 'a.b': <problem>"``.
+    """
+
+    def __init__(self, message: str, key: str | None = None, source: str | None = None):
+        self.key = key
+        self.source = source
+        self.problem = message
+        parts = [p for p in (source, f"key '{key}'" if key else None, message) if p]
+        super().__init__(": ".join(parts))
+
+
 class InputError(HSIError, ValueError):
     """An invalid argument value or shape (the message names the argument and what it got)."""
 
@@ -58,11 +74,3 @@ class NoValidPixelsError(InputError):
 
 class CalibrationError(HSIError, ValueError):
     """Calibration captures that cannot give a bundle (the message names the files at fault)."""
-
-
-def __getattr__(name: str) -> type:
-    if name == "ConfigError":  # defined beside the config loader; imported lazily (no cycle)
-        from hsi_torch.config import ConfigError  # lazy: config imports errors (a cycle)
-
-        return ConfigError
-    raise AttributeError(f"module 'hsi_torch.errors' has no attribute {name!r}")

@@ -1,9 +1,12 @@
 """Files shipped inside the package (configs, reference data) and the real-data folder.
 
-Shipped configuration files live in ``hsi_torch/configs/`` and are found with
-:mod:`importlib.resources`, so they are there in a wheel as in a source checkout; every
-``hsi-torch`` command uses its shipped file when ``--config`` is not given
-(``hsi-torch config show NAME`` prints one, ``hsi-torch config copy NAME DEST`` starts your own).
+Shipped configuration files live once, in ``configs/`` at the top of the repository; the build
+installs them as ``hsi_torch/configs/`` (see ``setup.py``), where they are found with
+:mod:`importlib.resources`. Without that folder in the package (an editable install, a source
+checkout run with ``PYTHONPATH``) they are read from the checkout's ``configs/``
+(:func:`shipped_config_dir`). Every ``hsi-torch`` command uses its shipped file when ``--config``
+is not given (``hsi-torch config show NAME`` prints one, ``hsi-torch config copy NAME DEST``
+starts your own).
 
 The *real-data folder* (measured data that is not redistributed with the package: the CAVE
 scene, real RAW files, circle-grid photos, camera sensitivities) is, in this order:
@@ -31,6 +34,7 @@ from hsi_torch.console import info
 __all__ = [
     "DATA_ENV",
     "shipped_config",
+    "shipped_config_dir",
     "shipped_config_names",
     "shipped_data",
     "set_real_data_dir",
@@ -56,21 +60,41 @@ def _package_dir(sub: str) -> Path:
     return res
 
 
+def shipped_config_dir() -> Path:
+    """The folder of the shipped configuration files: ``hsi_torch/configs/`` of an installed
+    package (a wheel), else ``configs/`` of the source checkout the package is imported from
+    (editable install, ``PYTHONPATH``).
+
+    Raises:
+        FileNotFoundError: neither exists (the message names both places).
+    """
+    installed = _package_dir("configs")
+    if installed.is_dir():
+        return installed
+    root = source_checkout()
+    if root is not None and (root / "configs").is_dir():
+        return root / "configs"
+    where = f" nor {root / 'configs'}" if root is not None else ""
+    raise FileNotFoundError(
+        f"the shipped configuration files are missing: neither {installed}{where} exists "
+        "(reinstall hsi-torch)"
+    )
+
+
 def shipped_config_names() -> list[str]:
     """Names of the shipped configuration files, without ``.yaml`` (e.g. ``"simulate"``)."""
-    folder = _package_dir("configs")
-    return sorted(p.stem for p in folder.glob("*.yaml"))
+    return sorted(p.stem for p in shipped_config_dir().glob("*.yaml"))
 
 
 def shipped_config(name: str) -> Path:
     """Path of a shipped configuration file: ``"simulate"`` or ``"simulate.yaml"`` →
-    ``…/hsi_torch/configs/simulate.yaml``.
+    ``…/configs/simulate.yaml`` (in :func:`shipped_config_dir`).
 
     Raises:
         FileNotFoundError: no such shipped file (the message lists the available names).
     """
     stem = name[: -len(".yaml")] if name.endswith(".yaml") else name
-    path = _package_dir("configs") / f"{stem}.yaml"
+    path = shipped_config_dir() / f"{stem}.yaml"
     if not path.is_file():
         raise FileNotFoundError(
             f"no shipped config {name!r}; available: {', '.join(shipped_config_names())}"

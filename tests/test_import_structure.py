@@ -2,24 +2,25 @@
 
 Stages, bottom to top, and what each may import::
 
-    foundation   errors, spectral, config, io, forward_model, console, profiling, resources,
-                 refdata, colour, testing            → foundation only
-    optics       (virtual prototype optics, plane geometry)  → foundation
+    foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
+                 resources, refdata, colour, testing, cli_common         → foundation only
+    optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
     recon        (bundle + capture → cube)                    → foundation, optics
     experiments  (evaluations, the demo)                      → everything above
-    commands     (cli.py, __main__, */cli_entry.py)           → anything
+    commands     (cli.py, __main__, */cli_entry.py)           → anything, but nothing imports cli
 
 So reconstruction needs neither calibration nor the simulator (nor OpenCV), calibration does not
-need the simulator, and nothing below the experiments imports them. Inside the reconstruction,
-the run layer (``recon.batch``: the driver loop, output targets, tasks) sits on top: the
-reconstructor, the module and the solvers never import it; Dask is imported only by
+need the simulator, and nothing below the experiments imports them. The optics are physics with no
+file I/O (the Bayer mosaic they and the readers share is the foundation's ``bayer``). The command
+line reaches the ``*/cli_entry.py`` modules by name and they take what they share from
+``cli_common``, so no module imports ``cli`` back (only ``__main__`` runs it). Inside the
+reconstruction, the run layer (``recon.batch``: the driver loop, output targets, tasks) sits on
+top: the reconstructor, the module and the solvers never import it; Dask is imported only by
 ``recon.distributed``; the settings and the configuration schema load without the
-reconstructor.
-
-Library modules import at module level; an import inside a function of a library module carries
-a ``# lazy:`` comment that says why (start-up time, an optional dependency, a cycle).
+reconstructor. Library modules import at module level; an import inside a function of a library
+module carries a ``# lazy:`` comment that says why (start-up time, an optional dependency).
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
-FOUNDATION = ("errors", "spectral", "config", "io", "forward_model", "console", "profiling",
-              "resources", "refdata", "colour", "testing")  # fmt: skip
+FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
+              "profiling", "resources", "refdata", "colour", "testing",
+              "cli_common")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},
@@ -119,6 +121,30 @@ def test_every_import_follows_the_data_flow():
             if theirs not in ALLOWED[mine]:
                 bad.append(f"{path.relative_to(ROOT)}:{line} ({mine}) imports {mod} ({theirs})")
     assert not bad, "imports against the data flow:\n" + "\n".join(bad)
+
+
+def test_the_optics_do_no_file_io():
+    """The device's physics reads and writes no files: nothing in ``optics`` imports ``io``."""
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {mod}" for p in _files()
+           if stage_of(_module_name(p)) == "optics"
+           for mod, line, _ in _imports(p)
+           if mod == "hsi_torch.io" or mod.startswith("hsi_torch.io.")]  # fmt: skip
+    assert not bad, "optics import hsi_torch.io:\n" + "\n".join(bad)
+
+
+def test_nothing_imports_the_command_line_back():
+    """``cli`` calls the entry functions by name; they (and everything else) never import it."""
+    bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
+           if _module_name(p) != "hsi_torch.__main__"
+           for mod, line, _ in _imports(p)
+           if mod == "hsi_torch.cli"]  # fmt: skip
+    assert not bad, "modules importing hsi_torch.cli: " + ", ".join(bad)
+
+
+def test_no_import_cycle_between_errors_and_config():
+    """``errors`` is the bottom of the package: it imports nothing from ``hsi_torch``."""
+    mods = [m for m, _, _ in _imports(PKG / "errors.py")]
+    assert not [m for m in mods if m.startswith("hsi_torch")], mods
 
 
 def test_no_opencv_in_reconstruction_and_the_simulator_core():
@@ -224,3 +250,50 @@ def test_the_settings_and_the_config_load_without_the_reconstructor():
     leaked = sorted(m for m in mods if m.startswith("hsi_torch.recon.")
                     and m not in ("hsi_torch.recon.settings", "hsi_torch.recon.config"))
     assert not leaked, f"the settings load {leaked}"
+
+
+def test_numba_is_imported_in_one_place():
+    """numba is optional: only ``hsi_torch.recon._numba`` imports it (availability, the
+    ``HSI_TORCH_NO_NUMBA`` switch, thread counts); the kernels take it from there."""
+    bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
+           if _module_name(p) != "hsi_torch.recon._numba"
+           for mod, line, _ in _imports(p) if mod == "numba" or mod.startswith("numba.")]
+    assert not bad, "numba imported outside hsi_torch/recon/_numba.py: " + ", ".join(bad)
+
+
+def test_the_solver_rules_are_defined_once():
+    """The exchange rules of the active-set solver (the ¼·tol threshold, Murty's counter, the
+    zero-set/free-set switch at M // 2, the compiled kernel's floor) appear as numbers only in
+    ``hsi_torch/recon/nnls/constants.py``; the torch and the compiled kernels import them."""
+    bad = []
+    for path in sorted((PKG / "recon" / "nnls").glob("*.py")):
+        if path.name == "constants.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Constant) and node.value in (0.25, 1e-300):
+                bad.append(f"{path.name}:{node.lineno} literal {node.value}")
+            if (isinstance(node, ast.BinOp) and isinstance(node.op, ast.FloorDiv)
+                    and isinstance(node.right, ast.Constant) and node.right.value == 2):
+                bad.append(f"{path.name}:{node.lineno} '// 2'")
+            if (isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "backup"
+                                                     for t in node.targets)
+                    and isinstance(node.value, ast.Constant)):
+                bad.append(f"{path.name}:{node.lineno} Murty's counter as a literal")
+    assert not bad, "solver rules written outside nnls/constants.py: " + ", ".join(bad)
+    from hsi_torch.recon.nnls import _compiled, active_set, constants, frame  # noqa: F401
+
+    assert constants.MURTY_PATIENCE == 3 and constants.INFEASIBILITY_FRACTION == 0.25
+    assert constants.zero_set_limit(25) == 12
+
+
+def test_the_spatial_admm_loop_is_written_once():
+    """One ADMM loop and stopping rule in ``recon/spatial/admm.py`` for every backend: the
+    residuals are compared with the tolerance in one function, and no module of the package
+    but it iterates over ``CHECK_EVERY``."""
+    spatial = PKG / "recon" / "spatial"
+    hits = []
+    for path in sorted(spatial.glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        hits += [f"{path.name}:{i + 1}" for i, ln in enumerate(text.splitlines())
+                 if "range(CHECK_EVERY)" in ln or "prim <= tol" in ln]
+    assert len(hits) == 2 and all(h.startswith("admm.py:") for h in hits), hits

@@ -204,16 +204,29 @@ def test_load_raw_corrupt_without_real_data(tmp_path):
         load_raw(bad)
 
 
+def test_bayer_utilities_are_reexported_by_the_readers():
+    """One implementation: ``hsi_torch.io.raw`` and ``hsi_torch.io`` hand out ``hsi_torch.bayer``'s
+    functions (the sensor model uses the same module)."""
+    import hsi_torch.bayer as bayer
+    import hsi_torch.io as io
+    import hsi_torch.io.raw as raw
+
+    for name in bayer.__all__:
+        assert getattr(raw, name) is getattr(bayer, name), name
+        if not name[0].isupper():
+            assert getattr(io, name) is getattr(bayer, name), name
+
+
 @pytest.mark.parametrize("pattern", ["RGGB", "GBRG", "BGGR", "GRBG"])
 def test_banded_demosaic_equals_whole_image(pattern, monkeypatch):
     """Large mosaics are demosaiced in bands of rows (bounded temporaries): bit for bit the same
     as one pass, odd heights and band edges included."""
-    import hsi_torch.io.raw as raw
+    import hsi_torch.bayer as bayer
 
     g = torch.Generator().manual_seed(3)
     x = torch.rand(2, 1, 75, 31, generator=g)
     sat = torch.rand(2, 1, 75, 31, generator=g) > 0.97
-    whole = raw.demosaic_bilinear(x, pattern), raw.demosaic_saturation(sat, pattern)
-    monkeypatch.setattr(raw, "_BAND_ROWS", 8)
-    banded = raw.demosaic_bilinear(x, pattern), raw.demosaic_saturation(sat, pattern)
+    whole = bayer.demosaic_bilinear(x, pattern), bayer.demosaic_saturation(sat, pattern)
+    monkeypatch.setattr(bayer, "_BAND_ROWS", 8)
+    banded = bayer.demosaic_bilinear(x, pattern), bayer.demosaic_saturation(sat, pattern)
     assert torch.equal(whole[0], banded[0]) and torch.equal(whole[1], banded[1])

@@ -32,11 +32,32 @@ def test_shipped_configs_are_package_files():
     assert shipped_config_names() == SHIPPED
     for name in SHIPPED:
         p = shipped_config(name)
-        assert p.is_file() and p.parent.name == "configs" and p.parent.parent.name == "hsi_torch"
+        assert p.is_file() and p.parent == resources.shipped_config_dir()
         assert shipped_config(name + ".yaml") == p
         assert isinstance(yaml.safe_load(p.read_text()), dict)
     with pytest.raises(FileNotFoundError, match="available: calibrate, design"):
         shipped_config("nope")
+
+
+def test_configs_have_one_home_at_the_top_of_the_checkout(monkeypatch, tmp_path):
+    """``configs/`` beside ``hsi_torch/`` is the only copy: a checkout (or an editable install)
+    reads it there; an installed package's own ``hsi_torch/configs/`` comes first; neither is an
+    error naming both places."""
+    root = resources.source_checkout()
+    assert root is not None  # the tests run from the checkout
+    assert resources.shipped_config_dir() == root / "configs"
+    assert not (root / "hsi_torch" / "configs").exists()
+    assert sorted(p.stem for p in (root / "configs").glob("*.yaml")) == SHIPPED
+    installed = tmp_path / "hsi_torch" / "configs"
+    installed.mkdir(parents=True)
+    (installed / "only.yaml").write_text("a: 1\n")
+    monkeypatch.setattr(resources, "_package_dir", lambda sub: tmp_path / "hsi_torch" / sub)
+    assert resources.shipped_config_names() == ["only"]
+    installed.joinpath("only.yaml").unlink()
+    installed.rmdir()
+    monkeypatch.setattr(resources, "source_checkout", lambda: None)
+    with pytest.raises(FileNotFoundError, match="configuration files are missing"):
+        shipped_config("simulate")
 
 
 def test_config_command_list_show_copy(tmp_path, capsys):

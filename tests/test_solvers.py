@@ -476,3 +476,35 @@ def test_solve_nnls_takes_the_problems_options_and_refuses_others():
         solve_nnls(A, y, method="admm")
     res = solve_nnls(A, y, beta=0.1, solver="admm", admm_iters=5)
     assert res.solver == "admm" and res.x.shape == (4, 3)
+
+
+def test_numba_helper_switch_and_threads():
+    """One place for numba: ``HSI_TORCH_NO_NUMBA`` turns every compiled kernel off (both
+    solvers fall back to torch), and the thread helpers set and read torch's and numba's
+    per-thread counts."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from hsi_torch.recon import _numba
+
+    code = ("from hsi_torch.recon import _numba\n"
+            "from hsi_torch.recon.nnls import _compiled as a\n"
+            "from hsi_torch.recon.spatial import _compiled as b\n"
+            "print(_numba.AVAILABLE, a.AVAILABLE, b.AVAILABLE, _numba.thread_counts()['numba'])")
+    env = {**os.environ, "HSI_TORCH_NO_NUMBA": "1",
+           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=120, check=True)
+    assert out.stdout.split() == ["False", "False", "False", "None"]
+    n0 = torch.get_num_threads()
+    try:
+        _numba.set_threads(1)
+        counts = _numba.thread_counts()
+        assert counts["torch"] == 1
+        assert counts["numba"] == (1 if _numba.AVAILABLE else None)
+        _numba.set_threads(None)  # leaves both
+        assert _numba.thread_counts() == counts
+    finally:
+        torch.set_num_threads(n0)

@@ -296,7 +296,7 @@ def test_edge_weights(device):
 def test_compiled_and_torch_backends_agree(dtype, weighted, alpha):
     """The compiled CPU kernels run the torch path's iterations: same answer to rounding, with
     inactive pixels, edge weights and pixels with their own Gram matrix in this frame."""
-    from hsi_torch.recon import _spatial_compiled
+    from hsi_torch.recon.spatial import _compiled as _spatial_compiled
 
     if not _spatial_compiled.AVAILABLE:
         pytest.skip("numba not installed")

@@ -2,12 +2,14 @@
 environment, runs `hsi-torch demo --quick`, `hsi-torch simulate` (the README's default prototype)
 and `hsi-torch experiment synthetic` from an empty folder.
 
-Offline by construction: the wheel is built from a copy of the sources without build isolation
-(`pip wheel --no-deps --no-build-isolation`, the machine's setuptools), the venv is made with
-`--system-site-packages` (torch and the other dependencies come from the machine) and the wheel
-is installed with `--no-index --no-deps`; the declared dependencies are then checked against what
-the venv sees. Skipped, with the reason, when the wheel cannot be built here. The subprocesses run
-without PYTHONPATH, so the package they import is the installed wheel (checked).
+Offline by construction: an sdist is built from a copy of the sources (setuptools' PEP 517 hook)
+and the wheel from the unpacked sdist without build isolation (`pip wheel --no-deps
+--no-build-isolation`, the machine's setuptools), so the top-level `configs/` folder is checked
+to travel through both; the venv is made with `--system-site-packages` (torch and the other
+dependencies come from the machine) and the wheel is installed with `--no-index --no-deps`; the
+declared dependencies are then checked against what the venv sees. Skipped, with the reason, when
+the wheel cannot be built here. The subprocesses run without PYTHONPATH, so the package they
+import is the installed wheel (checked).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tarfile
 import zipfile
 from pathlib import Path
 
@@ -23,6 +26,8 @@ import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
+SHIPPED_CONFIGS = ("simulate", "simulate_full", "calibrate", "reconstruct", "synthetic", "design",
+                   "opd", "usaf")  # fmt: skip
 
 
 def _run(cmd: list[str], cwd: Path, env: dict[str, str], timeout: int = 600):
@@ -40,15 +45,31 @@ def installed(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("wheel")
     src = tmp / "src"
     src.mkdir()
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "setup.py", "README.md"):
         shutil.copy(REPO / name, src / name)
-    shutil.copytree(REPO / "hsi_torch", src / "hsi_torch",
-                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))  # fmt: skip
+    for folder in ("hsi_torch", "configs"):
+        shutil.copytree(REPO / folder, src / folder,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))  # fmt: skip
     env = {k: v for k, v in os.environ.items()
            if k not in ("PYTHONPATH", "HSI_TORCH_DATA", "PIP_REQUIRE_VIRTUALENV")}  # fmt: skip
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
+    # the sdist first (what an index serves), then the wheel built from the unpacked sdist: the
+    # configs/ folder must travel through both
+    r = _run([sys.executable, "-c", "import sys; from setuptools import build_meta as b; "
+              "print(b.build_sdist(sys.argv[1]))", tmp / "sdist"], src, env)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip(f"cannot build the sdist offline here: {_tail(r)[-600:]}")
+    sdist = tmp / "sdist" / r.stdout.strip().splitlines()[-1]
+    with tarfile.open(sdist) as tar:
+        members = tar.getnames()
+        safe = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}
+        tar.extractall(tmp / "unpacked", **safe)
+    top = members[0].split("/")[0]
+    for cfg in SHIPPED_CONFIGS:
+        assert f"{top}/configs/{cfg}.yaml" in members, cfg
+    assert not any("/hsi_torch/configs/" in m for m in members)  # one copy, at the top
     r = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-              "--no-index", "-w", tmp / "dist", src], tmp, env)  # fmt: skip
+              "--no-index", "-w", tmp / "dist", tmp / "unpacked" / top], tmp, env)  # fmt: skip
     wheels = sorted((tmp / "dist").glob("hsi_torch-*.whl"))
     if r.returncode != 0 or not wheels:
         pytest.skip(f"cannot build the wheel offline here: {_tail(r)[-600:]}")
@@ -69,8 +90,7 @@ def installed(tmp_path_factory):
 def test_wheel_holds_configs_and_data(installed):
     *_, wheel = installed
     names = zipfile.ZipFile(wheel).namelist()
-    for cfg in ("simulate", "simulate_full", "calibrate", "reconstruct", "synthetic", "design",
-                "opd", "usaf"):  # fmt: skip
+    for cfg in SHIPPED_CONFIGS:
         assert f"hsi_torch/configs/{cfg}.yaml" in names, cfg
     assert "hsi_torch/data/lee_068_sky_blue.csv" in names
     assert "hsi_torch/data/README.md" in names

@@ -59,7 +59,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.figures import plot_calibration
     from hsi_torch.calibrate.pipeline import calibrate_capture_set
-    from hsi_torch.cli import load_args_config
+    from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_json

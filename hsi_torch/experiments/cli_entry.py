@@ -68,7 +68,7 @@ def run_experiment(args: argparse.Namespace) -> int:
     """CLI entry: ``args.name``, ``args.config`` (Path or None = the shipped ``<name>.yaml``,
     else the schema's defaults),
     ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
-    from hsi_torch.cli import load_args_config
+    from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.io.paths import ensure_out_dir
@@ -89,7 +89,7 @@ def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
     :func:`hsi_torch.experiments.demo_full.demo_full`."""
-    from hsi_torch.cli import load_args_config
+    from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.experiments.demo import DemoConfig, demo

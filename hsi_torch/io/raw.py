@@ -1,32 +1,16 @@
-"""Camera RAW files as *linear* sensor data, and Bayer mosaic utilities in torch.
+"""Camera RAW files as *linear* sensor data.
 
 RAW files are read through ``rawpy`` (LibRaw) and never through ``postprocess``: no white balance,
 no colour-space conversion, no gamma, no flips/rotation, no LibRaw demosaic. We take
 ``raw_image_visible`` (the visible sensor area, uint16 DN), subtract the per-channel black level
 (``black_level_per_channel``, indexed through ``raw_colors_visible``) and record the white level.
+Values are linear DN *above black* (``raw − black``, float; may be slightly negative from read
+noise; not clipped) unless ``normalize=True``, where they are divided by ``white − black`` so that
+1.0 is the saturation level; saturated pixels are those whose *raw* value is ``>= white_level``.
 
-Convention:
-    - A Bayer mosaic is a tensor ``(..., 1, H, W)``. Its CFA pattern is a 4-letter string giving
-      the colours of the top-left 2×2 cell in row-major order, e.g. ``"RGGB"`` means
-      ``(row 0, col 0) = R, (0, 1) = G, (1, 0) = G, (1, 1) = B``. The pattern repeats with period 2
-      and always refers to the array as given (row 0, column 0 is the first visible pixel).
-    - Values are linear DN *above black* (``raw − black``, float; may be slightly negative from
-      read noise; not clipped) unless ``normalize=True``, where they are divided by
-      ``white − black`` so that 1.0 is the saturation level.
-    - Saturated pixels are those whose *raw* value is ``>= white_level``.
-    - Colour channel order of RGB outputs is R, G, B.
-
-Demosaic options (both differentiable, batched, device/dtype-agnostic):
-    - ``"half"``: 2×2 binning to ``(3, H//2, W//2)``: R and B are the cell's R and B samples,
-      G the mean of the cell's two G samples (odd trailing rows/columns are dropped). The RGB
-      sample of output pixel ``(x, y)`` sits at full-resolution coordinate ``(2x + 0.5, 2y + 0.5)``.
-    - ``"bilinear"``: full-resolution bilinear interpolation written as a *normalised convolution*:
-      ``rgb_c = conv(x · m_c, k_c) / conv(m_c, k_c)`` with ``m_c`` the CFA mask of colour ``c``,
-      ``k_RB = [[1,2,1],[2,4,2],[1,2,1]]/4`` and ``k_G = [[0,1,0],[1,4,1],[0,1,0]]/4``
-      (zero padding).
-      In the interior this is the textbook bilinear demosaic (measured samples are kept exactly,
-      linear ramps are reproduced exactly); at the border the weights renormalise over the
-      samples that exist instead of assuming zeros.
+The Bayer utilities (CFA pattern convention, :func:`mosaic`, :func:`demosaic_bilinear`,
+:func:`bayer_half`, :func:`demosaic_saturation`, ...) live in :mod:`hsi_torch.bayer` and are
+re-exported here.
 """
 
 from __future__ import annotations
@@ -34,12 +18,21 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
+from hsi_torch.bayer import (  # re-exported: the Bayer utilities were first defined here
+    DemosaicMethod,
+    bayer_half,
+    cfa_masks,
+    demosaic,
+    demosaic_bilinear,
+    demosaic_saturation,
+    mosaic,
+    validate_cfa_pattern,
+)
 from hsi_torch.errors import FileFormatError, MissingFileError
 
 __all__ = [
@@ -55,248 +48,11 @@ __all__ = [
     "DemosaicMethod",
 ]
 
-DemosaicMethod = Literal["half", "bilinear"]
-_CHANNEL = {"R": 0, "G": 1, "B": 2}
 RAW_SUFFIXES = (
     ".kdc", ".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".orf", ".rw2",
     ".raf", ".pef", ".srw", ".3fr", ".erf", ".mef", ".mos", ".mrw", ".raw", ".rwl", ".iiq",
     ".x3f", ".dcr", ".k25", ".crw",
 )  # fmt: skip
-
-
-def validate_cfa_pattern(pattern: str) -> str:
-    """Check and normalise a 2×2 Bayer pattern string (``"RGGB"``, ``"grbg"``, ...).
-
-    Returns:
-        The upper-case pattern. Raises ``ValueError`` unless it has exactly one R, one B and two G.
-    """
-    if not isinstance(pattern, str):
-        raise TypeError(f"cfa_pattern must be a str like 'RGGB', got {type(pattern).__name__}")
-    p = pattern.upper()
-    if len(p) != 4 or sorted(p) != ["B", "G", "G", "R"]:
-        raise ValueError(
-            f"cfa_pattern must be a 2x2 Bayer pattern such as 'RGGB', 'BGGR', 'GRBG' or 'GBRG' "
-            f"(one R, one B, two G), got {pattern!r}"
-        )
-    return p
-
-
-def cfa_masks(
-    pattern: str,
-    height: int,
-    width: int,
-    device: torch.device | str | None = None,
-    dtype: torch.dtype = torch.float32,
-) -> torch.Tensor:
-    """Colour masks of a Bayer mosaic.
-
-    Returns:
-        ``(3, H, W)`` tensor with 1 where the pixel samples R, G, B respectively, 0 elsewhere.
-    """
-    p = validate_cfa_pattern(pattern)
-    cell = torch.zeros(3, 2, 2, device=device, dtype=dtype)
-    for i, ch in enumerate(p):
-        cell[_CHANNEL[ch], i // 2, i % 2] = 1
-    reps_h, reps_w = (height + 1) // 2, (width + 1) // 2
-    return cell.repeat(1, reps_h, reps_w)[:, :height, :width]
-
-
-def _check_mosaic(x: torch.Tensor, name: str = "mosaic") -> None:
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 3 or x.shape[-3] != 1:
-        raise ValueError(f"{name} must have shape (..., 1, H, W), got {tuple(x.shape)}")
-
-
-def mosaic(rgb: torch.Tensor, pattern: str) -> torch.Tensor:
-    """Sample an RGB image through a Bayer CFA (the forward model of the sensor's colour filter).
-
-    Args:
-        rgb: ``(..., 3, H, W)``.
-        pattern: CFA pattern string, e.g. ``"RGGB"``.
-
-    Returns:
-        ``(..., 1, H, W)`` with each pixel taking the channel its CFA colour selects.
-    """
-    if not isinstance(rgb, torch.Tensor) or rgb.ndim < 3 or rgb.shape[-3] != 3:
-        shape = tuple(rgb.shape) if isinstance(rgb, torch.Tensor) else type(rgb).__name__
-        raise ValueError(f"rgb must be a tensor of shape (..., 3, H, W), got {shape}")
-    m = cfa_masks(pattern, rgb.shape[-2], rgb.shape[-1], device=rgb.device, dtype=rgb.dtype)
-    return (rgb * m).sum(dim=-3, keepdim=True)
-
-
-def bayer_half(
-    x: torch.Tensor, pattern: str, reduce: Literal["mean", "any"] = "mean"
-) -> torch.Tensor:
-    """2×2 binning of a Bayer mosaic into half-resolution RGB.
-
-    Args:
-        x: ``(..., 1, H, W)`` mosaic (float, or bool with ``reduce="any"``).
-        pattern: CFA pattern string.
-        reduce: ``"mean"`` averages the two greens; ``"any"`` ORs them (for saturation masks).
-
-    Returns:
-        ``(..., 3, H // 2, W // 2)``; odd trailing rows/columns are dropped.
-    """
-    _check_mosaic(x, "x")
-    p = validate_cfa_pattern(pattern)
-    h2, w2 = x.shape[-2] // 2, x.shape[-1] // 2
-    if h2 == 0 or w2 == 0:
-        raise ValueError(f"mosaic must be at least 2x2 for half-size binning, got {tuple(x.shape)}")
-    x = x[..., 0, : 2 * h2, : 2 * w2]
-    subs = [x[..., i // 2 :: 2, i % 2 :: 2] for i in range(4)]
-    greens = [s for s, ch in zip(subs, p, strict=True) if ch == "G"]
-    r = subs[p.index("R")]
-    b = subs[p.index("B")]
-    g = (greens[0] | greens[1]) if reduce == "any" else 0.5 * (greens[0] + greens[1])
-    return torch.stack([r, g, b], dim=-3)
-
-
-def _smooth_w(t: torch.Tensor, side: float) -> torch.Tensor:
-    """``t + side·(left + right)`` along the last axis, zero padded."""
-    p = F.pad(t, (1, 1))
-    return p[..., 1:-1] + side * (p[..., :-2] + p[..., 2:])
-
-
-def _smooth_h(t: torch.Tensor, side: float) -> torch.Tensor:
-    """``t + side·(up + down)`` along the second-to-last axis, zero padded."""
-    p = F.pad(t, (0, 0, 1, 1))
-    return p[..., 1:-1, :] + side * (p[..., :-2, :] + p[..., 2:, :])
-
-
-def _bilinear_num_den(
-    x: torch.Tensor, pattern: str
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Numerator ``conv(x·m_c, k_c)`` (N,3,H,W) and denominators (R/B: (2,H,W), G: (H,W)).
-
-    The convolutions are written as shifted sums (much faster than ``conv2d`` on CPU):
-    ``k_RB = ([1,2,1]/2)ᵀ ⊗ ([1,2,1]/2)`` is separable and the R/B masks are products of a row and
-    a column indicator, so their normalisers are outer products of 1-D vectors; ``k_G`` is the
-    centre plus ¼ of the four neighbours, and on the G checkerboard its normaliser is 1 at G
-    pixels and (number of in-image 4-neighbours)/4 elsewhere.
-    """
-    p = validate_cfa_pattern(pattern)
-    n, _, h, w = x.shape
-    m = cfa_masks(p, h, w, device=x.device, dtype=x.dtype)
-    rb = x * m[[0, 2]]
-    num_rb = _smooth_h(_smooth_w(rb, 0.5), 0.5)
-    g = x * m[1]
-    gp = F.pad(g, (1, 1, 1, 1))
-    num_g = g + 0.25 * (gp[..., :-2, 1:-1] + gp[..., 2:, 1:-1] + gp[..., 1:-1, :-2]
-                        + gp[..., 1:-1, 2:])  # fmt: skip
-    rows = torch.arange(h, device=x.device)
-    cols = torch.arange(w, device=x.device)
-    dens = []
-    for ch in "RB":
-        pos = p.index(ch)
-        r = (rows % 2 == pos // 2).to(x.dtype)
-        c = (cols % 2 == pos % 2).to(x.dtype)
-        dens.append(_smooth_w(r, 0.5)[:, None] * _smooth_w(c, 0.5)[None, :])
-    den_rb = torch.stack(dens)
-    edge_r = (rows == 0).to(x.dtype) + (rows == h - 1).to(x.dtype)
-    edge_c = (cols == 0).to(x.dtype) + (cols == w - 1).to(x.dtype)
-    count = 4.0 - edge_r[:, None] - edge_c[None, :]
-    den_g = m[1] + (1 - m[1]) * (count / 4.0)
-    num = torch.stack([num_rb[:, 0], num_g[:, 0], num_rb[:, 1]], dim=1)
-    return num, den_rb, den_g
-
-
-#: rows of the mosaic demosaiced at a time (bilinear): bounds the temporaries to a band
-_BAND_ROWS = 256
-
-
-def _in_bands(fn, x: torch.Tensor, out_dtype: torch.dtype) -> torch.Tensor:
-    """Apply a 3×3-stencil demosaic ``fn`` ((N, 1, h, w) → (N, 3, h, w)) band by band.
-
-    Bands start on even rows (the CFA phase is kept) and carry two rows of context on each side
-    that are cropped, so every output row is computed from exactly the rows it would see in one
-    pass, with the same arithmetic: the result equals the whole-image one exactly, with
-    temporaries of one band instead of the image.
-    """
-    n, _, h, w = x.shape
-    if h <= 2 * _BAND_ROWS:
-        return fn(x)
-    out = torch.empty((n, 3, h, w), dtype=out_dtype, device=x.device)
-    for r0 in range(0, h, _BAND_ROWS):
-        r1 = min(h, r0 + _BAND_ROWS)
-        a, b = max(0, r0 - 2), min(h, r1 + 2)
-        out[:, :, r0:r1] = fn(x[:, :, a:b])[:, :, r0 - a : r0 - a + (r1 - r0)]
-    return out
-
-
-def demosaic_bilinear(x: torch.Tensor, pattern: str) -> torch.Tensor:
-    """Bilinear demosaic by normalised convolution (see the module docstring).
-
-    Args:
-        x: ``(..., 1, H, W)`` floating-point mosaic, any device.
-        pattern: CFA pattern string.
-
-    Returns:
-        ``(..., 3, H, W)`` RGB, same dtype/device; measured samples are reproduced exactly.
-    """
-    _check_mosaic(x, "x")
-    if not x.is_floating_point():
-        raise TypeError(f"x must be floating point for bilinear demosaic, got {x.dtype}")
-    lead, (h, w) = x.shape[:-3], x.shape[-2:]
-    if h < 2 or w < 2:
-        raise ValueError(f"mosaic must be at least 2x2, got {tuple(x.shape)}")
-
-    def one(xb: torch.Tensor) -> torch.Tensor:
-        num, den_rb, den_g = _bilinear_num_den(xb, pattern)
-        return num / torch.stack([den_rb[0], den_g, den_rb[1]])
-
-    return _in_bands(one, x.reshape(-1, 1, h, w), x.dtype).reshape(*lead, 3, h, w)
-
-
-def demosaic(x: torch.Tensor, pattern: str, method: DemosaicMethod = "bilinear") -> torch.Tensor:
-    """Dispatch to :func:`bayer_half` (``"half"``) or :func:`demosaic_bilinear` (``"bilinear"``)."""
-    if method == "half":
-        return bayer_half(x, pattern)
-    if method == "bilinear":
-        return demosaic_bilinear(x, pattern)
-    raise ValueError(f"demosaic method must be 'half' or 'bilinear', got {method!r}")
-
-
-def demosaic_saturation(
-    saturated: torch.Tensor, pattern: str, method: DemosaicMethod = "bilinear"
-) -> torch.Tensor:
-    """Propagate a mosaic saturation mask through a demosaic.
-
-    An output sample is flagged when *any* mosaic sample it was computed from (with non-zero
-    weight) is saturated: the cell's own R/G/B samples for ``"half"``, the kernel support of the
-    same colour for ``"bilinear"``.
-
-    Args:
-        saturated: ``(..., 1, H, W)`` bool.
-
-    Returns:
-        ``(..., 3, H', W')`` bool, matching :func:`demosaic`'s output size.
-    """
-    _check_mosaic(saturated, "saturated")
-    sat = saturated.bool()
-    if method == "half":
-        return bayer_half(sat, pattern, reduce="any")
-    if method != "bilinear":
-        raise ValueError(f"demosaic method must be 'half' or 'bilinear', got {method!r}")
-    lead, (h, w) = sat.shape[:-3], sat.shape[-2:]
-    if h < 2 or w < 2:
-        raise ValueError(f"mask must be at least 2x2, got {tuple(sat.shape)}")
-
-    def one(flat: torch.Tensor) -> torch.Tensor:
-        # the stencils of demosaic_bilinear, evaluated with logical OR on bool planes
-        hb = flat.shape[-2]
-        m = cfa_masks(pattern, hb, w, device=sat.device, dtype=torch.float32).bool()
-        rb = flat & m[[0, 2]]
-        pw = F.pad(rb, (1, 1))
-        rb = pw[..., 1:-1] | pw[..., :-2] | pw[..., 2:]
-        ph = F.pad(rb, (0, 0, 1, 1))
-        rb = ph[..., 1:-1, :] | ph[..., :-2, :] | ph[..., 2:, :]
-        g = flat & m[1]
-        gp = F.pad(g, (1, 1, 1, 1))
-        g = g | gp[..., :-2, 1:-1] | gp[..., 2:, 1:-1] | gp[..., 1:-1, :-2] | gp[..., 1:-1, 2:]
-        return torch.cat([rb[:, :1], g, rb[:, 1:]], dim=1)
-
-    return _in_bands(one, sat.reshape(-1, 1, h, w), torch.bool).reshape(*lead, 3, h, w)
 
 
 @dataclass

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 
-from hsi_torch.io import raw as _raw
+from hsi_torch import bayer as _bayer
 
 __all__ = [
     "CFA_PATTERNS",
@@ -87,10 +87,10 @@ def cfa_masks(
 ) -> torch.Tensor:
     """One-hot CFA masks ``(3, H, W)``: ``masks[c, y, x] = 1`` where pixel ``(x, y)`` sees ``c``.
 
-    Thin wrapper of :func:`hsi_torch.io.raw.cfa_masks` (one CFA implementation for the
+    Thin wrapper of :func:`hsi_torch.bayer.cfa_masks` (one CFA implementation for the
     simulator and the loaders).
     """
-    return _raw.cfa_masks(
+    return _bayer.cfa_masks(
         _check_pattern(pattern),
         height,
         width,
@@ -114,27 +114,27 @@ def _check_image(x: torch.Tensor, channels: int | None, name: str) -> torch.Tens
 def mosaic(rgb: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
     """Sample an RGB image ``(..., 3, H, W)`` through a Bayer CFA → ``(..., 1, H, W)``.
 
-    Same as :func:`hsi_torch.io.raw.mosaic` with a default pattern.
+    Same as :func:`hsi_torch.bayer.mosaic` with a default pattern.
     """
-    return _raw.mosaic(_check_image(rgb, 3, "rgb"), _check_pattern(pattern))
+    return _bayer.mosaic(_check_image(rgb, 3, "rgb"), _check_pattern(pattern))
 
 
 def demosaic_bilinear(raw: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
     """Bilinear demosaic ``(..., 1, H, W)`` → ``(..., 3, H, W)`` by normalised convolution.
 
     Known samples are kept exactly and borders use only the samples that exist. Delegates to
-    :func:`hsi_torch.io.raw.demosaic_bilinear`.
+    :func:`hsi_torch.bayer.demosaic_bilinear`.
     """
-    return _raw.demosaic_bilinear(_check_image(raw, 1, "raw"), _check_pattern(pattern))
+    return _bayer.demosaic_bilinear(_check_image(raw, 1, "raw"), _check_pattern(pattern))
 
 
 def bin_bayer(raw: torch.Tensor, pattern: str = "RGGB") -> torch.Tensor:
     """Half-size RGB ``(..., 3, H // 2, W // 2)`` by 2 × 2 binning (R, mean of the two G, B).
 
     A trailing odd row/column is dropped; output pixel ``(x, y)`` is centred on raw coordinate
-    ``(2x + 0.5, 2y + 0.5)``. Delegates to :func:`hsi_torch.io.raw.bayer_half`.
+    ``(2x + 0.5, 2y + 0.5)``. Delegates to :func:`hsi_torch.bayer.bayer_half`.
     """
-    return _raw.bayer_half(_check_image(raw, 1, "raw"), _check_pattern(pattern))
+    return _bayer.bayer_half(_check_image(raw, 1, "raw"), _check_pattern(pattern))
 
 
 def gaussian_blur(image: torch.Tensor, sigma_px: float, border: str = "reflect") -> torch.Tensor:

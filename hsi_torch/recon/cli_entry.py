@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 
-from hsi_torch.cli import load_args_config
+from hsi_torch.cli_common import load_args_config
 from hsi_torch.recon.batch.driver import RunSummary
 from hsi_torch.recon.batch.entry import run_reconstruction
 from hsi_torch.recon.config import ReconstructConfig

@@ -9,7 +9,7 @@ import sys
 
 def run_simulate(args: argparse.Namespace) -> int:
     """Entry point called by :mod:`hsi_torch.cli`: render a capture set with ground truth."""
-    from hsi_torch.cli import load_args_config
+    from hsi_torch.cli_common import load_args_config
     from hsi_torch.console import info
     from hsi_torch.simulate.capture_sets import simulate_capture_set
     from hsi_torch.simulate.config import SimulateConfig

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numba
 import torch
 
 from hsi_torch.errors import InputError, MissingFileError
@@ -39,6 +38,7 @@ from hsi_torch.io.atomic import atomic_write_bytes
 from hsi_torch.io.bundle import file_sha256
 from hsi_torch.io.dataset import write_frame
 from hsi_torch.profiling import release_freed_memory
+from hsi_torch.recon._numba import set_threads, thread_counts
 from hsi_torch.recon.batch.run import ReconstructRun, reconstruct_input, write_outputs
 from hsi_torch.recon.distributed import in_dask_worker
 from hsi_torch.recon.pipeline import Reconstructor
@@ -49,8 +49,6 @@ __all__ = [
     "prepared_reconstructor",
     "forget_prepared",
     "worker_device",
-    "set_threads",
-    "thread_counts",
     "WORKER_STATS",
 ]
 
@@ -86,28 +84,6 @@ def worker_name() -> str:
     """``"<name> (<address>)"`` of the Dask worker running this, or ``"local"``."""
     w = in_dask_worker()
     return "local" if w is None else f"{w.name} ({w.address})"
-
-
-def _numba_threads(n: int | None = None) -> int:
-    """numba's thread count in this thread, after setting it to ``n`` (at most numba's pool)."""
-    if n:
-        numba.set_num_threads(max(1, min(int(n), int(numba.config.NUMBA_NUM_THREADS))))
-    return numba.get_num_threads()
-
-
-def set_threads(n: int | None) -> None:
-    """torch's and numba's thread counts for work started from this thread (numba's setting is
-    per thread; ``None``: leave both)."""
-    if not n:
-        return
-    # always: torch's OpenMP setting is per thread too, and a task may run in a new thread
-    torch.set_num_threads(n)
-    _numba_threads(n)
-
-
-def thread_counts() -> dict[str, int]:
-    """torch's and numba's thread counts in this thread."""
-    return {"torch": torch.get_num_threads(), "numba": _numba_threads()}
 
 
 def worker_device(requested: torch.device | str | None) -> torch.device | None:

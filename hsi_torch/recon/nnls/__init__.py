@@ -38,7 +38,8 @@ Solver ``"active_set"`` (exact, finite termination):
 
 On CPU every kernel runs single-threaded and the pixels are split between ``num_threads`` Python
 threads instead (default ``torch.get_num_threads()``): thousands of small multi-threaded kernels
-stall at their barriers whenever another process holds a core (see :func:`_workers`).
+stall at their barriers whenever another process holds a core (see
+:func:`~hsi_torch.recon.nnls._threads.workers_for`).
 
 ``solver="admm"`` (:mod:`hsi_torch.recon.nnls.admm`): ADMM on ``x = z, z ≥ 0`` with per-pixel
 ``(G + ρI)⁻¹`` precomputed, warm started from the clamped unconstrained solution (or a given
@@ -54,11 +55,13 @@ Convention:
     chunking over pixels.
 
 Modules: :mod:`~hsi_torch.recon.nnls.problem` (:class:`NNLSProblem`, :func:`prepare_nnls`,
-:func:`solve_nnls`, the frame-level active-set solve), :mod:`~hsi_torch.recon.nnls.kkt` (Gram
-matrices, KKT residuals, chunk sizes), :mod:`~hsi_torch.recon.nnls.active_set` (block principal
-pivoting and Lawson–Hanson kernels), :mod:`~hsi_torch.recon.nnls.admm`,
-:mod:`~hsi_torch.recon.nnls._compiled` (the numba CPU kernel) and
-:mod:`~hsi_torch.recon.nnls._threads` (CPU thread pools). This package is the one import path of
+:func:`solve_nnls`), :mod:`~hsi_torch.recon.nnls.frame` (the active-set solve of a frame: one
+driver for both kernels), :mod:`~hsi_torch.recon.nnls.constants` (the exchange rules both
+kernels apply), :mod:`~hsi_torch.recon.nnls.kkt` (Gram matrices, KKT residuals, chunk sizes),
+:mod:`~hsi_torch.recon.nnls.active_set` (block principal pivoting and Lawson–Hanson kernels),
+:mod:`~hsi_torch.recon.nnls.admm`, :mod:`~hsi_torch.recon.nnls._compiled` (the numba CPU kernel;
+numba itself through :mod:`hsi_torch.recon._numba`) and :mod:`~hsi_torch.recon.nnls._threads`
+(CPU thread pools). This package is the one import path of
 the solver: ``from hsi_torch.recon.nnls import solve_nnls, prepare_nnls``.
 """
 

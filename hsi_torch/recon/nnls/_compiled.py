@@ -9,31 +9,32 @@ float64 arithmetic on the stored float32/float64 ``G`` and ``H``), several times
 batched rounds on CPU. Same method and exchange rules as the batched
 :func:`~hsi_torch.recon.nnls.active_set._bpp`:
 
-* zero set ``Z`` with ``|Z| ≤ M/2``: ``λ_Z = −H_ZZ⁻¹ x0_Z``, ``x = x0 + H[:, Z] λ_Z``;
+* zero set ``Z`` with ``|Z| ≤ M/2`` (:func:`~hsi_torch.recon.nnls.constants.zero_set_limit`):
+  ``λ_Z = −H_ZZ⁻¹ x0_Z``, ``x = x0 + H[:, Z] λ_Z``;
 * otherwise the free set ``F``: ``x_F = G_FF⁻¹ b_F``, ``λ_Z = (G x − b)_Z``;
 * exchange every infeasible variable (``λ_Z < −t`` or ``x_F G_mm < −t``), Murty's single
-  largest-index exchange after three rounds without fewer infeasible variables.
+  largest-index exchange after three rounds without fewer infeasible variables
+  (:data:`~hsi_torch.recon.nnls.constants.MURTY_PATIENCE`).
 
-numba is an optional accelerator: without it (or with ``HSI_TORCH_NO_NUMBA=1``) the batched torch
-kernels are used. The first call in a new environment compiles the kernel (~15 s, cached on disk
+numba is an optional accelerator (:mod:`hsi_torch.recon._numba`): without it (or with
+``HSI_TORCH_NO_NUMBA=1``) the batched torch kernels are used. The exchange rules (the threshold,
+Murty's counter, the zero-set/free-set switch) come from :mod:`~hsi_torch.recon.nnls.constants`
+as arguments. The first call in a new environment compiles the kernel (~15 s, cached on disk
 by numba next to this file, or in ``NUMBA_CACHE_DIR``).
 """
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-try:  # optional accelerator
-    if os.environ.get("HSI_TORCH_NO_NUMBA", "") not in ("", "0"):
-        raise ImportError("disabled by HSI_TORCH_NO_NUMBA")
-    import numba as _nb
-
-    AVAILABLE = True
-except ImportError:  # pragma: no cover - exercised when numba is absent
-    _nb = None
-    AVAILABLE = False
+from hsi_torch.recon._numba import AVAILABLE, threads
+from hsi_torch.recon._numba import nb as _nb
+from hsi_torch.recon.nnls.constants import (
+    COMPILED_FLOOR,
+    INFEASIBILITY_FRACTION,
+    MURTY_PATIENCE,
+    zero_set_limit,
+)
 
 __all__ = ["AVAILABLE", "solve_frame_cpu"]
 
@@ -71,15 +72,15 @@ if AVAILABLE:
         return True
 
     @_nb.njit(cache=True, error_model="numpy")
-    def _bpp_pixel(G, H, x0, b, gd, t, max_rounds, S, rhs, idx, x, lam, Z):  # pragma: no cover
+    def _bpp_pixel(G, H, x0, b, gd, t, max_rounds, half, patience, S, rhs, idx, x, lam,
+                   Z):  # pragma: no cover - compiled
         """One pixel's rounds (``G``, ``H``: its ``(M, M)`` matrices); returns
         ``(status, rounds)``; ``x``, ``Z`` hold the answer."""
         m = x0.shape[0]
-        half = m // 2
         for j in range(m):
             Z[j] = x0[j] * gd[j] < -t
         best = m + 1
-        backup = 3
+        backup = patience
         rnd = 0
         while rnd < max_rounds:
             rnd += 1
@@ -141,7 +142,7 @@ if AVAILABLE:
                 return DONE, rnd
             improved = nv < best
             full = improved or backup >= 1
-            backup = 3 if improved else max(backup - 1, 0)
+            backup = patience if improved else max(backup - 1, 0)
             if improved:
                 best = nv
             if full:
@@ -153,7 +154,7 @@ if AVAILABLE:
         return NOT_FINISHED, rnd
 
     @_nb.njit(cache=True, error_model="numpy")
-    def _kkt(G, x, b, gd, gn, bn, g):  # pragma: no cover - compiled
+    def _kkt(G, x, b, gd, gn, bn, g, floor):  # pragma: no cover - compiled
         """``g = G x − b`` into ``g``; returns the relative KKT residual (``_kkt_ratio``)."""
         m = x.shape[0]
         num = 0.0
@@ -168,11 +169,12 @@ if AVAILABLE:
             num += t * t
             xn += x[i] * x[i]
         den = gn * np.sqrt(xn) + bn
-        return np.sqrt(num) / (den if den > 1e-300 else 1e-300)
+        return np.sqrt(num) / (den if den > floor else floor)
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, x_out, z_out, r_out,
-                      status, rounds, num_chunks):  # pragma: no cover - compiled
+    def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half, patience,
+                      floor, x_out, z_out, r_out, status, rounds,
+                      num_chunks):  # pragma: no cover - compiled
         n, m = b.shape
         shared = G.shape[0] == 1
         for ch in _nb.prange(num_chunks):
@@ -199,8 +201,8 @@ if AVAILABLE:
                         v += Hp[i, j] * br[j]
                     x0[i] = v
                     nrm += v * v
-                t = 0.25 * tol * (gn[p] * np.sqrt(nrm) + bn)
-                t = t if t > 1e-300 else 1e-300
+                t = frac * tol * (gn[p] * np.sqrt(nrm) + bn)
+                t = t if t > floor else floor
                 need = False
                 if not skip[r]:
                     for j in range(m):
@@ -208,15 +210,15 @@ if AVAILABLE:
                             need = True
                 st, rnd = DONE, 0
                 if need:
-                    st, rnd = _bpp_pixel(Gp, Hp, x0, br, gdp, t, max_rounds, S, rhs, idx, x,
-                                         lam, Z)
+                    st, rnd = _bpp_pixel(Gp, Hp, x0, br, gdp, t, max_rounds, half, patience,
+                                         S, rhs, idx, x, lam, Z)
                     for j in range(m):
                         x[j] = x[j] if x[j] > 0.0 else 0.0
                 else:
                     for j in range(m):
                         x[j] = x0[j] if x0[j] > 0.0 else 0.0
                         Z[j] = False
-                res = _kkt(Gp, x, br, gdp, gn[p], bn, g)
+                res = _kkt(Gp, x, br, gdp, gn[p], bn, g, floor)
                 if not need and not skip[r]:  # all-free pixels: refinement x <- max(0, x - H g)
                     for _ in range(refine):
                         if res <= tol:
@@ -226,7 +228,7 @@ if AVAILABLE:
                             for j in range(m):
                                 v -= Hp[i, j] * g[j]
                             xn[i] = v if v > 0.0 else 0.0
-                        rn = _kkt(Gp, xn, br, gdp, gn[p], bn, lam)
+                        rn = _kkt(Gp, xn, br, gdp, gn[p], bn, lam, floor)
                         if rn < res:
                             res = rn
                             for i in range(m):
@@ -248,7 +250,8 @@ def solve_frame_cpu(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Steps 1–3 of the active-set solve for every pixel in one compiled pass.
 
-    Per pixel: ``x0 = H b``; the infeasibility threshold ``t = ¼·tol·(‖G‖‖x0‖ + ‖b‖)``; block
+    Per pixel: ``x0 = H b``; the infeasibility threshold ``t = ¼·tol·(‖G‖‖x0‖ + ‖b‖)``
+    (:data:`~hsi_torch.recon.nnls.constants.INFEASIBILITY_FRACTION`); block
     principal pivoting where ``x0`` has an entry with ``x0_m G_mm < −t`` (unless ``skip``);
     the KKT residual of the answer with the exact ``G`` and ``b``; for pixels without a zero set,
     up to ``refine`` refinement steps ``x ← max(0, x − H(Gx − b))`` kept while they lower it.
@@ -272,11 +275,8 @@ def solve_frame_cpu(
     rounds = np.empty(n, np.int32)
     if n == 0:
         return x, z, res, status, rounds
-    old = _nb.get_num_threads()
-    _nb.set_num_threads(max(1, min(int(num_threads), _nb.config.NUMBA_NUM_THREADS)))
-    try:
-        _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine), x, z, res,
-                      status, rounds, min(n, 512))
-    finally:
-        _nb.set_num_threads(old)
+    with threads(num_threads):
+        _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine),
+                      float(INFEASIBILITY_FRACTION), int(zero_set_limit(m)), int(MURTY_PATIENCE),
+                      float(COMPILED_FLOOR), x, z, res, status, rounds, min(n, 512))
     return x, z, res, status, rounds

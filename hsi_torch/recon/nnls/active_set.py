@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hsi_torch.recon.nnls.constants import MURTY_PATIENCE, zero_set_limit
 from hsi_torch.recon.nnls.kkt import _expand_rows, _rowvec
 
 
@@ -209,12 +210,6 @@ def _zero_set_solve_any(H: Tensor, gi: Tensor, Z: Tensor, v: Tensor) -> tuple[Te
     return x, ok
 
 
-#: exchange rounds after which a pixel leaves block principal pivoting for Lawson–Hanson: well
-#: conditioned pixels settle in 1–6 rounds; badly conditioned ones (cond(G) ~ 1e5) can cycle
-#: through dozens of Murty single pivots, each a round for the whole (tiny) remaining batch
-_BPP_ROUNDS = 16
-
-
 def _bucket_plan(m: int, hybrid: bool, device: torch.device) -> tuple[Tensor, list[int],
                                                                        list[bool]]:
     """Bucket edges on the sort key of :func:`_bpp` with each bucket's padded size and mode.
@@ -222,7 +217,7 @@ def _bucket_plan(m: int, hybrid: bool, device: torch.device) -> tuple[Tensor, li
     Key: ``|Z|`` for zero-set rows, ``(m + 1) + |F|`` for free-set rows (hybrid only), so one
     sort makes every bucket a contiguous slice.
     """
-    half = m // 2 if hybrid else m
+    half = zero_set_limit(m) if hybrid else m
     zs = [e for e in _K_EDGES if e < half] + [half]
     keys, sizes, modes = list(zs), list(zs), [False] * len(zs)
     if hybrid:
@@ -241,12 +236,14 @@ def _bpp(
 
     Starts with the zero set ``Z`` = the negative entries of the unconstrained solution ``x0``.
     Each round solves the equality-constrained problem for the current ``Z`` — through
-    ``H = G⁻¹`` on ``Z`` (:func:`_zero_set_solve`, a ``|Z| × |Z|`` system) when ``|Z| ≤ M/2``,
-    else on the free set (``free_solve``, a ``|F| × |F|`` system from the operator) — and
-    exchanges the infeasible set (``x_F < 0`` or ``λ_Z < 0``); after three rounds without fewer
-    infeasible variables only the largest infeasible index is exchanged (Murty's rule, which
-    guarantees finite termination for positive definite ``G``). Finished pixels leave the working
-    set, so every round works on the still-active rows only.
+    ``H = G⁻¹`` on ``Z`` (:func:`_zero_set_solve`, a ``|Z| × |Z|`` system) when ``|Z| ≤ M/2``
+    (:func:`~hsi_torch.recon.nnls.constants.zero_set_limit`), else on the free set
+    (``free_solve``, a ``|F| × |F|`` system from the operator) — and exchanges the infeasible
+    set (``x_F < 0`` or ``λ_Z < 0``); after three rounds without fewer infeasible variables
+    (:data:`~hsi_torch.recon.nnls.constants.MURTY_PATIENCE`) only the largest infeasible index
+    is exchanged (Murty's rule, which guarantees finite termination for positive definite
+    ``G``). Finished pixels leave the working set, so every round works on the still-active rows
+    only.
 
     Args:
         H: ``(P|1, M, M)`` inverses; idx: ``(n,)`` global pixel indices into ``H``.
@@ -269,7 +266,7 @@ def _bpp(
     failed = torch.zeros((n,), dtype=torch.bool, device=dev)
     iters = torch.zeros((n,), dtype=torch.long, device=dev)
     edges, sizes, modes = _bucket_plan(m, hybrid, dev)
-    half = m // 2 if hybrid else m
+    half = zero_set_limit(m) if hybrid else m
 
     def sort_key(Zs: Tensor) -> Tensor:
         kz = Zs.sum(1)
@@ -284,7 +281,7 @@ def _bpp(
     gi, v, gdw, tw, Z = idx[order], x0[order], gd[order], thr[order], Z[order]
     bw = b[order] if hybrid else None
     best = torch.full((n,), m + 1, dtype=torch.long, device=dev)
-    backup = torch.full((n,), 3, dtype=torch.long, device=dev)
+    backup = torch.full((n,), MURTY_PATIENCE, dtype=torch.long, device=dev)
     bounds = torch.searchsorted(key[order], edges, right=True).tolist()
     for rnd in range(1, max_iter + 1):
         x, lam, ok = _bucketed_solve(H, gi, Z, v, bw, free_solve, sizes, modes, bounds)
@@ -300,7 +297,8 @@ def _bpp(
         failed[w] = ~ok
         improved = nv < best
         full_block = improved | (backup >= 1)
-        backup = torch.where(improved, torch.full_like(backup, 3), (backup - 1).clamp_min(0))
+        backup = torch.where(improved, torch.full_like(backup, MURTY_PATIENCE),
+                             (backup - 1).clamp_min(0))
         best = torch.where(improved, nv, best)
         last = (m - 1) - infeas.flip(1).to(torch.uint8).argmax(1)  # Murty: largest index
         single = torch.zeros_like(infeas).scatter_(1, last.view(-1, 1), True)

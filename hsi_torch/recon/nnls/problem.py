@@ -17,29 +17,19 @@ from torch import Tensor
 from typing_extensions import Unpack  # Python 3.10 (a dependency of torch)
 
 from hsi_torch.forward_model import DenseSensing, SensingModel
-from hsi_torch.recon.nnls import _compiled
 from hsi_torch.recon.nnls._threads import cpu_threads, for_chunks, workers_for
-from hsi_torch.recon.nnls.active_set import (
-    _BPP_ROUNDS,
-    FreeSetSolver,
-    _bpp,
-    _lawson_hanson,
-    _zero_set_solve_any,
-)
 from hsi_torch.recon.nnls.admm import solve_admm
+from hsi_torch.recon.nnls.constants import REFINE_STEPS
+from hsi_torch.recon.nnls.frame import solve_active_set
 from hsi_torch.recon.nnls.kkt import (
     _admm_tol,
     _chunk_len,
     _default_solve_chunk,
     _default_stream_chunk,
     _default_tol,
-    _expand_rows,
     _gram_norm,
-    _kkt_ratio,
-    _norm2,
     _rowvec,
     _take,
-    nnls_kkt_residual,
     smoothness_gram,
 )
 
@@ -321,7 +311,7 @@ class NNLSProblem:
         if not tol > 0:
             raise ValueError(f"tol must be > 0, got {tol}")
         if refine is None:
-            refine = 2
+            refine = REFINE_STEPS
         if int(refine) < 0:
             raise ValueError(f"refine must be >= 0, got {refine}")
         if x0 is not None and (x0.shape != (P, m) or x0.device != self.device):
@@ -337,216 +327,13 @@ class NNLSProblem:
             n_corr = _chunk_len(P, per_px, chunk_size, max_memory, self.device,
                                 default=_default_solve_chunk(self.device))
             with torch.no_grad():
-                out = self._solve_as(y, tol, max_iter or 10 * m, int(refine), n, n_corr,
-                                     workers, backend)
+                out = solve_active_set(self, y, tol, max_iter or 10 * m, int(refine), n,
+                                       n_corr, workers, backend)
             return NNLSResult(*out, solver)
         out = solve_admm(self, y, tol, max_iter or 5000, chunk_size, max_memory, admm_iters, rho,
                          x0)
         return NNLSResult(*out, solver)
 
-    def _solve_as(
-        self, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int,
-        workers: int, backend: str = "auto",
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Active-set solve of the whole frame (see the module docstring).
-
-        ``n``: pixels per chunk of the streamed stages; ``n_corr``: pixels per correction batch;
-        ``workers``: CPU threads sharing the chunks (1 elsewhere).
-        """
-        P, m = y.shape[0], self.num_bands
-        dev, dt = y.device, self.dtype
-        H = self.gram_inv
-        tiny = torch.finfo(dt).tiny
-        gn_all = self.gram_norm
-        # 1. right-hand sides and unconstrained solutions x = H b, streamed over pixel chunks
-        #    (cache-sized on CPU), with the per-pixel norms the thresholds need
-        b = torch.empty((P, m), dtype=dt, device=dev)
-        x = torch.empty((P, m), dtype=dt, device=dev)
-        bnorm = torch.empty((P,), dtype=dt, device=dev)
-        xnorm = torch.empty((P,), dtype=dt, device=dev)
-        xneg = torch.empty((P,), dtype=dt, device=dev)
-        sing = _expand_rows(self.singular, P)
-        nod = _expand_rows(self.no_data, P)
-        irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
-        if self._use_compiled(backend):  # steps 1-3 pixel by pixel in one compiled pass
-            def rhs(sl: slice) -> None:
-                b[sl] = self.rhs(y, sl)
-
-            for_chunks(rhs, P, n, workers)
-            out = _compiled.solve_frame_cpu(
-                self.gram.numpy(), H.numpy(), b.numpy(), self.gram_diag.numpy(),
-                gn_all.numpy(), irregular.numpy(), tol, min(max_iter, _BPP_ROUNDS), refine,
-                workers,
-            )  # fmt: skip
-            x, zset = torch.from_numpy(out[0]), torch.from_numpy(out[1])
-            r = torch.from_numpy(out[2]).to(dt)
-            status = torch.from_numpy(out[3])
-            iters = torch.from_numpy(out[4]).long()
-            done = status == _compiled.DONE
-            redo = (sing & ~nod) | ~done
-            plain = ~zset.any(1) & ~irregular
-            return self._finish_as(x, b, r, zset, done, iters, redo, plain, irregular, nod, tol,
-                                   max_iter, refine, n_corr)
-
-        def stage1(sl: slice) -> None:
-            bs, xs = b[sl], x[sl]
-            bs.copy_(self.rhs(y, sl))
-            _rowvec(bs, _take(H, sl), out=xs)
-            bnorm[sl] = _norm2(bs)
-            xnorm[sl] = _norm2(xs)
-            xneg[sl] = xs.clamp_max(0).sum(1)
-
-        for_chunks(stage1, P, n, workers)
-        # infeasibility threshold in gradient units. x_m·G_mm < −thr for some m needs
-        # Σ_m min(x_m, 0) · max_m G_mm < −thr: a cheap test that selects a superset
-        thr = (0.25 * tol * (_expand_rows(gn_all, P) * xnorm + bnorm)).clamp_min(tiny)
-        need = xneg * _expand_rows(self.gram_diag_max, P) < -thr
-        any_irregular = bool(irregular.any())
-        if any_irregular:
-            need &= ~irregular
-        # 2. exact correction of the pixels with negative entries: one compacted sub-batch
-        iters = torch.zeros((P,), dtype=torch.long, device=dev)
-        done = torch.ones((P,), dtype=torch.bool, device=dev)
-        zset = torch.zeros((P, m), dtype=torch.bool, device=dev)
-        redo = sing & ~nod
-        idx = need.nonzero().squeeze(1)
-        if idx.numel():
-            gd = _expand_rows(self.gram_diag, P)
-            free_solve = FreeSetSolver(self.gram)
-
-            def correct(sl: slice) -> None:
-                ic = idx[sl]
-                xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic].unsqueeze(1),
-                                           min(max_iter, _BPP_ROUNDS), b[ic], free_solve)
-                x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
-                redo[ic] |= fs | ~ds
-
-            # split between the workers (compacted sub-batches of at most n_corr pixels)
-            nw = min(workers, max(1, idx.numel() // 2048))
-            for_chunks(correct, idx.numel(), min(n_corr, -(-idx.numel() // nw)), nw)
-        # 3. independent KKT check with the exact G and b (streamed); refine where it fails
-        r = torch.empty((P,), dtype=dt, device=dev)
-
-        plain = ~zset.any(1) & ~irregular  # all-free pixels: refined right here, streamed
-
-        def stage3(sl: slice) -> None:
-            Hs, gns, bs = _take(H, sl), _take(gn_all, sl), b[sl]
-            gd = _take(self.gram_diag, sl)
-            xs = x[sl].clamp_min_(0)
-            g = self.gram_apply(xs, sl).sub_(bs)
-            rs = _kkt_ratio(g, xs, gd, gns, bnorm[sl])
-            for _ in range(refine):
-                fix = ~(rs <= tol) & plain[sl]
-                nf = int(fix.sum())
-                if nf == 0:
-                    break
-                if 4 * nf >= fix.numel():  # many: whole chunk, masked
-                    xn = (xs - _rowvec(g, Hs)).clamp_min_(0)
-                    gn = self.gram_apply(xn, sl).sub_(bs)
-                    rn = _kkt_ratio(gn, xn, gd, gns, bnorm[sl])
-                    fix &= rn < rs
-                    xs.copy_(torch.where(fix.unsqueeze(1), xn, xs))
-                    g = torch.where(fix.unsqueeze(1), gn, g)
-                    rs = torch.where(fix, rn, rs)
-                    continue
-                li = fix.nonzero().squeeze(1)  # few: those rows only
-                gl = li + sl.start
-                Hl = Hs if Hs.shape[0] == 1 else Hs[li]
-                xl = xs[li]
-                xn = (xl - _rowvec(g[li], Hl)).clamp_min_(0)
-                gn = self.gram_apply(xn, gl).sub_(bs[li])
-                rn = _kkt_ratio(gn, xn, gd if gd.shape[0] == 1 else gd[li],
-                                gns if gns.shape[0] == 1 else gns[li], bnorm[sl][li])
-                ok = (rn < rs[li]).unsqueeze(1)
-                xs[li] = torch.where(ok, xn, xl)
-                g[li] = torch.where(ok, gn, g[li])
-                rs[li] = torch.minimum(rn, rs[li])
-            r[sl] = rs
-
-        for_chunks(stage3, P, n, workers)
-        return self._finish_as(x, b, r, zset, done, iters, redo, plain, irregular, nod, tol,
-                               max_iter, refine, n_corr)
-
-    def _finish_as(
-        self, x: Tensor, b: Tensor, r: Tensor, zset: Tensor, done: Tensor, iters: Tensor,
-        redo: Tensor, plain: Tensor, irregular: Tensor, nod: Tensor, tol: float, max_iter: int,
-        refine: int, n_corr: int,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Steps 3–4 for the pixels that still fail: refinement on their zero set, then the
-        Lawson–Hanson fallback (with singular and unfinished pixels)."""
-        m, dt, dev = x.shape[1], x.dtype, x.device
-        tiny = torch.finfo(dt).tiny
-        zero = torch.zeros((), dtype=dt, device=dev)
-        gn_all = self.gram_norm
-        any_irregular = bool(irregular.any())
-        bnorm = _norm2(b)
-        bad = ~(r <= tol) & ~irregular & ~redo & ~plain
-        for _ in range(refine):
-            idx = bad.nonzero().squeeze(1)
-            if idx.numel() == 0:
-                break
-            for s in range(0, idx.numel(), n_corr):
-                ic = idx[s:s + n_corr]
-                xs, rs = self._refine_rows(ic, x[ic], zset[ic], b[ic])
-                better = rs < r[ic]
-                x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
-                r[ic] = torch.where(better, rs, r[ic])
-            bad[idx] = ~(r[idx] <= tol)
-        # 4. robust fallback: singular G, Cholesky failures, unfinished or still failing pixels
-        redo |= ~(r <= tol) & ~irregular
-        if any_irregular:
-            redo &= ~nod
-        idx = redo.nonzero().squeeze(1)
-        for s in range(0, idx.numel(), n_corr):
-            ic = idx[s:s + n_corr]
-            Gs = self.gram_matrices(ic)
-            bs = b[ic]
-            thr_s = (tol * 0.25 * bnorm[ic]).clamp_min(tiny).view(-1, 1)
-            eps = float(torch.finfo(dt).eps)
-            piv_tol = min(eps**0.5, 100.0 * m * eps)
-            xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
-            rs = nnls_kkt_residual(Gs, bs, xs, gn_all if gn_all.shape[0] == 1 else gn_all[ic])
-            better = ~(rs >= r[ic])  # keep the earlier answer where it was at least as good
-            x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
-            done[ic] = torch.where(better, ds, done[ic])
-            r[ic] = torch.where(better, rs, r[ic])
-            iters[ic] = iters[ic] + its
-        if any_irregular:
-            x = torch.where(nod.view(-1, 1), zero, x)
-            r = torch.where(nod, zero, r)
-        r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
-        return x, done & (r <= tol), iters, r, nod.clone()
-
-    def _use_compiled(self, backend: str) -> bool:
-        """Whether the active-set correction runs the compiled CPU kernel (see ``backend``)."""
-        if backend == "torch":
-            return False
-        ok = self.device.type == "cpu" and _compiled.AVAILABLE
-        if backend == "compiled" and not ok:
-            raise RuntimeError(
-                "backend='compiled' needs numba and a CPU problem "
-                f"(numba installed: {_compiled.AVAILABLE}, device: {self.device})"
-            )
-        return ok
-
-    def _refine_rows(
-        self, idx: Tensor, x: Tensor, Z: Tensor, b: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """One step of iterative refinement on the zero set ``Z`` with the exact ``G``.
-
-        ``x ← x − G_FF⁻¹ g_F`` (``g = Gx − b``; ``G_FF⁻¹`` applied through ``H`` and the ``Z``
-        block, :func:`_zero_set_solve`). Returns the refined ``x`` (clamped at 0) and its KKT
-        residual.
-        """
-        H = self.gram_inv
-        Gs = self.gram_matrices(idx)
-        Hs = H if H.shape[0] == 1 else H[idx]
-        g = _rowvec(x, Gs) - b
-        u = -_rowvec(torch.where(Z, torch.zeros((), dtype=x.dtype, device=x.device), g), Hs)
-        d, ok = _zero_set_solve_any(H, idx, Z, u)
-        xs = torch.where(ok.view(-1, 1), x + d, x).clamp_min(0)
-        gn = self.gram_norm if self.gram_norm.shape[0] == 1 else self.gram_norm[idx]
-        return xs, nnls_kkt_residual(Gs, b, xs, gn)
 
 def prepare_nnls(
     A: Tensor | Sensing,

@@ -1,48 +1,37 @@
 """Compiled CPU kernels of the spatial (TV) solve (numba): the ADMM x-update and the TV prox.
 
-The torch path of :mod:`hsi_torch.recon.spatial` runs every step as ~20 whole-cube kernels on the
-``(M, h, w)`` frame (the invalid corners included) and a batched ``(P, M, M)`` matrix–vector
-product; at the full-size prototype's frame (25 × 744 × 858, 306 000 valid pixels) one ADMM
-iteration streams several GB through memory. These kernels run the same iterations on the valid
-pixels only, in their ``(P, M)`` storage (bands contiguous), each step in one pass:
+The torch step of :mod:`hsi_torch.recon.spatial.admm` runs every step as ~20 whole-cube kernels
+on the ``(M, h, w)`` frame (the invalid corners included) and a batched ``(P, M, M)``
+matrix–vector product; at the full-size prototype's frame (25 × 744 × 858, 306 000 valid
+pixels) one ADMM iteration streams several GB through memory. These kernels run the same
+iterations on the valid pixels only, in their ``(P, M)`` storage (bands contiguous), each step
+in one pass:
 
 * :func:`x_update`: ``u ← u + x − z`` (from the second iteration on), ``x = (G + ρI)⁻¹
   (b + ρ(z − u))``, ``v = x + u``, pixel by pixel with the packed symmetric inverse (``M(M+1)/2``
   numbers per pixel: half the memory of the full matrix).
 * :func:`fgp_step`: one dual iteration of the fast gradient projection (the same formulas as
-  :func:`hsi_torch.recon.spatial.prox_tv_nonneg`), row by row: the primal ``z`` of row ``k + 1``
-  is formed just before the dual update of row ``k`` needs it, so ``z`` stays in cache. The dual
-  is double-buffered (read the old arrays, write new ones), so chunks of rows run on ``prange``
-  threads without ordering constraints.
+  :func:`hsi_torch.recon.spatial.operators.prox_tv_nonneg`), row by row: the primal ``z`` of row
+  ``k + 1`` is formed just before the dual update of row ``k`` needs it, so ``z`` stays in cache.
+  The dual is double-buffered (read the old arrays, write new ones), so chunks of rows run on
+  ``prange`` threads without ordering constraints.
 * :func:`fgp_primal`: ``z = max(v − t Dᵀp, 0)``.
 
 The graph is stored per pixel (sorted by the flat frame index): the right, lower, left and upper
 neighbour's position and the edge weight (0: no edge, the position is then the pixel itself).
-Arithmetic in the arrays' dtype; numba is optional (the torch path runs without it).
+Arithmetic in the arrays' dtype; numba is optional (:mod:`hsi_torch.recon._numba`; the torch
+step runs without it). The ADMM loop that calls these kernels, and its stopping rule, is
+:mod:`hsi_torch.recon.spatial.admm` (:class:`~hsi_torch.recon.spatial.admm._CompiledStep`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import numpy as np
 
-from hsi_torch.recon.nnls._compiled import AVAILABLE, _nb
+from hsi_torch.recon._numba import AVAILABLE
+from hsi_torch.recon._numba import nb as _nb
 
-__all__ = ["AVAILABLE", "threads", "pack_symmetric", "x_update", "fgp_workspace", "fgp_step",
-           "fgp_primal"]
-
-
-@contextmanager
-def threads(num: int) -> Iterator[None]:
-    """numba's thread count for the kernels run in the block (restored afterwards)."""
-    old = _nb.get_num_threads()
-    _nb.set_num_threads(max(1, min(int(num), _nb.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        _nb.set_num_threads(old)
+__all__ = ["AVAILABLE", "pack_symmetric", "x_update", "fgp_workspace", "fgp_step", "fgp_primal"]
 
 
 def pack_symmetric(mat: np.ndarray) -> np.ndarray:
