@@ -419,7 +419,8 @@ def test_calibrate_pedestal_check_modes(tmp_path):
     from hsi_torch.errors import CalibrationError
 
     def reader(levels: list[float], black: float = 0.0) -> _Reader:
-        r = _Reader(CalibrateConfig(), (10, 10), "cpu", torch.float32, np.arange(100))
+        r = _Reader(CalibrateConfig(), (10, 10), "cpu", torch.float32,
+                    outside_index=np.arange(100))
         r.black_rgb, r.black_source = [black] * 3, "default"
         r.pedestals = [(tmp_path / f"f{i}.tif", [v] * 3, [2.0] * 3, 16383.0 - black)
                        for i, v in enumerate(levels)]  # fmt: skip

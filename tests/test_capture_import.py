@@ -385,7 +385,8 @@ def test_repeated_scan_frames_are_averaged_at_one_exposure(tmp_path: Path):
     pa, pb = tmp_path / "a.png", tmp_path / "b.png"
     settings = {pa: {"exposure_s": (0.01, "sheet"), "cfa_pattern": ("RGGB", "sheet")},
                 pb: {"exposure_s": (0.02, "sheet"), "cfa_pattern": ("RGGB", "sheet")}}
-    r = _Reader(CalibrateConfig(black_level=0.0), (24, 26), "cpu", torch.float64, settings)
+    r = _Reader(CalibrateConfig(black_level=0.0), (24, 26), "cpu", torch.float64,
+                settings=settings)
     img, sat, meta = r.read_mean((pa, pb))
     assert meta["black_level_source"] == "config" and meta["exposure_source"] == "sheet"
     ok = ~sat.any(0)

@@ -157,7 +157,7 @@ def run_layout(args: argparse.Namespace) -> int:
         trace_design,
     )
     from hsi_torch.calibrate.registration import GridDetectorConfig
-    from hsi_torch.cli import config_source, load_args_config
+    from hsi_torch.cli_common import config_source, load_args_config
     from hsi_torch.config import load_config, to_dict
     from hsi_torch.console import info
     from hsi_torch.errors import InputError

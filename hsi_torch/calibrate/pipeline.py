@@ -128,7 +128,7 @@ class _Reader:
     level, and the pedestal of every frame read after the dark subtraction (:meth:`pedestal`)."""
 
     def __init__(self, cfg: CalibrateConfig, sensor_size: tuple[int, int], device, dtype,
-                 settings: dict[Path, dict[str, Any]] | None = None,
+                 *, settings: dict[Path, dict[str, Any]] | None = None,
                  outside_index: np.ndarray | None = None):  # fmt: skip
         self.cfg, self.size, self.device, self.dtype = cfg, sensor_size, device, dtype
         self.settings = settings or {}
@@ -1107,7 +1107,7 @@ def calibrate_capture_set(
             bar.update(n)
 
     outside = outside_views_index(lay.triangles, lay.sensor_size)
-    reader = _Reader(cfg, lay.sensor_size, dev, dt, cs.settings, outside)
+    reader = _Reader(cfg, lay.sensor_size, dev, dt, settings=cs.settings, outside_index=outside)
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
