@@ -12,7 +12,7 @@ complete):
 4. **hand out** its task (``task(*args(input, frame))``, a function that returns
    ``{"ok": True, "outputs": [...], "warnings": [...], ...}`` or ``{"ok": False, "error",
    "traceback"}`` instead of raising);
-5. **collect** the result: warnings printed, then **finish** (the marker says "done") or
+5. **collect** the result: notes (what was assumed) and warnings printed, then **finish** (the marker says "done") or
    **abandon** (the earlier marker back) and record the failure.
 
 A failure at any step fails that input alone (its reason and traceback in
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Protocol
 
-from hsi_torch.console import progress_bar, warn
+from hsi_torch.console import info, progress_bar, warn
 from hsi_torch.io.paths import check_input_name, shown_path
 from hsi_torch.recon.batch.targets import OutputTarget
 
@@ -256,6 +256,8 @@ def drive(
                 else:
                     fail(inp, str((result or {}).get("error")), (result or {}).get("traceback", ""))
                 return
+            for msg in result.get("notes", []):  # what was assumed (black level, exposure)
+                info(f"{Path(shown_path(inp)).name}: {msg}")
             for msg in result.get("warnings", []):
                 warn(f"WARNING {shown_path(inp)}: {msg}")
             try:

@@ -187,7 +187,7 @@ def reconstruct_task(
         bundle_bytes: the bundle's content (``send_bundle``), else ``None``: its path.
 
     Returns:
-        ``{"ok": True, "outputs", "warnings", "worker", "pid", "prepare_s", "seconds",
+        ``{"ok": True, "outputs", "warnings", "notes", "worker", "pid", "prepare_s", "seconds",
         "threads"}`` or ``{"ok": False, "error", "traceback", "worker", ...}``.
     """
     with _FRAME_LOCK:
@@ -219,4 +219,5 @@ def reconstruct_task(
             release_freed_memory()
         WORKER_STATS["frames"] += 1
         return {**info, "ok": True, "outputs": outputs, "warnings": warnings,
+                "notes": list(meta.get("notes", [])),
                 "seconds": time.perf_counter() - t0}  # fmt: skip
