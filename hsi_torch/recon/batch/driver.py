@@ -12,7 +12,8 @@ complete):
 4. **hand out** its task (``task(*args(input, frame))``, a function that returns
    ``{"ok": True, "outputs": [...], "warnings": [...], ...}`` or ``{"ok": False, "error",
    "traceback"}`` instead of raising);
-5. **collect** the result: notes (what was assumed) and warnings printed, then **finish** (the marker says "done") or
+5. **collect** the result: notes (what was assumed) and warnings printed, then **finish** (the
+   marker says "done") or
    **abandon** (the earlier marker back) and record the failure.
 
 A failure at any step fails that input alone (its reason and traceback in

@@ -133,6 +133,7 @@ def execute(
     file's SHA-256 (a cluster whose workers may not share this file system). ``send_bundle``:
     the tasks get the bundle's bytes (:meth:`Executor.share`) instead of its path.
     """
+    started = run
     run.start()
     out = Path(os.path.abspath(run.out_dir))
     run = dataclasses.replace(
@@ -158,8 +159,10 @@ def execute(
     def task_args(inp: Path, frame: int | None) -> tuple[Any, ...]:
         return plan, os.path.abspath(inp), frame, input_stamp(inp), bundle_bytes
 
-    return drive(run.inputs, target, executor, reconstruct_task, task_args, resume=resume,
-                 progress=progress)  # fmt: skip
+    summary = drive(run.inputs, target, executor, reconstruct_task, task_args, resume=resume,
+                    progress=progress)  # fmt: skip
+    started.discard_if_nothing_written(summary)
+    return summary
 
 
 def load_run_config(

@@ -28,6 +28,7 @@ written.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -169,7 +170,7 @@ def write_outputs(
                 _save_std_map(cube, std, valid, s, cfg.preview_size)]))
     if cfg.spectra_points:
         jobs.append(timed("spectra", lambda: [
-            _plot_points(cube, valid, wl, s, cfg.spectra_points)]))
+            _plot_points(cube, valid, wl, s, cfg.spectra_points, std)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
     # which release the GIL); every file is still atomic
     results: list[list[Path]] = []
@@ -215,8 +216,10 @@ def _plot_points(
     wl: torch.Tensor,
     s: Path,
     points: Sequence[tuple[int, int]],
+    std: torch.Tensor | None = None,
 ) -> Path:
-    """The spectra at ``points`` (``(x, y)``) → ``<stem>_spectra.png``."""
+    """The spectra at ``points`` (``(x, y)``) → ``<stem>_spectra.png``, with a ±1σ band when
+    the run computed the uncertainty (``std``, ``(M, h, w)``)."""
 
     xs = torch.tensor([p[0] for p in points])
     ys = torch.tensor([p[1] for p in points])
@@ -229,9 +232,11 @@ def _plot_points(
         f"(x={x}, y={y})" + ("" if bool(valid[y, x]) else " invalid")
         for x, y in points
     ]
+    sd = None if std is None else torch.where(valid[ys, xs].unsqueeze(1), std[:, ys, xs].T,
+                                              float("nan"))  # fmt: skip
     path = s.with_name(s.name + "_spectra.png")
-    colour.plot_spectra(wl, spectra, labels=labels, path=path,
-                 title=s.name, ylabel="reflectance (relative to white reference)")
+    colour.plot_spectra(wl, spectra, labels=labels, path=path, std=sd,
+                        title=s.name, ylabel="reflectance (relative to white reference)")
     return path
 
 
@@ -285,9 +290,22 @@ class ReconstructRun:
     def start(self) -> Path:
         """Create the output folder and write the run's configuration file; returns the folder."""
 
+        self.created = [d for d in (self.out_dir, self.out_dir / RUNS_DIR) if not d.exists()]
         out = ensure_out_dir(self.out_dir)
         self.run_config = write_run_config(self.cfg, out, self.bundle_path, len(self.inputs))
         return out
+
+    def discard_if_nothing_written(self, summary: Any) -> None:
+        """After a run in which every input failed (none processed, none skipped): remove its
+        configuration file and the folders this run created, when they are empty — a run that
+        made nothing leaves nothing behind (e.g. its only input is missing)."""
+        if summary.processed or summary.skipped or self.run_config is None:
+            return
+        with contextlib.suppress(OSError):
+            Path(self.run_config).unlink()
+        for d in sorted(getattr(self, "created", []), key=lambda q: -len(q.parts)):
+            with contextlib.suppress(OSError):  # only when empty
+                Path(d).rmdir()
 
     def reconstructor(self) -> Reconstructor:
         """A :class:`Reconstructor` of this run's bundle and settings (the per-bundle
