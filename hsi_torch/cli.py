@@ -28,7 +28,8 @@ this module). ``--data-dir DIR`` (any position) names the real-data folder
 is a folder (``calibrate --out FILE.npz`` also names the bundle file directly).
 
 The entry function returns an exit status (``int``), ``None`` (= 0), or a
-:class:`hsi_torch.batch.BatchSummary` (its report is printed; status 1 if any input failed).
+:class:`hsi_torch.recon.batch.driver.RunSummary` (its report is printed; status 1 if any input
+failed).
 
 Exit status: 0 success; 1 an error (any :class:`hsi_torch.errors.HSIError` such as ``ConfigError``
 or ``FileFormatError``, a ``ValueError``, an ``OSError`` such as ``FileNotFoundError``, ... printed
@@ -354,11 +355,11 @@ def _err(msg: str) -> None:
 
 
 def _exit_code(result: Any) -> int:
-    from hsi_torch.batch import BatchSummary, print_summary
+    from hsi_torch.recon.batch.driver import RunSummary, print_summary
 
     if result is None:
         return 0
-    if isinstance(result, BatchSummary):
+    if isinstance(result, RunSummary):
         from hsi_torch.console import is_quiet
 
         if result.exit_code != 0 or not is_quiet():  # failures are reported even when quiet
@@ -510,7 +511,7 @@ def _dispatch(
             _check_device(args.device)
         out = getattr(args, "out", None)
         if args.command in _FOLDER_OUT and out is not None:
-            from hsi_torch.batch import check_out_dir
+            from hsi_torch.io.paths import check_out_dir
 
             check_out_dir(out)
             if not Path(out).exists():  # a folder that existed before is never removed

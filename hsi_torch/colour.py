@@ -419,6 +419,7 @@ def plot_spectra(
     ylabel: str = "reflectance",
     ncols: int = 6,
     truth_wavelengths=None,
+    std: torch.Tensor | None = None,
 ):
     """Plot spectra (solid) against ground truth (dashed); small multiples when ``K > 6``.
 
@@ -426,6 +427,7 @@ def plot_spectra(
         wavelengths: ``(M,)`` nm of ``spectra``.
         spectra: ``(K, M)`` or ``(M,)``.
         truth: ``(K, M_t)`` reference spectra on ``truth_wavelengths`` (default ``wavelengths``).
+        std: ``(K, M)`` standard deviation of ``spectra``: drawn as a shaded ±1σ band.
         labels: ``K`` panel/line labels.
         path: if given, the figure is saved there atomically (format from the suffix).
 
@@ -451,6 +453,9 @@ def plot_spectra(
             raise ValueError(f"truth shape {t.shape} does not match spectra {s.shape} / "
                              f"{t_wl.size} truth wavelengths")
     k = s.shape[0]
+    sd = None if std is None else np.atleast_2d(to_np(std))
+    if sd is not None and sd.shape != s.shape:
+        raise ValueError(f"std shape {sd.shape} does not match spectra {s.shape}")
     if labels is not None and len(labels) != k:
         raise ValueError(f"got {len(labels)} labels for {k} spectra")
     grid = k > 6
@@ -459,11 +464,15 @@ def plot_spectra(
     fig = Figure(figsize=(2.4 * nc + 1.0, 1.9 * nr + 0.8) if grid else (6.4, 4.0), dpi=100)
     FigureCanvasAgg(fig)
     axes = fig.subplots(nr, nc, squeeze=False, sharex=True, sharey=True)
-    ymax = max(float(np.nanmax(s)), float(np.nanmax(t)) if t is not None else 0.0, 1e-12)
+    top = s if sd is None else s + np.nan_to_num(sd)
+    ymax = max(float(np.nanmax(top)), float(np.nanmax(t)) if t is not None else 0.0, 1e-12)
     for i in range(k):
         ax = axes[i // nc, i % nc] if grid else axes[0, 0]
         lab = labels[i] if labels is not None else f"#{i}"
         (line,) = ax.plot(wl, s[i], "-", lw=1.4, label=None if grid else lab)
+        if sd is not None:
+            ax.fill_between(wl, s[i] - sd[i], s[i] + sd[i], color=line.get_color(), alpha=0.25,
+                            lw=0)  # fmt: skip
         if t is not None:
             ax.plot(t_wl, t[i], "--", lw=1.1, color="k" if grid else line.get_color())
         if grid:
@@ -479,7 +488,8 @@ def plot_spectra(
     fig.supxlabel("wavelength (nm)")
     fig.supylabel(ylabel)
     if title:
-        fig.suptitle(title + ("  (solid: estimate, dashed: truth)" if t is not None else ""))
+        fig.suptitle(title + ("  (solid: estimate, dashed: truth)" if t is not None else "")
+                     + ("  (band: ±1σ)" if sd is not None else ""))
     fig.tight_layout()
     if path is not None:
         import io

@@ -8,11 +8,11 @@ same configuration and writes the same files (the shipped ``reconstruct.yaml``: 
 preview, unless ``--set`` says otherwise).
 
 - **serial**: the bundle prepared once (:meth:`ReconstructRun.reconstructor`), then every frame
-  as :func:`hsi_torch.recon.run.run_serial` does it (read, reconstruct, write), all threads of
+  as a serial run does it (read, reconstruct, write), all threads of
   the machine: a *cold* pass (the first frame loads numba's compiled kernels) and a *warm* one.
 - **dask local:N**: a ``LocalCluster`` of N worker processes (one task thread each, ``cores / N``
   torch and numba threads per frame) — started (*processes*), the package imported on every
-  worker (*imports*), then :func:`hsi_torch.recon.many.reconstruct_many` twice: a *cold* pass
+  worker (*imports*), then :func:`hsi_torch.recon.batch.reconstruct_many` twice: a *cold* pass
   (each worker prepares the bundle on its first frame: *preparation*, per worker) and a *warm*
   pass (``resume=False``: every frame again, bundles already prepared).
 
@@ -85,11 +85,11 @@ def _bytes_per_frame(out: Path, n: int) -> float:
 def child_serial(spec: dict[str, Any]) -> dict[str, Any]:
     import torch
 
+    from hsi_torch.recon.batch.entry import load_run_config
+    from hsi_torch.recon.batch.run import check_run, reconstruct_to_files
     from hsi_torch.recon.config import ReconstructConfig
-    from hsi_torch.recon.many import _load_cfg
-    from hsi_torch.recon.run import check_run, reconstruct_to_files
 
-    cfg: ReconstructConfig = _load_cfg(None, spec["overrides"])
+    cfg: ReconstructConfig = load_run_config(None, spec["overrides"])
     inputs = [Path(p) for p in spec["inputs"]]
     out = Path(spec["out"])
     run = check_run(inputs, spec["bundle"], out, cfg)
@@ -111,14 +111,14 @@ def child_serial(spec: dict[str, Any]) -> dict[str, Any]:
 
 def _import_package() -> float:
     t0 = time.perf_counter()
-    import hsi_torch.recon.many  # noqa: F401
+    import hsi_torch.recon.batch.entry  # noqa: F401
 
     return time.perf_counter() - t0
 
 
 def child_dask(spec: dict[str, Any]) -> dict[str, Any]:
+    from hsi_torch.recon.batch import reconstruct_many
     from hsi_torch.recon.distributed import connect
-    from hsi_torch.recon.many import reconstruct_many
 
     n = int(spec["workers"])
     inputs = [Path(p) for p in spec["inputs"]]

@@ -157,8 +157,8 @@ def bench_frame(
     """Time ``args.frames`` reconstructions of one capture, stage by stage, and the SciPy loop on
     ``args.subset`` of the same pixels (observations and masks of the same frame)."""
     from hsi_torch.io import read_any
+    from hsi_torch.recon.batch.run import write_outputs
     from hsi_torch.recon.config import ReconstructConfig
-    from hsi_torch.recon.run import write_outputs
 
     sens = rec.sensing
     dev, dtype = sens.device, sens.dtype

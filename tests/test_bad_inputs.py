@@ -21,9 +21,9 @@ import pytest
 import tifffile
 import torch
 import yaml
+from test_batch import run_batch
 from test_pipeline import make_bundle, render_capture, true_spectra
 
-from hsi_torch.batch import DONE_DIR, run_batch
 from hsi_torch.cli import main
 from hsi_torch.errors import (
     ConfigError,
@@ -35,6 +35,7 @@ from hsi_torch.errors import (
 )
 from hsi_torch.io import atomic, load_cube, read_any, read_capture, write_capture
 from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.recon.batch.targets import DONE_DIR
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.recon.nnls import solve_nnls
 
@@ -98,7 +99,7 @@ def test_same_stem_from_another_folder_is_refused_not_overwritten(ws, capsys):
 
 
 def test_run_batch_refuses_outputs_claimed_by_another_input(tmp_path):
-    """The ownership check is part of run_batch (any ``planned_outputs`` user)."""
+    """The ownership check is part of the files target (any ``planned_outputs`` user)."""
     a, b = tmp_path / "A" / "x.txt", tmp_path / "B" / "x.txt"
     for p, text in ((a, "from A"), (b, "from B")):
         p.parent.mkdir()
@@ -118,7 +119,7 @@ def test_run_batch_refuses_outputs_claimed_by_another_input(tmp_path):
 def test_concurrent_runs_never_mix_the_outputs_of_one_name(ws, capsys):
     """A run writing the outputs named 'a' holds a lock; another run meanwhile fails that input
     (naming the holder) instead of interleaving its files with the first run's."""
-    from hsi_torch.batch import _name_lock
+    from hsi_torch.recon.batch.targets import _name_lock
 
     tmp, bpath, caps, _ = ws
     out = tmp / "out"
@@ -538,3 +539,61 @@ def test_damaged_tiff_gives_our_error_without_tifffile_log_lines(tmp_path, caplo
     with pytest.raises(FileFormatError, match=r"bad\.tif"):
         read_any(p)
     assert not [r for r in caplog.records if r.name.startswith("tifffile")]
+
+
+# ---------------------------------------------------------------------------------------------
+# second campaign: a name that is not UTF-8, resume by the bundle's content, settings up front
+
+
+def test_an_input_name_that_is_not_utf8_fails_alone(ws, capsys):
+    """One input named with bytes that are not UTF-8 used to abort the whole batch
+    (UnicodeEncodeError, later inputs not run, earlier failures not summarised)."""
+    tmp, bpath, caps, img = ws
+    bad = os.fsdecode(os.fsencode(caps) + b"/bad\xff.npy")
+    np.save(bad, img.numpy())
+    np.save(caps / "z.npy", img.numpy())
+    out = tmp / "out"
+    missing = str(caps / "gone.npy")
+    assert _rec(bpath, out, missing, str(caps / "a.npy"), bad, str(caps / "z.npy")) == 1
+    err = capsys.readouterr().err
+    assert "4 input(s): 2 processed" in err and "2 failed" in err
+    assert "not valid UTF-8" in err and "bad\\xff.npy" in err and "gone.npy" in err
+    assert (out / "a.npz").is_file() and (out / "z.npz").is_file()  # the later input ran
+    assert not any("bad" in p.name for p in out.iterdir())
+
+
+def test_resume_knows_the_bundle_by_its_content(ws, capsys):
+    """Another bundle with the same path, size and time is not the same bundle: the rerun
+    reconstructs again (it used to skip and keep cubes 2x off)."""
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    first = load_cube(out / "a.npz").cube
+    st = bpath.stat()
+    other = make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB")
+    other.phi = 2.0 * other.phi  # same arrays, same sizes: the cubes come out halved
+    other.save(bpath)
+    os.utime(bpath, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert bpath.stat().st_size == st.st_size and bpath.stat().st_mtime_ns == st.st_mtime_ns
+    capsys.readouterr()
+    assert _rec(bpath, out, str(caps / "a.npy")) == 0
+    assert "1 processed" in capsys.readouterr().err
+    again = load_cube(out / "a.npz").cube
+    valid = torch.isfinite(first)
+    torch.testing.assert_close(again[valid], first[valid] / 2, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("setting, key", [
+    ("black_level=[1, 2]", "black_level"), ("white_level=-5", "white_level"),
+    ("preview_size=100000", "preview_size"), ("black_level=[1, 2, 3, 4, 5]", "black_level"),
+])  # fmt: skip
+def test_reading_and_preview_settings_are_checked_before_the_folder_exists(ws, capsys,
+                                                                            setting, key):
+    """These used to be checked per input, after the folder was made: every input failed (a
+    preview of 100000 px ran out of memory after each solve)."""
+    tmp, bpath, caps, _ = ws
+    out = tmp / "out"
+    assert _rec(bpath, out, "--set", setting, str(caps / "a.npy")) == 1
+    err = capsys.readouterr().err
+    assert f"key '{key}'" in err and err.count("\n") == 1
+    assert not out.exists()

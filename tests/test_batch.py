@@ -1,4 +1,9 @@
-"""Tests of batch processing: globs, failures collected, resume, summaries."""
+"""Tests of the run's driver loop over files: globs, failures collected, resume, summaries.
+
+:func:`run_batch` below drives a plain ``process(path)`` through the driver of every
+reconstruction run (:func:`hsi_torch.recon.batch.driver.drive`, in this process, into a
+:class:`~hsi_torch.recon.batch.targets.FilesTarget`); other test files import it.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +12,25 @@ from pathlib import Path
 
 import pytest
 
-from hsi_torch.batch import DONE_DIR, expand_inputs, print_summary, run_batch
 from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.io.paths import ensure_out_dir, expand_inputs
+from hsi_torch.recon.batch.driver import (
+    InlineExecutor,
+    RunSummary,
+    call_process,
+    drive,
+    print_summary,
+)
+from hsi_torch.recon.batch.targets import DONE_DIR, FilesTarget
+
+
+def run_batch(inputs, process, out_dir, *, resume=True, progress=True, planned_outputs=None,
+              fingerprint=None, desc="processing") -> RunSummary:  # fmt: skip
+    """``process`` over every input (files or globs), through the run's driver loop."""
+    out = ensure_out_dir(out_dir)
+    return drive(expand_inputs(inputs), FilesTarget(out, fingerprint, planned_outputs),
+                 InlineExecutor(), call_process, lambda p, frame: (process, str(p), frame),
+                 resume=resume, progress=progress, desc=desc)  # fmt: skip
 
 
 @pytest.fixture
@@ -85,25 +107,22 @@ def test_run_batch_continues_and_resumes(tmp_path, inputs, capsys):
     assert calls == ["a.txt", "b.txt", "bad.txt", "c.txt"]
 
 
-def test_run_batch_expected_outputs_and_progress(tmp_path, inputs, capsys, monkeypatch):
+def test_run_batch_progress_and_changed_settings(tmp_path, inputs, capsys, monkeypatch):
     from hsi_torch import console
 
     monkeypatch.setattr(console, "_stderr_is_terminal", lambda: True)  # bars need a terminal
     out = tmp_path / "o2"
-    out.mkdir()
-    (out / "a.out").write_text("done earlier")
     calls: list[str] = []
-    s = run_batch(
-        [inputs / "a.txt", inputs / "c.txt"],
-        _processor(out, calls),
-        out,
-        expected_outputs=lambda p: [out / f"{p.stem}.out"],
-        progress=True,
-        desc="reconstructing",
-    )
-    assert calls == ["c.txt"] and [p.name for p in s.skipped] == ["a.txt"] and s.ok
-    assert not (out / DONE_DIR).exists()  # explicit expected outputs need no markers
+    items = [inputs / "a.txt", inputs / "c.txt"]
+    s = run_batch(items, _processor(out, calls), out, desc="reconstructing", fingerprint="x")
+    assert calls == ["a.txt", "c.txt"] and s.ok
     assert "reconstructing" in capsys.readouterr().err  # tqdm bar on stderr
+    calls.clear()
+    s = run_batch(items, _processor(out, calls), out, progress=False, fingerprint="x")
+    assert calls == [] and len(s.skipped) == 2
+    # another fingerprint (other settings, another bundle): redone
+    s = run_batch(items, _processor(out, calls), out, progress=False, fingerprint="y")
+    assert calls == ["a.txt", "c.txt"] and not s.skipped
 
 
 def test_run_batch_interrupt_propagates(tmp_path, inputs):

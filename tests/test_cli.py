@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_batch import run_batch
 
 import hsi_torch
 from hsi_torch import cli
-from hsi_torch.batch import run_batch
 from hsi_torch.config import ConfigError, write_resolved_config
 
 

@@ -26,9 +26,9 @@ import torch
 import yaml
 from test_pipeline import make_bundle, render_capture, true_spectra
 
-from hsi_torch.batch import DONE_DIR
 from hsi_torch.cli import main
 from hsi_torch.io import load_cube, write_capture
+from hsi_torch.recon.batch.targets import DONE_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 NUM_FRAMES = 12

@@ -23,8 +23,8 @@ import torch
 
 from hsi_torch.cli import main
 from hsi_torch.io import load_cube, read_capture, write_capture
+from hsi_torch.recon.batch import reconstruct_many
 from hsi_torch.recon.distributed import connect, parse_scheduler
-from hsi_torch.recon.many import reconstruct_many
 from hsi_torch.simulate.oracle import bundle_from_truth
 
 ROOT = Path(__file__).resolve().parents[1]

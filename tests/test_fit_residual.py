@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from hsi_torch.cli import main
+from hsi_torch.recon.batch.run import frame_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import Reconstructor
-from hsi_torch.recon.run import frame_warnings
 from hsi_torch.simulate.oracle import bundle_from_truth
 
 _MINIMAL = ["--set", "captures.scan_wavelengths_nm=[550]", "--set", "captures.white_shots=0",

@@ -3,7 +3,7 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, batch, testing, cli_common  → foundation only
+                 resources, refdata, colour, testing, cli_common         → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
@@ -15,9 +15,12 @@ So reconstruction needs neither calibration nor the simulator (nor OpenCV), cali
 need the simulator, and nothing below the experiments imports them. The optics are physics with no
 file I/O (the Bayer mosaic they and the readers share is the foundation's ``bayer``). The command
 line reaches the ``*/cli_entry.py`` modules by name and they take what they share from
-``cli_common``, so no module imports ``cli`` back (only ``__main__`` runs it). Library modules
-import at module level; an import inside a function of a library module carries a ``# lazy:``
-comment that says why (start-up time, an optional dependency).
+``cli_common``, so no module imports ``cli`` back (only ``__main__`` runs it). Inside the
+reconstruction, the run layer (``recon.batch``: the driver loop, output targets, tasks) sits on
+top: the reconstructor, the module and the solvers never import it; Dask is imported only by
+``recon.distributed``; the settings and the configuration schema load without the
+reconstructor. Library modules import at module level; an import inside a function of a library
+module carries a ``# lazy:`` comment that says why (start-up time, an optional dependency).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
-              "profiling", "resources", "refdata", "colour", "batch", "testing",
+              "profiling", "resources", "refdata", "colour", "testing",
               "cli_common")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
@@ -216,16 +219,44 @@ def test_the_solver_has_one_import_path():
     assert sorted(exporters) == ["hsi_torch.recon.nnls", "hsi_torch.recon.nnls.problem"]
 
 
-#: modules still importing numba themselves (their thread helpers are
-#: ``hsi_torch.recon._numba.set_threads`` / ``thread_counts``; drop the entry when they use them)
-_NUMBA_PENDING = {"hsi_torch.recon.many"}
+def test_the_run_layer_sits_on_top_of_the_reconstruction():
+    """``recon.batch`` (driver, targets, tasks, entry) may import the reconstruction; nothing
+    else of the reconstruction imports it (only the commands and the experiments may)."""
+    bad = []
+    for path in _files():
+        me = _module_name(path)
+        if stage_of(me) != "recon" or me.startswith("hsi_torch.recon.batch"):
+            continue
+        for mod, line, _ in _imports(path):
+            if mod.startswith("hsi_torch.recon.batch"):
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {mod}")
+    assert not bad, "the reconstruction imports its run layer:\n" + "\n".join(bad)
+
+
+def test_dask_is_imported_only_by_the_distributed_module():
+    bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
+           for mod, line, _ in _imports(p)
+           if mod.split(".")[0] in ("dask", "distributed")
+           and _module_name(p) != "hsi_torch.recon.distributed"]  # fmt: skip
+    assert not bad, "dask imported outside hsi_torch.recon.distributed: " + ", ".join(bad)
+    mods = _loaded_after("import hsi_torch.recon.batch.entry, hsi_torch.recon.cli_entry")
+    assert "hsi_torch.recon.distributed" in mods
+    assert not {"dask", "distributed"} & mods, "a serial run's modules load Dask"
+
+
+def test_the_settings_and_the_config_load_without_the_reconstructor():
+    mods = _loaded_after("import hsi_torch.recon.settings, hsi_torch.recon.config")
+    assert "hsi_torch.recon.settings" in mods
+    leaked = sorted(m for m in mods if m.startswith("hsi_torch.recon.")
+                    and m not in ("hsi_torch.recon.settings", "hsi_torch.recon.config"))
+    assert not leaked, f"the settings load {leaked}"
 
 
 def test_numba_is_imported_in_one_place():
     """numba is optional: only ``hsi_torch.recon._numba`` imports it (availability, the
     ``HSI_TORCH_NO_NUMBA`` switch, thread counts); the kernels take it from there."""
     bad = [f"{p.relative_to(ROOT)}:{line}" for p in _files()
-           if _module_name(p) not in {"hsi_torch.recon._numba", *_NUMBA_PENDING}
+           if _module_name(p) != "hsi_torch.recon._numba"
            for mod, line, _ in _imports(p) if mod == "numba" or mod.startswith("numba.")]
     assert not bad, "numba imported outside hsi_torch/recon/_numba.py: " + ", ".join(bad)
 

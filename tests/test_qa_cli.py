@@ -18,9 +18,9 @@ import pytest
 import torch
 from test_pipeline import make_bundle, render_capture, true_spectra
 
-from hsi_torch.batch import expand_inputs
 from hsi_torch.cli import main
 from hsi_torch.io import load_cube, write_capture
+from hsi_torch.io.paths import expand_inputs
 from hsi_torch.io.raw import mosaic
 from hsi_torch.resources import shipped_config
 
@@ -67,8 +67,12 @@ def test_resume_redoes_inputs_when_config_bundle_or_input_change(ws, capsys):
     _bump_mtime(caps / "a.npy")
     assert _rec(bpath, out, "--set", "beta=5", a) == 0
     assert "1 processed" in capsys.readouterr().err
-    # a recalibrated bundle at the same path: redone
+    # the same bundle touched: known by its content, still skipped
     _bump_mtime(bpath)
+    assert _rec(bpath, out, "--set", "beta=5", a) == 0
+    assert "1 skipped" in capsys.readouterr().err
+    # a recalibrated bundle at the same path: redone
+    make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB", seed=3).save(bpath)
     assert _rec(bpath, out, "--set", "beta=5", a) == 0
     assert "1 processed" in capsys.readouterr().err
     # the device is not a setting of the result: still skipped

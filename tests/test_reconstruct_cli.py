@@ -127,8 +127,8 @@ def test_reconstruct_cli_warns_for_a_bundle_from_another_geometry(workspace, cap
 
 
 def test_frame_warnings():
+    from hsi_torch.recon.batch.run import frame_warnings
     from hsi_torch.recon.config import ReconstructConfig
-    from hsi_torch.recon.run import frame_warnings
 
     cfg = ReconstructConfig()
     ok = {"fit_residual": 0.03, "num_not_converged": 0, "num_valid": 100, "max_kkt": 1e-7}
@@ -150,9 +150,9 @@ def test_write_outputs_same_files_as_per_format_writers(tmp_path):
 
     from hsi_torch.colour import save_preview_png
     from hsi_torch.io import cube as cube_io
+    from hsi_torch.recon.batch.run import write_outputs
     from hsi_torch.recon.config import ReconstructConfig
     from hsi_torch.recon.pipeline import ReconstructionResult
-    from hsi_torch.recon.run import write_outputs
 
     g = torch.Generator().manual_seed(0)
     M, h, w = 6, 30, 40

@@ -24,10 +24,10 @@ from hsi_torch.config import load_config
 from hsi_torch.io import load_cube, write_capture
 from hsi_torch.io.raw import bayer_half, demosaic_bilinear, mosaic
 from hsi_torch.optics.sensor import SensorModel
+from hsi_torch.recon.batch.run import output_paths
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.nnls import prepare_nnls, smoothness_gram, solve_nnls
 from hsi_torch.recon.pipeline import Reconstructor
-from hsi_torch.recon.run import output_paths
 from hsi_torch.recon.uncertainty import (
     DEFAULT_ELECTRONS_PER_DN,
     DEFAULT_READ_NOISE_E,

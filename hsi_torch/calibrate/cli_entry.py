@@ -57,7 +57,6 @@ def figure_path(bundle_path: str | Path) -> Path:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point called by :mod:`hsi_torch.cli`: calibrate a capture folder into a bundle."""
-    from hsi_torch.batch import check_out_dir
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.figures import plot_calibration
     from hsi_torch.calibrate.pipeline import calibrate_capture_set
@@ -65,6 +64,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_json
+    from hsi_torch.io.paths import check_out_dir
 
     bundle_path, report_path, config_path = output_paths(args.out)
     if bundle_path.is_dir():

@@ -68,10 +68,10 @@ def run_experiment(args: argparse.Namespace) -> int:
     """CLI entry: ``args.name``, ``args.config`` (Path or None = the shipped ``<name>.yaml``,
     else the schema's defaults),
     ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
-    from hsi_torch.batch import ensure_out_dir
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
+    from hsi_torch.io.paths import ensure_out_dir
 
     schema, run = resolve_experiment(args.name)
     cfg = load_args_config(args, schema, default=args.name)

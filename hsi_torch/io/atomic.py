@@ -12,6 +12,7 @@ names the file).
 from __future__ import annotations
 
 import contextlib
+import glob
 import itertools
 import json
 import os
@@ -34,6 +35,7 @@ __all__ = [
     "atomic_save_npz",
     "atomic_write_new",
     "clean_stale_temp_files",
+    "clean_stale_temp_files_of",
     "lock_or_refuse",
     "mark_lock_holder",
 ]
@@ -234,6 +236,21 @@ def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
         with contextlib.suppress(FileNotFoundError):  # a concurrent cleaner got it first
             os.unlink(entry.path)
             removed.append(Path(entry.path))
+    return removed
+
+
+def clean_stale_temp_files_of(path: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files that killed :func:`atomic_write` callers of ``path`` left
+    (as :func:`clean_stale_temp_files`, for one file's name only); returns them."""
+    p = Path(path)
+    removed: list[Path] = []
+    for t in p.parent.glob(f".{glob.escape(p.name)}.*.tmp"):
+        m = TEMP_FILE_RE.match(t.name)
+        if m is None or m["name"] != p.name or _pid_alive(int(m["pid"])):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            t.unlink()
+            removed.append(t)
     return removed
 
 

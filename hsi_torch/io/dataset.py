@@ -34,7 +34,7 @@ store's lock file (``.hsi_torch.lock``, one run per store at a time).
 **Frames belong to inputs.** A frame index is given to each input (by absolute path) when it is
 first added; a later run with more inputs appends frames, one with the same inputs reuses them
 (resume: a frame whose ``done`` is True, made from the same input file and settings, is skipped;
-see :meth:`CubeDataset.is_done`).
+see :class:`hsi_torch.recon.batch.targets.StoreTarget`).
 
 Reading::
 
@@ -346,16 +346,6 @@ class CubeDataset:
         except (OSError, ValueError, RuntimeError):
             return None
         return rec if isinstance(rec, dict) else None
-
-    def is_done(self, source: str | os.PathLike, input_stamp: Sequence[int],
-                fingerprint: str | None) -> bool:  # fmt: skip
-        """Whether the input's frame is complete and was made from this very input file
-        (``input_stamp``: size, mtime) under the same settings (``fingerprint``)."""
-        i = self.index.get(os.path.abspath(source))
-        rec = None if i is None else self.frame_record(i)
-        if rec is None:
-            return False
-        return rec.get("input_stamp") == list(input_stamp) and rec.get("fingerprint") == fingerprint
 
     def mark_pending(self, index: int) -> None:
         """The frame is about to be (re)written: not complete until its writer says so."""

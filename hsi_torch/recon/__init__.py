@@ -1,5 +1,5 @@
-"""Reconstruction: batched NNLS solvers, per-bundle sensing, the frame pipeline, the nn.Module and
-the ``hsi-torch reconstruct`` command.
+"""Reconstruction: batched NNLS solvers, per-bundle sensing, the frame pipeline, the nn.Module, the
+settings as one object, and runs of many captures (``hsi-torch reconstruct``, ``reconstruct_many``).
 
 Heavy parts are imported lazily (``from hsi_torch.recon import Reconstructor``).
 """
@@ -17,6 +17,8 @@ _LAZY = {
     "HSIReconstructor": "hsi_torch.recon.module",
     "ReconstructionOutput": "hsi_torch.recon.module",
     "ReconstructConfig": "hsi_torch.recon.config",
+    "ReconstructSettings": "hsi_torch.recon.settings",
+    "reconstruct_many": "hsi_torch.recon.batch.entry",
 }
 
 __all__ = list(_LAZY)

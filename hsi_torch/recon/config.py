@@ -1,7 +1,10 @@
 """``ReconstructConfig``: schema of the shipped ``reconstruct.yaml`` (``hsi-torch reconstruct``).
 
-Loaded and validated by :func:`hsi_torch.config.load_config`; every key can be overridden on the
-command line (``--set beta=100``). ``describe_schema(ReconstructConfig)`` prints the reference.
+Loaded by :func:`hsi_torch.config.load_config`; every key can be overridden on the command line
+(``--set beta=100``). ``describe_schema(ReconstructConfig)`` prints the reference. The values are
+checked by :class:`hsi_torch.recon.settings.ReconstructSettings` (the grouped, frozen form a run
+passes on), which every instance builds once on creation: an invalid value fails here, before a
+run creates its output folder.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from hsi_torch.config import help_meta
+from hsi_torch.recon.settings import MAX_PREVIEW_SIZE, ReconstructSettings
 
 __all__ = ["ReconstructConfig"]
 
@@ -66,7 +70,8 @@ class ReconstructConfig:
     preview: bool = field(default=True, metadata=_help("write an sRGB preview PNG (D65)"))
     preview_size: int = field(
         default=512, metadata=_help("the preview's longer side is enlarged (integer factor, "
-                                    "nearest neighbour) to at least this many px; 0: native"))
+                                    "nearest neighbour) to at least this many px; 0: native; "
+                                    f"at most {MAX_PREVIEW_SIZE}"))
     spectra_points: list[tuple[int, int]] = field(
         default_factory=list,
         metadata=_help("reference-frame pixels [x, y] whose spectra are plotted (PNG)"),
@@ -107,8 +112,8 @@ class ReconstructConfig:
     )
     white_level: float | None = field(
         default=None,
-        metadata=_help("saturation level, DN (null: the file's metadata, else the integer "
-                       "type's maximum)"),
+        metadata=_help("saturation level, DN, > 0 (null: the file's metadata, else the "
+                       "integer type's maximum)"),
     )
     uncertainty: bool = field(
         default=False,
@@ -134,38 +139,14 @@ class ReconstructConfig:
     )
 
     def __post_init__(self) -> None:
-        if not self.beta >= 0:
-            raise ValueError(f"beta must be >= 0, got {self.beta}")
-        if self.diff_order not in (0, 1, 2):
-            raise ValueError(f"diff_order must be 0, 1 or 2, got {self.diff_order}")
-        if not isinstance(self.lam, str) and not self.lam >= 0:
-            raise ValueError(f"lam must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
-        if self.prior != "none" and self.uncertainty:
-            raise ValueError("uncertainty: true is the per-pixel solver's noise model; it does "
-                             f"not hold for prior={self.prior} (use prior: none)")
-        if self.spatial_iters is not None and self.spatial_iters < 1:
-            raise ValueError(f"spatial_iters must be >= 1 or null, got {self.spatial_iters}")
-        if self.admm_iters is not None and self.admm_iters < 1:
-            raise ValueError(f"admm_iters must be >= 1 or null, got {self.admm_iters}")
-        if self.chunk_size is not None and self.chunk_size < 1:
-            raise ValueError(f"chunk_size must be >= 1 or null, got {self.chunk_size}")
-        if self.min_views < 1:
-            raise ValueError(f"min_views must be >= 1, got {self.min_views}")
-        if self.fit_residual_warning is not None and not self.fit_residual_warning > 0:
-            raise ValueError(
-                f"fit_residual_warning must be > 0 or null, got {self.fit_residual_warning}"
-            )
-        if self.exposure_s is not None and not (0 < self.exposure_s < float("inf")):
-            raise ValueError(f"exposure_s must be > 0 and finite or null, got {self.exposure_s}")
-        if self.noise_electrons_per_dn is not None and not self.noise_electrons_per_dn > 0:
-            raise ValueError(
-                f"noise_electrons_per_dn must be > 0 or null, got {self.noise_electrons_per_dn}"
-            )
-        if not self.noise_read_e >= 0:
-            raise ValueError(f"noise_read_e must be >= 0, got {self.noise_read_e}")
-        if self.preview_size < 0:
-            raise ValueError(f"preview_size must be >= 0, got {self.preview_size}")
-        if not self.formats and not self.preview:
-            raise ValueError("nothing to write: formats is empty and preview is false")
-        if len(set(self.formats)) != len(self.formats):
-            raise ValueError(f"formats has duplicates: {self.formats}")
+        self.settings()  # every value checked where the settings are built (errors name the key)
+
+    def settings(self) -> ReconstructSettings:
+        """These settings, grouped and frozen
+        (:class:`~hsi_torch.recon.settings.ReconstructSettings`; built once per run and passed
+        whole to the reconstructor and the workers).
+
+        Raises:
+            ConfigError: an invalid value (naming its key).
+        """
+        return ReconstructSettings.from_config(self)

@@ -3,10 +3,10 @@
 :func:`connect` gives a ``distributed.Client`` for ``--scheduler local:N`` (a ``LocalCluster`` of
 N worker processes, one task thread each, started and stopped here), ``--scheduler
 tcp://host:8786`` (a running scheduler: ``dask scheduler``, ``dask-jobqueue``, ``dask-mpi``,
-...) or ``--scheduler-file FILE`` (the file such a scheduler wrote). :class:`DaskExecutor` runs the
-tasks of :func:`hsi_torch.recon.many.run_many` on its workers: a bounded number in flight (twice
-the cluster's task threads, at least 4, re-read as workers come and go), results taken as they
-complete, the not-yet-started ones cancelled on Ctrl-C.
+...) or ``--scheduler-file FILE`` (the file such a scheduler wrote). :class:`DaskExecutor` runs
+the tasks of :func:`hsi_torch.recon.batch.driver.drive` on its workers: a bounded number in
+flight (twice the cluster's task threads, at least 4, re-read as workers come and go), results
+taken as they complete, the not-yet-started ones cancelled on Ctrl-C.
 
 Threads: ``local:N`` gives every frame ``cores // N`` torch and numba threads (at least 1) unless
 ``threads_per_worker`` says otherwise; on an existing cluster a frame gets its worker's Dask
@@ -168,7 +168,7 @@ def connect(
 
 
 class DaskExecutor:
-    """Runs the tasks of :func:`hsi_torch.recon.many.run_many` on a cluster's workers (see the
+    """Runs the tasks of :func:`hsi_torch.recon.batch.driver.drive` on a cluster's workers (see the
     module docstring). :meth:`share` scatters data (the bundle's bytes) to every worker once; the
     copies are kept while the executor lives, and workers that join later fetch one from
     another."""

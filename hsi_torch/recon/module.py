@@ -46,11 +46,17 @@ from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.pipeline import (
     DEFAULT_BETA,
     check_min_views,
-    check_prior,
     prepare_input,
     reconstruct_batch,
+    torch_dtype,
 )
 from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing
+from hsi_torch.recon.settings import (
+    ReconstructSettings,
+    dtype_name,
+    keyword_defaults,
+    settings_or_keywords,
+)
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.spectral import band_widths
 
@@ -124,25 +130,32 @@ class HSIReconstructor(nn.Module):
         spatial_iters: int | None = None,
         output: str = "result",
         fill_value: float = 0.0,
+        settings: ReconstructSettings | None = None,
     ) -> None:
         super().__init__()
-        if solver not in ("active_set", "admm"):
-            raise ValueError(f"solver must be 'active_set' or 'admm', got {solver!r}")
         if output not in OUTPUTS:
             raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
         self.output = output
         self.fill_value = float(fill_value)
-        check_prior(prior, lam, spatial_iters)
-        self.prior, self.lam, self.spatial_iters = prior, lam, spatial_iters
+        given = dict(solver=solver, admm_iters=admm_iters, cfa_pattern=cfa_pattern,
+                     chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid,
+                     sat_threshold=sat_threshold, prior=prior, lam=lam,
+                     spatial_iters=spatial_iters)  # fmt: skip
+        defaults = keyword_defaults(HSIReconstructor.__init__)
+        s = settings_or_keywords(settings, given, defaults, given)
+        #: the settings, grouped and frozen (β and the difference order: the sensing's)
+        self.settings = s
+        sv, pr = s.solve, s.prior
+        self.prior, self.lam, self.spatial_iters = pr.kind, pr.lam, pr.spatial_iters
         dev, dt = sensing.device, sensing.dtype
-        check_min_views(min_views, sensing.num_views)
-        self.solver = solver
-        self.admm_iters = admm_iters
-        self.cfa_pattern = cfa_pattern or sensing.cfa_pattern
-        self.chunk_size = chunk_size
-        self.min_views = int(min_views)
-        self.nan_invalid = bool(nan_invalid)
-        self.sat_threshold = float(sat_threshold)
+        check_min_views(sv.min_views, sensing.num_views)
+        self.solver = sv.solver
+        self.admm_iters = sv.admm_iters
+        self.cfa_pattern = s.input.cfa_pattern or sensing.cfa_pattern
+        self.chunk_size = sv.chunk_size
+        self.min_views = int(sv.min_views)
+        self.nan_invalid = bool(sv.nan_invalid)
+        self.sat_threshold = float(s.input.sat_threshold)
         self.beta = sensing.beta
         self.diff_order = sensing.diff_order
         self.sensor_size = sensing.sensor_size
@@ -196,6 +209,7 @@ class HSIReconstructor(nn.Module):
         spatial_iters: int | None = None,
         output: str = "result",
         fill_value: float = 0.0,
+        settings: ReconstructSettings | None = None,
     ) -> HSIReconstructor:
         """Build from a bundle (object or ``.npz`` path).
 
@@ -216,19 +230,26 @@ class HSIReconstructor(nn.Module):
             output: ``"result"`` (default): ``forward`` returns
                 :class:`ReconstructionOutput` ``(cube, valid)``; ``"cube"``: the cube tensor
                 alone, ``(B, M, h, w)``, invalid pixels set to ``fill_value`` — the form for
-                ``nn.Sequential(rec, nn.Conv2d(M, …))``.
+                ``nn.Sequential(rec, nn.Conv2d(M, …))``. Not a reconstruction setting: the
+                module's output form.
             fill_value: the value of invalid pixels with ``output="cube"`` (default 0.0).
+            settings: all of the reconstruction keywords above at once, a
+                :class:`~hsi_torch.recon.settings.ReconstructSettings` (the keywords are then
+                left at their defaults).
         """
+        given = dict(beta=beta, solver=solver, diff_order=diff_order, admm_iters=admm_iters,
+                     cfa_pattern=cfa_pattern, device=device, dtype=dtype, chunk_size=chunk_size,
+                     min_views=min_views, nan_invalid=nan_invalid, prior=prior, lam=lam,
+                     spatial_iters=spatial_iters)  # fmt: skip
+        flat = {**given, "device": None if device is None else str(device),
+                "dtype": dtype_name(dtype)}  # fmt: skip
+        s = settings_or_keywords(settings, given, keyword_defaults(cls.from_bundle), flat)
         b = load_bundle(bundle)
         sens = precompute_sensing(
-            b, beta=beta, diff_order=diff_order, device=device, dtype=dtype,
-            chunk_size=chunk_size,
+            b, beta=s.solve.beta, diff_order=s.solve.diff_order, device=s.solve.device,
+            dtype=torch_dtype(s.solve.dtype), chunk_size=s.solve.chunk_size,
         )  # fmt: skip
-        return cls(
-            sens, b, solver=solver, admm_iters=admm_iters, cfa_pattern=cfa_pattern,
-            chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid, prior=prior,
-            lam=lam, spatial_iters=spatial_iters, output=output, fill_value=fill_value,
-        )  # fmt: skip
+        return cls(sens, b, settings=s, output=output, fill_value=fill_value)
 
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
         dt = self.model_transmittance.dtype

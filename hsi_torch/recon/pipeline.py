@@ -56,9 +56,18 @@ from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.checks import exposure_info, prepare_capture
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
+from hsi_torch.recon.settings import (
+    DEFAULT_BETA,
+    SOLVERS,
+    ReconstructSettings,
+    dtype_name,
+    keyword_defaults,
+    settings_or_keywords,
+)
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.recon.spatial import solve_frame as spatial_solve_frame
 from hsi_torch.recon.uncertainty import (
+    DEFAULT_ELECTRONS_PER_DN,
     RAW_LAYOUTS,
     SensorNoise,
     nnls_band_std,
@@ -74,6 +83,7 @@ __all__ = [
     "sample_views",
     "observations_from_samples",
     "DEFAULT_BETA",
+    "ReconstructSettings",
     "FIT_RESIDUAL_SAMPLES",
     "solve_observations",
     "assemble_cube",
@@ -81,31 +91,7 @@ __all__ = [
     "prepare_input",
     "fit_residual",
     "check_min_views",
-    "check_prior",
-    "PRIORS",
 ]
-
-_SOLVERS = ("active_set", "admm")
-#: spatial priors: ``"none"`` (per-pixel NNLS) or ``"tv"`` (:mod:`hsi_torch.recon.spatial`)
-PRIORS = ("none", "tv")
-
-
-def check_prior(prior: str, lam: float | str, spatial_iters: int | None) -> None:
-    """``prior`` in :data:`PRIORS`, ``lam`` finite ``≥ 0``, ``"auto"`` or ``"discrepancy"``,
-    ``spatial_iters`` None or ``≥ 1``."""
-    if prior not in PRIORS:
-        raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
-    if isinstance(lam, str):
-        if lam not in ("auto", "discrepancy"):
-            raise ValueError(f"lam must be a number >= 0, 'auto' or 'discrepancy', got {lam!r}")
-    elif not (float(lam) >= 0 and math.isfinite(float(lam))):
-        raise ValueError(f"lam must be finite and >= 0, 'auto' or 'discrepancy', got {lam}")
-    if spatial_iters is not None and int(spatial_iters) < 1:
-        raise ValueError(f"spatial_iters must be >= 1 or None, got {spatial_iters}")
-
-#: Default smoothness weight β on ‖D s‖² (DN² scale), shared by the Python API and
-#: :class:`~hsi_torch.recon.config.ReconstructConfig` (best measured on the default prototype).
-DEFAULT_BETA = 1e4
 
 #: Pixels (evenly spaced over the bundle's valid pixels) on which the fit residual is evaluated.
 FIT_RESIDUAL_SAMPLES = 4096
@@ -418,8 +404,8 @@ def solve_observations(
     Returns:
         ``x (P, M)`` (0 where invalid), ``ok (P,)`` bool, ``info`` (counts, KKT statistics).
     """
-    if solver not in _SOLVERS:
-        raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
     P, O = y.shape
     V = O // 3
     zero = torch.zeros((), dtype=y.dtype, device=y.device)
@@ -696,6 +682,10 @@ class Reconstructor:
             (:attr:`ReconstructionResult.std`, :mod:`hsi_torch.recon.uncertainty`) from
             ``noise`` (default :class:`~hsi_torch.recon.uncertainty.SensorNoise`: the
             simulator's default sensor).
+        settings: all of the above at once, a
+            :class:`~hsi_torch.recon.settings.ReconstructSettings` (what a run passes; e.g.
+            ``ReconstructConfig(...).settings()``); the keywords are then left at their defaults.
+            Either way :attr:`settings` holds them, validated.
 
     Example:
         >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
@@ -723,31 +713,41 @@ class Reconstructor:
         spatial_iters: int | None = None,
         uncertainty: bool = False,
         noise: SensorNoise | None = None,
+        settings: ReconstructSettings | None = None,
     ) -> None:
-        if solver not in _SOLVERS:
-            raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
-        check_prior(prior, lam, spatial_iters)
-        if prior != "none" and uncertainty:
-            raise ValueError("uncertainty=True is the per-pixel solver's noise model; it does not "
-                             f"hold for prior={prior!r} (use prior='none')")
-        self.prior, self.lam, self.spatial_iters = prior, lam, spatial_iters
+        given = dict(beta=beta, diff_order=diff_order, solver=solver, admm_iters=admm_iters,
+                     device=device, dtype=dtype, chunk_size=chunk_size, min_views=min_views,
+                     nan_invalid=nan_invalid, exposure_correction=exposure_correction,
+                     sat_threshold=sat_threshold, prior=prior, lam=lam,
+                     spatial_iters=spatial_iters, uncertainty=uncertainty, noise=noise)  # fmt: skip
+        flat = {k: v for k, v in given.items() if k not in ("device", "dtype", "noise")}
+        flat.update(device=None if device is None else str(device), dtype=dtype_name(dtype))
+        if noise is not None:
+            flat.update(noise_electrons_per_dn=noise.electrons_per_dn,
+                        noise_read_e=noise.read_noise_e,
+                        noise_quantization_dn=noise.quantization_dn)  # fmt: skip
+        s = settings_or_keywords(settings, given, keyword_defaults(Reconstructor.__init__), flat)
+        #: the settings, grouped and frozen (:class:`~hsi_torch.recon.settings.ReconstructSettings`)
+        self.settings = s
+        sv, pr = s.solve, s.prior
+        self.prior, self.lam, self.spatial_iters = pr.kind, pr.lam, pr.spatial_iters
         if isinstance(bundle, BundleSensing):
-            self.sensing = bundle.with_regularisation(beta, diff_order)
+            self.sensing = bundle.with_regularisation(sv.beta, sv.diff_order)
         else:
             self.sensing = precompute_sensing(
-                bundle, beta=beta, diff_order=diff_order, device=device, dtype=dtype,
-                chunk_size=chunk_size,
+                bundle, beta=sv.beta, diff_order=sv.diff_order, device=sv.device,
+                dtype=torch_dtype(sv.dtype), chunk_size=sv.chunk_size,
             )  # fmt: skip
-        check_min_views(min_views, self.sensing.num_views)
-        self.solver = solver
-        self.admm_iters = admm_iters
-        self.chunk_size = chunk_size
-        self.min_views = int(min_views)
-        self.nan_invalid = bool(nan_invalid)
-        self.exposure_correction = bool(exposure_correction)
-        self.sat_threshold = float(sat_threshold)
-        self.uncertainty = bool(uncertainty)
-        self.noise = noise if noise is not None else SensorNoise()
+        check_min_views(sv.min_views, self.sensing.num_views)
+        self.solver = sv.solver
+        self.admm_iters = sv.admm_iters
+        self.chunk_size = sv.chunk_size
+        self.min_views = int(sv.min_views)
+        self.nan_invalid = bool(sv.nan_invalid)
+        self.exposure_correction = bool(s.input.exposure_correction)
+        self.sat_threshold = float(s.input.sat_threshold)
+        self.uncertainty = bool(s.uncertainty.enabled)
+        self.noise = sensor_noise(s)
         self._factors: dict[tuple[str, str | None, torch.dtype], Tensor] = {}
 
     @property
@@ -903,6 +903,18 @@ class Reconstructor:
         res.stats.update(checks)
         res.stats["metadata"] = cap.metadata
         return res
+
+
+def torch_dtype(name: str) -> torch.dtype:
+    """``"float32"`` / ``"float64"`` (the settings' ``dtype``) → the torch dtype."""
+    return torch.float64 if name == "float64" else torch.float32
+
+
+def sensor_noise(settings: ReconstructSettings) -> SensorNoise:
+    """The noise model of ``settings.uncertainty`` (the simulator's default sensor's gain when
+    it is not given)."""
+    u = settings.uncertainty
+    return SensorNoise(u.electrons_per_dn or DEFAULT_ELECTRONS_PER_DN, u.read_e, u.quantization_dn)
 
 
 def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:

@@ -4,9 +4,9 @@
 optional packages, the inputs — files or globs —, the device, the bundle, ``spectra_points`` and
 ``min_views`` against the bundle) and gives a :class:`ReconstructRun`; :meth:`ReconstructRun.start`
 creates the output folder and the run's configuration file. :func:`reconstruct_input` reads and
-reconstructs one input, :func:`write_outputs` writes its files, :func:`run_serial` runs every
-input in this process (:func:`hsi_torch.batch.run_batch`). The distributed run
-(:mod:`hsi_torch.recon.many`) uses the same pieces on its workers, so both write the same files.
+reconstructs one input, :func:`write_outputs` writes its files; a task
+(:func:`hsi_torch.recon.batch.tasks.reconstruct_task`) does both, in this process or on a
+cluster's workers, so every run writes the same files (:mod:`hsi_torch.recon.batch`).
 
 For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
 its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
@@ -28,6 +28,9 @@ written.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -40,62 +43,57 @@ from typing import Any
 import torch
 
 from hsi_torch import __version__, colour
-from hsi_torch.batch import (
-    BatchSummary,
-    check_out_dir,
-    ensure_out_dir,
-    expand_inputs,
-    fingerprint_of,
-    run_batch,
-)
 from hsi_torch.config import ConfigError, config_yaml
 from hsi_torch.console import info, warn
 from hsi_torch.errors import NoValidPixelsError
+from hsi_torch.io import paths
 from hsi_torch.io.atomic import atomic_write_new, clean_stale_temp_files
+from hsi_torch.io.bundle import file_sha256
 from hsi_torch.io.cube import remove_output, require_format, save_cube_formats
+from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 from hsi_torch.recon.sensing import load_bundle
-from hsi_torch.recon.uncertainty import DEFAULT_ELECTRONS_PER_DN, SensorNoise, relative_std_map
+from hsi_torch.recon.settings import ReconstructSettings
+from hsi_torch.recon.uncertainty import relative_std_map
 
 __all__ = [
-    "ReconstructRun", "check_run", "reconstruct_input", "reconstruct_to_files", "run_serial",
+    "ReconstructRun", "check_run", "reconstruct_input", "reconstruct_to_files",
     "write_outputs", "output_paths", "frame_warnings", "preview_caption", "write_run_config",
-    "RUNS_DIR",
+    "RUNS_DIR", "as_settings",
 ]
 
-_SUFFIXES = {"tiff": [".tif", ".vrt"], "envi": [".hdr", ".img"], "npz": [".npz"],
-             "netcdf": [".nc"], "zarr": [".zarr"]}
+
+def as_settings(settings: ReconstructSettings | ReconstructConfig) -> ReconstructSettings:
+    """``settings`` as they are, or those of a :class:`ReconstructConfig`."""
+    return settings if isinstance(settings, ReconstructSettings) else settings.settings()
 
 
-def output_paths(stem: Path, cfg: ReconstructConfig) -> list[Path]:
-    """The files :func:`write_outputs` produces for ``stem`` under ``cfg``."""
-    out = [stem.with_name(stem.name + s) for f in cfg.formats for s in _SUFFIXES[f]]
-    if cfg.uncertainty:
-        out += [stem.with_name(stem.name + "_std" + s) for f in cfg.formats if f != "npz"
-                for s in _SUFFIXES[f]]  # fmt: skip
-    if cfg.preview:
-        out.append(stem.with_name(stem.name + "_preview.png"))
-        if cfg.uncertainty:
-            out.append(stem.with_name(stem.name + "_std.png"))
-    if cfg.spectra_points:
-        out.append(stem.with_name(stem.name + "_spectra.png"))
-    return out
+def output_paths(stem: Path, settings: ReconstructSettings | ReconstructConfig) -> list[Path]:
+    """The files :func:`write_outputs` produces for ``stem`` under ``settings``
+    (:func:`hsi_torch.io.paths.output_paths`)."""
+    s = as_settings(settings)
+    o = s.output
+    return paths.output_paths(stem, o.formats, uncertainty=s.uncertainty.enabled,
+                              preview=o.preview, spectra=bool(o.spectra_points))  # fmt: skip
 
 
 def preview_caption(
-    name: str, cfg: ReconstructConfig, metadata: dict[str, Any] | None = None
+    name: str,
+    settings: ReconstructSettings | ReconstructConfig,
+    metadata: dict[str, Any] | None = None,
 ) -> str:
     """The preview's caption: scene (the input's stem), bundle file, β, rendering."""
+    s = as_settings(settings)
     parts = [name]
     bundle = (metadata or {}).get("bundle")
     if bundle:
         parts.append(f"bundle {Path(bundle).name}")
-    parts.append(f"beta {cfg.beta:g}")
-    if cfg.prior == "tv":
-        parts.append(f"TV lam {cfg.lam}")
+    parts.append(f"beta {s.solve.beta:g}")
+    if s.prior.kind == "tv":
+        parts.append(f"TV lam {s.prior.lam}")
     parts.append("sRGB D65")
     return " | ".join(parts)
 
@@ -112,11 +110,12 @@ def _check_points(points: Sequence[tuple[int, int]], h: int, w: int) -> None:
 def write_outputs(
     result: ReconstructionResult,
     stem: str | os.PathLike,
-    cfg: ReconstructConfig,
+    settings: ReconstructSettings | ReconstructConfig,
     metadata: dict[str, Any] | None = None,
     timings: dict[str, float] | None = None,
 ) -> list[Path]:
-    """Write a reconstruction's cube files, preview and spectra plot (all atomic).
+    """Write a reconstruction's cube files, preview and spectra plot (all atomic), as
+    ``settings.output`` says.
 
     The files are written concurrently (one thread per file). On an error the files already
     written for this stem are removed, then the (first) error propagates.
@@ -127,6 +126,7 @@ def write_outputs(
         The paths written.
     """
 
+    cfg = as_settings(settings).output
     s = Path(stem)
     cube = result.cube.detach().to("cpu", torch.float32)
     valid = result.valid.detach().cpu()
@@ -162,13 +162,15 @@ def write_outputs(
     if cfg.preview:
         # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
         path = s.with_name(s.name + "_preview.png")
-        caption = preview_caption(s.name, cfg, metadata)
+        caption = preview_caption(s.name, settings, metadata)
         jobs.append(timed("preview", lambda: [colour.save_preview_png(
             cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size)]))
         if std is not None:
-            jobs.append(timed("std_preview", lambda: [_save_std_map(cube, std, valid, s, cfg)]))
+            jobs.append(timed("std_preview", lambda: [
+                _save_std_map(cube, std, valid, s, cfg.preview_size)]))
     if cfg.spectra_points:
-        jobs.append(timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg)]))
+        jobs.append(timed("spectra", lambda: [
+            _plot_points(cube, valid, wl, s, cfg.spectra_points, std)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
     # which release the GIL); every file is still atomic
     results: list[list[Path]] = []
@@ -189,7 +191,7 @@ def write_outputs(
 
 
 def _save_std_map(
-    cube: torch.Tensor, std: torch.Tensor, valid: torch.Tensor, s: Path, cfg: ReconstructConfig
+    cube: torch.Tensor, std: torch.Tensor, valid: torch.Tensor, s: Path, preview_size: int
 ) -> Path:
     """``<stem>_std.png``: the mean relative standard deviation ``Σσ / Σŝ`` per pixel, grey
     (black 0, white the 99th percentile of the valid pixels), invalid pixels dark red."""
@@ -205,16 +207,22 @@ def _save_std_map(
                f" | black 0 %, white {100 * top:.3g} % (99th pct), median {100 * med:.3g} %"
                " | dark red: invalid")
     return colour.save_labelled_png(img, s.with_name(s.name + "_std.png"), caption=caption,
-                                    min_size=cfg.preview_size)
+                                    min_size=preview_size)
 
 
 def _plot_points(
-    cube: torch.Tensor, valid: torch.Tensor, wl: torch.Tensor, s: Path, cfg: ReconstructConfig
+    cube: torch.Tensor,
+    valid: torch.Tensor,
+    wl: torch.Tensor,
+    s: Path,
+    points: Sequence[tuple[int, int]],
+    std: torch.Tensor | None = None,
 ) -> Path:
-    """The spectra at ``cfg.spectra_points`` → ``<stem>_spectra.png``."""
+    """The spectra at ``points`` (``(x, y)``) → ``<stem>_spectra.png``, with a ±1σ band when
+    the run computed the uncertainty (``std``, ``(M, h, w)``)."""
 
-    xs = torch.tensor([p[0] for p in cfg.spectra_points])
-    ys = torch.tensor([p[1] for p in cfg.spectra_points])
+    xs = torch.tensor([p[0] for p in points])
+    ys = torch.tensor([p[1] for p in points])
     spectra = cube[:, ys, xs].T  # (K, M)
     # invalid points are left out of the plot (NaN), not drawn as a flat zero spectrum
     spectra = torch.where(valid[ys, xs].unsqueeze(1), spectra, float("nan"))
@@ -222,11 +230,13 @@ def _plot_points(
         spectra = torch.zeros_like(spectra)  # nothing to draw; keep the axes finite
     labels = [
         f"(x={x}, y={y})" + ("" if bool(valid[y, x]) else " invalid")
-        for x, y in cfg.spectra_points
+        for x, y in points
     ]
+    sd = None if std is None else torch.where(valid[ys, xs].unsqueeze(1), std[:, ys, xs].T,
+                                              float("nan"))  # fmt: skip
     path = s.with_name(s.name + "_spectra.png")
-    colour.plot_spectra(wl, spectra, labels=labels, path=path,
-                 title=s.name, ylabel="reflectance (relative to white reference)")
+    colour.plot_spectra(wl, spectra, labels=labels, path=path, std=sd,
+                        title=s.name, ylabel="reflectance (relative to white reference)")
     return path
 
 
@@ -243,29 +253,35 @@ def _resolve_device(name: str, here: bool = True) -> torch.device:
 @dataclass
 class ReconstructRun:
     """A checked ``reconstruct`` run: inputs expanded, configuration, device and bundle validated,
-    nothing written yet. What the serial run and the distributed one
-    (:func:`hsi_torch.recon.many.run_many`) share; :meth:`start` creates the output folder and
-    the run's configuration file.
+    nothing written yet. What every task of the run gets (:mod:`hsi_torch.recon.batch.tasks`);
+    :meth:`start` creates the output folder and the run's configuration file.
 
     Attributes:
-        cfg: the resolved configuration.
+        cfg: the resolved configuration (as recorded: the run's configuration file, the cubes'
+            metadata).
+        settings: the same, grouped and frozen — what the reconstructor is built from (built
+            once, here).
         inputs: the expanded input files, in order.
         bundle_path: the calibration bundle (absolute).
+        bundle_sha256: the SHA-256 of its content (computed once per run: resume and the
+            workers' caches know the bundle by it).
+        bundle_stamp: ``(size, mtime_ns)`` of the bundle file (a worker's quick check that it
+            sees the same file).
         out_dir: the output folder.
-        device, dtype: where and in what precision frames are solved.
         frame_size: ``(h, w)`` of the reference frame (the cubes' spatial size).
         wavelengths_nm: the bundle's band centres, nm.
-        fingerprint: identifies the settings that change the outputs (configuration and bundle
-            file; resume redoes inputs made under another one).
+        fingerprint: identifies what changes the outputs (configuration and the bundle's
+            content; resume redoes inputs made under another one).
         run_config: ``out_dir/runs/<time>-<pid>.yaml`` once :meth:`start` wrote it.
     """
 
     cfg: ReconstructConfig
+    settings: ReconstructSettings
     inputs: list[Path]
     bundle_path: Path
+    bundle_sha256: str
+    bundle_stamp: tuple[int, int]
     out_dir: Path
-    device: torch.device
-    dtype: torch.dtype
     frame_size: tuple[int, int]
     wavelengths_nm: list[float]
     fingerprint: str
@@ -274,23 +290,33 @@ class ReconstructRun:
     def start(self) -> Path:
         """Create the output folder and write the run's configuration file; returns the folder."""
 
+        self.created = [d for d in (self.out_dir, self.out_dir / RUNS_DIR) if not d.exists()]
         out = ensure_out_dir(self.out_dir)
         self.run_config = write_run_config(self.cfg, out, self.bundle_path, len(self.inputs))
         return out
 
+    def discard_if_nothing_written(self, summary: Any) -> None:
+        """After a run in which every input failed (none processed, none skipped): remove its
+        configuration file and the folders this run created, when they are empty — a run that
+        made nothing leaves nothing behind (e.g. its only input is missing)."""
+        if summary.processed or summary.skipped or self.run_config is None:
+            return
+        with contextlib.suppress(OSError):
+            Path(self.run_config).unlink()
+        for d in sorted(getattr(self, "created", []), key=lambda q: -len(q.parts)):
+            with contextlib.suppress(OSError):  # only when empty
+                Path(d).rmdir()
+
     def reconstructor(self) -> Reconstructor:
         """A :class:`Reconstructor` of this run's bundle and settings (the per-bundle
         precomputation: seconds and GBs at full size)."""
-        cfg = self.cfg
-        return Reconstructor(
-            self.bundle_path, beta=cfg.beta, diff_order=cfg.diff_order, solver=cfg.solver,
-            admm_iters=cfg.admm_iters, device=self.device, dtype=self.dtype,
-            chunk_size=cfg.chunk_size, min_views=cfg.min_views, nan_invalid=cfg.nan_invalid,
-            exposure_correction=cfg.exposure_correction, prior=cfg.prior, lam=cfg.lam,
-            spatial_iters=cfg.spatial_iters, uncertainty=cfg.uncertainty,
-            noise=SensorNoise(cfg.noise_electrons_per_dn or DEFAULT_ELECTRONS_PER_DN,
-                              cfg.noise_read_e),
-        )  # fmt: skip
+        return Reconstructor(self.bundle_path, settings=self.settings)
+
+
+def fingerprint_of(obj: Any) -> str:
+    """A short stable hash of a JSON-serialisable ``obj`` (keys sorted)."""
+    text = json.dumps(obj, sort_keys=True, default=str)
+    return hashlib.sha1(text.encode("utf-8")).hexdigest()
 
 
 def check_run(
@@ -304,48 +330,49 @@ def check_run(
     config_source: str | None = None,
     device_here: bool = True,
 ) -> ReconstructRun:
-    """Check everything a run needs before anything is written: the cube formats' optional
+    """Check everything a run needs before anything is written: the configuration (built into
+    :class:`~hsi_torch.recon.settings.ReconstructSettings`, once), the cube formats' optional
     packages (unless ``formats=False``: a run writing a dataset store instead), the inputs (a
     glob matching nothing fails here), the device (``device_here=False``: only its name — the
     frames run on other machines, e.g. GPU workers of a driver without one), the bundle,
-    ``spectra_points`` and ``min_views`` against the bundle."""
+    ``spectra_points`` and ``min_views`` against the bundle; the bundle's SHA-256 is computed."""
+    if device:
+        cfg.device = str(device)
+    settings = cfg.settings()
     if formats:
-        for fmt in cfg.formats:  # an optional package that is missing fails before any work
+        for fmt in settings.output.formats:  # a missing optional package fails before any work
             try:
                 require_format(fmt)
             except ModuleNotFoundError as exc:
                 raise ValueError(f"config key 'formats': {exc}") from None
-    paths = expand_inputs(inputs)  # a glob matching nothing fails before anything is written
-    if device:
-        cfg.device = str(device)
-    dev = _resolve_device(cfg.device, here=device_here)
-    dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+    inputs = expand_inputs(inputs)  # a glob matching nothing fails before anything is written
+    _resolve_device(settings.solve.device, here=device_here)
     bundle_path = Path(os.path.abspath(bundle))
     b = load_bundle(bundle_path)
     h, w = b.frame_size
-    if cfg.spectra_points:
-        _check_points(cfg.spectra_points, h, w)
-    if cfg.min_views > b.num_views:
+    points = settings.output.spectra_points
+    if points:
+        _check_points(points, h, w)
+    if settings.solve.min_views > b.num_views:
         raise ConfigError(
-            f"{cfg.min_views} exceeds the {b.num_views} views of the calibration bundle "
-            f"{bundle_path}: no pixel could be valid", key="min_views", source=config_source,
+            f"{settings.solve.min_views} exceeds the {b.num_views} views of the calibration "
+            f"bundle {bundle_path}: no pixel could be valid", key="min_views",
+            source=config_source,
         )  # fmt: skip
     wavelengths = [float(x) for x in b.wavelengths_nm]
     # the reconstructor reads the bundle again from its file: what it keeps is the valid pixels'
     # factors, and the full-frame arrays are freed before the factorisation takes its memory
     del b
     st = bundle_path.stat()
+    sha = file_sha256(bundle_path)
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
     ignored = ("device", "chunk_size", "fit_residual_warning")
-    settings = {k: v for k, v in vars(cfg).items() if k not in ignored}
-    fingerprint = fingerprint_of({
-        "config": settings,
-        "bundle": [str(bundle_path), st.st_size, st.st_mtime_ns],
-    })  # fmt: skip
+    config = {k: v for k, v in vars(cfg).items() if k not in ignored}
+    fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(
-        cfg=cfg, inputs=paths, bundle_path=bundle_path, out_dir=check_out_dir(out_dir),
-        device=dev, dtype=dtype, frame_size=(int(h), int(w)), wavelengths_nm=wavelengths,
-        fingerprint=fingerprint,
+        cfg=cfg, settings=settings, inputs=inputs, bundle_path=bundle_path, bundle_sha256=sha,
+        bundle_stamp=(int(st.st_size), int(st.st_mtime_ns)), out_dir=check_out_dir(out_dir),
+        frame_size=(int(h), int(w)), wavelengths_nm=wavelengths, fingerprint=fingerprint,
     )  # fmt: skip
 
 
@@ -359,16 +386,16 @@ def reconstruct_input(
         NoValidPixelsError: not a single pixel could be reconstructed (the reason named).
     """
 
-    cfg = run.cfg
+    cfg, read = run.cfg, run.settings.input
     res = rec.reconstruct_file(
-        path, cfg.demosaic, cfa_pattern=cfg.cfa_pattern, black_level=cfg.black_level,
-        white_level=cfg.white_level, exposure_s=cfg.exposure_s,
+        path, read.demosaic, cfa_pattern=read.cfa_pattern, black_level=read.black_level,
+        white_level=read.white_level, exposure_s=read.exposure_s,
     )  # fmt: skip
     if res.stats.get("num_valid", 0) == 0:
         raise NoValidPixelsError(
             f"{path}: no valid pixel: {res.stats.get('no_valid_reason') or 'unknown reason'}"
         )
-    warnings = frame_warnings(res.stats, cfg)
+    warnings = frame_warnings(res.stats, run.settings)
     cap_meta = res.stats.pop("metadata", {})
     run_config = run.run_config
     meta = {
@@ -394,32 +421,10 @@ def reconstruct_to_files(rec: Reconstructor, path: Path, run: ReconstructRun) ->
         info(f"{path.name}: {msg}")
     for msg in warnings:
         warn(f"WARNING {path}: {msg}")
-    written = write_outputs(res, run.out_dir / path.stem, run.cfg, meta)
+    written = write_outputs(res, run.out_dir / path.stem, run.settings, meta)
     del res
     release_freed_memory()  # frames do not pile up freed blocks in the allocator's arenas
     return written
-
-
-def run_serial(
-    run: ReconstructRun, *, resume: bool = True, progress: bool = True
-) -> BatchSummary:
-    """The run in this process (:func:`hsi_torch.batch.run_batch`): one reconstructor, built on
-    the first input that needs it, then every input in order. :meth:`ReconstructRun.start`
-    must have been called. Returns the :class:`hsi_torch.batch.BatchSummary`."""
-
-    state: dict[str, Any] = {"rec": None}
-
-    def process(path: Path) -> list[Path]:
-        if state["rec"] is None:  # built on the first input that needs it
-            state["rec"] = run.reconstructor()
-        return reconstruct_to_files(state["rec"], path, run)
-
-    out, cfg = run.out_dir, run.cfg
-    return run_batch(
-        run.inputs, process, out, resume=resume, progress=progress,
-        desc="reconstruct", fingerprint=run.fingerprint,
-        planned_outputs=lambda p: output_paths(out / p.stem, cfg),
-    )  # fmt: skip
 
 
 RUNS_DIR = "runs"
@@ -447,15 +452,17 @@ def write_run_config(
     return atomic_write_new(folder, names, config_yaml(cfg, header).encode("utf-8"))
 
 
-def frame_warnings(stats: dict[str, Any], cfg: ReconstructConfig) -> list[str]:
+def frame_warnings(
+    stats: dict[str, Any], cfg: ReconstructSettings | ReconstructConfig
+) -> list[str]:
     """Warnings about one reconstructed frame: a fit residual above
-    ``cfg.fit_residual_warning`` (the bundle probably belongs to another geometry, or the
+    ``fit_residual_warning`` (the bundle probably belongs to another geometry, or the
     black level / exposure is wrong), pixels whose solve did not converge, and the capture
     checks (:func:`hsi_torch.recon.checks.check_warnings`: a pedestal outside the views, an
     unknown exposure ratio, another camera)."""
     out: list[str] = check_warnings(stats)
     fit = stats.get("fit_residual")
-    lim = cfg.fit_residual_warning
+    lim = as_settings(cfg).output.fit_residual_warning
     if lim is not None and isinstance(fit, float) and fit > lim:
         out.append(
             f"relative fit residual {fit:.3f} > {lim:g}: the spectra do not explain the "

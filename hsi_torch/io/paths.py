@@ -1,0 +1,150 @@
+"""The paths of a batch run: inputs (files and globs), the output folder, the outputs' names.
+
+:func:`expand_inputs` turns files and glob patterns into the inputs of a run,
+:func:`check_input_name` refuses a name that cannot name outputs (not valid UTF-8),
+:func:`check_out_dir` / :func:`ensure_out_dir` check and create the output folder, and
+:func:`output_paths` names the files a reconstruction writes for one input (``DIR/<stem>.tif``,
+``<stem>_preview.png``, ...). Every command that takes inputs or an output folder uses these.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from hsi_torch.errors import InputError
+
+__all__ = [
+    "expand_inputs",
+    "check_input_name",
+    "shown_path",
+    "check_out_dir",
+    "ensure_out_dir",
+    "output_paths",
+    "CUBE_SUFFIXES",
+]
+
+_GLOB_CHARS = set("*?[")
+
+#: the files of each cube format (:func:`hsi_torch.io.cube.save_cube_formats`)
+CUBE_SUFFIXES: dict[str, tuple[str, ...]] = {
+    "tiff": (".tif", ".vrt"), "envi": (".hdr", ".img"), "npz": (".npz",), "netcdf": (".nc",),
+    "zarr": (".zarr",),
+}  # fmt: skip
+
+
+def expand_inputs(inputs: Iterable[str | os.PathLike] | str | os.PathLike) -> list[Path]:
+    """Expand files and glob patterns (``*``, ``?``, ``[...]``, recursive ``**``) into paths.
+
+    Patterns expand to their matches in sorted order; plain paths are kept as given (a missing
+    plain file becomes a per-input failure later, not an error here). Duplicates are dropped,
+    first occurrence kept.
+
+    Raises:
+        ValueError: a pattern matches nothing, or an input is a directory.
+    """
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    out: list[Path] = []
+    seen: set[str] = set()
+    for item in inputs:
+        text = os.fspath(item)
+        if _GLOB_CHARS & set(text) and not os.path.exists(os.path.expanduser(text)):
+            matches = sorted(m for m in glob.glob(os.path.expanduser(text), recursive=True))
+            matches = [m for m in matches if not os.path.isdir(m)]
+            if not matches:
+                raise ValueError(f"input pattern {text!r} matches no files")
+            paths = [Path(m) for m in matches]
+        else:
+            p = Path(os.path.expanduser(text))
+            if p.is_dir():
+                raise ValueError(
+                    f"input {text!r} is a directory; pass files or a pattern such as "
+                    f"'{Path(text) / '*.tif'}'"
+                )
+            paths = [p]
+        for p in paths:
+            key = os.path.abspath(p)
+            if key not in seen:
+                seen.add(key)
+                out.append(p)
+    return out
+
+
+def shown_path(path: str | os.PathLike) -> str:
+    """``path`` as printable text: bytes that are not UTF-8 as ``\\xNN`` escapes."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
+def check_input_name(path: str | os.PathLike) -> None:
+    """Refuse an input whose name is not valid UTF-8: its outputs, resume markers and stored
+    metadata are named after it.
+
+    Raises:
+        InputError: naming the file (undecodable bytes shown as ``\\xNN``).
+    """
+    try:
+        os.fspath(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(
+            f"{shown_path(path)}: the file name is not valid UTF-8 (its outputs and metadata are "
+            "named after it); rename the file"
+        ) from None
+
+
+def check_out_dir(path: str | os.PathLike) -> Path:
+    """Refuse an output folder ``path`` that exists as something else (creates nothing).
+
+    Raises:
+        ValueError: ``path`` exists and is not a folder.
+    """
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"output folder {p} exists and is not a folder")
+    return p
+
+
+def ensure_out_dir(path: str | os.PathLike) -> Path:
+    """Create the output folder ``path`` (and its parents); errors name the folder.
+
+    Raises:
+        ValueError: ``path`` exists and is not a folder.
+        OSError: it cannot be created (the message names the folder and the reason).
+    """
+    p = check_out_dir(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"cannot create output folder {p}: {exc.strerror or exc}") from None
+    return p
+
+
+def output_paths(
+    stem: str | os.PathLike,
+    formats: Sequence[str],
+    *,
+    uncertainty: bool = False,
+    preview: bool = True,
+    spectra: bool = False,
+) -> list[Path]:
+    """The files a reconstruction writes for ``stem`` (``DIR/<input stem>``): the cube in
+    ``formats`` (:data:`CUBE_SUFFIXES`), with ``uncertainty`` the standard deviation as
+    ``<stem>_std.*`` (every format but NPZ, which holds it as a key) and ``<stem>_std.png``
+    beside the preview, ``<stem>_preview.png``, and with ``spectra`` ``<stem>_spectra.png``."""
+    s = Path(stem)
+
+    def named(suffix: str) -> Path:
+        return s.with_name(s.name + suffix)
+
+    out = [named(x) for f in formats for x in CUBE_SUFFIXES[f]]
+    if uncertainty:
+        out += [named("_std" + x) for f in formats if f != "npz" for x in CUBE_SUFFIXES[f]]
+    if preview:
+        out.append(named("_preview.png"))
+        if uncertainty:
+            out.append(named("_std.png"))
+    if spectra:
+        out.append(named("_spectra.png"))
+    return out

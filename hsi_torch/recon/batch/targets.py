@@ -1,0 +1,449 @@
+"""Where a run's outputs go: an :class:`OutputTarget` decides resumption and keeps the claims.
+
+Two targets: :class:`FilesTarget` (files per input in a folder: the cube formats, previews) and
+:class:`StoreTarget` (one Zarr dataset store for the run, a frame per input). The run's driver
+(:func:`hsi_torch.recon.batch.driver.drive`) calls, per input, :meth:`~OutputTarget.is_done`
+(resume), :meth:`~OutputTarget.begin` before the work is handed out, then
+:meth:`~OutputTarget.finish` with the outputs or :meth:`~OutputTarget.fail`.
+
+**Files: resume and ownership.** An input is skipped when its *done-marker* says it finished and
+every output it lists is still the file that was written (same size and modification time: an
+emptied, truncated or replaced output is not "done"). Markers live in ``out/.hsi_torch_done/``
+(one small JSON per input, ``<stem>-<hash of the absolute input path>.json``). Before the work
+starts, the marker is written as a *claim* (``"status": "started"``, the planned outputs); after
+it, atomically, as ``"status": "done"`` with the outputs and their sizes and times — so an
+interrupted or failed input is never mistaken for a finished one. The marker also records the
+input file's size and modification time and the run's ``fingerprint`` (a hash of the settings and
+the bundle's content): an input that changed since, or a rerun with other settings or another
+bundle, is processed again instead of being skipped.
+
+**Outputs belong to one input.** With ``planned_outputs(input)``, an input whose outputs were
+claimed by *another* input — e.g. ``A/x.tif`` and ``B/x.tif`` both writing ``out/x.*`` — fails
+with an error naming both inputs, in the same run or a later one, instead of overwriting the
+other's files. The claim lapses once none of the other input's outputs exists any more (delete
+them to hand the names over). While an input's outputs are written, the name lock
+``out/.hsi_torch_done/<stem>.lock`` is held: another run writing the same names meanwhile fails
+that input, naming the process that holds it.
+
+**The store**: a frame is done when its ``done`` flag is set and its metadata name the same
+input file (size, time) and fingerprint (:mod:`hsi_torch.io.dataset`).
+
+**Leftovers of killed runs**: :meth:`OutputTarget.cleaned` removes the temporary files that
+killed writers left (:func:`hsi_torch.io.atomic.clean_stale_temp_files`: only this package's own
+``.<name>.<pid>-<random>.tmp`` files whose process is gone).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+from hsi_torch.errors import InputError
+from hsi_torch.io.atomic import (
+    atomic_write_json,
+    clean_stale_temp_files,
+    clean_stale_temp_files_of,
+    lock_or_refuse,
+    mark_lock_holder,
+)
+from hsi_torch.io.dataset import CubeDataset
+
+__all__ = ["OutputTarget", "FilesTarget", "StoreTarget", "DONE_DIR", "input_stamp"]
+
+DONE_DIR = ".hsi_torch_done"
+
+PathsFn = Callable[[Path], Sequence["Path | str"]]
+
+
+class OutputTarget(Protocol):
+    """Where a run writes (see the module docstring). ``store``: the dataset store, if any.
+
+    ``opened()``: a context for the run (the store is opened and locked in it);
+    ``cleaned()``: the stale temporary files removed; ``is_done(input)``: resume skips it;
+    ``begin(input)``: claim it before its work is handed out (raises to fail the input), returns
+    a handle; ``frame(handle)``: its frame in the store (``None`` for files);
+    ``finish(handle, outputs)``: its outputs are written; ``fail(handle)``: it failed or was
+    interrupted (nothing of the claim is left)."""
+
+    store: Path | None
+
+    def opened(self) -> contextlib.AbstractContextManager[Any]: ...
+    def cleaned(self) -> list[Path]: ...
+    def is_done(self, inp: Path) -> bool: ...
+    def begin(self, inp: Path) -> Any: ...
+    def frame(self, handle: Any) -> int | None: ...
+    def finish(self, handle: Any, outputs: Sequence[str]) -> None: ...
+    def fail(self, handle: Any) -> None: ...
+
+
+def input_stamp(inp: Path) -> list[int]:
+    """``[size, mtime_ns]`` of an input file (how resume tells that it changed).
+
+    Raises:
+        OSError: it cannot be read (missing, ...).
+    """
+    st = inp.stat()
+    return [int(st.st_size), int(st.st_mtime_ns)]
+
+
+def _require_input(inp: Path) -> None:
+    if not inp.exists():
+        raise FileNotFoundError(f"input file not found: {inp}")
+
+
+# --- files per input -------------------------------------------------------------------------
+
+
+def _marker_path(out_dir: Path, inp: Path) -> Path:
+    digest = hashlib.sha1(os.fsencode(os.path.abspath(inp))).hexdigest()[:10]
+    return out_dir / DONE_DIR / f"{inp.stem}-{digest}.json"
+
+
+def _file_stamp(path: str | os.PathLike) -> list[int] | None:
+    """``[size, mtime_ns]`` of a regular file, ``None`` when it is missing or not a file."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    if not os.path.isfile(path):
+        return None
+    return [int(st.st_size), int(st.st_mtime_ns)]
+
+
+def _read_marker(path: Path) -> dict[str, Any] | None:
+    try:
+        rec = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
+def _outputs_intact(rec: dict[str, Any]) -> bool:
+    """Every output the marker lists is still the (non-empty) file that was written."""
+    outputs = rec.get("outputs")
+    if not isinstance(outputs, list):
+        return False
+    stamps = rec.get("output_stamps")
+    for p in outputs:
+        now = _file_stamp(p)
+        if now is None or now[0] == 0:
+            return False
+        if isinstance(stamps, dict) and stamps.get(str(p)) != now:  # truncated or replaced
+            return False
+    return True
+
+
+class _Owners:
+    """Which input each output path of ``out_dir`` belongs to, from the markers."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.by_output: dict[str, tuple[str, Path]] = {}
+        self.outputs_of: dict[Path, list[str]] = {}
+        folder = out_dir / DONE_DIR
+        markers = sorted(folder.glob("*.json")) if folder.is_dir() else []
+        for m in markers:
+            rec = _read_marker(m)
+            if rec is None or not isinstance(rec.get("input"), str):
+                continue
+            outs = [str(p) for p in rec.get("outputs", []) if isinstance(p, str)]
+            self.claim(m, rec["input"], outs)
+
+    def refresh(self, out_dir: Path, stem: str) -> None:
+        """Re-read the markers of inputs named ``stem`` (another run may have written some)."""
+        for m in (out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"):
+            rec = _read_marker(m)
+            if rec is not None and isinstance(rec.get("input"), str):
+                outs = [str(p) for p in rec.get("outputs", []) if isinstance(p, str)]
+                self.claim(m, rec["input"], outs)
+
+    def claim(self, marker: Path, inp: str, outputs: Sequence[str]) -> None:
+        self.outputs_of[marker] = list(outputs)
+        for p in outputs:
+            self.by_output[p] = (inp, marker)
+
+    def conflict(self, inp: str, outputs: Sequence[str]) -> tuple[str, list[str]] | None:
+        """The other input that holds some of ``outputs`` (one of its outputs still exists),
+        and the outputs in question; lapsed claims are dropped (their marker deleted)."""
+        for p in outputs:
+            owner = self.by_output.get(p)
+            if owner is None or owner[0] == inp:
+                continue
+            other, marker = owner
+            held = self.outputs_of.get(marker, [])
+            if any(os.path.lexists(q) for q in held):
+                return other, [q for q in outputs if self.by_output.get(q, ("",))[0] == other]
+            for q in held:  # nothing of it is left: the names are free again
+                if self.by_output.get(q, ("",))[0] == other:
+                    del self.by_output[q]
+            self.outputs_of.pop(marker, None)
+            marker.unlink(missing_ok=True)
+        return None
+
+
+@contextlib.contextmanager
+def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
+    """Hold ``out_dir/.hsi_torch_done/<stem>.lock`` (an exclusive ``flock``) while the outputs
+    named ``stem`` are written; another run holding it makes this input fail at once, naming
+    that run's process id. (No locking where ``fcntl`` does not exist.)"""
+    if os.name != "posix":  # no fcntl
+        yield
+        return
+    folder = out_dir / DONE_DIR
+    folder.mkdir(exist_ok=True)
+    path = folder / f"{stem}.lock"
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        lock_or_refuse(fd, lambda holder: (
+            f"outputs named '{stem}' in {out_dir} are being written by another run (process "
+            f"{holder}) right now; run again when it has finished"))
+        try:  # still the file at that name? (its holder removes it when done)
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        mark_lock_holder(fd)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # while still held: a waiting run re-checks the name (above)
+        os.close(fd)  # releases the lock
+
+
+class _Claim:
+    """One input's claim on its outputs (the handle of :class:`FilesTarget`): the name lock, the
+    ``"started"`` marker, and the marker it replaced (put back if the input fails)."""
+
+    def __init__(self, target: FilesTarget, inp: Path) -> None:
+        self.target = target
+        self.input = inp
+        self.key = os.path.abspath(inp)
+        self.marker = _marker_path(target.out, inp)
+        self.planned: list[str] = []
+        self.record: dict[str, Any] = {}
+        self.previous: dict[str, Any] | None = None
+        self.claimed = False
+        self.lock = contextlib.ExitStack()
+
+    def begin(self) -> None:
+        inp, out, owners = self.input, self.target.out, self.target.owners
+        _require_input(inp)
+        stamp = input_stamp(inp)
+        # one run at a time writes the outputs of a name into this folder
+        self.lock.enter_context(_name_lock(out, inp.stem))
+        owners.refresh(out, inp.stem)  # claims a concurrent run made meanwhile
+        planned_fn = self.target.planned_outputs
+        self.planned = [os.path.abspath(p) for p in planned_fn(inp)] if planned_fn else []
+        clash = owners.conflict(self.key, self.planned)
+        if clash is not None:
+            other, names = clash
+            shown = ", ".join(Path(n).name for n in names[:4])
+            raise InputError(
+                f"{inp}: its outputs ({shown}) in {out} already belong to another "
+                f"input, {other}; rename one of the two, write into another folder, "
+                "or delete those outputs first"
+            )
+        self.record = {
+            "status": "started",
+            "input": self.key,
+            "input_stamp": stamp,
+            "fingerprint": self.target.fingerprint,
+            "outputs": self.planned,
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        self.previous = _read_marker(self.marker)
+        atomic_write_json(self.marker, self.record)  # the claim, before any output exists
+        self.claimed = True
+        owners.claim(self.marker, self.key, self.planned)
+
+    def finish(self, outputs: Sequence[str]) -> None:
+        try:
+            done = [os.path.abspath(p) for p in outputs]
+            self.record.update(
+                status="done", outputs=done, output_stamps={p: _file_stamp(p) for p in done},
+                finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
+            )  # fmt: skip
+            atomic_write_json(self.marker, self.record)
+            self.target.owners.claim(self.marker, self.key, sorted(set(done) | set(self.planned)))
+        finally:
+            self.lock.close()
+
+    def abandon(self) -> None:
+        """No claim of an unfinished input is left: its earlier marker back (its earlier
+        outputs, if any are left, are still its own), or no marker at all."""
+        owners = self.target.owners
+        if self.claimed:
+            self.claimed = False
+            try:
+                if self.previous is not None:
+                    atomic_write_json(self.marker, self.previous)
+                    outs = [str(p) for p in self.previous.get("outputs", [])
+                            if isinstance(p, str)]  # fmt: skip
+                    owners.claim(self.marker, self.key, outs)
+                else:
+                    self.marker.unlink(missing_ok=True)
+                    owners.outputs_of.pop(self.marker, None)
+            except OSError:
+                pass  # the claim stays: the input is redone next time, never skipped
+        self.lock.close()
+        with contextlib.suppress(OSError):  # the marker folder, if nothing is in it
+            (self.target.out / DONE_DIR).rmdir()
+
+    def clean_temps(self) -> None:
+        """Temporary files of a killed attempt at this input's outputs (e.g. a worker that
+        died; its writer process is gone)."""
+        for p in self.planned:
+            clean_stale_temp_files_of(p)
+
+
+class FilesTarget:
+    """Files per input in the folder ``out`` (see the module docstring).
+
+    Args:
+        out: the output folder (must exist); holds the markers.
+        fingerprint: identifies the settings and bundle of the run (resume redoes inputs made
+            under another one).
+        planned_outputs: ``input -> the paths its work will write`` (the ownership check).
+    """
+
+    store: Path | None = None
+
+    def __init__(
+        self, out: Path, fingerprint: str | None = None, planned_outputs: PathsFn | None = None
+    ) -> None:
+        self.out = Path(out)
+        self.fingerprint = fingerprint
+        self.planned_outputs = planned_outputs
+        self.owners = _Owners(self.out)
+
+    @contextlib.contextmanager
+    def opened(self) -> Iterator[FilesTarget]:
+        yield self
+
+    def cleaned(self) -> list[Path]:
+        return clean_stale_temp_files(self.out) + clean_stale_temp_files(self.out / DONE_DIR)
+
+    def is_done(self, inp: Path) -> bool:
+        rec = _read_marker(_marker_path(self.out, inp))
+        if rec is None or rec.get("status", "done") != "done":  # none, unreadable, interrupted
+            return False
+        try:
+            stamp = input_stamp(inp)
+        except OSError:
+            return False
+        if rec.get("input_stamp") != stamp:  # the input changed since it was processed
+            return False
+        if self.fingerprint is not None and rec.get("fingerprint") != self.fingerprint:
+            return False  # other settings, or another bundle
+        return _outputs_intact(rec)
+
+    def begin(self, inp: Path) -> _Claim:
+        claim = _Claim(self, inp)
+        try:
+            claim.begin()
+        except BaseException:
+            claim.abandon()
+            raise
+        return claim
+
+    def frame(self, handle: _Claim) -> int | None:
+        return None
+
+    def finish(self, handle: _Claim, outputs: Sequence[str]) -> None:
+        handle.clean_temps()
+        handle.finish(outputs)
+
+    def fail(self, handle: _Claim) -> None:
+        with contextlib.suppress(OSError):
+            handle.clean_temps()
+        handle.abandon()
+
+
+# --- one dataset store -----------------------------------------------------------------------
+
+
+class StoreTarget:
+    """One dataset store (:class:`~hsi_torch.io.dataset.CubeDataset`): a frame per input,
+    complete when its ``done`` flag is set.
+
+    Args:
+        store: the store's folder; inputs: every input of the run (frames are given to them
+            when the store is opened); wavelengths_nm, frame_size: the cubes' bands and
+            ``(h, w)``; attrs: root attributes; fingerprint: as :class:`FilesTarget`'s.
+    """
+
+    def __init__(
+        self,
+        store: Path,
+        inputs: Sequence[Path],
+        wavelengths_nm: Sequence[float],
+        frame_size: tuple[int, int],
+        attrs: dict[str, Any],
+        fingerprint: str | None,
+    ) -> None:
+        self.store: Path | None = Path(store)
+        self.inputs = list(inputs)
+        self.wavelengths_nm = list(wavelengths_nm)
+        self.frame_size = frame_size
+        self.attrs = attrs
+        self.fingerprint = fingerprint
+        self.ds: CubeDataset | None = None
+
+    @contextlib.contextmanager
+    def opened(self) -> Iterator[StoreTarget]:
+        with CubeDataset.open(self.store, self.inputs, self.wavelengths_nm, self.frame_size,
+                              self.attrs) as ds:  # fmt: skip
+            self.ds = ds
+            try:
+                yield self
+            finally:
+                self.ds = None
+
+    def _ds(self) -> CubeDataset:
+        if self.ds is None:
+            raise RuntimeError(f"dataset store {self.store}: use the target inside opened()")
+        return self.ds
+
+    def cleaned(self) -> list[Path]:
+        out: list[Path] = []
+        for name in ("cube", "valid", "metadata", "done", "source"):
+            out += clean_stale_temp_files(self.store / name)
+        return out
+
+    def is_done(self, inp: Path) -> bool:
+        ds = self._ds()
+        i = ds.index.get(os.path.abspath(inp))
+        rec = None if i is None else ds.frame_record(i)
+        if rec is None:  # no frame, or not complete
+            return False
+        try:
+            stamp = input_stamp(inp)
+        except OSError:
+            return False
+        return rec.get("input_stamp") == stamp and rec.get("fingerprint") == self.fingerprint
+
+    def begin(self, inp: Path) -> int:
+        _require_input(inp)
+        ds = self._ds()
+        i = ds.index[os.path.abspath(inp)]
+        ds.mark_pending(i)
+        return i
+
+    def frame(self, handle: int) -> int | None:
+        return handle
+
+    def finish(self, handle: int, outputs: Sequence[str]) -> None:
+        self._ds().clean_frame_temps(handle)
+
+    def fail(self, handle: int) -> None:
+        with contextlib.suppress(OSError):
+            self._ds().clean_frame_temps(handle)

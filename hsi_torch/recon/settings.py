@@ -1,0 +1,444 @@
+"""The reconstruction's settings as one frozen, nested object, validated where it is built.
+
+:class:`ReconstructSettings` groups what shapes a reconstruction: ``solve`` (β, the difference
+order, the solver, chunking, ``min_views``, NaN for invalid pixels, device, precision), ``prior``
+(none or TV, λ, iterations), ``input`` (demosaic, CFA pattern, black and white level, exposure
+correction, saturation threshold), ``output`` (cube formats, preview, spectra plot, the
+fit-residual warning) and ``uncertainty`` (on/off and the sensor's noise model). It is built once
+per run from the flat :class:`~hsi_torch.recon.config.ReconstructConfig`
+(:meth:`ReconstructSettings.from_config`; the YAML files and ``--set key=value`` keep their flat
+keys) or from the keywords of :class:`~hsi_torch.recon.pipeline.Reconstructor` and
+:meth:`~hsi_torch.recon.module.HSIReconstructor.from_bundle`
+(:meth:`ReconstructSettings.from_flat`), and passed whole to the reconstructor, the nn.Module and
+the workers of a distributed run.
+
+**Validation happens here and only here**: each group checks its values in ``__post_init__``;
+errors are :class:`~hsi_torch.config.ConfigError` (a ``ValueError``) that name the flat key
+(``key 'lam': ...``), so the same message reaches a YAML file, ``--set`` and a keyword argument.
+
+**One identity**: the object is frozen and hashable (sequences are kept as tuples), and
+:meth:`ReconstructSettings.key` is a stable digest of every field (SHA-256 of its JSON), so a
+field added to any group is part of the key without being listed anywhere (the workers' cache
+of prepared reconstructors uses it).
+
+No torch here (the configuration is importable without it); the defaults are those of
+:class:`~hsi_torch.recon.pipeline.Reconstructor` (tested).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from hsi_torch.config import ConfigError
+
+__all__ = [
+    "ReconstructSettings",
+    "SolveSettings",
+    "PriorSettings",
+    "InputSettings",
+    "OutputSettings",
+    "UncertaintySettings",
+    "DEFAULT_BETA",
+    "SOLVERS",
+    "PRIORS",
+    "LAM_RULES",
+    "CUBE_FORMATS",
+    "MAX_PREVIEW_SIZE",
+]
+
+#: Default smoothness weight β on ‖D s‖² (DN² scale; best measured on the default prototype).
+DEFAULT_BETA = 1e4
+#: ``lam`` default (= :data:`hsi_torch.recon.spatial.DEFAULT_LAM`, kept importable without torch).
+_DEFAULT_LAM = 1.0
+SOLVERS = ("active_set", "admm")
+#: spatial priors: ``"none"`` (per-pixel NNLS) or ``"tv"`` (:mod:`hsi_torch.recon.spatial`)
+PRIORS = ("none", "tv")
+#: ``lam`` chosen per frame: SURE risk minimum, Morozov's discrepancy principle
+LAM_RULES = ("auto", "discrepancy")
+CUBE_FORMATS = ("tiff", "envi", "npz", "netcdf", "zarr")
+DTYPES = ("float32", "float64")
+DEMOSAICS = ("bilinear", "half")
+CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+#: largest ``preview_size`` (px): a 16384² RGB preview is already 0.8 GB in memory
+MAX_PREVIEW_SIZE = 16384
+
+
+def _bad(key: str, message: str) -> ConfigError:
+    return ConfigError(message, key=key)
+
+
+def _number(key: str, value: Any) -> float:
+    """A finite real number (bool refused)."""
+    if isinstance(value, bool):
+        raise _bad(key, f"must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise _bad(key, f"must be a number, got {type(value).__name__}") from None
+    if not math.isfinite(v):
+        raise _bad(key, f"must be finite, got {v}")
+    return v
+
+
+def _count(key: str, value: Any, minimum: int, allow_none: bool = True) -> None:
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        null = " or null" if allow_none else ""
+        raise _bad(key, f"must be an integer >= {minimum}{null}, got {value!r}")
+
+
+def _choice(key: str, value: Any, choices: tuple[Any, ...]) -> None:
+    if value not in choices:
+        raise _bad(key, f"must be one of {', '.join(map(str, choices))}, got {value!r}")
+
+
+def _frozen(value: Any) -> Any:
+    """Lists (and lists of lists) as tuples: the settings stay hashable."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(v) for v in value)
+    return value
+
+
+def _thaw(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return [_thaw(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """The per-pixel solve. Flat keys: ``beta``, ``diff_order``, ``solver``, ``admm_iters``,
+    ``chunk_size``, ``min_views``, ``nan_invalid``, ``device``, ``dtype``.
+
+    Attributes:
+        beta: smoothness weight on ``‖D s‖²`` (DN² scale), finite and ``≥ 0``.
+        diff_order: 1, 2, or 0 (Tikhonov).
+        solver: ``"active_set"`` (exact) or ``"admm"``; admm_iters: fixed ADMM iterations.
+        chunk_size: pixels per solver chunk (``None``: the solver's default).
+        min_views: views a pixel needs to be valid.
+        nan_invalid: invalid pixels are NaN (else 0) in the cube.
+        device: torch device name (``None``: follow the bundle); dtype: ``float32``/``float64``.
+    """
+
+    beta: float = DEFAULT_BETA
+    diff_order: int = 1
+    solver: str = "active_set"
+    admm_iters: int | None = None
+    chunk_size: int | None = None
+    min_views: int = 3
+    nan_invalid: bool = True
+    device: str | None = "cpu"
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        beta = _number("beta", self.beta)
+        if not beta >= 0:
+            raise _bad("beta", f"must be >= 0, got {self.beta}")
+        object.__setattr__(self, "beta", beta)
+        if self.diff_order not in (0, 1, 2) or isinstance(self.diff_order, bool):
+            raise _bad("diff_order", f"must be 0, 1 or 2, got {self.diff_order!r}")
+        _choice("solver", self.solver, SOLVERS)
+        _count("admm_iters", self.admm_iters, 1)
+        _count("chunk_size", self.chunk_size, 1)
+        _count("min_views", self.min_views, 1, allow_none=False)
+        _choice("dtype", self.dtype, DTYPES)
+        if self.device is not None and not isinstance(self.device, str):
+            raise _bad("device", f"must be a device name such as 'cpu' or 'cuda:1', got "
+                                 f"{type(self.device).__name__}")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PriorSettings:
+    """The spatial prior. Flat keys: ``prior`` (= ``kind``), ``lam``, ``spatial_iters``.
+
+    Attributes:
+        kind: ``"none"`` (per-pixel NNLS) or ``"tv"`` (vectorial total variation).
+        lam: relative TV weight (finite, ``≥ 0``) or a per-frame rule: ``"auto"`` (SURE) or
+            ``"discrepancy"`` (Morozov).
+        spatial_iters: fixed ADMM iterations of the TV solve (``None``: to tolerance).
+    """
+
+    kind: str = "none"
+    lam: float | str = _DEFAULT_LAM
+    spatial_iters: int | None = None
+
+    def __post_init__(self) -> None:
+        _choice("prior", self.kind, PRIORS)
+        if isinstance(self.lam, str):
+            if self.lam not in LAM_RULES:
+                raise _bad("lam", f"must be a number >= 0, 'auto' or 'discrepancy', got "
+                                  f"{self.lam[:40]!r}")  # fmt: skip
+        else:
+            lam = _number("lam", self.lam)
+            if not lam >= 0:
+                raise _bad("lam", f"must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
+            object.__setattr__(self, "lam", lam)
+        _count("spatial_iters", self.spatial_iters, 1)
+
+
+@dataclass(frozen=True)
+class InputSettings:
+    """How a capture file is read. Flat keys: ``demosaic``, ``cfa_pattern``, ``black_level``,
+    ``white_level``, ``exposure_correction``, ``exposure_s`` (``sat_threshold`` is a keyword of
+    the Python API).
+
+    Attributes:
+        demosaic: Bayer inputs: ``"bilinear"`` or ``"half"``.
+        cfa_pattern: Bayer CFA pattern (``None``: the file's, else the bundle's).
+        black_level: DN subtracted: a scalar, 3 values (R, G, B) or 4 (Bayer cell); ``None``:
+            the file's metadata.
+        white_level: saturation level, DN, ``> 0`` (``None``: the file's metadata).
+        exposure_correction: scale observations by ``t_white / t_capture``.
+        exposure_s: the exposure time (s) of captures whose file carries none (``None``: the
+            file's; unknown → the cube's scale is relative, with a warning).
+        sat_threshold: warped saturation weight above which an observation is saturated.
+    """
+
+    demosaic: str = "bilinear"
+    cfa_pattern: str | None = None
+    black_level: float | tuple[float, ...] | None = None
+    white_level: float | None = None
+    exposure_correction: bool = True
+    exposure_s: float | None = None
+    sat_threshold: float = 1e-3
+
+    def __post_init__(self) -> None:
+        _choice("demosaic", self.demosaic, DEMOSAICS)
+        if self.cfa_pattern is not None:
+            _choice("cfa_pattern", self.cfa_pattern, CFA_PATTERNS)
+        bl = self.black_level
+        if isinstance(bl, (list, tuple)):
+            if len(bl) not in (3, 4):
+                raise _bad("black_level", "must be a scalar, 3 values (R, G, B) or 4 (the Bayer "
+                                          f"cell), got {len(bl)} values")  # fmt: skip
+            object.__setattr__(self, "black_level", tuple(_number("black_level", v) for v in bl))
+        elif bl is not None:
+            object.__setattr__(self, "black_level", _number("black_level", bl))
+        if self.white_level is not None:
+            wl = _number("white_level", self.white_level)
+            if not wl > 0:
+                raise _bad("white_level", f"must be > 0 or null, got {self.white_level}")
+            object.__setattr__(self, "white_level", wl)
+        if self.exposure_s is not None:
+            t = _number("exposure_s", self.exposure_s)
+            if not (0 < t < float("inf")):
+                raise _bad("exposure_s", f"must be > 0 and finite or null, got {self.exposure_s}")
+            object.__setattr__(self, "exposure_s", t)
+        sat = _number("sat_threshold", self.sat_threshold)
+        if not 0 <= sat < 1:
+            raise _bad("sat_threshold", f"must be in [0, 1), got {self.sat_threshold}")
+        object.__setattr__(self, "sat_threshold", sat)
+
+
+@dataclass(frozen=True)
+class OutputSettings:
+    """What a run writes per input. Flat keys: ``formats``, ``preview``, ``preview_size``,
+    ``spectra_points``, ``fit_residual_warning``.
+
+    Attributes:
+        formats: cube files (:data:`CUBE_FORMATS`), no duplicates.
+        preview: write the sRGB preview PNG; preview_size: its longer side is enlarged to at
+            least this many px (0: native; at most :data:`MAX_PREVIEW_SIZE`).
+        spectra_points: reference-frame pixels ``(x, y)`` whose spectra are plotted.
+        fit_residual_warning: warn above this relative fit residual (``None``: never).
+    """
+
+    formats: tuple[str, ...] = ("tiff", "envi", "npz")
+    preview: bool = True
+    preview_size: int = 512
+    spectra_points: tuple[tuple[int, int], ...] = ()
+    fit_residual_warning: float | None = 0.15
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "formats", _frozen(self.formats))
+        object.__setattr__(self, "spectra_points", _frozen(self.spectra_points))
+        for f in self.formats:
+            _choice("formats", f, CUBE_FORMATS)
+        if len(set(self.formats)) != len(self.formats):
+            raise _bad("formats", f"has duplicates: {list(self.formats)}")
+        if not self.formats and not self.preview:
+            raise _bad("formats", "nothing to write: formats is empty and preview is false")
+        if isinstance(self.preview_size, bool) or not isinstance(self.preview_size, int) or not (
+            0 <= self.preview_size <= MAX_PREVIEW_SIZE
+        ):
+            raise _bad("preview_size", f"must be an integer in 0..{MAX_PREVIEW_SIZE} (px), got "
+                                       f"{self.preview_size!r}")  # fmt: skip
+        for p in self.spectra_points:
+            if len(p) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in p):
+                raise _bad("spectra_points", f"points must be [x, y] integer pairs, got {p!r}")
+        if self.fit_residual_warning is not None:
+            lim = _number("fit_residual_warning", self.fit_residual_warning)
+            if not lim > 0:
+                raise _bad("fit_residual_warning",
+                           f"must be > 0 or null, got {self.fit_residual_warning}")
+            object.__setattr__(self, "fit_residual_warning", lim)
+
+
+@dataclass(frozen=True)
+class UncertaintySettings:
+    """The per-band standard deviation. Flat keys: ``uncertainty`` (= ``enabled``),
+    ``noise_electrons_per_dn``, ``noise_read_e``.
+
+    Attributes:
+        enabled: compute and write it.
+        electrons_per_dn: conversion gain, e⁻/DN, ``> 0`` (``None``: the simulator's default
+            sensor); read_e: read noise σ in electrons, ``≥ 0``; quantization_dn: the ADC step,
+            DN, ``≥ 0`` (a keyword of the Python API, through its ``noise``).
+    """
+
+    enabled: bool = False
+    electrons_per_dn: float | None = None
+    read_e: float = 3.0
+    quantization_dn: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.electrons_per_dn is not None:
+            g = _number("noise_electrons_per_dn", self.electrons_per_dn)
+            if not g > 0:
+                raise _bad("noise_electrons_per_dn",
+                           f"must be > 0 or null, got {self.electrons_per_dn}")
+            object.__setattr__(self, "electrons_per_dn", g)
+        r = _number("noise_read_e", self.read_e)
+        if not r >= 0:
+            raise _bad("noise_read_e", f"must be >= 0, got {self.read_e}")
+        object.__setattr__(self, "read_e", r)
+        q = _number("noise_quantization_dn", self.quantization_dn)
+        if not q >= 0:
+            raise _bad("noise_quantization_dn", f"must be >= 0, got {self.quantization_dn}")
+        object.__setattr__(self, "quantization_dn", q)
+
+
+#: flat key → (group, field) of :class:`ReconstructSettings`: every field of
+#: :class:`~hsi_torch.recon.config.ReconstructConfig`, plus ``sat_threshold`` and
+#: ``noise_quantization_dn`` (keywords of the Python API only)
+FLAT_KEYS: dict[str, tuple[str, str]] = {
+    **{k: ("solve", k) for k in ("beta", "diff_order", "solver", "admm_iters", "chunk_size",
+                                 "min_views", "nan_invalid", "device", "dtype")},
+    "prior": ("prior", "kind"), "lam": ("prior", "lam"),
+    "spatial_iters": ("prior", "spatial_iters"),
+    **{k: ("input", k) for k in ("demosaic", "cfa_pattern", "black_level", "white_level",
+                                 "exposure_correction", "exposure_s", "sat_threshold")},
+    **{k: ("output", k) for k in ("formats", "preview", "preview_size", "spectra_points",
+                                  "fit_residual_warning")},
+    "uncertainty": ("uncertainty", "enabled"),
+    "noise_electrons_per_dn": ("uncertainty", "electrons_per_dn"),
+    "noise_read_e": ("uncertainty", "read_e"),
+    "noise_quantization_dn": ("uncertainty", "quantization_dn"),
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ReconstructSettings:
+    """Every setting of a reconstruction, grouped (see the module docstring)."""
+
+    solve: SolveSettings = field(default_factory=SolveSettings)
+    prior: PriorSettings = field(default_factory=PriorSettings)
+    input: InputSettings = field(default_factory=InputSettings)
+    output: OutputSettings = field(default_factory=OutputSettings)
+    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
+
+    def __post_init__(self) -> None:  # rules across groups
+        if self.prior.kind != "none" and self.uncertainty.enabled:
+            raise _bad("uncertainty", "true is the per-pixel solver's noise model; it does not "
+                                      f"hold for prior={self.prior.kind} (use prior: none)")
+
+    @classmethod
+    def from_flat(
+        cls, values: Mapping[str, Any] | None = None, **keywords: Any
+    ) -> ReconstructSettings:
+        """Settings from flat keys (those of ``reconstruct.yaml``, or the reconstructor's
+        keywords); keys left out keep their defaults.
+
+        Raises:
+            ConfigError: an unknown key or an invalid value (naming the key).
+        """
+        groups: dict[str, dict[str, Any]] = {g: {} for g in _GROUPS}
+        for k, v in {**(values or {}), **keywords}.items():
+            where = FLAT_KEYS.get(k)
+            if where is None:
+                raise _bad(k, "unknown reconstruction setting")
+            groups[where[0]][where[1]] = _frozen(v)
+        return cls(**{g: _GROUPS[g](**kw) for g, kw in groups.items()})
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> ReconstructSettings:
+        """Settings from a :class:`~hsi_torch.recon.config.ReconstructConfig` (every field)."""
+        return cls.from_flat({f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
+
+    def flat(self) -> dict[str, Any]:
+        """The flat keys and values (lists, as in a YAML file); ``from_flat(s.flat()) == s``."""
+        return {k: _thaw(getattr(getattr(self, g), f)) for k, (g, f) in FLAT_KEYS.items()}
+
+    def replace(self, **keywords: Any) -> ReconstructSettings:
+        """A copy with some flat keys changed (the groups changed are validated again).
+
+        Raises:
+            ConfigError: an unknown key or an invalid value (naming the key).
+        """
+        groups: dict[str, dict[str, Any]] = {}
+        for k, v in keywords.items():
+            where = FLAT_KEYS.get(k)
+            if where is None:
+                raise _bad(k, "unknown reconstruction setting")
+            groups.setdefault(where[0], {})[where[1]] = _frozen(v)
+        changed = {g: dataclasses.replace(getattr(self, g), **kw) for g, kw in groups.items()}
+        return dataclasses.replace(self, **changed)
+
+    def key(self) -> str:
+        """A stable digest of every field of every group (hex SHA-256 of the JSON form)."""
+        text = json.dumps(dataclasses.asdict(self), sort_keys=True, default=repr)
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+_GROUPS: dict[str, Any] = {
+    f.name: f.default_factory for f in dataclasses.fields(ReconstructSettings)
+}
+
+
+def settings_or_keywords(
+    settings: ReconstructSettings | None,
+    keywords: Mapping[str, Any],
+    defaults: Mapping[str, Any],
+    flat: Mapping[str, Any],
+) -> ReconstructSettings:
+    """The settings of a constructor that takes either ``settings=`` or its keywords.
+
+    Args:
+        settings: given whole (then every keyword must be left at its default), or ``None``.
+        keywords: the keyword arguments as passed; defaults: their defaults.
+        flat: the keywords as flat settings keys (built into the settings when ``settings`` is
+            ``None``).
+
+    Raises:
+        TypeError: ``settings`` is not :class:`ReconstructSettings`, or keywords were changed
+            beside it.
+        ConfigError: an invalid keyword value (naming it).
+    """
+    if settings is None:
+        return ReconstructSettings.from_flat(flat)
+    if not isinstance(settings, ReconstructSettings):
+        raise TypeError(f"settings must be a ReconstructSettings, got {type(settings).__name__}")
+    changed = sorted(k for k, v in keywords.items()
+                     if v is not defaults[k] and v != defaults[k])  # fmt: skip
+    if changed:
+        raise TypeError("give the settings either whole (settings=) or as keywords, not both "
+                        f"(also given: {', '.join(changed)})")  # fmt: skip
+    return settings
+
+
+def keyword_defaults(fn: Any) -> dict[str, Any]:
+    """``{name: default}`` of ``fn``'s parameters (for :func:`settings_or_keywords`)."""
+    return {n: p.default for n, p in inspect.signature(fn).parameters.items()}
+
+
+def dtype_name(dtype: Any) -> str:
+    """``torch.float32`` (or ``"float32"``) → ``"float32"``, the settings' form."""
+    return str(dtype).removeprefix("torch.")

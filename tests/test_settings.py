@@ -1,0 +1,119 @@
+"""The reconstruction's settings: one frozen, nested object built from the flat configuration,
+validated where it is built, passed whole, and the key of the workers' reconstructor cache."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from test_pipeline import make_bundle, render_capture, true_spectra
+
+from hsi_torch.config import ConfigError, load_config
+from hsi_torch.recon.batch import tasks
+from hsi_torch.recon.batch.run import check_run
+from hsi_torch.recon.config import ReconstructConfig
+from hsi_torch.recon.module import HSIReconstructor
+from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.recon.settings import (
+    FLAT_KEYS,
+    ReconstructSettings,
+    SolveSettings,
+)
+
+
+def test_every_config_key_has_its_place_and_the_defaults_agree():
+    cfg = ReconstructConfig()
+    assert {f.name for f in dataclasses.fields(cfg)} <= set(FLAT_KEYS)
+    s = cfg.settings()
+    assert s == ReconstructSettings()  # the configuration's defaults are the settings'
+    flat = s.flat()
+    assert {k: flat[k] for k in vars(cfg)} == vars(cfg)
+    assert ReconstructSettings.from_flat(flat) == s
+    custom = load_config({"beta": 10, "prior": "tv", "lam": "auto", "formats": ["npz"],
+                          "black_level": [1, 2, 3, 4], "noise_read_e": 5},
+                         ReconstructConfig).settings()  # fmt: skip
+    assert custom.solve.beta == 10.0 and custom.prior.kind == "tv"
+    assert custom.prior.lam == "auto" and custom.output.formats == ("npz",)
+    assert custom.input.black_level == (1.0, 2.0, 3.0, 4.0) and custom.uncertainty.read_e == 5
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        custom.solve.beta = 1.0  # type: ignore[misc]
+    hash(custom)  # hashable: sequences are tuples
+
+
+def test_the_key_covers_every_field_without_a_list():
+    s = ReconstructSettings()
+    assert s.key() == ReconstructSettings().key() and len(s.key()) == 64
+    assert s.replace(beta=5.0).key() != s.key()
+    assert s.replace(noise_quantization_dn=0.0).key() != s.key()  # a group's last field too
+
+    @dataclass_frozen
+    class SolveWithMore(SolveSettings):
+        new_knob: int = 0
+
+    more = dataclasses.replace(s, solve=SolveWithMore())
+    assert more.replace(beta=2.0).solve.new_knob == 0  # replace keeps the group's class
+    assert more.key() != s.key()  # a field added to a group changes the key by itself
+    assert dataclasses.replace(s, solve=SolveWithMore(new_knob=1)).key() != more.key()
+
+
+def dataclass_frozen(cls):
+    return dataclasses.dataclass(frozen=True)(cls)
+
+
+def test_validated_once_with_the_key_named_whatever_the_route():
+    bundle = make_bundle()
+    for make in (lambda: ReconstructConfig(lam=-1.0),
+                 lambda: load_config({"lam": -1.0}, ReconstructConfig),
+                 lambda: Reconstructor(bundle, prior="tv", lam=-1.0),
+                 lambda: HSIReconstructor.from_bundle(bundle, lam=-1.0),
+                 lambda: ReconstructSettings.from_flat(lam=-1.0)):  # fmt: skip
+        with pytest.raises(ConfigError, match="key 'lam': must be >= 0"):
+            make()
+    with pytest.raises(ConfigError, match="key 'nope'"):
+        ReconstructSettings.from_flat(nope=1)
+    with pytest.raises(TypeError, match="not both.*beta"):
+        Reconstructor(bundle, beta=3.0, settings=ReconstructSettings())
+
+
+def test_settings_or_keywords_give_the_same_reconstruction():
+    bundle = make_bundle()
+    img = render_capture(bundle, true_spectra())
+    s = ReconstructSettings.from_flat(beta=0.0, dtype="float64", device=None, min_views=3)
+    by_settings = Reconstructor(bundle, settings=s)
+    by_keywords = Reconstructor(bundle, beta=0.0, dtype=torch.float64)
+    assert by_settings.settings == by_keywords.settings == s
+    a = by_settings.reconstruct_frame(img)
+    b = by_keywords.reconstruct_frame(img)
+    torch.testing.assert_close(a.cube, b.cube, equal_nan=True, rtol=0, atol=0)
+    mod = HSIReconstructor.from_bundle(bundle, settings=s)
+    assert mod.settings == s and mod.beta == 0.0
+    cube, _ = mod(img.unsqueeze(0).double())
+    torch.testing.assert_close(cube[0], a.cube, equal_nan=True, rtol=1e-9, atol=1e-9)
+
+
+def test_the_workers_cache_is_keyed_by_the_settings(tmp_path):
+    bpath = tmp_path / "calib.npz"
+    make_bundle().save(bpath)
+    (tmp_path / "a.npy").write_bytes(b"")
+    run = check_run([tmp_path / "a.npy"], bpath, tmp_path / "out", ReconstructConfig())
+    plan = tasks.FramePlan(run=run)
+    tasks.forget_prepared()
+    rec, secs = tasks.prepared_reconstructor(plan)
+    assert secs is not None and rec.settings == run.settings
+    assert tasks.prepared_reconstructor(plan) == (rec, None)  # cached
+    # another value of any setting: prepared again
+    other = dataclasses.replace(run, settings=run.settings.replace(min_views=4))
+    rec2, secs2 = tasks.prepared_reconstructor(tasks.FramePlan(run=other))
+    assert secs2 is not None and rec2 is not rec and rec2.min_views == 4
+
+    # a field added to the settings (and forgotten everywhere else) still changes the key
+    @dataclass_frozen
+    class SolveWithMore(SolveSettings):
+        new_knob: int = 0
+
+    grown = dataclasses.replace(other.settings, solve=SolveWithMore(**vars(other.settings.solve)))
+    grown_run = dataclasses.replace(other, settings=grown)
+    _, secs3 = tasks.prepared_reconstructor(tasks.FramePlan(run=grown_run))
+    assert secs3 is not None  # not served the reconstructor of the other settings
+    tasks.forget_prepared()
