@@ -325,3 +325,18 @@ def test_capture_set_applies_after_calibration_effects_to_scenes_only(tmp_path):
     tb = np.load(tmp_path / "late" / "ground_truth" / "truth.npz")
     for k in ta.files:  # the truth is the calibrated device's
         np.testing.assert_array_equal(ta[k], tb[k], err_msg=k)
+
+
+def test_documented_effects_are_valid_keys_and_not_off():
+    from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
+
+    everything: dict = {}
+    for name, keys in DOCUMENTED_EFFECTS.items():
+        m = Mismatch(**keys)
+        assert set(m.active()) == set(keys), name
+        everything.update(keys)
+    assert Mismatch(**everything).after_calibration
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "simulate.md").read_text()
+    for keys in DOCUMENTED_EFFECTS.values():
+        for k in keys:
+            assert f"`{k}`" in doc, k

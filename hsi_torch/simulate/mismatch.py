@@ -30,7 +30,25 @@ import torch
 
 from hsi_torch.config import help_meta as _h
 
-__all__ = ["Mismatch", "radial_undistort", "drift_points", "stray_light_veil"]
+__all__ = ["DOCUMENTED_EFFECTS", "Mismatch", "radial_undistort", "drift_points",
+           "stray_light_veil"]
+
+#: Each effect at its documented realistic magnitude (``docs/simulate.md``, "Non-ideal
+#: effects"): ``mismatch.<key>: value`` overrides per effect name. Applied alone or together,
+#: e.g. ``--set mismatch.distortion_k1=-0.1``.
+DOCUMENTED_EFFECTS: dict[str, dict[str, object]] = {
+    "monochromator": {"scan_wavelength_offset_nm": 0.5, "scan_fwhm_actual_nm": 12.0},
+    "distortion": {"distortion_k1": -0.1},
+    "stray_light": {"stray_light_fraction": 0.02},
+    "brf_thickness": {"brf_thickness_gradient_um_per_mm": (0.15, 0.0),
+                      "brf_thickness_curvature_um": 0.3},
+    "brf_temperature": {"brf_delta_t_k": 5.0},
+    "drift": {"drift_shift_px": (2.0, 0.0), "drift_rotation_deg": 0.05},
+    "sensor_nonlinearity": {"sensor_nonlinearity": 0.03},
+    "sensor_defects": {"prnu_sigma": 0.01, "hot_pixel_fraction": 1e-4,
+                       "dead_pixel_fraction": 1e-5},
+    "scene_illuminant": {"scene_illuminant": "A"},
+}
 
 
 @dataclass
