@@ -313,9 +313,11 @@ def test_capture_set_applies_after_calibration_effects_to_scenes_only(tmp_path):
     ideal = _simulate(tmp_path / "ideal", [])
     late = _simulate(tmp_path / "late", ["mismatch.drift_shift_px=[2, 0]",
                                          "mismatch.brf_delta_t_k=5", "mismatch.scene_illuminant=A"])
-    assert "mismatch" not in ideal
-    assert late["mismatch"] == {"brf_delta_t_k": 5.0, "drift_shift_px": [2.0, 0.0],
-                                "scene_illuminant": "A"}
+    tj = [json.loads((tmp_path / n / "ground_truth" / "truth.json").read_text())
+          for n in ("ideal", "late")]
+    assert tj[0]["mismatch"] == {}
+    assert tj[1]["mismatch"] == {"brf_delta_t_k": 5.0, "drift_shift_px": [2.0, 0.0],
+                                 "scene_illuminant": "A"}
     for c in ideal["captures"]:
         a, _ = read_capture(tmp_path / "ideal" / c["file"])
         b, _ = read_capture(tmp_path / "late" / c["file"])

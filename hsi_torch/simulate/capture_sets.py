@@ -458,9 +458,6 @@ def simulate_capture_set(
         "scan_fwhm_nm": renderer.scan_fwhm_nm,
         "scan_line": renderer.scan_line,
     }
-    mismatch = cfg.mismatch.active()
-    if mismatch:  # the ideal device's manifest is unchanged
-        manifest["mismatch"] = mismatch
 
     if cfg.render.figures:
         t0 = time.perf_counter()
@@ -530,6 +527,8 @@ def _truth_json(cfg, renderer: CaptureRenderer, truth, scene_names, arrays) -> d
         "fine_wavelengths_nm": [float(renderer.fine[0]), float(renderer.fine[-1]),
                                 float(renderer.fine_widths[0])],
         "scenes": scene_names,
+        # the non-ideal effects that are on (docs/simulate.md); {} for the ideal device
+        "mismatch": cfg.mismatch.active(),
         "config": json.loads(json.dumps(to_dict(cfg), default=str)),
         "supersample_offsets_px": subpixel_offsets(renderer.supersample).tolist(),
     }
