@@ -8,11 +8,15 @@ shipped ``calibrate.yaml`` and the ColorChecker reconstructed (default β, per p
 calibrated bundle and with the oracle bundle (the truth of the calibrated, ideal-model device).
 Scores (reflectance, peak 1): PSNR and spectral angle of the patch-interior mean spectra
 (≥ 0.3 mm inside each patch) and per pixel over the patch interiors; "lost" = ideal − effect.
+An effect changes the irradiance, so the Poisson draws of its captures differ from the ideal
+set's: ``--noise-seeds N`` renders the ideal device with N other noise seeds, whose spread is
+the noise floor below which a "lost" is not significant.
 
 Usage::
 
     OMP_NUM_THREADS=1 python scripts/mismatch_small.py --out /tmp/mismatch   # ~1 min per row
     python scripts/mismatch_small.py --out /tmp/mismatch --effects drift distortion
+    python scripts/mismatch_small.py --out /tmp/mismatch_nf --noise-free
 
 A row's capture set, once written, is reused by a rerun (delete its folder to redo it).
 """
@@ -38,17 +42,22 @@ from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
 from hsi_torch.simulate.oracle import bundle_from_truth
 
 
+NO_NOISE = ("sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false")
+
+
 def _overrides(keys: dict) -> list[str]:
     return [f"mismatch.{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
             for k, v in keys.items()]
 
 
-def run_row(out: Path, keys: dict, log=print) -> dict:
-    """Simulate, calibrate, reconstruct and score one row; returns its scores."""
+def run_row(out: Path, keys: dict, log=print, extra: tuple[str, ...] = ()) -> dict:
+    """Simulate, calibrate, reconstruct and score one row (``extra``: further simulate
+    overrides); returns its scores."""
     t0 = time.perf_counter()
     if not (out / "manifest.json").is_file():
         cfg = load_config(shipped_config("simulate"), SimulateConfig,
-                          ["render.progress=false", "render.figures=false", *_overrides(keys)])
+                          ["render.progress=false", "render.figures=false", *_overrides(keys),
+                           *extra])
         simulate_capture_set(cfg, out, progress=False, log=lambda *a: None)
     ccfg = load_config(shipped_config("calibrate"), CalibrateConfig, ["progress=false"])
     bundle, _ = calibrate_capture_set(out, ccfg)
@@ -96,6 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--effects", nargs="*", default=None,
                     help=f"subset of {sorted(DOCUMENTED_EFFECTS)} (default: all, then together)")
+    ap.add_argument("--noise-seeds", type=int, default=0,
+                    help="also render the ideal device with this many other noise seeds: the "
+                         "spread of their rows is the table's noise floor")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="no shot/read noise, no quantisation: each effect's own cost, without "
+                         "the noise realisations' spread")
     args = ap.parse_args(argv)
     names = args.effects if args.effects is not None else [*DOCUMENTED_EFFECTS, "all"]
     unknown = sorted(set(names) - set(DOCUMENTED_EFFECTS) - {"all"})
@@ -105,9 +120,14 @@ def main(argv: list[str] | None = None) -> int:
     every: dict = {}
     for keys in DOCUMENTED_EFFECTS.values():
         every.update(keys)
-    rows = {"ideal": run_row(args.out / "ideal", {})}
+    nf = NO_NOISE if args.noise_free else ()
+    rows = {"ideal": run_row(args.out / "ideal", {}, extra=nf)}
+    for k in range(1, args.noise_seeds + 1):
+        rows[f"ideal, noise seed {k}"] = run_row(args.out / f"ideal_seed{k}", {},
+                                                 extra=(*nf, f"render.seed={1000 * k}"))
     for n in names:
-        rows[n] = run_row(args.out / n, every if n == "all" else DOCUMENTED_EFFECTS[n])
+        rows[n] = run_row(args.out / n, every if n == "all" else DOCUMENTED_EFFECTS[n],
+                          extra=nf)
     md = table(rows)
     (args.out / "mismatch_small.json").write_text(json.dumps(rows, indent=1))
     (args.out / "mismatch_small.md").write_text(md + "\n")

@@ -26,6 +26,13 @@ Monochromator scan frame at ``λ_j``: objective removed, diffuser lit evenly fro
 peak 1) instead of ``l·τ_obj``: ``E_c = κ_scan · t · Σ_λ Δλ_f g_j f^c Tstack`` with ``κ_scan``
 making the BRF-free patch reach 1 at the brightest line of the band in its brightest channel.
 
+Non-ideal effects (:class:`~hsi_torch.simulate.mismatch.Mismatch`, all off by default, each on
+its own flag so the ideal path is unchanged): lens distortion and sensor drift move the traced
+sensor points (:meth:`CaptureRenderer.sensor_to_pinhole`), a filter thickness map or temperature
+change scales each ray's OPD, the monochromator's offset and width change the scan lines, a
+scene illuminant changes the scenes' weights, stray light adds a veil to every image. Drift,
+temperature and scene illuminant act only with ``after_calibration=True`` (the scene captures).
+
 Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) — see
 :meth:`CaptureRenderer.ground_truth`. With it the reference-frame forward model
 
