@@ -41,7 +41,6 @@ from hsi_torch.simulate import SimulateConfig, simulate_capture_set
 from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
 from hsi_torch.simulate.oracle import bundle_from_truth
 
-
 NO_NOISE = ("sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false")
 
 
