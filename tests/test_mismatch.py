@@ -313,6 +313,9 @@ def test_capture_set_applies_after_calibration_effects_to_scenes_only(tmp_path):
     ideal = _simulate(tmp_path / "ideal", [])
     late = _simulate(tmp_path / "late", ["mismatch.drift_shift_px=[2, 0]",
                                          "mismatch.brf_delta_t_k=5", "mismatch.scene_illuminant=A"])
+    # the manifest holds only what a real camera's would
+    assert {k: v for k, v in late.items() if k != "captures"} == {
+        k: v for k, v in ideal.items() if k != "captures"}
     tj = [json.loads((tmp_path / n / "ground_truth" / "truth.json").read_text())
           for n in ("ideal", "late")]
     assert tj[0]["mismatch"] == {}
