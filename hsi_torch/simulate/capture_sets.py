@@ -345,11 +345,14 @@ def _render_all(
     late = sorted({pc.render_key for pc in planned if pc.type == "scene"})
     early = [i for i in range(len(specs)) if i not in set(late)]
     irr: list[torch.Tensor | None] = [None] * len(specs)
+    rays = 0
     for keys, after in ((early, False), (late, True)):
         if keys:
             imgs = renderer.render_captures([specs[i] for i in keys], bar, after_calibration=after)
+            rays += renderer.num_rays
             for i, im in zip(keys, imgs, strict=True):
                 irr[i] = im
+    renderer.num_rays = rays  # both passes' rays
     return irr
 
 
