@@ -6,8 +6,12 @@ Signal chain of :meth:`SensorModel.expose` (per pixel, all batched torch):
 2. Bayer mosaic (``output='bayer'``, :func:`mosaic`) or three full planes (``output='rgb'``);
 3. mean electrons ``μ = exposure · scale · E`` where ``E`` is the input (``scale`` = full-well
    electrons for ``input_units='relative'``, so ``E·exposure = 1`` fills the well; 1 for
-   ``'electrons'``);
-4. photon shot noise ``N_e ~ Poisson(μ)`` (``shot_noise``), clipped at the full well;
+   ``'electrons'``); optional fixed patterns (off by default): ``μ ← μ · (1 + σ_PRNU·z_p)``
+   (pixel gain non-uniformity), ``+ hot_pixel_level · full well`` on hot pixels, ``0`` on dead
+   pixels — the same map in every exposure (seeded by ``pattern_seed``);
+4. photon shot noise ``N_e ~ Poisson(μ)`` (``shot_noise``); optional non-linearity near
+   saturation (``nonlinearity``: above ``knee`` of the full well the charge read is
+   ``N_e − nonlinearity · FW · ((N_e/FW − knee)/(1 − knee))²``); clipped at the full well;
 5. read noise ``+ N(0, σ_read²)`` electrons;
 6. conversion to digital numbers ``DN = N_e / (electrons per DN) + black_level``, rounding
    (``quantize``) and clipping to ``[0, white_level]``; pixels at the full well or the white level
@@ -245,6 +249,15 @@ class SensorModel:
         quantize: round to integer DN.
         psf_sigma_px: Gaussian PSF on the sensor, σ in pixels (0 = none), before the mosaic.
         seed: seed of the noise generator (``None``: nondeterministic).
+        nonlinearity: fraction of the charge lost at the full well (0 = linear response);
+            ``nonlinearity_knee``: fraction of the full well where the loss starts (quadratic
+            from there, so the response and its slope are continuous).
+        prnu_sigma: relative σ of the per-pixel gain (photo-response non-uniformity).
+        hot_pixel_fraction, hot_pixel_level: pixels with an extra fixed charge of
+            ``hot_pixel_level`` full wells (in every exposure, dark frames included).
+        dead_pixel_fraction: pixels that collect no photo-charge (they read black + read noise).
+        pattern_seed: seed of the fixed patterns (PRNU, hot, dead), drawn on the CPU per sensor
+            size so every device and every exposure sees the same pixels.
 
     Defaults describe a generic 14-bit DSLR raw at low ISO (black 512 DN, 30 000 e⁻ full well,
     3 e⁻ read noise): representative values, not one camera's datasheet.
@@ -264,6 +277,13 @@ class SensorModel:
     quantize: bool = True
     psf_sigma_px: float = 0.0
     seed: int | None = 0
+    nonlinearity: float = 0.0
+    nonlinearity_knee: float = 0.7
+    prnu_sigma: float = 0.0
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_level: float = 0.2
+    dead_pixel_fraction: float = 0.0
+    pattern_seed: int = 1
     _generators: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -290,6 +310,13 @@ class SensorModel:
             raise ValueError(f"exposure must be >= 0, got {self.exposure}")
         if self.psf_sigma_px < 0:
             raise ValueError(f"psf_sigma_px must be >= 0, got {self.psf_sigma_px}")
+        for name in ("nonlinearity", "nonlinearity_knee", "hot_pixel_fraction",
+                     "dead_pixel_fraction"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+        if self.prnu_sigma < 0 or self.hot_pixel_level <= 0:
+            raise ValueError(f"prnu_sigma must be >= 0 and hot_pixel_level > 0, got "
+                             f"{self.prnu_sigma}, {self.hot_pixel_level}")
 
     # ---------------------------------------------------------------- derived quantities
     @property
@@ -347,6 +374,29 @@ class SensorModel:
         """Half-size binning ``(..., 1, H, W)`` → ``(..., 3, H//2, W//2)``."""
         return bin_bayer(raw, self.cfa_pattern)
 
+    @property
+    def has_fixed_pattern(self) -> bool:
+        """PRNU, hot or dead pixels are on."""
+        return (self.prnu_sigma > 0 or self.hot_pixel_fraction > 0
+                or self.dead_pixel_fraction > 0)
+
+    def fixed_pattern(
+        self, height: int, width: int, device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(gain, hot, dead)`` maps ``(H, W)``: PRNU gain ``1 + σ z``, hot and dead masks.
+
+        Drawn from a CPU generator seeded with ``pattern_seed`` (same pixels on every device
+        and in every exposure); a pixel is not both hot and dead.
+        """
+        gen = torch.Generator().manual_seed(int(self.pattern_seed))
+        z = torch.randn(height, width, generator=gen, dtype=torch.float64)
+        u = torch.rand(height, width, generator=gen, dtype=torch.float64)
+        gain = (1.0 + self.prnu_sigma * z).clamp_min(0.0)
+        hot = u < self.hot_pixel_fraction
+        dead = (u >= 1.0 - self.dead_pixel_fraction) & ~hot
+        return gain.to(device=device, dtype=dtype), hot.to(device), dead.to(device)
+
     def mean_electrons(self, irradiance: torch.Tensor) -> torch.Tensor:
         """Noise-free electrons ``exposure · scale · E`` (no mosaic, no clipping)."""
         scale = self.electrons_at_unity if self.input_units == "relative" else 1.0
@@ -382,8 +432,16 @@ class SensorModel:
             x = self.mosaic(x)
         gen = generator if generator is not None else self.generator(x.device)
         e = self.mean_electrons(x).clamp_min(0.0)
+        fw = self.electrons_at_unity
+        if self.has_fixed_pattern:
+            gain, hot, dead = self.fixed_pattern(e.shape[-2], e.shape[-1], e.device, e.dtype)
+            e = torch.where(dead, 0.0, e * gain + hot.to(e.dtype) * (self.hot_pixel_level * fw))
         if self.shot_noise:
             e = torch.poisson(e, generator=gen)
+        if self.nonlinearity > 0:
+            k = self.nonlinearity_knee
+            over = (e / fw - k).clamp_min(0.0) / (1.0 - k)
+            e = e - self.nonlinearity * fw * over * over
         saturated = torch.zeros_like(e, dtype=torch.bool)
         if self.full_well_e is not None:
             saturated = e >= self.full_well_e
@@ -415,4 +473,11 @@ class SensorModel:
             "quantize": bool(self.quantize),
             "psf_sigma_px": float(self.psf_sigma_px),
             "seed": self.seed,
+            "nonlinearity": float(self.nonlinearity),
+            "nonlinearity_knee": float(self.nonlinearity_knee),
+            "prnu_sigma": float(self.prnu_sigma),
+            "hot_pixel_fraction": float(self.hot_pixel_fraction),
+            "hot_pixel_level": float(self.hot_pixel_level),
+            "dead_pixel_fraction": float(self.dead_pixel_fraction),
+            "pattern_seed": int(self.pattern_seed),
         }

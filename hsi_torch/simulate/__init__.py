@@ -10,11 +10,14 @@ from hsi_torch.simulate.capture_sets import (
     simulate_capture_set,
 )
 from hsi_torch.simulate.config import SimulateConfig
+from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS, Mismatch
 from hsi_torch.simulate.render import CaptureRenderer, CaptureSpec
 
 __all__ = [
     "CaptureRenderer",
     "CaptureSpec",
+    "DOCUMENTED_EFFECTS",
+    "Mismatch",
     "SimulateConfig",
     "SimulationSummary",
     "build_renderer",

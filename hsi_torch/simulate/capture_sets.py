@@ -77,7 +77,8 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
     brf_d = to_dict(cfg.brf)
     eff = brf_d.pop("polarizer_efficiency")
     brf = BRFConfig.from_dict(brf_d)
-    sensor = SensorModel(**to_dict(cfg.sensor), input_units="relative", seed=cfg.render.seed)
+    sensor = SensorModel(**to_dict(cfg.sensor), input_units="relative", seed=cfg.render.seed,
+                         **cfg.mismatch.sensor_kwargs())
     if sensor.white > 65535:
         raise ValueError(f"sensor white level {sensor.white} does not fit a 16-bit capture "
                          "(sensor.bit_depth <= 16)")
@@ -97,6 +98,7 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
         scan_fwhm_nm=cfg.captures.scan_fwhm_nm, scan_line=cfg.captures.scan_line,
         scan_exposure=cfg.captures.scan_exposure, chunk=r.chunk,
         device=device or r.device, dtype=_DTYPES[r.dtype], view_inset_px=r.view_inset_px,
+        mismatch=cfg.mismatch,
     )
 
 
@@ -332,6 +334,28 @@ def _capture_metadata(renderer: CaptureRenderer, pc: PlannedCapture, exposure: f
     return meta
 
 
+def _render_all(
+    renderer: CaptureRenderer, specs: list[CaptureSpec], planned: list[PlannedCapture], bar
+) -> list[torch.Tensor | None]:
+    """Every spec's noise-free image. When the mismatch changes the device after calibration
+    (drift, filter temperature, scene illuminant), the scene captures (``type: scene``) are
+    rendered in a second pass with those effects; scan, white, grid and dark frames are not."""
+    if not renderer.mismatch.after_calibration:
+        return renderer.render_captures(specs, bar)
+    late = sorted({pc.render_key for pc in planned if pc.type == "scene"})
+    early = [i for i in range(len(specs)) if i not in set(late)]
+    irr: list[torch.Tensor | None] = [None] * len(specs)
+    rays = 0
+    for keys, after in ((early, False), (late, True)):
+        if keys:
+            imgs = renderer.render_captures([specs[i] for i in keys], bar, after_calibration=after)
+            rays += renderer.num_rays
+            for i, im in zip(keys, imgs, strict=True):
+                irr[i] = im
+    renderer.num_rays = rays  # both passes' rays
+    return irr
+
+
 def simulate_capture_set(
     cfg: SimulateConfig,
     out_dir: str | Path,
@@ -358,7 +382,7 @@ def simulate_capture_set(
     tm["setup"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    irr = renderer.render_captures(specs, bar)
+    irr = _render_all(renderer, specs, planned, bar)
     tm["trace+render"] = time.perf_counter() - t0
 
     # expose and write each capture, and free its irradiance after its last shot
@@ -506,6 +530,8 @@ def _truth_json(cfg, renderer: CaptureRenderer, truth, scene_names, arrays) -> d
         "fine_wavelengths_nm": [float(renderer.fine[0]), float(renderer.fine[-1]),
                                 float(renderer.fine_widths[0])],
         "scenes": scene_names,
+        # the non-ideal effects that are on (docs/simulate.md); {} for the ideal device
+        "mismatch": cfg.mismatch.active(),
         "config": json.loads(json.dumps(to_dict(cfg), default=str)),
         "supersample_offsets_px": subpixel_offsets(renderer.supersample).tolist(),
     }

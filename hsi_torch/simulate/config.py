@@ -9,6 +9,8 @@ same name and unit as the field it sets (lengths in mm, angles in degrees, wavel
 - ``sensor`` → :class:`hsi_torch.optics.sensor.SensorModel` (noise seed: ``render.seed``)
 - ``diffuser`` → :class:`hsi_torch.optics.sensor.DiffuserModel`
 - ``objective``, ``illuminant``, ``camera_sensitivity``, ``render``, ``captures``: this package.
+- ``mismatch`` → :class:`hsi_torch.simulate.mismatch.Mismatch` (non-ideal effects, all off by
+  default; the sensor's go to :class:`~hsi_torch.optics.sensor.SensorModel`).
 
 ``describe_schema(SimulateConfig)`` prints one line per key with its default and help text.
 
@@ -28,6 +30,7 @@ from hsi_torch.config import help_meta
 from hsi_torch.optics.birefringence import BRFConfig
 from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
+from hsi_torch.simulate.mismatch import Mismatch
 
 __all__ = [
     "GeometryConfig",
@@ -352,3 +355,4 @@ class SimulateConfig:
     diffuser: DiffuserConfig = field(default_factory=DiffuserConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     captures: CapturesConfig = field(default_factory=CapturesConfig)
+    mismatch: Mismatch = field(default_factory=Mismatch)

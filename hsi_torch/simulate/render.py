@@ -26,6 +26,13 @@ Monochromator scan frame at ``λ_j``: objective removed, diffuser lit evenly fro
 peak 1) instead of ``l·τ_obj``: ``E_c = κ_scan · t · Σ_λ Δλ_f g_j f^c Tstack`` with ``κ_scan``
 making the BRF-free patch reach 1 at the brightest line of the band in its brightest channel.
 
+Non-ideal effects (:class:`~hsi_torch.simulate.mismatch.Mismatch`, all off by default, each on
+its own flag so the ideal path is unchanged): lens distortion and sensor drift move the traced
+sensor points (:meth:`CaptureRenderer.sensor_to_pinhole`), a filter thickness map or temperature
+change scales each ray's OPD, the monochromator's offset and width change the scan lines, a
+scene illuminant changes the scenes' weights, stray light adds a veil to every image. Drift,
+temperature and scene illuminant act only with ``after_calibration=True`` (the scene captures).
+
 Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) — see
 :meth:`CaptureRenderer.ground_truth`. With it the reference-frame forward model
 
@@ -78,6 +85,12 @@ from hsi_torch.optics.geometry import (
     view_sample_grid,
 )
 from hsi_torch.optics.sensor import DiffuserModel, Exposure, SensorModel, cfa_index
+from hsi_torch.simulate.mismatch import (
+    Mismatch,
+    drift_points,
+    radial_undistort,
+    stray_light_veil,
+)
 from hsi_torch.simulate.scenes import (
     CubeScene,
     Scene,
@@ -318,6 +331,8 @@ class CaptureRenderer:
         chunk: rays per batch; device, dtype: where and how to render.
         layout: a precomputed :class:`ViewLayout` (else built from a float64 trace).
         view_inset_px: truth ``view_mask`` keeps source points this far inside the triangle.
+        mismatch: non-ideal effects (:class:`~hsi_torch.simulate.mismatch.Mismatch`; default:
+            none). The sensor's own (PRNU, hot/dead pixels, non-linearity) belong to ``sensor``.
     """
 
     def __init__(
@@ -345,6 +360,7 @@ class CaptureRenderer:
         dtype: torch.dtype = torch.float64,
         layout: ViewLayout | None = None,
         view_inset_px: float = 1.0,
+        mismatch: Mismatch | None = None,
     ) -> None:
         if supersample < 1:
             raise ValueError(f"supersample must be >= 1, got {supersample}")
@@ -370,6 +386,7 @@ class CaptureRenderer:
         self.scan_exposure = float(scan_exposure)
         self.chunk = int(chunk)
         self.view_inset_px = float(view_inset_px)
+        self.mismatch = mismatch if mismatch is not None else Mismatch()
         self.device, self.dtype = torch.device(device), dtype
         dev = self.device
 
@@ -471,7 +488,8 @@ class CaptureRenderer:
         return half_eta * (math.cos(chi) ** 2 - 0.5 * k), half_eta * 0.5 * k
 
     def retardance_cosine(
-        self, alpha: torch.Tensor, sigma: torch.Tensor, brf_free: torch.Tensor
+        self, alpha: torch.Tensor, sigma: torch.Tensor, brf_free: torch.Tensor,
+        opd_scale: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """``(N, L)`` ``cos(2π · OPD(α, σ, λ_l) / λ_l)`` on the fine grid, 1 for BRF-free rays.
 
@@ -480,9 +498,13 @@ class CaptureRenderer:
         ``2π/λ`` folded into the matrix), so with :meth:`stack_cosine_form`
         ``stack_transmittance(α, σ, free, fine, exact=False) = a + b · cos`` outside the disk
         costs one matrix product and one in-place cosine per ray and wavelength.
+        ``opd_scale (N,)`` multiplies each ray's OPD (a filter thickness map or temperature
+        change, :meth:`Mismatch.opd_factor`); ``None`` = 1.
         """
         knots, phase = self._phase_knots(alpha.dtype)
         opd = self.brf.opd_nm(alpha[:, None], sigma[:, None], knots)  # (N, knots)
+        if opd_scale is not None:
+            opd = opd * opd_scale.to(opd)[:, None]
         opd = opd.masked_fill(brf_free[:, None], 0.0)
         return (opd @ phase).cos_()
 
@@ -515,13 +537,33 @@ class CaptureRenderer:
     def _render_geometry(self) -> KaleidoscopeGeometry:
         return dataclasses.replace(self.geometry, max_reflections=self.max_reflections)
 
+    def sensor_to_pinhole(
+        self, points_px: torch.Tensor, after_calibration: bool = False
+    ) -> torch.Tensor:
+        """``(N, 2)`` sensor points → the pinhole-camera points whose rays they receive.
+
+        The identity for the ideal device. With :attr:`mismatch`: the sensor's drift since
+        calibration (``after_calibration`` only, :func:`~.mismatch.drift_points`), then the
+        lens's radial distortion (:func:`~.mismatch.radial_undistort`).
+        """
+        m, cam = self.mismatch, self.camera
+        if after_calibration and m.drifted:
+            points_px = drift_points(points_px, m.drift_shift_px, m.drift_rotation_deg,
+                                     ((cam.width_px - 1) / 2.0, (cam.height_px - 1) / 2.0))
+        if m.distorted:
+            points_px = radial_undistort(points_px, m.distortion_k1, m.distortion_k2,
+                                         cam.focal_px, float(cam.cx), float(cam.cy))
+        return points_px
+
     def trace_tiles(
-        self, progress: Callable | None = None
+        self, progress: Callable | None = None, after_calibration: bool = False
     ) -> Iterator[tuple[int, int, SubpixelTrace]]:
         """Trace ``s²`` rays per sensor pixel, one band of sensor rows (≈ :attr:`chunk` rays) at
         a time: yields ``(row0, row1, rays of rows row0…row1−1 that reach the diffuser)``.
 
         A pixel's rays all lie in its band, so a band's pixels are complete once it is shaded.
+        Sensor points go through :meth:`sensor_to_pinhole` (lens distortion, and the drift when
+        ``after_calibration``) before they are traced.
         """
         dev, dt = self.device, self.dtype
         geom = self._render_geometry()
@@ -545,6 +587,8 @@ class CaptureRenderer:
                                     indexing="ij")
             base = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)  # (P, 2)
             pts = (base[:, None, :] + offs[None]).reshape(-1, 2)
+            if self.mismatch.distorted or (after_calibration and self.mismatch.drifted):
+                pts = self.sensor_to_pinhole(pts, after_calibration)
             tr = trace_rays(geom, self.camera, pts.to(dt), sequences=seqs, chunk=self.chunk)
             keep = torch.nonzero(tr.view_index >= 0).squeeze(1)
             pix = (ys.reshape(-1).long() * w + xs.reshape(-1).long()).repeat_interleave(s2)
@@ -588,7 +632,9 @@ class CaptureRenderer:
         """Drop the cached blurred scene rasters (they are rebuilt on demand)."""
         self._blur_cache.clear()
 
-    def _shading_plan(self, specs: Sequence[CaptureSpec]) -> dict[str, Any]:
+    def _shading_plan(
+        self, specs: Sequence[CaptureSpec], after_calibration: bool = False
+    ) -> dict[str, Any]:
         """Per-render constants: the lit captures (scans first, then scenes, in spec order) and
         the spectral weights ``W[l, column, c]`` that every ray's ``cos(2π OPD/λ)`` row meets.
 
@@ -598,21 +644,36 @@ class CaptureRenderer:
         columns ``E_k(λ) φ^c(λ) Δλ κ``. Built in float64, then cast to the render dtype. Each
         capture's numbers come from its own block only, so a capture is bit-identical whatever
         else the set contains.
+
+        Mismatch: the scan lines are centred ``scan_wavelength_offset_nm`` off their nominal
+        wavelength with FWHM ``scan_fwhm_actual_nm`` (``κ_scan`` stays the nominal line's);
+        ``after_calibration`` scenes are lit by ``scene_illuminant`` (``κ`` stays the white
+        reference's).
         """
         dev, dt, f64 = self.device, self.dtype, torch.float64
+        mm = self.mismatch
         scan = [i for i, sp in enumerate(specs) if sp.kind == "scan"]
         lit_scenes = [i for i, sp in enumerate(specs) if sp.kind == "scene"]
-        phi_w = (self.phi_fine * self.fine_widths * self.kappa).T  # (L, 3) float64
+        phi_fine = self.phi_fine
+        if after_calibration and mm.scene_illuminant is not None:
+            phi_fine = refdata.illuminant(mm.scene_illuminant, self.fine, extrapolate="edge") \
+                * self.camera_sens * self.objective_tau
+        phi_w = (phi_fine * self.fine_widths * self.kappa).T  # (L, 3) float64
 
         def block(w: torch.Tensor) -> dict[str, torch.Tensor]:  # w: (L, columns, 3) float64
             return {"w": w.to(dt), "w_sum": w.sum(0).to(dt)}
 
         plan: dict[str, Any] = {"order": scan + lit_scenes, "num_scan": len(scan),
-                                "scan": None, "white": None, "scenes": []}
+                                "scan": None, "white": None, "scenes": [],
+                                "after": after_calibration}
         if scan:
             centres = torch.tensor([float(specs[i].wavelength_nm) for i in scan],
                                    device=dev, dtype=f64)
-            lines = line_profile(centres, self.fine, self.scan_fwhm_nm, self.scan_line)
+            fwhm = self.scan_fwhm_nm
+            if mm.scan_changed:
+                centres = centres + mm.scan_wavelength_offset_nm
+                fwhm = mm.scan_fwhm_actual_nm or fwhm
+            lines = line_profile(centres, self.fine, fwhm, self.scan_line)
             plan["scan"] = block(torch.einsum("jl,cl->ljc", lines * self.fine_widths
                                               * self.kappa_scan, self.camera_sens))
         for i in lit_scenes:
@@ -650,7 +711,11 @@ class CaptureRenderer:
         a, b = self.stack_cosine_form()
         n, nc = tr.num_rays, len(channels)
         ch = list(channels)
-        cos = self.retardance_cosine(tr.alpha, tr.sigma, tr.brf_free)  # (n, L)
+        scale = None
+        if self.mismatch.thickness_map or plan["after"]:
+            scale = self.mismatch.opd_factor(tr.hit_xy, self.brf.thickness_mm, self._r2,
+                                             plan["after"])
+        cos = self.retardance_cosine(tr.alpha, tr.sigma, tr.brf_free, scale)  # (n, L)
         dt, dev = cos.dtype, cos.device
         coef_a = torch.full((n, 1), a, dtype=dt, device=dev).masked_fill_(tr.brf_free[:, None], 1.0)
         coef_b = torch.full((n, 1), b, dtype=dt, device=dev).masked_fill_(tr.brf_free[:, None], 0.0)
@@ -697,7 +762,8 @@ class CaptureRenderer:
                 out[:, col] = y * g_obj[:, None]
 
     def render_captures(
-        self, specs: Sequence[CaptureSpec], progress: Callable | None = None
+        self, specs: Sequence[CaptureSpec], progress: Callable | None = None,
+        after_calibration: bool = False,
     ) -> list[torch.Tensor | None]:
         """Noise-free relative irradiance of every capture (exposure not applied), one image each.
 
@@ -713,11 +779,16 @@ class CaptureRenderer:
             ``C = 3`` (R, G, B). Multiply by an exposure to get the input of
             :meth:`SensorModel.expose`. :attr:`num_rays` counts the rays that reached the
             diffuser.
+
+        ``after_calibration``: the specs are scene captures taken after calibration; the
+        :attr:`mismatch` effects that change the device since then (drift, filter temperature,
+        scene illuminant) apply to them. The device effects (distortion, filter thickness map,
+        monochromator errors, stray light) apply to every render.
         """
         dev, dt = self.device, self.dtype
         h, w = self.sensor_size
         c_out = 1 if self.mosaic_early else 3
-        plan = self._shading_plan(specs)
+        plan = self._shading_plan(specs, after_calibration)
         order = plan["order"]
         out: list[torch.Tensor | None] = [None] * len(specs)
         self.num_rays = 0
@@ -728,7 +799,7 @@ class CaptureRenderer:
         cfa = torch.tensor(cfa_index(self.sensor.cfa_pattern), device=dev).reshape(-1)
         inv_s2 = 1.0 / self.supersample**2
         k = len(order)
-        for y0, y1, tr in self.trace_tiles(progress):
+        for y0, y1, tr in self.trace_tiles(progress, after_calibration):
             n = tr.num_rays
             self.num_rays += n
             if n == 0:
@@ -751,14 +822,27 @@ class CaptureRenderer:
             acc = acc.mul_(inv_s2).T
             for j, i in enumerate(order):
                 out[i][:, p0:p1] = acc[j * c_out:(j + 1) * c_out]
-        return [None if o is None else o.reshape(c_out, h, w) for o in out]
+        imgs = [None if o is None else o.reshape(c_out, h, w) for o in out]
+        mm = self.mismatch
+        if mm.stray_light_fraction > 0:
+            cfa_img = None
+            if self.mosaic_early:
+                yy = torch.arange(h, device=dev)[:, None] % 2
+                xx = torch.arange(w, device=dev)[None, :] % 2
+                cfa_img = cfa[yy * 2 + xx]
+            centre = (float(self.camera.cx), float(self.camera.cy))
+            imgs = [None if im is None else stray_light_veil(
+                im, mm.stray_light_fraction, mm.stray_light_width, centre, cfa_img)
+                for im in imgs]
+        return imgs
 
     def render(
-        self, specs: Sequence[CaptureSpec], progress: Callable | None = None
+        self, specs: Sequence[CaptureSpec], progress: Callable | None = None,
+        after_calibration: bool = False,
     ) -> torch.Tensor:
         """Noise-free relative irradiance of every capture stacked, ``(K, C, H, W)`` (zeros for
         ``'dark'``); see :meth:`render_captures`, which holds no zero images."""
-        imgs = self.render_captures(specs, progress)
+        imgs = self.render_captures(specs, progress, after_calibration)
         h, w = self.sensor_size
         c_out = 1 if self.mosaic_early else 3
         return torch.stack([torch.zeros(c_out, h, w, device=self.device, dtype=self.dtype)
@@ -844,6 +928,10 @@ class CaptureRenderer:
           ≥ 3 modulated views.
         - ``alpha, sigma (V, h, w)`` rad, ``throughput (V, h, w)``, ``diffuser_xy (h, w, 2)`` mm,
           ``brf_free (h, w)``.
+
+        The truth is the device calibration sees, in the ideal (pinhole) sensor frame: the
+        filter's thickness map (:attr:`mismatch`) is in ``B``; lens distortion, stray light, the
+        monochromator's errors, the sensor's defects and every after-calibration effect are not.
         """
         lay = self.layout
         x0, y0, w, h = lay.reference_bbox
@@ -883,7 +971,9 @@ class CaptureRenderer:
             for a in range(0, idx.numel(), self.chunk):
                 j = idx[a:a + self.chunk]
                 fj = free[j, None]
-                cos = self.retardance_cosine(tr.alpha[j], tr.sigma[j], free[j])
+                scale = (self.mismatch.opd_factor(x_ref[j], self.brf.thickness_mm, self._r2,
+                                                  False) if self.mismatch.thickness_map else None)
+                cos = self.retardance_cosine(tr.alpha[j], tr.sigma[j], free[j], scale)
                 bj = (cos @ lw.T).mul_(torch.where(fj, 0.0, cb)).add_(
                     torch.where(fj, 1.0, ca) * lw_sum)  # = Tstack @ lw.T
                 B[v, :, j] = (tr.throughput[j, None] * bj).T.to(torch.float32)
