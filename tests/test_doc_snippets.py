@@ -9,6 +9,9 @@ prototype, made once per test session):
 ``calib/calib.npz``      ``hsi-torch calibrate --captures sim --out calib`` (+ ``calib.npz``)
 ``shots/scene_001.tif``  the simulated ColorChecker capture (``shots/scene_002.tif``: the
                          second scene; ``scene.tif``, ``shot.tif``: copies at the top)
+``extra/scene.dng``      the first scene as a camera's DNG (black level 512, ExposureTime)
+``lab/``                 the set as a lab names it: ``lab/captures.csv`` (the sheet),
+                         DNG files in its own folders, ``lab/nominal_layout.json``
 =======================  ==========================================================
 
 A bash block runs with ``bash -e -o pipefail``, a Python block with the test's interpreter, both
@@ -123,7 +126,40 @@ def base_workspace(tmp_path_factory, snippet_env) -> Path:
         shutil.copy(src, ws / "shots" / f"scene_{k:03d}.tif")
     shutil.copy(scenes[0], ws / "scene.tif")
     shutil.copy(scenes[0], ws / "shot.tif")
+    _lab_files(ws / "sim", ws)
     return ws
+
+
+def _lab_files(sim: Path, ws: Path) -> None:
+    """``extra/scene.dng`` and ``lab/`` (a sheet and DNGs named the lab's way) from ``sim``."""
+    import csv
+    import json
+
+    from hsi_torch.io import read_capture
+    from hsi_torch.testing import write_dng
+
+    def dng(src: Path, dst: Path, exposure_s: float) -> None:
+        img, meta = read_capture(src)
+        write_dng(dst, img[0].numpy(), cfa_pattern=meta.get("cfa_pattern", "RGGB"),
+                  black_level=int(meta["black_level"]), white_level=int(meta["white_level"]),
+                  exposure_s=exposure_s, make="Lab Optics", model="KaleidoCam 1")  # fmt: skip
+
+    man = json.loads((sim / "manifest.json").read_text(encoding="utf-8"))
+    rows = [["file", "role", "wavelength_nm", "name"]]
+    folders = {"scan": "Monochromator", "white": "Flat field", "grid": "Dots", "dark": "Dark",
+               "scene": "Shots"}  # fmt: skip
+    for k, e in enumerate(man["captures"]):
+        name = f"{folders[e['type']]}/IMG_{k:04d}.dng"
+        dng(sim / e["file"], ws / "lab" / name, 0.5 if e["type"] == "scan" else 0.01)
+        wl = f"{e['wavelength_nm']:g}" if e["type"] == "scan" else ""
+        rows.append([name, e["type"], wl, e.get("name", "") if e["type"] == "scene" else ""])
+        if e["type"] == "scene" and not (ws / "extra" / "scene.dng").exists():
+            dng(sim / e["file"], ws / "extra" / "scene.dng", 0.01)
+    with open(ws / "lab" / "captures.csv", "w", newline="", encoding="utf-8") as f:
+        csv.writer(f).writerows(rows)
+    shutil.copy(sim / "nominal_layout.json", ws / "lab" / "nominal_layout.json")
+    if (sim / "brf_free_mask.png").exists():
+        shutil.copy(sim / "brf_free_mask.png", ws / "lab" / "brf_free_mask.png")
 
 
 _WORKSPACES: dict[Path, Path] = {}
