@@ -284,8 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_cluster_options(p)
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="capture files or glob patterns")
 
-    p = command("experiment", "run a named experiment (synthetic, opd, usaf, design)")
-    p.add_argument("name", metavar="NAME", help="experiment name")
+    p = command("experiment", "run a named experiment (synthetic, design, opd, usaf, spatial)")
+    p.add_argument("name", metavar="NAME",
+                   help="experiment name: synthetic, design, opd, usaf or spatial")
     _add_common(p)
     p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
 

@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hsi_torch.resources import shipped_data
+from hsi_torch.errors import MissingFileError
+from hsi_torch.resources import real_data_dir, shipped_data
 from hsi_torch.spectral import SpectralGrid, resample_spectra
 
 __all__ = [
@@ -49,6 +50,7 @@ __all__ = [
     "list_illuminants",
     "camera_sensitivities",
     "list_cameras",
+    "resolve_camera",
     "colorchecker_reflectances",
     "reflectance_set",
     "cie_1931_cmfs",
@@ -286,11 +288,66 @@ def illuminant(
 # --------------------------------------------------------------------------------------------
 
 
+def _real_data_cameras() -> dict[str, Path]:
+    """Cameras measured in the real-data folder (``camera_sensitivities/*.json``, rawtoaces
+    format, named ``Make_Model_380_780_5.json``), by name (``'Nikon D850'``); empty when the
+    folder is absent."""
+    folder = real_data_dir("camera_sensitivities")
+    if folder is None:
+        return {}
+    out: dict[str, Path] = {}
+    for f in sorted(folder.glob("*.json")):
+        parts = f.stem.split("_")
+        while parts and parts[-1].isdigit():  # the range and step of the file name
+            parts.pop()
+        if parts:
+            out[" ".join(parts)] = f
+    return out
+
+
 def list_cameras() -> list[str]:
-    """Built-in cameras: colour-science's measured sets plus rawtoaces' Canon EOS 5D Mark II."""
+    """Built-in cameras: colour-science's measured sets, rawtoaces' Canon EOS 5D Mark II and,
+    when the real-data folder is present, the cameras measured there (by name)."""
     import colour
 
-    return sorted(set(colour.MSDS_CAMERA_SENSITIVITIES.keys()) | set(_BUILTIN_CAMERA_CSV))
+    return sorted(set(colour.MSDS_CAMERA_SENSITIVITIES.keys()) | set(_BUILTIN_CAMERA_CSV)
+                  | set(_real_data_cameras()))
+
+
+def resolve_camera(name_or_path: str | os.PathLike) -> str:
+    """The camera a name or path means: a name of :func:`list_cameras` matched without regard to
+    case, spaces or ``-``/``_`` (``'nikon d850'``, ``'NIKON_D850'``; a real-data camera resolves
+    to its JSON file's path), or a CSV/JSON path returned as given.
+
+    Raises:
+        MissingFileError: a CSV/JSON path that does not exist (the message names it).
+        ValueError: neither a known name nor a table file (the message lists the names).
+    """
+    import colour
+
+    name = os.fspath(name_or_path)
+    if name in colour.MSDS_CAMERA_SENSITIVITIES or name in _BUILTIN_CAMERA_CSV:
+        return name
+
+    def key(text: str) -> str:
+        return "".join(ch for ch in text.lower() if ch.isalnum())
+
+    # the built-in measurements win over a real-data file of the same camera
+    known = {key(n): os.fspath(p) for n, p in _real_data_cameras().items()}
+    known.update({key(n): n for n in [*colour.MSDS_CAMERA_SENSITIVITIES.keys(),
+                                      *_BUILTIN_CAMERA_CSV]})
+    if key(name) in known and Path(name).suffix.lower() not in (".json", ".csv", ".txt", ".tsv"):
+        return known[key(name)]
+    if Path(name).suffix.lower() in (".json", ".csv", ".txt", ".tsv"):
+        if not Path(name).is_file():
+            raise MissingFileError(f"camera sensitivity file not found: {name}")
+        return name
+    if Path(name).is_file():
+        return name
+    raise ValueError(
+        f"unknown camera {name!r}: not a CSV/JSON file and not one of {list_cameras()} "
+        "(names match without regard to case)"
+    )
 
 
 def _read_camera_json(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -331,9 +388,11 @@ def camera_sensitivities(
     """Camera RGB spectral sensitivities ``f^c(λ)``.
 
     Args:
-        name_or_path: a name from :func:`list_cameras` (``colour.MSDS_CAMERA_SENSITIVITIES`` keys
-            or ``'Canon EOS 5D Mark II'``), a CSV file ``wavelength,R,G,B`` or a JSON file in the
-            rawtoaces format (``spectral_data.data.main = {wavelength: [R, G, B]}``).
+        name_or_path: a name from :func:`list_cameras` (``colour.MSDS_CAMERA_SENSITIVITIES`` keys,
+            ``'Canon EOS 5D Mark II'``, the real-data folder's cameras such as ``'Nikon D850'``;
+            matched without regard to case, see :func:`resolve_camera`), a CSV file
+            ``wavelength,R,G,B`` or a JSON file in the rawtoaces format
+            (``spectral_data.data.main = {wavelength: [R, G, B]}``).
         wavelengths: ``(M,)`` target wavelengths in nm.
         normalise: ``'max'`` (default): the largest value over all channels is 1 (keeps the ratios
             between channels); ``'channel'``: each channel's peak is 1; ``None``: as stored.
@@ -347,7 +406,7 @@ def camera_sensitivities(
 
     if normalise not in ("max", "channel", None, "none"):
         raise ValueError(f"normalise must be 'max', 'channel' or None, got {normalise!r}")
-    name = os.fspath(name_or_path)
+    name = resolve_camera(name_or_path)
     if name in colour.MSDS_CAMERA_SENSITIVITIES:
         msds = colour.MSDS_CAMERA_SENSITIVITIES[name]
         src, vals = np.asarray(msds.wavelengths), np.asarray(msds.values).T

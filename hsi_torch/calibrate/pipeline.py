@@ -447,7 +447,10 @@ def _polygon_mask(poly: np.ndarray, size: tuple[int, int], offset_px: float) -> 
 def _camera_prior(name: str, wl: torch.Tensor) -> torch.Tensor:
     if name.lower() == "flat":
         return torch.ones(3, wl.numel(), dtype=wl.dtype, device=wl.device)
-    f = refdata.camera_sensitivities(name, wl.cpu().to(torch.float64), extrapolate="edge")
+    try:
+        f = refdata.camera_sensitivities(name, wl.cpu().to(torch.float64), extrapolate="edge")
+    except (FileNotFoundError, ValueError) as exc:  # name the configuration key at fault
+        raise type(exc)(f"config key 'response.camera_sensitivity': {exc}") from None
     return torch.as_tensor(f, dtype=wl.dtype).to(wl.device)
 
 

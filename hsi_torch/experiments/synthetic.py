@@ -317,7 +317,9 @@ class DesignEvaluation:
     def sweep_rows(self) -> list[dict[str, Any]]:
         """One row per (σ, β): the seed-mean PSNR and SAM (the whole sweep)."""
         rows = []
-        mp, sp, ma = self.psnr_db.mean(1), self.psnr_db.std(1), self.sam_deg.mean(1)
+        mp, ma = self.psnr_db.mean(1), self.sam_deg.mean(1)
+        # the spread over seeds (none with one seed: no std of a single value)
+        sp = self.psnr_db.std(1) if len(self.seeds) > 1 else torch.zeros_like(mp)
         for i, s in enumerate(self.sigmas):
             for j, b in enumerate(self.betas):
                 rows.append({

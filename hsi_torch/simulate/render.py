@@ -306,7 +306,10 @@ def _select_rays(tr: SubpixelTrace, idx: torch.Tensor | slice) -> SubpixelTrace:
 
 
 def _camera_signal(name_or_path: str, wl: torch.Tensor) -> torch.Tensor:
-    return refdata.camera_sensitivities(name_or_path, wl, extrapolate="edge")
+    try:
+        return refdata.camera_sensitivities(name_or_path, wl, extrapolate="edge")
+    except (FileNotFoundError, ValueError) as exc:  # name the configuration key at fault
+        raise type(exc)(f"config key 'camera_sensitivity': {exc}") from None
 
 
 class CaptureRenderer:
