@@ -148,7 +148,7 @@ def run_layout(args: argparse.Namespace) -> int:
     overlay PNG, nothing on an error."""
     import torch
 
-    from hsi_torch.batch import check_out_dir
+    from hsi_torch.io.paths import check_out_dir
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.layout_fit import (
         draw_layout_overlay,
