@@ -148,7 +148,6 @@ def run_layout(args: argparse.Namespace) -> int:
     overlay PNG, nothing on an error."""
     import torch
 
-    from hsi_torch.io.paths import check_out_dir
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.layout_fit import (
         draw_layout_overlay,
@@ -164,6 +163,7 @@ def run_layout(args: argparse.Namespace) -> int:
     from hsi_torch.io import read_any
     from hsi_torch.io.atomic import atomic_write_json
     from hsi_torch.io.capture_set import read_capture_set
+    from hsi_torch.io.paths import check_out_dir
     from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
     from hsi_torch.resources import shipped_config
     from hsi_torch.simulate.config import SimulateConfig
