@@ -48,6 +48,14 @@ import torch
 
 from hsi_torch import refdata
 from hsi_torch.calibrate.config import CalibrateConfig
+from hsi_torch.calibrate.reading import (
+    CaptureReader,
+    ScanSelection,
+    check_pedestal,
+    group_scan_frames,
+    scan_wavelengths,
+    select_scan_frames,
+)
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
     RegistrationResult,
@@ -58,30 +66,22 @@ from hsi_torch.calibrate.registration import (
 from hsi_torch.calibrate.response import ResponseResult, estimate_response_field
 from hsi_torch.calibrate.transmittance import (
     brf_transmittance,
-    match_wavelengths,
     to_reference_frame,
 )
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
 from hsi_torch.config import to_dict
 from hsi_torch.console import progress_bar, progress_enabled
 from hsi_torch.errors import CalibrationError, FileFormatError
-from hsi_torch.io import read_any, read_capture
 from hsi_torch.io.bundle import CalibrationBundle, make_provenance
 from hsi_torch.io.capture_set import (
     CaptureSet,
     NominalLayout,
     read_capture_set,
     read_mask_png,
-    wavelength_from_name,
 )
 from hsi_torch.io.radiometry import (
-    CameraIdentity,
-    black_level_rgb,
     capture_exposure,
-    file_has_black_level,
     outside_views_index,
-    pedestal_level,
-    pedestal_limit,
 )
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.spectral import SpectralGrid, band_widths
@@ -121,205 +121,6 @@ def _no_tick(n: int = 1, stage: str | None = None) -> None:
 # =============================================================================================
 
 
-class _Reader:
-    """read_any with the per-file settings of the capture set's manifest (``settings``:
-    :attr:`CaptureSet.settings`), the config's overrides (which win), the layout's sensor size
-    and dark subtraction; it also records what the captures say about the camera and the black
-    level, and the pedestal of every frame read after the dark subtraction (:meth:`pedestal`)."""
-
-    def __init__(self, cfg: CalibrateConfig, sensor_size: tuple[int, int], device, dtype,
-                 *, settings: dict[Path, dict[str, Any]] | None = None,
-                 outside_index: np.ndarray | None = None):  # fmt: skip
-        self.cfg, self.size, self.device, self.dtype = cfg, sensor_size, device, dtype
-        self.settings = settings or {}
-        self.dark: torch.Tensor | None = None
-        self.dark_files: list[Path] = []
-        self.cfa_pattern: str | None = None
-        self.outside = outside_index
-        self.camera: CameraIdentity | None = None
-        self.cameras: set[str] = set()
-        #: the black level the files were read with (R, G, B) and its source, first capture
-        self.black_rgb: list[float] | None = None
-        self.black_source: str | None = None
-        self.black_sources: set[str] = set()
-        #: (file, median (3,), robust sigma (3,), white span) per frame read after the dark
-        self.pedestals: list[tuple[Path, list[float], list[float], float | None]] = []
-        self._recording = True
-
-    def _black_source(self, path: Path, meta: dict[str, Any]) -> str:
-        src = meta.get("black_level_source")
-        if isinstance(src, str) and src:
-            return src
-        if self.cfg.black_level is not None:
-            return "config"
-        return "file" if file_has_black_level(path) else "default"
-
-    def overrides(self, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
-        """read_any's keyword overrides for ``path`` and their sources: the manifest's settings
-        for the file, then the config's ``cfa_pattern``/``black_level``/``white_level``."""
-        given = {k: v for k, v in self.settings.get(path, {}).items() if k != "exposure"}
-        for key in ("cfa_pattern", "black_level", "white_level"):
-            if getattr(self.cfg, key) is not None:
-                given[key] = (getattr(self.cfg, key), "config")
-        return {k: v for k, (v, _) in given.items()}, {k: s for k, (_, s) in given.items()}
-
-    def read(self, path: Path) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
-        kw, sources = self.overrides(path)
-        cap = read_any(
-            path, expected_size=self.size, demosaic=self.cfg.demosaic, dtype=self.dtype,
-            device=self.device, sources=sources, **kw,
-        )  # fmt: skip
-        rel = self.settings.get(path, {}).get("exposure")
-        if rel is not None:  # the manifest's relative exposure of the file wins over the file's
-            cap.metadata["exposure"] = rel[0]
-        meta = cap.metadata
-        if meta.get("kind") == "bayer":
-            self.cfa_pattern = meta.get("cfa_pattern")
-        src = self._black_source(path, meta)
-        meta["black_level_source"] = src
-        self._note_identity(meta, src)
-        img = cap.image if self.dark is None else cap.image - self.dark
-        if self._recording and self.outside is not None and self.outside.size:
-            st = pedestal_level(img, self.outside)
-            if st is not None:
-                black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern")) or [0.0]
-                wl = meta.get("white_level")
-                span = float(wl) - float(np.mean(black)) if isinstance(wl, (int, float)) else None
-                self.pedestals.append((path, st[0], st[1], span))
-        return img, cap.saturated, meta
-
-    def _note_identity(self, meta: dict[str, Any], src: str) -> None:
-        cam = CameraIdentity.from_metadata(meta, self.size, levels_from_file=src == "file")
-        self.camera = cam if self.camera is None else self.camera.merged(cam)
-        if cam.name and " ".join(cam.name.lower().split()) not in {
-                " ".join(c.lower().split()) for c in self.cameras}:  # fmt: skip
-            self.cameras.add(cam.name)
-        self.black_sources.add(src)
-        if self.black_rgb is None:
-            self.black_rgb = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
-            self.black_source = src
-
-    def read_mean(
-        self, paths: Path | Sequence[Path]
-    ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
-        """:meth:`read` of one file, or the mean of several (repeated frames of one scan
-        wavelength): a sample is saturated when it is in any of them; frames of other exposures
-        (``exposure_s``, when every frame has one) are scaled to the first frame's first."""
-        if isinstance(paths, Path):
-            return self.read(paths)
-        img, sat, meta = self.read(paths[0])
-        t0 = meta.get("exposure_s")
-        for p in paths[1:]:
-            i2, s2, m2 = self.read(p)
-            t = m2.get("exposure_s")
-            if t0 is not None and t is not None and float(t) != float(t0):
-                i2 = i2 * (float(t0) / float(t))
-            img = img + i2
-            sat = sat | s2
-        return img / len(paths), sat, meta
-
-    def set_dark(self, files: Sequence[Path], mode: str) -> None:
-        if mode == "none" or not files:
-            return
-        acc = None
-        self._recording = False  # the dark frames themselves read the pedestal, by definition
-        try:
-            for p in files:
-                img, _, _ = self.read(p)
-                acc = img if acc is None else acc + img
-        finally:
-            self._recording = True
-        d = acc / len(files)
-        self.dark = d.mean(dim=(-2, -1), keepdim=True).expand_as(d) if mode == "mean" else d
-        self.dark_files = list(files)
-
-    def black_level_record(self) -> dict[str, Any]:
-        """What a capture without a black level of its own must have subtracted to match the
-        calibration: ``black_level_rgb`` (the files' black level plus the dark frames' mean, per
-        colour, DN), ``black_level_source`` (a sentence), ``dark_level_rgb`` (the dark frames'
-        mean above the black level, or ``None``) and ``files_black_level_source``."""
-        base = self.black_rgb if self.black_rgb is not None else [0.0, 0.0, 0.0]
-        src = self.black_source or "default"
-        if len(self.black_sources) > 1:
-            src = "mixed (" + ", ".join(sorted(self.black_sources)) + ")"
-        what = {"file": "the files' metadata", "config": "the black_level setting",
-                "default": "none given: 0", "bundle": "the bundle"}.get(src, src)  # fmt: skip
-        dark = None
-        total = list(base)
-        text = f"black level {_levels_text(base)} DN ({what})"
-        if self.dark is not None:
-            dark = [float(v) for v in self.dark.mean(dim=(-2, -1)).double().cpu()]
-            total = [a + b for a, b in zip(base, dark, strict=True)]
-            names = ", ".join(p.name for p in self.dark_files)
-            text += (f" + dark frame mean {_levels_text(dark)} DN ({names}; "
-                     f"dark: {self.cfg.dark})")  # fmt: skip
-        return {"black_level_rgb": total, "black_level_source": text,
-                "dark_level_rgb": dark, "files_black_level_source": src}  # fmt: skip
-
-    def pedestal(self) -> dict[str, Any] | None:
-        """The pedestal of the captures: per colour, the frame level closest to 0 over every
-        frame read after the dark subtraction (stray light only adds to it; a missed black level
-        is in every frame), its limit (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and
-        ``ok``. ``None`` when no frame had sensor pixels outside the views."""
-        if not self.pedestals:
-            return None
-        level, limit = [], []
-        for c in range(3):
-            f = min(self.pedestals, key=lambda r: abs(r[1][c]))
-            level.append(f[1][c])
-            limit.append(pedestal_limit(f[3], f[2][c]))
-        ok = all(abs(v) <= lim for v, lim in zip(level, limit, strict=True))
-        n_out = 0 if self.outside is None else int(self.outside.size)
-        return {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
-                "frames": len(self.pedestals), "outside_pixels": n_out}  # fmt: skip
-
-
-def _levels_text(v: Sequence[float]) -> str:
-    if max(v) - min(v) < 0.05:
-        return f"{v[0]:.4g}"
-    return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
-
-
-def check_pedestal(reader: _Reader, mode: str, notes: list[str]) -> dict[str, Any] | None:
-    """Refuse (``mode="error"``) or warn (``"warn"``) when the sensor outside every view reads
-    more than the limit after black subtraction in every frame: the captures carry a black
-    pedestal the black level did not remove (or too much was subtracted). Returns the
-    measurement (:meth:`_Reader.pedestal`).
-
-    Raises:
-        CalibrationError: naming the level measured and the fix.
-    """
-    ped = reader.pedestal()
-    if mode == "off" or ped is None:
-        if ped is None:
-            notes.append("pedestal not checked: every sensor pixel is within the margin of a view")
-        return ped
-    if ped["ok"]:
-        return ped
-    c = max(range(3), key=lambda i: abs(ped["pedestal_dn"][i]) / ped["pedestal_limit_dn"][i])
-    lvl, lim = ped["pedestal_dn"][c], ped["pedestal_limit_dn"][c]
-    sub = reader.black_level_record()["black_level_rgb"][c]
-    if lvl > 0:
-        what = (f"the captures carry a black pedestal of ~{lvl:.0f} DN; give black_level in the "
-                f"sheet/manifest/--set (e.g. --set black_level={sub + lvl:.0f}) or add a dark "
-                "frame")  # fmt: skip
-    else:
-        what = (f"the black level subtracted ({sub:.0f} DN) is ~{-lvl:.0f} DN too high; give the "
-                "right black_level in the sheet/manifest/--set (e.g. --set "
-                f"black_level={sub + lvl:.0f})")  # fmt: skip
-    msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
-           f"({'RGB'[c]} channel, the frame closest to 0 of {ped['frames']}; limit {lim:.3g} DN): "
-           f"{what}")  # fmt: skip
-    if mode == "error":
-        raise CalibrationError(msg + " (pedestal_check=warn only warns)")
-    warnings.warn(msg, UserWarning, stacklevel=3)
-    notes.append(msg)
-    return ped
-
-
-# =============================================================================================
-# report
-# =============================================================================================
 
 
 @dataclass
@@ -523,118 +324,6 @@ def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
 # =============================================================================================
 
 
-@dataclass
-class ScanSelection:
-    """The scan frames calibration uses (:func:`group_scan_frames`).
-
-    Attributes:
-        frames: per band of the grid, ``(files, band wavelength nm)``: one file, or the
-            repeated frames of that wavelength (averaged when read).
-        outside: ``(file, wavelength nm)`` of the frames no band uses (outside the grid or
-            between its bands by more than the tolerance).
-        repeated: ``(band wavelength nm, files)`` of the bands with more than one frame.
-    """
-
-    frames: list[tuple[tuple[Path, ...], float]]
-    outside: list[tuple[Path, float]]
-    repeated: list[tuple[float, tuple[Path, ...]]]
-
-    @property
-    def num_files(self) -> int:
-        return sum(len(f) for f, _ in self.frames)
-
-    def notes(self, grid_text: str) -> list[str]:
-        """One line each for the averaged bands and the frames left out (for the report)."""
-        out = []
-        if self.repeated:
-            out.append(
-                "scan: repeated frames averaged: " + "; ".join(
-                    f"{lam:g} nm: {len(fs)} frames ({', '.join(p.name for p in fs)})"
-                    for lam, fs in self.repeated
-                )
-            )  # fmt: skip
-        if self.outside:
-            out.append(
-                f"scan: {len(self.outside)} frame(s) not used (no band of the grid {grid_text} "
-                "within the wavelength tolerance): "
-                + ", ".join(f"{p.name} ({lam:g} nm)" for p, lam in self.outside)
-            )
-        return out
-
-
-def scan_wavelengths(cs: CaptureSet) -> list[tuple[Path, float]]:
-    """Every scan frame with its wavelength: its manifest entry's, else the ``<number>nm`` in its
-    name, else the ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
-
-    Raises:
-        ValueError: a frame's wavelength is unknown (naming the file).
-    """
-    scan = list(cs.scan)
-    for i, (p, lam) in enumerate(scan):
-        if lam is None:
-            lam = wavelength_from_name(p.name)
-            if lam is None and p.suffix.lower() in (".tif", ".tiff", ".npy", ".npz"):
-                _, meta = read_capture(p)
-                lam = meta.get("wavelength_nm")
-            if lam is None:
-                raise ValueError(
-                    f"scan frame {p}: wavelength unknown (no 'wavelength_nm' in its manifest "
-                    "entry or metadata, and no '<number>nm' in the file name, e.g. scan_550nm.tif)"
-                )
-            scan[i] = (p, float(lam))
-    return scan  # type: ignore[return-value]
-
-
-def group_scan_frames(
-    cs: CaptureSet, wavelengths_nm: torch.Tensor | Sequence[float], tol_nm: float
-) -> ScanSelection:
-    """Every band's scan frames (checked before any image is read): each frame goes to the band
-    within ``tol_nm`` of its wavelength (:func:`scan_wavelengths`); a band with several frames
-    averages them; frames near no band are listed in ``outside``, never silently dropped.
-
-    Raises:
-        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``
-            (naming the missing wavelengths).
-    """
-    scan = scan_wavelengths(cs)
-    grid = [float(v) for v in torch.as_tensor(wavelengths_nm).reshape(-1).cpu().tolist()]
-    try:
-        match_wavelengths([lam for _, lam in scan], grid, tol_nm)  # names missing bands
-    except ValueError as exc:
-        raise ValueError(f"captures {cs.root}: {exc}") from exc
-    groups: list[list[Path]] = [[] for _ in grid]
-    outside = []
-    for p, lam in scan:
-        d = [abs(lam - g) for g in grid]
-        j = min(range(len(grid)), key=d.__getitem__)
-        if d[j] <= tol_nm:
-            groups[j].append(p)
-        else:
-            outside.append((p, lam))
-    frames = [(tuple(g), lam) for g, lam in zip(groups, grid, strict=True)]
-    repeated = [(lam, fs) for fs, lam in frames if len(fs) > 1]
-    return ScanSelection(frames, outside, repeated)
-
-
-def select_scan_frames(
-    cs: CaptureSet, wavelengths_nm: torch.Tensor, tol_nm: float
-) -> list[tuple[Path, float]]:
-    """The nearest scan frame of every band of the grid (checked before any image is read);
-    :func:`group_scan_frames` gives all of them (repeated frames, frames outside the grid).
-
-    A frame's wavelength is its manifest entry's, else the ``<number>nm`` in its name, else the
-    ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
-
-    Raises:
-        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``.
-    """
-    scan = scan_wavelengths(cs)
-    scan_nm = [float(lam) for _, lam in scan]
-    try:
-        idx = match_wavelengths(scan_nm, wavelengths_nm.cpu(), tol_nm)
-    except ValueError as exc:
-        raise ValueError(f"captures {cs.root}: {exc}") from exc
-    return [scan[int(i)] for i in idx]
 
 
 def check_sensor_size(cs: CaptureSet, lay: NominalLayout) -> None:
@@ -720,7 +409,7 @@ def brf_free_patch(
 
 
 def register_grid_shots(
-    cs: CaptureSet, reader: _Reader, lay: NominalLayout, cfg: CalibrateConfig,
+    cs: CaptureSet, reader: CaptureReader, lay: NominalLayout, cfg: CalibrateConfig,
     notes: list[str], tick: Tick = _no_tick,
 ) -> RegistrationResult:
     """View homographies from the circle-grid shots (:func:`register_views`), each shot divided
@@ -793,7 +482,7 @@ class TransmittanceStage:
 
 
 def calibrate_transmittance(
-    scan: Sequence[tuple[Path | Sequence[Path], float]], reader: _Reader, lay: NominalLayout,
+    scan: Sequence[tuple[Path | Sequence[Path], float]], reader: CaptureReader, lay: NominalLayout,
     homographies: torch.Tensor, patch: PatchMasks, wavelengths_nm: torch.Tensor,
     cfg: CalibrateConfig, tick: Tick = _no_tick,
 ) -> TransmittanceStage:
@@ -900,7 +589,7 @@ class ResponseStage:
 
 
 def calibrate_response(
-    white: Sequence[Path], reader: _Reader, homographies: torch.Tensor,
+    white: Sequence[Path], reader: CaptureReader, homographies: torch.Tensor,
     reference_bbox: Sequence[int], trans: TransmittanceStage, wavelengths_nm: torch.Tensor,
     cfg: CalibrateConfig, notes: list[str], tick: Tick = _no_tick,
 ) -> ResponseStage:
@@ -975,7 +664,7 @@ def calibrate_response(
 def assemble_bundle(
     cs: CaptureSet, lay: NominalLayout, grid: SpectralGrid, wavelengths_nm: torch.Tensor,
     reg: RegistrationResult, trans: TransmittanceStage, resp: ResponseStage, patch: PatchMasks,
-    reader: _Reader, dark_mode: str, cfg: CalibrateConfig,
+    reader: CaptureReader, dark_mode: str, cfg: CalibrateConfig,
     pedestal: dict[str, Any] | None = None,
 ) -> tuple[CalibrationBundle, torch.Tensor, ValidRegionSummary]:
     """The valid region (≥ ``min_views`` BRF-modulated views) and the bundle with its settings and
@@ -1110,7 +799,8 @@ def calibrate_capture_set(
             bar.update(n)
 
     outside = outside_views_index(lay.triangles, lay.sensor_size)
-    reader = _Reader(cfg, lay.sensor_size, dev, dt, settings=cs.settings, outside_index=outside)
+    reader = CaptureReader(cfg, lay.sensor_size, dev, dt, settings=cs.settings,
+                           outside_index=outside)
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
@@ -1171,3 +861,7 @@ def calibrate_capture_set(
         camera=None if reader.camera is None else reader.camera.name,
     )
     return bundle, report
+
+
+#: the reader's former private name (kept for callers of the old name)
+_Reader = CaptureReader
