@@ -211,7 +211,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("simulate", "render captures and ground truth with the virtual prototype")
     _add_common(p)
-    p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
+    p.add_argument("--out", "-o", type=Path, required=True,
+                   help="output folder (new or empty, unless --overwrite)")
+    p.add_argument(
+        "--overwrite", action="store_true",
+        help="replace the files of a non-empty --out (the new set is written completely "
+             "first, then moved into place)",
+    )  # fmt: skip
 
     p = command("calibrate", "build a calibration bundle from calibration captures")
     _add_common(p)

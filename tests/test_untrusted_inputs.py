@@ -1,0 +1,249 @@
+"""What the package does with inputs it must not trust, and with outputs it must not lose.
+
+Replace-then-commit writes (a failed ``calibrate`` or ``simulate --overwrite`` keeps the previous
+good outputs, errors name the file), the same-file check of outputs against inputs, and the
+readers' refusals of crafted files: decompression bombs, unknown bundle members, zarr codecs that
+are not ours, manifest entries outside the capture set, special files, YAML alias bombs and
+enormous values.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_pipeline import make_bundle
+
+from hsi_torch.cli import main
+from hsi_torch.errors import HSIError, InputError
+from hsi_torch.io.atomic import (
+    InputFiles,
+    ReplaceTransaction,
+    check_not_input,
+    replace_then_commit,
+)
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# the transaction and the same-file check
+
+
+def test_check_not_input_by_identity_whatever_the_name(tmp_path):
+    a = tmp_path / "in" / "a.tif"
+    a.parent.mkdir()
+    a.write_bytes(b"raw")
+    (tmp_path / "link").symlink_to(a.parent)
+    os.link(a, tmp_path / "hard.tif")
+    inputs = InputFiles([a])
+    for same in (a, tmp_path / "link" / "a.tif", tmp_path / "hard.tif",
+                 tmp_path / "in" / ".." / "in" / "a.tif"):
+        with pytest.raises(InputError, match="is an input"):
+            check_not_input(same, inputs)
+    assert check_not_input(tmp_path / "in" / "b.tif", [a]) == tmp_path / "in" / "b.tif"
+    with pytest.raises(InputError, match="a.tif"):  # a folder stands for its files
+        check_not_input(tmp_path / "hard.tif", [tmp_path / "in"])
+
+
+def test_transaction_keeps_old_files_until_every_new_one_is_complete(tmp_path):
+    a, b = tmp_path / "a.bin", tmp_path / "b.bin"
+    a.write_bytes(b"old a")
+    b.write_bytes(b"old b")
+    with pytest.raises(RuntimeError, match="boom"), replace_then_commit() as tx:
+        tx.stage(a).write_bytes(b"new a")
+        assert a.read_bytes() == b"old a"  # not yet
+        raise RuntimeError("boom")
+    assert a.read_bytes() == b"old a" and b.read_bytes() == b"old b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin"]  # no temp file left
+
+    def full_disk(path):
+        Path(path).write_bytes(b"half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError, match=r"No space left on device while writing .*b\.bin") as ei:
+        with replace_then_commit() as tx:
+            tx.write(a, lambda p: Path(p).write_bytes(b"new a"))
+            tx.write(b, full_disk)
+    assert ei.value.errno == errno.ENOSPC
+    assert a.read_bytes() == b"old a" and b.read_bytes() == b"old b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin"]
+
+    with replace_then_commit() as tx:
+        tx.write(a, lambda p: Path(p).write_bytes(b"new a"))
+        tx.write(tmp_path / "c.bin", lambda p: Path(p).write_bytes(b"c"))
+    assert a.read_bytes() == b"new a" and tx.replaced == [a]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin", "c.bin"]
+
+
+def test_transaction_puts_back_what_it_moved_when_a_move_fails(tmp_path, monkeypatch):
+    a, b = tmp_path / "a.bin", tmp_path / "b.bin"
+    a.write_bytes(b"old a")
+    tx = ReplaceTransaction()
+    tx.stage(a).write_bytes(b"new a")
+    tx.stage(b).write_bytes(b"new b")
+    real = os.replace
+
+    def flaky(src, dst, *args, **kw):
+        if Path(dst) == b:
+            raise OSError(errno.EIO, "Input/output error")
+        return real(src, dst, *args, **kw)
+
+    monkeypatch.setattr(os, "replace", flaky)
+    with pytest.raises(OSError, match=r"while replacing .*b\.bin"):
+        tx.commit()
+    monkeypatch.undo()
+    assert a.read_bytes() == b"old a" and not b.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
+
+
+def test_transaction_refuses_a_folder_in_the_way_before_moving_anything(tmp_path):
+    (tmp_path / "a.bin").write_bytes(b"old a")
+    (tmp_path / "b.bin").mkdir()
+    with pytest.raises(InputError, match=r"b\.bin: a folder"), replace_then_commit() as tx:
+        tx.write(tmp_path / "a.bin", lambda p: Path(p).write_bytes(b"new"))
+        tx.write(tmp_path / "b.bin", lambda p: Path(p).write_bytes(b"new"))
+    assert (tmp_path / "a.bin").read_bytes() == b"old a"
+
+
+# ---------------------------------------------------------------------------------------------
+# calibrate: a failed rerun keeps the previous bundle, report, figure and configuration
+
+
+class _Report:
+    registration: list = []
+
+    def to_dict(self) -> dict:
+        return {"fake": True}
+
+    def __str__(self) -> str:
+        return "fake calibration report"
+
+
+@pytest.fixture
+def fake_calibration(monkeypatch):
+    """``calibrate`` with the calibration itself replaced by a tiny bundle (the write path is
+    what is tested here)."""
+    import hsi_torch.calibrate.pipeline as pipeline
+
+    state = {"seed": 0}
+
+    def fake(captures, cfg, device=None):
+        state["seed"] += 1
+        return make_bundle(seed=state["seed"]), _Report()
+
+    monkeypatch.setattr(pipeline, "calibrate_capture_set", fake)
+    return state
+
+
+def _calibrate(caps: Path, out: Path) -> int:
+    return main(["calibrate", "--captures", str(caps), "--out", str(out), "--no-progress"])
+
+
+def test_failed_calibrate_rerun_keeps_the_previous_bundle(tmp_path, fake_calibration, capsys):
+    caps, out = tmp_path / "caps", tmp_path / "cal"
+    caps.mkdir()
+    (caps / "manifest.json").write_text("{}")
+    assert _calibrate(caps, out) == 0
+    assert "replaced" not in capsys.readouterr().err
+    names = ["calib.npz", "calib.report.json", "calib_diagnostics.png", "resolved_config.yaml"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(names)
+    (out / "calib.report.json").unlink()
+    (out / "calib.report.json").mkdir()  # a folder in the way of one output
+    before = _snapshot(out)
+    assert _calibrate(caps, out) == 1
+    err = capsys.readouterr().err
+    assert "calib.report.json" in err and "folder" in err and "Errno" not in err
+    assert _snapshot(out) == before  # the bundle and the figure are still there, unchanged
+    (out / "calib.report.json").rmdir()
+
+
+def test_calibrate_on_a_full_disk_names_the_file_and_keeps_the_old_ones(
+        tmp_path, fake_calibration, capsys, monkeypatch):
+    import hsi_torch.calibrate.figures as figures
+
+    caps, out = tmp_path / "caps", tmp_path / "cal"
+    caps.mkdir()
+    assert _calibrate(caps, out) == 0
+    before = _snapshot(out)
+    real = figures.plot_calibration
+
+    def full(bundle, path, **kw):
+        real(bundle, path, **kw)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(figures, "plot_calibration", full)
+    capsys.readouterr()
+    assert _calibrate(caps, out) == 1
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "calib_diagnostics.png" in err
+    assert _snapshot(out) == before
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # no temporary file left
+    monkeypatch.setattr(figures, "plot_calibration", real)
+    assert _calibrate(caps, out) == 0
+    assert "replaced the existing bundle" in capsys.readouterr().err
+    assert _snapshot(out)["calib.npz"] != before["calib.npz"]
+
+
+def test_calibrate_refuses_to_write_over_a_capture(tmp_path, fake_calibration, capsys):
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    (caps / "scan_550nm.tif").write_bytes(b"a capture")
+    (tmp_path / "b.npz").symlink_to(caps / "scan_550nm.tif")
+    assert main(["calibrate", "--captures", str(caps), "--out", str(tmp_path / "b.npz")]) == 1
+    assert "is an input" in capsys.readouterr().err
+    assert (caps / "scan_550nm.tif").read_bytes() == b"a capture"
+
+
+# ---------------------------------------------------------------------------------------------
+# simulate into a folder that holds files
+
+
+_TINY = ["--set", "camera.scale=0.25", "--set", "render.supersample=1",
+         "--set", "captures.scan_wavelengths_nm=[550]", "--set", "captures.white_shots=1",
+         "--set", "captures.grid.poses=[]", "--set", "render.figures=false",
+         "--set", "captures.scenes=[]", "--set", "captures.dark_frames=0",
+         "--set", "render.progress=false"]  # fmt: skip
+
+
+def _capture_set_like(d: Path) -> dict[str, bytes]:
+    (d / "scan").mkdir(parents=True)
+    (d / "white").mkdir()
+    (d / "scan" / "scan_550nm.tif").write_bytes(b"device scan")
+    (d / "white" / "white_00.tif").write_bytes(b"device white")
+    (d / "manifest.json").write_text('{"device": true}')
+    return _snapshot(d)
+
+
+def test_simulate_refuses_a_non_empty_folder_without_overwrite(tmp_path, capsys):
+    d = tmp_path / "device_set"
+    before = _capture_set_like(d)
+    assert main(["simulate", "--out", str(d), *_TINY]) == 1
+    err = capsys.readouterr().err
+    assert "not empty" in err and "capture set" in err and "--overwrite" in err
+    assert _snapshot(d) == before
+
+
+def test_simulate_overwrite_replaces_only_when_complete(tmp_path, capsys):
+    d = tmp_path / "device_set"
+    before = _capture_set_like(d)
+    # a failing run with --overwrite leaves the old files as they were
+    assert main(["simulate", "--out", str(d), "--overwrite", *_TINY,
+                 "--set", "geometry.pupil_distance_mm=0"]) == 1  # fmt: skip
+    assert _snapshot(d) == before
+    assert main(["simulate", "--out", str(d), "--overwrite", *_TINY]) == 0
+    assert "replaced" in capsys.readouterr().err
+    after = _snapshot(d)
+    assert after["scan/scan_550nm.tif"] != before["scan/scan_550nm.tif"]
+    assert json.loads(after["manifest.json"])["generator"] == "hsi-torch simulate"
+    assert not [p for p in d.iterdir() if p.name.startswith(".")]  # the staging folder is gone
+    from hsi_torch.io.capture_set import read_capture_set
+
+    assert len(read_capture_set(d).scan) == 1
