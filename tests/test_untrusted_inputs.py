@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_pipeline import make_bundle
+from test_pipeline import make_bundle, render_capture, true_spectra
 
 from hsi_torch.cli import main
 from hsi_torch.errors import HSIError, InputError
@@ -26,6 +26,23 @@ from hsi_torch.io.atomic import (
     check_not_input,
     replace_then_commit,
 )
+
+
+@pytest.fixture
+def ws(tmp_path):
+    """A tiny bundle ``calib.npz`` and one capture ``caps/a.npy`` made from it."""
+    bundle = make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB")
+    bpath = tmp_path / "calib.npz"
+    bundle.save(bpath)
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    np.save(caps / "a.npy", render_capture(bundle, true_spectra()).numpy())
+    return tmp_path, bpath, caps
+
+
+def _rec(bpath, out, *extra):
+    return main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
+                 "--set", "dtype=float64", "--set", "beta=0", *extra])  # fmt: skip
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
@@ -247,3 +264,97 @@ def test_simulate_overwrite_replaces_only_when_complete(tmp_path, capsys):
     from hsi_torch.io.capture_set import read_capture_set
 
     assert len(read_capture_set(d).scan) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# the run's Zarr store: read only with its own codecs
+
+
+class _Payload:
+    """Unpickling this creates a file: the proof that code ran."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def _craft_pickle_store(store: Path, marker: Path) -> None:
+    import pickle
+
+    meta = json.loads((store / "source" / ".zarray").read_text())
+    meta["filters"], meta["compressor"] = [{"id": "pickle"}], None
+    (store / "source" / ".zarray").write_text(json.dumps(meta))
+    zm = json.loads((store / ".zmetadata").read_text())
+    zm["metadata"]["source/.zarray"] = meta
+    (store / ".zmetadata").write_text(json.dumps(zm))
+    (store / "source" / "0").write_bytes(pickle.dumps(_Payload(marker)))
+
+
+@pytest.fixture
+def unsafe_numcodecs(monkeypatch):
+    """numcodecs as before 0.16.6, which unpickled without asking."""
+    pickles = pytest.importorskip("numcodecs.pickles")
+    monkeypatch.setattr(pickles, "ALLOW_UNSAFE_PICKLE_DECODE", True, raising=False)
+
+
+def test_dataset_store_with_a_pickle_codec_is_refused_without_running_it(tmp_path,
+                                                                         unsafe_numcodecs):
+    from hsi_torch.io.dataset import CubeDataset, open_dataset, write_frame
+
+    store, marker = tmp_path / "cubes.zarr", tmp_path / "pwned"
+    with CubeDataset.open(store, ["/data/a.tif"], [430.0, 440.0], (3, 4)) as ds:
+        write_frame(store, ds.index["/data/a.tif"], np.ones((2, 3, 4)), np.ones((3, 4), bool),
+                    {"x": 1})
+    _craft_pickle_store(store, marker)
+    with pytest.raises(HSIError, match=r"array 'source' names the filter codec 'pickle'"):
+        with CubeDataset.open(store, ["/data/a.tif"], [430.0, 440.0], (3, 4)):
+            pass
+    with pytest.raises(HSIError, match=r"'pickle'"):
+        open_dataset(store)
+    assert not marker.exists()
+    # every other array, and other codecs and settings, likewise
+    meta = json.loads((store / "cube" / ".zarray").read_text())
+    meta["compressor"] = {"id": "zstd", "level": 1, "evil": 1}
+    (store / "cube" / ".zarray").write_text(json.dumps(meta))
+    with pytest.raises(HSIError, match=r"array 'cube'.*unexpected settings \['evil'\]"):
+        with CubeDataset.open(store, [], [430.0, 440.0], (3, 4)):
+            pass
+
+
+def test_cube_file_zarr_with_a_pickle_codec_is_refused(tmp_path, unsafe_numcodecs):
+    pytest.importorskip("xarray")
+    pytest.importorskip("zarr")
+    import pickle
+
+    from hsi_torch.io import load_cube, save_cube
+
+    p, marker = tmp_path / "c.zarr", tmp_path / "pwned"
+    save_cube(p, np.ones((2, 3, 4), np.float32), np.array([430.0, 440.0]))
+    assert load_cube(p).cube.shape == (2, 3, 4)
+    meta = json.loads((p / "x" / ".zarray").read_text())
+    meta["compressor"], meta["filters"], meta["dtype"] = None, [{"id": "pickle"}], "|O"
+    (p / "x" / ".zarray").write_text(json.dumps(meta))
+    zm = json.loads((p / ".zmetadata").read_text())
+    zm["metadata"]["x/.zarray"] = meta
+    (p / ".zmetadata").write_text(json.dumps(zm))
+    (p / "x" / "0").write_bytes(pickle.dumps(_Payload(marker)))
+    with pytest.raises(HSIError, match=r"array 'x' names the filter codec 'pickle'"):
+        load_cube(p)
+    assert not marker.exists()
+
+
+def test_reconstruct_into_a_crafted_store_is_refused_with_a_clear_error(ws, capsys,
+                                                                       unsafe_numcodecs):
+    pytest.importorskip("numcodecs")
+    tmp, bpath, caps = ws
+    out, marker = tmp / "run", tmp / "pwned"
+    assert _rec(bpath, out, "--format", "zarr", str(caps / "a.npy")) == 0
+    _craft_pickle_store(out / "cubes.zarr", marker)
+    capsys.readouterr()
+    assert _rec(bpath, out, "--format", "zarr", "--no-resume", str(caps / "a.npy")) == 1
+    err = capsys.readouterr().err
+    assert "array 'source' names the filter codec 'pickle'" in err
+    assert "unexpected error" not in err and "UnsafeDecodeError" not in err
+    assert not marker.exists()
