@@ -358,3 +358,156 @@ def test_reconstruct_into_a_crafted_store_is_refused_with_a_clear_error(ws, caps
     assert "array 'source' names the filter codec 'pickle'" in err
     assert "unexpected error" not in err and "UnsafeDecodeError" not in err
     assert not marker.exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# capture readers: decompression bombs, special files
+
+
+@pytest.fixture
+def no_decoding(monkeypatch):
+    """Record every TIFF page decoded (a refusal from the header decodes none)."""
+    import tifffile
+
+    calls: list = []
+    real = tifffile.TiffPage.asarray
+
+    def spy(self, *a, **k):
+        calls.append(self.shape)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(tifffile.TiffPage, "asarray", spy)
+    return calls
+
+
+def test_compressed_tiff_with_extra_samples_is_refused_before_decoding(tmp_path, no_decoding):
+    import tifffile
+
+    from hsi_torch.io import read_any, read_capture
+
+    p = tmp_path / "bomb.tif"  # (H, W, K): the sensor's H and W, K samples per pixel
+    tifffile.imwrite(p, np.zeros((40, 48, 500), np.uint16), compression="zlib",
+                     photometric="minisblack", planarconfig="contig")  # fmt: skip
+    assert p.stat().st_size < 100_000 < 40 * 48 * 500 * 2
+    with pytest.raises(HSIError, match=r"bomb\.tif.*\(40, 48, 500\).*refused before decoding"):
+        read_any(p, expected_size=(40, 48))
+    with pytest.raises(HSIError, match=r"bomb\.tif.*refused before decoding"):
+        read_capture(p)
+    assert no_decoding == []
+
+
+def test_compressed_npz_bombs_are_refused_from_the_member_headers(tmp_path):
+    from hsi_torch.io import read_any
+
+    p = tmp_path / "bomb.npz"
+    np.savez_compressed(p, image=np.zeros((40, 48, 500), np.uint16))
+    with pytest.raises(HSIError, match=r"bomb\.npz.*\(40, 48, 500\).*refused before decoding"):
+        read_any(p, expected_size=(40, 48))
+    q = tmp_path / "meta_bomb.npz"  # a valid image, and a 200 MB "metadata" text
+    np.savez_compressed(q, image=np.zeros((40, 48), np.uint16),
+                        metadata=np.array("x" * (50 << 20)))  # fmt: skip
+    assert q.stat().st_size < 2 << 20
+    with pytest.raises(HSIError, match=r"meta_bomb\.npz: 'metadata' must be .* at most 16 MiB"):
+        read_any(q, expected_size=(40, 48))
+
+
+def _alarm(seconds: float):
+    import signal
+
+    def on_alarm(signum, frame):
+        raise TimeoutError("hang")
+
+    signal.signal(signal.SIGALRM, on_alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_fifo_is_refused_before_opening(tmp_path):
+    import signal
+
+    from hsi_torch.io import read_any, read_capture
+    from hsi_torch.io.bundle import CalibrationBundle
+
+    fifo = tmp_path / "scene.tif"
+    os.mkfifo(fifo)
+    _alarm(10)
+    try:
+        for fn in (lambda: read_any(fifo), lambda: read_capture(fifo),
+                   lambda: CalibrationBundle.load(fifo)):  # fmt: skip
+            with pytest.raises(HSIError, match=r"scene\.tif: is a FIFO"):
+                fn()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_fifo_among_the_inputs_does_not_hang_the_batch(ws, capsys):
+    import signal
+
+    tmp, bpath, caps = ws
+    os.mkfifo(caps / "pipe.tif")
+    _alarm(120)
+    try:
+        rc = _rec(bpath, tmp / "out", str(caps / "pipe.tif"), str(caps / "a.npy"))
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "pipe.tif" in err and "FIFO" in err
+    assert (tmp / "out" / "a.npz").is_file()  # the other input was reconstructed
+
+
+# ---------------------------------------------------------------------------------------------
+# bundle members: a known list, sizes bounded before decompressing
+
+
+def _rezip(src: Path, dst: Path, replace: dict[str, np.ndarray | None]) -> Path:
+    """A copy of the NPZ ``src`` with members replaced, added (arrays) or dropped (None)."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_DEFLATED) as zout:
+        for info in zin.infolist():
+            name = info.filename[:-4]
+            if name not in replace:
+                zout.writestr(info.filename, zin.read(info))
+        for name, arr in replace.items():
+            if arr is not None:
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, arr, allow_pickle=False)
+                zout.writestr(name + ".npy", buf.getvalue())
+    return dst
+
+
+def test_bundle_with_an_unknown_member_is_refused_by_name(tmp_path):
+    from hsi_torch.io.bundle import CalibrationBundle
+
+    good = make_bundle().save(tmp_path / "good.npz")
+    CalibrationBundle.load(good)
+    bad = _rezip(good, tmp_path / "bad.npz", {"payload": np.zeros(1000, np.uint8)})
+    with pytest.raises(HSIError, match=r"bad\.npz: unknown member 'payload\.npy'"):
+        CalibrationBundle.load(bad)
+    # an extra_ member that meta does not list is unknown too
+    bad2 = _rezip(good, tmp_path / "bad2.npz", {"extra_x": np.zeros(3)})
+    with pytest.raises(HSIError, match=r"unknown member 'extra_x\.npy'"):
+        CalibrationBundle.load(bad2)
+
+
+def test_bundle_member_larger_than_its_layout_is_refused_before_decompressing(tmp_path,
+                                                                              monkeypatch):
+    from hsi_torch.io.bundle import CalibrationBundle
+
+    b = make_bundle()
+    good = b.save(tmp_path / "good.npz")
+    V, M, h, w = b.B.shape
+    big = np.zeros((V, M, h, w * 400), np.float32)  # 64 MB of zeros: ~60 kB deflated
+    bad = _rezip(good, tmp_path / "big.npz", {"B": big})
+    assert bad.stat().st_size < 2 << 20
+    reads = []
+    real = np.lib.format.read_array
+    monkeypatch.setattr(np.lib.format, "read_array",
+                        lambda f, *a, **k: reads.append(1) or real(f, *a, **k))  # fmt: skip
+    with pytest.raises(HSIError, match=r"big\.npz: member 'B' declares shape .* at most "
+                                       rf"{V * M * h * w} elements\); refusing to decompress"):
+        CalibrationBundle.load(bad)
+    assert len(reads) <= 3  # only meta, the reference box and the sensor size were decoded
