@@ -511,3 +511,66 @@ def test_bundle_member_larger_than_its_layout_is_refused_before_decompressing(tm
                                        rf"{V * M * h * w} elements\); refusing to decompress"):
         CalibrationBundle.load(bad)
     assert len(reads) <= 3  # only meta, the reference box and the sensor size were decoded
+
+
+# ---------------------------------------------------------------------------------------------
+# manifests: entries confined to the set's folder, entries of the wrong type
+
+
+def _manifest_set(tmp_path: Path, entries: list, **top) -> Path:
+    root = tmp_path / "set"
+    (root / "scan").mkdir(parents=True)
+    (root / "scan" / "scan_550nm.tif").write_bytes(b"x")
+    (tmp_path / "outside.tif").write_bytes(b"secret")
+    (root / "manifest.json").write_text(json.dumps({"schema_version": 1, "captures": entries,
+                                                    **top}))  # fmt: skip
+    return root
+
+
+@pytest.mark.parametrize("where", ["../outside.tif", "ABS", "scan/link.tif"])
+def test_manifest_entries_outside_the_folder_are_refused_unless_allowed(tmp_path, where):
+    from hsi_torch.io.capture_set import read_capture_set
+
+    if where == "ABS":
+        where = str(tmp_path / "outside.tif")
+    entries = [{"file": where, "type": "scan", "wavelength_nm": 550}]
+    root = _manifest_set(tmp_path, entries)
+    (root / "scan" / "link.tif").symlink_to(tmp_path / "outside.tif")
+    with pytest.raises(HSIError, match=r"manifest\.json: captures\[0\]\.file .* points outside "
+                                       r"the capture set's folder"):
+        read_capture_set(root)
+    root.joinpath("manifest.json").write_text(json.dumps(
+        {"schema_version": 1, "captures": entries, "allow_files_outside": True}))
+    cs = read_capture_set(root)
+    assert cs.scan[0][0].resolve() == (tmp_path / "outside.tif").resolve()
+    for key in ("nominal_layout", "brf_free_mask"):  # the other paths a manifest names
+        root.joinpath("manifest.json").write_text(json.dumps(
+            {"schema_version": 1, "captures": [], key: "../outside.tif"}))
+        with pytest.raises(HSIError, match=rf"{key} .* points outside"):
+            read_capture_set(root)
+
+
+def test_inside_paths_with_dotdot_still_work(tmp_path):
+    from hsi_torch.io.capture_set import read_capture_set
+
+    root = _manifest_set(tmp_path, [{"file": "scan/../scan/scan_550nm.tif", "type": "scan",
+                                     "wavelength_nm": 550}])  # fmt: skip
+    assert read_capture_set(root).scan[0][1] == 550.0
+
+
+@pytest.mark.parametrize("entry, key", [
+    ({"file": 5, "type": "scan"}, r"captures\[0\]\.file must be a file name .* int 5"),
+    ({"file": None, "type": "scan"}, r"captures\[0\]\.file must be a file name .* NoneType"),
+    ({"file": ["a"], "type": "scan"}, r"captures\[0\]\.file must be a file name .* list"),
+    ({"file": "scan/scan_550nm.tif", "type": "scan", "wavelength_nm": "abc"},
+     r"captures\[0\]\.wavelength_nm must be a number of nm, got str 'abc'"),
+    ({"file": "scan/scan_550nm.tif", "type": "scan", "wavelength_nm": -5},
+     r"captures\[0\]\.wavelength_nm must be a positive"),
+    ({"file": "scan/scan_550nm.tif", "type": 3}, r"captures\[0\]\.type must be one of"),
+])  # fmt: skip
+def test_manifest_entries_of_the_wrong_type_name_the_file_and_key(tmp_path, entry, key):
+    from hsi_torch.io.capture_set import read_capture_set
+
+    root = _manifest_set(tmp_path, [entry])
+    with pytest.raises(HSIError, match=r"set[/\\]manifest\.json: " + key):
+        read_capture_set(root)
