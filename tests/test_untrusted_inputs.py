@@ -574,3 +574,49 @@ def test_manifest_entries_of_the_wrong_type_name_the_file_and_key(tmp_path, entr
     root = _manifest_set(tmp_path, [entry])
     with pytest.raises(HSIError, match=r"set[/\\]manifest\.json: " + key):
         read_capture_set(root)
+
+
+# ---------------------------------------------------------------------------------------------
+# configuration: YAML alias bombs, bounded messages
+
+
+def _alias_bomb(levels: int = 9, key: str = "beta") -> str:
+    """A few hundred bytes of YAML that expand to 9**levels strings."""
+    text = 'l0: &l0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n'
+    for k in range(1, levels):
+        text += f"l{k}: &l{k} [" + ",".join([f"*l{k - 1}"] * 9) + "]\n"
+    return text + f"{key}: *l{levels - 1}\n"
+
+
+@pytest.mark.parametrize("key", ["beta", "black_level"])
+def test_yaml_alias_bomb_in_a_config_file_or_override_is_refused_quickly(tmp_path, capsys, ws,
+                                                                         key):
+    import time
+
+    tmp, bpath, caps = ws
+    cfg = tmp / "bomb.yaml"
+    cfg.write_text(_alias_bomb(key=key))
+    assert cfg.stat().st_size < 600
+    t0 = time.perf_counter()
+    assert _rec(bpath, tmp / "o1", "--config", str(cfg), str(caps / "a.npy")) == 1
+    flow = "{" + _alias_bomb(key="x").replace("\n", ", ") + "}"
+    assert _rec(bpath, tmp / "o2", "--set", f"{key}={flow}", str(caps / "a.npy")) == 1
+    assert time.perf_counter() - t0 < 30
+    err = capsys.readouterr().err
+    assert err.count("expands to more than") == 2 and len(err) < 2000
+    assert "MemoryError" not in err and not (tmp / "o1").exists()
+
+
+def test_config_error_messages_never_print_a_value_whole():
+    from hsi_torch.config import ConfigError, load_config
+    from hsi_torch.recon.config import ReconstructConfig
+
+    with pytest.raises(ConfigError) as ei:
+        load_config({"beta": list(range(50_000))}, ReconstructConfig)
+    assert "expected" in str(ei.value) and len(str(ei.value)) < 600
+    from hsi_torch.io.safety import short_repr
+
+    nested: list = ["x"] * 9
+    for _ in range(40):  # 9**40 leaves if printed whole
+        nested = [nested] * 9
+    assert len(short_repr(nested)) <= 200

@@ -17,7 +17,7 @@ from typing import Any
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 
-__all__ = ["require_regular_file", "short_repr", "MAX_REPR"]
+__all__ = ["require_regular_file", "short_repr", "short_text", "MAX_REPR"]
 
 #: Longest ``repr`` of a value put into an error message (characters).
 MAX_REPR = 200
@@ -69,4 +69,9 @@ def short_repr(value: Any, limit: int = MAX_REPR) -> str:
         text = _REPR.repr(value)
     except Exception:  # noqa: BLE001 - a broken __repr__
         text = f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[: max(0, limit - 3)] + "..."
+
+
+def short_text(text: str, limit: int = 2 * MAX_REPR) -> str:
+    """``text`` cut to at most ``limit`` characters (``...`` where cut)."""
     return text if len(text) <= limit else text[: max(0, limit - 3)] + "..."
