@@ -620,3 +620,41 @@ def test_config_error_messages_never_print_a_value_whole():
     for _ in range(40):  # 9**40 leaves if printed whole
         nested = [nested] * 9
     assert len(short_repr(nested)) <= 200
+
+
+# ---------------------------------------------------------------------------------------------
+# finite but enormous values: a clear error, never an all-zero cube marked valid
+
+
+@pytest.mark.parametrize("beta", ["1e308", "1e13"])
+def test_enormous_beta_is_refused_before_anything_is_written(ws, capsys, beta):
+    tmp, bpath, caps = ws
+    main(["reconstruct", "--bundle", str(bpath), "--out", str(tmp / "o"), "--no-progress",
+          "--set", f"beta={beta}", str(caps / "a.npy")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert "beta must be between 0 and 1e+12" in err
+    assert not (tmp / "o").exists()
+
+
+def test_enormous_beta_is_refused_by_the_solver(device):
+    import torch
+
+    from hsi_torch.recon.nnls import solve_nnls
+
+    A = torch.rand(4, 6, 5, device=device)
+    y = torch.rand(4, 6, device=device)
+    with pytest.raises(ValueError, match=r"beta = 1e\+308 overflows the torch.float32 solve"):
+        solve_nnls(A, y, beta=1e308)
+    assert solve_nnls(A.double(), y.double(), beta=1e12).x.abs().max() > 0
+
+
+@pytest.mark.parametrize("scale", [1e34, 1e38])
+def test_enormous_float_capture_values_are_a_clear_failure(ws, capsys, scale):
+    tmp, bpath, caps = ws
+    img = np.load(caps / "a.npy").astype(np.float64)
+    np.save(caps / "big.npy", (img / img.max() * scale).astype(np.float32))
+    rc = _rec(bpath, tmp / "o", str(caps / "big.npy"), str(caps / "a.npy"))
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "big.npy" in err and "beyond any sensor's range" in err
+    assert not (tmp / "o" / "big.npz").exists() and (tmp / "o" / "a.npz").is_file()

@@ -202,12 +202,21 @@ def _check_dtype(arr: np.ndarray, p: Path) -> None:
         bad = ~np.isfinite(arr)
         if bad.any():
             raise FileFormatError(f"{p}: image contains {int(bad.sum())} NaN/inf values")
+        top = float(np.abs(arr).max()) if arr.size else 0.0
+        if top > MAX_SAMPLE_VALUE:
+            raise FileFormatError(
+                f"{p}: image values reach {top:.3g}, beyond any sensor's range (at most "
+                f"{MAX_SAMPLE_VALUE:.3g} = 2^50 is accepted: the reconstruction works in float32, "
+                "whose squares overflow near 1.8e19); rescale the capture to sensor counts (DN)"
+            )
     if arr.dtype.kind in "if" and arr.size and arr.min() < 0:
         raise FileFormatError(f"{p}: image contains negative stored values (min {arr.min()})")
 
 
 #: Largest decoded capture accepted (bytes); a header asking for more is refused before reading.
 MAX_CAPTURE_BYTES = 8 << 30
+#: Largest magnitude of a stored sample accepted (float files): 2^50, far above any sensor's count.
+MAX_SAMPLE_VALUE = float(2**50)
 #: Largest metadata text of an NPZ capture (bytes, from its header, before it is decoded).
 _MAX_META_BYTES = 16 << 20
 

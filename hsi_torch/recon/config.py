@@ -19,6 +19,11 @@ CubeFormatName = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 _help = help_meta
 
 
+#: Largest accepted ``beta``: far above any useful smoothness weight (1e-2..1e6 on the DN² scale),
+#: far below what overflows the float32 solve (an all-zero cube).
+BETA_MAX = 1e12
+
+
 @dataclass
 class ReconstructConfig:
     """Settings of a reconstruction run (see the field help texts)."""
@@ -126,8 +131,9 @@ class ReconstructConfig:
     )
 
     def __post_init__(self) -> None:
-        if not self.beta >= 0:
-            raise ValueError(f"beta must be >= 0, got {self.beta}")
+        if not 0 <= self.beta <= BETA_MAX:
+            raise ValueError(f"beta must be between 0 and {BETA_MAX:g}, got {self.beta:g} "
+                             "(the useful range is about 1e-2..1e6)")
         if self.diff_order not in (0, 1, 2):
             raise ValueError(f"diff_order must be 0, 1 or 2, got {self.diff_order}")
         if not isinstance(self.lam, str) and not self.lam >= 0:
