@@ -166,13 +166,21 @@ def _add_cluster_options(p: argparse.ArgumentParser) -> None:
     where.add_argument(
         "--scheduler", metavar="SPEC", default=None,
         help="reconstruct on Dask workers: local:N (N worker processes on this machine, started "
-             "and stopped by the command) or a running scheduler's address, tcp://host:8786",
+             "and stopped by the command, on 127.0.0.1) or a running scheduler's address, "
+             "tls://host:8786 (with --tls-*) or tcp://host:8786 (trusted networks only: a "
+             "scheduler can run code in this process)",
     )  # fmt: skip
     where.add_argument(
         "--scheduler-file", type=Path, default=None, metavar="FILE",
         help="the scheduler's address from the file it wrote (dask scheduler "
              "--scheduler-file, dask-mpi, ...)",
     )  # fmt: skip
+    for opt, what in (("--tls-ca-file", "the certificate authority that signed the cluster's "
+                                        "certificates (PEM)"),
+                      ("--tls-cert", "this client's certificate (PEM; may hold the key too)"),
+                      ("--tls-key", "this client's private key (PEM)")):
+        g.add_argument(opt, type=Path, default=None, metavar="FILE",
+                       help=f"for a tls:// scheduler: {what}")  # fmt: skip
     g.add_argument(
         "--threads-per-worker", type=int, default=None, metavar="K",
         help="torch and numba threads per frame in each worker (default: cores / N for "

@@ -658,3 +658,84 @@ def test_enormous_float_capture_values_are_a_clear_failure(ws, capsys, scale):
     err = capsys.readouterr().err
     assert "big.npy" in err and "beyond any sensor's range" in err
     assert not (tmp / "o" / "big.npz").exists() and (tmp / "o" / "a.npz").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# the cluster: tls:// with certificates
+
+
+def _self_signed(folder: Path) -> tuple[Path, Path]:
+    """A self-signed certificate (its own CA) and its key, PEM files, valid for 127.0.0.1."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "hsi-torch test cluster")])
+    now = datetime.datetime.now(datetime.timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=1))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+            .add_extension(x509.SubjectAlternativeName(
+                [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+                critical=False)
+            .sign(key, hashes.SHA256()))  # fmt: skip
+    cpath, kpath = folder / "cluster.pem", folder / "cluster.key"
+    cpath.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    kpath.write_bytes(key.private_bytes(serialization.Encoding.PEM,
+                                        serialization.PrivateFormat.PKCS8,
+                                        serialization.NoEncryption()))  # fmt: skip
+    return cpath, kpath
+
+
+def test_reconstruct_on_a_tls_scheduler_with_certificates(ws, capsys):
+    distributed = pytest.importorskip("distributed")
+    pytest.importorskip("cryptography")
+    from distributed.security import Security
+
+    from hsi_torch.io import load_cube
+    from hsi_torch.recon.distributed import connect, make_security
+
+    tmp, bpath, caps = ws
+    cert, key = _self_signed(tmp)
+    sec = Security(tls_ca_file=str(cert), tls_scheduler_cert=str(cert),
+                   tls_scheduler_key=str(key), tls_worker_cert=str(cert),
+                   tls_worker_key=str(key), tls_client_cert=str(cert),
+                   tls_client_key=str(key), require_encryption=True)  # fmt: skip
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  protocol="tls://", host="127.0.0.1", security=sec,
+                                  dashboard_address=None) as cluster:  # fmt: skip
+        addr = cluster.scheduler_address
+        assert addr.startswith("tls://")
+        with pytest.raises(ValueError, match="tls:// scheduler needs certificates"):
+            with connect(addr):
+                pass
+        with connect(addr, security=make_security(cert, cert, key)) as (client, _):
+            assert client.submit(lambda: 41 + 1).result(timeout=20) == 42
+        out = tmp / "out"
+        rc = main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
+                   "--scheduler", addr, "--tls-ca-file", str(cert), "--tls-cert", str(cert),
+                   "--tls-key", str(key), str(caps / "a.npy")])  # fmt: skip
+        assert rc == 0, capsys.readouterr().err
+    assert load_cube(out / "a.npz").valid.any()
+
+
+def test_tls_options_are_checked_before_connecting(ws, capsys):
+    pytest.importorskip("distributed")
+    tmp, bpath, caps = ws
+    base = ["reconstruct", "--bundle", str(bpath), "--out", str(tmp / "o"), "--no-progress"]
+    assert main([*base, "--tls-cert", str(bpath), str(caps / "a.npy")]) == 1
+    assert "--tls-cert needs --scheduler" in capsys.readouterr().err
+    assert main([*base, "--scheduler", "tls://127.0.0.1:1", "--tls-ca-file", str(tmp / "no.pem"),
+                 "--tls-cert", str(bpath), str(caps / "a.npy")]) == 1  # fmt: skip
+    err = capsys.readouterr().err
+    assert "--tls-ca-file" in err and "not found" in err
+    assert main([*base, "--scheduler", "tcp://127.0.0.1:1", "--tls-ca-file", str(bpath),
+                 "--tls-cert", str(bpath), str(caps / "a.npy")]) == 1  # fmt: skip
+    assert "must start with tls://" in capsys.readouterr().err

@@ -37,7 +37,7 @@ def run_reconstruct(args: argparse.Namespace) -> BatchSummary:
     output_format = getattr(args, "format", None) or "files"
     scheduler = getattr(args, "scheduler", None)
     scheduler_file = getattr(args, "scheduler_file", None)
-    for opt in ("threads_per_worker", "send_bundle"):
+    for opt in ("threads_per_worker", "send_bundle", "tls_ca_file", "tls_cert", "tls_key"):
         if getattr(args, opt, None) and not (scheduler or scheduler_file):
             raise ValueError(f"--{opt.replace('_', '-')} needs --scheduler or --scheduler-file")
     run = check_run(

@@ -661,6 +661,7 @@ def reconstruct_many(
     device: str | None = None,
     threads_per_worker: int | None = None,
     send_bundle: bool = False,
+    security: Any | None = None,
 ) -> BatchSummary:
     """Reconstruct many captures with one bundle, on a Dask cluster or in this process.
 
@@ -681,6 +682,8 @@ def reconstruct_many(
         threads_per_worker: torch/numba threads per frame on a worker (default: cores / N for
             ``local:N``, else each worker's Dask thread count).
         send_bundle: send the bundle's bytes to the workers (they do not see its file).
+        security: for a ``tls://`` scheduler spec, a ``distributed.security.Security``
+            (:func:`hsi_torch.recon.distributed.make_security`).
 
     Returns:
         The summary (a :class:`ManySummary` unless it was the serial run): ``processed``,
@@ -712,7 +715,8 @@ def reconstruct_many(
         return run_many(run, InlineExecutor(), output_format=output_format, resume=resume,
                         progress=progress)  # fmt: skip
     if isinstance(client, (str, os.PathLike)):
-        with connect(str(client), threads_per_worker=threads_per_worker) as (cl, threads):
+        with connect(str(client), threads_per_worker=threads_per_worker,
+                     security=security) as (cl, threads):  # fmt: skip
             return run_on_client(run, cl, threads=threads, send_bundle=send_bundle,
                                  output_format=output_format, resume=resume, progress=progress)
     return run_on_client(run, client, threads=threads_per_worker, send_bundle=send_bundle,
@@ -734,6 +738,11 @@ def run_many_cli(run: ReconstructRun, args: argparse.Namespace, output_format: s
                              "--scheduler-file")  # fmt: skip
         return run_many(run, InlineExecutor(), output_format=output_format, resume=resume,
                         progress=progress)  # fmt: skip
-    with connect(scheduler, scheduler_file, threads_per_worker=threads) as (client, nthreads):
+    from hsi_torch.recon.distributed import make_security
+
+    security = make_security(getattr(args, "tls_ca_file", None), getattr(args, "tls_cert", None),
+                             getattr(args, "tls_key", None))  # fmt: skip
+    with connect(scheduler, scheduler_file, threads_per_worker=threads,
+                 security=security) as (client, nthreads):  # fmt: skip
         return run_on_client(run, client, threads=nthreads, send_bundle=send,
                              output_format=output_format, resume=resume, progress=progress)
