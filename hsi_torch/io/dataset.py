@@ -148,6 +148,11 @@ def _check_codec(conf: Any, allowed: Any, array: str, role: str, store: Any) -> 
             "store can run code through a codec such as 'pickle')"
         )
     if isinstance(allowed, dict):
+        bad = [k for k, v in conf.items() if k != "id" and not (
+            type(v) is int if k == "level" else type(v) is bool)]  # fmt: skip
+        if bad and not [k for k in bad if k not in allowed[cid]]:
+            raise FileFormatError(f"{store}: array {array!r}: {role} codec {cid!r} with "
+                                  f"settings of the wrong type ({_short(bad)})")  # fmt: skip
         extra = sorted(str(k) for k in conf if k not in ("id", *allowed[cid]))
         if extra:
             raise FileFormatError(f"{store}: array {array!r}: {role} codec {cid!r} with "
@@ -185,7 +190,7 @@ def _check_array_meta(meta: Any, array: str, store: Any, allowed: Any = None) ->
                     _check_codec(ci, allowed, array, "codec", store)
     if strict:
         dt = meta.get("dtype")
-        if dt not in _STORE_DTYPES:
+        if not isinstance(dt, str) or dt not in _STORE_DTYPES:
             raise FileFormatError(f"{store}: array {array!r} has dtype {_short(dt)}, not one of "
                                   f"this store's ({', '.join(sorted(_STORE_DTYPES))})")  # fmt: skip
         if dt == "|O" and [f.get("id") for f in filters or []] != ["vlen-utf8"]:
@@ -294,6 +299,12 @@ def _array_meta(
 
 
 _ZSTD = {"id": "zstd", "level": 1}
+#: each array's dtype, compressor id and filter ids in this layout
+_LAYOUT_CODECS: dict[str, tuple[str, str | None, list[str]]] = {
+    "cube": ("<f4", "zstd", []), "valid": ("|b1", "zstd", []), "done": ("|b1", None, []),
+    "metadata": ("|O", "zstd", ["vlen-utf8"]), "source": ("|O", "zstd", ["vlen-utf8"]),
+    "wavelength": ("<f8", None, []), "y": ("<i8", None, []), "x": ("<i8", None, []),
+}  # fmt: skip
 _VLEN = [{"id": "vlen-utf8"}]
 
 
@@ -422,6 +433,7 @@ class CubeDataset:
             ) from None
         for name, meta in self.meta.items():  # before any chunk is decoded
             _check_array_meta(meta, name, self.path)
+        self._check_layout()
         if self.attrs.get("hsi_torch_dataset") != DATASET_VERSION:
             raise FileFormatError(
                 f"{self.path}: not a hsi_torch dataset store of layout version {DATASET_VERSION} "
@@ -435,6 +447,41 @@ class CubeDataset:
             chunk = self._read_chunk("source", k // SOURCE_CHUNK)
             names += [str(s) for s in chunk[: min(SOURCE_CHUNK, n - k)]]
         self.index = {s: i for i, s in enumerate(names) if s}
+
+    def _check_layout(self) -> None:
+        """The arrays' shapes and chunks are this layout's (from the root attributes), before
+        any chunk is read."""
+        wl, fs = self.attrs.get("wavelengths_nm"), self.attrs.get("frame_size")
+        ok = (isinstance(wl, list) and all(isinstance(v, (int, float)) and not isinstance(
+            v, bool) for v in wl) and isinstance(fs, list) and len(fs) == 2 and all(
+            type(v) is int and v > 0 for v in fs))  # fmt: skip
+        if not ok:
+            raise FileFormatError(f"{self.path}: root attributes wavelengths_nm / frame_size are "
+                                  "not a list of numbers / [h, w]")  # fmt: skip
+        m, (h, w) = len(wl), fs
+        n = self.meta["done"].get("shape")
+        n = n[0] if isinstance(n, list) and len(n) == 1 and type(n[0]) is int else -1
+        expect = {
+            "cube": ([n, m, h, w], [1, m, h, w]), "valid": ([n, h, w], [1, h, w]),
+            "done": ([n], [1]), "metadata": ([n], [1]), "source": ([n], [SOURCE_CHUNK]),
+            "wavelength": ([m], [m]), "y": ([h], [h]), "x": ([w], [w]),
+        }  # fmt: skip
+        for name, (shape, chunks) in expect.items():
+            meta = self.meta[name]
+            if n < 0 or meta.get("shape") != shape or meta.get("chunks") != chunks:
+                raise FileFormatError(
+                    f"{self.path}: array {name!r} has shape {_short(meta.get('shape'))} and "
+                    f"chunks {_short(meta.get('chunks'))}, not this layout's {shape} and "
+                    f"{chunks} (frames, {m} bands, {h}x{w} frames)")
+            if meta.get("order", "C") != "C":
+                raise FileFormatError(f"{self.path}: array {name!r} is not in C order")
+            dtype, comp, filters = _LAYOUT_CODECS[name]
+            got = (meta.get("dtype"), (meta.get("compressor") or {}).get("id"),
+                   [f.get("id") for f in meta.get("filters") or []])
+            if got != (dtype, comp, filters):
+                raise FileFormatError(
+                    f"{self.path}: array {name!r} has dtype, compressor and filters "
+                    f"{_short(got)}, not this layout's {(dtype, comp, filters)}")
 
     def _check(self, wavelengths_nm: Sequence[float], frame_size: tuple[int, int]) -> None:
         wl = [float(x) for x in wavelengths_nm]
@@ -533,7 +580,13 @@ class CubeDataset:
         p = self.path / _chunk_key(name, index, len(meta["shape"]))
         if not p.is_file():  # (not in a complete store: every chunk is written)
             raise FileNotFoundError(f"{p}: chunk missing")
-        return _decode(meta, p.read_bytes())
+        try:
+            return _decode(meta, p.read_bytes())
+        except FileFormatError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - numcodecs/numpy errors on a damaged chunk
+            raise FileFormatError(f"{p}: cannot decode this chunk of array {name!r} "
+                                  f"({type(exc).__name__}: {_short(str(exc), 120)})") from None
 
     def _write_metadata(self) -> None:
         """The consolidated metadata (``.zmetadata``), what ``xarray.open_zarr`` reads."""
