@@ -739,3 +739,16 @@ def test_tls_options_are_checked_before_connecting(ws, capsys):
     assert main([*base, "--scheduler", "tcp://127.0.0.1:1", "--tls-ca-file", str(bpath),
                  "--tls-cert", str(bpath), str(caps / "a.npy")]) == 1  # fmt: skip
     assert "must start with tls://" in capsys.readouterr().err
+
+
+def test_png_header_gives_the_decoded_size_before_decoding(tmp_path):
+    import cv2
+
+    from hsi_torch.io.safety import png_header
+
+    p = tmp_path / "x.png"
+    cv2.imwrite(str(p), np.zeros((30, 40, 3), np.uint16))
+    assert png_header(p) == ((30, 40, 3), 16)
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\nxxxx")
+    with pytest.raises(HSIError, match=r"bad\.png: not a PNG"):
+        png_header(tmp_path / "bad.png")

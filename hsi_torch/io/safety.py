@@ -17,7 +17,7 @@ from typing import Any
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 
-__all__ = ["require_regular_file", "short_repr", "short_text", "MAX_REPR"]
+__all__ = ["require_regular_file", "short_repr", "short_text", "png_header", "MAX_REPR"]
 
 #: Longest ``repr`` of a value put into an error message (characters).
 MAX_REPR = 200
@@ -75,3 +75,27 @@ def short_repr(value: Any, limit: int = MAX_REPR) -> str:
 def short_text(text: str, limit: int = 2 * MAX_REPR) -> str:
     """``text`` cut to at most ``limit`` characters (``...`` where cut)."""
     return text if len(text) <= limit else text[: max(0, limit - 3)] + "..."
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples per pixel
+
+
+def png_header(path: str | os.PathLike) -> tuple[tuple[int, int, int], int]:
+    """``((H, W, C), bit_depth)`` of a PNG from its IHDR chunk (the first 33 bytes), before any
+    pixel is decompressed: a reader checks the decoded size (``H·W·C·bit_depth/8``) against the
+    expected sensor size with it, so a small file that inflates to gigabytes is refused first.
+
+    Raises:
+        FileFormatError: not a PNG, or a damaged header (the message names the file).
+    """
+    p = Path(path)
+    with open(p, "rb") as f:
+        head = f.read(33)
+    if len(head) < 33 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise FileFormatError(f"{p}: not a PNG file (no PNG signature and IHDR header)")
+    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    depth, ctype = head[24], head[25]
+    if ctype not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16) or w < 1 or h < 1:
+        raise FileFormatError(f"{p}: damaged PNG header (size {w}x{h}, bit depth {depth}, "
+                              f"colour type {ctype})")  # fmt: skip
+    return (h, w, _PNG_CHANNELS[ctype]), depth
