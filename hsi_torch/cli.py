@@ -188,13 +188,21 @@ def _add_cluster_options(p: argparse.ArgumentParser) -> None:
     where.add_argument(
         "--scheduler", metavar="SPEC", default=None,
         help="reconstruct on Dask workers: local:N (N worker processes on this machine, started "
-             "and stopped by the command) or a running scheduler's address, tcp://host:8786",
+             "and stopped by the command, on 127.0.0.1) or a running scheduler's address, "
+             "tls://host:8786 (with --tls-*) or tcp://host:8786 (trusted networks only: a "
+             "scheduler can run code in this process)",
     )  # fmt: skip
     where.add_argument(
         "--scheduler-file", type=Path, default=None, metavar="FILE",
         help="the scheduler's address from the file it wrote (dask scheduler "
              "--scheduler-file, dask-mpi, ...)",
     )  # fmt: skip
+    for opt, what in (("--tls-ca-file", "the certificate authority that signed the cluster's "
+                                        "certificates (PEM)"),
+                      ("--tls-cert", "this client's certificate (PEM; may hold the key too)"),
+                      ("--tls-key", "this client's private key (PEM)")):
+        g.add_argument(opt, type=Path, default=None, metavar="FILE",
+                       help=f"for a tls:// scheduler: {what}")  # fmt: skip
     g.add_argument(
         "--threads-per-worker", type=int, default=None, metavar="K",
         help="torch and numba threads per frame in each worker (default: cores / N for "
@@ -233,7 +241,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("simulate", "render captures and ground truth with the virtual prototype")
     _add_common(p)
-    p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
+    p.add_argument("--out", "-o", type=Path, required=True,
+                   help="output folder (new or empty, unless --overwrite)")
+    p.add_argument(
+        "--overwrite", action="store_true",
+        help="replace the files of a non-empty --out (the new set is written completely "
+             "first, then moved into place)",
+    )  # fmt: skip
 
     p = command("calibrate", "build a calibration bundle from calibration captures")
     _add_common(p)

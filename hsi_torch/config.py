@@ -54,12 +54,15 @@ import yaml
 from hsi_torch import __version__
 from hsi_torch.errors import ConfigError  # defined with the other errors; re-exported here
 from hsi_torch.io.atomic import atomic_write_text
+from hsi_torch.io.safety import short_repr, short_text
 
 __all__ = [
     "ConfigError",
     "ExistingPath",
     "MustExist",
     "load_config",
+    "safe_yaml_load",
+    "MAX_YAML_VALUES",
     "parse_override",
     "apply_overrides",
     "to_dict",
@@ -142,10 +145,63 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
         int(p) if p.isascii() and p.isdigit() else p for p in key.split(".")
     ]
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = safe_yaml_load(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"override {text!r}: value is not valid YAML ({exc})") from None
+        raise ConfigError(f"override {short_repr(text)}: value is not valid YAML "
+                          f"({short_repr(str(exc), 300)})") from None  # fmt: skip
+    except ValueError as exc:  # expands too far
+        raise ConfigError(f"override {short_repr(text)}: {exc}") from None
     return tuple(parts), value
+
+
+#: Most values (scalars, list items, mapping entries; aliases counted every time they are
+#: used) one configuration document may expand to.
+MAX_YAML_VALUES = 100_000
+
+
+def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
+    """``yaml.safe_load`` that refuses a document expanding to more than ``max_values`` values.
+
+    YAML aliases (``*a``) repeat an anchored node: nine levels of nine-fold repetition are a few
+    hundred bytes of text but 10⁹ values once expanded (an alias bomb). The composed node graph
+    is measured first (every use of an alias counted, each distinct node visited once), so the
+    refusal costs no more than the text itself.
+
+    Raises:
+        yaml.YAMLError: invalid YAML.
+        ValueError: the document expands to more than ``max_values`` values.
+    """
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        sizes: dict[int, int] = {}
+
+        def size(n: yaml.Node) -> int:
+            key = id(n)
+            if key in sizes:
+                return sizes[key]
+            sizes[key] = max_values + 1  # a node reached again while measured (a cycle)
+            if isinstance(n, yaml.SequenceNode):
+                total = 1 + sum(size(c) for c in n.value)
+            elif isinstance(n, yaml.MappingNode):
+                total = 1 + sum(size(k) + size(v) for k, v in n.value)
+            else:
+                total = 1
+            sizes[key] = total = min(total, max_values + 1)
+            return total
+
+        if size(node) > max_values:
+            raise ValueError(
+                f"the YAML expands to more than {max_values} values (aliases such as *a repeat "
+                "a value each time they are used); write the values out"
+            )
+        return loader.construct_document(node)
+    except RecursionError:
+        raise ValueError("the YAML is nested too deeply") from None
+    finally:
+        loader.dispose()
 
 
 def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyPath, str]:
@@ -209,10 +265,8 @@ def _type_name(tp: Any) -> str:
 
 
 def _got(value: Any) -> str:
-    text = repr(value)
-    if len(text) > 60:
-        text = text[:57] + "..."
-    return f"{type(value).__name__} {text}"
+    # bounded: a value built from YAML aliases may expand to gigabytes when printed whole
+    return f"{type(value).__name__} {short_repr(value, 60)}"
 
 
 def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
@@ -383,7 +437,7 @@ def _convert_dataclass(value: Any, cls: type, path: KeyPath, ctx: _Ctx) -> Any:
     except (ValueError, TypeError) as exc:
         if isinstance(exc, ConfigError):
             raise
-        raise ctx.error(path, f"invalid {cls.__name__}: {exc}") from exc
+        raise ctx.error(path, f"invalid {cls.__name__}: {short_text(str(exc))}") from exc
 
 
 # ----------------------------------------------------------------------------------------------
@@ -426,7 +480,7 @@ def load_config(
             raise ConfigError(f"config file {what}", source=src_name)
         try:
             text = cfg_path.read_text(encoding="utf-8")
-            data = yaml.safe_load(text)
+            data = safe_yaml_load(text)
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -434,6 +488,8 @@ def load_config(
             raise ConfigError(f"invalid YAML{where}: {problem}", source=src_name) from None
         except (OSError, UnicodeDecodeError) as exc:
             raise ConfigError(f"cannot read config file ({exc})", source=src_name) from None
+        except ValueError as exc:  # expands too far (an alias bomb)
+            raise ConfigError(str(exc), source=src_name) from None
         if data is None:
             data = {}
         base = cfg_path.resolve().parent

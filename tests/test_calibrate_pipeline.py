@@ -115,12 +115,16 @@ def test_reconstruct_refuses_bundle_of_other_geometry(calibrated: Path):
 
 
 def _copy_set(sim: Path, dst: Path) -> Path:
-    """A modifiable copy of the capture set: JSON/PNG copied, capture folders linked."""
+    """A modifiable copy of the capture set: JSON/PNG copied, capture folders linked (the
+    manifest opts in to files outside its folder, since the links lead there)."""
     dst.mkdir(parents=True, exist_ok=True)
     for name in ("scan", "white", "grid", "dark", "ground_truth"):
         (dst / name).symlink_to(sim / name, target_is_directory=True)
     for name in ("manifest.json", "nominal_layout.json", "brf_free_mask.png"):
         shutil.copy(sim / name, dst / name)
+    m = json.loads((dst / "manifest.json").read_text())
+    m["allow_files_outside"] = True  # the linked folders lead out of the copy: opted in
+    (dst / "manifest.json").write_text(json.dumps(m))
     return dst
 
 

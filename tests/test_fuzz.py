@@ -476,3 +476,188 @@ def test_bundle_reader_on_truncated_and_random_files(scratch, bundle_arrays, cut
         f.writestr("meta.npy", data)
         f.writestr("B.npy", data[::-1])
     clear_or_valid(CalibrationBundle.load, z)
+
+
+def _npy_bytes_declaring(shape: tuple[int, ...], dtype: str, payload: bytes) -> bytes:
+    """An ``.npy`` member whose header declares ``shape`` but which holds only ``payload``."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": np.dtype(dtype).str, "fortran_order": False, "shape": shape})
+    return buf.getvalue() + payload
+
+
+_member_names = st.sampled_from(["B", "gain", "valid", "phi", "layout_triangles", "meta",
+                                 "wavelengths_nm", "extra_x", "payload", "B.npy", "../evil",
+                                 "layout_reference_bbox"])
+_shapes = st.lists(st.sampled_from([0, 1, 3, 4, 6, 8, 10**3, 10**6, 10**9]), min_size=0,
+                   max_size=4).map(tuple)
+
+
+@fuzz(80)
+@given(edits=st.lists(st.tuples(_member_names, _shapes,
+                                st.sampled_from(["<f4", "<f8", "|b1", "<i8", "<U8", "<c16"]),
+                                st.binary(max_size=64)), min_size=1, max_size=3))
+def test_bundle_reader_on_unknown_and_oversized_members(scratch, bundle_arrays, edits):
+    """Members added or replaced by ones whose ``.npy`` header declares any shape (up to 10^9
+    elements per axis, deflated to nothing): a valid bundle or an HSIError, and nothing large
+    is ever allocated (the sizes are checked from the headers before decompressing)."""
+    import tracemalloc
+
+    p = scratch / "members.npz"
+    np.savez(p, **bundle_arrays)
+    names = {n + ".npy": n for n in bundle_arrays}
+    with zipfile.ZipFile(p) as zin:
+        members = {i.filename: zin.read(i) for i in zin.infolist()}
+    for name, shape, dtype, payload in edits:
+        fname = name if name.endswith(".npy") or name.startswith("..") else name + ".npy"
+        members[fname] = _npy_bytes_declaring(shape, dtype, payload)
+    with zipfile.ZipFile(p, "w", zipfile.ZIP_DEFLATED) as zout:
+        for fname, data in members.items():
+            zout.writestr(fname, data)
+    assert names  # (the valid members are kept unless replaced)
+    tracemalloc.start()
+    try:
+        b = clear_or_valid(CalibrationBundle.load, p)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 << 20, f"{peak / 2**20:.0f} MiB allocated while reading"
+    if b is not None:
+        b.validate()
+
+
+# ---------------------------------------------------------------------------------------------
+# the manifest of a capture set
+
+
+_paths = st.one_of(
+    st.sampled_from(["scan/scan_550nm.tif", "white/w.tif", "../outside.tif", "/etc/passwd",
+                     "scan/../scan/scan_550nm.tif", "scan/link.tif", "scan", "", " ",
+                     "scan/missing.tif", "a\x00b"]),
+    st.text(max_size=12), _json_scalars, st.lists(st.text(max_size=3), max_size=2),
+)
+_entry = st.fixed_dictionaries(
+    {"file": _paths, "type": st.sampled_from(["scan", "white", "grid", "dark", "scene", "x", 3,
+                                              None])},
+    optional={"wavelength_nm": _json_scalars | st.sampled_from(["abc", "550", -1, 0, 550.0]),
+              "name": _json_scalars},
+)
+
+
+@fuzz(150)
+@given(entries=st.one_of(st.lists(_entry, max_size=4), _json_scalars),
+       top=st.dictionaries(st.sampled_from(["nominal_layout", "brf_free_mask",
+                                            "allow_files_outside", "schema_version"]),
+                           _paths | st.booleans(), max_size=3))
+def test_manifest_reader_on_random_entries(scratch, entries, top):
+    """Random manifests: a capture set whose every file is a regular file inside the folder
+    (unless the manifest opts in) with finite positive wavelengths, or an HSIError naming the
+    manifest."""
+    from hsi_torch.io.capture_set import read_capture_set
+
+    root = scratch / "mset"
+    if not root.is_dir():
+        (root / "scan").mkdir(parents=True)
+        (root / "white").mkdir()
+        (root / "scan" / "scan_550nm.tif").write_bytes(b"x")
+        (root / "white" / "w.tif").write_bytes(b"x")
+        (scratch / "outside.tif").write_bytes(b"secret")
+        (root / "scan" / "link.tif").symlink_to(scratch / "outside.tif")
+    manifest = {"schema_version": 1, "captures": entries, **top}
+    (root / "manifest.json").write_text(json.dumps(manifest, allow_nan=True))
+    with no_hang():
+        try:
+            cs = read_capture_set(root)
+        except HSIError as exc:
+            assert "manifest.json" in str(exc) or "mset" in str(exc), str(exc)
+            return
+    outside_ok = manifest.get("allow_files_outside") is True
+    files = [p for p, _ in cs.scan] + cs.white + cs.grid + cs.dark + list(cs.scenes.values())
+    for f in files:
+        assert f.is_file()
+        if not outside_ok:
+            assert f.resolve().is_relative_to(root.resolve()), f
+    for _, wl in cs.scan:
+        assert wl is None or (math.isfinite(wl) and wl > 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# the run's Zarr store
+
+
+@pytest.fixture(scope="module")
+def zarr_store(scratch) -> Path:
+    """A small valid dataset store with one complete frame."""
+    pytest.importorskip("numcodecs")
+    from hsi_torch.io.dataset import CubeDataset, write_frame
+
+    store = scratch / "proto.zarr"
+    with CubeDataset.open(store, ["/d/a.tif"], [430.0, 440.0], (3, 4)) as ds:
+        write_frame(store, ds.index["/d/a.tif"], np.ones((2, 3, 4)), np.ones((3, 4), bool), {})
+    return store
+
+
+_codecs = st.one_of(
+    st.none(), _json_scalars,
+    st.fixed_dictionaries({"id": st.sampled_from(["pickle", "zstd", "blosc", "vlen-utf8",
+                                                   "json2", "msgpack2", "gzip", "", "x"])},
+                          optional={"level": _json_scalars, "protocol": _json_scalars,
+                                    "evil": _json_scalars}),
+)
+
+
+@fuzz(60)
+@given(array=st.sampled_from(["cube", "valid", "done", "metadata", "source", "wavelength", "y",
+                              "x"]),
+       field=st.sampled_from(["compressor", "filters", "dtype", "chunks", "shape"]),
+       value=st.one_of(_codecs, st.lists(_codecs, max_size=2),
+                       st.sampled_from(["|O", "<f4", "|b1", "<U4", "O"])),
+       chunk=st.binary(max_size=64), consolidated=st.booleans())
+def test_dataset_store_on_changed_array_metadata(scratch, zarr_store, array, field, value,
+                                                 chunk, consolidated):
+    """An array's compressor, filters, dtype, chunks or shape changed (in ``.zarray`` and/or
+    ``.zmetadata``) and a chunk replaced: opening the store works or raises an HSIError; no
+    codec outside the store's own is ever used, even by a numcodecs that would unpickle."""
+    import shutil
+
+    import numcodecs.pickles as pickles
+
+    from hsi_torch.io.dataset import CubeDataset
+
+    store = scratch / "fz.zarr"
+    shutil.rmtree(store, ignore_errors=True)
+    shutil.copytree(zarr_store, store)
+    zpath = store / array / ".zarray"
+    meta = json.loads(zpath.read_text())
+    meta[field] = value
+    zpath.write_text(json.dumps(meta, allow_nan=True))
+    if consolidated:
+        zm = json.loads((store / ".zmetadata").read_text())
+        zm["metadata"][f"{array}/.zarray"] = meta
+        (store / ".zmetadata").write_text(json.dumps(zm, allow_nan=True))
+    first = sorted(p for p in (store / array).iterdir() if not p.name.startswith("."))[0]
+    first.write_bytes(chunk)
+    used: list[str] = []
+    real_get = __import__("numcodecs").get_codec
+
+    def spy(config):
+        used.append(str(config.get("id")))
+        return real_get(config)
+
+    old = pickles.ALLOW_UNSAFE_PICKLE_DECODE if hasattr(pickles, "ALLOW_UNSAFE_PICKLE_DECODE") \
+        else None
+    pickles.ALLOW_UNSAFE_PICKLE_DECODE = True  # as numcodecs < 0.16.6 did
+    import numcodecs
+
+    numcodecs.get_codec = spy
+    try:
+        with no_hang():
+            try:
+                with CubeDataset.open(store, ["/d/a.tif"], [430.0, 440.0], (3, 4)) as ds:
+                    ds.frame_record(0)
+            except HSIError as exc:
+                assert "fz.zarr" in str(exc), repr(exc)
+    finally:
+        numcodecs.get_codec = real_get
+        pickles.ALLOW_UNSAFE_PICKLE_DECODE = old
+    assert set(used) <= {"zstd", "vlen-utf8"}, used

@@ -13,7 +13,11 @@ calibration succeeded (each file atomically):
 ``NAME.report.json``, ``NAME_diagnostics.png`` and ``NAME.resolved_config.yaml`` beside it, so
 that several bundles can share a folder without overwriting each other's record.
 
-On any error nothing is written (an existing bundle is left untouched).
+The four files are replaced together (:func:`hsi_torch.io.atomic.replace_then_commit`): each is
+written to a temporary file beside its destination, and only when all are complete are they moved
+into place. On any error (a folder in the way, a full disk) the previous bundle, report, figure
+and configuration are left exactly as they were. A line on stderr says when an existing bundle is
+replaced. No output may be one of the calibration captures (the same file, whatever its name).
 
 ``--oracle``: for a capture set written by ``hsi-torch simulate``, the bundle is built from its
 ground truth (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) instead of calibrated; only
@@ -27,6 +31,7 @@ import argparse
 import sys
 import warnings
 from pathlib import Path
+from typing import Any
 
 __all__ = ["run_calibrate", "run_layout", "layout_paths", "output_paths", "figure_path",
            "BUNDLE_NAME"]
@@ -63,7 +68,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
-    from hsi_torch.io.atomic import atomic_write_json
+    from hsi_torch.io.atomic import ReplaceTransaction, atomic_write_json, replace_then_commit
     from hsi_torch.io.paths import check_out_dir
 
     bundle_path, report_path, config_path = output_paths(args.out)
@@ -71,8 +76,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {bundle_path} is a folder; give a folder (the bundle is written "
                          f"as {BUNDLE_NAME} inside) or a file name ending in .npz")  # fmt: skip
     check_out_dir(bundle_path.parent)  # before the calibration: it takes a while
-    if getattr(args, "oracle", False):
-        return _write_oracle(args.captures, bundle_path)
+    fig = figure_path(bundle_path)
+    inputs = _inputs_of(args)
+    oracle = bool(getattr(args, "oracle", False))
+    pre = ReplaceTransaction(inputs)
+    for p in (bundle_path, fig) if oracle else (bundle_path, report_path, config_path, fig):
+        pre.check(p)  # before the calibration: an input or a folder in the way
+    if oracle:
+        return _write_oracle(args.captures, bundle_path, inputs)
     cfg = load_args_config(args, CalibrateConfig, default="calibrate")
     device = getattr(args, "device", None)
     with warnings.catch_warnings(record=True) as caught:
@@ -83,43 +94,52 @@ def run_calibrate(args: argparse.Namespace) -> int:
             print(f"hsi-torch: warning: {w.message}", file=sys.stderr)
         else:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-    bundle_path.parent.mkdir(parents=True, exist_ok=True)
-    fig = figure_path(bundle_path)
-    written: list[Path] = []
-    try:  # all four files or none
-        written.append(plot_calibration(bundle, fig, report=report))
-        bundle.save(bundle_path)
-        written.append(bundle_path)
-        written.append(atomic_write_json(report_path, report.to_dict()))
-        written.append(write_resolved_config(cfg, config_path.parent, name=config_path.name))
-    except BaseException:
-        for p in written:
-            Path(p).unlink(missing_ok=True)
-        raise
+    existed = bundle_path.is_file()
+    with replace_then_commit(inputs) as tx:  # all four files or none; the old ones kept till then
+        tx.write(fig, lambda t: plot_calibration(bundle, t, report=report))
+        tx.write(bundle_path, bundle.save)
+        tx.write(report_path, lambda t: atomic_write_json(t, report.to_dict()))
+        tx.write(config_path, lambda t: write_resolved_config(cfg, t.parent, name=t.name))
+    if existed:
+        _say_replaced(bundle_path)
     info(str(report))
     info(bundle.summary())
     info(f"wrote {bundle_path} (+ {report_path.name}, {fig.name}, {config_path.name})")
     return 0
 
 
-def _write_oracle(captures: Path, bundle_path: Path) -> int:
+def _inputs_of(args: argparse.Namespace) -> Any:
+    """The files calibration reads (the capture folder, ``--config``), by identity."""
+    from hsi_torch.io.atomic import InputFiles
+
+    inputs = InputFiles()
+    if args.captures is not None and Path(args.captures).is_dir():
+        inputs.add(args.captures)
+    if getattr(args, "config", None) is not None and Path(args.config).is_file():
+        inputs.add(args.config)
+    return inputs
+
+
+def _say_replaced(bundle_path: Path) -> None:
+    print(f"hsi-torch: replaced the existing bundle {bundle_path} (and the files beside it)",
+          file=sys.stderr)
+
+
+def _write_oracle(captures: Path, bundle_path: Path, inputs: Any = ()) -> int:
     """``--oracle``: the bundle of a simulated capture set's ground truth and its figure."""
     from hsi_torch.calibrate.figures import plot_calibration
     from hsi_torch.console import info
+    from hsi_torch.io.atomic import replace_then_commit
     from hsi_torch.simulate.oracle import bundle_from_truth
 
     bundle = bundle_from_truth(captures)
-    bundle_path.parent.mkdir(parents=True, exist_ok=True)
     fig = figure_path(bundle_path)
-    written: list[Path] = []
-    try:  # both files or none
-        written.append(plot_calibration(bundle, fig))
-        bundle.save(bundle_path)
-        written.append(bundle_path)
-    except BaseException:
-        for p in written:
-            Path(p).unlink(missing_ok=True)
-        raise
+    existed = bundle_path.is_file()
+    with replace_then_commit(inputs) as tx:  # both files or none
+        tx.write(fig, lambda t: plot_calibration(bundle, t))
+        tx.write(bundle_path, bundle.save)
+    if existed:
+        _say_replaced(bundle_path)
     info(bundle.summary())
     info(f"wrote the oracle bundle {bundle_path} (+ {fig.name}) from the ground truth of "
          f"{captures}")

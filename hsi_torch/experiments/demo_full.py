@@ -81,7 +81,7 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
     cap_dir, cal_dir = out / "captures", out / "calib"
     sim_cfg = str(cfg.simulate_config or shipped_config("simulate_full"))
     stage("simulate", f"simulating the full-size prototype into {cap_dir}",
-          _hsi("simulate", "--config", sim_cfg, "--out", str(cap_dir),
+          _hsi("simulate", "--config", sim_cfg, "--out", str(cap_dir), "--overwrite",
                "--set", f"captures.scenes={json.dumps(scenes)}",
                "--set", f"render.seed={cfg.seed}", "--set", "render.progress=false"))
     cal_cmd = ["calibrate", "--captures", str(cap_dir), "--out", str(cal_dir), "--no-progress"]

@@ -47,6 +47,7 @@ Sensing matrix of reference-frame pixel ``p = i·w + j`` (row-major):
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import hashlib
 import json
@@ -65,6 +66,7 @@ from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
 from hsi_torch.io.radiometry import CameraIdentity
+from hsi_torch.io.safety import require_regular_file, short_repr
 from hsi_torch.spectral import band_widths
 
 __all__ = [
@@ -82,6 +84,33 @@ READABLE_SCHEMA_VERSIONS = (1, 2)
 _FLOAT_KEYS = ("wavelengths_nm", "triangles", "view_homographies", "B", "phi", "gain")
 _INT_KEYS = ("parity", "sensor_size", "reference_bbox")
 _BOOL_KEYS = ("view_mask", "modulated", "valid")
+#: Members a bundle file may hold besides the required ones of ``_FILE_KEYS`` and ``meta``:
+#: name -> a function of ``(V, M, h, w)`` giving the most elements the member may declare. To add
+#: an optional array member, add it here (and write it in :meth:`CalibrationBundle.save`);
+#: ``extra_<name>`` members (listed in meta ``extras``) are bounded by :data:`_MAX_EXTRA`.
+OPTIONAL_MEMBERS: dict[str, Any] = {}
+#: Largest ``meta`` JSON text (bytes) and number of members of a bundle file.
+MAX_META_BYTES = 64 << 20
+MAX_MEMBERS = 256
+
+
+def _max_elements(key: str, V: int, M: int, h: int, w: int) -> int:
+    """The most elements the required member ``key`` may declare for a bundle of ``V`` views,
+    ``M`` bands and an ``h × w`` reference frame (the exact shapes are checked by
+    :meth:`CalibrationBundle.validate` after reading)."""
+    return {
+        "wavelengths_nm": M, "layout_triangles": 6 * V, "layout_parity": V,
+        "layout_view_homographies": 9 * V, "layout_sensor_size": 2, "layout_reference_bbox": 4,
+        "B": V * M * h * w, "phi": 3 * M, "gain": V * h * w, "view_mask": V * h * w,
+        "modulated": V * h * w, "valid": h * w,
+    }[key]  # fmt: skip
+
+
+def _max_extra(V: int, M: int, h: int, w: int) -> int:
+    """The most elements an ``extra_<name>`` member (and all of them together) may declare."""
+    return max(V * M * h * w, 1 << 20)
+
+
 _FILE_KEYS = {
     "wavelengths_nm": "wavelengths_nm",
     "triangles": "layout_triangles",
@@ -320,16 +349,20 @@ class CalibrationBundle:
                 f"calibration bundle {p} is a folder, not a bundle file (give the .npz written by "
                 "'hsi-torch calibrate')"
             )
-        if not p.is_file():
+        if not p.exists():
             raise MissingFileError(f"calibration bundle {p} does not exist")
+        require_regular_file(p, "calibration bundle")  # a FIFO would block the reader forever
         if not zipfile.is_zipfile(p):  # np.load would guess .npy/pickle and say something odd
             raise FileFormatError(
                 f"calibration bundle {p}: not a readable NPZ file (not a zip archive: corrupt, "
                 "truncated or another format)"
             )
         try:
+            _check_members(p)  # known members, sizes bounded: before anything is decompressed
             with np.load(p, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
+        except FileFormatError:
+            raise
         except Exception as exc:  # zipfile/format errors
             raise FileFormatError(
                 f"calibration bundle {p}: not a readable NPZ file ({exc})"
@@ -486,3 +519,132 @@ class CalibrationBundle:
             f"({100 * nv / (h * w):.1f} %)"
         )
 
+
+
+def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype from a member's ``.npy`` header (a few hundred bytes decompressed)."""
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    return tuple(int(v) for v in shape), np.dtype(dtype)
+
+
+def _check_members(p: Path) -> None:
+    """Refuse a bundle file with a member this software does not know, or one whose size (from
+    the zip directory and its ``.npy`` header) exceeds what the bundle's own layout implies —
+    before any member but the small ``meta`` and ``layout_reference_bbox`` is decompressed.
+
+    Known members: the arrays of ``_FILE_KEYS``, ``meta``, :data:`OPTIONAL_MEMBERS` and the
+    ``extra_<name>`` arrays that ``meta`` lists under ``extras``. Bounds: ``V``, ``M`` from the
+    headers of ``layout_triangles`` and ``wavelengths_nm``, ``h × w`` from the reference box
+    (inside the sensor), then :func:`_max_elements` per member (``B``: ``V·M·h·w``)."""
+    where = f"calibration bundle {p}"
+    with zipfile.ZipFile(p) as zf:
+        infos = zf.infolist()
+        if len(infos) > MAX_MEMBERS:
+            raise FileFormatError(f"{where}: {len(infos)} members, more than a bundle has")
+        by_name: dict[str, zipfile.ZipInfo] = {}
+        for info in infos:
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            if name in by_name:
+                raise FileFormatError(f"{where}: member {short_repr(name)} appears twice")
+            by_name[name] = info
+        known = {*_FILE_KEYS.values(), "meta", *OPTIONAL_MEMBERS}
+        extras_named: list[Any] | None = None
+        meta_info = by_name.get("meta")
+        if meta_info is None:
+            raise FileFormatError(f"{where}: missing key 'meta' (not a bundle written by "
+                                  "'hsi-torch calibrate')")  # fmt: skip
+        if not meta_info.filename.endswith(".npy"):
+            raise FileFormatError(f"{where}: member 'meta' is not an array")
+        missing = [fk for fk in _FILE_KEYS.values() if fk not in by_name]
+        if missing:
+            raise FileFormatError(f"{where}: missing key(s) {missing}")
+        if meta_info.file_size > MAX_META_BYTES:
+            raise FileFormatError(
+                f"{where}: member 'meta' is {meta_info.file_size} bytes, more than "
+                f"{MAX_META_BYTES >> 20} MiB of metadata; refusing to decompress it")
+        shape, dtype = _npy_header(zf, meta_info)
+        if shape == () and dtype.kind == "U":
+            with zf.open(meta_info) as f:
+                raw = np.lib.format.read_array(f, allow_pickle=False)
+            meta: Any = None
+            with contextlib.suppress(ValueError, RecursionError):
+                meta = json.loads(str(raw))
+            if isinstance(meta, dict):
+                ver = meta.get("schema_version")
+                if type(ver) is not int or ver != SCHEMA_VERSION:  # (a newer layout's members)
+                    raise FileFormatError(
+                        f"{where}: schema_version {short_repr(ver)} is not supported (this "
+                        f"software reads version {SCHEMA_VERSION})")
+                if isinstance(meta.get("extras"), list):
+                    extras_named = meta["extras"]
+        for name, info in by_name.items():
+            if name in known:
+                continue
+            ok = (name.startswith("extra_") and info.filename.endswith(".npy")
+                  and (extras_named is None or name[len("extra_"):] in extras_named))
+            if not ok:
+                raise FileFormatError(
+                    f"{where}: unknown member {short_repr(info.filename)} (a bundle holds "
+                    f"meta, {', '.join(_FILE_KEYS.values())} and the extra_<name> arrays its "
+                    "meta lists); refusing the file")
+        headers = {}
+        for name, info in by_name.items():
+            if name == "meta":
+                continue
+            if not info.filename.endswith(".npy"):
+                raise FileFormatError(f"{where}: member '{name}' is not an array")
+            headers[name] = _npy_header(zf, info)
+
+        def dim(key: str, axis: int, cap: int) -> int:
+            shape = headers.get(key, ((),))[0]
+            n = int(shape[axis]) if len(shape) > axis else 1
+            if not 0 <= n <= cap:
+                raise FileFormatError(f"{where}: '{key}' declares shape {shape}: {n} is out of "
+                                      f"range (at most {cap})")  # fmt: skip
+            return n
+
+        V = dim("layout_triangles", 0, 4096)
+        M = dim("wavelengths_nm", 0, 100_000)
+        h = w = 1
+        bbox_info = by_name.get("layout_reference_bbox")
+        if bbox_info is not None and headers["layout_reference_bbox"][0] == (4,):
+            with zf.open(bbox_info) as f:
+                bbox = np.lib.format.read_array(f, allow_pickle=False)
+            if bbox.dtype.kind in "iu":
+                h, w = (int(v) for v in bbox[[3, 2]])
+        size_shape = headers.get("layout_sensor_size", ((),))[0]
+        size_info = by_name.get("layout_sensor_size")
+        if size_info is not None and size_shape == (2,):
+            with zf.open(size_info) as f:
+                sensor = np.lib.format.read_array(f, allow_pickle=False)
+            if sensor.dtype.kind in "iu":
+                H, W = (int(v) for v in sensor)
+                h, w = min(max(h, 1), max(H, 1)), min(max(w, 1), max(W, 1))
+        h, w = min(max(h, 1), 1 << 16), min(max(w, 1), 1 << 16)
+        extra_total = 0
+        for name, (shape, dtype) in headers.items():
+            n = int(np.prod(shape, dtype=np.float64)) if shape else 1
+            counted = n
+            if name in _FILE_KEYS.values():
+                cap = _max_elements(name, V, M, h, w)
+            elif name in OPTIONAL_MEMBERS:
+                cap = int(OPTIONAL_MEMBERS[name](V, M, h, w))
+            else:  # the extras together
+                cap = _max_extra(V, M, h, w)
+                extra_total += n
+                counted = extra_total
+            if counted > cap or dtype.itemsize > 16:
+                raise FileFormatError(
+                    f"{where}: member '{name}' declares shape {short_repr(shape)} ({dtype}), "
+                    f"more than the bundle's layout allows (V={V} views, M={M} bands, reference "
+                    f"frame {h}x{w}: at most {cap} elements); refusing to decompress it")
+            declared = by_name[name].file_size
+            if declared > n * dtype.itemsize + 65536:
+                raise FileFormatError(
+                    f"{where}: member '{name}' holds {declared} bytes, far more than its header's "
+                    f"{short_repr(shape)} {dtype}; refusing to decompress it")

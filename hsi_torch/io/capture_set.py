@@ -26,6 +26,15 @@ A folder without ``manifest.json`` (a real device) is read from its sub-folders 
 ``white/``, ``grid/``, ``dark/``, ``scenes/``; a scan frame's wavelength then comes from its name
 (``scan_550nm.tif``, ``mono_552p5nm.dng``) or from its own metadata.
 
+**Paths stay inside the set.** Every path a manifest names (``captures[k].file``,
+``nominal_layout``, ``brf_free_mask``, the layout's ``brf_free_patch.usable_mask``) must be a
+relative path that resolves (``..`` and symlinks followed) to a file inside ``ROOT``: a
+manifest cannot make a calibration read, and record in its bundle's provenance, a file elsewhere
+(``../x``, ``/etc/...``, a symlink out of the folder). A manifest's author who means it opts in
+with the top-level key ``"allow_files_outside": true``. Entries of the wrong type (a ``file``
+that is a number, null or a list; a ``wavelength_nm`` that is not a number) are refused with an
+error naming the manifest and the key.
+
 The BRF-free mask is a PNG; OpenCV, which decodes and encodes it, is imported only where that
 happens, so reading a bundle or a capture never loads it.
 """
@@ -45,9 +54,11 @@ from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_manifest import check_manifest, entry_settings
 from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_any
+from hsi_torch.io.safety import short_repr
 
 __all__ = [
     "CAPTURE_SET_SCHEMA_VERSION",
+    "ALLOW_OUTSIDE_KEY",
     "CAPTURE_SUFFIXES",
     "CAPTURE_TYPES",
     "MANIFEST",
@@ -292,6 +303,49 @@ def _check_version(d: Mapping[str, Any], path: Path) -> None:
         )
 
 
+#: Manifest key by which its author lets entries name files outside the set's folder.
+ALLOW_OUTSIDE_KEY = "allow_files_outside"
+
+
+def _manifest_path(root: Path, value: Any, mpath: Path, key: str, outside_ok: bool) -> Path:
+    """The file a manifest entry names: a relative path string that resolves (symlinks
+    followed) inside ``root`` (the set's folder, or the manifest's ``files_root``), unless
+    ``outside_ok``; errors name the manifest and ``key``."""
+    if not isinstance(value, str) or not value.strip() or "\0" in value:
+        raise FileFormatError(
+            f"{mpath}: {key} must be a file name (a non-empty string relative to the folder), "
+            f"got {type(value).__name__} {short_repr(value, 80)}"
+        )
+    p = root / value
+    if outside_ok:
+        return p
+    try:
+        inside = Path(value).is_absolute() is False and p.resolve().is_relative_to(
+            root.resolve())
+    except (OSError, RuntimeError, ValueError):  # a symlink loop, ...
+        inside = False
+    if not inside:
+        raise FileFormatError(
+            f"{mpath}: {key} {short_repr(value, 120)} points outside the capture set's folder "
+            f"{root} (absolute, '..' or a symlink out of it); only files inside it are read "
+            f"unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true"
+        )
+    return p
+
+
+def _wavelength(value: Any, mpath: Path, key: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise FileFormatError(f"{mpath}: {key} must be a number of nm, got "
+                              f"{type(value).__name__} {short_repr(value, 80)}")  # fmt: skip
+    wl = float(value)
+    if not np.isfinite(wl) or wl <= 0:
+        raise FileFormatError(f"{mpath}: {key} must be a positive finite number of nm, got "
+                              f"{short_repr(value, 80)}")  # fmt: skip
+    return wl
+
+
 def read_capture_set(
     root: str | Path,
     *,
@@ -318,25 +372,51 @@ def read_capture_set(
         raise MissingFileError(f"captures folder {root} does not exist")
     cs = CaptureSet(root)
     mpath = root / MANIFEST
+    outside_ok = False
     if mpath.is_file():
         manifest = _read_json_object(mpath, "manifest")
         _check_version(manifest, mpath)
         cs.manifest = manifest
         check_manifest(manifest, mpath)
-        files_root = root / manifest.get("files_root", ".")
-        for k, e in enumerate(manifest.get("captures", [])):
+        outside_ok = manifest.get(ALLOW_OUTSIDE_KEY, False)
+        if not isinstance(outside_ok, bool):
+            raise FileFormatError(f"{mpath}: {ALLOW_OUTSIDE_KEY} must be true or false, got "
+                                  f"{short_repr(outside_ok, 80)}")  # fmt: skip
+        # files_root: the folder the manifest's author names for its files (captures import
+        # writes it to reference a lab's files in place) — the entries stay inside it
+        files_root = root
+        if manifest.get("files_root") is not None:
+            fr = manifest["files_root"]
+            if not isinstance(fr, str) or not fr.strip() or "\0" in fr:
+                raise FileFormatError(f"{mpath}: files_root must be a folder name, got "
+                                      f"{short_repr(fr, 80)}")  # fmt: skip
+            files_root = root / fr
+            if not files_root.is_dir():
+                raise MissingFileError(f"{mpath}: files_root {files_root} is not a folder")
+        entries = manifest.get("captures", [])
+        if not isinstance(entries, list):
+            raise FileFormatError(f"{mpath}: 'captures' must be a list of entries, got "
+                                  f"{type(entries).__name__}")  # fmt: skip
+        for k, e in enumerate(entries):
             if not isinstance(e, dict) or "file" not in e or "type" not in e:
                 raise FileFormatError(f"{mpath}: captures[{k}] needs 'file' and 'type'")
-            p = files_root / e["file"]
+            p = _manifest_path(files_root, e["file"], mpath, f"captures[{k}].file", outside_ok)
             cs.settings[p] = entry_settings(manifest, e)
             if not p.is_file():
                 raise MissingFileError(f"{mpath}: captures[{k}] file {p} does not exist")
             t = e["type"]
+            if not isinstance(t, str):
+                raise FileFormatError(f"{mpath}: captures[{k}].type must be one of "
+                                      f"{', '.join(CAPTURE_TYPES)}, got {short_repr(t, 80)}")
             if t == "scan":
-                wl = e.get("wavelength_nm")
-                cs.scan.append((p, None if wl is None else float(wl)))
+                wl = _wavelength(e.get("wavelength_nm"), mpath, f"captures[{k}].wavelength_nm")
+                cs.scan.append((p, wl))
             elif t == "scene":
-                cs.scenes[str(e.get("name", p.stem))] = p
+                name = e.get("name", p.stem)
+                if not isinstance(name, str):
+                    raise FileFormatError(f"{mpath}: captures[{k}].name must be a string, got "
+                                          f"{short_repr(name, 80)}")  # fmt: skip
+                cs.scenes[name] = p
             elif t in ("white", "grid", "dark"):
                 getattr(cs, t).append(p)
     else:
@@ -348,7 +428,8 @@ def read_capture_set(
     if layout is not None:
         cs.layout_path = Path(layout)
     elif cs.manifest is not None and cs.manifest.get("nominal_layout"):
-        cs.layout_path = root / cs.manifest["nominal_layout"]
+        cs.layout_path = _manifest_path(root, cs.manifest["nominal_layout"], mpath,
+                                        "nominal_layout", outside_ok)  # fmt: skip
     else:
         cs.layout_path = root / NOMINAL_LAYOUT
     if brf_free_mask is not None:
@@ -361,9 +442,17 @@ def read_capture_set(
             d = _read_json(cs.layout_path, "nominal layout")
             patch = d.get("brf_free_patch") if isinstance(d, dict) else None
             if isinstance(patch, dict) and patch.get("usable_mask"):
-                cands.append(cs.layout_path.parent / patch["usable_mask"])
+                mask_val = patch["usable_mask"]
+                if layout is not None or outside_ok:  # the caller's own layout, or opted in
+                    cands.append(cs.layout_path.parent / str(mask_val))
+                else:  # the set's layout (inside the folder): its mask must be inside too
+                    rel = cs.layout_path.parent.relative_to(root)
+                    cands.append(_manifest_path(
+                        root, str(rel / mask_val) if isinstance(mask_val, str) else mask_val,
+                        cs.layout_path, "brf_free_patch.usable_mask", outside_ok))
         if cs.manifest is not None and cs.manifest.get("brf_free_mask"):
-            cands.append(root / cs.manifest["brf_free_mask"])
+            cands.append(_manifest_path(root, cs.manifest["brf_free_mask"], mpath,
+                                        "brf_free_mask", outside_ok))  # fmt: skip
         cands.append(root / BRF_FREE_MASK)
         cs.brf_free_mask_path = next((c for c in cands if c.is_file()), None)
     return cs

@@ -167,10 +167,16 @@ def write_capture(
 
 
 def _check_exists(p: Path) -> None:
-    if not p.exists():
+    """A capture must be a regular file (a symlink to one is fine), checked before it is
+    opened: a folder, a FIFO (which would block the reader forever), a device or a socket is
+    refused by name."""
+    from hsi_torch.io.safety import require_regular_file
+
+    if not p.exists() and not p.is_symlink():
         raise MissingFileError(f"capture file not found: {p}")
     if p.is_dir():
         raise FileFormatError(f"{p}: is a directory, expected a capture file")
+    require_regular_file(p, "capture file")
 
 
 def _as_chw(arr: np.ndarray, p: Path, meta: dict[str, Any]) -> tuple[np.ndarray, str]:
@@ -206,24 +212,45 @@ def _check_dtype(arr: np.ndarray, p: Path) -> None:
         bad = ~np.isfinite(arr)
         if bad.any():
             raise FileFormatError(f"{p}: image contains {int(bad.sum())} NaN/inf values")
+        top = float(np.abs(arr).max()) if arr.size else 0.0
+        if top > MAX_SAMPLE_VALUE:
+            raise FileFormatError(
+                f"{p}: image values reach {top:.3g}, beyond any sensor's range (at most "
+                f"{MAX_SAMPLE_VALUE:.3g} = 2^50 is accepted: the reconstruction works in float32, "
+                "whose squares overflow near 1.8e19); rescale the capture to sensor counts (DN)"
+            )
     if arr.dtype.kind in "if" and arr.size and arr.min() < 0:
         raise FileFormatError(f"{p}: image contains negative stored values (min {arr.min()})")
 
 
 #: Largest decoded capture accepted (bytes); a header asking for more is refused before reading.
 MAX_CAPTURE_BYTES = 8 << 30
+#: Largest magnitude of a stored sample accepted (float files): 2^50, far above any sensor's count.
+MAX_SAMPLE_VALUE = float(2**50)
+#: Largest metadata text of an NPZ capture (bytes, from its header, before it is decoded).
+_MAX_META_BYTES = 16 << 20
 
 
 def _check_header(
     p: Path, shape: tuple[int, ...], dtype: np.dtype, expected_size: tuple[int, int] | None,
     available: int | None = None,
 ) -> None:
-    """Size checks from a file's header, before any pixel is decoded: a usable image shape, the
-    expected sensor size (``H, W`` = the two largest of the last three axes' leading pair), a
-    sane byte count, and (uncompressed data) no more bytes than the file holds."""
+    """Size checks from a file's header, before any pixel is decoded: a usable image shape
+    (``(H, W)``, ``(C, H, W)`` or ``(H, W, C)`` with ``C`` 1 or 3: anything else is refused
+    here, so that a compressed file cannot make the reader decode more than one sensor image),
+    the expected sensor size, a sane byte count, and (uncompressed data) no more bytes than the
+    file holds. The decoded size is therefore bounded by ``H·W·3`` samples of the expected
+    sensor size before decoding starts, whatever the compression."""
     shape = tuple(int(v) for v in shape)
-    if not 2 <= len(shape) <= 3 or min(shape) < 1:
-        return  # left to the shape check after reading (it names the expected layouts)
+    if len(shape) == 3 and shape[0] not in (1, 3) and shape[-1] not in (1, 3) or not (
+            2 <= len(shape) <= 3):
+        raise FileFormatError(
+            f"{p}: the header describes an image of shape {shape} ({dtype}); expected (H, W) or "
+            "(1, H, W) for a Bayer mosaic, or (3, H, W) / (H, W, 3) for RGB (refused before "
+            "decoding)"
+        )
+    if min(shape) < 1:
+        raise FileFormatError(f"{p}: the image is empty (shape {shape})")
     hw = shape[-2:] if len(shape) == 2 or shape[0] in (1, 3) else shape[:2]
     _check_size(p, hw, expected_size)
     nbytes = int(np.prod(shape, dtype=np.float64) * max(1, dtype.itemsize))
@@ -361,6 +388,15 @@ def _read_npz(
                 header_len = f.tell()
             raw = info.file_size - header_len if info.compress_type == 0 else None
             _check_header(p, shape, dtype, expected_size, raw)
+            if "metadata" in keys:  # a text: its header too, before it is decoded
+                with z.zip.open(z.zip.getinfo("metadata.npy")) as f:
+                    mshape, mdtype = _npy_header(f)
+                if mshape != () or mdtype.kind not in "US" or mdtype.itemsize > _MAX_META_BYTES:
+                    raise FileFormatError(
+                        f"{p}: 'metadata' must be a JSON string (0-d str array) of at most "
+                        f"{_MAX_META_BYTES // 2**20} MiB, the header says a {mdtype} array of "
+                        f"shape {mshape}"
+                    )
             arr = z[key]
             meta_raw = z["metadata"] if "metadata" in keys else None
             meta_text = None

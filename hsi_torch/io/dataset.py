@@ -36,6 +36,13 @@ first added; a later run with more inputs appends frames, one with the same inpu
 (resume: a frame whose ``done`` is True, made from the same input file and settings, is skipped;
 see :class:`hsi_torch.recon.batch.targets.StoreTarget`).
 
+**Read only with its own codecs.** Before a chunk is decoded, every array's compressor and filters
+are checked against the codecs this module writes (:data:`STORE_CODECS`: Zstandard, and the
+``vlen-utf8`` filter of the string arrays); a store that names any other codec (e.g. ``pickle``,
+which runs code when it decodes) is refused with an error naming the array and the codec
+(:func:`check_zarr_codecs`). Cube files written as ``<stem>.zarr`` by xarray are opened with the
+wider list :data:`SAFE_CODECS` (numcodecs' compressors and filters that only decode data).
+
 Reading::
 
     ds = xarray.open_zarr("out/cubes.zarr")
@@ -75,6 +82,9 @@ __all__ = [
     "DATASET_NAME",
     "DATASET_VERSION",
     "require_dataset_packages",
+    "check_zarr_codecs",
+    "STORE_CODECS",
+    "SAFE_CODECS",
 ]
 
 #: The store's name inside a run's output folder.
@@ -101,9 +111,149 @@ def require_dataset_packages(read: bool = False) -> None:
             )
 
 
+#: The codecs of the run's store (what this module writes) → the configuration keys they may
+#: carry besides ``id``. Nothing else is ever decoded from a ``cubes.zarr``.
+STORE_CODECS: dict[str, frozenset[str]] = {
+    "zstd": frozenset({"level", "checksum"}),
+    "vlen-utf8": frozenset(),
+}
+#: Codecs accepted in a cube file's Zarr store (``<stem>.zarr``, written by xarray/zarr):
+#: numcodecs' compressors, checksums and filters that decode bytes without running code (no
+#: ``pickle``; Zarr 3 names included). Configuration keys are not restricted.
+SAFE_CODECS: frozenset[str] = frozenset({
+    "zstd", "blosc", "lz4", "gzip", "zlib", "bz2", "lzma", "vlen-utf8", "vlen-bytes",
+    "delta", "fixedscaleoffset", "quantize", "bitround", "shuffle", "packbits", "astype",
+    "crc32", "crc32c", "adler32", "fletcher32", "jenkins_lookup3",
+    "bytes", "transpose", "sharding_indexed",
+})  # fmt: skip
+#: dtypes of the run's store's arrays
+_STORE_DTYPES = frozenset({"<f4", "<f8", "<i8", "|b1", "|O"})
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _check_codec(conf: Any, allowed: Any, array: str, role: str, store: Any) -> None:
+    if not isinstance(conf, dict):
+        raise FileFormatError(f"{store}: array {array!r}: its {role} is not a codec "
+                              f"description ({_short(conf)})")  # fmt: skip
+    cid = conf.get("id", conf.get("name"))
+    names = sorted(allowed)
+    if not isinstance(cid, str) or cid not in allowed:
+        raise FileFormatError(
+            f"{store}: array {array!r} names the {role} codec {_short(cid)}, which is not one "
+            f"this store is read with ({', '.join(names)}); refusing to decode it (a crafted "
+            "store can run code through a codec such as 'pickle')"
+        )
+    if isinstance(allowed, dict):
+        bad = [k for k, v in conf.items() if k != "id" and not (
+            type(v) is int if k == "level" else type(v) is bool)]  # fmt: skip
+        if bad and not [k for k in bad if k not in allowed[cid]]:
+            raise FileFormatError(f"{store}: array {array!r}: {role} codec {cid!r} with "
+                                  f"settings of the wrong type ({_short(bad)})")  # fmt: skip
+        extra = sorted(str(k) for k in conf if k not in ("id", *allowed[cid]))
+        if extra:
+            raise FileFormatError(f"{store}: array {array!r}: {role} codec {cid!r} with "
+                                  f"unexpected settings {_short(extra)}")  # fmt: skip
+
+
+def _check_array_meta(meta: Any, array: str, store: Any, allowed: Any = None) -> None:
+    """Refuse array metadata (Zarr 2 ``.zarray`` or Zarr 3 ``zarr.json``) whose compressor,
+    filters or codecs are not in ``allowed`` (default :data:`STORE_CODECS`, which also fixes
+    the dtypes)."""
+    strict = allowed is None
+    allowed = STORE_CODECS if strict else allowed
+    if not isinstance(meta, dict):
+        raise FileFormatError(f"{store}: array {array!r}: metadata is not a JSON object")
+    comp = meta.get("compressor")
+    if comp is not None:
+        _check_codec(comp, allowed, array, "compressor", store)
+    filters = meta.get("filters")
+    if filters is not None:
+        if not isinstance(filters, list):
+            raise FileFormatError(f"{store}: array {array!r}: filters {_short(filters)} is not "
+                                  "a list")  # fmt: skip
+        for f in filters:
+            _check_codec(f, allowed, array, "filter", store)
+    codecs = meta.get("codecs")  # Zarr 3
+    if codecs is not None:
+        if not isinstance(codecs, list):
+            raise FileFormatError(f"{store}: array {array!r}: codecs {_short(codecs)} is not a "
+                                  "list")  # fmt: skip
+        for c in codecs:
+            _check_codec(c, allowed, array, "codec", store)
+            inner = c.get("configuration", {}) if isinstance(c, dict) else {}
+            for key in ("codecs", "index_codecs"):  # sharding: codecs inside codecs
+                for ci in (inner.get(key) or []) if isinstance(inner, dict) else []:
+                    _check_codec(ci, allowed, array, "codec", store)
+    if strict:
+        dt = meta.get("dtype")
+        if not isinstance(dt, str) or dt not in _STORE_DTYPES:
+            raise FileFormatError(f"{store}: array {array!r} has dtype {_short(dt)}, not one of "
+                                  f"this store's ({', '.join(sorted(_STORE_DTYPES))})")  # fmt: skip
+        if dt == "|O" and [f.get("id") for f in filters or []] != ["vlen-utf8"]:
+            raise FileFormatError(f"{store}: array {array!r}: an object array must have the "
+                                  "vlen-utf8 filter")  # fmt: skip
+
+
+def check_zarr_codecs(
+    path: str | os.PathLike, allowed: Any = None, max_arrays: int = 10_000
+) -> None:
+    """Check every array of the Zarr store at ``path`` before anything is decoded: the arrays
+    of its consolidated metadata (``.zmetadata``), and the ``.zarray`` / ``zarr.json`` files
+    of its folder and of each folder one level below (where the arrays of a group are).
+
+    Args:
+        path: the store's folder.
+        allowed: codec ids accepted (default :data:`STORE_CODECS`, the run's store; a cube
+            file's store uses :data:`SAFE_CODECS`).
+        max_arrays: bound on the sub-folders looked at.
+
+    Raises:
+        FileFormatError: a codec outside ``allowed`` (the message names the array and codec),
+            or metadata that is not JSON.
+    """
+    root = Path(path)
+
+    def load(p: Path) -> Any:
+        try:
+            return json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise FileFormatError(f"{root}: {p.relative_to(root)} is not readable JSON "
+                                  f"({_short(str(exc), 120)})") from None  # fmt: skip
+
+    zmeta = root / ".zmetadata"
+    if zmeta.is_file():
+        md = load(zmeta)
+        entries = md.get("metadata") if isinstance(md, dict) else None
+        if not isinstance(entries, dict):
+            raise FileFormatError(f"{root}: .zmetadata holds no 'metadata' object")
+        for key, meta in entries.items():
+            if str(key).endswith((".zarray", "zarr.json")):
+                _check_array_meta(meta, str(key).rsplit("/", 1)[0], root, allowed)
+    folders = [root]
+    with contextlib.suppress(OSError):
+        folders += [Path(e.path) for e in os.scandir(root) if e.is_dir()][:max_arrays]
+    for d in folders:
+        for name in (".zarray", "zarr.json"):
+            f = d / name
+            if f.is_file():
+                meta = load(f)
+                if name == "zarr.json" and isinstance(meta, dict) and (
+                        meta.get("node_type") != "array"):
+                    continue
+                _check_array_meta(meta, d.name if d != root else "/", root, allowed)
+
+
 def _codec(config: dict[str, Any] | None):
     if config is None:
         return None
+    cid = config.get("id") if isinstance(config, dict) else None
+    if cid not in STORE_CODECS:  # every metadata was checked; never decode with another codec
+        raise FileFormatError(f"refusing to use the codec {_short(cid)}: the dataset store is "
+                              f"read only with {', '.join(sorted(STORE_CODECS))}")  # fmt: skip
     import numcodecs  # lazy: optional dependency (comes with zarr, the cluster extra)
 
     return numcodecs.get_codec(dict(config))
@@ -149,6 +299,12 @@ def _array_meta(
 
 
 _ZSTD = {"id": "zstd", "level": 1}
+#: each array's dtype, compressor id and filter ids in this layout
+_LAYOUT_CODECS: dict[str, tuple[str, str | None, list[str]]] = {
+    "cube": ("<f4", "zstd", []), "valid": ("|b1", "zstd", []), "done": ("|b1", None, []),
+    "metadata": ("|O", "zstd", ["vlen-utf8"]), "source": ("|O", "zstd", ["vlen-utf8"]),
+    "wavelength": ("<f8", None, []), "y": ("<i8", None, []), "x": ("<i8", None, []),
+}  # fmt: skip
 _VLEN = [{"id": "vlen-utf8"}]
 
 
@@ -275,6 +431,9 @@ class CubeDataset:
             raise FileFormatError(
                 f"{self.path}: not a hsi_torch dataset store ({exc}); write into another folder"
             ) from None
+        for name, meta in self.meta.items():  # before any chunk is decoded
+            _check_array_meta(meta, name, self.path)
+        self._check_layout()
         if self.attrs.get("hsi_torch_dataset") != DATASET_VERSION:
             raise FileFormatError(
                 f"{self.path}: not a hsi_torch dataset store of layout version {DATASET_VERSION} "
@@ -288,6 +447,41 @@ class CubeDataset:
             chunk = self._read_chunk("source", k // SOURCE_CHUNK)
             names += [str(s) for s in chunk[: min(SOURCE_CHUNK, n - k)]]
         self.index = {s: i for i, s in enumerate(names) if s}
+
+    def _check_layout(self) -> None:
+        """The arrays' shapes and chunks are this layout's (from the root attributes), before
+        any chunk is read."""
+        wl, fs = self.attrs.get("wavelengths_nm"), self.attrs.get("frame_size")
+        ok = (isinstance(wl, list) and all(isinstance(v, (int, float)) and not isinstance(
+            v, bool) for v in wl) and isinstance(fs, list) and len(fs) == 2 and all(
+            type(v) is int and v > 0 for v in fs))  # fmt: skip
+        if not ok:
+            raise FileFormatError(f"{self.path}: root attributes wavelengths_nm / frame_size are "
+                                  "not a list of numbers / [h, w]")  # fmt: skip
+        m, (h, w) = len(wl), fs
+        n = self.meta["done"].get("shape")
+        n = n[0] if isinstance(n, list) and len(n) == 1 and type(n[0]) is int else -1
+        expect = {
+            "cube": ([n, m, h, w], [1, m, h, w]), "valid": ([n, h, w], [1, h, w]),
+            "done": ([n], [1]), "metadata": ([n], [1]), "source": ([n], [SOURCE_CHUNK]),
+            "wavelength": ([m], [m]), "y": ([h], [h]), "x": ([w], [w]),
+        }  # fmt: skip
+        for name, (shape, chunks) in expect.items():
+            meta = self.meta[name]
+            if n < 0 or meta.get("shape") != shape or meta.get("chunks") != chunks:
+                raise FileFormatError(
+                    f"{self.path}: array {name!r} has shape {_short(meta.get('shape'))} and "
+                    f"chunks {_short(meta.get('chunks'))}, not this layout's {shape} and "
+                    f"{chunks} (frames, {m} bands, {h}x{w} frames)")
+            if meta.get("order", "C") != "C":
+                raise FileFormatError(f"{self.path}: array {name!r} is not in C order")
+            dtype, comp, filters = _LAYOUT_CODECS[name]
+            got = (meta.get("dtype"), (meta.get("compressor") or {}).get("id"),
+                   [f.get("id") for f in meta.get("filters") or []])
+            if got != (dtype, comp, filters):
+                raise FileFormatError(
+                    f"{self.path}: array {name!r} has dtype, compressor and filters "
+                    f"{_short(got)}, not this layout's {(dtype, comp, filters)}")
 
     def _check(self, wavelengths_nm: Sequence[float], frame_size: tuple[int, int]) -> None:
         wl = [float(x) for x in wavelengths_nm]
@@ -376,7 +570,13 @@ class CubeDataset:
         p = self.path / _chunk_key(name, index, len(meta["shape"]))
         if not p.is_file():  # (not in a complete store: every chunk is written)
             raise FileNotFoundError(f"{p}: chunk missing")
-        return _decode(meta, p.read_bytes())
+        try:
+            return _decode(meta, p.read_bytes())
+        except FileFormatError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - numcodecs/numpy errors on a damaged chunk
+            raise FileFormatError(f"{p}: cannot decode this chunk of array {name!r} "
+                                  f"({type(exc).__name__}: {_short(str(exc), 120)})") from None
 
     def _write_metadata(self) -> None:
         """The consolidated metadata (``.zmetadata``), what ``xarray.open_zarr`` reads."""
@@ -459,6 +659,8 @@ def write_frame(
     if metas is None or int(metas["done"]["shape"][0]) <= index:  # a run may have appended
         metas = {n: _read_json(root / n / ".zarray") for n in ("cube", "valid", "metadata",
                                                                  "done")}  # fmt: skip
+        for name, meta in metas.items():
+            _check_array_meta(meta, name, root)
         _META_CACHE[key] = metas
     n = int(metas["done"]["shape"][0])
     if not 0 <= index < n:
@@ -493,4 +695,5 @@ def open_dataset(path: str | os.PathLike):
     p = Path(path)
     if not (p / ".zgroup").is_file():
         raise FileFormatError(f"{p}: not a Zarr store (no .zgroup)")
+    check_zarr_codecs(p)
     return xr.open_zarr(p, consolidated=True)

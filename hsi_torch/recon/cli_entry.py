@@ -38,5 +38,7 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
         device=getattr(args, "device", None),
         threads_per_worker=getattr(args, "threads_per_worker", None),
         send_bundle=bool(getattr(args, "send_bundle", False)),
+        tls=(getattr(args, "tls_ca_file", None), getattr(args, "tls_cert", None),
+             getattr(args, "tls_key", None)),
         config_source=str(args.config) if getattr(args, "config", None) else None,
     )  # fmt: skip

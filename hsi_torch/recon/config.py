@@ -13,14 +13,16 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from hsi_torch.config import help_meta
-from hsi_torch.recon.settings import MAX_PREVIEW_SIZE, ReconstructSettings
+from hsi_torch.recon.settings import BETA_MAX, MAX_PREVIEW_SIZE, ReconstructSettings
 
-__all__ = ["ReconstructConfig"]
+__all__ = ["ReconstructConfig", "BETA_MAX"]
 
 CubeFormatName = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
 
 
 _help = help_meta
+
+
 
 
 @dataclass

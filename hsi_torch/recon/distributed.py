@@ -12,6 +12,13 @@ Threads: ``local:N`` gives every frame ``cores // N`` torch and numba threads (a
 ``threads_per_worker`` says otherwise; on an existing cluster a frame gets its worker's Dask
 thread count (``dask worker --nthreads``), since a worker process runs one frame at a time.
 
+Security: a scheduler and its workers can run any code in this process (a task's result is
+unpickled here), so connect only to a cluster you trust. ``local:N`` listens on the loopback
+interface only; a remote scheduler should be reached over ``tls://`` with certificates
+(:func:`make_security`: ``--tls-ca-file``, ``--tls-cert``, ``--tls-key``), which Dask uses
+to encrypt the connection and to authenticate both ends. A plain ``tcp://`` address that is not
+on this machine gets a warning (``docs/cluster.md``, *Security*).
+
 Needs the optional extra ``pip install 'hsi-torch[cluster]'`` (``dask[distributed]``), imported
 only here.
 """
@@ -29,7 +36,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["connect", "parse_scheduler", "DaskExecutor", "in_dask_worker"]
+__all__ = ["connect", "parse_scheduler", "make_security", "DaskExecutor", "in_dask_worker"]
 
 _HINT = "pip install 'hsi-torch[cluster]'"
 _ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc|ws|wss)://\S+$")
@@ -101,6 +108,47 @@ def parse_scheduler(spec: str) -> tuple[str, Any]:
     )
 
 
+def make_security(
+    ca_file: str | os.PathLike | None = None,
+    cert: str | os.PathLike | None = None,
+    key: str | os.PathLike | None = None,
+) -> Any | None:
+    """A ``distributed.security.Security`` for a ``tls://`` scheduler: the certificate authority
+    that signed the cluster's certificates (``ca_file``) and this client's certificate and
+    private key (``cert``, ``key``; one PEM file holding both may be given as ``cert`` alone).
+    Encryption is required. ``None`` when no file is given.
+
+    Raises:
+        ValueError: a CA without a certificate or the other way round.
+        FileNotFoundError: a file that does not exist (named).
+    """
+    if ca_file is None and cert is None and key is None:
+        return None
+    if ca_file is None or cert is None:
+        raise ValueError("TLS needs --tls-ca-file (the cluster's certificate authority) and "
+                         "--tls-cert (this client's certificate; --tls-key for its key if it is "
+                         "not in the same file)")  # fmt: skip
+    for what, f in (("--tls-ca-file", ca_file), ("--tls-cert", cert), ("--tls-key", key)):
+        if f is not None and not Path(f).is_file():
+            raise FileNotFoundError(f"{what} {f} not found")
+    Security = _distributed().security.Security  # noqa: N806 - a class
+    return Security(
+        tls_ca_file=str(ca_file), tls_client_cert=str(cert),
+        tls_client_key=None if key is None else str(key), require_encryption=True,
+    )  # fmt: skip
+
+
+def _warn_plain(address: str) -> None:
+    """A warning for a ``tcp://`` scheduler not on this machine (no encryption, no
+    authentication)."""
+    host = address.split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
+    if address.startswith("tcp://") and host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"hsi-torch: warning: the scheduler {address} is reached without encryption or "
+              "authentication: whoever can reach it can run code in this process and on the "
+              "workers; use tls:// with --tls-ca-file/--tls-cert/--tls-key on networks you do "
+              "not fully trust (docs/cluster.md, Security)", file=sys.stderr)
+
+
 @contextlib.contextmanager
 def connect(
     scheduler: str | None = None,
@@ -108,6 +156,7 @@ def connect(
     *,
     threads_per_worker: int | None = None,
     timeout_s: float = 30.0,
+    security: Any | None = None,
 ) -> Iterator[tuple[Any, int | None]]:
     """A ``distributed.Client`` for the run, and the torch/numba threads per frame.
 
@@ -117,6 +166,8 @@ def connect(
         threads_per_worker: torch/numba threads per frame (default: ``cores // N`` for
             ``local:N``; ``None`` otherwise: each worker's Dask thread count).
         timeout_s: how long to wait for the scheduler.
+        security: a ``distributed.security.Security`` (:func:`make_security`) for a
+            ``tls://`` scheduler; required for one. ``local:N`` clusters listen on 127.0.0.1.
 
     Yields:
         ``(client, threads)``; on exit the client is closed and a ``local:N`` cluster shut down.
@@ -133,6 +184,15 @@ def connect(
     kind, value = parse_scheduler(scheduler) if scheduler else ("file", Path(scheduler_file))
     if kind == "file" and not Path(value).is_file():
         raise FileNotFoundError(f"scheduler file not found: {value}")
+    if kind == "address" and str(value).startswith("tls://") and security is None:
+        raise ValueError(f"--scheduler {value}: a tls:// scheduler needs certificates: "
+                         "--tls-ca-file, --tls-cert (and --tls-key)")  # fmt: skip
+    if kind == "local" and security is not None:
+        raise ValueError("--tls-* options are for a running tls:// scheduler; local:N listens on "
+                         "127.0.0.1 only")  # fmt: skip
+    if kind == "address" and security is not None and not str(value).startswith("tls://"):
+        raise ValueError(f"--scheduler {value}: TLS certificates were given; the address must "
+                         "start with tls://")  # fmt: skip
     distributed = _distributed()
     cluster = None
     threads = threads_per_worker
@@ -149,7 +209,7 @@ def connect(
             with _dask().config.set({_TRIM_KEY: None}):
                 cluster = distributed.LocalCluster(
                     n_workers=value, threads_per_worker=1, processes=True,
-                    dashboard_address=None, silence_logs=logging.ERROR,
+                    host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR,
                 )  # fmt: skip
             _restore_environ(saved)
             stack.callback(cluster.close)
@@ -158,9 +218,13 @@ def connect(
                 threads = max(1, (os.cpu_count() or 1) // value)
         else:
             where = f"scheduler {value}" if kind == "address" else f"scheduler file {value}"
+            if kind == "address" and security is None:
+                _warn_plain(str(value))
+            sec = {} if security is None else {"security": security}
             try:
-                client = (distributed.Client(value, timeout=timeout_s) if kind == "address"
-                          else distributed.Client(scheduler_file=str(value), timeout=timeout_s))
+                client = (distributed.Client(value, timeout=timeout_s, **sec) if kind == "address"
+                          else distributed.Client(scheduler_file=str(value), timeout=timeout_s,
+                                                  **sec))  # fmt: skip
             except (OSError, TimeoutError) as exc:
                 raise OSError(f"cannot connect to the {where}: {exc}") from None
         stack.callback(client.close)

@@ -55,6 +55,9 @@ __all__ = [
 
 #: Default smoothness weight β on ‖D s‖² (DN² scale; best measured on the default prototype).
 DEFAULT_BETA = 1e4
+#: Largest accepted ``beta``: far above any useful smoothness weight (1e-2..1e6 on the DN²
+#: scale), far below what overflows the float32 solve (an all-zero cube).
+BETA_MAX = 1e12
 #: ``lam`` default (= :data:`hsi_torch.recon.spatial.DEFAULT_LAM`, kept importable without torch).
 _DEFAULT_LAM = 1.0
 SOLVERS = ("active_set", "admm")
@@ -140,8 +143,9 @@ class SolveSettings:
 
     def __post_init__(self) -> None:
         beta = _number("beta", self.beta)
-        if not beta >= 0:
-            raise _bad("beta", f"must be >= 0, got {self.beta}")
+        if not 0 <= beta <= BETA_MAX:
+            raise _bad("beta", f"must be between 0 and {BETA_MAX:g}, got {self.beta:g} (the "
+                               "useful range is about 1e-2..1e6)")
         object.__setattr__(self, "beta", beta)
         if self.diff_order not in (0, 1, 2) or isinstance(self.diff_order, bool):
             raise _bad("diff_order", f"must be 0, 1 or 2, got {self.diff_order!r}")

@@ -21,6 +21,7 @@ from typing import Any
 
 from hsi_torch import __version__
 from hsi_torch.config import load_config
+from hsi_torch.io.atomic import InputFiles
 from hsi_torch.io.dataset import DATASET_NAME, require_dataset_packages
 from hsi_torch.recon.batch.driver import Executor, InlineExecutor, RunSummary, drive
 from hsi_torch.recon.batch.run import ReconstructRun, check_run, output_paths
@@ -52,6 +53,8 @@ def run_reconstruction(
     device: str | None = None,
     threads_per_worker: int | None = None,
     send_bundle: bool = False,
+    security: Any | None = None,
+    tls: tuple[Any, Any, Any] | None = None,
     config_source: str | None = None,
 ) -> RunSummary:
     """Check and run a reconstruction (see the module docstring).
@@ -68,6 +71,10 @@ def run_reconstruction(
         device: overrides the configuration's ``device``.
         threads_per_worker: torch/numba threads per frame on a worker (a cluster only).
         send_bundle: send the bundle's bytes to the workers (a cluster only).
+        security: a ``distributed.security.Security`` for a ``tls://`` scheduler (a cluster
+            only; :func:`hsi_torch.recon.distributed.make_security`).
+        tls: ``(ca_file, cert, key)`` to build ``security`` from (the CLI's ``--tls-ca-file``,
+            ``--tls-cert``, ``--tls-key``; a cluster only).
         config_source: the configuration's file, named in errors.
 
     Returns:
@@ -82,8 +89,11 @@ def run_reconstruction(
                          f"got {output_format!r}")  # fmt: skip
     on_cluster = bool(scheduler or scheduler_file) or client is not None
     if not on_cluster:
+        ca, cert, key = tls or (None, None, None)
         for name, value in (("threads_per_worker", threads_per_worker),
-                            ("send_bundle", send_bundle)):  # fmt: skip
+                            ("send_bundle", send_bundle), ("security", security),
+                            ("tls_ca_file", ca), ("tls_cert", cert),
+                            ("tls_key", key)):  # fmt: skip
             if value:
                 raise ValueError(f"--{name.replace('_', '-')} ({name}) needs a cluster: "
                                  "--scheduler or --scheduler-file (reconstruct_many(..., "
@@ -109,7 +119,12 @@ def run_reconstruction(
     cluster = {"verify_bundle": not send_bundle, "send_bundle": send_bundle}
     if client is not None:
         return execute(run, DaskExecutor(client), threads=threads_per_worker, **cluster, **opts)
-    with connect(scheduler, scheduler_file, threads_per_worker=threads_per_worker) as (cl, n):
+    if security is None and tls is not None and any(tls):
+        from hsi_torch.recon.distributed import make_security  # lazy: Dask, a cluster only
+
+        security = make_security(*tls)
+    with connect(scheduler, scheduler_file, threads_per_worker=threads_per_worker,
+                 security=security) as (cl, n):  # fmt: skip
         return execute(run, DaskExecutor(cl), threads=n, **cluster, **opts)
 
 
@@ -148,7 +163,8 @@ def execute(
     else:
         settings = run.settings
         target = FilesTarget(out, run.fingerprint,
-                             planned_outputs=lambda p: output_paths(out / p.stem, settings))
+                             planned_outputs=lambda p: output_paths(out / p.stem, settings),
+                             protected=InputFiles([*run.inputs, run.bundle_path]))
     plan = FramePlan(
         run=dataclasses.replace(run, inputs=[]), output_format=output_format,
         store=str(target.store) if target.store is not None else None, threads=threads,
@@ -193,6 +209,7 @@ def reconstruct_many(
     device: str | None = None,
     threads_per_worker: int | None = None,
     send_bundle: bool = False,
+    security: Any | None = None,
 ) -> RunSummary:
     """Reconstruct many captures with one bundle, on a Dask cluster or in this process
     (:func:`run_reconstruction` from Python).
@@ -214,6 +231,8 @@ def reconstruct_many(
         threads_per_worker: torch/numba threads per frame on a worker (default: cores / N for
             ``local:N``, else each worker's Dask thread count).
         send_bundle: send the bundle's bytes to the workers (they do not see its file).
+        security: for a ``tls://`` scheduler spec, a ``distributed.security.Security``
+            (:func:`hsi_torch.recon.distributed.make_security`).
 
     Returns:
         The :class:`~hsi_torch.recon.batch.driver.RunSummary`: ``processed``, ``skipped``,
@@ -235,5 +254,5 @@ def reconstruct_many(
     return run_reconstruction(
         inputs, bundle, out_dir, cfg, scheduler=spec, client=None if spec else client,
         output_format=output_format, resume=resume, progress=progress, device=device,
-        threads_per_worker=threads_per_worker, send_bundle=send_bundle,
+        threads_per_worker=threads_per_worker, send_bundle=send_bundle, security=security,
     )  # fmt: skip

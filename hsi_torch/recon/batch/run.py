@@ -47,9 +47,14 @@ from hsi_torch.config import ConfigError, config_yaml
 from hsi_torch.console import info, warn
 from hsi_torch.errors import NoValidPixelsError
 from hsi_torch.io import paths
-from hsi_torch.io.atomic import atomic_write_new, clean_stale_temp_files
+from hsi_torch.io.atomic import (
+    InputFiles,
+    atomic_write_new,
+    clean_stale_temp_files,
+    replace_then_commit,
+)
 from hsi_torch.io.bundle import file_sha256
-from hsi_torch.io.cube import remove_output, require_format, save_cube_formats
+from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.checks import check_notes, check_warnings
@@ -113,12 +118,17 @@ def write_outputs(
     settings: ReconstructSettings | ReconstructConfig,
     metadata: dict[str, Any] | None = None,
     timings: dict[str, float] | None = None,
+    inputs: InputFiles | Sequence[str | os.PathLike] = (),
 ) -> list[Path]:
-    """Write a reconstruction's cube files, preview and spectra plot (all atomic), as
-    ``settings.output`` says.
+    """Write a reconstruction's cube files, preview and spectra plot, as ``settings.output``
+    says — all of them or none (replace-then-commit).
 
-    The files are written concurrently (one thread per file). On an error the files already
-    written for this stem are removed, then the (first) error propagates.
+    The files are written concurrently (one thread per file) into a staging folder beside their
+    destination (:func:`hsi_torch.io.atomic.replace_then_commit`); only when every one is complete
+    are they moved into place, so an earlier run's outputs of this stem stay as they were until
+    then, and on an error (a full disk, a folder in the way) they are kept and only the staged
+    files are removed, then the (first) error propagates. No output may be one of ``inputs``
+    (the capture, the bundle: the same file by identity, whatever its name).
     ``timings``: if given, receives seconds per output (``npz``, ``tiff``, ``envi``,
     ``preview``, ``spectra``; they overlap).
 
@@ -126,8 +136,22 @@ def write_outputs(
         The paths written.
     """
 
+    with replace_then_commit(inputs) as tx:
+        final = Path(stem)
+        staged = tx.stage_tree(final.parent) / final.name
+        written = _write_staged(result, staged, settings, metadata, timings)
+    return [final.parent / p.relative_to(staged.parent) for p in written]
+
+
+def _write_staged(
+    result: ReconstructionResult,
+    s: Path,
+    settings: ReconstructSettings | ReconstructConfig,
+    metadata: dict[str, Any] | None,
+    timings: dict[str, float] | None,
+) -> list[Path]:
+    """:func:`write_outputs`' files under the stem ``s`` (in the staging folder)."""
     cfg = as_settings(settings).output
-    s = Path(stem)
     cube = result.cube.detach().to("cpu", torch.float32)
     valid = result.valid.detach().cpu()
     wl = result.wavelengths_nm.detach().cpu()
@@ -184,9 +208,7 @@ def write_outputs(
                 errors.append(exc)
     written = [p for r in results for p in r]
     if errors:
-        for p in written:
-            remove_output(p)
-        raise errors[0]
+        raise errors[0]  # the staging folder is removed; nothing earlier was replaced
     return written
 
 
@@ -421,7 +443,8 @@ def reconstruct_to_files(rec: Reconstructor, path: Path, run: ReconstructRun) ->
         info(f"{path.name}: {msg}")
     for msg in warnings:
         warn(f"WARNING {path}: {msg}")
-    written = write_outputs(res, run.out_dir / path.stem, run.settings, meta)
+    written = write_outputs(res, run.out_dir / path.stem, run.settings, meta,
+                            inputs=[path, run.bundle_path])
     del res
     release_freed_memory()  # frames do not pile up freed blocks in the allocator's arenas
     return written

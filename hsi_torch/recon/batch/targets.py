@@ -47,7 +47,9 @@ from typing import Any, Protocol
 
 from hsi_torch.errors import InputError
 from hsi_torch.io.atomic import (
+    InputFiles,
     atomic_write_json,
+    check_not_input,
     clean_stale_temp_files,
     clean_stale_temp_files_of,
     lock_or_refuse,
@@ -243,6 +245,8 @@ class _Claim:
         owners.refresh(out, inp.stem)  # claims a concurrent run made meanwhile
         planned_fn = self.target.planned_outputs
         self.planned = [os.path.abspath(p) for p in planned_fn(inp)] if planned_fn else []
+        for p in self.planned:  # never an input (or the bundle): refused before any work
+            check_not_input(p, self.target.protected)
         clash = owners.conflict(self.key, self.planned)
         if clash is not None:
             other, names = clash
@@ -313,16 +317,24 @@ class FilesTarget:
         fingerprint: identifies the settings and bundle of the run (resume redoes inputs made
             under another one).
         planned_outputs: ``input -> the paths its work will write`` (the ownership check).
+        protected: files no output may be (the run's inputs and its bundle, by identity: an
+            output that *is* one of them — whatever its folder or name — fails that input before
+            its work starts, and nothing is written over it).
     """
 
     store: Path | None = None
 
     def __init__(
-        self, out: Path, fingerprint: str | None = None, planned_outputs: PathsFn | None = None
+        self,
+        out: Path,
+        fingerprint: str | None = None,
+        planned_outputs: PathsFn | None = None,
+        protected: InputFiles | None = None,
     ) -> None:
         self.out = Path(out)
         self.fingerprint = fingerprint
         self.planned_outputs = planned_outputs
+        self.protected = protected if protected is not None else InputFiles()
         self.owners = _Owners(self.out)
 
     @contextlib.contextmanager

@@ -208,7 +208,8 @@ def reconstruct_task(
                 write_frame(plan.store, int(frame), res.cube, res.valid, meta)
                 outputs = [str(plan.store)]
             else:
-                written = write_outputs(res, run.out_dir / path.stem, run.settings, meta)
+                written = write_outputs(res, run.out_dir / path.stem, run.settings, meta,
+                                        inputs=[path, run.bundle_path])
                 outputs = [str(p) for p in written]
             del res
         except Exception as exc:  # noqa: BLE001 - reported to the driver with its traceback

@@ -9,6 +9,7 @@ sensing matrices are not kept: right-hand sides ``Aᵀ W y`` go through the oper
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TypedDict
 
@@ -102,6 +103,12 @@ def _check_inputs(
     beta = float(beta)
     if not (beta >= 0.0) or beta == float("inf"):
         raise ValueError(f"beta must be finite and >= 0, got {beta}")
+    # ||beta D^T D|| <= 16 beta; the factorisation multiplies entries of G: keep them below
+    # sqrt(max) of the dtype, or G overflows and every answer becomes 0 (or NaN)
+    beta_max = math.sqrt(torch.finfo(op.dtype).max) / 16
+    if beta > beta_max:
+        raise ValueError(f"beta = {beta:g} overflows the {op.dtype} solve (at most {beta_max:.1e}; "
+                         "the useful range is about 1e-2..1e6 on the DN^2 scale)")
     if beta > 0 and m < diff_order + 1:
         raise ValueError(f"diff_order={diff_order} needs at least {diff_order + 1} bands, got {m}")
     if mask is not None:
