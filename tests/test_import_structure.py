@@ -3,7 +3,7 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, config, io, forward_model, console, profiling, resources,
-                 refdata, colour, batch, testing     → foundation only
+                 refdata, colour, batch, testing, metrics   → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "config", "io", "forward_model", "console", "profiling",
-              "resources", "refdata", "colour", "batch", "testing")  # fmt: skip
+              "resources", "refdata", "colour", "batch", "testing", "metrics")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},
