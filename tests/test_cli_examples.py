@@ -142,7 +142,7 @@ def check_example(line: str) -> str:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # unknown / missing argument
         raise AssertionError(f"example does not parse: {line}") from exc
-    if args.command == "bench":
+    if args.command in ("bench", "view"):  # no configuration; view needs a display
         return "parsed"
     schema, default = _schema_and_default(args)
     load_config(cli.config_source(args, default), schema, args.overrides)

@@ -9,6 +9,7 @@ Stages, bottom to top, and what each may import::
     calibrate    (captures → bundle)                          → foundation, optics
     recon        (bundle + capture → cube)                    → foundation, optics
     experiments  (evaluations, the demo)                      → everything above
+    viewer       (napari plugin: reader, spectrum widget)     → foundation
     commands     (cli.py, __main__, */cli_entry.py)           → anything
 
 So reconstruction needs neither calibration nor the simulator (nor OpenCV), calibration does not
@@ -37,6 +38,7 @@ ALLOWED = {
     "calibrate": {"foundation", "optics", "calibrate"},
     "recon": {"foundation", "optics", "recon"},
     "experiments": {"foundation", "optics", "simulate", "calibrate", "recon", "experiments"},
+    "viewer": {"foundation", "viewer"},
 }
 
 

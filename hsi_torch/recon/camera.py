@@ -159,7 +159,8 @@ class CameraOperator:
             image: ``(N, 3, H, W)`` linear RGB or ``(N, 1, H, W)`` Bayer (DN above black), the
                 bundle's sensor size.
             saturated: same shape, bool (samples left out), or ``None``.
-            exposure_scale: ``t_white / t_capture`` (:func:`~hsi_torch.recon.pipeline.exposure_scale`).
+            exposure_scale: ``t_white / t_capture``
+                (:func:`~hsi_torch.recon.pipeline.exposure_scale`).
             cfa_pattern: for a Bayer input (default the bundle's).
 
         Returns:
