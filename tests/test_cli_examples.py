@@ -190,7 +190,7 @@ def test_every_help_text_has_examples():
 def test_help_examples_work(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     done = {check_example(e) for e in _help_examples()}
-    assert done == {"ran", "validated"}
+    assert {"ran", "validated"} <= done <= {"ran", "validated", "parsed"}
 
 
 def test_readme_command_examples_work(tmp_path, monkeypatch, capsys):
