@@ -11,6 +11,9 @@ it, and nothing imports this module unless asked.
 * :class:`CameraNoise` — a ``deepinv.physics.NoiseModel`` drawing the observation noise of
   :mod:`hsi_torch.recon.uncertainty` (shot, read and quantisation noise of the raw samples,
   scaled by the exposure ratio and the views' sampling; Gaussian with that variance).
+* :class:`BandwiseDenoiser` — runs a grey-image denoiser (e.g. deepinv's ``DRUNet`` with
+  ``in_channels=1`` and weights from a local file) on every band of a cube, so that
+  plug-and-play priors trained on grey images apply to spectral cubes.
 * :class:`VectorialTVPrior` — a ``deepinv.optim.Prior``: the spatial mode's vectorial TV on the
   valid grid, ``Σ‖K∇x‖`` (:func:`~hsi_torch.recon.spatial.total_variation`) plus ``x ≥ 0``, with
   its proximal operator (:func:`~hsi_torch.recon.spatial.prox_tv_nonneg`), so that deepinv's
@@ -38,7 +41,7 @@ from hsi_torch.recon.camera import CameraOperator
 from hsi_torch.recon.spatial import grid_edges, prox_tv_nonneg, total_variation
 from hsi_torch.recon.uncertainty import SensorNoise
 
-__all__ = ["CameraPhysics", "CameraNoise", "VectorialTVPrior", "L2_SIGMA"]
+__all__ = ["CameraPhysics", "CameraNoise", "VectorialTVPrior", "BandwiseDenoiser", "L2_SIGMA"]
 
 #: ``sigma`` of deepinv's ``L2`` data fidelity that makes it the pipeline's ``‖A x − y‖²``.
 L2_SIGMA = 1.0 / math.sqrt(2.0)
@@ -167,3 +170,35 @@ class VectorialTVPrior(Prior):
         out = [prox_tv_nonneg(xk, float(gamma), ex, ey, self.inner_iters,
                               brightness_weight=self.brightness_weight)[0] for xk in x]  # fmt: skip
         return torch.stack(out)
+
+
+class BandwiseDenoiser(torch.nn.Module):
+    """A single-channel denoiser applied to every band: ``(N, M, h, w)`` → ``(N, M, h, w)``.
+
+    Args:
+        denoiser: a module called as ``denoiser(x, sigma)`` on ``(K, 1, h, w)`` images (deepinv's
+            denoisers), e.g. ``deepinv.models.DRUNet(1, 1, pretrained="weights.pth")``.
+        batch: bands denoised per call (memory).
+
+    Pixels outside ``valid`` (if given) are set to 0 before and after (our cubes are NaN there).
+    """
+
+    def __init__(self, denoiser: torch.nn.Module, batch: int = 8,
+                 valid: Tensor | None = None) -> None:  # fmt: skip
+        super().__init__()
+        self.denoiser = denoiser
+        self.batch = int(batch)
+        self.valid = None if valid is None else valid.bool()
+
+    def forward(self, x: Tensor, sigma: float | Tensor, *args, **kwargs) -> Tensor:  # noqa: ARG002
+        n, m, h, w = x.shape
+        keep = None if self.valid is None else self.valid.to(x.device)
+        if keep is not None:
+            x = torch.where(keep, x, torch.zeros((), dtype=x.dtype, device=x.device))
+        flat = x.reshape(n * m, 1, h, w)
+        out = torch.cat([self.denoiser(flat[i:i + self.batch], sigma)
+                         for i in range(0, n * m, self.batch)])  # fmt: skip
+        out = out.reshape(n, m, h, w)
+        if keep is not None:
+            out = torch.where(keep, out, torch.zeros((), dtype=out.dtype, device=out.device))
+        return out
