@@ -45,6 +45,7 @@ import math
 
 import torch
 import torch.nn.functional as F
+from torch import Tensor
 
 __all__ = [
     "mse",
@@ -218,28 +219,34 @@ def ssim(
     if h < window or w < window:
         raise ValueError(f"ssim: cube {h}x{w} px is smaller than the {window}x{window} window")
     g = _gaussian_window(window, sigma, e.dtype, e.device)
-    kernel = (g[:, None] * g[None, :])[None, None]  # (1, 1, k, k)
-    keep = m[:, None].to(e.dtype)
-    x = torch.where(m[:, None], e, 0).reshape(n * M, 1, h, w)
-    y = torch.where(m[:, None], t, 0).reshape(n * M, 1, h, w)
+    gx, gy = g.view(1, 1, 1, window), g.view(1, 1, window, 1)
 
-    def blur(z: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(z, kernel)
+    def blur(z: Tensor) -> Tensor:  # separable 'valid' Gaussian: no (k², h, w) unfolding
+        return F.conv2d(F.conv2d(z, gx), gy)
 
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x**2
-    syy = blur(y * y) - mu_y**2
-    sxy = blur(x * y) - mu_x * mu_y
-    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
-    smap = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
-    smap = smap.reshape(n, M, h - window + 1, w - window + 1)
     # window positions wholly inside the mask: a box filter of the mask equals the window area
-    box = F.conv2d(keep, torch.ones(1, 1, window, window, dtype=e.dtype, device=e.device))
-    inside = box[:, 0] > window * window - 0.5  # (n, h', w')
+    ones = torch.ones(1, 1, 1, window, dtype=e.dtype, device=e.device)
+    keep = m[:, None].to(e.dtype)
+    box = F.conv2d(F.conv2d(keep, ones), ones.transpose(2, 3))
+    inside = (box[:, 0] > window * window - 0.5).to(e.dtype)  # (n, h', w')
     if not bool(inside.any()):
         raise ValueError(f"ssim: no {window}x{window} window lies wholly inside the mask")
-    weights = inside[:, None].to(e.dtype).expand_as(smap)
-    band = (smap * weights).sum((0, 2, 3)) / weights.sum((0, 2, 3))  # (M,)
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    zero = torch.zeros((), dtype=e.dtype, device=e.device)
+    sums = torch.zeros(M, dtype=e.dtype, device=e.device)
+    chunk = max(1, int(2**22 // (h * w)))  # bands per step: bounded memory on large frames
+    for i in range(n):
+        for b0 in range(0, M, chunk):
+            x = torch.where(m[i], e[i, b0:b0 + chunk], zero)[:, None]  # (k, 1, h, w)
+            y = torch.where(m[i], t[i, b0:b0 + chunk], zero)[:, None]
+            mu_x, mu_y = blur(x), blur(y)
+            sxx = blur(x * x) - mu_x**2
+            syy = blur(y * y) - mu_y**2
+            sxy = blur(x * y) - mu_x * mu_y
+            smap = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / (
+                (mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+            sums[b0:b0 + chunk] += (smap[:, 0] * inside[i]).sum((1, 2))
+    band = sums / inside.sum()  # (M,): mean over the windows of every image
     return band if per_band else band.mean()
 
 
