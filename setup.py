@@ -13,5 +13,6 @@ from setuptools import find_packages, setup
 setup(
     packages=[*find_packages(include=["hsi_torch", "hsi_torch.*"]), "hsi_torch.configs"],
     package_dir={"hsi_torch.configs": "configs"},
-    package_data={"hsi_torch": ["data/*", "io/*.schema.json"], "hsi_torch.configs": ["*.yaml"]},
+    package_data={"hsi_torch": ["data/*", "io/*.schema.json", "viewer/napari.yaml"],
+                  "hsi_torch.configs": ["*.yaml"]},
 )

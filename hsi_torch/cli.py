@@ -14,6 +14,7 @@ experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluat
 demo           ``hsi_torch.experiments.cli_entry.run_demo``     the README's main command
 config         ``hsi_torch.resources.run_config``               show / copy a shipped config
 captures       ``hsi_torch.io.capture_import.run_captures``     a lab's photos → a capture set
+view           ``hsi_torch.viewer.cli_entry.run_view``          cubes in napari (``[viewer]``)
 bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
 =============  ===============================================  ==============================
 
@@ -64,6 +65,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "demo": ("hsi_torch.experiments.cli_entry", "run_demo"),
     "config": ("hsi_torch.resources", "run_config"),
     "captures": ("hsi_torch.io.capture_import", "run_captures"),
+    "view": ("hsi_torch.viewer.cli_entry", "run_view"),
 }
 BENCH_TARGETS = ("solver", "pipeline", "simulate")
 #: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
@@ -132,6 +134,11 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch config list",
         "hsi-torch config show simulate",
         "hsi-torch config copy simulate my_sim.yaml    # then: --config my_sim.yaml",
+    ],
+    "view": [
+        "hsi-torch view cubes/scene.tif                # band stack (nm) + sRGB, click: spectra",
+        "hsi-torch view demo_output/colorchecker.npz --point 40,52 "
+        "--band 550 --screenshot shot.png",
     ],
 }
 
@@ -343,6 +350,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("name", nargs="?", metavar="NAME", help="e.g. simulate, calibrate, synthetic")
     p.add_argument("dest", nargs="?", type=Path, metavar="DEST", help="file or folder (copy)")
     p.add_argument("--force", action="store_true", help="copy: overwrite an existing DEST")
+    _add_global(p, argparse.SUPPRESS)
+
+    p = command("view", "open cube files in napari: bands in nm, sRGB, spectra on a click")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="cube files (.tif .hdr .npz .nc .zarr) or a run's cubes.zarr")
+    p.add_argument("--point", action="append", metavar="ROW,COL",
+                   help="plot the spectrum at this pixel at once (repeatable)")
+    p.add_argument("--band", type=float, metavar="NM", help="show the band nearest NM nm")
+    p.add_argument("--screenshot", type=Path, metavar="PNG",
+                   help="write the window (viewer + spectra) to PNG and exit")
     _add_global(p, argparse.SUPPRESS)
 
     p = sub.add_parser(

@@ -3,12 +3,13 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, testing, cli_common         → foundation only
+                 resources, refdata, colour, testing, metrics, cli_common → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
     recon        (bundle + capture → cube)                    → foundation, optics
     experiments  (evaluations, the demo)                      → everything above
+    viewer       (napari plugin: reader, spectrum widget)     → foundation
     commands     (cli.py, __main__, */cli_entry.py)           → anything, but nothing imports cli
 
 So reconstruction needs neither calibration nor the simulator (nor OpenCV), calibration does not
@@ -35,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
-              "profiling", "resources", "refdata", "colour", "testing",
+              "profiling", "resources", "refdata", "colour", "testing", "metrics",
               "cli_common")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
@@ -44,6 +45,7 @@ ALLOWED = {
     "calibrate": {"foundation", "optics", "calibrate"},
     "recon": {"foundation", "optics", "recon"},
     "experiments": {"foundation", "optics", "simulate", "calibrate", "recon", "experiments"},
+    "viewer": {"foundation", "viewer"},
 }
 
 

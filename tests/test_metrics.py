@@ -33,3 +33,125 @@ def test_spectral_angle(device, dtype):
 def test_shape_mismatch():
     with pytest.raises(ValueError, match="shape"):
         psnr(torch.zeros(3), torch.zeros(4))
+
+
+# --------------------------------------------------------------- the field's metrics (public) --
+
+import numpy as np  # noqa: E402
+
+from hsi_torch import metrics as hm  # noqa: E402
+
+
+def _pair(device, dtype, shape=(6, 32, 28), seed=0):
+    g = torch.Generator().manual_seed(seed)
+    t = torch.rand(shape, generator=g, dtype=torch.float64) * 0.8 + 0.1
+    e = (t + 0.05 * torch.randn(shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    return e.to(device=device, dtype=dtype), t.to(device=device, dtype=dtype)
+
+
+def test_old_import_path_is_the_public_one():
+    from hsi_torch.experiments import metrics as old
+
+    assert old.psnr is hm.psnr and old.spectral_angle_deg is hm.spectral_angle_deg
+    assert old.rmse is hm.rmse and old.cube_metrics is hm.cube_metrics
+
+
+def test_ssim_matches_kornia(device, dtype):
+    kornia = pytest.importorskip("kornia")
+    e, t = _pair(device, dtype)
+    ours = hm.ssim(e, t, per_band=True)
+    theirs = kornia.metrics.ssim(e[:, None], t[:, None], 11, max_val=1.0, padding="valid")
+    assert_close(ours, theirs.mean((1, 2, 3)), rtol=1e-4, atol=1e-4 if dtype == torch.float32
+                 else 1e-10)  # fmt: skip
+
+
+def test_ssim_matches_skimage():
+    skm = pytest.importorskip("skimage.metrics")
+    e, t = _pair("cpu", torch.float64, seed=1)
+    ref = np.mean([skm.structural_similarity(
+        t[b].numpy(), e[b].numpy(), data_range=1.0, gaussian_weights=True, sigma=1.5,
+        use_sample_covariance=False) for b in range(e.shape[0])])  # fmt: skip
+    assert float(hm.ssim(e, t)) == pytest.approx(ref, abs=1e-8)
+    assert float(hm.ssim(t, t)) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_metrics_match_torchmetrics():
+    tmf = pytest.importorskip("torchmetrics.functional.image")
+    e, t = _pair("cpu", torch.float64, seed=2)
+    ergas_ref = tmf.error_relative_global_dimensionless_synthesis(e[None], t[None], ratio=1)
+    assert float(hm.ergas(e, t)) == pytest.approx(float(ergas_ref), rel=1e-10)
+    assert float(hm.ergas(e, t, ratio=4)) == pytest.approx(
+        float(tmf.error_relative_global_dimensionless_synthesis(e[None], t[None], ratio=4)),
+        rel=1e-10)  # fmt: skip
+    sam_ref = tmf.spectral_angle_mapper(e[None], t[None])  # radians, mean over pixels
+    assert float(hm.sam(e, t)) == pytest.approx(math.degrees(float(sam_ref)), rel=1e-8)
+    # torchmetrics' SSIM handles the border slightly differently (skimage and kornia agree with
+    # ours to 1e-8 above): same value to 1e-3
+    ssim_ref = tmf.structural_similarity_index_measure(e[:, None], t[:, None], data_range=1.0)
+    assert float(hm.ssim(e, t)) == pytest.approx(float(ssim_ref), abs=1e-3)
+
+
+def test_psnr_both_conventions(device, dtype):
+    e, t = _pair(device, dtype, seed=3)
+    # whole cube, peak 1
+    whole = 10 * math.log10(1 / float(((e - t) ** 2).mean()))
+    assert float(hm.psnr(e, t)) == pytest.approx(whole, abs=1e-3)
+    # per band on 0-255, mean of the bands' dB: an independent per-band loop (skimage when there)
+    e8, t8 = e.double().cpu().numpy() * 255, t.double().cpu().numpy() * 255
+    per = [10 * math.log10(255**2 / np.mean((e8[b] - t8[b]) ** 2)) for b in range(len(e8))]
+    assert float(hm.psnr_bands(e, t)) == pytest.approx(np.mean(per), abs=1e-3)
+    try:
+        from skimage.metrics import peak_signal_noise_ratio
+    except ImportError:
+        return
+    sk = np.mean([peak_signal_noise_ratio(t8[b], e8[b], data_range=255) for b in range(len(e8))])
+    assert float(hm.psnr_bands(e, t)) == pytest.approx(sk, abs=1e-3)
+    # the two conventions differ when the error is uneven over the bands
+    e2 = t.clone()
+    e2[0] += 0.1
+    e2[1:] += 0.001
+    assert float(hm.psnr_bands(e2, t)) > float(hm.psnr(e2, t)) + 10
+
+
+def test_rmse_mrae_known_values(device, dtype):
+    t = torch.full((3, 12, 12), 0.5, device=device, dtype=dtype)
+    e = t * 1.1  # relative error 10 %, absolute 0.05
+    assert float(hm.mrae(e, t)) == pytest.approx(0.1, rel=1e-5)
+    assert float(hm.rmse(e, t)) == pytest.approx(0.05, rel=1e-5)
+    assert float(hm.ergas(e, t)) == pytest.approx(10.0, rel=1e-5)  # 100·sqrt(mean(0.05/0.5)²)
+    t2 = t.clone()
+    t2[:, 0, 0] = 0  # black truth: left out of the MRAE, not infinite
+    e2 = t2 * 1.1
+    e2[:, 0, 0] = 0.3
+    assert float(hm.mrae(e2, t2)) == pytest.approx(0.1, rel=1e-5)
+
+
+def test_mask_and_nan_outside_it(device, dtype):
+    e, t = _pair(device, dtype, seed=4)
+    mask = torch.zeros(e.shape[1:], dtype=torch.bool, device=device)
+    mask[4:26, 3:25] = True
+    e_nan = e.clone()
+    e_nan[:, ~mask] = float("nan")
+    got = hm.cube_metrics(e_nan, t, mask)
+    sub_e, sub_t = e[:, 4:26, 3:25], t[:, 4:26, 3:25]
+    want = hm.cube_metrics(sub_e, sub_t)
+    for k in hm.METRIC_NAMES:
+        assert got[k] == pytest.approx(want[k], rel=1e-4, abs=1e-6), k
+    assert set(got) == set(hm.METRIC_NAMES)
+    # pixels outside the mask change nothing, a pixel inside does
+    e_bad = e.clone()
+    e_bad[:, 0, 0] = 5.0
+    assert hm.cube_metrics(e_bad, t, mask)["psnr_db"] == pytest.approx(got["psnr_db"], rel=1e-5)
+    e_bad[:, 10, 10] = 5.0
+    assert hm.cube_metrics(e_bad, t, mask)["psnr_db"] < got["psnr_db"] - 1
+
+
+def test_metric_errors_name_the_problem():
+    e = torch.zeros(4, 8, 8)
+    with pytest.raises(ValueError, match="smaller than the 11x11 window"):
+        hm.ssim(e, e)
+    with pytest.raises(ValueError, match="mask shape"):
+        hm.sam(e, e, torch.ones(3, 3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="no pixel"):
+        hm.sam(e, e, torch.zeros(8, 8, dtype=torch.bool))
+    assert math.isnan(hm.cube_metrics(e + 0.5, e + 0.5)["ssim"])  # no window: NaN, not an error

@@ -47,7 +47,13 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
 from hsi_torch.config import help_meta, load_config
 from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
-from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
+from hsi_torch.experiments.metrics import (
+    colorchecker_scores,
+    cube_scores,
+    erode_px,
+    format_metrics,
+    interior_mask,
+)
 from hsi_torch.io import save_cube, save_cube_formats
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_set import read_truth
@@ -256,9 +262,10 @@ def score_scene(
 
     ColorChecker: the per-patch mean spectrum over the patch interiors (≥ ``erode_px`` inside,
     see :func:`erode_px`)
-    and over whole patches, and per pixel over the interiors; other scenes: per pixel over the
-    valid pixels on the scene, and on its brighter half (:func:`cube_scores`). Writes the spectra
-    plot ``<name>_spectra.png``.
+    and over whole patches, per pixel over the interiors and over every valid pixel
+    (``per_pixel_valid``); other scenes: per pixel over the valid pixels on the scene, and on its
+    brighter half (:func:`cube_scores`, which adds the field's metrics under ``metrics``). Writes
+    the spectra plot ``<name>_spectra.png``.
 
     Returns:
         ``(entry, both, true_cube)``: the scores, the pixels valid in both cubes, the truth.
@@ -278,6 +285,8 @@ def score_scene(
         inner &= np.logical_or.reduce([interior_mask(pidx == k, erode_px)
                                        for k in range(len(spectra))])  # fmt: skip
         per_pixel = {k: cube_scores(cubes[k], true_cube, inner) for k in cubes}
+        # the field's metrics need whole images (SSIM windows): every valid pixel of the frame
+        per_pixel_valid = {k: cube_scores(cubes[k], true_cube, both) for k in cubes}
         entry.update(
             metric="per-patch mean spectrum over patch interiors "
                    f"(>= {erode_px:.1f} px inside), mean over patches",
@@ -285,6 +294,7 @@ def score_scene(
             whole_patch={k: {"mean_psnr_db": v["mean_psnr_db"],
                              "mean_sam_deg": v["mean_sam_deg"]} for k, v in whole.items()},
             per_pixel_interiors=per_pixel,
+            per_pixel_valid=per_pixel_valid,
         )  # fmt: skip
         _plot_colorchecker(out / f"{name}_spectra.png", wl, spectra,
                            np.asarray(sc["calibrated"]["estimated_spectra"]),
@@ -309,6 +319,18 @@ def score_scene(
         _plot_pixels(out / f"{name}_spectra.png", wl, true_cube, cubes["calibrated"],
                      cubes["oracle"], on_scene & (true_cube.mean(0) > 0.05), name)  # fmt: skip
     return entry, both, true_cube
+
+
+def metrics_lines(entry: dict[str, Any]) -> list[str]:
+    """The field's metrics of one scored scene (:func:`score_scene`'s entry), one line per
+    bundle: per pixel over every valid pixel (ColorChecker) or the valid pixels on the scene."""
+    src = entry.get("per_pixel_valid", entry)
+    where = "every valid pixel" if "per_pixel_valid" in entry else "valid pixels on the scene"
+    out = [f"    the field's metrics, per pixel over {where}:"]
+    for k in ("calibrated", "oracle"):
+        if "metrics" in src.get(k, {}):
+            out.append(f"      {k}: {format_metrics(src[k]['metrics'])}")
+    return out
 
 
 # =============================================================================================
@@ -439,6 +461,7 @@ def demo(
                 f"{c['mean_sam_deg']:.2f} deg, oracle {o['psnr_db']:.1f} dB / "
                 f"{o['mean_sam_deg']:.2f} deg"
             )
+        lines.extend(metrics_lines(e))
     lines.append(
         "  time " + ", ".join(f"{k} {v:.1f} s" for k, v in tm.items()) + f"; outputs in {out}"
     )

@@ -34,7 +34,7 @@ from hsi_torch.experiments.calibration_scores import (
     score_against_truth,
     targets_met,
 )
-from hsi_torch.experiments.demo import _previews, _scene_specs, score_scene
+from hsi_torch.experiments.demo import _previews, _scene_specs, metrics_lines, score_scene
 from hsi_torch.experiments.metrics import erode_px
 from hsi_torch.io import load_cube
 from hsi_torch.io.atomic import atomic_write_json
@@ -171,6 +171,7 @@ def report_lines(s: dict[str, Any], out: Path) -> str:
                 f"{bc['psnr_db']:.1f} dB ({bc['median_sam_deg']:.1f} deg), oracle "
                 f"{bo['psnr_db']:.1f} dB ({bo['median_sam_deg']:.1f} deg)"
             )
+        lines.extend(metrics_lines(e))
     st = s["stages"]
     lines.append("  stages: " + ", ".join(
         f"{k} {v['wall_s']:.0f} s" + (f" / {v['peak_rss_gib']:.2f} GiB" if "peak_rss_gib" in v

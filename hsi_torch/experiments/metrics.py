@@ -1,11 +1,10 @@
-"""Spectral reconstruction metrics, shared by the experiments and the demo.
+"""Scene scores of the experiments and the demo, built on the public metrics.
 
-Convention:
-    Spectra lie along the last axis ``(..., M)``; metrics reduce that axis (and, for
-    :func:`psnr`, every axis unless ``dim`` is given). Reflectance peak is 1 by default.
-    The scene scores (:func:`colorchecker_scores`, :func:`cube_scores`) take numpy cubes
-    ``(M, h, w)`` and masks ``(h, w)`` and compute in float64 with the same
-    :func:`spectral_angle_deg` and :func:`psnr_from_mse`.
+The metrics themselves (PSNR in both conventions, SSIM, SAM, ERGAS, RMSE, MRAE) live in
+:mod:`hsi_torch.metrics`, with their conventions; ``mse``, ``rmse``, ``psnr``,
+``spectral_angle_deg`` and ``psnr_from_mse`` are re-exported here for the callers that import them
+from this module. The scene scores (:func:`colorchecker_scores`, :func:`cube_scores`) take numpy
+cubes ``(M, h, w)`` and masks ``(h, w)`` and compute in float64.
 """
 
 from __future__ import annotations
@@ -17,6 +16,16 @@ import cv2
 import numpy as np
 import torch
 
+from hsi_torch.metrics import (
+    METRIC_NAMES,
+    cube_metrics,
+    mse,
+    psnr,
+    psnr_from_mse,
+    rmse,
+    spectral_angle_deg,
+)
+
 __all__ = [
     "mse",
     "psnr",
@@ -27,68 +36,10 @@ __all__ = [
     "interior_mask",
     "colorchecker_scores",
     "cube_scores",
+    "METRIC_NAMES",
+    "cube_metrics",
+    "format_metrics",
 ]
-
-
-def _check(estimate: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    estimate = torch.as_tensor(estimate)
-    truth = torch.as_tensor(truth, device=estimate.device)
-    if estimate.shape != truth.shape:
-        raise ValueError(
-            f"estimate shape {tuple(estimate.shape)} != truth shape {tuple(truth.shape)}"
-        )
-    dtype = torch.promote_types(estimate.dtype, truth.dtype)
-    if not dtype.is_floating_point:
-        dtype = torch.get_default_dtype()
-    return estimate.to(dtype), truth.to(dtype)
-
-
-def mse(
-    estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[int, ...] | None = None
-) -> torch.Tensor:
-    """Mean squared error over ``dim`` (all elements when None)."""
-    e, t = _check(estimate, truth)
-    d = (e - t).square()
-    return d.mean() if dim is None else d.mean(dim=dim)
-
-
-def rmse(
-    estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[int, ...] | None = None
-) -> torch.Tensor:
-    """Root mean squared error over ``dim``."""
-    return mse(estimate, truth, dim).sqrt()
-
-
-def psnr(
-    estimate: torch.Tensor,
-    truth: torch.Tensor,
-    *,
-    peak: float = 1.0,
-    dim: int | tuple[int, ...] | None = None,
-) -> torch.Tensor:
-    """PSNR in dB, ``10·log10(peak² / MSE)``; with ``peak = 1`` this is ``10·log10(1/MSE)``.
-
-    Args:
-        estimate, truth: same shape.
-        peak: signal peak (1 for reflectance).
-        dim: axes the MSE averages over (None = all), e.g. ``-1`` for a PSNR per spectrum.
-    """
-    m = mse(estimate, truth, dim)
-    return 10.0 * torch.log10(torch.as_tensor(peak, dtype=m.dtype, device=m.device) ** 2 / m)
-
-
-def spectral_angle_deg(
-    estimate: torch.Tensor, truth: torch.Tensor, eps: float = 1e-12
-) -> torch.Tensor:
-    """Spectral angle (SAM) in degrees between spectra along the last axis, shape ``(...)``."""
-    e, t = _check(estimate, truth)
-    cos = (e * t).sum(-1) / (e.norm(dim=-1) * t.norm(dim=-1)).clamp_min(eps)
-    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
-
-
-def psnr_from_mse(value: float) -> float:
-    """PSNR (dB, peak 1) of a scalar MSE."""
-    return 10.0 * math.log10(1.0 / value) if value > 0 else math.inf
 
 
 def erode_px(truth: dict[str, np.ndarray], erode_mm: float) -> float:
@@ -107,6 +58,13 @@ def interior_mask(mask: np.ndarray, erode_px: float) -> np.ndarray:
     padded = np.pad(mask.astype(np.uint8), 1)  # the frame border counts as outside
     d = cv2.distanceTransform(padded, cv2.DIST_L2, 5)[1:-1, 1:-1]
     return d > erode_px
+
+
+def format_metrics(m: dict[str, float]) -> str:
+    """One line of :func:`hsi_torch.metrics.cube_metrics`' values, e.g. for a console summary."""
+    return (f"PSNR {m['psnr_db']:.2f} dB (per band 0-255: {m['psnr_bands_db']:.2f} dB), "
+            f"SSIM {m['ssim']:.4f}, SAM {m['sam_deg']:.2f} deg, ERGAS {m['ergas']:.2f}, "
+            f"RMSE {m['rmse']:.4f}, MRAE {m['mrae']:.4f}")  # fmt: skip
 
 
 def _sam_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -167,7 +125,12 @@ def cube_scores(
     """Per-pixel scores over ``mask``: PSNR of the pooled MSE, mean and median SAM (SAM only
     where the true mean reflectance is ≥ ``sam_min_reflectance``), and the same on the brighter
     half (``bright_half``: pixels whose true mean reflectance is at least the median over
-    ``mask``; in shadows and dark regions a spectral angle measures noise, not colour)."""
+    ``mask``; in shadows and dark regions a spectral angle measures noise, not colour).
+
+    ``metrics`` (on the whole mask and on the brighter half) holds the field's metrics of
+    :func:`hsi_torch.metrics.cube_metrics` over the same pixels: PSNR in both conventions (whole
+    cube peak 1; per band on 0–255, mean over bands), SSIM, mean SAM (all pixels), ERGAS, RMSE,
+    MRAE."""
 
     def scores(m: np.ndarray) -> dict[str, Any]:
         e = cube[:, m].T
@@ -185,6 +148,9 @@ def cube_scores(
             "mean_sam_deg": float(np.mean(sam)),
             "median_sam_deg": float(np.median(sam)),
             "sam_pixels": int(bright.sum()),
+            "metrics": cube_metrics(torch.from_numpy(np.asarray(cube, np.float64)),
+                                    torch.from_numpy(np.asarray(truth, np.float64)),
+                                    torch.from_numpy(np.asarray(m, bool))),
         }
 
     out = scores(mask)

@@ -138,6 +138,9 @@ def _row(scene: str, method: str, sc: dict[str, Any], info: dict[str, Any]) -> d
         "patches_pp_psnr_db": "", "patch_means_psnr_db": "", "interior_means_psnr_db": "",
         "solve_seconds": info.get("solve_seconds", float("nan")),
     }  # fmt: skip
+    m = f.get("metrics", {})  # the field's metrics over the footprint (hsi_torch.metrics)
+    for k in ("psnr_bands_db", "ssim", "sam_deg", "ergas", "rmse", "mrae"):
+        row[k] = m.get(k, float("nan"))
     if "whole_patches_per_pixel" in sc:
         row["patches_pp_psnr_db"] = sc["whole_patches_per_pixel"]["psnr_db"]
         row["patch_means_psnr_db"] = sc["whole_patch_means"]["mean_psnr_db"]
@@ -150,7 +153,9 @@ _COLUMNS = [
     ("psnr_db", "PSNR dB"), ("median_sam_deg", "med SAM°"),
     ("bright_psnr_db", "bright PSNR"), ("bright_median_sam_deg", "bright med SAM°"),
     ("patches_pp_psnr_db", "patches px PSNR"), ("patch_means_psnr_db", "patch means PSNR"),
-    ("interior_means_psnr_db", "interiors PSNR"), ("solve_seconds", "solve s"),
+    ("interior_means_psnr_db", "interiors PSNR"),
+    ("psnr_bands_db", "PSNR/band 0-255"), ("ssim", "SSIM"), ("sam_deg", "mean SAM°"),
+    ("ergas", "ERGAS"), ("rmse", "RMSE"), ("mrae", "MRAE"), ("solve_seconds", "solve s"),
 ]
 
 

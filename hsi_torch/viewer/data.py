@@ -1,0 +1,223 @@
+"""What the viewer shows, without napari: cubes read into layer data, spectra at points.
+
+:func:`read_layers` turns any cube file this package writes (OME-TIFF ``.tif``, ENVI
+``.hdr/.img``, ``.npz``, NetCDF ``.nc``, a Zarr cube ``.zarr`` and the run's Zarr store
+``cubes.zarr`` with its frame axis) into napari layer-data tuples ``(data, kwargs, "image")``:
+
+* the **band stack** ``(M, h, w)`` (``(F, M, h, w)`` for the run store), float32, NaN where not
+  valid; its band axis is scaled to nanometres when the grid is uniform (``scale`` = step,
+  ``translate`` = first band: the viewer's band coordinate *is* the wavelength) and the layer's
+  ``metadata`` holds ``wavelengths_nm``, ``valid``, ``std`` (when the ``_std`` companion or the
+  NPZ key ``std`` exists) and the file;
+* the **sRGB composite** ``(h, w, 3)`` (``(F, h, w, 3)``; CIE 1931, D65, 99.5th percentile of
+  luminance as white, :func:`~hsi_torch.colour.cube_to_srgb`), black where not valid.
+
+:func:`spectrum_at` returns the spectrum (and σ) under a point, refusing points outside the valid
+mask. The napari side (reader, dock widget) is :mod:`hsi_torch.viewer.plugin`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hsi_torch.colour import cube_to_srgb
+from hsi_torch.errors import FileFormatError
+from hsi_torch.io.cube import load_cube
+
+__all__ = [
+    "CUBE_SUFFIXES",
+    "is_cube_path",
+    "std_companion",
+    "read_layers",
+    "Spectrum",
+    "spectrum_at",
+    "band_axis",
+]
+
+#: File suffixes the reader accepts (a ``.zarr`` folder is a cube or the run store).
+CUBE_SUFFIXES = (".tif", ".tiff", ".hdr", ".img", ".npz", ".nc", ".zarr")
+
+LayerData = tuple[Any, dict[str, Any], str]
+
+
+def is_cube_path(path: str | os.PathLike) -> bool:
+    """True when the path has a cube suffix and is not itself a ``_std`` companion."""
+    p = Path(path)
+    return p.suffix.lower() in CUBE_SUFFIXES and not _stem(p).endswith("_std")
+
+
+def _stem(p: Path) -> str:
+    name = p.name
+    for s in (".ome.tif", ".ome.tiff"):
+        if name.lower().endswith(s):
+            return name[: -len(s)]
+    return p.stem
+
+
+def std_companion(path: str | os.PathLike) -> Path | None:
+    """``<stem>_std.<suffix>`` beside a cube file (the reconstruction's per-band σ), if any."""
+    p = Path(path)
+    cand = p.with_name(_stem(p) + "_std" + p.suffix)
+    if p.suffix.lower() == ".img":
+        cand = cand.with_suffix(".hdr")
+    if cand.suffix.lower() == ".hdr":
+        return cand if cand.exists() and cand.with_suffix(".img").exists() else None
+    return cand if cand.exists() else None
+
+
+def _is_run_store(p: Path) -> bool:
+    attrs = p / ".zattrs"
+    if not (p.is_dir() and attrs.is_file()):
+        return False
+    try:
+        return "hsi_torch_dataset" in json.loads(attrs.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+
+
+def band_axis(wavelengths_nm: np.ndarray) -> tuple[float, float] | None:
+    """``(translate, scale)`` mapping band index to nm, or None when the grid is not uniform."""
+    wl = np.asarray(wavelengths_nm, np.float64)
+    if wl.size < 2:
+        return (float(wl[0]) if wl.size else 0.0), 1.0
+    step = np.diff(wl)
+    if np.allclose(step, step[0], rtol=1e-6, atol=1e-9) and step[0] > 0:
+        return float(wl[0]), float(step[0])
+    return None
+
+
+def _srgb(cube: np.ndarray, wl: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(..., M, h, w)`` → ``(..., h, w, 3)`` float32 sRGB in [0, 1], black where not valid."""
+    rgb = cube_to_srgb(torch.from_numpy(np.ascontiguousarray(cube, np.float32)),
+                       torch.from_numpy(np.array(wl, np.float64)), normalise="percentile",
+                       valid=torch.from_numpy(valid))  # fmt: skip
+    return np.moveaxis(rgb.numpy(), -3, -1).astype(np.float32)
+
+
+def _contrast(cube: np.ndarray) -> list[float]:
+    finite = cube[np.isfinite(cube)]
+    if finite.size == 0:
+        return [0.0, 1.0]
+    lo, hi = np.percentile(finite, [0.5, 99.5])
+    return [float(lo), float(hi if hi > lo else lo + 1e-6)]
+
+
+def _layers(
+    name: str,
+    cube: np.ndarray,
+    wl: np.ndarray,
+    valid: np.ndarray,
+    std: np.ndarray | None,
+    path: Path,
+    frames: list[str] | None = None,
+) -> list[LayerData]:
+    ax = band_axis(wl)
+    lead = cube.ndim - 3  # 1 with a frame axis
+    meta = {"hsi_torch": True, "wavelengths_nm": wl, "valid": valid, "std": std,
+            "path": str(path), "frames": frames}  # fmt: skip
+    kw: dict[str, Any] = {"name": f"{name} (bands)", "metadata": meta,
+                          "contrast_limits": _contrast(cube), "colormap": "gray"}  # fmt: skip
+    if ax is not None:
+        kw["scale"] = [1.0] * lead + [ax[1], 1.0, 1.0]
+        kw["translate"] = [0.0] * lead + [ax[0], 0.0, 0.0]
+        kw["units"] = ["pixel"] * lead + ["nm", "pixel", "pixel"]
+    kw["axis_labels"] = (["frame"] if lead else []) + ["wavelength", "y", "x"]
+    rgb_kw: dict[str, Any] = {"name": f"{name} (sRGB)", "rgb": True,
+                              "metadata": {"hsi_torch_srgb": True, "path": str(path)}}  # fmt: skip
+    rgb_kw["axis_labels"] = (["frame"] if lead else []) + ["y", "x"]
+    return [(cube, kw, "image"), (_srgb(cube, wl, valid), rgb_kw, "image")]
+
+
+def read_layers(path: str | os.PathLike) -> list[LayerData]:
+    """Layer-data tuples (band stack, sRGB composite) of a cube file or run store (module
+    docstring).
+
+    Raises:
+        MissingFileError, FileFormatError: as :func:`~hsi_torch.io.cube.load_cube`.
+    """
+    p = Path(path)
+    if p.suffix.lower() == ".zarr" and _is_run_store(p):
+        return _read_run_store(p)
+    c = load_cube(p)
+    cube = c.cube.numpy()
+    wl = c.wavelengths.numpy()
+    valid = c.valid.numpy()
+    std = None
+    if p.suffix.lower() == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            if "std" in z:
+                std = np.asarray(z["std"], np.float32)
+    else:
+        comp = std_companion(p)
+        if comp is not None:
+            std = load_cube(comp).cube.numpy()
+    if std is not None and std.shape != cube.shape:
+        raise FileFormatError(f"{p}: standard deviation {std.shape} does not match the cube "
+                              f"{cube.shape}")  # fmt: skip
+    cube = np.where(valid[None], cube, np.nan).astype(np.float32)
+    return _layers(_stem(p), cube, wl, valid, std, p)
+
+
+def _read_run_store(p: Path) -> list[LayerData]:
+    from hsi_torch.io.dataset import open_dataset  # lazy: needs xarray + zarr (optional)
+
+    ds = open_dataset(p)
+    done = np.asarray(ds["done"].values, bool)
+    if not done.any():
+        raise FileFormatError(f"{p}: the run store has no complete frame yet")
+    idx = np.flatnonzero(done)
+    cube = np.asarray(ds["cube"].values[idx], np.float32)  # (F, M, h, w)
+    valid = np.asarray(ds["valid"].values[idx], bool)
+    wl = np.asarray(ds["wavelength"].values, np.float64)
+    frames = [str(s) for s in np.asarray(ds["source"].values)[idx]]
+    cube = np.where(valid[:, None], cube, np.nan).astype(np.float32)
+    return _layers(_stem(p), cube, wl, valid, None, p, frames)
+
+
+@dataclass
+class Spectrum:
+    """The spectrum under one pixel.
+
+    Attributes:
+        row, col: the pixel (integers); frame: the frame index (run store) or None.
+        wavelengths_nm: ``(M,)``; values: ``(M,)``; std: ``(M,)`` or None.
+    """
+
+    row: int
+    col: int
+    wavelengths_nm: np.ndarray
+    values: np.ndarray
+    std: np.ndarray | None = None
+    frame: int | None = None
+
+
+def spectrum_at(
+    data: np.ndarray, metadata: dict[str, Any], row: float, col: float, frame: int | None = None
+) -> Spectrum | None:
+    """The spectrum of a band-stack layer (``read_layers``' first tuple) at pixel ``(row, col)``
+    (rounded to the nearest pixel); None outside the image or the valid mask."""
+    r, c = int(round(float(row))), int(round(float(col)))
+    valid = np.asarray(metadata["valid"])
+    if data.ndim == 4:
+        f = int(frame or 0)
+        if not 0 <= f < data.shape[0]:
+            return None
+        stack, v = data[f], valid[f]
+    else:
+        f, stack, v = None, data, valid
+    h, w = v.shape
+    if not (0 <= r < h and 0 <= c < w) or not bool(v[r, c]):
+        return None
+    std = metadata.get("std")
+    sd = None
+    if std is not None:
+        sd = np.asarray(std[f] if data.ndim == 4 else std)[:, r, c].astype(np.float64)
+    return Spectrum(row=r, col=c, wavelengths_nm=np.asarray(metadata["wavelengths_nm"]),
+                    values=np.asarray(stack[:, r, c], np.float64), std=sd, frame=f)  # fmt: skip
