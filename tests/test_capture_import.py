@@ -96,7 +96,7 @@ def _lab_folder(sim: Path, lab: Path) -> Path:
             rows.append([f, "grid", "", "", str(BLACK), "RGGB", ""])
         elif e["type"] == "scene":
             half = np.rint((m - BLACK) / 2 + BLACK).clip(0, WHITE)  # half the white's exposure
-            f = "Shots/IMG_0042.dng"
+            f = f"Shots/IMG_{42 + sum(r[1] == 'scene' for r in rows):04d}.dng"  # one per scene
             write_dng(lab / f, half, black_level=BLACK, white_level=WHITE,
                       exposure_s=T_WHITE / 2, **cam)  # fmt: skip
             rows.append([f, "scene", "", "", "", "", e["name"]])
