@@ -177,15 +177,15 @@ def run_layout(args: argparse.Namespace) -> int:
     )
     from hsi_torch.calibrate.registration import GridDetectorConfig
     from hsi_torch.cli_common import config_source, load_args_config
-    from hsi_torch.config import load_config, to_dict
+    from hsi_torch.config import load_config
     from hsi_torch.console import info
     from hsi_torch.errors import InputError
     from hsi_torch.io import read_any
     from hsi_torch.io.atomic import atomic_write_json
     from hsi_torch.io.capture_set import read_capture_set
     from hsi_torch.io.paths import check_out_dir
-    from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
     from hsi_torch.resources import shipped_config
+    from hsi_torch.simulate.capture_sets import design_optics  # lazy: the design's optics
     from hsi_torch.simulate.config import SimulateConfig
 
     out_json, overlay = layout_paths(args.out)
@@ -206,14 +206,7 @@ def run_layout(args: argparse.Namespace) -> int:
                          "DIR with white-reference captures")  # fmt: skip
     # the design: geometry and camera of a simulate-style config
     design = load_args_config(args, SimulateConfig, default="simulate")
-    g = to_dict(design.geometry)
-    if g["vertices_in"] is not None:
-        g["vertices_in"] = tuple(tuple(p) for p in g["vertices_in"])
-    geometry = KaleidoscopeGeometry.from_dict(g)
-    cam_d = to_dict(design.camera)
-    scale = cam_d.pop("scale")
-    camera = CameraModel.from_dict(cam_d)
-    camera = camera.scaled(scale) if scale != 1.0 else camera
+    geometry, camera = design_optics(design)
     ccfg = load_config(args.calib_config or shipped_config("calibrate"), CalibrateConfig)
     det = GridDetectorConfig.from_dict(ccfg.detector_dict())
 

@@ -63,8 +63,9 @@ _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 # =============================================================================================
 
 
-def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRenderer:
-    """A :class:`CaptureRenderer` for a :class:`SimulateConfig` (``device`` overrides it)."""
+def design_optics(cfg: SimulateConfig) -> tuple[KaleidoscopeGeometry, CameraModel]:
+    """The kaleidoscope geometry and the camera (``scale`` applied) of a simulate config: the
+    device's design, as the renderer and ``hsi-torch layout`` trace it."""
     g = to_dict(cfg.geometry)
     if g["vertices_in"] is not None:
         g["vertices_in"] = tuple(tuple(p) for p in g["vertices_in"])
@@ -72,8 +73,12 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
     cam_d = to_dict(cfg.camera)
     scale = cam_d.pop("scale")
     camera = CameraModel.from_dict(cam_d)
-    if scale != 1.0:
-        camera = camera.scaled(scale)
+    return geometry, (camera.scaled(scale) if scale != 1.0 else camera)
+
+
+def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRenderer:
+    """A :class:`CaptureRenderer` for a :class:`SimulateConfig` (``device`` overrides it)."""
+    geometry, camera = design_optics(cfg)
     brf_d = to_dict(cfg.brf)
     eff = brf_d.pop("polarizer_efficiency")
     brf = BRFConfig.from_dict(brf_d)
