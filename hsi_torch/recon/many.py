@@ -86,7 +86,7 @@ from hsi_torch.io.dataset import (
 )
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.config import ReconstructConfig
-from hsi_torch.recon.distributed import DaskExecutor, connect, in_dask_worker
+from hsi_torch.recon.distributed import DaskExecutor, connect, in_dask_worker, make_security
 from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.recon.run import (
     ReconstructRun,
@@ -738,8 +738,6 @@ def run_many_cli(run: ReconstructRun, args: argparse.Namespace, output_format: s
                              "--scheduler-file")  # fmt: skip
         return run_many(run, InlineExecutor(), output_format=output_format, resume=resume,
                         progress=progress)  # fmt: skip
-    from hsi_torch.recon.distributed import make_security
-
     security = make_security(getattr(args, "tls_ca_file", None), getattr(args, "tls_cert", None),
                              getattr(args, "tls_key", None))  # fmt: skip
     with connect(scheduler, scheduler_file, threads_per_worker=threads,
