@@ -46,6 +46,7 @@ from hsi_torch.io.raw import (
     validate_cfa_pattern,
 )
 from hsi_torch.io.raw import demosaic as _demosaic  # read_any's argument shadows the name
+from hsi_torch.io.safety import require_regular_file
 
 __all__ = [
     "CAPTURE_FORMAT_VERSION",
@@ -170,8 +171,6 @@ def _check_exists(p: Path) -> None:
     """A capture must be a regular file (a symlink to one is fine), checked before it is
     opened: a folder, a FIFO (which would block the reader forever), a device or a socket is
     refused by name."""
-    from hsi_torch.io.safety import require_regular_file
-
     if not p.exists() and not p.is_symlink():
         raise MissingFileError(f"capture file not found: {p}")
     if p.is_dir():

@@ -659,7 +659,10 @@ def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:
 def _load_xarray(p: Path, kind: str):
     xr = _import_xarray(f"reading {p}")
     if kind == "zarr":  # before xarray decodes anything: no codec that runs code (pickle)
-        from hsi_torch.io.dataset import SAFE_CODECS, check_zarr_codecs
+        from hsi_torch.io.dataset import (  # lazy: dataset imports this module
+            SAFE_CODECS,
+            check_zarr_codecs,
+        )
 
         check_zarr_codecs(p, SAFE_CODECS)
     opener = xr.open_dataset if kind == "netcdf" else xr.open_zarr

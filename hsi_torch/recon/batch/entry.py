@@ -28,7 +28,7 @@ from hsi_torch.recon.batch.run import ReconstructRun, check_run, output_paths
 from hsi_torch.recon.batch.targets import FilesTarget, OutputTarget, StoreTarget, input_stamp
 from hsi_torch.recon.batch.tasks import FramePlan, forget_prepared, reconstruct_task
 from hsi_torch.recon.config import ReconstructConfig
-from hsi_torch.recon.distributed import DaskExecutor, connect
+from hsi_torch.recon.distributed import DaskExecutor, connect, make_security
 from hsi_torch.resources import shipped_config
 
 __all__ = ["run_reconstruction", "reconstruct_many", "execute", "OUTPUT_FORMATS", "load_run_config"]
@@ -120,8 +120,6 @@ def run_reconstruction(
     if client is not None:
         return execute(run, DaskExecutor(client), threads=threads_per_worker, **cluster, **opts)
     if security is None and tls is not None and any(tls):
-        from hsi_torch.recon.distributed import make_security  # lazy: Dask, a cluster only
-
         security = make_security(*tls)
     with connect(scheduler, scheduler_file, threads_per_worker=threads_per_worker,
                  security=security) as (cl, n):  # fmt: skip
