@@ -74,3 +74,62 @@ def test_out_pointing_at_the_inputs_changes_no_input_byte(sim: Path, tmp_path: P
     changed = [k for k, v in before_twin.items() if after.get(k) != v]
     assert not changed, f"input files changed: {changed}"
     assert all(after.get(k) == v for k, v in before.items())
+
+
+def _small_run(tmp_path: Path) -> tuple[Path, Path]:
+    import numpy as np
+    from test_pipeline import make_bundle, render_capture, true_spectra
+
+    bundle = make_bundle(white_exposure_s=0.01)
+    bpath = tmp_path / "calib.npz"
+    bundle.save(bpath)
+    np.save(tmp_path / "a.npy", render_capture(bundle, true_spectra()).numpy())
+    return bpath, tmp_path / "a.npy"
+
+
+def test_a_rerun_that_fails_while_writing_keeps_the_earlier_outputs(tmp_path, monkeypatch,
+                                                                     capsys):  # fmt: skip
+    """D5: the disk fills up while the rerun writes its preview: every earlier output of that
+    input is kept byte for byte, and no staged file is left."""
+    import errno
+
+    from hsi_torch import colour
+
+    bpath, inp = _small_run(tmp_path)
+    out = tmp_path / "out"
+    argv = ["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress", str(inp)]
+    assert main(argv) == 0
+    before = _snapshot(out)
+    assert any(k.endswith("a_preview.png") for k in before)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(colour, "save_preview_png", full_disk)
+    assert main([*argv[:-1], "--no-resume", "--set", "beta=100", str(inp)]) == 1
+    assert "No space left on device" in capsys.readouterr().err
+    after = _snapshot(out)
+    kept = {k: v for k, v in before.items() if not k.startswith((".hsi_torch_done", "runs/"))}
+    assert all(after.get(k) == v for k, v in kept.items()), "an earlier output changed"
+    assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_an_output_that_is_an_input_is_refused_before_any_work(tmp_path, capsys):
+    """D1: the run's output for an input would be the input itself (``--out`` its own folder);
+    the input fails at once, its bytes unchanged, and another input still runs."""
+    bpath, inp = _small_run(tmp_path)
+    same = tmp_path / "same"
+    same.mkdir()
+    own = same / "a.npz"  # an NPZ capture: its cube file would be same/a.npz
+    import numpy as np
+
+    np.savez(own, image=np.load(inp))
+    digest = hashlib.sha256(own.read_bytes()).hexdigest()
+    other = inp.with_name("b.npy")  # another input (whose outputs are b.*) still runs
+    inp.rename(other)
+    code = main(["reconstruct", "--bundle", str(bpath), "--out", str(same), "--no-progress",
+                 str(own), str(other)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "refusing to write" in err and "a.npz" in err and "1 processed" in err
+    assert hashlib.sha256(own.read_bytes()).hexdigest() == digest
