@@ -576,10 +576,11 @@ def _check_members(p: Path) -> None:
                 meta = json.loads(str(raw))
             if isinstance(meta, dict):
                 ver = meta.get("schema_version")
-                if type(ver) is not int or ver != SCHEMA_VERSION:  # (a newer layout's members)
-                    raise FileFormatError(
+                if type(ver) is not int or ver not in READABLE_SCHEMA_VERSIONS:  # (a newer
+                    raise FileFormatError(                                       # layout's members)
                         f"{where}: schema_version {short_repr(ver)} is not supported (this "
-                        f"software reads version {SCHEMA_VERSION})")
+                        f"software reads versions "
+                        f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))})")
                 if isinstance(meta.get("extras"), list):
                     extras_named = meta["extras"]
         for name, info in by_name.items():
