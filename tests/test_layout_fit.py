@@ -70,6 +70,7 @@ def _lab_copy(sim: Path, dst: Path, layout: Path | None = None) -> Path:
         (dst / name).symlink_to(sim / name, target_is_directory=True)
     m = json.loads((sim / "manifest.json").read_text())
     m["brf_free_mask"] = None
+    m["allow_files_outside"] = True  # the linked folders lead out of the copy: opted in
     (dst / "manifest.json").write_text(json.dumps(m))
     shutil.copy(layout or sim / "nominal_layout.json", dst / "nominal_layout.json")
     return dst
