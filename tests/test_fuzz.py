@@ -661,3 +661,58 @@ def test_dataset_store_on_changed_array_metadata(scratch, zarr_store, array, fie
         numcodecs.get_codec = real_get
         pickles.ALLOW_UNSAFE_PICKLE_DECODE = old
     assert set(used) <= {"zstd", "vlen-utf8"}, used
+
+
+# ---------------------------------------------------------------------------------------------
+# the capture-set builder's sheet
+
+_sheet_cells = st.one_of(
+    st.sampled_from(["", "scan", "white", "grid", "dark", "scene", "flat", "550", "-5", "nan",
+                     "inf", "1e400", "abc", "RGGB", "XYZW", "512", "[512, 512, 512]", "0.01",
+                     "a.dng", "../a.dng", "/etc/passwd", "sub/b.png", " ", '"', "a,b"]),
+    st.text(max_size=12),
+)
+_sheet_columns = st.lists(st.sampled_from(["file", "role", "wavelength_nm", "exposure_s",
+                                           "black_level", "white_level", "cfa_pattern", "name",
+                                           "wavelenght_nm", "", "File", "ROLE"]),
+                          min_size=0, max_size=6)  # fmt: skip
+
+
+@fuzz(150)
+@given(columns=_sheet_columns,
+       rows=st.lists(st.lists(_sheet_cells, max_size=7), max_size=5),
+       raw=st.one_of(st.none(), st.binary(max_size=200)))
+def test_sheet_reader_on_random_sheets(scratch, columns, rows, raw):
+    """Random capture sheets (headers, cells, bytes): rows whose files exist, roles known and
+    numbers finite and positive, or an HSIError naming the sheet — never another exception."""
+    import csv
+    import io
+
+    from hsi_torch.io.capture_import import read_sheet
+
+    folder = scratch / "sheet"
+    if not folder.is_dir():
+        (folder / "sub").mkdir(parents=True)
+        (folder / "a.dng").write_bytes(b"x")
+        (folder / "sub" / "b.png").write_bytes(b"x")
+    sheet = folder / "captures.csv"
+    if raw is not None:
+        sheet.write_bytes(raw)
+    else:
+        buf = io.StringIO()
+        csv.writer(buf).writerows([columns, *rows])
+        sheet.write_text(buf.getvalue(), encoding="utf-8")
+    with no_hang():
+        try:
+            got = read_sheet(sheet)
+        except HSIError as exc:
+            assert "captures.csv" in str(exc), str(exc)
+            return
+    for r in got:
+        assert r.file.is_file(), r
+        assert r.role in ("scan", "white", "grid", "dark", "scene"), r
+        if r.wavelength_nm is not None:
+            assert math.isfinite(r.wavelength_nm) and r.wavelength_nm > 0, r
+        for k, v in r.settings.items():
+            if isinstance(v, float):
+                assert math.isfinite(v), (k, v)
