@@ -135,6 +135,18 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def _codec_list(meta: dict[str, Any], key: str, store: Any, array: str) -> list[Any] | None:
+    """``meta[key]`` (an array's ``filters`` or Zarr 3 ``codecs``): ``None`` or a list.
+
+    Raises:
+        FileFormatError: anything else (naming the store, the array and the key).
+    """
+    value = meta.get(key)
+    if value is not None and not isinstance(value, list):
+        raise FileFormatError(f"{store}: array {array!r}: {key} {_short(value)} is not a list")
+    return value
+
+
 def _check_codec(conf: Any, allowed: Any, array: str, role: str, store: Any) -> None:
     if not isinstance(conf, dict):
         raise FileFormatError(f"{store}: array {array!r}: its {role} is not a codec "
@@ -170,18 +182,11 @@ def _check_array_meta(meta: Any, array: str, store: Any, allowed: Any = None) ->
     comp = meta.get("compressor")
     if comp is not None:
         _check_codec(comp, allowed, array, "compressor", store)
-    filters = meta.get("filters")
-    if filters is not None:
-        if not isinstance(filters, list):
-            raise FileFormatError(f"{store}: array {array!r}: filters {_short(filters)} is not "
-                                  "a list")  # fmt: skip
-        for f in filters:
-            _check_codec(f, allowed, array, "filter", store)
-    codecs = meta.get("codecs")  # Zarr 3
+    filters = _codec_list(meta, "filters", store, array)
+    for f in filters or []:
+        _check_codec(f, allowed, array, "filter", store)
+    codecs = _codec_list(meta, "codecs", store, array)  # Zarr 3
     if codecs is not None:
-        if not isinstance(codecs, list):
-            raise FileFormatError(f"{store}: array {array!r}: codecs {_short(codecs)} is not a "
-                                  "list")  # fmt: skip
         for c in codecs:
             _check_codec(c, allowed, array, "codec", store)
             inner = c.get("configuration", {}) if isinstance(c, dict) else {}
