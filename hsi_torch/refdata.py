@@ -196,9 +196,13 @@ def read_spectral_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, 
     return data[:, 0], data[:, 1:], names
 
 
+#: suffixes of the spectral table files the loaders read (a camera may also be rawtoaces JSON)
+_TABLE_SUFFIXES = (".csv", ".txt", ".tsv")
+
+
 def _is_table_file(name: str) -> bool:
     """Whether a loader argument names a spectral table file (CSV/TXT/TSV suffix or a file)."""
-    return Path(name).suffix.lower() in (".csv", ".txt", ".tsv") or Path(name).is_file()
+    return Path(name).suffix.lower() in _TABLE_SUFFIXES or Path(name).is_file()
 
 
 def _rawtoaces_root() -> Path:
@@ -336,12 +340,12 @@ def resolve_camera(name_or_path: str | os.PathLike) -> str:
     known = {key(n): os.fspath(p) for n, p in _real_data_cameras().items()}
     known.update({key(n): n for n in [*colour.MSDS_CAMERA_SENSITIVITIES.keys(),
                                       *_BUILTIN_CAMERA_CSV]})
-    if key(name) in known and Path(name).suffix.lower() not in (".json", ".csv", ".txt", ".tsv"):
-        return known[key(name)]
-    if Path(name).suffix.lower() in (".json", ".csv", ".txt", ".tsv"):
+    if Path(name).suffix.lower() in (".json", *_TABLE_SUFFIXES):  # a file, by its name
         if not Path(name).is_file():
             raise MissingFileError(f"camera sensitivity file not found: {name}")
         return name
+    if key(name) in known:
+        return known[key(name)]
     if Path(name).is_file():
         return name
     raise ValueError(
