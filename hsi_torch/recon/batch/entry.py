@@ -146,7 +146,6 @@ def execute(
     file's SHA-256 (a cluster whose workers may not share this file system). ``send_bundle``:
     the tasks get the bundle's bytes (:meth:`Executor.share`) instead of its path.
     """
-    started = run
     run.start()
     out = Path(os.path.abspath(run.out_dir))
     run = dataclasses.replace(
@@ -175,7 +174,7 @@ def execute(
 
     summary = drive(run.inputs, target, executor, reconstruct_task, task_args, resume=resume,
                     progress=progress)  # fmt: skip
-    started.discard_if_nothing_written(summary)
+    run.discard_if_nothing_written(summary)
     return summary
 
 

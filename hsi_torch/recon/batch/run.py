@@ -35,7 +35,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -308,6 +308,8 @@ class ReconstructRun:
     wavelengths_nm: list[float]
     fingerprint: str
     run_config: Path | None = None
+    #: the folders :meth:`start` created (removed again when the run made nothing)
+    created: list[Path] = field(default_factory=list, repr=False)
 
     def start(self) -> Path:
         """Create the output folder and write the run's configuration file; returns the folder."""
@@ -325,7 +327,7 @@ class ReconstructRun:
             return
         with contextlib.suppress(OSError):
             Path(self.run_config).unlink()
-        for d in sorted(getattr(self, "created", []), key=lambda q: -len(q.parts)):
+        for d in sorted(self.created, key=lambda q: -len(q.parts)):
             with contextlib.suppress(OSError):  # only when empty
                 Path(d).rmdir()
 
