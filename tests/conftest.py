@@ -12,12 +12,23 @@ file keeps its own device list.
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
 import torch
 
+from hsi_torch.recon.precompute_cache import CACHE_ENV
 from hsi_torch.resources import DATA_ENV, real_data_dir
+
+# the tests' reconstructors cache their precomputation in a folder of this session (also seen
+# by the commands the tests start), never in the user's cache folder
+_CACHE_DIR = tempfile.mkdtemp(prefix="hsi_torch_test_cache_")
+os.environ[CACHE_ENV] = _CACHE_DIR
+atexit.register(shutil.rmtree, _CACHE_DIR, True)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: the real-data folder: HSI_TORCH_DATA, else ../shared/data/real beside the checkout (or None)

@@ -50,7 +50,9 @@ TEMP_FILE_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.tmp$
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+def atomic_write(
+    path: str | os.PathLike, mode: str = "wb", *, fsync: bool = True
+) -> Iterator[IO[Any]]:
     """Open a temporary file beside ``path`` for writing; rename it onto ``path`` on success.
 
     The temporary file lives in the same folder (same file system, so ``os.replace`` is atomic)
@@ -63,6 +65,9 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
     Args:
         path: destination file.
         mode: ``"wb"`` (default) or ``"w"`` (text, UTF-8).
+        fsync: flush the data to the disk before the rename (default). ``False`` for files
+            that are checked when read and can be made again (a cache): after a power loss the
+            renamed file may then hold zeros, never a mix of two versions.
 
     Yields:
         The open file object. Writers that need a *file name* rather than a file object can use
@@ -84,7 +89,8 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
         with open(tmp, mode, **kwargs) as f:  # opened by name so that f.name is a path
             yield f
             f.flush()
-            os.fsync(f.fileno())
+            if fsync:
+                os.fsync(f.fileno())
         # mkstemp creates 0600 files; give the result ordinary permissions (respecting umask).
         umask = os.umask(0)
         os.umask(umask)

@@ -63,6 +63,13 @@ class ReconstructConfig:
     dtype: Literal["float32", "float64"] = field(
         default="float32", metadata=_help("precision of the sensing matrices and the solve")
     )
+    precompute_cache: str = field(
+        default="auto",
+        metadata=_help("where the per-bundle precomputation (sensing model, masks, "
+                       "factorisation) is cached between runs: auto (the user cache folder, "
+                       "$HSI_TORCH_CACHE or ~/.cache/hsi_torch), beside (a .hsi_torch_cache "
+                       "folder beside the bundle), off, or a folder"),
+    )
     formats: list[CubeFormatName] = field(
         default_factory=lambda: ["tiff", "envi", "npz"],
         metadata=_help("cube files written per input: tiff (OME-TIFF .tif + GDAL .vrt), envi "

@@ -682,6 +682,12 @@ class Reconstructor:
             (:attr:`ReconstructionResult.std`, :mod:`hsi_torch.recon.uncertainty`) from
             ``noise`` (default :class:`~hsi_torch.recon.uncertainty.SensorNoise`: the
             simulator's default sensor).
+        precompute_cache: for a bundle given as a path, where the per-bundle precomputation
+            is cached between processes: ``"auto"`` (the user cache folder, ``$HSI_TORCH_CACHE``
+            or ``~/.cache/hsi_torch``), ``"beside"`` (a ``.hsi_torch_cache`` folder beside the
+            bundle), ``"off"``, or a folder; a later process with the same bundle content and
+            ``(beta, diff_order, dtype, device type)`` loads it instead of factorising
+            (:mod:`hsi_torch.recon.precompute_cache`).
         settings: all of the above at once, a
             :class:`~hsi_torch.recon.settings.ReconstructSettings` (what a run passes; e.g.
             ``ReconstructConfig(...).settings()``); the keywords are then left at their defaults.
@@ -713,13 +719,15 @@ class Reconstructor:
         spatial_iters: int | None = None,
         uncertainty: bool = False,
         noise: SensorNoise | None = None,
+        precompute_cache: str = "auto",
         settings: ReconstructSettings | None = None,
     ) -> None:
         given = dict(beta=beta, diff_order=diff_order, solver=solver, admm_iters=admm_iters,
                      device=device, dtype=dtype, chunk_size=chunk_size, min_views=min_views,
                      nan_invalid=nan_invalid, exposure_correction=exposure_correction,
                      sat_threshold=sat_threshold, prior=prior, lam=lam,
-                     spatial_iters=spatial_iters, uncertainty=uncertainty, noise=noise)  # fmt: skip
+                     spatial_iters=spatial_iters, uncertainty=uncertainty, noise=noise,
+                     precompute_cache=precompute_cache)  # fmt: skip
         flat = {k: v for k, v in given.items() if k not in ("device", "dtype", "noise")}
         flat.update(device=None if device is None else str(device), dtype=dtype_name(dtype))
         if noise is not None:
@@ -737,6 +745,7 @@ class Reconstructor:
             self.sensing = precompute_sensing(
                 bundle, beta=sv.beta, diff_order=sv.diff_order, device=sv.device,
                 dtype=torch_dtype(sv.dtype), chunk_size=sv.chunk_size,
+                disk_cache=sv.precompute_cache,
             )  # fmt: skip
         check_min_views(sv.min_views, self.sensing.num_views)
         self.solver = sv.solver

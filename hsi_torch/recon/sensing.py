@@ -22,6 +22,14 @@ dtype, ``beta`` and ``diff_order``, so building several
 work (:data:`BUILD_COUNTS` counts the builds). The cache holds the bundle weakly: a bundle that
 is no longer referenced is freed (its full-frame arrays are not needed after the build).
 
+Across processes, a bundle given as a *file* is cached on disk (``disk_cache``, the
+reconstruction setting ``precompute_cache``; :mod:`hsi_torch.recon.precompute_cache`): the
+arrays above and every tensor of the factorisation are stored under a key made of the file's
+SHA-256, ``beta``, ``diff_order``, the dtype, the device type and the code's version, and a later
+process loads them (memory-mapped) instead of reading the bundle and factorising
+(``BUILD_COUNTS["loaded"]`` counts those loads); within a process the same file and settings
+share one :class:`BundleSensing`.
+
 Convention:
     Observation index ``o = 3·v + c`` (``v = 0`` the reference view, ``c`` = R, G, B).
     Reference-frame pixel ``p = i·w + j`` (row ``i``, column ``j``). Homographies map view-``v``
@@ -41,13 +49,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.radiometry import CameraIdentity
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.profiling import release_freed_memory
+from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 
@@ -58,12 +69,19 @@ __all__ = [
     "bundle_exposure",
     "clear_sensing_cache",
     "BUILD_COUNTS",
+    "CACHE_LAYOUT_VERSION",
     "EXPOSURE_KEYS",
 ]
 
 #: Number of times the expensive parts were built (``"sensing"``: A and masks,
-#: ``"factorisation"``: :func:`prepare_nnls`). Tests use it to check that frames reuse the cache.
-BUILD_COUNTS: dict[str, int] = {"sensing": 0, "factorisation": 0}
+#: ``"factorisation"``: :func:`prepare_nnls`) or loaded from the disk cache (``"loaded"``).
+#: Tests use it to check that frames and processes reuse the precomputation.
+BUILD_COUNTS: dict[str, int] = {"sensing": 0, "factorisation": 0, "loaded": 0}
+
+#: Version of what :func:`precompute_sensing` stores in the disk cache (part of its key; the
+#: code that computes it is part of the key by itself): bump it when the stored arrays change
+#: meaning without a change of that code.
+CACHE_LAYOUT_VERSION = 1
 
 #: Keys looked up (in order) in ``bundle.settings`` for the exposure time (s) of the white
 #: reference the response ``phi`` was calibrated from; nested ``{"response": {...}}`` is searched
@@ -263,8 +281,9 @@ def precompute_sensing(
     dtype: torch.dtype = torch.float32,
     chunk_size: int | None = None,
     cache: bool = True,
+    disk_cache: str | os.PathLike | None = "auto",
 ) -> BundleSensing:
-    """Build (or fetch from the cache) the per-bundle sensing and factorisation.
+    """Build (or fetch from the caches) the per-bundle sensing and factorisation.
 
     Args:
         bundle: a :class:`CalibrationBundle` or the path of one.
@@ -272,19 +291,45 @@ def precompute_sensing(
         diff_order: order of ``D`` (0, 1, 2).
         device, dtype: where and in which float type ``A`` and the factorisation live.
         chunk_size: pixels per chunk of the factorisation (``None``: the solver's default).
-        cache: reuse/insert in the module cache (keyed by the bundle object's identity).
+        cache: reuse/insert in the module cache (keyed by the bundle object's identity, or by
+            the file's SHA-256 for a path with a disk cache).
+        disk_cache: for a bundle given as a path: ``"auto"`` (the user cache folder),
+            ``"beside"`` (a ``.hsi_torch_cache`` folder beside the bundle), ``"off"`` or a folder
+            (:func:`hsi_torch.recon.precompute_cache.cache_folder`). An in-memory bundle is
+            never cached on disk.
 
     Returns:
         :class:`BundleSensing` with ``P = bundle.valid.sum()`` pixels.
     """
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-    b = load_bundle(bundle)
     dev = torch.device(device) if device is not None else torch.device("cpu")
-    key = (id(b), str(dev), dtype, float(beta), int(diff_order))
-    if cache and key in _CACHE and _CACHE[key]._bundle_ref() is b:  # type: ignore[attr-defined]
-        _CACHE.move_to_end(key)
-        return _CACHE[key]
+    beta, diff_order = float(beta), int(diff_order)
+    path = Path(bundle) if isinstance(bundle, (str, os.PathLike)) else None
+    folder, note = disk.cache_folder(disk_cache, path)
+    if note:
+        disk._warn(note)
+    entry = key = mem_key = None
+    if folder is not None and path is not None and path.is_file():
+        sha = disk.content_sha256(path)
+        key = disk.entry_key({"bundle_sha256": sha, "beta": beta, "diff_order": diff_order,
+                              "dtype": str(dtype), "device": dev.type}, CACHE_LAYOUT_VERSION)
+        mem_key = ("file", key, str(dev))
+        if cache and mem_key in _CACHE:
+            _CACHE.move_to_end(mem_key)
+            return _CACHE[mem_key]
+        entry = disk.entry_path(folder, path, key)
+        got = disk.load_entry(entry, key)
+        sens = None if got is None else _from_cache(*got, dev, entry)
+        if sens is not None:
+            BUILD_COUNTS["loaded"] += 1
+            _remember(mem_key, sens, cache)
+            return sens
+    b = load_bundle(bundle)
+    id_key = (id(b), str(dev), dtype, beta, diff_order)
+    if cache and id_key in _CACHE and _CACHE[id_key]._bundle_ref() is b:  # type: ignore[attr-defined]
+        _CACHE.move_to_end(id_key)
+        return _CACHE[id_key]
     BUILD_COUNTS["sensing"] += 1
     valid = torch.as_tensor(b.valid, device=dev)
     pix = valid.reshape(-1).nonzero().squeeze(1)
@@ -303,19 +348,139 @@ def precompute_sensing(
     # bundle loaded here from a path is freed before the factorisation's memory is taken
     ref = weakref.ref(b)
     del b
-    problem = _factorise(model, obs, float(beta), int(diff_order), chunk_size)
+    problem = _factorise(model, obs, beta, diff_order, chunk_size)
     sens = BundleSensing(
-        valid=valid, pixel_index=pix, model=model, obs_mask=obs, beta=float(beta),
-        diff_order=int(diff_order), problem=problem, **fields,
+        valid=valid, pixel_index=pix, model=model, obs_mask=obs, beta=beta,
+        diff_order=diff_order, problem=problem, **fields,
     )  # fmt: skip
-    sens._problems[(float(beta), int(diff_order))] = problem
+    sens._problems[(beta, diff_order)] = problem
     sens.grid()  # the frames' sampling positions, once per bundle
     sens._bundle_ref = ref  # type: ignore[attr-defined]
     release_freed_memory()  # the factorisation's chunk temporaries (≈ 0.3 GiB at full size)
-    if cache:
-        _CACHE[key] = sens
-        while len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
+    if entry is not None and key is not None:
+        stored = _to_cache(sens)
+        if stored is not None:
+            disk.save_entry(entry, key, *stored)
+        _remember(mem_key, sens, cache)
+    _remember(id_key, sens, cache)
+    return sens
+
+
+def _remember(key: tuple | None, sens: BundleSensing, cache: bool) -> None:
+    if not cache or key is None:
+        return
+    _CACHE[key] = sens
+    _CACHE.move_to_end(key)
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+
+
+#: attributes of the factorisation that are the sensing's own objects (stored once)
+_SHARED = {"sensing": "model", "mask": "obs_mask"}
+_JSON_SCALARS = (bool, int, float, str, type(None))
+
+
+def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
+    """The arrays and metadata of a disk-cache entry for ``sens`` (``None``: the factorisation
+    holds something that is neither a tensor, an array nor a JSON scalar: not cached).
+
+    Every tensor attribute of the :class:`~hsi_torch.recon.nnls.NNLSProblem` is stored under
+    ``problem.<name>`` whatever the solver keeps, so a change of its layout needs no change
+    here."""
+    def host(t: Tensor) -> np.ndarray:
+        return t.detach().cpu().numpy()
+
+    rad = sens.radiometry
+    arrays: dict[str, np.ndarray] = {
+        "valid": host(sens.valid), "pixel_index": host(sens.pixel_index),
+        "obs_mask": host(sens.obs_mask), "sample_grid": host(sens.grid()),
+        "homographies": host(sens.homographies), "wavelengths_nm": host(sens.wavelengths_nm),
+        "model.transmittance": host(sens.model.transmittance),
+        "model.gain": host(sens.model.gain), "model.response": host(sens.model.response),
+    }  # fmt: skip
+    problem: dict[str, Any] = {}
+    for name, v in vars(sens.problem).items():
+        own = _SHARED.get(name)
+        if own is not None and v is (sens.model if own == "model" else sens.obs_mask):
+            problem[name] = {"shared": own}
+        elif isinstance(v, Tensor):
+            arrays[f"problem.{name}"] = host(v)
+            problem[name] = {"array": f"problem.{name}"}
+        elif isinstance(v, np.ndarray):
+            arrays[f"problem.{name}"] = v
+            problem[name] = {"numpy": f"problem.{name}"}
+        elif isinstance(v, _JSON_SCALARS):
+            problem[name] = {"value": v}
+        elif isinstance(v, (dict, list)) and not v:
+            problem[name] = {"empty": type(v).__name__}
+        else:
+            return None
+    if rad is not None:
+        arrays["radiometry.outside_index"] = np.asarray(rad.outside_index)
+    meta = {
+        "sensor_size": list(sens.sensor_size), "reference_bbox": list(sens.reference_bbox),
+        "beta": sens.beta, "diff_order": sens.diff_order, "exposure_s": sens.exposure_s,
+        "cfa_pattern": sens.cfa_pattern, "problem": problem,
+        "radiometry": None if rad is None else {
+            "white_exposure_s": rad.white_exposure_s,
+            "white_exposure_unit": rad.white_exposure_unit,
+            "black_level_rgb": None if rad.black_level_rgb is None else list(rad.black_level_rgb),
+            "black_level_source": rad.black_level_source,
+            "camera": None if rad.camera is None else rad.camera.to_dict(),
+        },
+    }  # fmt: skip
+    return arrays, meta
+
+
+def _from_cache(
+    arrays: dict[str, np.ndarray], meta: dict[str, Any], dev: torch.device, entry: Path
+) -> BundleSensing | None:
+    """The :class:`BundleSensing` of a disk-cache entry (``None``, with a warning, when the
+    entry does not hold what this code needs: then it is recomputed and replaced)."""
+    def t(name: str) -> Tensor:
+        a = arrays[name]
+        return torch.from_numpy(a if a.flags.writeable else a.copy()).to(dev)
+
+    try:
+        model = SensingModel(t("model.transmittance"), t("model.gain"), t("model.response"))
+        obs = t("obs_mask")
+        state: dict[str, Any] = {}
+        for name, how in meta["problem"].items():
+            if "shared" in how:
+                state[name] = model if how["shared"] == "model" else obs
+            elif "array" in how:
+                state[name] = t(how["array"])
+            elif "numpy" in how:
+                state[name] = np.array(arrays[how["numpy"]])
+            elif "value" in how:
+                state[name] = how["value"]
+            else:
+                state[name] = {"dict": {}, "list": []}[how["empty"]]
+        problem = NNLSProblem.__new__(NNLSProblem)
+        problem.__dict__.update(state)
+        r = meta["radiometry"]
+        rad = None if r is None else BundleRadiometry(
+            white_exposure_s=r["white_exposure_s"], white_exposure_unit=r["white_exposure_unit"],
+            black_level_rgb=None if r["black_level_rgb"] is None else tuple(r["black_level_rgb"]),
+            black_level_source=r["black_level_source"],
+            camera=CameraIdentity.from_dict(r["camera"]),
+            outside_index=np.array(arrays["radiometry.outside_index"]),
+        )  # fmt: skip
+        x0, y0, w, h = (int(v) for v in meta["reference_bbox"])
+        beta, order = float(meta["beta"]), int(meta["diff_order"])
+        sens = BundleSensing(
+            wavelengths_nm=torch.from_numpy(np.array(arrays["wavelengths_nm"])),
+            sensor_size=(int(meta["sensor_size"][0]), int(meta["sensor_size"][1])),
+            reference_bbox=(x0, y0, w, h), homographies=t("homographies"), valid=t("valid"),
+            pixel_index=t("pixel_index"), model=model, obs_mask=obs, beta=beta,
+            diff_order=order, problem=problem, exposure_s=meta["exposure_s"],
+            cfa_pattern=meta["cfa_pattern"], radiometry=rad, sample_grid=t("sample_grid"),
+        )  # fmt: skip
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        disk._warn(f"precomputation cache entry {entry} does not hold what this software "
+                   f"needs ({type(exc).__name__}: {exc}); recomputing")
+        return None
+    sens._problems[(beta, order)] = problem
     return sens
 
 

@@ -129,6 +129,9 @@ class SolveSettings:
         min_views: views a pixel needs to be valid.
         nan_invalid: invalid pixels are NaN (else 0) in the cube.
         device: torch device name (``None``: follow the bundle); dtype: ``float32``/``float64``.
+        precompute_cache: where the per-bundle precomputation is cached between processes:
+            ``"auto"`` (the user cache folder), ``"beside"`` (beside the bundle), ``"off"``, or
+            a folder (:mod:`hsi_torch.recon.precompute_cache`). Not part of the outputs.
     """
 
     beta: float = DEFAULT_BETA
@@ -140,6 +143,7 @@ class SolveSettings:
     nan_invalid: bool = True
     device: str | None = "cpu"
     dtype: str = "float32"
+    precompute_cache: str = "auto"
 
     def __post_init__(self) -> None:
         beta = _number("beta", self.beta)
@@ -157,6 +161,9 @@ class SolveSettings:
         if self.device is not None and not isinstance(self.device, str):
             raise _bad("device", f"must be a device name such as 'cpu' or 'cuda:1', got "
                                  f"{type(self.device).__name__}")  # fmt: skip
+        pc = self.precompute_cache
+        if not isinstance(pc, str) or not pc.strip() or "\0" in pc:
+            raise _bad("precompute_cache", f"must be auto, beside, off or a folder, got {pc!r}")
 
 
 @dataclass(frozen=True)
@@ -326,6 +333,7 @@ class UncertaintySettings:
 FLAT_KEYS: dict[str, tuple[str, str]] = {
     **{k: ("solve", k) for k in ("beta", "diff_order", "solver", "admm_iters", "chunk_size",
                                  "min_views", "nan_invalid", "device", "dtype")},
+    "precompute_cache": ("solve", "precompute_cache"),
     "prior": ("prior", "kind"), "lam": ("prior", "lam"),
     "spatial_iters": ("prior", "spatial_iters"),
     **{k: ("input", k) for k in ("demosaic", "cfa_pattern", "black_level", "white_level",

@@ -53,13 +53,13 @@ from hsi_torch.io.atomic import (
     clean_stale_temp_files,
     replace_then_commit,
 )
-from hsi_torch.io.bundle import file_sha256
 from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
+from hsi_torch.recon.precompute_cache import content_sha256
 from hsi_torch.recon.sensing import load_bundle
 from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.recon.uncertainty import relative_std_map
@@ -388,9 +388,9 @@ def check_run(
     # factors, and the full-frame arrays are freed before the factorisation takes its memory
     del b
     st = bundle_path.stat()
-    sha = file_sha256(bundle_path)
+    sha = content_sha256(bundle_path)  # remembered: the reconstructor's cache key needs it
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
-    ignored = ("device", "chunk_size", "fit_residual_warning")
+    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache")
     config = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(

@@ -1,0 +1,255 @@
+"""The on-disk cache of the per-bundle precomputation (:mod:`hsi_torch.recon.precompute_cache`):
+a second reconstructor (as in a new process) loads it instead of factorising and gives the same
+cube bit for bit; another bundle content or setting misses it; a foreign, altered or truncated
+entry is refused and recomputed; the bundle and its folder are never written."""
+
+from __future__ import annotations
+
+import os
+import stat
+import warnings
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+from test_pipeline import make_bundle, render_capture, true_spectra
+
+from hsi_torch.recon import precompute_cache as disk
+from hsi_torch.recon import sensing as sensing_mod
+from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.recon.settings import ReconstructSettings
+
+
+@pytest.fixture
+def bundle_file(tmp_path):
+    path = tmp_path / "bundle" / "calib.npz"
+    path.parent.mkdir()
+    make_bundle().save(path)
+    return path
+
+
+def fresh_process() -> None:
+    """Forget what this process keeps (what a new process would not have)."""
+    sensing_mod.clear_sensing_cache()
+    disk._HASHES.clear()
+
+
+def counts() -> dict[str, int]:
+    return dict(sensing_mod.BUILD_COUNTS)
+
+
+def entries(folder) -> list:
+    return sorted(p for p in folder.iterdir() if p.suffix == ".npz")
+
+
+def folder_state(folder) -> dict:
+    return {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.iterdir()}
+
+
+def test_second_reconstructor_loads_the_cache_bit_identical(bundle_file, tmp_path, device, dtype):
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).to(dtype)
+    before_bundle = folder_state(bundle_file.parent)
+    fresh_process()
+    c0 = counts()
+    rec1 = Reconstructor(bundle_file, beta=2.0, device=device, dtype=dtype,
+                         precompute_cache=str(cache))
+    c1 = counts()
+    assert c1["factorisation"] - c0["factorisation"] == 1 and c1["loaded"] == c0["loaded"]
+    assert len(entries(cache)) == 1
+    r1 = rec1.reconstruct_frame(capture)
+
+    fresh_process()
+    rec2 = Reconstructor(bundle_file, beta=2.0, device=device, dtype=dtype,
+                         precompute_cache=str(cache))
+    c2 = counts()
+    assert c2["factorisation"] == c1["factorisation"] and c2["sensing"] == c1["sensing"]
+    assert c2["loaded"] - c1["loaded"] == 1
+    assert rec2.sensing is not rec1.sensing
+    assert rec2.sensing.device == rec1.sensing.device and rec2.sensing.dtype == dtype
+    r2 = rec2.reconstruct_frame(capture)
+    assert torch.equal(r1.valid, r2.valid)
+    assert torch.equal(torch.nan_to_num(r1.cube, nan=-1.0), torch.nan_to_num(r2.cube, nan=-1.0))
+    assert r1.stats["num_pivoted"] == r2.stats["num_pivoted"]
+    # what the frame statistics take from the bundle came back too
+    s1, s2 = rec1.sensing, rec2.sensing
+    assert (s1.sensor_size, s1.reference_bbox, s1.exposure_s, s1.cfa_pattern) == (
+        s2.sensor_size, s2.reference_bbox, s2.exposure_s, s2.cfa_pattern)
+    assert torch.equal(s1.grid(), s2.grid()) and torch.equal(s1.homographies, s2.homographies)
+    for name, v in vars(s1.problem).items():
+        if isinstance(v, torch.Tensor):
+            assert torch.equal(v, getattr(s2.problem, name)), name
+    # the same process asking again gets the one it has
+    assert Reconstructor(bundle_file, beta=2.0, device=device, dtype=dtype,
+                         precompute_cache=str(cache)).sensing is rec2.sensing
+    assert folder_state(bundle_file.parent) == before_bundle  # nothing written beside the bundle
+
+
+def test_other_content_or_settings_miss(bundle_file, tmp_path):
+    cache = tmp_path / "cache"
+    fresh_process()
+    Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    c = counts()
+    for kw in ({"beta": 3.0}, {"diff_order": 2}, {"dtype": torch.float64}):
+        fresh_process()
+        Reconstructor(bundle_file, **{"beta": 2.0, **kw}, precompute_cache=str(cache))
+        assert counts()["factorisation"] == c["factorisation"] + 1, kw
+        assert counts()["loaded"] == c["loaded"], kw
+        c = counts()
+    assert len(entries(cache)) == 4
+    # settings that do not change the precomputation share the entry
+    fresh_process()
+    Reconstructor(bundle_file, beta=2.0, min_views=4, solver="admm", precompute_cache=str(cache))
+    assert counts()["loaded"] == c["loaded"] + 1 and counts()["factorisation"] == c["factorisation"]
+    # another content under the same name misses (and the entry of the new content is written)
+    make_bundle(seed=5).save(bundle_file)
+    fresh_process()
+    c = counts()
+    rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    assert counts()["factorisation"] == c["factorisation"] + 1
+    assert len(entries(cache)) == 5
+    g = make_bundle(seed=5).gain
+    assert torch.allclose(rec.sensing.model.gain[:, 0].double(),
+                          torch.as_tensor(g[0].reshape(-1)[rec.sensing.pixel_index.numpy()]))
+
+
+def test_off_and_in_memory_bundles_write_nothing(bundle_file, tmp_path, monkeypatch):
+    monkeypatch.setenv(disk.CACHE_ENV, str(tmp_path / "user"))
+    fresh_process()
+    Reconstructor(bundle_file, precompute_cache="off")
+    Reconstructor(make_bundle(seed=3))  # an object: no file, no key
+    assert not (tmp_path / "user").exists()
+    Reconstructor(bundle_file)  # default "auto": the user cache folder
+    assert len(entries(tmp_path / "user" / "precompute")) == 1
+    assert ReconstructSettings().solve.precompute_cache == "auto"
+
+
+def tamper(path) -> None:
+    """Flip bytes in the middle of the largest member's data (the zip directory unchanged)."""
+    with zipfile.ZipFile(path) as zf:
+        big = max(zf.infolist(), key=lambda i: i.file_size)
+    with open(path, "r+b") as f:
+        f.seek(big.header_offset + 200 + big.file_size // 2)
+        b = f.read(4)
+        f.seek(-4, os.SEEK_CUR)
+        f.write(bytes(x ^ 0x5A for x in b))
+
+
+@pytest.mark.parametrize("damage", ["tampered", "truncated", "foreign", "garbage", "pickle"])
+def test_a_bad_entry_is_refused_and_recomputed(bundle_file, tmp_path, damage):
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    fresh_process()
+    ref = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache)).reconstruct_frame(
+        capture)
+    (entry,) = entries(cache)
+    if damage == "tampered":
+        tamper(entry)
+    elif damage == "truncated":
+        data = entry.read_bytes()
+        entry.write_bytes(data[: len(data) // 2])
+    elif damage == "foreign":  # another entry's file under this name: its key differs
+        other = tmp_path / "other.npz"
+        make_bundle(seed=9).save(other)
+        fresh_process()
+        Reconstructor(other, beta=2.0, precompute_cache=str(cache))
+        (foreign,) = [p for p in entries(cache) if p != entry]
+        os.replace(foreign, entry)
+    elif damage == "garbage":
+        entry.write_bytes(b"not a zip file at all")
+    else:  # an object array (what a pickle would carry) in place of the entry
+        np.savez(entry, __meta__=np.array([{"format": 1}], dtype=object))
+    fresh_process()
+    c = counts()
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    msgs = [str(w.message) for w in got if issubclass(w.category, disk.PrecomputeCacheWarning)]
+    assert any("refused" in m and str(entry) in m for m in msgs), msgs
+    assert counts()["factorisation"] == c["factorisation"] + 1 and counts()["loaded"] == c["loaded"]
+    out = rec.reconstruct_frame(capture)
+    assert torch.equal(torch.nan_to_num(out.cube, nan=-1.0), torch.nan_to_num(ref.cube, nan=-1.0))
+    # the recomputed entry replaced the bad one and is used by the next process
+    fresh_process()
+    c = counts()
+    Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    assert counts()["loaded"] == c["loaded"] + 1
+
+
+def test_read_only_folder_falls_back_to_the_user_cache(bundle_file, tmp_path, monkeypatch):
+    monkeypatch.setenv(disk.CACHE_ENV, str(tmp_path / "user"))
+    folder = bundle_file.parent
+    real = disk._writable_folder  # root may write anywhere: the bundle's folder is made read-only
+    monkeypatch.setattr(disk, "_writable_folder",
+                        lambda f: not str(f).startswith(str(folder.resolve())) and real(f))
+    folder.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        fresh_process()
+        with pytest.warns(disk.PrecomputeCacheWarning, match="not writable"):
+            Reconstructor(bundle_file, precompute_cache="beside")
+        assert sorted(p.name for p in folder.iterdir()) == ["calib.npz"]
+        assert len(entries(tmp_path / "user" / "precompute")) == 1
+    finally:
+        folder.chmod(stat.S_IRWXU)
+
+
+def test_a_failed_write_is_a_warning(bundle_file, tmp_path, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(disk, "atomic_write", refuse)
+    fresh_process()
+    with pytest.warns(disk.PrecomputeCacheWarning, match="could not write"):
+        rec = Reconstructor(bundle_file, precompute_cache=str(tmp_path / "c"))
+    out = rec.reconstruct_frame(render_capture(make_bundle(), true_spectra()).float())
+    assert bool(out.valid.any())
+
+
+def test_cache_folder_policies(bundle_file, tmp_path, monkeypatch):
+    monkeypatch.setenv(disk.CACHE_ENV, str(tmp_path / "user"))
+    user = tmp_path / "user" / "precompute"
+    assert disk.cache_folder("auto", bundle_file) == (user, None)
+    assert disk.cache_folder("off", bundle_file) == (None, None)
+    assert disk.cache_folder("auto", None) == (None, None)
+    assert disk.cache_folder("beside", bundle_file) == (
+        bundle_file.parent.resolve() / ".hsi_torch_cache", None)
+    assert disk.cache_folder(str(tmp_path / "mine"), bundle_file) == (tmp_path / "mine", None)
+    blocker = tmp_path / "file"
+    blocker.write_text("x")  # a folder cannot be made below a file
+    folder, note = disk.cache_folder(str(blocker / "sub"), bundle_file)
+    assert folder == user and "not writable" in note
+    monkeypatch.delenv(disk.CACHE_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert disk.user_cache_dir() == tmp_path / "xdg" / "hsi_torch" / "precompute"
+
+
+def test_beside_keeps_the_entry_next_to_the_bundle(bundle_file):
+    fresh_process()
+    Reconstructor(bundle_file, precompute_cache="beside")
+    folder = bundle_file.parent / ".hsi_torch_cache"
+    (entry,) = entries(folder)
+    assert entry.name.startswith("calib-")
+    fresh_process()
+    c = counts()
+    Reconstructor(bundle_file, precompute_cache="beside")
+    assert counts()["loaded"] == c["loaded"] + 1
+
+
+def test_entries_are_bounded_least_recently_used_first(tmp_path, monkeypatch):
+    folder = tmp_path / "c"
+    arrays = {"a": np.arange(300_000, dtype=np.float64)}  # 2.4 MB an entry
+    monkeypatch.setenv(disk.MAX_GB_ENV, str(8e6 / 2**30))
+    paths = [disk.entry_path(folder, f"b{i}.npz", f"{i:064x}") for i in range(3)]
+    for i, p in enumerate(paths):
+        assert disk.save_entry(p, f"{i:064x}", arrays)
+        os.utime(p, ns=(i * 10**9, i * 10**9))
+    assert len(entries(folder)) == 3
+    assert disk.load_entry(paths[0], f"{0:064x}") is not None  # used: now the newest
+    monkeypatch.setenv(disk.MAX_GB_ENV, str(5.5e6 / 2**30))
+    disk.save_entry(paths[1], f"{1:064x}", arrays)  # rewritten: the least recently used goes
+    assert sorted(entries(folder)) == sorted([paths[0], paths[1]])
+    got, meta = disk.load_entry(paths[0], f"{0:064x}")
+    assert np.array_equal(got["a"], arrays["a"]) and meta["arrays"] == ["a"]
+    with pytest.raises(TypeError, match="numbers only"):
+        disk.save_entry(paths[2], "k", {"o": np.array([object()], dtype=object)})
