@@ -218,8 +218,27 @@ class SensingModel:
         Args:
             mask: ``(n, 3V)`` bool observation mask ``W`` (``None``: all observations).
             reg: optional ``(M, M)`` added (e.g. ``β DᵀD``).
+
+        When the mask keeps or drops whole views (all channels of a view alike, as the static
+        mask does), the factored form is used: ``G = (Bᵀ diag(w g²) B) ⊙ (rᵀ r)`` with ``w`` the
+        per-view mask and ``r`` the response — a ``V``-term product per pixel instead of a
+        ``3V``-term one, without forming the dense matrices (equal to rounding).
         """
-        return _gram(self.dense(idx), mask, reg)
+        B, g = self._factors(idx, 0)
+        V, C = self.num_views, self.num_channels
+        wv = None
+        if mask is not None and B.shape[0] == mask.shape[0] and mask.shape[1] == V * C:
+            mv = mask.view(-1, V, C)
+            if bool((mv == mv[:, :, :1]).all()):
+                wv = mv[:, :, 0]
+        if B.shape[0] == 1 or (mask is not None and wv is None):
+            return _gram(self.dense(idx), mask, reg)
+        w = g.square()
+        if wv is not None:
+            w = w * wv.to(w.dtype)
+        G = torch.matmul((B * w.unsqueeze(2)).transpose(1, 2), B)  # (n, M, M)
+        G.mul_(self.response.T @ self.response)
+        return G if reg is None else G.add_(reg)
 
     def select(self, idx: Tensor | slice | Sequence[int]) -> SensingModel:
         """The model of a subset of pixels (a view for a slice, else a copy of their factors)."""
