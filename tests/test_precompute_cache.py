@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import stat
 import warnings
-import zipfile
+import zlib
 
 import numpy as np
 import pytest
@@ -40,7 +40,7 @@ def counts() -> dict[str, int]:
 
 
 def entries(folder) -> list:
-    return sorted(p for p in folder.iterdir() if p.suffix == ".npz")
+    return sorted(p for p in folder.iterdir() if p.suffix == ".hsicache")
 
 
 def folder_state(folder) -> dict:
@@ -125,18 +125,18 @@ def test_off_and_in_memory_bundles_write_nothing(bundle_file, tmp_path, monkeypa
     assert ReconstructSettings().solve.precompute_cache == "auto"
 
 
-def tamper(path) -> None:
-    """Flip bytes in the middle of the largest member's data (the zip directory unchanged)."""
-    with zipfile.ZipFile(path) as zf:
-        big = max(zf.infolist(), key=lambda i: i.file_size)
+def tamper(path, where: float = 0.5) -> None:
+    """Flip four bytes at a fraction of the file (the header and its checksums unchanged)."""
+    size = path.stat().st_size
     with open(path, "r+b") as f:
-        f.seek(big.header_offset + 200 + big.file_size // 2)
+        f.seek(int(size * where))
         b = f.read(4)
         f.seek(-4, os.SEEK_CUR)
         f.write(bytes(x ^ 0x5A for x in b))
 
 
-@pytest.mark.parametrize("damage", ["tampered", "truncated", "foreign", "garbage", "pickle"])
+@pytest.mark.parametrize("damage",
+                         ["tampered", "truncated", "foreign", "garbage", "header", "object"])
 def test_a_bad_entry_is_refused_and_recomputed(bundle_file, tmp_path, damage):
     cache = tmp_path / "cache"
     capture = render_capture(make_bundle(), true_spectra()).float()
@@ -158,8 +158,15 @@ def test_a_bad_entry_is_refused_and_recomputed(bundle_file, tmp_path, damage):
         os.replace(foreign, entry)
     elif damage == "garbage":
         entry.write_bytes(b"not a zip file at all")
-    else:  # an object array (what a pickle would carry) in place of the entry
-        np.savez(entry, __meta__=np.array([{"format": 1}], dtype=object))
+    elif damage == "header":  # the header edited (its checksum no longer matches)
+        tamper(entry, 0.001)
+    else:  # a header that declares an object array (what a pickle would carry), checksum right
+        data = entry.read_bytes()
+        n = len(disk.MAGIC)
+        length = int.from_bytes(data[n:n + 8], "little")
+        text = data[n + 12:n + 12 + length].replace(b'"|b1"', b'"|O8"', 1)
+        entry.write_bytes(data[:n + 8] + zlib.crc32(text).to_bytes(4, "little") + text
+                          + data[n + 12 + length:])
     fresh_process()
     c = counts()
     with warnings.catch_warnings(record=True) as got:
@@ -250,6 +257,8 @@ def test_entries_are_bounded_least_recently_used_first(tmp_path, monkeypatch):
     disk.save_entry(paths[1], f"{1:064x}", arrays)  # rewritten: the least recently used goes
     assert sorted(entries(folder)) == sorted([paths[0], paths[1]])
     got, meta = disk.load_entry(paths[0], f"{0:064x}")
-    assert np.array_equal(got["a"], arrays["a"]) and meta["arrays"] == ["a"]
-    with pytest.raises(TypeError, match="numbers only"):
+    assert np.array_equal(got["a"], arrays["a"]) and list(meta["arrays"]) == ["a"]
+    # memory-mapped, aligned as a fresh allocation (the kernels that read it take the same paths)
+    assert isinstance(got["a"], np.memmap) and got["a"].ctypes.data % disk.ALIGN == 0
+    with pytest.raises(TypeError, match="numbers only"):  # never written
         disk.save_entry(paths[2], "k", {"o": np.array([object()], dtype=object)})

@@ -7,27 +7,31 @@ factorisation) costs seconds at full size. It depends only on the bundle file's 
 so a process can store it once and every later process (a second run, a Dask worker, a notebook
 restarted) loads it instead.
 
-**What is stored.** One file per entry: an uncompressed ``.npz`` of named numeric arrays (the
-caller decides which: this module stores and returns a ``{name: array}`` dict and does not care
-about the layout of the solver's factors) plus ``__meta__``, a JSON string with the key, the
-arrays' names and anything else the caller records. It is written atomically
+**What is stored.** One file per entry (``<bundle stem>-<key>.hsicache``): a JSON header and
+named numeric arrays (the caller decides which: this module stores and returns a
+``{name: array}`` dict and does not care about the layout of the solver's factors). The file is
+the magic line :data:`MAGIC`, the header's length and CRC-32 (little-endian ``uint64``,
+``uint32``), the header — ``format``, ``key``, ``arrays`` (per array: ``dtype``, ``shape``,
+``offset``, ``crc32``) and whatever else the caller records — then the raw C-order bytes of every
+array at an offset that is a multiple of :data:`ALIGN` (so the memory-mapped data is aligned as a
+fresh allocation is, and the kernels that read it take the same paths). It is written atomically
 (:func:`hsi_torch.io.atomic.atomic_write`: a reader sees the whole file or none) and never over
 an input: entries live in a cache folder, never over the bundle.
 
 **The key** (:func:`entry_key`) is the SHA-256 of a JSON object holding the caller's parts (the
-bundle file's SHA-256, ``beta``, ``diff_order``, dtype, device type, the number of pixels), this
-module's :data:`FORMAT_VERSION`, the caller's layout version, the torch version, and a digest of
-the source files that compute the precomputation (:data:`SOURCE_FILES`): editing the solver's
+bundle file's SHA-256, ``beta``, ``diff_order``, dtype, device type), this module's
+:data:`FORMAT_VERSION`, the caller's layout version, the torch version, and a digest of the
+source files that compute the precomputation (:data:`SOURCE_FILES`): editing the solver's
 factorisation therefore misses every old entry by itself.
 
-**Loading is safe** (:func:`load_entry`): no pickle (``allow_pickle`` never set; object arrays
-refused); the members must be stored uncompressed, of a numeric or bool dtype, with the sizes the
-zip directory declares; the recorded key must equal the key asked for (a foreign file, a renamed
-one); the CRC-32 the zip directory records for every member is recomputed over the data (a
-truncated or altered file). Any failure is a *miss*: a :class:`PrecomputeCacheWarning` names the
-file and the reason, and the caller recomputes (and replaces the entry). The arrays come back
-memory-mapped copy-on-write (``numpy.memmap`` mode ``"c"``): their pages are shared with the page
-cache and the file never changes.
+**Loading is safe** (:func:`load_entry`): nothing is unpickled or evaluated — the header is JSON,
+the arrays raw numbers of plain dtypes (booleans, integers, floats; anything else refused); the
+header's CRC-32 must match, the recorded key must equal the key asked for (a foreign file, a
+renamed one), every array must lie inside the file (a truncated one), and every array's CRC-32 is
+recomputed over its bytes (an altered or damaged file). Any failure is a *miss*: a
+:class:`PrecomputeCacheWarning` names the file and the reason, and the caller recomputes (and
+replaces the entry). The arrays come back memory-mapped copy-on-write (``numpy.memmap`` mode
+``"c"``): their pages are shared with the page cache and the file never changes.
 
 **Where** (:func:`cache_folder`, the reconstruction setting ``precompute_cache``):
 
@@ -54,7 +58,6 @@ import shutil
 import struct
 import threading
 import warnings
-import zipfile
 import zlib
 from collections.abc import Mapping
 from pathlib import Path
@@ -113,8 +116,15 @@ SOURCE_FILES = (
 CACHE_STATS: dict[str, int] = {"hits": 0, "misses": 0, "rejected": 0, "writes": 0,
                                "write_skipped": 0}  # fmt: skip
 
-_META = "__meta__"
-_ENTRY_RE = re.compile(r"^.+-[0-9a-f]{24}\.npz$")
+#: First bytes of an entry file.
+MAGIC = b"HSI_TORCH_PRECOMPUTE\n"
+#: Arrays start at multiples of this many bytes (memory-mapped data aligned as freshly allocated).
+ALIGN = 64
+#: Largest header accepted, bytes.
+MAX_HEADER_BYTES = 16 << 20
+#: The dtypes an entry may hold: plain booleans, integers, floats and complex numbers.
+_DTYPE_RE = re.compile(r"[<>|=]?(b1|[iu][1248]|f[248]|c(8|16))")
+_ENTRY_RE = re.compile(r"^.+-[0-9a-f]{24}\.hsicache$")
 _LOCK = threading.Lock()
 _SOURCE_DIGEST: list[str] = []
 #: (realpath, device, inode, size, mtime_ns) -> hex SHA-256 of the file's content
@@ -210,9 +220,9 @@ def entry_key(parts: Mapping[str, Any], layout_version: int) -> str:
 
 
 def entry_path(folder: str | os.PathLike, bundle_path: str | os.PathLike, key: str) -> Path:
-    """``<folder>/<bundle stem>-<first 24 hex digits of key>.npz``."""
+    """``<folder>/<bundle stem>-<first 24 hex digits of key>.hsicache``."""
     stem = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(bundle_path).stem)[:48] or "bundle"
-    return Path(folder) / f"{stem}-{key[:24]}.npz"
+    return Path(folder) / f"{stem}-{key[:24]}.hsicache"
 
 
 def content_sha256(path: str | os.PathLike) -> str:
@@ -242,103 +252,79 @@ class _Refused(Exception):
     """An entry that must not be used (the message says why)."""
 
 
-def _data_offset(f: Any, info: zipfile.ZipInfo) -> int:
-    """Offset of a stored member's data: after its local header (which has its own name and
-    extra-field lengths)."""
-    f.seek(info.header_offset)
-    head = f.read(30)
-    if len(head) != 30 or head[:4] != b"PK\x03\x04":
-        raise _Refused(f"member {info.filename!r}: bad local header")
-    n, e = struct.unpack("<HH", head[26:30])
-    return info.header_offset + 30 + n + e
+def _aligned(n: int) -> int:
+    return -(-n // ALIGN) * ALIGN
 
 
-def _member_array(path: Path, f: Any, info: zipfile.ZipInfo) -> tuple[np.ndarray, int]:
-    """A stored ``.npy`` member memory-mapped copy-on-write, and its expected CRC-32."""
-    if info.compress_type != zipfile.ZIP_STORED:
-        raise _Refused(f"member {info.filename!r} is compressed")
-    start = _data_offset(f, info)
-    f.seek(start)
-    version = np.lib.format.read_magic(f)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-    elif version in ((2, 0), (3, 0)):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-    else:
-        raise _Refused(f"member {info.filename!r}: npy version {version}")
-    if dtype.hasobject or dtype.kind not in "biufc":
-        raise _Refused(f"member {info.filename!r} has dtype {dtype} (numbers only)")
-    offset = f.tell()
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    if offset - start + nbytes != info.file_size:
-        raise _Refused(f"member {info.filename!r}: {info.file_size} bytes declared, its header "
-                       f"says {offset - start + nbytes}")  # fmt: skip
-    if nbytes == 0:
-        return np.zeros(shape, dtype=dtype), info.CRC
-    mm = np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=tuple(shape),
-                   order="F" if fortran else "C")  # fmt: skip
-    return mm, info.CRC
+def _crc32(buf: Any) -> int:
+    """CRC-32 of a buffer, in 64 MiB steps (zlib releases the GIL on each)."""
+    mv = memoryview(buf).cast("B")
+    c, step = 0, 1 << 26
+    for s in range(0, len(mv), step):
+        c = zlib.crc32(mv[s:s + step], c)
+    return c
+
+
+def _check_arrays(table: Any, size: int, start: int) -> dict[str, tuple[np.dtype, tuple, int, int]]:
+    """The array table of a header, checked: ``{name: (dtype, shape, offset, crc)}``."""
+    if not isinstance(table, dict):
+        raise _Refused("'arrays' is not an object")
+    out: dict[str, tuple[np.dtype, tuple, int, int]] = {}
+    for name, d in table.items():
+        if not isinstance(d, dict) or not isinstance(d.get("dtype"), str):
+            raise _Refused(f"array {name!r}: no dtype")
+        if not _DTYPE_RE.fullmatch(d["dtype"]):
+            raise _Refused(f"array {name!r} has dtype {d['dtype']!r} (plain numbers only)")
+        dt = np.dtype(d["dtype"])
+        shape, off, crc = d.get("shape"), d.get("offset"), d.get("crc32")
+        if not (isinstance(shape, list) and all(type(v) is int and v >= 0 for v in shape)
+                and type(off) is int and type(crc) is int):  # fmt: skip
+            raise _Refused(f"array {name!r}: bad shape, offset or checksum")
+        nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+        if off % ALIGN or off < start or off + nbytes > size:
+            raise _Refused(f"array {name!r}: bytes {off}..{off + nbytes} outside the file's "
+                           f"{size} bytes (truncated?)")  # fmt: skip
+        out[str(name)] = (dt, tuple(shape), off, crc)
+    return out
 
 
 def _read_entry(path: Path, key: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    if not zipfile.is_zipfile(path):
-        raise _Refused("not a zip archive")
     size = path.stat().st_size
-    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
-        infos = {i.filename: i for i in zf.infolist()}
-        mi = infos.get(_META + ".npy")
-        if mi is None:
-            raise _Refused(f"no {_META} member")
-        if mi.file_size > 16 << 20:
-            raise _Refused(f"{_META} is {mi.file_size} bytes")
-        for i in infos.values():
-            if i.header_offset + i.file_size > size:
-                raise _Refused(f"member {i.filename!r} runs past the end of the file (truncated)")
-        with zf.open(mi) as m:  # zipfile checks this member's CRC itself
-            raw = np.lib.format.read_array(m, allow_pickle=False)
-        if raw.ndim != 0 or raw.dtype.kind != "U":
-            raise _Refused(f"{_META} is not a JSON string")
-        meta = json.loads(str(raw))
-        if not isinstance(meta, dict):
-            raise _Refused(f"{_META} is not a JSON object")
-        if meta.get("format") != FORMAT_VERSION:
-            raise _Refused(f"format {meta.get('format')!r}, this software reads {FORMAT_VERSION}")
-        if meta.get("key") != key:
-            raise _Refused("it was made for another bundle, settings or software (key differs)")
-        names = meta.get("arrays")
-        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise _Refused(f"{_META} 'arrays' is not a list of names")
-        members = {n + ".npy" for n in names} | {_META + ".npy"}
-        if set(infos) != members:
-            odd = sorted(set(infos) ^ members)[:5]
-            raise _Refused(f"members differ from the recorded arrays: {odd}")
-        arrays: dict[str, np.ndarray] = {}
-        spans: dict[str, tuple[int, int, int]] = {}
-        for n in names:
-            info = infos[n + ".npy"]
-            arrays[n], crc = _member_array(path, f, info)
-            spans[n] = (_data_offset(f, info), info.file_size, crc)
+    with open(path, "rb") as f:
+        head = f.read(len(MAGIC) + 12)
+        if len(head) < len(MAGIC) + 12 or head[:len(MAGIC)] != MAGIC:
+            raise _Refused("not a precomputation cache entry (no magic bytes)")
+        length, crc = struct.unpack("<QI", head[len(MAGIC):])
+        if length > MAX_HEADER_BYTES or len(MAGIC) + 12 + length > size:
+            raise _Refused(f"header of {length} bytes")
+        text = f.read(length)
+    if zlib.crc32(text) != crc:
+        raise _Refused("the header's CRC-32 differs (the file was altered or damaged)")
+    meta = json.loads(text.decode("utf-8"))
+    if not isinstance(meta, dict):
+        raise _Refused("the header is not a JSON object")
+    if meta.get("format") != FORMAT_VERSION:
+        raise _Refused(f"format {meta.get('format')!r}, this software reads {FORMAT_VERSION}")
+    if meta.get("key") != key:
+        raise _Refused("it was made for another bundle, settings or software (key differs)")
+    table = _check_arrays(meta.get("arrays"), size, len(MAGIC) + 12 + length)
+    arrays: dict[str, np.ndarray] = {}
+    for name, (dt, shape, off, _crc) in table.items():
+        n = int(np.prod(shape, dtype=np.int64))
+        arrays[name] = (np.memmap(path, dtype=dt, mode="c", offset=off, shape=shape) if n
+                        else np.zeros(shape, dtype=dt))  # fmt: skip
     bad: list[str] = []
 
     def check(part: list[str]) -> None:
-        """The CRC-32 of each member's stored bytes (its ``.npy`` header and data) against the
-        zip directory's (zlib releases the GIL: two threads share the members)."""
+        """Each array's CRC-32 against the header's (two threads share the arrays)."""
         for n in part:
-            start, length, crc = spans[n]
-            try:
-                raw = np.memmap(path, dtype=np.uint8, mode="r", offset=start, shape=(length,))
-                c, step = 0, 1 << 26
-                for s in range(0, length, step):
-                    c = zlib.crc32(memoryview(raw[s:s + step]), c)
-                del raw
-            except (OSError, ValueError):
-                c = None
-            if c != crc:
+            a = arrays[n]
+            if (_crc32(a.reshape(-1).view(np.uint8)) if a.size else 0) != table[n][3]:
                 bad.append(n)
 
-    order = sorted(arrays, key=lambda n: -spans[n][1])
+    order = sorted(arrays, key=lambda n: -arrays[n].nbytes)
     threads = [threading.Thread(target=check, args=(part,))
-               for part in (order[0::2], order[1::2]) if part]
+               for part in (order[0::2], order[1::2]) if part]  # fmt: skip
     for t in threads:
         t.start()
     for t in threads:
@@ -362,7 +348,7 @@ def load_entry(path: str | os.PathLike, key: str) -> tuple[dict[str, np.ndarray]
         return None
     try:
         arrays, meta = _read_entry(p, key)
-    except (_Refused, OSError, ValueError, zipfile.BadZipFile, EOFError, struct.error,
+    except (_Refused, OSError, ValueError, UnicodeDecodeError, struct.error,
             RecursionError) as exc:  # fmt: skip
         CACHE_STATS["rejected"] += 1
         _warn(f"precomputation cache entry {p} refused ({exc}); recomputing")
@@ -410,6 +396,31 @@ def _evict(folder: Path, keep: Path, limit: int) -> None:
             pass
 
 
+def _write(f: Any, header: dict[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+    """The entry's bytes: magic, header length and CRC-32, the JSON header (padded with spaces),
+    then every array at a multiple of :data:`ALIGN` bytes."""
+    room = 4096
+    while True:
+        start = _aligned(len(MAGIC) + 12 + room)
+        pos = start
+        for n, a in arrays.items():
+            header["arrays"][n]["offset"] = pos
+            pos = _aligned(pos + a.nbytes)
+        text = json.dumps(header, default=json_default).encode("utf-8")
+        if len(MAGIC) + 12 + len(text) <= start:
+            break
+        room = 2 * len(text)
+    text += b" " * (start - len(MAGIC) - 12 - len(text))
+    f.write(MAGIC + struct.pack("<QI", len(text), zlib.crc32(text)) + text)
+    pos = start
+    for n, a in arrays.items():
+        off = header["arrays"][n]["offset"]
+        f.write(b"\0" * (off - pos))
+        if a.size:
+            f.write(memoryview(a.reshape(-1).view(np.uint8)))
+        pos = off + a.nbytes
+
+
 def save_entry(
     path: str | os.PathLike, key: str, arrays: Mapping[str, np.ndarray],
     meta: Mapping[str, Any] | None = None,
@@ -430,7 +441,7 @@ def save_entry(
     """
     p = Path(path)
     for n, a in arrays.items():
-        if not re.fullmatch(r"[A-Za-z0-9_.-]+", n) or n == _META:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", n):
             raise ValueError(f"cache array name {n!r}: letters, digits, '_', '.', '-' only")
         if a.dtype.hasobject or a.dtype.kind not in "biufc":
             raise TypeError(f"cache array {n!r} has dtype {a.dtype}: numbers only")
@@ -441,8 +452,11 @@ def save_entry(
         _warn(f"precomputation cache: the entry for {p.name} ({nbytes / 2**30:.1f} GiB) exceeds "
               f"the folder's bound {limit / 2**30:.1f} GiB (${MAX_GB_ENV}); not written")
         return False
-    text = json.dumps({**dict(meta or {}), "format": FORMAT_VERSION, "key": key,
-                       "arrays": list(arrays)}, default=json_default)  # fmt: skip
+    flat = {n: np.ascontiguousarray(a) for n, a in arrays.items()}
+    header = {**dict(meta or {}), "format": FORMAT_VERSION, "key": key,
+              "arrays": {n: {"dtype": a.dtype.str, "shape": list(a.shape),
+                             "crc32": _crc32(a.reshape(-1).view(np.uint8)) if a.size else 0}
+                         for n, a in flat.items()}}  # fmt: skip
     with _LOCK:
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
@@ -453,7 +467,7 @@ def save_entry(
                       f"entry needs {nbytes / 2**30:.1f} GiB; not written")
                 return False
             with atomic_write(p, "wb", fsync=False) as f:  # checked (CRC-32) when read
-                np.savez(f, **{_META: np.array(text)}, **dict(arrays))
+                _write(f, header, flat)
             _evict(p.parent, p, limit)
         except OSError as exc:
             CACHE_STATS["write_skipped"] += 1
