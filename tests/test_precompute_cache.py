@@ -262,3 +262,21 @@ def test_entries_are_bounded_least_recently_used_first(tmp_path, monkeypatch):
     assert isinstance(got["a"], np.memmap) and got["a"].ctypes.data % disk.ALIGN == 0
     with pytest.raises(TypeError, match="numbers only"):  # never written
         disk.save_entry(paths[2], "k", {"o": np.array([object()], dtype=object)})
+
+
+def test_the_bundle_hash_is_remembered_by_file_identity(bundle_file, tmp_path, monkeypatch):
+    calls = []
+    real = disk._hash_file
+    monkeypatch.setattr(disk, "_hash_file", lambda p: calls.append(p) or real(p))
+    memo = tmp_path / "memo"
+    fresh_process()
+    sha = disk.content_sha256(bundle_file, memo)
+    fresh_process()  # a later process: the memo file answers, the bundle is not read
+    assert disk.content_sha256(bundle_file, memo) == sha and len(calls) == 1
+    assert (memo / disk.HASH_MEMO).is_file()
+    make_bundle(seed=7).save(bundle_file)  # rewritten: hashed again, another answer
+    fresh_process()
+    assert disk.content_sha256(bundle_file, memo) != sha and len(calls) == 2
+    (memo / disk.HASH_MEMO).write_text("{not json")  # a damaged memo is ignored
+    fresh_process()
+    assert disk.content_sha256(bundle_file, memo) == real(bundle_file) and len(calls) == 3

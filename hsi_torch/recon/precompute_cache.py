@@ -65,7 +65,7 @@ from typing import Any
 
 import numpy as np
 
-from hsi_torch.io.atomic import atomic_write, json_default
+from hsi_torch.io.atomic import atomic_write, atomic_write_text, json_default
 
 __all__ = [
     "FORMAT_VERSION",
@@ -127,8 +127,10 @@ _DTYPE_RE = re.compile(r"[<>|=]?(b1|[iu][1248]|f[248]|c(8|16))")
 _ENTRY_RE = re.compile(r"^.+-[0-9a-f]{24}\.hsicache$")
 _LOCK = threading.Lock()
 _SOURCE_DIGEST: list[str] = []
-#: (realpath, device, inode, size, mtime_ns) -> hex SHA-256 of the file's content
-_HASHES: dict[tuple[str, int, int, int, int], str] = {}
+#: (realpath, device, inode, size, mtime_ns, ctime_ns) -> hex SHA-256 of the file's content
+_HASHES: dict[tuple[str, int, int, int, int, int], str] = {}
+#: File of a cache folder remembering the SHA-256 of the bundles seen (by file identity).
+HASH_MEMO = "bundle_hashes.json"
 
 
 class PrecomputeCacheWarning(UserWarning):
@@ -225,23 +227,51 @@ def entry_path(folder: str | os.PathLike, bundle_path: str | os.PathLike, key: s
     return Path(folder) / f"{stem}-{key[:24]}.hsicache"
 
 
-def content_sha256(path: str | os.PathLike) -> str:
-    """Hex SHA-256 of a file's content, remembered in this process while the file's identity,
-    size and modification time stay the same (a bundle read again by the same process is not
-    hashed again)."""
+def _hash_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 22):
+            h.update(block)
+    return h.hexdigest()
+
+
+def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | None = None) -> str:
+    """Hex SHA-256 of a file's content, remembered while the file's identity stays the same.
+
+    The identity is the resolved path, device, inode, size, modification *and change* time
+    (``st_ctime_ns``: set by the system on every write or metadata change, never by a user), so
+    a rewritten or edited file is always hashed again. Remembered in this process, and, with
+    ``memo_folder``, in its ``bundle_hashes.json`` (:data:`HASH_MEMO`) for later processes: a
+    second process then reads no byte of an unchanged bundle.
+    """
     p = Path(path)
     st = p.stat()
-    ident = (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    ident = (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
     sha = _HASHES.get(ident)
-    if sha is None:
-        h = hashlib.sha256()
-        with open(p, "rb") as f:
-            while block := f.read(1 << 22):
-                h.update(block)
-        sha = h.hexdigest()
-        if len(_HASHES) > 64:
-            _HASHES.clear()
-        _HASHES[ident] = sha
+    if sha is not None:
+        return sha
+    memo_path = None if memo_folder is None else Path(memo_folder) / HASH_MEMO
+    memo: dict[str, str] = {}
+    if memo_path is not None and memo_path.is_file():
+        try:
+            got = json.loads(memo_path.read_text("utf-8"))
+            memo = {str(k): str(v) for k, v in got.items()} if isinstance(got, dict) else {}
+        except (OSError, ValueError):
+            memo = {}
+    text = json.dumps(ident)
+    sha = memo.get(text)
+    if sha is None or not re.fullmatch(r"[0-9a-f]{64}", sha):
+        sha = _hash_file(p)
+        if memo_path is not None:
+            memo = dict(list(memo.items())[-255:])
+            memo[text] = sha
+            try:
+                atomic_write_text(memo_path, json.dumps(memo, indent=0))
+            except OSError:
+                pass  # a read-only folder: hashed again next time
+    if len(_HASHES) > 64:
+        _HASHES.clear()
+    _HASHES[ident] = sha
     return sha
 
 

@@ -311,7 +311,7 @@ def precompute_sensing(
         disk._warn(note)
     entry = key = mem_key = None
     if folder is not None and path is not None and path.is_file():
-        sha = disk.content_sha256(path)
+        sha = disk.content_sha256(path, folder)
         key = disk.entry_key({"bundle_sha256": sha, "beta": beta, "diff_order": diff_order,
                               "dtype": str(dtype), "device": dev.type}, CACHE_LAYOUT_VERSION)
         mem_key = ("file", key, str(dev))
