@@ -11,7 +11,9 @@ End to end on the virtual prototype, from nothing to scored spectral cubes:
 2. **calibrate** from those captures only (the shipped ``calibrate.yaml``) → ``OUT/calib.npz``;
 3. **reconstruct** every scene with the calibrated bundle and, for comparison, with the *oracle*
    bundle made of the simulator's true B, φ, g and homographies (so the cost of calibration is
-   visible), at a fixed β (``beta``, default 1e4, see below);
+   visible), at a fixed β (``beta``, default 1e4, see below), and once more with the calibrated
+   bundle and the spatial (TV) prior at its default weight (scores under ``tv``, beside
+   per-pixel);
 4. **score** against the ground truth and write cubes, sRGB previews, spectra plots and
    ``OUT/summary.json``.
 
