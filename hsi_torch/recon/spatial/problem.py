@@ -1,8 +1,9 @@
 """The frame-independent part of the spatial solve: ``G``, ``ρ``, the factor and the grid.
 
-:func:`prepare_spatial` factorises ``G_p + ρI`` once (batched Cholesky; its inverse is formed once
-with ``torch.cholesky_inverse`` and applied by a batched matrix–vector product, 4× faster than
-``torch.cholesky_solve`` for 100 000 25×25 systems on a CPU) and builds the active grid;
+:func:`prepare_spatial` factorises ``G_p + ρI`` once (batched Cholesky, :data:`FACTOR_CHUNK` pixels
+at a time; its inverse is formed once with ``torch.cholesky_inverse``, kept as the only copy, and
+applied by a matrix–vector product per pixel, 4× faster than ``torch.cholesky_solve`` for
+100 000 25×25 systems on a CPU) and builds the active grid;
 :meth:`SpatialProblem.for_frame` adapts it to one frame (its valid pixels, pixels whose frame
 mask changed their Gram matrix, guided edge weights); :func:`bundle_spatial_problem` caches it
 with the bundle's NNLS factorisation. The default penalty is :data:`RHO_SCALE` × the median of
