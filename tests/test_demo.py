@@ -51,6 +51,12 @@ def test_demo_quick_meets_targets(tmp_path: Path, capsys):
     assert cc["oracle"]["mean_psnr_db"] >= 30.0
     syn = s["scenes"]["synthetic"]  # built-in scene when CAVE is off
     assert syn["calibrated"]["pixels"] > 500 and np.isfinite(syn["calibrated"]["psnr_db"])
+    # the TV prior (calibrated bundle, default weight) beside per-pixel: better per pixel
+    pv = cc["per_pixel_valid"]
+    assert pv["tv"]["psnr_db"] > pv["calibrated"]["psnr_db"]
+    assert pv["tv"]["median_sam_deg"] < pv["calibrated"]["median_sam_deg"]
+    assert np.isfinite(cc["tv"]["mean_psnr_db"]) and np.isfinite(syn["tv"]["psnr_db"])
+    assert "TV prior" in printed
     for f in ("calib.npz", "colorchecker.npz", "colorchecker.tif", "colorchecker_preview.png",
               "colorchecker_spectra.png", "synthetic_preview.png", "synthetic_spectra.png",
               "resolved_config.yaml", "calib_diagnostics.png", "colorchecker_panel.png",

@@ -368,3 +368,60 @@ def test_brightness_weighting_is_symmetric_and_weights_only_the_flat_spectrum(dt
     with pytest.raises(ValueError, match="brightness_weight"):
         solve_spatial(prepare_spatial(torch.eye(2, dtype=dtype)[None], torch.arange(1), (1, 1)),
                       torch.zeros(1, 2, dtype=dtype), 1.0, brightness_weight=0.0)
+
+
+def test_factor_is_built_in_chunks(device, dtype, monkeypatch):
+    """``(G + ρI)⁻¹`` factorised a few pixels at a time equals the whole-batch inverse (per-pixel
+    and shared ``G``), and a Gram matrix that is not positive semi-definite is still refused."""
+    from hsi_torch.recon.spatial import problem as spatial_problem
+
+    monkeypatch.setattr(spatial_problem, "FACTOR_CHUNK", 7)  # 30 pixels: 5 chunks, a short last
+    A, y, G, b, active, (h, w) = _tiny(device, dtype, seed=21)
+    pix = torch.arange(h * w, device=device)
+    prob = prepare_spatial(G, pix, (h, w), active)
+    eye = torch.eye(G.shape[-1], dtype=dtype, device=device)
+    tol = 1e-4 if dtype == torch.float32 else 1e-10
+    ref = torch.linalg.inv(G.double() + prob.rho * eye.double())
+    assert prob.inv.shape == G.shape and prob.inv.is_contiguous()
+    assert float((prob.inv.double() - ref).abs().max()) <= tol * float(ref.abs().max())
+    shared = prepare_spatial(G[:1], pix, (h, w), rho=0.5)
+    torch.testing.assert_close(shared.inv.double(), torch.linalg.inv(G[:1].double() + 0.5 * eye),
+                               atol=tol * 10, rtol=tol)
+    bad = G.clone()
+    bad[12] = -eye * 10  # negative definite in the third chunk
+    with pytest.raises(ValueError, match="positive definite"):
+        prepare_spatial(bad, pix, (h, w))
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_compiled_products(dtype, shared):
+    """The compiled kernels' ``S x`` (columns of a symmetric ``S`` read as axpy's) and the
+    x-update equal the plain products, per-pixel and shared ``S``."""
+    from hsi_torch.recon.spatial import _compiled as sc
+
+    if not sc.AVAILABLE:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(5)
+    P, m = 1000, 25
+    dtype_np = np.float32 if dtype == torch.float32 else np.float64
+    B = rng.standard_normal((1 if shared else P, m, m))
+    S = np.ascontiguousarray((B + B.transpose(0, 2, 1)).astype(dtype_np))
+    x = rng.standard_normal((P, m)).astype(dtype_np)
+    out = np.empty_like(x)
+    sc.sym_apply(S, x, out)
+    ref = np.einsum("pij,pj->pi", np.broadcast_to(S, (P, m, m)).astype(np.float64), x)
+    tol = 1e-4 if dtype == torch.float32 else 1e-12
+    assert np.abs(out - ref).max() <= tol * np.abs(ref).max()
+    b, z, u, xp = (rng.standard_normal((P, m)).astype(dtype_np) for _ in range(4))
+    u0 = u.copy()
+    v = np.empty_like(b)
+    sc.x_update(S, b, z, u, xp.copy(), v, 0.3, False)  # u untouched
+    np.testing.assert_array_equal(u, u0)
+    xk = xp.copy()
+    sc.x_update(S, b, z, u, xk, v, 0.3, True)  # u += x − z first
+    u1 = u0.astype(np.float64) + xp - z
+    rhs = b + 0.3 * (z - u1)
+    xr = np.einsum("pij,pj->pi", np.broadcast_to(S, (P, m, m)).astype(np.float64), rhs)
+    assert np.abs(u - u1).max() <= tol * np.abs(u1).max()
+    assert np.abs(xk - xr).max() <= tol * np.abs(xr).max()
+    assert np.abs(v - (xr + u1)).max() <= tol * np.abs(xr + u1).max()

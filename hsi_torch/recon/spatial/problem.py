@@ -1,8 +1,9 @@
 """The frame-independent part of the spatial solve: ``G``, ``ρ``, the factor and the grid.
 
-:func:`prepare_spatial` factorises ``G_p + ρI`` once (batched Cholesky; its inverse is formed once
-with ``torch.cholesky_inverse`` and applied by a batched matrix–vector product, 4× faster than
-``torch.cholesky_solve`` for 100 000 25×25 systems on a CPU) and builds the active grid;
+:func:`prepare_spatial` factorises ``G_p + ρI`` once (batched Cholesky, :data:`FACTOR_CHUNK` pixels
+at a time; its inverse is formed once with ``torch.cholesky_inverse``, kept as the only copy, and
+applied by a matrix–vector product per pixel, 4× faster than ``torch.cholesky_solve`` for
+100 000 25×25 systems on a CPU) and builds the active grid;
 :meth:`SpatialProblem.for_frame` adapts it to one frame (its valid pixels, pixels whose frame
 mask changed their Gram matrix, guided edge weights); :func:`bundle_spatial_problem` caches it
 with the bundle's NNLS factorisation. The default penalty is :data:`RHO_SCALE` × the median of
@@ -14,7 +15,7 @@ from __future__ import annotations
 import functools
 import math
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -64,8 +65,6 @@ class SpatialProblem:
     row_index: Tensor | None = None
     row_gram: Tensor | None = None
     row_inv: Tensor | None = None
-    #: the compiled path's packed ``(G + ρI)⁻¹`` (shared by the frames of one bundle)
-    packed: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
     def num_pixels(self) -> int:
@@ -102,10 +101,10 @@ class SpatialProblem:
         else:
             rows, row_gram = None, None
         return SpatialProblem(self.gram, self.rho, self.inv, self.pixel_index, self.frame_size,
-                              active, ex, ey, rows, row_gram, r_inv, self.packed)
+                              active, ex, ey, rows, row_gram, r_inv)
 
     def compiled_inputs(self) -> tuple[np.ndarray, tuple[np.ndarray, ...]] | None:
-        """The compiled CPU path's inputs: the packed ``(G + ρI)⁻¹`` and the graph (neighbour
+        """The compiled CPU path's inputs: ``(G + ρI)⁻¹`` as a NumPy view and the graph (neighbour
         positions and edge weights per pixel, see :mod:`hsi_torch.recon.spatial._compiled`);
         ``None`` where that path does not apply (numba absent, not on the CPU, or the pixels not
         in row-major order)."""
@@ -114,9 +113,9 @@ class SpatialProblem:
         pix = self.pixel_index.numpy()
         if pix.size > 1 and not bool((pix[1:] > pix[:-1]).all()):
             return None
-        if "inv" not in self.packed:
-            self.packed["inv"] = compiled.pack_symmetric(self.inv.numpy())
-        return self.packed["inv"], self._graph
+        if not self.inv.is_contiguous():
+            return None
+        return self.inv.numpy(), self._graph
 
     @functools.cached_property
     def _graph(self) -> tuple[np.ndarray, ...]:
@@ -143,7 +142,9 @@ class SpatialProblem:
         return row_ptr, right, down, left, up, wx, wy, wl, wu
 
     def _apply(self, x: Tensor, matrices: Tensor, row_matrices: Tensor | None) -> Tensor:
-        """``matrices_p x_p`` for all pixels, the frame's own ``row_matrices`` on ``row_index``."""
+        """``matrices_p x_p`` for all pixels, the frame's own ``row_matrices`` on ``row_index``
+        (the compiled product on the CPU where nothing needs a gradient: torch's batched
+        ``(P, M, M) @ (P, M, 1)`` product is ≈ 5× slower for ``M = 25``)."""
         out = _rowvec(x, matrices)
         if self.row_index is not None:
             out = out.index_copy(0, self.row_index,
@@ -221,20 +222,51 @@ def prepare_spatial(
                 rho = 1.0
     if not float(rho) > 0:
         raise ValueError(f"rho must be > 0, got {rho}")
-    eye = torch.eye(m, dtype=gram.dtype, device=gram.device)
-    L, info = torch.linalg.cholesky_ex(gram + float(rho) * eye)
-    if bool((info != 0).any()):
-        raise ValueError("G + rho*I is not positive definite: the Gram matrices are not "
-                         "symmetric positive semi-definite")
-    inv = torch.cholesky_inverse(L)
+    inv = _shifted_inverse(gram, float(rho))
     grid = torch.zeros(h * w, dtype=torch.bool, device=gram.device)
     grid[pix[active]] = True
     ex, ey = grid_edges(grid.view(h, w))
     return SpatialProblem(gram, float(rho), inv, pix, (h, w), active, ex, ey)
 
 
+#: Pixels factorised at once by :func:`prepare_spatial`: the Cholesky factor and the shifted
+#: Gram matrices exist for one chunk at a time (at the full-size prototype's 306 000 pixels the
+#: whole-batch temporaries were 1.5 GB beside the 0.77 GB inverse).
+FACTOR_CHUNK = 16384
+
+
+def _shifted_inverse(gram: Tensor, rho: float) -> Tensor:
+    """``(G_p + ρI)⁻¹`` for ``gram (P|1, M, M)`` by batched Cholesky, :data:`FACTOR_CHUNK`
+    pixels at a time into one ``(P|1, M, M)`` tensor (symmetric, contiguous)."""
+    n, m = gram.shape[0], gram.shape[-1]
+    eye = torch.eye(m, dtype=gram.dtype, device=gram.device)
+    if gram.requires_grad and torch.is_grad_enabled():  # differentiable w.r.t. G: one op
+        L, info = torch.linalg.cholesky_ex(gram + rho * eye)
+        if bool((info != 0).any()):
+            raise ValueError("G + rho*I is not positive definite: the Gram matrices are not "
+                             "symmetric positive semi-definite")
+        return torch.cholesky_inverse(L)
+    inv = torch.empty((n, m, m), dtype=gram.dtype, device=gram.device)
+    with torch.no_grad():
+        for s in range(0, n, FACTOR_CHUNK):
+            e = min(n, s + FACTOR_CHUNK)
+            L, info = torch.linalg.cholesky_ex(gram[s:e] + rho * eye)
+            if bool((info != 0).any()):
+                raise ValueError("G + rho*I is not positive definite: the Gram matrices are not "
+                                 "symmetric positive semi-definite")
+            inv[s:e] = torch.cholesky_inverse(L)
+    return inv
+
 
 def _rowvec(x: Tensor, K: Tensor) -> Tensor:
+    """``K_p x_p`` for symmetric ``K (P|1, M, M)`` and ``x (P, M)``."""
+    if (compiled.AVAILABLE and x.device.type == "cpu" and K.device.type == "cpu"
+            and x.dtype == K.dtype and K.is_contiguous()
+            and not ((x.requires_grad or K.requires_grad) and torch.is_grad_enabled())):
+        xc = x.detach().contiguous()
+        out = torch.empty_like(xc)
+        compiled.sym_apply(K.detach().numpy(), xc.numpy(), out.numpy())
+        return out
     return (K @ x.unsqueeze(-1)).squeeze(-1)
 
 
