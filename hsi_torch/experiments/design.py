@@ -444,8 +444,8 @@ def run_design(
         "## Top 15 by condition number\n",
         report.markdown_table(ranked[:15], show, fmt, bold=lambda r: r["is_default"]),
         f"\n## Simulated PSNR (σ = {ps.noise_sigma:g} DN, {len(seeds)} seeds, best β, "
-        "diffuser centre) of the top designs and the default (bold). "
-        + metrics_note({"ssim": "the patches are spectra without a spatial layout"})
+        "diffuser centre) of the top designs and the default (bold)\n",
+        metrics_note({"ssim": "the patches are spectra without a spatial layout"})
         + " Each seed's patches are scored as one 1 × K image, mean over seeds.\n",
         report.markdown_table(scored, show_psnr, fmt, bold=lambda r: r["is_default"]),
     ]
