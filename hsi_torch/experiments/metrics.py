@@ -4,7 +4,10 @@ The metrics themselves (PSNR in both conventions, SSIM, SAM, ERGAS, RMSE, MRAE) 
 :mod:`hsi_torch.metrics`, with their conventions; ``mse``, ``rmse``, ``psnr``,
 ``spectral_angle_deg`` and ``psnr_from_mse`` are re-exported here for the callers that import them
 from this module. The scene scores (:func:`colorchecker_scores`, :func:`cube_scores`) take numpy
-cubes ``(M, h, w)`` and masks ``(h, w)`` and compute in float64.
+cubes ``(M, h, w)`` and masks ``(h, w)`` and compute in float64. The experiments' tables share
+the metrics' headers (:data:`METRIC_HEADERS`, :func:`metric_columns`), cell formats
+(:data:`METRIC_FORMATS`), row values with :data:`NOT_APPLICABLE` where a metric does not apply
+(:func:`metric_cells`) and the paragraph stating the conventions (:func:`metrics_note`).
 """
 
 from __future__ import annotations
