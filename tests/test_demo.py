@@ -7,9 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from hsi_torch.cli import main
+from hsi_torch.experiments.demo import metrics_lines
+from hsi_torch.experiments.demo_full import report_lines
 from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores
+from hsi_torch.metrics import METRIC_NAMES, cube_metrics
 
 
 def test_colorchecker_scores_against_formula():
@@ -36,6 +40,36 @@ def test_colorchecker_scores_against_formula():
     assert c["psnr_db"] == pytest.approx(40.0)
 
 
+def test_summaries_print_the_fields_metrics_of_hsi_torch_metrics():
+    """A known cube: the scene scores' metrics are hsi_torch.metrics' (PSNR both conventions
+    checked by hand), and both demos' summaries print all of them, per bundle."""
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.05, 0.9, (6, 20, 24))
+    cube = truth + rng.normal(0.0, 0.02, truth.shape)
+    mask = np.ones((20, 24), bool)
+    mask[:3] = False
+    sc = cube_scores(cube, truth, mask)
+    direct = cube_metrics(torch.from_numpy(cube), torch.from_numpy(truth), torch.from_numpy(mask))
+    assert set(sc["metrics"]) == set(METRIC_NAMES)
+    assert sc["metrics"] == pytest.approx(direct, rel=1e-12)
+    e, t = cube[:, mask], truth[:, mask]  # (M, P)
+    assert direct["psnr_db"] == pytest.approx(10 * np.log10(1 / np.mean((e - t) ** 2)))
+    se_b = ((np.clip(e, 0, 1) - np.clip(t, 0, 1)) ** 2 * 255**2).mean(1)
+    assert direct["psnr_bands_db"] == pytest.approx(np.mean(10 * np.log10(255**2 / se_b)))
+    entry = {"calibrated": sc, "oracle": cube_scores(truth, truth + 0.01, mask)}
+    lines = metrics_lines(entry)
+    assert len(lines) == 3
+    cal = lines[1]
+    for text in (f"PSNR {direct['psnr_db']:.2f} dB",
+                 f"per band 0-255: {direct['psnr_bands_db']:.2f}", f"SSIM {direct['ssim']:.4f}",
+                 f"SAM {direct['sam_deg']:.2f} deg",
+                 f"ERGAS {direct['ergas']:.2f}", f"RMSE {direct['rmse']:.4f}",
+                 f"MRAE {direct['mrae']:.4f}"):  # fmt: skip
+        assert text in cal, text
+    full = report_lines({"scenes": {"known": entry}, "stages": {}, "total_s": 1.0}, Path("o"))
+    assert all(line in full for line in lines)  # demo --full's summary carries the same lines
+
+
 def test_demo_quick_meets_targets(tmp_path: Path, capsys):
     out = tmp_path / "demo"
     rc = main(["demo", "--out", str(out), "--quick", "--set", "progress=false", "--set",
@@ -49,6 +83,14 @@ def test_demo_quick_meets_targets(tmp_path: Path, capsys):
     assert cc["calibrated"]["mean_psnr_db"] >= 30.0
     assert cc["calibrated"]["mean_sam_deg"] <= 5.0
     assert cc["oracle"]["mean_psnr_db"] >= 30.0
+    # the field's metrics of every scene and bundle, in summary.json and in the printed summary
+    for name, e in s["scenes"].items():
+        src = e.get("per_pixel_valid", e)
+        for key in ("calibrated", "oracle"):
+            m = src[key]["metrics"]
+            assert set(m) == set(METRIC_NAMES) and all(np.isfinite(v) for v in m.values()), name
+            assert f"PSNR {m['psnr_db']:.2f} dB (per band 0-255: {m['psnr_bands_db']:.2f} dB)" \
+                in printed
     syn = s["scenes"]["synthetic"]  # built-in scene when CAVE is off
     assert syn["calibrated"]["pixels"] > 500 and np.isfinite(syn["calibrated"]["psnr_db"])
     # the TV prior (calibrated bundle, default weight) beside per-pixel: better per pixel

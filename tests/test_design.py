@@ -121,6 +121,25 @@ def test_small_sweep_ranking_against_numpy(small_run, rays):
         assert (out / f).is_file()
 
 
+def test_psnr_stage_carries_the_fields_metrics(small_run):
+    """The PSNR stage's rows carry the field's metrics of the synthetic protocol: with one seed
+    the RMSE is 10^(−PSNR/20) exactly; the per-band PSNR on 0–255 is a different number; SSIM is
+    marked not applicable, and the table says why."""
+    out, _ = small_run
+    scored = [r for r in csv.DictReader(open(out / "ranking.csv")) if r["rank_psnr"]]
+    assert scored
+    for r in scored:
+        assert float(r["rmse"]) == pytest.approx(10 ** (-float(r["psnr_db"]) / 20), rel=1e-9)
+        assert float(r["ergas"]) > 0 and float(r["mrae"]) > 0
+        assert np.isfinite(float(r["psnr_bands_db"]))
+        assert float(r["psnr_bands_db"]) != pytest.approx(float(r["psnr_db"]), abs=1e-6)
+        assert r["ssim"] == "n/a"
+    md = (out / "ranking.md").read_text()
+    for h in ("PSNR dB (per band, 0-255)", "| SSIM |", "SAM °", "ERGAS", "RMSE", "MRAE",
+              "SSIM: n/a (the patches are spectra without a spatial layout)"):
+        assert h in md, h
+
+
 def test_best_prototype_yaml(small_run):
     out, summary = small_run
     doc = yaml.safe_load((out / "best_prototype.yaml").read_text())

@@ -127,6 +127,9 @@ def test_default_truth_views_within_stated_error(default_run):
     for f in ("matched_pairs.csv", "matched_pairs.md", "per_view.csv", "summary.md",
               "correspondence_truth.png", "opd_polar_truth.png", "spectra_truth.png"):
         assert (out / f).is_file(), f
+    # no reflectance cube here: the table says the field's metrics do not apply, and why
+    assert "reconstruction metrics (hsi_torch.metrics" in (out / "summary.md").read_text()
+    assert "do not apply here" in (out / "summary.md").read_text()
 
 
 def test_match_points_nearest_view():

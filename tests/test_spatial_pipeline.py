@@ -232,6 +232,35 @@ def test_experiment_registered_and_scores(tmp_path):
     assert worse["whole_patches_per_pixel"]["psnr_db"] < 60
 
 
+def test_experiment_table_carries_the_fields_metrics(tmp_path):
+    """table.md / table.csv hold hsi_torch.metrics of the footprint (both PSNR conventions,
+    SSIM, mean SAM, ERGAS, RMSE, MRAE) of a known cube."""
+    import csv
+
+    import torch
+
+    from hsi_torch.experiments.spatial import _row, _write_tables, scene_scores
+    from hsi_torch.metrics import cube_metrics
+
+    g = np.random.default_rng(1)
+    truth_cube = 0.1 + 0.8 * g.random((5, 20, 24))
+    truth_cube[:, :, :2] = 0.0  # off the scene: outside the footprint
+    cube = truth_cube + g.normal(0.0, 0.03, truth_cube.shape)
+    valid = np.ones((20, 24), bool)
+    sc = scene_scores("s", cube, valid, {"scene_s": truth_cube}, 0.0)
+    foot = torch.from_numpy(valid & (truth_cube.max(0) > 0))
+    want = cube_metrics(torch.from_numpy(cube), torch.from_numpy(truth_cube), foot)
+    row = _row("s", "per-pixel", sc, {})
+    md = _write_tables(tmp_path, [row])
+    got = next(csv.DictReader(open(tmp_path / "table.csv")))
+    assert float(got["psnr_db"]) == pytest.approx(want["psnr_db"], rel=1e-12)
+    for k in ("psnr_bands_db", "ssim", "sam_deg", "ergas", "rmse", "mrae"):
+        assert float(got[k]) == pytest.approx(want[k], rel=1e-12), k
+    for text in ("PSNR/band 0-255", "SSIM", "ERGAS", "MRAE", f"{want['ssim']:.4f}",
+                 f"{want['psnr_bands_db']:.2f}", f"{want['ergas']:.2f}"):
+        assert text in md, text
+
+
 def test_frame_tolerance_scores_like_the_converged_answer(device, monkeypatch):
     """The pipeline stops ADMM at the frame tolerance: on a noisy frame its answer keeps at least
     95 % of the converged minimiser's error reduction over per-pixel NNLS (the converged one

@@ -132,6 +132,44 @@ def test_three_camera_psnr_matches_scipy_loop(refl, device, dtype):
     assert abs(row["psnr_std_db"] - ref[:, j].std(ddof=1)) < 0.1
 
 
+def test_the_fields_metrics_at_the_best_beta(refl, device, dtype):
+    """The table's other metrics are hsi_torch.metrics of each seed's patches at the best β
+    (checked here by hand in numpy), their mean over seeds; SSIM is marked not applicable."""
+    d = three_camera_design(device=device, dtype=dtype)
+    ev = evaluate_design(d.matrix, refl.to(device, dtype), [1.0, 4.0], [0, 1], [1e2, 1e3],
+                         keep_estimates=True)  # fmt: skip
+    t = refl.numpy()  # (K, M)
+    rows = ev.summary_rows()
+    for i in range(2):
+        b = int(ev.best_index[i])
+        by_hand: dict[str, list[float]] = {"psnr_bands_db": [], "ergas": [], "rmse": [],
+                                           "mrae": []}  # fmt: skip
+        for j in range(2):
+            e = ev.estimates[i, j].double().cpu().numpy()  # (K, M)
+            se_b = ((np.clip(e, 0, 1) * 255 - np.clip(t, 0, 1) * 255) ** 2).mean(0)  # (M,)
+            by_hand["psnr_bands_db"].append(float(np.mean(10 * np.log10(255.0**2 / se_b))))
+            rmse_b = np.sqrt(((e - t) ** 2).mean(0))
+            by_hand["ergas"].append(float(100 * np.sqrt(np.mean((rmse_b / t.mean(0)) ** 2))))
+            by_hand["rmse"].append(float(np.sqrt(((e - t) ** 2).mean())))
+            ok = t >= 1e-3
+            by_hand["mrae"].append(float((np.abs(e - t)[ok] / t[ok]).mean()))
+            # the whole-cube PSNR and SAM of cube_metrics are the sweep's at the best β
+            tol = 1e-9 if dtype == torch.float64 else 1e-3
+            assert float(ev.metrics["psnr_db"][i, j]) == pytest.approx(
+                float(ev.psnr_db[i, j, b]), abs=tol)
+            assert float(ev.metrics["sam_deg"][i, j]) == pytest.approx(
+                float(ev.sam_deg[i, j, b]), abs=tol)
+            assert math.isnan(float(ev.metrics["ssim"][i, j]))
+        rel = 1e-9 if dtype == torch.float64 else 1e-4
+        for k, v in by_hand.items():
+            assert float(ev.metrics[k][i].mean()) == pytest.approx(np.mean(v), rel=rel), k
+            assert rows[i][k] == pytest.approx(np.mean(v), rel=rel), k
+        assert rows[i]["ssim"] == "n/a"
+    # a noisier observation scores worse on every metric
+    assert rows[1]["psnr_bands_db"] < rows[0]["psnr_bands_db"]
+    assert rows[1]["ergas"] > rows[0]["ergas"] and rows[1]["mrae"] > rows[0]["mrae"]
+
+
 def test_this_system_ahead_of_three_camera(refl):
     seeds = [0]
     this = evaluate_design(this_system_design().matrix, refl, [1.0], seeds)
@@ -162,7 +200,16 @@ def test_run_synthetic_writes_outputs(tmp_path):
                    if s["method"] == r["method"] and s["noise_sigma"] == r["noise_sigma"])
         assert float(r["psnr_db"]) == pytest.approx(best)
     assert "FR2" in summary["margins_db"]
-    assert "| σ (DN) | 3Camera | FR2 |" in (tmp_path / "results.md").read_text()
+    md = (tmp_path / "results.md").read_text()
+    assert "| σ (DN) | 3Camera | FR2 |" in md
+    # the field's metrics: both PSNR conventions, ERGAS, RMSE, MRAE; SSIM marked n/a with why
+    for h in ("PSNR dB (cube, peak 1)", "PSNR dB (per band, 0-255)", "SSIM", "SAM °", "ERGAS",
+              "RMSE", "MRAE", "SSIM: n/a (the patches are spectra without a spatial layout)"):
+        assert h in md, h
+    for r in rows:
+        assert r["ssim"] == "n/a"
+        assert 0 < float(r["ergas"]) and 0 < float(r["rmse"]) < 1 and 0 < float(r["mrae"])
+        assert 20 < float(r["psnr_bands_db"]) < 80
 
 
 def test_design_spec_errors():

@@ -15,6 +15,7 @@ from hsi_torch.experiments.usaf import (
     run_usaf,
     triplet_sample_points,
 )
+from hsi_torch.metrics import METRIC_NAMES
 from hsi_torch.simulate.scenes import USAF1951Scene, pixel_centres_mm
 
 
@@ -115,3 +116,12 @@ def test_reduced_run(tmp_path):
         assert (tmp_path / f).is_file(), f
     assert abs(s["nyquist_lp_mm_target"] - 0.25 / (2 * s["diffuser_mm_per_px"])) < 1e-9
     assert s["stats"]["rgb_gray_lp_mm"] >= s["stats"]["hsi_median_lp_mm"]
+    # the field's metrics of the cube against the true target, in the summary and the table
+    m = s["metrics"]
+    assert set(m) == set(METRIC_NAMES) and all(np.isfinite(v) for v in m.values())
+    assert m["rmse"] == pytest.approx(10 ** (-m["psnr_db"] / 20), rel=1e-9)  # one pooled MSE
+    assert 0 < m["ssim"] <= 1 and 0 < m["sam_deg"] < 90 and m["ergas"] > 0 and m["mrae"] > 0
+    md = (tmp_path / "resolution.md").read_text()
+    for h in ("PSNR dB (cube, peak 1)", "PSNR dB (per band, 0-255)", "SSIM", "SAM °", "ERGAS",
+              "RMSE", "MRAE", f"{m['psnr_bands_db']:.2f}", f"{m['ssim']:.4f}"):
+        assert h in md, h

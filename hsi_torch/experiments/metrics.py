@@ -4,7 +4,10 @@ The metrics themselves (PSNR in both conventions, SSIM, SAM, ERGAS, RMSE, MRAE) 
 :mod:`hsi_torch.metrics`, with their conventions; ``mse``, ``rmse``, ``psnr``,
 ``spectral_angle_deg`` and ``psnr_from_mse`` are re-exported here for the callers that import them
 from this module. The scene scores (:func:`colorchecker_scores`, :func:`cube_scores`) take numpy
-cubes ``(M, h, w)`` and masks ``(h, w)`` and compute in float64.
+cubes ``(M, h, w)`` and masks ``(h, w)`` and compute in float64. The experiments' tables share
+the metrics' headers (:data:`METRIC_HEADERS`, :func:`metric_columns`), cell formats
+(:data:`METRIC_FORMATS`), row values with :data:`NOT_APPLICABLE` where a metric does not apply
+(:func:`metric_cells`) and the paragraph stating the conventions (:func:`metrics_note`).
 """
 
 from __future__ import annotations
@@ -39,7 +42,29 @@ __all__ = [
     "METRIC_NAMES",
     "cube_metrics",
     "format_metrics",
+    "METRIC_HEADERS",
+    "METRIC_FORMATS",
+    "NOT_APPLICABLE",
+    "metric_columns",
+    "metric_cells",
+    "metrics_note",
 ]
+
+#: Table headers of :func:`hsi_torch.metrics.cube_metrics`' keys, the convention in short.
+METRIC_HEADERS = {
+    "psnr_db": "PSNR dB (cube, peak 1)",
+    "psnr_bands_db": "PSNR dB (per band, 0-255)",
+    "ssim": "SSIM",
+    "sam_deg": "SAM °",
+    "ergas": "ERGAS",
+    "rmse": "RMSE",
+    "mrae": "MRAE",
+}
+#: Cell formats of those keys (``format`` specs).
+METRIC_FORMATS = {"psnr_db": ".2f", "psnr_bands_db": ".2f", "ssim": ".4f", "sam_deg": ".2f",
+                  "ergas": ".2f", "rmse": ".4f", "mrae": ".4f"}  # fmt: skip
+#: The cell of a metric that does not apply to an experiment (the table's text says why).
+NOT_APPLICABLE = "n/a"
 
 
 def erode_px(truth: dict[str, np.ndarray], erode_mm: float) -> float:
@@ -65,6 +90,36 @@ def format_metrics(m: dict[str, float]) -> str:
     return (f"PSNR {m['psnr_db']:.2f} dB (per band 0-255: {m['psnr_bands_db']:.2f} dB), "
             f"SSIM {m['ssim']:.4f}, SAM {m['sam_deg']:.2f} deg, ERGAS {m['ergas']:.2f}, "
             f"RMSE {m['rmse']:.4f}, MRAE {m['mrae']:.4f}")  # fmt: skip
+
+
+def metric_columns(prefix: str = "") -> dict[str, str]:
+    """``{prefix + key: header}`` of the field's metrics in :data:`METRIC_NAMES` order, for
+    :func:`hsi_torch.experiments.report.markdown_table` (``prefix`` when a row holds them under
+    prefixed keys)."""
+    return {prefix + k: METRIC_HEADERS[k] for k in METRIC_NAMES}
+
+
+def metric_cells(
+    m: dict[str, float], not_applicable: tuple[str, ...] = (), prefix: str = ""
+) -> dict[str, Any]:
+    """The metrics of ``m`` (:func:`~hsi_torch.metrics.cube_metrics`' keys) as row values keyed
+    ``prefix + key``: floats (NaN where ``m`` lacks one), :data:`NOT_APPLICABLE` for the keys in
+    ``not_applicable``. Format them with :data:`METRIC_FORMATS` (strings pass through)."""
+    return {prefix + k: NOT_APPLICABLE if k in not_applicable else float(m.get(k, math.nan))
+            for k in METRIC_NAMES}  # fmt: skip
+
+
+def metrics_note(not_applicable: dict[str, str] | None = None) -> str:
+    """One paragraph for a table's header: the conventions of the field's metrics
+    (:mod:`hsi_torch.metrics`) and, for each key of ``not_applicable``, why it does not apply."""
+    text = ("Metrics (hsi_torch.metrics, reflectance): PSNR over the whole cube with peak 1 "
+            "(10·log10(1/MSE)) and PSNR per band on 0-255 (both clipped to [0, 1] × 255), "
+            "averaged over bands; SSIM per band (Gaussian 11×11, σ 1.5, data range 1), "
+            "mean over bands; SAM mean spectral angle in degrees; ERGAS with ratio 1; RMSE on "
+            "the peak-1 scale; MRAE over samples whose truth is ≥ 1e-3.")  # fmt: skip
+    for k, why in (not_applicable or {}).items():
+        text += f" {METRIC_HEADERS[k].split(' ')[0]}: {NOT_APPLICABLE} ({why})."
+    return text
 
 
 def _sam_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -115,6 +115,13 @@ class OPDEstimatorSpec:
     iters: int = 20
 
 
+#: Why the tables of this experiment carry none of the field's reconstruction metrics.
+OPD_METRICS_NOTE = ("The field's reconstruction metrics (hsi_torch.metrics: PSNR in both "
+                    "conventions, SSIM, SAM, ERGAS, RMSE, MRAE) do not apply here: this "
+                    "experiment reconstructs no reflectance cube, it compares optical path "
+                    "differences (nm) with the ray tracer's.")
+
+
 def _default_inputs() -> list[OPDInputSpec]:
     return [OPDInputSpec("truth")]
 
@@ -523,7 +530,8 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
         f"(λ₀ = {k0:.1f} nm)** of the ray through each measured point (a single-frequency fit "
         f"over the band measures this, not the phase OPD); the phase OPD at "
         f"{cfg.prediction_wavelength_nm:g} nm is listed for reference. Points with fitted "
-        f"modulation < {cfg.points.min_modulation:g} are left out of the statistics.\n",
+        f"modulation < {cfg.points.min_modulation:g} are left out of the statistics. "
+        f"{OPD_METRICS_NOTE}\n",
         report.markdown_table(
             srows, {"input": "input", "points": "points", "modulated_points": "modulated",
                     "views_matched_correctly": "view match ok", "bin_nm": "bin (nm)",

@@ -38,7 +38,12 @@ import torch
 
 from hsi_torch.config import load_config
 from hsi_torch.console import info as log
-from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px
+from hsi_torch.experiments.metrics import (
+    METRIC_FORMATS,
+    colorchecker_scores,
+    cube_scores,
+    erode_px,
+)
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
@@ -159,7 +164,9 @@ _COLUMNS = [
 ]
 
 
-def _fmt(v: Any) -> str:
+def _fmt(v: Any, key: str = "") -> str:
+    if isinstance(v, float) and key in METRIC_FORMATS and key != "psnr_db":
+        return format(v, METRIC_FORMATS[key])  # the field's metrics, as in the other tables
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 0.1 or abs(v) >= 1e4 else f"{v:.2f}"
     return str(v)
@@ -169,7 +176,7 @@ def _write_tables(out: Path, rows: list[dict[str, Any]]) -> str:
     lines = ["| " + " | ".join(h for _, h in _COLUMNS) + " |",
              "|" + "---|" * len(_COLUMNS)]
     for r in rows:
-        lines.append("| " + " | ".join(_fmt(r[k]) for k, _ in _COLUMNS) + " |")
+        lines.append("| " + " | ".join(_fmt(r[k], k) for k, _ in _COLUMNS) + " |")
     md = "\n".join(lines) + "\n"
     atomic_write_text(out / "table.md", md)
     buf = io.StringIO()
