@@ -17,7 +17,7 @@ from hsi_torch.experiments.design import DesignSweepConfig
 from hsi_torch.experiments.opd import OPDConfig
 from hsi_torch.experiments.synthetic import SyntheticConfig
 from hsi_torch.experiments.usaf import USAFConfig
-from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
+from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry, PrototypeDesign
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import Reconstructor
@@ -25,6 +25,7 @@ from hsi_torch.resources import shipped_config, shipped_config_names
 from hsi_torch.simulate.config import (
     BRFSection,
     CameraConfig,
+    DesignSection,
     DiffuserConfig,
     GeometryConfig,
     SensorSection,
@@ -38,6 +39,8 @@ SCHEMAS = {
     "reconstruct": ReconstructConfig,
     "simulate": SimulateConfig,
     "simulate_full": SimulateConfig,
+    "simulate_manakov": SimulateConfig,
+    "simulate_fujimoto": SimulateConfig,
     "synthetic": SyntheticConfig,
     "usaf": USAFConfig,
 }
@@ -71,6 +74,7 @@ MIRRORS = [
     (GeometryConfig, KaleidoscopeGeometry, set()),
     (CameraConfig, CameraModel, set()),
     (BRFSection, BRFConfig, set()),
+    (DesignSection, PrototypeDesign, set()),
     # the simulator's exposure is the fill fraction of the full well for a white seen without the
     # filters; SensorModel.exposure is a plain multiplier on electrons (see SensorSection)
     (SensorSection, SensorModel, {"exposure"}),

@@ -57,6 +57,8 @@ from hsi_torch.experiments.systems import (
     bundle_design,
     csv_design,
     faced_reflectors_design,
+    fujimoto_design,
+    manakov_design,
     this_system_design,
     three_camera_design,
 )
@@ -105,11 +107,13 @@ class DesignSpec:
 
     ``kind``: ``this_system`` (simulator default optics, overridable by ``geometry``/``brf``
     fields), ``bundle`` (calibration bundle at ``path``), ``three_camera`` (``cameras``),
-    ``faced_reflectors`` (``filter``, ``bounces``, ``camera``) or ``csv`` (channel responses at
-    ``path``).
+    ``faced_reflectors`` (``filter``, ``bounces``, ``camera``), ``csv`` (channel responses at
+    ``path``), ``manakov`` (one filter per view, ``design`` overrides) or ``fujimoto`` (a
+    birefringent thin section, ``design`` and ``brf`` overrides).
     """
 
-    kind: Literal["this_system", "bundle", "three_camera", "faced_reflectors", "csv"]
+    kind: Literal["this_system", "bundle", "three_camera", "faced_reflectors", "csv", "manakov",
+                  "fujimoto"]
     name: str | None = field(default=None, metadata={"help": "label (default from the kind)"})
     camera: str = field(
         default=refdata.DEFAULT_CAMERA,
@@ -140,7 +144,11 @@ class DesignSpec:
         default_factory=dict, metadata={"help": "this_system: KaleidoscopeGeometry overrides"}
     )
     brf: dict[str, Any] = field(
-        default_factory=dict, metadata={"help": "this_system: BRFConfig overrides"}
+        default_factory=dict, metadata={"help": "this_system/fujimoto: BRFConfig overrides"}
+    )
+    design: dict[str, Any] = field(
+        default_factory=dict,
+        metadata={"help": "manakov/fujimoto: PrototypeDesign overrides (filters, grains)"},
     )
 
     def __post_init__(self) -> None:
@@ -213,6 +221,8 @@ _DEFAULT_NAMES = {
     "bundle": "this system (bundle)",
     "three_camera": "3Camera",
     "faced_reflectors": "Faced Reflectors",
+    "manakov": "Manakov",
+    "fujimoto": "Fujimoto",
 }
 
 
@@ -242,6 +252,16 @@ def build_design(
             spec.filter, spec.bounces, grid, camera=spec.camera, illuminant=illuminant,
             name=name, **kw,
         )  # fmt: skip
+    if spec.kind in ("manakov", "fujimoto"):
+        point = spec.scene_point_mm if spec.scene_point_mm is not None else spec.scene_point
+        if point == "mean":
+            raise ValueError(f"design {name!r}: scene_point 'mean' is not defined for kind "
+                             f"{spec.kind!r} (use 'centre' or scene_point_mm)")
+        extra = {"brf": spec.brf or None} if spec.kind == "fujimoto" else {}
+        build = manakov_design if spec.kind == "manakov" else fujimoto_design
+        return build(grid, design=spec.design or None, geometry=spec.geometry or None,
+                     camera=spec.camera, illuminant=illuminant, scene_point=point, name=name,
+                     **extra, **kw)
     if spec.kind == "csv":
         return csv_design(
             spec.path, grid, illuminant=illuminant, includes_illuminant=spec.includes_illuminant,

@@ -13,6 +13,11 @@ Designs:
   (:func:`bundle_design`).
 - **3Camera** (:func:`three_camera_design`): nine channels ``T_{q,c} = f_q^c``.
 - **Faced Reflectors** (:func:`faced_reflectors_design`): ``T_{i,c} = f^c τ^i``, ``i = 0 … N``.
+- **Manakov** (:func:`manakov_design`): the same kaleidoscope with one filter per view and no BRF
+  (:class:`~hsi_torch.optics.PrototypeDesign` ``manakov``): ``T_{v,c} = g_v F_v f^c``.
+- **Fujimoto** (:func:`fujimoto_design`): the same kaleidoscope with a birefringent thin section
+  whose OPD varies over the aperture (``fujimoto``): this system's formula with the OPD times the
+  grain factor at the scene point.
 - any design from a CSV of channel responses (:func:`csv_design`).
 
 The helpers :func:`scene_points`, :func:`view_rays` and :func:`brf_sensing_model` are shared
@@ -41,11 +46,13 @@ from hsi_torch.optics import (
     BRFConfig,
     CameraModel,
     KaleidoscopeGeometry,
+    PrototypeDesign,
     apply_homography,
     build_view_layout,
     trace_rays,
     trace_sensor,
 )
+from hsi_torch.optics.birefringence import polarizer_transmittance
 from hsi_torch.spectral import DEFAULT_GRID, SpectralGrid, resample_spectra
 
 __all__ = [
@@ -62,6 +69,8 @@ __all__ = [
     "bundle_design",
     "three_camera_design",
     "faced_reflectors_design",
+    "manakov_design",
+    "fujimoto_design",
     "csv_design",
 ]
 
@@ -313,6 +322,131 @@ def this_system_design(
         "opd_nm_550": layout.opd_nm.tolist(),
     }
     return SensingDesign(name, mat, names, grid, info)
+
+
+def _scene_point_xy(scene_point: str | Sequence[float], geometry: Any) -> Tensor:
+    if isinstance(scene_point, str):
+        if scene_point not in ("centre", "center"):
+            raise ValueError(f"scene_point must be 'centre' or (X, Y) mm, got {scene_point!r}")
+        return scene_points(geometry)[:1]
+    xy = [float(v) for v in scene_point]
+    if len(xy) != 2:
+        raise ValueError(f"scene_point must be (X, Y) in mm, got {scene_point!r}")
+    return torch.tensor([xy], dtype=torch.float64)
+
+
+def _coded_design(
+    design: PrototypeDesign,
+    grid: SpectralGrid,
+    *,
+    geometry: Any | Mapping[str, Any] | None,
+    camera_model: Any | Mapping[str, Any] | None,
+    brf: Any | Mapping[str, Any] | None,
+    camera: str | os.PathLike,
+    illuminant: str | os.PathLike,
+    scene_point: str | Sequence[float],
+    name: str,
+    device: torch.device | str | None,
+    dtype: torch.dtype,
+) -> SensingDesign:
+    """``A[(v,c), m] = g_v T_v(λ_m) Δλ_m φ^c(λ_m)`` of a :class:`PrototypeDesign` at one scene
+    point: ``T_v`` the view's filter (``manakov``) or the BRF transmittance with the OPD times the
+    thin section's grain factor at the point (``fujimoto``)."""
+    geom, cam, brf_ = _optics(geometry, camera_model, brf)
+    trace = trace_sensor(geom, cam, dtype=torch.float64)
+    layout = build_view_layout(geom, cam, brf_, trace=trace)
+    pts = _scene_point_xy(scene_point, geom)
+    alpha, sigma, thr = view_rays(geom, cam, layout, pts)  # (1, V)
+    wl = grid.wavelengths(dtype=torch.float64)
+    info: dict[str, Any] = {"kind": design.kind, "design": design.to_dict(),
+                            "scene_point": list(pts[0].tolist()), "camera": os.fspath(camera),
+                            "illuminant": os.fspath(illuminant), "geometry": geom.to_dict()}
+    if design.kind == "manakov":
+        t = design.view_filters(layout.num_views, wl)[None]  # (1, V, M)
+    else:
+        fac = design.grain_factor(pts)  # (1,)
+        opd = brf_.opd_nm(alpha[..., None], sigma[..., None], wl) * fac[:, None, None]
+        t = polarizer_transmittance(opd, wl, np.radians(brf_.psi_deg),
+                                    np.radians(brf_.chi_deg))
+        info.update(brf=brf_.to_dict(), grain_factor=float(fac[0]),
+                    opd_nm_550=(brf_.opd_nm(alpha, sigma, torch.tensor(550.0, dtype=torch.float64))
+                                * fac[:, None])[0].tolist())
+    phi = phi_matrix(camera, illuminant, grid)
+    dl = grid.band_widths(dtype=torch.float64)
+    a = SensingModel(t, thr.to(t), dl * phi).dense()[0]
+    names = [f"v{v}/{c}" for v in range(layout.num_views) for c in "RGB"]
+    return SensingDesign(name, a.to(device=device, dtype=dtype), names, grid, info)
+
+
+def manakov_design(
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    design: PrototypeDesign | Mapping[str, Any] | None = None,
+    geometry: Any | Mapping[str, Any] | None = None,
+    camera_model: Any | Mapping[str, Any] | None = None,
+    camera: str | os.PathLike = refdata.DEFAULT_CAMERA,
+    illuminant: str | os.PathLike = "D65",
+    scene_point: str | Sequence[float] = "centre",
+    name: str = "Manakov",
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """The kaleidoscope with one filter per view (Manakov et al. 2013): ``3V`` channels
+    ``g_v F_v(λ) f^c(λ)`` at one scene point, ``F_0 = 1`` (the unfiltered reference view) and
+    ``F_1 … F_{V−1}`` the :class:`~hsi_torch.optics.PrototypeDesign` filter set (``design``:
+    an object or field overrides of ``PrototypeDesign(kind="manakov")``)."""
+    d = _design_of("manakov", design)
+    return _coded_design(d, grid, geometry=geometry, camera_model=camera_model, brf=None,
+                         camera=camera, illuminant=illuminant, scene_point=scene_point,
+                         name=name, device=device, dtype=dtype)
+
+
+#: The thin section of the ``fujimoto`` design: 30 µm calcite (the standard petrographic
+#: thickness), axis as this system's plate (per-grain variation in the grain factor).
+FUJIMOTO_BRF: dict[str, Any] = {"material": "calcite", "thickness_mm": 0.03}
+
+
+def fujimoto_design(
+    grid: SpectralGrid = DEFAULT_GRID,
+    *,
+    design: PrototypeDesign | Mapping[str, Any] | None = None,
+    geometry: Any | Mapping[str, Any] | None = None,
+    camera_model: Any | Mapping[str, Any] | None = None,
+    brf: Any | Mapping[str, Any] | None = None,
+    camera: str | os.PathLike = refdata.DEFAULT_CAMERA,
+    illuminant: str | os.PathLike = "D65",
+    scene_point: str | Sequence[float] = "centre",
+    name: str = "Fujimoto",
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SensingDesign:
+    """The kaleidoscope with a birefringent thin section (Fujimoto et al. 2025) at one scene
+    point: this system's channels with every view's OPD times the grain factor of the point
+    (``brf`` default :data:`FUJIMOTO_BRF`; ``design``: overrides of
+    ``PrototypeDesign(kind="fujimoto")``)."""
+    d = _design_of("fujimoto", design)
+    b = dict(FUJIMOTO_BRF)
+    if isinstance(brf, Mapping):
+        b.update(brf)
+    return _coded_design(d, grid, geometry=geometry, camera_model=camera_model,
+                         brf=brf if isinstance(brf, BRFConfig) else b, camera=camera,
+                         illuminant=illuminant, scene_point=scene_point, name=name,
+                         device=device, dtype=dtype)
+
+
+def _design_of(kind: str, design: PrototypeDesign | Mapping[str, Any] | None) -> PrototypeDesign:
+    if isinstance(design, PrototypeDesign):
+        if design.kind != kind:
+            raise ValueError(f"design kind {design.kind!r} given to the {kind} builder")
+        return design
+    d = dict(design or {})
+    d.setdefault("kind", kind)
+    if d["kind"] != kind:
+        raise ValueError(f"design kind {d['kind']!r} given to the {kind} builder")
+    try:
+        return PrototypeDesign(**d)
+    except TypeError as exc:
+        raise ValueError(f"design: {exc}") from None
 
 
 def bundle_design(

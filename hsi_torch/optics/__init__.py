@@ -17,6 +17,7 @@ from .birefringence import (
     uniaxial_opd,
     uniaxial_opd_small_angle,
 )
+from .designs import DESIGN_KINDS, PrototypeDesign, gaussian_bandpass
 from .geometry import (
     apply_homography,
     points_in_triangle,
@@ -59,6 +60,9 @@ __all__ = [
     "sellmeier_index",
     "uniaxial_opd",
     "uniaxial_opd_small_angle",
+    "DESIGN_KINDS",
+    "PrototypeDesign",
+    "gaussian_bandpass",
     "DEFAULT_CAMERA",
     "DEFAULT_GEOMETRY",
     "FULL_CAMERA",

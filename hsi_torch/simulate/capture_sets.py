@@ -36,11 +36,16 @@ from hsi_torch.io.capture_set import write_capture_set_index, write_truth
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
 from hsi_torch.optics.geometry import apply_homography
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
-from hsi_torch.refdata import read_spectral_csv
+from hsi_torch.refdata import filter_transmittance, read_spectral_csv
 from hsi_torch.resources import DATA_ENV, real_data_dir
 from hsi_torch.simulate import figures
 from hsi_torch.simulate.config import SceneSpec, SimulateConfig
-from hsi_torch.simulate.render import CaptureRenderer, CaptureSpec, subpixel_offsets
+from hsi_torch.simulate.render import (
+    CaptureRenderer,
+    CaptureSpec,
+    fine_wavelengths,
+    subpixel_offsets,
+)
 from hsi_torch.simulate.scenes import CircleGridScene, ColorCheckerScene, CubeScene, make_scene
 from hsi_torch.spectral import SpectralGrid
 
@@ -93,6 +98,17 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
         tau = (src, table[:, 0])
     r = cfg.render
     grid = SpectralGrid.uniform(r.grid_start_nm, r.grid_stop_nm, r.grid_step_nm)
+    curves = None
+    if cfg.design.kind == "manakov" and cfg.design.filters:
+        fine, _ = fine_wavelengths(grid.wavelengths(dtype=torch.float64), r.fine_step_nm)
+        curves = []
+        for f in cfg.design.filters:
+            try:
+                t = filter_transmittance(f, fine, extrapolate="edge", dtype=torch.float64)
+            except (FileNotFoundError, ValueError, ModuleNotFoundError) as exc:
+                raise type(exc)(f"config key 'design.filters': {exc}") from None
+            curves.append((fine.numpy(), t.numpy()))
+        curves = tuple(curves)
     return CaptureRenderer(
         geometry, camera, brf, sensor,
         diffuser=DiffuserModel(cfg.diffuser.falloff_k, cfg.diffuser.blur_sigma_mm),
@@ -103,7 +119,7 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
         scan_fwhm_nm=cfg.captures.scan_fwhm_nm, scan_line=cfg.captures.scan_line,
         scan_exposure=cfg.captures.scan_exposure, chunk=r.chunk,
         device=device or r.device, dtype=_DTYPES[r.dtype], view_inset_px=r.view_inset_px,
-        mismatch=cfg.mismatch,
+        mismatch=cfg.mismatch, design=cfg.design.to_design(curves),
     )
 
 
@@ -537,6 +553,8 @@ def _truth_json(cfg, renderer: CaptureRenderer, truth, scene_names, arrays) -> d
         "scenes": scene_names,
         # the non-ideal effects that are on (docs/simulate.md); {} for the ideal device
         "mismatch": cfg.mismatch.active(),
+        # the spectral coder (this_system, manakov, fujimoto; docs/simulate.md)
+        "design": renderer.design.to_dict(),
         "config": json.loads(json.dumps(to_dict(cfg), default=str)),
         "supersample_offsets_px": subpixel_offsets(renderer.supersample).tolist(),
     }

@@ -11,6 +11,8 @@ same name and unit as the field it sets (lengths in mm, angles in degrees, wavel
 - ``objective``, ``illuminant``, ``camera_sensitivity``, ``render``, ``captures``: this package.
 - ``mismatch`` → :class:`hsi_torch.simulate.mismatch.Mismatch` (non-ideal effects, all off by
   default; the sensor's go to :class:`~hsi_torch.optics.sensor.SensorModel`).
+- ``design`` → :class:`hsi_torch.optics.PrototypeDesign` (the spectral coder: this system's BRF
+  by default, or the ``manakov`` per-view filters, or the ``fujimoto`` thin section).
 
 ``describe_schema(SimulateConfig)`` prints one line per key with its default and help text.
 
@@ -28,6 +30,7 @@ from typing import Any, Literal
 
 from hsi_torch.config import help_meta
 from hsi_torch.optics.birefringence import BRFConfig
+from hsi_torch.optics.designs import PrototypeDesign
 from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
 from hsi_torch.simulate.mismatch import Mismatch
@@ -36,6 +39,7 @@ __all__ = [
     "GeometryConfig",
     "CameraConfig",
     "BRFSection",
+    "DesignSection",
     "SensorSection",
     "ObjectiveConfig",
     "DiffuserConfig",
@@ -56,6 +60,7 @@ _CAMERA = CameraModel()
 _BRF = BRFConfig()
 _SENSOR = SensorModel()
 _DIFFUSER = DiffuserModel()
+_DESIGN = PrototypeDesign()
 
 
 def _positive(obj: Any, *names: str) -> None:
@@ -143,6 +148,64 @@ class BRFSection:
             raise ValueError(
                 f"polarizer_efficiency must be in (0, 1], got {self.polarizer_efficiency}"
             )
+
+
+@dataclass
+class DesignSection:
+    """The spectral coder (fields of :class:`~hsi_torch.optics.PrototypeDesign`).
+
+    ``this_system``: the ``brf`` section between polarizers. ``manakov``: one filter per view,
+    no BRF, no polarizers (``brf`` unused); the reference view is unfiltered. ``fujimoto``: the
+    ``brf`` section is a thin section whose OPD each grain scales (``grain_*``).
+    """
+
+    kind: Literal["this_system", "manakov", "fujimoto"] = field(
+        default="this_system", metadata=_h("this_system | manakov | fujimoto")
+    )
+    filter_centers_nm: list[float] | None = field(
+        default=None,
+        metadata=_h("manakov: band-pass centres of views 1..V-1, nm; null = evenly spaced "
+                    "over filter_span_nm"),
+    )
+    filter_span_nm: tuple[float, float] = field(
+        default=_DESIGN.filter_span_nm, metadata=_h("manakov: first and last default centre, nm")
+    )
+    filter_fwhm_nm: float = field(
+        default=_DESIGN.filter_fwhm_nm, metadata=_h("manakov: band-pass FWHM, nm")
+    )
+    filter_peak: float = field(
+        default=_DESIGN.filter_peak, metadata=_h("manakov: band-pass peak transmittance")
+    )
+    filters: list[str] | None = field(
+        default=None,
+        metadata=_h("manakov: measured filters of views 1..V-1 (CSV wavelength_nm,T or gel "
+                    "codes such as L068); replace the band-pass set"),
+    )
+    grain_size_mm: float = field(
+        default=_DESIGN.grain_size_mm, metadata=_h("fujimoto: mean grain size, mm")
+    )
+    grain_opd_factor: tuple[float, float] = field(
+        default=_DESIGN.grain_opd_factor,
+        metadata=_h("fujimoto: range of the per-grain factor on the plate's OPD"),
+    )
+    grain_seed: int = field(default=_DESIGN.grain_seed, metadata=_h("fujimoto: grain map seed"))
+
+    def __post_init__(self) -> None:
+        self.to_design()  # validates
+
+    def to_design(self, filter_curves: tuple | None = None) -> PrototypeDesign:
+        """The :class:`~hsi_torch.optics.PrototypeDesign` of this section (``filter_curves``:
+        the resolved ``filters``, see :func:`hsi_torch.simulate.capture_sets.build_renderer`)."""
+        return PrototypeDesign(
+            kind=self.kind,
+            filter_centers_nm=(None if self.filter_centers_nm is None
+                               else tuple(self.filter_centers_nm)),
+            filter_span_nm=tuple(self.filter_span_nm),  # type: ignore[arg-type]
+            filter_fwhm_nm=self.filter_fwhm_nm, filter_peak=self.filter_peak,
+            filter_curves=filter_curves, grain_size_mm=self.grain_size_mm,
+            grain_opd_factor=tuple(self.grain_opd_factor),  # type: ignore[arg-type]
+            grain_seed=int(self.grain_seed),
+        )
 
 
 @dataclass
@@ -346,6 +409,7 @@ class SimulateConfig:
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     brf: BRFSection = field(default_factory=BRFSection)
+    design: DesignSection = field(default_factory=DesignSection)
     sensor: SensorSection = field(default_factory=SensorSection)
     illuminant: str = field(default="D65", metadata=_h("CIE name (D65, A, ...) or CSV path"))
     camera_sensitivity: str = field(

@@ -120,15 +120,33 @@ def plot_view_transmittances(renderer, truth: dict[str, torch.Tensor], path: Pat
             a = truth["alpha"][v, y, x].to(torch.float64).reshape(1)
             s = truth["sigma"][v, y, x].to(torch.float64).reshape(1)
             t = truth["throughput"][v, y, x].to(torch.float64)
-            tf = (t * renderer.stack_transmittance(a.to(fine), s.to(fine), free, fine))[0]
+            design = getattr(renderer, "design", None)
+            seq = "".join(str(m) for m in lay.reflection_sequences[v]) or "-"
+            if design is not None and not design.has_brf:  # one filter per view
+                view = torch.tensor([v], device=fine.device)
+                tf = (t * renderer.stack_transmittance(a.to(fine), s.to(fine), free, fine,
+                                                       view=view))[0]
+                title = f"v{v} ({seq}) filter"
+            else:
+                tf = (t * renderer.stack_transmittance(a.to(fine), s.to(fine), free, fine))[0]
+                opd = float(renderer.brf.opd_nm(a, s, torch.tensor([550.0]).to(a))[0])
+                title = f"v{v} ({seq}) OPD {opd:.0f} nm"
+                if design is not None and design.kind == "fujimoto":  # the grain's factor
+                    xy = truth["diffuser_xy"][y, x].to(torch.float64).reshape(1, 2)
+                    g = design.grain_factor(xy).to(fine)
+                    ca, cb = renderer.stack_cosine_form()
+                    cos = renderer.retardance_cosine(a.to(fine), s.to(fine), free, g)
+                    tf = (t * torch.where(free[:, None], 1.0, ca + cb * cos))[0]
+                    title = f"v{v} ({seq}) OPD {opd * float(g[0]):.0f} nm"
             ax.plot(fine.cpu().numpy(), tf.cpu().numpy(), "-", color="0.6", lw=0.8)
             ax.plot(wl, truth["B"][v, :, y, x].cpu().numpy(), "o-", ms=2.5, lw=1.0)
-            opd = float(renderer.brf.opd_nm(a, s, torch.tensor([550.0]).to(a))[0])
-            seq = "".join(str(m) for m in lay.reflection_sequences[v]) or "-"
-            ax.set_title(f"v{v} ({seq}) OPD {opd:.0f} nm", fontsize=8)
+            ax.set_title(title, fontsize=8)
         else:
             ax.set_title(f"v{v}: absent at this pixel", fontsize=8)
-        ax.set_ylim(0, 0.5 * renderer.polarizer_efficiency * 1.05)
+        top = 0.5 * renderer.polarizer_efficiency
+        if getattr(renderer, "design", None) is not None and not renderer.design.has_brf:
+            top = 1.0  # manakov: no polarizers
+        ax.set_ylim(0, top * 1.05)
         ax.tick_params(labelsize=7)
         if v % ncol == 0:
             ax.set_ylabel("B_v(λ)", fontsize=8)

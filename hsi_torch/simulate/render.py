@@ -71,6 +71,7 @@ from hsi_torch.optics import (
     BRFConfig,
     CameraModel,
     KaleidoscopeGeometry,
+    PrototypeDesign,
     ViewLayout,
     build_view_layout,
     enumerate_sequences,
@@ -336,6 +337,10 @@ class CaptureRenderer:
         view_inset_px: truth ``view_mask`` keeps source points this far inside the triangle.
         mismatch: non-ideal effects (:class:`~hsi_torch.simulate.mismatch.Mismatch`; default:
             none). The sensor's own (PRNU, hot/dead pixels, non-linearity) belong to ``sensor``.
+        design: the spectral coder (:class:`~hsi_torch.optics.PrototypeDesign`; default: this
+            system, the BRF between polarizers). ``manakov``: per ray the filter of its view
+            (no polarizers, ``Tstack = T_v(λ)``, 0 on higher-order tiles); ``fujimoto``: each
+            ray's OPD times the grain factor of the thin section where it crosses it.
     """
 
     def __init__(
@@ -364,6 +369,7 @@ class CaptureRenderer:
         layout: ViewLayout | None = None,
         view_inset_px: float = 1.0,
         mismatch: Mismatch | None = None,
+        design: PrototypeDesign | None = None,
     ) -> None:
         if supersample < 1:
             raise ValueError(f"supersample must be >= 1, got {supersample}")
@@ -390,6 +396,11 @@ class CaptureRenderer:
         self.chunk = int(chunk)
         self.view_inset_px = float(view_inset_px)
         self.mismatch = mismatch if mismatch is not None else Mismatch()
+        self.design = design if design is not None else PrototypeDesign()
+        if not self.design.has_brf and (self.mismatch.thickness_map
+                                        or self.mismatch.brf_delta_t_k != 0):
+            raise ValueError(f"design kind {self.design.kind!r} has no birefringent filter: "
+                             "the mismatch keys brf_thickness_* and brf_delta_t_k do not apply")
         self.device, self.dtype = torch.device(device), dtype
         dev = self.device
 
@@ -424,6 +435,10 @@ class CaptureRenderer:
         self._phase: tuple | None = None
         self.num_rays = 0  # sub-pixel rays that reached the diffuser in the last render
         self.opd_knot_step_nm = 10.0
+        #: ``manakov``: ``(V, L)`` float64 filter of each view on the fine grid (else ``None``)
+        self.view_filters = (self.design.view_filters(self.layout.num_views, self.fine)
+                             if not self.design.has_brf else None)
+        self._filters_dt: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ factors
     @property
@@ -445,9 +460,13 @@ class CaptureRenderer:
 
     def stack_transmittance(
         self, alpha: torch.Tensor, sigma: torch.Tensor, brf_free: torch.Tensor,
-        wavelengths_nm: torch.Tensor, exact: bool = True,
+        wavelengths_nm: torch.Tensor, exact: bool = True, view: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """``(N, L)`` filter-stack transmittance: ``½ η T_BRF`` outside the BRF-free disk, 1 in it.
+
+        Design ``manakov``: the filter of each ray's ``view (N,)`` (required; the fine grid
+        only); ``fujimoto``: the grain factors need the rays' diffuser points, so this method
+        gives the nominal plate (use :meth:`retardance_cosine` with ``opd_scale``).
 
         ``exact=False`` (the fine-grid model of the image and the truth, ``wavelengths_nm`` =
         :attr:`fine`) evaluates the exact OPD (:meth:`BRFConfig.opd_nm`) at knots every
@@ -457,6 +476,11 @@ class CaptureRenderer:
         form (:meth:`retardance_cosine`, :meth:`stack_cosine_form`).
         """
         wl = wavelengths_nm.to(alpha)
+        if not self.design.has_brf:
+            if view is None or wl.numel() != self.fine.numel():
+                raise ValueError("design 'manakov': stack_transmittance needs `view` and the "
+                                 "fine grid")
+            return self._ray_filters(view, alpha.dtype)
         if exact:
             t = self.brf.transmittance(alpha[:, None], sigma[:, None], wl)
         else:
@@ -466,6 +490,26 @@ class CaptureRenderer:
                                         math.radians(self.brf.chi_deg))
         t = 0.5 * self.polarizer_efficiency * t
         return torch.where(brf_free[:, None], torch.ones_like(t), t)
+
+    def _ray_filters(self, view: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """``(N, L)`` ``manakov`` filter of each ray's view on the fine grid (0 for view −1)."""
+        if self._filters_dt is None or self._filters_dt.dtype != dtype:
+            f = self.view_filters.to(dtype)  # type: ignore[union-attr]
+            self._filters_dt = torch.cat([f, torch.zeros_like(f[:1])], 0)  # row V: masked tiles
+        v = torch.where(view < 0, self._filters_dt.shape[0] - 1, view)
+        return self._filters_dt[v]
+
+    def _opd_scale(self, xy_mm: torch.Tensor, after_calibration: bool) -> torch.Tensor | None:
+        """``(N,)`` factor on each ray's OPD (the thin section's grains, the mismatch's thickness
+        map and temperature change) or ``None`` when it is 1 everywhere."""
+        scale = None
+        if self.mismatch.thickness_map or after_calibration:
+            scale = self.mismatch.opd_factor(xy_mm, self.brf.thickness_mm, self._r2,
+                                             after_calibration)
+        if self.design.kind == "fujimoto":
+            g = self.design.grain_factor(xy_mm)
+            scale = g if scale is None else scale * g
+        return scale
 
     def _opd_knots(self, wl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         key = (wl.device, wl.dtype, wl.numel())
@@ -711,17 +755,24 @@ class CaptureRenderer:
         (``S = Σ_k a_k(X) E_k(λ)``: its ``K`` columns, contracted with the abundances; only on
         the rays where they are not all zero when those are at most half).
         """
-        a, b = self.stack_cosine_form()
         n, nc = tr.num_rays, len(channels)
         ch = list(channels)
-        scale = None
-        if self.mismatch.thickness_map or plan["after"]:
-            scale = self.mismatch.opd_factor(tr.hit_xy, self.brf.thickness_mm, self._r2,
-                                             plan["after"])
-        cos = self.retardance_cosine(tr.alpha, tr.sigma, tr.brf_free, scale)  # (n, L)
-        dt, dev = cos.dtype, cos.device
-        coef_a = torch.full((n, 1), a, dtype=dt, device=dev).masked_fill_(tr.brf_free[:, None], 1.0)
-        coef_b = torch.full((n, 1), b, dtype=dt, device=dev).masked_fill_(tr.brf_free[:, None], 0.0)
+        if not self.design.has_brf:  # manakov: Tstack = T_view(λ), i.e. A = 0, B = 1
+            cos = self._ray_filters(tr.view, tr.alpha.dtype)  # (n, L)
+            dt, dev = cos.dtype, cos.device
+            coef_a = torch.zeros((n, 1), dtype=dt, device=dev)
+            coef_b = torch.ones((n, 1), dtype=dt, device=dev)
+        else:
+            a, b = self.stack_cosine_form()
+            scale = None
+            if self.mismatch.thickness_map or plan["after"] or self.design.kind != "this_system":
+                scale = self._opd_scale(tr.hit_xy, plan["after"])
+            cos = self.retardance_cosine(tr.alpha, tr.sigma, tr.brf_free, scale)  # (n, L)
+            dt, dev = cos.dtype, cos.device
+            coef_a = torch.full((n, 1), a, dtype=dt, device=dev).masked_fill_(
+                tr.brf_free[:, None], 1.0)
+            coef_b = torch.full((n, 1), b, dtype=dt, device=dev).masked_fill_(
+                tr.brf_free[:, None], 0.0)
 
         def integrate(blk: dict[str, torch.Tensor], rows: torch.Tensor | None = None
                       ) -> torch.Tensor:
@@ -974,8 +1025,13 @@ class CaptureRenderer:
             for a in range(0, idx.numel(), self.chunk):
                 j = idx[a:a + self.chunk]
                 fj = free[j, None]
-                scale = (self.mismatch.opd_factor(x_ref[j], self.brf.thickness_mm, self._r2,
-                                                  False) if self.mismatch.thickness_map else None)
+                if not self.design.has_brf:  # manakov: the view's filter, disk or not
+                    bj = self.view_filters[v][None].to(lw) @ lw.T  # type: ignore[index]
+                    B[v, :, j] = (tr.throughput[j, None] * bj).T.to(torch.float32)
+                    continue
+                scale = (self._opd_scale(x_ref[j], False)
+                         if self.mismatch.thickness_map or self.design.kind != "this_system"
+                         else None)
                 cos = self.retardance_cosine(tr.alpha[j], tr.sigma[j], free[j], scale)
                 bj = (cos @ lw.T).mul_(torch.where(fj, 0.0, cb)).add_(
                     torch.where(fj, 1.0, ca) * lw_sum)  # = Tstack @ lw.T
