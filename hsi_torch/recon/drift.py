@@ -69,6 +69,10 @@ _TAPER_PX = 6
 _MARGIN_PX = 8
 #: fewest common pixels for a view to be measured
 _MIN_PIXELS = 400
+#: least mean gradient magnitude (relative to the view's mean) for a view to have texture
+_MIN_TEXTURE = 1e-4
+#: px: a measured shift larger than this is not trusted (beyond what the common area allows)
+_MAX_SHIFT_PX = 2 * _MARGIN_PX
 
 
 @dataclass
@@ -78,7 +82,8 @@ class DriftEstimate:
     Attributes:
         view_shift_px: ``(V, 2)`` float64, measured ``d_v = (dx, dy)`` of every view relative to
             the reference view, reference-frame px; NaN where not measured (too few common
-            pixels, too little texture, correlation below :data:`DRIFT_MIN_CORRELATION`).
+            pixels, too little texture, correlation below :data:`DRIFT_MIN_CORRELATION`, a
+            shift beyond 16 px).
         correlation: ``(V,)`` ECC correlation coefficient of each view's alignment (NaN: not
             measured; 1 for the reference view).
         sensor_shift_px: ``(2,)`` fitted sensor translation ``t`` (sensor px), or ``None``
@@ -199,8 +204,8 @@ def _align(ref: np.ndarray, img: np.ndarray, common: np.ndarray) -> tuple[np.nda
     a = np.ascontiguousarray(ref[y0:y1, x0:x1])
     b = np.ascontiguousarray(img[y0:y1, x0:x1])
     mask = np.ascontiguousarray(common[y0:y1, x0:x1]).astype(np.uint8)
-    if min(a.shape) < 16:
-        return np.full(2, np.nan), float("nan")
+    if min(a.shape) < 16 or min(a[mask > 0].mean(), b[mask > 0].mean()) < _MIN_TEXTURE:
+        return np.full(2, np.nan), float("nan")  # too small, or no texture (a flat field)
     win = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_32F)
     ma, mb = a[mask > 0].mean(), b[mask > 0].mean()
     (sx, sy), _ = cv2.phaseCorrelate((a - ma) * (mask > 0), (b - mb) * (mask > 0), win)
@@ -215,7 +220,10 @@ def _align(ref: np.ndarray, img: np.ndarray, common: np.ndarray) -> tuple[np.nda
     except cv2.error:
         return np.full(2, np.nan), float("nan")
     # b(x + w) ≈ a(x) ⇔ img(x) ≈ ref(x − w): d = −w
-    return -warp[:, 2].astype(np.float64), float(rho)
+    d = -warp[:, 2].astype(np.float64)
+    if not np.hypot(*d) <= _MAX_SHIFT_PX:
+        return np.full(2, np.nan), float(rho)
+    return d, float(rho)
 
 
 def _displacements(sens: Any, pts_ref: Tensor, v: int, shift: Any, rot_deg: float) -> Tensor:
