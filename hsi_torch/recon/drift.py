@@ -48,6 +48,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.optics.geometry import apply_homography
+
 __all__ = [
     "DriftEstimate",
     "estimate_drift",
@@ -176,7 +178,7 @@ def _view_images(sens: Any, image: Tensor) -> tuple[np.ndarray, np.ndarray]:
 def _features(img: np.ndarray, present: np.ndarray) -> np.ndarray:
     """Gradient magnitude of ``img`` over its mean on the view, tapered to 0 at the view's
     edge: ``(h, w)`` float32."""
-    import cv2
+    import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
 
     m = present.astype(np.uint8)
     inner = cv2.erode(m, np.ones((2 * _ERODE_PX + 1,) * 2, np.uint8))
@@ -194,7 +196,7 @@ def _features(img: np.ndarray, present: np.ndarray) -> np.ndarray:
 def _align(ref: np.ndarray, img: np.ndarray, common: np.ndarray) -> tuple[np.ndarray, float]:
     """Shift ``d`` with ``img(x) ≈ ref(x + d)`` on ``common`` and its ECC correlation
     (``(nan, nan), nan`` when not measurable)."""
-    import cv2
+    import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
 
     ys, xs = np.nonzero(common)
     y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
@@ -228,8 +230,6 @@ def _align(ref: np.ndarray, img: np.ndarray, common: np.ndarray) -> tuple[np.nda
 
 def _displacements(sens: Any, pts_ref: Tensor, v: int, shift: Any, rot_deg: float) -> Tensor:
     """``u_v(x)`` (reference px) of reference sensor points ``(N, 2)`` for the motion."""
-    from hsi_torch.optics.geometry import apply_homography
-
     Hv = sens.homographies[v].to(device=pts_ref.device, dtype=torch.float64)
     src = apply_homography(torch.linalg.inv(Hv), pts_ref)
     moved = motion_points(src, shift, rot_deg, _centre(sens.sensor_size))
@@ -260,7 +260,7 @@ def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
     """
     if image.ndim != 3 or image.shape[0] != 3:
         raise ValueError(f"image must be (3, H, W) linear RGB, got {tuple(image.shape)}")
-    import cv2
+    import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
 
     imgs, present = _view_images(sens, torch.nan_to_num(image.detach()))
     V = imgs.shape[0]
