@@ -390,7 +390,7 @@ def check_run(
     st = bundle_path.stat()
     sha = file_sha256(bundle_path)
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
-    ignored = ("device", "chunk_size", "fit_residual_warning")
+    ignored = ("device", "chunk_size", "fit_residual_warning", "drift_warn_px")
     config = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(
