@@ -16,7 +16,7 @@ import torch
 from hsi_torch.cli import main
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.experiments.metrics import colorchecker_scores, erode_px
-from hsi_torch.io import load_cube, read_any
+from hsi_torch.io import load_cube, read_any, read_capture
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.config import ReconstructConfig
@@ -199,3 +199,18 @@ def test_registration_keys_load_and_default():
     cfg = load_config({"refine_registration": True, "drift_warn_px": None}, ReconstructConfig)
     r = cfg.settings().registration
     assert r.refine and r.warn_px is None
+
+
+def test_an_integer_drift_renders_as_the_ideal_capture_moved(tmp_path):
+    """The simulator's drift by whole pixels is the ideal capture moved (noise-free): what the
+    full-size measurement in docs/reconstruct.md uses to make its drifted capture."""
+    nf = ["--set", "sensor.shot_noise=false", "--set", "sensor.read_noise_e=0", "--set",
+          "sensor.quantize=false"]  # fmt: skip
+    ideal, _ = read_capture(_simulate(tmp_path / "i", *nf) / "scenes" / "colorchecker.tif")
+    moved, _ = read_capture(_simulate(tmp_path / "d", *nf, "--set",
+                                      "mismatch.drift_shift_px=[2, 0]") / "scenes" /
+                            "colorchecker.tif")  # raw Bayer mosaics (1, H, W)
+    # sensor pixel p reads what the calibrated one read at p + (2, 0) (float32 render: rounding)
+    torch.testing.assert_close(moved[..., :-2], torch.roll(ideal, -2, dims=-1)[..., :-2],
+                               rtol=1e-5, atol=1e-3)
+    assert float((moved - ideal).abs().mean()) > 10.0
