@@ -147,6 +147,23 @@ class ReconstructConfig:
                        "the exposure); null: never"),
     )
 
+    drift_check: bool = field(
+        default=True,
+        metadata=_help("measure each frame's drift against the bundle's registration (views "
+                       "aligned to the reference view; a sensor shift and rotation fitted) and "
+                       "store it in the cube's metadata (stats.drift)"),
+    )
+    drift_warn_px: float | None = field(
+        default=0.5,
+        metadata=_help("warn when the measured sensor motion moves a view's pixel by more than "
+                       "this many px (null: never)"),
+    )
+    refine_registration: bool = field(
+        default=False,
+        metadata=_help("correct the measured sensor motion before solving (every view sampled "
+                       "where the moved sensor put it; see docs/reconstruct.md)"),
+    )
+
     def __post_init__(self) -> None:
         self.settings()  # every value checked where the settings are built (errors name the key)
 

@@ -54,6 +54,7 @@ from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.checks import exposure_info, prepare_capture
+from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.nnls import solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
 from hsi_torch.recon.settings import (
@@ -336,6 +337,8 @@ def observations_from_samples(
     y = samples.permute(0, 3, 2, 1).reshape(B, P, V * C)
     static = sens.obs_mask.to(samples.device).unsqueeze(0)
     ok = static & torch.isfinite(y)
+    if sens.sample_inside is not None:  # a drift-corrected grid: samples off the sensor dropped
+        ok &= sens.sample_inside.to(samples.device).T.repeat_interleave(C, dim=1).unsqueeze(0)
     if sat_weights is not None:
         sat = (sat_weights.permute(0, 3, 2, 1) > sat_threshold).reshape(B, P, V * C) & static
         ok &= ~sat
@@ -688,6 +691,10 @@ class Reconstructor:
             bundle), ``"off"``, or a folder; a later process with the same bundle content and
             ``(beta, diff_order, dtype, device type)`` loads it instead of factorising
             (:mod:`hsi_torch.recon.precompute_cache`).
+        drift_check: measure every frame's sensor drift against the bundle's registration
+            (:func:`hsi_torch.recon.drift.estimate_drift`): ``stats["drift"]``.
+        refine_registration: correct the measured drift before solving
+            (:func:`hsi_torch.recon.drift.corrected_sensing`); implies ``drift_check``.
         settings: all of the above at once, a
             :class:`~hsi_torch.recon.settings.ReconstructSettings` (what a run passes; e.g.
             ``ReconstructConfig(...).settings()``); the keywords are then left at their defaults.
@@ -720,6 +727,8 @@ class Reconstructor:
         uncertainty: bool = False,
         noise: SensorNoise | None = None,
         precompute_cache: str = "auto",
+        drift_check: bool = True,
+        refine_registration: bool = False,
         settings: ReconstructSettings | None = None,
     ) -> None:
         given = dict(beta=beta, diff_order=diff_order, solver=solver, admm_iters=admm_iters,
@@ -727,7 +736,8 @@ class Reconstructor:
                      nan_invalid=nan_invalid, exposure_correction=exposure_correction,
                      sat_threshold=sat_threshold, prior=prior, lam=lam,
                      spatial_iters=spatial_iters, uncertainty=uncertainty, noise=noise,
-                     precompute_cache=precompute_cache)  # fmt: skip
+                     precompute_cache=precompute_cache, drift_check=drift_check,
+                     refine_registration=refine_registration)  # fmt: skip
         flat = {k: v for k, v in given.items() if k not in ("device", "dtype", "noise")}
         flat.update(device=None if device is None else str(device), dtype=dtype_name(dtype))
         if noise is not None:
@@ -757,6 +767,8 @@ class Reconstructor:
         self.sat_threshold = float(s.input.sat_threshold)
         self.uncertainty = bool(s.uncertainty.enabled)
         self.noise = sensor_noise(s)
+        self.drift_check = bool(s.registration.check or s.registration.refine)
+        self.refine_registration = bool(s.registration.refine)
         self._factors: dict[tuple[str, str | None, torch.dtype], Tensor] = {}
 
     @property
@@ -822,6 +834,14 @@ class Reconstructor:
             factor = self.sampling_factor(layout, pattern)
         _sync(sens.device)
         t_demosaic = time.perf_counter() - t0
+        drift = None
+        if self.drift_check:
+            t1 = time.perf_counter()
+            drift = estimate_drift(sens, img)
+            if self.refine_registration and drift.sensor_shift_px is not None:
+                sens = corrected_sensing(sens, drift.sensor_shift_px,
+                                         drift.sensor_rotation_deg or 0.0)
+            t_drift = time.perf_counter() - t1
         with torch.no_grad():
             out = reconstruct_batch(
                 sens, img.unsqueeze(0), None if sat is None else sat.unsqueeze(0),
@@ -836,6 +856,10 @@ class Reconstructor:
         st = stats[0]
         st["exposure_scale"] = scale
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
+        if drift is not None:
+            st["drift"] = {**drift.to_dict(), "corrected": sens is not self.sensing,
+                           "sensor_motion_px": round(drift_motion_px(self.sensing, drift), 3)}
+            timings["drift"] = t_drift
         timings["total"] = time.perf_counter() - t0
         std = out[4][0] if self.uncertainty else None
         return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)

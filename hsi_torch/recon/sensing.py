@@ -148,6 +148,10 @@ class BundleSensing:
         sample_grid: ``(1, V, P, 2)`` (``dtype``, ``device``) sensor position of valid pixel ``p``
             in view ``v`` as normalised ``(x, y)`` (``align_corners=True``; see
             :func:`~hsi_torch.optics.geometry.view_sample_grid`); ``None``: computed on first use.
+        sample_inside: ``(V, P)`` bool or ``None``: samples of :attr:`sample_grid` that lie on
+            the sensor. Only a grid moved for one frame has it
+            (:func:`hsi_torch.recon.drift.corrected_sensing`: a drift correction); the frame's
+            observations outside the sensor are then dropped. ``None``: all are used.
         staging_lock: guards the per-bundle work buffer of :meth:`staging` (frames of one bundle
             may be reconstructed from several threads).
     """
@@ -168,6 +172,7 @@ class BundleSensing:
     radiometry: BundleRadiometry | None = None
     _problems: dict[tuple[float, int], NNLSProblem] = field(default_factory=dict, repr=False)
     sample_grid: Tensor | None = field(default=None, repr=False)
+    sample_inside: Tensor | None = field(default=None, repr=False)
     staging_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _staging: list[Tensor] = field(default_factory=list, repr=False)
 

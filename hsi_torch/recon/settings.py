@@ -4,7 +4,8 @@
 order, the solver, chunking, ``min_views``, NaN for invalid pixels, device, precision), ``prior``
 (none or TV, λ, iterations), ``input`` (demosaic, CFA pattern, black and white level, exposure
 correction, saturation threshold), ``output`` (cube formats, preview, spectra plot, the
-fit-residual warning) and ``uncertainty`` (on/off and the sensor's noise model). It is built once
+fit-residual warning), ``uncertainty`` (on/off and the sensor's noise model) and
+``registration`` (the drift measured from each frame, its warning and correction). It is built once
 per run from the flat :class:`~hsi_torch.recon.config.ReconstructConfig`
 (:meth:`ReconstructSettings.from_config`; the YAML files and ``--set key=value`` keep their flat
 keys) or from the keywords of :class:`~hsi_torch.recon.pipeline.Reconstructor` and
@@ -45,6 +46,7 @@ __all__ = [
     "InputSettings",
     "OutputSettings",
     "UncertaintySettings",
+    "RegistrationSettings",
     "DEFAULT_BETA",
     "SOLVERS",
     "PRIORS",
@@ -327,6 +329,34 @@ class UncertaintySettings:
         object.__setattr__(self, "quantization_dn", q)
 
 
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """The sensor drift measured from each frame (:mod:`hsi_torch.recon.drift`). Flat keys:
+    ``drift_check``, ``drift_warn_px``, ``refine_registration``.
+
+    Attributes:
+        check: measure every frame's drift against the bundle's registration and record it in
+            the statistics (``stats["drift"]``, stored with the cube).
+        warn_px: warn when the fitted sensor motion moves a view's pixel by more than this
+            (px, ``> 0``; ``None``: never).
+        refine: correct the measured sensor motion before solving (implies the measurement).
+    """
+
+    check: bool = True
+    warn_px: float | None = 0.5
+    refine: bool = False
+
+    def __post_init__(self) -> None:
+        for key, v in (("drift_check", self.check), ("refine_registration", self.refine)):
+            if not isinstance(v, bool):
+                raise _bad(key, f"must be true or false, got {v!r}")
+        if self.warn_px is not None:
+            lim = _number("drift_warn_px", self.warn_px)
+            if not lim > 0:
+                raise _bad("drift_warn_px", f"must be > 0 (px) or null, got {self.warn_px}")
+            object.__setattr__(self, "warn_px", lim)
+
+
 #: flat key → (group, field) of :class:`ReconstructSettings`: every field of
 #: :class:`~hsi_torch.recon.config.ReconstructConfig`, plus ``sat_threshold`` and
 #: ``noise_quantization_dn`` (keywords of the Python API only)
@@ -344,6 +374,8 @@ FLAT_KEYS: dict[str, tuple[str, str]] = {
     "noise_electrons_per_dn": ("uncertainty", "electrons_per_dn"),
     "noise_read_e": ("uncertainty", "read_e"),
     "noise_quantization_dn": ("uncertainty", "quantization_dn"),
+    "drift_check": ("registration", "check"), "drift_warn_px": ("registration", "warn_px"),
+    "refine_registration": ("registration", "refine"),
 }  # fmt: skip
 
 
@@ -356,6 +388,7 @@ class ReconstructSettings:
     input: InputSettings = field(default_factory=InputSettings)
     output: OutputSettings = field(default_factory=OutputSettings)
     uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
+    registration: RegistrationSettings = field(default_factory=RegistrationSettings)
 
     def __post_init__(self) -> None:  # rules across groups
         if self.prior.kind != "none" and self.uncertainty.enabled:

@@ -390,7 +390,8 @@ def check_run(
     st = bundle_path.stat()
     sha = content_sha256(bundle_path)  # remembered: the reconstructor's cache key needs it
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
-    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache")
+    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache",
+               "drift_warn_px")
     config = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(
@@ -484,7 +485,8 @@ def frame_warnings(
     ``fit_residual_warning`` (the bundle probably belongs to another geometry, or the
     black level / exposure is wrong), pixels whose solve did not converge, and the capture
     checks (:func:`hsi_torch.recon.checks.check_warnings`: a pedestal outside the views, an
-    unknown exposure ratio, another camera)."""
+    unknown exposure ratio, another camera), and a sensor drift above ``drift_warn_px``
+    (``stats["drift"]``, :mod:`hsi_torch.recon.drift`)."""
     out: list[str] = check_warnings(stats)
     fit = stats.get("fit_residual")
     lim = as_settings(cfg).output.fit_residual_warning
@@ -494,6 +496,18 @@ def frame_warnings(
             "capture; is the calibration bundle from this camera and geometry (and are the black "
             "level and exposure right)?"
         )
+    drift = stats.get("drift")
+    warn_px = as_settings(cfg).registration.warn_px
+    if isinstance(drift, dict) and warn_px is not None:
+        moved = drift.get("sensor_motion_px")
+        if isinstance(moved, (int, float)) and moved > warn_px:
+            t, rot = drift.get("sensor_shift_px"), drift.get("sensor_rotation_deg")
+            what = (f"the sensor moved since calibration: up to {moved:.2f} px > "
+                    f"drift_warn_px={warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
+                    f"{drift.get('measured_views')} views aligned to the reference view)")
+            out.append(what + ("; corrected (refine_registration)" if drift.get("corrected")
+                               else "; the views are misaligned and the spectra are biased: "
+                                    "--set refine_registration=true corrects it, or recalibrate"))
     n = int(stats.get("num_not_converged", 0))
     if n:
         out.append(

@@ -1,0 +1,216 @@
+"""Sensor drift measured from the scene itself (:mod:`hsi_torch.recon.drift`): the estimate on
+known shifts (an exact whole-sensor roll and the simulator's drift), zero on an undrifted
+capture, the metadata and the warning of a run, the correction's dB, and the settings keys.
+Small prototype (400 × 384 px), ColorChecker only, oracle bundle."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hsi_torch.cli import main
+from hsi_torch.config import ConfigError, load_config
+from hsi_torch.experiments.metrics import colorchecker_scores, erode_px
+from hsi_torch.io import load_cube, read_any, read_capture
+from hsi_torch.io.capture_set import read_truth
+from hsi_torch.recon import Reconstructor
+from hsi_torch.recon.config import ReconstructConfig
+from hsi_torch.recon.drift import corrected_sensing, estimate_drift, motion_points
+from hsi_torch.recon.settings import ReconstructSettings
+from hsi_torch.simulate.oracle import bundle_from_truth
+
+_SCENES_ONLY = ["--set", "captures.scan_wavelengths_nm=[]", "--set", "captures.white_shots=0",
+                "--set", "captures.grid.poses=[]", "--set", "captures.dark_frames=0",
+                "--set", "render.figures=false", "--set", "render.dtype=float32",
+                "--set", "captures.scenes=[{kind: colorchecker, name: colorchecker, params: "
+                             "{width_mm: 8.4, center_mm: [0.0, 1.4]}}]"]  # fmt: skip
+
+
+def _simulate(out: Path, *extra: str) -> Path:
+    assert main(["-q", "simulate", "--out", str(out), *_SCENES_ONLY, *extra]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def sims(tmp_path_factory) -> dict[str, Path]:
+    """The small prototype's ColorChecker, ideal and with a (2, 0) px sensor drift, and the
+    oracle bundle of the ideal device."""
+    root = tmp_path_factory.mktemp("drift")
+    ideal = _simulate(root / "ideal")
+    drift = _simulate(root / "drift", "--set", "mismatch.drift_shift_px=[2, 0]")
+    bundle = root / "oracle.npz"
+    bundle_from_truth(ideal).save(bundle)
+    return {"ideal": ideal, "drift": drift, "bundle": bundle}
+
+
+def _image(sim: Path) -> torch.Tensor:
+    return read_any(sim / "scenes" / "colorchecker.tif").image.double()
+
+
+def _means_db(sim: Path, res) -> float:
+    truth, _ = read_truth(sim)
+    return colorchecker_scores(res.cube.double().cpu().numpy(), res.valid.cpu().numpy(),
+                               truth["colorchecker_patch_index"],
+                               np.asarray(truth["colorchecker_spectra"], np.float64),
+                               erode_px(truth, 0.3))["mean_psnr_db"]
+
+
+@pytest.mark.parametrize("shift", [(2, 0), (0, -1), (-3, 2)])
+def test_a_whole_sensor_shift_is_measured_within_a_fifth_of_a_pixel(sims, shift, device):
+    """The ideal capture rolled by whole pixels is a sensor moved by exactly ``t``: the pixel
+    ``p`` reads what the calibrated sensor saw at ``p + t``."""
+    rec = Reconstructor(sims["bundle"], device=device, dtype=torch.float64)
+    img = torch.roll(_image(sims["ideal"]), shifts=(-shift[1], -shift[0]), dims=(1, 2))
+    est = estimate_drift(rec.sensing, img.to(device))
+    assert est.measured_views >= 6
+    np.testing.assert_allclose(est.sensor_shift_px, shift, atol=0.2)
+    assert abs(est.sensor_rotation_deg) < 0.02
+    # every measured view agrees with the fitted motion
+    assert np.nanmax(est.residual_px) < 0.5
+    # the views' measured shifts differ (mirrored views move the other way): not all alike
+    d = est.view_shift_px[np.isfinite(est.view_shift_px[:, 0])]
+    assert np.ptp(np.hypot(d[:, 0], d[:, 1])) > math.hypot(*shift)
+
+
+def test_the_simulated_drift_is_measured_and_none_without_it(sims):
+    rec = Reconstructor(sims["bundle"])
+    est = estimate_drift(rec.sensing, _image(sims["drift"]).float())
+    np.testing.assert_allclose(est.sensor_shift_px, (2.0, 0.0), atol=0.2)
+    assert abs(est.sensor_rotation_deg) < 0.02
+    assert est.max_view_shift_px > 3.0  # mirrored views: ~2 t relative to the reference
+    zero = estimate_drift(rec.sensing, _image(sims["ideal"]).float())
+    assert zero.measured_views >= 6
+    assert np.hypot(*zero.sensor_shift_px) < 0.1 and abs(zero.sensor_rotation_deg) < 0.01
+
+
+def test_a_rotation_is_measured(sims):
+    """A 0.1° turn of the ideal capture about the sensor centre, by exact resampling."""
+    rec = Reconstructor(sims["bundle"], dtype=torch.float64)
+    img = _image(sims["ideal"])
+    H, W = img.shape[-2:]
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64),
+                            torch.arange(W, dtype=torch.float64), indexing="ij")
+    p = motion_points(torch.stack([xs, ys], -1), (0.5, 0.0), 0.1, ((W - 1) / 2, (H - 1) / 2))
+    grid = torch.stack([2 * p[..., 0] / (W - 1) - 1, 2 * p[..., 1] / (H - 1) - 1], -1)
+    moved = torch.nn.functional.grid_sample(img[None], grid[None], align_corners=True)[0]
+    est = estimate_drift(rec.sensing, moved)
+    assert est.sensor_rotation_deg == pytest.approx(0.1, abs=0.02)
+    np.testing.assert_allclose(est.sensor_shift_px, (0.5, 0.0), atol=0.2)
+
+
+def test_refine_registration_recovers_the_lost_db(sims):
+    ideal = _means_db(sims["ideal"], Reconstructor(sims["bundle"]).reconstruct_file(
+        sims["ideal"] / "scenes" / "colorchecker.tif"))
+    drifted = Reconstructor(sims["bundle"]).reconstruct_file(
+        sims["drift"] / "scenes" / "colorchecker.tif")
+    fixed = Reconstructor(sims["bundle"], refine_registration=True).reconstruct_file(
+        sims["drift"] / "scenes" / "colorchecker.tif")
+    lost, left = ideal - _means_db(sims["drift"], drifted), ideal - _means_db(sims["drift"], fixed)
+    assert lost > 4.0, (ideal, lost)  # the drift costs (about 9 dB here) ...
+    assert left < 0.5, (ideal, left)  # ... and the correction gets it back
+    assert drifted.stats["drift"]["corrected"] is False
+    assert fixed.stats["drift"]["corrected"] is True
+    assert fixed.stats["drift"]["sensor_motion_px"] == pytest.approx(2.0, abs=0.2)
+
+
+def test_corrected_samples_off_the_sensor_are_dropped(sims):
+    rec = Reconstructor(sims["bundle"])
+    sens = rec.sensing
+    moved = corrected_sensing(sens, (40.0, 0.0), 0.0)
+    W = sens.sensor_size[1]
+    x = (moved.grid()[0, ..., 0].double() + 1) * (W - 1) / 2
+    inside = moved.sample_inside
+    assert inside.shape == (sens.num_views, sens.num_pixels) and not bool(inside.all())
+    assert bool(((x[~inside] < 0) | (x[~inside] > W - 1)).all())
+    assert bool(((x[inside] >= 0) & (x[inside] <= W - 1)).all())
+    # the original is untouched, the factorisation shared
+    assert sens.sample_inside is None and moved.problem is sens.problem
+    # a frame solved on it drops those observations (and re-solves the pixels concerned)
+    from hsi_torch.recon.pipeline import reconstruct_batch
+
+    img = _image(sims["ideal"]).float()[None]
+    _, valid, infos, _ = reconstruct_batch(moved, img)
+    assert infos[0]["num_resolved"] > 0
+    assert infos[0]["usable_observations"] < infos[0]["observations"]
+    assert infos[0]["num_valid"] <= sens.num_pixels
+
+
+def test_a_flat_field_measures_nothing_and_corrects_nothing(sims):
+    rec = Reconstructor(sims["bundle"], refine_registration=True)
+    H, W = rec.sensing.sensor_size
+    res = rec.reconstruct_frame(torch.full((3, H, W), 500.0))
+    d = res.stats["drift"]
+    assert d["measured_views"] == 0 and d["sensor_shift_px"] is None
+    assert d["corrected"] is False and d["sensor_motion_px"] == 0.0
+    assert d["view_shift_px"][0] == [0.0, 0.0] and d["view_shift_px"][1] == [None, None]
+
+
+def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_path, capsys):
+    cap = sims["drift"] / "scenes" / "colorchecker.tif"
+    base = ["reconstruct", "--bundle", str(sims["bundle"]), "--no-progress", "--set",
+            "formats=[npz]", "--set", "preview=false"]  # fmt: skip
+    assert main([*base, "--out", str(tmp_path / "a"), str(cap)]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" in err and "drift_warn_px=0.5" in err and "refine_registration" in err
+    meta = load_cube(tmp_path / "a" / "colorchecker.npz").metadata
+    d = meta["stats"]["drift"]
+    V = len(d["view_shift_px"])
+    assert V == 10 and len(d["correlation"]) == V and len(d["residual_px"]) == V
+    assert d["sensor_shift_px"][0] == pytest.approx(2.0, abs=0.2)
+    assert max(math.hypot(*s) for s in d["view_shift_px"] if s[0] is not None) > 3.0
+    json.dumps(meta)  # JSON-ready
+    # a higher threshold: no warning; corrected: the warning says so
+    assert main([*base, "--out", str(tmp_path / "b"), "--set", "drift_warn_px=5", str(cap)]) == 0
+    assert "drift_warn_px" not in capsys.readouterr().err  # (the fit residual still warns)
+    assert main([*base, "--out", str(tmp_path / "c"), "--set", "refine_registration=true",
+                 str(cap)]) == 0
+    err = capsys.readouterr().err
+    assert "corrected (refine_registration)" in err
+    assert "fit residual" not in err  # the corrected views explain the capture again
+    assert load_cube(tmp_path / "c" / "colorchecker.npz").metadata["stats"]["drift"]["corrected"]
+    # an undrifted capture: no warning; drift_check=false: nothing measured
+    ideal = sims["ideal"] / "scenes" / "colorchecker.tif"
+    assert main([*base, "--out", str(tmp_path / "d"), str(ideal)]) == 0
+    assert "WARNING" not in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "e"), "--set", "drift_check=false",
+                 str(ideal)]) == 0
+    assert "drift" not in load_cube(tmp_path / "e" / "colorchecker.npz").metadata["stats"]
+
+
+@pytest.mark.parametrize("key, value", [("refine_registration", "maybe"),
+                                        ("refine_registration", 1), ("drift_check", "no"),
+                                        ("drift_warn_px", 0), ("drift_warn_px", -1.0),
+                                        ("drift_warn_px", "far")])
+def test_registration_keys_are_validated_and_errors_name_them(key, value):
+    with pytest.raises((ConfigError, ValueError), match=key):
+        ReconstructSettings.from_flat({key: value})
+    with pytest.raises((ConfigError, ValueError), match=key):
+        load_config({key: value}, ReconstructConfig)
+
+
+def test_registration_keys_load_and_default():
+    s = ReconstructSettings()
+    assert s.registration.check and not s.registration.refine and s.registration.warn_px == 0.5
+    cfg = load_config({"refine_registration": True, "drift_warn_px": None}, ReconstructConfig)
+    r = cfg.settings().registration
+    assert r.refine and r.warn_px is None
+
+
+def test_an_integer_drift_renders_as_the_ideal_capture_moved(tmp_path):
+    """The simulator's drift by whole pixels is the ideal capture moved (noise-free): what the
+    full-size measurement in docs/reconstruct.md uses to make its drifted capture."""
+    nf = ["--set", "sensor.shot_noise=false", "--set", "sensor.read_noise_e=0", "--set",
+          "sensor.quantize=false"]  # fmt: skip
+    ideal, _ = read_capture(_simulate(tmp_path / "i", *nf) / "scenes" / "colorchecker.tif")
+    moved, _ = read_capture(_simulate(tmp_path / "d", *nf, "--set",
+                                      "mismatch.drift_shift_px=[2, 0]") / "scenes" /
+                            "colorchecker.tif")  # raw Bayer mosaics (1, H, W)
+    # sensor pixel p reads what the calibrated one read at p + (2, 0) (float32 render: rounding)
+    torch.testing.assert_close(moved[..., :-2], torch.roll(ideal, -2, dims=-1)[..., :-2],
+                               rtol=1e-5, atol=1e-3)
+    assert float((moved - ideal).abs().mean()) > 10.0
