@@ -426,10 +426,13 @@ def solve_observations(
             sens.model.select(idx), yc[idx], mask=mask[idx], beta=sens.beta,
             diff_order=sens.diff_order, **kw,
         )  # fmt: skip
-        x = x.index_copy(0, idx, sub.x)
-        conv = conv.index_copy(0, idx, sub.converged)
-        kkt = kkt.index_copy(0, idx, sub.kkt_residual)
-        iters = iters.index_copy(0, idx, sub.iterations)
+        # the solve's own tensors: overwritten in place (no frame-sized copies), unless x
+        # takes part in a graph (the differentiable ADMM mode)
+        x = x.index_copy(0, idx, sub.x) if x.requires_grad else x.index_copy_(0, idx, sub.x)
+        conv.index_copy_(0, idx, sub.converged)
+        kkt = (kkt.index_copy(0, idx, sub.kkt_residual) if kkt.requires_grad
+               else kkt.index_copy_(0, idx, sub.kkt_residual))
+        iters.index_copy_(0, idx, sub.iterations)
     native_grad = solver == "admm" and admm_iters is not None
     grad = torch.is_grad_enabled() and yc.requires_grad
     sinfo: dict[str, Any] = {}
@@ -455,7 +458,7 @@ def solve_observations(
                         else 0),
         "num_not_converged": n_ok - n_conv,
         "converged_fraction": n_conv / max(1, n_ok),
-        "max_kkt": float(kkt[ok].max()) if n_ok else 0.0,
+        "max_kkt": float(torch.where(ok, kkt, zero.to(kkt.dtype)).max()) if n_ok else 0.0,
         "fit_residual": fit_residual(sens, x.detach(), yc.detach(), mask, ok),
         **sinfo,
     }

@@ -45,30 +45,32 @@ if AVAILABLE:
 
     @_nb.njit(cache=True, inline="always", error_model="numpy")
     def _chol_solve(S, rhs, k):  # pragma: no cover - compiled
-        """In-place Cholesky of ``S[:k, :k]`` (lower) and solve ``S x = rhs`` into ``rhs``."""
+        """In-place Cholesky ``S[:k, :k] = L Lᵀ`` (``L`` in the lower triangle, ``1 / L_jj`` on
+        the diagonal: multiplications instead of divisions) and solve ``S x = rhs`` into
+        ``rhs``; False if ``S`` is not positive definite."""
         for j in range(k):
             s = S[j, j]
             for col in range(j):
                 s -= S[j, col] * S[j, col]
             if not (s > 0.0):
                 return False
-            d = np.sqrt(s)
-            S[j, j] = d
+            inv = 1.0 / np.sqrt(s)
+            S[j, j] = inv
             for i in range(j + 1, k):
                 t = S[i, j]
                 for col in range(j):
                     t -= S[i, col] * S[j, col]
-                S[i, j] = t / d
-        for i in range(k):
+                S[i, j] = t * inv
+        for i in range(k):  # L z = rhs
             t = rhs[i]
             for col in range(i):
                 t -= S[i, col] * rhs[col]
-            rhs[i] = t / S[i, i]
-        for i in range(k - 1, -1, -1):
-            t = rhs[i]
-            for col in range(i + 1, k):
-                t -= S[col, i] * rhs[col]
-            rhs[i] = t / S[i, i]
+            rhs[i] = t * S[i, i]
+        for i in range(k - 1, -1, -1):  # Lᵀ x = z, by columns of Lᵀ (rows of L: contiguous)
+            xi = rhs[i] * S[i, i]
+            rhs[i] = xi
+            for r in range(i):
+                rhs[r] -= S[i, r] * xi
         return True
 
     @_nb.njit(cache=True, inline="always", error_model="numpy")

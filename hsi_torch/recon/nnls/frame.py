@@ -265,7 +265,6 @@ def _finish(
     zero = torch.zeros((), dtype=dt, device=dev)
     gn_all = problem.gram_norm
     any_irregular = bool(irregular.any())
-    bnorm = _norm2(b)
     bad = ~(r <= tol) & ~irregular & ~redo & ~st.plain
     for _ in range(refine):
         idx = bad.nonzero().squeeze(1)
@@ -287,7 +286,7 @@ def _finish(
         ic = idx[s:s + n_corr]
         Gs = problem.gram_matrices(ic)
         bs = b[ic]
-        thr_s = (INFEASIBILITY_FRACTION * tol * bnorm[ic]).clamp_min(tiny).view(-1, 1)
+        thr_s = (INFEASIBILITY_FRACTION * tol * _norm2(bs)).clamp_min(tiny).view(-1, 1)
         eps = float(torch.finfo(dt).eps)
         piv_tol = min(eps**0.5, 100.0 * m * eps)
         xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
