@@ -175,7 +175,11 @@ if AVAILABLE:
         m = x.shape[0]
         for i in range(m):
             g[i] = -b[i]
-        _symv(G, p, x, g, 1.0)
+        for j in range(m):  # by rows, as _symv, skipping the zero set (dark pixels: most bands)
+            xj = x[j]
+            if xj != 0.0:
+                for i in range(m):
+                    g[i] += G[p, j, i] * xj
         num = 0.0
         xn = 0.0
         for i in range(m):
