@@ -75,10 +75,10 @@ if AVAILABLE:
 
     @_nb.njit(cache=True, inline="always", error_model="numpy")
     def _bpp_pixel(G, H, p, x0, b, gd, t, max_rounds, half, patience, S, rhs, idx, x, lam,
-                   Z):  # pragma: no cover - compiled
+                   Z, viol):  # pragma: no cover - compiled
         """One pixel's rounds (``G[p]``, ``H[p]``: its ``(M, M)`` matrices, indexed in place:
         a slice per pixel would cost numba a reference count); returns ``(status, rounds)``;
-        ``x``, ``Z`` hold the answer."""
+        ``x``, ``Z`` hold the answer; ``viol (M,)`` int64 scratch."""
         m = x0.shape[0]
         for j in range(m):
             Z[j] = x0[j] * gd[p, j] < -t
@@ -88,15 +88,13 @@ if AVAILABLE:
         while rnd < max_rounds:
             rnd += 1
             kz = 0
-            for j in range(m):
-                if Z[j]:
-                    kz += 1
+            for j in range(m):  # branch-free: a zero set is no pattern a predictor learns
+                kz += np.int64(Z[j])
             k = 0
             if kz <= half:  # zero-set solve through H
                 for j in range(m):
-                    if Z[j]:
-                        idx[k] = j
-                        k += 1
+                    idx[k] = j
+                    k += np.int64(Z[j])
                 for a in range(k):
                     for c in range(a + 1):
                         S[a, c] = H[p, idx[a], idx[c]]
@@ -115,9 +113,8 @@ if AVAILABLE:
                     lam[idx[a]] = rhs[a]
             else:  # free-set solve through G
                 for j in range(m):
-                    if not Z[j]:
-                        idx[k] = j
-                        k += 1
+                    idx[k] = j
+                    k += 1 - np.int64(Z[j])
                 for a in range(k):
                     for c in range(a + 1):
                         S[a, c] = G[p, idx[a], idx[c]]
@@ -133,14 +130,15 @@ if AVAILABLE:
                     for j in range(m):
                         lam[j] += G[p, idx[a], j] * ra
                 for j in range(m):
-                    if not Z[j]:
-                        lam[j] = 0.0
+                    lam[j] = lam[j] if Z[j] else 0.0
             nv = 0
             last = -1
-            for j in range(m):
-                if (lam[j] < -t) if Z[j] else (x[j] * gd[p, j] < -t):
-                    nv += 1
-                    last = j
+            for j in range(m):  # infeasible: λ_j < −t on Z, x_j G_jj < −t on F (branch-free)
+                zj = np.int64(Z[j])
+                vj = zj * np.int64(lam[j] < -t) + (1 - zj) * np.int64(x[j] * gd[p, j] < -t)
+                viol[j] = vj
+                nv += vj
+                last = j if vj else last
             if nv == 0:
                 return DONE, rnd
             improved = nv < best
@@ -150,8 +148,7 @@ if AVAILABLE:
                 best = nv
             if full:
                 for j in range(m):
-                    if (lam[j] < -t) if Z[j] else (x[j] * gd[p, j] < -t):
-                        Z[j] = not Z[j]
+                    Z[j] = (np.int64(Z[j]) ^ viol[j]) != 0
             else:
                 Z[last] = not Z[last]
         return NOT_FINISHED, rnd
@@ -237,6 +234,7 @@ if AVAILABLE:
             g = np.empty(m)
             br = np.empty(m)
             Z = np.empty(m, np.bool_)
+            viol = np.empty(m, np.int64)
             for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
                 p = 0 if shared else r
                 if fused:  # b = Aᵀ W y from the factors, stored (rounded to b's dtype)
@@ -264,7 +262,7 @@ if AVAILABLE:
                 st, rnd = DONE, 0
                 if need:
                     st, rnd = _bpp_pixel(G, H, p, x0, br, gd, t, max_rounds, half, patience,
-                                         S, rhs, idx, x, lam, Z)
+                                         S, rhs, idx, x, lam, Z, viol)
                     for j in range(m):
                         x[j] = x[j] if x[j] > 0.0 else 0.0
                 else:
