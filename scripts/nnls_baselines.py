@@ -416,30 +416,36 @@ if HAVE_NUMBA:
 
     @nb.njit(cache=True, parallel=True)
     def _rhs_matvec(y, mask, Bt, gain, resp, H, x, num_chunks):  # pragma: no cover - compiled
-        """Per pixel ``b = Aᵀ W y`` from the factors and ``x = H b`` (the arithmetic floor)."""
+        """Per pixel ``b = Aᵀ W y`` from the factors and ``x = H b`` (the arithmetic floor),
+        each inner loop over the bands (independent accumulators: vectorised), ``H`` read by
+        rows (symmetric), the arrays indexed in place (no per-pixel views)."""
         P, V, M = Bt.shape
         C = resp.shape[0]
         for ch in nb.prange(num_chunks):
-            u = np.empty(C)
+            w = np.empty(M)
             b = np.empty(M)
+            xp = np.empty(M)
             for p in range(ch * P // num_chunks, (ch + 1) * P // num_chunks):
                 for m in range(M):
                     b[m] = 0.0
+                    xp[m] = 0.0
                 for v in range(V):
                     gv = gain[p, v]
+                    for m in range(M):
+                        w[m] = 0.0
                     for c in range(C):
                         o = v * C + c
-                        u[c] = y[p, o] * gv if mask[p, o] else 0.0
+                        u = y[p, o] * gv if mask[p, o] else 0.0
+                        for m in range(M):
+                            w[m] += u * resp[c, m]
                     for m in range(M):
-                        t = 0.0
-                        for c in range(C):
-                            t += u[c] * resp[c, m]
-                        b[m] += t * Bt[p, v, m]
+                        b[m] += w[m] * Bt[p, v, m]
+                for j in range(M):
+                    bj = b[j]
+                    for i in range(M):
+                        xp[i] += H[p, j, i] * bj
                 for i in range(M):
-                    t = 0.0
-                    for j in range(M):
-                        t += H[p, i, j] * b[j]
-                    x[p, i] = t
+                    x[p, i] = xp[i]
 
 
 def read_pass(ts: dict[str, torch.Tensor], threads: int, repeats: int = 3) -> dict[str, Any]:

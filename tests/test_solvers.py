@@ -462,6 +462,52 @@ def test_compiled_and_torch_kernels_agree():
         prob.solve(y, backend="numba")
 
 
+@pytest.mark.parametrize("channels", [3, 2])
+def test_factored_model_compiled_pass_forms_rhs_itself(dtype, channels):
+    """With the camera's factored ``A`` (per-pixel ``B`` and gains) the compiled pass forms
+    ``b = Aᵀ W y`` itself (masked observations NaN, ignored): same answers, rounds and zero sets
+    as the torch kernels, SciPy's answers, and the KKT conditions (RGB and a generic channel
+    count)."""
+    from hsi_torch.forward_model import SensingModel
+    from hsi_torch.recon.nnls import _compiled
+
+    if not _compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    g = torch.Generator().manual_seed(11 + channels)
+    P, V, M = 1200, 10, 25
+    B = 0.5 * (1 - torch.cos(2 * torch.pi * (1.5 + 4.5 * torch.rand(P, V, 1, generator=g,
+                                                                   dtype=torch.float64))
+                             / torch.linspace(0.43, 0.67, M, dtype=torch.float64)))
+    gain = 0.7 + 0.4 * torch.rand(P, V, generator=g, dtype=torch.float64)
+    resp = torch.rand(channels, M, generator=g, dtype=torch.float64) * 20
+    model = SensingModel(B, gain, resp)
+    A = model.dense()
+    s = torch.rand(P, M, generator=g, dtype=torch.float64)
+    dark = torch.rand(P, generator=g) < 0.6  # shadows: mostly noise, many bands at zero
+    s = torch.where(dark.unsqueeze(1), 0.01 * s, s)
+    y = torch.bmm(A, s.unsqueeze(2)).squeeze(2) + 0.5 * torch.randn(P, V * channels, generator=g,
+                                                                     dtype=torch.float64)
+    mask = torch.rand(P, V * channels, generator=g) > 0.05
+    y = torch.where(mask, y, torch.full_like(y, float("nan")))
+    beta = 10.0
+    prob = prepare_nnls(model.to(dtype=dtype), mask=mask, beta=beta)
+    a = prob.solve(y.to(dtype), backend="torch")
+    b = prob.solve(y.to(dtype), backend="compiled")
+    assert float((b.iterations > 0).float().mean()) > 0.4
+    assert bool(b.converged.all()) and bool(a.converged.all())
+    assert not bool(torch.isnan(b.x).any())
+    if dtype == torch.float64:
+        assert torch.equal(a.iterations, b.iterations)
+        assert torch.equal(a.x == 0, b.x == 0)
+    scale = float(a.x.abs().max())
+    tol = 1e-9 if dtype == torch.float64 else 2e-4
+    assert float((a.x.double() - b.x.double()).abs().max()) < tol * scale
+    ref = scipy_reference(A, torch.nan_to_num(y), beta, mask)
+    assert float((b.x.double() - ref).abs().max()) < tol * float(ref.abs().max())
+    assert float(kkt_violation(A, torch.nan_to_num(y), b.x.double(), beta, mask).max()) < (
+        1e-10 if dtype == torch.float64 else 1e-4)
+
+
 def test_solve_nnls_takes_the_problems_options_and_refuses_others():
     """``solve_nnls`` takes exactly :meth:`NNLSProblem.solve`'s options (one list of them)."""
     import inspect

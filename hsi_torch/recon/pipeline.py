@@ -55,7 +55,7 @@ from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cf
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon.checks import exposure_info, prepare_capture
 from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
-from hsi_torch.recon.nnls import solve_nnls
+from hsi_torch.recon.nnls import cpu_threads, solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
 from hsi_torch.recon.settings import (
     DEFAULT_BETA,
@@ -371,6 +371,44 @@ def _reduced_resolve(
     return x.detach() + (xr - xr.detach())
 
 
+def _solve_per_pixel(
+    sens: BundleSensing, y: Tensor, mask: Tensor, V: int, min_views: int, premasked: bool,
+    solver: str, admm_iters: int | None, chunk_size: int | None, threads: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int]:
+    """The per-pixel part of :func:`solve_observations`: the valid and changed pixels, the
+    masked ``y``, the prepared problem's solve and the exact re-solves of the changed pixels.
+    ``threads``: the solver's CPU threads (torch's own count is lowered to 1 around this call).
+    Returns ``ok``, ``changed``, ``yc``, ``x``, ``converged``, ``kkt``, ``iterations``, the
+    number re-solved."""
+    P = y.shape[0]
+    zero = torch.zeros((), dtype=y.dtype, device=y.device)
+    views_left = mask.view(P, V, 3).any(2).sum(1)
+    ok = views_left >= int(min_views)
+    static = sens.obs_mask
+    changed = ok & (mask != static).any(1)
+    yc = y if premasked else torch.where(mask, y, zero).to(sens.dtype)
+    kw: dict[str, Any] = dict(solver=solver, chunk_size=chunk_size, num_threads=threads)
+    if solver == "admm" and admm_iters is not None:
+        kw["admm_iters"] = int(admm_iters)
+    res = sens.problem.solve(yc, **kw)
+    x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
+    n_changed = int(torch.count_nonzero(changed))
+    if n_changed:
+        idx = changed.nonzero().squeeze(1)
+        sub = solve_nnls(
+            sens.model.select(idx), yc[idx], mask=mask[idx], beta=sens.beta,
+            diff_order=sens.diff_order, **kw,
+        )  # fmt: skip
+        # the solve's own tensors: overwritten in place (no frame-sized copies), unless x
+        # takes part in a graph (the differentiable ADMM mode)
+        x = x.index_copy(0, idx, sub.x) if x.requires_grad else x.index_copy_(0, idx, sub.x)
+        conv.index_copy_(0, idx, sub.converged)
+        kkt = (kkt.index_copy(0, idx, sub.kkt_residual) if kkt.requires_grad
+               else kkt.index_copy_(0, idx, sub.kkt_residual))
+        iters.index_copy_(0, idx, sub.iterations)
+    return ok, changed, yc, x, conv, kkt, iters, n_changed
+
+
 def solve_observations(
     sens: BundleSensing,
     y: Tensor,
@@ -412,27 +450,13 @@ def solve_observations(
     P, O = y.shape
     V = O // 3
     zero = torch.zeros((), dtype=y.dtype, device=y.device)
-    views_left = mask.view(P, V, 3).any(2).sum(1)
-    ok = views_left >= int(min_views)
-    static = sens.obs_mask
-    changed = ok & (mask != static).any(1)
-    yc = y if premasked else torch.where(mask, y, zero).to(sens.dtype)
-    kw: dict[str, Any] = dict(solver=solver, chunk_size=chunk_size)
-    if solver == "admm" and admm_iters is not None:
-        kw["admm_iters"] = int(admm_iters)
-    res = sens.problem.solve(yc, **kw)
-    x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
-    n_changed = int(torch.count_nonzero(changed))
-    if n_changed:
-        idx = changed.nonzero().squeeze(1)
-        sub = solve_nnls(
-            sens.model.select(idx), yc[idx], mask=mask[idx], beta=sens.beta,
-            diff_order=sens.diff_order, **kw,
-        )  # fmt: skip
-        x = x.index_copy(0, idx, sub.x)
-        conv = conv.index_copy(0, idx, sub.converged)
-        kkt = kkt.index_copy(0, idx, sub.kkt_residual)
-        iters = iters.index_copy(0, idx, sub.iterations)
+    # the per-pixel solve and its bookkeeping: single-threaded torch kernels on CPU, as in the
+    # solver (a multi-threaded element-wise kernel waits at its barrier for a core another
+    # process holds; the compiled pass has its own threads)
+    threads = torch.get_num_threads()
+    with cpu_threads(y.device, 1):
+        ok, changed, yc, x, conv, kkt, iters, n_changed = _solve_per_pixel(
+            sens, y, mask, V, min_views, premasked, solver, admm_iters, chunk_size, threads)
     native_grad = solver == "admm" and admm_iters is not None
     grad = torch.is_grad_enabled() and yc.requires_grad
     sinfo: dict[str, Any] = {}
@@ -447,10 +471,23 @@ def solve_observations(
     x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
     if not stats:
         return x, ok, {}
+    with cpu_threads(y.device, 1):
+        info = _frame_stats(sens, x, yc, mask, ok, conv, kkt, iters, n_changed, solver)
+    info.update(sinfo)
+    return x, ok, info
+
+
+def _frame_stats(
+    sens: BundleSensing, x: Tensor, yc: Tensor, mask: Tensor, ok: Tensor, conv: Tensor,
+    kkt: Tensor, iters: Tensor, n_changed: int, solver: str,
+) -> dict[str, Any]:
+    """The counts and diagnostics of :func:`solve_observations`' ``info`` (host syncs)."""
+    P = x.shape[0]
+    zero = torch.zeros((), dtype=kkt.dtype, device=kkt.device)
     okc = conv & ok
     n_ok = int(torch.count_nonzero(ok))
     n_conv = int(torch.count_nonzero(okc))
-    info = {
+    return {
         "num_valid": n_ok,
         "num_lost": P - n_ok,
         "num_resolved": n_changed,
@@ -458,11 +495,9 @@ def solve_observations(
                         else 0),
         "num_not_converged": n_ok - n_conv,
         "converged_fraction": n_conv / max(1, n_ok),
-        "max_kkt": float(kkt[ok].max()) if n_ok else 0.0,
+        "max_kkt": float(torch.where(ok, kkt, zero).max()) if n_ok else 0.0,
         "fit_residual": fit_residual(sens, x.detach(), yc.detach(), mask, ok),
-        **sinfo,
     }
-    return x, ok, info
 
 
 def fit_residual(

@@ -45,58 +45,59 @@ if AVAILABLE:
 
     @_nb.njit(cache=True, inline="always", error_model="numpy")
     def _chol_solve(S, rhs, k):  # pragma: no cover - compiled
-        """In-place Cholesky of ``S[:k, :k]`` (lower) and solve ``S x = rhs`` into ``rhs``."""
+        """In-place Cholesky ``S[:k, :k] = L Lᵀ`` (``L`` in the lower triangle, ``1 / L_jj`` on
+        the diagonal: multiplications instead of divisions) and solve ``S x = rhs`` into
+        ``rhs``; False if ``S`` is not positive definite."""
         for j in range(k):
             s = S[j, j]
             for col in range(j):
                 s -= S[j, col] * S[j, col]
             if not (s > 0.0):
                 return False
-            d = np.sqrt(s)
-            S[j, j] = d
+            inv = 1.0 / np.sqrt(s)
+            S[j, j] = inv
             for i in range(j + 1, k):
                 t = S[i, j]
                 for col in range(j):
                     t -= S[i, col] * S[j, col]
-                S[i, j] = t / d
-        for i in range(k):
+                S[i, j] = t * inv
+        for i in range(k):  # L z = rhs
             t = rhs[i]
             for col in range(i):
                 t -= S[i, col] * rhs[col]
-            rhs[i] = t / S[i, i]
-        for i in range(k - 1, -1, -1):
-            t = rhs[i]
-            for col in range(i + 1, k):
-                t -= S[col, i] * rhs[col]
-            rhs[i] = t / S[i, i]
+            rhs[i] = t * S[i, i]
+        for i in range(k - 1, -1, -1):  # Lᵀ x = z, by columns of Lᵀ (rows of L: contiguous)
+            xi = rhs[i] * S[i, i]
+            rhs[i] = xi
+            for r in range(i):
+                rhs[r] -= S[i, r] * xi
         return True
 
-    @_nb.njit(cache=True, error_model="numpy")
-    def _bpp_pixel(G, H, x0, b, gd, t, max_rounds, half, patience, S, rhs, idx, x, lam,
-                   Z):  # pragma: no cover - compiled
-        """One pixel's rounds (``G``, ``H``: its ``(M, M)`` matrices); returns
-        ``(status, rounds)``; ``x``, ``Z`` hold the answer."""
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
+    def _bpp_pixel(G, H, p, x0, b, gd, t, max_rounds, half, patience, S, rhs, idx, x, lam,
+                   Z, viol):  # pragma: no cover - compiled
+        """One pixel's rounds (``G[p]``, ``H[p]``: its ``(M, M)`` matrices, indexed in place:
+        a slice per pixel would cost numba a reference count); returns ``(status, rounds)``;
+        ``x``, ``Z`` hold the answer; ``viol (M,)`` int64 scratch."""
         m = x0.shape[0]
         for j in range(m):
-            Z[j] = x0[j] * gd[j] < -t
+            Z[j] = x0[j] * gd[p, j] < -t
         best = m + 1
         backup = patience
         rnd = 0
         while rnd < max_rounds:
             rnd += 1
             kz = 0
-            for j in range(m):
-                if Z[j]:
-                    kz += 1
+            for j in range(m):  # branch-free: a zero set is no pattern a predictor learns
+                kz += np.int64(Z[j])
             k = 0
             if kz <= half:  # zero-set solve through H
                 for j in range(m):
-                    if Z[j]:
-                        idx[k] = j
-                        k += 1
+                    idx[k] = j
+                    k += np.int64(Z[j])
                 for a in range(k):
                     for c in range(a + 1):
-                        S[a, c] = H[idx[a], idx[c]]
+                        S[a, c] = H[p, idx[a], idx[c]]
                     rhs[a] = -x0[idx[a]]
                 if not _chol_solve(S, rhs, k):
                     return FACTOR_FAILED, rnd
@@ -106,18 +107,17 @@ if AVAILABLE:
                 for a in range(k):
                     ra = rhs[a]
                     for j in range(m):
-                        x[j] += H[idx[a], j] * ra
+                        x[j] += H[p, idx[a], j] * ra
                 for a in range(k):
                     x[idx[a]] = 0.0
                     lam[idx[a]] = rhs[a]
             else:  # free-set solve through G
                 for j in range(m):
-                    if not Z[j]:
-                        idx[k] = j
-                        k += 1
+                    idx[k] = j
+                    k += 1 - np.int64(Z[j])
                 for a in range(k):
                     for c in range(a + 1):
-                        S[a, c] = G[idx[a], idx[c]]
+                        S[a, c] = G[p, idx[a], idx[c]]
                     rhs[a] = b[idx[a]]
                 if not _chol_solve(S, rhs, k):
                     return FACTOR_FAILED, rnd
@@ -128,16 +128,17 @@ if AVAILABLE:
                     ra = rhs[a]
                     x[idx[a]] = ra
                     for j in range(m):
-                        lam[j] += G[idx[a], j] * ra
+                        lam[j] += G[p, idx[a], j] * ra
                 for j in range(m):
-                    if not Z[j]:
-                        lam[j] = 0.0
+                    lam[j] = lam[j] if Z[j] else 0.0
             nv = 0
             last = -1
-            for j in range(m):
-                if (lam[j] < -t) if Z[j] else (x[j] * gd[j] < -t):
-                    nv += 1
-                    last = j
+            for j in range(m):  # infeasible: λ_j < −t on Z, x_j G_jj < −t on F (branch-free)
+                zj = np.int64(Z[j])
+                vj = zj * np.int64(lam[j] < -t) + (1 - zj) * np.int64(x[j] * gd[p, j] < -t)
+                viol[j] = vj
+                nv += vj
+                last = j if vj else last
             if nv == 0:
                 return DONE, rnd
             improved = nv < best
@@ -147,34 +148,79 @@ if AVAILABLE:
                 best = nv
             if full:
                 for j in range(m):
-                    if (lam[j] < -t) if Z[j] else (x[j] * gd[j] < -t):
-                        Z[j] = not Z[j]
+                    Z[j] = (np.int64(Z[j]) ^ viol[j]) != 0
             else:
                 Z[last] = not Z[last]
         return NOT_FINISHED, rnd
 
-    @_nb.njit(cache=True, error_model="numpy")
-    def _kkt(G, x, b, gd, gn, bn, g, floor):  # pragma: no cover - compiled
-        """``g = G x − b`` into ``g``; returns the relative KKT residual (``_kkt_ratio``)."""
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
+    def _symv(S, p, v, out, sign):  # pragma: no cover - compiled
+        """``out ← out + sign·S[p] v`` for a symmetric ``S[p]``, by rows:
+        ``out[i] += S[p, j, i]·v[j]`` in the order of ``j`` (the order of a row's dot product,
+        so the same sums): the inner loop over ``i`` has independent accumulators and
+        vectorises, where a dot product per row is a chain of dependent additions. ``S`` is
+        indexed in place (a per-pixel slice costs numba a reference count)."""
+        m = v.shape[0]
+        for j in range(m):
+            vj = sign * v[j]
+            for i in range(m):
+                out[i] += S[p, j, i] * vj
+
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
+    def _kkt(G, p, x, b, gd, gn, bn, g, floor):  # pragma: no cover - compiled
+        """``g = G[p] x − b`` into ``g``; returns the relative KKT residual (``_kkt_ratio``)."""
         m = x.shape[0]
+        for i in range(m):
+            g[i] = -b[i]
+        for j in range(m):  # by rows, as _symv, skipping the zero set (dark pixels: most bands)
+            xj = x[j]
+            if xj != 0.0:
+                for i in range(m):
+                    g[i] += G[p, j, i] * xj
         num = 0.0
         xn = 0.0
         for i in range(m):
-            v = -b[i]
-            for j in range(m):
-                v += G[i, j] * x[j]
-            g[i] = v
-            t = gd[i] * x[i]
+            v = g[i]
+            t = gd[p, i] * x[i]
             t = t if t < v else v
             num += t * t
             xn += x[i] * x[i]
         den = gn * np.sqrt(xn) + bn
         return np.sqrt(num) / (den if den > floor else floor)
 
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
+    def _rhs(y, mask, Bt, gain, resp, r, out):  # pragma: no cover - compiled
+        """``out = Aᵀ W y`` of pixel ``r`` from its factors: ``y (P, O)``, ``mask (P, O)``,
+        ``Bt (P, V, M)``, ``gain (P, V)``, ``resp (C, M)`` (``o = C·v + c``):
+        ``out = Σ_v B_v ⊙ Σ_c u_vc resp_c`` with ``u_vc = g_v y_o`` (0 where masked)."""
+        V, M = Bt.shape[1], Bt.shape[2]
+        C = resp.shape[0]
+        for j in range(M):
+            out[j] = 0.0
+        if C == 3:  # the RGB camera: the three weights in registers
+            for v in range(V):
+                gv = gain[r, v]
+                o = 3 * v
+                u0 = y[r, o] * gv if mask[r, o] else 0.0
+                u1 = y[r, o + 1] * gv if mask[r, o + 1] else 0.0
+                u2 = y[r, o + 2] * gv if mask[r, o + 2] else 0.0
+                for j in range(M):
+                    out[j] += Bt[r, v, j] * ((u0 * resp[0, j] + u1 * resp[1, j])
+                                             + u2 * resp[2, j])
+            return
+        for v in range(V):
+            gv = gain[r, v]
+            for c in range(C):
+                o = v * C + c
+                if mask[r, o]:
+                    uc = y[r, o] * gv
+                    for j in range(M):
+                        out[j] += uc * resp[c, j] * Bt[r, v, j]
+
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half, patience,
-                      floor, x_out, z_out, r_out, status, rounds,
-                      num_chunks):  # pragma: no cover - compiled
+                      floor, x_out, z_out, r_out, status, rounds, num_chunks, fused, y, mask,
+                      Bt, gain, resp):  # pragma: no cover - compiled
         n, m = b.shape
         shared = G.shape[0] == 1
         for ch in _nb.prange(num_chunks):
@@ -186,49 +232,54 @@ if AVAILABLE:
             xn = np.empty(m)
             lam = np.empty(m)
             g = np.empty(m)
+            br = np.empty(m)
             Z = np.empty(m, np.bool_)
+            viol = np.empty(m, np.int64)
             for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
                 p = 0 if shared else r
-                Gp, Hp, gdp, br = G[p], H[p], gd[p], b[r]
+                if fused:  # b = Aᵀ W y from the factors, stored (rounded to b's dtype)
+                    _rhs(y, mask, Bt, gain, resp, r, rhs)
+                    for j in range(m):
+                        b[r, j] = rhs[j]
                 bn = 0.0
                 for j in range(m):
+                    br[j] = b[r, j]
                     bn += br[j] * br[j]
                 bn = np.sqrt(bn)
-                nrm = 0.0
                 for i in range(m):  # x0 = H b
-                    v = 0.0
-                    for j in range(m):
-                        v += Hp[i, j] * br[j]
-                    x0[i] = v
-                    nrm += v * v
+                    x0[i] = 0.0
+                _symv(H, p, br, x0, 1.0)
+                nrm = 0.0
+                for i in range(m):
+                    nrm += x0[i] * x0[i]
                 t = frac * tol * (gn[p] * np.sqrt(nrm) + bn)
                 t = t if t > floor else floor
                 need = False
                 if not skip[r]:
                     for j in range(m):
-                        if x0[j] * gdp[j] < -t:
+                        if x0[j] * gd[p, j] < -t:
                             need = True
                 st, rnd = DONE, 0
                 if need:
-                    st, rnd = _bpp_pixel(Gp, Hp, x0, br, gdp, t, max_rounds, half, patience,
-                                         S, rhs, idx, x, lam, Z)
+                    st, rnd = _bpp_pixel(G, H, p, x0, br, gd, t, max_rounds, half, patience,
+                                         S, rhs, idx, x, lam, Z, viol)
                     for j in range(m):
                         x[j] = x[j] if x[j] > 0.0 else 0.0
                 else:
                     for j in range(m):
                         x[j] = x0[j] if x0[j] > 0.0 else 0.0
                         Z[j] = False
-                res = _kkt(Gp, x, br, gdp, gn[p], bn, g, floor)
+                res = _kkt(G, p, x, br, gd, gn[p], bn, g, floor)
                 if not need and not skip[r]:  # all-free pixels: refinement x <- max(0, x - H g)
                     for _ in range(refine):
                         if res <= tol:
                             break
                         for i in range(m):
-                            v = x[i]
-                            for j in range(m):
-                                v -= Hp[i, j] * g[j]
-                            xn[i] = v if v > 0.0 else 0.0
-                        rn = _kkt(Gp, xn, br, gdp, gn[p], bn, lam, floor)
+                            xn[i] = x[i]
+                        _symv(H, p, g, xn, -1.0)
+                        for i in range(m):
+                            xn[i] = xn[i] if xn[i] > 0.0 else 0.0
+                        rn = _kkt(G, p, xn, br, gd, gn[p], bn, lam, floor)
                         if rn < res:
                             res = rn
                             for i in range(m):
@@ -247,19 +298,26 @@ if AVAILABLE:
 def solve_frame_cpu(
     G: np.ndarray, H: np.ndarray, b: np.ndarray, gd: np.ndarray, gn: np.ndarray,
     skip: np.ndarray, tol: float, max_rounds: int, refine: int, num_threads: int,
+    factors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Steps 1–3 of the active-set solve for every pixel in one compiled pass.
 
-    Per pixel: ``x0 = H b``; the infeasibility threshold ``t = ¼·tol·(‖G‖‖x0‖ + ‖b‖)``
+    Per pixel: with ``factors``, the right-hand side ``b = Aᵀ W y`` from the camera's factored
+    sensing matrix (written into ``b``); ``x0 = H b``; the infeasibility threshold
+    ``t = ¼·tol·(‖G‖‖x0‖ + ‖b‖)``
     (:data:`~hsi_torch.recon.nnls.constants.INFEASIBILITY_FRACTION`); block
     principal pivoting where ``x0`` has an entry with ``x0_m G_mm < −t`` (unless ``skip``);
     the KKT residual of the answer with the exact ``G`` and ``b``; for pixels without a zero set,
     up to ``refine`` refinement steps ``x ← max(0, x − H(Gx − b))`` kept while they lower it.
-    Each matrix is read once per pixel and nothing of frame size is allocated.
+    Each pixel's bytes are read once and nothing of frame size is allocated but the outputs.
+    ``G`` and ``H`` must be symmetric (they are read by rows as columns).
 
     Args:
-        G, H: ``(P|1, M, M)``; b: ``(P, M)``; gd: ``(P|1, M)`` ``diag G``; gn: ``(P|1,)`` the
-        ``‖G‖₂`` bound; skip: ``(P,)`` bool (singular or without data: no pivoting).
+        G, H: ``(P|1, M, M)``; b: ``(P, M)`` right-hand sides (with ``factors``: written);
+        gd: ``(P|1, M)`` ``diag G``; gn: ``(P|1,)`` the ``‖G‖₂`` bound; skip: ``(P,)`` bool
+        (singular or without data: no pivoting); factors: ``None`` (``b`` given), or
+        ``(y (P, O), mask (P, O) bool, transmittance (P, V, M), gain (P, V), response (C, M))``
+        with ``O = V·C`` and ``o = C·v + c`` (:class:`~hsi_torch.forward_model.SensingModel`).
 
     Returns:
         ``x (P, M) ≥ 0``, ``Z (P, M)`` bool zero sets, ``residual (P,)`` float64, ``status (P,)``
@@ -275,8 +333,23 @@ def solve_frame_cpu(
     rounds = np.empty(n, np.int32)
     if n == 0:
         return x, z, res, status, rounds
+    if factors is None:  # placeholders of the right types (numba compiles one kernel per dtype)
+        fac = (np.zeros((1, 1), b.dtype), np.zeros((1, 1), np.bool_),
+               np.zeros((1, 1, m), b.dtype), np.zeros((1, 1), b.dtype),
+               np.zeros((1, m), b.dtype))
+    else:
+        fac = tuple(np.ascontiguousarray(a) for a in factors)
+        y, mask, Bt, gain, resp = fac
+        V, C = Bt.shape[1], resp.shape[0]
+        if (y.shape != (n, V * C) or mask.shape != y.shape or Bt.shape != (n, V, m)
+                or gain.shape != (n, V) or resp.shape != (C, m)):
+            raise ValueError(
+                f"solve_frame_cpu: factors y {y.shape}, mask {mask.shape}, transmittance "
+                f"{Bt.shape}, gain {gain.shape}, response {resp.shape} do not match "
+                f"b {b.shape} as (P, V·C), (P, V·C), (P, V, M), (P, V), (C, M)")
     with threads(num_threads):
         _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine),
                       float(INFEASIBILITY_FRACTION), int(zero_set_limit(m)), int(MURTY_PATIENCE),
-                      float(COMPILED_FLOOR), x, z, res, status, rounds, min(n, 512))
+                      float(COMPILED_FLOOR), x, z, res, status, rounds, min(n, 512),
+                      factors is not None, *fac)
     return x, z, res, status, rounds

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.recon.nnls import _compiled
 from hsi_torch.recon.nnls._threads import for_chunks
 from hsi_torch.recon.nnls.active_set import (
@@ -119,14 +120,16 @@ def _steps_compiled(
     """Steps 1–3 pixel by pixel in one compiled pass (:func:`_compiled.solve_frame_cpu`)."""
     P, m = y.shape[0], problem.num_bands
     b = torch.empty((P, m), dtype=problem.dtype, device=y.device)
+    factors = _fused_factors(problem, y)
+    if factors is None:  # b = Aᵀ W y by the operator, then the compiled pass
 
-    def rhs(sl: slice) -> None:
-        b[sl] = problem.rhs(y, sl)
+        def rhs(sl: slice) -> None:
+            b[sl] = problem.rhs(y, sl)
 
-    for_chunks(rhs, P, n, workers)
+        for_chunks(rhs, P, n, workers)
     out = _compiled.solve_frame_cpu(
         problem.gram.numpy(), problem.gram_inv.numpy(), b.numpy(), problem.gram_diag.numpy(),
-        problem.gram_norm.numpy(), irregular.numpy(), tol, rounds, refine, workers,
+        problem.gram_norm.numpy(), irregular.numpy(), tol, rounds, refine, workers, factors,
     )  # fmt: skip
     x, zset = torch.from_numpy(out[0]), torch.from_numpy(out[1])
     r = torch.from_numpy(out[2]).to(problem.dtype)
@@ -135,6 +138,22 @@ def _steps_compiled(
     redo = (sing & ~nod) | ~done
     plain = ~zset.any(1) & ~irregular
     return _Steps(x, b, r, zset, done, iters, redo, plain)
+
+
+def _fused_factors(problem: NNLSProblem, y: Tensor) -> tuple | None:
+    """The camera's factored ``A`` as NumPy arrays for the compiled pass to form ``b = Aᵀ W y``
+    itself (``y``, mask, transmittance, gain, response), or ``None`` where ``b`` is formed by
+    the operator first (dense or shared ``A``)."""
+    sens = problem.sensing
+    if not isinstance(sens, SensingModel) or sens.shared:
+        return None
+    P = y.shape[0]
+    mask = problem.mask
+    if mask is None:
+        mask = torch.ones((1, 1), dtype=torch.bool).expand(P, sens.num_obs)
+    return (y.contiguous().numpy(), mask.contiguous().numpy(),
+            sens.transmittance.contiguous().numpy(), sens.gain.contiguous().numpy(),
+            sens.response.contiguous().numpy())
 
 
 def _steps_torch(
@@ -246,7 +265,6 @@ def _finish(
     zero = torch.zeros((), dtype=dt, device=dev)
     gn_all = problem.gram_norm
     any_irregular = bool(irregular.any())
-    bnorm = _norm2(b)
     bad = ~(r <= tol) & ~irregular & ~redo & ~st.plain
     for _ in range(refine):
         idx = bad.nonzero().squeeze(1)
@@ -268,7 +286,7 @@ def _finish(
         ic = idx[s:s + n_corr]
         Gs = problem.gram_matrices(ic)
         bs = b[ic]
-        thr_s = (INFEASIBILITY_FRACTION * tol * bnorm[ic]).clamp_min(tiny).view(-1, 1)
+        thr_s = (INFEASIBILITY_FRACTION * tol * _norm2(bs)).clamp_min(tiny).view(-1, 1)
         eps = float(torch.finfo(dt).eps)
         piv_tol = min(eps**0.5, 100.0 * m * eps)
         xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
