@@ -115,7 +115,8 @@ def test_contrasts_on_rendered_target():
 def test_reduced_run(tmp_path):
     """End to end on the small sensor (fast): files, scale, RGB reference at least as fine as
     the median HSI band."""
-    cfg = USAFConfig(prototype_overrides=["render.supersample=1"], progress=False)
+    cfg = USAFConfig(prototype=shipped_config("simulate"),
+                     prototype_overrides=["render.supersample=1"], progress=False)
     cfg.target.groups = [0, 1]
     cfg.target.magnification = 0.25
     s = run_usaf(cfg, tmp_path)
@@ -133,6 +134,11 @@ def test_reduced_run(tmp_path):
 
 def test_ablate_key_is_validated(tmp_path):
     assert USAFConfig().ablate == []
+    # the default is the seed's scale: full-size prototype, 1/16 magnification, 10 µm diffuser
+    d = USAFConfig()
+    assert d.prototype is None and d.target.magnification == 0.0625
+    full = _sim_config(d, calibrated=False)
+    assert full.camera.width_px == 2896 and full.diffuser.blur_sigma_mm == 0.01
     assert USAFConfig(ablate="warp").ablate == ["warp"]
     with pytest.raises(ValueError, match=r"ablate: unknown factor\(s\) \['blur'\]"):
         USAFConfig(ablate=["blur"])
@@ -150,7 +156,8 @@ def test_ablate_key_is_validated(tmp_path):
 
 
 def test_ablations_switch_the_prototype():
-    cfg = USAFConfig(prototype_overrides=["camera.scale=2", "diffuser.blur_sigma_mm=0.05"])
+    cfg = USAFConfig(prototype=shipped_config("simulate"),
+                     prototype_overrides=["camera.scale=2", "diffuser.blur_sigma_mm=0.05"])
     base = _sim_config(cfg, calibrated=False)
     assert base.diffuser.blur_sigma_mm == 0.05 and base.sensor.output == "bayer"
     assert base.sensor.shot_noise and base.sensor.read_noise_e > 0 and base.sensor.quantize
@@ -178,7 +185,8 @@ def _fine_element_contrast(renderer, scene, lp_diffuser):
 
 def test_diffuser_ablation_raises_fine_contrast():
     """No diffuser → a fine element keeps a higher contrast than through a 0.1 mm blur."""
-    cfg = USAFConfig(prototype_overrides=["render.supersample=1", "diffuser.blur_sigma_mm=0.15"])
+    cfg = USAFConfig(prototype=shipped_config("simulate"),
+                     prototype_overrides=["render.supersample=1", "diffuser.blur_sigma_mm=0.15"])
     cfg.target.groups, cfg.target.magnification = [0, 1], 1.0
     from hsi_torch.simulate.capture_sets import build_scene
 
@@ -197,7 +205,8 @@ def test_diffuser_ablation_raises_fine_contrast():
 @pytest.fixture(scope="module")
 def oracle_small(tmp_path_factory):
     """Small prototype's ground truth only (no capture rendered) and its oracle bundle."""
-    cfg = USAFConfig(prototype_overrides=["render.supersample=1", "diffuser.blur_sigma_mm=0"],
+    cfg = USAFConfig(prototype=shipped_config("simulate"),
+                     prototype_overrides=["render.supersample=1", "diffuser.blur_sigma_mm=0"],
                      ablate=["warp"])
     cfg.target.groups, cfg.target.magnification = [0], 0.25
     sim = _sim_config(cfg, calibrated=False)

@@ -287,9 +287,11 @@ def ideal_observations(rec: Reconstructor, renderer: Any, scene: Any, *, noise: 
 class USAFTargetSpec:
     """The USAF 1951 scene (:class:`~hsi_torch.simulate.scenes.USAF1951Scene` parameters)."""
 
-    groups: list[int] = field(default_factory=lambda: [-1, 0, 1])
+    groups: list[int] = field(default_factory=lambda: [-2, -1, 0, 1])
     magnification: float = field(
-        default=0.25, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm)"})
+        default=0.0625, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm); "
+                                          "1/16 puts the full-size RGB reference's limit at "
+                                          "G0 E2 = 1.12 lp/mm"})
     center_mm: list[float] = field(default_factory=lambda: [0.0, 0.3])
     bar_reflectance: float = 0.9
     background_reflectance: float = 0.05
@@ -301,11 +303,11 @@ class USAFConfig:
 
     prototype: Path | None = field(
         default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: the "
-                                        "shipped simulate.yaml, the default prototype)"})
+                                        "shipped simulate_full.yaml, the full-size prototype)"})
     prototype_overrides: list[str] = field(
-        default_factory=lambda: ["camera.scale=2"],
-        metadata={"help": "overrides of the prototype config (default: 2x finer sensor, so the "
-                          "target's coarse groups fit in the reference view above Nyquist)"})
+        default_factory=lambda: ["diffuser.blur_sigma_mm=0.01"],
+        metadata={"help": "overrides of the prototype config (default: a fine ground-glass "
+                          "diffuser, σ = 10 µm; docs/experiments.md says why)"})
     target: USAFTargetSpec = field(default_factory=USAFTargetSpec)
     bundle: str = field(
         default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
@@ -358,7 +360,7 @@ def _apply_ablations(proto: SimulateConfig, ablate: list[str]) -> None:
 
 
 def _sim_config(cfg: USAFConfig, calibrated: bool, ablate: bool = True):
-    proto = load_config(cfg.prototype or shipped_config("simulate"), SimulateConfig,
+    proto = load_config(cfg.prototype or shipped_config("simulate_full"), SimulateConfig,
                         list(cfg.prototype_overrides))
     t = cfg.target
     scene = SceneSpec("usaf", "usaf", params={
