@@ -4,10 +4,17 @@ per reconstructed band, compared with an RGB reference imaged without the add-on
 **Target and scale.** The simulator's :class:`~hsi_torch.simulate.scenes.USAF1951Scene` (bars 0.9,
 background 0.05, both orientations per element) is placed on the diffuser (object side of the
 add-on = image plane of the objective) inside the reference view. ``magnification`` is diffuser mm
-per target mm (default 0.25: the objective demagnifies 4×), so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm is
-in *target* (object-plane) units and the diffuser sees ``r / magnification``. The reference frame
-samples the diffuser at ``p`` mm per pixel (0.1351 mm for the small default prototype): its
-Nyquist limit is ``1/(2p)`` lp/mm on the diffuser, ``magnification/(2p)`` on the target.
+per target mm, so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm is in *target* (object-plane) units and the
+diffuser sees ``r / magnification``. The reference frame samples the diffuser at ``p`` mm per
+pixel: its Nyquist limit is ``1/(2p)`` lp/mm on the diffuser, ``magnification/(2p)`` on the
+target. The default is the original prototype's scale: the full-size prototype (``p`` = 0.0187 mm),
+magnification 1/16 (the RGB reference then resolves G0 E2 = 1.12 lp/mm, as the original's does)
+and a 10 µm diffuser blur (docs/experiments.md gives both arguments).
+
+**Ablations.** ``ablate`` switches factors off one at a time to find what limits the bands:
+``diffuser`` (no blur), ``demosaic`` (full-RGB sensor), ``noise`` (no shot/read noise or
+quantisation), ``beta`` (β = 0), ``warp`` (:func:`ideal_observations`: every view observes exactly
+the reference pixel's footprint — no view sampling, warp or demosaic).
 
 **HSI.** The USAF capture is rendered through the prototype (kaleidoscope, BRF, diffuser, Bayer
 sensor with noise; ``hsi_torch.simulate.simulate_capture_set``) and reconstructed with
