@@ -129,8 +129,9 @@ def test_opd_and_usaf_prototype_null_is_the_shipped_prototype():
 
     assert _readme_prototype(_load_prototype(OPDConfig())) == README_PROTOTYPE
     sim = _sim_config(USAFConfig(), calibrated=False)
-    assert _readme_prototype(sim) == README_PROTOTYPE
-    assert sim.camera.scale == 2.0  # the usaf default override still applies
+    # usaf: the same design at full size, with its 10 µm diffuser override (docs/experiments.md)
+    assert _readme_prototype(sim) == README_PROTOTYPE[:-1] + (0.01,)
+    assert (sim.camera.width_px, sim.camera.height_px) == (2896, 2784)
     for name in ("opd", "usaf"):  # the shipped files leave it null, so a copy works anywhere
         cfg_cls = OPDConfig if name == "opd" else USAFConfig
         assert load_config(shipped_config(name), cfg_cls).prototype is None

@@ -4,10 +4,17 @@ per reconstructed band, compared with an RGB reference imaged without the add-on
 **Target and scale.** The simulator's :class:`~hsi_torch.simulate.scenes.USAF1951Scene` (bars 0.9,
 background 0.05, both orientations per element) is placed on the diffuser (object side of the
 add-on = image plane of the objective) inside the reference view. ``magnification`` is diffuser mm
-per target mm (default 0.25: the objective demagnifies 4×), so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm is
-in *target* (object-plane) units and the diffuser sees ``r / magnification``. The reference frame
-samples the diffuser at ``p`` mm per pixel (0.1351 mm for the small default prototype): its
-Nyquist limit is ``1/(2p)`` lp/mm on the diffuser, ``magnification/(2p)`` on the target.
+per target mm, so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm is in *target* (object-plane) units and the
+diffuser sees ``r / magnification``. The reference frame samples the diffuser at ``p`` mm per
+pixel: its Nyquist limit is ``1/(2p)`` lp/mm on the diffuser, ``magnification/(2p)`` on the
+target. The default is the original prototype's scale: the full-size prototype (``p`` = 0.0187 mm),
+magnification 1/16 (the RGB reference then resolves G0 E2 = 1.12 lp/mm, as the original's does)
+and a 10 µm diffuser blur (docs/experiments.md gives both arguments).
+
+**Ablations.** ``ablate`` switches factors off one at a time to find what limits the bands:
+``diffuser`` (no blur), ``demosaic`` (full-RGB sensor), ``noise`` (no shot/read noise or
+quantisation), ``beta`` (β = 0), ``warp`` (:func:`ideal_observations`: every view observes exactly
+the reference pixel's footprint — no view sampling, warp or demosaic).
 
 **HSI.** The USAF capture is rendered through the prototype (kaleidoscope, BRF, diffuser, Bayer
 sensor with noise; ``hsi_torch.simulate.simulate_capture_set``) and reconstructed with
@@ -42,6 +49,7 @@ Command: ``hsi-torch experiment usaf --out DIR`` (the shipped ``usaf.yaml``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -67,6 +75,7 @@ from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
+from hsi_torch.recon.pipeline import ReconstructionResult, assemble_cube, solve_observations
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.resources import shipped_config
 from hsi_torch.simulate.capture_sets import build_renderer, build_scene, simulate_capture_set
@@ -78,11 +87,17 @@ __all__ = [
     "triplet_sample_points",
     "element_contrasts",
     "resolution_limit",
+    "elements_below",
     "rgb_reference",
     "USAFTargetSpec",
     "USAFConfig",
+    "ABLATIONS",
+    "ideal_observations",
     "run_usaf",
 ]
+
+#: factors the ``ablate`` key can switch off (see :class:`USAFConfig` and docs/experiments.md)
+ABLATIONS = ("diffuser", "warp", "demosaic", "noise", "beta")
 
 
 # =============================================================================================
@@ -184,20 +199,33 @@ def resolution_limit(contrast: Tensor, frequency: Tensor, threshold: float,
     return idx, f
 
 
+def elements_below(lp_mm: Tensor, reference_lp_mm: float) -> list[int | None]:
+    """USAF elements (steps of ``2^(1/6)``) each limit lies below ``reference_lp_mm``:
+    ``round(6 · log2(reference / limit))`` (negative: finer than the reference; ``None`` where
+    a limit is 0, i.e. nothing resolved, or the reference resolved nothing)."""
+    out: list[int | None] = []
+    for v in lp_mm.tolist():
+        if v > 0 and reference_lp_mm > 0:
+            out.append(int(round(6.0 * math.log2(reference_lp_mm / v))))
+        else:
+            out.append(None)
+    return out
+
+
 # =============================================================================================
 # RGB reference (no add-on)
 # =============================================================================================
 
 
 def rgb_reference(renderer: Any, scene: Any, *, seed: int = 0, supersample: int | None = None,
-                  chunk: int = 1 << 16) -> tuple[Tensor, Tensor]:
+                  chunk: int = 1 << 16, sensor: Any | None = None) -> tuple[Tensor, Tensor]:
     """The scene imaged directly on a sensor with the reference frame's image-plane scale.
 
     ``E_c(q) = κ · mean_sub-samples[ V(X) · Σ_λ Δλ_f φ^c(λ) S(X, λ) ]`` at the diffuser points
     ``X`` of reference pixel ``q`` (the renderer's illuminant × camera × objective ``φ``, κ and
     vignetting; no kaleidoscope, diffuser fall-off, polarizers or BRF), then the renderer's
     :class:`~hsi_torch.optics.sensor.SensorModel` (mosaic, noise, same exposure, generator seeded
-    with ``seed``) and its bilinear demosaic.
+    with ``seed``; ``sensor`` replaces it, e.g. the un-ablated one) and its bilinear demosaic.
 
     Returns:
         ``(rgb (3, h, w), white (3,))``: demosaiced DN above black, and the noise-free DN of a
@@ -219,13 +247,57 @@ def rgb_reference(renderer: Any, scene: Any, *, seed: int = 0, supersample: int 
     irr = sig.reshape(n, s * s, 3).mean(1).T.reshape(3, h, w)
     gen = torch.Generator(device=irr.device)
     gen.manual_seed(int(seed))
-    sensor = renderer.sensor
+    sensor = renderer.sensor if sensor is None else sensor
     dn, _ = sensor.expose(irr[None], generator=gen)
     raw = dn - sensor.black_level
     rgb = sensor.demosaic(raw)[0] if raw.shape[-3] == 1 else raw[0]
-    unit = float(renderer.dn_per_unit) * sensor.exposure
+    unit = sensor.electrons_at_unity / sensor.gain_e_per_dn * sensor.exposure
     white = phi_w.sum(1) * unit
     return rgb, white
+
+
+def ideal_observations(rec: Reconstructor, renderer: Any, scene: Any, *, noise: bool = True,
+                       seed: int = 0) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Reconstruct from *ideally registered* observations: no view sampling, warp or demosaic.
+
+    Every view observes exactly the reference pixel's footprint: ``y_p = A_p s̄_p`` with ``A_p``
+    the reconstructor's (bundle's) sensing matrix and ``s̄_p`` the scene's reflectance averaged
+    over the reference pixel's ``s × s`` sub-samples on the (diffuser-blurred) diffuser plane
+    (:meth:`CaptureRenderer.scene_truth`), in DN above black at the scene exposure. With
+    ``noise`` the observations go through the renderer's sensor as full RGB planes (shot and
+    read noise, quantisation, saturation: ``SensorModel(output='rgb')``, generator seeded with
+    ``seed``). Then the reconstructor's own solve (its ``prior``, ``lam``, ``min_views``).
+
+    Returns:
+        ``(cube (M, h, w), valid (h, w), stats)`` as :class:`ReconstructionResult` holds them.
+    """
+    sens = rec.sensing
+    M = sens.wavelengths_nm.numel()
+    truth = renderer.scene_truth(scene).to(torch.float64)  # (M, h, w)
+    if tuple(truth.shape[1:]) != tuple(sens.frame_size):
+        raise ValueError(f"renderer frame {tuple(truth.shape[1:])} != the bundle's reference "
+                         f"frame {tuple(sens.frame_size)}")
+    pix = sens.pixel_index.to(truth.device)
+    x = truth.reshape(M, -1).index_select(1, pix).T.to(device=sens.device, dtype=sens.dtype)
+    y = sens.model.A(x).to(torch.float64)  # (P, 3V) noise-free DN above black
+    P, O = y.shape
+    V = O // 3
+    sat = torch.zeros_like(y, dtype=torch.bool)
+    if noise:
+        sensor = dataclasses.replace(renderer.sensor, output="rgb")
+        unit = sensor.electrons_at_unity / sensor.gain_e_per_dn * sensor.exposure
+        irr = (y / unit).reshape(P, V, 3).permute(1, 2, 0).unsqueeze(2)  # (V, 3, 1, P)
+        gen = torch.Generator(device=irr.device)
+        gen.manual_seed(int(seed))
+        dn, s_ = sensor.expose(irr, generator=gen)
+        y = (dn - sensor.black_level).squeeze(2).permute(2, 0, 1).reshape(P, O)
+        sat = s_.squeeze(2).permute(2, 0, 1).reshape(P, O)
+    y = y.to(sens.dtype)
+    mask = sens.obs_mask.to(y.device) & torch.isfinite(y) & ~sat.to(y.device)
+    xs, ok, info = solve_observations(sens, y, mask, min_views=rec.min_views, prior=rec.prior,
+                                      lam=rec.lam, spatial_iters=rec.spatial_iters)
+    cube, valid = assemble_cube(sens, xs, ok, nan_invalid=True)
+    return cube, valid, info
 
 
 # =============================================================================================
@@ -237,9 +309,11 @@ def rgb_reference(renderer: Any, scene: Any, *, seed: int = 0, supersample: int 
 class USAFTargetSpec:
     """The USAF 1951 scene (:class:`~hsi_torch.simulate.scenes.USAF1951Scene` parameters)."""
 
-    groups: list[int] = field(default_factory=lambda: [-1, 0, 1])
+    groups: list[int] = field(default_factory=lambda: [-2, -1, 0, 1])
     magnification: float = field(
-        default=0.25, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm)"})
+        default=0.0625, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm); "
+                                          "1/16 puts the full-size RGB reference's limit at "
+                                          "G0 E2 = 1.12 lp/mm"})
     center_mm: list[float] = field(default_factory=lambda: [0.0, 0.3])
     bar_reflectance: float = 0.9
     background_reflectance: float = 0.05
@@ -251,11 +325,11 @@ class USAFConfig:
 
     prototype: Path | None = field(
         default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: the "
-                                        "shipped simulate.yaml, the default prototype)"})
+                                        "shipped simulate_full.yaml, the full-size prototype)"})
     prototype_overrides: list[str] = field(
-        default_factory=lambda: ["camera.scale=2"],
-        metadata={"help": "overrides of the prototype config (default: 2x finer sensor, so the "
-                          "target's coarse groups fit in the reference view above Nyquist)"})
+        default_factory=lambda: ["diffuser.blur_sigma_mm=0.01"],
+        metadata={"help": "overrides of the prototype config (default: a fine ground-glass "
+                          "diffuser, σ = 10 µm; docs/experiments.md says why)"})
     target: USAFTargetSpec = field(default_factory=USAFTargetSpec)
     bundle: str = field(
         default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
@@ -268,6 +342,12 @@ class USAFConfig:
         default=DEFAULT_LAM, metadata={"help": "prior=tv: relative TV weight (see the "
                                                "reconstruct config), auto (SURE) or "
                                                "discrepancy"})
+    ablate: list[str] = field(
+        default_factory=list,
+        metadata={"help": "factors switched off (ablation): diffuser (no diffuser blur), warp "
+                          "(ideally registered observations: no view sampling, warp or "
+                          "demosaic), demosaic (full-RGB sensor), noise (no shot/read noise, "
+                          "no quantisation), beta (beta = 0)"})
     threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})
     orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
     length_fraction: float = 0.6
@@ -278,9 +358,31 @@ class USAFConfig:
     device: str | None = None
     progress: bool = True
 
+    def __post_init__(self) -> None:
+        if isinstance(self.ablate, str):
+            self.ablate = [self.ablate]
+        bad = [a for a in self.ablate if a not in ABLATIONS]
+        if bad:
+            raise ValueError(f"ablate: unknown factor(s) {bad}; choose from {list(ABLATIONS)}")
+        if len(set(self.ablate)) != len(self.ablate):
+            raise ValueError(f"ablate: {self.ablate} names a factor twice")
+        if self.beta < 0:
+            raise ValueError(f"beta must be >= 0, got {self.beta}")
 
-def _sim_config(cfg: USAFConfig, calibrated: bool):
-    proto = load_config(cfg.prototype or shipped_config("simulate"), SimulateConfig,
+
+def _apply_ablations(proto: SimulateConfig, ablate: list[str]) -> None:
+    """Switch the prototype's factors named in ``ablate`` off (in place)."""
+    if "diffuser" in ablate:
+        proto.diffuser.blur_sigma_mm = 0.0
+    if "demosaic" in ablate:
+        proto.sensor.output = "rgb"
+    if "noise" in ablate:
+        proto.sensor.shot_noise, proto.sensor.read_noise_e = False, 0.0
+        proto.sensor.quantize = False
+
+
+def _sim_config(cfg: USAFConfig, calibrated: bool, ablate: bool = True):
+    proto = load_config(cfg.prototype or shipped_config("simulate_full"), SimulateConfig,
                         list(cfg.prototype_overrides))
     t = cfg.target
     scene = SceneSpec("usaf", "usaf", params={
@@ -295,6 +397,8 @@ def _sim_config(cfg: USAFConfig, calibrated: bool):
         cap.white_shots, cap.dark_frames, cap.grid.poses = 0, 0, []
     proto.render.figures = False
     proto.render.seed = int(cfg.seed)
+    if ablate:
+        _apply_ablations(proto, list(cfg.ablate))
     return proto
 
 
@@ -328,14 +432,23 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     out.mkdir(parents=True, exist_ok=True)
     dev = str(torch.device(device or cfg.device or "cpu"))
     dt = {"float32": torch.float32, "float64": torch.float64}[cfg.dtype]
-    if cfg.beta < 0:
-        raise ValueError(f"beta must be >= 0, got {cfg.beta}")
+    cfg.__post_init__()  # the ablation list and beta may have been edited after construction
+    ablate = list(cfg.ablate)
+    ideal = "warp" in ablate
+    if ideal and cfg.bundle != "oracle":
+        raise ValueError(f"ablate: 'warp' needs bundle: oracle (the ideal observations are "
+                         f"made with the bundle's sensing matrix), got bundle {cfg.bundle!r}")
+    beta = 0.0 if "beta" in ablate else float(cfg.beta)
     tm: dict[str, float] = {}
     calibrated = cfg.bundle == "calibrated"
     sim = _sim_config(cfg, calibrated)
     cs = out / "capture_set"
     t0 = time.perf_counter()
-    simulate_capture_set(sim, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
+    if ideal:  # the oracle bundle needs only the ground truth: no capture to render
+        sim_cs = dataclasses.replace(sim, captures=dataclasses.replace(sim.captures, scenes=[]))
+    else:
+        sim_cs = sim
+    simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
     tm["simulate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.bundle == "oracle":
@@ -347,15 +460,23 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         bundle, note = CalibrationBundle.load(cfg.bundle), f"bundle {cfg.bundle}"
     tm["bundle"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rec = Reconstructor(bundle, beta=cfg.beta, diff_order=cfg.diff_order, device=dev, dtype=dt,
+    rec = Reconstructor(bundle, beta=beta, diff_order=cfg.diff_order, device=dev, dtype=dt,
                         prior=cfg.prior, lam=cfg.lam)
-    res = rec.reconstruct_file(cs / "scenes" / "usaf.tif")
+    renderer = build_renderer(sim, device="cpu")
+    scene = build_scene(sim.captures.scenes[0])
+    if ideal:
+        cube_i, valid_i, st_i = ideal_observations(rec, renderer, scene,
+                                                   noise="noise" not in ablate, seed=cfg.seed)
+        res = ReconstructionResult(cube_i, valid_i, rec.wavelengths_nm, st_i, {})
+    else:
+        res = rec.reconstruct_file(cs / "scenes" / "usaf.tif")
     tm["reconstruct"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    renderer = build_renderer(sim, device="cpu")
-    scene = build_scene(sim.captures.scenes[0])
-    rgb, white = rgb_reference(renderer, scene, seed=cfg.seed + 1000)
+    # the RGB reference is always the un-ablated camera (Bayer, noise): the fixed yardstick
+    ref_sensor = build_renderer(_sim_config(cfg, calibrated, ablate=False), device="cpu").sensor \
+        if {"demosaic", "noise"} & set(ablate) else None
+    rgb, white = rgb_reference(renderer, scene, seed=cfg.seed + 1000, sensor=ref_sensor)
     rgb_wb = rgb / white[:, None, None].to(rgb)
     ref_imgs = torch.cat([rgb_wb, rgb_wb.mean(0, keepdim=True)])
     tm["rgb_reference"] = time.perf_counter() - t0
@@ -406,13 +527,15 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     def ge(i: int) -> str:
         return "–" if i < 0 else f"G{keys[i][0]} E{keys[i][1]}"
 
+    steps = elements_below(f_h, float(f_r[3]))
     rows = []
     for mi, lam in enumerate(wl):
         rows.append({"image": f"HSI {lam:g} nm", "wavelength_nm": lam,
                      "finest": ge(int(idx_h[mi])), "lp_per_mm_target": float(f_h[mi]),
                      "lp_per_mm_diffuser": float(f_h[mi]) / m,
                      "horizontal": ge(int(orient["horizontal"][0][mi])),
-                     "vertical": ge(int(orient["vertical"][0][mi]))})
+                     "vertical": ge(int(orient["vertical"][0][mi])),
+                     "elements_below_rgb": steps[mi]})
     rnames = ["RGB reference (R)", "RGB reference (G)", "RGB reference (B)",
               "RGB reference (gray)"]
     for ci, nm in enumerate(rnames):
@@ -435,13 +558,18 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     stats = {"hsi_median_lp_mm": float(np.median(hsi_f)), "hsi_min_lp_mm": float(hsi_f.min()),
              "hsi_max_lp_mm": float(hsi_f.max()), "rgb_gray_lp_mm": float(f_r[3]),
              "rgb_channels_lp_mm": [float(v) for v in f_r[:3]],
-             "rgb_at_least_as_fine_as_hsi_max": bool(float(f_r[3]) >= hsi_f.max())}
+             "rgb_at_least_as_fine_as_hsi_max": bool(float(f_r[3]) >= hsi_f.max()),
+             "elements_below_rgb": steps,
+             "bands_within_two_elements": sum(1 for d in steps if d is not None and d <= 2),
+             "bands": len(steps)}
     md = [
         "# USAF 1951 resolution\n",
         f"Target groups {list(cfg.target.groups)}, magnification {m:g} diffuser mm per target "
         f"mm: r(G, E) = 2^(G+(E−1)/6) lp/mm on the target, r/{m:g} on the diffuser. Reference "
         f"frame: {px_mm:.4f} mm per px on the diffuser → Nyquist {nyq_diff:.2f} lp/mm "
-        f"(diffuser) = {nyq_diff * m:.3f} lp/mm (target). {note}; β = {cfg.beta:g}. "
+        f"(diffuser) = {nyq_diff * m:.3f} lp/mm (target). {note}; β = {beta:g}; prior "
+        f"{cfg.prior}; diffuser blur σ = {sim.diffuser.blur_sigma_mm:g} mm; ablated: "
+        f"{', '.join(ablate) or 'nothing'}. "
         f"Criterion: Michelson contrast (min bars − max gaps)/(min bars + max gaps) ≥ "
         f"{cfg.threshold:g}, orientation '{cfg.orientation}', finest element before the first "
         f"failure (coarse → fine); {sum(usable_k.tolist())}/{len(keys)} elements lie wholly "
@@ -450,11 +578,12 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
             rows, {"image": "image", "finest": "finest G/E",
                    "lp_per_mm_target": "lp/mm (target)",
                    "lp_per_mm_diffuser": "lp/mm (diffuser)", "horizontal": "horizontal bars",
-                   "vertical": "vertical bars"},
+                   "vertical": "vertical bars", "elements_below_rgb": "elements below RGB"},
             {"lp_per_mm_target": ".3f", "lp_per_mm_diffuser": ".2f"}),
         f"\nHSI bands: median {stats['hsi_median_lp_mm']:.3f} lp/mm (range "
         f"{stats['hsi_min_lp_mm']:.3f}–{stats['hsi_max_lp_mm']:.3f}); RGB reference (gray) "
-        f"{stats['rgb_gray_lp_mm']:.3f} lp/mm.\n",
+        f"{stats['rgb_gray_lp_mm']:.3f} lp/mm; {stats['bands_within_two_elements']} of "
+        f"{len(steps)} bands within two elements of it.\n",
         "\n## Reconstruction against the truth\n",
         f"The HSI cube against the simulator's true reflectance of the target over the "
         f"{int(valid.sum())} valid pixels. "
@@ -475,6 +604,8 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     tm["figures"] = time.perf_counter() - t0
     tm["total"] = time.perf_counter() - t_all
     summary = {"rows": rows, "stats": stats, "bundle": note, "magnification": m,
+               "ablate": ablate, "beta": beta, "prior": cfg.prior,
+               "diffuser_blur_sigma_mm": float(sim.diffuser.blur_sigma_mm),
                "diffuser_mm_per_px": px_mm, "nyquist_lp_mm_diffuser": nyq_diff,
                "nyquist_lp_mm_target": nyq_diff * m, "threshold": cfg.threshold,
                "orientation": cfg.orientation, "usable_elements": int(usable_k.sum()),
