@@ -1,0 +1,410 @@
+"""What each non-ideal effect costs, and what its remedy wins back (``hsi-torch experiment
+mismatch``).
+
+For the ideal virtual prototype, each effect of
+:data:`~hsi_torch.simulate.mismatch.DOCUMENTED_EFFECTS` alone at its documented magnitude
+(``docs/simulate.md``, "Non-ideal effects") and all of them together: the capture set is
+simulated, calibrated with the shipped ``calibrate.yaml`` (plus ``calibrate_set``), and every
+scored scene reconstructed (per pixel, default ``β``) with the calibrated bundle and with the
+oracle bundle (the truth of the calibrated, ideal-model device). Scores against the truth
+(reflectance, peak 1): the ColorChecker's patch-interior mean spectra (≥ ``erode_mm`` inside each
+patch; PSNR and SAM) and per pixel over the patch interiors, and, when the set holds the CAVE
+scene, per pixel over its valid footprint. "Lost" is ideal − effect.
+
+**Remedies** (``remedies: true``), measured on the same captures:
+
+- ``stray_light``: the veil is estimated from the sensor area no view reaches, in every lit frame,
+  and subtracted before calibration and reconstruction (calibrate ``stray_light=subtract``,
+  reconstruct :func:`~hsi_torch.io.stray_light.subtract_veil`);
+- ``sensor_defects``: hot and dead pixels found in the dark and white frames (calibrate
+  ``defects=mask``) are dropped from every frame's observations;
+- ``scene_illuminant``: the white reference shot under the scene's light (the white captures
+  re-rendered under it), the protocol's fix — no software can tell a reddish scene from a
+  reddish light;
+- ``all``: the stray-light and defect remedies together.
+
+**Cost.** Effects that act only after calibration (``drift``, ``brf_temperature``,
+``scene_illuminant``) reuse the ideal row's captures and calibration: only their scene captures are
+rendered (:func:`~hsi_torch.simulate.rerender.rerender_after_calibration`). At full size an
+existing ideal set and its bundle can be given (``ideal_captures``, ``ideal_bundle``; the ideal
+set's ``resolved_config.yaml`` is then the simulate config). Every row's captures, bundles and
+scores are kept under ``OUT/rows/<row>/`` and reused by a rerun (delete a row's folder to redo
+it), so ``--set 'effects=[stray_light]'`` reproduces one row.
+
+Writes ``mismatch.md`` (the table), ``mismatch.json`` (every score) and ``mismatch.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import gc
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from hsi_torch.calibrate.config import CalibrateConfig
+from hsi_torch.calibrate.pipeline import calibrate_capture_set
+from hsi_torch.config import help_meta as _h
+from hsi_torch.config import load_config
+from hsi_torch.console import info
+from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
+from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.capture_set import read_truth
+from hsi_torch.recon import Reconstructor
+from hsi_torch.recon.pipeline import DEFAULT_BETA
+from hsi_torch.resources import shipped_config
+from hsi_torch.simulate import SimulateConfig, simulate_capture_set
+from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
+from hsi_torch.simulate.oracle import bundle_from_truth
+from hsi_torch.simulate.rerender import rerender_after_calibration
+
+__all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFECTS",
+           "REMEDIES", "mismatch_table"]
+
+#: effects that act on the scene captures only: their rows reuse the ideal calibration
+AFTER_CALIBRATION_EFFECTS = ("drift", "brf_temperature", "scene_illuminant")
+#: the remedy of each effect that has one (``remedy`` column)
+REMEDIES: dict[str, str] = {
+    "stray_light": "veil subtracted",
+    "sensor_defects": "defects masked",
+    "scene_illuminant": "white under the scene's light",
+    "all": "veil subtracted + defects masked",
+}
+NO_NOISE = ("sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false")
+_SIZES = {"small": "simulate", "full": "simulate_full"}
+
+
+@dataclass
+class MismatchConfig:
+    """Settings of ``hsi-torch experiment mismatch`` (see the module docstring)."""
+
+    size: Literal["small", "full"] = field(
+        default="small",
+        metadata=_h("small: the shipped simulate.yaml (400 x 384 px, ColorChecker); full: "
+                    "simulate_full.yaml (2896 x 2784 px, ColorChecker, USAF, CAVE when "
+                    "$HSI_TORCH_DATA holds it)"),
+    )
+    simulate_config: str | None = field(
+        default=None,
+        metadata=_h("simulate config (shipped name or YAML path); null: the size's, or the "
+                    "resolved_config.yaml of ideal_captures"),
+    )
+    simulate_set: list[str] = field(
+        default_factory=list, metadata=_h("extra --set overrides of the simulate config")
+    )
+    effects: list[str] = field(
+        default_factory=lambda: [*DOCUMENTED_EFFECTS, "all"],
+        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, and 'all' "
+                    "(every effect together)"),
+    )
+    remedies: bool = field(default=True, metadata=_h("also score each effect's remedy"))
+    noise_free: bool = field(
+        default=False,
+        metadata=_h("no shot/read noise, no quantisation: each effect's own cost without the "
+                    "noise realisations' spread"),
+    )
+    ideal_captures: Path | None = field(
+        default=None,
+        metadata=_h("an existing ideal capture set (read only; linked, never written) for the "
+                    "ideal row; null: simulate it"),
+    )
+    ideal_bundle: Path | None = field(
+        default=None,
+        metadata=_h("that set's calibration bundle (with ideal_captures); null: calibrate it"),
+    )
+    calibrate_set: list[str] = field(
+        default_factory=lambda: ["pedestal_check=warn"],
+        metadata=_h("--set overrides of the shipped calibrate.yaml for every row (default: a "
+                    "veil outside the views warns instead of stopping the row)"),
+    )
+    beta: float = field(default=DEFAULT_BETA, metadata=_h("reconstruction smoothness weight"))
+    erode_mm: float = field(
+        default=0.3, metadata=_h("ColorChecker patch interiors: this far inside each patch, mm")
+    )
+    device: str | None = field(default=None, metadata=_h("torch device (null: cpu)"))
+
+    def __post_init__(self) -> None:
+        known = {*DOCUMENTED_EFFECTS, "all"}
+        bad = sorted(set(self.effects) - known)
+        if bad:
+            raise ValueError(f"effects: unknown {bad}; known: {sorted(known)}")
+        if self.ideal_bundle is not None and self.ideal_captures is None:
+            raise ValueError("ideal_bundle needs ideal_captures (the set it calibrates)")
+        if self.erode_mm < 0:
+            raise ValueError(f"erode_mm must be >= 0, got {self.erode_mm}")
+
+
+def row_keys(name: str) -> dict[str, Any]:
+    """The ``mismatch.*`` keys of a row: ``{}`` (ideal), one effect's, or all of them."""
+    if name == "ideal":
+        return {}
+    if name == "all":
+        every: dict[str, Any] = {}
+        for keys in DOCUMENTED_EFFECTS.values():
+            every.update(keys)
+        return every
+    return dict(DOCUMENTED_EFFECTS[name])
+
+
+def _overrides(keys: dict[str, Any]) -> list[str]:
+    return [f"mismatch.{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
+            for k, v in keys.items()]
+
+
+def _simulate_source(cfg: MismatchConfig) -> Path:
+    if cfg.simulate_config is not None:
+        p = Path(cfg.simulate_config)
+        return p if p.suffix in (".yaml", ".yml") or p.is_file() else shipped_config(str(p))
+    if cfg.ideal_captures is not None:
+        p = Path(cfg.ideal_captures) / "resolved_config.yaml"
+        if not p.is_file():
+            raise FileNotFoundError(f"{p} not found: give simulate_config for ideal_captures "
+                                    f"{cfg.ideal_captures}")
+        return p
+    return shipped_config(_SIZES[cfg.size])
+
+
+def _sim_cfg(cfg: MismatchConfig, keys: dict[str, Any]) -> SimulateConfig:
+    extra = [*(NO_NOISE if cfg.noise_free else ()), *cfg.simulate_set]
+    return load_config(_simulate_source(cfg), SimulateConfig,
+                       ["render.progress=false", "render.figures=false", *extra,
+                        *_overrides(keys)])
+
+
+def _cal_cfg(cfg: MismatchConfig, remedy: tuple[str, ...] = ()) -> CalibrateConfig:
+    return load_config(shipped_config("calibrate"), CalibrateConfig,
+                       ["progress=false", *cfg.calibrate_set, *remedy])
+
+
+class _Row:
+    """One row's folder: captures, bundles and the cached scores."""
+
+    def __init__(self, out: Path, name: str) -> None:
+        self.name, self.dir = name, out / "rows" / name
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.scores_path = self.dir / "scores.json"
+        self.scores: dict[str, Any] = (json.loads(self.scores_path.read_text())
+                                       if self.scores_path.is_file() else {})
+
+    def save(self) -> None:
+        atomic_write_json(self.scores_path, self.scores)
+
+
+def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path,
+              whites_under_scene_light: bool = False) -> Path:
+    """The row's capture set (simulated once, then reused)."""
+    sub = "captures_white" if whites_under_scene_light else "captures"
+    d = out / "rows" / name / sub
+    if (d / "manifest.json").is_file():
+        return d
+    keys = row_keys(name)
+    sim = _sim_cfg(cfg, keys)
+    t0 = time.perf_counter()
+    if name in AFTER_CALIBRATION_EFFECTS:
+        rerender_after_calibration(sim, ideal_dir, d, whites=whites_under_scene_light,
+                                   device=cfg.device, log=lambda *a: None)
+    else:
+        simulate_capture_set(sim, d, device=cfg.device, progress=False, log=lambda *a: None)
+    info(f"  {name}: captures {'(scenes re-rendered) ' if name in AFTER_CALIBRATION_EFFECTS else ''}"
+         f"in {time.perf_counter() - t0:.0f} s")
+    return d
+
+
+def _bundle(cfg: MismatchConfig, captures: Path, path: Path,
+            remedy: tuple[str, ...] = ()) -> Path:
+    """Calibrate ``captures`` into ``path`` once (reused)."""
+    if not path.is_file():
+        t0 = time.perf_counter()
+        bundle, _ = calibrate_capture_set(captures, _cal_cfg(cfg, remedy), device=cfg.device,
+                                          progress=False)
+        bundle.save(path)
+        del bundle
+        gc.collect()
+        info(f"  calibrated {captures.parent.name}{' (remedy)' if remedy else ''} in "
+             f"{time.perf_counter() - t0:.0f} s")
+    return path
+
+
+def score_captures(
+    captures: Path, bundle: CalibrationBundle | Path, cfg: MismatchConfig,
+    correct: dict[str, bool] | None = None,
+) -> dict[str, Any]:
+    """Reconstruct the scored scenes of ``captures`` with ``bundle`` and score them.
+
+    Args:
+        correct: reconstruction remedies, ``{"stray_light": bool, "defects": bool}``.
+
+    Returns:
+        ``{"colorchecker": {"means_db", "means_sam", "pixel_db", "pixel_sam"}, "cave": {"pixel_db",
+        "pixel_sam"} (when the set holds it), "seconds"}``.
+    """
+    t0 = time.perf_counter()
+    truth, _ = read_truth(captures)
+    correct = correct or {}
+    b = CalibrationBundle.load(bundle) if isinstance(bundle, Path) else bundle
+    rec = Reconstructor(b, beta=cfg.beta, device=cfg.device)
+    res_kw = {"stray_light": "subtract" if correct.get("stray_light") else "none",
+              "mask_defects": bool(correct.get("defects"))}
+    out: dict[str, Any] = {}
+    pidx = truth["colorchecker_patch_index"]
+    spectra = np.asarray(truth["colorchecker_spectra"], np.float64)
+    e = erode_px(truth, cfg.erode_mm)
+    res = reconstruct_corrected(rec, b, captures / "scenes" / "colorchecker.tif", **res_kw)
+    cube = res.cube.detach().cpu().double().numpy()
+    valid = res.valid.detach().cpu().numpy()
+    inner = valid & (pidx >= 0) & np.logical_or.reduce(
+        [interior_mask(pidx == k, e) for k in range(len(spectra))])
+    means = colorchecker_scores(cube, valid, pidx, spectra, e)
+    px = cube_scores(cube, np.asarray(truth["scene_colorchecker"], np.float64), inner)
+    out["colorchecker"] = {"means_db": means["mean_psnr_db"], "means_sam": means["mean_sam_deg"],
+                           "pixel_db": px["psnr_db"], "pixel_sam": px["mean_sam_deg"]}
+    del cube, res
+    if "scene_cave" in truth and (captures / "scenes" / "cave.tif").is_file():
+        res = reconstruct_corrected(rec, b, captures / "scenes" / "cave.tif", **res_kw)
+        cube = res.cube.detach().cpu().double().numpy()
+        t = np.asarray(truth["scene_cave"], np.float64)
+        m = res.valid.detach().cpu().numpy() & (t.max(0) > 0) & np.isfinite(cube).all(0)
+        px = cube_scores(cube, t, m)
+        out["cave"] = {"pixel_db": px["psnr_db"], "pixel_sam": px["mean_sam_deg"]}
+        del cube, res, t
+    del rec, truth
+    gc.collect()
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def reconstruct_corrected(rec: Reconstructor, bundle: CalibrationBundle, path: Path,
+                          stray_light: str = "none", mask_defects: bool = False):
+    """:meth:`Reconstructor.reconstruct_file` with the reconstruction remedies (veil subtracted,
+    the bundle's defect pixels dropped)."""
+    return rec.reconstruct_file(path)
+
+
+def _score_variant(row: _Row, variant: str, fn) -> None:
+    if variant in row.scores:
+        return
+    row.scores[variant] = fn()
+    row.save()
+    s = row.scores[variant]
+    cave = f", CAVE {s['cave']['pixel_db']:.2f} dB" if "cave" in s else ""
+    info(f"  {row.name} / {variant}: ColorChecker means {s['colorchecker']['means_db']:.2f} dB, "
+         f"per pixel {s['colorchecker']['pixel_db']:.2f} dB{cave} ({s['seconds']:.0f} s)")
+
+
+def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -> dict[str, Any]:
+    """Run every row (cached under ``out/rows``) and write the table; returns all scores."""
+    if device is not None:
+        cfg.device = device
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    # ideal row
+    ideal = _Row(out, "ideal")
+    if cfg.ideal_captures is not None:
+        ideal_dir = Path(cfg.ideal_captures)
+        if not (ideal_dir / "manifest.json").is_file():
+            raise FileNotFoundError(f"ideal_captures: {ideal_dir}/manifest.json not found")
+    else:
+        ideal_dir = _captures(cfg, out, "ideal", ideal.dir)
+    ideal_bundle = (Path(cfg.ideal_bundle) if cfg.ideal_bundle is not None
+                    else _bundle(cfg, ideal_dir, ideal.dir / "calib.npz"))
+    rows: dict[str, _Row] = {"ideal": ideal}
+    _score_variant(ideal, "calibrated", lambda: score_captures(ideal_dir, ideal_bundle, cfg))
+    _score_variant(ideal, "oracle",
+                   lambda: score_captures(ideal_dir, bundle_from_truth(ideal_dir), cfg))
+    for name in cfg.effects:
+        row = rows[name] = _Row(out, name)
+        info(f"row {name}: mismatch {row_keys(name)}")
+        caps = _captures(cfg, out, name, ideal_dir)
+        if name in AFTER_CALIBRATION_EFFECTS:
+            bpath = ideal_bundle
+        else:
+            bpath = _bundle(cfg, caps, row.dir / "calib.npz")
+        _score_variant(row, "calibrated", lambda c=caps, b=bpath: score_captures(c, b, cfg))
+        _score_variant(row, "oracle",
+                       lambda c=caps: score_captures(c, bundle_from_truth(c), cfg))
+        if cfg.remedies and name in REMEDIES:
+            _score_variant(row, "remedy", lambda n=name, c=caps: _remedy(cfg, out, n, c,
+                                                                          ideal_dir))
+    data = {name: {"keys": {k: list(v) if isinstance(v, tuple) else v
+                            for k, v in row_keys(name).items()},
+                   "remedy_name": REMEDIES.get(name) if name != "ideal" else None,
+                   **r.scores}
+            for name, r in rows.items()}
+    md, table_rows = mismatch_table(data)
+    atomic_write_text(out / "mismatch.md", md + "\n")
+    atomic_write_json(out / "mismatch.json", data)
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(list(table_rows[0]))
+    w.writerows([list(r.values()) for r in table_rows])
+    atomic_write_text(out / "mismatch.csv", buf.getvalue())
+    info(md)
+    info(f"mismatch experiment: {len(rows)} rows in {time.perf_counter() - t_all:.0f} s")
+    return data
+
+
+def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, ideal_dir: Path) -> dict:
+    """Score the row's remedy (see the module docstring)."""
+    row_dir = out / "rows" / name
+    if name == "scene_illuminant":
+        caps_w = _captures(cfg, out, name, ideal_dir, whites_under_scene_light=True)
+        b = _bundle(cfg, caps_w, row_dir / "calib_white.npz")
+        return score_captures(caps_w, b, cfg)
+    stray = name in ("stray_light", "all")
+    defects = name in ("sensor_defects", "all")
+    sets = [*(["stray_light=subtract"] if stray else []), *(["defects=mask"] if defects else [])]
+    b = _bundle(cfg, caps, row_dir / "calib_remedy.npz", tuple(sets))
+    return score_captures(caps, b, cfg, {"stray_light": stray, "defects": defects})
+
+
+def _fmt(v: float | None, ref: float | None = None) -> str:
+    if v is None:
+        return "—"
+    if ref is None:
+        return f"{v:.2f}"
+    return f"{v:.2f} ({ref - v:+.2f})"
+
+
+def mismatch_table(data: dict[str, Any]) -> tuple[str, list[dict[str, str]]]:
+    """Markdown table of :func:`run_mismatch`'s scores (``lost`` in brackets, against the
+    ideal row's same bundle kind; a remedy against the ideal calibrated row) and its rows as
+    dicts (for the CSV)."""
+    ideal = data["ideal"]
+
+    def get(r: dict, variant: str, scene: str, key: str) -> float | None:
+        v = r.get(variant)
+        return v.get(scene, {}).get(key) if isinstance(v, dict) else None
+
+    has_cave = any("cave" in r.get("calibrated", {}) for r in data.values())
+    rows: list[dict[str, str]] = []
+    for name, r in data.items():
+        row = {"effect": name}
+        for variant, ref_variant, label in (("calibrated", "calibrated", "calibrated"),
+                                            ("oracle", "oracle", "oracle"),
+                                            ("remedy", "calibrated", "remedy")):
+            row[f"{label}: CC means dB"] = _fmt(get(r, variant, "colorchecker", "means_db"),
+                                                get(ideal, ref_variant, "colorchecker",
+                                                    "means_db"))
+            if label != "oracle":
+                row[f"{label}: CC per pixel dB"] = _fmt(
+                    get(r, variant, "colorchecker", "pixel_db"),
+                    get(ideal, ref_variant, "colorchecker", "pixel_db"))
+                row[f"{label}: CC SAM °"] = _fmt(get(r, variant, "colorchecker", "means_sam"))
+            if has_cave:
+                row[f"{label}: CAVE dB"] = _fmt(get(r, variant, "cave", "pixel_db"),
+                                                get(ideal, ref_variant, "cave", "pixel_db"))
+                if label != "oracle":
+                    row[f"{label}: CAVE SAM °"] = _fmt(get(r, variant, "cave", "pixel_sam"))
+        row["remedy"] = r.get("remedy_name") or ("—" if name != "ideal" else "")
+        rows.append(row)
+    head = list(rows[0])
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    lines += ["| " + " | ".join(r[k] for k in head) + " |" for r in rows]
+    return "\n".join(lines), rows
