@@ -21,7 +21,8 @@ scene, per pixel over its valid footprint. "Lost" is ideal − effect.
 - ``scene_illuminant``: the white reference shot under the scene's light (the white captures
   re-rendered under it), the protocol's fix — no software can tell a reddish scene from a
   reddish light;
-- ``all``: the stray-light and defect remedies together.
+- ``all``: the stray-light and defect remedies together (and ``ideal``: the same on the ideal
+  device, what the remedies cost a device that needs none).
 
 **Cost.** Effects that act only after calibration (``drift``, ``brf_temperature``,
 ``scene_illuminant``) reuse the ideal row's captures and calibration: only their scene captures are
@@ -52,12 +53,12 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import help_meta as _h
 from hsi_torch.config import load_config
 from hsi_torch.console import info
-from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
+from hsi_torch.experiments.metrics import colorchecker_scores, erode_px, interior_mask
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
-from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.pipeline import DEFAULT_BETA
+from hsi_torch.recon.sensing import precompute_sensing
 from hsi_torch.resources import shipped_config
 from hsi_torch.simulate import SimulateConfig, simulate_capture_set
 from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
@@ -71,6 +72,7 @@ __all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFE
 AFTER_CALIBRATION_EFFECTS = ("drift", "brf_temperature", "scene_illuminant")
 #: the remedy of each effect that has one (``remedy`` column)
 REMEDIES: dict[str, str] = {
+    "ideal": "veil subtracted + defects masked",
     "stray_light": "veil subtracted",
     "sensor_defects": "defects masked",
     "scene_illuminant": "white under the scene's light",
@@ -211,8 +213,8 @@ def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path,
                                    device=cfg.device, log=lambda *a: None)
     else:
         simulate_capture_set(sim, d, device=cfg.device, progress=False, log=lambda *a: None)
-    info(f"  {name}: captures {'(scenes re-rendered) ' if name in AFTER_CALIBRATION_EFFECTS else ''}"
-         f"in {time.perf_counter() - t0:.0f} s")
+    how = "(scenes re-rendered) " if name in AFTER_CALIBRATION_EFFECTS else ""
+    info(f"  {name}: captures {how}in {time.perf_counter() - t0:.0f} s")
     return d
 
 
@@ -231,59 +233,103 @@ def _bundle(cfg: MismatchConfig, captures: Path, path: Path,
     return path
 
 
+_TRUTH_KEYS = ("colorchecker_patch_index", "colorchecker_spectra", "scene_colorchecker",
+               "diffuser_xy", "scene_cave")
+
+
+def _truth(captures: Path) -> dict[str, np.ndarray]:
+    """The truth arrays the scores need (not ``B``: 0.6 GiB at full size)."""
+    with np.load(captures / "ground_truth" / "truth.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in _TRUTH_KEYS if k in z.files}
+
+
+def _pixel_scores(cube: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """PSNR (peak 1) of the pooled MSE and mean SAM (true mean reflectance ≥ 0.01) over
+    ``mask`` of ``(M, h, w)`` cubes (:func:`~hsi_torch.experiments.metrics.cube_scores`' two
+    headline numbers, without its field metrics)."""
+    e = cube[:, mask].T
+    t = truth[:, mask].T
+    mse = float(((e - t) ** 2).mean())
+    bright = t.mean(1) >= 0.01
+    eb, tb = e[bright], t[bright]
+    cos = (eb * tb).sum(1) / np.maximum(np.linalg.norm(eb, axis=1) * np.linalg.norm(tb, axis=1),
+                                        1e-30)
+    sam = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return {"psnr_db": float(10 * np.log10(1.0 / mse)) if mse > 0 else float("inf"),
+            "mean_sam_deg": float(sam.mean()) if sam.size else float("nan")}
+
+
+class _Reconstructors:
+    """Reconstructors kept across rows for the bundles many rows share (the ideal calibration,
+    the ideal oracle): their factorisation is the costly part at full size."""
+
+    def __init__(self, cfg: MismatchConfig) -> None:
+        self.cfg = cfg
+        self.kept: dict[str, Reconstructor] = {}
+
+    def get(self, key: str | None, make) -> Reconstructor:
+        if key is not None and key in self.kept:
+            return self.kept[key]
+        b = make()
+        b = CalibrationBundle.load(b) if isinstance(b, Path) else b
+        # not in the module's cache: a row's own bundle is freed with its reconstructor
+        sens = precompute_sensing(b, beta=self.cfg.beta, device=self.cfg.device, cache=False)
+        del b
+        rec = Reconstructor(sens, beta=self.cfg.beta)
+        if key is not None:
+            self.kept[key] = rec
+        return rec
+
+
 def score_captures(
-    captures: Path, bundle: CalibrationBundle | Path, cfg: MismatchConfig,
+    captures: Path, rec: Reconstructor, cfg: MismatchConfig,
     correct: dict[str, bool] | None = None,
 ) -> dict[str, Any]:
-    """Reconstruct the scored scenes of ``captures`` with ``bundle`` and score them.
+    """Reconstruct the scored scenes of ``captures`` with ``rec`` and score them.
 
     Args:
-        correct: reconstruction remedies, ``{"stray_light": bool, "defects": bool}``.
+        correct: reconstruction remedies the bundle must record, ``{"stray_light": bool,
+            "defects": bool}`` (checked; the reconstructor applies what its bundle records).
 
     Returns:
         ``{"colorchecker": {"means_db", "means_sam", "pixel_db", "pixel_sam"}, "cave": {"pixel_db",
         "pixel_sam"} (when the set holds it), "seconds"}``.
     """
     t0 = time.perf_counter()
-    truth, _ = read_truth(captures)
-    correct = correct or {}
-    b = CalibrationBundle.load(bundle) if isinstance(bundle, Path) else bundle
-    rec = Reconstructor(b, beta=cfg.beta, device=cfg.device)
-    res_kw = {"stray_light": "subtract" if correct.get("stray_light") else "none",
-              "mask_defects": bool(correct.get("defects"))}
+    truth = _truth(captures)
+    rad = rec.sensing.radiometry
+    want = {"stray_light": rad is not None and rad.veil_index is not None,
+            "defects": rad is not None and rad.defect_index is not None}
+    for k, v in (correct or {}).items():
+        if v and not want[k]:
+            raise RuntimeError(f"{captures}: the remedy {k!r} asked for, but the bundle does "
+                               "not record it")
     out: dict[str, Any] = {}
     pidx = truth["colorchecker_patch_index"]
     spectra = np.asarray(truth["colorchecker_spectra"], np.float64)
     e = erode_px(truth, cfg.erode_mm)
-    res = reconstruct_corrected(rec, b, captures / "scenes" / "colorchecker.tif", **res_kw)
+    res = rec.reconstruct_file(captures / "scenes" / "colorchecker.tif")
     cube = res.cube.detach().cpu().double().numpy()
     valid = res.valid.detach().cpu().numpy()
     inner = valid & (pidx >= 0) & np.logical_or.reduce(
         [interior_mask(pidx == k, e) for k in range(len(spectra))])
     means = colorchecker_scores(cube, valid, pidx, spectra, e)
-    px = cube_scores(cube, np.asarray(truth["scene_colorchecker"], np.float64), inner)
+    px = _pixel_scores(cube, np.asarray(truth["scene_colorchecker"], np.float64), inner)
     out["colorchecker"] = {"means_db": means["mean_psnr_db"], "means_sam": means["mean_sam_deg"],
                            "pixel_db": px["psnr_db"], "pixel_sam": px["mean_sam_deg"]}
     del cube, res
     if "scene_cave" in truth and (captures / "scenes" / "cave.tif").is_file():
-        res = reconstruct_corrected(rec, b, captures / "scenes" / "cave.tif", **res_kw)
+        res = rec.reconstruct_file(captures / "scenes" / "cave.tif")
         cube = res.cube.detach().cpu().double().numpy()
         t = np.asarray(truth["scene_cave"], np.float64)
         m = res.valid.detach().cpu().numpy() & (t.max(0) > 0) & np.isfinite(cube).all(0)
-        px = cube_scores(cube, t, m)
+        px = _pixel_scores(cube, t, m)
         out["cave"] = {"pixel_db": px["psnr_db"], "pixel_sam": px["mean_sam_deg"]}
         del cube, res, t
-    del rec, truth
+    del truth
     gc.collect()
     out["seconds"] = time.perf_counter() - t0
     return out
-
-
-def reconstruct_corrected(rec: Reconstructor, bundle: CalibrationBundle, path: Path,
-                          stray_light: str = "none", mask_defects: bool = False):
-    """:meth:`Reconstructor.reconstruct_file` with the reconstruction remedies (veil subtracted,
-    the bundle's defect pixels dropped)."""
-    return rec.reconstruct_file(path)
 
 
 def _score_variant(row: _Row, variant: str, fn) -> None:
@@ -315,26 +361,40 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
     ideal_bundle = (Path(cfg.ideal_bundle) if cfg.ideal_bundle is not None
                     else _bundle(cfg, ideal_dir, ideal.dir / "calib.npz"))
     rows: dict[str, _Row] = {"ideal": ideal}
-    _score_variant(ideal, "calibrated", lambda: score_captures(ideal_dir, ideal_bundle, cfg))
-    _score_variant(ideal, "oracle",
-                   lambda: score_captures(ideal_dir, bundle_from_truth(ideal_dir), cfg))
+    recs = _Reconstructors(cfg)
+    ideal_rec = lambda: recs.get("ideal", lambda: ideal_bundle)  # noqa: E731
+    ideal_oracle = lambda: recs.get("oracle", lambda: bundle_from_truth(ideal_dir))  # noqa: E731
+    _score_variant(ideal, "calibrated", lambda: score_captures(ideal_dir, ideal_rec(), cfg))
+    _score_variant(ideal, "oracle", lambda: score_captures(ideal_dir, ideal_oracle(), cfg))
     for name in cfg.effects:
         row = rows[name] = _Row(out, name)
         info(f"row {name}: mismatch {row_keys(name)}")
         caps = _captures(cfg, out, name, ideal_dir)
         if name in AFTER_CALIBRATION_EFFECTS:
-            bpath = ideal_bundle
+            calibrated = ideal_rec
         else:
-            bpath = _bundle(cfg, caps, row.dir / "calib.npz")
-        _score_variant(row, "calibrated", lambda c=caps, b=bpath: score_captures(c, b, cfg))
-        _score_variant(row, "oracle",
-                       lambda c=caps: score_captures(c, bundle_from_truth(c), cfg))
-        if cfg.remedies and name in REMEDIES:
+            calibrated = lambda c=caps, r=row: recs.get(  # noqa: E731
+                None, lambda: _bundle(cfg, c, r.dir / "calib.npz"))
+        # the truth (and its oracle) is the ideal device's unless the filter's thickness map,
+        # which is in the truth's B, is on
+        own_truth = any(k.startswith("brf_thickness") for k in row_keys(name))
+        oracle = ((lambda c=caps: recs.get(None, lambda: bundle_from_truth(c))) if own_truth
+                  else ideal_oracle)
+        _score_variant(row, "calibrated", lambda c=caps, f=calibrated: score_captures(c, f(), cfg))
+        _score_variant(row, "oracle", lambda c=caps, f=oracle: score_captures(c, f(), cfg))
+        if cfg.remedies and name in ("stray_light", "sensor_defects"):
             _score_variant(row, "remedy", lambda n=name, c=caps: _remedy(cfg, out, n, c,
-                                                                          ideal_dir))
+                                                                          ideal_dir, recs))
+    # the costlier remedies (a whole calibration each) once every row is in
+    for name in [n for n in cfg.effects if n in ("scene_illuminant", "all")] + ["ideal"]:
+        if cfg.remedies:
+            _score_variant(rows[name], "remedy",
+                           lambda n=name: _remedy(cfg, out, n, _captures(cfg, out, n, ideal_dir)
+                                                  if n != "ideal" else ideal_dir,
+                                                  ideal_dir, recs))
     data = {name: {"keys": {k: list(v) if isinstance(v, tuple) else v
                             for k, v in row_keys(name).items()},
-                   "remedy_name": REMEDIES.get(name) if name != "ideal" else None,
+                   "remedy_name": REMEDIES.get(name),
                    **r.scores}
             for name, r in rows.items()}
     md, table_rows = mismatch_table(data)
@@ -350,18 +410,19 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
     return data
 
 
-def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, ideal_dir: Path) -> dict:
+def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, ideal_dir: Path,
+            recs: _Reconstructors) -> dict:
     """Score the row's remedy (see the module docstring)."""
     row_dir = out / "rows" / name
     if name == "scene_illuminant":
         caps_w = _captures(cfg, out, name, ideal_dir, whites_under_scene_light=True)
-        b = _bundle(cfg, caps_w, row_dir / "calib_white.npz")
-        return score_captures(caps_w, b, cfg)
-    stray = name in ("stray_light", "all")
-    defects = name in ("sensor_defects", "all")
+        rec = recs.get(None, lambda: _bundle(cfg, caps_w, row_dir / "calib_white.npz"))
+        return score_captures(caps_w, rec, cfg)
+    stray = name in ("stray_light", "all", "ideal")
+    defects = name in ("sensor_defects", "all", "ideal")
     sets = [*(["stray_light=subtract"] if stray else []), *(["defects=mask"] if defects else [])]
-    b = _bundle(cfg, caps, row_dir / "calib_remedy.npz", tuple(sets))
-    return score_captures(caps, b, cfg, {"stray_light": stray, "defects": defects})
+    rec = recs.get(None, lambda: _bundle(cfg, caps, row_dir / "calib_remedy.npz", tuple(sets)))
+    return score_captures(caps, rec, cfg, {"stray_light": stray, "defects": defects})
 
 
 def _fmt(v: float | None, ref: float | None = None) -> str:
@@ -402,7 +463,7 @@ def mismatch_table(data: dict[str, Any]) -> tuple[str, list[dict[str, str]]]:
                                                 get(ideal, ref_variant, "cave", "pixel_db"))
                 if label != "oracle":
                     row[f"{label}: CAVE SAM °"] = _fmt(get(r, variant, "cave", "pixel_sam"))
-        row["remedy"] = r.get("remedy_name") or ("—" if name != "ideal" else "")
+        row["remedy"] = r.get("remedy_name") or "—"
         rows.append(row)
     head = list(rows[0])
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
