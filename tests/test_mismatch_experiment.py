@@ -192,6 +192,7 @@ def test_reconstruction_drops_observations_of_defect_pixels(small_set: Path):
     assert err_fixed < 0.2 * err_hurt  # dropped, they cannot
 
 
+@pytest.mark.slow
 def test_mismatch_experiment_rows_remedy_and_cache(small_set: Path, tmp_path: Path,
                                                    monkeypatch):
     out = tmp_path / "mm"
