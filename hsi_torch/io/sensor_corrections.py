@@ -64,8 +64,9 @@ def unreached_index(
     sample = s.reshape(-1)[:: max(1, s.numel() // 1_000_000)]
     lit = s >= dark_fraction * float(torch.quantile(sample, 0.99))
     m = max(0, int(math.ceil(margin_px)))
-    if m > 0:
-        lit = F.max_pool2d(lit[None, None].float(), 2 * m + 1, stride=1, padding=m)[0, 0] > 0
+    if m > 0:  # a square dilation, separable: two 1-D max-pools
+        x = F.max_pool2d(lit[None, None].float(), (1, 2 * m + 1), stride=1, padding=(0, m))
+        lit = F.max_pool2d(x, (2 * m + 1, 1), stride=1, padding=(m, 0))[0, 0] > 0
     idx = np.asarray(outside_index, dtype=np.int64).ravel()
     dark = ~lit.reshape(-1).cpu().numpy()
     return idx[dark[idx]]
