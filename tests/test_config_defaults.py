@@ -14,6 +14,7 @@ from hsi_torch.calibrate.config import BlobSection, CalibrateConfig, Registratio
 from hsi_torch.calibrate.registration import BlobDetectorParams, GridDetectorConfig
 from hsi_torch.config import dump_config, load_config, to_dict
 from hsi_torch.experiments.design import DesignSweepConfig
+from hsi_torch.experiments.mismatch import MismatchConfig
 from hsi_torch.experiments.opd import OPDConfig
 from hsi_torch.experiments.synthetic import SyntheticConfig
 from hsi_torch.experiments.usaf import USAFConfig
@@ -35,6 +36,7 @@ from hsi_torch.simulate.config import (
 SCHEMAS = {
     "calibrate": CalibrateConfig,
     "design": DesignSweepConfig,
+    "mismatch": MismatchConfig,
     "opd": OPDConfig,
     "reconstruct": ReconstructConfig,
     "simulate": SimulateConfig,

@@ -13,8 +13,8 @@ from hsi_torch.cli import build_parser, config_source, main
 from hsi_torch.config import load_config
 from hsi_torch.resources import real_data_dir, shipped_config, shipped_config_names
 
-SHIPPED = ["calibrate", "design", "opd", "reconstruct", "simulate", "simulate_fujimoto",
-           "simulate_full", "simulate_manakov", "synthetic", "usaf"]
+SHIPPED = ["calibrate", "design", "mismatch", "opd", "reconstruct", "simulate",
+           "simulate_fujimoto", "simulate_full", "simulate_manakov", "synthetic", "usaf"]
 
 
 def _readme_prototype(cfg) -> tuple:

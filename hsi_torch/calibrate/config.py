@@ -265,6 +265,27 @@ class CalibrateConfig:
             "warn only says so"
         ),
     )
+    stray_light: Literal["none", "subtract"] = field(
+        default="none",
+        metadata=_h(
+            "subtract: estimate the veil of stray light in every lit frame from the sensor area "
+            "no light reaches (judged on the white) and subtract it; the bundle records it, so "
+            "reconstruction subtracts it from the captures too"
+        ),
+    )
+    defects: Literal["none", "mask"] = field(
+        default="none",
+        metadata=_h(
+            "mask: find hot (dark frames) and dead (white frames) pixels and write them into "
+            "the bundle; reconstruction drops the observations that sample them"
+        ),
+    )
+    defect_hot_sigma: float = field(
+        default=10.0, metadata=_h("hot: dark above its median by this many robust sigmas")
+    )
+    defect_dead_ratio: float = field(
+        default=0.5, metadata=_h("dead: white below this fraction of its 3x3 median")
+    )
     device: str = field(default="cpu", metadata=_h("torch device"))
     dtype: Literal["float32", "float64"] = field(
         default="float32",
@@ -287,6 +308,10 @@ class CalibrateConfig:
             )
         if self.min_views < 1:
             raise ValueError(f"min_views must be >= 1, got {self.min_views}")
+        if not self.defect_hot_sigma > 0:
+            raise ValueError(f"defect_hot_sigma must be > 0, got {self.defect_hot_sigma}")
+        if not 0 < self.defect_dead_ratio < 1:
+            raise ValueError(f"defect_dead_ratio must be in (0, 1), got {self.defect_dead_ratio}")
 
     def detector_dict(self) -> dict[str, Any]:
         """The registration settings as :meth:`GridDetectorConfig.from_dict` expects."""

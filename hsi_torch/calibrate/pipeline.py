@@ -81,8 +81,10 @@ from hsi_torch.io.capture_set import (
 )
 from hsi_torch.io.radiometry import (
     capture_exposure,
+    default_margin_px,
     outside_views_index,
 )
+from hsi_torch.io.sensor_corrections import estimate_veil, find_defects, unreached_index
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.spectral import SpectralGrid, band_widths
 
@@ -745,6 +747,64 @@ def assemble_bundle(
 # =============================================================================================
 
 
+def sensor_corrections(
+    cs: CaptureSet, reader: CaptureReader, outside: np.ndarray, cfg: CalibrateConfig,
+    notes: list[str],
+) -> dict[str, Any]:
+    """Set up the ``stray_light`` and ``defects`` remedies (after the dark frames are read).
+
+    ``stray_light: subtract``: the unreached sensor samples are the geometric outside of the
+    views where the mean white frame is dark (:func:`~hsi_torch.io.sensor_corrections.
+    unreached_index`, margin twice the pedestal check's); the reader then subtracts the veil
+    measured there from every frame it reads. ``defects: mask``: hot pixels from the dark
+    frames' per-pixel mean, dead pixels from the mean white frame
+    (:func:`~hsi_torch.io.sensor_corrections.find_defects`).
+
+    Returns:
+        ``{"settings": {...}, "extras": {...}}`` for the bundle: ``settings["stray_light"]``
+        (``"subtract"``), ``settings["defects"]`` (counts), ``extras["unreached_index"]``
+        ``(K,)`` int64 and ``extras["defect_pixels"]`` ``(D,)`` int64 flat sensor indices.
+    """
+    out: dict[str, Any] = {"settings": {}, "extras": {}}
+    if cfg.stray_light == "none" and cfg.defects == "none":
+        return out
+    if not cs.white:
+        raise ValueError("stray_light: subtract and defects: mask need white frames")
+    was = reader._recording
+    reader._recording = False  # a pre-read: the pedestal is recorded when the frames are used
+    try:
+        white, _, _ = reader.read_mean(list(cs.white))
+    finally:
+        reader._recording = was
+    if cfg.stray_light == "subtract":
+        idx = unreached_index(white, outside, margin_px=2.0 * default_margin_px(reader.size))
+        if idx.size < 64:
+            msg = (f"stray_light: subtract: only {idx.size} unreached sensor samples (the views "
+                   "and their neighbours light the whole sensor); the veil is not subtracted")
+            warnings.warn(msg, UserWarning, stacklevel=3)
+            notes.append(msg)
+        else:
+            _, info = estimate_veil(white, idx)
+            reader.veil_index = idx
+            out["settings"]["stray_light"] = "subtract"
+            out["settings"]["stray_light_white_veil_dn"] = [round(v, 3) for v in info["mean_dn"]]
+            out["extras"]["unreached_index"] = idx
+            notes.append(f"stray light: veil measured on {idx.size} unreached sensor samples and "
+                         f"subtracted from every lit frame; on the white its mean is "
+                         f"{', '.join(f'{v:.2f}' for v in info['mean_dn'])} DN (R, G, B)")
+    if cfg.defects == "mask":
+        bad = find_defects(reader.dark_pixels, white, hot_sigma=cfg.defect_hot_sigma,
+                           dead_ratio=cfg.defect_dead_ratio)
+        pix = bad.reshape(-1).nonzero().squeeze(1).cpu().numpy().astype(np.int64)
+        out["settings"]["defects"] = {
+            "pixels": int(pix.size), "from": "dark and white" if reader.dark_pixels is not None
+            else "white only (no dark frames: hot pixels not found)"}
+        out["extras"]["defect_pixels"] = pix
+        notes.append(f"defects: {pix.size} sensor pixels masked (hot in the dark frames, dead in "
+                     "the white, dilated by the demosaic's 3x3 footprint)")
+    return out
+
+
 def calibrate_capture_set(
     captures_dir: str | Path,
     cfg: CalibrateConfig | None = None,
@@ -807,6 +867,7 @@ def calibrate_capture_set(
         tick(len(cs.dark), "dark")
         dark_mode = cfg.dark if cs.dark else "none (no dark frames; black level only)"
         tm["dark"] = time.perf_counter() - t0
+        corrections = sensor_corrections(cs, reader, outside, cfg, notes)
 
         t0 = time.perf_counter()
         reg = register_grid_shots(cs, reader, lay, cfg, notes, tick)
@@ -832,6 +893,9 @@ def calibrate_capture_set(
         t0 = time.perf_counter()
         bundle, modulated, vsum = assemble_bundle(cs, lay, grid, wl, reg, trans, resp, patch,
                                                   reader, dark_mode, cfg, pedestal)  # fmt: skip
+        if corrections["settings"]:
+            bundle.settings.update(corrections["settings"])
+            bundle.extras.update(corrections["extras"])
         tm["bundle"] = time.perf_counter() - t0
         tick(1, "bundle")
     finally:

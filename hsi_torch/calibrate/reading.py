@@ -31,6 +31,7 @@ from hsi_torch.io.radiometry import (
     pedestal_level,
     pedestal_limit,
 )
+from hsi_torch.io.sensor_corrections import subtract_veil
 
 __all__ = ["CaptureReader", "check_pedestal", "ScanSelection", "scan_wavelengths",
            "group_scan_frames", "select_scan_frames"]
@@ -60,6 +61,13 @@ class CaptureReader:
         #: (file, median (3,), robust sigma (3,), white span) per frame read after the dark
         self.pedestals: list[tuple[Path, list[float], list[float], float | None]] = []
         self._recording = True
+        #: the dark frames' per-pixel mean (whatever ``dark`` mode subtracts), for the defects
+        self.dark_pixels: torch.Tensor | None = None
+        #: flat indices of unreached sensor pixels: when set, the veil of stray light measured
+        #: there is subtracted from every frame read (:func:`~hsi_torch.io.sensor_corrections.
+        #: subtract_veil`), and its mean per colour recorded in :attr:`veils`
+        self.veil_index: np.ndarray | None = None
+        self.veils: list[tuple[str, list[float]]] = []
 
     def _black_source(self, path: Path, meta: dict[str, Any]) -> str:
         src = meta.get("black_level_source")
@@ -94,6 +102,9 @@ class CaptureReader:
         meta["black_level_source"] = src
         self._note_identity(meta, src)
         img = cap.image if self.dark is None else cap.image - self.dark
+        if self.veil_index is not None:
+            img, vinfo = subtract_veil(img, self.veil_index)
+            self.veils.append((path.name, [round(v, 3) for v in vinfo["mean_dn"]]))
         if self._recording and self.outside is not None and self.outside.size:
             st = pedestal_level(img, self.outside)
             if st is not None:
@@ -145,6 +156,7 @@ class CaptureReader:
         finally:
             self._recording = True
         d = acc / len(files)
+        self.dark_pixels = d
         self.dark = d.mean(dim=(-2, -1), keepdim=True).expand_as(d) if mode == "mean" else d
         self.dark_files = list(files)
 

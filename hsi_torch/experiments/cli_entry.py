@@ -34,6 +34,7 @@ EXPERIMENTS: dict[str, tuple[str, str, str]] = {
     "opd": ("hsi_torch.experiments.opd", "OPDConfig", "run_opd"),
     "usaf": ("hsi_torch.experiments.usaf", "USAFConfig", "run_usaf"),
     "spatial": ("hsi_torch.experiments.spatial", "SpatialConfig", "run_spatial"),
+    "mismatch": ("hsi_torch.experiments.mismatch", "MismatchConfig", "run_mismatch"),
 }
 
 

@@ -61,6 +61,11 @@ class BundleRadiometry:
             black_level_source: how it was found (a sentence).
         camera: the camera's identity.
         outside_index: flat indices of sampled sensor pixels that no view reaches.
+        veil_index: flat indices of sensor pixels no light reaches, when the calibration
+            subtracted the veil of stray light measured there (``stray_light: subtract``; the
+            captures get the same subtraction), else ``None``.
+        defect_index: flat indices of the hot and dead sensor pixels the calibration found
+            (``defects: mask``; their observations are dropped), else ``None``.
     """
 
     white_exposure_s: float | None = None
@@ -69,6 +74,8 @@ class BundleRadiometry:
     black_level_source: str | None = None
     camera: CameraIdentity | None = None
     outside_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    veil_index: np.ndarray | None = field(default=None, repr=False)
+    defect_index: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
     def from_bundle(cls, bundle: CalibrationBundle, white_exposure_s: float | None = None
@@ -86,6 +93,11 @@ class BundleRadiometry:
             black_level_source=src if isinstance(src, str) else None,
             camera=CameraIdentity.from_dict(s.get("camera")),
             outside_index=outside_views_index(bundle.triangles, tuple(bundle.sensor_size)),
+            veil_index=(np.asarray(bundle.extras["unreached_index"], np.int64)
+                        if s.get("stray_light") == "subtract"
+                        and "unreached_index" in bundle.extras else None),
+            defect_index=(np.asarray(bundle.extras["defect_pixels"], np.int64)
+                          if "defect_pixels" in bundle.extras else None),
         )  # fmt: skip
 
 

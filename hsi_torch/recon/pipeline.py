@@ -52,8 +52,9 @@ from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
+from hsi_torch.io.sensor_corrections import subtract_veil
 from hsi_torch.optics.geometry import warp_views
-from hsi_torch.recon.checks import exposure_info, prepare_capture
+from hsi_torch.recon.checks import BundleRadiometry, exposure_info, prepare_capture
 from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.nnls import cpu_threads, solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
@@ -906,6 +907,7 @@ class Reconstructor:
         ``radiometric_scale`` and ``exposure_note``, :func:`hsi_torch.recon.checks.exposure_info`).
         """
         src = str(getattr(capture, "path", "capture"))
+        corr = apply_bundle_corrections(capture, self.sensing.radiometry)
         meta = capture.metadata
         layout, pattern = "rgb", None
         if meta.get("kind") == "bayer":  # demosaiced by the reader: the noise went through it
@@ -920,6 +922,7 @@ class Reconstructor:
                 source=src, raw_layout=layout, cfa_pattern=pattern,
             )  # fmt: skip
             res.stats.update(exp_stats)
+            res.stats.update(corr)
             return res
         except InputError as exc:
             if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
@@ -961,6 +964,7 @@ class Reconstructor:
         )  # fmt: skip
         if demosaic == "half":
             _check_half_size(cap, sens, p)
+        apply_bundle_corrections(cap, sens.radiometry)  # before the pedestal is measured
         checks = prepare_capture(cap, sens.radiometry, black_level=black_level,
                                  exposure_s=exposure_s, sensor_size=sens.sensor_size)  # fmt: skip
         _sync(sens.device)
@@ -971,6 +975,39 @@ class Reconstructor:
         res.stats.update(checks)
         res.stats["metadata"] = cap.metadata
         return res
+
+
+def apply_bundle_corrections(capture: Any, rad: BundleRadiometry | None) -> dict[str, Any]:
+    """Correct a :class:`~hsi_torch.io.LinearCapture` in place as its calibration corrected the
+    calibration frames (once; repeated calls return the same statistics):
+
+    - ``stray_light: subtract`` bundles: the veil measured on the bundle's unreached sensor
+      pixels is subtracted (:func:`~hsi_torch.io.sensor_corrections.subtract_veil`, per colour
+      of the ``(3, H, W)`` image; a ``(1, H, W)`` mosaic is left alone);
+    - ``defects: mask`` bundles: the hot and dead pixels are marked saturated, so every
+      observation that samples one is dropped.
+
+    Returns:
+        Statistics: ``stray_light_veil_dn`` (the veil's mean per colour) and
+        ``defect_pixels`` (pixels marked), when applied.
+    """
+    done = getattr(capture, "_bundle_corrections", None)
+    if isinstance(done, dict):
+        return done
+    stats: dict[str, Any] = {}
+    if rad is not None and rad.veil_index is not None and capture.image.ndim == 3 \
+            and capture.image.shape[0] == 3:
+        capture.image, info = subtract_veil(capture.image, rad.veil_index)
+        stats["stray_light_veil_dn"] = [round(v, 3) for v in info["mean_dn"]]
+    if rad is not None and rad.defect_index is not None and rad.defect_index.size:
+        sat = capture.saturated
+        flat = sat.reshape(sat.shape[0], -1).clone()
+        idx = torch.as_tensor(rad.defect_index, device=sat.device, dtype=torch.long)
+        flat[:, idx] = True
+        capture.saturated = flat.reshape(sat.shape)
+        stats["defect_pixels"] = int(idx.numel())
+    capture._bundle_corrections = stats
+    return stats
 
 
 def torch_dtype(name: str) -> torch.dtype:

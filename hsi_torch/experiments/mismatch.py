@@ -1,0 +1,471 @@
+"""What each non-ideal effect costs, and what its remedy wins back (``hsi-torch experiment
+mismatch``).
+
+For the ideal virtual prototype, each effect of
+:data:`~hsi_torch.simulate.mismatch.DOCUMENTED_EFFECTS` alone at its documented magnitude
+(``docs/simulate.md``, "Non-ideal effects") and all of them together: the capture set is
+simulated, calibrated with the shipped ``calibrate.yaml`` (plus ``calibrate_set``), and every
+scored scene reconstructed (per pixel, default ``β``) with the calibrated bundle and with the
+oracle bundle (the truth of the calibrated, ideal-model device). Scores against the truth
+(reflectance, peak 1): the ColorChecker's patch-interior mean spectra (≥ ``erode_mm`` inside each
+patch; PSNR and SAM) and per pixel over the patch interiors, and, when the set holds the CAVE
+scene, per pixel over its valid footprint. "Lost" is ideal − effect.
+
+**Remedies** (``remedies: true``), measured on the same captures:
+
+- ``stray_light``: the veil is estimated from the sensor area no view reaches, in every lit frame,
+  and subtracted before calibration and reconstruction (calibrate ``stray_light=subtract``,
+  reconstruct :func:`~hsi_torch.io.stray_light.subtract_veil`);
+- ``sensor_defects``: hot and dead pixels found in the dark and white frames (calibrate
+  ``defects=mask``) are dropped from every frame's observations;
+- ``scene_illuminant``: the white reference shot under the scene's light (the white captures
+  re-rendered under it), the protocol's fix — no software can tell a reddish scene from a
+  reddish light;
+- ``all``: the stray-light and defect remedies together (and ``ideal``: the same on the ideal
+  device, what the remedies cost a device that needs none).
+
+**Cost.** Effects that act only after calibration (``drift``, ``brf_temperature``,
+``scene_illuminant``) reuse the ideal row's captures and calibration: only their scene captures are
+rendered (:func:`~hsi_torch.simulate.rerender.rerender_after_calibration`). At full size an
+existing ideal set and its bundle can be given (``ideal_captures``, ``ideal_bundle``; the ideal
+set's ``resolved_config.yaml`` is then the simulate config). Every row's captures, bundles and
+scores are kept under ``OUT/rows/<row>/`` and reused by a rerun (delete a row's folder to redo
+it), so ``--set 'effects=[stray_light]'`` reproduces one row.
+
+Writes ``mismatch.md`` (the table), ``mismatch.json`` (every score) and ``mismatch.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import gc
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from hsi_torch.calibrate.config import CalibrateConfig
+from hsi_torch.calibrate.pipeline import calibrate_capture_set
+from hsi_torch.config import help_meta as _h
+from hsi_torch.config import load_config
+from hsi_torch.console import info
+from hsi_torch.experiments.metrics import colorchecker_scores, erode_px, interior_mask
+from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.recon import Reconstructor
+from hsi_torch.recon.pipeline import DEFAULT_BETA
+from hsi_torch.recon.sensing import precompute_sensing
+from hsi_torch.resources import shipped_config
+from hsi_torch.simulate import SimulateConfig, simulate_capture_set
+from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
+from hsi_torch.simulate.oracle import bundle_from_truth
+from hsi_torch.simulate.rerender import rerender_after_calibration
+
+__all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFECTS",
+           "REMEDIES", "mismatch_table"]
+
+#: effects that act on the scene captures only: their rows reuse the ideal calibration
+AFTER_CALIBRATION_EFFECTS = ("drift", "brf_temperature", "scene_illuminant")
+#: the remedy of each effect that has one (``remedy`` column)
+REMEDIES: dict[str, str] = {
+    "ideal": "veil subtracted + defects masked",
+    "stray_light": "veil subtracted",
+    "sensor_defects": "defects masked",
+    "scene_illuminant": "white under the scene's light",
+    "all": "veil subtracted + defects masked",
+}
+NO_NOISE = ("sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false")
+_SIZES = {"small": "simulate", "full": "simulate_full"}
+
+
+@dataclass
+class MismatchConfig:
+    """Settings of ``hsi-torch experiment mismatch`` (see the module docstring)."""
+
+    size: Literal["small", "full"] = field(
+        default="small",
+        metadata=_h("small: the shipped simulate.yaml (400 x 384 px, ColorChecker); full: "
+                    "simulate_full.yaml (2896 x 2784 px, ColorChecker, USAF, CAVE when "
+                    "$HSI_TORCH_DATA holds it)"),
+    )
+    simulate_config: str | None = field(
+        default=None,
+        metadata=_h("simulate config (shipped name or YAML path); null: the size's, or the "
+                    "resolved_config.yaml of ideal_captures"),
+    )
+    simulate_set: list[str] = field(
+        default_factory=list, metadata=_h("extra --set overrides of the simulate config")
+    )
+    effects: list[str] = field(
+        default_factory=lambda: [*DOCUMENTED_EFFECTS, "all"],
+        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, and 'all' "
+                    "(every effect together)"),
+    )
+    remedies: bool = field(default=True, metadata=_h("also score each effect's remedy"))
+    noise_free: bool = field(
+        default=False,
+        metadata=_h("no shot/read noise, no quantisation: each effect's own cost without the "
+                    "noise realisations' spread"),
+    )
+    ideal_captures: Path | None = field(
+        default=None,
+        metadata=_h("an existing ideal capture set (read only; linked, never written) for the "
+                    "ideal row; null: simulate it"),
+    )
+    ideal_bundle: Path | None = field(
+        default=None,
+        metadata=_h("that set's calibration bundle (with ideal_captures); null: calibrate it"),
+    )
+    calibrate_set: list[str] = field(
+        default_factory=lambda: ["pedestal_check=warn"],
+        metadata=_h("--set overrides of the shipped calibrate.yaml for every row (default: a "
+                    "veil outside the views warns instead of stopping the row)"),
+    )
+    beta: float = field(default=DEFAULT_BETA, metadata=_h("reconstruction smoothness weight"))
+    erode_mm: float = field(
+        default=0.3, metadata=_h("ColorChecker patch interiors: this far inside each patch, mm")
+    )
+    device: str | None = field(default=None, metadata=_h("torch device (null: cpu)"))
+
+    def __post_init__(self) -> None:
+        known = {*DOCUMENTED_EFFECTS, "all"}
+        bad = sorted(set(self.effects) - known)
+        if bad:
+            raise ValueError(f"effects: unknown {bad}; known: {sorted(known)}")
+        if self.ideal_bundle is not None and self.ideal_captures is None:
+            raise ValueError("ideal_bundle needs ideal_captures (the set it calibrates)")
+        if self.erode_mm < 0:
+            raise ValueError(f"erode_mm must be >= 0, got {self.erode_mm}")
+
+
+def row_keys(name: str) -> dict[str, Any]:
+    """The ``mismatch.*`` keys of a row: ``{}`` (ideal), one effect's, or all of them."""
+    if name == "ideal":
+        return {}
+    if name == "all":
+        every: dict[str, Any] = {}
+        for keys in DOCUMENTED_EFFECTS.values():
+            every.update(keys)
+        return every
+    return dict(DOCUMENTED_EFFECTS[name])
+
+
+def _overrides(keys: dict[str, Any]) -> list[str]:
+    return [f"mismatch.{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
+            for k, v in keys.items()]
+
+
+def _simulate_source(cfg: MismatchConfig) -> Path:
+    if cfg.simulate_config is not None:
+        p = Path(cfg.simulate_config)
+        return p if p.suffix in (".yaml", ".yml") or p.is_file() else shipped_config(str(p))
+    if cfg.ideal_captures is not None:
+        p = Path(cfg.ideal_captures) / "resolved_config.yaml"
+        if not p.is_file():
+            raise FileNotFoundError(f"{p} not found: give simulate_config for ideal_captures "
+                                    f"{cfg.ideal_captures}")
+        return p
+    return shipped_config(_SIZES[cfg.size])
+
+
+def _sim_cfg(cfg: MismatchConfig, keys: dict[str, Any]) -> SimulateConfig:
+    extra = [*(NO_NOISE if cfg.noise_free else ()), *cfg.simulate_set]
+    return load_config(_simulate_source(cfg), SimulateConfig,
+                       ["render.progress=false", "render.figures=false", *extra,
+                        *_overrides(keys)])
+
+
+def _cal_cfg(cfg: MismatchConfig, remedy: tuple[str, ...] = ()) -> CalibrateConfig:
+    return load_config(shipped_config("calibrate"), CalibrateConfig,
+                       ["progress=false", *cfg.calibrate_set, *remedy])
+
+
+class _Row:
+    """One row's folder: captures, bundles and the cached scores."""
+
+    def __init__(self, out: Path, name: str) -> None:
+        self.name, self.dir = name, out / "rows" / name
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.scores_path = self.dir / "scores.json"
+        self.scores: dict[str, Any] = (json.loads(self.scores_path.read_text())
+                                       if self.scores_path.is_file() else {})
+
+    def save(self) -> None:
+        atomic_write_json(self.scores_path, self.scores)
+
+
+def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path,
+              whites_under_scene_light: bool = False) -> Path:
+    """The row's capture set (simulated once, then reused)."""
+    sub = "captures_white" if whites_under_scene_light else "captures"
+    d = out / "rows" / name / sub
+    if (d / "manifest.json").is_file():
+        return d
+    keys = row_keys(name)
+    sim = _sim_cfg(cfg, keys)
+    t0 = time.perf_counter()
+    if name in AFTER_CALIBRATION_EFFECTS:
+        rerender_after_calibration(sim, ideal_dir, d, whites=whites_under_scene_light,
+                                   device=cfg.device, log=lambda *a: None)
+    else:
+        simulate_capture_set(sim, d, device=cfg.device, progress=False, log=lambda *a: None)
+    how = "(scenes re-rendered) " if name in AFTER_CALIBRATION_EFFECTS else ""
+    info(f"  {name}: captures {how}in {time.perf_counter() - t0:.0f} s")
+    return d
+
+
+def _bundle(cfg: MismatchConfig, captures: Path, path: Path,
+            remedy: tuple[str, ...] = ()) -> Path:
+    """Calibrate ``captures`` into ``path`` once (reused)."""
+    if not path.is_file():
+        t0 = time.perf_counter()
+        bundle, _ = calibrate_capture_set(captures, _cal_cfg(cfg, remedy), device=cfg.device,
+                                          progress=False)
+        bundle.save(path)
+        del bundle
+        gc.collect()
+        info(f"  calibrated {captures.parent.name}{' (remedy)' if remedy else ''} in "
+             f"{time.perf_counter() - t0:.0f} s")
+    return path
+
+
+_TRUTH_KEYS = ("colorchecker_patch_index", "colorchecker_spectra", "scene_colorchecker",
+               "diffuser_xy", "scene_cave")
+
+
+def _truth(captures: Path) -> dict[str, np.ndarray]:
+    """The truth arrays the scores need (not ``B``: 0.6 GiB at full size)."""
+    with np.load(captures / "ground_truth" / "truth.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in _TRUTH_KEYS if k in z.files}
+
+
+def _pixel_scores(cube: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """PSNR (peak 1) of the pooled MSE and mean SAM (true mean reflectance ≥ 0.01) over
+    ``mask`` of ``(M, h, w)`` cubes (:func:`~hsi_torch.experiments.metrics.cube_scores`' two
+    headline numbers, without its field metrics)."""
+    e = cube[:, mask].T
+    t = truth[:, mask].T
+    mse = float(((e - t) ** 2).mean())
+    bright = t.mean(1) >= 0.01
+    eb, tb = e[bright], t[bright]
+    cos = (eb * tb).sum(1) / np.maximum(np.linalg.norm(eb, axis=1) * np.linalg.norm(tb, axis=1),
+                                        1e-30)
+    sam = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return {"psnr_db": float(10 * np.log10(1.0 / mse)) if mse > 0 else float("inf"),
+            "mean_sam_deg": float(sam.mean()) if sam.size else float("nan")}
+
+
+class _Reconstructors:
+    """Reconstructors kept across rows for the bundles many rows share (the ideal calibration,
+    the ideal oracle): their factorisation is the costly part at full size."""
+
+    def __init__(self, cfg: MismatchConfig) -> None:
+        self.cfg = cfg
+        self.kept: dict[str, Reconstructor] = {}
+
+    def get(self, key: str | None, make) -> Reconstructor:
+        if key is not None and key in self.kept:
+            return self.kept[key]
+        b = make()
+        b = CalibrationBundle.load(b) if isinstance(b, Path) else b
+        # not in the module's cache: a row's own bundle is freed with its reconstructor
+        sens = precompute_sensing(b, beta=self.cfg.beta, device=self.cfg.device, cache=False)
+        del b
+        rec = Reconstructor(sens, beta=self.cfg.beta)
+        if key is not None:
+            self.kept[key] = rec
+        return rec
+
+
+def score_captures(
+    captures: Path, rec: Reconstructor, cfg: MismatchConfig,
+    correct: dict[str, bool] | None = None,
+) -> dict[str, Any]:
+    """Reconstruct the scored scenes of ``captures`` with ``rec`` and score them.
+
+    Args:
+        correct: reconstruction remedies the bundle must record, ``{"stray_light": bool,
+            "defects": bool}`` (checked; the reconstructor applies what its bundle records).
+
+    Returns:
+        ``{"colorchecker": {"means_db", "means_sam", "pixel_db", "pixel_sam"}, "cave": {"pixel_db",
+        "pixel_sam"} (when the set holds it), "seconds"}``.
+    """
+    t0 = time.perf_counter()
+    truth = _truth(captures)
+    rad = rec.sensing.radiometry
+    want = {"stray_light": rad is not None and rad.veil_index is not None,
+            "defects": rad is not None and rad.defect_index is not None}
+    for k, v in (correct or {}).items():
+        if v and not want[k]:
+            raise RuntimeError(f"{captures}: the remedy {k!r} asked for, but the bundle does "
+                               "not record it")
+    out: dict[str, Any] = {}
+    pidx = truth["colorchecker_patch_index"]
+    spectra = np.asarray(truth["colorchecker_spectra"], np.float64)
+    e = erode_px(truth, cfg.erode_mm)
+    res = rec.reconstruct_file(captures / "scenes" / "colorchecker.tif")
+    cube = res.cube.detach().cpu().double().numpy()
+    valid = res.valid.detach().cpu().numpy()
+    inner = valid & (pidx >= 0) & np.logical_or.reduce(
+        [interior_mask(pidx == k, e) for k in range(len(spectra))])
+    means = colorchecker_scores(cube, valid, pidx, spectra, e)
+    px = _pixel_scores(cube, np.asarray(truth["scene_colorchecker"], np.float64), inner)
+    out["colorchecker"] = {"means_db": means["mean_psnr_db"], "means_sam": means["mean_sam_deg"],
+                           "pixel_db": px["psnr_db"], "pixel_sam": px["mean_sam_deg"]}
+    del cube, res
+    if "scene_cave" in truth and (captures / "scenes" / "cave.tif").is_file():
+        res = rec.reconstruct_file(captures / "scenes" / "cave.tif")
+        cube = res.cube.detach().cpu().double().numpy()
+        t = np.asarray(truth["scene_cave"], np.float64)
+        m = res.valid.detach().cpu().numpy() & (t.max(0) > 0) & np.isfinite(cube).all(0)
+        px = _pixel_scores(cube, t, m)
+        out["cave"] = {"pixel_db": px["psnr_db"], "pixel_sam": px["mean_sam_deg"]}
+        del cube, res, t
+    del truth
+    gc.collect()
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _score_variant(row: _Row, variant: str, fn) -> None:
+    if variant in row.scores:
+        return
+    row.scores[variant] = fn()
+    row.save()
+    s = row.scores[variant]
+    cave = f", CAVE {s['cave']['pixel_db']:.2f} dB" if "cave" in s else ""
+    info(f"  {row.name} / {variant}: ColorChecker means {s['colorchecker']['means_db']:.2f} dB, "
+         f"per pixel {s['colorchecker']['pixel_db']:.2f} dB{cave} ({s['seconds']:.0f} s)")
+
+
+def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -> dict[str, Any]:
+    """Run every row (cached under ``out/rows``) and write the table; returns all scores."""
+    if device is not None:
+        cfg.device = device
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    # ideal row
+    ideal = _Row(out, "ideal")
+    if cfg.ideal_captures is not None:
+        ideal_dir = Path(cfg.ideal_captures)
+        if not (ideal_dir / "manifest.json").is_file():
+            raise FileNotFoundError(f"ideal_captures: {ideal_dir}/manifest.json not found")
+    else:
+        ideal_dir = _captures(cfg, out, "ideal", ideal.dir)
+    ideal_bundle = (Path(cfg.ideal_bundle) if cfg.ideal_bundle is not None
+                    else _bundle(cfg, ideal_dir, ideal.dir / "calib.npz"))
+    rows: dict[str, _Row] = {"ideal": ideal}
+    recs = _Reconstructors(cfg)
+    ideal_rec = lambda: recs.get("ideal", lambda: ideal_bundle)  # noqa: E731
+    ideal_oracle = lambda: recs.get("oracle", lambda: bundle_from_truth(ideal_dir))  # noqa: E731
+    _score_variant(ideal, "calibrated", lambda: score_captures(ideal_dir, ideal_rec(), cfg))
+    _score_variant(ideal, "oracle", lambda: score_captures(ideal_dir, ideal_oracle(), cfg))
+    for name in cfg.effects:
+        row = rows[name] = _Row(out, name)
+        info(f"row {name}: mismatch {row_keys(name)}")
+        caps = _captures(cfg, out, name, ideal_dir)
+        if name in AFTER_CALIBRATION_EFFECTS:
+            calibrated = ideal_rec
+        else:
+            calibrated = lambda c=caps, r=row: recs.get(  # noqa: E731
+                None, lambda: _bundle(cfg, c, r.dir / "calib.npz"))
+        # the truth (and its oracle) is the ideal device's unless the filter's thickness map,
+        # which is in the truth's B, is on
+        own_truth = any(k.startswith("brf_thickness") for k in row_keys(name))
+        oracle = ((lambda c=caps: recs.get(None, lambda: bundle_from_truth(c))) if own_truth
+                  else ideal_oracle)
+        _score_variant(row, "calibrated", lambda c=caps, f=calibrated: score_captures(c, f(), cfg))
+        _score_variant(row, "oracle", lambda c=caps, f=oracle: score_captures(c, f(), cfg))
+        if cfg.remedies and name in ("stray_light", "sensor_defects"):
+            _score_variant(row, "remedy", lambda n=name, c=caps: _remedy(cfg, out, n, c,
+                                                                          ideal_dir, recs))
+    # the costlier remedies (a whole calibration each) once every row is in
+    for name in [n for n in cfg.effects if n in ("scene_illuminant", "all")] + ["ideal"]:
+        if cfg.remedies:
+            _score_variant(rows[name], "remedy",
+                           lambda n=name: _remedy(cfg, out, n, _captures(cfg, out, n, ideal_dir)
+                                                  if n != "ideal" else ideal_dir,
+                                                  ideal_dir, recs))
+    data = {name: {"keys": {k: list(v) if isinstance(v, tuple) else v
+                            for k, v in row_keys(name).items()},
+                   "remedy_name": REMEDIES.get(name),
+                   **r.scores}
+            for name, r in rows.items()}
+    md, table_rows = mismatch_table(data)
+    atomic_write_text(out / "mismatch.md", md + "\n")
+    atomic_write_json(out / "mismatch.json", data)
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(list(table_rows[0]))
+    w.writerows([list(r.values()) for r in table_rows])
+    atomic_write_text(out / "mismatch.csv", buf.getvalue())
+    info(md)
+    info(f"mismatch experiment: {len(rows)} rows in {time.perf_counter() - t_all:.0f} s")
+    return data
+
+
+def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, ideal_dir: Path,
+            recs: _Reconstructors) -> dict:
+    """Score the row's remedy (see the module docstring)."""
+    row_dir = out / "rows" / name
+    if name == "scene_illuminant":
+        caps_w = _captures(cfg, out, name, ideal_dir, whites_under_scene_light=True)
+        rec = recs.get(None, lambda: _bundle(cfg, caps_w, row_dir / "calib_white.npz"))
+        return score_captures(caps_w, rec, cfg)
+    stray = name in ("stray_light", "all", "ideal")
+    defects = name in ("sensor_defects", "all", "ideal")
+    sets = [*(["stray_light=subtract"] if stray else []), *(["defects=mask"] if defects else [])]
+    rec = recs.get(None, lambda: _bundle(cfg, caps, row_dir / "calib_remedy.npz", tuple(sets)))
+    return score_captures(caps, rec, cfg, {"stray_light": stray, "defects": defects})
+
+
+def _fmt(v: float | None, ref: float | None = None) -> str:
+    if v is None:
+        return "—"
+    if ref is None:
+        return f"{v:.2f}"
+    return f"{v:.2f} ({ref - v:+.2f})"
+
+
+def mismatch_table(data: dict[str, Any]) -> tuple[str, list[dict[str, str]]]:
+    """Markdown table of :func:`run_mismatch`'s scores (``lost`` in brackets, against the
+    ideal row's same bundle kind; a remedy against the ideal calibrated row) and its rows as
+    dicts (for the CSV)."""
+    ideal = data["ideal"]
+
+    def get(r: dict, variant: str, scene: str, key: str) -> float | None:
+        v = r.get(variant)
+        return v.get(scene, {}).get(key) if isinstance(v, dict) else None
+
+    has_cave = any("cave" in r.get("calibrated", {}) for r in data.values())
+    rows: list[dict[str, str]] = []
+    for name, r in data.items():
+        row = {"effect": name}
+        for variant, ref_variant, label in (("calibrated", "calibrated", "calibrated"),
+                                            ("oracle", "oracle", "oracle"),
+                                            ("remedy", "calibrated", "remedy")):
+            row[f"{label}: CC means dB"] = _fmt(get(r, variant, "colorchecker", "means_db"),
+                                                get(ideal, ref_variant, "colorchecker",
+                                                    "means_db"))
+            if label != "oracle":
+                row[f"{label}: CC per pixel dB"] = _fmt(
+                    get(r, variant, "colorchecker", "pixel_db"),
+                    get(ideal, ref_variant, "colorchecker", "pixel_db"))
+                row[f"{label}: CC SAM °"] = _fmt(get(r, variant, "colorchecker", "means_sam"))
+            if has_cave:
+                row[f"{label}: CAVE dB"] = _fmt(get(r, variant, "cave", "pixel_db"),
+                                                get(ideal, ref_variant, "cave", "pixel_db"))
+                if label != "oracle":
+                    row[f"{label}: CAVE SAM °"] = _fmt(get(r, variant, "cave", "pixel_sam"))
+        row["remedy"] = r.get("remedy_name") or "—"
+        rows.append(row)
+    head = list(rows[0])
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    lines += ["| " + " | ".join(r[k] for k in head) + " |" for r in rows]
+    return "\n".join(lines), rows

@@ -1,0 +1,115 @@
+"""Re-render only the captures a calibration → capture effect changes, beside an existing set.
+
+Drift, a filter temperature change and another scene illuminant (the ``after_calibration``
+effects of :class:`~hsi_torch.simulate.mismatch.Mismatch`) act on the scene captures only: the
+scan, white, grid and dark frames, the ground truth and therefore the calibration are those of
+the ideal device. :func:`rerender_after_calibration` renders the scene captures (optionally also
+the white references: a white reference shot under the scene's light) with the config's
+mismatch, writes them into a new folder and hard-links (or copies) every other file of a base
+capture set rendered from the same config without the effect. At full size this skips the
+scan's 25 frames, the grids and the truth: one render pass instead of a whole set.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+from hsi_torch.io import write_capture
+from hsi_torch.simulate.capture_sets import (
+    _capture_metadata,
+    build_renderer,
+    plan_captures,
+)
+from hsi_torch.simulate.config import SimulateConfig
+
+__all__ = ["rerender_after_calibration"]
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        dst.unlink()
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def rerender_after_calibration(
+    cfg: SimulateConfig,
+    base_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    whites: bool = False,
+    device: str | None = None,
+    log=print,
+) -> list[str]:
+    """Write ``out_dir``: ``base_dir``'s capture set with its scene captures (and, with
+    ``whites``, its white references) rendered anew by ``cfg`` after calibration.
+
+    ``cfg`` must be the config ``base_dir`` was rendered from plus ``after_calibration``
+    mismatch keys (drift, ``brf_delta_t_k``, ``scene_illuminant``): the planned files and noise
+    seeds are the base's, so with no such key the rendered files equal the base's bit for bit.
+    Device effects (distortion, stray light, …) would change the calibration frames too and are
+    refused. Every other file of ``base_dir`` is hard-linked (copied across file systems; a link
+    is replaced, never written through); ``ground_truth/truth.json`` gets the config's
+    ``mismatch`` record.
+
+    Args:
+        cfg: simulate config (``cfg.mismatch`` holds the effects).
+        base_dir: the ideal capture set (read only).
+        out_dir: the new set's folder (created; its re-rendered files are replaced).
+        whites: also render the ``white`` captures under the scene's light.
+
+    Returns:
+        The re-rendered files, relative to ``out_dir``.
+
+    Raises:
+        ValueError: a device effect is on, or the base set lacks a planned file.
+    """
+    base, out = Path(base_dir), Path(out_dir)
+    mm = cfg.mismatch
+    device_keys = sorted(k for k in mm.active() if k not in (
+        "drift_shift_px", "drift_rotation_deg", "brf_delta_t_k", "scene_illuminant",
+        "brf_retardance_temp_coeff_per_k"))
+    if device_keys:
+        raise ValueError(f"rerender_after_calibration: mismatch keys {device_keys} change the "
+                         "calibration frames too; simulate the whole set instead")
+    renderer = build_renderer(cfg, device)
+    specs, planned, _ = plan_captures(cfg, renderer, lambda *a: None)
+    types = {"scene"} | ({"white"} if whites else set())
+    sel = [pc for pc in planned if pc.type in types]
+    missing = [pc.file for pc in planned if not (base / pc.file).is_file()]
+    if missing:
+        raise ValueError(f"{base}: the config plans files the base set lacks: {missing[:5]} "
+                         "(was it rendered from another config?)")
+    redo = {pc.file for pc in sel}
+    out.mkdir(parents=True, exist_ok=True)
+    for p in sorted(base.rglob("*")):
+        rel = p.relative_to(base).as_posix()
+        if p.is_file() and rel not in redo:
+            _link_or_copy(p, out / rel)
+    truth_json = out / "ground_truth" / "truth.json"
+    if truth_json.is_file():
+        meta = json.loads(truth_json.read_text())
+        meta["mismatch"] = mm.active()
+        meta["rerendered_after_calibration"] = sorted(redo)
+        truth_json.unlink()  # a link to the base's file: write a new one
+        truth_json.write_text(json.dumps(meta, indent=1))
+    keys = sorted({pc.render_key for pc in sel})
+    imgs = renderer.render_captures([specs[k] for k in keys], None, after_calibration=True)
+    irr = dict(zip(keys, imgs, strict=True))
+    for pc in sel:
+        exposure = renderer.exposure_of(pc.spec)
+        dn, sat = renderer.expose(irr[pc.render_key], exposure, pc.seed)
+        meta = _capture_metadata(renderer, pc, exposure)
+        meta["saturated_pixels"] = int(sat.sum())
+        dst = out / pc.file
+        if dst.exists():
+            dst.unlink()
+        write_capture(dst, dn, meta)
+    log(f"re-rendered {len(sel)} capture(s) after calibration into {out}")
+    return sorted(redo)

@@ -1,0 +1,234 @@
+"""The mismatch experiment and its remedies: the veil of stray light measured where no light
+reaches, hot and dead pixels found and dropped, the experiment's rows and their cache."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hsi_torch.cli import main
+from hsi_torch.config import load_config
+from hsi_torch.io import read_any, read_capture
+from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.captures import LinearCapture
+from hsi_torch.io.radiometry import outside_views_index
+from hsi_torch.io.raw import demosaic_bilinear
+from hsi_torch.io.sensor_corrections import estimate_veil, find_defects, unreached_index
+from hsi_torch.optics.sensor import SensorModel
+from hsi_torch.recon import Reconstructor
+from hsi_torch.recon.checks import BundleRadiometry
+from hsi_torch.recon.pipeline import apply_bundle_corrections
+from hsi_torch.resources import shipped_config
+from hsi_torch.simulate.config import SimulateConfig
+from hsi_torch.simulate.mismatch import stray_light_veil
+from hsi_torch.simulate.oracle import bundle_from_truth
+from hsi_torch.simulate.rerender import rerender_after_calibration
+
+H, W = 120, 128
+TRI = np.array([[[34.0, 90.0], [94.0, 90.0], [64.0, 30.0]]])  # one view, sensor px (x, y)
+
+
+def _inside(tri: np.ndarray, pad: float = 0.0) -> np.ndarray:
+    """(H, W) bool: inside the triangle grown by ``pad`` px."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    out = np.ones((H, W), bool)
+    area = (tri[1, 0] - tri[0, 0]) * (tri[2, 1] - tri[0, 1]) \
+        - (tri[1, 1] - tri[0, 1]) * (tri[2, 0] - tri[0, 0])
+    sgn = -1.0 if area > 0 else 1.0
+    for i in range(3):
+        a, b = tri[i], tri[(i + 1) % 3]
+        n = math.hypot(b[0] - a[0], b[1] - a[1])
+        d = sgn * ((b[0] - a[0]) * (ys - a[1]) - (b[1] - a[1]) * (xs - a[0])) / n
+        out &= d <= pad
+    return out
+
+
+def _lit_frame(device, dtype, extra_tile: bool = False) -> torch.Tensor:
+    """(3, H, W) textured light inside the view (and a second, higher-order tile beside it)."""
+    g = torch.Generator().manual_seed(3)
+    lit = torch.from_numpy(_inside(TRI[0]))
+    if extra_tile:
+        lit |= torch.from_numpy(_inside(TRI[0] + np.array([50.0, 0.0])))
+    tex = 500 + 1000 * torch.rand(3, H, W, generator=g, dtype=torch.float64)
+    return (tex * lit).to(device=device, dtype=dtype)
+
+
+# ------------------------------------------------------------------------------ stray light
+
+
+def test_veil_estimate_recovers_a_simulated_veil(device, dtype):
+    img = _lit_frame(device, dtype)
+    centre = ((W - 1) / 2, (H - 1) / 2)
+    veiled = stray_light_veil(img, 0.02, 0.5, centre)
+    g = torch.Generator().manual_seed(4)
+    noisy = veiled + 2.0 * torch.randn(veiled.shape, generator=g, dtype=torch.float64).to(
+        device=device, dtype=dtype)
+    idx = outside_views_index(TRI, (H, W))
+    est, info = estimate_veil(noisy, idx)
+    true = (veiled - img).double()
+    assert est.shape == img.shape and est.dtype == dtype and est.device == img.device
+    assert info["model"] == ["exp-quadratic"] * 3
+    # the veil's level within 3 % per colour, and under the view (where it is never seen,
+    # extrapolated) within 10 % at the centre
+    np.testing.assert_allclose(info["mean_dn"], true.mean((1, 2)).cpu().numpy(), rtol=0.03)
+    c = (slice(None), slice(H // 2 - 5, H // 2 + 5), slice(W // 2 - 5, W // 2 + 5))
+    np.testing.assert_allclose(est[c].double().mean((1, 2)).cpu().numpy(),
+                               true[c].mean((1, 2)).cpu().numpy(), rtol=0.10)
+    # no veil: nothing (a constant at the noise's mean, ~0) is subtracted
+    clean = img + 2.0 * torch.randn(img.shape, generator=g, dtype=torch.float64).to(
+        device=device, dtype=dtype)
+    est0, info0 = estimate_veil(clean, idx)
+    assert max(info0["mean_dn"]) < 0.3 and float(est0.abs().max()) < 0.3
+
+
+def test_unreached_samples_leave_out_tiles_the_views_do_not_use(device):
+    white = _lit_frame(device, torch.float32, extra_tile=True)
+    geo = outside_views_index(TRI, (H, W), margin_px=2.0)
+    idx = unreached_index(white, geo, margin_px=3.0)
+    lit2 = _inside(TRI[0] + np.array([50.0, 0.0])).reshape(-1)
+    assert lit2[geo].sum() > 100  # the geometric outside of the views holds the second tile
+    assert lit2[idx].sum() == 0 and set(idx.tolist()) <= set(geo.tolist())
+    assert idx.size > 0.5 * (~lit2[geo]).sum()
+
+
+# ------------------------------------------------------------------------------ defects
+
+
+def test_defect_mask_finds_hot_and_dead_pixels(device):
+    s, hs = 256, 0.2 * 16383
+    sensor = SensorModel(hot_pixel_fraction=1e-3, dead_pixel_fraction=1e-3, pattern_seed=7)
+    _, hot, dead = sensor.fixed_pattern(s, s, device=device)
+    g = torch.Generator().manual_seed(5)
+    noise = lambda: torch.randn(1, s, s, generator=g).to(device)  # noqa: E731
+    dark_raw = 1.5 * noise() + hs * hot[None].float()
+    ys, xs = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
+    field = (2000 + 4 * xs - 3 * ys).float().to(device)
+    field = torch.where((xs < 90).to(device) | ((ys > 200) & (xs > 150)).to(device),
+                        torch.zeros_like(field), field)  # sharp tile edges
+    white_raw = (field[None] + 10 * noise()) * (~dead)[None].float() + dark_raw
+    dark = demosaic_bilinear(dark_raw[None], "RGGB")[0]
+    white = demosaic_bilinear(white_raw[None], "RGGB")[0] - dark
+    truth = hot | (dead & (field > 0))
+    assert int(truth.sum()) > 80
+    found = find_defects(dark, white, dilate_px=0)
+    tp = int((found & truth).sum())
+    assert tp / int(truth.sum()) >= 0.95, "recall"
+    assert tp / max(1, int(found.sum())) >= 0.9, "precision (tile edges are not dead pixels)"
+    wide = find_defects(dark, white)  # dilated over the demosaic's footprint
+    assert bool(wide[found].all()) and int(wide.sum()) <= 9 * int(found.sum())
+
+
+def test_bundle_corrections_mark_defects_and_subtract_the_veil_once(device):
+    img = stray_light_veil(_lit_frame(device, torch.float32), 0.02, 0.5, (63.5, 59.5))
+    cap = LinearCapture(image=img.clone(), saturated=torch.zeros(3, H, W, dtype=torch.bool,
+                                                                  device=device),
+                        metadata={}, path=Path("x.tif"))
+    rad = BundleRadiometry(veil_index=outside_views_index(TRI, (H, W)),
+                           defect_index=np.array([5, 77, 1000], np.int64))
+    st = apply_bundle_corrections(cap, rad)
+    assert st["defect_pixels"] == 3
+    assert cap.saturated.reshape(3, -1)[:, [5, 77, 1000]].all()
+    assert int(cap.saturated.sum()) == 9
+    out = ~torch.from_numpy(_inside(TRI[0], pad=3.0)).to(device)
+    assert float(cap.image[:, out].abs().mean()) < 0.05 * float(img[:, out].mean())
+    before = cap.image.clone()
+    assert apply_bundle_corrections(cap, rad) == st and torch.equal(cap.image, before)
+
+
+# ------------------------------------------------------------------------------ small set
+
+
+@pytest.fixture(scope="module")
+def small_set(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("mm") / "ideal"
+    assert main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
+                 "--set", "render.figures=false", "--set", "render.progress=false",
+                 "--set", "render.dtype=float32"]) == 0  # fmt: skip
+    return out
+
+
+def test_rerender_without_an_effect_reproduces_the_set(small_set: Path, tmp_path: Path):
+    cfg = load_config(small_set / "resolved_config.yaml", SimulateConfig)
+    files = rerender_after_calibration(cfg, small_set, tmp_path / "again", whites=True,
+                                       log=lambda *a: None)
+    assert "scenes/colorchecker.tif" in files and "white/white_00.tif" in files
+    for f in files:
+        a, _ = read_capture(small_set / f)
+        b, _ = read_capture(tmp_path / "again" / f)
+        assert np.array_equal(np.asarray(a), np.asarray(b)), f
+    cfg.mismatch.distortion_k1 = -0.1
+    with pytest.raises(ValueError, match="distortion_k1"):
+        rerender_after_calibration(cfg, small_set, tmp_path / "no")
+
+
+def test_reconstruction_drops_observations_of_defect_pixels(small_set: Path):
+    bundle = bundle_from_truth(small_set)
+    cap = read_any(small_set / "scenes" / "colorchecker.tif")
+    ref = Reconstructor(bundle).reconstruct_capture(cap).cube
+    # corrupt a few sensor pixels inside the views (a hot pixel's offset)
+    Hs, Ws = cap.image.shape[-2:]
+    rng = np.random.default_rng(0)
+    lit = (cap.image.sum(0) > 0.2 * cap.image.sum(0).max()).reshape(-1).cpu().numpy()
+    bad = rng.choice(np.flatnonzero(lit), 40, replace=False)
+    bad_cap = read_any(small_set / "scenes" / "colorchecker.tif")
+    bad_cap.image.reshape(3, -1)[:, bad] += 3000.0
+    hurt = Reconstructor(bundle).reconstruct_capture(bad_cap).cube
+    masked = CalibrationBundle(**{**bundle.__dict__, "extras": {
+        **bundle.extras, "defect_pixels": np.unique(np.concatenate(
+            [bad + dy * Ws + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)]))}})
+    bad_cap2 = read_any(small_set / "scenes" / "colorchecker.tif")
+    bad_cap2.image.reshape(3, -1)[:, bad] += 3000.0
+    fixed = Reconstructor(masked).reconstruct_capture(bad_cap2).cube
+    ok = torch.isfinite(ref) & torch.isfinite(hurt) & torch.isfinite(fixed)
+    err_hurt = float((hurt - ref)[ok].abs().max())
+    err_fixed = float((fixed - ref)[ok].abs().max())
+    assert err_hurt > 0.2  # the corrupt samples wreck some spectra
+    assert err_fixed < 0.2 * err_hurt  # dropped, they cannot
+
+
+@pytest.mark.slow
+def test_mismatch_experiment_rows_remedy_and_cache(small_set: Path, tmp_path: Path,
+                                                   monkeypatch):
+    out = tmp_path / "mm"
+    args = ["experiment", "mismatch", "--out", str(out), "--set", f"ideal_captures={small_set}",
+            "--set", "effects=[stray_light,drift]"]
+    assert main(args) == 0
+    data = json.loads((out / "mismatch.json").read_text())
+    assert list(data) == ["ideal", "stray_light", "drift"]
+    md = (out / "mismatch.md").read_text()
+    assert md.count("\n") == 5 and "veil subtracted" in md
+
+    def cc(row: str, variant: str) -> float:
+        return data[row][variant]["colorchecker"]["means_db"]
+
+    lost = cc("ideal", "calibrated") - cc("stray_light", "calibrated")
+    lost_after = cc("ideal", "calibrated") - cc("stray_light", "remedy")
+    assert lost > 1.0 and lost_after < lost - 0.5  # the veil costs, subtracting it wins back
+    assert abs(cc("ideal", "remedy") - cc("ideal", "calibrated")) < 0.2  # harmless when ideal
+    assert cc("ideal", "calibrated") - cc("drift", "calibrated") > 3.0
+    # a scene-only effect: the ideal calibration frames linked, its scenes rendered anew
+    drift = out / "rows" / "drift" / "captures"
+    assert os.path.samefile(drift / "white" / "white_00.tif", small_set / "white" / "white_00.tif")
+    assert not os.path.samefile(drift / "scenes" / "colorchecker.tif",
+                                small_set / "scenes" / "colorchecker.tif")
+    assert not (out / "rows" / "drift" / "calib.npz").exists()
+    assert json.loads((drift / "ground_truth" / "truth.json").read_text())["mismatch"] == {
+        "drift_shift_px": [2.0, 0.0], "drift_rotation_deg": 0.05}
+    assert json.loads((small_set / "ground_truth" / "truth.json").read_text())["mismatch"] == {}
+    # a rerun reuses every row: nothing is simulated, calibrated or reconstructed again
+    import hsi_torch.experiments.mismatch as mm
+
+    def refuse(*a, **k):
+        raise AssertionError("recomputed a cached row")
+
+    for name in ("simulate_capture_set", "calibrate_capture_set", "rerender_after_calibration",
+                 "score_captures"):
+        monkeypatch.setattr(mm, name, refuse)
+    assert main(args) == 0
+    assert json.loads((out / "mismatch.json").read_text()) == data
