@@ -117,6 +117,7 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch experiment synthetic --out out/synthetic",
         "hsi-torch experiment synthetic --out out/quick --set num_seeds=1 --set 'noise_sigmas=[1]'",
         "hsi-torch experiment usaf --out out/usaf --set bundle=calibrated",
+        "hsi-torch experiment mismatch --out out/mismatch --set 'effects=[stray_light]'",
     ],
     "demo": [
         "hsi-torch demo --quick --out demo_quick/",
@@ -305,9 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_cluster_options(p)
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="capture files or glob patterns")
 
-    p = command("experiment", "run a named experiment (synthetic, design, opd, usaf, spatial)")
+    p = command("experiment",
+                "run a named experiment (synthetic, design, opd, usaf, spatial, mismatch)")
     p.add_argument("name", metavar="NAME",
-                   help="experiment name: synthetic, design, opd, usaf or spatial")
+                   help="experiment name: synthetic, design, opd, usaf, spatial or mismatch")
     _add_common(p)
     p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
 
