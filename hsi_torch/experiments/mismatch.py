@@ -53,9 +53,10 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import help_meta as _h
 from hsi_torch.config import load_config
 from hsi_torch.console import info
-from hsi_torch.experiments.metrics import colorchecker_scores, erode_px, interior_mask
+from hsi_torch.experiments.metrics import _sam_deg, colorchecker_scores, erode_px, interior_mask
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.metrics import psnr_from_mse
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.pipeline import DEFAULT_BETA
 from hsi_torch.recon.sensing import precompute_sensing
@@ -249,13 +250,9 @@ def _pixel_scores(cube: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict
     headline numbers, without its field metrics)."""
     e = cube[:, mask].T
     t = truth[:, mask].T
-    mse = float(((e - t) ** 2).mean())
     bright = t.mean(1) >= 0.01
-    eb, tb = e[bright], t[bright]
-    cos = (eb * tb).sum(1) / np.maximum(np.linalg.norm(eb, axis=1) * np.linalg.norm(tb, axis=1),
-                                        1e-30)
-    sam = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return {"psnr_db": float(10 * np.log10(1.0 / mse)) if mse > 0 else float("inf"),
+    sam = _sam_deg(e[bright], t[bright])
+    return {"psnr_db": psnr_from_mse(float(((e - t) ** 2).mean())),
             "mean_sam_deg": float(sam.mean()) if sam.size else float("nan")}
 
 
