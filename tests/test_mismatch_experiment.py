@@ -21,7 +21,7 @@ from hsi_torch.io.radiometry import outside_views_index
 from hsi_torch.io.raw import demosaic_bilinear
 from hsi_torch.io.sensor_corrections import estimate_veil, find_defects, unreached_index
 from hsi_torch.optics.sensor import SensorModel
-from hsi_torch.recon import Reconstructor
+from hsi_torch.recon import HSIReconstructor, Reconstructor
 from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.pipeline import apply_bundle_corrections
 from hsi_torch.resources import shipped_config
@@ -190,6 +190,45 @@ def test_reconstruction_drops_observations_of_defect_pixels(small_set: Path):
     err_fixed = float((fixed - ref)[ok].abs().max())
     assert err_hurt > 0.2  # the corrupt samples wreck some spectra
     assert err_fixed < 0.2 * err_hurt  # dropped, they cannot
+
+
+def test_tensor_paths_apply_the_bundles_corrections(small_set: Path, device):
+    """reconstruct_frame and HSIReconstructor repeat the bundle's veil subtraction and defect
+    mask as reconstruct_capture does; without them the veil and the hot pixels bias the cube."""
+    bundle = bundle_from_truth(small_set)
+    clean = read_any(small_set / "scenes" / "colorchecker.tif")
+    ref = Reconstructor(bundle, device=device).reconstruct_capture(clean).cube
+    img = clean.image.clone()
+    dark = (img.sum(0) < 0.01 * img.sum(0).max()).reshape(-1).cpu().numpy()
+    lit = (img.sum(0) > 0.2 * img.sum(0).max()).reshape(-1).cpu().numpy()
+    bad = np.random.default_rng(1).choice(np.flatnonzero(lit), 30, replace=False)
+    Ws = img.shape[-1]
+    bad_hood = np.unique(np.concatenate([bad + dy * Ws + dx for dy in (-1, 0, 1)
+                                         for dx in (-1, 0, 1)]))
+    img += 40.0  # a flat veil of stray light
+    img.reshape(3, -1)[:, bad] += 3000.0  # hot pixels
+    sat = torch.zeros(img.shape, dtype=torch.bool)
+    fixed_bundle = CalibrationBundle(**{
+        **bundle.__dict__, "settings": {**bundle.settings, "stray_light": "subtract"}, "extras": {
+        **bundle.extras, "unreached_index": np.flatnonzero(dark), "defect_pixels": bad_hood}})
+    rec = Reconstructor(fixed_bundle, device=device)
+    by_capture = rec.reconstruct_capture(LinearCapture(image=img.clone(), saturated=sat.clone(),
+                                                       metadata={}, path=Path("v.tif")))
+    by_frame = rec.reconstruct_frame(img, sat)
+    raw = rec.reconstruct_frame(img, sat, bundle_corrections=False)
+    assert by_frame.stats["defect_pixels"] == bad_hood.size
+    assert by_frame.stats["stray_light_veil_dn"] == pytest.approx([40.0] * 3, abs=2.0)
+    assert "defect_pixels" not in raw.stats
+    torch.testing.assert_close(by_frame.cube, by_capture.cube, equal_nan=True)
+    module = HSIReconstructor.from_bundle(fixed_bundle, device=device)
+    cube_m, valid_m = module(img.unsqueeze(0).to(device), sat.unsqueeze(0).to(device))
+    ok = torch.isfinite(ref) & torch.isfinite(by_frame.cube) & torch.isfinite(raw.cube)
+    assert bool(valid_m[0][ok.all(0)].all())
+    torch.testing.assert_close(cube_m[0][ok], by_frame.cube[ok], rtol=1e-4, atol=1e-4)
+    err_raw = float((raw.cube - ref)[ok].abs().max())
+    err_fixed = float((by_frame.cube - ref)[ok].abs().max())
+    assert err_raw > 0.2
+    assert err_fixed < 0.2 * err_raw
 
 
 @pytest.mark.slow

@@ -46,6 +46,7 @@ from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.pipeline import (
     DEFAULT_BETA,
     check_min_views,
+    correct_frames,
     prepare_input,
     reconstruct_batch,
     torch_dtype,
@@ -82,6 +83,8 @@ class HSIReconstructor(nn.Module):
     valid (B, h, w))`` — or, built with ``output="cube"``, the cube tensor alone with invalid
     pixels set to ``fill_value``, so that it drops into ``nn.Sequential``. The input may have any
     float dtype; the output has the input's dtype. The input must be on the module's device.
+    A bundle calibrated with ``stray_light: subtract`` or ``defects: mask`` has its corrections
+    repeated on every frame (:meth:`correct`), as ``hsi-torch reconstruct`` does.
 
     Example:
         >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=1e4).to("cuda")  # doctest: +SKIP
@@ -164,6 +167,13 @@ class HSIReconstructor(nn.Module):
         # φ as the bundle holds it (float64): the sensing model is formed from it, so a module
         # rebuilt from a state dict forms the same model bit for bit in any buffer precision
         self._phi64 = torch.as_tensor(bundle.phi, dtype=torch.float64).cpu()
+        #: what the bundle records about its sensor corrections (veil, hot and dead pixels):
+        #: ``forward`` repeats them on every frame, as the calibration did
+        self.radiometry = sensing.radiometry
+        rad = self.radiometry
+        self._corrects = rad is not None and (
+            rad.veil_index is not None
+            or (rad.defect_index is not None and rad.defect_index.size > 0))
         # calibration products (persistent)
         self.register_buffer("wavelengths_nm", sensing.wavelengths_nm.to(dev, dt))
         self.register_buffer("B", torch.as_tensor(bundle.B, device=dev, dtype=dt))
@@ -497,11 +507,23 @@ class HSIReconstructor(nn.Module):
             )
         out_dtype = x.dtype
         rgb, sat = prepare_input(x, saturated, self.cfa_pattern)
+        if self._corrects:  # no graph break for a bundle without corrections
+            rgb, sat = self.correct(rgb, sat)
         cube, valid = self.reconstruct_prepared(rgb, sat, exposure_scale)
         if self.output == "cube":
             fill = torch.full((), self.fill_value, dtype=cube.dtype, device=cube.device)
             return torch.where(valid.unsqueeze(1), cube, fill).to(out_dtype)
         return ReconstructionOutput(cube.to(out_dtype), valid)
+
+    @torch.compiler.disable
+    def correct(self, rgb: Tensor, saturated: Tensor | None) -> tuple[Tensor, Tensor | None]:
+        """The bundle's sensor corrections on ``(B, 3, H, W)`` linear RGB and its saturation
+        mask (:func:`~hsi_torch.recon.pipeline.correct_frames`): for a bundle calibrated with
+        ``stray_light: subtract`` the veil fitted on each frame's unreached pixels is subtracted
+        (a constant for autograd: the gradient passes through unchanged); for ``defects: mask``
+        the hot and dead pixels are marked saturated. Other bundles: returned as given."""
+        rgb, saturated, _ = correct_frames(rgb, saturated, self.radiometry)
+        return rgb, saturated
 
     @torch.compiler.disable
     def reconstruct_prepared(

@@ -90,6 +90,7 @@ __all__ = [
     "solve_observations",
     "assemble_cube",
     "exposure_scale",
+    "correct_frames",
     "prepare_input",
     "fit_residual",
     "check_min_views",
@@ -830,6 +831,7 @@ class Reconstructor:
         cfa_pattern: str | None = None,
         source: str = "capture",
         raw_layout: str | None = None,
+        bundle_corrections: bool = True,
     ) -> ReconstructionResult:
         """Reconstruct one capture.
 
@@ -843,6 +845,9 @@ class Reconstructor:
                 ``"rgb"`` (independent samples, the default), ``"bayer"`` (bilinear demosaic
                 with ``cfa_pattern``) or ``"half"`` (2 × 2 binning); a ``(1, H, W)`` mosaic is
                 ``"bayer"``.
+            bundle_corrections: apply the corrections the bundle's calibration applied
+                (:func:`correct_frames`: veil subtracted, hot and dead pixels masked; reported
+                in the statistics); ``False`` for an image already corrected.
 
         Returns:
             :class:`ReconstructionResult`.
@@ -859,6 +864,9 @@ class Reconstructor:
         sat = None if saturated is None else saturated.to(device=sens.device)
         pattern = cfa_pattern or sens.cfa_pattern
         img, sat = prepare_input(img, sat, pattern)
+        corr: dict[str, Any] = {}
+        if bundle_corrections:
+            img, sat, corr = correct_frames(img, sat, sens.radiometry)
         scale = exposure_scale(exposure_s, sens.exposure_s) if self.exposure_correction else 1.0
         factor = None
         if self.uncertainty:
@@ -891,6 +899,7 @@ class Reconstructor:
         cube, valid, stats, t = out[:4]
         st = stats[0]
         st["exposure_scale"] = scale
+        st.update(corr)
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
             st["drift"] = {**drift.to_dict(), "corrected": sens is not self.sensing,
@@ -919,7 +928,7 @@ class Reconstructor:
                                          self.exposure_correction)  # fmt: skip
             res = self.reconstruct_frame(
                 capture.image, capture.saturated, exposure_s=t,
-                source=src, raw_layout=layout, cfa_pattern=pattern,
+                source=src, raw_layout=layout, cfa_pattern=pattern, bundle_corrections=False,
             )  # fmt: skip
             res.stats.update(exp_stats)
             res.stats.update(corr)
@@ -994,20 +1003,48 @@ def apply_bundle_corrections(capture: Any, rad: BundleRadiometry | None) -> dict
     done = getattr(capture, "_bundle_corrections", None)
     if isinstance(done, dict):
         return done
-    stats: dict[str, Any] = {}
-    if rad is not None and rad.veil_index is not None and capture.image.ndim == 3 \
-            and capture.image.shape[0] == 3:
-        capture.image, info = subtract_veil(capture.image, rad.veil_index)
-        stats["stray_light_veil_dn"] = [round(v, 3) for v in info["mean_dn"]]
-    if rad is not None and rad.defect_index is not None and rad.defect_index.size:
-        sat = capture.saturated
-        flat = sat.reshape(sat.shape[0], -1).clone()
-        idx = torch.as_tensor(rad.defect_index, device=sat.device, dtype=torch.long)
-        flat[:, idx] = True
-        capture.saturated = flat.reshape(sat.shape)
-        stats["defect_pixels"] = int(idx.numel())
+    capture.image, capture.saturated, stats = correct_frames(capture.image, capture.saturated,
+                                                             rad)
     capture._bundle_corrections = stats
     return stats
+
+
+def correct_frames(
+    rgb: Tensor, saturated: Tensor | None, rad: BundleRadiometry | None
+) -> tuple[Tensor, Tensor | None, dict[str, Any]]:
+    """The bundle's sensor corrections on tensors, as :func:`apply_bundle_corrections` does on
+    captures: ``stray_light: subtract`` bundles get the veil (fitted per frame and colour on the
+    bundle's unreached pixels) subtracted; ``defects: mask`` bundles get their hot and dead
+    pixels marked saturated.
+
+    Args:
+        rgb: ``(3, H, W)`` or ``(B, 3, H, W)`` linear RGB (demosaiced), sensor size.
+        saturated: bool mask of ``rgb``'s shape, or ``None``.
+        rad: the bundle's radiometry (``None``: nothing to do).
+
+    Returns:
+        ``(rgb, saturated, stats)``: new tensors (the inputs are not modified); ``saturated``
+        is created when defects are marked; ``stats`` holds ``stray_light_veil_dn`` (the
+        veil's mean per colour, per frame for a batch) and ``defect_pixels``, when applied.
+    """
+    stats: dict[str, Any] = {}
+    if rad is None:
+        return rgb, saturated, stats
+    if rad.veil_index is not None and rgb.shape[-3] == 3:
+        rgb, info = subtract_veil(rgb, rad.veil_index)
+        frames = info["frames"] if "frames" in info else [info]
+        means = [[round(v, 3) for v in f["mean_dn"]] for f in frames]
+        stats["stray_light_veil_dn"] = means[0] if rgb.ndim == 3 else means
+    if rad.defect_index is not None and rad.defect_index.size:
+        sat = (torch.zeros(rgb.shape, dtype=torch.bool, device=rgb.device) if saturated is None
+               else saturated.to(torch.bool))
+        H, W = sat.shape[-2:]
+        flat = sat.reshape(-1, H * W).clone()
+        idx = torch.as_tensor(rad.defect_index, device=sat.device, dtype=torch.long)
+        flat[:, idx] = True
+        saturated = flat.reshape(sat.shape)
+        stats["defect_pixels"] = int(idx.numel())
+    return rgb, saturated, stats
 
 
 def torch_dtype(name: str) -> torch.dtype:
