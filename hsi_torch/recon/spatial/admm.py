@@ -178,7 +178,8 @@ def _solve_spatial(
                          "row-major order")
     if inputs is not None:
         with torch.no_grad():
-            cstep = _CompiledStep(problem, inputs, b, z, u, float(t), lam_f, inner_iters, alpha)
+            cstep = _CompiledStep(problem, inputs, b, z, u, float(t), lam_f, inner_iters, alpha,
+                                  kernel_threads)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
             return SpatialResult(torch.from_numpy(cstep.z).to(b.device), it, done, prim, dual,
@@ -284,12 +285,15 @@ class _TorchStep:
 
 class _CompiledStep:
     """An ADMM iteration with the compiled CPU kernels on the valid pixels' ``(P, M)`` numpy
-    arrays (the x-update, the FGP dual steps, the primal), in place. Arguments as in
-    :func:`solve_spatial`; ``inputs``: :meth:`~.problem.SpatialProblem.compiled_inputs`."""
+    arrays: with ``λ > 0`` the x-update, the FGP dual steps and the primal in one fused pass
+    (:func:`~._compiled.fgp_block`, every state array double-buffered), with ``λ = 0`` the
+    x-update and the projection. Arguments as in :func:`solve_spatial`; ``inputs``:
+    :meth:`~.problem.SpatialProblem.compiled_inputs`; ``num_blocks``: the fused pass's blocks of
+    rows (one per thread)."""
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, u0: Tensor, t: float, lam: float, inner_iters: int,
-                 alpha: float) -> None:
+                 alpha: float, num_blocks: int = 1) -> None:
         self.inv, self.graph = inputs
         self.rho, self.t, self.lam, self.inner_iters, self.alpha = (
             problem.rho, t, lam, inner_iters, alpha)
@@ -299,38 +303,51 @@ class _CompiledStep:
         self.x, self.v = np.empty_like(self.z), np.empty_like(self.z)
         self.z_prev = self.z
         P, m = self.z.shape
-        self.p = np.zeros((P, 2, m), self.z.dtype)
-        self.r = np.empty_like(self.p)
-        self.psum = np.zeros((P, 2), self.z.dtype)  # band sums of p and r (brightness weighting)
-        self.rsum = np.empty_like(self.psum)
-        self.first_rows = compiled.fgp_workspace(self.graph, m, self.z.dtype)
         self.rows = problem.row_index.numpy() if problem.row_index is not None else None
         self.row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
         self.step = fgp_dual_step(t) if t > 0 else 0.0
+        if lam == 0.0:
+            return
+        # the fused pass reads one copy of each state array and writes the other; the dual is
+        # band-major, with its band sums (brightness weighting)
+        self.x2, self.u2, self.z2 = (np.empty_like(self.z) for _ in range(3))
+        self.p = np.zeros((2, m, P), self.z.dtype)
+        self.p2 = np.empty_like(self.p)
+        self.psum = np.zeros((2, P), self.z.dtype)
+        self.psum2 = np.empty_like(self.psum)
+        self.grid = problem.fgp_grid()
+        self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
+        self.row_slot = np.full(P, -1, np.int64)
+        if self.rows is not None:
+            self.row_slot[self.rows] = np.arange(self.rows.shape[0])
+        else:
+            self.row_inv = np.zeros((1, m, m), self.z.dtype)
+        moms, kk = [], 1.0
+        for _ in range(inner_iters):  # FISTA from r = p (the last step's dual)
+            kk, mom = fista_momentum(kk)
+            moms.append(mom)
+        self.moms = np.asarray(moms, self.z.dtype)
 
     def __call__(self, i: int, keep: bool) -> None:
         b, z, u, x, v, rho = self.b, self.z, self.u, self.x, self.v, self.rho
-        if keep:
-            self.z_prev = z.copy()
-        # u ← u + x − z from the second iteration on (x and z of the previous one)
-        compiled.x_update(self.inv, b, z, u, x, v, rho, i > 0)
-        rows = self.rows
-        if rows is not None:  # the frame's own factor on the changed pixels
-            rhs = b[rows] + rho * (z[rows] - u[rows])
-            x[rows] = np.einsum("kij,kj->ki", self.row_inv, rhs)
-            v[rows] = x[rows] + u[rows]
         if self.lam == 0.0:
+            if keep:
+                self.z_prev = z.copy()
+            # u ← u + x − z from the second iteration on (x and z of the previous one)
+            compiled.x_update(self.inv, b, z, u, x, v, rho, i > 0)
+            rows = self.rows
+            if rows is not None:  # the frame's own factor on the changed pixels
+                rhs = b[rows] + rho * (z[rows] - u[rows])
+                x[rows] = np.einsum("kij,kj->ki", self.row_inv, rhs)
+                v[rows] = x[rows] + u[rows]
             np.maximum(v, 0, out=z)
             return
-        kk = 1.0
-        p, psum, r, rsum = self.p, self.psum, self.r, self.rsum
-        for j in range(self.inner_iters):  # FISTA from r = p (the last step's dual)
-            k_new, mom = fista_momentum(kk)
-            r_in, rin_sum = (p, psum) if j == 0 else (r, rsum)
-            compiled.fgp_step(v, self.t, self.step, mom, r_in, rin_sum, p, psum,
-                              r, rsum, self.first_rows, self.graph, self.alpha)
-            kk = k_new
-        compiled.fgp_primal(v, self.t, p, psum, z, self.graph, self.alpha)
+        compiled.fgp_block(self.inv, self.row_slot, self.row_inv, b, x, u, z, self.x2, self.u2,
+                           rho, i > 0, self.t, self.step, self.moms, self.p, self.psum, self.p2,
+                           self.psum2, self.z2, self.grid, self.blocks, self.alpha)
+        self.z_prev = z  # the previous z, kept until the next iteration writes over it
+        self.x, self.x2, self.u, self.u2, self.z, self.z2 = self.x2, x, self.u2, u, self.z2, z
+        self.p, self.p2, self.psum, self.psum2 = self.p2, self.p, self.psum2, self.psum
 
     def norms(self) -> tuple[float, float, float]:
         return (float(np.linalg.norm(self.z)), float(np.linalg.norm(self.x - self.z)),

@@ -141,6 +141,16 @@ class SpatialProblem:
         row_ptr = np.searchsorted(pix // w, np.arange(h + 1)).astype(np.int64)
         return row_ptr, right, down, left, up, wx, wy, wl, wu
 
+    def fgp_grid(self) -> tuple[np.ndarray, ...]:
+        """The row layout of the compiled TV prox (:func:`~._compiled.fgp_grid`)."""
+        return self._fgp_grid
+
+    @functools.cached_property
+    def _fgp_grid(self) -> tuple[np.ndarray, ...]:
+        dt = self.gram.numpy().dtype
+        return compiled.fgp_grid(self._graph, self.pixel_index.numpy(), self.frame_size,
+                                 self.ex.numpy().astype(dt), self.ey.numpy().astype(dt))
+
     def _apply(self, x: Tensor, matrices: Tensor, row_matrices: Tensor | None) -> Tensor:
         """``matrices_p x_p`` for all pixels, the frame's own ``row_matrices`` on ``row_index``
         (the compiled product on the CPU where nothing needs a gradient: torch's batched
