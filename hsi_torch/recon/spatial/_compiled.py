@@ -6,20 +6,19 @@ matrix–vector product; at the full-size prototype's frame (25 × 744 × 858, 3
 pixels) one ADMM iteration streams several GB through memory. These kernels run the same
 iterations on the valid pixels only:
 
-* :func:`fgp_block`: one whole ADMM iteration with ``λ > 0`` in one pass over the frame — the
-  x-update of every row, the ``J`` dual iterations of the fast gradient projection (the same
-  formulas as :func:`hsi_torch.recon.spatial.operators.prox_tv_nonneg`) and the final primal,
-  as a wavefront down the rows with each iteration's rows in small rings, the prox's rows held
-  band-major so that its loops run along the row's columns and vectorise.
-* :func:`x_update`: ``u ← u + x − z`` (from the second iteration on), ``x = (G + ρI)⁻¹
-  (b + ρ(z − u))``, ``v = x + u``, pixel by pixel with the symmetric inverse read as ``M``
-  contiguous columns (the ``λ = 0`` iterations; :func:`sym_apply` is the same product alone,
-  for ``G x`` of the warm start).
+* :func:`fgp_block`: one whole ADMM iteration in one pass over the frame — the x-update of
+  every row from ``(G + ρI)⁻¹`` packed by rows (:func:`pack_inverse_rows`: the upper triangle,
+  half the memory of the dense matrices), the ``J`` dual iterations of the fast gradient
+  projection (the same formulas as :func:`hsi_torch.recon.spatial.operators.prox_tv_nonneg`)
+  and the final primal, as a wavefront down the rows with each iteration's rows in small rings;
+  the state is band-major ``(M, P)``, so every loop runs along a row's pixels and vectorises.
+* :func:`sym_apply`: ``S_p x_p`` for symmetric ``S (P|1, M, M)`` (the warm start's ``G x₀``),
+  pixel by pixel with ``S`` read as ``M`` contiguous columns.
 
 Two numba details the speed depends on (measured on the full-size frame): a loop over ``M = 25``
 bands does not vectorise (LLVM's vector loop takes 64 iterations at a time), and a loop whose
 index numba cannot prove non-negative does not either (numba checks a signed index for
-wrap-around): the prox's loops run over a row's columns with unsigned indices.
+wrap-around): the fused pass's loops run along a row's pixels with unsigned indices.
 
 The graph is the valid pixels sorted by their flat frame index, row by row (:func:`fgp_grid`:
 each row's pixels, their columns and span, the edge weights on the padded frame grid; a missing
@@ -36,36 +35,19 @@ import numpy as np
 from hsi_torch.recon._numba import AVAILABLE
 from hsi_torch.recon._numba import nb as _nb
 
-__all__ = ["AVAILABLE", "x_update", "sym_apply", "fgp_grid", "fgp_blocks", "fgp_block"]
+__all__ = ["AVAILABLE", "sym_apply", "fgp_grid", "fgp_blocks", "fgp_block", "pack_inverse_rows",
+           "row_chunks"]
 
 
 #: numba's fast-math flags for the TV kernels: reassociation lets the per-pixel sums over bands
 #: vectorise (no assumptions about NaN or infinities)
 _FAST = {"reassoc", "contract", "nsz", "arcp"}
+#: Pixels of a row taken at a time by the x-update of :func:`fgp_block`, and the pixels of one
+#: block of the packed inverse (:func:`pack_inverse_rows`): its scratch stays in the first-level
+#: cache, and the inverse is read as one sequential stream.
+_ROW_CHUNK = 64
 
 if AVAILABLE:
-
-    @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
-    def _x_update(inv, b, z, u, x, v, rho, update_u, num_chunks):  # pragma: no cover - compiled
-        n, m = b.shape
-        shared = inv.shape[0] == 1
-        for ch in _nb.prange(num_chunks):
-            rhs = np.empty(m, b.dtype)
-            acc = np.empty(m, b.dtype)
-            for i in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
-                for j in range(m):
-                    if update_u:
-                        u[i, j] += x[i, j] - z[i, j]
-                    rhs[j] = b[i, j] + rho * (z[i, j] - u[i, j])
-                    acc[j] = 0
-                S = inv[0] if shared else inv[i]
-                for c in range(m):  # S symmetric: column c = row c, contiguous (vectorises)
-                    xc = rhs[c]
-                    for j in range(m):
-                        acc[j] += S[c, j] * xc
-                for j in range(m):
-                    x[i, j] = acc[j]
-                    v[i, j] = acc[j] + u[i, j]
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
     def _sym_apply(mat, xin, out, num_chunks):  # pragma: no cover - compiled
@@ -207,67 +189,109 @@ if AVAILABLE:
                 for x in range(n):
                     dst[k, ulo + x] = src[k, np.uint64(col[ulo + x]) + u1]
 
-    @_nb.njit(inline="always", error_model="numpy")
-    def _transpose_in(src, dst, lo, hi, x0, col, contiguous):  # pragma: no cover - compiled
-        """``dst[j, col_i + 1] = src[i, j]``: a row of pixel-major ``(P, M)`` into band-major
-        padded columns ``(M, W + 2)``."""
-        n, ulo, u1 = np.uint64(hi - lo), np.uint64(lo), np.uint64(1)
-        ux = np.uint64(x0) + u1
-        for x in range(n):
-            X = ux + x if contiguous else np.uint64(col[ulo + x]) + u1
-            for j in range(src.shape[1]):
-                dst[j, X] = src[ulo + x, j]
-
-    @_nb.njit(inline="always", error_model="numpy")
-    def _transpose_out(src, dst, lo, hi, x0, col, contiguous):  # pragma: no cover - compiled
-        """The inverse of :func:`_transpose_in`: ``dst[i, j] = src[j, col_i + 1]``."""
-        n, ulo, u1 = np.uint64(hi - lo), np.uint64(lo), np.uint64(1)
-        ux = np.uint64(x0) + u1
-        for x in range(n):
-            X = ux + x if contiguous else np.uint64(col[ulo + x]) + u1
-            for j in range(dst.shape[1]):
-                dst[ulo + x, j] = src[j, X]
-
     @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
-    def _x_row(inv, row_slot, row_inv, b, x_in, u_in, z_in, x_out, u_out, rho, update_u, own,
-               vrow, lo, hi, x0, col, contiguous, rhs, acc, uu):  # pragma: no cover - compiled
-        """The ADMM x-update of the pixels of one row (as :func:`_x_update`), ``v = x + u``
-        written band-major into ``vrow (M, W + 2)`` at the pixels' padded columns; ``x`` and
-        ``u`` written to ``x_out``, ``u_out`` only where ``own`` (a neighbouring block's rows
-        are computed for their ``v`` alone). ``row_slot[i] ≥ 0``: pixel ``i`` uses
-        ``row_inv[row_slot[i]]`` (its own Gram matrix in this frame)."""
-        m = b.shape[1]
-        n, ulo, u1 = np.uint64(hi - lo), np.uint64(lo), np.uint64(1)
-        ux = np.uint64(x0) + u1
-        for x in range(n):
-            i = ulo + x
-            for j in range(m):
-                uj = u_in[i, j]
-                if update_u:
-                    uj += x_in[i, j] - z_in[i, j]
-                uu[j] = uj
-                rhs[j] = b[i, j] + rho * (z_in[i, j] - uj)
-                acc[j] = 0
-            k = row_slot[i]
-            S = inv[i] if k < 0 else row_inv[k]
-            for cc in range(m):  # S symmetric: column cc = row cc, contiguous
-                xc = rhs[cc]
+    def _x_row(inv_rows, row_slot, row_inv, has_slot, b, x_in, u_in, z_in, x_out, u_out, rho,
+               update_u, own, vrow, lo, hi, x0, col, contiguous, rhs, acc,
+               uu):  # pragma: no cover - compiled
+        """The ADMM x-update of the pixels of one row on band-major ``(M, P)`` state: ``u ← u_in
+        + x_in − z_in`` (``update_u``), ``x = (G + ρI)⁻¹ (b + ρ(z_in − u))`` from the packed
+        inverse (:func:`pack_inverse_rows`), ``v = x + u`` into ``vrow (M, W + 2)`` at the
+        pixels' padded columns; ``x``, ``u`` into ``x_out``, ``u_out`` only where ``own``
+        (a neighbouring block's rows are computed for their ``v`` alone). Pixels with
+        ``row_slot ≥ 0`` use ``row_inv[row_slot]`` (their own Gram matrix in this frame;
+        ``has_slot``: the row has one). Every loop runs along the row's pixels (vectorised);
+        ``rhs``, ``acc``, ``uu``: ``(M, CH)`` scratch, one chunk of the row at a time."""
+        m = b.shape[0]
+        npair = m * (m + 1) // 2
+        ulo, u1 = np.uint64(lo), np.uint64(1)
+        ch = np.uint64(rhs.shape[1])
+        n_all = np.uint64(hi - lo)
+        c0 = np.uint64(0)
+        while c0 < n_all:
+            n = min(ch, n_all - c0)
+            i0 = ulo + c0
+            if update_u:
                 for j in range(m):
-                    acc[j] += S[cc, j] * xc
-            X = ux + x if contiguous else np.uint64(col[i]) + u1
-            for j in range(m):
-                vrow[j, X] = acc[j] + uu[j]
+                    for x in range(n):
+                        i = i0 + x
+                        uj = u_in[j, i] + (x_in[j, i] - z_in[j, i])
+                        uu[j, x] = uj
+                        rhs[j, x] = b[j, i] + rho * (z_in[j, i] - uj)
+                        acc[j, x] = 0
+            else:
+                for j in range(m):
+                    for x in range(n):
+                        i = i0 + x
+                        uj = u_in[j, i]
+                        uu[j, x] = uj
+                        rhs[j, x] = b[j, i] + rho * (z_in[j, i] - uj)
+                        acc[j, x] = 0
+            off = np.uint64(npair) * i0  # this chunk's (npair, n) block
+            for cc in range(m):  # the upper triangle by rows: S_cc,j for j ≥ cc
+                for x in range(n):
+                    acc[cc, x] += inv_rows[off + x] * rhs[cc, x]
+                off += n
+                for j in range(cc + 1, m):
+                    for x in range(n):
+                        sv = inv_rows[off + x]
+                        acc[j, x] += sv * rhs[cc, x]
+                        acc[cc, x] += sv * rhs[j, x]
+                    off += n
+            if has_slot:  # pixels with their own factor in this frame
+                for x in range(n):
+                    k = row_slot[i0 + x]
+                    if k >= 0:
+                        for j in range(m):
+                            a = rhs[0, x] * row_inv[k, 0, j]
+                            for cc in range(1, m):
+                                a += rhs[cc, x] * row_inv[k, cc, j]
+                            acc[j, x] = a
+            if contiguous:
+                ux = np.uint64(x0) + u1 + c0
+                for j in range(m):
+                    for x in range(n):
+                        vrow[j, ux + x] = acc[j, x] + uu[j, x]
+            else:
+                for j in range(m):
+                    for x in range(n):
+                        vrow[j, np.uint64(col[i0 + x]) + u1] = acc[j, x] + uu[j, x]
             if own:
                 for j in range(m):
-                    x_out[i, j] = acc[j]
-                    u_out[i, j] = uu[j]
+                    for x in range(n):
+                        x_out[j, i0 + x] = acc[j, x]
+                        u_out[j, i0 + x] = uu[j, x]
+            c0 += ch
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _pack_rows(inv, start, row_ptr, out, ch):  # pragma: no cover - compiled
+        """Pack ``inv (n, M, M)`` (the pixels ``start:start + n``) into ``out`` (the layout of
+        :func:`pack_inverse_rows`), rows of pixels in parallel."""
+        n, m = inv.shape[0], inv.shape[1]
+        npair = m * (m + 1) // 2
+        h = row_ptr.shape[0] - 1
+        for y in _nb.prange(h):
+            lo, hi = row_ptr[y], row_ptr[y + 1]
+            if hi <= start or lo >= start + n:
+                continue
+            c0 = lo
+            while c0 < hi:
+                c1 = min(c0 + ch, hi)
+                if c0 >= start and c1 <= start + n:
+                    length = c1 - c0
+                    off = npair * c0
+                    for cc in range(m):
+                        for j in range(cc, m):
+                            for x in range(length):
+                                out[off + x] = inv[c0 - start + x, cc, j]
+                            off += length
+                c0 = c1
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
-    def _fgp_block(inv, row_slot, row_inv, b, x_in, u_in, z_in, x_out, u_out, rho, update_u, t,
-                   step, moms, one, c, p_in, ps_in, p_out, ps_out, z_out, blocks, row_ptr, col,
-                   span, ex, ey):  # pragma: no cover - compiled
+    def _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
+                   rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out, ps_out, z_out, blocks,
+                   row_ptr, col, span, ex, ey):  # pragma: no cover - compiled
         n_it = moms.shape[0]
-        m = b.shape[1]
+        m = b.shape[0]
         dt = b.dtype
         h = row_ptr.shape[0] - 1
         width = ex.shape[1]  # W + 2: a zero column on each side
@@ -289,9 +313,9 @@ if AVAILABLE:
             sums = np.empty((2, width), dt)
             scale = np.empty(width, dt)
             zrow = np.zeros((m, width), dt)
-            rhs = np.empty(m, dt)
-            acc = np.empty(m, dt)
-            uu = np.empty(m, dt)
+            rhs = np.empty((m, _ROW_CHUNK), dt)
+            acc = np.empty((m, _ROW_CHUNK), dt)
+            uu = np.empty((m, _ROW_CHUNK), dt)
             first0 = max(ra - n_it, 0)
             for s in range(ra - n_it - 2, rb + n_it):
                 # the input rows of iteration 0 one row ahead: p_in, its sums, and v from the
@@ -305,9 +329,9 @@ if AVAILABLE:
                     for k in range(2):
                         _load_row(p_in[k], ring_r[0, sl, k], lo, hi, x0, col, cont)
                     _load_row(ps_in, ring_rs[0, sl], lo, hi, x0, col, cont)
-                    _x_row(inv, row_slot, row_inv, b, x_in, u_in, z_in, x_out, u_out, rho,
-                           update_u, ra <= y_in < rb, ring_v[y_in % nv], lo, hi, x0, col, cont,
-                           rhs, acc, uu)
+                    _x_row(inv_rows, row_slot, row_inv, row_has_slot[y_in], b, x_in, u_in, z_in,
+                           x_out, u_out, rho, update_u, ra <= y_in < rb, ring_v[y_in % nv], lo,
+                           hi, x0, col, cont, rhs, acc, uu)
                 for j in range(n_it + 1):
                     y = s - j
                     if j < n_it:
@@ -329,7 +353,7 @@ if AVAILABLE:
                         lo, hi = row_ptr[y], row_ptr[y + 1]
                         x0 = span[y, 0]
                         cont = span[y, 1] - x0 == hi - lo
-                        _transpose_out(zrow, z_out, lo, hi, x0, col, cont)
+                        _store_row(zrow, z_out, lo, hi, x0, col, cont)
                         continue
                     rr, rrs = ring_r[j], ring_rs[j]
                     p_old = rr[y & 3] if j == 0 else ring_p[j, y & 3]
@@ -357,21 +381,6 @@ if AVAILABLE:
 
 def _chunks(n: int) -> int:
     return max(1, min(n, 64))
-
-
-def x_update(inv: np.ndarray, b: np.ndarray, z: np.ndarray, u: np.ndarray, x: np.ndarray,
-             v: np.ndarray, rho: float, update_u: bool) -> None:
-    """In place: (``u += x − z`` if ``update_u``), ``x = S (b + ρ(z − u))``, ``v = x + u``.
-
-    Args:
-        inv: ``(P|1, M, M)`` C-contiguous symmetric ``S = (G + ρI)⁻¹`` (read as columns: each
-            pixel's product is ``M`` contiguous axpy's, which vectorise — 2.1× faster than the
-            packed triangle's row/column sweep, measured); b, z, u, x, v: ``(P, M)``
-            C-contiguous, one dtype.
-    """
-    n = b.shape[0]
-    if n:
-        _x_update(inv, b, z, u, x, v, b.dtype.type(rho), bool(update_u), _chunks(n // 256))
 
 
 def sym_apply(mat: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
@@ -415,43 +424,87 @@ def fgp_blocks(row_ptr: np.ndarray, num_blocks: int) -> np.ndarray:
     return np.unique(np.concatenate([[0], np.clip(cuts, 0, h), [h]])).astype(np.int64)
 
 
-def fgp_block(inv: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray, b: np.ndarray,
-              x_in: np.ndarray, u_in: np.ndarray, z_in: np.ndarray, x_out: np.ndarray,
-              u_out: np.ndarray, rho: float, update_u: bool, t: float, step: float,
-              moms: np.ndarray, p_in: np.ndarray, ps_in: np.ndarray, p_out: np.ndarray,
-              ps_out: np.ndarray, z_out: np.ndarray, grid: tuple[np.ndarray, ...],
-              blocks: np.ndarray, brightness_weight: float = 1.0) -> None:
-    """One ADMM iteration with ``λ > 0`` in one pass over the frame: the x-update (as
-    :func:`x_update`: ``u ← u_in + x_in − z_in`` if ``update_u``, ``x = (G + ρI)⁻¹(b + ρ(z_in −
-    u))``, ``v = x + u``), then ``J = len(moms)`` FGP dual iterations of the TV prox from ``r =
-    p_in`` and the primal of the last: ``p ← Π(r + step·K D z(r))``, ``r ← p_new + moms[j]·(p_new
-    − p_old)``, ``z(r) = max(v − t (KD)ᵀr, 0)``; out: ``x_out``, ``u_out``, the final dual
-    ``p_out`` (band sums ``ps_out``) and ``z_out = z(p_out)``.
+def pack_inverse_rows(inverse_chunks, row_ptr: np.ndarray, m: int,
+                      dtype: np.dtype) -> np.ndarray:
+    """The symmetric ``(G_p + ρI)⁻¹`` of every pixel, packed for :func:`fgp_block`: the upper
+    triangle (``M(M + 1)/2`` numbers a pixel instead of ``M²``), blocked by runs of up to
+    :data:`_ROW_CHUNK` pixels of one row, each run's ``(M(M + 1)/2, n)`` block contiguous (entry
+    ``(cc, j ≥ cc)`` of the run's pixel ``x`` at ``npair·start + t·n + x``, ``t`` the pair's
+    index by rows). The x-update then reads it as one sequential stream and every operation
+    runs along a run's pixels.
+
+    Args:
+        inverse_chunks: an iterable of ``(start, inv)`` with ``inv (n, M, M)`` the inverses of
+            the pixels ``start:start + n``, each chunk whole rows (in order).
+        row_ptr: ``(h + 1,)`` the rows' pixel ranges.
+
+    Returns:
+        ``(P·M(M + 1)/2,)`` array of ``dtype``.
+    """
+    P = int(row_ptr[-1])
+    out = np.empty(P * (m * (m + 1) // 2), dtype)
+    for start, inv in inverse_chunks:
+        _pack_rows(np.ascontiguousarray(inv, dtype), int(start), row_ptr, out, _ROW_CHUNK)
+    return out
+
+
+def row_chunks(row_ptr: np.ndarray, max_pixels: int) -> list[tuple[int, int]]:
+    """Ranges ``(start, stop)`` of whole rows with at most ``max_pixels`` pixels each (a row
+    larger than that alone)."""
+    out, start = [], 0
+    h = row_ptr.shape[0] - 1
+    y = 0
+    while y < h:
+        y1 = y + 1
+        while y1 < h and row_ptr[y1 + 1] - row_ptr[y] <= max_pixels:
+            y1 += 1
+        stop = int(row_ptr[y1])
+        if stop > start:
+            out.append((start, stop))
+        start, y = stop, y1
+    return out
+
+
+def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
+              row_has_slot: np.ndarray, b: np.ndarray, x_in: np.ndarray, u_in: np.ndarray,
+              z_in: np.ndarray, x_out: np.ndarray, u_out: np.ndarray, rho: float,
+              update_u: bool, t: float, step: float, moms: np.ndarray, p_in: np.ndarray,
+              ps_in: np.ndarray, p_out: np.ndarray, ps_out: np.ndarray, z_out: np.ndarray,
+              grid: tuple[np.ndarray, ...], blocks: np.ndarray,
+              brightness_weight: float = 1.0) -> None:
+    """One ADMM iteration in one pass over the frame, on band-major ``(M, P)`` state: the
+    x-update (``u ← u_in + x_in − z_in`` if ``update_u``, ``x = (G + ρI)⁻¹(b + ρ(z_in − u))``,
+    ``v = x + u``), then ``J = len(moms)`` FGP dual iterations of the TV prox from ``r = p_in``
+    and the primal of the last: ``p ← Π(r + step·K D z(r))``, ``r ← p_new + moms[j]·(p_new −
+    p_old)``, ``z(r) = max(v − t (KD)ᵀr, 0)``; out: ``x_out``, ``u_out``, the final dual
+    ``p_out`` (band sums ``ps_out``) and ``z_out = z(p_out)``. With ``J = 0`` and ``t = 0``
+    (``λ = 0``): ``z_out = max(v, 0)`` and the dual is left alone.
 
     The iterations of :func:`hsi_torch.recon.spatial.operators.prox_tv_nonneg` on the valid
     pixels, fused: dual iteration ``j`` of row ``y`` needs iteration ``j − 1`` of rows ``y − 1 …
     y + 1`` only, so the iterations run as a wavefront down the rows (at step ``s`` iteration
     ``j`` updates row ``s − j``; the x-update of row ``s + 1`` feeds it), each iteration's rows
     kept in a ring of four; a pixel's bytes cross the memory bus once per ADMM iteration, and the
-    x-update's stream of ``(G + ρI)⁻¹`` overlaps the prox's arithmetic. A row is held
-    band-major over its columns (``(2, M, W + 2)``), so every operation of the prox runs along
-    the row's columns and vectorises (a loop over ``M = 25`` bands per pixel does not). The rows
-    are split into ``blocks`` (one per thread); a block also computes the rows its iterations
-    need from its neighbours (``J − j`` rows on each side for iteration ``j``, one more for the
+    x-update's stream of the packed inverse overlaps the prox's arithmetic. A row is held
+    band-major over its columns (``(2, M, W + 2)``), so every operation runs along the row's
+    columns and vectorises (a loop over ``M = 25`` bands per pixel does not). The rows are split
+    into ``blocks`` (one per thread); a block also computes the rows its iterations need from
+    its neighbours (``J − j`` rows on each side for iteration ``j``, one more for the
     x-update: redundant work; the inputs are only read, every output is double-buffered), so
     blocks never wait for each other. ``K``: the brightness weighting ``I − (1 − α) u uᵀ``
     (``u`` the flat spectrum), applied through band sums.
 
     Args:
-        inv: ``(P, M, M)`` symmetric ``(G + ρI)⁻¹``; row_slot: ``(P,)`` int64, ``≥ 0`` where a
-            pixel uses ``row_inv[row_slot]`` ``(k, M, M)`` instead (``k ≥ 1``); b, x_*, u_*,
-            z_*: ``(P, M)`` (the ``_in`` and ``_out`` arrays distinct); p_in, p_out: ``(2, M,
-            P)`` band-major, ps_in, ps_out: ``(2, P)`` their band sums; moms: ``(J,)`` FISTA
-            weights (``moms[0] = 0``); grid: :func:`fgp_grid`; blocks: :func:`fgp_blocks`.
+        inv_rows: :func:`pack_inverse_rows`; row_slot: ``(P,)`` int64, ``≥ 0`` where a pixel
+            uses ``row_inv[row_slot]`` ``(k ≥ 1, M, M)`` instead; row_has_slot: ``(h,)`` bool,
+            the rows holding such a pixel; b, x_*, u_*, z_*: ``(M, P)`` band-major (``_in`` and
+            ``_out`` distinct); p_in, p_out: ``(2, M, P)``, ps_in, ps_out: ``(2, P)`` their band
+            sums; moms: ``(J,)`` FISTA weights (``moms[0] = 0``); grid: :func:`fgp_grid`;
+            blocks: :func:`fgp_blocks`.
     """
     row_ptr, col, span, EX, EY = grid
     ty = b.dtype.type
-    c = ty((brightness_weight - 1.0) / b.shape[1])
-    _fgp_block(inv, row_slot, row_inv, b, x_in, u_in, z_in, x_out, u_out, ty(rho),
-               bool(update_u), ty(t), ty(step), np.asarray(moms, b.dtype), ty(1), c, p_in, ps_in,
-               p_out, ps_out, z_out, blocks, row_ptr, col, span, EX, EY)
+    c = ty((brightness_weight - 1.0) / b.shape[0])
+    _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
+               ty(rho), bool(update_u), ty(t), ty(step), np.asarray(moms, b.dtype), ty(1), c,
+               p_in, ps_in, p_out, ps_out, z_out, blocks, row_ptr, col, span, EX, EY)

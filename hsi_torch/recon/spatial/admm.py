@@ -182,7 +182,8 @@ def _solve_spatial(
                                   kernel_threads)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
-            return SpatialResult(torch.from_numpy(cstep.z).to(b.device), it, done, prim, dual,
+            z_out = torch.from_numpy(cstep.result()).to(b.device)
+            return SpatialResult(z_out, it, done, prim, dual,
                                  lam_f, rho)
     with torch.no_grad(), cpu_threads(b.device, num_threads):
         prox = None
@@ -284,70 +285,67 @@ class _TorchStep:
 
 
 class _CompiledStep:
-    """An ADMM iteration with the compiled CPU kernels on the valid pixels' ``(P, M)`` numpy
-    arrays: with ``λ > 0`` the x-update, the FGP dual steps and the primal in one fused pass
-    (:func:`~._compiled.fgp_block`, every state array double-buffered), with ``λ = 0`` the
-    x-update and the projection. Arguments as in :func:`solve_spatial`; ``inputs``:
+    """An ADMM iteration with the compiled CPU kernels: the x-update, the FGP dual steps and the
+    primal in one fused pass over the valid pixels (:func:`~._compiled.fgp_block`; with ``λ =
+    0`` the x-update and the projection), on band-major ``(M, P)`` numpy state, every array
+    double-buffered. Arguments as in :func:`solve_spatial`; ``inputs``:
     :meth:`~.problem.SpatialProblem.compiled_inputs`; ``num_blocks``: the fused pass's blocks of
     rows (one per thread)."""
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, u0: Tensor, t: float, lam: float, inner_iters: int,
                  alpha: float, num_blocks: int = 1) -> None:
-        self.inv, self.graph = inputs
-        self.rho, self.t, self.lam, self.inner_iters, self.alpha = (
-            problem.rho, t, lam, inner_iters, alpha)
-        self.b = np.ascontiguousarray(b.detach().numpy())
-        self.z = np.ascontiguousarray(z0.numpy()).copy()
-        self.u = np.ascontiguousarray(u0.numpy()).copy()
-        self.x, self.v = np.empty_like(self.z), np.empty_like(self.z)
-        self.z_prev = self.z
-        P, m = self.z.shape
-        self.rows = problem.row_index.numpy() if problem.row_index is not None else None
-        self.row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
+        self.inv_rows, graph = inputs
+        self.rho, self.lam, self.alpha = problem.rho, lam, alpha
+        self.t = t if lam > 0 else 0.0
         self.step = fgp_dual_step(t) if t > 0 else 0.0
-        if lam == 0.0:
-            return
-        # the fused pass reads one copy of each state array and writes the other; the dual is
-        # band-major, with its band sums (brightness weighting)
+
+        def band_major(a: Tensor) -> np.ndarray:
+            return np.ascontiguousarray(a.detach().numpy().T)
+
+        self.b, self.z, self.u = band_major(b), band_major(z0), band_major(u0)
+        self.x = np.zeros_like(self.z)
         self.x2, self.u2, self.z2 = (np.empty_like(self.z) for _ in range(3))
+        self.z_prev = self.z
+        m, P = self.z.shape
+        # the dual (band-major) and its band sums (brightness weighting), double-buffered too
         self.p = np.zeros((2, m, P), self.z.dtype)
-        self.p2 = np.empty_like(self.p)
+        self.p2 = np.zeros_like(self.p)
         self.psum = np.zeros((2, P), self.z.dtype)
-        self.psum2 = np.empty_like(self.psum)
+        self.psum2 = np.zeros_like(self.psum)
         self.grid = problem.fgp_grid()
         self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
         self.row_slot = np.full(P, -1, np.int64)
-        if self.rows is not None:
-            self.row_slot[self.rows] = np.arange(self.rows.shape[0])
+        row_ptr = self.grid[0]
+        self.row_has_slot = np.zeros(row_ptr.shape[0] - 1, np.bool_)
+        if problem.row_index is not None:
+            rows = problem.row_index.numpy()
+            self.row_slot[rows] = np.arange(rows.shape[0])
+            self.row_has_slot[np.searchsorted(row_ptr, rows, side="right") - 1] = True
+            self.row_inv = np.ascontiguousarray(problem.row_inv.numpy())
         else:
             self.row_inv = np.zeros((1, m, m), self.z.dtype)
         moms, kk = [], 1.0
-        for _ in range(inner_iters):  # FISTA from r = p (the last step's dual)
+        for _ in range(inner_iters if lam > 0 else 0):  # FISTA from r = p (the last dual)
             kk, mom = fista_momentum(kk)
             moms.append(mom)
         self.moms = np.asarray(moms, self.z.dtype)
 
     def __call__(self, i: int, keep: bool) -> None:
-        b, z, u, x, v, rho = self.b, self.z, self.u, self.x, self.v, self.rho
-        if self.lam == 0.0:
-            if keep:
-                self.z_prev = z.copy()
-            # u ← u + x − z from the second iteration on (x and z of the previous one)
-            compiled.x_update(self.inv, b, z, u, x, v, rho, i > 0)
-            rows = self.rows
-            if rows is not None:  # the frame's own factor on the changed pixels
-                rhs = b[rows] + rho * (z[rows] - u[rows])
-                x[rows] = np.einsum("kij,kj->ki", self.row_inv, rhs)
-                v[rows] = x[rows] + u[rows]
-            np.maximum(v, 0, out=z)
-            return
-        compiled.fgp_block(self.inv, self.row_slot, self.row_inv, b, x, u, z, self.x2, self.u2,
-                           rho, i > 0, self.t, self.step, self.moms, self.p, self.psum, self.p2,
-                           self.psum2, self.z2, self.grid, self.blocks, self.alpha)
-        self.z_prev = z  # the previous z, kept until the next iteration writes over it
-        self.x, self.x2, self.u, self.u2, self.z, self.z2 = self.x2, x, self.u2, u, self.z2, z
-        self.p, self.p2, self.psum, self.psum2 = self.p2, self.p, self.psum2, self.psum
+        # u ← u + x − z from the second iteration on (x and z of the previous one)
+        compiled.fgp_block(self.inv_rows, self.row_slot, self.row_inv, self.row_has_slot, self.b,
+                           self.x, self.u, self.z, self.x2, self.u2, self.rho, i > 0, self.t,
+                           self.step, self.moms, self.p, self.psum, self.p2, self.psum2, self.z2,
+                           self.grid, self.blocks, self.alpha)
+        self.z_prev = self.z  # the previous z, kept until the next iteration writes over it
+        self.x, self.x2, self.u, self.u2 = self.x2, self.x, self.u2, self.u
+        self.z, self.z2 = self.z2, self.z
+        if self.moms.shape[0]:  # (λ = 0: no dual)
+            self.p, self.p2, self.psum, self.psum2 = self.p2, self.p, self.psum2, self.psum
+
+    def result(self) -> np.ndarray:
+        """``z`` pixel-major ``(P, M)``."""
+        return np.ascontiguousarray(self.z.T)
 
     def norms(self) -> tuple[float, float, float]:
         return (float(np.linalg.norm(self.z)), float(np.linalg.norm(self.x - self.z)),

@@ -45,8 +45,10 @@ class SpatialProblem:
     Build with :func:`prepare_spatial`; reuse for every frame of one bundle.
 
     Attributes:
-        gram: ``(P|1, M, M)``; rho: the scalar ADMM penalty; inv: ``(P|1, M, M)``
-            ``(G + ρI)⁻¹`` from one Cholesky factorisation; pixel_index: ``(P,)`` flat indices
+        gram: ``(P|1, M, M)``; rho: the scalar ADMM penalty; factor: ``(G + ρI)⁻¹`` from one
+            Cholesky factorisation, formed when first needed, dense (:attr:`inv`, the torch
+            path) or packed by rows (the compiled path), shared by :meth:`for_frame`'s
+            problems; pixel_index: ``(P,)`` flat indices
             of the pixels in the ``(h, w)`` frame; frame_size; active: ``(P,)`` bool, pixels in
             the TV graph; ex, ey: :func:`grid_edges` of the active grid.
         row_index, row_gram, row_inv: ``(k,)``, ``(k, M, M)``, ``(k, M, M)`` pixels whose Gram
@@ -56,7 +58,7 @@ class SpatialProblem:
 
     gram: Tensor
     rho: float
-    inv: Tensor
+    factor: ShiftedInverse
     pixel_index: Tensor
     frame_size: tuple[int, int]
     active: Tensor
@@ -69,6 +71,11 @@ class SpatialProblem:
     @property
     def num_pixels(self) -> int:
         return int(self.pixel_index.shape[0])
+
+    @property
+    def inv(self) -> Tensor:
+        """``(P|1, M, M)`` dense ``(G + ρI)⁻¹`` (formed on first use)."""
+        return self.factor.dense()
 
     @property
     def num_bands(self) -> int:
@@ -100,22 +107,21 @@ class SpatialProblem:
             r_inv = torch.cholesky_inverse(L)
         else:
             rows, row_gram = None, None
-        return SpatialProblem(self.gram, self.rho, self.inv, self.pixel_index, self.frame_size,
-                              active, ex, ey, rows, row_gram, r_inv)
+        return SpatialProblem(self.gram, self.rho, self.factor, self.pixel_index,
+                              self.frame_size, active, ex, ey, rows, row_gram, r_inv)
 
     def compiled_inputs(self) -> tuple[np.ndarray, tuple[np.ndarray, ...]] | None:
-        """The compiled CPU path's inputs: ``(G + ρI)⁻¹`` as a NumPy view and the graph (neighbour
+        """The compiled CPU path's inputs: ``(G + ρI)⁻¹`` packed by rows
+        (:func:`~._compiled.pack_inverse_rows`, formed on first use) and the graph (neighbour
         positions and edge weights per pixel, see :mod:`hsi_torch.recon.spatial._compiled`);
-        ``None`` where that path does not apply (numba absent, not on the CPU, or the pixels not
-        in row-major order)."""
+        ``None`` where that path does not apply (numba absent, not on the CPU, or the pixels
+        not in row-major order)."""
         if not compiled.AVAILABLE or self.gram.device.type != "cpu":
             return None
         pix = self.pixel_index.numpy()
         if pix.size > 1 and not bool((pix[1:] > pix[:-1]).all()):
             return None
-        if not self.inv.is_contiguous():
-            return None
-        return self.inv.numpy(), self._graph
+        return self.factor.packed(self._graph[0], self.num_pixels), self._graph
 
     @functools.cached_property
     def _graph(self) -> tuple[np.ndarray, ...]:
@@ -232,11 +238,51 @@ def prepare_spatial(
                 rho = 1.0
     if not float(rho) > 0:
         raise ValueError(f"rho must be > 0, got {rho}")
-    inv = _shifted_inverse(gram, float(rho))
+    factor = ShiftedInverse(gram, float(rho))
+    if gram.requires_grad and torch.is_grad_enabled():
+        factor.dense()  # differentiable with respect to G: formed here, in the graph
     grid = torch.zeros(h * w, dtype=torch.bool, device=gram.device)
     grid[pix[active]] = True
     ex, ey = grid_edges(grid.view(h, w))
-    return SpatialProblem(gram, float(rho), inv, pix, (h, w), active, ex, ey)
+    return SpatialProblem(gram, float(rho), factor, pix, (h, w), active, ex, ey)
+
+
+class ShiftedInverse:
+    """``(G_p + ρI)⁻¹`` of a problem's pixels, formed from one batched Cholesky factorisation
+    (:data:`FACTOR_CHUNK` pixels at a time) when first needed, in the form its user reads: dense
+    ``(P|1, M, M)`` (:meth:`dense`: the torch path, any device, differentiable) or packed by
+    rows (:meth:`packed`: the compiled CPU path, half the memory; the dense one is not formed
+    then)."""
+
+    def __init__(self, gram: Tensor, rho: float) -> None:
+        self.gram, self.rho = gram, float(rho)
+        self._dense: Tensor | None = None
+        self._packed: np.ndarray | None = None
+
+    def dense(self) -> Tensor:
+        """``(P|1, M, M)`` symmetric, contiguous."""
+        if self._dense is None:
+            self._dense = _shifted_inverse(self.gram, self.rho)
+        return self._dense
+
+    def packed(self, row_ptr: np.ndarray, num_pixels: int) -> np.ndarray:
+        """:func:`~._compiled.pack_inverse_rows` of the ``num_pixels`` pixels in rows
+        ``row_ptr`` (float32/float64 like ``G``; a shared ``G`` is expanded)."""
+        if self._packed is None:
+            m = self.gram.shape[-1]
+            dt = self.gram.numpy().dtype if self.gram.device.type == "cpu" else np.float64
+
+            def chunks():
+                for s, e in compiled.row_chunks(row_ptr, FACTOR_CHUNK):
+                    if self._dense is not None:
+                        inv = self._dense if self._dense.shape[0] == 1 else self._dense[s:e]
+                    else:
+                        g = self.gram if self.gram.shape[0] == 1 else self.gram[s:e]
+                        inv = _shifted_inverse(g.detach(), self.rho)
+                    yield s, inv.detach().expand(e - s, m, m).numpy()
+
+            self._packed = compiled.pack_inverse_rows(chunks(), row_ptr, m, dt)
+        return self._packed
 
 
 #: Pixels factorised at once by :func:`prepare_spatial`: the Cholesky factor and the shifted
