@@ -1,13 +1,15 @@
 """The frame-independent part of the spatial solve: ``G``, ``ρ``, the factor and the grid.
 
-:func:`prepare_spatial` factorises ``G_p + ρI`` once (batched Cholesky, :data:`FACTOR_CHUNK` pixels
-at a time; its inverse is formed once with ``torch.cholesky_inverse``, kept as the only copy, and
-applied by a matrix–vector product per pixel, 4× faster than ``torch.cholesky_solve`` for
-100 000 25×25 systems on a CPU) and builds the active grid;
+:func:`prepare_spatial` builds the active grid and a :class:`ShiftedInverse`: ``G_p + ρI``
+factorised once when first needed (batched Cholesky, :data:`FACTOR_CHUNK` pixels at a time), its
+inverse formed with ``torch.cholesky_inverse`` and applied by a matrix–vector product per pixel
+(4× faster than ``torch.cholesky_solve`` for 100 000 25×25 systems on a CPU), kept either dense
+(the torch path) or packed by rows (the compiled CPU path: half the memory);
 :meth:`SpatialProblem.for_frame` adapts it to one frame (its valid pixels, pixels whose frame
 mask changed their Gram matrix, guided edge weights); :func:`bundle_spatial_problem` caches it
-with the bundle's NNLS factorisation. The default penalty is :data:`RHO_SCALE` × the median of
-``trace(G_p)/M`` over the active pixels.
+with the bundle's NNLS factorisation, and the packed factor in the precomputation cache beside
+the bundle's entry (a second process loads it). The default penalty is :data:`RHO_SCALE` × the
+median of ``trace(G_p)/M`` over the active pixels.
 """
 
 from __future__ import annotations
@@ -16,11 +18,13 @@ import functools
 import math
 import weakref
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.nnls import NNLSProblem
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.spatial import _compiled as compiled
@@ -258,6 +262,9 @@ class ShiftedInverse:
         self.gram, self.rho = gram, float(rho)
         self._dense: Tensor | None = None
         self._packed: np.ndarray | None = None
+        #: ``(entry, key)`` of the precomputation cache holding the packed form (set by
+        #: :func:`bundle_spatial_problem`; ``None``: computed in every process)
+        self.disk: tuple[Path, str] | None = None
 
     def dense(self) -> Tensor:
         """``(P|1, M, M)`` symmetric, contiguous."""
@@ -281,9 +288,25 @@ class ShiftedInverse:
                         inv = _shifted_inverse(g.detach(), self.rho)
                     yield s, inv.detach().expand(e - s, m, m).numpy()
 
+            size = num_pixels * (m * (m + 1) // 2)
+            if self.disk is not None:
+                got = disk.load_entry(*self.disk)
+                arr = None if got is None else got[0].get("inverse")
+                if arr is not None and arr.shape == (size,) and arr.dtype == dt:
+                    self._packed = arr
+                    return arr
+                if got is not None:
+                    disk._warn(f"{self.disk[0]}: not the packed inverse of this problem "
+                               f"(recomputed)")
             self._packed = compiled.pack_inverse_rows(chunks(), row_ptr, m, dt)
+            if self.disk is not None:
+                disk.save_entry(self.disk[0], self.disk[1], {"inverse": self._packed},
+                                {"rho": self.rho, "layout": "upper triangle by row runs"})
         return self._packed
 
+
+#: Layout version of the TV factor's precomputation-cache entries (:func:`bundle_spatial_problem`).
+TV_CACHE_LAYOUT = 1
 
 #: Pixels factorised at once by :func:`prepare_spatial`: the Cholesky factor and the shifted
 #: Gram matrices exist for one chunk at a time (at the full-size prototype's 306 000 pixels the
@@ -360,12 +383,19 @@ def guide_weights(sp: SpatialProblem, y: Tensor, mask: Tensor, sigma: float,
 def bundle_spatial_problem(sens: BundleSensing) -> SpatialProblem:
     """The bundle's :class:`SpatialProblem` for its static mask and ``(β, diff_order)``: one
     batched factorisation of ``G_p + ρI``, cached with the bundle's NNLS factorisation (so every
-    frame of a bundle reuses it)."""
+    frame of a bundle reuses it) and, where the bundle's precomputation is cached on disk
+    (:mod:`hsi_torch.recon.precompute_cache`), its packed form in an entry of its own, keyed by
+    the sensing's entry and ``ρ`` (a later process loads it instead of factorising)."""
     prob = sens.problem
     sp = _FACTORS.get(prob)
     if sp is None:
         with torch.no_grad():
             sp = prepare_spatial(prob.gram, sens.pixel_index.to(prob.device), sens.frame_size)
+        if sens.disk_entry is not None:  # the packed factor cached beside the sensing's
+            folder, path, key = sens.disk_entry
+            tv_key = disk.entry_key({"sensing": key, "tv_factor": "packed rows",
+                                     "rho": sp.rho}, TV_CACHE_LAYOUT)
+            sp.factor.disk = (disk.entry_path(folder, path, tv_key), tv_key)
         _FACTORS[prob] = sp
     return sp
 
