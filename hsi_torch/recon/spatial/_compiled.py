@@ -35,8 +35,8 @@ import numpy as np
 from hsi_torch.recon._numba import AVAILABLE
 from hsi_torch.recon._numba import nb as _nb
 
-__all__ = ["AVAILABLE", "sym_apply", "fgp_grid", "fgp_blocks", "fgp_block", "pack_inverse_rows",
-           "row_chunks"]
+__all__ = ["AVAILABLE", "sym_apply", "start_state", "fgp_grid", "fgp_blocks", "fgp_block",
+           "pack_inverse_rows", "row_chunks"]
 
 
 #: numba's fast-math flags for the TV kernels: reassociation lets the per-pixel sums over bands
@@ -65,6 +65,30 @@ if AVAILABLE:
                         acc[j] += S[c, j] * xc
                 for j in range(m):
                     out[i, j] = acc[j]
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _start_state(b, z0, gram, row_slot, row_gram, rho, bT, zT, uT,
+                     num_chunks):  # pragma: no cover - compiled
+        n, m = b.shape
+        shared = gram.shape[0] == 1
+        for ch in _nb.prange(num_chunks):
+            z = np.empty(m)
+            g = np.empty(m)
+            for i in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+                for j in range(m):
+                    zj = z0[i, j]
+                    z[j] = zj if zj > 0 else 0.0
+                    g[j] = 0.0
+                k = row_slot[i]
+                S = row_gram[k] if k >= 0 else (gram[0] if shared else gram[i])
+                for c in range(m):  # S symmetric: column c = row c, contiguous
+                    zc = z[c]
+                    for j in range(m):
+                        g[j] += S[c, j] * zc
+                for j in range(m):
+                    bT[j, i] = b[i, j]
+                    zT[j, i] = z[j]
+                    uT[j, i] = (b[i, j] - g[j]) / rho
 
     @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
     def _primal_row(v, t, r, rs, r_up, rs_up, wrow, wfrom, wto, out, a, b, c,
@@ -389,6 +413,23 @@ def sym_apply(mat: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
     n = x.shape[0]
     if n:
         _sym_apply(mat, x, out, _chunks(n // 256))
+
+
+def start_state(b: np.ndarray, z0: np.ndarray, gram: np.ndarray, row_slot: np.ndarray,
+                row_gram: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ADMM warm start on band-major state, in one pass: ``z = max(z0, 0)``, ``u = (b −
+    G z)/ρ`` (pixels with ``row_slot ≥ 0``: their ``row_gram``), with ``b``, as ``(M, P)``
+    arrays (``b``, ``z0`` pixel-major ``(P, M)``; ``gram (P|1, M, M)`` symmetric).
+
+    Returns:
+        ``bT``, ``zT``, ``uT``.
+    """
+    n, m = b.shape
+    bT, zT, uT = (np.empty((m, n), b.dtype) for _ in range(3))
+    if n:
+        _start_state(b, z0, gram, row_slot, row_gram, float(rho), bT, zT, uT,
+                     _chunks(n // 256))
+    return bT, zT, uT
 
 
 def fgp_grid(graph: tuple[np.ndarray, ...], pixel_index: np.ndarray, frame_size: tuple[int, int],

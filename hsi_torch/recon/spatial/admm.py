@@ -164,6 +164,20 @@ def _solve_spatial(
         if x0.shape != (P, m):
             raise ValueError(f"x0 must be ({P}, {m}), got {tuple(x0.shape)}")
         z = x0.to(b.dtype).clamp_min(0)
+    inputs = None
+    if iters is None and backend != "torch":
+        inputs = problem.compiled_inputs()
+    if inputs is not None:  # the warm start's u is formed by the compiled pass itself
+        with torch.no_grad():
+            cstep = _CompiledStep(problem, inputs, b, z, None, float(t), lam_f, inner_iters, alpha,
+                                  kernel_threads)
+            with threads(kernel_threads):
+                it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
+            z_out = torch.from_numpy(cstep.result()).to(b.device)
+            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho)
+    if backend == "compiled" and iters is None:
+        raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
+                         "row-major order")
     u = (b - problem.apply_gram(z)) / rho
 
     if iters is not None:  # fixed iterations, out of place: differentiable
@@ -172,19 +186,6 @@ def _solve_spatial(
         with cpu_threads(b.device, num_threads):
             _admm(step, rho, 0.0, 0, int(iters))
         return SpatialResult(step.z, int(iters), True, float("nan"), float("nan"), lam_f, rho)
-    inputs = problem.compiled_inputs() if backend != "torch" else None
-    if backend == "compiled" and inputs is None:
-        raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
-                         "row-major order")
-    if inputs is not None:
-        with torch.no_grad():
-            cstep = _CompiledStep(problem, inputs, b, z, u, float(t), lam_f, inner_iters, alpha,
-                                  kernel_threads)
-            with threads(kernel_threads):
-                it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
-            z_out = torch.from_numpy(cstep.result()).to(b.device)
-            return SpatialResult(z_out, it, done, prim, dual,
-                                 lam_f, rho)
     with torch.no_grad(), cpu_threads(b.device, num_threads):
         prox = None
         if lam_f > 0:
@@ -293,21 +294,30 @@ class _CompiledStep:
     rows (one per thread)."""
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
-                 b: Tensor, z0: Tensor, u0: Tensor, t: float, lam: float, inner_iters: int,
+                 b: Tensor, z0: Tensor, u0: None, t: float, lam: float, inner_iters: int,
                  alpha: float, num_blocks: int = 1) -> None:
         self.inv_rows, graph = inputs
         self.rho, self.lam, self.alpha = problem.rho, lam, alpha
         self.t = t if lam > 0 else 0.0
         self.step = fgp_dual_step(t) if t > 0 else 0.0
 
-        def band_major(a: Tensor) -> np.ndarray:
-            return np.ascontiguousarray(a.detach().numpy().T)
-
-        self.b, self.z, self.u = band_major(b), band_major(z0), band_major(u0)
+        P, m = b.shape
+        self.row_slot = np.full(P, -1, np.int64)
+        if problem.row_index is not None:
+            self.row_slot[problem.row_index.numpy()] = np.arange(problem.row_index.shape[0])
+            self.row_inv = np.ascontiguousarray(problem.row_inv.numpy())
+            row_gram = np.ascontiguousarray(problem.row_gram.numpy())
+        else:
+            self.row_inv = row_gram = np.zeros((1, m, m), b.numpy().dtype)
+        gram = problem.gram.detach().numpy()
+        # band-major b, z = max(z0, 0) and u = (b − G z)/ρ (the multiplier of the per-pixel
+        # optimum), in one pass
+        self.b, self.z, self.u = compiled.start_state(
+            np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
+            np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho)
         self.x = np.zeros_like(self.z)
         self.x2, self.u2, self.z2 = (np.empty_like(self.z) for _ in range(3))
         self.z_prev = self.z
-        m, P = self.z.shape
         # the dual (band-major) and its band sums (brightness weighting), double-buffered too
         self.p = np.zeros((2, m, P), self.z.dtype)
         self.p2 = np.zeros_like(self.p)
@@ -315,16 +325,11 @@ class _CompiledStep:
         self.psum2 = np.zeros_like(self.psum)
         self.grid = problem.fgp_grid()
         self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
-        self.row_slot = np.full(P, -1, np.int64)
         row_ptr = self.grid[0]
         self.row_has_slot = np.zeros(row_ptr.shape[0] - 1, np.bool_)
         if problem.row_index is not None:
             rows = problem.row_index.numpy()
-            self.row_slot[rows] = np.arange(rows.shape[0])
             self.row_has_slot[np.searchsorted(row_ptr, rows, side="right") - 1] = True
-            self.row_inv = np.ascontiguousarray(problem.row_inv.numpy())
-        else:
-            self.row_inv = np.zeros((1, m, m), self.z.dtype)
         moms, kk = [], 1.0
         for _ in range(inner_iters if lam > 0 else 0):  # FISTA from r = p (the last dual)
             kk, mom = fista_momentum(kk)
