@@ -280,3 +280,49 @@ def test_the_bundle_hash_is_remembered_by_file_identity(bundle_file, tmp_path, m
     (memo / disk.HASH_MEMO).write_text("{not json")  # a damaged memo is ignored
     fresh_process()
     assert disk.content_sha256(bundle_file, memo) == real(bundle_file) and len(calls) == 3
+
+
+def test_the_tv_factor_is_cached_beside_the_sensing(bundle_file, tmp_path):
+    """The TV prior's packed ``(G + ρI)⁻¹`` goes into its own entry on the first TV frame; a new
+    process loads it (no factorisation) and gives the same cube bit for bit; a damaged entry is
+    refused with a warning and recomputed."""
+    from hsi_torch.recon.spatial import _compiled as spatial_compiled
+    from hsi_torch.recon.spatial import problem as spatial_problem
+
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed: the TV factor is not packed")
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra())
+    packs = []
+    real_pack = spatial_compiled.pack_inverse_rows
+
+    def counting_pack(*a, **k):
+        packs.append(1)
+        return real_pack(*a, **k)
+
+    def run() -> torch.Tensor:
+        fresh_process()
+        spatial_problem._FACTORS.clear()
+        rec = Reconstructor(bundle_file, beta=2.0, prior="tv", precompute_cache=str(cache))
+        return rec.reconstruct_frame(capture).cube
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(spatial_compiled, "pack_inverse_rows", counting_pack)
+    try:
+        c1 = run()
+        assert len(packs) == 1 and len(entries(cache)) == 2  # the sensing's and the TV factor's
+        sp = next(iter(spatial_problem._FACTORS.values()))
+        assert sp.factor._dense is None  # the compiled path never forms the dense inverse
+        c2 = run()
+        assert len(packs) == 1  # loaded, not recomputed
+        assert torch.equal(torch.nan_to_num(c1, nan=-1.0), torch.nan_to_num(c2, nan=-1.0))
+        tv_entry = max(entries(cache), key=lambda p: p.stat().st_mtime_ns)
+        data = bytearray(tv_entry.read_bytes())
+        data[-5] ^= 0xFF  # a flipped byte in the packed inverse
+        tv_entry.write_bytes(bytes(data))
+        with pytest.warns(disk.PrecomputeCacheWarning):
+            c3 = run()
+        assert len(packs) == 2
+        assert torch.equal(torch.nan_to_num(c1, nan=-1.0), torch.nan_to_num(c3, nan=-1.0))
+    finally:
+        mp.undo()

@@ -389,14 +389,19 @@ def test_factor_is_built_in_chunks(device, dtype, monkeypatch):
                                atol=tol * 10, rtol=tol)
     bad = G.clone()
     bad[12] = -eye * 10  # negative definite in the third chunk
-    with pytest.raises(ValueError, match="positive definite"):
-        prepare_spatial(bad, pix, (h, w))
+    with pytest.raises(ValueError, match="positive definite"):  # formed on first use
+        _ = prepare_spatial(bad, pix, (h, w)).inv
+    if device == "cpu" and prob.compiled_inputs() is not None:  # the packed form, the same
+        with pytest.raises(ValueError, match="positive definite"):
+            prepare_spatial(bad, pix, (h, w)).compiled_inputs()
 
 
 @pytest.mark.parametrize("shared", [False, True])
 def test_compiled_products(dtype, shared):
-    """The compiled kernels' ``S x`` (columns of a symmetric ``S`` read as axpy's) and the
-    x-update equal the plain products, per-pixel and shared ``S``."""
+    """The compiled ``S x`` (columns of a symmetric ``S`` read as axpy's) equals the plain
+    product; the fused pass's x-update from the packed inverse (a frame with a hole, rows longer
+    than one packed run, pixels with their own factor) equals ``(G + ρI)⁻¹(b + ρ(z − u))``, with
+    ``u ← u + x − z`` first or not, and with ``λ = 0`` its ``z`` is the projection of ``x + u``."""
     from hsi_torch.recon.spatial import _compiled as sc
 
     if not sc.AVAILABLE:
@@ -412,16 +417,54 @@ def test_compiled_products(dtype, shared):
     ref = np.einsum("pij,pj->pi", np.broadcast_to(S, (P, m, m)).astype(np.float64), x)
     tol = 1e-4 if dtype == torch.float32 else 1e-12
     assert np.abs(out - ref).max() <= tol * np.abs(ref).max()
-    b, z, u, xp = (rng.standard_normal((P, m)).astype(dtype_np) for _ in range(4))
-    u0 = u.copy()
-    v = np.empty_like(b)
-    sc.x_update(S, b, z, u, xp.copy(), v, 0.3, False)  # u untouched
-    np.testing.assert_array_equal(u, u0)
-    xk = xp.copy()
-    sc.x_update(S, b, z, u, xk, v, 0.3, True)  # u += x − z first
-    u1 = u0.astype(np.float64) + xp - z
-    rhs = b + 0.3 * (z - u1)
-    xr = np.einsum("pij,pj->pi", np.broadcast_to(S, (P, m, m)).astype(np.float64), rhs)
-    assert np.abs(u - u1).max() <= tol * np.abs(u1).max()
-    assert np.abs(xk - xr).max() <= tol * np.abs(xr).max()
-    assert np.abs(v - (xr + u1)).max() <= tol * np.abs(xr + u1).max()
+    # the fused x-update on a 9 x 150 frame (rows of 150 > 64 pixels) with one hole
+    h, w = 9, 150
+    keep = np.ones(h * w, bool)
+    keep[3 * w + 70] = False
+    pix = torch.from_numpy(np.flatnonzero(keep))
+    n = pix.numel()
+    A = torch.from_numpy(rng.standard_normal((1 if shared else n, 30, m))).to(dtype)
+    G = A.transpose(1, 2) @ A + torch.eye(m, dtype=dtype)
+    prob = prepare_spatial(G, pix, (h, w), rho=0.3)
+    rows = torch.tensor([5, 300, 301, n - 1])
+    row_gram = G.expand(n, m, m)[rows] * 1.5
+    fp = prob.for_frame(torch.ones(n, dtype=torch.bool), rows, row_gram)
+    inv_rows, _ = fp.compiled_inputs()
+    dense = fp.inv.expand(n, m, m).clone().double()
+    dense[rows] = fp.row_inv.double()
+    step = _CompiledStepInputs(fp, dtype_np, rng)
+    for update_u in (False, True):
+        st = step.fresh()
+        sc.fgp_block(inv_rows, st.row_slot, st.row_inv, st.has_slot, st.b, st.x, st.u, st.z,
+                     st.x2, st.u2, 0.3, update_u, 0.0, 0.0, np.zeros(0, dtype_np), st.p, st.ps,
+                     st.p2, st.ps2, st.z2, fp.fgp_grid(), sc.fgp_blocks(fp.fgp_grid()[0], 3))
+        u1 = st.u.astype(np.float64) + ((st.x - st.z) if update_u else 0)
+        rhs = st.b + 0.3 * (st.z - u1)
+        xr = np.einsum("pij,jp->ip", dense.numpy(), rhs)
+        assert np.abs(st.u2 - u1).max() <= tol * np.abs(u1).max()
+        assert np.abs(st.x2 - xr).max() <= tol * np.abs(xr).max()
+        assert np.abs(st.z2 - np.maximum(xr + u1, 0)).max() <= tol * np.abs(xr + u1).max()
+
+
+class _CompiledStepInputs:
+    """Random band-major state for one call of the fused pass (:func:`test_compiled_products`)."""
+
+    def __init__(self, prob, dtype_np, rng) -> None:
+        self.prob, self.dt, self.rng = prob, dtype_np, rng
+
+    def fresh(self):
+        n, m = self.prob.num_pixels, self.prob.num_bands
+        st = type("State", (), {})()
+        st.b, st.x, st.u, st.z = (self.rng.standard_normal((m, n)).astype(self.dt)
+                                  for _ in range(4))
+        st.x2, st.u2, st.z2 = (np.full((m, n), np.nan, self.dt) for _ in range(3))
+        st.p, st.p2 = np.zeros((2, m, n), self.dt), np.zeros((2, m, n), self.dt)
+        st.ps, st.ps2 = np.zeros((2, n), self.dt), np.zeros((2, n), self.dt)
+        st.row_slot = np.full(n, -1, np.int64)
+        rows = self.prob.row_index.numpy()
+        st.row_slot[rows] = np.arange(rows.size)
+        row_ptr = self.prob.fgp_grid()[0]
+        st.has_slot = np.zeros(row_ptr.size - 1, bool)
+        st.has_slot[np.searchsorted(row_ptr, rows, side="right") - 1] = True
+        st.row_inv = np.ascontiguousarray(self.prob.row_inv.numpy())
+        return st

@@ -110,6 +110,8 @@ SOURCE_FILES = (
     "recon/nnls/problem.py",
     "recon/nnls/kkt.py",
     "recon/nnls/_threads.py",
+    "recon/spatial/problem.py",
+    "recon/spatial/_compiled.py",
 )
 #: Counts of this process: ``hits``, ``misses`` (no entry), ``rejected`` (an entry refused:
 #: foreign, corrupt, unreadable), ``writes``, ``write_skipped`` (no space, not writable).

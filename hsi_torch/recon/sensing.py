@@ -175,6 +175,9 @@ class BundleSensing:
     sample_inside: Tensor | None = field(default=None, repr=False)
     staging_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _staging: list[Tensor] = field(default_factory=list, repr=False)
+    #: the disk-cache entry this sensing belongs to: ``(folder, bundle path, key)`` (``None``:
+    #: not cached on disk); further per-bundle factors (the TV prior's) are cached beside it
+    disk_entry: tuple[Path, Path, str] | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict[str, Any]:  # picklable / deep-copyable: no lock, no buffer
         state = self.__dict__.copy()
@@ -327,6 +330,7 @@ def precompute_sensing(
         got = disk.load_entry(entry, key)
         sens = None if got is None else _from_cache(*got, dev, entry)
         if sens is not None:
+            sens.disk_entry = (Path(folder), path, key)
             BUILD_COUNTS["loaded"] += 1
             _remember(mem_key, sens, cache)
             return sens
@@ -366,6 +370,7 @@ def precompute_sensing(
         stored = _to_cache(sens)
         if stored is not None:
             disk.save_entry(entry, key, *stored)
+        sens.disk_entry = (Path(folder), path, key)
         _remember(mem_key, sens, cache)
     _remember(id_key, sens, cache)
     return sens

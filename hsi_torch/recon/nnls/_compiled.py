@@ -36,7 +36,7 @@ from hsi_torch.recon.nnls.constants import (
     zero_set_limit,
 )
 
-__all__ = ["AVAILABLE", "solve_frame_cpu"]
+__all__ = ["AVAILABLE", "solve_frame_cpu", "adjoint_frame"]
 
 #: status codes of :func:`solve_frame_cpu`
 DONE, NOT_FINISHED, FACTOR_FAILED = 0, 1, 2
@@ -294,6 +294,16 @@ if AVAILABLE:
                 status[r] = st
                 rounds[r] = rnd
 
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _adjoint_kernel(y, mask, Bt, gain, resp, out, num_chunks):  # pragma: no cover
+        n, m = out.shape
+        for ch in _nb.prange(num_chunks):
+            acc = np.empty(m)
+            for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+                _rhs(y, mask, Bt, gain, resp, r, acc)
+                for j in range(m):
+                    out[r, j] = acc[j]
+
 
 def solve_frame_cpu(
     G: np.ndarray, H: np.ndarray, b: np.ndarray, gd: np.ndarray, gn: np.ndarray,
@@ -353,3 +363,20 @@ def solve_frame_cpu(
                       float(COMPILED_FLOOR), x, z, res, status, rounds, min(n, 512),
                       factors is not None, *fac)
     return x, z, res, status, rounds
+
+
+def adjoint_frame(y: np.ndarray, mask: np.ndarray, transmittance: np.ndarray, gain: np.ndarray,
+                  response: np.ndarray, num_threads: int) -> np.ndarray:
+    """``b = Aᵀ W y`` of every pixel from the camera's factored sensing matrix (the compiled
+    pass's own right-hand side, float64 arithmetic), ``(P, M)`` in ``y``'s dtype: the factors
+    as in :func:`solve_frame_cpu`."""
+    if not AVAILABLE:  # pragma: no cover
+        raise RuntimeError("numba is not installed")
+    n, m = y.shape[0], transmittance.shape[2]
+    out = np.empty((n, m), y.dtype)
+    if n:
+        with threads(num_threads):
+            _adjoint_kernel(*(np.ascontiguousarray(a) for a in (y, mask, transmittance, gain,
+                                                                   response)),
+                            out, min(n, 512))
+    return out

@@ -164,6 +164,20 @@ def _solve_spatial(
         if x0.shape != (P, m):
             raise ValueError(f"x0 must be ({P}, {m}), got {tuple(x0.shape)}")
         z = x0.to(b.dtype).clamp_min(0)
+    inputs = None
+    if iters is None and backend != "torch":
+        inputs = problem.compiled_inputs()
+    if inputs is not None:  # the warm start's u is formed by the compiled pass itself
+        with torch.no_grad():
+            cstep = _CompiledStep(problem, inputs, b, z, None, float(t), lam_f, inner_iters, alpha,
+                                  kernel_threads)
+            with threads(kernel_threads):
+                it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
+            z_out = torch.from_numpy(cstep.result()).to(b.device)
+            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho)
+    if backend == "compiled" and iters is None:
+        raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
+                         "row-major order")
     u = (b - problem.apply_gram(z)) / rho
 
     if iters is not None:  # fixed iterations, out of place: differentiable
@@ -172,17 +186,6 @@ def _solve_spatial(
         with cpu_threads(b.device, num_threads):
             _admm(step, rho, 0.0, 0, int(iters))
         return SpatialResult(step.z, int(iters), True, float("nan"), float("nan"), lam_f, rho)
-    inputs = problem.compiled_inputs() if backend != "torch" else None
-    if backend == "compiled" and inputs is None:
-        raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
-                         "row-major order")
-    if inputs is not None:
-        with torch.no_grad():
-            cstep = _CompiledStep(problem, inputs, b, z, u, float(t), lam_f, inner_iters, alpha)
-            with threads(kernel_threads):
-                it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
-            return SpatialResult(torch.from_numpy(cstep.z).to(b.device), it, done, prim, dual,
-                                 lam_f, rho)
     with torch.no_grad(), cpu_threads(b.device, num_threads):
         prox = None
         if lam_f > 0:
@@ -283,54 +286,71 @@ class _TorchStep:
 
 
 class _CompiledStep:
-    """An ADMM iteration with the compiled CPU kernels on the valid pixels' ``(P, M)`` numpy
-    arrays (the x-update, the FGP dual steps, the primal), in place. Arguments as in
-    :func:`solve_spatial`; ``inputs``: :meth:`~.problem.SpatialProblem.compiled_inputs`."""
+    """An ADMM iteration with the compiled CPU kernels: the x-update, the FGP dual steps and the
+    primal in one fused pass over the valid pixels (:func:`~._compiled.fgp_block`; with ``λ =
+    0`` the x-update and the projection), on band-major ``(M, P)`` numpy state, every array
+    double-buffered. Arguments as in :func:`solve_spatial`; ``inputs``:
+    :meth:`~.problem.SpatialProblem.compiled_inputs`; ``num_blocks``: the fused pass's blocks of
+    rows (one per thread)."""
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
-                 b: Tensor, z0: Tensor, u0: Tensor, t: float, lam: float, inner_iters: int,
-                 alpha: float) -> None:
-        self.inv, self.graph = inputs
-        self.rho, self.t, self.lam, self.inner_iters, self.alpha = (
-            problem.rho, t, lam, inner_iters, alpha)
-        self.b = np.ascontiguousarray(b.detach().numpy())
-        self.z = np.ascontiguousarray(z0.numpy()).copy()
-        self.u = np.ascontiguousarray(u0.numpy()).copy()
-        self.x, self.v = np.empty_like(self.z), np.empty_like(self.z)
-        self.z_prev = self.z
-        P, m = self.z.shape
-        self.p = np.zeros((P, 2, m), self.z.dtype)
-        self.r = np.empty_like(self.p)
-        self.psum = np.zeros((P, 2), self.z.dtype)  # band sums of p and r (brightness weighting)
-        self.rsum = np.empty_like(self.psum)
-        self.first_rows = compiled.fgp_workspace(self.graph, m, self.z.dtype)
-        self.rows = problem.row_index.numpy() if problem.row_index is not None else None
-        self.row_inv = problem.row_inv.numpy() if problem.row_inv is not None else None
+                 b: Tensor, z0: Tensor, u0: None, t: float, lam: float, inner_iters: int,
+                 alpha: float, num_blocks: int = 1) -> None:
+        self.inv_rows, graph = inputs
+        self.rho, self.lam, self.alpha = problem.rho, lam, alpha
+        self.t = t if lam > 0 else 0.0
         self.step = fgp_dual_step(t) if t > 0 else 0.0
 
+        P, m = b.shape
+        self.row_slot = np.full(P, -1, np.int64)
+        if problem.row_index is not None:
+            self.row_slot[problem.row_index.numpy()] = np.arange(problem.row_index.shape[0])
+            self.row_inv = np.ascontiguousarray(problem.row_inv.numpy())
+            row_gram = np.ascontiguousarray(problem.row_gram.numpy())
+        else:
+            self.row_inv = row_gram = np.zeros((1, m, m), b.numpy().dtype)
+        gram = problem.gram.detach().numpy()
+        # band-major b, z = max(z0, 0) and u = (b − G z)/ρ (the multiplier of the per-pixel
+        # optimum), in one pass
+        self.b, self.z, self.u = compiled.start_state(
+            np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
+            np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho)
+        self.x = np.zeros_like(self.z)
+        self.x2, self.u2, self.z2 = (np.empty_like(self.z) for _ in range(3))
+        self.z_prev = self.z
+        # the dual (band-major) and its band sums (brightness weighting), double-buffered too
+        self.p = np.zeros((2, m, P), self.z.dtype)
+        self.p2 = np.zeros_like(self.p)
+        self.psum = np.zeros((2, P), self.z.dtype)
+        self.psum2 = np.zeros_like(self.psum)
+        self.grid = problem.fgp_grid()
+        self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
+        row_ptr = self.grid[0]
+        self.row_has_slot = np.zeros(row_ptr.shape[0] - 1, np.bool_)
+        if problem.row_index is not None:
+            rows = problem.row_index.numpy()
+            self.row_has_slot[np.searchsorted(row_ptr, rows, side="right") - 1] = True
+        moms, kk = [], 1.0
+        for _ in range(inner_iters if lam > 0 else 0):  # FISTA from r = p (the last dual)
+            kk, mom = fista_momentum(kk)
+            moms.append(mom)
+        self.moms = np.asarray(moms, self.z.dtype)
+
     def __call__(self, i: int, keep: bool) -> None:
-        b, z, u, x, v, rho = self.b, self.z, self.u, self.x, self.v, self.rho
-        if keep:
-            self.z_prev = z.copy()
         # u ← u + x − z from the second iteration on (x and z of the previous one)
-        compiled.x_update(self.inv, b, z, u, x, v, rho, i > 0)
-        rows = self.rows
-        if rows is not None:  # the frame's own factor on the changed pixels
-            rhs = b[rows] + rho * (z[rows] - u[rows])
-            x[rows] = np.einsum("kij,kj->ki", self.row_inv, rhs)
-            v[rows] = x[rows] + u[rows]
-        if self.lam == 0.0:
-            np.maximum(v, 0, out=z)
-            return
-        kk = 1.0
-        p, psum, r, rsum = self.p, self.psum, self.r, self.rsum
-        for j in range(self.inner_iters):  # FISTA from r = p (the last step's dual)
-            k_new, mom = fista_momentum(kk)
-            r_in, rin_sum = (p, psum) if j == 0 else (r, rsum)
-            compiled.fgp_step(v, self.t, self.step, mom, r_in, rin_sum, p, psum,
-                              r, rsum, self.first_rows, self.graph, self.alpha)
-            kk = k_new
-        compiled.fgp_primal(v, self.t, p, psum, z, self.graph, self.alpha)
+        compiled.fgp_block(self.inv_rows, self.row_slot, self.row_inv, self.row_has_slot, self.b,
+                           self.x, self.u, self.z, self.x2, self.u2, self.rho, i > 0, self.t,
+                           self.step, self.moms, self.p, self.psum, self.p2, self.psum2, self.z2,
+                           self.grid, self.blocks, self.alpha)
+        self.z_prev = self.z  # the previous z, kept until the next iteration writes over it
+        self.x, self.x2, self.u, self.u2 = self.x2, self.x, self.u2, self.u
+        self.z, self.z2 = self.z2, self.z
+        if self.moms.shape[0]:  # (λ = 0: no dual)
+            self.p, self.p2, self.psum, self.psum2 = self.p2, self.p, self.psum2, self.psum
+
+    def result(self) -> np.ndarray:
+        """``z`` pixel-major ``(P, M)``."""
+        return np.ascontiguousarray(self.z.T)
 
     def norms(self) -> tuple[float, float, float]:
         return (float(np.linalg.norm(self.z)), float(np.linalg.norm(self.x - self.z)),

@@ -1,13 +1,15 @@
 """The frame-independent part of the spatial solve: ``G``, ``ρ``, the factor and the grid.
 
-:func:`prepare_spatial` factorises ``G_p + ρI`` once (batched Cholesky, :data:`FACTOR_CHUNK` pixels
-at a time; its inverse is formed once with ``torch.cholesky_inverse``, kept as the only copy, and
-applied by a matrix–vector product per pixel, 4× faster than ``torch.cholesky_solve`` for
-100 000 25×25 systems on a CPU) and builds the active grid;
+:func:`prepare_spatial` builds the active grid and a :class:`ShiftedInverse`: ``G_p + ρI``
+factorised once when first needed (batched Cholesky, :data:`FACTOR_CHUNK` pixels at a time), its
+inverse formed with ``torch.cholesky_inverse`` and applied by a matrix–vector product per pixel
+(4× faster than ``torch.cholesky_solve`` for 100 000 25×25 systems on a CPU), kept either dense
+(the torch path) or packed by rows (the compiled CPU path: half the memory);
 :meth:`SpatialProblem.for_frame` adapts it to one frame (its valid pixels, pixels whose frame
 mask changed their Gram matrix, guided edge weights); :func:`bundle_spatial_problem` caches it
-with the bundle's NNLS factorisation. The default penalty is :data:`RHO_SCALE` × the median of
-``trace(G_p)/M`` over the active pixels.
+with the bundle's NNLS factorisation, and the packed factor in the precomputation cache beside
+the bundle's entry (a second process loads it). The default penalty is :data:`RHO_SCALE` × the
+median of ``trace(G_p)/M`` over the active pixels.
 """
 
 from __future__ import annotations
@@ -16,11 +18,13 @@ import functools
 import math
 import weakref
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.nnls import NNLSProblem
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.spatial import _compiled as compiled
@@ -45,8 +49,10 @@ class SpatialProblem:
     Build with :func:`prepare_spatial`; reuse for every frame of one bundle.
 
     Attributes:
-        gram: ``(P|1, M, M)``; rho: the scalar ADMM penalty; inv: ``(P|1, M, M)``
-            ``(G + ρI)⁻¹`` from one Cholesky factorisation; pixel_index: ``(P,)`` flat indices
+        gram: ``(P|1, M, M)``; rho: the scalar ADMM penalty; factor: ``(G + ρI)⁻¹`` from one
+            Cholesky factorisation, formed when first needed, dense (:attr:`inv`, the torch
+            path) or packed by rows (the compiled path), shared by :meth:`for_frame`'s
+            problems; pixel_index: ``(P,)`` flat indices
             of the pixels in the ``(h, w)`` frame; frame_size; active: ``(P,)`` bool, pixels in
             the TV graph; ex, ey: :func:`grid_edges` of the active grid.
         row_index, row_gram, row_inv: ``(k,)``, ``(k, M, M)``, ``(k, M, M)`` pixels whose Gram
@@ -56,7 +62,7 @@ class SpatialProblem:
 
     gram: Tensor
     rho: float
-    inv: Tensor
+    factor: ShiftedInverse
     pixel_index: Tensor
     frame_size: tuple[int, int]
     active: Tensor
@@ -69,6 +75,11 @@ class SpatialProblem:
     @property
     def num_pixels(self) -> int:
         return int(self.pixel_index.shape[0])
+
+    @property
+    def inv(self) -> Tensor:
+        """``(P|1, M, M)`` dense ``(G + ρI)⁻¹`` (formed on first use)."""
+        return self.factor.dense()
 
     @property
     def num_bands(self) -> int:
@@ -100,22 +111,21 @@ class SpatialProblem:
             r_inv = torch.cholesky_inverse(L)
         else:
             rows, row_gram = None, None
-        return SpatialProblem(self.gram, self.rho, self.inv, self.pixel_index, self.frame_size,
-                              active, ex, ey, rows, row_gram, r_inv)
+        return SpatialProblem(self.gram, self.rho, self.factor, self.pixel_index,
+                              self.frame_size, active, ex, ey, rows, row_gram, r_inv)
 
     def compiled_inputs(self) -> tuple[np.ndarray, tuple[np.ndarray, ...]] | None:
-        """The compiled CPU path's inputs: ``(G + ρI)⁻¹`` as a NumPy view and the graph (neighbour
+        """The compiled CPU path's inputs: ``(G + ρI)⁻¹`` packed by rows
+        (:func:`~._compiled.pack_inverse_rows`, formed on first use) and the graph (neighbour
         positions and edge weights per pixel, see :mod:`hsi_torch.recon.spatial._compiled`);
-        ``None`` where that path does not apply (numba absent, not on the CPU, or the pixels not
-        in row-major order)."""
+        ``None`` where that path does not apply (numba absent, not on the CPU, or the pixels
+        not in row-major order)."""
         if not compiled.AVAILABLE or self.gram.device.type != "cpu":
             return None
         pix = self.pixel_index.numpy()
         if pix.size > 1 and not bool((pix[1:] > pix[:-1]).all()):
             return None
-        if not self.inv.is_contiguous():
-            return None
-        return self.inv.numpy(), self._graph
+        return self.factor.packed(self._graph[0], self.num_pixels), self._graph
 
     @functools.cached_property
     def _graph(self) -> tuple[np.ndarray, ...]:
@@ -140,6 +150,16 @@ class SpatialProblem:
         up = np.where(wu != 0, pos[np.maximum(pix - w, 0)], own)
         row_ptr = np.searchsorted(pix // w, np.arange(h + 1)).astype(np.int64)
         return row_ptr, right, down, left, up, wx, wy, wl, wu
+
+    def fgp_grid(self) -> tuple[np.ndarray, ...]:
+        """The row layout of the compiled TV prox (:func:`~._compiled.fgp_grid`)."""
+        return self._fgp_grid
+
+    @functools.cached_property
+    def _fgp_grid(self) -> tuple[np.ndarray, ...]:
+        dt = self.gram.numpy().dtype
+        return compiled.fgp_grid(self._graph, self.pixel_index.numpy(), self.frame_size,
+                                 self.ex.numpy().astype(dt), self.ey.numpy().astype(dt))
 
     def _apply(self, x: Tensor, matrices: Tensor, row_matrices: Tensor | None) -> Tensor:
         """``matrices_p x_p`` for all pixels, the frame's own ``row_matrices`` on ``row_index``
@@ -222,12 +242,71 @@ def prepare_spatial(
                 rho = 1.0
     if not float(rho) > 0:
         raise ValueError(f"rho must be > 0, got {rho}")
-    inv = _shifted_inverse(gram, float(rho))
+    factor = ShiftedInverse(gram, float(rho))
+    if gram.requires_grad and torch.is_grad_enabled():
+        factor.dense()  # differentiable with respect to G: formed here, in the graph
     grid = torch.zeros(h * w, dtype=torch.bool, device=gram.device)
     grid[pix[active]] = True
     ex, ey = grid_edges(grid.view(h, w))
-    return SpatialProblem(gram, float(rho), inv, pix, (h, w), active, ex, ey)
+    return SpatialProblem(gram, float(rho), factor, pix, (h, w), active, ex, ey)
 
+
+class ShiftedInverse:
+    """``(G_p + ρI)⁻¹`` of a problem's pixels, formed from one batched Cholesky factorisation
+    (:data:`FACTOR_CHUNK` pixels at a time) when first needed, in the form its user reads: dense
+    ``(P|1, M, M)`` (:meth:`dense`: the torch path, any device, differentiable) or packed by
+    rows (:meth:`packed`: the compiled CPU path, half the memory; the dense one is not formed
+    then)."""
+
+    def __init__(self, gram: Tensor, rho: float) -> None:
+        self.gram, self.rho = gram, float(rho)
+        self._dense: Tensor | None = None
+        self._packed: np.ndarray | None = None
+        #: ``(entry, key)`` of the precomputation cache holding the packed form (set by
+        #: :func:`bundle_spatial_problem`; ``None``: computed in every process)
+        self.disk: tuple[Path, str] | None = None
+
+    def dense(self) -> Tensor:
+        """``(P|1, M, M)`` symmetric, contiguous."""
+        if self._dense is None:
+            self._dense = _shifted_inverse(self.gram, self.rho)
+        return self._dense
+
+    def packed(self, row_ptr: np.ndarray, num_pixels: int) -> np.ndarray:
+        """:func:`~._compiled.pack_inverse_rows` of the ``num_pixels`` pixels in rows
+        ``row_ptr`` (float32/float64 like ``G``; a shared ``G`` is expanded)."""
+        if self._packed is None:
+            m = self.gram.shape[-1]
+            dt = self.gram.numpy().dtype if self.gram.device.type == "cpu" else np.float64
+
+            def chunks():
+                for s, e in compiled.row_chunks(row_ptr, FACTOR_CHUNK):
+                    if self._dense is not None:
+                        inv = self._dense if self._dense.shape[0] == 1 else self._dense[s:e]
+                    else:
+                        g = self.gram if self.gram.shape[0] == 1 else self.gram[s:e]
+                        inv = _shifted_inverse(g.detach(), self.rho)
+                    yield s, inv.detach().expand(e - s, m, m).numpy()
+
+            size = num_pixels * (m * (m + 1) // 2)
+            if self.disk is not None:
+                got = disk.load_entry(*self.disk)
+                arr = None if got is None else got[0].get("inverse")
+                if arr is not None and arr.shape == (size,) and arr.dtype == dt:
+                    self._packed = arr
+                    return arr
+                if got is not None:
+                    disk._warn(f"{self.disk[0]}: not the packed inverse of this problem "
+                               f"(recomputed)")
+            self._packed = compiled.pack_inverse_rows(chunks(), row_ptr, m, dt)
+            if self.disk is not None:
+                disk.save_entry(self.disk[0], self.disk[1], {"inverse": self._packed},
+                                {"rho": self.rho, "layout": "upper triangle by row runs"})
+        return self._packed
+
+
+#: Layout version of the TV factor's precomputation-cache entries (:func:`bundle_spatial_problem`).
+TV_CACHE_LAYOUT = 1
 
 #: Pixels factorised at once by :func:`prepare_spatial`: the Cholesky factor and the shifted
 #: Gram matrices exist for one chunk at a time (at the full-size prototype's 306 000 pixels the
@@ -304,12 +383,19 @@ def guide_weights(sp: SpatialProblem, y: Tensor, mask: Tensor, sigma: float,
 def bundle_spatial_problem(sens: BundleSensing) -> SpatialProblem:
     """The bundle's :class:`SpatialProblem` for its static mask and ``(β, diff_order)``: one
     batched factorisation of ``G_p + ρI``, cached with the bundle's NNLS factorisation (so every
-    frame of a bundle reuses it)."""
+    frame of a bundle reuses it) and, where the bundle's precomputation is cached on disk
+    (:mod:`hsi_torch.recon.precompute_cache`), its packed form in an entry of its own, keyed by
+    the sensing's entry and ``ρ`` (a later process loads it instead of factorising)."""
     prob = sens.problem
     sp = _FACTORS.get(prob)
     if sp is None:
         with torch.no_grad():
             sp = prepare_spatial(prob.gram, sens.pixel_index.to(prob.device), sens.frame_size)
+        if sens.disk_entry is not None:  # the packed factor cached beside the sensing's
+            folder, path, key = sens.disk_entry
+            tv_key = disk.entry_key({"sensing": key, "tv_factor": "packed rows",
+                                     "rho": sp.rho}, TV_CACHE_LAYOUT)
+            sp.factor.disk = (disk.entry_path(folder, path, tv_key), tv_key)
         _FACTORS[prob] = sp
     return sp
 
