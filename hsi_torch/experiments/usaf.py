@@ -93,6 +93,7 @@ __all__ = [
     "USAFConfig",
     "ABLATIONS",
     "ideal_observations",
+    "check_reusable_capture_set",
     "run_usaf",
 ]
 
@@ -334,6 +335,11 @@ class USAFConfig:
     bundle: str = field(
         default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
     calibrate_config: Path | None = None
+    capture_set: Path | None = field(
+        default=None, metadata={"help": "reuse this capture set (a previous run's "
+                                        "OUT/capture_set) instead of simulating one; refused "
+                                        "unless it was simulated with the very prototype, "
+                                        "target and ablations this run would simulate"})
     beta: float = field(default=1000.0, metadata={"help": "smoothness weight (DN² scale)"})
     diff_order: int = 1
     prior: Literal["none", "tv"] = field(
@@ -402,6 +408,49 @@ def _sim_config(cfg: USAFConfig, calibrated: bool, ablate: bool = True):
     return proto
 
 
+#: keys of the resolved simulate config that do not change a rendered capture
+_NO_EFFECT_KEYS = (("render", "progress"), ("render", "figures"))
+
+
+def check_reusable_capture_set(path: Path, expected: list[SimulateConfig]) -> None:
+    """Refuse to reuse the capture set at ``path`` unless it is complete (``manifest.json``,
+    ground truth) and its ``resolved_config.yaml`` equals one of the ``expected`` simulate
+    configs (all keys but :data:`_NO_EFFECT_KEYS`): the same prototype, target, ablations of
+    the capture (diffuser, demosaic, noise) and seed. Raises ``ValueError`` naming the keys
+    that differ."""
+    from hsi_torch.config import to_dict
+
+    path = Path(path)
+    for need in ("manifest.json", "resolved_config.yaml", "ground_truth/truth.npz"):
+        if not (path / need).is_file():
+            raise ValueError(f"capture_set: {path} is not a complete capture set "
+                             f"({need} missing)")
+
+    def flat(d: Any, pre: tuple = ()) -> dict[tuple, Any]:
+        if isinstance(d, dict):
+            out: dict[tuple, Any] = {}
+            for k, v in d.items():
+                out.update(flat(v, pre + (k,)))
+            return out
+        return {} if pre in _NO_EFFECT_KEYS else {pre: d}
+
+    have = flat(to_dict(load_config(path / "resolved_config.yaml", SimulateConfig)))
+    diffs = []
+    for exp in expected:
+        want = flat(to_dict(exp))
+        d = sorted(".".join(map(str, k)) for k in set(have) | set(want)
+                   if have.get(k) != want.get(k))
+        if not d:
+            return
+        diffs.append(d)
+    best = min(diffs, key=len)
+    raise ValueError(f"capture_set: {path} was simulated with another configuration than "
+                     f"this run would simulate (differs in {', '.join(best[:8])}"
+                     f"{', ...' if len(best) > 8 else ''}); it can only be reused for rows "
+                     f"that change the reconstruction, not the capture (beta, prior, lam, "
+                     f"threshold, ...)")
+
+
 def _combine(contrast: Tensor, elements: list[Any], mode: str) -> tuple[Tensor, list[tuple]]:
     """Per (G, E): combine the two orientations' contrasts (min for 'both', max for 'either')."""
     keys = list(dict.fromkeys((e.group, e.element) for e in elements))
@@ -448,7 +497,12 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         sim_cs = dataclasses.replace(sim, captures=dataclasses.replace(sim.captures, scenes=[]))
     else:
         sim_cs = sim
-    simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
+    if cfg.capture_set is not None:  # reuse: only when the capture would be the same
+        cs = Path(cfg.capture_set)
+        check_reusable_capture_set(cs, [sim_cs, sim] if ideal else [sim_cs])
+    else:
+        simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress,
+                             log=lambda *a: None)
     tm["simulate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.bundle == "oracle":
@@ -605,6 +659,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     tm["total"] = time.perf_counter() - t_all
     summary = {"rows": rows, "stats": stats, "bundle": note, "magnification": m,
                "ablate": ablate, "beta": beta, "prior": cfg.prior,
+               "capture_set": str(cs), "capture_set_reused": cfg.capture_set is not None,
                "diffuser_blur_sigma_mm": float(sim.diffuser.blur_sigma_mm),
                "diffuser_mm_per_px": px_mm, "nyquist_lp_mm_diffuser": nyq_diff,
                "nyquist_lp_mm_target": nyq_diff * m, "threshold": cfg.threshold,
