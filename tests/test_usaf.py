@@ -164,6 +164,10 @@ def test_capture_set_reuse_is_checked(oracle_small, tmp_path):
             key = {"noise": "sensor.read_noise_e", "demosaic": "sensor.output"}[ab[-1]]
             with pytest.raises(ValueError, match=rf"differs in .*{key}"):
                 check_reusable_capture_set(cs, [s2])
+    # a warp row on it runs (its truth holds no rendered scene: the renderer's truth is used)
+    w = run_usaf(USAFConfig(**{**cfg.__dict__, "capture_set": cs}), tmp_path / "w")
+    assert w["capture_set_reused"] and np.isfinite(w["metrics"]["psnr_db"])
+    assert not (tmp_path / "w" / "capture_set").exists()
     with pytest.raises(ValueError, match=r"differs in .*render\.seed"):
         run_usaf(USAFConfig(**{**cfg.__dict__, "seed": 1, "capture_set": cs}), tmp_path / "o")
     assert not (tmp_path / "o" / "summary.json").exists()

@@ -555,7 +555,12 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     c_hsi = element_contrasts(cube, pts_px)  # (M, T)
     c_rgb = element_contrasts(ref_imgs.to("cpu", torch.float64), pts_px)  # (4, T)
     # the field's metrics against the simulator's true reflectance, over the valid pixels
-    true_cube = torch.from_numpy(np.asarray(read_truth(cs)[0]["scene_usaf"], np.float64))
+    # (a warp row's capture set holds no rendered scene, hence no scene_usaf: the renderer's
+    # own truth, which is what the simulator writes there)
+    truth_arrays = read_truth(cs)[0]
+    true_cube = (torch.from_numpy(np.asarray(truth_arrays["scene_usaf"], np.float64))
+                 if "scene_usaf" in truth_arrays
+                 else renderer.scene_truth(scene).to("cpu", torch.float64))
     metrics = cube_metrics(cube, true_cube, valid & (true_cube.amax(0) > 0))
     usable_t = torch.tensor(box_ok)
     c_hsi = c_hsi.masked_fill(~usable_t[None], float("nan"))
