@@ -44,6 +44,10 @@ pixels, with the field's metrics of :func:`hsi_torch.metrics.cube_metrics` (PSNR
 ``summary.json``'s ``metrics``. They do not apply to the RGB reference (three colour channels,
 no spectrum to compare with the truth's).
 
+**Reusing a capture set.** ``capture_set`` names a previous run's ``OUT/capture_set``: nothing is
+simulated, after :func:`check_reusable_capture_set` has confirmed the capture would be the same
+(rows that change only the reconstruction: β, the prior, ideal registration).
+
 Command: ``hsi-torch experiment usaf --out DIR`` (the shipped ``usaf.yaml``).
 """
 
