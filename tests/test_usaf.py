@@ -12,6 +12,7 @@ from hsi_torch.experiments.usaf import (
     ABLATIONS,
     USAFConfig,
     _sim_config,
+    check_reusable_capture_set,
     element_contrasts,
     elements_below,
     ideal_observations,
@@ -135,6 +136,48 @@ def test_reduced_run(tmp_path):
     for h in ("PSNR dB (cube, peak 1)", "PSNR dB (per band, 0-255)", "SSIM", "SAM °", "ERGAS",
               "RMSE", "MRAE", f"{m['psnr_bands_db']:.2f}", f"{m['ssim']:.4f}"):
         assert h in md, h
+    # ``capture_set``: the same row from the capture set just simulated gives the same numbers
+    again = USAFConfig(**{**cfg.__dict__, "capture_set": tmp_path / "capture_set"})
+    r = run_usaf(again, tmp_path / "reused")
+    assert r["capture_set_reused"] and r["capture_set"] == str(tmp_path / "capture_set")
+    assert not (tmp_path / "reused" / "capture_set").exists()  # nothing simulated
+    assert r["stats"] == s["stats"] and r["metrics"] == s["metrics"]
+
+
+def test_capture_set_reuse_is_checked(oracle_small, tmp_path):
+    """A capture set is reused only for rows whose capture would be the same (beta, prior):
+    a row that changes the capture (noise, demosaic, seed, the scene rendered) or an incomplete
+    folder is refused, naming what differs — before anything is reconstructed."""
+    from dataclasses import replace
+
+    _, _, _, cs = oracle_small  # a warp row's capture set: the ground truth only
+    cfg = USAFConfig(prototype=shipped_config("simulate"),
+                     prototype_overrides=["render.supersample=1", "diffuser.blur_sigma_mm=0"],
+                     ablate=["warp"], progress=False)
+    cfg.target.groups, cfg.target.magnification = [0], 0.25
+    for ab in (["warp"], ["warp", "beta"], ["warp", "noise"], ["warp", "demosaic"]):
+        s2 = _sim_config(USAFConfig(**{**cfg.__dict__, "ablate": ab}), calibrated=False)
+        s2 = replace(s2, captures=replace(s2.captures, scenes=[]))
+        if ab[-1] in ("warp", "beta"):
+            check_reusable_capture_set(cs, [s2])  # the same capture: accepted
+        else:
+            key = {"noise": "sensor.read_noise_e", "demosaic": "sensor.output"}[ab[-1]]
+            with pytest.raises(ValueError, match=rf"differs in .*{key}"):
+                check_reusable_capture_set(cs, [s2])
+    # a warp row on it runs (its truth holds no rendered scene: the renderer's truth is used)
+    w = run_usaf(USAFConfig(**{**cfg.__dict__, "capture_set": cs}), tmp_path / "w")
+    assert w["capture_set_reused"] and np.isfinite(w["metrics"]["psnr_db"])
+    assert not (tmp_path / "w" / "capture_set").exists()
+    with pytest.raises(ValueError, match=r"differs in .*render\.seed"):
+        run_usaf(USAFConfig(**{**cfg.__dict__, "seed": 1, "capture_set": cs}), tmp_path / "o")
+    assert not (tmp_path / "o" / "summary.json").exists()
+    # a row that renders the scene cannot use a truth-only set
+    with pytest.raises(ValueError, match=r"captures\.scenes"):
+        run_usaf(USAFConfig(**{**cfg.__dict__, "ablate": [], "capture_set": cs}),
+                 tmp_path / "o")
+    with pytest.raises(ValueError, match="not a complete capture set"):
+        run_usaf(USAFConfig(**{**cfg.__dict__, "capture_set": tmp_path / "nowhere"}),
+                 tmp_path / "o")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -227,13 +270,13 @@ def oracle_small(tmp_path_factory):
     out = tmp_path_factory.mktemp("usaf_truth")
     simulate_capture_set(replace(sim, captures=replace(sim.captures, scenes=[])), out,
                          progress=False, log=lambda *a: None)
-    return sim, bundle_from_truth(out), build_scene(sim.captures.scenes[0])
+    return sim, bundle_from_truth(out), build_scene(sim.captures.scenes[0]), out
 
 
 def test_ideal_observations_reconstruct_the_truth(oracle_small, device):
     """Noise-free ideally registered observations of the (spectrally flat) target give back its
     reflectance exactly (β does not bias a flat spectrum); with sensor noise, close to it."""
-    sim, bundle, scene = oracle_small
+    sim, bundle, scene, _ = oracle_small
     renderer = build_renderer(sim)
     rec = Reconstructor(bundle, beta=1000.0, device=device, dtype=torch.float64)
     truth = renderer.scene_truth(scene).double()
@@ -253,3 +296,4 @@ def test_elements_below():
     f = torch.tensor([1.0, 2 ** (-1 / 6), 2 ** (-2 / 6), 0.0, 2 ** (1 / 6)], dtype=torch.float64)
     assert elements_below(f, 1.0) == [0, 1, 2, None, -1]
     assert elements_below(f, 0.0) == [None] * 5
+

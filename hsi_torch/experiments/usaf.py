@@ -44,6 +44,10 @@ pixels, with the field's metrics of :func:`hsi_torch.metrics.cube_metrics` (PSNR
 ``summary.json``'s ``metrics``. They do not apply to the RGB reference (three colour channels,
 no spectrum to compare with the truth's).
 
+**Reusing a capture set.** ``capture_set`` names a previous run's ``OUT/capture_set``: nothing is
+simulated, after :func:`check_reusable_capture_set` has confirmed the capture would be the same
+(rows that change only the reconstruction: β, the prior, ideal registration).
+
 Command: ``hsi-torch experiment usaf --out DIR`` (the shipped ``usaf.yaml``).
 """
 
@@ -93,6 +97,7 @@ __all__ = [
     "USAFConfig",
     "ABLATIONS",
     "ideal_observations",
+    "check_reusable_capture_set",
     "run_usaf",
 ]
 
@@ -334,6 +339,11 @@ class USAFConfig:
     bundle: str = field(
         default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
     calibrate_config: Path | None = None
+    capture_set: Path | None = field(
+        default=None, metadata={"help": "reuse this capture set (a previous run's "
+                                        "OUT/capture_set) instead of simulating one; refused "
+                                        "unless it was simulated with the very prototype, "
+                                        "target and ablations this run would simulate"})
     beta: float = field(default=1000.0, metadata={"help": "smoothness weight (DN² scale)"})
     diff_order: int = 1
     prior: Literal["none", "tv"] = field(
@@ -402,6 +412,49 @@ def _sim_config(cfg: USAFConfig, calibrated: bool, ablate: bool = True):
     return proto
 
 
+#: keys of the resolved simulate config that do not change a rendered capture
+_NO_EFFECT_KEYS = (("render", "progress"), ("render", "figures"))
+
+
+def check_reusable_capture_set(path: Path, expected: list[SimulateConfig]) -> None:
+    """Refuse to reuse the capture set at ``path`` unless it is complete (``manifest.json``,
+    ground truth) and its ``resolved_config.yaml`` equals one of the ``expected`` simulate
+    configs (all keys but :data:`_NO_EFFECT_KEYS`): the same prototype, target, ablations of
+    the capture (diffuser, demosaic, noise) and seed. Raises ``ValueError`` naming the keys
+    that differ."""
+    from hsi_torch.config import to_dict
+
+    path = Path(path)
+    for need in ("manifest.json", "resolved_config.yaml", "ground_truth/truth.npz"):
+        if not (path / need).is_file():
+            raise ValueError(f"capture_set: {path} is not a complete capture set "
+                             f"({need} missing)")
+
+    def flat(d: Any, pre: tuple = ()) -> dict[tuple, Any]:
+        if isinstance(d, dict):
+            out: dict[tuple, Any] = {}
+            for k, v in d.items():
+                out.update(flat(v, pre + (k,)))
+            return out
+        return {} if pre in _NO_EFFECT_KEYS else {pre: d}
+
+    have = flat(to_dict(load_config(path / "resolved_config.yaml", SimulateConfig)))
+    diffs = []
+    for exp in expected:
+        want = flat(to_dict(exp))
+        d = sorted(".".join(map(str, k)) for k in set(have) | set(want)
+                   if have.get(k) != want.get(k))
+        if not d:
+            return
+        diffs.append(d)
+    best = min(diffs, key=len)
+    raise ValueError(f"capture_set: {path} was simulated with another configuration than "
+                     f"this run would simulate (differs in {', '.join(best[:8])}"
+                     f"{', ...' if len(best) > 8 else ''}); it can only be reused for rows "
+                     f"that change the reconstruction, not the capture (beta, prior, lam, "
+                     f"threshold, ...)")
+
+
 def _combine(contrast: Tensor, elements: list[Any], mode: str) -> tuple[Tensor, list[tuple]]:
     """Per (G, E): combine the two orientations' contrasts (min for 'both', max for 'either')."""
     keys = list(dict.fromkeys((e.group, e.element) for e in elements))
@@ -448,7 +501,12 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         sim_cs = dataclasses.replace(sim, captures=dataclasses.replace(sim.captures, scenes=[]))
     else:
         sim_cs = sim
-    simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
+    if cfg.capture_set is not None:  # reuse: only when the capture would be the same
+        cs = Path(cfg.capture_set)
+        check_reusable_capture_set(cs, [sim_cs, sim] if ideal else [sim_cs])
+    else:
+        simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress,
+                             log=lambda *a: None)
     tm["simulate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.bundle == "oracle":
@@ -501,7 +559,12 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     c_hsi = element_contrasts(cube, pts_px)  # (M, T)
     c_rgb = element_contrasts(ref_imgs.to("cpu", torch.float64), pts_px)  # (4, T)
     # the field's metrics against the simulator's true reflectance, over the valid pixels
-    true_cube = torch.from_numpy(np.asarray(read_truth(cs)[0]["scene_usaf"], np.float64))
+    # (a warp row's capture set holds no rendered scene, hence no scene_usaf: the renderer's
+    # own truth, which is what the simulator writes there)
+    truth_arrays = read_truth(cs)[0]
+    true_cube = (torch.from_numpy(np.asarray(truth_arrays["scene_usaf"], np.float64))
+                 if "scene_usaf" in truth_arrays
+                 else renderer.scene_truth(scene).to("cpu", torch.float64))
     metrics = cube_metrics(cube, true_cube, valid & (true_cube.amax(0) > 0))
     usable_t = torch.tensor(box_ok)
     c_hsi = c_hsi.masked_fill(~usable_t[None], float("nan"))
@@ -605,6 +668,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     tm["total"] = time.perf_counter() - t_all
     summary = {"rows": rows, "stats": stats, "bundle": note, "magnification": m,
                "ablate": ablate, "beta": beta, "prior": cfg.prior,
+               "capture_set": str(cs), "capture_set_reused": cfg.capture_set is not None,
                "diffuser_blur_sigma_mm": float(sim.diffuser.blur_sigma_mm),
                "diffuser_mm_per_px": px_mm, "nyquist_lp_mm_diffuser": nyq_diff,
                "nyquist_lp_mm_target": nyq_diff * m, "threshold": cfg.threshold,
