@@ -65,7 +65,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hsi_torch.config import load_config
+from hsi_torch.config import load_config, to_dict
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -422,8 +422,6 @@ def check_reusable_capture_set(path: Path, expected: list[SimulateConfig]) -> No
     configs (all keys but :data:`_NO_EFFECT_KEYS`): the same prototype, target, ablations of
     the capture (diffuser, demosaic, noise) and seed. Raises ``ValueError`` naming the keys
     that differ."""
-    from hsi_torch.config import to_dict
-
     path = Path(path)
     for need in ("manifest.json", "resolved_config.yaml", "ground_truth/truth.npz"):
         if not (path / need).is_file():
