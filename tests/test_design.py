@@ -171,7 +171,8 @@ def test_registry_and_unknown_name():
     assert {"synthetic", "design", "opd", "usaf", "spatial"} <= set(EXPERIMENTS)
     schema, run = resolve_experiment("design")
     assert schema is DesignSweepConfig and run is run_design
-    with pytest.raises(ValueError, match="available: design, mismatch, opd, spatial, synthetic, usaf"):
+    with pytest.raises(ValueError,
+                       match="available: design, mismatch, opd, spatial, synthetic, usaf"):
         resolve_experiment("nope")
 
 
