@@ -16,7 +16,7 @@ scene, per pixel over its valid footprint. "Lost" is ideal − effect.
 
 - ``stray_light``: the veil is estimated from the sensor area no view reaches, in every lit frame,
   and subtracted before calibration and reconstruction (calibrate ``stray_light=subtract``,
-  reconstruct :func:`~hsi_torch.io.stray_light.subtract_veil`);
+  reconstruct :func:`~hsi_torch.io.sensor_corrections.subtract_veil`);
 - ``sensor_defects``: hot and dead pixels found in the dark and white frames (calibrate
   ``defects=mask``) are dropped from every frame's observations;
 - ``scene_illuminant``: the white reference shot under the scene's light (the white captures
