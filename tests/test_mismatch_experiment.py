@@ -365,3 +365,26 @@ def test_mismatch_all_row_takes_every_remedy(mm_run):
     assert ideal - _cc(data, "all", "calibrated") > 15.0
     assert ideal - _cc(data, "all", "remedy") < 1.0
     assert "registration refined" in (out / "mismatch.md").read_text().splitlines()[-1]
+
+
+def test_an_interrupted_capture_set_is_not_taken_for_a_finished_one(tmp_path: Path):
+    from hsi_torch.experiments.mismatch import _complete
+
+    d = tmp_path / "rows" / "x" / "captures"
+
+    def broken(folder: Path) -> None:
+        folder.mkdir(parents=True)
+        (folder / "manifest.json").write_text("{}")  # linked first, as a re-render does
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _complete(d, broken)
+    assert not d.exists()
+
+    def works(folder: Path) -> None:
+        folder.mkdir(parents=True)
+        (folder / "manifest.json").write_text("{}")
+        (folder / "scenes").mkdir()
+
+    _complete(d, works)  # the partial folder of the interrupted try is replaced
+    assert (d / "scenes").is_dir() and not d.with_name("captures.partial").exists()

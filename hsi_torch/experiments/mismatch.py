@@ -47,6 +47,7 @@ import csv
 import gc
 import io
 import json
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -219,6 +220,18 @@ class _Row:
         atomic_write_json(self.scores_path, self.scores)
 
 
+def _complete(d: Path, make) -> None:
+    """Write a capture set with ``make(folder)`` into ``d.partial``, then rename it ``d``: a
+    set whose writing was interrupted is never taken for a finished one (a re-rendered set's
+    ``manifest.json`` is linked before its scenes are rendered)."""
+    tmp = d.with_name(d.name + ".partial")
+    for old in (tmp, d):
+        if old.exists():
+            shutil.rmtree(old)
+    make(tmp)
+    tmp.rename(d)
+
+
 def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path) -> Path:
     """The row's capture set (simulated once, then reused)."""
     d = out / "rows" / name / "captures"
@@ -227,9 +240,12 @@ def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path) -> Pat
     sim = _sim_cfg(cfg, row_keys(name))
     t0 = time.perf_counter()
     if name in AFTER_CALIBRATION_EFFECTS:
-        rerender_after_calibration(sim, ideal_dir, d, device=cfg.device, log=lambda *a: None)
+        _complete(d, lambda tmp: rerender_after_calibration(sim, ideal_dir, tmp,
+                                                            device=cfg.device,
+                                                            log=lambda *a: None))
     else:
-        simulate_capture_set(sim, d, device=cfg.device, progress=False, log=lambda *a: None)
+        _complete(d, lambda tmp: simulate_capture_set(sim, tmp, device=cfg.device,
+                                                      progress=False, log=lambda *a: None))
     how = "(scenes re-rendered) " if name in AFTER_CALIBRATION_EFFECTS else ""
     info(f"  {name}: captures {how}in {time.perf_counter() - t0:.0f} s")
     return d
@@ -249,8 +265,9 @@ def _white_captures(cfg: MismatchConfig, out: Path, name: str, caps: Path) -> Pa
         return d
     keys = {k: v for k, v in row_keys(name).items() if k not in WHITE_WITHOUT}
     t0 = time.perf_counter()
-    rerender_after_calibration(_sim_cfg(cfg, keys), caps, d, whites=True, scenes=False,
-                               device=cfg.device, log=lambda *a: None)
+    _complete(d, lambda tmp: rerender_after_calibration(
+        _sim_cfg(cfg, keys), caps, tmp, whites=True, scenes=False, device=cfg.device,
+        log=lambda *a: None))
     info(f"  {name}: white references re-shot under the scene's light in "
          f"{time.perf_counter() - t0:.0f} s")
     return d
