@@ -388,3 +388,29 @@ def test_an_interrupted_capture_set_is_not_taken_for_a_finished_one(tmp_path: Pa
 
     _complete(d, works)  # the partial folder of the interrupted try is replaced
     assert (d / "scenes").is_dir() and not d.with_name("captures.partial").exists()
+
+
+def test_all_but_one_rows_keys_and_remedies():
+    from hsi_torch.experiments.mismatch import (
+        REMEDIES,
+        MismatchConfig,
+        remedy_name,
+        remedy_parts,
+        row_keys,
+    )
+    from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
+
+    every = row_keys("all")
+    assert set(every) == {k for keys in DOCUMENTED_EFFECTS.values() for k in keys}
+    for effect, keys in DOCUMENTED_EFFECTS.items():
+        rest = row_keys(f"all-{effect}")
+        assert set(rest) == set(every) - set(keys) and set(keys) <= set(every)
+    assert remedy_parts("all") == ("stray_light", "defects", "white", "refine")
+    assert remedy_parts("all-monochromator") == remedy_parts("all")  # it has no remedy
+    assert remedy_parts("all-drift") == ("stray_light", "defects", "white")
+    assert remedy_parts("all-scene_illuminant") == ("stray_light", "defects", "refine")
+    assert remedy_parts("distortion") == () and remedy_name("distortion") is None
+    assert remedy_name("all") == REMEDIES["all"] and "registration refined" in REMEDIES["drift"]
+    MismatchConfig(effects=["all-monochromator", "drift"])
+    with pytest.raises(ValueError, match="all-nope"):
+        MismatchConfig(effects=["all-nope"])

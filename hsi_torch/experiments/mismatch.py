@@ -74,7 +74,8 @@ from hsi_torch.simulate.oracle import bundle_from_truth
 from hsi_torch.simulate.rerender import rerender_after_calibration
 
 __all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFECTS",
-           "REMEDIES", "REMEDY_PARTS", "ROW_REMEDIES", "mismatch_table"]
+           "REMEDIES", "REMEDY_PARTS", "ROW_REMEDIES", "remedy_parts", "remedy_name",
+           "mismatch_table"]
 
 #: effects that act on the scene captures only: their rows reuse the ideal calibration
 AFTER_CALIBRATION_EFFECTS = ("drift", "brf_temperature", "scene_illuminant")
@@ -100,6 +101,21 @@ ROW_REMEDIES: dict[str, tuple[str, ...]] = {
 #: the remedy of each effect that has one (``remedy`` column)
 REMEDIES: dict[str, str] = {k: " + ".join(REMEDY_PARTS[p] for p in v)
                             for k, v in ROW_REMEDIES.items()}
+
+
+def remedy_parts(name: str) -> tuple[str, ...]:
+    """The remedy parts of a row: :data:`ROW_REMEDIES`, and for ``all-<effect>`` the all row's
+    but that effect's own (``()``: no remedy)."""
+    if name.startswith("all-"):
+        drop = ROW_REMEDIES.get(name[4:], ())
+        return tuple(p for p in ROW_REMEDIES["all"] if p not in drop)
+    return ROW_REMEDIES.get(name, ())
+
+
+def remedy_name(name: str) -> str | None:
+    """The ``remedy`` column's text of a row (``None``: no remedy)."""
+    parts = remedy_parts(name)
+    return " + ".join(REMEDY_PARTS[p] for p in parts) if parts else None
 NO_NOISE = ("sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false")
 _SIZES = {"small": "simulate", "full": "simulate_full"}
 
@@ -124,8 +140,9 @@ class MismatchConfig:
     )
     effects: list[str] = field(
         default_factory=lambda: [*DOCUMENTED_EFFECTS, "all"],
-        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, and 'all' "
-                    "(every effect together)"),
+        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, 'all' (every "
+                    "effect together) and 'all-<effect>' (all but that one, with every remedy "
+                    "but its own)"),
     )
     remedies: bool = field(default=True, metadata=_h("also score each effect's remedy"))
     noise_free: bool = field(
@@ -154,7 +171,7 @@ class MismatchConfig:
     device: str | None = field(default=None, metadata=_h("torch device (null: cpu)"))
 
     def __post_init__(self) -> None:
-        known = {*DOCUMENTED_EFFECTS, "all"}
+        known = {*DOCUMENTED_EFFECTS, "all", *(f"all-{e}" for e in DOCUMENTED_EFFECTS)}
         bad = sorted(set(self.effects) - known)
         if bad:
             raise ValueError(f"effects: unknown {bad}; known: {sorted(known)}")
@@ -165,13 +182,15 @@ class MismatchConfig:
 
 
 def row_keys(name: str) -> dict[str, Any]:
-    """The ``mismatch.*`` keys of a row: ``{}`` (ideal), one effect's, or all of them."""
+    """The ``mismatch.*`` keys of a row: ``{}`` (ideal), one effect's, all of them (``all``),
+    or all but one effect's (``all-<effect>``)."""
     if name == "ideal":
         return {}
-    if name == "all":
+    if name == "all" or name.startswith("all-"):
         every: dict[str, Any] = {}
-        for keys in DOCUMENTED_EFFECTS.values():
-            every.update(keys)
+        for effect, keys in DOCUMENTED_EFFECTS.items():
+            if name != f"all-{effect}":
+                every.update(keys)
         return every
     return dict(DOCUMENTED_EFFECTS[name])
 
@@ -474,16 +493,17 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
         if cfg.remedies and name in ("stray_light", "sensor_defects", "drift"):
             _score_variant(row, "remedy", lambda n=name: _remedy(cfg, out, n, caps_of[n],
                                                                   calibrated_of[n], recs),
-                           ROW_REMEDIES[name])
+                           remedy_parts(name))
     # the costlier remedies (a whole calibration each) once every row is in
-    for name in [n for n in cfg.effects if n in ("scene_illuminant", "all")] + ["ideal"]:
+    for name in [n for n in cfg.effects
+                 if n in ("scene_illuminant", "all") or n.startswith("all-")] + ["ideal"]:
         if cfg.remedies:
             _score_variant(rows[name], "remedy",
                            lambda n=name: _remedy(cfg, out, n, caps_of[n], calibrated_of[n],
-                                                  recs), ROW_REMEDIES[name])
+                                                  recs), remedy_parts(name))
     data = {name: {"keys": {k: list(v) if isinstance(v, tuple) else v
                             for k, v in row_keys(name).items()},
-                   "remedy_name": REMEDIES.get(name),
+                   "remedy_name": remedy_name(name),
                    **r.scores}
             for name, r in rows.items()}
     md, table_rows = mismatch_table(data)
@@ -501,12 +521,12 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
 
 def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, calibrated,
             recs: _Reconstructors) -> dict:
-    """Score the row's remedy, every part of :data:`ROW_REMEDIES` ``[name]`` together: the
+    """Score the row's remedy, every part of :func:`remedy_parts` ``(name)`` together: the
     white references re-shot under the scene's light (:func:`_white_captures`), calibrated with
     the veil subtracted and the defects masked, reconstructed with the registration refined
     from each scene. Without a calibration part the row's own calibrated reconstructor is used
     (``calibrated``: a callable that gives it)."""
-    parts = ROW_REMEDIES[name]
+    parts = remedy_parts(name)
     row_dir = out / "rows" / name
     if "white" in parts:
         caps = _white_captures(cfg, out, name, caps)
