@@ -11,18 +11,24 @@ oracle bundle (the truth of the calibrated, ideal-model device). Scores against 
 patch; PSNR and SAM) and per pixel over the patch interiors, and, when the set holds the CAVE
 scene, per pixel over its valid footprint. "Lost" is ideal − effect.
 
-**Remedies** (``remedies: true``), measured on the same captures:
+**Remedies** (``remedies: true``), measured on the same captures (:data:`ROW_REMEDIES`; the
+``remedy`` column names every part a number includes):
 
 - ``stray_light``: the veil is estimated from the sensor area no view reaches, in every lit frame,
   and subtracted before calibration and reconstruction (calibrate ``stray_light=subtract``,
-  reconstruct :func:`~hsi_torch.io.stray_light.subtract_veil`);
+  reconstruct :func:`~hsi_torch.io.sensor_corrections.subtract_veil`);
 - ``sensor_defects``: hot and dead pixels found in the dark and white frames (calibrate
   ``defects=mask``) are dropped from every frame's observations;
 - ``scene_illuminant``: the white reference shot under the scene's light (the white captures
   re-rendered under it), the protocol's fix — no software can tell a reddish scene from a
   reddish light;
-- ``all``: the stray-light and defect remedies together (and ``ideal``: the same on the ideal
-  device, what the remedies cost a device that needs none).
+- ``drift``: the same bundle, each scene reconstructed with ``refine_registration`` (its drift
+  measured from the scene's views and the sampling corrected, :mod:`hsi_torch.recon.drift`);
+- ``all``: every remedy together — the white references re-shot under the scene's light (with
+  the calibration: before the sensor drifted and the filter warmed, :data:`WHITE_WITHOUT`), that
+  set calibrated with the veil subtracted and the defects masked, and every scene reconstructed
+  with ``refine_registration``; ``ideal``: the same on the ideal device (its white already is
+  the scene's light), what the remedies cost a device that needs none.
 
 **Cost.** Effects that act only after calibration (``drift``, ``brf_temperature``,
 ``scene_illuminant``) reuse the ideal row's captures and calibration: only their scene captures are
@@ -41,6 +47,7 @@ import csv
 import gc
 import io
 import json
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,18 +74,48 @@ from hsi_torch.simulate.oracle import bundle_from_truth
 from hsi_torch.simulate.rerender import rerender_after_calibration
 
 __all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFECTS",
-           "REMEDIES", "mismatch_table"]
+           "REMEDIES", "REMEDY_PARTS", "ROW_REMEDIES", "remedy_parts", "remedy_name",
+           "mismatch_table"]
 
 #: effects that act on the scene captures only: their rows reuse the ideal calibration
 AFTER_CALIBRATION_EFFECTS = ("drift", "brf_temperature", "scene_illuminant")
-#: the remedy of each effect that has one (``remedy`` column)
-REMEDIES: dict[str, str] = {
-    "ideal": "veil subtracted + defects masked",
+#: the parts a remedy can have: calibrate with ``stray_light=subtract`` (the veil, subtracted
+#: from every frame, scenes included) and ``defects=mask``, a white reference re-shot under the
+#: scene's light (re-rendered, then calibrated), reconstruct with ``refine_registration``
+REMEDY_PARTS: dict[str, str] = {
     "stray_light": "veil subtracted",
-    "sensor_defects": "defects masked",
-    "scene_illuminant": "white under the scene's light",
-    "all": "veil subtracted + defects masked",
+    "defects": "defects masked",
+    "white": "white under the scene's light",
+    "refine": "registration refined from the scene",
 }
+#: which parts each row's remedy has (``ideal``: every part that applies to the ideal device,
+#: what the remedies cost a device that needs none; its white already is the scene's light)
+ROW_REMEDIES: dict[str, tuple[str, ...]] = {
+    "ideal": ("stray_light", "defects", "refine"),
+    "stray_light": ("stray_light",),
+    "sensor_defects": ("defects",),
+    "scene_illuminant": ("white",),
+    "drift": ("refine",),
+    "all": ("stray_light", "defects", "white", "refine"),
+}
+#: the remedy of each effect that has one (``remedy`` column)
+REMEDIES: dict[str, str] = {k: " + ".join(REMEDY_PARTS[p] for p in v)
+                            for k, v in ROW_REMEDIES.items()}
+
+
+def remedy_parts(name: str) -> tuple[str, ...]:
+    """The remedy parts of a row: :data:`ROW_REMEDIES`, and for ``all-<effect>`` the all row's
+    but that effect's own (``()``: no remedy)."""
+    if name.startswith("all-"):
+        drop = ROW_REMEDIES.get(name[4:], ())
+        return tuple(p for p in ROW_REMEDIES["all"] if p not in drop)
+    return ROW_REMEDIES.get(name, ())
+
+
+def remedy_name(name: str) -> str | None:
+    """The ``remedy`` column's text of a row (``None``: no remedy)."""
+    parts = remedy_parts(name)
+    return " + ".join(REMEDY_PARTS[p] for p in parts) if parts else None
 NO_NOISE = ("sensor.shot_noise=false", "sensor.read_noise_e=0", "sensor.quantize=false")
 _SIZES = {"small": "simulate", "full": "simulate_full"}
 
@@ -103,8 +140,9 @@ class MismatchConfig:
     )
     effects: list[str] = field(
         default_factory=lambda: [*DOCUMENTED_EFFECTS, "all"],
-        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, and 'all' "
-                    "(every effect together)"),
+        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, 'all' (every "
+                    "effect together) and 'all-<effect>' (all but that one, with every remedy "
+                    "but its own)"),
     )
     remedies: bool = field(default=True, metadata=_h("also score each effect's remedy"))
     noise_free: bool = field(
@@ -133,7 +171,7 @@ class MismatchConfig:
     device: str | None = field(default=None, metadata=_h("torch device (null: cpu)"))
 
     def __post_init__(self) -> None:
-        known = {*DOCUMENTED_EFFECTS, "all"}
+        known = {*DOCUMENTED_EFFECTS, "all", *(f"all-{e}" for e in DOCUMENTED_EFFECTS)}
         bad = sorted(set(self.effects) - known)
         if bad:
             raise ValueError(f"effects: unknown {bad}; known: {sorted(known)}")
@@ -144,13 +182,15 @@ class MismatchConfig:
 
 
 def row_keys(name: str) -> dict[str, Any]:
-    """The ``mismatch.*`` keys of a row: ``{}`` (ideal), one effect's, or all of them."""
+    """The ``mismatch.*`` keys of a row: ``{}`` (ideal), one effect's, all of them (``all``),
+    or all but one effect's (``all-<effect>``)."""
     if name == "ideal":
         return {}
-    if name == "all":
+    if name == "all" or name.startswith("all-"):
         every: dict[str, Any] = {}
-        for keys in DOCUMENTED_EFFECTS.values():
-            every.update(keys)
+        for effect, keys in DOCUMENTED_EFFECTS.items():
+            if name != f"all-{effect}":
+                every.update(keys)
         return every
     return dict(DOCUMENTED_EFFECTS[name])
 
@@ -199,23 +239,56 @@ class _Row:
         atomic_write_json(self.scores_path, self.scores)
 
 
-def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path,
-              whites_under_scene_light: bool = False) -> Path:
+def _complete(d: Path, make) -> None:
+    """Write a capture set with ``make(folder)`` into ``d.partial``, then rename it ``d``: a
+    set whose writing was interrupted is never taken for a finished one (a re-rendered set's
+    ``manifest.json`` is linked before its scenes are rendered)."""
+    tmp = d.with_name(d.name + ".partial")
+    for old in (tmp, d):
+        if old.exists():
+            shutil.rmtree(old)
+    make(tmp)
+    tmp.rename(d)
+
+
+def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path) -> Path:
     """The row's capture set (simulated once, then reused)."""
-    sub = "captures_white" if whites_under_scene_light else "captures"
-    d = out / "rows" / name / sub
+    d = out / "rows" / name / "captures"
     if (d / "manifest.json").is_file():
         return d
-    keys = row_keys(name)
-    sim = _sim_cfg(cfg, keys)
+    sim = _sim_cfg(cfg, row_keys(name))
     t0 = time.perf_counter()
     if name in AFTER_CALIBRATION_EFFECTS:
-        rerender_after_calibration(sim, ideal_dir, d, whites=whites_under_scene_light,
-                                   device=cfg.device, log=lambda *a: None)
+        _complete(d, lambda tmp: rerender_after_calibration(sim, ideal_dir, tmp,
+                                                            device=cfg.device,
+                                                            log=lambda *a: None))
     else:
-        simulate_capture_set(sim, d, device=cfg.device, progress=False, log=lambda *a: None)
+        _complete(d, lambda tmp: simulate_capture_set(sim, tmp, device=cfg.device,
+                                                      progress=False, log=lambda *a: None))
     how = "(scenes re-rendered) " if name in AFTER_CALIBRATION_EFFECTS else ""
     info(f"  {name}: captures {how}in {time.perf_counter() - t0:.0f} s")
+    return d
+
+
+#: the after-calibration keys a re-shot white reference does not get: it is shot under the
+#: scene's light with the calibration, before the sensor drifted and the filter warmed
+WHITE_WITHOUT = ("drift_shift_px", "drift_rotation_deg", "brf_delta_t_k")
+
+
+def _white_captures(cfg: MismatchConfig, out: Path, name: str, caps: Path) -> Path:
+    """The row's captures with the white references re-shot under the scene's light
+    (re-rendered with the row's effects but :data:`WHITE_WITHOUT`); the scenes and every other
+    file are linked from ``caps``."""
+    d = out / "rows" / name / "captures_white"
+    if (d / "manifest.json").is_file():
+        return d
+    keys = {k: v for k, v in row_keys(name).items() if k not in WHITE_WITHOUT}
+    t0 = time.perf_counter()
+    _complete(d, lambda tmp: rerender_after_calibration(
+        _sim_cfg(cfg, keys), caps, tmp, whites=True, scenes=False, device=cfg.device,
+        log=lambda *a: None))
+    info(f"  {name}: white references re-shot under the scene's light in "
+         f"{time.perf_counter() - t0:.0f} s")
     return d
 
 
@@ -290,7 +363,11 @@ def score_captures(
 
     Returns:
         ``{"colorchecker": {"means_db", "means_sam", "pixel_db", "pixel_sam"}, "cave": {"pixel_db",
-        "pixel_sam"} (when the set holds it), "seconds"}``.
+        "pixel_sam"} (when the set holds it), "applied": {"stray_light", "defects" (what the
+        bundle records), "refine_registration" (the reconstructor's), "white_mismatch" (the
+        after-calibration effects the white references were shot with: ``{}`` the
+        calibration's)}, "drift": {scene: {"corrected", "sensor_shift_px", "sensor_rotation_deg",
+        "measured_views"}} (the reconstruction's statistics), "seconds"}``.
     """
     t0 = time.perf_counter()
     truth = _truth(captures)
@@ -301,13 +378,23 @@ def score_captures(
         if v and not want[k]:
             raise RuntimeError(f"{captures}: the remedy {k!r} asked for, but the bundle does "
                                "not record it")
-    out: dict[str, Any] = {}
+    tj = captures / "ground_truth" / "truth.json"
+    white_mm = json.loads(tj.read_text()).get("white_mismatch", {}) if tj.is_file() else {}
+    out: dict[str, Any] = {"applied": {**want, "refine_registration": rec.refine_registration,
+                                       "white_mismatch": white_mm}, "drift": {}}
+
+    def drift_stats(name: str, res) -> None:
+        d = res.stats.get("drift")
+        if d is not None:
+            out["drift"][name] = {k: d.get(k) for k in ("corrected", "sensor_shift_px",
+                                                        "sensor_rotation_deg", "measured_views")}
     pidx = truth["colorchecker_patch_index"]
     spectra = np.asarray(truth["colorchecker_spectra"], np.float64)
     e = erode_px(truth, cfg.erode_mm)
     res = rec.reconstruct_file(captures / "scenes" / "colorchecker.tif")
     cube = res.cube.detach().cpu().double().numpy()
     valid = res.valid.detach().cpu().numpy()
+    drift_stats("colorchecker", res)
     inner = valid & (pidx >= 0) & np.logical_or.reduce(
         [interior_mask(pidx == k, e) for k in range(len(spectra))])
     means = colorchecker_scores(cube, valid, pidx, spectra, e)
@@ -318,6 +405,7 @@ def score_captures(
     if "scene_cave" in truth and (captures / "scenes" / "cave.tif").is_file():
         res = rec.reconstruct_file(captures / "scenes" / "cave.tif")
         cube = res.cube.detach().cpu().double().numpy()
+        drift_stats("cave", res)
         t = np.asarray(truth["scene_cave"], np.float64)
         m = res.valid.detach().cpu().numpy() & (t.max(0) > 0) & np.isfinite(cube).all(0)
         px = _pixel_scores(cube, t, m)
@@ -329,8 +417,26 @@ def score_captures(
     return out
 
 
-def _score_variant(row: _Row, variant: str, fn) -> None:
-    if variant in row.scores:
+def _applied(parts: tuple[str, ...]) -> dict[str, bool]:
+    """The ``applied`` flags (of :func:`score_captures`) a remedy of ``parts`` must show."""
+    return {"stray_light": "stray_light" in parts, "defects": "defects" in parts,
+            "refine_registration": "refine" in parts, "white": "white" in parts}
+
+
+def _shows(scores: dict[str, Any], parts: tuple[str, ...]) -> bool:
+    """Whether cached ``scores`` were made with exactly the remedy ``parts``."""
+    a = scores.get("applied")
+    if not isinstance(a, dict):
+        return False
+    got = {k: bool(a.get(k)) for k in ("stray_light", "defects", "refine_registration")}
+    got["white"] = bool(a.get("white_mismatch"))
+    return got == _applied(parts)
+
+
+def _score_variant(row: _Row, variant: str, fn, parts: tuple[str, ...] | None = None) -> None:
+    """Score ``variant`` of ``row`` with ``fn`` unless cached (a cached remedy made with other
+    ``parts`` than the row's remedy now has is redone)."""
+    if variant in row.scores and (parts is None or _shows(row.scores[variant], parts)):
         return
     row.scores[variant] = fn()
     row.save()
@@ -338,6 +444,8 @@ def _score_variant(row: _Row, variant: str, fn) -> None:
     cave = f", CAVE {s['cave']['pixel_db']:.2f} dB" if "cave" in s else ""
     info(f"  {row.name} / {variant}: ColorChecker means {s['colorchecker']['means_db']:.2f} dB, "
          f"per pixel {s['colorchecker']['pixel_db']:.2f} dB{cave} ({s['seconds']:.0f} s)")
+    if parts is not None and not _shows(s, parts):
+        raise RuntimeError(f"{row.name}: the remedy applied {s['applied']}, not {list(parts)}")
 
 
 def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -> dict[str, Any]:
@@ -363,15 +471,18 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
     ideal_oracle = lambda: recs.get("oracle", lambda: bundle_from_truth(ideal_dir))  # noqa: E731
     _score_variant(ideal, "calibrated", lambda: score_captures(ideal_dir, ideal_rec(), cfg))
     _score_variant(ideal, "oracle", lambda: score_captures(ideal_dir, ideal_oracle(), cfg))
+    calibrated_of: dict[str, Any] = {"ideal": ideal_rec}
+    caps_of: dict[str, Path] = {"ideal": ideal_dir}
     for name in cfg.effects:
         row = rows[name] = _Row(out, name)
         info(f"row {name}: mismatch {row_keys(name)}")
-        caps = _captures(cfg, out, name, ideal_dir)
+        caps = caps_of[name] = _captures(cfg, out, name, ideal_dir)
         if name in AFTER_CALIBRATION_EFFECTS:
             calibrated = ideal_rec
         else:
             calibrated = lambda c=caps, r=row: recs.get(  # noqa: E731
                 None, lambda: _bundle(cfg, c, r.dir / "calib.npz"))
+        calibrated_of[name] = calibrated
         # the truth (and its oracle) is the ideal device's unless the filter's thickness map,
         # which is in the truth's B, is on
         own_truth = any(k.startswith("brf_thickness") for k in row_keys(name))
@@ -379,19 +490,20 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
                   else ideal_oracle)
         _score_variant(row, "calibrated", lambda c=caps, f=calibrated: score_captures(c, f(), cfg))
         _score_variant(row, "oracle", lambda c=caps, f=oracle: score_captures(c, f(), cfg))
-        if cfg.remedies and name in ("stray_light", "sensor_defects"):
-            _score_variant(row, "remedy", lambda n=name, c=caps: _remedy(cfg, out, n, c,
-                                                                          ideal_dir, recs))
+        if cfg.remedies and name in ("stray_light", "sensor_defects", "drift"):
+            _score_variant(row, "remedy", lambda n=name: _remedy(cfg, out, n, caps_of[n],
+                                                                  calibrated_of[n], recs),
+                           remedy_parts(name))
     # the costlier remedies (a whole calibration each) once every row is in
-    for name in [n for n in cfg.effects if n in ("scene_illuminant", "all")] + ["ideal"]:
+    for name in [n for n in cfg.effects
+                 if n in ("scene_illuminant", "all") or n.startswith("all-")] + ["ideal"]:
         if cfg.remedies:
             _score_variant(rows[name], "remedy",
-                           lambda n=name: _remedy(cfg, out, n, _captures(cfg, out, n, ideal_dir)
-                                                  if n != "ideal" else ideal_dir,
-                                                  ideal_dir, recs))
+                           lambda n=name: _remedy(cfg, out, n, caps_of[n], calibrated_of[n],
+                                                  recs), remedy_parts(name))
     data = {name: {"keys": {k: list(v) if isinstance(v, tuple) else v
                             for k, v in row_keys(name).items()},
-                   "remedy_name": REMEDIES.get(name),
+                   "remedy_name": remedy_name(name),
                    **r.scores}
             for name, r in rows.items()}
     md, table_rows = mismatch_table(data)
@@ -407,19 +519,29 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
     return data
 
 
-def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, ideal_dir: Path,
+def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, calibrated,
             recs: _Reconstructors) -> dict:
-    """Score the row's remedy (see the module docstring)."""
+    """Score the row's remedy, every part of :func:`remedy_parts` ``(name)`` together: the
+    white references re-shot under the scene's light (:func:`_white_captures`), calibrated with
+    the veil subtracted and the defects masked, reconstructed with the registration refined
+    from each scene. Without a calibration part the row's own calibrated reconstructor is used
+    (``calibrated``: a callable that gives it)."""
+    parts = remedy_parts(name)
     row_dir = out / "rows" / name
-    if name == "scene_illuminant":
-        caps_w = _captures(cfg, out, name, ideal_dir, whites_under_scene_light=True)
-        rec = recs.get(None, lambda: _bundle(cfg, caps_w, row_dir / "calib_white.npz"))
-        return score_captures(caps_w, rec, cfg)
-    stray = name in ("stray_light", "all", "ideal")
-    defects = name in ("sensor_defects", "all", "ideal")
-    sets = [*(["stray_light=subtract"] if stray else []), *(["defects=mask"] if defects else [])]
-    rec = recs.get(None, lambda: _bundle(cfg, caps, row_dir / "calib_remedy.npz", tuple(sets)))
-    return score_captures(caps, rec, cfg, {"stray_light": stray, "defects": defects})
+    if "white" in parts:
+        caps = _white_captures(cfg, out, name, caps)
+    sets = tuple([*(["stray_light=subtract"] if "stray_light" in parts else []),
+                  *(["defects=mask"] if "defects" in parts else [])])
+    if "white" in parts or sets:
+        tag = "_".join(p for p in ("white", "stray_light", "defects") if p in parts)
+        rec = recs.get(None, lambda: _bundle(cfg, caps, row_dir / f"calib_{tag}.npz", sets))
+    else:
+        rec = calibrated()
+    if "refine" in parts:
+        # the same factorisation; every scene's drift measured and its sampling corrected
+        rec = Reconstructor(rec.sensing, beta=cfg.beta, refine_registration=True)
+    return score_captures(caps, rec, cfg, {"stray_light": "stray_light" in parts,
+                                           "defects": "defects" in parts})
 
 
 def _fmt(v: float | None, ref: float | None = None) -> str:

@@ -8,6 +8,11 @@ the white references: a white reference shot under the scene's light) with the c
 mismatch, writes them into a new folder and hard-links (or copies) every other file of a base
 capture set rendered from the same config without the effect. At full size this skips the
 scan's 25 frames, the grids and the truth: one render pass instead of a whole set.
+
+The base set may itself have device effects (stray light, hot pixels, …): the config must then
+hold the same device keys (checked against the base's ``ground_truth/truth.json``), and the
+re-rendered captures get them too. ``scenes=False, whites=True`` re-shoots only the white
+references (e.g. under the scene's light) and keeps the base's scenes.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import json
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 from hsi_torch.io import write_capture
 from hsi_torch.simulate.capture_sets import (
@@ -26,6 +32,17 @@ from hsi_torch.simulate.capture_sets import (
 from hsi_torch.simulate.config import SimulateConfig
 
 __all__ = ["rerender_after_calibration"]
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    return json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
+                                  for k, v in d.items()}))
+
+
+def _base_mismatch(base: Path) -> dict[str, Any]:
+    """The base set's recorded mismatch keys (``{}``: an ideal set, or no record)."""
+    p = base / "ground_truth" / "truth.json"
+    return dict(json.loads(p.read_text()).get("mismatch") or {}) if p.is_file() else {}
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -44,6 +61,7 @@ def rerender_after_calibration(
     out_dir: str | Path,
     *,
     whites: bool = False,
+    scenes: bool = True,
     device: str | None = None,
     log=print,
 ) -> list[str]:
@@ -53,34 +71,43 @@ def rerender_after_calibration(
     ``cfg`` must be the config ``base_dir`` was rendered from plus ``after_calibration``
     mismatch keys (drift, ``brf_delta_t_k``, ``scene_illuminant``): the planned files and noise
     seeds are the base's, so with no such key the rendered files equal the base's bit for bit.
-    Device effects (distortion, stray light, …) would change the calibration frames too and are
-    refused. Every other file of ``base_dir`` is hard-linked (copied across file systems; a link
-    is replaced, never written through); ``ground_truth/truth.json`` gets the config's
-    ``mismatch`` record.
+    Device effects (distortion, stray light, …) change the calibration frames too: they must be
+    the base set's own (its ``truth.json`` ``mismatch`` record), else they are refused. Every
+    other file of ``base_dir`` is hard-linked (copied across file systems; a link is replaced,
+    never written through); ``ground_truth/truth.json`` gets the config's ``mismatch`` record
+    (with ``scenes=False`` the base's stays), and with ``whites`` its after-calibration keys as
+    ``white_mismatch``.
 
     Args:
         cfg: simulate config (``cfg.mismatch`` holds the effects).
-        base_dir: the ideal capture set (read only).
+        base_dir: the base capture set (read only).
         out_dir: the new set's folder (created; its re-rendered files are replaced).
-        whites: also render the ``white`` captures under the scene's light.
+        whites: also render the ``white`` captures with the after-calibration effects (under
+            the scene's light).
+        scenes: render the scene captures (``False``: keep the base's; needs ``whites``).
 
     Returns:
         The re-rendered files, relative to ``out_dir``.
 
     Raises:
-        ValueError: a device effect is on, or the base set lacks a planned file.
+        ValueError: a device effect the base set lacks is on (or one it has is off), nothing
+            is to be rendered, or the base set lacks a planned file.
     """
     base, out = Path(base_dir), Path(out_dir)
     mm = cfg.mismatch
-    device_keys = sorted(k for k in mm.active() if k not in (
-        "drift_shift_px", "drift_rotation_deg", "brf_delta_t_k", "scene_illuminant",
-        "brf_retardance_temp_coeff_per_k"))
-    if device_keys:
-        raise ValueError(f"rerender_after_calibration: mismatch keys {device_keys} change the "
-                         "calibration frames too; simulate the whole set instead")
+    if not (scenes or whites):
+        raise ValueError("rerender_after_calibration: neither scenes nor whites to render")
+    after_keys = ("drift_shift_px", "drift_rotation_deg", "brf_delta_t_k", "scene_illuminant",
+                  "brf_retardance_temp_coeff_per_k")
+    device_keys = _jsonable({k: v for k, v in mm.active().items() if k not in after_keys})
+    base_keys = _jsonable({k: v for k, v in _base_mismatch(base).items() if k not in after_keys})
+    if device_keys != base_keys:
+        raise ValueError(f"rerender_after_calibration: mismatch keys {sorted(device_keys)} "
+                         f"differ from the base set's device keys {sorted(base_keys)}: they "
+                         "change the calibration frames too; simulate the whole set instead")
     renderer = build_renderer(cfg, device)
     specs, planned, _ = plan_captures(cfg, renderer, lambda *a: None)
-    types = {"scene"} | ({"white"} if whites else set())
+    types = ({"scene"} if scenes else set()) | ({"white"} if whites else set())
     sel = [pc for pc in planned if pc.type in types]
     missing = [pc.file for pc in planned if not (base / pc.file).is_file()]
     if missing:
@@ -95,7 +122,11 @@ def rerender_after_calibration(
     truth_json = out / "ground_truth" / "truth.json"
     if truth_json.is_file():
         meta = json.loads(truth_json.read_text())
-        meta["mismatch"] = mm.active()
+        if scenes:
+            meta["mismatch"] = mm.active()
+        if whites:  # the after-calibration effects the white references were shot with
+            meta["white_mismatch"] = _jsonable({k: v for k, v in mm.active().items()
+                                                if k in after_keys})
         meta["rerendered_after_calibration"] = sorted(redo)
         truth_json.unlink()  # a link to the base's file: write a new one
         truth_json.write_text(json.dumps(meta, indent=1))
