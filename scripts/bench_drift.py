@@ -5,10 +5,11 @@ costs, and what it measures, on full-size captures.
 Each capture is reconstructed once with the bundle (``Reconstructor.reconstruct_file``, drift
 check on, as the CLI runs it: its ``timings`` give the per-pixel solve beside ``drift``); the
 frame the pipeline handed to the drift check is kept and :func:`estimate_drift` is timed on it
-``--repeat`` times more: CPU time of the process (``time.process_time``) and wall time, in
-``--threads`` threads (torch and OpenCV; default 1). The measured sensor motion and per-view
-shifts are printed and written to ``--json``, so that two versions of the code can be compared
-on the same frames.
+``--repeat`` times more with :func:`drift_motion_px` (the check as the pipeline runs it), and
+the correction's sampling grid (:func:`corrected_sensing`) apart: CPU time of the process
+(``time.process_time``) and wall time, in ``--threads`` threads (torch and OpenCV; default 1).
+The measured sensor motion and per-view shifts are printed and written to ``--json``, so that
+two versions of the code can be compared on the same frames.
 
 ``--score-sets`` scores capture sets (the ideal one, a drifted one rendered after calibration)
 as ``hsi-torch experiment mismatch`` does (:func:`hsi_torch.experiments.mismatch.score_captures`:
@@ -34,7 +35,7 @@ import torch
 
 import hsi_torch.recon.pipeline as pipeline
 from hsi_torch.recon import Reconstructor
-from hsi_torch.recon.drift import estimate_drift
+from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 
 
 def score_set(bundle: Path, captures: Path) -> dict:
@@ -100,22 +101,33 @@ def main(argv: list[str] | None = None) -> int:
             frames.clear()
             res = rec.reconstruct_file(path)
             img = frames[0]
-            cpu, wall = [], []
+            cpu, wall, cpu_fix, wall_fix = [], [], [], []
             for _ in range(args.repeat):
                 c0, w0 = time.process_time(), time.perf_counter()
                 est = estimate_drift(rec.sensing, img)
+                drift_motion_px(rec.sensing, est)
                 cpu.append(time.process_time() - c0)
                 wall.append(time.perf_counter() - w0)
+                if est.sensor_shift_px is not None:
+                    c0, w0 = time.process_time(), time.perf_counter()
+                    corrected_sensing(rec.sensing, est.sensor_shift_px,
+                                      est.sensor_rotation_deg or 0.0)
+                    cpu_fix.append(time.process_time() - c0)
+                    wall_fix.append(time.perf_counter() - w0)
             d = est.to_dict()
             rows[str(path)] = {
-                "drift": d, "cpu_s": cpu, "wall_s": wall,
+                "drift": d, "cpu_s": cpu, "wall_s": wall, "correction_cpu_s": cpu_fix,
+                "correction_wall_s": wall_fix,
                 "pipeline_timings_s": {k: round(v, 4) for k, v in res.timings.items()},
             }
             t = res.timings
             print(f"{path}: drift check CPU {min(cpu):.3f} s (median {statistics.median(cpu):.3f}),"
                   f" wall {min(wall):.3f} s (median {statistics.median(wall):.3f}) in "
-                  f"{args.threads} thread(s); in the pipeline: drift {t['drift']:.3f} s, solve "
-                  f"{t.get('solve', float('nan')):.3f} s, total {t['total']:.3f} s")
+                  f"{args.threads} thread(s); the correction's grid CPU "
+                  f"{min(cpu_fix, default=float('nan')):.3f} s, wall "
+                  f"{min(wall_fix, default=float('nan')):.3f} s; in the pipeline: drift "
+                  f"{t['drift']:.3f} s, solve {t.get('solve', float('nan')):.3f} s, total "
+                  f"{t['total']:.3f} s")
             print(f"  sensor shift {d['sensor_shift_px']} px, rotation "
                   f"{d['sensor_rotation_deg']} deg, {d['measured_views']} views; view shifts "
                   f"{d['view_shift_px']}; correlation {d['correlation']}")

@@ -193,6 +193,15 @@ def test_corrected_samples_off_the_sensor_are_dropped(sims):
     assert inside.shape == (sens.num_views, sens.num_pixels) and not bool(inside.all())
     assert bool(((x[~inside] < 0) | (x[~inside] > W - 1)).all())
     assert bool(((x[inside] >= 0) & (x[inside] <= W - 1)).all())
+    # the grid is the calibrated one moved by M⁻¹ (a turn too), in px
+    H = sens.sensor_size[0]
+    g = sens.grid()[0].double()
+    px = torch.stack([(g[..., 0] + 1) * (W - 1) / 2, (g[..., 1] + 1) * (H - 1) / 2], -1)
+    want = motion_points(px, (3.0, -2.0), 0.3, ((W - 1) / 2, (H - 1) / 2), inverse=True)
+    turned = corrected_sensing(sens, (3.0, -2.0), 0.3).grid()[0].double()
+    got = torch.stack([(turned[..., 0] + 1) * (W - 1) / 2, (turned[..., 1] + 1) * (H - 1) / 2],
+                      -1)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-3)  # float32 grid
     # the original is untouched, the factorisation shared
     assert sens.sample_inside is None and moved.problem is sens.problem
     # a frame solved on it drops those observations (and re-solves the pixels concerned)

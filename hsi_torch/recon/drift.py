@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -240,16 +241,26 @@ def _present(sens: Any) -> np.ndarray:
     return present.view(V, h, w).numpy()
 
 
+def _refs(tensors: tuple) -> tuple:
+    """Weak references to ``tensors`` (a cache key that neither keeps them alive nor matches
+    a later tensor at the same address)."""
+    return tuple(weakref.ref(t) for t in tensors)
+
+
+def _same(refs: tuple, tensors: tuple) -> bool:
+    return len(refs) == len(tensors) and all(r() is t for r, t in zip(refs, tensors, strict=True))
+
+
 def _static(sens: Any) -> _Static:
     """:class:`_Static` of ``sens``, kept on it (shared with its copies of the same masks and
     homographies; rebuilt when those differ)."""
-    key = (id(sens.obs_mask), id(sens.pixel_index), id(sens.homographies),
-           tuple(int(v) for v in sens.reference_bbox))
+    tensors = (sens.obs_mask, sens.pixel_index, sens.homographies)
+    bbox = tuple(int(v) for v in sens.reference_bbox)
     cache = getattr(sens, "_drift_static", None)
     st = cache.get("static") if isinstance(cache, dict) else None
-    if st is not None and st.key == key:
+    if st is not None and st.key[1] == bbox and _same(st.key[0], tensors):
         return st
-    st = _build_static(sens, key)
+    st = _build_static(sens, (_refs(tensors), bbox))
     if isinstance(cache, dict):
         cache["static"] = st
     return st
@@ -432,18 +443,34 @@ def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
     return DriftEstimate(shifts, corr, t, theta, resid, mx)
 
 
+def _sample_box(sens: Any) -> Tensor | None:
+    """``(4, 2)`` corners (sensor px, float64) of the box around the views' samples, or
+    ``None`` without any; kept on ``sens`` for its grid and masks."""
+    grid = sens.grid()
+    cache = getattr(sens, "_drift_static", None)
+    hit = cache.get("sample_box") if isinstance(cache, dict) else None
+    if hit is not None and _same(hit[0], (grid, sens.obs_mask)):
+        return hit[1]
+    px = _grid_px(sens)[sens.obs_mask.view(-1, sens.num_views, 3).any(2).T.to(
+        grid.device)]  # (n, 2) the views' samples
+    corners = None
+    if px.numel():
+        lo, hi = px.min(0).values, px.max(0).values
+        corners = torch.stack([lo, torch.stack([hi[0], lo[1]]), torch.stack([lo[0], hi[1]]), hi])
+    if isinstance(cache, dict):
+        cache["sample_box"] = (_refs((grid, sens.obs_mask)), corners)
+    return corners
+
+
 def drift_motion_px(sens: Any, est: DriftEstimate) -> float:
     """The largest displacement (px) the fitted sensor motion gives a sensor pixel that a view
     uses: ``max |M(p) − p|`` over the corners of the box around the views' samples (the
     maximum of ``|M(p) − p|`` over a box is at a corner). 0 without a fit."""
     if est.sensor_shift_px is None:
         return 0.0
-    px = _grid_px(sens)[sens.obs_mask.view(-1, sens.num_views, 3).any(2).T.to(
-        sens.grid().device)]  # (n, 2) the views' samples
-    if px.numel() == 0:
+    corners = _sample_box(sens)
+    if corners is None:
         return 0.0
-    lo, hi = px.min(0).values, px.max(0).values
-    corners = torch.stack([lo, torch.stack([hi[0], lo[1]]), torch.stack([lo[0], hi[1]]), hi])
     moved = motion_points(corners, est.sensor_shift_px, est.sensor_rotation_deg or 0.0,
                           _centre(sens.sensor_size))
     return float((moved - corners).norm(dim=1).max())
@@ -457,13 +484,19 @@ def corrected_sensing(sens: Any, shift_px: Any, rotation_deg: float) -> Any:
     (the others are dropped from the frame's observations). The factorisation, ``A`` and the
     static masks are shared with ``sens``.
     """
-    from kornia.geometry.conversions import normalize_pixel_coordinates
-
     H, W = sens.sensor_size
-    px = _grid_px(sens)
-    moved = motion_points(px, shift_px, float(rotation_deg), _centre(sens.sensor_size),
-                          inverse=True)
-    inside = ((moved[..., 0] >= 0) & (moved[..., 0] <= W - 1)
-              & (moved[..., 1] >= 0) & (moved[..., 1] <= H - 1))
-    grid = normalize_pixel_coordinates(moved, H, W).unsqueeze(0).to(sens.dtype)
+    # M⁻¹(p) = (p − c − t) R + c (row vectors, as motion_points(inverse=True)), with the sensor
+    # px p = (g + 1)·half of the normalised grid g: one affine map of g, g' = g·A + b
+    half = np.array([(W - 1) / 2.0, (H - 1) / 2.0])
+    c, t = np.asarray(_centre(sens.sensor_size)), np.asarray(shift_px, np.float64)
+    a = math.radians(float(rotation_deg))
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    A = half[:, None] * rot / half[None, :]
+    b = ((half - c - t) @ rot + c) / half - 1.0
+    g = sens.grid()[0].double()  # (V, P, 2)
+    V, P = g.shape[:2]
+    moved = torch.addmm(torch.as_tensor(b, device=g.device), g.view(-1, 2),
+                        torch.as_tensor(A, device=g.device)).view(V, P, 2)
+    inside = (moved.abs() <= 1).all(-1)  # 0 ≤ x ≤ W − 1 and 0 ≤ y ≤ H − 1
+    grid = moved.unsqueeze(0).to(sens.dtype)
     return dataclasses.replace(sens, sample_grid=grid, sample_inside=inside.to(sens.device))
