@@ -191,6 +191,29 @@ def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.
     return g
 
 
+def _filter_valid(z: Tensor, kernel: Tensor) -> Tensor:
+    """``z (k, 1, h, w)`` correlated with the separable ``kernel ⊗ kernel`` (``(n,)``), 'valid'
+    part ``(k, 1, h − n + 1, w − n + 1)``: along the rows, then the columns. On the CPU in
+    float32/64 through OpenCV's ``sepFilter2D`` (same arithmetic as the two ``conv2d``, many times
+    faster in float64), else ``conv2d``."""
+    n = kernel.shape[0]
+    if z.device.type == "cpu" and z.dtype in (torch.float32, torch.float64):
+        import cv2  # lazy: only when an SSIM is computed on the CPU
+
+        r = n // 2
+        k_np = kernel.detach().numpy()
+        a = z.detach().contiguous().numpy()
+        _, _, h, w = a.shape
+        out = torch.empty((a.shape[0], 1, h - n + 1, w - n + 1), dtype=z.dtype)
+        o = out.numpy()
+        for i in range(a.shape[0]):
+            o[i, 0] = cv2.sepFilter2D(a[i, 0], -1, k_np, k_np, anchor=(r, r),
+                                      borderType=cv2.BORDER_REFLECT)[r:h - n + 1 + r,
+                                                                     r:w - n + 1 + r]
+        return out
+    return F.conv2d(F.conv2d(z, kernel.view(1, 1, 1, n)), kernel.view(1, 1, n, 1))
+
+
 def ssim(
     estimate: torch.Tensor,
     truth: torch.Tensor,
@@ -219,18 +242,23 @@ def ssim(
     if h < window or w < window:
         raise ValueError(f"ssim: cube {h}x{w} px is smaller than the {window}x{window} window")
     g = _gaussian_window(window, sigma, e.dtype, e.device)
-    gx, gy = g.view(1, 1, 1, window), g.view(1, 1, window, 1)
 
     def blur(z: Tensor) -> Tensor:  # separable 'valid' Gaussian: no (k², h, w) unfolding
-        return F.conv2d(F.conv2d(z, gx), gy)
+        return _filter_valid(z, g)
 
     # window positions wholly inside the mask: a box filter of the mask equals the window area
-    ones = torch.ones(1, 1, 1, window, dtype=e.dtype, device=e.device)
     keep = m[:, None].to(e.dtype)
-    box = F.conv2d(F.conv2d(keep, ones), ones.transpose(2, 3))
+    box = _filter_valid(keep, torch.ones(window, dtype=e.dtype, device=e.device))
     inside = (box[:, 0] > window * window - 0.5).to(e.dtype)  # (n, h', w')
     if not bool(inside.any()):
         raise ValueError(f"ssim: no {window}x{window} window lies wholly inside the mask")
+    # only the rows and columns of the image that those windows cover are filtered
+    rows = torch.nonzero(inside.any(2).any(0))[:, 0]
+    cols = torch.nonzero(inside.any(1).any(0))[:, 0]
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    inside = inside[:, y0:y1, x0:x1]
+    e, t, m = (z[..., y0:y1 + window - 1, x0:x1 + window - 1] for z in (e, t, m))
+    h, w = e.shape[-2:]
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
     zero = torch.zeros((), dtype=e.dtype, device=e.device)
     sums = torch.zeros(M, dtype=e.dtype, device=e.device)
