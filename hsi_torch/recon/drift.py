@@ -493,10 +493,13 @@ def corrected_sensing(sens: Any, shift_px: Any, rotation_deg: float) -> Any:
     rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     A = half[:, None] * rot / half[None, :]
     b = ((half - c - t) @ rot + c) / half - 1.0
-    g = sens.grid()[0].double()  # (V, P, 2)
-    V, P = g.shape[:2]
-    moved = torch.addmm(torch.as_tensor(b, device=g.device), g.view(-1, 2),
-                        torch.as_tensor(A, device=g.device)).view(V, P, 2)
-    inside = (moved.abs() <= 1).all(-1)  # 0 ≤ x ≤ W − 1 and 0 ≤ y ≤ H − 1
-    grid = moved.unsqueeze(0).to(sens.dtype)
+    g = sens.grid()  # (1, V, P, 2)
+    A_t = torch.as_tensor(A, device=g.device)
+    b_t = torch.as_tensor(b, device=g.device)
+    grid = torch.empty(g.shape, dtype=sens.dtype, device=g.device)
+    inside = torch.empty(g.shape[1:3], dtype=torch.bool, device=g.device)
+    for v in range(g.shape[1]):  # view by view: float64 temporaries that stay in the cache
+        moved = torch.addmm(b_t, g[0, v].double(), A_t)
+        grid[0, v] = moved
+        torch.all(moved.abs() <= 1, -1, out=inside[v])  # 0 ≤ x ≤ W − 1 and 0 ≤ y ≤ H − 1
     return dataclasses.replace(sens, sample_grid=grid, sample_inside=inside.to(sens.device))
