@@ -49,7 +49,8 @@ def score_set(bundle: Path, captures: Path) -> dict:
     def keep(self, path, *a, **k):
         res = orig(self, path, *a, **k)
         seen.append({"file": Path(path).name, "drift": res.stats.get("drift"),
-                     "drift_s": res.timings.get("drift")})
+                     "drift_s": res.timings.get("drift"),
+                     "fit_residual": res.stats.get("fit_residual")})
         return res
 
     out = {}
@@ -67,7 +68,8 @@ def score_set(bundle: Path, captures: Path) -> dict:
             for r in seen:
                 d = r["drift"]
                 print(f"  {r['file']}: shift {d['sensor_shift_px']} px, rotation "
-                      f"{d['sensor_rotation_deg']} deg, drift check {r['drift_s']:.3f} s")
+                      f"{d['sensor_rotation_deg']} deg, fit residual {r['fit_residual']:.3f}, "
+                      f"drift check {r['drift_s']:.3f} s")
     finally:
         mm.Reconstructor.reconstruct_file = orig
     return out
