@@ -5,6 +5,7 @@ Small prototype (400 × 384 px), ColorChecker only, oracle bundle."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+import hsi_torch.recon.drift as drift
 from hsi_torch.cli import main
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.experiments.metrics import colorchecker_scores, erode_px
@@ -103,6 +105,69 @@ def test_a_rotation_is_measured(sims):
     np.testing.assert_allclose(est.sensor_shift_px, (0.5, 0.0), atol=0.2)
 
 
+def test_the_block_factor_rule():
+    """2 × 2 blocks from a 320 px shorter side (the full-size frame is 744 × 858 px), none on the
+    small prototype's frame."""
+    assert drift._block_factor((744, 858)) == 2
+    assert drift._block_factor((320, 400)) == 2
+    assert drift._block_factor((319, 400)) == 1
+    assert drift._block_factor((104, 120)) == 1
+
+
+def test_block_images_are_the_block_means_and_measure_a_shift(sims, monkeypatch):
+    """Forced onto the small frame, the ``2 × 2`` path: its view images are exactly the block
+    means of the full-resolution ones, and a whole-pixel sensor shift is still measured (to
+    0.2 px: the 52 × 60-block frame is coarse; at full size see docs/reconstruct.md)."""
+    rec = Reconstructor(sims["bundle"], dtype=torch.float64)
+    sens = rec.sensing
+    img = _image(sims["ideal"])
+    full = drift._view_images(sens, img, drift._static(sens))
+    monkeypatch.setattr(drift, "_MIN_BLOCKS", 32)
+    sens._drift_static.clear()
+    st = drift._static(sens)
+    assert st.factor == 2 and len(st.pairs) == 9
+    blocks = drift._view_images(sens, img, st)
+    hf, wf = st.size
+    want = full[:, :2 * hf, :2 * wf].reshape(-1, hf, 2, wf, 2).mean((2, 4))
+    np.testing.assert_allclose(blocks, want, rtol=1e-5, atol=1e-3)
+    est = estimate_drift(sens, torch.roll(img, shifts=(-2, 3), dims=(1, 2)))
+    assert est.measured_views >= 6
+    np.testing.assert_allclose(est.sensor_shift_px, (-3, 2), atol=0.2)
+
+
+def test_the_per_bundle_part_is_built_once_and_shared(sims, monkeypatch):
+    rec = Reconstructor(sims["bundle"])
+    sens = rec.sensing
+    sens._drift_static.clear()
+    built = []
+    orig = drift._build_static
+    monkeypatch.setattr(drift, "_build_static", lambda s, k: built.append(k) or orig(s, k))
+    img = _image(sims["drift"]).float()
+    first = estimate_drift(sens, img)
+    again = estimate_drift(sens, img)
+    np.testing.assert_array_equal(first.view_shift_px, again.view_shift_px)
+    # the corrected copy shares the bundle's masks and homographies, and so the static part
+    estimate_drift(corrected_sensing(sens, first.sensor_shift_px, 0.0), img)
+    assert len(built) == 1
+    # a copy with other masks gets its own
+    other = dataclasses.replace(sens, obs_mask=sens.obs_mask.clone())
+    estimate_drift(other, img)
+    assert len(built) == 2
+
+
+def test_non_finite_samples_count_as_zero(sims):
+    """NaN and inf pixels in a frame are read as 0 (and the largest float), as before."""
+    rec = Reconstructor(sims["bundle"])
+    img = _image(sims["drift"]).float()
+    bad = img.clone()
+    bad[:, 100:104, 150:160] = float("nan")
+    bad[1, 200, 40] = float("inf")
+    got = estimate_drift(rec.sensing, bad)
+    want = estimate_drift(rec.sensing, torch.nan_to_num(bad))
+    np.testing.assert_array_equal(got.view_shift_px, want.view_shift_px)
+    assert got.measured_views >= 6
+
+
 def test_refine_registration_recovers_the_lost_db(sims):
     ideal = _means_db(sims["ideal"], Reconstructor(sims["bundle"]).reconstruct_file(
         sims["ideal"] / "scenes" / "colorchecker.tif"))
@@ -128,6 +193,15 @@ def test_corrected_samples_off_the_sensor_are_dropped(sims):
     assert inside.shape == (sens.num_views, sens.num_pixels) and not bool(inside.all())
     assert bool(((x[~inside] < 0) | (x[~inside] > W - 1)).all())
     assert bool(((x[inside] >= 0) & (x[inside] <= W - 1)).all())
+    # the grid is the calibrated one moved by M⁻¹ (a turn too), in px
+    H = sens.sensor_size[0]
+    g = sens.grid()[0].double()
+    px = torch.stack([(g[..., 0] + 1) * (W - 1) / 2, (g[..., 1] + 1) * (H - 1) / 2], -1)
+    want = motion_points(px, (3.0, -2.0), 0.3, ((W - 1) / 2, (H - 1) / 2), inverse=True)
+    turned = corrected_sensing(sens, (3.0, -2.0), 0.3).grid()[0].double()
+    got = torch.stack([(turned[..., 0] + 1) * (W - 1) / 2, (turned[..., 1] + 1) * (H - 1) / 2],
+                      -1)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-3)  # float32 grid
     # the original is untouched, the factorisation shared
     assert sens.sample_inside is None and moved.problem is sens.problem
     # a frame solved on it drops those observations (and re-solves the pixels concerned)

@@ -75,6 +75,44 @@ def test_ssim_matches_skimage():
     assert float(hm.ssim(t, t)) == pytest.approx(1.0, abs=1e-12)
 
 
+def _ssim_full_frame(e, t, m, window=11, sigma=1.5):
+    """The SSIM of ``ssim`` computed the direct way: the whole frame filtered with ``conv2d``,
+    the map averaged over the windows wholly inside the mask."""
+    import torch.nn.functional as F
+
+    x = torch.arange(window, dtype=e.dtype) - (window - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+
+    def blur(z):
+        return F.conv2d(F.conv2d(z, g.view(1, 1, 1, -1)), g.view(1, 1, -1, 1))
+
+    x, y = torch.where(m, e, 0.0)[:, None], torch.where(m, t, 0.0)[:, None]
+    inside = blur(m[None, None].to(e.dtype) * 1.0) > 1 - 1e-9  # a normalised box would do
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    smap = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
+    return (smap[:, 0] * inside[0, 0]).sum((1, 2)) / inside.sum()
+
+
+def test_ssim_in_a_mask_is_the_full_frame_computation():
+    """The CPU path (OpenCV's separable filter, only the rows and columns the mask's windows
+    cover) gives the direct full-frame ``conv2d`` computation's numbers."""
+    e, t = _pair("cpu", torch.float64, shape=(5, 60, 70), seed=4)
+    m = torch.zeros(60, 70, dtype=torch.bool)
+    m[7:40, 12:50] = True
+    m[45:58, 3:30] = True
+    m[20, 30] = False  # a hole: the windows over it do not count
+    want = _ssim_full_frame(e, t, m)
+    assert_close(hm.ssim(e, t, m, per_band=True), want, rtol=0, atol=1e-12)
+    # float32 too, and the whole frame
+    assert_close(hm.ssim(e.float(), t.float(), m, per_band=True), want.float(), rtol=0,
+                 atol=1e-5)
+    full = torch.ones(60, 70, dtype=torch.bool)
+    assert_close(hm.ssim(e, t, per_band=True), _ssim_full_frame(e, t, full), rtol=0, atol=1e-12)
+
+
 def test_metrics_match_torchmetrics():
     tmf = pytest.importorskip("torchmetrics.functional.image")
     e, t = _pair("cpu", torch.float64, seed=2)

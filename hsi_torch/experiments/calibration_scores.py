@@ -23,7 +23,8 @@ __all__ = ["score_against_truth", "targets_met", "format_scores"]
 
 
 def score_against_truth(
-    bundle: CalibrationBundle | str | Path, capture_dir: str | Path
+    bundle: CalibrationBundle | str | Path, capture_dir: str | Path,
+    truth: dict[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Compare a calibration bundle with the ground truth of a simulated capture set.
 
@@ -41,9 +42,12 @@ def score_against_truth(
     - ``homography_rms_px`` / ``homography_max_px`` per view: ``|H_est(p) − q|`` in reference
       px for ``p = H_true⁻¹(q)`` over the reference-frame pixels where the view is truly present.
     - valid-region sizes and their intersection over union.
+
+    ``truth``: the arrays of :func:`~hsi_torch.io.capture_set.read_truth` of ``capture_dir``,
+    when the caller has them already (not read again).
     """
     b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
-    t, _ = read_truth(capture_dir)
+    t = truth if truth is not None else read_truth(capture_dir)[0]
     if tuple(t["B"].shape[:2]) != tuple(b.B.shape[:2]) or (
             "reference_bbox" not in t and tuple(t["B"].shape) != tuple(b.B.shape)):
         raise ValueError(
@@ -55,20 +59,21 @@ def score_against_truth(
     Q = t["valid"] & b.valid
     both = t["view_mask"] & b.view_mask & Q[None]  # (V, h, w)
     V = b.num_views
-    Bt = t["B"].astype(np.float64)
-    Be = b.B.astype(np.float64)
-    d = (Be - Bt).transpose(1, 0, 2, 3)[:, both]  # (M, n)
-    ref = Bt.transpose(1, 0, 2, 3)[:, both]
+    # each view's common pixels gathered first, then in float64: (M, n_v) differences and truth
+    ref_v = [t["B"][v][:, both[v]].astype(np.float64) for v in range(V)]
+    d_v = [b.B[v][:, both[v]].astype(np.float64) - r for v, r in enumerate(ref_v)]
+    d = np.concatenate(d_v, axis=1)  # (M, n), the pixels in (view, row, column) order
+    ref = np.concatenate(ref_v, axis=1)
     out: dict[str, Any] = {
         "B_rel_rms": float(np.sqrt((d**2).mean()) / np.sqrt((ref**2).mean())),
         "B_rel_rms_per_view": [
-            float(np.sqrt(((Be[v] - Bt[v])[:, both[v]] ** 2).mean())
-                  / np.sqrt((Bt[v][:, both[v]] ** 2).mean()))
+            float(np.sqrt((d_v[v] ** 2).mean()) / np.sqrt((ref_v[v] ** 2).mean()))
             if both[v].any() else float("nan")
             for v in range(V)
         ],  # fmt: skip
         "B_abs_rms": float(np.sqrt((d**2).mean())),
     }
+    del d, ref, d_v, ref_v
     pe, pt = b.phi.astype(np.float64), t["phi"].astype(np.float64)
     out["phi_corr"] = [float(np.corrcoef(pe[c], pt[c])[0, 1]) for c in range(3)]
     m0 = both[0]

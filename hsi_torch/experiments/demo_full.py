@@ -42,11 +42,63 @@ from hsi_torch.io.capture_set import read_truth
 from hsi_torch.profiling import run_child
 from hsi_torch.resources import shipped_config
 
-__all__ = ["demo_full"]
+__all__ = ["demo_full", "score_full"]
 
 
 def _hsi(*args: str) -> list[str]:
     return [sys.executable, "-m", "hsi_torch", "-q", *args]
+
+
+def _full_scenes(cfg: Any, out: Path, log) -> list[dict[str, Any]]:
+    """The scene specs of the full-size run: the demo's (ColorChecker, CAVE or the synthetic
+    cube) with the USAF target second."""
+    grid_wl = np.arange(430.0, 670.0 + 1e-9, 10.0)
+    scenes = _scene_specs(cfg, out, grid_wl, log)
+    scenes.insert(1, {"kind": "usaf", "name": "usaf",
+                      "params": {"groups": [2, 3, 4], "magnification": 1.0,
+                                 "center_mm": [0.0, 1.0]}})  # fmt: skip
+    return scenes
+
+
+def score_full(out: str | Path, cfg: Any, scenes: list[dict[str, Any]] | None = None, *,
+               log=print) -> dict[str, Any]:
+    """Stage 5 alone: score a full-size run's outputs in ``out`` (``captures``, ``calib``,
+    ``cubes_calibrated``, ``cubes_oracle``) against the truth and write its previews, panels
+    and spectra plots into ``out`` (the folders may be links to another run's).
+
+    Returns:
+        ``{"calibration", "scenes", "sensor_size", "valid_pixels_true"}`` as in
+        ``summary.json``.
+    """
+    out = Path(out)
+    cap_dir, cal_dir = out / "captures", out / "calib"
+    scenes = _full_scenes(cfg, out, log) if scenes is None else scenes
+    truth, _ = read_truth(cap_dir)  # once, for the calibration and the scenes
+    cal_scores = score_against_truth(cal_dir / "calib.npz", cap_dir, truth)
+    log("      calibration vs truth:\n      " + format_scores(cal_scores).replace("\n", "\n      "))
+    wl = np.asarray(truth["wavelengths_nm"], np.float64)
+    results: dict[str, Any] = {}
+    for spec in scenes:
+        name = spec["name"]
+        files = {k: out / f"cubes_{k}" / f"{name}.npz" for k in ("calibrated", "oracle")}
+        if not all(f.is_file() for f in files.values()):
+            log(f"      scene {name}: no cube (not simulated)")
+            continue
+        cubes, valids, timings = {}, {}, {}
+        for key, f in files.items():
+            c = load_cube(f)
+            cubes[key] = np.asarray(c.cube, np.float64)
+            valids[key] = np.asarray(c.valid, bool)
+            timings[key] = c.metadata.get("timings_s", {})
+        entry, both, true_cube = score_scene(spec, cubes, valids, truth, out,
+                                             erode_px(truth, cfg.erode_mm), log)
+        entry["reconstruct_timings_s"] = timings
+        _previews(out, name, wl, true_cube * both[None], cubes, entry, cfg.beta)
+        results[name] = entry
+        del cubes
+    return {"calibration": cal_scores, "scenes": results,
+            "sensor_size": [int(v) for v in truth["sensor_size"]],
+            "valid_pixels_true": int(truth["valid"].sum())}
 
 
 def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
@@ -62,11 +114,7 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    grid_wl = np.arange(430.0, 670.0 + 1e-9, 10.0)
-    scenes = _scene_specs(cfg, out, grid_wl, log)
-    scenes.insert(1, {"kind": "usaf", "name": "usaf",
-                      "params": {"groups": [2, 3, 4], "magnification": 1.0,
-                                 "center_mm": [0.0, 1.0]}})  # fmt: skip
+    scenes = _full_scenes(cfg, out, log)
     stages: dict[str, dict[str, float]] = {}
 
     def stage(key: str, title: str, cmd: list[str]) -> None:
@@ -105,35 +153,14 @@ def demo_full(out: str | Path, cfg: Any, *, log=print) -> dict[str, Any]:
     # ---- score --------------------------------------------------------------------------------
     log("[6/6] scoring against the truth ...")
     t0 = time.perf_counter()
-    cal_scores = score_against_truth(cal_dir / "calib.npz", cap_dir)
-    log("      calibration vs truth:\n      " + format_scores(cal_scores).replace("\n", "\n      "))
-    truth, _ = read_truth(cap_dir)
-    wl = np.asarray(truth["wavelengths_nm"], np.float64)
-    results: dict[str, Any] = {}
-    for spec in scenes:
-        name = spec["name"]
-        files = {k: out / f"cubes_{k}" / f"{name}.npz" for k in ("calibrated", "oracle")}
-        if not all(f.is_file() for f in files.values()):
-            log(f"      scene {name}: no cube (not simulated)")
-            continue
-        cubes, valids, timings = {}, {}, {}
-        for key, f in files.items():
-            c = load_cube(f)
-            cubes[key] = np.asarray(c.cube, np.float64)
-            valids[key] = np.asarray(c.valid, bool)
-            timings[key] = c.metadata.get("timings_s", {})
-        entry, both, true_cube = score_scene(spec, cubes, valids, truth, out,
-                                             erode_px(truth, cfg.erode_mm), log)
-        entry["reconstruct_timings_s"] = timings
-        _previews(out, name, wl, true_cube * both[None], cubes, entry, cfg.beta)
-        results[name] = entry
-        del cubes
+    scored = score_full(out, cfg, scenes, log=log)
+    cal_scores, results = scored["calibration"], scored["scenes"]
     stages["score"] = {"wall_s": time.perf_counter() - t0}
     summary = {
         "prototype": "full size (simulate_full.yaml)",
         "beta": cfg.beta,
-        "sensor_size": [int(v) for v in truth["sensor_size"]],
-        "valid_pixels_true": int(truth["valid"].sum()),
+        "sensor_size": scored["sensor_size"],
+        "valid_pixels_true": scored["valid_pixels_true"],
         "calibration": cal_scores,
         "calibration_targets_met": targets_met(cal_scores),
         "scenes": results,

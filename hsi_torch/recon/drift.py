@@ -15,6 +15,14 @@ scene through different spectral filters, so their intensities differ, but the e
 same places. The result is a per-view shift ``d_v`` (reference-frame px, ``(x, y)``): view
 ``v``'s content at ``x`` is the reference view's content at ``x + d_v`` (``d_0 = 0``).
 
+**Cost.** A reference frame at least 320 px on its shorter side (the full-size prototype's is
+744 × 858) is aligned on ``2 × 2``-pixel block means of the warped views (:func:`_block_factor`):
+a quarter of the pixels, and measured shifts within 0.02 px of those of the full-resolution
+alignment (``docs/reconstruct.md``). What no frame changes (the views' masks and tapers, the
+compared crops and windows, the fit's Jacobians) is computed once per bundle and kept on the
+sensing (:func:`_static`); a frame costs one warp of its colour sum, the gradient images and
+the alignments (≈ 0.1 s of one CPU core at full size).
+
 **What is corrected** (:func:`corrected_sensing`): a rigid motion of the sensor,
 ``p' = c + R(θ)(p − c) + t`` (its pixel ``p`` sees what the calibrated sensor saw at ``p'``;
 ``c`` the sensor centre). With the bundle's ``H_v`` (view sensor px → reference sensor px), it
@@ -41,14 +49,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
-
-from hsi_torch.optics.geometry import apply_homography
 
 __all__ = [
     "DriftEstimate",
@@ -75,6 +83,14 @@ _MIN_PIXELS = 400
 _MIN_TEXTURE = 1e-4
 #: px: a measured shift larger than this is not trusted (beyond what the common area allows)
 _MAX_SHIFT_PX = 2 * _MARGIN_PX
+#: the views are aligned on images averaged over ``f × f`` pixel blocks (:func:`_block_factor`):
+#: ``f`` is the largest power of two up to this ...
+_MAX_BLOCK = 2
+#: ... that leaves at least this many blocks on the reference frame's shorter side
+_MIN_BLOCKS = 160
+#: ECC's stopping rule: at most this many iterations, or a step below this (block px)
+_ECC_ITERATIONS = 100
+_ECC_EPS = 1e-5
 
 
 @dataclass
@@ -155,96 +171,220 @@ def _grid_px(sens: Any) -> Tensor:
     return denormalize_pixel_coordinates(sens.grid()[0].double(), H, W)
 
 
-def _view_images(sens: Any, image: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """The frame's colour sum warped to the reference frame in every view, on the bundle's
-    valid pixels: ``(V, h, w)`` float32 (0 elsewhere) and ``(V, h, w)`` bool view presence."""
-    from kornia.geometry.transform import remap
+def _block_factor(frame_size: tuple[int, int]) -> int:
+    """The alignment's block size ``f``: the largest power of two up to :data:`_MAX_BLOCK`
+    that leaves the reference frame at least :data:`_MIN_BLOCKS` blocks on its shorter side."""
+    f = 1
+    while 2 * f <= _MAX_BLOCK and min(frame_size) // (2 * f) >= _MIN_BLOCKS:
+        f *= 2
+    return f
 
+
+def _homography_np(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``apply_homography`` for one ``(3, 3)`` matrix and ``(N, 2)`` points, elementwise in
+    NumPy (float64): no BLAS call, so no thread pool woken for a few thousand points."""
+    x, y = pts[:, 0], pts[:, 1]
+    z = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    return np.stack([(h[0, 0] * x + h[0, 1] * y + h[0, 2]) / z,
+                     (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / z], 1)
+
+
+def _jacobian(hs: np.ndarray, v: int, pts: np.ndarray, centre: tuple[float, float]) -> np.ndarray:
+    """``(N, 2, 3)``: ``∂(u_v − u_0)/∂(t_x, t_y, θ°)`` at reference sensor points ``(N, 2)``, as
+    finite differences (a 1 px shift, a 0.01° turn) of ``u_v(x) = H_v(M(H_v⁻¹ x)) − x``."""
+    c = np.asarray(centre, np.float64)
+
+    def disp(k: int, t: tuple[float, float], deg: float) -> np.ndarray:
+        src = _homography_np(np.linalg.inv(hs[k]), pts)
+        a = math.radians(deg)
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        return _homography_np(hs[k], (src - c) @ rot.T + c + np.asarray(t)) - pts
+
+    cols = [(disp(v, t, deg) - disp(0, t, deg)) * scale
+            for t, deg, scale in (((1.0, 0.0), 0.0, 1.0), ((0.0, 1.0), 0.0, 1.0),
+                                  ((0.0, 0.0), 0.01, 100.0))]
+    return np.stack(cols, axis=2)
+
+
+@dataclass
+class _Pair:
+    """What a view's alignment to the reference view needs that no frame changes (block px)."""
+
+    view: int
+    box: tuple[int, int, int, int]  # y0, y1, x0, x1 of the compared crop
+    mask: np.ndarray  # (y1 − y0, x1 − x0) uint8, the common area
+    window: np.ndarray  # Hanning window of the crop, float32
+    points: tuple[np.ndarray, np.ndarray]  # (ys, xs) of ≈ 2000 common blocks (the fit's weights)
+    jacobian: np.ndarray  # (N, 2, 3) at those blocks' centres (:func:`_jacobian`)
+
+
+@dataclass
+class _Static:
+    """Per-bundle part of the drift check (masks, crops, windows, the fit's Jacobians)."""
+
+    key: tuple
+    factor: int
+    size: tuple[int, int]  # (h // f, w // f) blocks
+    block_of_pixel: tuple[Tensor | None, Tensor]  # (valid pixels inside the blocks or None:
+    # all, and their block's flat index)
+    inner: list[np.ndarray]  # per view, uint8: the view's blocks shrunk by the erosion
+    taper: list[np.ndarray | None]  # per view, float32 0–1 (None: nothing of the view left)
+    pairs: list[_Pair]
+
+
+def _present(sens: Any) -> np.ndarray:
+    """``(V, h, w)`` bool: the reference pixels each view observes (any colour)."""
     h, w = sens.frame_size
-    grid = sens.grid().to(device=image.device, dtype=image.dtype)
-    gray = image.sum(0, keepdim=True).unsqueeze(0)  # (1, 1, H, W)
-    s = remap(gray, grid[..., 0], grid[..., 1], mode="bilinear", padding_mode="zeros",
-              align_corners=True, normalized_coordinates=True)[0, 0]  # (V, P)
+    V = sens.num_views
+    present = torch.zeros((V, h * w), dtype=torch.bool)
+    present[:, sens.pixel_index.cpu()] = sens.obs_mask.view(-1, V, 3).any(2).T.cpu()
+    return present.view(V, h, w).numpy()
+
+
+def _refs(tensors: tuple) -> tuple:
+    """Weak references to ``tensors`` (a cache key that neither keeps them alive nor matches
+    a later tensor at the same address)."""
+    return tuple(weakref.ref(t) for t in tensors)
+
+
+def _same(refs: tuple, tensors: tuple) -> bool:
+    return len(refs) == len(tensors) and all(r() is t for r, t in zip(refs, tensors, strict=True))
+
+
+def _static(sens: Any) -> _Static:
+    """:class:`_Static` of ``sens``, kept on it (shared with its copies of the same masks and
+    homographies; rebuilt when those differ)."""
+    tensors = (sens.obs_mask, sens.pixel_index, sens.homographies)
+    bbox = tuple(int(v) for v in sens.reference_bbox)
+    cache = getattr(sens, "_drift_static", None)
+    st = cache.get("static") if isinstance(cache, dict) else None
+    if st is not None and st.key[1] == bbox and _same(st.key[0], tensors):
+        return st
+    st = _build_static(sens, (_refs(tensors), bbox))
+    if isinstance(cache, dict):
+        cache["static"] = st
+    return st
+
+
+def _build_static(sens: Any, key: tuple) -> _Static:
+    import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
+
+    f = _block_factor(sens.frame_size)
+    present = _present(sens)
+    V, h, w = present.shape
+    hf, wf = h // f, w // f
+    # a block belongs to a view when all its pixels do
+    blocks = present[:, :hf * f, :wf * f].reshape(V, hf, f, wf, f).all((2, 4))
+    erode, taper_px, margin = (max(1, round(v / f)) for v in (_ERODE_PX, _TAPER_PX, _MARGIN_PX))
+    inner, taper = [], []
+    for v in range(V):
+        m = cv2.erode(blocks[v].astype(np.uint8), np.ones((2 * erode + 1,) * 2, np.uint8))
+        inner.append(m)
+        taper.append(np.clip(cv2.distanceTransform(m, cv2.DIST_L2, 3) / taper_px, 0, 1)
+                     .astype(np.float32) if m.any() else None)
+    kernel = np.ones((2 * (erode + taper_px + margin) + 1,) * 2, np.uint8)
+    hs = sens.homographies.detach().cpu().double().numpy()
+    x0, y0 = sens.reference_bbox[:2]
+    centre = _centre(sens.sensor_size)
+    pad = margin + taper_px
+    pairs = []
+    for v in range(1, V):
+        common = cv2.erode((blocks[v] & blocks[0]).astype(np.uint8), kernel) > 0
+        if int(common.sum()) * f * f < _MIN_PIXELS:
+            continue
+        ys, xs = np.nonzero(common)
+        by0, bx0 = max(0, int(ys.min()) - pad), max(0, int(xs.min()) - pad)
+        by1, bx1 = min(hf, int(ys.max()) + 1 + pad), min(wf, int(xs.max()) + 1 + pad)
+        if min(by1 - by0, bx1 - bx0) < 16:
+            continue  # too small to align
+        step = max(1, len(ys) // 2000)
+        ys, xs = ys[::step], xs[::step]
+        pts = np.stack([xs * f + (f - 1) / 2 + x0, ys * f + (f - 1) / 2 + y0], 1).astype(
+            np.float64)  # block centres, reference sensor px
+        pairs.append(_Pair(
+            view=v, box=(by0, by1, bx0, bx1),
+            mask=np.ascontiguousarray(common[by0:by1, bx0:bx1]).astype(np.uint8),
+            window=cv2.createHanningWindow((bx1 - bx0, by1 - by0), cv2.CV_32F),
+            points=(ys, xs), jacobian=_jacobian(hs, v, pts, centre)))
+    pix = sens.pixel_index.cpu()
+    ys, xs = pix // w, pix % w
+    inside = (ys < hf * f) & (xs < wf * f)
+    sel = None if bool(inside.all()) else torch.nonzero(inside)[:, 0]
+    if sel is not None:
+        ys, xs = ys[sel], xs[sel]
+    block_of_pixel = (sel, (ys // f) * wf + xs // f)
+    return _Static(key, f, (hf, wf), block_of_pixel, inner, taper, pairs)
+
+
+def _view_images(sens: Any, image: Tensor, st: _Static) -> np.ndarray:
+    """The frame's colour sum warped to the reference frame in every view on the bundle's
+    valid pixels (0 elsewhere), averaged over ``f × f`` blocks: ``(V, h // f, w // f)``
+    float32."""
+    dtype = image.dtype if image.dtype in (torch.float32, torch.float64) else torch.float32
+    grid = sens.grid().to(device=image.device, dtype=dtype)  # (1, V, P, 2) normalised (x, y)
+
+    def warp(gray: Tensor) -> Tensor:
+        return F.grid_sample(gray[None, None].to(dtype), grid, mode="bilinear",
+                             padding_mode="zeros", align_corners=True)[0, 0]  # (V, P)
+
+    s = warp(image.sum(0))
+    if not bool(torch.isfinite(s).all()):  # a sample touched a NaN or ±inf: those count as 0
+        s = warp(torch.nan_to_num(image).sum(0))
     V = s.shape[0]
-    pix = sens.pixel_index.to(s.device)
-    imgs = torch.zeros((V, h * w), dtype=torch.float32, device=s.device)
-    imgs[:, pix] = s.float()
-    present = torch.zeros((V, h * w), dtype=torch.bool, device=s.device)
-    present[:, pix] = sens.obs_mask.view(-1, V, 3).any(2).T.to(s.device)
-    return (imgs.view(V, h, w).cpu().numpy(),
-            present.view(V, h, w).cpu().numpy())
+    hf, wf = st.size
+    sel, index = st.block_of_pixel
+    if sel is not None:  # pixels beyond the last whole block
+        s = s[:, sel.to(s.device)]
+    blocks = torch.zeros((V, hf * wf), dtype=torch.float32, device=s.device)
+    blocks.index_add_(1, index.to(s.device), s.float())
+    imgs = blocks.view(V, hf, wf) / (st.factor**2)
+    return imgs.cpu().numpy()
 
 
-def _features(img: np.ndarray, present: np.ndarray) -> np.ndarray:
-    """Gradient magnitude of ``img`` over its mean on the view, tapered to 0 at the view's
-    edge: ``(h, w)`` float32."""
+def _features(img: np.ndarray, inner: np.ndarray, taper: np.ndarray | None) -> np.ndarray:
+    """Gradient magnitude of ``img`` over its mean on the view (``inner``), tapered to 0 at the
+    view's edge: ``(h, w)`` float32."""
     import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
 
-    m = present.astype(np.uint8)
-    inner = cv2.erode(m, np.ones((2 * _ERODE_PX + 1,) * 2, np.uint8))
-    if not inner.any():
+    if taper is None:
         return np.zeros_like(img, np.float32)
-    mean = float(img[inner > 0].mean())
-    g = img / mean if mean > 0 else img
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    mag = np.sqrt(gx * gx + gy * gy)
-    taper = np.clip(cv2.distanceTransform(inner, cv2.DIST_L2, 3) / _TAPER_PX, 0, 1)
-    return (mag * taper).astype(np.float32)
+    mean = cv2.mean(img, inner)[0]
+    g = img / np.float32(mean) if mean > 0 else img
+    mag = cv2.magnitude(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3),
+                        cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3))
+    return mag * taper
 
 
-def _align(ref: np.ndarray, img: np.ndarray, common: np.ndarray) -> tuple[np.ndarray, float]:
-    """Shift ``d`` with ``img(x) ≈ ref(x + d)`` on ``common`` and its ECC correlation
-    (``(nan, nan), nan`` when not measurable)."""
+def _align(ref: np.ndarray, img: np.ndarray, pair: _Pair, f: int) -> tuple[np.ndarray, float]:
+    """Shift ``d`` (px) with ``img(x) ≈ ref(x + d)`` on the pair's common area, from ``f × f``
+    block images, and its ECC correlation (``(nan, nan), nan`` when not measurable)."""
     import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
 
-    ys, xs = np.nonzero(common)
-    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-    pad = _MARGIN_PX + _TAPER_PX
-    y0, x0 = max(0, y0 - pad), max(0, x0 - pad)
-    y1, x1 = min(ref.shape[0], y1 + pad), min(ref.shape[1], x1 + pad)
+    y0, y1, x0, x1 = pair.box
     a = np.ascontiguousarray(ref[y0:y1, x0:x1])
     b = np.ascontiguousarray(img[y0:y1, x0:x1])
-    mask = np.ascontiguousarray(common[y0:y1, x0:x1]).astype(np.uint8)
-    if min(a.shape) < 16 or min(a[mask > 0].mean(), b[mask > 0].mean()) < _MIN_TEXTURE:
-        return np.full(2, np.nan), float("nan")  # too small, or no texture (a flat field)
-    win = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_32F)
-    ma, mb = a[mask > 0].mean(), b[mask > 0].mean()
-    (sx, sy), _ = cv2.phaseCorrelate((a - ma) * (mask > 0), (b - mb) * (mask > 0), win)
+    mask = pair.mask
+    ma, mb = cv2.mean(a, mask)[0], cv2.mean(b, mask)[0]
+    if min(ma, mb) < _MIN_TEXTURE:
+        return np.full(2, np.nan), float("nan")  # no texture (a flat field)
+    on = mask.astype(np.float32)
+    (sx, sy), _ = cv2.phaseCorrelate((a - np.float32(ma)) * on, (b - np.float32(mb)) * on,
+                                     pair.window)
     # phaseCorrelate: b(x) ≈ a(x − s); ECC's warp maps the template (ref) to the input:
     # b(x + w) ≈ a(x), so w = s to begin with
     warp = np.array([[1, 0, sx], [0, 1, sy]], np.float32)
-    if not (abs(sx) < 3 * _MARGIN_PX and abs(sy) < 3 * _MARGIN_PX):
+    if not (abs(sx) < 3 * _MARGIN_PX / f and abs(sy) < 3 * _MARGIN_PX / f):
         warp[:, 2] = 0
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, _ECC_ITERATIONS, _ECC_EPS)
     try:
         rho, warp = cv2.findTransformECC(a, b, warp, cv2.MOTION_TRANSLATION, crit, mask, 3)
     except cv2.error:
         return np.full(2, np.nan), float("nan")
-    # b(x + w) ≈ a(x) ⇔ img(x) ≈ ref(x − w): d = −w
-    d = -warp[:, 2].astype(np.float64)
+    # b(x + w) ≈ a(x) ⇔ img(x) ≈ ref(x − w): d = −w (blocks → px)
+    d = -warp[:, 2].astype(np.float64) * f
     if not np.hypot(*d) <= _MAX_SHIFT_PX:
         return np.full(2, np.nan), float(rho)
     return d, float(rho)
-
-
-def _displacements(sens: Any, pts_ref: Tensor, v: int, shift: Any, rot_deg: float) -> Tensor:
-    """``u_v(x)`` (reference px) of reference sensor points ``(N, 2)`` for the motion."""
-    Hv = sens.homographies[v].to(device=pts_ref.device, dtype=torch.float64)
-    src = apply_homography(torch.linalg.inv(Hv), pts_ref)
-    moved = motion_points(src, shift, rot_deg, _centre(sens.sensor_size))
-    return apply_homography(Hv, moved) - pts_ref
-
-
-def _sensitivity(sens: Any, pts_ref: Tensor, weights: Tensor, v: int) -> np.ndarray:
-    """``(2, 3)``: weighted mean over the points of ``∂(u_v − u_0)/∂(tx, ty, θ°)``."""
-    cols = []
-    for shift, rot in (((1.0, 0.0), 0.0), ((0.0, 1.0), 0.0), ((0.0, 0.0), 0.01)):
-        du = _displacements(sens, pts_ref, v, shift, rot) - _displacements(sens, pts_ref, 0,
-                                                                           shift, rot)
-        scale = 1.0 if rot == 0 else 1 / 0.01
-        cols.append((du * weights[:, None]).sum(0).numpy() / float(weights.sum()) * scale)
-    return np.stack(cols, axis=1)
 
 
 def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
@@ -260,31 +400,25 @@ def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
     """
     if image.ndim != 3 or image.shape[0] != 3:
         raise ValueError(f"image must be (3, H, W) linear RGB, got {tuple(image.shape)}")
-    import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
-
-    imgs, present = _view_images(sens, torch.nan_to_num(image.detach()))
+    st = _static(sens)
+    f = st.factor
+    imgs = _view_images(sens, image.detach(), st)
     V = imgs.shape[0]
-    feats = [_features(imgs[v], present[v]) for v in range(V)]
+    ref = _features(imgs[0], st.inner[0], st.taper[0])
     shifts = np.full((V, 2), np.nan)
     corr = np.full(V, np.nan)
     shifts[0], corr[0] = 0.0, 1.0
-    x0, y0 = sens.reference_bbox[:2]
     rows, rhs, wts, used = [], [], [], []
-    kernel = np.ones((2 * (_ERODE_PX + _TAPER_PX + _MARGIN_PX) + 1,) * 2, np.uint8)
-    for v in range(1, V):
-        common = cv2.erode((present[v] & present[0]).astype(np.uint8), kernel) > 0
-        if int(common.sum()) < _MIN_PIXELS:
-            continue
-        d, rho = _align(feats[0], feats[v], common)
+    for pair in st.pairs:
+        v = pair.view
+        d, rho = _align(ref, _features(imgs[v], st.inner[v], st.taper[v]), pair, f)
         if not (np.isfinite(rho) and rho >= DRIFT_MIN_CORRELATION and np.all(np.isfinite(d))):
             corr[v] = rho
             continue
         shifts[v], corr[v] = d, rho
-        ys, xs = np.nonzero(common)
-        step = max(1, len(ys) // 2000)
-        pts = torch.tensor(np.stack([xs[::step] + x0, ys[::step] + y0], 1), dtype=torch.float64)
-        w = torch.as_tensor(feats[0][ys[::step], xs[::step]].astype(np.float64)) + 1e-6
-        rows.append(_sensitivity(sens, pts, w, v))
+        ys, xs = pair.points
+        w = ref[ys, xs].astype(np.float64) + 1e-6
+        rows.append(np.einsum("n,nij->ij", w, pair.jacobian) / w.sum())
         rhs.append(d)
         wts.append(rho)
         used.append(v)
@@ -309,18 +443,34 @@ def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
     return DriftEstimate(shifts, corr, t, theta, resid, mx)
 
 
+def _sample_box(sens: Any) -> Tensor | None:
+    """``(4, 2)`` corners (sensor px, float64) of the box around the views' samples, or
+    ``None`` without any; kept on ``sens`` for its grid and masks."""
+    grid = sens.grid()
+    cache = getattr(sens, "_drift_static", None)
+    hit = cache.get("sample_box") if isinstance(cache, dict) else None
+    if hit is not None and _same(hit[0], (grid, sens.obs_mask)):
+        return hit[1]
+    px = _grid_px(sens)[sens.obs_mask.view(-1, sens.num_views, 3).any(2).T.to(
+        grid.device)]  # (n, 2) the views' samples
+    corners = None
+    if px.numel():
+        lo, hi = px.min(0).values, px.max(0).values
+        corners = torch.stack([lo, torch.stack([hi[0], lo[1]]), torch.stack([lo[0], hi[1]]), hi])
+    if isinstance(cache, dict):
+        cache["sample_box"] = (_refs((grid, sens.obs_mask)), corners)
+    return corners
+
+
 def drift_motion_px(sens: Any, est: DriftEstimate) -> float:
     """The largest displacement (px) the fitted sensor motion gives a sensor pixel that a view
     uses: ``max |M(p) − p|`` over the corners of the box around the views' samples (the
     maximum of ``|M(p) − p|`` over a box is at a corner). 0 without a fit."""
     if est.sensor_shift_px is None:
         return 0.0
-    px = _grid_px(sens)[sens.obs_mask.view(-1, sens.num_views, 3).any(2).T.to(
-        sens.grid().device)]  # (n, 2) the views' samples
-    if px.numel() == 0:
+    corners = _sample_box(sens)
+    if corners is None:
         return 0.0
-    lo, hi = px.min(0).values, px.max(0).values
-    corners = torch.stack([lo, torch.stack([hi[0], lo[1]]), torch.stack([lo[0], hi[1]]), hi])
     moved = motion_points(corners, est.sensor_shift_px, est.sensor_rotation_deg or 0.0,
                           _centre(sens.sensor_size))
     return float((moved - corners).norm(dim=1).max())
@@ -334,13 +484,22 @@ def corrected_sensing(sens: Any, shift_px: Any, rotation_deg: float) -> Any:
     (the others are dropped from the frame's observations). The factorisation, ``A`` and the
     static masks are shared with ``sens``.
     """
-    from kornia.geometry.conversions import normalize_pixel_coordinates
-
     H, W = sens.sensor_size
-    px = _grid_px(sens)
-    moved = motion_points(px, shift_px, float(rotation_deg), _centre(sens.sensor_size),
-                          inverse=True)
-    inside = ((moved[..., 0] >= 0) & (moved[..., 0] <= W - 1)
-              & (moved[..., 1] >= 0) & (moved[..., 1] <= H - 1))
-    grid = normalize_pixel_coordinates(moved, H, W).unsqueeze(0).to(sens.dtype)
+    # M⁻¹(p) = (p − c − t) R + c (row vectors, as motion_points(inverse=True)), with the sensor
+    # px p = (g + 1)·half of the normalised grid g: one affine map of g, g' = g·A + b
+    half = np.array([(W - 1) / 2.0, (H - 1) / 2.0])
+    c, t = np.asarray(_centre(sens.sensor_size)), np.asarray(shift_px, np.float64)
+    a = math.radians(float(rotation_deg))
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    A = half[:, None] * rot / half[None, :]
+    b = ((half - c - t) @ rot + c) / half - 1.0
+    g = sens.grid()  # (1, V, P, 2)
+    A_t = torch.as_tensor(A, device=g.device)
+    b_t = torch.as_tensor(b, device=g.device)
+    grid = torch.empty(g.shape, dtype=sens.dtype, device=g.device)
+    inside = torch.empty(g.shape[1:3], dtype=torch.bool, device=g.device)
+    for v in range(g.shape[1]):  # view by view: float64 temporaries that stay in the cache
+        moved = torch.addmm(b_t, g[0, v].double(), A_t)
+        grid[0, v] = moved
+        torch.all(moved.abs() <= 1, -1, out=inside[v])  # 0 ≤ x ≤ W − 1 and 0 ≤ y ≤ H − 1
     return dataclasses.replace(sens, sample_grid=grid, sample_inside=inside.to(sens.device))

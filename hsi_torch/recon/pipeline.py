@@ -882,6 +882,7 @@ class Reconstructor:
         if self.drift_check:
             t1 = time.perf_counter()
             drift = estimate_drift(sens, img)
+            motion_px = drift_motion_px(sens, drift)
             if self.refine_registration and drift.sensor_shift_px is not None:
                 sens = corrected_sensing(sens, drift.sensor_shift_px,
                                          drift.sensor_rotation_deg or 0.0)
@@ -903,7 +904,7 @@ class Reconstructor:
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
             st["drift"] = {**drift.to_dict(), "corrected": sens is not self.sensing,
-                           "sensor_motion_px": round(drift_motion_px(self.sensing, drift), 3)}
+                           "sensor_motion_px": round(motion_px, 3)}
             timings["drift"] = t_drift
         timings["total"] = time.perf_counter() - t0
         std = out[4][0] if self.uncertainty else None

@@ -154,6 +154,9 @@ class BundleSensing:
             observations outside the sensor are then dropped. ``None``: all are used.
         staging_lock: guards the per-bundle work buffer of :meth:`staging` (frames of one bundle
             may be reconstructed from several threads).
+        _drift_static: the drift check's per-bundle masks, crops and Jacobians, kept on first
+            use (:func:`hsi_torch.recon.drift.estimate_drift`; shared with the copies
+            ``dataclasses.replace`` makes, rebuilt when their masks or homographies differ).
     """
 
     wavelengths_nm: Tensor
@@ -178,11 +181,13 @@ class BundleSensing:
     #: the disk-cache entry this sensing belongs to: ``(folder, bundle path, key)`` (``None``:
     #: not cached on disk); further per-bundle factors (the TV prior's) are cached beside it
     disk_entry: tuple[Path, Path, str] | None = field(default=None, repr=False)
+    _drift_static: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def __getstate__(self) -> dict[str, Any]:  # picklable / deep-copyable: no lock, no buffer
         state = self.__dict__.copy()
         state["staging_lock"] = None
         state["_staging"] = []
+        state["_drift_static"] = {}
         state.pop("_bundle_ref", None)
         return state
 
