@@ -375,6 +375,135 @@ if AVAILABLE:
                 rounds[r] = rnd
 
 
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _factor_kernel(Bt, gain, resp, mask, masked, R, rel, G, H, gd, gn, singular, no_data,
+                       num_chunks):  # pragma: no cover - compiled
+        n, V, m = Bt.shape
+        C = resp.shape[0]
+        for ch in _nb.prange(num_chunks):
+            S = np.empty((m, m))
+            T = np.empty((m, m))
+            RR = np.empty((m, m))
+            a = np.empty(m)
+            v = np.empty(m)
+            u = np.empty(m)
+            for i in range(m):  # Σ_c r_ci r_cj: the response part of a whole view
+                for j in range(m):
+                    RR[i, j] = 0.0
+                for c in range(C):
+                    ri = np.float64(resp[c, i])
+                    for j in range(m):
+                        RR[i, j] += ri * resp[c, j]
+            for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+                for i in range(m):
+                    for j in range(m):
+                        T[i, j] = 0.0
+                        S[i, j] = 0.0
+                nobs = 0
+                for vv in range(V):
+                    g2 = np.float64(gain[r, vv]) * gain[r, vv]
+                    non = 0
+                    for c in range(C):
+                        non += np.int64((not masked) or mask[r, vv * C + c])
+                    nobs += non
+                    if non == C:  # a whole view: g_v² B_v B_vᵀ, ⊙ Σ_c r_c r_cᵀ below
+                        for i in range(m):
+                            bi = g2 * Bt[r, vv, i]
+                            for j in range(m):
+                                T[i, j] += bi * Bt[r, vv, j]
+                    elif non > 0:  # a view split by the mask: one observation at a time
+                        for c in range(C):
+                            if not mask[r, vv * C + c]:
+                                continue
+                            for j in range(m):
+                                a[j] = np.float64(Bt[r, vv, j]) * resp[c, j]
+                            for i in range(m):
+                                ai = g2 * a[i]
+                                for j in range(m):
+                                    S[i, j] += ai * a[j]
+                for i in range(m):
+                    for j in range(m):
+                        T[i, j] = T[i, j] * RR[i, j] + S[i, j]
+                dmax = 0.0
+                for i in range(m):  # G = T + R from the lower triangle: exactly symmetric
+                    for j in range(i + 1):
+                        G[r, i, j] = T[i, j] + R[i, j]  # rounded to G's dtype
+                        G[r, j, i] = G[r, i, j]
+                        S[i, j] = G[r, i, j]  # the stored G is what is factorised
+                    gd[r, i] = G[r, i, i]
+                    dmax = max(dmax, np.float64(gd[r, i]))
+                # lower bound of ‖G‖₂: three power steps from the ones vector, Rayleigh quotient
+                for i in range(m):
+                    v[i] = 1.0
+                for _ in range(3):
+                    for i in range(m):
+                        u[i] = 0.0
+                    _symv(G, r, v, u, 1.0)
+                    nrm = 0.0
+                    for i in range(m):
+                        nrm += u[i] * u[i]
+                    nrm = np.sqrt(nrm)
+                    nrm = nrm if nrm > 1e-300 else 1e-300
+                    for i in range(m):
+                        v[i] = u[i] / nrm
+                for i in range(m):
+                    u[i] = 0.0
+                _symv(G, r, v, u, 1.0)
+                rq = 0.0
+                for i in range(m):
+                    rq += u[i] * v[i]
+                rq = rq if rq > dmax else dmax
+                gn[r] = rq if rq > 0.0 else 0.0
+                # Cholesky G = L Lᵀ (float64, rows of L); the smallest pivot decides singularity
+                pmin = np.inf
+                for j in range(m):
+                    sj = S[j, j]
+                    for c in range(j):
+                        sj -= S[j, c] * S[j, c]
+                    pmin = sj if sj < pmin else pmin
+                    if not (sj > 0.0):
+                        break
+                    d = np.sqrt(sj)
+                    inv = 1.0 / d
+                    S[j, j] = d
+                    for i in range(j + 1, m):
+                        t = S[i, j]
+                        for c in range(j):
+                            t -= S[i, c] * S[j, c]
+                        S[i, j] = t * inv
+                bad = not (pmin > rel * dmax) or not (pmin < np.inf) or nobs == 0
+                singular[r] = bad
+                no_data[r] = nobs == 0
+                if bad:
+                    for i in range(m):
+                        for j in range(m):
+                            H[r, i, j] = 0.0
+                    continue
+                for i in range(m):  # T = L⁻¹ (lower), by rows: T_i = −(Σ_c<i L_ic T_c) / L_ii
+                    for j in range(i):
+                        u[j] = 0.0
+                    for c in range(i):
+                        lic = S[i, c]
+                        for j in range(c + 1):
+                            u[j] -= lic * T[c, j]
+                    inv = 1.0 / S[i, i]
+                    for j in range(i):
+                        T[i, j] = u[j] * inv
+                    T[i, i] = inv
+                for i in range(m):  # H = L⁻ᵀ L⁻¹, lower triangle: Σ_{k ≥ i} T_ki T_kj
+                    for j in range(i + 1):
+                        S[i, j] = 0.0
+                for k in range(m):
+                    for i in range(k + 1):
+                        tki = T[k, i]
+                        for j in range(i + 1):
+                            S[i, j] += tki * T[k, j]
+                for i in range(m):
+                    for j in range(i + 1):
+                        H[r, i, j] = S[i, j]
+                        H[r, j, i] = H[r, i, j]
+
+
 def solve_frame_cpu(
     G: np.ndarray, H: np.ndarray, b: np.ndarray, gd: np.ndarray, gn: np.ndarray,
     skip: np.ndarray, tol: float, max_rounds: int, refine: int, num_threads: int,
@@ -434,3 +563,49 @@ def solve_frame_cpu(
                       float(COMPILED_FLOOR), int(START_SWEEPS), x, z, res, status, rounds,
                       min(n, 512), factors is not None, *fac)
     return x, z, res, status, rounds
+
+
+def factor_sensing_cpu(
+    transmittance: np.ndarray, gain: np.ndarray, response: np.ndarray, mask: np.ndarray | None,
+    reg: np.ndarray, dtype: np.dtype, num_threads: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The per-pixel factorisation of :func:`~hsi_torch.recon.nnls.prepare_nnls` for the camera's
+    factored sensing matrix, in one compiled pass (float64 arithmetic, results in ``dtype``).
+
+    Per pixel: ``G = Aᵀ W A + reg`` from the factors (the whole views in the factored form
+    ``(Σ_v g_v² B_v B_vᵀ) ⊙ (Σ_c r_c r_cᵀ)``, views split by the mask one observation at a
+    time), exactly symmetric; ``diag G``; the lower bound of ``‖G‖₂`` (three power steps from the
+    ones vector and the Rayleigh quotient, at least ``max diag G``); the Cholesky factor, whose
+    smallest pivot below ``20·M·eps(dtype)·max diag G`` marks the pixel singular (``H = 0``);
+    else ``H = G⁻¹ = L⁻ᵀ L⁻¹``, exactly symmetric. The same tests as the torch factorisation.
+
+    Args:
+        transmittance: ``(P, V, M)``; gain: ``(P, V)``; response: ``(C, M)``; mask:
+            ``(P, V·C)`` bool (``o = C·v + c``) or ``None`` (all used); reg: ``(M, M)``
+            float64 ``β DᵀD``; dtype: of the results.
+
+    Returns:
+        ``G (P, M, M)``, ``H (P, M, M)``, ``diag G (P, M)``, ``‖G‖₂ bound (P,)``,
+        ``singular (P,)`` bool (including the pixels without data), ``no_data (P,)`` bool.
+    """
+    if not AVAILABLE:  # pragma: no cover
+        raise RuntimeError("numba is not installed")
+    Bt = np.ascontiguousarray(transmittance)
+    n, V, m = Bt.shape
+    dt = np.dtype(dtype)
+    G = np.empty((n, m, m), dt)
+    H = np.empty((n, m, m), dt)
+    gd = np.empty((n, m), dt)
+    gn = np.empty(n, dt)
+    singular = np.empty(n, np.bool_)
+    no_data = np.empty(n, np.bool_)
+    if n == 0:
+        return G, H, gd, gn, singular, no_data
+    masked = mask is not None
+    mk = np.ascontiguousarray(mask) if masked else np.ones((1, 1), np.bool_)
+    rel = 20.0 * m * float(np.finfo(dt).eps)
+    with threads(num_threads):
+        _factor_kernel(Bt, np.ascontiguousarray(gain), np.ascontiguousarray(response), mk,
+                       masked, np.ascontiguousarray(reg, dtype=np.float64), rel, G, H, gd, gn,
+                       singular, no_data, min(n, 512))
+    return G, H, gd, gn, singular, no_data
