@@ -284,8 +284,8 @@ if AVAILABLE:
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half, patience,
-                      floor, sweeps, x_out, z_out, r_out, status, rounds, num_chunks, fused, y,
-                      mask, Bt, gain, resp):  # pragma: no cover - compiled
+                      floor, sweeps, x_out, z_out, plain, r_out, status, rounds, num_chunks,
+                      fused, y, mask, Bt, gain, resp):  # pragma: no cover - compiled
         n, m = b.shape
         shared = G.shape[0] == 1
         for ch in _nb.prange(num_chunks):
@@ -367,9 +367,12 @@ if AVAILABLE:
                                 g[i] = lam[i]
                         else:
                             break
+                anyz = False
                 for j in range(m):
                     x_out[r, j] = x[j]
                     z_out[r, j] = Z[j]
+                    anyz |= Z[j]
+                plain[r] = not (anyz or skip[r])
                 r_out[r] = res
                 status[r] = st
                 rounds[r] = rnd
@@ -531,18 +534,20 @@ def solve_frame_cpu(
 
     Returns:
         ``x (P, M) ≥ 0``, ``Z (P, M)`` bool zero sets, ``residual (P,)`` float64, ``status (P,)``
-        int8 (:data:`DONE` also for pixels that needed no pivoting), ``rounds (P,)`` int32.
+        int8 (:data:`DONE` also for pixels that needed no pivoting), ``rounds (P,)`` int32,
+        ``plain (P,)`` bool: an empty zero set and not ``skip``.
     """
     if not AVAILABLE:  # pragma: no cover
         raise RuntimeError("numba is not installed")
     n, m = b.shape
     x = np.empty((n, m), b.dtype)
     z = np.empty((n, m), np.bool_)
+    plain = np.empty(n, np.bool_)
     res = np.empty(n, np.float64)
     status = np.empty(n, np.int8)
     rounds = np.empty(n, np.int32)
     if n == 0:
-        return x, z, res, status, rounds
+        return x, z, res, status, rounds, plain
     if factors is None:  # placeholders of the right types (numba compiles one kernel per dtype)
         fac = (np.zeros((1, 1), b.dtype), np.zeros((1, 1), np.bool_),
                np.zeros((1, 1, m), b.dtype), np.zeros((1, 1), b.dtype),
@@ -560,9 +565,9 @@ def solve_frame_cpu(
     with threads(num_threads):
         _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine),
                       float(INFEASIBILITY_FRACTION), int(zero_set_limit(m)), int(MURTY_PATIENCE),
-                      float(COMPILED_FLOOR), int(START_SWEEPS), x, z, res, status, rounds,
-                      min(n, 512), factors is not None, *fac)
-    return x, z, res, status, rounds
+                      float(COMPILED_FLOOR), int(START_SWEEPS), x, z, plain, res, status,
+                      rounds, min(n, 512), factors is not None, *fac)
+    return x, z, res, status, rounds, plain
 
 
 def factor_sensing_cpu(
