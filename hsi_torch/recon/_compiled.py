@@ -21,27 +21,27 @@ __all__ = ["AVAILABLE", "frame_masks_cpu"]
 if AVAILABLE:
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _frame_masks_kernel(y, mask, static, channels, min_views, write, yc, ok, changed,
+    def _frame_masks_kernel(y, mask, static, channels, min_views, write, yc, zero, ok, changed,
                             num_chunks):  # pragma: no cover - compiled
         n, o = y.shape
         nv = o // channels
         for ch in _nb.prange(num_chunks):
             for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+                nd = 0  # separate short loops over the observations: they vectorise
+                for k in range(o):
+                    nd += np.int64(mask[r, k] != static[r, k])
+                if write:
+                    for k in range(o):
+                        yc[r, k] = y[r, k] if mask[r, k] else zero  # NaN-safe, unlike y·mask
                 views = 0
-                diff = False
                 for v in range(nv):
-                    seen = False
+                    seen = 0
                     for c in range(channels):
-                        k = v * channels + c
-                        mk = mask[r, k]
-                        seen |= mk
-                        diff |= mk != static[r, k]
-                        if write:
-                            yc[r, k] = y[r, k] if mk else 0.0
-                    views += np.int64(seen)
+                        seen += np.int64(mask[r, v * channels + c])
+                    views += np.int64(seen > 0)
                 good = views >= min_views
                 ok[r] = good
-                changed[r] = good and diff
+                changed[r] = good and nd > 0
 
 
 def frame_masks_cpu(
@@ -75,5 +75,5 @@ def frame_masks_cpu(
         with threads(num_threads):
             _frame_masks_kernel(np.ascontiguousarray(y), np.ascontiguousarray(mask),
                                 np.ascontiguousarray(static), int(channels), int(min_views),
-                                write, yc, ok, changed, min(n, 256))
+                                write, yc, yc.dtype.type(0), ok, changed, min(n, 256))
     return (yc if write else None), ok, changed

@@ -480,7 +480,11 @@ def solve_observations(
                                        iters=spatial_iters)
     elif grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
-    x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
+    if prior != "tv" and x.device.type == "cpu" and not x.requires_grad:
+        # the solve's own x: its (usually few) invalid rows zeroed, not a frame-sized select
+        x.index_fill_(0, (~ok).nonzero().squeeze(1), 0.0)
+    else:
+        x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
     if not stats:
         return x, ok, {}
     with cpu_threads(y.device, 1):
