@@ -456,3 +456,47 @@ def test_inplace_and_autograd_paths_agree():
     assert c2.requires_grad and st1[0]["num_resolved"] > 0
     torch.testing.assert_close(c2.detach(), c1, equal_nan=True, rtol=1e-12, atol=1e-12)
     assert torch.equal(v1, v2) and st1[0]["fit_residual"] == pytest.approx(st2[0]["fit_residual"])
+
+
+def test_compiled_frame_bookkeeping_matches_torch(monkeypatch):
+    """On the CPU the solve's per-pixel bookkeeping (pixels with enough views, pixels whose frame
+    mask differs from the static one, the masked observations) is one compiled pass: the same
+    results as the torch operations it replaces, alone (NaN where masked, a float64 frame into
+    float32) and through a frame with saturated views, a NaN sample and pixels that lose too
+    many views (same cube, validity and counts)."""
+    from hsi_torch.recon import _compiled as frame_compiled
+
+    if not frame_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    g = torch.Generator().manual_seed(3)
+    P, V = 500, 4
+    static = torch.rand(P, 3 * V, generator=g) > 0.2
+    mask = static & (torch.rand(P, 3 * V, generator=g) > 0.1)
+    y = torch.randn(P, 3 * V, generator=g, dtype=torch.float64)
+    y = torch.where(mask, y, torch.full_like(y, float("nan")))
+    yc, ok, changed = frame_compiled.frame_masks_cpu(y.numpy(), mask.numpy(), static.numpy(), 3,
+                                                     3, np.dtype("float32"), 2)
+    ok_ref = mask.view(P, V, 3).any(2).sum(1) >= 3
+    assert torch.equal(torch.from_numpy(ok), ok_ref)
+    assert torch.equal(torch.from_numpy(changed), ok_ref & (mask != static).any(1))
+    assert torch.equal(torch.from_numpy(yc), torch.where(mask, y, 0.0).float())
+    assert 0 < int(ok_ref.sum()) < P and int(torch.from_numpy(changed).sum()) > 0
+    assert frame_compiled.frame_masks_cpu(y.numpy(), mask.numpy(), static.numpy(), 3, 3, None,
+                                          1)[0] is None
+
+    bundle = make_bundle()
+    img = render_capture(bundle, true_spectra()).float()
+    t = 20
+    sat = torch.zeros_like(img, dtype=torch.bool)
+    tile = img[:, :t, t:]
+    sat[:, :t, t:] = tile > float(tile.quantile(0.6))  # view 1 clipped in places
+    img[:, 25, 25] = float("nan")
+    rec = Reconstructor(bundle, beta=1.0)
+    res = rec.reconstruct_frame(img, sat)
+    monkeypatch.setattr(frame_compiled, "AVAILABLE", False)
+    ref = rec.reconstruct_frame(img, sat)
+    assert torch.equal(res.valid, ref.valid)
+    torch.testing.assert_close(res.cube, ref.cube, rtol=0, atol=0, equal_nan=True)
+    for k in ("num_valid", "num_lost", "num_resolved", "num_pivoted", "fit_residual"):
+        assert res.stats[k] == ref.stats[k], k
+    assert res.stats["num_resolved"] > 0 and res.stats["num_lost"] > 0

@@ -54,6 +54,7 @@ from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 from hsi_torch.io.sensor_corrections import subtract_veil
 from hsi_torch.optics.geometry import warp_views
+from hsi_torch.recon import _compiled as _frame_compiled
 from hsi_torch.recon.checks import BundleRadiometry, exposure_info, prepare_capture
 from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.nnls import cpu_threads, solve_nnls
@@ -383,12 +384,21 @@ def _solve_per_pixel(
     Returns ``ok``, ``changed``, ``yc``, ``x``, ``converged``, ``kkt``, ``iterations``, the
     number re-solved."""
     P = y.shape[0]
-    zero = torch.zeros((), dtype=y.dtype, device=y.device)
-    views_left = mask.view(P, V, 3).any(2).sum(1)
-    ok = views_left >= int(min_views)
     static = sens.obs_mask
-    changed = ok & (mask != static).any(1)
-    yc = y if premasked else torch.where(mask, y, zero).to(sens.dtype)
+    if (y.device.type == "cpu" and _frame_compiled.AVAILABLE
+            and not (y.requires_grad and torch.is_grad_enabled())):
+        # one compiled pass over the pixels instead of five torch passes over (P, 3V)
+        out = _frame_compiled.frame_masks_cpu(
+            y.detach().numpy(), mask.numpy(), static.numpy(), 3, int(min_views),
+            None if premasked else torch.empty((), dtype=sens.dtype).numpy().dtype, threads)
+        ok, changed = torch.from_numpy(out[1]), torch.from_numpy(out[2])
+        yc = y if premasked else torch.from_numpy(out[0])
+    else:
+        zero = torch.zeros((), dtype=y.dtype, device=y.device)
+        views_left = mask.view(P, V, 3).any(2).sum(1)
+        ok = views_left >= int(min_views)
+        changed = ok & (mask != static).any(1)
+        yc = y if premasked else torch.where(mask, y, zero).to(sens.dtype)
     kw: dict[str, Any] = dict(solver=solver, chunk_size=chunk_size, num_threads=threads)
     if solver == "admm" and admm_iters is not None:
         kw["admm_iters"] = int(admm_iters)
@@ -470,7 +480,11 @@ def solve_observations(
                                        iters=spatial_iters)
     elif grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
-    x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
+    if prior != "tv" and x.device.type == "cpu" and not x.requires_grad:
+        # the solve's own x: its (usually few) invalid rows zeroed, not a frame-sized select
+        x.index_fill_(0, (~ok).nonzero().squeeze(1), 0.0)
+    else:
+        x = torch.where(ok.unsqueeze(1), x, zero.to(x.dtype))
     if not stats:
         return x, ok, {}
     with cpu_threads(y.device, 1):

@@ -16,6 +16,13 @@ batched rounds on CPU. Same method and exchange rules as the batched
   largest-index exchange after three rounds without fewer infeasible variables
   (:data:`~hsi_torch.recon.nnls.constants.MURTY_PATIENCE`).
 
+Only the first zero set differs: the batched kernels start from the negative entries of ``x0``,
+this one from a few sweeps of projected coordinate descent on the pixel's problem
+(:data:`~hsi_torch.recon.nnls.constants.START_SWEEPS`, :func:`_start_zero_set`), which lands
+close to the answer's zero set (about half the rounds on dark pixels). The exchange rules
+terminate from any start, and the strictly convex problem has one solution, so both kernels give
+the same answers (to rounding and the KKT tolerance) in different numbers of rounds.
+
 numba is an optional accelerator (:mod:`hsi_torch.recon._numba`): without it (or with
 ``HSI_TORCH_NO_NUMBA=1``) the batched torch kernels are used. The exchange rules (the threshold,
 Murty's counter, the zero-set/free-set switch) come from :mod:`~hsi_torch.recon.nnls.constants`
@@ -33,6 +40,7 @@ from hsi_torch.recon.nnls.constants import (
     COMPILED_FLOOR,
     INFEASIBILITY_FRACTION,
     MURTY_PATIENCE,
+    START_SWEEPS,
     zero_set_limit,
 )
 
@@ -74,40 +82,85 @@ if AVAILABLE:
         return True
 
     @_nb.njit(cache=True, inline="always", error_model="numpy")
+    def _start_zero_set(G, p, x0, gd, sweeps, xc, gc, w, Z):  # pragma: no cover - compiled
+        """The first zero set ``Z`` of pixel ``p`` (:data:`START_SWEEPS`): ``sweeps`` sweeps of
+        projected coordinate descent on ``½xᵀGx − bᵀx`` from ``max(x0, 0)``, then
+        ``Z = {j : x_j − g_j / G_jj ≤ 0}``. Runs in the dtype of ``G`` (the scratch ``xc (M,)``,
+        ``gc (M + 1,)``, ``w (M,)``): it only chooses where to start. The gradient at the start
+        is ``g = G(max(x0, 0) − x0)`` (``G x0 = b``): the columns of the negative entries only.
+        Each step updates ``g`` by a row of ``G``; the next coordinate's ``g_j`` is carried in a
+        register (read before the row update, plus its own term), not re-read from the stored
+        row."""
+        m = x0.shape[0]
+        zero = gc[m] - gc[m]  # 0 in the dtype of G
+        for i in range(m + 1):
+            gc[i] = zero
+        for j in range(m):
+            xc[j] = x0[j]
+            w[j] = 1.0 / gd[p, j]
+        for j in range(m):
+            xj = xc[j]
+            if xj < zero:
+                xc[j] = zero
+                for i in range(m):
+                    gc[i] -= G[p, j, i] * xj
+        for _ in range(sweeps):
+            gj = gc[0]
+            for j in range(m):
+                xj = xc[j]
+                if xj == zero and gj >= zero:  # at the bound, and the gradient keeps it there
+                    gj = gc[j + 1]
+                    continue
+                nv = xj - gj * w[j]
+                nv = nv if nv > zero else zero
+                d = nv - xj
+                xc[j] = nv
+                gn = gc[j + 1]
+                if j + 1 < m:
+                    gn += G[p, j, j + 1] * d
+                for i in range(m):
+                    gc[i] += G[p, j, i] * d
+                gj = gn
+        for j in range(m):
+            Z[j] = xc[j] - gc[j] * w[j] <= zero
+
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
     def _bpp_pixel(G, H, p, x0, b, gd, t, max_rounds, half, patience, S, rhs, idx, x, lam,
                    Z, viol):  # pragma: no cover - compiled
-        """One pixel's rounds (``G[p]``, ``H[p]``: its ``(M, M)`` matrices, indexed in place:
-        a slice per pixel would cost numba a reference count); returns ``(status, rounds)``;
-        ``x``, ``Z`` hold the answer; ``viol (M,)`` int64 scratch."""
+        """One pixel's rounds from the zero set in ``Z`` (``G[p]``, ``H[p]``: its ``(M, M)``
+        matrices, indexed in place: a slice per pixel would cost numba a reference count);
+        returns ``(status, rounds, gradient)``: ``x``, ``Z`` hold the answer, and where
+        ``gradient`` the last round was a free-set solve, whose ``lam`` holds the whole
+        ``G x − b`` (summed as :func:`_kkt` sums it); ``viol (M,)`` int64 scratch."""
         m = x0.shape[0]
-        for j in range(m):
-            Z[j] = x0[j] * gd[p, j] < -t
         best = m + 1
         backup = patience
         rnd = 0
+        kz = 0
+        for j in range(m):
+            kz += np.int64(Z[j])
         while rnd < max_rounds:
             rnd += 1
-            kz = 0
-            for j in range(m):  # branch-free: a zero set is no pattern a predictor learns
-                kz += np.int64(Z[j])
             k = 0
-            if kz <= half:  # zero-set solve through H
-                for j in range(m):
+            free = kz > half
+            if not free:  # zero-set solve through H
+                for j in range(m):  # branch-free: a zero set is no pattern a predictor learns
                     idx[k] = j
                     k += np.int64(Z[j])
                 for a in range(k):
+                    ia = idx[a]
                     for c in range(a + 1):
-                        S[a, c] = H[p, idx[a], idx[c]]
-                    rhs[a] = -x0[idx[a]]
+                        S[a, c] = H[p, ia, idx[c]]
+                    rhs[a] = -x0[ia]
                 if not _chol_solve(S, rhs, k):
-                    return FACTOR_FAILED, rnd
+                    return FACTOR_FAILED, rnd, False
                 for j in range(m):
                     x[j] = x0[j]
-                    lam[j] = 0.0
                 for a in range(k):
                     ra = rhs[a]
+                    ia = idx[a]
                     for j in range(m):
-                        x[j] += H[p, idx[a], j] * ra
+                        x[j] += H[p, ia, j] * ra
                 for a in range(k):
                     x[idx[a]] = 0.0
                     lam[idx[a]] = rhs[a]
@@ -116,31 +169,32 @@ if AVAILABLE:
                     idx[k] = j
                     k += 1 - np.int64(Z[j])
                 for a in range(k):
+                    ia = idx[a]
                     for c in range(a + 1):
-                        S[a, c] = G[p, idx[a], idx[c]]
-                    rhs[a] = b[idx[a]]
+                        S[a, c] = G[p, ia, idx[c]]
+                    rhs[a] = b[ia]
                 if not _chol_solve(S, rhs, k):
-                    return FACTOR_FAILED, rnd
+                    return FACTOR_FAILED, rnd, False
                 for j in range(m):
                     x[j] = 0.0
                     lam[j] = -b[j]
                 for a in range(k):
                     ra = rhs[a]
-                    x[idx[a]] = ra
+                    ia = idx[a]
+                    x[ia] = ra
                     for j in range(m):
-                        lam[j] += G[p, idx[a], j] * ra
-                for j in range(m):
-                    lam[j] = lam[j] if Z[j] else 0.0
+                        lam[j] += G[p, ia, j] * ra
             nv = 0
-            last = -1
-            for j in range(m):  # infeasible: λ_j < −t on Z, x_j G_jj < −t on F (branch-free)
-                zj = np.int64(Z[j])
-                vj = zj * np.int64(lam[j] < -t) + (1 - zj) * np.int64(x[j] * gd[p, j] < -t)
+            dk = 0
+            for j in range(m):  # infeasible: λ_j < −t on Z, x_j G_jj < −t on F (vectorises)
+                zj = Z[j]
+                v = lam[j] if zj else x[j] * gd[p, j]
+                vj = np.int64(v < -t)
                 viol[j] = vj
                 nv += vj
-                last = j if vj else last
+                dk += vj * (1 - 2 * np.int64(zj))  # change of |Z| by a full exchange
             if nv == 0:
-                return DONE, rnd
+                return DONE, rnd, free
             improved = nv < best
             full = improved or backup >= 1
             backup = patience if improved else max(backup - 1, 0)
@@ -149,9 +203,14 @@ if AVAILABLE:
             if full:
                 for j in range(m):
                     Z[j] = (np.int64(Z[j]) ^ viol[j]) != 0
-            else:
+                kz += dk
+            else:  # Murty: the largest infeasible index only
+                last = m - 1
+                while not viol[last]:
+                    last -= 1
+                kz += 1 - 2 * np.int64(Z[last])
                 Z[last] = not Z[last]
-        return NOT_FINISHED, rnd
+        return NOT_FINISHED, rnd, False
 
     @_nb.njit(cache=True, inline="always", error_model="numpy")
     def _symv(S, p, v, out, sign):  # pragma: no cover - compiled
@@ -177,6 +236,12 @@ if AVAILABLE:
             if xj != 0.0:
                 for i in range(m):
                     g[i] += G[p, j, i] * xj
+        return _kkt_of(p, x, gd, gn, bn, g, floor)
+
+    @_nb.njit(cache=True, inline="always", error_model="numpy")
+    def _kkt_of(p, x, gd, gn, bn, g, floor):  # pragma: no cover - compiled
+        """The relative KKT residual of ``x`` with its gradient ``g = G x − b`` given."""
+        m = x.shape[0]
         num = 0.0
         xn = 0.0
         for i in range(m):
@@ -219,8 +284,8 @@ if AVAILABLE:
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half, patience,
-                      floor, x_out, z_out, r_out, status, rounds, num_chunks, fused, y, mask,
-                      Bt, gain, resp):  # pragma: no cover - compiled
+                      floor, sweeps, x_out, z_out, plain, r_out, status, rounds, num_chunks,
+                      fused, y, mask, Bt, gain, resp):  # pragma: no cover - compiled
         n, m = b.shape
         shared = G.shape[0] == 1
         for ch in _nb.prange(num_chunks):
@@ -235,6 +300,9 @@ if AVAILABLE:
             br = np.empty(m)
             Z = np.empty(m, np.bool_)
             viol = np.empty(m, np.int64)
+            xc = np.empty(m, G.dtype)  # the start's coordinate descent, in G's dtype
+            gc = np.zeros(m + 1, G.dtype)
+            wc = np.empty(m, G.dtype)
             for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
                 p = 0 if shared else r
                 if fused:  # b = Aᵀ W y from the factors, stored (rounded to b's dtype)
@@ -259,17 +327,29 @@ if AVAILABLE:
                     for j in range(m):
                         if x0[j] * gd[p, j] < -t:
                             need = True
-                st, rnd = DONE, 0
+                st, rnd, have_g = DONE, 0, False
                 if need:
-                    st, rnd = _bpp_pixel(G, H, p, x0, br, gd, t, max_rounds, half, patience,
-                                         S, rhs, idx, x, lam, Z, viol)
+                    if sweeps > 0:
+                        _start_zero_set(G, p, x0, gd, sweeps, xc, gc, wc, Z)
+                    else:
+                        for j in range(m):
+                            Z[j] = x0[j] * gd[p, j] < -t
+                    st, rnd, have_g = _bpp_pixel(G, H, p, x0, br, gd, t, max_rounds, half,
+                                                 patience, S, rhs, idx, x, lam, Z, viol)
                     for j in range(m):
-                        x[j] = x[j] if x[j] > 0.0 else 0.0
+                        if not (x[j] > 0.0):
+                            have_g = have_g and x[j] == 0.0  # a clamped entry changes G x
+                            x[j] = 0.0
                 else:
                     for j in range(m):
                         x[j] = x0[j] if x0[j] > 0.0 else 0.0
                         Z[j] = False
-                res = _kkt(G, p, x, br, gd, gn[p], bn, g, floor)
+                if have_g:  # the last round's G x − b, the same sums as _kkt
+                    for j in range(m):
+                        g[j] = lam[j]
+                    res = _kkt_of(p, x, gd, gn[p], bn, g, floor)
+                else:
+                    res = _kkt(G, p, x, br, gd, gn[p], bn, g, floor)
                 if not need and not skip[r]:  # all-free pixels: refinement x <- max(0, x - H g)
                     for _ in range(refine):
                         if res <= tol:
@@ -287,9 +367,12 @@ if AVAILABLE:
                                 g[i] = lam[i]
                         else:
                             break
+                anyz = False
                 for j in range(m):
                     x_out[r, j] = x[j]
                     z_out[r, j] = Z[j]
+                    anyz |= Z[j]
+                plain[r] = not (anyz or skip[r])
                 r_out[r] = res
                 status[r] = st
                 rounds[r] = rnd
@@ -305,6 +388,135 @@ if AVAILABLE:
                     out[r, j] = acc[j]
 
 
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _factor_kernel(Bt, gain, resp, mask, masked, R, rel, G, H, gd, gn, singular, no_data,
+                       num_chunks):  # pragma: no cover - compiled
+        n, V, m = Bt.shape
+        C = resp.shape[0]
+        for ch in _nb.prange(num_chunks):
+            S = np.empty((m, m))
+            T = np.empty((m, m))
+            RR = np.empty((m, m))
+            a = np.empty(m)
+            v = np.empty(m)
+            u = np.empty(m)
+            for i in range(m):  # Σ_c r_ci r_cj: the response part of a whole view
+                for j in range(m):
+                    RR[i, j] = 0.0
+                for c in range(C):
+                    ri = np.float64(resp[c, i])
+                    for j in range(m):
+                        RR[i, j] += ri * resp[c, j]
+            for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+                for i in range(m):
+                    for j in range(m):
+                        T[i, j] = 0.0
+                        S[i, j] = 0.0
+                nobs = 0
+                for vv in range(V):
+                    g2 = np.float64(gain[r, vv]) * gain[r, vv]
+                    non = 0
+                    for c in range(C):
+                        non += np.int64((not masked) or mask[r, vv * C + c])
+                    nobs += non
+                    if non == C:  # a whole view: g_v² B_v B_vᵀ, ⊙ Σ_c r_c r_cᵀ below
+                        for i in range(m):
+                            bi = g2 * Bt[r, vv, i]
+                            for j in range(m):
+                                T[i, j] += bi * Bt[r, vv, j]
+                    elif non > 0:  # a view split by the mask: one observation at a time
+                        for c in range(C):
+                            if not mask[r, vv * C + c]:
+                                continue
+                            for j in range(m):
+                                a[j] = np.float64(Bt[r, vv, j]) * resp[c, j]
+                            for i in range(m):
+                                ai = g2 * a[i]
+                                for j in range(m):
+                                    S[i, j] += ai * a[j]
+                for i in range(m):
+                    for j in range(m):
+                        T[i, j] = T[i, j] * RR[i, j] + S[i, j]
+                dmax = 0.0
+                for i in range(m):  # G = T + R from the lower triangle: exactly symmetric
+                    for j in range(i + 1):
+                        G[r, i, j] = T[i, j] + R[i, j]  # rounded to G's dtype
+                        G[r, j, i] = G[r, i, j]
+                        S[i, j] = G[r, i, j]  # the stored G is what is factorised
+                    gd[r, i] = G[r, i, i]
+                    dmax = max(dmax, np.float64(gd[r, i]))
+                # lower bound of ‖G‖₂: three power steps from the ones vector, Rayleigh quotient
+                for i in range(m):
+                    v[i] = 1.0
+                for _ in range(3):
+                    for i in range(m):
+                        u[i] = 0.0
+                    _symv(G, r, v, u, 1.0)
+                    nrm = 0.0
+                    for i in range(m):
+                        nrm += u[i] * u[i]
+                    nrm = np.sqrt(nrm)
+                    nrm = nrm if nrm > 1e-300 else 1e-300
+                    for i in range(m):
+                        v[i] = u[i] / nrm
+                for i in range(m):
+                    u[i] = 0.0
+                _symv(G, r, v, u, 1.0)
+                rq = 0.0
+                for i in range(m):
+                    rq += u[i] * v[i]
+                rq = rq if rq > dmax else dmax
+                gn[r] = rq if rq > 0.0 else 0.0
+                # Cholesky G = L Lᵀ (float64, rows of L); the smallest pivot decides singularity
+                pmin = np.inf
+                for j in range(m):
+                    sj = S[j, j]
+                    for c in range(j):
+                        sj -= S[j, c] * S[j, c]
+                    pmin = sj if sj < pmin else pmin
+                    if not (sj > 0.0):
+                        break
+                    d = np.sqrt(sj)
+                    inv = 1.0 / d
+                    S[j, j] = d
+                    for i in range(j + 1, m):
+                        t = S[i, j]
+                        for c in range(j):
+                            t -= S[i, c] * S[j, c]
+                        S[i, j] = t * inv
+                bad = not (pmin > rel * dmax) or not (pmin < np.inf) or nobs == 0
+                singular[r] = bad
+                no_data[r] = nobs == 0
+                if bad:
+                    for i in range(m):
+                        for j in range(m):
+                            H[r, i, j] = 0.0
+                    continue
+                for i in range(m):  # T = L⁻¹ (lower), by rows: T_i = −(Σ_c<i L_ic T_c) / L_ii
+                    for j in range(i):
+                        u[j] = 0.0
+                    for c in range(i):
+                        lic = S[i, c]
+                        for j in range(c + 1):
+                            u[j] -= lic * T[c, j]
+                    inv = 1.0 / S[i, i]
+                    for j in range(i):
+                        T[i, j] = u[j] * inv
+                    T[i, i] = inv
+                for i in range(m):  # H = L⁻ᵀ L⁻¹, lower triangle: Σ_{k ≥ i} T_ki T_kj
+                    for j in range(i + 1):
+                        S[i, j] = 0.0
+                for k in range(m):
+                    for i in range(k + 1):
+                        tki = T[k, i]
+                        for j in range(i + 1):
+                            S[i, j] += tki * T[k, j]
+                for i in range(m):
+                    for j in range(i + 1):
+                        H[r, i, j] = S[i, j]
+                        H[r, j, i] = H[r, i, j]
+
+
 def solve_frame_cpu(
     G: np.ndarray, H: np.ndarray, b: np.ndarray, gd: np.ndarray, gn: np.ndarray,
     skip: np.ndarray, tol: float, max_rounds: int, refine: int, num_threads: int,
@@ -316,7 +528,8 @@ def solve_frame_cpu(
     sensing matrix (written into ``b``); ``x0 = H b``; the infeasibility threshold
     ``t = ¼·tol·(‖G‖‖x0‖ + ‖b‖)``
     (:data:`~hsi_torch.recon.nnls.constants.INFEASIBILITY_FRACTION`); block
-    principal pivoting where ``x0`` has an entry with ``x0_m G_mm < −t`` (unless ``skip``);
+    principal pivoting where ``x0`` has an entry with ``x0_m G_mm < −t`` (unless ``skip``), from
+    the zero set of a few coordinate-descent sweeps (:func:`_start_zero_set`);
     the KKT residual of the answer with the exact ``G`` and ``b``; for pixels without a zero set,
     up to ``refine`` refinement steps ``x ← max(0, x − H(Gx − b))`` kept while they lower it.
     Each pixel's bytes are read once and nothing of frame size is allocated but the outputs.
@@ -331,18 +544,20 @@ def solve_frame_cpu(
 
     Returns:
         ``x (P, M) ≥ 0``, ``Z (P, M)`` bool zero sets, ``residual (P,)`` float64, ``status (P,)``
-        int8 (:data:`DONE` also for pixels that needed no pivoting), ``rounds (P,)`` int32.
+        int8 (:data:`DONE` also for pixels that needed no pivoting), ``rounds (P,)`` int32,
+        ``plain (P,)`` bool: an empty zero set and not ``skip``.
     """
     if not AVAILABLE:  # pragma: no cover
         raise RuntimeError("numba is not installed")
     n, m = b.shape
     x = np.empty((n, m), b.dtype)
     z = np.empty((n, m), np.bool_)
+    plain = np.empty(n, np.bool_)
     res = np.empty(n, np.float64)
     status = np.empty(n, np.int8)
     rounds = np.empty(n, np.int32)
     if n == 0:
-        return x, z, res, status, rounds
+        return x, z, res, status, rounds, plain
     if factors is None:  # placeholders of the right types (numba compiles one kernel per dtype)
         fac = (np.zeros((1, 1), b.dtype), np.zeros((1, 1), np.bool_),
                np.zeros((1, 1, m), b.dtype), np.zeros((1, 1), b.dtype),
@@ -360,9 +575,55 @@ def solve_frame_cpu(
     with threads(num_threads):
         _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine),
                       float(INFEASIBILITY_FRACTION), int(zero_set_limit(m)), int(MURTY_PATIENCE),
-                      float(COMPILED_FLOOR), x, z, res, status, rounds, min(n, 512),
-                      factors is not None, *fac)
-    return x, z, res, status, rounds
+                      float(COMPILED_FLOOR), int(START_SWEEPS), x, z, plain, res, status,
+                      rounds, min(n, 512), factors is not None, *fac)
+    return x, z, res, status, rounds, plain
+
+
+def factor_sensing_cpu(
+    transmittance: np.ndarray, gain: np.ndarray, response: np.ndarray, mask: np.ndarray | None,
+    reg: np.ndarray, dtype: np.dtype, num_threads: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The per-pixel factorisation of :func:`~hsi_torch.recon.nnls.prepare_nnls` for the camera's
+    factored sensing matrix, in one compiled pass (float64 arithmetic, results in ``dtype``).
+
+    Per pixel: ``G = Aᵀ W A + reg`` from the factors (the whole views in the factored form
+    ``(Σ_v g_v² B_v B_vᵀ) ⊙ (Σ_c r_c r_cᵀ)``, views split by the mask one observation at a
+    time), exactly symmetric; ``diag G``; the lower bound of ``‖G‖₂`` (three power steps from the
+    ones vector and the Rayleigh quotient, at least ``max diag G``); the Cholesky factor, whose
+    smallest pivot below ``20·M·eps(dtype)·max diag G`` marks the pixel singular (``H = 0``);
+    else ``H = G⁻¹ = L⁻ᵀ L⁻¹``, exactly symmetric. The same tests as the torch factorisation.
+
+    Args:
+        transmittance: ``(P, V, M)``; gain: ``(P, V)``; response: ``(C, M)``; mask:
+            ``(P, V·C)`` bool (``o = C·v + c``) or ``None`` (all used); reg: ``(M, M)``
+            float64 ``β DᵀD``; dtype: of the results.
+
+    Returns:
+        ``G (P, M, M)``, ``H (P, M, M)``, ``diag G (P, M)``, ``‖G‖₂ bound (P,)``,
+        ``singular (P,)`` bool (including the pixels without data), ``no_data (P,)`` bool.
+    """
+    if not AVAILABLE:  # pragma: no cover
+        raise RuntimeError("numba is not installed")
+    Bt = np.ascontiguousarray(transmittance)
+    n, V, m = Bt.shape
+    dt = np.dtype(dtype)
+    G = np.empty((n, m, m), dt)
+    H = np.empty((n, m, m), dt)
+    gd = np.empty((n, m), dt)
+    gn = np.empty(n, dt)
+    singular = np.empty(n, np.bool_)
+    no_data = np.empty(n, np.bool_)
+    if n == 0:
+        return G, H, gd, gn, singular, no_data
+    masked = mask is not None
+    mk = np.ascontiguousarray(mask) if masked else np.ones((1, 1), np.bool_)
+    rel = 20.0 * m * float(np.finfo(dt).eps)
+    with threads(num_threads):
+        _factor_kernel(Bt, np.ascontiguousarray(gain), np.ascontiguousarray(response), mk,
+                       masked, np.ascontiguousarray(reg, dtype=np.float64), rel, G, H, gd, gn,
+                       singular, no_data, min(n, 512))
+    return G, H, gd, gn, singular, no_data
 
 
 def adjoint_frame(y: np.ndarray, mask: np.ndarray, transmittance: np.ndarray, gain: np.ndarray,

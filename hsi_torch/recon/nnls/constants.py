@@ -15,6 +15,7 @@ __all__ = [
     "BPP_ROUNDS",
     "REFINE_STEPS",
     "COMPILED_FLOOR",
+    "START_SWEEPS",
     "zero_set_limit",
 ]
 
@@ -40,6 +41,17 @@ REFINE_STEPS = 2
 #: The compiled kernel's floor (float64 arithmetic) on the infeasibility threshold and on the
 #: KKT residual's denominator; the torch kernels use their dtype's smallest normal number.
 COMPILED_FLOOR = 1e-300
+
+
+#: Sweeps of projected coordinate descent that choose the compiled kernel's first zero set
+#: (:func:`~hsi_torch.recon.nnls._compiled.solve_frame_cpu`): from ``max(x₀, 0)``, each sweep
+#: sets ``x_j ← max(0, x_j − g_j / G_jj)`` in turn (``g = Gx − b``), skipping coordinates at 0
+#: with ``g_j ≥ 0``; the first zero set is then every ``j`` with ``x_j − g_j / G_jj ≤ 0`` (a
+#: coordinate at zero or one the next step would take there). On the full-size CAVE frame two
+#: sweeps cut the exchange rounds of a pivoting pixel from 3.4 to 1.7 for ~0.1 µs; any start
+#: keeps the exchange rules' finite termination. The torch kernels start from the negative
+#: entries of ``x₀`` (more rounds, same answers).
+START_SWEEPS = 2
 
 
 def zero_set_limit(num_bands: int) -> int:

@@ -136,7 +136,7 @@ def _steps_compiled(
     done = torch.from_numpy(out[3]) == _compiled.DONE
     iters = torch.from_numpy(out[4]).long()
     redo = (sing & ~nod) | ~done
-    plain = ~zset.any(1) & ~irregular
+    plain = torch.from_numpy(out[5])  # ~zset.any(1) & ~irregular, counted in the pass
     return _Steps(x, b, r, zset, done, iters, redo, plain)
 
 
@@ -260,9 +260,8 @@ def _finish(
     """Step 4 for the pixels that still fail: refinement on their zero set, then the
     Lawson–Hanson fallback (with singular and unfinished pixels)."""
     x, b, r, zset, done, iters, redo = st.x, st.b, st.r, st.zset, st.done, st.iters, st.redo
-    m, dt, dev = x.shape[1], x.dtype, x.device
+    m, dt = x.shape[1], x.dtype
     tiny = torch.finfo(dt).tiny
-    zero = torch.zeros((), dtype=dt, device=dev)
     gn_all = problem.gram_norm
     any_irregular = bool(irregular.any())
     bad = ~(r <= tol) & ~irregular & ~redo & ~st.plain
@@ -276,7 +275,7 @@ def _finish(
             better = rs < r[ic]
             x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
             r[ic] = torch.where(better, rs, r[ic])
-        bad[idx] = ~(r[idx] <= tol)
+            bad[ic] = better & ~(rs <= tol)  # unchanged x: the next step would repeat this one
     # 4. robust fallback: singular G, Cholesky failures, unfinished or still failing pixels
     redo |= ~(r <= tol) & ~irregular
     if any_irregular:
@@ -297,8 +296,10 @@ def _finish(
         r[ic] = torch.where(better, rs, r[ic])
         iters[ic] = iters[ic] + its
     if any_irregular:
-        x = torch.where(nod.view(-1, 1), zero, x)
-        r = torch.where(nod, zero, r)
+        inod = nod.nonzero().squeeze(1)
+        if inod.numel():  # usually few: rows, not a frame-sized select
+            x.index_fill_(0, inod, 0.0)
+            r.index_fill_(0, inod, 0.0)
     r = torch.where(torch.isfinite(r), r, torch.full_like(r, float("inf")))
     return x, done & (r <= tol), iters, r, nod.clone()
 
