@@ -456,7 +456,7 @@ if AVAILABLE:
                     for i in range(m):
                         nrm += u[i] * u[i]
                     nrm = np.sqrt(nrm)
-                    nrm = nrm if nrm > 1e-300 else 1e-300
+                    nrm = nrm if nrm > COMPILED_FLOOR else COMPILED_FLOOR
                     for i in range(m):
                         v[i] = u[i] / nrm
                 for i in range(m):
