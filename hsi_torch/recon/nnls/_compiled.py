@@ -282,100 +282,111 @@ if AVAILABLE:
                     for j in range(M):
                         out[j] += uc * resp[c, j] * Bt[r, v, j]
 
+    @_nb.njit(cache=True, error_model="numpy")
+    def _frame_kernel_chunk(ch, G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half,
+                            patience, floor, sweeps, x_out, z_out, plain, r_out, status, rounds,
+                            num_chunks, fused, y, mask, Bt, gain, resp):  # pragma: no cover
+        """One chunk of :func:`_frame_kernel`'s pixels (one thread's work)."""
+        n, m = b.shape
+        shared = G.shape[0] == 1
+        S = np.empty((m, m))
+        rhs = np.empty(m)
+        idx = np.empty(m, np.int64)
+        x = np.empty(m)
+        x0 = np.empty(m)
+        xn = np.empty(m)
+        lam = np.empty(m)
+        g = np.empty(m)
+        br = np.empty(m)
+        Z = np.empty(m, np.bool_)
+        viol = np.empty(m, np.int64)
+        xc = np.empty(m, G.dtype)  # the start's coordinate descent, in G's dtype
+        gc = np.zeros(m + 1, G.dtype)
+        wc = np.empty(m, G.dtype)
+        for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+            p = 0 if shared else r
+            if fused:  # b = Aᵀ W y from the factors, stored (rounded to b's dtype)
+                _rhs(y, mask, Bt, gain, resp, r, rhs)
+                for j in range(m):
+                    b[r, j] = rhs[j]
+            bn = 0.0
+            for j in range(m):
+                br[j] = b[r, j]
+                bn += br[j] * br[j]
+            bn = np.sqrt(bn)
+            for i in range(m):  # x0 = H b
+                x0[i] = 0.0
+            _symv(H, p, br, x0, 1.0)
+            nrm = 0.0
+            for i in range(m):
+                nrm += x0[i] * x0[i]
+            t = frac * tol * (gn[p] * np.sqrt(nrm) + bn)
+            t = t if t > floor else floor
+            need = False
+            if not skip[r]:
+                for j in range(m):
+                    if x0[j] * gd[p, j] < -t:
+                        need = True
+            st, rnd, have_g = DONE, 0, False
+            if need:
+                if sweeps > 0:
+                    _start_zero_set(G, p, x0, gd, sweeps, xc, gc, wc, Z)
+                else:
+                    for j in range(m):
+                        Z[j] = x0[j] * gd[p, j] < -t
+                st, rnd, have_g = _bpp_pixel(G, H, p, x0, br, gd, t, max_rounds, half,
+                                             patience, S, rhs, idx, x, lam, Z, viol)
+                for j in range(m):
+                    if not (x[j] > 0.0):
+                        have_g = have_g and x[j] == 0.0  # a clamped entry changes G x
+                        x[j] = 0.0
+            else:
+                for j in range(m):
+                    x[j] = x0[j] if x0[j] > 0.0 else 0.0
+                    Z[j] = False
+            if have_g:  # the last round's G x − b, the same sums as _kkt
+                for j in range(m):
+                    g[j] = lam[j]
+                res = _kkt_of(p, x, gd, gn[p], bn, g, floor)
+            else:
+                res = _kkt(G, p, x, br, gd, gn[p], bn, g, floor)
+            if not need and not skip[r]:  # all-free pixels: refinement x <- max(0, x - H g)
+                for _ in range(refine):
+                    if res <= tol:
+                        break
+                    for i in range(m):
+                        xn[i] = x[i]
+                    _symv(H, p, g, xn, -1.0)
+                    for i in range(m):
+                        xn[i] = xn[i] if xn[i] > 0.0 else 0.0
+                    rn = _kkt(G, p, xn, br, gd, gn[p], bn, lam, floor)
+                    if rn < res:
+                        res = rn
+                        for i in range(m):
+                            x[i] = xn[i]
+                            g[i] = lam[i]
+                    else:
+                        break
+            anyz = False
+            for j in range(m):
+                x_out[r, j] = x[j]
+                z_out[r, j] = Z[j]
+                anyz |= Z[j]
+            plain[r] = not (anyz or skip[r])
+            r_out[r] = res
+            status[r] = st
+            rounds[r] = rnd
+
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half, patience,
                       floor, sweeps, x_out, z_out, plain, r_out, status, rounds, num_chunks,
                       fused, y, mask, Bt, gain, resp):  # pragma: no cover - compiled
-        n, m = b.shape
-        shared = G.shape[0] == 1
         for ch in _nb.prange(num_chunks):
-            S = np.empty((m, m))
-            rhs = np.empty(m)
-            idx = np.empty(m, np.int64)
-            x = np.empty(m)
-            x0 = np.empty(m)
-            xn = np.empty(m)
-            lam = np.empty(m)
-            g = np.empty(m)
-            br = np.empty(m)
-            Z = np.empty(m, np.bool_)
-            viol = np.empty(m, np.int64)
-            xc = np.empty(m, G.dtype)  # the start's coordinate descent, in G's dtype
-            gc = np.zeros(m + 1, G.dtype)
-            wc = np.empty(m, G.dtype)
-            for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
-                p = 0 if shared else r
-                if fused:  # b = Aᵀ W y from the factors, stored (rounded to b's dtype)
-                    _rhs(y, mask, Bt, gain, resp, r, rhs)
-                    for j in range(m):
-                        b[r, j] = rhs[j]
-                bn = 0.0
-                for j in range(m):
-                    br[j] = b[r, j]
-                    bn += br[j] * br[j]
-                bn = np.sqrt(bn)
-                for i in range(m):  # x0 = H b
-                    x0[i] = 0.0
-                _symv(H, p, br, x0, 1.0)
-                nrm = 0.0
-                for i in range(m):
-                    nrm += x0[i] * x0[i]
-                t = frac * tol * (gn[p] * np.sqrt(nrm) + bn)
-                t = t if t > floor else floor
-                need = False
-                if not skip[r]:
-                    for j in range(m):
-                        if x0[j] * gd[p, j] < -t:
-                            need = True
-                st, rnd, have_g = DONE, 0, False
-                if need:
-                    if sweeps > 0:
-                        _start_zero_set(G, p, x0, gd, sweeps, xc, gc, wc, Z)
-                    else:
-                        for j in range(m):
-                            Z[j] = x0[j] * gd[p, j] < -t
-                    st, rnd, have_g = _bpp_pixel(G, H, p, x0, br, gd, t, max_rounds, half,
-                                                 patience, S, rhs, idx, x, lam, Z, viol)
-                    for j in range(m):
-                        if not (x[j] > 0.0):
-                            have_g = have_g and x[j] == 0.0  # a clamped entry changes G x
-                            x[j] = 0.0
-                else:
-                    for j in range(m):
-                        x[j] = x0[j] if x0[j] > 0.0 else 0.0
-                        Z[j] = False
-                if have_g:  # the last round's G x − b, the same sums as _kkt
-                    for j in range(m):
-                        g[j] = lam[j]
-                    res = _kkt_of(p, x, gd, gn[p], bn, g, floor)
-                else:
-                    res = _kkt(G, p, x, br, gd, gn[p], bn, g, floor)
-                if not need and not skip[r]:  # all-free pixels: refinement x <- max(0, x - H g)
-                    for _ in range(refine):
-                        if res <= tol:
-                            break
-                        for i in range(m):
-                            xn[i] = x[i]
-                        _symv(H, p, g, xn, -1.0)
-                        for i in range(m):
-                            xn[i] = xn[i] if xn[i] > 0.0 else 0.0
-                        rn = _kkt(G, p, xn, br, gd, gn[p], bn, lam, floor)
-                        if rn < res:
-                            res = rn
-                            for i in range(m):
-                                x[i] = xn[i]
-                                g[i] = lam[i]
-                        else:
-                            break
-                anyz = False
-                for j in range(m):
-                    x_out[r, j] = x[j]
-                    z_out[r, j] = Z[j]
-                    anyz |= Z[j]
-                plain[r] = not (anyz or skip[r])
-                r_out[r] = res
-                status[r] = st
-                rounds[r] = rnd
+            # int64 both when typed and when lowered (prange's index is then
+            # uint64): one compiled signature, not two
+            _frame_kernel_chunk(np.int64(ch), G, H, b, gd, gn, skip, tol, max_rounds, refine, frac,
+                                half, patience, floor, sweeps, x_out, z_out, plain, r_out, status,
+                                rounds, num_chunks, fused, y, mask, Bt, gain, resp)
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _adjoint_kernel(y, mask, Bt, gain, resp, out, num_chunks):  # pragma: no cover
@@ -387,134 +398,142 @@ if AVAILABLE:
                 for j in range(m):
                     out[r, j] = acc[j]
 
+    @_nb.njit(cache=True, error_model="numpy")
+    def _factor_kernel_chunk(ch, Bt, gain, resp, mask, masked, R, rel, G, H, gd, gn, singular,
+                             no_data, num_chunks):  # pragma: no cover - compiled
+        """One chunk of :func:`_factor_kernel`'s pixels (one thread's work)."""
+        n, V, m = Bt.shape
+        C = resp.shape[0]
+        S = np.empty((m, m))
+        T = np.empty((m, m))
+        RR = np.empty((m, m))
+        a = np.empty(m)
+        v = np.empty(m)
+        u = np.empty(m)
+        for i in range(m):  # Σ_c r_ci r_cj: the response part of a whole view
+            for j in range(m):
+                RR[i, j] = 0.0
+            for c in range(C):
+                ri = np.float64(resp[c, i])
+                for j in range(m):
+                    RR[i, j] += ri * resp[c, j]
+        for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
+            for i in range(m):
+                for j in range(m):
+                    T[i, j] = 0.0
+                    S[i, j] = 0.0
+            nobs = 0
+            for vv in range(V):
+                g2 = np.float64(gain[r, vv]) * gain[r, vv]
+                non = 0
+                for c in range(C):
+                    non += np.int64((not masked) or mask[r, vv * C + c])
+                nobs += non
+                if non == C:  # a whole view: g_v² B_v B_vᵀ, ⊙ Σ_c r_c r_cᵀ below
+                    for i in range(m):
+                        bi = g2 * Bt[r, vv, i]
+                        for j in range(m):
+                            T[i, j] += bi * Bt[r, vv, j]
+                elif non > 0:  # a view split by the mask: one observation at a time
+                    for c in range(C):
+                        if not mask[r, vv * C + c]:
+                            continue
+                        for j in range(m):
+                            a[j] = np.float64(Bt[r, vv, j]) * resp[c, j]
+                        for i in range(m):
+                            ai = g2 * a[i]
+                            for j in range(m):
+                                S[i, j] += ai * a[j]
+            for i in range(m):
+                for j in range(m):
+                    T[i, j] = T[i, j] * RR[i, j] + S[i, j]
+            dmax = 0.0
+            for i in range(m):  # G = T + R from the lower triangle: exactly symmetric
+                for j in range(i + 1):
+                    G[r, i, j] = T[i, j] + R[i, j]  # rounded to G's dtype
+                    G[r, j, i] = G[r, i, j]
+                    S[i, j] = G[r, i, j]  # the stored G is what is factorised
+                gd[r, i] = G[r, i, i]
+                dmax = max(dmax, np.float64(gd[r, i]))
+            # lower bound of ‖G‖₂: three power steps from the ones vector, Rayleigh quotient
+            for i in range(m):
+                v[i] = 1.0
+            for _ in range(3):
+                for i in range(m):
+                    u[i] = 0.0
+                _symv(G, r, v, u, 1.0)
+                nrm = 0.0
+                for i in range(m):
+                    nrm += u[i] * u[i]
+                nrm = np.sqrt(nrm)
+                nrm = nrm if nrm > COMPILED_FLOOR else COMPILED_FLOOR
+                for i in range(m):
+                    v[i] = u[i] / nrm
+            for i in range(m):
+                u[i] = 0.0
+            _symv(G, r, v, u, 1.0)
+            rq = 0.0
+            for i in range(m):
+                rq += u[i] * v[i]
+            rq = rq if rq > dmax else dmax
+            gn[r] = rq if rq > 0.0 else 0.0
+            # Cholesky G = L Lᵀ (float64, rows of L); the smallest pivot decides singularity
+            pmin = np.inf
+            for j in range(m):
+                sj = S[j, j]
+                for c in range(j):
+                    sj -= S[j, c] * S[j, c]
+                pmin = sj if sj < pmin else pmin
+                if not (sj > 0.0):
+                    break
+                d = np.sqrt(sj)
+                inv = 1.0 / d
+                S[j, j] = d
+                for i in range(j + 1, m):
+                    t = S[i, j]
+                    for c in range(j):
+                        t -= S[i, c] * S[j, c]
+                    S[i, j] = t * inv
+            bad = not (pmin > rel * dmax) or not (pmin < np.inf) or nobs == 0
+            singular[r] = bad
+            no_data[r] = nobs == 0
+            if bad:
+                for i in range(m):
+                    for j in range(m):
+                        H[r, i, j] = 0.0
+                continue
+            for i in range(m):  # T = L⁻¹ (lower), by rows: T_i = −(Σ_c<i L_ic T_c) / L_ii
+                for j in range(i):
+                    u[j] = 0.0
+                for c in range(i):
+                    lic = S[i, c]
+                    for j in range(c + 1):
+                        u[j] -= lic * T[c, j]
+                inv = 1.0 / S[i, i]
+                for j in range(i):
+                    T[i, j] = u[j] * inv
+                T[i, i] = inv
+            for i in range(m):  # H = L⁻ᵀ L⁻¹, lower triangle: Σ_{k ≥ i} T_ki T_kj
+                for j in range(i + 1):
+                    S[i, j] = 0.0
+            for k in range(m):
+                for i in range(k + 1):
+                    tki = T[k, i]
+                    for j in range(i + 1):
+                        S[i, j] += tki * T[k, j]
+            for i in range(m):
+                for j in range(i + 1):
+                    H[r, i, j] = S[i, j]
+                    H[r, j, i] = H[r, i, j]
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _factor_kernel(Bt, gain, resp, mask, masked, R, rel, G, H, gd, gn, singular, no_data,
                        num_chunks):  # pragma: no cover - compiled
-        n, V, m = Bt.shape
-        C = resp.shape[0]
         for ch in _nb.prange(num_chunks):
-            S = np.empty((m, m))
-            T = np.empty((m, m))
-            RR = np.empty((m, m))
-            a = np.empty(m)
-            v = np.empty(m)
-            u = np.empty(m)
-            for i in range(m):  # Σ_c r_ci r_cj: the response part of a whole view
-                for j in range(m):
-                    RR[i, j] = 0.0
-                for c in range(C):
-                    ri = np.float64(resp[c, i])
-                    for j in range(m):
-                        RR[i, j] += ri * resp[c, j]
-            for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
-                for i in range(m):
-                    for j in range(m):
-                        T[i, j] = 0.0
-                        S[i, j] = 0.0
-                nobs = 0
-                for vv in range(V):
-                    g2 = np.float64(gain[r, vv]) * gain[r, vv]
-                    non = 0
-                    for c in range(C):
-                        non += np.int64((not masked) or mask[r, vv * C + c])
-                    nobs += non
-                    if non == C:  # a whole view: g_v² B_v B_vᵀ, ⊙ Σ_c r_c r_cᵀ below
-                        for i in range(m):
-                            bi = g2 * Bt[r, vv, i]
-                            for j in range(m):
-                                T[i, j] += bi * Bt[r, vv, j]
-                    elif non > 0:  # a view split by the mask: one observation at a time
-                        for c in range(C):
-                            if not mask[r, vv * C + c]:
-                                continue
-                            for j in range(m):
-                                a[j] = np.float64(Bt[r, vv, j]) * resp[c, j]
-                            for i in range(m):
-                                ai = g2 * a[i]
-                                for j in range(m):
-                                    S[i, j] += ai * a[j]
-                for i in range(m):
-                    for j in range(m):
-                        T[i, j] = T[i, j] * RR[i, j] + S[i, j]
-                dmax = 0.0
-                for i in range(m):  # G = T + R from the lower triangle: exactly symmetric
-                    for j in range(i + 1):
-                        G[r, i, j] = T[i, j] + R[i, j]  # rounded to G's dtype
-                        G[r, j, i] = G[r, i, j]
-                        S[i, j] = G[r, i, j]  # the stored G is what is factorised
-                    gd[r, i] = G[r, i, i]
-                    dmax = max(dmax, np.float64(gd[r, i]))
-                # lower bound of ‖G‖₂: three power steps from the ones vector, Rayleigh quotient
-                for i in range(m):
-                    v[i] = 1.0
-                for _ in range(3):
-                    for i in range(m):
-                        u[i] = 0.0
-                    _symv(G, r, v, u, 1.0)
-                    nrm = 0.0
-                    for i in range(m):
-                        nrm += u[i] * u[i]
-                    nrm = np.sqrt(nrm)
-                    nrm = nrm if nrm > COMPILED_FLOOR else COMPILED_FLOOR
-                    for i in range(m):
-                        v[i] = u[i] / nrm
-                for i in range(m):
-                    u[i] = 0.0
-                _symv(G, r, v, u, 1.0)
-                rq = 0.0
-                for i in range(m):
-                    rq += u[i] * v[i]
-                rq = rq if rq > dmax else dmax
-                gn[r] = rq if rq > 0.0 else 0.0
-                # Cholesky G = L Lᵀ (float64, rows of L); the smallest pivot decides singularity
-                pmin = np.inf
-                for j in range(m):
-                    sj = S[j, j]
-                    for c in range(j):
-                        sj -= S[j, c] * S[j, c]
-                    pmin = sj if sj < pmin else pmin
-                    if not (sj > 0.0):
-                        break
-                    d = np.sqrt(sj)
-                    inv = 1.0 / d
-                    S[j, j] = d
-                    for i in range(j + 1, m):
-                        t = S[i, j]
-                        for c in range(j):
-                            t -= S[i, c] * S[j, c]
-                        S[i, j] = t * inv
-                bad = not (pmin > rel * dmax) or not (pmin < np.inf) or nobs == 0
-                singular[r] = bad
-                no_data[r] = nobs == 0
-                if bad:
-                    for i in range(m):
-                        for j in range(m):
-                            H[r, i, j] = 0.0
-                    continue
-                for i in range(m):  # T = L⁻¹ (lower), by rows: T_i = −(Σ_c<i L_ic T_c) / L_ii
-                    for j in range(i):
-                        u[j] = 0.0
-                    for c in range(i):
-                        lic = S[i, c]
-                        for j in range(c + 1):
-                            u[j] -= lic * T[c, j]
-                    inv = 1.0 / S[i, i]
-                    for j in range(i):
-                        T[i, j] = u[j] * inv
-                    T[i, i] = inv
-                for i in range(m):  # H = L⁻ᵀ L⁻¹, lower triangle: Σ_{k ≥ i} T_ki T_kj
-                    for j in range(i + 1):
-                        S[i, j] = 0.0
-                for k in range(m):
-                    for i in range(k + 1):
-                        tki = T[k, i]
-                        for j in range(i + 1):
-                            S[i, j] += tki * T[k, j]
-                for i in range(m):
-                    for j in range(i + 1):
-                        H[r, i, j] = S[i, j]
-                        H[r, j, i] = H[r, i, j]
+            # int64 both when typed and when lowered (prange's index is then
+            # uint64): one compiled signature, not two
+            _factor_kernel_chunk(np.int64(ch), Bt, gain, resp, mask, masked, R, rel, G, H, gd, gn,
+                                 singular, no_data, num_chunks)
 
 
 def solve_frame_cpu(

@@ -90,7 +90,7 @@ if AVAILABLE:
                     zT[j, i] = z[j]
                     uT[j, i] = (b[i, j] - g[j]) / rho
 
-    @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
+    @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _primal_row(v, t, r, rs, r_up, rs_up, wrow, wfrom, wto, out, a, b, c,
                     off):  # pragma: no cover - compiled
         """``max(v − t (KD)ᵀr, 0)`` of one row into ``out (M, W + 2)``, every column of
@@ -116,7 +116,7 @@ if AVAILABLE:
                 val = v[j, X] - t * d
                 out[j, X] = val if val > 0 else 0
 
-    @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
+    @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _dual_row(zk, zn, r, p_old, p_new, ps_new, r_new, rs_new, want_r, step, mom, one, c,
                   wrow, wdown, a, b, q, sums, scale):  # pragma: no cover - compiled
         """One FGP dual update of one row, every column of ``a:b`` at once (band-major rows, see
@@ -185,7 +185,7 @@ if AVAILABLE:
             ps_new[0, X] = sums[0, X]
             ps_new[1, X] = sums[1, X]
 
-    @_nb.njit(inline="always", error_model="numpy")
+    @_nb.njit(error_model="numpy")
     def _load_row(src, dst, lo, hi, x0, col, contiguous):  # pragma: no cover - compiled
         """``dst[k, col_i + 1] = src[k, i]`` for the pixels ``i`` of one row (``src`` band-major
         over pixels, ``dst`` over padded columns: ``(K, P)`` → ``(K, W + 2)``; unsigned
@@ -200,7 +200,7 @@ if AVAILABLE:
                 for x in range(n):
                     dst[k, np.uint64(col[ulo + x]) + u1] = src[k, ulo + x]
 
-    @_nb.njit(inline="always", error_model="numpy")
+    @_nb.njit(error_model="numpy")
     def _store_row(src, dst, lo, hi, x0, col, contiguous):  # pragma: no cover - compiled
         """The inverse of :func:`_load_row`: ``dst[k, i] = src[k, col_i + 1]``."""
         n, ulo, u1 = np.uint64(hi - lo), np.uint64(lo), np.uint64(1)
@@ -213,7 +213,7 @@ if AVAILABLE:
                 for x in range(n):
                     dst[k, ulo + x] = src[k, np.uint64(col[ulo + x]) + u1]
 
-    @_nb.njit(inline="always", error_model="numpy", fastmath=_FAST)
+    @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _x_row(inv_rows, row_slot, row_inv, has_slot, b, x_in, u_in, z_in, x_out, u_out, rho,
                update_u, own, vrow, lo, hi, x0, col, contiguous, rhs, acc,
                uu):  # pragma: no cover - compiled
@@ -310,97 +310,108 @@ if AVAILABLE:
                             off += length
                 c0 = c1
 
-    @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
-    def _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
-                   rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out, ps_out, z_out, blocks,
-                   row_ptr, col, span, ex, ey):  # pragma: no cover - compiled
+    @_nb.njit(error_model="numpy", fastmath=_FAST)
+    def _fgp_one_block(bi, inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in,
+                       x_out, u_out, rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out,
+                       ps_out, z_out, blocks, row_ptr, col, span, ex, ey):  # pragma: no cover
+        """One block of rows of :func:`_fgp_block` (its own thread)."""
         n_it = moms.shape[0]
         m = b.shape[0]
         dt = b.dtype
         h = row_ptr.shape[0] - 1
         width = ex.shape[1]  # W + 2: a zero column on each side
         nv = n_it + 3  # rows of v in flight: loaded one row ahead, read until the final primal
-        for bi in _nb.prange(blocks.shape[0] - 1):
-            ra, rb = blocks[bi], blocks[bi + 1]
-            if ra >= rb:
-                continue
-            # band-major rows over padded columns, finite everywhere (missing edges read 0·x):
-            # per dual iteration j its input r (ring of 4 rows; j = 0: the rows of p_in), the p
-            # of its momentum (j ≥ 1; j = 0 reads r), the primal z (ring of 2 rows)
-            ring_v = np.zeros((nv, m, width), dt)
-            ring_r = np.zeros((n_it + 1, 4, 2, m, width), dt)
-            ring_rs = np.zeros((n_it + 1, 4, 2, width), dt)
-            ring_p = np.zeros((n_it + 1, 4, 2, m, width), dt)
-            ring_ps = np.zeros((n_it + 1, 4, 2, width), dt)
-            ring_z = np.zeros((n_it, 2, m, width), dt)
-            q = np.empty((2, m, width), dt)
-            sums = np.empty((2, width), dt)
-            scale = np.empty(width, dt)
-            zrow = np.zeros((m, width), dt)
-            rhs = np.empty((m, _ROW_CHUNK), dt)
-            acc = np.empty((m, _ROW_CHUNK), dt)
-            uu = np.empty((m, _ROW_CHUNK), dt)
-            first0 = max(ra - n_it, 0)
-            for s in range(ra - n_it - 2, rb + n_it):
-                # the input rows of iteration 0 one row ahead: p_in, its sums, and v from the
-                # row's x-update
-                y_in = s + 1
-                if first0 - 1 <= y_in < min(rb + n_it + 1, h) and y_in >= 0:
-                    lo, hi = row_ptr[y_in], row_ptr[y_in + 1]
-                    x0 = span[y_in, 0]
-                    cont = span[y_in, 1] - x0 == hi - lo
-                    sl = y_in & 3
+        ra, rb = blocks[bi], blocks[bi + 1]
+        if ra >= rb:
+            return
+        # band-major rows over padded columns, finite everywhere (missing edges read 0·x):
+        # per dual iteration j its input r (ring of 4 rows; j = 0: the rows of p_in), the p
+        # of its momentum (j ≥ 1; j = 0 reads r), the primal z (ring of 2 rows)
+        ring_v = np.zeros((nv, m, width), dt)
+        ring_r = np.zeros((n_it + 1, 4, 2, m, width), dt)
+        ring_rs = np.zeros((n_it + 1, 4, 2, width), dt)
+        ring_p = np.zeros((n_it + 1, 4, 2, m, width), dt)
+        ring_ps = np.zeros((n_it + 1, 4, 2, width), dt)
+        ring_z = np.zeros((n_it, 2, m, width), dt)
+        q = np.empty((2, m, width), dt)
+        sums = np.empty((2, width), dt)
+        scale = np.empty(width, dt)
+        zrow = np.zeros((m, width), dt)
+        rhs = np.empty((m, _ROW_CHUNK), dt)
+        acc = np.empty((m, _ROW_CHUNK), dt)
+        uu = np.empty((m, _ROW_CHUNK), dt)
+        first0 = max(ra - n_it, 0)
+        for s in range(ra - n_it - 2, rb + n_it):
+            # the input rows of iteration 0 one row ahead: p_in, its sums, and v from the
+            # row's x-update
+            y_in = s + 1
+            if first0 - 1 <= y_in < min(rb + n_it + 1, h) and y_in >= 0:
+                lo, hi = row_ptr[y_in], row_ptr[y_in + 1]
+                x0 = span[y_in, 0]
+                cont = span[y_in, 1] - x0 == hi - lo
+                sl = y_in & 3
+                for k in range(2):
+                    _load_row(p_in[k], ring_r[0, sl, k], lo, hi, x0, col, cont)
+                _load_row(ps_in, ring_rs[0, sl], lo, hi, x0, col, cont)
+                _x_row(inv_rows, row_slot, row_inv, row_has_slot[y_in], b, x_in, u_in, z_in,
+                       x_out, u_out, rho, update_u, ra <= y_in < rb, ring_v[y_in % nv], lo,
+                       hi, x0, col, cont, rhs, acc, uu)
+            for j in range(n_it + 1):
+                y = s - j
+                if j < n_it:
+                    ylo = max(ra - (n_it - j), 0)
+                    yhi = min(rb + (n_it - j), h)
+                else:
+                    ylo, yhi = ra, rb
+                if y < ylo or y >= yhi:
+                    continue
+                xa = span[y, 0] + 1
+                xb = span[y, 1] + 1
+                wrow = ex[y]
+                wfrom, wto = ey[y], ey[y + 1]  # the edges from the row above, to the next
+                up = (y - 1) & 3
+                if j == n_it:  # the primal of the final dual, scattered into z_out
+                    _primal_row(ring_v[y % nv], t, ring_p[n_it, y & 3], ring_ps[n_it, y & 3],
+                                ring_p[n_it, up], ring_ps[n_it, up], wrow, wfrom, wto, zrow,
+                                xa, xb, c, scale)
+                    lo, hi = row_ptr[y], row_ptr[y + 1]
+                    x0 = span[y, 0]
+                    cont = span[y, 1] - x0 == hi - lo
+                    _store_row(zrow, z_out, lo, hi, x0, col, cont)
+                    continue
+                rr, rrs = ring_r[j], ring_rs[j]
+                p_old = rr[y & 3] if j == 0 else ring_p[j, y & 3]
+                if y == ylo:  # this iteration's first row: its own primal first
+                    _primal_row(ring_v[y % nv], t, rr[y & 3], rrs[y & 3], rr[up], rrs[up],
+                                wrow, wfrom, wto, ring_z[j, y & 1], xa, xb, c, scale)
+                if y + 1 < h:  # the next row's primal, from r before this row's update
+                    a2, b2 = span[y + 1, 0] + 1, span[y + 1, 1] + 1
+                    _primal_row(ring_v[(y + 1) % nv], t, rr[(y + 1) & 3], rrs[(y + 1) & 3],
+                                rr[y & 3], rrs[y & 3], ex[y + 1], ey[y + 1], ey[y + 2],
+                                ring_z[j, (y + 1) & 1], a2, b2, c, scale)
+                last = j + 1 == n_it
+                _dual_row(ring_z[j, y & 1], ring_z[j, (y + 1) & 1], rr[y & 3], p_old,
+                          ring_p[j + 1, y & 3], ring_ps[j + 1, y & 3], ring_r[j + 1, y & 3],
+                          ring_rs[j + 1, y & 3], not last, step, moms[j], one, c, wrow,
+                          wto, xa, xb, q, sums, scale)
+                if last and ra <= y < rb:  # the final dual of the owned rows
+                    lo, hi = row_ptr[y], row_ptr[y + 1]
+                    x0 = span[y, 0]
+                    cont = span[y, 1] - x0 == hi - lo
                     for k in range(2):
-                        _load_row(p_in[k], ring_r[0, sl, k], lo, hi, x0, col, cont)
-                    _load_row(ps_in, ring_rs[0, sl], lo, hi, x0, col, cont)
-                    _x_row(inv_rows, row_slot, row_inv, row_has_slot[y_in], b, x_in, u_in, z_in,
-                           x_out, u_out, rho, update_u, ra <= y_in < rb, ring_v[y_in % nv], lo,
-                           hi, x0, col, cont, rhs, acc, uu)
-                for j in range(n_it + 1):
-                    y = s - j
-                    if j < n_it:
-                        ylo = max(ra - (n_it - j), 0)
-                        yhi = min(rb + (n_it - j), h)
-                    else:
-                        ylo, yhi = ra, rb
-                    if y < ylo or y >= yhi:
-                        continue
-                    xa = span[y, 0] + 1
-                    xb = span[y, 1] + 1
-                    wrow = ex[y]
-                    wfrom, wto = ey[y], ey[y + 1]  # the edges from the row above, to the next
-                    up = (y - 1) & 3
-                    if j == n_it:  # the primal of the final dual, scattered into z_out
-                        _primal_row(ring_v[y % nv], t, ring_p[n_it, y & 3], ring_ps[n_it, y & 3],
-                                    ring_p[n_it, up], ring_ps[n_it, up], wrow, wfrom, wto, zrow,
-                                    xa, xb, c, scale)
-                        lo, hi = row_ptr[y], row_ptr[y + 1]
-                        x0 = span[y, 0]
-                        cont = span[y, 1] - x0 == hi - lo
-                        _store_row(zrow, z_out, lo, hi, x0, col, cont)
-                        continue
-                    rr, rrs = ring_r[j], ring_rs[j]
-                    p_old = rr[y & 3] if j == 0 else ring_p[j, y & 3]
-                    if y == ylo:  # this iteration's first row: its own primal first
-                        _primal_row(ring_v[y % nv], t, rr[y & 3], rrs[y & 3], rr[up], rrs[up],
-                                    wrow, wfrom, wto, ring_z[j, y & 1], xa, xb, c, scale)
-                    if y + 1 < h:  # the next row's primal, from r before this row's update
-                        a2, b2 = span[y + 1, 0] + 1, span[y + 1, 1] + 1
-                        _primal_row(ring_v[(y + 1) % nv], t, rr[(y + 1) & 3], rrs[(y + 1) & 3],
-                                    rr[y & 3], rrs[y & 3], ex[y + 1], ey[y + 1], ey[y + 2],
-                                    ring_z[j, (y + 1) & 1], a2, b2, c, scale)
-                    last = j + 1 == n_it
-                    _dual_row(ring_z[j, y & 1], ring_z[j, (y + 1) & 1], rr[y & 3], p_old,
-                              ring_p[j + 1, y & 3], ring_ps[j + 1, y & 3], ring_r[j + 1, y & 3],
-                              ring_rs[j + 1, y & 3], not last, step, moms[j], one, c, wrow,
-                              wto, xa, xb, q, sums, scale)
-                    if last and ra <= y < rb:  # the final dual of the owned rows
-                        lo, hi = row_ptr[y], row_ptr[y + 1]
-                        x0 = span[y, 0]
-                        cont = span[y, 1] - x0 == hi - lo
-                        for k in range(2):
-                            _store_row(ring_p[n_it, y & 3, k], p_out[k], lo, hi, x0, col, cont)
-                        _store_row(ring_ps[n_it, y & 3], ps_out, lo, hi, x0, col, cont)
+                        _store_row(ring_p[n_it, y & 3, k], p_out[k], lo, hi, x0, col, cont)
+                    _store_row(ring_ps[n_it, y & 3], ps_out, lo, hi, x0, col, cont)
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
+    def _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
+                   rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out, ps_out, z_out, blocks,
+                   row_ptr, col, span, ex, ey):  # pragma: no cover - compiled
+        for bi in _nb.prange(blocks.shape[0] - 1):
+            # int64 both when typed and when lowered (prange's index is then
+            # uint64): one compiled signature, not two
+            _fgp_one_block(np.int64(bi), inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in,
+                           z_in, x_out, u_out, rho, update_u, t, step, moms, one, c, p_in, ps_in,
+                           p_out, ps_out, z_out, blocks, row_ptr, col, span, ex, ey)
 
 
 def _chunks(n: int) -> int:
