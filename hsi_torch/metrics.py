@@ -208,10 +208,12 @@ def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.
 def _filter_valid(z: Tensor, kernel: Tensor) -> Tensor:
     """``z (k, 1, h, w)`` correlated with the separable ``kernel ⊗ kernel`` (``(n,)``), 'valid'
     part ``(k, 1, h − n + 1, w − n + 1)``: along the rows, then the columns. On the CPU in
-    float32/64 through OpenCV's ``sepFilter2D`` (same arithmetic as the two ``conv2d``, many times
-    faster in float64), else ``conv2d``."""
+    float32/64 and without a gradient to keep, through OpenCV's ``sepFilter2D`` (the two
+    ``conv2d`` to rounding, many times faster in float64), else ``conv2d`` (differentiable)."""
     n = kernel.shape[0]
-    if z.device.type == "cpu" and z.dtype in (torch.float32, torch.float64):
+    differentiable = torch.is_grad_enabled() and (z.requires_grad or kernel.requires_grad)
+    if (z.device.type == "cpu" and z.dtype in (torch.float32, torch.float64)
+            and not differentiable):
         import cv2  # lazy: only when an SSIM is computed on the CPU
 
         r = n // 2

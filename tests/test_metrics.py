@@ -113,6 +113,23 @@ def test_ssim_in_a_mask_is_the_full_frame_computation():
     assert_close(hm.ssim(e, t, per_band=True), _ssim_full_frame(e, t, full), rtol=0, atol=1e-12)
 
 
+def test_ssim_keeps_its_gradient_on_the_cpu():
+    """SSIM as a loss: with a tensor that needs a gradient the CPU computation stays in torch
+    (differentiable, same value as without one), and the gradient matches finite differences."""
+    e, t = _pair("cpu", torch.float64, shape=(2, 20, 22), seed=7)
+    m = torch.ones(20, 22, dtype=torch.bool)
+    x = e.clone().requires_grad_(True)
+    val = hm.ssim(x, t, m)
+    assert val.requires_grad
+    assert_close(val.detach(), hm.ssim(e, t, m), rtol=0, atol=1e-12)
+    (grad,) = torch.autograd.grad(val, x)
+    d = torch.zeros_like(e)
+    d[1, 9, 11] = 1e-6
+    fd = (hm.ssim(e + d, t, m) - hm.ssim(e - d, t, m)) / 2e-6
+    assert float(fd) == pytest.approx(float(grad[1, 9, 11]), rel=1e-4, abs=1e-9)
+    assert float(grad.abs().sum()) > 0
+
+
 def test_metrics_match_torchmetrics():
     tmf = pytest.importorskip("torchmetrics.functional.image")
     e, t = _pair("cpu", torch.float64, seed=2)

@@ -414,3 +414,43 @@ def test_all_but_one_rows_keys_and_remedies():
     MismatchConfig(effects=["all-monochromator", "drift"])
     with pytest.raises(ValueError, match="all-nope"):
         MismatchConfig(effects=["all-nope"])
+
+
+def test_a_white_shot_otherwise_is_re_shot(tmp_path: Path, monkeypatch):
+    """A row's re-shot white references are reused only when their record says they were
+    shot with the effects the row's remedy asks for (an older run's set, shot otherwise, is
+    re-shot and the bundles calibrated from it dropped); a remedy whose scores do not show its
+    parts raises before anything is kept."""
+    import hsi_torch.experiments.mismatch as mm
+
+    calls = []
+
+    def fake_rerender(sim, caps, out, **kw):
+        calls.append(kw)
+        (out / "ground_truth").mkdir(parents=True)
+        (out / "manifest.json").write_text("{}")
+        (out / "ground_truth" / "truth.json").write_text(json.dumps(
+            {"white_mismatch": mm.white_mismatch_of(sim.mismatch)}))
+
+    monkeypatch.setattr(mm, "rerender_after_calibration", fake_rerender)
+    cfg = mm.MismatchConfig(effects=["all"])
+    row = tmp_path / "rows" / "all"
+    old = row / "captures_white"
+    (old / "ground_truth").mkdir(parents=True)
+    (old / "manifest.json").write_text("{}")
+    (old / "ground_truth" / "truth.json").write_text(json.dumps(
+        {"white_mismatch": {"scene_illuminant": "A", "drift_shift_px": [2.0, 0.0]}}))
+    (row / "calib_white_stray_light_defects.npz").write_bytes(b"stale")
+    got = mm._white_captures(cfg, tmp_path, "all", tmp_path / "caps")
+    assert got == old and len(calls) == 1 and calls[0]["whites"] and not calls[0]["scenes"]
+    assert not (row / "calib_white_stray_light_defects.npz").exists()
+    truth = json.loads((old / "ground_truth" / "truth.json").read_text())
+    assert truth["white_mismatch"] == {"scene_illuminant": "A"}  # not drifted, not warmed
+    mm._white_captures(cfg, tmp_path, "all", tmp_path / "caps")
+    assert len(calls) == 1  # shot as asked: reused
+
+    r = mm._Row(tmp_path, "all")
+    with pytest.raises(RuntimeError, match="remedy applied"):
+        mm._score_variant(r, "remedy", lambda: {"applied": {"stray_light": True}},
+                          ("stray_light", "defects"))
+    assert "remedy" not in r.scores and not (row / "scores.json").exists()

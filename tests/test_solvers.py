@@ -517,6 +517,37 @@ def test_factored_model_compiled_pass_forms_rhs_itself(dtype, channels):
         1e-10 if dtype == torch.float64 else 1e-4)
 
 
+@pytest.mark.parametrize("masked", [True, False])
+def test_compiled_factorisation_flags_non_finite_data(masked, monkeypatch):
+    """A NaN or inf in a pixel's transmittance makes it singular on both paths (compiled and
+    torch), with or without a mask (the compiled kernel's unmasked branch), and leaves every
+    other pixel's flags, ``G`` and ``H`` as the torch path has them."""
+    from hsi_torch.forward_model import SensingModel
+    from hsi_torch.recon.nnls import _compiled
+
+    if not _compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    g = torch.Generator().manual_seed(5)
+    P, V, M = 12, 10, 25
+    B = 0.2 + 0.8 * torch.rand(P, V, M, generator=g, dtype=torch.float64)
+    B[1, 2, 5] = float("nan")  # a NaN pivot after the first row
+    B[2, 0, 0] = float("nan")
+    B[7, 4, 20] = float("inf")
+    model = SensingModel(B, 0.7 + 0.4 * torch.rand(P, V, generator=g, dtype=torch.float64),
+                         torch.rand(3, M, generator=g, dtype=torch.float64) * 20)
+    mask = torch.ones(P, 3 * V, dtype=torch.bool) if masked else None
+    fast = prepare_nnls(model, mask=mask, beta=1e2)
+    monkeypatch.setattr(_compiled, "AVAILABLE", False)
+    ref = prepare_nnls(model, mask=mask, beta=1e2)
+    bad = torch.zeros(P, dtype=torch.bool)
+    bad[[1, 2, 7]] = True
+    assert torch.equal(fast.singular, bad) and torch.equal(ref.singular, bad)
+    assert bool((fast.gram_inv[bad] == 0).all())
+    ok = ~bad
+    torch.testing.assert_close(fast.gram[ok], ref.gram[ok], rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(fast.gram_inv[ok], ref.gram_inv[ok], rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.parametrize("beta", [10.0, 0.0])
 def test_compiled_factorisation_matches_torch(dtype, beta, monkeypatch):
     """``prepare_nnls`` of the camera's factored ``A`` on the CPU runs one compiled pass (float64

@@ -71,7 +71,7 @@ from hsi_torch.resources import shipped_config
 from hsi_torch.simulate import SimulateConfig, simulate_capture_set
 from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
 from hsi_torch.simulate.oracle import bundle_from_truth
-from hsi_torch.simulate.rerender import rerender_after_calibration
+from hsi_torch.simulate.rerender import rerender_after_calibration, white_mismatch_of
 
 __all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFECTS",
            "REMEDIES", "REMEDY_PARTS", "ROW_REMEDIES", "remedy_parts", "remedy_name",
@@ -280,13 +280,22 @@ def _white_captures(cfg: MismatchConfig, out: Path, name: str, caps: Path) -> Pa
     (re-rendered with the row's effects but :data:`WHITE_WITHOUT`); the scenes and every other
     file are linked from ``caps``."""
     d = out / "rows" / name / "captures_white"
-    if (d / "manifest.json").is_file():
-        return d
     keys = {k: v for k, v in row_keys(name).items() if k not in WHITE_WITHOUT}
+    sim = _sim_cfg(cfg, keys)
+    want = white_mismatch_of(sim.mismatch)
+    if (d / "manifest.json").is_file():
+        tj = d / "ground_truth" / "truth.json"
+        got = json.loads(tj.read_text()).get("white_mismatch") if tj.is_file() else None
+        if got == want:
+            return d
+        # shot otherwise (an older run, another WHITE_WITHOUT): re-shoot it, and drop the
+        # bundles calibrated from it
+        info(f"  {name}: {d} was shot with {got}, not {want}: re-shooting it")
+        for stale in d.parent.glob("calib_white*.npz"):
+            stale.unlink()
     t0 = time.perf_counter()
     _complete(d, lambda tmp: rerender_after_calibration(
-        _sim_cfg(cfg, keys), caps, tmp, whites=True, scenes=False, device=cfg.device,
-        log=lambda *a: None))
+        sim, caps, tmp, whites=True, scenes=False, device=cfg.device, log=lambda *a: None))
     info(f"  {name}: white references re-shot under the scene's light in "
          f"{time.perf_counter() - t0:.0f} s")
     return d
@@ -438,14 +447,14 @@ def _score_variant(row: _Row, variant: str, fn, parts: tuple[str, ...] | None = 
     ``parts`` than the row's remedy now has is redone)."""
     if variant in row.scores and (parts is None or _shows(row.scores[variant], parts)):
         return
-    row.scores[variant] = fn()
+    s = fn()
+    if parts is not None and not _shows(s, parts):  # never kept: a rerun would trust it
+        raise RuntimeError(f"{row.name}: the remedy applied {s['applied']}, not {list(parts)}")
+    row.scores[variant] = s
     row.save()
-    s = row.scores[variant]
     cave = f", CAVE {s['cave']['pixel_db']:.2f} dB" if "cave" in s else ""
     info(f"  {row.name} / {variant}: ColorChecker means {s['colorchecker']['means_db']:.2f} dB, "
          f"per pixel {s['colorchecker']['pixel_db']:.2f} dB{cave} ({s['seconds']:.0f} s)")
-    if parts is not None and not _shows(s, parts):
-        raise RuntimeError(f"{row.name}: the remedy applied {s['applied']}, not {list(parts)}")
 
 
 def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -> dict[str, Any]:

@@ -385,7 +385,8 @@ def _solve_per_pixel(
     number re-solved."""
     P = y.shape[0]
     static = sens.obs_mask
-    if (y.device.type == "cpu" and _frame_compiled.AVAILABLE
+    if (y.device.type == "cpu" and static.device.type == "cpu" and _frame_compiled.AVAILABLE
+            and y.dtype in (torch.float32, torch.float64)
             and not (y.requires_grad and torch.is_grad_enabled())):
         # one compiled pass over the pixels instead of five torch passes over (P, 3V)
         out = _frame_compiled.frame_masks_cpu(

@@ -19,7 +19,8 @@ fresh allocation is, and the kernels that read it take the same paths). It is wr
 an input: entries live in a cache folder, never over the bundle.
 
 **The key** (:func:`entry_key`) is the SHA-256 of a JSON object holding the caller's parts (the
-bundle file's SHA-256, ``beta``, ``diff_order``, dtype, device type), this module's
+bundle file's SHA-256, ``beta``, ``diff_order``, dtype, device type, which factorisation — the
+compiled CPU pass or the torch kernels), this module's
 :data:`FORMAT_VERSION`, the caller's layout version, the torch version, and a digest of the
 source files that compute the precomputation (:data:`SOURCE_FILES`): editing the solver's
 factorisation therefore misses every old entry by itself.
@@ -108,6 +109,8 @@ SOURCE_FILES = (
     "recon/sensing.py",
     "recon/precompute_cache.py",
     "recon/nnls/problem.py",
+    "recon/nnls/_compiled.py",
+    "recon/nnls/constants.py",
     "recon/nnls/kkt.py",
     "recon/nnls/_threads.py",
     "recon/spatial/problem.py",

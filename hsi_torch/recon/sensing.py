@@ -61,6 +61,7 @@ from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
+from hsi_torch.recon.nnls import _compiled as nnls_compiled
 
 __all__ = [
     "BundleSensing",
@@ -325,8 +326,12 @@ def precompute_sensing(
     entry = key = mem_key = None
     if folder is not None and path is not None and path.is_file():
         sha = disk.content_sha256(path, folder)
+        # which factorisation made it: the compiled CPU pass and the torch kernels may flag a
+        # numerically singular pixel differently
+        how = "compiled" if dev.type == "cpu" and nnls_compiled.AVAILABLE else "torch"
         key = disk.entry_key({"bundle_sha256": sha, "beta": beta, "diff_order": diff_order,
-                              "dtype": str(dtype), "device": dev.type}, CACHE_LAYOUT_VERSION)
+                              "dtype": str(dtype), "device": dev.type, "factorisation": how},
+                             CACHE_LAYOUT_VERSION)
         mem_key = ("file", key, str(dev))
         if cache and mem_key in _CACHE:
             _CACHE.move_to_end(mem_key)

@@ -34,6 +34,20 @@ from hsi_torch.simulate.config import SimulateConfig
 __all__ = ["rerender_after_calibration"]
 
 
+#: the mismatch keys of effects that act after calibration (re-rendered by
+#: :func:`rerender_after_calibration`; ``white_mismatch`` records those a re-shot white got)
+AFTER_CALIBRATION_KEYS = ("drift_shift_px", "drift_rotation_deg", "brf_delta_t_k",
+                          "scene_illuminant", "brf_retardance_temp_coeff_per_k")
+
+
+def white_mismatch_of(cfg_mismatch: Any) -> dict[str, Any]:
+    """The ``white_mismatch`` record white references rendered with ``cfg_mismatch`` (a
+    :class:`~hsi_torch.simulate.config.SimulateConfig`'s ``mismatch``) get: its active
+    after-calibration keys, JSON-normalised."""
+    return _jsonable({k: v for k, v in cfg_mismatch.active().items()
+                      if k in AFTER_CALIBRATION_KEYS})
+
+
 def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
     return json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
                                   for k, v in d.items()}))
@@ -97,8 +111,7 @@ def rerender_after_calibration(
     mm = cfg.mismatch
     if not (scenes or whites):
         raise ValueError("rerender_after_calibration: neither scenes nor whites to render")
-    after_keys = ("drift_shift_px", "drift_rotation_deg", "brf_delta_t_k", "scene_illuminant",
-                  "brf_retardance_temp_coeff_per_k")
+    after_keys = AFTER_CALIBRATION_KEYS
     device_keys = _jsonable({k: v for k, v in mm.active().items() if k not in after_keys})
     base_keys = _jsonable({k: v for k, v in _base_mismatch(base).items() if k not in after_keys})
     if device_keys != base_keys:
@@ -125,8 +138,7 @@ def rerender_after_calibration(
         if scenes:
             meta["mismatch"] = mm.active()
         if whites:  # the after-calibration effects the white references were shot with
-            meta["white_mismatch"] = _jsonable({k: v for k, v in mm.active().items()
-                                                if k in after_keys})
+            meta["white_mismatch"] = white_mismatch_of(mm)
         meta["rerendered_after_calibration"] = sorted(redo)
         truth_json.unlink()  # a link to the base's file: write a new one
         truth_json.write_text(json.dumps(meta, indent=1))

@@ -479,12 +479,14 @@ if AVAILABLE:
             gn[r] = rq if rq > 0.0 else 0.0
             # Cholesky G = L Lᵀ (float64, rows of L); the smallest pivot decides singularity
             pmin = np.inf
+            failed = False  # a pivot ≤ 0 or not finite (NaN or inf in the data)
             for j in range(m):
                 sj = S[j, j]
                 for c in range(j):
                     sj -= S[j, c] * S[j, c]
                 pmin = sj if sj < pmin else pmin
-                if not (sj > 0.0):
+                if not (sj > 0.0) or not np.isfinite(sj):
+                    failed = True
                     break
                 d = np.sqrt(sj)
                 inv = 1.0 / d
@@ -494,7 +496,8 @@ if AVAILABLE:
                     for c in range(j):
                         t -= S[i, c] * S[j, c]
                     S[i, j] = t * inv
-            bad = not (pmin > rel * dmax) or not (pmin < np.inf) or nobs == 0
+            bad = (failed or not (pmin > rel * dmax) or not (pmin < np.inf)
+                   or not np.isfinite(dmax) or nobs == 0)
             singular[r] = bad
             no_data[r] = nobs == 0
             if bad:
