@@ -26,7 +26,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
@@ -34,6 +33,7 @@ from pathlib import Path
 import torch
 
 import hsi_torch.recon.pipeline as pipeline
+from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     for cap_set in args.score_sets:
         rows[str(cap_set)] = score_set(args.bundle, cap_set)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+        atomic_write_json(args.json, rows)
     return 0
 
 

@@ -142,3 +142,10 @@ def test_demo_full_orchestration_on_the_small_prototype(tmp_path):
         assert syn["bright_half"]["pixels"] >= syn["pixels"] // 2 > 0
     assert (out / "oracle" / "oracle.npz").is_file() and (out / "calib" / "calib.npz").is_file()
     assert (out / "colorchecker_panel.png").is_file() and (out / "usaf_spectra.png").is_file()
+    # the scoring stage alone, on the run's outputs: the same scores as the run's summary
+    from hsi_torch.experiments.demo import DemoConfig
+    from hsi_torch.experiments.demo_full import score_full
+
+    again = score_full(out, DemoConfig(simulate_config=shipped_config("simulate"), cave=False),
+                       log=lambda *a: None)
+    assert json.loads(json.dumps(again["scenes"], default=str)) == s["scenes"]
