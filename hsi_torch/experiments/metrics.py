@@ -33,6 +33,7 @@ __all__ = [
     "mse",
     "psnr",
     "spectral_angle_deg",
+    "spectral_angle_deg_np",
     "rmse",
     "psnr_from_mse",
     "erode_px",
@@ -122,8 +123,9 @@ def metrics_note(not_applicable: dict[str, str] | None = None) -> str:
     return text
 
 
-def _sam_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """:func:`spectral_angle_deg` of float64 numpy spectra, as numpy."""
+def spectral_angle_deg_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`spectral_angle_deg` of numpy spectra ``(..., M)`` (computed in float64), degrees,
+    as numpy ``(...)``."""
     return spectral_angle_deg(torch.from_numpy(np.asarray(a, np.float64)),
                               torch.from_numpy(np.asarray(b, np.float64))).numpy()
 
@@ -161,7 +163,7 @@ def colorchecker_scores(
         s = cube[:, m].mean(1)
         est.append(s.tolist())
         ps.append(psnr_from_mse(float(((s - spectra[k]) ** 2).mean())))
-        sa.append(float(_sam_deg(s, spectra[k])))
+        sa.append(float(spectral_angle_deg_np(s, spectra[k])))
     ok = [i for i in range(K) if npx[i] > 0]
     return {
         "psnr_db": ps,
@@ -195,7 +197,7 @@ def cube_scores(
                     "median_sam_deg": float("nan")}  # fmt: skip
         mse = float(((e - t) ** 2).mean())
         bright = t.mean(1) >= sam_min_reflectance
-        sam = _sam_deg(e[bright], t[bright]) if bright.any() else np.array([math.nan])
+        sam = spectral_angle_deg_np(e[bright], t[bright]) if bright.any() else np.array([math.nan])
         return {
             "pixels": int(m.sum()),
             "psnr_db": psnr_from_mse(mse),

@@ -60,7 +60,12 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import help_meta as _h
 from hsi_torch.config import load_config
 from hsi_torch.console import info
-from hsi_torch.experiments.metrics import _sam_deg, colorchecker_scores, erode_px, interior_mask
+from hsi_torch.experiments.metrics import (
+    colorchecker_scores,
+    erode_px,
+    interior_mask,
+    spectral_angle_deg_np,
+)
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.metrics import psnr_from_mse
@@ -333,7 +338,7 @@ def _pixel_scores(cube: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict
     e = cube[:, mask].T
     t = truth[:, mask].T
     bright = t.mean(1) >= 0.01
-    sam = _sam_deg(e[bright], t[bright])
+    sam = spectral_angle_deg_np(e[bright], t[bright])
     return {"psnr_db": psnr_from_mse(float(((e - t) ** 2).mean())),
             "mean_sam_deg": float(sam.mean()) if sam.size else float("nan")}
 
