@@ -68,6 +68,7 @@ from hsi_torch.experiments.metrics import (
 )
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.capture_set import read_truth_meta
 from hsi_torch.metrics import psnr_from_mse
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.pipeline import DEFAULT_BETA
@@ -289,8 +290,7 @@ def _white_captures(cfg: MismatchConfig, out: Path, name: str, caps: Path) -> Pa
     sim = _sim_cfg(cfg, keys)
     want = white_mismatch_of(sim.mismatch)
     if (d / "manifest.json").is_file():
-        tj = d / "ground_truth" / "truth.json"
-        got = json.loads(tj.read_text()).get("white_mismatch") if tj.is_file() else None
+        got = read_truth_meta(d).get("white_mismatch")
         if got == want:
             return d
         # shot otherwise (an older run, another WHITE_WITHOUT): re-shoot it, and drop the
@@ -392,8 +392,7 @@ def score_captures(
         if v and not want[k]:
             raise RuntimeError(f"{captures}: the remedy {k!r} asked for, but the bundle does "
                                "not record it")
-    tj = captures / "ground_truth" / "truth.json"
-    white_mm = json.loads(tj.read_text()).get("white_mismatch", {}) if tj.is_file() else {}
+    white_mm = read_truth_meta(captures).get("white_mismatch", {})
     out: dict[str, Any] = {"applied": {**want, "refine_registration": rec.refine_registration,
                                        "white_mismatch": white_mm}, "drift": {}}
 

@@ -72,6 +72,7 @@ __all__ = [
     "read_nominal_layout",
     "read_mask_png",
     "read_truth",
+    "read_truth_meta",
     "wavelength_from_name",
     "write_capture_set_index",
     "write_truth",
@@ -530,6 +531,13 @@ def write_truth(root: str | Path, arrays: Mapping[str, Any], meta: Mapping[str, 
     npz = atomic_save_npz(root / TRUTH_NPZ, dict(arrays))
     atomic_write_json(root / TRUTH_JSON, {"schema_version": CAPTURE_SET_SCHEMA_VERSION, **meta})
     return npz
+
+
+def read_truth_meta(root: str | Path) -> dict[str, Any]:
+    """The parsed ``ground_truth/truth.json`` of a simulated capture set, ``{}`` when the set
+    has none (the records of what was rendered: ``mismatch``, ``white_mismatch``, …)."""
+    js = Path(root) / TRUTH_JSON
+    return _read_json_object(js, "ground truth") if js.is_file() else {}
 
 
 def read_truth(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

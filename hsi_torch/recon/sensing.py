@@ -61,7 +61,7 @@ from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
-from hsi_torch.recon.nnls import _compiled as nnls_compiled
+from hsi_torch.recon.nnls.problem import compiled_factorisation
 
 __all__ = [
     "BundleSensing",
@@ -328,7 +328,7 @@ def precompute_sensing(
         sha = disk.content_sha256(path, folder)
         # which factorisation made it: the compiled CPU pass and the torch kernels may flag a
         # numerically singular pixel differently
-        how = "compiled" if dev.type == "cpu" and nnls_compiled.AVAILABLE else "torch"
+        how = "compiled" if compiled_factorisation(dev) else "torch"
         key = disk.entry_key({"bundle_sha256": sha, "beta": beta, "diff_order": diff_order,
                               "dtype": str(dtype), "device": dev.type, "factorisation": how},
                              CACHE_LAYOUT_VERSION)

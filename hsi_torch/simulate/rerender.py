@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.io import write_capture
+from hsi_torch.io.capture_set import TRUTH_JSON, read_truth_meta
 from hsi_torch.simulate.capture_sets import (
     _capture_metadata,
     build_renderer,
@@ -55,8 +56,7 @@ def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
 
 def _base_mismatch(base: Path) -> dict[str, Any]:
     """The base set's recorded mismatch keys (``{}``: an ideal set, or no record)."""
-    p = base / "ground_truth" / "truth.json"
-    return dict(json.loads(p.read_text()).get("mismatch") or {}) if p.is_file() else {}
+    return dict(read_truth_meta(base).get("mismatch") or {})
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -111,9 +111,10 @@ def rerender_after_calibration(
     mm = cfg.mismatch
     if not (scenes or whites):
         raise ValueError("rerender_after_calibration: neither scenes nor whites to render")
-    after_keys = AFTER_CALIBRATION_KEYS
-    device_keys = _jsonable({k: v for k, v in mm.active().items() if k not in after_keys})
-    base_keys = _jsonable({k: v for k, v in _base_mismatch(base).items() if k not in after_keys})
+    device_keys = _jsonable({k: v for k, v in mm.active().items()
+                             if k not in AFTER_CALIBRATION_KEYS})
+    base_keys = _jsonable({k: v for k, v in _base_mismatch(base).items()
+                           if k not in AFTER_CALIBRATION_KEYS})
     if device_keys != base_keys:
         raise ValueError(f"rerender_after_calibration: mismatch keys {sorted(device_keys)} "
                          f"differ from the base set's device keys {sorted(base_keys)}: they "
@@ -132,9 +133,9 @@ def rerender_after_calibration(
         rel = p.relative_to(base).as_posix()
         if p.is_file() and rel not in redo:
             _link_or_copy(p, out / rel)
-    truth_json = out / "ground_truth" / "truth.json"
+    truth_json = out / TRUTH_JSON
     if truth_json.is_file():
-        meta = json.loads(truth_json.read_text())
+        meta = read_truth_meta(out)
         if scenes:
             meta["mismatch"] = mm.active()
         if whites:  # the after-calibration effects the white references were shot with

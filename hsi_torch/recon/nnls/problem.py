@@ -384,13 +384,19 @@ def prepare_nnls(
         return _prepare(op, mask, beta, diff_order, chunk_size, max_memory, workers)
 
 
+def compiled_factorisation(device: torch.device | str) -> bool:
+    """Whether :func:`prepare_nnls` factorises a per-pixel :class:`SensingModel` on ``device``
+    with the compiled CPU pass (the CPU with numba) rather than the torch kernels."""
+    return torch.device(device).type == "cpu" and _compiled.AVAILABLE
+
+
 def _prepare(
     op: Sensing, mask: Tensor | None, beta: float, diff_order: int, chunk_size: int | None,
     max_memory: int | None, workers: int,
 ) -> NNLSProblem:
     o, m = op.num_obs, op.num_bands
     dev, dt = op.device, op.dtype
-    if isinstance(op, SensingModel) and not op.shared and dev.type == "cpu" and _compiled.AVAILABLE:
+    if isinstance(op, SensingModel) and not op.shared and compiled_factorisation(dev):
         return _prepare_compiled(op, mask, beta, diff_order, workers)
     R = smoothness_gram(m, beta, diff_order, device=dev, dtype=dt)
     if op.shared and mask is None:
