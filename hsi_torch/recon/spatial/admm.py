@@ -169,7 +169,7 @@ def _solve_spatial(
         inputs = problem.compiled_inputs()
     if inputs is not None:  # the warm start's u is formed by the compiled pass itself
         with torch.no_grad():
-            cstep = _CompiledStep(problem, inputs, b, z, None, float(t), lam_f, inner_iters, alpha,
+            cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
                                   kernel_threads)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
@@ -294,8 +294,8 @@ class _CompiledStep:
     rows (one per thread)."""
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
-                 b: Tensor, z0: Tensor, u0: None, t: float, lam: float, inner_iters: int,
-                 alpha: float, num_blocks: int = 1) -> None:
+                 b: Tensor, z0: Tensor, t: float, lam: float, inner_iters: int, alpha: float,
+                 num_blocks: int = 1) -> None:
         self.inv_rows, graph = inputs
         self.rho, self.lam, self.alpha = problem.rho, lam, alpha
         self.t = t if lam > 0 else 0.0
