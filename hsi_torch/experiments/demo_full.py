@@ -62,7 +62,7 @@ def _full_scenes(cfg: Any, out: Path, log) -> list[dict[str, Any]]:
 
 def score_full(out: str | Path, cfg: Any, scenes: list[dict[str, Any]] | None = None, *,
                log=print) -> dict[str, Any]:
-    """Stage 5 alone: score a full-size run's outputs in ``out`` (``captures``, ``calib``,
+    """The scoring stage alone: score a full-size run's outputs in ``out`` (``captures``, ``calib``,
     ``cubes_calibrated``, ``cubes_oracle``) against the truth and write its previews, panels
     and spectra plots into ``out`` (the folders may be links to another run's).
 
