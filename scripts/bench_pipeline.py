@@ -625,7 +625,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{f(r.get('tv_solve_s'), '.3f'):>9}{f(r.get('tv_solve_ratio'), '.1f'):>6}x"
               f"{f(r.get('tv_frame_ratio'), '.1f'):>11}x")
     print("  targets: solve <= 2x the read-only pass; TV solve <= 2x the per-pixel solve and "
-          "<= 3 GiB; precomputation <= 1 s (or cached: the 'cached s' column)")
+          "<= 3 GiB; precomputation <= 1 s (or cached: the 'cached s' column); the RSS of "
+          "hsi-torch reconstruct split into private and file-mapped memory, and runs under a "
+          "memory limit: scripts/bench_memory.py")
     print(f"peak RSS of this process {peak_rss_gib():.2f} GiB"
           + (f", CUDA max allocated {torch.cuda.max_memory_allocated(dev) / 2**30:.2f} GiB"
              if dev.type == "cuda" else ""))
