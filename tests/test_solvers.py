@@ -674,3 +674,17 @@ def test_a_requiring_grad_is_refused():
     x = solve_nnls(A.detach(), y, beta=0.1, solver="admm", admm_iters=10).x
     with torch.no_grad():
         torch.testing.assert_close(solve_nnls(A, y, beta=0.1, solver="admm", admm_iters=10).x, x)
+
+
+def test_a_mask_of_weights_is_refused():
+    """mask is used / not used: float weights were read as True wherever they were non-zero (an
+    unweighted solve in silence); 0/1 masks of any dtype still work."""
+    A, y, mask = random_problem(10, seed=1, masked=True)
+    w = mask.to(A.dtype) * 0.5
+    with pytest.raises(TypeError, match="mask must be bool"):
+        solve_nnls(A, y, beta=1.0, mask=w)
+    with pytest.raises(TypeError, match="mask must be bool"):
+        prepare_nnls(A, mask=w, beta=1.0)
+    ref = solve_nnls(A, y, beta=1.0, mask=mask).x
+    for m in (mask.to(A.dtype), mask.to(torch.uint8)):
+        torch.testing.assert_close(solve_nnls(A, y, beta=1.0, mask=m).x, ref, rtol=0, atol=0)

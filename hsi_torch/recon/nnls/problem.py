@@ -138,6 +138,12 @@ def _check_inputs(
             )
         if mask.device != op.device:
             raise ValueError(f"mask is on {mask.device} but A is on {op.device}")
+        if mask.dtype != torch.bool and bool(((mask != 0) & (mask != 1)).any()):
+            # weights would be read as used / not used: a weighted least squares in silence
+            raise TypeError(f"mask must be bool (True = observation used), got {mask.dtype} "
+                            "values other than 0 and 1; the solver does not weight "
+                            "observations (scale the rows of A and y by the square roots of "
+                            "the weights instead)")
         mask = mask.to(torch.bool)
     return op, mask, beta
 
