@@ -244,3 +244,17 @@ def test_batches_of_zero_and_bad_inputs_name_the_argument():
     H, W = cam.sensing.sensor_size
     with pytest.raises(ValueError, match=r"image must be \(N, 3, H, W\)"):
         cam.observe(torch.zeros(3, H, W, dtype=torch.float64))
+
+
+def test_deepinv_gradients_through_the_noisy_physics_are_finite():
+    """A loss through physics(x) (e.g. an equivariant-imaging loss) differentiates the noise:
+    σ = sqrt(var) is 0 where a pixel lacks a view, and sqrt's derivative at 0 gave NaN there.
+    And the TV prior's prox takes a batch of 0 cubes."""
+    dp = _deepinv()
+    physics = dp.CameraPhysics(make_bundle(), dtype=torch.float64)
+    assert bool((~physics.camera.mask()).any())  # some observations are absent
+    x = _cube(physics.camera, n=1).requires_grad_(True)
+    (grad,) = torch.autograd.grad(physics(x).sum(), x)
+    assert bool(torch.isfinite(grad).all())
+    prior = dp.VectorialTVPrior(physics.camera.valid, inner_iters=5)
+    assert prior.prox(_cube(physics.camera, n=0), gamma=1.0).shape[0] == 0
