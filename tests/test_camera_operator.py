@@ -258,3 +258,14 @@ def test_deepinv_gradients_through_the_noisy_physics_are_finite():
     assert bool(torch.isfinite(grad).all())
     prior = dp.VectorialTVPrior(physics.camera.valid, inner_iters=5)
     assert prior.prox(_cube(physics.camera, n=0), gamma=1.0).shape[0] == 0
+
+
+def test_without_deepinv_the_import_error_names_the_extra():
+    try:
+        import deepinv  # noqa: F401
+    except Exception:
+        pass
+    else:
+        pytest.skip("deepinv is importable here")
+    with pytest.raises(ImportError, match=r"pip install 'hsi-torch\[deepinv\]'"):
+        import hsi_torch.recon.deepinv_physics  # noqa: F401

@@ -31,10 +31,17 @@ from __future__ import annotations
 import math
 
 import torch
-from deepinv.optim import Prior
-from deepinv.physics import LinearPhysics
-from deepinv.physics.noise import NoiseModel
 from torch import Tensor
+
+try:
+    from deepinv.optim import Prior
+    from deepinv.physics import LinearPhysics
+    from deepinv.physics.noise import NoiseModel
+except Exception as exc:  # ImportError, or deepinv's torchvision built for another torch
+    raise ImportError(
+        "hsi_torch.recon.deepinv_physics needs deepinv (pip install 'hsi-torch[deepinv]'; it "
+        f"imports torchvision, which must match the installed torch): {type(exc).__name__}: {exc}"
+    ) from exc
 
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.recon.camera import CameraOperator
