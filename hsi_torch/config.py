@@ -159,8 +159,23 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
 MAX_YAML_VALUES = 100_000
 
 
+def _refuse_duplicate_keys(node: yaml.MappingNode) -> None:
+    """A mapping that names a key twice (YAML keeps the last one in silence: an edit of the
+    first does nothing) is a ``yaml.YAMLError`` at the second, naming the first's line."""
+    seen: dict[str, yaml.Node] = {}
+    for k, _ in node.value:
+        if not isinstance(k, yaml.ScalarNode) or k.tag == "tag:yaml.org,2002:merge":
+            continue
+        first = seen.setdefault(k.value, k)
+        if first is not k:
+            line = first.start_mark.line + 1
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {k.value!r} (first at line {line})", k.start_mark)
+
+
 def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
-    """``yaml.safe_load`` that refuses a document expanding to more than ``max_values`` values.
+    """``yaml.safe_load`` that refuses a document expanding to more than ``max_values`` values,
+    and a mapping with a key given twice.
 
     YAML aliases (``*a``) repeat an anchored node: nine levels of nine-fold repetition are a few
     hundred bytes of text but 10⁹ values once expanded (an alias bomb). The composed node graph
@@ -168,7 +183,7 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
     refusal costs no more than the text itself.
 
     Raises:
-        yaml.YAMLError: invalid YAML.
+        yaml.YAMLError: invalid YAML, or a key given twice in one mapping.
         ValueError: the document expands to more than ``max_values`` values.
     """
     loader = yaml.SafeLoader(text)
@@ -186,6 +201,7 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
             if isinstance(n, yaml.SequenceNode):
                 total = 1 + sum(size(c) for c in n.value)
             elif isinstance(n, yaml.MappingNode):
+                _refuse_duplicate_keys(n)
                 total = 1 + sum(size(k) + size(v) for k, v in n.value)
             else:
                 total = 1

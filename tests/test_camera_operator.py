@@ -227,3 +227,45 @@ def test_deepinv_pnp_script_loads_local_weights(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothing is downloaded"):
         mod.run(["--bundle", str(bpath), "--capture", str(tmp_path / "capture.npy"),
                  "--weights", str(tmp_path / "missing.pth"), "--out", str(tmp_path / "x.npz")])
+
+
+def test_batches_of_zero_and_bad_inputs_name_the_argument():
+    cam = CameraOperator(make_bundle(), dtype=torch.float64)
+    h, w = cam.frame_size
+    assert cam.A(_cube(cam, n=0)).shape == (0, cam.num_obs, h, w)
+    assert cam.A_adjoint(torch.zeros(0, cam.num_obs, h, w, dtype=torch.float64)).shape == (
+        0, cam.num_bands, h, w)
+    # an integer cube would come back truncated to integers
+    with pytest.raises(TypeError, match="x must be floating point"):
+        cam.A(_cube(cam).long())
+    with pytest.raises(TypeError, match="y must be floating point"):
+        cam.A_adjoint(torch.zeros(1, cam.num_obs, h, w, dtype=torch.int64))
+    # an unbatched capture is refused naming the argument (it used to fail inside kornia)
+    H, W = cam.sensing.sensor_size
+    with pytest.raises(ValueError, match=r"image must be \(N, 3, H, W\)"):
+        cam.observe(torch.zeros(3, H, W, dtype=torch.float64))
+
+
+def test_deepinv_gradients_through_the_noisy_physics_are_finite():
+    """A loss through physics(x) (e.g. an equivariant-imaging loss) differentiates the noise:
+    σ = sqrt(var) is 0 where a pixel lacks a view, and sqrt's derivative at 0 gave NaN there.
+    And the TV prior's prox takes a batch of 0 cubes."""
+    dp = _deepinv()
+    physics = dp.CameraPhysics(make_bundle(), dtype=torch.float64)
+    assert bool((~physics.camera.mask()).any())  # some observations are absent
+    x = _cube(physics.camera, n=1).requires_grad_(True)
+    (grad,) = torch.autograd.grad(physics(x).sum(), x)
+    assert bool(torch.isfinite(grad).all())
+    prior = dp.VectorialTVPrior(physics.camera.valid, inner_iters=5)
+    assert prior.prox(_cube(physics.camera, n=0), gamma=1.0).shape[0] == 0
+
+
+def test_without_deepinv_the_import_error_names_the_extra():
+    try:
+        import deepinv  # noqa: F401
+    except Exception:
+        pass
+    else:
+        pytest.skip("deepinv is importable here")
+    with pytest.raises(ImportError, match=r"pip install 'hsi-torch\[deepinv\]'"):
+        import hsi_torch.recon.deepinv_physics  # noqa: F401

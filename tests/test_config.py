@@ -227,3 +227,19 @@ def test_describe_schema():
     assert "solver.beta: float = 1.0" in text
     assert "solver.method: one of 'active_set', 'admm', 'scipy' = 'active_set'" in text
     assert "label: str = 'x'  # a label" in describe_schema(NeedsFile)
+
+
+def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path):
+    """YAML keeps the last of two equal keys in silence (an edit of the first did nothing); the
+    loader names the key and both lines, at any depth. Merge keys (<<) are not duplicates."""
+    p = tmp_path / "twice.yaml"
+    p.write_text("out_name: a\nsolver:\n  beta: 1\n  max_iter: 3\n  beta: 2\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"line 5.*duplicate key 'beta' \(first at line 3\)"):
+        load_config(p, ExampleCfg)
+    p.write_text("out_name: a\nout_name: b\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"duplicate key 'out_name' \(first at line 1\)"):
+        load_config(p, ExampleCfg)
+    from hsi_torch.config import safe_yaml_load
+
+    assert safe_yaml_load("a: &x {p: 1}\nb:\n  <<: *x\n  q: 2\n") == {"a": {"p": 1},
+                                                                       "b": {"p": 1, "q": 2}}

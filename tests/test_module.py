@@ -62,6 +62,23 @@ def test_to_dtype_and_device_moves_everything(device):
     assert "B" in sd and "gram" not in sd
 
 
+def test_half_precision_is_refused_and_the_module_left_as_it_was():
+    """.half() / .bfloat16() / .to(float16): the solver factorises in float32 or float64 only; the
+    refusal names the precision and comes before any buffer is converted (it used to convert
+    every buffer, then fail in the factorisation with the module half converted)."""
+    bundle = make_bundle()
+    mod = HSIReconstructor.from_bundle(bundle, beta=1.0)
+    x = render_capture(bundle, true_spectra()).float()[None]
+    before = mod(x).cube
+    for convert in (lambda m: m.half(), lambda m: m.bfloat16(),
+                    lambda m: m.to(torch.float16)):  # fmt: skip
+        with pytest.raises(TypeError, match="float32 or float64, not torch.(b?float16)"):
+            convert(mod)
+        assert all(b.dtype != torch.float16 and b.dtype != torch.bfloat16
+                   for b in mod.buffers())  # fmt: skip
+    torch.testing.assert_close(mod(x).cube, before, rtol=0, atol=0, equal_nan=True)
+
+
 def test_gradcheck_active_set():
     bundle = make_bundle(t=5, missing=1)
     s = true_spectra(t=5, seed=4, zeros=True)

@@ -500,3 +500,18 @@ def test_compiled_frame_bookkeeping_matches_torch(monkeypatch):
     for k in ("num_valid", "num_lost", "num_resolved", "num_pivoted", "fit_residual"):
         assert res.stats[k] == ref.stats[k], k
     assert res.stats["num_resolved"] > 0 and res.stats["num_lost"] > 0
+
+
+def test_a_bad_device_is_named():
+    """A device torch does not know, or CUDA without CUDA, is a ValueError naming the device (it
+    used to be torch's RuntimeError, or an AssertionError from inside the precomputation)."""
+    from hsi_torch.recon.module import HSIReconstructor
+
+    bundle = make_bundle()
+    with pytest.raises(ValueError, match="device 'gpu' is not a torch device"):
+        Reconstructor(bundle, device="gpu")
+    with pytest.raises(ValueError, match="device 'gpu' is not a torch device"):
+        HSIReconstructor.from_bundle(bundle, device="gpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device 'cuda:0': CUDA is not available"):
+            Reconstructor(bundle, device="cuda:0")

@@ -651,3 +651,40 @@ def test_numba_helper_switch_and_threads():
         assert _numba.thread_counts() == counts
     finally:
         torch.set_num_threads(n0)
+
+
+def test_a_requiring_grad_is_refused():
+    """The factorisations are constants for autograd: a gradient with respect to A would see A only
+    through AᵀWy (wrong), so an A that requires grad is refused while autograd is on."""
+    g = torch.Generator().manual_seed(0)
+    A = torch.rand(2, 6, 4, generator=g, dtype=torch.float64).requires_grad_(True)
+    y = torch.rand(2, 6, generator=g, dtype=torch.float64)
+    with pytest.raises(ValueError, match="A requires grad"):
+        solve_nnls(A, y, beta=0.1, solver="admm", admm_iters=10)
+    with pytest.raises(ValueError, match="A requires grad"):
+        prepare_nnls(A[0], beta=0.1)
+    from hsi_torch.forward_model import SensingModel
+
+    model = SensingModel(torch.rand(2, 2, 4, dtype=torch.float64, requires_grad=True),
+                         torch.ones(2, 2, dtype=torch.float64),
+                         torch.rand(3, 4, dtype=torch.float64))  # fmt: skip
+    with pytest.raises(ValueError, match="A requires grad"):
+        solve_nnls(model, y, beta=0.1)
+    # detached, or without autograd, it solves
+    x = solve_nnls(A.detach(), y, beta=0.1, solver="admm", admm_iters=10).x
+    with torch.no_grad():
+        torch.testing.assert_close(solve_nnls(A, y, beta=0.1, solver="admm", admm_iters=10).x, x)
+
+
+def test_a_mask_of_weights_is_refused():
+    """mask is used / not used: float weights were read as True wherever they were non-zero (an
+    unweighted solve in silence); 0/1 masks of any dtype still work."""
+    A, y, mask = random_problem(10, seed=1, masked=True)
+    w = mask.to(A.dtype) * 0.5
+    with pytest.raises(TypeError, match="mask must be bool"):
+        solve_nnls(A, y, beta=1.0, mask=w)
+    with pytest.raises(TypeError, match="mask must be bool"):
+        prepare_nnls(A, mask=w, beta=1.0)
+    ref = solve_nnls(A, y, beta=1.0, mask=mask).x
+    for m in (mask.to(A.dtype), mask.to(torch.uint8)):
+        torch.testing.assert_close(solve_nnls(A, y, beta=1.0, mask=m).x, ref, rtol=0, atol=0)

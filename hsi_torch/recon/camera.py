@@ -72,18 +72,20 @@ class CameraOperator:
         self._mask = s.obs_mask.to(self.device)  # (P, O)
 
     # -- layout ---------------------------------------------------------------------------------
-    def _check(self, t: Tensor, channels: int, name: str) -> Tensor:
+    def _check(self, t: Tensor, channels: int, name: str, floating: bool = True) -> Tensor:
         h, w = self.frame_size
         if not isinstance(t, Tensor) or t.ndim != 4 or tuple(t.shape[1:]) != (channels, h, w):
             shape = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
             raise ValueError(f"{name} must have shape (N, {channels}, {h}, {w}) for this bundle, "
                              f"got {shape}")  # fmt: skip
+        if floating and not t.is_floating_point():  # an integer result would be truncated
+            raise TypeError(f"{name} must be floating point, got {t.dtype}")
         return t
 
     def _gather(self, t: Tensor) -> Tensor:
         """``(N, C, h, w)`` → ``(N, P, C)`` at the valid pixels."""
-        n, c = t.shape[:2]
-        return t.reshape(n, c, -1).index_select(2, self._pix.to(t.device)).transpose(1, 2)
+        n, c, h, w = t.shape
+        return t.reshape(n, c, h * w).index_select(2, self._pix.to(t.device)).transpose(1, 2)
 
     def _scatter(self, v: Tensor) -> Tensor:
         """``(N, P, C)`` → ``(N, C, h, w)``, 0 outside the valid pixels."""
@@ -105,7 +107,9 @@ class CameraOperator:
         s = self._gather(x).reshape(-1, self.num_bands)
         model = self.sensing.model
         P = self._pix.numel()
-        y = torch.cat([model.A(s[k * P:(k + 1) * P].to(model.dtype)) for k in range(n)])
+        y = s.new_zeros((0, self.num_obs), dtype=model.dtype)  # a batch of 0 cubes
+        if n:
+            y = torch.cat([model.A(s[k * P:(k + 1) * P].to(model.dtype)) for k in range(n)])
         y = y.reshape(n, P, self.num_obs) * self._mask
         return self._scatter(y.to(x.dtype))
 
@@ -114,7 +118,8 @@ class CameraOperator:
         y = self._check(y, self.num_obs, "y")
         model = self.sensing.model
         v = (self._gather(y) * self._mask).to(model.dtype)  # (N, P, O)
-        x = torch.stack([model.A_adjoint(vk) for vk in v])  # (N, P, M)
+        x = (torch.stack([model.A_adjoint(vk) for vk in v]) if len(v)
+             else v.new_zeros((0, v.shape[1], self.num_bands)))  # (N, P, M)
         return self._scatter(x.to(y.dtype))
 
     def gram(self) -> Tensor:
@@ -166,6 +171,10 @@ class CameraOperator:
         Returns:
             ``y (N, 3V, h, w)`` (0 where not usable) and ``mask (N, 3V, h, w)`` bool.
         """
+        if not isinstance(image, torch.Tensor) or image.ndim != 4:
+            shape = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
+            raise ValueError("image must be (N, 3, H, W) linear RGB or (N, 1, H, W) Bayer, got "
+                             f"{shape}")  # fmt: skip
         rgb, sat = prepare_input(image, saturated, cfa_pattern or self.sensing.cfa_pattern)
         H, W = self.sensing.sensor_size
         if tuple(rgb.shape[-2:]) != (H, W):
@@ -190,7 +199,7 @@ class CameraOperator:
         (:func:`~hsi_torch.recon.uncertainty.observation_variance`, the plug-in estimate from the
         values themselves, with the sampling factor of the views' bilinear sampling for ``layout``
         ``"rgb"``, ``"bayer"`` or ``"half"``); 0 outside the bundle's observations."""
-        y = self._check(y, self.num_obs, "y")
+        y = self._check(y, self.num_obs, "y", floating=False)
         noise = noise or SensorNoise()
         f = sampling_variance_factor(self.sensing.grid(), self.sensing.sensor_size, layout,
                                      cfa_pattern or self.sensing.cfa_pattern)  # fmt: skip

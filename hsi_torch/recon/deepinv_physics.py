@@ -31,10 +31,17 @@ from __future__ import annotations
 import math
 
 import torch
-from deepinv.optim import Prior
-from deepinv.physics import LinearPhysics
-from deepinv.physics.noise import NoiseModel
 from torch import Tensor
+
+try:
+    from deepinv.optim import Prior
+    from deepinv.physics import LinearPhysics
+    from deepinv.physics.noise import NoiseModel
+except Exception as exc:  # ImportError, or deepinv's torchvision built for another torch
+    raise ImportError(
+        "hsi_torch.recon.deepinv_physics needs deepinv (pip install 'hsi-torch[deepinv]'; it "
+        f"imports torchvision, which must match the installed torch): {type(exc).__name__}: {exc}"
+    ) from exc
 
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.recon.camera import CameraOperator
@@ -80,7 +87,11 @@ class CameraNoise(NoiseModel):
         self.rng_manual_seed(seed)
         var = self.camera.noise_variance(x, self.noise, exposure_scale=self.exposure_scale,
                                          layout=self.layout)  # fmt: skip
-        return x + var.sqrt() * self.randn_like(x)
+        # σ = 0 where there is no observation: sqrt's infinite derivative at 0 is kept out of the
+        # graph there (a loss through the noisy physics got NaN gradients)
+        none = var <= 0
+        std = torch.where(none, torch.zeros_like(var), torch.where(none, 1.0, var).sqrt())
+        return x + std * self.randn_like(x)
 
 
 class CameraPhysics(LinearPhysics):
@@ -169,7 +180,7 @@ class VectorialTVPrior(Prior):
         ex, ey = grid_edges(self.valid.to(x.device))
         out = [prox_tv_nonneg(xk, float(gamma), ex, ey, self.inner_iters,
                               brightness_weight=self.brightness_weight)[0] for xk in x]  # fmt: skip
-        return torch.stack(out)
+        return torch.stack(out) if out else x.clamp_min(0)  # a batch of 0 cubes
 
 
 class BandwiseDenoiser(torch.nn.Module):

@@ -263,6 +263,13 @@ class HSIReconstructor(nn.Module):
 
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
         dt = self.model_transmittance.dtype
+        # the solver factorises in float32 or float64 only: refuse another precision (.half(),
+        # .bfloat16(), .to(torch.float16)) before any buffer is converted, leaving the module
+        # as it was
+        new_dt = fn(torch.zeros((), dtype=dt, device=self.model_transmittance.device)).dtype
+        if new_dt not in (torch.float32, torch.float64):
+            raise TypeError(f"HSIReconstructor runs in float32 or float64, not {new_dt} (the "
+                            "module is unchanged; its output follows the input's dtype anyway)")
         out = super()._apply(fn, recurse)
         self._sensing_cache = None
         if self.model_transmittance.dtype != dt:  # precision changed: refactorise in the new dtype

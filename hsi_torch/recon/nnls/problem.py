@@ -91,10 +91,24 @@ def _as_sensing(A: Tensor | Sensing) -> Sensing:
     return DenseSensing(A)
 
 
+def _operator_tensors(op: Sensing) -> tuple[Tensor, ...]:
+    if isinstance(op, DenseSensing):
+        return (op.matrices,)
+    return (op.transmittance, op.gain, op.response)
+
+
 def _check_inputs(
     A: Tensor | Sensing, mask: Tensor | None, beta: float, diff_order: int
 ) -> tuple[Sensing, Tensor | None, float]:
     op = _as_sensing(A)
+    # the Gram matrices and their factorisations are formed without autograd: a gradient
+    # through A would only see A's part in the right-hand side AᵀWy, a wrong derivative
+    if torch.is_grad_enabled() and any(t.requires_grad for t in _operator_tensors(op)):
+        raise ValueError(
+            "A requires grad, but the NNLS solver is differentiable with respect to y only (its "
+            "Gram matrices and their factorisations are constants for autograd, so a gradient "
+            "with respect to A would be wrong): pass A.detach(), or run under torch.no_grad()"
+        )
     if op.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"the sensing operator must be float32 or float64, got {op.dtype}")
     o, m = op.num_obs, op.num_bands
@@ -124,6 +138,12 @@ def _check_inputs(
             )
         if mask.device != op.device:
             raise ValueError(f"mask is on {mask.device} but A is on {op.device}")
+        if mask.dtype != torch.bool and bool(((mask != 0) & (mask != 1)).any()):
+            # weights would be read as used / not used: a weighted least squares in silence
+            raise TypeError(f"mask must be bool (True = observation used), got {mask.dtype} "
+                            "values other than 0 and 1; the solver does not weight "
+                            "observations (scale the rows of A and y by the square roots of "
+                            "the weights instead)")
         mask = mask.to(torch.bool)
     return op, mask, beta
 
@@ -525,7 +545,9 @@ def solve_nnls(
 
     Returns:
         :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
-        ``no_data``.
+        ``no_data``. Gradients flow to ``y`` only, and only in the fixed-iteration ADMM mode
+        (``solver="admm", admm_iters=N``); an ``A`` that requires grad is refused
+        (``ValueError``) while autograd is on.
 
     Example:
         >>> A = torch.rand(500, 30, 25, dtype=torch.float64)

@@ -96,12 +96,20 @@ def total_variation(cube: Tensor, active: Tensor, brightness_weight: float = 1.0
     ``Σ_{i,j} sqrt(Σ_m dx² + dy²)`` over forward differences between active 4-neighbours
     (inactive pixels may hold anything, NaN included); with ``brightness_weight`` ``α ≠ 1`` the
     differences are weighted by :func:`brightness_weighted` first (``Σ ‖K ∇s‖``).
+
+    Differentiable: where a pixel's difference vector is 0 (a flat patch) its term contributes
+    the subgradient 0, not the NaN of ``sqrt`` at 0.
     """
+    if active.shape != cube.shape[-2:]:
+        raise ValueError(f"active must be (h, w) = {tuple(cube.shape[-2:])} of the cube "
+                         f"{tuple(cube.shape)}, got {tuple(active.shape)}")  # fmt: skip
     ex, ey = grid_edges(active.to(cube.device))
-    c = torch.where(active.to(cube.device), cube, torch.zeros((), dtype=cube.dtype,
-                                                                   device=cube.device))
+    zero = torch.zeros((), dtype=cube.dtype, device=cube.device)
+    c = torch.where(active.to(cube.device), cube, zero)
     g = brightness_weighted(grid_gradient(c, ex, ey), brightness_weight)
-    return g.square().sum((-4, -3)).sqrt().sum((-2, -1))
+    sq = g.square().sum((-4, -3))
+    flat = sq == 0  # sqrt's derivative is infinite at 0: keep the graph away from it there
+    return torch.where(flat, zero, torch.where(flat, torch.ones_like(sq), sq).sqrt()).sum((-2, -1))
 
 
 #: ``‖D‖² ≤ 8`` on the 2-D grid (``‖K‖ ≤ 1``, edge weights ``≤ 1``): the dual step of the fast
