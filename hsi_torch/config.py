@@ -147,8 +147,9 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
     try:
         value = safe_yaml_load(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(f"override {short_repr(text)}: value is not valid YAML "
-                          f"({short_repr(str(exc), 300)})") from None  # fmt: skip
+                          f"({short_text(problem, 300)})") from None  # fmt: skip
     except ValueError as exc:  # expands too far
         raise ConfigError(f"override {short_repr(text)}: {exc}") from None
     return tuple(parts), value
@@ -167,8 +168,12 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
     is measured first (every use of an alias counted, each distinct node visited once), so the
     refusal costs no more than the text itself.
 
+    A key given twice in one mapping (``beta: 1000`` … ``beta: 10``) is refused too: plain YAML
+    keeps the later value in silence, so the run would use a setting the reader of the file may
+    not see.
+
     Raises:
-        yaml.YAMLError: invalid YAML.
+        yaml.YAMLError: invalid YAML, or a key given twice in one mapping (with its line).
         ValueError: the document expands to more than ``max_values`` values.
     """
     loader = yaml.SafeLoader(text)
@@ -186,6 +191,7 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
             if isinstance(n, yaml.SequenceNode):
                 total = 1 + sum(size(c) for c in n.value)
             elif isinstance(n, yaml.MappingNode):
+                _refuse_duplicate_keys(n)
                 total = 1 + sum(size(k) + size(v) for k, v in n.value)
             else:
                 total = 1
@@ -202,6 +208,30 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
         raise ValueError("the YAML is nested too deeply") from None
     finally:
         loader.dispose()
+
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _refuse_duplicate_keys(node: yaml.MappingNode) -> None:
+    """Raise a ``yaml.YAMLError`` (with the line of the second one) for a scalar key given twice
+    in one mapping; merge keys (``<<``) are left to YAML's own rules."""
+    seen: dict[tuple[str, str], yaml.Node] = {}
+    for key, _ in node.value:
+        if not isinstance(key, yaml.ScalarNode) or key.tag == _MERGE_TAG:
+            continue
+        ident = (key.tag, key.value)
+        first = seen.get(ident)
+        if first is None:
+            seen[ident] = key
+            continue
+        raise yaml.constructor.ConstructorError(
+            None, None,
+            f"key {short_repr(key.value)} is given twice in one mapping (first at line "
+            f"{first.start_mark.line + 1}); YAML would keep the later value in silence: keep "
+            "one of them",
+            key.start_mark,
+        )
 
 
 def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyPath, str]:
