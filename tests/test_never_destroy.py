@@ -133,3 +133,35 @@ def test_an_output_that_is_an_input_is_refused_before_any_work(tmp_path, capsys)
     assert code == 1
     assert "refusing to write" in err and "a.npz" in err and "1 processed" in err
     assert hashlib.sha256(own.read_bytes()).hexdigest() == digest
+
+
+def test_a_file_the_run_did_not_write_is_never_written_over(tmp_path, capsys):
+    """A lab's folder holds ``a.npy`` (reconstructed into its own folder) and its own ``a.tif``
+    (another capture of the same shot, not an input of this run): the ``a.tif`` cube would
+    replace it. Before the fix it did, exit 0. Now that input fails naming the file, the file is
+    unchanged and another input still runs; the run's own earlier outputs stay replaceable
+    (a rerun with ``--no-resume``, the ``_std`` files of an earlier run with ``uncertainty``)."""
+    bpath, inp = _small_run(tmp_path)
+    theirs = tmp_path / "a.tif"
+    theirs.write_bytes(b"the lab's own TIFF of the same shot")
+    other = shutil.copy(inp, tmp_path / "b.npy")
+    base = ["reconstruct", "--bundle", str(bpath), "--out", str(tmp_path), "--no-progress"]
+    assert main([*base, str(inp), str(other)]) == 1
+    err = capsys.readouterr().err
+    assert "refusing to write over a.tif" in err and "not written there" in err
+    assert "1 processed" in err and "1 failed" in err
+    assert theirs.read_bytes() == b"the lab's own TIFF of the same shot"
+    assert not (tmp_path / "a.npz").exists()  # nothing of that input was written
+
+    # the run's own outputs: a rerun replaces them, with or without the _std files
+    out = tmp_path / "out"
+    run = ["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress"]
+    assert main([*run, "--set", "uncertainty=true", str(inp)]) == 0
+    assert main([*run, "--no-resume", str(inp)]) == 0
+    assert main([*run, "--set", "uncertainty=true", str(inp)]) == 0
+    capsys.readouterr()
+    # a file put there by someone else is refused even after the run's own files
+    (out / "a_spectra.png").write_bytes(b"someone's plot")
+    assert main([*run, "--set", "spectra_points=[[1, 1]]", str(inp)]) == 1
+    assert "refusing to write over a_spectra.png" in capsys.readouterr().err
+    assert (out / "a_spectra.png").read_bytes() == b"someone's plot"
