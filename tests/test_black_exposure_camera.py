@@ -440,3 +440,60 @@ def test_calibrate_pedestal_check_modes(tmp_path):
         assert not check_pedestal(reader([512.0]), "warn", notes)["ok"]
     assert len(w) == 1 and "black pedestal" in str(w[0].message) and len(notes) == 1
     assert not check_pedestal(reader([512.0]), "off", notes)["ok"] and len(notes) == 1
+
+
+def test_a_capture_on_another_data_scale_is_warned_about(lab, bundle, tmp_path, capsys):
+    """An 8-bit PNG export or a float TIFF normalised to 1 of a scene, with its black level and
+    exposure given, reconstructed with a bundle of 16-bit files: every spectrum came out 257x
+    (or 65535x) too dark, `radiometric_scale: reflectance`, exit 0 and no word (the fit
+    residual and the pedestal check are blind to a scale). The bundle now records the white
+    level its white shots were read with, and a capture read with another one (or none) is
+    warned about, with the fix; a capture on the calibration's own scale is not."""
+    import cv2
+
+    b = CalibrationBundle.load(bundle)
+    assert (b.settings["white_level_dn"], b.settings["white_level_source"]) == (65535.0,
+                                                                                "default")
+    cc = tifffile.imread(lab["scenes"] / "full.tif").astype(np.float64)
+    png = tmp_path / "export8.png"
+    assert cv2.imwrite(str(png), np.rint(cc / 257).astype(np.uint8))
+    flt = tmp_path / "norm.tif"
+    tifffile.imwrite(flt, (cc / 65535).astype(np.float32), photometric="minisblack",
+                     metadata=None)  # fmt: skip
+    sets = ("exposure_s=0.02",)
+    assert _reconstruct(bundle, tmp_path / "p", png, sets=(*sets, "black_level=2")) == 0
+    err = capsys.readouterr().err
+    assert "export8.png: data scale: the capture was read with white level 255 DN (the integer " \
+        "type's maximum" in err and "white shots with 65535 DN" in err
+    assert "0.00389x what it should be" in err and "--set white_level=65535" in err
+    st = load_cube(tmp_path / "p" / "export8.npz").metadata["stats"]
+    assert "data scale" in st["data_scale_note"]
+    assert _reconstruct(bundle, tmp_path / "f", flt,
+                        sets=(*sets, f"black_level={512 / 65535}")) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "norm.tif: data scale unknown: the capture states no white level (a float file)" in err
+    # the calibration's own scale: nothing to say (plain TIFFs as the calibration's)
+    assert _reconstruct(bundle, tmp_path / "o", lab["scenes"] / "full.tif") == 0
+    assert "WARNING" not in capsys.readouterr().err
+    # a file stating its own white level (the simulator's 16383) where the bundle only took the
+    # integer type's maximum: the bundle's was the guess, not the capture's
+    assert _reconstruct(bundle, tmp_path / "s", lab["sim"] / "scenes" / "colorchecker.tif",
+                        sets=sets) == 0  # fmt: skip
+    assert "data scale" not in capsys.readouterr().err
+
+
+def test_data_scale_note_rules():
+    from hsi_torch.recon.checks import BundleRadiometry, data_scale_note
+
+    rad = BundleRadiometry(white_level_dn=16383.0, white_level_source="file")
+    note = data_scale_note({"white_level": 65535.0, "white_level_source": "default"}, rad)
+    assert "4x what it should be" in note and "--set white_level=16383" in note
+    assert data_scale_note({"white_level": 16383.0, "white_level_source": "config"}, rad) is None
+    note = data_scale_note({"white_level": 255.0, "white_level_source": "config"}, rad)
+    assert "the white_level setting" in note and "convert the file" in note
+    assert "no white level" in data_scale_note({"white_level": None}, rad)
+    # the camera check already named both white levels: said once
+    assert data_scale_note({"white_level": 4095.0, "white_level_source": "file"}, rad,
+                           ["the capture's white level is 4095 DN, the bundle's 16383 DN"]) is None
+    # a bundle that does not record it (made before): nothing to compare
+    assert data_scale_note({"white_level": 255.0}, BundleRadiometry()) is None
