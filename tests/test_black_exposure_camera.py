@@ -497,3 +497,30 @@ def test_data_scale_note_rules():
                            ["the capture's white level is 4095 DN, the bundle's 16383 DN"]) is None
     # a bundle that does not record it (made before): nothing to compare
     assert data_scale_note({"white_level": 255.0}, BundleRadiometry()) is None
+
+
+def test_pedestal_limit_is_the_calibrations_when_the_captures_white_level_is_a_guess():
+    """A plain 16-bit TIFF of 14-bit counts (no white level stated: 65535 taken) with 64 DN of
+    pedestal left over: the limit was 0.25 % of 65535 − 512 = 163 DN and the pedestal passed
+    in silence (the ColorChecker 54 % too bright). With the calibration's white level known the
+    limit is its span's, 40 DN, and the pedestal is named."""
+    from hsi_torch.io.captures import LinearCapture
+    from hsi_torch.recon.checks import BundleRadiometry, prepare_capture
+
+    g = torch.Generator().manual_seed(0)
+    img = 64.0 + torch.randn(3, 30, 30, generator=g, dtype=torch.float64)
+    rad = BundleRadiometry(white_level_dn=16383.0, white_level_source="manifest",
+                           outside_index=np.arange(0, 900, 7))  # fmt: skip
+
+    def stats(white_level: float, source: str) -> dict:
+        meta = {"kind": "rgb", "black_level": 512.0, "white_level": white_level,
+                "white_level_source": source}  # fmt: skip
+        cap = LinearCapture(img.clone(), torch.zeros_like(img, dtype=torch.bool), meta, None)
+        return prepare_capture(cap, rad, black_level=512.0, sensor_size=(30, 30))
+
+    st = stats(65535.0, "default")
+    assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (16383 - 512), abs=0.01)
+    assert any("black pedestal of ~64 DN" in w for w in check_warnings(st))
+    # a white level the file states is the file's own: its span
+    st = stats(65535.0, "file")
+    assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (65535 - 512), abs=0.01)
