@@ -236,6 +236,17 @@ def prepare_capture(
     note = data_scale_note(meta, rad, mism)
     if note:
         stats["data_scale_note"] = note
+    cal_cfa = rad.camera.cfa_pattern if rad.camera is not None else None
+    if meta.get("kind") == "rgb" and cal_cfa:
+        # the fit cannot tell: a white-balanced RGB fits at 0.10, a tone-curved one at 0.09
+        # (limit 0.15), with cubes 1.8x and 12x off on the small prototype's ColorChecker
+        stats["mosaic_note"] = (
+            f"the capture is an RGB image but the bundle was calibrated from {cal_cfa} Bayer "
+            "mosaics, demosaiced here: an RGB file from a camera's or a raw converter's "
+            "processing (white balance, colour matrix, tone curve) gives wrong spectra that the "
+            "fit residual does not show; reconstruct the raw mosaic (RAW/DNG or a Bayer TIFF) "
+            "instead, unless this RGB is a linear demosaic of the same sensor's counts"
+        )
     return stats
 
 
@@ -343,8 +354,9 @@ def check_warnings(stats: Mapping[str, Any]) -> list[str]:
             )
     if stats.get("radiometric_scale") == "relative":
         out.append(str(stats.get("exposure_note")))
-    if stats.get("data_scale_note"):
-        out.append(str(stats["data_scale_note"]))
+    for key in ("data_scale_note", "mosaic_note"):
+        if stats.get(key):
+            out.append(str(stats[key]))
     mism = stats.get("camera_mismatch")
     if isinstance(mism, list) and mism:
         out.append("camera: " + "; ".join(str(m) for m in mism) + " (a bundle of another "
