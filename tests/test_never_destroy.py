@@ -165,3 +165,36 @@ def test_a_file_the_run_did_not_write_is_never_written_over(tmp_path, capsys):
     assert main([*run, "--set", "spectra_points=[[1, 1]]", str(inp)]) == 1
     assert "refusing to write over a_spectra.png" in capsys.readouterr().err
     assert (out / "a_spectra.png").read_bytes() == b"someone's plot"
+
+
+def test_demo_into_a_folder_with_the_users_files_is_refused(tmp_path, capsys):
+    """``hsi-torch demo --out lab/`` on a folder holding the lab's own ``calib.npz``,
+    ``summary.json`` and ``colorchecker.tif`` replaced all three, exit 0. Now it is refused up
+    front, naming them; an earlier demo run (its marker or its summary) may be replaced."""
+    from hsi_torch.experiments.cli_entry import DEMO_MARKER, check_demo_out
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    mine = {"calib.npz": b"my bundle", "summary.json": b'{"mine": 1}',
+            "colorchecker.tif": b"my capture"}  # fmt: skip
+    for name, data in mine.items():
+        (lab / name).write_bytes(data)
+    assert main(["demo", "--quick", "--out", str(lab), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "is not empty (calib.npz, colorchecker.tif, summary.json)" in err
+    assert "holds no earlier demo run" in err
+    assert {p.name: p.read_bytes() for p in lab.iterdir()} == mine
+    # what may be replaced: an empty or new folder, an earlier demo run
+    check_demo_out(tmp_path / "new")
+    (tmp_path / "empty").mkdir()
+    check_demo_out(tmp_path / "empty")
+    old = tmp_path / "old_demo"
+    old.mkdir()
+    (old / "summary.json").write_text('{"scenes": {}, "files": ["calib.npz"]}')
+    (old / "calib.npz").write_bytes(b"the demo's")
+    check_demo_out(old)
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / DEMO_MARKER).write_text("")
+    (killed / "calib.npz").write_bytes(b"the demo's, before it was stopped")
+    check_demo_out(killed)
