@@ -198,3 +198,30 @@ def test_demo_into_a_folder_with_the_users_files_is_refused(tmp_path, capsys):
     (killed / DEMO_MARKER).write_text("")
     (killed / "calib.npz").write_bytes(b"the demo's, before it was stopped")
     check_demo_out(killed)
+
+
+def test_calibrate_out_naming_a_file_that_is_not_a_bundle_is_refused(tmp_path, capsys):
+    """``calibrate --out lab/results.npz`` where ``results.npz`` is the lab's own file (not a
+    bundle) replaced it with the bundle, exit 0. Now refused before the calibration starts, the
+    file unchanged; an earlier bundle at that name is still replaced by a rerun."""
+    from hsi_torch.calibrate.cli_entry import _check_replaces_a_bundle
+    from hsi_torch.errors import InputError
+
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    mine = tmp_path / "results.npz"
+    import numpy as np
+
+    np.savez(mine, table=np.arange(3))  # an NPZ, but not a bundle
+    before = mine.read_bytes()
+    assert main(["calibrate", "--captures", str(caps), "--out", str(mine), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "results.npz exists and is not a calibration bundle" in err
+    assert mine.read_bytes() == before
+    (tmp_path / "text.npz").write_text("notes")
+    with pytest.raises(InputError, match="not a calibration bundle"):
+        _check_replaces_a_bundle(tmp_path / "text.npz")
+    (tmp_path / "b").mkdir()
+    bpath, _ = _small_run(tmp_path / "b")
+    _check_replaces_a_bundle(bpath)  # an earlier bundle: may be replaced
+    _check_replaces_a_bundle(tmp_path / "new.npz")  # nothing there
