@@ -147,8 +147,9 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
     try:
         value = safe_yaml_load(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(f"override {short_repr(text)}: value is not valid YAML "
-                          f"({short_repr(str(exc), 300)})") from None  # fmt: skip
+                          f"({short_text(problem, 300)})") from None  # fmt: skip
     except ValueError as exc:  # expands too far
         raise ConfigError(f"override {short_repr(text)}: {exc}") from None
     return tuple(parts), value
@@ -159,20 +160,6 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
 MAX_YAML_VALUES = 100_000
 
 
-def _refuse_duplicate_keys(node: yaml.MappingNode) -> None:
-    """A mapping that names a key twice (YAML keeps the last one in silence: an edit of the
-    first does nothing) is a ``yaml.YAMLError`` at the second, naming the first's line."""
-    seen: dict[str, yaml.Node] = {}
-    for k, _ in node.value:
-        if not isinstance(k, yaml.ScalarNode) or k.tag == "tag:yaml.org,2002:merge":
-            continue
-        first = seen.setdefault(k.value, k)
-        if first is not k:
-            line = first.start_mark.line + 1
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {k.value!r} (first at line {line})", k.start_mark)
-
-
 def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
     """``yaml.safe_load`` that refuses a document expanding to more than ``max_values`` values,
     and a mapping with a key given twice.
@@ -181,6 +168,10 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
     hundred bytes of text but 10⁹ values once expanded (an alias bomb). The composed node graph
     is measured first (every use of an alias counted, each distinct node visited once), so the
     refusal costs no more than the text itself.
+
+    A key given twice in one mapping (``beta: 1000`` … ``beta: 10``) is refused too: plain YAML
+    keeps the later value in silence, so the run would use a setting the reader of the file may
+    not see.
 
     Raises:
         yaml.YAMLError: invalid YAML, or a key given twice in one mapping.
@@ -218,6 +209,30 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
         raise ValueError("the YAML is nested too deeply") from None
     finally:
         loader.dispose()
+
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _refuse_duplicate_keys(node: yaml.MappingNode) -> None:
+    """Raise a ``yaml.YAMLError`` (with the line of the second one) for a scalar key given twice
+    in one mapping; merge keys (``<<``) are left to YAML's own rules."""
+    seen: dict[tuple[str, str], yaml.Node] = {}
+    for key, _ in node.value:
+        if not isinstance(key, yaml.ScalarNode) or key.tag == _MERGE_TAG:
+            continue
+        ident = (key.tag, key.value)
+        first = seen.get(ident)
+        if first is None:
+            seen[ident] = key
+            continue
+        raise yaml.constructor.ConstructorError(
+            None, None,
+            f"key {short_repr(key.value)} is given twice in one mapping (first at line "
+            f"{first.start_mark.line + 1}); YAML would keep the later value in silence: keep "
+            "one of them",
+            key.start_mark,
+        )
 
 
 def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyPath, str]:

@@ -440,3 +440,109 @@ def test_calibrate_pedestal_check_modes(tmp_path):
         assert not check_pedestal(reader([512.0]), "warn", notes)["ok"]
     assert len(w) == 1 and "black pedestal" in str(w[0].message) and len(notes) == 1
     assert not check_pedestal(reader([512.0]), "off", notes)["ok"] and len(notes) == 1
+
+
+def test_a_capture_on_another_data_scale_is_warned_about(lab, bundle, tmp_path, capsys):
+    """An 8-bit PNG export or a float TIFF normalised to 1 of a scene, with its black level and
+    exposure given, reconstructed with a bundle of 16-bit files: every spectrum came out 257x
+    (or 65535x) too dark, `radiometric_scale: reflectance`, exit 0 and no word (the fit
+    residual and the pedestal check are blind to a scale). The bundle now records the white
+    level its white shots were read with, and a capture read with another one (or none) is
+    warned about, with the fix; a capture on the calibration's own scale is not."""
+    import cv2
+
+    b = CalibrationBundle.load(bundle)
+    assert (b.settings["white_level_dn"], b.settings["white_level_source"]) == (65535.0,
+                                                                                "default")
+    cc = tifffile.imread(lab["scenes"] / "full.tif").astype(np.float64)
+    png = tmp_path / "export8.png"
+    assert cv2.imwrite(str(png), np.rint(cc / 257).astype(np.uint8))
+    flt = tmp_path / "norm.tif"
+    tifffile.imwrite(flt, (cc / 65535).astype(np.float32), photometric="minisblack",
+                     metadata=None)  # fmt: skip
+    sets = ("exposure_s=0.02",)
+    assert _reconstruct(bundle, tmp_path / "p", png, sets=(*sets, "black_level=2")) == 0
+    err = capsys.readouterr().err
+    assert "export8.png: data scale: the capture was read with white level 255 DN (the integer " \
+        "type's maximum" in err and "white shots with 65535 DN" in err
+    assert "0.00389x what it should be" in err and "--set white_level=65535" in err
+    st = load_cube(tmp_path / "p" / "export8.npz").metadata["stats"]
+    assert "data scale" in st["data_scale_note"]
+    assert _reconstruct(bundle, tmp_path / "f", flt,
+                        sets=(*sets, f"black_level={512 / 65535}")) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "norm.tif: data scale unknown: the capture states no white level (a float file)" in err
+    # the calibration's own scale: nothing to say (plain TIFFs as the calibration's)
+    assert _reconstruct(bundle, tmp_path / "o", lab["scenes"] / "full.tif") == 0
+    assert "WARNING" not in capsys.readouterr().err
+    # a file stating its own white level (the simulator's 16383) where the bundle only took the
+    # integer type's maximum: the bundle's was the guess, not the capture's
+    assert _reconstruct(bundle, tmp_path / "s", lab["sim"] / "scenes" / "colorchecker.tif",
+                        sets=sets) == 0  # fmt: skip
+    assert "data scale" not in capsys.readouterr().err
+
+
+def test_data_scale_note_rules():
+    from hsi_torch.recon.checks import BundleRadiometry, data_scale_note
+
+    rad = BundleRadiometry(white_level_dn=16383.0, white_level_source="file")
+    note = data_scale_note({"white_level": 65535.0, "white_level_source": "default"}, rad)
+    assert "4x what it should be" in note and "--set white_level=16383" in note
+    assert data_scale_note({"white_level": 16383.0, "white_level_source": "config"}, rad) is None
+    note = data_scale_note({"white_level": 255.0, "white_level_source": "config"}, rad)
+    assert "the white_level setting" in note and "convert the file" in note
+    assert "no white level" in data_scale_note({"white_level": None}, rad)
+    # the camera check already named both white levels: said once
+    assert data_scale_note({"white_level": 4095.0, "white_level_source": "file"}, rad,
+                           ["the capture's white level is 4095 DN, the bundle's 16383 DN"]) is None
+    # a bundle that does not record it (made before): nothing to compare
+    assert data_scale_note({"white_level": 255.0}, BundleRadiometry()) is None
+
+
+def test_pedestal_limit_is_the_calibrations_when_the_captures_white_level_is_a_guess():
+    """A plain 16-bit TIFF of 14-bit counts (no white level stated: 65535 taken) with 64 DN of
+    pedestal left over: the limit was 0.25 % of 65535 − 512 = 163 DN and the pedestal passed
+    in silence (the ColorChecker 54 % too bright). With the calibration's white level known the
+    limit is its span's, 40 DN, and the pedestal is named."""
+    from hsi_torch.io.captures import LinearCapture
+    from hsi_torch.recon.checks import BundleRadiometry, prepare_capture
+
+    g = torch.Generator().manual_seed(0)
+    img = 64.0 + torch.randn(3, 30, 30, generator=g, dtype=torch.float64)
+    rad = BundleRadiometry(white_level_dn=16383.0, white_level_source="manifest",
+                           outside_index=np.arange(0, 900, 7))  # fmt: skip
+
+    def stats(white_level: float, source: str) -> dict:
+        meta = {"kind": "rgb", "black_level": 512.0, "white_level": white_level,
+                "white_level_source": source}  # fmt: skip
+        cap = LinearCapture(img.clone(), torch.zeros_like(img, dtype=torch.bool), meta, None)
+        return prepare_capture(cap, rad, black_level=512.0, sensor_size=(30, 30))
+
+    st = stats(65535.0, "default")
+    assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (16383 - 512), abs=0.01)
+    assert any("black pedestal of ~64 DN" in w for w in check_warnings(st))
+    # a white level the file states is the file's own: its span
+    st = stats(65535.0, "file")
+    assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (65535 - 512), abs=0.01)
+
+
+def test_an_rgb_capture_with_a_bundle_of_bayer_mosaics_is_warned_about(lab, bundle, tmp_path,
+                                                                         capsys):  # fmt: skip
+    """A white-balanced RGB TIFF (R x2, B x1.6: what a camera or raw converter writes) of the
+    ColorChecker, exposure and levels given, reconstructed with a bundle calibrated from Bayer
+    mosaics: fit residual 0.10 (< 0.15), cube 1.8x off, exit 0 and no word before the fix. Now
+    it is warned about; the Bayer file of the same scene is not."""
+    full = lab["scenes"] / "full.tif"
+    cap = read_any(full, cfa_pattern="RGGB", black_level=512, dtype=torch.float64)
+    rgb = (cap.image.numpy() * np.array([2.0, 1.0, 1.6])[:, None, None]).clip(0, 65535)
+    p = tmp_path / "developed.tif"
+    tifffile.imwrite(p, np.rint(rgb).astype(np.uint16), photometric="rgb", planarconfig="separate",
+                     metadata=None, description=json.dumps({"exposure_s": 0.02, "black_level": 0,
+                                                            "white_level": 65535}))  # fmt: skip
+    assert _reconstruct(bundle, tmp_path / "o", p, full) == 0
+    err = capsys.readouterr().err
+    assert "developed.tif: the capture is an RGB image but the bundle was calibrated from RGGB " \
+        "Bayer mosaics" in err and "raw mosaic" in err
+    assert err.count("WARNING") == 1  # the Bayer file of the same scene: nothing to say
+    st = load_cube(tmp_path / "o" / "developed.npz").metadata["stats"]
+    assert "RGB image" in st["mosaic_note"] and st["fit_residual"] < 0.15

@@ -25,7 +25,7 @@ from hsi_torch.io.capture_import import (
     rows_from_patterns,
 )
 from hsi_torch.io.capture_manifest import check_manifest, manifest_keys, manifest_schema
-from hsi_torch.io.capture_set import read_capture_set, read_truth
+from hsi_torch.io.capture_set import read_capture_set, read_nominal_layout, read_truth
 from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.resources import shipped_config
 from hsi_torch.testing import write_dng
@@ -269,6 +269,30 @@ def test_hand_written_manifest_settings_are_honoured_or_refused(sim: Path, tmp_p
     (d / "manifest.json").write_text(json.dumps({**man, "exposure_time_s": 1}))
     with pytest.raises(FileFormatError, match=r"manifest.json: unknown key 'exposure_time_s'"):
         read_capture_set(d)
+
+
+def test_a_key_given_twice_in_a_hand_written_manifest_or_layout_is_refused(sim: Path,
+                                                                           tmp_path: Path):
+    """A hand-edited manifest entry with ``"black_level"`` twice (512, later 0) was read with
+    the later value in silence (JSON readers keep it); the nominal layout likewise. Both are
+    refused now, naming the file and the key."""
+    d = tmp_path / "set"
+    (d / "white").mkdir(parents=True)
+    cv2.imwrite(str(d / "white/w.png"), _mosaic(sim / "white/white_00.tif").astype(np.uint16))
+    shutil.copy(sim / "nominal_layout.json", d / "nominal_layout.json")
+    entry = '{"file": "white/w.png", "type": "white", "cfa_pattern": "RGGB", ' \
+        '"black_level": 512, "exposure_s": 0.02, "black_level": 0}'
+    (d / "manifest.json").write_text('{"schema_version": 1, "captures": [' + entry + ']}')
+    with pytest.raises(FileFormatError, match=r"manifest .*manifest.json: key 'black_level' is "
+                                              r"given twice in one JSON object"):
+        read_capture_set(d)
+    entry = entry.replace(', "black_level": 0}', "}")
+    (d / "manifest.json").write_text('{"schema_version": 1, "captures": [' + entry + ']}')
+    assert read_capture_set(d).settings  # the same without the second key: read
+    text = (d / "nominal_layout.json").read_text()
+    (d / "nominal_layout.json").write_text(text.replace("{", '{"parity": [1], ', 1))
+    with pytest.raises(FileFormatError, match=r"nominal_layout.json: key 'parity' is given twice"):
+        read_nominal_layout(d / "nominal_layout.json")
 
 
 def test_published_schema_accepts_the_manifests_we_write(sim: Path):

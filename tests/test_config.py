@@ -190,6 +190,31 @@ def test_file_level_errors(tmp_path):
         load_config({}, dict)  # type: ignore[arg-type]
 
 
+def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path):
+    # plain YAML keeps the later value in silence: a lab that appends `beta: 10` to its copy of
+    # a config that already says `beta: 1000` would get 10 without a word
+    p = _write(tmp_path, "out_name: a\nsolver:\n  beta: 1000\n  max_iter: 5\n  beta: 10\n",
+               "twice.yaml")  # fmt: skip
+    with pytest.raises(ConfigError, match=r"twice.yaml: invalid YAML at line 5, column 3: key "
+                       r"'beta' is given twice in one mapping \(first at line 3\)"):
+        load_config(p, ExampleCfg)
+    p = _write(tmp_path, "out_name: a\nout_name: b\n", "top.yaml")
+    with pytest.raises(ConfigError, match=r"top.yaml: .*key 'out_name' is given twice"):
+        load_config(p, ExampleCfg)
+    with pytest.raises(ConfigError, match=r"key 'a' is given twice"):
+        load_config({"out_name": "a"}, ExampleCfg, overrides=["extras={a: 1, a: 2}"])
+    # a merge key is not a duplicate; the same key in two mappings is fine
+    p = _write(tmp_path, "out_name: a\nextras:\n  <<: {x: 1.0}\n  y: 2.0\n"
+               "solver: {beta: 2.0, max_iter: 3}\nscenes: [{size: [1, 2]}, {size: [3, 4]}]\n",
+               "merge.yaml")  # fmt: skip
+    cfg = load_config(p, ExampleCfg)
+    assert cfg.extras == {"x": 1.0, "y": 2.0} and cfg.scenes[1].size == (3, 4)
+    from hsi_torch.config import safe_yaml_load
+
+    assert safe_yaml_load("a: &x {p: 1}\nb:\n  <<: *x\n  q: 2\n") == {"a": {"p": 1},
+                                                                       "b": {"p": 1, "q": 2}}
+
+
 def test_post_init_and_existing_path(tmp_path):
     with pytest.raises(ConfigError, match=r"key 'p': invalid Positive: value must be > 0"):
         load_config({"p": {"value": -1}}, WithPositive)
@@ -227,19 +252,3 @@ def test_describe_schema():
     assert "solver.beta: float = 1.0" in text
     assert "solver.method: one of 'active_set', 'admm', 'scipy' = 'active_set'" in text
     assert "label: str = 'x'  # a label" in describe_schema(NeedsFile)
-
-
-def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path):
-    """YAML keeps the last of two equal keys in silence (an edit of the first did nothing); the
-    loader names the key and both lines, at any depth. Merge keys (<<) are not duplicates."""
-    p = tmp_path / "twice.yaml"
-    p.write_text("out_name: a\nsolver:\n  beta: 1\n  max_iter: 3\n  beta: 2\n", encoding="utf-8")
-    with pytest.raises(ConfigError, match=r"line 5.*duplicate key 'beta' \(first at line 3\)"):
-        load_config(p, ExampleCfg)
-    p.write_text("out_name: a\nout_name: b\n", encoding="utf-8")
-    with pytest.raises(ConfigError, match=r"duplicate key 'out_name' \(first at line 1\)"):
-        load_config(p, ExampleCfg)
-    from hsi_torch.config import safe_yaml_load
-
-    assert safe_yaml_load("a: &x {p: 1}\nb:\n  <<: *x\n  q: 2\n") == {"a": {"p": 1},
-                                                                       "b": {"p": 1, "q": 2}}

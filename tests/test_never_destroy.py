@@ -133,3 +133,95 @@ def test_an_output_that_is_an_input_is_refused_before_any_work(tmp_path, capsys)
     assert code == 1
     assert "refusing to write" in err and "a.npz" in err and "1 processed" in err
     assert hashlib.sha256(own.read_bytes()).hexdigest() == digest
+
+
+def test_a_file_the_run_did_not_write_is_never_written_over(tmp_path, capsys):
+    """A lab's folder holds ``a.npy`` (reconstructed into its own folder) and its own ``a.tif``
+    (another capture of the same shot, not an input of this run): the ``a.tif`` cube would
+    replace it. Before the fix it did, exit 0. Now that input fails naming the file, the file is
+    unchanged and another input still runs; the run's own earlier outputs stay replaceable
+    (a rerun with ``--no-resume``, the ``_std`` files of an earlier run with ``uncertainty``)."""
+    bpath, inp = _small_run(tmp_path)
+    theirs = tmp_path / "a.tif"
+    theirs.write_bytes(b"the lab's own TIFF of the same shot")
+    other = shutil.copy(inp, tmp_path / "b.npy")
+    base = ["reconstruct", "--bundle", str(bpath), "--out", str(tmp_path), "--no-progress"]
+    assert main([*base, str(inp), str(other)]) == 1
+    err = capsys.readouterr().err
+    assert "refusing to write over a.tif" in err and "not written there" in err
+    assert "1 processed" in err and "1 failed" in err
+    assert theirs.read_bytes() == b"the lab's own TIFF of the same shot"
+    assert not (tmp_path / "a.npz").exists()  # nothing of that input was written
+
+    # the run's own outputs: a rerun replaces them, with or without the _std files
+    out = tmp_path / "out"
+    run = ["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress"]
+    assert main([*run, "--set", "uncertainty=true", str(inp)]) == 0
+    assert main([*run, "--no-resume", str(inp)]) == 0
+    assert main([*run, "--set", "uncertainty=true", str(inp)]) == 0
+    capsys.readouterr()
+    # a file put there by someone else is refused even after the run's own files
+    (out / "a_spectra.png").write_bytes(b"someone's plot")
+    assert main([*run, "--set", "spectra_points=[[1, 1]]", str(inp)]) == 1
+    assert "refusing to write over a_spectra.png" in capsys.readouterr().err
+    assert (out / "a_spectra.png").read_bytes() == b"someone's plot"
+
+
+def test_demo_into_a_folder_with_the_users_files_is_refused(tmp_path, capsys):
+    """``hsi-torch demo --out lab/`` on a folder holding the lab's own ``calib.npz``,
+    ``summary.json`` and ``colorchecker.tif`` replaced all three, exit 0. Now it is refused up
+    front, naming them; an earlier demo run (its marker or its summary) may be replaced."""
+    from hsi_torch.experiments.cli_entry import DEMO_MARKER, check_demo_out
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    mine = {"calib.npz": b"my bundle", "summary.json": b'{"mine": 1}',
+            "colorchecker.tif": b"my capture"}  # fmt: skip
+    for name, data in mine.items():
+        (lab / name).write_bytes(data)
+    assert main(["demo", "--quick", "--out", str(lab), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "is not empty (calib.npz, colorchecker.tif, summary.json)" in err
+    assert "holds no earlier demo run" in err
+    assert {p.name: p.read_bytes() for p in lab.iterdir()} == mine
+    # what may be replaced: an empty or new folder, an earlier demo run
+    check_demo_out(tmp_path / "new")
+    (tmp_path / "empty").mkdir()
+    check_demo_out(tmp_path / "empty")
+    old = tmp_path / "old_demo"
+    old.mkdir()
+    (old / "summary.json").write_text('{"scenes": {}, "files": ["calib.npz"]}')
+    (old / "calib.npz").write_bytes(b"the demo's")
+    check_demo_out(old)
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / DEMO_MARKER).write_text("")
+    (killed / "calib.npz").write_bytes(b"the demo's, before it was stopped")
+    check_demo_out(killed)
+
+
+def test_calibrate_out_naming_a_file_that_is_not_a_bundle_is_refused(tmp_path, capsys):
+    """``calibrate --out lab/results.npz`` where ``results.npz`` is the lab's own file (not a
+    bundle) replaced it with the bundle, exit 0. Now refused before the calibration starts, the
+    file unchanged; an earlier bundle at that name is still replaced by a rerun."""
+    from hsi_torch.calibrate.cli_entry import _check_replaces_a_bundle
+    from hsi_torch.errors import InputError
+
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    mine = tmp_path / "results.npz"
+    import numpy as np
+
+    np.savez(mine, table=np.arange(3))  # an NPZ, but not a bundle
+    before = mine.read_bytes()
+    assert main(["calibrate", "--captures", str(caps), "--out", str(mine), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "results.npz exists and is not a calibration bundle" in err
+    assert mine.read_bytes() == before
+    (tmp_path / "text.npz").write_text("notes")
+    with pytest.raises(InputError, match="not a calibration bundle"):
+        _check_replaces_a_bundle(tmp_path / "text.npz")
+    (tmp_path / "b").mkdir()
+    bpath, _ = _small_run(tmp_path / "b")
+    _check_replaces_a_bundle(bpath)  # an earlier bundle: may be replaced
+    _check_replaces_a_bundle(tmp_path / "new.npz")  # nothing there

@@ -326,3 +326,35 @@ def test_the_tv_factor_is_cached_beside_the_sensing(bundle_file, tmp_path):
         assert torch.equal(torch.nan_to_num(c1, nan=-1.0), torch.nan_to_num(c3, nan=-1.0))
     finally:
         mp.undo()
+
+
+def test_a_cached_sensing_keeps_the_bundles_stray_light_and_defect_corrections(tmp_path):
+    """The cache kept only some fields of the bundle's radiometry: a second run (loading the
+    entry) lost the veil subtraction (``stray_light: subtract``) and the defect mask the first
+    run applied — the same command gave another cube, in silence. Every field now comes back."""
+    path = tmp_path / "calib.npz"
+    b = make_bundle(stray_light="subtract", white_level_dn=16383.0,
+                    camera={"make": "Lab", "model": "Cam 1", "white_level": 16383.0})
+    H, W = b.sensor_size
+    b.extras = {"unreached_index": np.array([W * (H - 1) + W - 1, W * H - 2], np.int64),
+                "defect_pixels": np.array([W * 5 + 7], np.int64)}
+    b.save(path)
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()) + 40.0  # a veil of 40 DN
+    fresh_process()
+    rec1 = Reconstructor(path, beta=2.0, precompute_cache=str(cache))
+    r1 = rec1.reconstruct_frame(capture)
+    fresh_process()
+    rec2 = Reconstructor(path, beta=2.0, precompute_cache=str(cache))
+    assert counts()["loaded"] >= 1 and rec2.sensing is not rec1.sensing
+    a, c = rec1.sensing.radiometry, rec2.sensing.radiometry
+    for name in vars(a):
+        va, vc = getattr(a, name), getattr(c, name)
+        if isinstance(va, np.ndarray):
+            np.testing.assert_array_equal(va, vc, err_msg=name)
+        else:
+            assert va == vc, name
+    assert c.veil_index is not None and c.defect_index is not None
+    r2 = rec2.reconstruct_frame(capture)
+    assert r2.stats.get("stray_light_veil_dn") == r1.stats.get("stray_light_veil_dn") is not None
+    assert torch.equal(torch.nan_to_num(r1.cube, nan=-1.0), torch.nan_to_num(r2.cube, nan=-1.0))

@@ -28,6 +28,7 @@ same captures with both bundles shows what calibration costs.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -82,6 +83,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     pre = ReplaceTransaction(inputs)
     for p in (bundle_path, fig) if oracle else (bundle_path, report_path, config_path, fig):
         pre.check(p)  # before the calibration: an input or a folder in the way
+    _check_replaces_a_bundle(bundle_path)
     if oracle:
         return _write_oracle(args.captures, bundle_path, inputs)
     cfg = load_args_config(args, CalibrateConfig, default="calibrate")
@@ -118,6 +120,39 @@ def _inputs_of(args: argparse.Namespace) -> Any:
     if getattr(args, "config", None) is not None and Path(args.config).is_file():
         inputs.add(args.config)
     return inputs
+
+
+#: The members every calibration bundle holds (any schema version).
+_BUNDLE_MEMBERS = {"meta.npy", "B.npy", "phi.npy", "gain.npy"}
+
+
+def _check_replaces_a_bundle(bundle_path: Path) -> None:
+    """``--out NAME.npz`` may replace an earlier bundle (a rerun), never another file: a lab's
+    ``results.npz`` given as ``--out`` by mistake was replaced by the bundle, exit 0. A file
+    whose zip members are a bundle's counts as an earlier bundle (even one this version would
+    refuse to load); anything else is refused before the calibration starts.
+
+    Raises:
+        InputError: ``bundle_path`` exists and is not a calibration bundle.
+    """
+    import zipfile
+
+    from hsi_torch.errors import InputError
+
+    if not os.path.lexists(bundle_path):
+        return
+    names: set[str] = set()
+    try:
+        if bundle_path.is_file() and zipfile.is_zipfile(bundle_path):
+            with zipfile.ZipFile(bundle_path) as z:
+                names = set(z.namelist())
+    except (OSError, zipfile.BadZipFile):
+        names = set()
+    if not _BUNDLE_MEMBERS <= names:
+        raise InputError(
+            f"--out {bundle_path} exists and is not a calibration bundle; calibrate replaces "
+            "only an earlier bundle: choose another name, or move the file away"
+        )
 
 
 def _say_replaced(bundle_path: Path) -> None:

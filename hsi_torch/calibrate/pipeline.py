@@ -581,6 +581,11 @@ class ResponseStage:
             simulator's ``exposure``) or ``None``.
         white_exposure_source: where the first shot's exposure came from (``"file"``,
             ``"manifest"``, ...), or ``None``.
+        white_level_dn: the white level the first shot was read with (DN: the file's, the
+            sheet's or manifest's, the setting, or the integer type's maximum), ``None`` when it
+            had none (a float file) or one per cell; white_level_source: where it came from
+            (``"file"``, ``"sheet"``, ``"manifest"``, ``"config"``, ``"default"``: the integer
+            type's maximum).
     """
 
     response: ResponseResult
@@ -588,6 +593,8 @@ class ResponseStage:
     white_signal_dn: float
     white_exposure_unit: str | None = None
     white_exposure_source: str | None = None
+    white_level_dn: float | None = None
+    white_level_source: str | None = None
 
 
 def calibrate_response(
@@ -610,8 +617,15 @@ def calibrate_response(
     vmask, B_ref = trans.view_mask, trans.B
     V, _, h, w = B_ref.shape
     whites, wsats, w_exp, units, sources = [], [], [], set(), []
+    white_level, white_level_source = None, None
     for p in white:
         img, sat, meta = reader.read(p)
+        if not whites:
+            wl0 = meta.get("white_level")
+            if isinstance(wl0, (int, float)) and not isinstance(wl0, bool) \
+                    and math.isfinite(wl0):  # fmt: skip
+                white_level = float(wl0)
+                white_level_source = meta.get("white_level_source")
         whites.append(img)
         wsats.append(sat)
         # seconds (file, sheet, manifest), else the simulator's relative exposure
@@ -660,7 +674,8 @@ def calibrate_response(
     white_signal = float(white_ref.mean(0)[obs_mask[:, None].expand(V, 3, h, w)].mean())
     return ResponseStage(resp, white_exposure, white_signal,
                          units.pop() if exp_known else None,
-                         sources[0] if exp_known else None)  # fmt: skip
+                         sources[0] if exp_known else None, white_level,
+                         white_level_source)  # fmt: skip
 
 
 def assemble_bundle(
@@ -699,6 +714,8 @@ def assemble_bundle(
                                "relative 'exposure' (simulator)",
         "white_exposure_unit": resp.white_exposure_unit,
         "white_exposure_source": resp.white_exposure_source,
+        "white_level_dn": resp.white_level_dn,
+        "white_level_source": resp.white_level_source,
         "cfa_pattern": reader.cfa_pattern,
         "demosaic": cfg.demosaic,
         "dark": dark_mode,

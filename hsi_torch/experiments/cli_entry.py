@@ -86,6 +86,46 @@ def run_experiment(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Written into ``demo --out`` before anything else: the folder holds a demo run (a rerun may
+#: replace its files, also after an interrupted run).
+DEMO_MARKER = ".hsi_torch_demo"
+
+
+def check_demo_out(out: Path) -> None:
+    """Refuse a ``demo --out`` folder that holds files but no earlier demo run.
+
+    The demo writes ``captures/``, ``calib.npz``, ``summary.json``, a cube and previews per
+    scene (``colorchecker.tif``, ...) into ``out``, replacing files of those names: a lab's
+    folder holding its own ``calib.npz`` or ``colorchecker.tif`` would lose them. An earlier
+    demo run (the marker :data:`DEMO_MARKER`, or a demo's ``summary.json``) may be replaced.
+
+    Raises:
+        InputError: ``out`` is a folder with files and no earlier demo run (names a few).
+    """
+    import json
+
+    from hsi_torch.errors import InputError
+
+    if not out.is_dir():
+        return
+    names = sorted(p.name for p in out.iterdir())
+    if not names or DEMO_MARKER in names:
+        return
+    try:
+        summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        summary = None
+    if isinstance(summary, dict) and "scenes" in summary and ("files" in summary
+                                                              or "stages" in summary):
+        return  # a demo's summary (quick or --full), written before the marker existed
+    shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+    raise InputError(
+        f"--out {out} is not empty ({shown}) and holds no earlier demo run; the demo writes "
+        "captures/, calib.npz, summary.json and a cube and previews per scene there and would "
+        "replace files of those names: choose a new or empty folder"
+    )
+
+
 def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
@@ -99,6 +139,9 @@ def run_demo(args: argparse.Namespace) -> int:
     if getattr(args, "device", None):
         cfg.device = args.device
     out = Path(getattr(args, "out", None) or "demo_output")
+    check_demo_out(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARKER).write_text("a folder written by hsi-torch demo\n", encoding="utf-8")
     if getattr(args, "full", False):
         if getattr(args, "quick", False):
             raise ValueError("--full and --quick exclude each other")

@@ -17,6 +17,10 @@ dark_level_rgb             the dark frames' mean above the black level, or null
 files_black_level_source   ``file`` / ``config`` / ``default`` / ``manifest`` / ``sheet`` / mixed
 white_exposure_unit        ``s`` (``exposure_s``) or ``relative`` (the simulator's ``exposure``)
 white_exposure_source      where the white shots' exposure came from (``file``, ``manifest``, …)
+white_level_dn             the white level the white shots were read with (DN, whatever its
+                           source: the file, sheet, manifest, setting or the integer type's
+                           maximum), or null: the scale of the data the bundle expects
+white_level_source         ``file`` / ``sheet`` / ``manifest`` / ``config`` / ``default``
 camera                     ``{make, model, cfa_pattern, sensor_size, black_level, white_level}``
                            (:class:`~hsi_torch.io.radiometry.CameraIdentity`; null = unknown)
 pedestal                   ``{pedestal_dn, pedestal_limit_dn, ok, frames, outside_pixels}``: the
@@ -168,12 +172,15 @@ def _check_radiometry_settings(settings: Any, fail: Any) -> None:
         v = settings.get(key)
         if v is not None and not (isinstance(v, list) and len(v) == 3 and all(map(_is_num, v))):
             fail(f"settings.{key}", f"must be 3 finite numbers (R, G, B DN) or null, got {v!r}")
+    v = settings.get("white_level_dn")
+    if v is not None and not (_is_num(v) and v > 0):
+        fail("settings.white_level_dn", f"must be a finite number > 0 (DN) or null, got {v!r}")
     for key in ("camera", "pedestal"):
         v = settings.get(key)
         if v is not None and not isinstance(v, dict):
             fail(f"settings.{key}", f"must be a JSON object or null, got {type(v).__name__}")
     for key in ("black_level_source", "white_exposure_unit", "white_exposure_source",
-                "files_black_level_source"):  # fmt: skip
+                "files_black_level_source", "white_level_source"):  # fmt: skip
         v = settings.get(key)
         if v is not None and not isinstance(v, str):
             fail(f"settings.{key}", f"must be a string or null, got {type(v).__name__}")

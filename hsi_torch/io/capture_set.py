@@ -101,11 +101,32 @@ def wavelength_from_name(name: str) -> float | None:
     return float(m[-1].replace("p", "."))
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``json.loads``'s ``object_pairs_hook``: a key given twice in one object is refused (JSON
+    readers keep the later value in silence; a hand-edited manifest or layout with
+    ``"black_level"`` twice would be read with the one its author may not have meant)."""
+    out: dict[str, Any] = {}
+    for k, v in pairs:
+        if k in out:
+            raise _DuplicateKey(k)
+        out[k] = v
+    return out
+
+
 def _read_json(path: Path, what: str) -> Any:
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(), object_pairs_hook=_no_duplicate_keys)
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"{path}: not valid JSON ({exc})") from exc
+    except _DuplicateKey as exc:
+        raise FileFormatError(
+            f"{what} {path}: key {str(exc)!r} is given twice in one JSON object; JSON readers "
+            "keep the later value in silence: keep one of them"
+        ) from None
     except OSError as exc:
         raise MissingFileError(f"{what} {path} cannot be read ({exc})") from exc
 

@@ -587,7 +587,9 @@ def read_any(
       ``black_level_source``: ``"file"`` (RAW/DNG black level, our JSON metadata), ``"sheet"``,
       ``"manifest"``, ``"config"`` (a keyword override, labelled by ``sources``) or
       ``"default"`` (nothing given: 0 was subtracted);
-    - ``white_level``: the saturation level used (DN) or ``None`` (a float file without one);
+    - ``white_level``: the saturation level used (DN) or ``None`` (a float file without one),
+      and ``white_level_source``: ``"file"``, ``"sheet"``, ``"manifest"``, ``"config"``,
+      ``"default"`` (the integer type's maximum) or ``None`` (none);
     - ``exposure_s``: the exposure time in seconds (``float``) or ``None`` when unknown, and
       ``exposure_source``: ``"file"`` (JSON ``exposure_s`` or EXIF ``ExposureTime``), ``"sheet"``,
       ``"manifest"``, ``"config"``, or ``None`` when unknown. (The simulator's relative
@@ -638,8 +640,11 @@ def read_any(
 
     bl = black_level if black_level is not None else meta.get("black_level", 0.0)
     wl = white_level if white_level is not None else meta.get("white_level")
+    wl_source = (srcs.get("white_level", "config") if white_level is not None
+                 else "file" if wl is not None else None)  # fmt: skip
     if wl is None and np.dtype(stored_dtype).kind in "ui":
         wl = float(np.iinfo(np.dtype(stored_dtype)).max)
+        wl_source = "default"
     black = _level_map(bl, kind, (h, w), p, "black_level")
     white = _level_map(wl, kind, (h, w), p, "white_level") if wl is not None else None
     if stored is None and not normalize and _exact_in(arr, black, white, dtype):
@@ -674,7 +679,8 @@ def read_any(
         sat = sat.to(device=device)
 
     out_meta = dict(meta)
-    out_meta.update(kind=kind, black_level=_jsonable(bl), white_level=_jsonable(wl), source=str(p))
+    out_meta.update(kind=kind, black_level=_jsonable(bl), white_level=_jsonable(wl),
+                    white_level_source=wl_source, source=str(p))  # fmt: skip
     out_meta.update(_contract_metadata(
         p, meta, srcs, black_given=black_level is not None, exposure_s=exposure_s,
         camera_make=camera_make, camera_model=camera_model,

@@ -20,7 +20,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -73,6 +74,8 @@ class BundleRadiometry:
     black_level_rgb: tuple[float, float, float] | None = None
     black_level_source: str | None = None
     camera: CameraIdentity | None = None
+    white_level_dn: float | None = None
+    white_level_source: str | None = None
     outside_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     veil_index: np.ndarray | None = field(default=None, repr=False)
     defect_index: np.ndarray | None = field(default=None, repr=False)
@@ -92,6 +95,9 @@ class BundleRadiometry:
             black_level_rgb=None if black is None else (black[0], black[1], black[2]),
             black_level_source=src if isinstance(src, str) else None,
             camera=CameraIdentity.from_dict(s.get("camera")),
+            white_level_dn=_positive(s.get("white_level_dn")),
+            white_level_source=(s.get("white_level_source")
+                                if isinstance(s.get("white_level_source"), str) else None),
             outside_index=outside_views_index(bundle.triangles, tuple(bundle.sensor_size)),
             veil_index=(np.asarray(bundle.extras["unreached_index"], np.int64)
                         if s.get("stray_light") == "subtract"
@@ -99,6 +105,50 @@ class BundleRadiometry:
             defect_index=(np.asarray(bundle.extras["defect_pixels"], np.int64)
                           if "defect_pixels" in bundle.extras else None),
         )  # fmt: skip
+
+
+def _positive(v: Any) -> float | None:
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+    return float(v) if ok else None
+
+
+def data_scale_note(meta: Mapping[str, Any], radiometry: BundleRadiometry | None,
+                    camera_mismatch: Sequence[str] = ()) -> str | None:
+    """Why the capture's values may be on another scale than the calibration's, or ``None``.
+
+    The bundle records the white level its white shots were read with (``white_level_dn``, and
+    its source). A capture read with another one — an 8-bit PNG (255), 14-bit counts shifted
+    into 16 bits or a 16-bit container (the integer type's maximum, taken for a file that states
+    none), a ``white_level`` setting of another scale — or with none (a float file, e.g.
+    normalised to 1) may hold values on another scale: then every spectrum is off by that
+    factor, which neither the fit residual nor the pedestal check can see. Not said when the
+    capture's level is the file's own and the bundle's was only the integer type's maximum (the
+    bundle's is the guess), or when the camera check already compared the two
+    (``camera_mismatch``)."""
+    ref = radiometry.white_level_dn if radiometry is not None else None
+    if ref is None:
+        return None
+    wl = meta.get("white_level")
+    src = meta.get("white_level_source")
+    if src in ("default", None):
+        fix = (f"when the file holds the same sensor counts as the calibration's, give "
+               f"white_level (--set white_level={ref:g}), which also marks saturation right")
+    else:
+        fix = "convert the file to the calibration's scale, or calibrate with files like it"
+    if not isinstance(wl, (int, float)) or isinstance(wl, bool):
+        return (f"data scale unknown: the capture states no white level (a float file) and the "
+                f"calibration's white shots were read with {ref:g} DN; if its values are "
+                f"normalised or on another scale, the cube is off by that factor; {fix}")
+    if abs(float(wl) - ref) <= 0.5 or any("white level" in str(m) for m in camera_mismatch):
+        return None
+    if src == "file" and radiometry is not None and radiometry.white_level_source == "default":
+        return None
+    how = {"file": "the file's own", "default": "the integer type's maximum: the file states "
+           "none", "config": "the white_level setting"}.get(str(src), f"from the {src}")
+    return (f"data scale: the capture was read with white level {float(wl):g} DN ({how}), the "
+            f"calibration's white shots with {ref:g} DN; if its values span that white level "
+            f"instead of the calibration's (another bit depth, shifted or rescaled), every "
+            f"spectrum is {float(wl) / ref:.3g}x what it should be; {fix}")
 
 
 def _span(meta: Mapping[str, Any]) -> float | None:
@@ -167,6 +217,13 @@ def prepare_capture(
         st = pedestal_level(img, rad.outside_index)
         if st is not None:
             span = _span(meta)
+            if meta.get("white_level_source") in ("default", None) and \
+                    rad.white_level_dn is not None:  # fmt: skip
+                # the capture's white level is a guess (the integer type's maximum, 4x the
+                # 14-bit span for a 16-bit file) or unknown: the calibration's span, not a
+                # limit loosened by the guess (a 64 DN pedestal passed a 164 DN limit)
+                black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
+                span = rad.white_level_dn - float(np.mean(black or [0.0]))
             stats["pedestal_dn"] = [round(v, 3) for v in st[0]]
             stats["pedestal_limit_dn"] = [round(pedestal_limit(span, s), 3) for s in st[1]]
     cam = CameraIdentity.from_metadata(meta, tuple(img.shape[-2:]) if capture.mosaic is None
@@ -176,6 +233,20 @@ def prepare_capture(
     mism = camera_mismatches(rad.camera, cam)
     if mism:
         stats["camera_mismatch"] = mism
+    note = data_scale_note(meta, rad, mism)
+    if note:
+        stats["data_scale_note"] = note
+    cal_cfa = rad.camera.cfa_pattern if rad.camera is not None else None
+    if meta.get("kind") == "rgb" and cal_cfa:
+        # the fit cannot tell: a white-balanced RGB fits at 0.10, a tone-curved one at 0.09
+        # (limit 0.15), with cubes 1.8x and 12x off on the small prototype's ColorChecker
+        stats["mosaic_note"] = (
+            f"the capture is an RGB image but the bundle was calibrated from {cal_cfa} Bayer "
+            "mosaics, demosaiced here: an RGB file from a camera's or a raw converter's "
+            "processing (white balance, colour matrix, tone curve) gives wrong spectra that the "
+            "fit residual does not show; reconstruct the raw mosaic (RAW/DNG or a Bayer TIFF) "
+            "instead, unless this RGB is a linear demosaic of the same sensor's counts"
+        )
     return stats
 
 
@@ -283,6 +354,9 @@ def check_warnings(stats: Mapping[str, Any]) -> list[str]:
             )
     if stats.get("radiometric_scale") == "relative":
         out.append(str(stats.get("exposure_note")))
+    for key in ("data_scale_note", "mosaic_note"):
+        if stats.get(key):
+            out.append(str(stats[key]))
     mism = stats.get("camera_mismatch")
     if isinstance(mism, list) and mism:
         out.append("camera: " + "; ".join(str(m) for m in mism) + " (a bundle of another "

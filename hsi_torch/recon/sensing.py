@@ -451,21 +451,53 @@ def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any
             problem[name] = {"empty": type(v).__name__}
         else:
             return None
-    if rad is not None:
-        arrays["radiometry.outside_index"] = np.asarray(rad.outside_index)
+    rad_meta = None if rad is None else _radiometry_to_cache(rad, arrays)
+    if rad is not None and rad_meta is None:
+        return None
     meta = {
         "sensor_size": list(sens.sensor_size), "reference_bbox": list(sens.reference_bbox),
         "beta": sens.beta, "diff_order": sens.diff_order, "exposure_s": sens.exposure_s,
         "cfa_pattern": sens.cfa_pattern, "problem": problem,
-        "radiometry": None if rad is None else {
-            "white_exposure_s": rad.white_exposure_s,
-            "white_exposure_unit": rad.white_exposure_unit,
-            "black_level_rgb": None if rad.black_level_rgb is None else list(rad.black_level_rgb),
-            "black_level_source": rad.black_level_source,
-            "camera": None if rad.camera is None else rad.camera.to_dict(),
-        },
+        "radiometry": rad_meta,
     }  # fmt: skip
     return arrays, meta
+
+
+def _radiometry_to_cache(rad: BundleRadiometry, arrays: dict[str, np.ndarray]
+                         ) -> dict[str, Any] | None:  # fmt: skip
+    """Every field of ``rad`` for the cache (arrays into ``arrays``), or ``None`` when one is of
+    a kind this does not know (then nothing is cached: a field dropped on the way through the
+    cache would change what a cached run does, e.g. the bundle's stray-light and defect
+    corrections)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(rad):
+        v = getattr(rad, f.name)
+        if isinstance(v, np.ndarray):
+            arrays[f"radiometry.{f.name}"] = np.asarray(v)
+            out[f.name] = {"array": f"radiometry.{f.name}"}
+        elif isinstance(v, CameraIdentity):
+            out[f.name] = {"camera": v.to_dict()}
+        elif isinstance(v, tuple) and all(isinstance(x, _JSON_SCALARS) for x in v):
+            out[f.name] = {"tuple": list(v)}
+        elif isinstance(v, _JSON_SCALARS):
+            out[f.name] = {"value": v}
+        else:
+            return None
+    return out
+
+
+def _radiometry_from_cache(r: dict[str, Any], arrays: dict[str, np.ndarray]) -> BundleRadiometry:
+    kw: dict[str, Any] = {}
+    for name, how in r.items():
+        if "array" in how:
+            kw[name] = np.array(arrays[how["array"]])
+        elif "camera" in how:
+            kw[name] = CameraIdentity.from_dict(how["camera"])
+        elif "tuple" in how:
+            kw[name] = tuple(how["tuple"])
+        else:
+            kw[name] = how["value"]
+    return BundleRadiometry(**kw)
 
 
 def _from_cache(
@@ -495,13 +527,7 @@ def _from_cache(
         problem = NNLSProblem.__new__(NNLSProblem)
         problem.__dict__.update(state)
         r = meta["radiometry"]
-        rad = None if r is None else BundleRadiometry(
-            white_exposure_s=r["white_exposure_s"], white_exposure_unit=r["white_exposure_unit"],
-            black_level_rgb=None if r["black_level_rgb"] is None else tuple(r["black_level_rgb"]),
-            black_level_source=r["black_level_source"],
-            camera=CameraIdentity.from_dict(r["camera"]),
-            outside_index=np.array(arrays["radiometry.outside_index"]),
-        )  # fmt: skip
+        rad = None if r is None else _radiometry_from_cache(r, arrays)
         x0, y0, w, h = (int(v) for v in meta["reference_bbox"])
         beta, order = float(meta["beta"]), int(meta["diff_order"])
         sens = BundleSensing(

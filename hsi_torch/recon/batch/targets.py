@@ -25,6 +25,13 @@ them to hand the names over). While an input's outputs are written, the name loc
 ``out/.hsi_torch_done/<stem>.lock`` is held: another run writing the same names meanwhile fails
 that input, naming the process that holds it.
 
+**Never over a file this folder's runs did not write.** A file already at one of an input's
+output paths that no marker gives to that input — the lab's own ``x.tif`` beside the ``x.dng``
+reconstructed into its folder, a cube made by another program, anything — fails the input before
+its work starts, naming the file; nothing is written over it. A marker keeps every output its
+input's runs wrote and that still exists (``owned``: e.g. the ``_std`` files of an earlier run
+with ``uncertainty``), so a later run with other outputs may still replace them.
+
 **The store**: a frame is done when its ``done`` flag is set and its metadata name the same
 input file (size, time) and fingerprint (:mod:`hsi_torch.io.dataset`).
 
@@ -142,6 +149,15 @@ def _outputs_intact(rec: dict[str, Any]) -> bool:
     return True
 
 
+def _owned(rec: dict[str, Any]) -> list[str]:
+    """The output paths a marker gives to its input: its ``outputs`` and ``owned`` lists."""
+    out: list[str] = []
+    for key in ("outputs", "owned"):
+        v = rec.get(key)
+        out += [str(p) for p in v if isinstance(p, str)] if isinstance(v, list) else []
+    return sorted(set(out))
+
+
 class _Owners:
     """Which input each output path of ``out_dir`` belongs to, from the markers."""
 
@@ -154,16 +170,14 @@ class _Owners:
             rec = _read_marker(m)
             if rec is None or not isinstance(rec.get("input"), str):
                 continue
-            outs = [str(p) for p in rec.get("outputs", []) if isinstance(p, str)]
-            self.claim(m, rec["input"], outs)
+            self.claim(m, rec["input"], _owned(rec))
 
     def refresh(self, out_dir: Path, stem: str) -> None:
         """Re-read the markers of inputs named ``stem`` (another run may have written some)."""
         for m in (out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"):
             rec = _read_marker(m)
             if rec is not None and isinstance(rec.get("input"), str):
-                outs = [str(p) for p in rec.get("outputs", []) if isinstance(p, str)]
-                self.claim(m, rec["input"], outs)
+                self.claim(m, rec["input"], _owned(rec))
 
     def claim(self, marker: Path, inp: str, outputs: Sequence[str]) -> None:
         self.outputs_of[marker] = list(outputs)
@@ -256,28 +270,42 @@ class _Claim:
                 f"input, {other}; rename one of the two, write into another folder, "
                 "or delete those outputs first"
             )
+        foreign = [p for p in self.planned
+                   if os.path.lexists(p) and owners.by_output.get(p, ("",))[0] != self.key]
+        if foreign:
+            shown = ", ".join(Path(n).name for n in foreign[:4])
+            raise InputError(
+                f"{inp}: refusing to write over {shown} in {out}: "
+                f"{'that file was' if len(foreign) == 1 else 'those files were'} not written "
+                "there by hsi-torch reconstruct for this input (it may be your own data, e.g. "
+                "a capture of the same name); move it away or write into another folder"
+            )
+        self.previous = _read_marker(self.marker)
+        kept = [q for q in (_owned(self.previous) if self.previous else []) if os.path.lexists(q)]
         self.record = {
             "status": "started",
             "input": self.key,
             "input_stamp": stamp,
             "fingerprint": self.target.fingerprint,
             "outputs": self.planned,
+            "owned": sorted(set(kept) | set(self.planned)),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
-        self.previous = _read_marker(self.marker)
         atomic_write_json(self.marker, self.record)  # the claim, before any output exists
         self.claimed = True
-        owners.claim(self.marker, self.key, self.planned)
+        owners.claim(self.marker, self.key, self.record["owned"])
 
     def finish(self, outputs: Sequence[str]) -> None:
         try:
             done = [os.path.abspath(p) for p in outputs]
+            owned = sorted(set(done) | {q for q in self.record.get("owned", [])
+                                        if os.path.lexists(q)})  # fmt: skip
             self.record.update(
                 status="done", outputs=done, output_stamps={p: _file_stamp(p) for p in done},
-                finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
+                owned=owned, finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
             )  # fmt: skip
             atomic_write_json(self.marker, self.record)
-            self.target.owners.claim(self.marker, self.key, sorted(set(done) | set(self.planned)))
+            self.target.owners.claim(self.marker, self.key, sorted(set(owned) | set(self.planned)))
         finally:
             self.lock.close()
 
@@ -290,9 +318,7 @@ class _Claim:
             try:
                 if self.previous is not None:
                     atomic_write_json(self.marker, self.previous)
-                    outs = [str(p) for p in self.previous.get("outputs", [])
-                            if isinstance(p, str)]  # fmt: skip
-                    owners.claim(self.marker, self.key, outs)
+                    owners.claim(self.marker, self.key, _owned(self.previous))
                 else:
                     self.marker.unlink(missing_ok=True)
                     owners.outputs_of.pop(self.marker, None)
