@@ -225,3 +225,28 @@ def test_calibrate_out_naming_a_file_that_is_not_a_bundle_is_refused(tmp_path, c
     bpath, _ = _small_run(tmp_path / "b")
     _check_replaces_a_bundle(bpath)  # an earlier bundle: may be replaced
     _check_replaces_a_bundle(tmp_path / "new.npz")  # nothing there
+
+
+def test_a_rerun_removes_the_earlier_runs_outputs_it_does_not_make(tmp_path, capsys):
+    """A run with ``uncertainty`` writes ``a_std.*`` beside the cube; a rerun without it left
+    them there, describing the earlier cube. Now the rerun removes them once it is done and says
+    so; an earlier output changed since that run wrote it is kept."""
+    bpath, inp = _small_run(tmp_path)
+    out = tmp_path / "out"
+    run = ["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress"]
+    assert main([*run, "--set", "uncertainty=true", str(inp)]) == 0
+    std = sorted(p.name for p in out.iterdir() if "_std" in p.name)
+    assert std, "the uncertainty run wrote no _std file"
+    capsys.readouterr()
+    assert main([*run, "--no-resume", str(inp)]) == 0
+    cap = capsys.readouterr()
+    assert not [p for p in out.iterdir() if "_std" in p.name]
+    assert f"removed {std[0]}, an earlier run's output" in cap.out + cap.err
+    assert (out / "a.npz").is_file()
+    # again with uncertainty, then one _std file edited by the user: that one is kept
+    assert main([*run, "--no-resume", "--set", "uncertainty=true", str(inp)]) == 0
+    edited = out / std[0]
+    edited.write_bytes(b"the user's own notes")
+    assert main([*run, "--no-resume", str(inp)]) == 0
+    assert edited.read_bytes() == b"the user's own notes"
+    assert [p.name for p in out.iterdir() if "_std" in p.name] == [std[0]]

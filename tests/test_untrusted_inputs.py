@@ -753,3 +753,27 @@ def test_png_header_gives_the_decoded_size_before_decoding(tmp_path):
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\nxxxx")
     with pytest.raises(HSIError, match=r"bad\.png: not a PNG"):
         png_header(tmp_path / "bad.png")
+
+
+def test_dataset_store_is_never_written_into_a_users_folder_of_that_name(tmp_path):
+    """``--format zarr`` writes ``OUT/cubes.zarr``; where that is the user's own folder (not a
+    store) holding their files, the arrays were written in among them. Now it is refused naming
+    the folder and nothing is written; a folder left by an interrupted creation is redone."""
+    from hsi_torch.io.dataset import CubeDataset
+
+    store = tmp_path / "cubes.zarr"
+    store.mkdir()
+    (store / "notes.txt").write_text("the lab's notes")
+    with pytest.raises(HSIError, match=r"cubes.zarr is a folder but not a dataset store.*"
+                       r"notes.txt"):
+        with CubeDataset.open(store, ["/data/a.tif"], [430.0, 440.0], (3, 4)):
+            pass
+    assert sorted(p.name for p in store.iterdir()) == ["notes.txt"]
+    # an interrupted creation: the store's own entries without .zgroup
+    other = tmp_path / "again.zarr"
+    with CubeDataset.open(other, ["/data/a.tif"], [430.0, 440.0], (3, 4)):
+        pass
+    (other / ".zgroup").unlink()
+    with CubeDataset.open(other, ["/data/a.tif"], [430.0, 440.0], (3, 4)) as ds:
+        assert len(ds) == 1
+    assert (other / ".zgroup").is_file()

@@ -356,6 +356,7 @@ class CubeDataset:
             FileFormatError: ``path`` exists but is not a store of this layout.
         """
         p = Path(path)
+        _refuse_foreign_folder(p)
         p.mkdir(parents=True, exist_ok=True)
         fd = _lock(p)
         try:
@@ -623,6 +624,28 @@ def _read_json(path: Path) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise ValueError(f"{path}: not a JSON object")
     return obj
+
+
+#: The entries of a store folder this module writes (the arrays, the group's metadata, the lock).
+_STORE_ENTRIES = frozenset({"cube", "valid", "done", "metadata", "source", "wavelength", "y", "x",
+                            ".zgroup", ".zattrs", ".zmetadata", _LOCK_NAME})
+
+
+def _refuse_foreign_folder(p: Path) -> None:
+    """A folder at ``p`` that is not a store and holds anything a store's creation would not
+    have written (the user's own folder that happens to have the store's name) is refused:
+    writing the store into it would mix the arrays into their files. A folder left by an
+    interrupted creation (only the store's own entries, no ``.zgroup`` yet) is created again."""
+    if not p.is_dir() or (p / ".zgroup").is_file():
+        return
+    foreign = sorted(e.name for e in os.scandir(p) if e.name not in _STORE_ENTRIES
+                     and not (e.name.startswith(".") and e.name.endswith(".tmp")))  # fmt: skip
+    if foreign:
+        shown = ", ".join(foreign[:4]) + (", ..." if len(foreign) > 4 else "")
+        raise FileFormatError(
+            f"{p} is a folder but not a dataset store (no .zgroup) and holds other files "
+            f"({shown}); nothing was written into it: remove or rename it, or choose another "
+            "--out")
 
 
 def _lock(store: Path) -> int:

@@ -262,11 +262,14 @@ def drive(
             for msg in result.get("warnings", []):
                 warn(f"WARNING {shown_path(inp)}: {msg}")
             try:
-                target.finish(handle, result["outputs"])
+                stale = target.finish(handle, result["outputs"])
             except Exception as e:  # noqa: BLE001 - e.g. the done marker cannot be written
                 target.fail(handle)
                 fail(inp, f"{type(e).__name__}: {e}", traceback.format_exc())
                 return
+            for p in stale or []:
+                info(f"{Path(shown_path(inp)).name}: removed {Path(p).name}, an earlier run's "
+                     "output this run does not make (it described the earlier cube)")
             summary.processed.append(inp)
             summary.outputs[inp] = [Path(p) for p in result["outputs"]]
             if worker != "local":

@@ -30,7 +30,11 @@ output paths that no marker gives to that input — the lab's own ``x.tif`` besi
 reconstructed into its folder, a cube made by another program, anything — fails the input before
 its work starts, naming the file; nothing is written over it. A marker keeps every output its
 input's runs wrote and that still exists (``owned``: e.g. the ``_std`` files of an earlier run
-with ``uncertainty``), so a later run with other outputs may still replace them.
+with ``uncertainty``), so a later run with other outputs may still replace them. Once an input
+is done, the outputs of its previous run that this run did not make (a rerun without
+``uncertainty`` leaves no ``_std`` file of its own) are removed, since they would describe an
+earlier cube; only those still exactly as that run wrote them (size, time), and the run reports
+each one.
 
 **The store**: a frame is done when its ``done`` flag is set and its metadata name the same
 input file (size, time) and fingerprint (:mod:`hsi_torch.io.dataset`).
@@ -78,7 +82,8 @@ class OutputTarget(Protocol):
     ``cleaned()``: the stale temporary files removed; ``is_done(input)``: resume skips it;
     ``begin(input)``: claim it before its work is handed out (raises to fail the input), returns
     a handle; ``frame(handle)``: its frame in the store (``None`` for files);
-    ``finish(handle, outputs)``: its outputs are written; ``fail(handle)``: it failed or was
+    ``finish(handle, outputs)``: its outputs are written (returns the earlier run's outputs it
+    removed as stale); ``fail(handle)``: it failed or was
     interrupted (nothing of the claim is left)."""
 
     store: Path | None
@@ -88,7 +93,7 @@ class OutputTarget(Protocol):
     def is_done(self, inp: Path) -> bool: ...
     def begin(self, inp: Path) -> Any: ...
     def frame(self, handle: Any) -> int | None: ...
-    def finish(self, handle: Any, outputs: Sequence[str]) -> None: ...
+    def finish(self, handle: Any, outputs: Sequence[str]) -> list[str]: ...
     def fail(self, handle: Any) -> None: ...
 
 
@@ -295,7 +300,11 @@ class _Claim:
         self.claimed = True
         owners.claim(self.marker, self.key, self.record["owned"])
 
-    def finish(self, outputs: Sequence[str]) -> None:
+    def finish(self, outputs: Sequence[str]) -> list[str]:
+        """Record the input as done with ``outputs``; then remove the outputs of its earlier
+        run that this run did not make (e.g. the ``_std`` files of a run with ``uncertainty``,
+        which would no longer match the new cube), but only those still exactly as that run
+        wrote them (size and time). Returns the paths removed."""
         try:
             done = [os.path.abspath(p) for p in outputs]
             owned = sorted(set(done) | {q for q in self.record.get("owned", [])
@@ -306,8 +315,24 @@ class _Claim:
             )  # fmt: skip
             atomic_write_json(self.marker, self.record)
             self.target.owners.claim(self.marker, self.key, sorted(set(owned) | set(self.planned)))
+            return self._remove_stale(set(done))
         finally:
             self.lock.close()
+
+    def _remove_stale(self, done: set[str]) -> list[str]:
+        prev = self.previous or {}
+        stamps = prev.get("output_stamps")
+        if prev.get("status") != "done" or not isinstance(stamps, dict):
+            return []
+        removed = []
+        for p in prev.get("outputs", []) if isinstance(prev.get("outputs"), list) else []:
+            p = str(p)
+            if p in done or stamps.get(p) is None or _file_stamp(p) != stamps.get(p):
+                continue  # this run's own, or changed since that run wrote it: kept
+            with contextlib.suppress(OSError):
+                os.unlink(p)
+                removed.append(p)
+        return removed
 
     def abandon(self) -> None:
         """No claim of an unfinished input is left: its earlier marker back (its earlier
@@ -396,9 +421,9 @@ class FilesTarget:
     def frame(self, handle: _Claim) -> int | None:
         return None
 
-    def finish(self, handle: _Claim, outputs: Sequence[str]) -> None:
+    def finish(self, handle: _Claim, outputs: Sequence[str]) -> list[str]:
         handle.clean_temps()
-        handle.finish(outputs)
+        return handle.finish(outputs)
 
     def fail(self, handle: _Claim) -> None:
         with contextlib.suppress(OSError):
@@ -479,8 +504,9 @@ class StoreTarget:
     def frame(self, handle: int) -> int | None:
         return handle
 
-    def finish(self, handle: int, outputs: Sequence[str]) -> None:
+    def finish(self, handle: int, outputs: Sequence[str]) -> list[str]:
         self._ds().clean_frame_temps(handle)
+        return []
 
     def fail(self, handle: int) -> None:
         with contextlib.suppress(OSError):
