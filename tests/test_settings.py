@@ -151,3 +151,20 @@ def test_keys_without_effect_are_named_once_per_run(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("setting lam=2.0 has no effect") == 1
     assert err.count("setting admm_iters=5 has no effect") == 1
+
+
+def test_python_keywords_without_effect_warn():
+    """``Reconstructor(bundle, lam=2)`` (no ``prior="tv"``) said nothing; now a ``UserWarning``
+    names the key. Given whole (``settings=``, as a run's driver does) it stays quiet: the run
+    warns once itself."""
+    import warnings
+
+    bundle = make_bundle(white_exposure_s=0.01)
+    with pytest.warns(UserWarning, match="setting lam=2.0 has no effect"):
+        Reconstructor(bundle, lam=2)
+    with pytest.warns(UserWarning, match="setting admm_iters=3 has no effect"):
+        HSIReconstructor.from_bundle(bundle, admm_iters=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Reconstructor(bundle, settings=ReconstructSettings.from_flat(lam=2))
+        Reconstructor(bundle, prior="tv", lam=2)
