@@ -23,7 +23,6 @@ scene, real RAW files, circle-grid photos, camera sensitivities) is, in this ord
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 from importlib import resources
 from pathlib import Path
@@ -189,10 +188,13 @@ def run_config(args: Any) -> int:
     if dest is None:
         raise ValueError(f"'config copy {name}' needs a DEST file or folder")
     target = Path(dest) / src.name if Path(dest).is_dir() else Path(dest)
-    if target.exists() and not getattr(args, "force", False):
+    if (target.exists() or target.is_symlink()) and not getattr(args, "force", False):
         raise FileExistsError(f"{target} exists; use --force to overwrite it")
     target.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(src, target)
+    from hsi_torch.io.atomic import atomic_write_bytes  # lazy: keeps 'config list' light
+
+    # whole or not at all; a symlink at DEST is replaced, the file it points to is not written
+    atomic_write_bytes(target, src.read_bytes())
 
     info(f"wrote {target} (run with --config {target})")
     return 0

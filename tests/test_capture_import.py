@@ -435,3 +435,33 @@ def test_write_dng_reads_back_through_libraw(tmp_path: Path, pattern: str):
     assert md["cfa_pattern"] == pattern and md["exposure_s"] == pytest.approx(1 / 60, rel=1e-6)
     assert (md["camera_make"], md["camera_model"]) == ("Lab", "Cam")
     np.testing.assert_array_equal(c.mosaic[0].numpy(), m - BLACK)
+
+
+def test_import_into_a_folder_with_the_users_files_of_those_names_is_refused(sim: Path,
+                                                                             tmp_path: Path,
+                                                                             capsys):  # fmt: skip
+    """``captures import --copy --layout L --out lab/`` where ``lab/`` holds the lab's own
+    ``nominal_layout.json`` and ``white/white_00.tif`` replaced both, exit 0. Now refused before
+    anything is written, naming them; the files of an interrupted import of the same shots
+    (identical copies) do not stop its rerun."""
+    whites = sorted((sim / "white").glob("*.tif"))
+    argv = ["captures", "import", "--white", str(sim / "white" / "*.tif"), "--layout",
+            str(sim / "nominal_layout.json"), "--copy", "-q"]  # fmt: skip
+    lab = tmp_path / "lab"
+    (lab / "white").mkdir(parents=True)
+    mine = {"nominal_layout.json": b'{"mine": 1}', "white/white_00.tif": b"my own white shot"}
+    for name, data in mine.items():
+        (lab / name).write_bytes(data)
+    assert main([*argv, "--out", str(lab)]) == 1
+    err = capsys.readouterr().err
+    assert "refusing to import into" in err
+    assert "nominal_layout.json" in err and "white/white_00.tif" in err
+    assert {p.relative_to(lab).as_posix(): p.read_bytes()
+            for p in lab.rglob("*") if p.is_file()} == mine  # fmt: skip
+    # an interrupted import: one shot copied, no manifest yet; the rerun completes it
+    killed = tmp_path / "killed"
+    (killed / "white").mkdir(parents=True)
+    shutil.copy2(whites[0], killed / "white" / whites[0].name)
+    assert main([*argv, "--out", str(killed)]) == 0
+    assert len(read_capture_set(killed).white) == len(whites)
+    assert (killed / "white" / whites[1].name).read_bytes() == whites[1].read_bytes()

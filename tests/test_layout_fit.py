@@ -207,3 +207,42 @@ def test_polygon_erosion_is_the_simulators_usable_mask(sim: Path):
     usable = read_mask_png(sim / "brf_free_mask.png", lay.sensor_size)
     eroded = _polygon_mask(lay.brf_free_polygon(), lay.sensor_size, 1.5)
     assert eroded.sum() > 50 and np.array_equal(eroded, usable)
+
+
+def test_a_forced_rerun_that_fails_keeps_the_earlier_layout_and_overlay(
+    sim: Path, tmp_path, monkeypatch, capsys
+):
+    """``layout --force`` over an earlier layout: the overlay was replaced first, and when the
+    layout file could not be written the new overlay was deleted — the earlier overlay was gone
+    and the layout kept no longer had its overlay. Now both are written aside and moved into
+    place together: a failure keeps the earlier pair byte for byte. An output that is one of
+    the shots (a white shot named like the overlay) is refused, even with ``--force``."""
+    import errno
+
+    from hsi_torch.io import atomic
+
+    out = tmp_path / "lay"
+    argv = ["layout", "--captures", str(sim), "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    files = sorted(out.iterdir())
+    before = {p.name: p.read_bytes() for p in files}
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic, "atomic_write_json", full_disk)
+    assert main([*argv, "--force", "--set", "camera.cx=205"]) == 1
+    assert "No space left on device" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    monkeypatch.undo()
+    # an output that is an input: a white shot named like the overlay
+    shot = sorted((sim / "white").iterdir())[0]
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    twin = lab / "w_overlay.png"  # a shot named like the overlay
+    shutil.copy(shot, twin)
+    digest = twin.read_bytes()
+    assert main(["layout", "--white", str(twin), "--out", str(lab / "w.json"), "--force",
+                 "--no-progress"]) == 1  # fmt: skip
+    assert "is an input of this command" in capsys.readouterr().err
+    assert twin.read_bytes() == digest and not (lab / "w.json").exists()

@@ -250,3 +250,59 @@ def test_a_rerun_removes_the_earlier_runs_outputs_it_does_not_make(tmp_path, cap
     assert main([*run, "--no-resume", str(inp)]) == 0
     assert edited.read_bytes() == b"the user's own notes"
     assert [p.name for p in out.iterdir() if "_std" in p.name] == [std[0]]
+
+
+# a tiny experiment that writes what the real ones write (summary.json, a table)
+from dataclasses import dataclass  # noqa: E402
+
+
+@dataclass
+class _TinyCfg:
+    n: int = 1
+
+
+def _tiny_run(cfg: _TinyCfg, out: Path, *, device=None) -> dict:
+    (out / "summary.json").write_text(f'{{"n": {cfg.n}}}')
+    (out / "ranking.csv").write_text("a,b\n")
+    return {}
+
+
+def test_experiment_into_a_folder_with_the_users_files_is_refused(tmp_path, capsys):
+    """``hsi-torch experiment design --out lab/`` on a folder holding the lab's own
+    ``summary.json``, ``ranking.csv`` and ``resolved_config.yaml`` replaced all three, exit 0.
+    Now refused up front, naming them; a rerun into the experiment's own folder (also after an
+    interrupted run: its marker is written first) still works; another experiment's folder is
+    refused."""
+    from hsi_torch.experiments import cli_entry as ce
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    mine = {"summary.json": b'{"mine": 1}', "ranking.csv": b"my table",
+            "resolved_config.yaml": b"my: config"}  # fmt: skip
+    for name, data in mine.items():
+        (lab / name).write_bytes(data)
+    ce.register_experiment("nd_tiny", __name__, "_TinyCfg", "_tiny_run")
+    ce.register_experiment("nd_other", __name__, "_TinyCfg", "_tiny_run")
+    try:
+        assert main(["experiment", "nd_tiny", "--out", str(lab), "-q"]) == 1
+        err = capsys.readouterr().err
+        assert "is not empty (ranking.csv, resolved_config.yaml, summary.json)" in err
+        assert "holds no earlier run of the experiment 'nd_tiny'" in err
+        assert {p.name: p.read_bytes() for p in lab.iterdir()} == mine
+        # its own folder: new, rerun, interrupted (only the marker and part of the files)
+        out = tmp_path / "out"
+        assert main(["experiment", "nd_tiny", "--out", str(out), "-q"]) == 0
+        assert main(["experiment", "nd_tiny", "--out", str(out), "-q", "--set", "n=2"]) == 0
+        assert (out / "summary.json").read_text() == '{"n": 2}'
+        killed = tmp_path / "killed"
+        killed.mkdir()
+        (killed / ce.EXPERIMENT_MARKER).write_text("nd_tiny\n")
+        (killed / "summary.json").write_text("partial")
+        assert main(["experiment", "nd_tiny", "--out", str(killed), "-q"]) == 0
+        # another experiment's folder
+        assert main(["experiment", "nd_other", "--out", str(out), "-q"]) == 1
+        assert "holds a run of the experiment 'nd_tiny', not 'nd_other'" in capsys.readouterr().err
+        assert (out / "summary.json").read_text() == '{"n": 2}'
+    finally:
+        ce.EXPERIMENTS.pop("nd_tiny")
+        ce.EXPERIMENTS.pop("nd_other")

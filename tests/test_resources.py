@@ -187,3 +187,25 @@ def test_data_dir_option_and_optional_cave_scene(monkeypatch, tmp_path):
     assert main(["config", "list", "--data-dir", str(other)]) == 0  # after the command too
     assert r.get_real_data_dir_setting() is None and r.real_data_dir() == tmp_path
     assert main(["config", "list", "--data-dir", str(tmp_path / "missing")]) == 1
+
+
+def test_config_copy_never_writes_through_a_symlink_at_dest(tmp_path, capsys):
+    """``config copy simulate my.yaml`` where ``my.yaml`` is a symlink to the lab's own file:
+    a dangling link made the copy create (or, with ``--force``, write over) the file it points
+    to. Now a link at DEST counts as an existing DEST, and ``--force`` replaces the link itself
+    (whole or not at all), never the file it points to."""
+    from hsi_torch.cli import main
+
+    theirs = tmp_path / "lab" / "settings.yaml"
+    theirs.parent.mkdir()
+    dangling = tmp_path / "new.yaml"
+    dangling.symlink_to(theirs)
+    assert main(["config", "copy", "simulate", str(dangling)]) == 1
+    assert "exists; use --force" in capsys.readouterr().err
+    assert not theirs.exists()
+    theirs.write_text("lab: settings\n")
+    link = tmp_path / "my.yaml"
+    link.symlink_to(theirs)
+    assert main(["config", "copy", "simulate", str(link), "--force"]) == 0
+    assert theirs.read_text() == "lab: settings\n"
+    assert not link.is_symlink() and "simulate" in link.read_text()

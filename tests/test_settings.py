@@ -117,3 +117,54 @@ def test_the_workers_cache_is_keyed_by_the_settings(tmp_path):
     _, secs3 = tasks.prepared_reconstructor(tasks.FramePlan(run=grown_run))
     assert secs3 is not None  # not served the reconstructor of the other settings
     tasks.forget_prepared()
+
+
+def test_keys_without_effect_are_named_once_per_run(tmp_path, capsys):
+    """``--set lam=2`` without ``prior: tv`` (or ``admm_iters`` with the active-set solver, the
+    noise model without ``uncertainty``, ...) changed nothing and said nothing. Now the run warns
+    once (not once per input), naming the key, its value and why; a key that does act is not
+    named."""
+    import numpy as np
+
+    from hsi_torch.cli import main
+
+    s = ReconstructSettings.from_flat(lam=2, admm_iters=5, noise_read_e=7, drift_check=False,
+                                      drift_warn_px=2, preview=False, preview_size=99)  # fmt: skip
+    msgs = s.inert()
+    assert len(msgs) == 5
+    assert msgs[0].startswith("setting lam=2.0 has no effect") and "prior: tv" in msgs[0]
+    assert any("admm_iters=5" in m and "active_set" in m for m in msgs)
+    assert not ReconstructSettings.from_flat(prior="tv", lam=2, solver="admm",
+                                             admm_iters=5).inert()  # fmt: skip
+    assert not ReconstructSettings().inert()
+
+    bundle = make_bundle(white_exposure_s=0.01)
+    bpath = tmp_path / "calib.npz"
+    bundle.save(bpath)
+    img = render_capture(bundle, true_spectra()).numpy()
+    for name in ("a", "b"):
+        np.save(tmp_path / f"{name}.npy", img)
+    argv = ["reconstruct", "--bundle", str(bpath), "--out", str(tmp_path / "out"),
+            "--no-progress", "--set", "lam=2", "--set", "admm_iters=5", "--set", "preview=false",
+            str(tmp_path / "a.npy"), str(tmp_path / "b.npy")]  # fmt: skip
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert err.count("setting lam=2.0 has no effect") == 1
+    assert err.count("setting admm_iters=5 has no effect") == 1
+
+
+def test_python_keywords_without_effect_warn():
+    """``Reconstructor(bundle, lam=2)`` (no ``prior="tv"``) said nothing; now a ``UserWarning``
+    names the key. Given whole (``settings=``, as a run's driver does) it stays quiet: the run
+    warns once itself."""
+    import warnings
+
+    bundle = make_bundle(white_exposure_s=0.01)
+    with pytest.warns(UserWarning, match="setting lam=2.0 has no effect"):
+        Reconstructor(bundle, lam=2)
+    with pytest.warns(UserWarning, match="setting admm_iters=3 has no effect"):
+        HSIReconstructor.from_bundle(bundle, admm_iters=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Reconstructor(bundle, settings=ReconstructSettings.from_flat(lam=2))
+        Reconstructor(bundle, prior="tv", lam=2)

@@ -261,3 +261,18 @@ def test_view_screenshot_of_a_demo_cube(tmp_path, napari):
     assert img[..., :3].std() > 0.05  # not a blank window
     if os.environ.get("HSI_TORCH_WRITE_DOC_IMAGES") == "1":
         shutil.copy(png, REPO / "docs" / "img" / "napari_view.png")
+
+
+def test_screenshot_over_a_viewed_cube_is_refused_before_napari_starts(tmp_path, capsys):
+    """``hsi-torch view cube.tif --screenshot cube.tif`` wrote the window's PNG over the cube
+    being viewed (through a symlink too). Now refused before napari starts, the cube unchanged."""
+    from hsi_torch import cli
+
+    cube = tmp_path / "cube.tif"
+    cube.write_bytes(b"a cube")
+    link = tmp_path / "shot.png"
+    link.symlink_to(cube)
+    for target in (cube, link):
+        assert cli.main(["view", str(cube), "--screenshot", str(target)]) == 1
+        assert "is an input of this command" in capsys.readouterr().err
+    assert cube.read_bytes() == b"a cube"

@@ -216,7 +216,12 @@ def run_layout(args: argparse.Namespace) -> int:
     from hsi_torch.console import info
     from hsi_torch.errors import InputError
     from hsi_torch.io import read_any
-    from hsi_torch.io.atomic import atomic_write_json
+    from hsi_torch.io.atomic import (
+        InputFiles,
+        atomic_write_json,
+        check_not_input,
+        replace_then_commit,
+    )
     from hsi_torch.io.capture_set import read_capture_set
     from hsi_torch.io.paths import check_out_dir
     from hsi_torch.resources import shipped_config
@@ -239,6 +244,9 @@ def run_layout(args: argparse.Namespace) -> int:
     if not white_files:
         raise InputError("hsi-torch layout needs a white shot: --white FILE(s), or --captures "
                          "DIR with white-reference captures")  # fmt: skip
+    inputs = InputFiles([*white_files, *grid_files, *dark_files])  # never written over
+    for p in (out_json, overlay):
+        check_not_input(p, inputs)  # before any work
     # the design: geometry and camera of a simulate-style config
     design = load_args_config(args, SimulateConfig, default="simulate")
     geometry, camera = design_optics(design)
@@ -278,15 +286,10 @@ def run_layout(args: argparse.Namespace) -> int:
         "white": [str(p) for p in white_files], "grid": [str(p) for p in grid_files],
         "dark": [str(p) for p in dark_files],
     })  # fmt: skip
-    out_json.parent.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
-    try:  # both files or none
-        written.append(draw_layout_overlay(white.mean(0), proposal, overlay))
-        written.append(atomic_write_json(out_json, doc))
-    except BaseException:
-        for p in written:
-            Path(p).unlink(missing_ok=True)
-        raise
+    # both files or none, and an earlier pair (--force) kept until both new ones are complete
+    with replace_then_commit(inputs) as tx:
+        tx.write(overlay, lambda p: draw_layout_overlay(white.mean(0), proposal, p))
+        tx.write(out_json, lambda p: atomic_write_json(p, doc))
     info(str(proposal))
     info(f"wrote {out_json} (+ {overlay.name}): check the overlay, then calibrate with it")
     return 0

@@ -76,7 +76,10 @@ def run_experiment(args: argparse.Namespace) -> int:
 
     schema, run = resolve_experiment(args.name)
     cfg = load_args_config(args, schema, default=args.name)
-    out = ensure_out_dir(args.out)
+    out = Path(args.out)
+    check_experiment_out(out, args.name)
+    out = ensure_out_dir(out)
+    (out / EXPERIMENT_MARKER).write_text(f"{args.name}\n", encoding="utf-8")
     t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
@@ -84,6 +87,50 @@ def run_experiment(args: argparse.Namespace) -> int:
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
          f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
     return 0
+
+
+#: Written into ``experiment NAME --out`` before the experiment runs, holding ``NAME``: the folder
+#: holds a run of that experiment (a rerun may replace its files, also after an interrupted run).
+EXPERIMENT_MARKER = ".hsi_torch_experiment"
+
+
+def check_experiment_out(out: Path, name: str) -> None:
+    """Refuse an ``experiment NAME --out`` folder that holds files but no earlier run of ``NAME``.
+
+    An experiment writes ``summary.json``, ``manifest.json``, tables (``*.csv``, ``*.md``),
+    figures, ``resolved_config.yaml`` (some also ``calib.npz``, ``truth.npz``) into ``out``,
+    replacing files of those names: a lab's folder, or another experiment's, would lose them. A
+    folder whose marker :data:`EXPERIMENT_MARKER` names ``NAME`` (an earlier or interrupted run)
+    may be replaced.
+
+    Raises:
+        InputError: ``out`` is a folder with files and no earlier run of ``NAME`` (names a few).
+    """
+    from hsi_torch.errors import InputError
+
+    if not out.is_dir():
+        return
+    names = sorted(p.name for p in out.iterdir())
+    if not names:
+        return
+    if EXPERIMENT_MARKER in names:
+        try:
+            owner = (out / EXPERIMENT_MARKER).read_text(encoding="utf-8").strip()
+        except (OSError, ValueError):
+            owner = ""
+        if owner == name:
+            return
+        raise InputError(
+            f"--out {out} holds a run of the experiment {owner[:40]!r}, not {name!r}; this run "
+            "would replace files of the same names there: choose a new or empty folder"
+        )
+    shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+    raise InputError(
+        f"--out {out} is not empty ({shown}) and holds no earlier run of the experiment "
+        f"{name!r}; it writes summary.json, manifest.json, tables, figures and "
+        "resolved_config.yaml there and would replace files of those names: choose a new or "
+        "empty folder"
+    )
 
 
 #: Written into ``demo --out`` before anything else: the folder holds a demo run (a rerun may

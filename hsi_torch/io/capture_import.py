@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import filecmp
 import glob
 import math
 import os
@@ -47,7 +48,7 @@ from typing import Any
 
 from hsi_torch.console import info, warn
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
-from hsi_torch.io.atomic import atomic_write_json
+from hsi_torch.io.atomic import atomic_write, atomic_write_json
 from hsi_torch.io.capture_manifest import CAPTURE_SETTINGS
 from hsi_torch.io.capture_set import (
     CAPTURE_SET_SCHEMA_VERSION,
@@ -431,10 +432,9 @@ def import_captures(
         warnings.append("no nominal layout (--layout): calibration needs one; write "
                         f"{out / NOMINAL_LAYOUT} or pass calibrate --set layout=...")
 
-    out.mkdir(parents=True, exist_ok=True)
-    manifest: dict[str, Any] = {"schema_version": CAPTURE_SET_SCHEMA_VERSION,
-                                "generator": "hsi-torch captures import",
-                                "settings_source": source}  # fmt: skip
+    # the files copied into OUT: none may replace a file the user has there (an identical copy,
+    # left by an interrupted import of the same files, is fine)
+    copies: list[tuple[Path, Path]] = []
     if copy:
         used: set[str] = set()
         for r, e in entries:
@@ -444,9 +444,26 @@ def import_captures(
                 rel = f"{_FOLDERS[r.role]}/{r.file.stem}_{k}{r.file.suffix}"
                 k += 1
             used.add(rel)
-            (out / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(r.file, out / rel)
+            copies.append((r.file, out / rel))
             e["file"] = rel
+    mask_src = None
+    if lay is not None:
+        copies.append((lay_src, out / NOMINAL_LAYOUT))
+        mask = lay.brf_free_patch.get("usable_mask")
+        if mask and (lay_src.parent / mask).is_file():
+            mask_src = lay_src.parent / mask
+            copies.append((mask_src, out / mask))
+    _refuse_users_files(copies, out)
+
+    out.mkdir(parents=True, exist_ok=True)
+    manifest: dict[str, Any] = {"schema_version": CAPTURE_SET_SCHEMA_VERSION,
+                                "generator": "hsi-torch captures import",
+                                "settings_source": source}  # fmt: skip
+    if copy:
+        for src, dst in copies[: len(entries)]:
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if not _same_content(src, dst):
+                _atomic_copy(src, dst, stat=True)
     else:
         common = Path(os.path.commonpath([str(r.file.resolve().parent) for r, _ in entries]))
         try:
@@ -458,10 +475,9 @@ def import_captures(
             e["file"] = r.file.resolve().relative_to(common).as_posix()
     if lay is not None:
         _copy_unless_same(lay_src, out / NOMINAL_LAYOUT)
-        mask = lay.brf_free_patch.get("usable_mask")
-        if mask and (lay_src.parent / mask).is_file():
+        if mask_src is not None:
             (out / mask).parent.mkdir(parents=True, exist_ok=True)
-            _copy_unless_same(lay_src.parent / mask, out / mask)
+            _copy_unless_same(mask_src, out / mask)
         manifest["nominal_layout"] = NOMINAL_LAYOUT
         manifest["sensor_size"] = list(lay.sensor_size)
     manifest["import"] = {
@@ -479,9 +495,43 @@ def import_captures(
 
 def _copy_unless_same(src: Path, dst: Path) -> None:
     """Copy ``src`` to ``dst`` (a set imported into the folder that holds its layout keeps it)."""
-    if dst.exists() and dst.resolve() == src.resolve():
+    if _same_content(src, dst):
         return
-    shutil.copyfile(src, dst)
+    _atomic_copy(src, dst)
+
+
+def _atomic_copy(src: Path, dst: Path, stat: bool = False) -> None:
+    """Copy ``src`` to ``dst`` whole or not at all (an interrupted import leaves no partial
+    file, so that its rerun finds only complete copies); ``stat``: also the times and mode."""
+    with open(src, "rb") as fin, atomic_write(dst, "wb") as fout:
+        shutil.copyfileobj(fin, fout, 1 << 20)
+    if stat:
+        shutil.copystat(src, dst)
+
+
+def _same_content(src: Path, dst: Path) -> bool:
+    """``dst`` is ``src`` (the same file) or a byte-identical copy of it."""
+    if not dst.is_file():
+        return False
+    try:
+        return os.path.samefile(src, dst) or filecmp.cmp(src, dst, shallow=False)
+    except OSError:
+        return False
+
+
+def _refuse_users_files(copies: list[tuple[Path, Path]], out: Path) -> None:
+    """Refuse, before anything is written, copies into ``out`` whose destination exists and is
+    not already the same file or a byte-identical copy (the user's own file of that name)."""
+    theirs = [dst for src, dst in copies
+              if (dst.exists() or dst.is_symlink()) and not _same_content(src, dst)]  # fmt: skip
+    if theirs:
+        names = [d.relative_to(out).as_posix() for d in theirs]
+        shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+        raise InputError(
+            f"refusing to import into {out}: it holds files of the names the import would write "
+            f"({shown}) that are not copies of the files imported; choose a new folder, or move "
+            "them away"
+        )
 
 
 def check_capture_set(

@@ -437,6 +437,38 @@ class ReconstructSettings:
         changed = {g: dataclasses.replace(getattr(self, g), **kw) for g, kw in groups.items()}
         return dataclasses.replace(self, **changed)
 
+    def inert(self) -> list[str]:
+        """Messages for the keys set away from their defaults that have no effect with the
+        other settings (``lam`` without ``prior: tv``, ``admm_iters`` with the active-set
+        solver, the noise model without ``uncertainty``, ...): one line each, naming the key,
+        its value and why. A run shows them once (not once per frame)."""
+        d = _DEFAULTS
+        out: list[str] = []
+
+        def changed(key: str) -> bool:
+            group, name = FLAT_KEYS[key]
+            return getattr(getattr(self, group), name) != getattr(getattr(d, group), name)
+
+        def note(key: str, why: str) -> None:
+            if changed(key):
+                value = _thaw(getattr(getattr(self, FLAT_KEYS[key][0]), FLAT_KEYS[key][1]))
+                out.append(f"setting {key}={value!r} has no effect: {why}")
+
+        if self.prior.kind == "none":
+            for key in ("lam", "spatial_iters"):
+                note(key, "it applies to the spatial prior only (prior: tv), and prior is none")
+        if self.solve.solver == "active_set":
+            note("admm_iters", "it applies to solver: admm only, and the solver is active_set")
+        if not self.uncertainty.enabled:
+            for key in ("noise_electrons_per_dn", "noise_read_e", "noise_quantization_dn"):
+                note(key, "the noise model is used only with uncertainty: true, which is off")
+        if not self.output.preview:
+            note("preview_size", "preview is false (no preview image is written)")
+        if not (self.registration.check or self.registration.refine):
+            note("drift_warn_px", "the drift is not measured (drift_check and "
+                                  "refine_registration are false)")
+        return out
+
     def key(self) -> str:
         """A stable digest of every field of every group (hex SHA-256 of the JSON form)."""
         text = json.dumps(dataclasses.asdict(self), sort_keys=True, default=repr)
@@ -446,6 +478,8 @@ class ReconstructSettings:
 _GROUPS: dict[str, Any] = {
     f.name: f.default_factory for f in dataclasses.fields(ReconstructSettings)
 }
+
+_DEFAULTS = ReconstructSettings()
 
 
 def settings_or_keywords(

@@ -21,6 +21,10 @@ def _point(text: str) -> tuple[float, float]:
 
 def run_view(args: argparse.Namespace) -> int:
     """Open ``args.files`` (``--screenshot PNG`` writes the window and exits)."""
+    if args.screenshot is not None:  # never over a cube being viewed (before napari starts)
+        from hsi_torch.io.atomic import check_not_input
+
+        check_not_input(args.screenshot, args.files)
     try:
         from hsi_torch.viewer import plugin
     except ImportError as exc:

@@ -307,8 +307,11 @@ def view(
         img = viewer.screenshot(canvas_only=False, flash=False)
         import matplotlib.image as mpimg  # lazy: only for the screenshot
 
+        from hsi_torch.io.atomic import atomic_write
+
         Path(screenshot).parent.mkdir(parents=True, exist_ok=True)
-        mpimg.imsave(str(screenshot), img)
+        with atomic_write(screenshot, "wb") as f:  # an earlier PNG kept until this one is whole
+            mpimg.imsave(f, img, format="png")
         viewer.close()
         return viewer
     napari.run()

@@ -21,6 +21,7 @@ from typing import Any
 
 from hsi_torch import __version__
 from hsi_torch.config import load_config
+from hsi_torch.console import warn
 from hsi_torch.io.atomic import InputFiles
 from hsi_torch.io.dataset import DATASET_NAME, require_dataset_packages
 from hsi_torch.recon.batch.driver import Executor, InlineExecutor, RunSummary, drive
@@ -146,6 +147,8 @@ def execute(
     file's SHA-256 (a cluster whose workers may not share this file system). ``send_bundle``:
     the tasks get the bundle's bytes (:meth:`Executor.share`) instead of its path.
     """
+    for msg in run.settings.inert():  # once per run, not once per frame
+        warn(f"WARNING: {msg}")
     run.start()
     out = Path(os.path.abspath(run.out_dir))
     run = dataclasses.replace(
