@@ -435,3 +435,49 @@ def test_write_dng_reads_back_through_libraw(tmp_path: Path, pattern: str):
     assert md["cfa_pattern"] == pattern and md["exposure_s"] == pytest.approx(1 / 60, rel=1e-6)
     assert (md["camera_make"], md["camera_model"]) == ("Lab", "Cam")
     np.testing.assert_array_equal(c.mosaic[0].numpy(), m - BLACK)
+
+
+def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refused(
+    sim: Path, tmp_path: Path
+):
+    """A lab's scan as plain 16-bit TIFFs (its 512 DN pedestal in the data, no black level in the
+    sheet) beside DNG white and dark shots that carry theirs: the TIFFs' pedestal is checked on
+    its own, naming them. Before the fix the DNGs' frames read 0 outside the views and the check
+    passed: exit 0, B 71 % off, the ColorChecker 13 dB lower, no warning."""
+    import rawpy
+    import tifffile
+
+    from hsi_torch.errors import CalibrationError
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    for r in rows[1:]:
+        if r[1] == "scan":
+            dng = lab / r[0]
+            with rawpy.imread(str(dng)) as raw:  # the stored counts, pedestal included
+                m = raw.raw_image_visible.copy()
+            r[0] = str(Path(r[0]).with_suffix(".tif"))
+            tifffile.imwrite(lab / r[0], m.astype(np.uint16))
+            dng.unlink()
+            r[5] = "RGGB"
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.raises(CalibrationError, match=r"reads 51\d\.\d DN .*the 2\d read with black level "
+                       r"0 DN \(source: default\): frame_001\.tif.*different black levels.*"
+                       r"these captures carry a black pedestal of ~51\d DN; give their "
+                       r"black_level in the sheet"):  # fmt: skip
+        calibrate_capture_set(capset, progress=False)
+    # with their black level in the sheet, the set calibrates as the DNGs do
+    for r in rows[1:]:
+        if r[1] == "scan":
+            r[4] = str(BLACK)
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset2 = tmp_path / "capset2"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset2)]) == 0
+    bundle, report = calibrate_capture_set(capset2, progress=False)
+    assert report.pedestal["ok"]
+

@@ -60,6 +60,9 @@ class CaptureReader:
         self.black_sources: set[str] = set()
         #: (file, median (3,), robust sigma (3,), white span) per frame read after the dark
         self.pedestals: list[tuple[Path, list[float], list[float], float | None]] = []
+        #: per frame of :attr:`pedestals`: the black level it was read with (R, G, B) and its
+        #: source; the frames sharing one are checked together (:meth:`pedestal`)
+        self.pedestal_black: dict[Path, tuple[tuple[float, ...], str]] = {}
         self._recording = True
         #: the dark frames' per-pixel mean (whatever ``dark`` mode subtracts), for the defects
         self.dark_pixels: torch.Tensor | None = None
@@ -112,6 +115,7 @@ class CaptureReader:
                 wl = meta.get("white_level")
                 span = float(wl) - float(np.mean(black)) if isinstance(wl, (int, float)) else None
                 self.pedestals.append((path, st[0], st[1], span))
+                self.pedestal_black[path] = (tuple(round(float(b), 3) for b in black), src)
         return img, cap.saturated, meta
 
     def _note_identity(self, meta: dict[str, Any], src: str) -> None:
@@ -184,21 +188,38 @@ class CaptureReader:
                 "dark_level_rgb": dark, "files_black_level_source": src}  # fmt: skip
 
     def pedestal(self) -> dict[str, Any] | None:
-        """The pedestal of the captures: per colour, the frame level closest to 0 over every
-        frame read after the dark subtraction (stray light only adds to it; a missed black level
-        is in every frame), its limit (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and
-        ``ok``. ``None`` when no frame had sensor pixels outside the views."""
+        """The pedestal of the captures: per colour, the frame level closest to 0 over the frames
+        read with one black level from one source (stray light only adds to it; a black level
+        missed or wrong for a file is in every frame read with it), its limit
+        (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and ``ok``. With frames read with
+        different black levels (a lab's TIFFs without one beside DNGs with theirs), each such
+        group is checked on its own and the worst one is returned, ``group`` naming its black
+        level, source and files. ``None`` when no frame had sensor pixels outside the views."""
         if not self.pedestals:
             return None
-        level, limit = [], []
-        for c in range(3):
-            f = min(self.pedestals, key=lambda r: abs(r[1][c]))
-            level.append(f[1][c])
-            limit.append(pedestal_limit(f[3], f[2][c]))
+        groups: dict[Any, list] = {}
+        for r in self.pedestals:
+            groups.setdefault(self.pedestal_black.get(r[0]), []).append(r)
+        best = None
+        for key, frames in groups.items():
+            level, limit = [], []
+            for c in range(3):
+                f = min(frames, key=lambda r, c=c: abs(r[1][c]))
+                level.append(f[1][c])
+                limit.append(pedestal_limit(f[3], f[2][c]))
+            badness = max(abs(v) / lim for v, lim in zip(level, limit, strict=True))
+            if best is None or badness > best[0]:
+                best = (badness, key, frames, level, limit)
+        _, key, frames, level, limit = best
         ok = all(abs(v) <= lim for v, lim in zip(level, limit, strict=True))
         n_out = 0 if self.outside is None else int(self.outside.size)
-        return {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
-                "frames": len(self.pedestals), "outside_pixels": n_out}  # fmt: skip
+        out = {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
+               "frames": len(frames), "outside_pixels": n_out}  # fmt: skip
+        if len(groups) > 1 and key is not None:
+            out["group"] = {"black_level_rgb": list(key[0]), "black_level_source": key[1],
+                            "files": [str(r[0].name) for r in frames],
+                            "groups": len(groups)}  # fmt: skip
+        return out
 
 
 def _levels_text(v: Sequence[float]) -> str:
@@ -209,7 +230,8 @@ def _levels_text(v: Sequence[float]) -> str:
 
 def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[str, Any] | None:
     """Refuse (``mode="error"``) or warn (``"warn"``) when the sensor outside every view reads
-    more than the limit after black subtraction in every frame: the captures carry a black
+    more than the limit after black subtraction in every frame read with one black level (all
+    of them, or one group: :meth:`CaptureReader.pedestal`): those captures carry a black
     pedestal the black level did not remove (or too much was subtracted). Returns the
     measurement (:meth:`CaptureReader.pedestal`).
 
@@ -225,17 +247,36 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
         return ped
     c = max(range(3), key=lambda i: abs(ped["pedestal_dn"][i]) / ped["pedestal_limit_dn"][i])
     lvl, lim = ped["pedestal_dn"][c], ped["pedestal_limit_dn"][c]
-    sub = reader.black_level_record()["black_level_rgb"][c]
-    if lvl > 0:
+    rec = reader.black_level_record()
+    sub = rec["black_level_rgb"][c]
+    which = f"the frame closest to 0 of {ped['frames']}"
+    group = ped.get("group")
+    if group:  # frames read with different black levels: name the group at fault
+        dark = rec["dark_level_rgb"]
+        sub = group["black_level_rgb"][c] + (dark[c] if dark else 0.0)
+        files = group["files"]
+        names = ", ".join(files[:3]) + (f", … ({len(files)} files)" if len(files) > 3 else "")
+        which = (f"the frame closest to 0 of the {len(files)} read with black level "
+                 f"{_levels_text(group['black_level_rgb'])} DN (source: "
+                 f"{group['black_level_source']}): {names}; the captures were read with "
+                 f"{group['groups']} different black levels")  # fmt: skip
+    if lvl > 0 and group:
+        what = (f"these captures carry a black pedestal of ~{lvl:.0f} DN; give their "
+                f"black_level in the sheet or manifest (e.g. {sub + lvl:.0f})")  # fmt: skip
+    elif lvl > 0:
         what = (f"the captures carry a black pedestal of ~{lvl:.0f} DN; give black_level in the "
                 f"sheet/manifest/--set (e.g. --set black_level={sub + lvl:.0f}) or add a dark "
                 "frame")  # fmt: skip
+    elif group:
+        what = (f"the black level subtracted from these captures ({sub:.0f} DN) is ~{-lvl:.0f} "
+                f"DN too high; give their right black_level in the sheet or manifest (e.g. "
+                f"{sub + lvl:.0f})")  # fmt: skip
     else:
         what = (f"the black level subtracted ({sub:.0f} DN) is ~{-lvl:.0f} DN too high; give the "
                 "right black_level in the sheet/manifest/--set (e.g. --set "
                 f"black_level={sub + lvl:.0f})")  # fmt: skip
     msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
-           f"({'RGB'[c]} channel, the frame closest to 0 of {ped['frames']}; limit {lim:.3g} DN): "
+           f"({'RGB'[c]} channel, {which}; limit {lim:.3g} DN): "
            f"{what}")  # fmt: skip
     if mode == "error":
         raise CalibrationError(msg + " (pedestal_check=warn only warns)")
