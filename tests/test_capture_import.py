@@ -481,3 +481,28 @@ def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refus
     bundle, report = calibrate_capture_set(capset2, progress=False)
     assert report.pedestal["ok"]
 
+
+def test_calibration_captures_that_mix_bayer_patterns_are_refused(sim: Path, tmp_path: Path):
+    """The white shots as DNGs that say GRBG (another camera's, or a crop by one pixel) beside
+    RGGB scan, dark and grid files of the same make and model: refused, naming both files and
+    patterns. Before the fix: exit 0, homographies 6.5 px off, the ColorChecker at 4.1 dB
+    instead of 31.3 dB, no warning."""
+    import rawpy
+
+    from hsi_torch.errors import CalibrationError
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    for r in list(csv.reader(sheet.open()))[1:]:
+        if r[1] == "white":
+            with rawpy.imread(str(lab / r[0])) as raw:
+                m = raw.raw_image_visible.copy()
+            write_dng(lab / r[0], m, cfa_pattern="GRBG", black_level=BLACK, white_level=WHITE,
+                      exposure_s=T_WHITE, make="Lab Optics", model="KaleidoCam 1")  # fmt: skip
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.raises(CalibrationError, match=r"white_0\d\.dng: CFA pattern GRBG \(file\) but "
+                       r".*\.(dng|png) has RGGB \((file|sheet)\): the calibration captures mix "
+                       r"Bayer patterns"):  # fmt: skip
+        calibrate_capture_set(capset, progress=False)
+

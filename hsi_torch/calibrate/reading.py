@@ -51,6 +51,8 @@ class CaptureReader:
         self.dark: torch.Tensor | None = None
         self.dark_files: list[Path] = []
         self.cfa_pattern: str | None = None
+        #: (file, pattern, source) of the first Bayer frame read: every other must match it
+        self._cfa_first: tuple[Path, str, str] | None = None
         self.outside = outside_index
         self.camera: CameraIdentity | None = None
         self.cameras: set[str] = set()
@@ -100,6 +102,7 @@ class CaptureReader:
             cap.metadata["exposure"] = rel[0]
         meta = cap.metadata
         if meta.get("kind") == "bayer":
+            self._check_cfa(path, meta.get("cfa_pattern"), sources.get("cfa_pattern"))
             self.cfa_pattern = meta.get("cfa_pattern")
         src = self._black_source(path, meta)
         meta["black_level_source"] = src
@@ -117,6 +120,25 @@ class CaptureReader:
                 self.pedestals.append((path, st[0], st[1], span))
                 self.pedestal_black[path] = (tuple(round(float(b), 3) for b in black), src)
         return img, cap.saturated, meta
+
+    def _check_cfa(self, path: Path, pattern: Any, source: str | None) -> None:
+        """Refuse a Bayer frame whose CFA pattern differs from the first Bayer frame's: one
+        sensor has one pattern, and a frame demosaiced with another has its colours (and its
+        image, by a pixel) swapped."""
+        if not isinstance(pattern, str):
+            return
+        first = self._cfa_first
+        if first is None:
+            self._cfa_first = (path, pattern, source or "file")
+            return
+        if pattern.upper() != first[1].upper():
+            raise CalibrationError(
+                f"{path}: CFA pattern {pattern} ({source or 'file'}) but {first[0]} has "
+                f"{first[1]} ({first[2]}): the calibration captures mix Bayer patterns (frames of "
+                "another camera, a crop by one pixel, or a wrong cfa_pattern in the sheet or "
+                "manifest); give every file of this sensor its right cfa_pattern (one sheet "
+                "column or --set cfa_pattern=...) or leave out the other camera's files"
+            )
 
     def _note_identity(self, meta: dict[str, Any], src: str) -> None:
         cam = CameraIdentity.from_metadata(meta, self.size, levels_from_file=src == "file")
