@@ -881,6 +881,8 @@ def calibrate_capture_set(
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
+        if reader.dark_note:
+            notes.append(reader.dark_note)
         tick(len(cs.dark), "dark")
         dark_mode = cfg.dark if cs.dark else "none (no dark frames; black level only)"
         tm["dark"] = time.perf_counter() - t0

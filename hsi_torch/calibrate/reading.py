@@ -50,6 +50,8 @@ class CaptureReader:
         self.settings = settings or {}
         self.dark: torch.Tensor | None = None
         self.dark_files: list[Path] = []
+        #: a warning about the dark frames (different exposures averaged), for the report
+        self.dark_note: str | None = None
         self.cfa_pattern: str | None = None
         #: (file, pattern, source) of the first Bayer frame read: every other must match it
         self._cfa_first: tuple[Path, str, str] | None = None
@@ -175,12 +177,25 @@ class CaptureReader:
             return
         acc = None
         self._recording = False  # the dark frames themselves read the pedestal, by definition
+        exposures = []
         try:
             for p in files:
-                img, _, _ = self.read(p)
+                img, _, meta = self.read(p)
                 acc = img if acc is None else acc + img
+                exposures.append((p.name, meta.get("exposure_s")))
         finally:
             self._recording = True
+        known = {float(t) for _, t in exposures if isinstance(t, (int, float))}
+        if len(known) > 1:
+            listed = ", ".join(f"{n} ({t:g} s)" if isinstance(t, (int, float)) else f"{n} (?)"
+                               for n, t in exposures)  # fmt: skip
+            self.dark_note = (
+                f"dark frames of different exposures averaged ({listed}): one dark level is "
+                "subtracted from every frame (scan, white and grid alike), though the dark "
+                "current grows with the exposure; calibrate with the dark frames of one "
+                "exposure (the scan's or the white's), or check the black level it gives"
+            )
+            warnings.warn(self.dark_note, UserWarning, stacklevel=3)
         d = acc / len(files)
         self.dark_pixels = d
         self.dark = d.mean(dim=(-2, -1), keepdim=True).expand_as(d) if mode == "mean" else d
