@@ -553,3 +553,24 @@ def test_dark_frames_of_different_exposures_are_averaged_with_a_warning(sim: Pat
                       r"\(.*\(0\.02 s\), dark_long\.dng \(0\.5 s\)\)"):  # fmt: skip
         _, report = calibrate_capture_set(capset, progress=False)
     assert any(n.startswith("dark frames of different exposures") for n in report.notes)
+
+
+def test_a_repeated_scan_frame_of_another_wavelength_is_warned_about(sim: Path, tmp_path: Path):
+    """The 560 nm frame listed a second time as 550 nm (a slip in the sheet): the two frames of
+    "550 nm" are averaged, but their patterns differ by ~33 % (noise: < 1 %), and calibration
+    says so, naming both (before: averaged in silence, B 3.7 % off)."""
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    r560 = next(r for r in rows if r[1] == "scan" and r[2] == "560")
+    rows.append([r560[0], "scan", "550", "", "", "", ""])
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.warns(UserWarning, match=rf"scan: {Path(r560[0]).name} differs from "
+                      r"frame_\d+\.dng, the frame of the same wavelength it is averaged with, "
+                      r"by [23]\d % RMS") as rec:  # fmt: skip
+        _, report = calibrate_capture_set(capset, progress=False)
+    assert sum("differs from" in str(w.message) for w in rec) == 1  # not the identical repeat
+    assert any("is its wavelength right?" in n for n in report.notes)

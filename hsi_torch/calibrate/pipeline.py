@@ -896,6 +896,7 @@ def calibrate_capture_set(
 
         t0 = time.perf_counter()
         trans = calibrate_transmittance(scan_sel, reader, lay, Hs, patch, wl, cfg, tick)
+        notes.extend(reader.scan_notes)
         tm["transmittance"] = time.perf_counter() - t0
         pedestal = check_pedestal(reader, cfg.pedestal_check, notes)
         if len(reader.cameras) > 1:

@@ -50,6 +50,8 @@ class CaptureReader:
         self.settings = settings or {}
         self.dark: torch.Tensor | None = None
         self.dark_files: list[Path] = []
+        #: warnings about repeated scan frames that differ (:meth:`read_mean`), for the report
+        self.scan_notes: list[str] = []
         #: a warning about the dark frames (different exposures averaged), for the report
         self.dark_note: str | None = None
         self.cfa_pattern: str | None = None
@@ -163,11 +165,21 @@ class CaptureReader:
             return self.read(paths)
         img, sat, meta = self.read(paths[0])
         t0 = meta.get("exposure_s")
+        first = img
         for p in paths[1:]:
             i2, s2, m2 = self.read(p)
             t = m2.get("exposure_s")
             if t0 is not None and t is not None and float(t) != float(t0):
                 i2 = i2 * (float(t0) / float(t))
+            d = _pattern_difference(first, i2, sat | s2)
+            if d is not None and d > REPEAT_MAX_DIFFERENCE:
+                msg = (f"scan: {p.name} differs from {paths[0].name}, the frame of the same "
+                       f"wavelength it is averaged with, by {100 * d:.0f} % RMS (8x8 px block "
+                       f"means, each frame normalised to its mean; limit "
+                       f"{100 * REPEAT_MAX_DIFFERENCE:g} %; frames of one wavelength differ by "
+                       "their noise only): is its wavelength right?")  # fmt: skip
+                warnings.warn(msg, UserWarning, stacklevel=3)
+                self.scan_notes.append(msg)
             img = img + i2
             sat = sat | s2
         return img / len(paths), sat, meta
@@ -257,6 +269,28 @@ class CaptureReader:
                             "files": [str(r[0].name) for r in frames],
                             "groups": len(groups)}  # fmt: skip
         return out
+
+
+#: Largest RMS difference between repeated scan frames of one wavelength (8x8 px block means,
+#: each frame normalised to its mean) taken as noise; adjacent 10 nm bands differ by ~30 %.
+REPEAT_MAX_DIFFERENCE = 0.05
+
+
+def _pattern_difference(a: torch.Tensor, b: torch.Tensor, sat: torch.Tensor) -> float | None:
+    """RMS difference of two ``(C, H, W)`` frames' 8x8 px block means, each normalised to its
+    mean over the blocks brighter than 10 % of the first's brightest (no saturated sample);
+    ``None`` when fewer than 16 such blocks."""
+    if a.shape != b.shape or a.shape[-1] < 8 or a.shape[-2] < 8:
+        return None
+    pool = torch.nn.functional.avg_pool2d
+    x = pool(a.sum(0)[None].double(), 8)[0]
+    y = pool(b.sum(0)[None].double(), 8)[0]
+    ok = pool(sat.any(0)[None].double(), 8)[0] == 0
+    m = ok & (x > 0.1 * float(x.max()))
+    if int(m.sum()) < 16:
+        return None
+    xm, ym = x[m] / x[m].mean(), y[m] / y[m].mean()
+    return float(((xm - ym) ** 2).mean().sqrt())
 
 
 def _levels_text(v: Sequence[float]) -> str:
