@@ -574,3 +574,34 @@ def test_a_repeated_scan_frame_of_another_wavelength_is_warned_about(sim: Path, 
         _, report = calibrate_capture_set(capset, progress=False)
     assert sum("differs from" in str(w.message) for w in rec) == 1  # not the identical repeat
     assert any("is its wavelength right?" in n for n in report.notes)
+
+
+def test_a_dark_frame_with_a_pedestal_of_its_own_is_named_when_too_much_is_subtracted(
+    sim: Path, tmp_path: Path
+):
+    """The dark frame as a 16-bit PNG (its 512 DN pedestal in the data, no black level in the
+    sheet) beside DNGs that carry theirs: 512 DN too much is subtracted from every frame, and
+    the refusal names the dark frame as the likely cause (before, it only suggested changing
+    the other captures' black level to ~0, which would have hidden the error)."""
+    import rawpy
+
+    from hsi_torch.errors import CalibrationError
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    dark = next(r for r in rows if r[1] == "dark")
+    with rawpy.imread(str(lab / dark[0])) as raw:
+        m = raw.raw_image_visible.copy()
+    (lab / dark[0]).unlink()
+    dark[0] = str(Path(dark[0]).with_suffix(".png"))
+    dark[5] = "RGGB"
+    assert cv2.imwrite(str(lab / dark[0]), m.astype(np.uint16))
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.raises(CalibrationError, match=r"reads -5\d\d\.\d DN .*too high.*or the dark "
+                       r"frame dark_00\.png \(read with black level 0 DN, source: default; its "
+                       r"mean, 51\d DN above that"):  # fmt: skip
+        calibrate_capture_set(capset, progress=False)

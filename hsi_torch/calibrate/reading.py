@@ -50,6 +50,8 @@ class CaptureReader:
         self.settings = settings or {}
         self.dark: torch.Tensor | None = None
         self.dark_files: list[Path] = []
+        #: (file, black level (R, G, B), its source) of each dark frame read
+        self.dark_black: list[tuple[str, tuple[float, ...], str]] = []
         #: warnings about repeated scan frames that differ (:meth:`read_mean`), for the report
         self.scan_notes: list[str] = []
         #: a warning about the dark frames (different exposures averaged), for the report
@@ -195,6 +197,9 @@ class CaptureReader:
                 img, _, meta = self.read(p)
                 acc = img if acc is None else acc + img
                 exposures.append((p.name, meta.get("exposure_s")))
+                black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
+                self.dark_black.append((p.name, tuple(round(float(b), 3) for b in black or [0.0]),
+                                        str(meta.get("black_level_source"))))  # fmt: skip
         finally:
             self._recording = True
         known = {float(t) for _, t in exposures if isinstance(t, (int, float))}
@@ -346,6 +351,13 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
         what = (f"the black level subtracted ({sub:.0f} DN) is ~{-lvl:.0f} DN too high; give the "
                 "right black_level in the sheet/manifest/--set (e.g. --set "
                 f"black_level={sub + lvl:.0f})")  # fmt: skip
+    dark_mean = rec["dark_level_rgb"][c] if rec["dark_level_rgb"] else 0.0
+    if lvl < 0 and reader.dark_black and dark_mean > 0.5 * -lvl:  # the dark frame may be why
+        n, b, src = reader.dark_black[0]
+        what += (f"; or the dark frame {n} (read with black level {_levels_text(b)} DN, source: "
+                 f"{src}; its mean, {dark_mean:.0f} DN above that, is subtracted from every "
+                 "frame) carries a pedestal the other captures do not: give its black_level in "
+                 "the sheet or manifest, or take a dark frame with the same settings")
     msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
            f"({'RGB'[c]} channel, {which}; limit {lim:.3g} DN): "
            f"{what}")  # fmt: skip
