@@ -9,6 +9,7 @@ make/model in their metadata, a scene at half the white's exposure.
 from __future__ import annotations
 
 import json
+import re
 import zipfile
 from pathlib import Path
 
@@ -546,3 +547,19 @@ def test_an_rgb_capture_with_a_bundle_of_bayer_mosaics_is_warned_about(lab, bund
     assert err.count("WARNING") == 1  # the Bayer file of the same scene: nothing to say
     st = load_cube(tmp_path / "o" / "developed.npz").metadata["stats"]
     assert "RGB image" in st["mosaic_note"] and st["fit_residual"] < 0.15
+
+
+def test_pedestal_warning_of_a_dng_names_the_level_it_subtracted(lab, bundle, tmp_path, capsys):
+    """A DNG whose BlackLevel tag (512, four values of the Bayer cell) leaves 256 DN of pedestal
+    in: the warning says 512 DN were subtracted and suggests 768. Before the fix it said
+    "black level subtracted 0 DN" and "--set black_level=257", which a user following it would
+    have made worse (the cube 3 dB instead of 31)."""
+    from hsi_torch.testing import write_dng
+
+    cc = tifffile.imread(lab["sim"] / "scenes" / "colorchecker.tif").astype(np.float64)
+    f = write_dng(tmp_path / "ped.dng", cc + 256, black_level=512, white_level=16383,
+                  exposure_s=0.02)  # fmt: skip
+    assert _reconstruct(bundle, tmp_path / "o", f) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" in err and "reads 25" in err and "black level subtracted 512 DN" in err
+    assert re.search(r"--set black_level=7[67]\d\)", err), err

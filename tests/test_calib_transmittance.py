@@ -59,15 +59,19 @@ def test_signal_weighting_and_saturation(device):
     # independent numpy computation of the documented formula
     x = noisy.cpu().numpy() - dark.cpu().numpy()
     pm = patch.cpu().numpy()
-    mu = x[:, :, pm].mean(-1)  # (J, 3)
-    w = mu / mu.sum(1, keepdims=True)
     u = noisy.cpu().numpy() < sat_level
+    # the patch mean over its unsaturated samples; a colour with a saturated one is not used
+    mu = np.where(u[:, :, pm], x[:, :, pm], 0).sum(-1) / u[:, :, pm].sum(-1).clip(1)  # (J, 3)
+    usable = u[:, :, pm].all(-1)
+    w = np.where(usable, mu, 0) / np.where(usable, mu, 0).sum(1, keepdims=True)
+    mu = np.where(usable, mu, 1.0)
     num = (w[..., None, None] * u * x / mu[..., None, None]).sum(1)
     den = (w[..., None, None] * u).sum(1)
     expect = np.where(den > 0, num / np.where(den > 0, den, 1), 0.0)
     expect = np.where(lit.cpu().numpy()[None], expect, 0.0)
     np.testing.assert_allclose(res.transmittance.cpu().numpy(), expect, rtol=1e-10, atol=1e-12)
     assert bool((noisy >= sat_level).any())  # the test exercises saturation
+    assert not usable.all()  # in the patch too
     # weighting by signal beats an unweighted channel mean on the dim-channel wavelengths
     err_w = (res.transmittance - T)[:, lit].pow(2).mean().sqrt()
     plain = (x / mu[..., None, None]).mean(1)
@@ -131,3 +135,22 @@ def test_to_reference_frame_integer_homographies(device, dtype):
     expect[1, 3, 5] = False
     assert torch.equal(masks, expect)
     assert 0 < int(masks[0].sum()) < w * h
+
+
+def test_a_saturated_sample_in_the_patch_never_enters_its_mean(device):
+    """The pipeline replaces saturated samples by a huge sentinel: one of them in the BRF-free
+    patch made that colour's patch mean ~1e20/n and its weight ~1, so B of the whole band came
+    out ~0 (in a lab's scan with 9 clipped pixels, B at 530 nm was 100 % off and the
+    ColorChecker 1.5 dB lower, exit 0). Now that colour is left out at that wavelength and B is
+    the one without the saturated sample."""
+    scan, wl, patch, T, lit, dark = _scan(device, torch.float64)
+    clean = brf_transmittance(scan, wl, patch, dark=dark, saturation_level=1e19)
+    hit = scan.clone()
+    hit[3, 0, 5, 5] = 1e20  # one saturated red sample inside the patch
+    res = brf_transmittance(hit, wl, patch, dark=dark, saturation_level=1e19)
+    torch.testing.assert_close(res.transmittance, clean.transmittance, atol=1e-9, rtol=1e-9)
+    assert float(res.channel_weights[3, 0]) == 0.0 and float(res.patch_mean[3, 0]) < 1e6
+    hit[3, :, 5, 5] = 1e20  # every colour: no patch mean is known at that wavelength
+    with pytest.raises(ValueError, match=r"patch is saturated in every colour channel at "
+                                         r"\[55\d\.\d+\] nm"):
+        brf_transmittance(hit, wl, patch, dark=dark, saturation_level=1e19)

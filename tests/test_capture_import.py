@@ -465,3 +465,173 @@ def test_import_into_a_folder_with_the_users_files_of_those_names_is_refused(sim
     assert main([*argv, "--out", str(killed)]) == 0
     assert len(read_capture_set(killed).white) == len(whites)
     assert (killed / "white" / whites[1].name).read_bytes() == whites[1].read_bytes()
+
+
+def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refused(
+    sim: Path, tmp_path: Path
+):
+    """A lab's scan as plain 16-bit TIFFs (its 512 DN pedestal in the data, no black level in the
+    sheet) beside DNG white and dark shots that carry theirs: the TIFFs' pedestal is checked on
+    its own, naming them. Before the fix the DNGs' frames read 0 outside the views and the check
+    passed: exit 0, B 71 % off, the ColorChecker 13 dB lower, no warning."""
+    import rawpy
+    import tifffile
+
+    from hsi_torch.errors import CalibrationError
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    for r in rows[1:]:
+        if r[1] == "scan":
+            dng = lab / r[0]
+            with rawpy.imread(str(dng)) as raw:  # the stored counts, pedestal included
+                m = raw.raw_image_visible.copy()
+            r[0] = str(Path(r[0]).with_suffix(".tif"))
+            tifffile.imwrite(lab / r[0], m.astype(np.uint16))
+            dng.unlink()
+            r[5] = "RGGB"
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.raises(CalibrationError, match=r"reads 51\d\.\d DN .*the 2\d read with black level "
+                       r"0 DN \(source: default\): frame_001\.tif.*different black levels.*"
+                       r"these captures carry a black pedestal of ~51\d DN; give their "
+                       r"black_level in the sheet"):  # fmt: skip
+        calibrate_capture_set(capset, progress=False)
+    # with their black level in the sheet, the set calibrates as the DNGs do
+    for r in rows[1:]:
+        if r[1] == "scan":
+            r[4] = str(BLACK)
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset2 = tmp_path / "capset2"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset2)]) == 0
+    bundle, report = calibrate_capture_set(capset2, progress=False)
+    assert report.pedestal["ok"]
+
+
+def test_calibration_captures_that_mix_bayer_patterns_are_refused(sim: Path, tmp_path: Path):
+    """The white shots as DNGs that say GRBG (another camera's, or a crop by one pixel) beside
+    RGGB scan, dark and grid files of the same make and model: refused, naming both files and
+    patterns. Before the fix: exit 0, homographies 6.5 px off, the ColorChecker at 4.1 dB
+    instead of 31.3 dB, no warning."""
+    import rawpy
+
+    from hsi_torch.errors import CalibrationError
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    for r in list(csv.reader(sheet.open()))[1:]:
+        if r[1] == "white":
+            with rawpy.imread(str(lab / r[0])) as raw:
+                m = raw.raw_image_visible.copy()
+            write_dng(lab / r[0], m, cfa_pattern="GRBG", black_level=BLACK, white_level=WHITE,
+                      exposure_s=T_WHITE, make="Lab Optics", model="KaleidoCam 1")  # fmt: skip
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.raises(CalibrationError, match=r"white_0\d\.dng: CFA pattern GRBG \(file\) but "
+                       r".*\.(dng|png) has RGGB \((file|sheet)\): the calibration captures mix "
+                       r"Bayer patterns"):  # fmt: skip
+        calibrate_capture_set(capset, progress=False)
+
+
+def test_a_sheet_wavelength_that_contradicts_the_file_name_is_refused(tmp_path: Path):
+    """Scan frames named by their wavelength (``mono_550nm.png``) with a sheet one band off
+    (550 for ``mono_540nm.png``, …): refused naming the line and both values. Before the fix the
+    sheet won in silence: calibration exited 0, B 42 % off, the ColorChecker 5.6 dB lower."""
+    m = np.full((24, 26), 1000, np.uint16)
+    for lam in (540, 550):
+        cv2.imwrite(str(tmp_path / f"mono_{lam}nm.png"), m)
+    sheet = tmp_path / "s.csv"
+    sheet.write_text("file,role,wavelength_nm\nmono_540nm.png,scan,540\n"
+                     "mono_550nm.png,scan,560\n")  # fmt: skip
+    with pytest.raises(InputError, match=r"s\.csv:3: scan frame mono_550nm\.png: the sheet says "
+                       r"560 nm but the file name says 550 nm"):  # fmt: skip
+        import_captures(read_sheet(sheet), tmp_path / "set")
+    assert not (tmp_path / "set").exists()
+    # the same within the tolerance, or an empty cell (the name's), is taken
+    sheet.write_text("file,role,wavelength_nm\nmono_540nm.png,scan,540.2\nmono_550nm.png,scan,\n")
+    rep = import_captures(read_sheet(sheet), tmp_path / "set2")
+    man = json.loads(rep.manifest.read_text())
+    assert [e["wavelength_nm"] for e in man["captures"]] == [540.2, 550.0]
+
+
+def test_dark_frames_of_different_exposures_are_averaged_with_a_warning(sim: Path,
+                                                                         tmp_path: Path):
+    """A dark frame at the white's 20 ms and one at the scan's 0.5 s (60 DN of dark current):
+    one mean dark level is subtracted from every frame; calibration says so (warning and
+    report note) instead of in silence (before: exit 0, the bundle's black level 30 DN high,
+    B 7 % off, nothing said)."""
+    import rawpy
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    dark = next(r for r in rows if r[1] == "dark")
+    with rawpy.imread(str(lab / dark[0])) as raw:
+        m = raw.raw_image_visible.astype(np.float64) + 60
+    write_dng(lab / "Dark/dark_long.dng", m, black_level=BLACK, white_level=WHITE,
+              exposure_s=0.5)  # fmt: skip
+    rows.append(["Dark/dark_long.dng", "dark", "", "", "", "", ""])
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.warns(UserWarning, match=r"dark frames of different exposures averaged "
+                      r"\(.*\(0\.02 s\), dark_long\.dng \(0\.5 s\)\)"):  # fmt: skip
+        _, report = calibrate_capture_set(capset, progress=False)
+    assert any(n.startswith("dark frames of different exposures") for n in report.notes)
+
+
+def test_a_repeated_scan_frame_of_another_wavelength_is_warned_about(sim: Path, tmp_path: Path):
+    """The 560 nm frame listed a second time as 550 nm (a slip in the sheet): the two frames of
+    "550 nm" are averaged, but their patterns differ by ~33 % (noise: < 1 %), and calibration
+    says so, naming both (before: averaged in silence, B 3.7 % off)."""
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    r560 = next(r for r in rows if r[1] == "scan" and r[2] == "560")
+    rows.append([r560[0], "scan", "550", "", "", "", ""])
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.warns(UserWarning, match=rf"scan: {Path(r560[0]).name} differs from "
+                      r"frame_\d+\.dng, the frame of the same wavelength it is averaged with, "
+                      r"by [23]\d % RMS") as rec:  # fmt: skip
+        _, report = calibrate_capture_set(capset, progress=False)
+    assert sum("differs from" in str(w.message) for w in rec) == 1  # not the identical repeat
+    assert any("is its wavelength right?" in n for n in report.notes)
+
+
+def test_a_dark_frame_with_a_pedestal_of_its_own_is_named_when_too_much_is_subtracted(
+    sim: Path, tmp_path: Path
+):
+    """The dark frame as a 16-bit PNG (its 512 DN pedestal in the data, no black level in the
+    sheet) beside DNGs that carry theirs: 512 DN too much is subtracted from every frame, and
+    the refusal names the dark frame as the likely cause (before, it only suggested changing
+    the other captures' black level to ~0, which would have hidden the error)."""
+    import rawpy
+
+    from hsi_torch.errors import CalibrationError
+
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    dark = next(r for r in rows if r[1] == "dark")
+    with rawpy.imread(str(lab / dark[0])) as raw:
+        m = raw.raw_image_visible.copy()
+    (lab / dark[0]).unlink()
+    dark[0] = str(Path(dark[0]).with_suffix(".png"))
+    dark[5] = "RGGB"
+    assert cv2.imwrite(str(lab / dark[0]), m.astype(np.uint16))
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    capset = tmp_path / "capset"
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    with pytest.raises(CalibrationError, match=r"reads -5\d\d\.\d DN .*too high.*or the dark "
+                       r"frame dark_00\.png \(read with black level 0 DN, source: default; its "
+                       r"mean, 51\d DN above that"):  # fmt: skip
+        calibrate_capture_set(capset, progress=False)

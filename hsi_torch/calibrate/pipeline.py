@@ -881,6 +881,8 @@ def calibrate_capture_set(
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
+        if reader.dark_note:
+            notes.append(reader.dark_note)
         tick(len(cs.dark), "dark")
         dark_mode = cfg.dark if cs.dark else "none (no dark frames; black level only)"
         tm["dark"] = time.perf_counter() - t0
@@ -894,6 +896,7 @@ def calibrate_capture_set(
 
         t0 = time.perf_counter()
         trans = calibrate_transmittance(scan_sel, reader, lay, Hs, patch, wl, cfg, tick)
+        notes.extend(reader.scan_notes)
         tm["transmittance"] = time.perf_counter() - t0
         pedestal = check_pedestal(reader, cfg.pedestal_check, notes)
         if len(reader.cameras) > 1:

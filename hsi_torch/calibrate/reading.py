@@ -50,7 +50,15 @@ class CaptureReader:
         self.settings = settings or {}
         self.dark: torch.Tensor | None = None
         self.dark_files: list[Path] = []
+        #: (file, black level (R, G, B), its source) of each dark frame read
+        self.dark_black: list[tuple[str, tuple[float, ...], str]] = []
+        #: warnings about repeated scan frames that differ (:meth:`read_mean`), for the report
+        self.scan_notes: list[str] = []
+        #: a warning about the dark frames (different exposures averaged), for the report
+        self.dark_note: str | None = None
         self.cfa_pattern: str | None = None
+        #: (file, pattern, source) of the first Bayer frame read: every other must match it
+        self._cfa_first: tuple[Path, str, str] | None = None
         self.outside = outside_index
         self.camera: CameraIdentity | None = None
         self.cameras: set[str] = set()
@@ -60,6 +68,9 @@ class CaptureReader:
         self.black_sources: set[str] = set()
         #: (file, median (3,), robust sigma (3,), white span) per frame read after the dark
         self.pedestals: list[tuple[Path, list[float], list[float], float | None]] = []
+        #: per frame of :attr:`pedestals`: the black level it was read with (R, G, B) and its
+        #: source; the frames sharing one are checked together (:meth:`pedestal`)
+        self.pedestal_black: dict[Path, tuple[tuple[float, ...], str]] = {}
         self._recording = True
         #: the dark frames' per-pixel mean (whatever ``dark`` mode subtracts), for the defects
         self.dark_pixels: torch.Tensor | None = None
@@ -97,6 +108,7 @@ class CaptureReader:
             cap.metadata["exposure"] = rel[0]
         meta = cap.metadata
         if meta.get("kind") == "bayer":
+            self._check_cfa(path, meta.get("cfa_pattern"), sources.get("cfa_pattern"))
             self.cfa_pattern = meta.get("cfa_pattern")
         src = self._black_source(path, meta)
         meta["black_level_source"] = src
@@ -112,7 +124,27 @@ class CaptureReader:
                 wl = meta.get("white_level")
                 span = float(wl) - float(np.mean(black)) if isinstance(wl, (int, float)) else None
                 self.pedestals.append((path, st[0], st[1], span))
+                self.pedestal_black[path] = (tuple(round(float(b), 3) for b in black), src)
         return img, cap.saturated, meta
+
+    def _check_cfa(self, path: Path, pattern: Any, source: str | None) -> None:
+        """Refuse a Bayer frame whose CFA pattern differs from the first Bayer frame's: one
+        sensor has one pattern, and a frame demosaiced with another has its colours (and its
+        image, by a pixel) swapped."""
+        if not isinstance(pattern, str):
+            return
+        first = self._cfa_first
+        if first is None:
+            self._cfa_first = (path, pattern, source or "file")
+            return
+        if pattern.upper() != first[1].upper():
+            raise CalibrationError(
+                f"{path}: CFA pattern {pattern} ({source or 'file'}) but {first[0]} has "
+                f"{first[1]} ({first[2]}): the calibration captures mix Bayer patterns (frames of "
+                "another camera, a crop by one pixel, or a wrong cfa_pattern in the sheet or "
+                "manifest); give every file of this sensor its right cfa_pattern (one sheet "
+                "column or --set cfa_pattern=...) or leave out the other camera's files"
+            )
 
     def _note_identity(self, meta: dict[str, Any], src: str) -> None:
         cam = CameraIdentity.from_metadata(meta, self.size, levels_from_file=src == "file")
@@ -135,11 +167,21 @@ class CaptureReader:
             return self.read(paths)
         img, sat, meta = self.read(paths[0])
         t0 = meta.get("exposure_s")
+        first = img
         for p in paths[1:]:
             i2, s2, m2 = self.read(p)
             t = m2.get("exposure_s")
             if t0 is not None and t is not None and float(t) != float(t0):
                 i2 = i2 * (float(t0) / float(t))
+            d = _pattern_difference(first, i2, sat | s2)
+            if d is not None and d > REPEAT_MAX_DIFFERENCE:
+                msg = (f"scan: {p.name} differs from {paths[0].name}, the frame of the same "
+                       f"wavelength it is averaged with, by {100 * d:.0f} % RMS (8x8 px block "
+                       f"means, each frame normalised to its mean; limit "
+                       f"{100 * REPEAT_MAX_DIFFERENCE:g} %; frames of one wavelength differ by "
+                       "their noise only): is its wavelength right?")  # fmt: skip
+                warnings.warn(msg, UserWarning, stacklevel=3)
+                self.scan_notes.append(msg)
             img = img + i2
             sat = sat | s2
         return img / len(paths), sat, meta
@@ -149,12 +191,28 @@ class CaptureReader:
             return
         acc = None
         self._recording = False  # the dark frames themselves read the pedestal, by definition
+        exposures = []
         try:
             for p in files:
-                img, _, _ = self.read(p)
+                img, _, meta = self.read(p)
                 acc = img if acc is None else acc + img
+                exposures.append((p.name, meta.get("exposure_s")))
+                black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
+                self.dark_black.append((p.name, tuple(round(float(b), 3) for b in black or [0.0]),
+                                        str(meta.get("black_level_source"))))  # fmt: skip
         finally:
             self._recording = True
+        known = {float(t) for _, t in exposures if isinstance(t, (int, float))}
+        if len(known) > 1:
+            listed = ", ".join(f"{n} ({t:g} s)" if isinstance(t, (int, float)) else f"{n} (?)"
+                               for n, t in exposures)  # fmt: skip
+            self.dark_note = (
+                f"dark frames of different exposures averaged ({listed}): one dark level is "
+                "subtracted from every frame (scan, white and grid alike), though the dark "
+                "current grows with the exposure; calibrate with the dark frames of one "
+                "exposure (the scan's or the white's), or check the black level it gives"
+            )
+            warnings.warn(self.dark_note, UserWarning, stacklevel=3)
         d = acc / len(files)
         self.dark_pixels = d
         self.dark = d.mean(dim=(-2, -1), keepdim=True).expand_as(d) if mode == "mean" else d
@@ -184,21 +242,60 @@ class CaptureReader:
                 "dark_level_rgb": dark, "files_black_level_source": src}  # fmt: skip
 
     def pedestal(self) -> dict[str, Any] | None:
-        """The pedestal of the captures: per colour, the frame level closest to 0 over every
-        frame read after the dark subtraction (stray light only adds to it; a missed black level
-        is in every frame), its limit (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and
-        ``ok``. ``None`` when no frame had sensor pixels outside the views."""
+        """The pedestal of the captures: per colour, the frame level closest to 0 over the frames
+        read with one black level from one source (stray light only adds to it; a black level
+        missed or wrong for a file is in every frame read with it), its limit
+        (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and ``ok``. With frames read with
+        different black levels (a lab's TIFFs without one beside DNGs with theirs), each such
+        group is checked on its own and the worst one is returned, ``group`` naming its black
+        level, source and files. ``None`` when no frame had sensor pixels outside the views."""
         if not self.pedestals:
             return None
-        level, limit = [], []
-        for c in range(3):
-            f = min(self.pedestals, key=lambda r: abs(r[1][c]))
-            level.append(f[1][c])
-            limit.append(pedestal_limit(f[3], f[2][c]))
+        groups: dict[Any, list] = {}
+        for r in self.pedestals:
+            groups.setdefault(self.pedestal_black.get(r[0]), []).append(r)
+        best = None
+        for key, frames in groups.items():
+            level, limit = [], []
+            for c in range(3):
+                f = min(frames, key=lambda r, c=c: abs(r[1][c]))
+                level.append(f[1][c])
+                limit.append(pedestal_limit(f[3], f[2][c]))
+            badness = max(abs(v) / lim for v, lim in zip(level, limit, strict=True))
+            if best is None or badness > best[0]:
+                best = (badness, key, frames, level, limit)
+        _, key, frames, level, limit = best
         ok = all(abs(v) <= lim for v, lim in zip(level, limit, strict=True))
         n_out = 0 if self.outside is None else int(self.outside.size)
-        return {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
-                "frames": len(self.pedestals), "outside_pixels": n_out}  # fmt: skip
+        out = {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
+               "frames": len(frames), "outside_pixels": n_out}  # fmt: skip
+        if len(groups) > 1 and key is not None:
+            out["group"] = {"black_level_rgb": list(key[0]), "black_level_source": key[1],
+                            "files": [str(r[0].name) for r in frames],
+                            "groups": len(groups)}  # fmt: skip
+        return out
+
+
+#: Largest RMS difference between repeated scan frames of one wavelength (8x8 px block means,
+#: each frame normalised to its mean) taken as noise; adjacent 10 nm bands differ by ~30 %.
+REPEAT_MAX_DIFFERENCE = 0.05
+
+
+def _pattern_difference(a: torch.Tensor, b: torch.Tensor, sat: torch.Tensor) -> float | None:
+    """RMS difference of two ``(C, H, W)`` frames' 8x8 px block means, each normalised to its
+    mean over the blocks brighter than 10 % of the first's brightest (no saturated sample);
+    ``None`` when fewer than 16 such blocks."""
+    if a.shape != b.shape or a.shape[-1] < 8 or a.shape[-2] < 8:
+        return None
+    pool = torch.nn.functional.avg_pool2d
+    x = pool(a.sum(0)[None].double(), 8)[0]
+    y = pool(b.sum(0)[None].double(), 8)[0]
+    ok = pool(sat.any(0)[None].double(), 8)[0] == 0
+    m = ok & (x > 0.1 * float(x.max()))
+    if int(m.sum()) < 16:
+        return None
+    xm, ym = x[m] / x[m].mean(), y[m] / y[m].mean()
+    return float(((xm - ym) ** 2).mean().sqrt())
 
 
 def _levels_text(v: Sequence[float]) -> str:
@@ -209,7 +306,8 @@ def _levels_text(v: Sequence[float]) -> str:
 
 def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[str, Any] | None:
     """Refuse (``mode="error"``) or warn (``"warn"``) when the sensor outside every view reads
-    more than the limit after black subtraction in every frame: the captures carry a black
+    more than the limit after black subtraction in every frame read with one black level (all
+    of them, or one group: :meth:`CaptureReader.pedestal`): those captures carry a black
     pedestal the black level did not remove (or too much was subtracted). Returns the
     measurement (:meth:`CaptureReader.pedestal`).
 
@@ -225,17 +323,43 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
         return ped
     c = max(range(3), key=lambda i: abs(ped["pedestal_dn"][i]) / ped["pedestal_limit_dn"][i])
     lvl, lim = ped["pedestal_dn"][c], ped["pedestal_limit_dn"][c]
-    sub = reader.black_level_record()["black_level_rgb"][c]
-    if lvl > 0:
+    rec = reader.black_level_record()
+    sub = rec["black_level_rgb"][c]
+    which = f"the frame closest to 0 of {ped['frames']}"
+    group = ped.get("group")
+    if group:  # frames read with different black levels: name the group at fault
+        dark = rec["dark_level_rgb"]
+        sub = group["black_level_rgb"][c] + (dark[c] if dark else 0.0)
+        files = group["files"]
+        names = ", ".join(files[:3]) + (f", … ({len(files)} files)" if len(files) > 3 else "")
+        which = (f"the frame closest to 0 of the {len(files)} read with black level "
+                 f"{_levels_text(group['black_level_rgb'])} DN (source: "
+                 f"{group['black_level_source']}): {names}; the captures were read with "
+                 f"{group['groups']} different black levels")  # fmt: skip
+    if lvl > 0 and group:
+        what = (f"these captures carry a black pedestal of ~{lvl:.0f} DN; give their "
+                f"black_level in the sheet or manifest (e.g. {sub + lvl:.0f})")  # fmt: skip
+    elif lvl > 0:
         what = (f"the captures carry a black pedestal of ~{lvl:.0f} DN; give black_level in the "
                 f"sheet/manifest/--set (e.g. --set black_level={sub + lvl:.0f}) or add a dark "
                 "frame")  # fmt: skip
+    elif group:
+        what = (f"the black level subtracted from these captures ({sub:.0f} DN) is ~{-lvl:.0f} "
+                f"DN too high; give their right black_level in the sheet or manifest (e.g. "
+                f"{sub + lvl:.0f})")  # fmt: skip
     else:
         what = (f"the black level subtracted ({sub:.0f} DN) is ~{-lvl:.0f} DN too high; give the "
                 "right black_level in the sheet/manifest/--set (e.g. --set "
                 f"black_level={sub + lvl:.0f})")  # fmt: skip
+    dark_mean = rec["dark_level_rgb"][c] if rec["dark_level_rgb"] else 0.0
+    if lvl < 0 and reader.dark_black and dark_mean > 0.5 * -lvl:  # the dark frame may be why
+        n, b, src = reader.dark_black[0]
+        what += (f"; or the dark frame {n} (read with black level {_levels_text(b)} DN, source: "
+                 f"{src}; its mean, {dark_mean:.0f} DN above that, is subtracted from every "
+                 "frame) carries a pedestal the other captures do not: give its black_level in "
+                 "the sheet or manifest, or take a dark frame with the same settings")
     msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
-           f"({'RGB'[c]} channel, the frame closest to 0 of {ped['frames']}; limit {lim:.3g} DN): "
+           f"({'RGB'[c]} channel, {which}; limit {lim:.3g} DN): "
            f"{what}")  # fmt: skip
     if mode == "error":
         raise CalibrationError(msg + " (pedestal_check=warn only warns)")

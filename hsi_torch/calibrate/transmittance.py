@@ -102,7 +102,9 @@ def brf_transmittance(
     ``B(p, λ_j) = Σ_c w_jc u_jc(p) B_c(p, λ_j) / Σ_c w_jc u_jc(p)`` with ``w_jc ∝ patch_mean_jc^
     weight_power`` (dim channels contribute little) and ``u_jc(p) = 0`` where the pixel is
     saturated. A pixel is *lit* when ``max_j B(p, λ_j) ≥ lit_threshold``; ``reliable`` is lit and
-    at least one usable channel.
+    at least one usable channel. With ``saturation_level``, a colour with a saturated sample in
+    the patch is not used at that wavelength (the patch mean would be wrong), and saturated
+    samples never enter the patch mean.
 
     Args:
         scan: ``(J, 3, H, W)`` raw-linear images (DN), any float dtype/device.
@@ -159,13 +161,30 @@ def brf_transmittance(
         return xc - (dark[c] if dark.ndim == 3 else dark[:, c])
 
     # one colour at a time: (J, H, W) temporaries, never a second (J, 3, H, W) copy
-    patch = torch.stack([(channel(c) * mask).sum(dim=(-2, -1)) / n_patch for c in range(3)], 1)
+    if saturation_level is None:
+        patch = torch.stack([(channel(c) * mask).sum(dim=(-2, -1)) / n_patch for c in range(3)],
+                            1)  # fmt: skip
+        patch_sat = torch.zeros_like(patch, dtype=torch.bool)
+    else:  # saturated samples never enter the patch mean; such a colour is not used (its
+        # patch mean is unknown: the brightest samples are missing)
+        ok = [(scan[:, c] < saturation_level) & mask for c in range(3)]
+        patch = torch.stack([
+            torch.where(ok[c], channel(c), 0.0).sum(dim=(-2, -1))
+            / ok[c].sum(dim=(-2, -1)).clamp_min(1) for c in range(3)], 1)  # fmt: skip
+        patch_sat = torch.stack([(ok[c] != mask).any(dim=(-2, -1)) for c in range(3)], 1)
+        del ok
     bad = (patch <= 0).all(dim=1)
     if bool(bad.any()):
         raise ValueError(
             f"the BRF-free patch is dark in every colour channel at {wl[bad.cpu()].tolist()} nm"
         )
-    usable_c = patch > 0  # (J, 3)
+    sat_all = patch_sat.all(dim=1)
+    if bool(sat_all.any()):
+        raise ValueError(
+            f"the BRF-free patch is saturated in every colour channel at "
+            f"{wl[sat_all.cpu()].tolist()} nm; reduce the exposure"
+        )
+    usable_c = (patch > 0) & ~patch_sat  # (J, 3)
     w = torch.where(usable_c, patch.clamp_min(0) ** weight_power, torch.zeros_like(patch))
     w = w / w.sum(dim=1, keepdim=True)
     num = torch.zeros((J, H, W), dtype=scan.dtype, device=scan.device)

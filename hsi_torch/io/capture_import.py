@@ -386,6 +386,13 @@ def import_captures(
                 raise InputError(f"{r.where}: scan frame {r.file.name}: wavelength unknown; give "
                                  "it in the sheet's wavelength_nm column, as '<number>nm' in the "
                                  "file name, or with {nm} in the --scan pattern")  # fmt: skip
+            named = wavelength_from_name(r.file.name)
+            if r.wavelength_nm is not None and named is not None and abs(named - lam) > tol_nm:
+                raise InputError(
+                    f"{r.where}: scan frame {r.file.name}: the sheet says {lam:g} nm but the file "
+                    f"name says {named:g} nm; correct the sheet's wavelength_nm cell (an empty "
+                    "cell takes the name's) or the file name"
+                )
             e["wavelength_nm"] = lam
             j = min(range(len(grid)), key=lambda k: abs(grid[k] - lam))
             if abs(grid[j] - lam) <= tol_nm:

@@ -206,6 +206,8 @@ def prepare_capture(
         meta["black_level_source"] = src = "bundle"
     stats["black_level"] = meta.get("black_level")
     stats["black_level_source"] = src
+    # per colour, for the messages: a Bayer cell's 4 values need the pattern to be read so
+    stats["black_level_rgb"] = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
     if capture_exposure(meta)[0] is None and exposure_s is not None:
         meta["exposure_s"] = float(exposure_s)
         meta["exposure_source"] = "config"
@@ -338,7 +340,8 @@ def check_warnings(stats: Mapping[str, Any]) -> list[str]:
     if isinstance(ped, list) and isinstance(lim, list) and len(ped) == len(lim) == 3:
         c = max(range(3), key=lambda i: abs(ped[i]) / max(lim[i], 1e-12))
         if abs(ped[c]) > lim[c]:
-            b = black_level_rgb(stats.get("black_level")) or [0.0, 0.0, 0.0]
+            b = (black_level_rgb(stats.get("black_level_rgb"))
+                 or black_level_rgb(stats.get("black_level")) or [0.0, 0.0, 0.0])  # fmt: skip
             src = stats.get("black_level_source", "?")
             sub = b[c]
             if ped[c] > 0:
