@@ -32,6 +32,7 @@ from matplotlib.figure import Figure
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
 
+from hsi_torch.io.atomic import atomic_write
 from hsi_torch.viewer.data import Spectrum, is_cube_path, read_layers, spectrum_at
 
 __all__ = ["napari_get_reader", "SpectrumWidget", "view"]
@@ -306,8 +307,6 @@ def view(
         widget.canvas.draw()
         img = viewer.screenshot(canvas_only=False, flash=False)
         import matplotlib.image as mpimg  # lazy: only for the screenshot
-
-        from hsi_torch.io.atomic import atomic_write
 
         Path(screenshot).parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(screenshot, "wb") as f:  # an earlier PNG kept until this one is whole
