@@ -33,7 +33,6 @@ state dict of another geometry (views, bands, reference frame, sensor) raises
 from __future__ import annotations
 
 import os
-import warnings
 from typing import Any, NamedTuple
 
 import torch
@@ -147,9 +146,6 @@ class HSIReconstructor(nn.Module):
                      spatial_iters=spatial_iters)  # fmt: skip
         defaults = keyword_defaults(HSIReconstructor.__init__)
         s = settings_or_keywords(settings, given, defaults, given)
-        if settings is None:  # keywords that do nothing here (a run warns once, in its driver)
-            for msg in s.inert():
-                warnings.warn(msg, UserWarning, stacklevel=2)
         #: the settings, grouped and frozen (β and the difference order: the sensing's)
         self.settings = s
         sv, pr = s.solve, s.prior
@@ -258,9 +254,6 @@ class HSIReconstructor(nn.Module):
         flat = {**given, "device": None if device is None else str(device),
                 "dtype": dtype_name(dtype)}  # fmt: skip
         s = settings_or_keywords(settings, given, keyword_defaults(cls.from_bundle), flat)
-        if settings is None:
-            for msg in s.inert():
-                warnings.warn(msg, UserWarning, stacklevel=2)
         b = load_bundle(bundle)
         sens = precompute_sensing(
             b, beta=s.solve.beta, diff_order=s.solve.diff_order, device=s.solve.device,

@@ -40,7 +40,6 @@ from __future__ import annotations
 import math
 import os
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -798,9 +797,6 @@ class Reconstructor:
                         noise_read_e=noise.read_noise_e,
                         noise_quantization_dn=noise.quantization_dn)  # fmt: skip
         s = settings_or_keywords(settings, given, keyword_defaults(Reconstructor.__init__), flat)
-        if settings is None:  # keywords that do nothing here (a run warns once, in its driver)
-            for msg in s.inert():
-                warnings.warn(msg, UserWarning, stacklevel=2)
         #: the settings, grouped and frozen (:class:`~hsi_torch.recon.settings.ReconstructSettings`)
         self.settings = s
         sv, pr = s.solve, s.prior

@@ -33,6 +33,7 @@ import hashlib
 import inspect
 import json
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -490,6 +491,10 @@ def settings_or_keywords(
 ) -> ReconstructSettings:
     """The settings of a constructor that takes either ``settings=`` or its keywords.
 
+    Built from keywords, the keys that have no effect with the others
+    (:meth:`ReconstructSettings.inert`) are a ``UserWarning`` at the constructor's caller;
+    settings given whole are not warned about (a run warns once, in its driver).
+
     Args:
         settings: given whole (then every keyword must be left at its default), or ``None``.
         keywords: the keyword arguments as passed; defaults: their defaults.
@@ -502,7 +507,10 @@ def settings_or_keywords(
         ConfigError: an invalid keyword value (naming it).
     """
     if settings is None:
-        return ReconstructSettings.from_flat(flat)
+        built = ReconstructSettings.from_flat(flat)
+        for msg in built.inert():
+            warnings.warn(msg, UserWarning, stacklevel=3)
+        return built
     if not isinstance(settings, ReconstructSettings):
         raise TypeError(f"settings must be a ReconstructSettings, got {type(settings).__name__}")
     changed = sorted(k for k, v in keywords.items()
