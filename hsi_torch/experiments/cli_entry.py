@@ -108,9 +108,7 @@ def check_experiment_out(out: Path, name: str) -> None:
     """
     from hsi_torch.errors import InputError
 
-    if not out.is_dir():
-        return
-    names = sorted(p.name for p in out.iterdir())
+    names = _entries(out)
     if not names:
         return
     if EXPERIMENT_MARKER in names:
@@ -124,13 +122,9 @@ def check_experiment_out(out: Path, name: str) -> None:
             f"--out {out} holds a run of the experiment {owner[:40]!r}, not {name!r}; this run "
             "would replace files of the same names there: choose a new or empty folder"
         )
-    shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
-    raise InputError(
-        f"--out {out} is not empty ({shown}) and holds no earlier run of the experiment "
-        f"{name!r}; it writes summary.json, manifest.json, tables, figures and "
-        "resolved_config.yaml there and would replace files of those names: choose a new or "
-        "empty folder"
-    )
+    _refuse_not_empty(out, names, f"run of the experiment {name!r}",
+                      "it writes summary.json, manifest.json, tables, figures and "
+                      "resolved_config.yaml")
 
 
 #: Written into ``demo --out`` before anything else: the folder holds a demo run (a rerun may
@@ -151,11 +145,7 @@ def check_demo_out(out: Path) -> None:
     """
     import json
 
-    from hsi_torch.errors import InputError
-
-    if not out.is_dir():
-        return
-    names = sorted(p.name for p in out.iterdir())
+    names = _entries(out)
     if not names or DEMO_MARKER in names:
         return
     try:
@@ -165,11 +155,24 @@ def check_demo_out(out: Path) -> None:
     if isinstance(summary, dict) and "scenes" in summary and ("files" in summary
                                                               or "stages" in summary):
         return  # a demo's summary (quick or --full), written before the marker existed
+    _refuse_not_empty(out, names, "demo run", "the demo writes captures/, calib.npz, "
+                      "summary.json and a cube and previews per scene")
+
+
+def _entries(out: Path) -> list[str]:
+    """The sorted names in the folder ``out`` (none when it is not a folder)."""
+    return sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+
+
+def _refuse_not_empty(out: Path, names: list[str], earlier: str, writes: str) -> None:
+    """The refusal of an ``--out`` folder holding ``names`` but no earlier ``earlier``, whose
+    run ``writes`` files there (an ``InputError`` naming a few of them)."""
+    from hsi_torch.errors import InputError
+
     shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
     raise InputError(
-        f"--out {out} is not empty ({shown}) and holds no earlier demo run; the demo writes "
-        "captures/, calib.npz, summary.json and a cube and previews per scene there and would "
-        "replace files of those names: choose a new or empty folder"
+        f"--out {out} is not empty ({shown}) and holds no earlier {earlier}; {writes} there "
+        "and would replace files of those names: choose a new or empty folder"
     )
 
 
