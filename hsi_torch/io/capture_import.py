@@ -441,7 +441,7 @@ def import_captures(
 
     # the files copied into OUT: none may replace a file the user has there (an identical copy,
     # left by an interrupted import of the same files, is fine)
-    copies: list[tuple[Path, Path]] = []
+    shots: list[tuple[Path, Path]] = []  # (the capture, its copy in OUT) with --copy
     if copy:
         used: set[str] = set()
         for r, e in entries:
@@ -451,23 +451,22 @@ def import_captures(
                 rel = f"{_FOLDERS[r.role]}/{r.file.stem}_{k}{r.file.suffix}"
                 k += 1
             used.add(rel)
-            copies.append((r.file, out / rel))
+            shots.append((r.file, out / rel))
             e["file"] = rel
-    mask_src = None
+    layout_files: list[tuple[Path, Path]] = []  # the nominal layout and its mask
     if lay is not None:
-        copies.append((lay_src, out / NOMINAL_LAYOUT))
+        layout_files.append((lay_src, out / NOMINAL_LAYOUT))
         mask = lay.brf_free_patch.get("usable_mask")
         if mask and (lay_src.parent / mask).is_file():
-            mask_src = lay_src.parent / mask
-            copies.append((mask_src, out / mask))
-    _refuse_users_files(copies, out)
+            layout_files.append((lay_src.parent / mask, out / mask))
+    _refuse_users_files(shots + layout_files, out)
 
     out.mkdir(parents=True, exist_ok=True)
     manifest: dict[str, Any] = {"schema_version": CAPTURE_SET_SCHEMA_VERSION,
                                 "generator": "hsi-torch captures import",
                                 "settings_source": source}  # fmt: skip
     if copy:
-        for src, dst in copies[: len(entries)]:
+        for src, dst in shots:
             dst.parent.mkdir(parents=True, exist_ok=True)
             if not _same_content(src, dst):
                 _atomic_copy(src, dst, stat=True)
@@ -480,11 +479,10 @@ def import_captures(
         manifest["files_root"] = Path(root_ref).as_posix()
         for r, e in entries:
             e["file"] = r.file.resolve().relative_to(common).as_posix()
+    for src, dst in layout_files:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        _copy_unless_same(src, dst)
     if lay is not None:
-        _copy_unless_same(lay_src, out / NOMINAL_LAYOUT)
-        if mask_src is not None:
-            (out / mask).parent.mkdir(parents=True, exist_ok=True)
-            _copy_unless_same(mask_src, out / mask)
         manifest["nominal_layout"] = NOMINAL_LAYOUT
         manifest["sensor_size"] = list(lay.sensor_size)
     manifest["import"] = {

@@ -94,6 +94,8 @@ DATASET_VERSION = 1
 SOURCE_CHUNK = 4096
 _LOCK_NAME = ".hsi_torch.lock"
 _FRAME_VARS = ("cube", "valid", "done", "metadata", "source")
+#: Every array of the store: the frames' and the coordinates.
+_ARRAYS = (*_FRAME_VARS, "wavelength", "y", "x")
 _HINT = "pip install 'hsi-torch[cluster]'"
 
 
@@ -430,8 +432,7 @@ class CubeDataset:
     def _load(self) -> None:
         try:
             self.attrs = _read_json(self.path / ".zattrs")
-            self.meta = {n: _read_json(self.path / n / ".zarray") for n in
-                         ("cube", "valid", "done", "metadata", "source", "wavelength", "y", "x")}
+            self.meta = {n: _read_json(self.path / n / ".zarray") for n in _ARRAYS}
             self._var_attrs = {n: _read_json(self.path / n / ".zattrs") for n in self.meta}
         except (OSError, ValueError) as exc:
             raise FileFormatError(
@@ -627,8 +628,7 @@ def _read_json(path: Path) -> dict[str, Any]:
 
 
 #: The entries of a store folder this module writes (the arrays, the group's metadata, the lock).
-_STORE_ENTRIES = frozenset({"cube", "valid", "done", "metadata", "source", "wavelength", "y", "x",
-                            ".zgroup", ".zattrs", ".zmetadata", _LOCK_NAME})
+_STORE_ENTRIES = frozenset({*_ARRAYS, ".zgroup", ".zattrs", ".zmetadata", _LOCK_NAME})
 
 
 def _refuse_foreign_folder(p: Path) -> None:

@@ -224,8 +224,7 @@ def prepare_capture(
                 # the capture's white level is a guess (the integer type's maximum, 4x the
                 # 14-bit span for a 16-bit file) or unknown: the calibration's span, not a
                 # limit loosened by the guess (a 64 DN pedestal passed a 164 DN limit)
-                black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
-                span = rad.white_level_dn - float(np.mean(black or [0.0]))
+                span = rad.white_level_dn - float(np.mean(stats["black_level_rgb"] or [0.0]))
             stats["pedestal_dn"] = [round(v, 3) for v in st[0]]
             stats["pedestal_limit_dn"] = [round(pedestal_limit(span, s), 3) for s in st[1]]
     cam = CameraIdentity.from_metadata(meta, tuple(img.shape[-2:]) if capture.mosaic is None
