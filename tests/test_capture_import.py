@@ -108,6 +108,14 @@ def _lab_folder(sim: Path, lab: Path) -> Path:
     return sheet
 
 
+def _import_sheet(sheet: Path, rows: list[list[str]], out: Path) -> Path:
+    """Write ``rows`` as the capture sheet ``sheet`` and import it into ``out`` (exit 0)."""
+    with open(sheet, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(out)]) == 0
+    return out
+
+
 def _score(cube: np.ndarray, valid: np.ndarray, truth: dict) -> float:
     """Per-pixel PSNR over the ColorChecker's patch interiors (0.3 mm inside, as the demo)."""
     pidx = truth["colorchecker_patch_index"]
@@ -491,10 +499,7 @@ def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refus
             tifffile.imwrite(lab / r[0], m.astype(np.uint16))
             dng.unlink()
             r[5] = "RGGB"
-    with open(sheet, "w", newline="") as f:
-        csv.writer(f).writerows(rows)
-    capset = tmp_path / "capset"
-    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    capset = _import_sheet(sheet, rows, tmp_path / "capset")
     with pytest.raises(CalibrationError, match=r"reads 51\d\.\d DN .*the 2\d read with black level "
                        r"0 DN \(source: default\): frame_001\.tif.*different black levels.*"
                        r"these captures carry a black pedestal of ~51\d DN; give their "
@@ -504,10 +509,7 @@ def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refus
     for r in rows[1:]:
         if r[1] == "scan":
             r[4] = str(BLACK)
-    with open(sheet, "w", newline="") as f:
-        csv.writer(f).writerows(rows)
-    capset2 = tmp_path / "capset2"
-    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset2)]) == 0
+    capset2 = _import_sheet(sheet, rows, tmp_path / "capset2")
     bundle, report = calibrate_capture_set(capset2, progress=False)
     assert report.pedestal["ok"]
 
@@ -575,10 +577,7 @@ def test_dark_frames_of_different_exposures_are_averaged_with_a_warning(sim: Pat
     write_dng(lab / "Dark/dark_long.dng", m, black_level=BLACK, white_level=WHITE,
               exposure_s=0.5)  # fmt: skip
     rows.append(["Dark/dark_long.dng", "dark", "", "", "", "", ""])
-    with open(sheet, "w", newline="") as f:
-        csv.writer(f).writerows(rows)
-    capset = tmp_path / "capset"
-    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    capset = _import_sheet(sheet, rows, tmp_path / "capset")
     with pytest.warns(UserWarning, match=r"dark frames of different exposures averaged "
                       r"\(.*\(0\.02 s\), dark_long\.dng \(0\.5 s\)\)"):  # fmt: skip
         _, report = calibrate_capture_set(capset, progress=False)
@@ -594,10 +593,7 @@ def test_a_repeated_scan_frame_of_another_wavelength_is_warned_about(sim: Path, 
     rows = list(csv.reader(sheet.open()))
     r560 = next(r for r in rows if r[1] == "scan" and r[2] == "560")
     rows.append([r560[0], "scan", "550", "", "", "", ""])
-    with open(sheet, "w", newline="") as f:
-        csv.writer(f).writerows(rows)
-    capset = tmp_path / "capset"
-    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    capset = _import_sheet(sheet, rows, tmp_path / "capset")
     with pytest.warns(UserWarning, match=rf"scan: {Path(r560[0]).name} differs from "
                       r"frame_\d+\.dng, the frame of the same wavelength it is averaged with, "
                       r"by [23]\d % RMS") as rec:  # fmt: skip
@@ -627,10 +623,7 @@ def test_a_dark_frame_with_a_pedestal_of_its_own_is_named_when_too_much_is_subtr
     dark[0] = str(Path(dark[0]).with_suffix(".png"))
     dark[5] = "RGGB"
     assert cv2.imwrite(str(lab / dark[0]), m.astype(np.uint16))
-    with open(sheet, "w", newline="") as f:
-        csv.writer(f).writerows(rows)
-    capset = tmp_path / "capset"
-    assert main(["captures", "import", "--sheet", str(sheet), "--out", str(capset)]) == 0
+    capset = _import_sheet(sheet, rows, tmp_path / "capset")
     with pytest.raises(CalibrationError, match=r"reads -5\d\d\.\d DN .*too high.*or the dark "
                        r"frame dark_00\.png \(read with black level 0 DN, source: default; its "
                        r"mean, 51\d DN above that"):  # fmt: skip

@@ -173,12 +173,9 @@ def test_demo_into_a_folder_with_the_users_files_is_refused(tmp_path, capsys):
     front, naming them; an earlier demo run (its marker or its summary) may be replaced."""
     from hsi_torch.experiments.cli_entry import DEMO_MARKER, check_demo_out
 
-    lab = tmp_path / "lab"
-    lab.mkdir()
     mine = {"calib.npz": b"my bundle", "summary.json": b'{"mine": 1}',
             "colorchecker.tif": b"my capture"}  # fmt: skip
-    for name, data in mine.items():
-        (lab / name).write_bytes(data)
+    lab = _users_folder(tmp_path / "lab", mine)
     assert main(["demo", "--quick", "--out", str(lab), "--no-progress"]) == 1
     err = capsys.readouterr().err
     assert "is not empty (calib.npz, colorchecker.tif, summary.json)" in err
@@ -275,12 +272,9 @@ def test_experiment_into_a_folder_with_the_users_files_is_refused(tmp_path, caps
     refused."""
     from hsi_torch.experiments import cli_entry as ce
 
-    lab = tmp_path / "lab"
-    lab.mkdir()
     mine = {"summary.json": b'{"mine": 1}', "ranking.csv": b"my table",
             "resolved_config.yaml": b"my: config"}  # fmt: skip
-    for name, data in mine.items():
-        (lab / name).write_bytes(data)
+    lab = _users_folder(tmp_path / "lab", mine)
     ce.register_experiment("nd_tiny", __name__, "_TinyCfg", "_tiny_run")
     ce.register_experiment("nd_other", __name__, "_TinyCfg", "_tiny_run")
     try:
@@ -306,3 +300,11 @@ def test_experiment_into_a_folder_with_the_users_files_is_refused(tmp_path, caps
     finally:
         ce.EXPERIMENTS.pop("nd_tiny")
         ce.EXPERIMENTS.pop("nd_other")
+
+
+def _users_folder(folder: Path, files: dict[str, bytes]) -> Path:
+    """``folder`` holding the user's own ``files`` (name → content)."""
+    folder.mkdir()
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+    return folder
