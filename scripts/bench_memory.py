@@ -13,7 +13,9 @@ prints the peak resident set (RSS) with, at that moment, its two parts:
 * **file-mapped** (``RssFile``): shared libraries and the memory-mapped precomputation cache
   entry (the per-pixel ``G``, ``G⁻¹``, the TV factor). These pages are clean: the kernel drops
   them under memory pressure and reads them back from the file when they are touched again,
-  and processes mapping the same entry (Dask workers on one machine) share them.
+  and processes mapping the same entry (Dask workers on one machine) share them. A TV frame
+  hands back the pages its stages are done with (``precompute_cache.release_pages``), so the
+  entry is not resident all at once.
 
 ``--limits-gib`` then reruns each mode in a Linux memory control group limited to each value
 (cgroup v2 ``memory.max`` or v1 ``memory.limit_in_bytes``, swap off for the group: needs root and

@@ -358,3 +358,92 @@ def test_a_cached_sensing_keeps_the_bundles_stray_light_and_defect_corrections(t
     r2 = rec2.reconstruct_frame(capture)
     assert r2.stats.get("stray_light_veil_dn") == r1.stats.get("stray_light_veil_dn") is not None
     assert torch.equal(torch.nan_to_num(r1.cube, nan=-1.0), torch.nan_to_num(r2.cube, nan=-1.0))
+
+
+def _rss_file_mib() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("RssFile:"):
+                return int(line.split()[1]) / 1024
+    raise AssertionError("no RssFile in /proc/self/status")
+
+
+linux_only = pytest.mark.skipif(not os.path.exists("/proc/self/smaps"),
+                                reason="release_pages reads /proc/self/smaps (Linux)")
+
+
+@linux_only
+def test_release_pages_drops_a_mapped_entrys_pages_and_loses_nothing(tmp_path):
+    """An entry's mapped array read once is resident; released, the process's file-mapped set
+    shrinks by about its size, and read again it gives the same bytes (from the file)."""
+    rng = np.random.default_rng(0)
+    data = rng.random(16 << 20, dtype=np.float32)  # 64 MiB
+    path = tmp_path / "e.hsicache"
+    disk.save_entry(path, "key", {"g": data, "small": np.arange(3)}, {})
+    got = disk.load_entry(path, "key")
+    assert got is not None
+    g = torch.from_numpy(got[0]["g"])  # as the sensing holds it
+    assert float(g.sum()) == pytest.approx(float(data.sum(dtype=np.float64)), rel=1e-4)
+    before = _rss_file_mib()
+    released = disk.release_pages(g)
+    after = _rss_file_mib()
+    assert released >= data.nbytes - 2 * os.sysconf("SC_PAGE_SIZE")
+    assert before - after > 48  # MiB: most of the 64 MiB left the resident set
+    np.testing.assert_array_equal(got[0]["g"], data)  # read back from the file, unchanged
+    assert _rss_file_mib() - after > 48
+
+
+@linux_only
+def test_release_pages_leaves_written_mappings_and_private_memory_alone(tmp_path):
+    """Where dropping pages would lose data it does nothing: a mapping with a copy-on-write page
+    (the array was written to), and private memory (numpy, torch), whose dropped pages would
+    read back as zeros."""
+    path = tmp_path / "e.hsicache"
+    disk.save_entry(path, "key", {"g": np.ones(1 << 20, np.float32)}, {})
+    got = disk.load_entry(path, "key")
+    g = got[0]["g"]
+    g[5] = 7.0  # a copy-on-write page: the file is not changed, this process's copy is
+    assert disk.release_pages(g) == 0
+    assert g[5] == 7.0 and float(g.sum()) == (1 << 20) + 6.0
+    private = np.random.default_rng(1).random(1 << 21)
+    tensor = torch.rand(1 << 21, dtype=torch.float64)
+    keep_np, keep_t = private.copy(), tensor.clone()
+    assert disk.release_pages(private, tensor, None) == 0
+    np.testing.assert_array_equal(private, keep_np)
+    assert torch.equal(tensor, keep_t)
+
+
+def test_a_tv_frame_releases_the_mapped_factors_between_its_stages(bundle_file, tmp_path,
+                                                                     monkeypatch):
+    """A TV frame from a cached bundle hands the per-pixel ``G⁻¹`` and ``G`` and the TV factor to
+    :func:`release_pages` once each stage is done with them, and the cube is the same bit for bit
+    as without releasing (the pages come back from the file)."""
+    from hsi_torch.recon.spatial import _compiled as spatial_compiled
+    from hsi_torch.recon.spatial import problem as spatial_problem
+
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed: the compiled TV path is not used")
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra())
+    real = disk.release_pages
+    calls: list[int] = []
+
+    def recording(*arrays):
+        n = real(*arrays)
+        calls.append(n)
+        return n
+
+    def run() -> torch.Tensor:
+        fresh_process()
+        spatial_problem._FACTORS.clear()
+        rec = Reconstructor(bundle_file, beta=2.0, prior="tv", precompute_cache=str(cache))
+        return rec.reconstruct_frame(capture).cube
+
+    run()  # writes both entries
+    kept = run()  # loads them: mapped
+    monkeypatch.setattr(disk, "release_pages", recording)
+    released = run()
+    assert len(calls) == 3  # G⁻¹ before the spatial solve, G after its start, the TV factor
+    if os.path.exists("/proc/self/smaps"):
+        assert all(n > 0 for n in calls)  # all three were mapped from the entries
+    assert torch.equal(torch.nan_to_num(kept, nan=-1.0), torch.nan_to_num(released, nan=-1.0))

@@ -83,6 +83,7 @@ __all__ = [
     "entry_path",
     "content_sha256",
     "load_entry",
+    "release_pages",
     "save_entry",
 ]
 
@@ -394,6 +395,88 @@ def load_entry(path: str | os.PathLike, key: str) -> tuple[dict[str, np.ndarray]
     except OSError:
         pass
     return arrays, meta
+
+
+_MAPS_LINE = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) \S+ \S+ \S+ (\d+)")
+_MADV_DONTNEED = 4  # Linux
+
+
+def _file_mappings() -> list[tuple[int, int, bool]]:
+    """This process's mappings from ``/proc/self/smaps``: ``(start, end, clean)`` per mapping of
+    a file, ``clean``: no page of it was written (``Anonymous: 0 kB``, no copy-on-write copy)."""
+    out: list[tuple[int, int, bool]] = []
+    cur: list | None = None
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            m = _MAPS_LINE.match(line)
+            if m:
+                cur = [int(m[1], 16), int(m[2], 16), True] if m[3] != "0" else None
+                if cur is not None:
+                    out.append(cur)  # type: ignore[arg-type]
+            elif cur is not None and line.startswith("Anonymous:"):
+                cur[2] = cur[2] and int(line.split()[1]) == 0
+    return [tuple(v) for v in out]  # type: ignore[misc]
+
+
+def release_pages(*arrays: Any) -> int:
+    """Drop this process's resident pages of arrays memory-mapped from an entry
+    (:func:`load_entry`) that it will not read for a while (Linux; elsewhere a no-op).
+
+    The pages stay in the page cache: touched again they come back as minor page faults (no
+    disk read, no copy). Only whole pages inside mappings of a file that hold no written page
+    are dropped, so nothing is lost — the data is read back from the unchanged file; anything
+    else (private memory, a mapping with a copy-on-write page) is left as it is. A full-size
+    TV frame uses it between its stages: the per-pixel ``G``/``G⁻¹`` are not read by the ADMM
+    iterations, nor the TV factor by the next frame's warm start.
+
+    Args:
+        arrays: numpy arrays or CPU tensors (their whole storage), ``None`` skipped.
+
+    Returns:
+        The bytes whose pages were released (0 where nothing was eligible).
+    """
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return 0
+    spans = []
+    for a in arrays:
+        if a is None:
+            continue
+        if hasattr(a, "untyped_storage"):  # a torch tensor: its whole storage
+            if a.device.type != "cpu":
+                continue
+            st = a.untyped_storage()
+            spans.append((st.data_ptr(), st.nbytes()))
+        elif isinstance(a, np.ndarray) and a.flags.c_contiguous:
+            spans.append((a.__array_interface__["data"][0], a.nbytes))
+    page = os.sysconf("SC_PAGE_SIZE")
+    spans = [(-(-s // page) * page, (s + n) // page * page) for s, n in spans]
+    spans = [(s, e) for s, e in spans if e > s]
+    if not spans:
+        return 0
+    try:
+        import ctypes
+
+        maps = _file_mappings()
+        madvise = ctypes.CDLL(None, use_errno=True).madvise
+    except (OSError, AttributeError):  # pragma: no cover - no /proc or no madvise
+        return 0
+    madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+    done = 0
+    for s, e in spans:
+        pos = s
+        for ms, me, clean in maps:  # sorted by address: the mappings covering [s, e)
+            if me <= pos or ms >= e:
+                continue
+            if ms > pos or not clean:
+                break
+            pos = min(me, e)
+            if pos == e:
+                break
+        if pos == e and madvise(s, e - s, _MADV_DONTNEED) == 0:
+            done += e - s
+    return done
 
 
 # ---------------------------------------------------------------------------------- writing

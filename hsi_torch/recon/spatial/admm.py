@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon._numba import threads
 from hsi_torch.recon.nnls._threads import cpu_threads
 from hsi_torch.recon.spatial import _compiled as compiled
@@ -173,6 +174,9 @@ def _solve_spatial(
                                   kernel_threads)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
+            # the TV factor is not read again until the next frame's ADMM: its pages of the
+            # mapped precomputation cache leave the resident set (the warm start is next)
+            disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
             return SpatialResult(z_out, it, done, prim, dual, lam_f, rho)
     if backend == "compiled" and iters is None:
@@ -315,6 +319,9 @@ class _CompiledStep:
         self.b, self.z, self.u = compiled.start_state(
             np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
             np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho)
+        # G is not read by the iterations: its pages of a mapped cache entry leave the
+        # resident set while the ADMM state exists (the next frame reads them back)
+        disk.release_pages(problem.gram)
         self.x = np.zeros_like(self.z)
         self.x2, self.u2, self.z2 = (np.empty_like(self.z) for _ in range(3))
         self.z_prev = self.z

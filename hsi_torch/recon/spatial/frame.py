@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch.forward_model import SensingModel
+from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.nnls import _compiled as nnls_compiled
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.spatial.admm import solve_spatial
@@ -141,6 +142,9 @@ def _solve_frame(
         else:
             lam, extra = 0.0, {"lam_rule": f"{lam} (no noise estimate: lam = 0)"}
     lam_abs = lam * scale
+    # the per-pixel G⁻¹ is not read by the spatial solve: its pages of a mapped precomputation
+    # cache entry leave the resident set until the next frame's warm start
+    disk.release_pages(prob.gram_inv)
     res = solve_spatial(sp, b, lam_abs, x0=x0, tol=tol, max_iter=max_iter, iters=iters,
                         inner_iters=inner_iters, brightness_weight=alpha)
     info = {
