@@ -402,9 +402,14 @@ def test_release_pages_leaves_written_mappings_and_private_memory_alone(tmp_path
     disk.save_entry(path, "key", {"g": np.ones(1 << 20, np.float32)}, {})
     got = disk.load_entry(path, "key")
     g = got[0]["g"]
-    g[5] = 7.0  # a copy-on-write page: the file is not changed, this process's copy is
+    g[1 << 19] = 7.0  # a copy-on-write page: the file is not changed, this process's copy is
     assert disk.release_pages(g) == 0
-    assert g[5] == 7.0 and float(g.sum()) == (1 << 20) + 6.0
+    assert g[1 << 19] == 7.0 and float(g.sum()) == (1 << 20) + 6.0
+    g2 = disk.load_entry(path, "key")[0]["g"]  # a fresh mapping, written in its first bytes only
+    g2[0] = 5.0
+    released = disk.release_pages(g2)  # the whole pages after the written one may go
+    assert g2[0] == 5.0 and float(g2.sum()) == (1 << 20) + 4.0
+    assert released <= g2.nbytes - os.sysconf("SC_PAGE_SIZE")
     private = np.random.default_rng(1).random(1 << 21)
     tensor = torch.rand(1 << 21, dtype=torch.float64)
     keep_np, keep_t = private.copy(), tensor.clone()

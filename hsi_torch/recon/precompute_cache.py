@@ -57,6 +57,7 @@ import os
 import re
 import shutil
 import struct
+import sys
 import threading
 import warnings
 import zlib
@@ -401,21 +402,32 @@ _MAPS_LINE = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) \S+ \S+ \S+ (\d+)")
 _MADV_DONTNEED = 4  # Linux
 
 
-def _file_mappings() -> list[tuple[int, int, bool]]:
-    """This process's mappings from ``/proc/self/smaps``: ``(start, end, clean)`` per mapping of
-    a file, ``clean``: no page of it was written (``Anonymous: 0 kB``, no copy-on-write copy)."""
-    out: list[tuple[int, int, bool]] = []
-    cur: list | None = None
-    with open("/proc/self/smaps") as f:
+def _file_mappings() -> list[tuple[int, int]]:
+    """This process's mappings of files, ``(start, end)``, from ``/proc/self/maps``."""
+    out = []
+    with open("/proc/self/maps") as f:
         for line in f:
             m = _MAPS_LINE.match(line)
-            if m:
-                cur = [int(m[1], 16), int(m[2], 16), True] if m[3] != "0" else None
-                if cur is not None:
-                    out.append(cur)  # type: ignore[arg-type]
-            elif cur is not None and line.startswith("Anonymous:"):
-                cur[2] = cur[2] and int(line.split()[1]) == 0
-    return [tuple(v) for v in out]  # type: ignore[misc]
+            if m and m[3] != "0":
+                out.append((int(m[1], 16), int(m[2], 16)))
+    return out
+
+
+def _unwritten(start: int, end: int, page: int) -> bool:
+    """No page of ``[start, end)`` holds data of its own: every page present in memory is the
+    file's page (``/proc/self/pagemap`` bit 61), none is swapped out (bit 62) — a page written to
+    in a copy-on-write mapping is an anonymous copy and fails this."""
+    try:
+        with open("/proc/self/pagemap", "rb") as f:
+            f.seek(start // page * 8)
+            entries = np.frombuffer(f.read((end - start) // page * 8), np.uint64)
+    except OSError:  # pragma: no cover - no pagemap here: nothing is released
+        return False
+    if entries.shape[0] != (end - start) // page:  # pragma: no cover - a short read
+        return False
+    flags = entries >> np.uint64(61)  # bit 0: file page, 1: swapped, 2: present
+    own = ((flags & np.uint64(4)) != 0) & ((flags & np.uint64(1)) == 0)
+    return not bool(own.any() or ((flags & np.uint64(2)) != 0).any())
 
 
 def release_pages(*arrays: Any) -> int:
@@ -423,11 +435,12 @@ def release_pages(*arrays: Any) -> int:
     (:func:`load_entry`) that it will not read for a while (Linux; elsewhere a no-op).
 
     The pages stay in the page cache: touched again they come back as minor page faults (no
-    disk read, no copy). Only whole pages inside mappings of a file that hold no written page
-    are dropped, so nothing is lost — the data is read back from the unchanged file; anything
-    else (private memory, a mapping with a copy-on-write page) is left as it is. A full-size
-    TV frame uses it between its stages: the per-pixel ``G``/``G⁻¹`` are not read by the ADMM
-    iterations, nor the TV factor by the next frame's warm start.
+    disk read, no copy). Only whole pages inside mappings of a file are dropped, and only where no
+    page of the range was written (``/proc/self/pagemap``: every resident page is the file's,
+    none a copy-on-write copy or swapped out), so nothing is lost — the data is read back from the
+    unchanged file; anything else (private memory, a written mapping) is left as it is. A
+    full-size TV frame uses it between its stages: the per-pixel ``G``/``G⁻¹`` are not read by
+    the ADMM iterations, nor the TV factor by the next frame's warm start. Cost: ≈ 5 ms a GiB.
 
     Args:
         arrays: numpy arrays or CPU tensors (their whole storage), ``None`` skipped.
@@ -435,8 +448,6 @@ def release_pages(*arrays: Any) -> int:
     Returns:
         The bytes whose pages were released (0 where nothing was eligible).
     """
-    import sys
-
     if not sys.platform.startswith("linux"):
         return 0
     spans = []
@@ -466,15 +477,15 @@ def release_pages(*arrays: Any) -> int:
     done = 0
     for s, e in spans:
         pos = s
-        for ms, me, clean in maps:  # sorted by address: the mappings covering [s, e)
+        for ms, me in maps:  # sorted by address: the file mappings must cover [s, e)
             if me <= pos or ms >= e:
                 continue
-            if ms > pos or not clean:
+            if ms > pos:
                 break
             pos = min(me, e)
             if pos == e:
                 break
-        if pos == e and madvise(s, e - s, _MADV_DONTNEED) == 0:
+        if pos == e and _unwritten(s, e, page) and madvise(s, e - s, _MADV_DONTNEED) == 0:
             done += e - s
     return done
 
