@@ -125,18 +125,6 @@ def incomplete_run(out: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _file_states(folder: Path) -> dict[str, tuple[int, int]]:
-    """Every file below ``folder`` (relative path → size and modification time in ns)."""
-    states: dict[str, tuple[int, int]] = {}
-    for root, _dirs, files in os.walk(folder):
-        for name in files:
-            p = Path(root) / name
-            with contextlib.suppress(OSError):
-                st = p.stat()
-                states[p.relative_to(folder).as_posix()] = (st.st_size, st.st_mtime_ns)
-    return states
-
-
 def _clean_temp_files_below(folder: Path) -> None:
     """Remove the temporary files that killed writers left in ``folder`` and its sub-folders."""
     from hsi_torch.io.atomic import clean_stale_temp_files
@@ -176,6 +164,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     from hsi_torch.cli_common import config_source, load_args_config
     from hsi_torch.console import info
     from hsi_torch.io.atomic import InputFiles, clean_stale_temp_files, replace_then_commit
+    from hsi_torch.io.paths import file_states
     from hsi_torch.simulate.capture_sets import simulate_capture_set
     from hsi_torch.simulate.config import SimulateConfig
 
@@ -199,18 +188,18 @@ def run_simulate(args: argparse.Namespace) -> int:
               f"(--overwrite)", file=sys.stderr)
         info(summary.report())
         return 0
-    before: dict[str, tuple[int, int]] = {}
+    before: dict[str, tuple[int, int, int]] = {}
     if mode == "resume":  # an interrupted run's folder: its files are this command's own
         _refuse_inputs_inside(out, input_files)
         _clean_temp_files_below(out)
-        before = _file_states(out)
+        before = file_states(out)
         before.pop(INCOMPLETE_MARKER, None)
         print(f"hsi-torch: --out {out} holds an incomplete earlier simulate run "
               f"({len(before)} file(s)); writing the set into it again", file=sys.stderr)
     with incomplete_run(out):
         summary = simulate_capture_set(cfg, out, device=device, log=log)
     if before:
-        after = _file_states(out)
+        after = file_states(out)
         left = sorted(k for k, v in before.items() if after.get(k) == v)
         if left:
             shown = ", ".join(left[:5]) + (", ..." if len(left) > 5 else "")
