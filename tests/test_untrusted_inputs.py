@@ -319,6 +319,15 @@ def test_simulate_rerun_after_an_interruption_finishes_without_overwrite(tmp_pat
         assert "being written by another simulate run" in capsys.readouterr().err
     finally:
         os.close(fd)
+    # a folder found empty that another run wrote into before the marker was taken: refused
+    from hsi_torch.simulate.cli_entry import incomplete_run
+
+    (tmp_path / "sim3").mkdir()
+    (tmp_path / "sim3" / "manifest.json").write_text("{}")
+    with pytest.raises(InputError, match="written by another simulate run"):
+        with incomplete_run(tmp_path / "sim3", fresh=True):
+            raise AssertionError("not reached")
+    assert [p.name for p in (tmp_path / "sim3").iterdir()] == ["manifest.json"]
 
 
 # ---------------------------------------------------------------------------------------------

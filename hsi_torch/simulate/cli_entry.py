@@ -82,7 +82,7 @@ def _only_marker_left(out: Path) -> bool:
 
 
 @contextlib.contextmanager
-def incomplete_run(out: Path) -> Iterator[None]:
+def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
     """Mark ``out`` as holding an incomplete simulate run while the block runs.
 
     Writes :data:`INCOMPLETE_MARKER` (this process's id, flushed to the disk before any output
@@ -90,8 +90,15 @@ def incomplete_run(out: Path) -> Iterator[None]:
     set is complete). When the block raises, the marker stays if any output was written (the
     folder is an incomplete run: a rerun may finish it) and is removed if none was.
 
+    Args:
+        out: the output folder (created if needed).
+        fresh: ``out`` was found new or empty (``False``: it holds an incomplete run); once the
+            lock is held this is checked again, so that a concurrent run's files are never
+            written over.
+
     Raises:
-        InputError: another run holds the marker's lock (the message names its process).
+        InputError: another run holds the marker's lock (the message names its process), or
+            wrote into ``out`` since it was checked.
     """
     from hsi_torch.errors import InputError
     from hsi_torch.io.atomic import lock_or_refuse, mark_lock_holder
@@ -99,7 +106,12 @@ def incomplete_run(out: Path) -> Iterator[None]:
 
     ensure_out_dir(out)
     path = out / INCOMPLETE_MARKER
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+        created = True
+    except FileExistsError:
+        fd = os.open(path, os.O_RDWR)
+        created = False
     lock_or_refuse(fd, lambda holder: (
         f"--out {out} is being written by another simulate run (process {holder}) right now; "
         "run again when it has finished, or choose another folder"))
@@ -108,9 +120,11 @@ def incomplete_run(out: Path) -> Iterator[None]:
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
             same = False
-        if not same:
-            raise InputError(f"--out {out} was completed by another simulate run while this one "
-                             "started; choose another folder, or --overwrite")  # fmt: skip
+        if not same or (fresh and not _only_marker_left(out)):
+            if same and created:
+                path.unlink()
+            raise InputError(f"--out {out} was written by another simulate run while this one "
+                             "started; run again")  # fmt: skip
         mark_lock_holder(fd)
         os.fsync(fd)
         try:
@@ -196,7 +210,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         before.pop(INCOMPLETE_MARKER, None)
         print(f"hsi-torch: --out {out} holds an incomplete earlier simulate run "
               f"({len(before)} file(s)); writing the set into it again", file=sys.stderr)
-    with incomplete_run(out):
+    with incomplete_run(out, fresh=mode == "new"):
         summary = simulate_capture_set(cfg, out, device=device, log=log)
     if before:
         after = file_states(out)
