@@ -22,6 +22,10 @@ Usage::
     hsi-torch bench simulate --config simulate
 
 Full-size runs need about 4 GB of memory and a few minutes on 2 cores.
+
+``--out`` must be new, empty, or an earlier run's folder of this script (its marker
+``.hsi_torch_bench_simulate``, written before anything else): a folder holding other files is
+refused, naming a few of them, as ``hsi-torch demo`` and ``experiment`` refuse theirs.
 """
 
 from __future__ import annotations
@@ -41,6 +45,10 @@ from hsi_torch.resources import shipped_config  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIGS = [shipped_config("simulate"), shipped_config("simulate_full")]
 STAGES = ("setup", "trace+render", "sensor+write", "truth", "figures")
+
+#: Written into ``--out`` before anything else: the folder holds this script's outputs (a rerun
+#: may write into it again, also after an interrupted run).
+BENCH_MARKER = ".hsi_torch_bench_simulate"
 
 
 # =============================================================================================
@@ -134,6 +142,26 @@ def _print_table(results: list[dict]) -> None:
               f"{b['peak_rss_gib'] / a['peak_rss_gib']:.1f}x the peak RSS")
 
 
+def _check_out(out: Path, configs: list[Path]) -> None:
+    """Refuse an ``--out`` that holds files but no earlier run of this script (the refusal of
+    ``hsi-torch demo`` and ``experiment``); then create it and write :data:`BENCH_MARKER`."""
+    from hsi_torch.errors import HSIError
+    from hsi_torch.experiments.cli_entry import _entries, _refuse_not_empty
+    from hsi_torch.io.atomic import atomic_write_text
+    from hsi_torch.io.paths import check_out_dir, ensure_out_dir
+
+    try:
+        check_out_dir(out)
+        names = _entries(out)
+        if names and BENCH_MARKER not in names:
+            _refuse_not_empty(out, names, "run of bench_simulate.py", "it writes a capture set "
+                              f"per config ({', '.join(f'{c.stem}/' for c in configs)})")
+        ensure_out_dir(out)
+        atomic_write_text(out / BENCH_MARKER, "a folder written by scripts/bench_simulate.py\n")
+    except (HSIError, ValueError, OSError) as exc:
+        raise SystemExit(f"bench_simulate.py: error: {exc}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -142,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every run (as in hsi-torch simulate)")
     ap.add_argument("--out", type=Path, default=None,
-                    help="output folder (one sub-folder per config); default: a temporary folder")
+                    help="output folder (one sub-folder per config; new, empty or this script's "
+                         "own): default: a temporary folder")
     ap.add_argument("--keep", action="store_true", help="keep the outputs (always with --out)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads in the child")
     ap.add_argument("--child", nargs=3, metavar=("CONFIG", "OUT", "REPORT"), help=argparse.SUPPRESS)
@@ -154,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     for c in configs:
         if not c.is_file():
             ap.error(f"config not found: {c}")
+    if args.out is not None:
+        _check_out(args.out, configs)
     base = args.out if args.out is not None else Path(tempfile.mkdtemp(prefix="bench_simulate_"))
     keep = args.keep or args.out is not None
     results = []

@@ -135,3 +135,37 @@ def test_bench_simulate_reports_stages_and_peak_memory(tmp_path: Path, capsys):
     peak = float(row.split()[-1])
     assert 0.1 < peak < 4.0  # GiB of the child (torch alone is > 0.1)
     assert (tmp_path / "b" / "simulate" / "manifest.json").is_file()  # --out keeps the set
+
+
+def test_bench_simulate_refuses_a_folder_it_did_not_write(tmp_path: Path):
+    """``scripts/bench_simulate.py --out lab`` wrote its capture set into ``lab/simulate/``
+    whatever ``lab`` held (a lab's own ``simulate/manifest.json`` was replaced). Now a folder
+    holding files but no earlier run of the script is refused before anything runs, naming
+    them, as ``demo`` and ``experiment`` refuse theirs; its own earlier folder is accepted."""
+    import runpy
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_simulate.py"
+    bench = runpy.run_path(str(script))
+    lab = tmp_path / "lab"
+    (lab / "simulate").mkdir(parents=True)
+    (lab / "simulate" / "manifest.json").write_text('{"device": true}')
+    (lab / "notes.txt").write_text("the lab's")
+    ran: list[Path] = []
+
+    def fake_run_one(config, out, overrides, threads):
+        ran.append(out)
+        raise RuntimeError("the benchmark ran")
+
+    bench["main"].__globals__["_run_one"] = fake_run_one  # no child process in this test
+    args = ["--config", str(shipped_config("simulate")), "--out"]
+    with pytest.raises(SystemExit, match="is not empty \\(notes.txt, simulate\\) and holds no "
+                                         "earlier run of bench_simulate.py"):  # fmt: skip
+        bench["main"]([*args, str(lab)])
+    assert not ran
+    assert (lab / "simulate" / "manifest.json").read_text() == '{"device": true}'
+    assert sorted(p.name for p in lab.iterdir()) == ["notes.txt", "simulate"]
+    # a new folder, then the same folder again (the script's own marker): the benchmark runs
+    for _ in range(2):
+        with pytest.raises(RuntimeError, match="the benchmark ran"):
+            bench["main"]([*args, str(tmp_path / "mine")])
+    assert ran == [tmp_path / "mine" / "simulate"] * 2

@@ -302,6 +302,70 @@ def test_experiment_into_a_folder_with_the_users_files_is_refused(tmp_path, caps
         ce.EXPERIMENTS.pop("nd_other")
 
 
+def _runs_tiny(cfg: _TinyCfg, out: Path, *, device=None) -> dict:
+    (out / "summary.json").write_text(f'{{"n": {cfg.n}}}')
+    if cfg.n == 1:
+        (out / "extra.csv").write_text("only the first run writes this\n")
+    return {}
+
+
+def _runs_tiny_interrupted(cfg: _TinyCfg, out: Path, *, device=None) -> dict:
+    (out / "summary.json").write_text(f'{{"n": {cfg.n}, "partial": true}}')
+    raise KeyboardInterrupt  # Ctrl-C after the first file
+
+
+def test_an_interrupted_experiment_rerun_marks_the_folder_incomplete(tmp_path, capsys):
+    """``experiment NAME --out DIR`` rerun and interrupted midway left a mix of the new run's
+    and the earlier run's files with nothing saying so. Now ``INCOMPLETE_RUN.json`` marks the
+    folder until a run completes and lists the files that were there before it started (the
+    earlier run's, with size and modification time: a changed one is the new run's); a run
+    that completes removes it and records in ``experiment_run.json`` which files it wrote and
+    which are left from an earlier run."""
+    import json
+    import os
+
+    from hsi_torch.experiments import cli_entry as ce
+
+    out = tmp_path / "out"
+    argv = ["experiment", "nd_runs", "--out", str(out)]
+    ce.register_experiment("nd_runs", __name__, "_TinyCfg", "_runs_tiny")
+    try:
+        assert main(argv) == 0
+        first = json.loads((out / "experiment_run.json").read_text())
+        assert first["state"] == "complete"
+        assert first["written"] == ["extra.csv", "resolved_config.yaml", "summary.json"]
+        assert not (out / "INCOMPLETE_RUN.json").exists()
+
+        ce.register_experiment("nd_runs", __name__, "_TinyCfg", "_runs_tiny_interrupted")
+        assert main([*argv, "--set", "n=2"]) == 130
+        mark = json.loads((out / "INCOMPLETE_RUN.json").read_text())  # used not to exist
+        assert mark["state"] == "incomplete" and mark["experiment"] == "nd_runs"
+        before = mark["files_before"]
+        assert sorted(before) == ["extra.csv", "resolved_config.yaml", "summary.json"]
+
+        def unchanged(name: str) -> bool:
+            st = os.stat(out / name)
+            return (st.st_size, st.st_mtime_ns) == (before[name]["size"],
+                                                    before[name]["mtime_ns"])  # fmt: skip
+
+        assert unchanged("extra.csv") and unchanged("resolved_config.yaml")
+        assert not unchanged("summary.json")  # the interrupted run's
+
+        ce.register_experiment("nd_runs", __name__, "_TinyCfg", "_runs_tiny")
+        capsys.readouterr()
+        assert main([*argv, "--set", "n=2"]) == 0
+        cap = capsys.readouterr()
+        assert "holds 3 file(s) of an earlier interrupted run" in cap.err
+        assert "1 file(s) are from an earlier run and were not rewritten" in cap.out
+        assert not (out / "INCOMPLETE_RUN.json").exists()
+        rec = json.loads((out / "experiment_run.json").read_text())
+        assert rec["written"] == ["resolved_config.yaml", "summary.json"]
+        assert rec["from_earlier_runs"] == ["extra.csv"]
+        assert json.loads((out / "summary.json").read_text()) == {"n": 2}
+    finally:
+        ce.EXPERIMENTS.pop("nd_runs")
+
+
 def _users_folder(folder: Path, files: dict[str, bytes]) -> Path:
     """``folder`` holding the user's own ``files`` (name → content)."""
     folder.mkdir()

@@ -266,6 +266,70 @@ def test_simulate_overwrite_replaces_only_when_complete(tmp_path, capsys):
     assert len(read_capture_set(d).scan) == 1
 
 
+def test_simulate_rerun_after_an_interruption_finishes_without_overwrite(tmp_path, monkeypatch,
+                                                                         capsys):  # fmt: skip
+    """A ``simulate`` stopped part-way (Ctrl-C after its captures were written) left a partial
+    folder, and the same command then refused it unless ``--overwrite`` was given. Now the
+    folder is marked as an incomplete run of simulate until the set is complete: the rerun
+    finishes it without ``--overwrite``, deletes nothing (a file the tool did not write is kept
+    and named), a run still writing the folder makes it refuse, and a complete set is still
+    refused."""
+    import fcntl
+
+    from hsi_torch.io.capture_set import read_capture_set
+    from hsi_torch.simulate import capture_sets
+
+    real_write_truth = capture_sets.write_truth
+
+    def interrupted_run(d: Path) -> None:
+        def stop(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(capture_sets, "write_truth", stop)  # after the captures
+        assert main(["simulate", "--out", str(d), *_TINY]) == 130
+        monkeypatch.setattr(capture_sets, "write_truth", real_write_truth)
+        assert (d / "scan" / "scan_550nm.tif").is_file() and not (d / "manifest.json").exists()
+
+    d = tmp_path / "sim"
+    interrupted_run(d)
+    (d / "notes.txt").write_text("the user's own notes")  # not the tool's: never deleted
+    capsys.readouterr()
+    assert main(["simulate", "--out", str(d), *_TINY]) == 0  # used to refuse: "not empty"
+    err = capsys.readouterr().err
+    assert "holds an incomplete earlier simulate run" in err
+    assert "left in place: notes.txt" in err
+    assert (d / "notes.txt").read_text() == "the user's own notes"
+    assert len(read_capture_set(d).scan) == 1
+    assert not [p for p in d.rglob("*") if p.name.endswith(".tmp")]
+    assert [p.name for p in d.iterdir() if p.name.startswith(".")] == []  # no marker left
+    # the complete set carries no marker: refused without --overwrite as before
+    assert main(["simulate", "--out", str(d), *_TINY]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+
+    # another run still holding an incomplete folder: refused, naming it
+    from hsi_torch.simulate.cli_entry import INCOMPLETE_MARKER
+
+    d2 = tmp_path / "sim2"
+    interrupted_run(d2)
+    fd = os.open(d2 / INCOMPLETE_MARKER, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        capsys.readouterr()
+        assert main(["simulate", "--out", str(d2), *_TINY]) == 1
+        assert "being written by another simulate run" in capsys.readouterr().err
+    finally:
+        os.close(fd)
+    # a folder found empty that another run wrote into before the marker was taken: refused
+    from hsi_torch.simulate.cli_entry import incomplete_run
+
+    (tmp_path / "sim3").mkdir()
+    (tmp_path / "sim3" / "manifest.json").write_text("{}")
+    with pytest.raises(InputError, match="written by another simulate run"):
+        with incomplete_run(tmp_path / "sim3", fresh=True):
+            raise AssertionError("not reached")
+    assert [p.name for p in (tmp_path / "sim3").iterdir()] == ["manifest.json"]
+
+
 # ---------------------------------------------------------------------------------------------
 # the run's Zarr store: read only with its own codecs
 

@@ -13,6 +13,13 @@ imported only when its experiment runs. A run function has the signature
 into ``out``; this entry point loads and validates the config (``--config``, ``--set``), calls
 it and writes ``out/resolved_config.yaml``.
 
+A run into a folder that holds an earlier run writes its files in place (experiments such as
+``mismatch`` reuse what an earlier or interrupted run left there), so until it completes the
+folder is marked: :data:`INCOMPLETE_FILE` is written before the experiment starts, listing the
+files already there (from earlier runs) with their size and modification time, and removed when
+the run is complete; :data:`RUN_RECORD` then lists the files the run wrote and those it left from
+an earlier run (see ``docs/experiments.md``).
+
 To add an experiment, add a line to :data:`EXPERIMENTS` (or call :func:`register_experiment`).
 """
 
@@ -20,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -72,6 +80,7 @@ def run_experiment(args: argparse.Namespace) -> int:
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
+    from hsi_torch.io.atomic import atomic_write_text
     from hsi_torch.io.paths import ensure_out_dir
 
     schema, run = resolve_experiment(args.name)
@@ -79,14 +88,98 @@ def run_experiment(args: argparse.Namespace) -> int:
     out = Path(args.out)
     check_experiment_out(out, args.name)
     out = ensure_out_dir(out)
-    (out / EXPERIMENT_MARKER).write_text(f"{args.name}\n", encoding="utf-8")
+    atomic_write_text(out / EXPERIMENT_MARKER, f"{args.name}\n")
+    run_state = start_experiment_run(out, args.name)
+    if run_state["files_before"]:
+        info(f"--out {out} holds {len(run_state['files_before'])} file(s) of an earlier "
+             f"{'interrupted ' if run_state['earlier_run_incomplete'] else ''}run; this run "
+             f"writes over them in place, and {INCOMPLETE_FILE} marks the folder incomplete "
+             "until it has finished", file=sys.stderr)  # fmt: skip
     t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
+    record = finish_experiment_run(out, run_state)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
+    kept = record["from_earlier_runs"]
+    left = (f"; {len(kept)} file(s) are from an earlier run and were not rewritten by this one "
+            f"(listed in {RUN_RECORD}): {', '.join(kept[:5])}{', ...' if len(kept) > 5 else ''}"
+            if kept else "")  # fmt: skip
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
-         f"{len(files)} files in {out}: {', '.join(files)}")  # fmt: skip
+         f"{len(files)} files in {out}: {', '.join(files)}{left}")  # fmt: skip
     return 0
+
+
+#: Written into ``experiment NAME --out`` before the experiment starts and removed when its run
+#: is complete: a folder holding it holds a run that has not finished (still running, or
+#: interrupted), and it says which files are from an earlier run.
+INCOMPLETE_FILE = "INCOMPLETE_RUN.json"
+
+#: Written into ``experiment NAME --out`` when a run completes: when it ran, the files it wrote
+#: and the files from an earlier run that it left as they were.
+RUN_RECORD = "experiment_run.json"
+
+_STATUS_FILES = (INCOMPLETE_FILE, RUN_RECORD)
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def _earlier_files(out: Path) -> dict[str, tuple[int, int, int]]:
+    """The files below ``out`` other than the marker and the run's status files."""
+    from hsi_torch.io.paths import file_states
+
+    return {k: v for k, v in file_states(out).items()
+            if k not in _STATUS_FILES and k != EXPERIMENT_MARKER}  # fmt: skip
+
+
+def start_experiment_run(out: Path, name: str) -> dict[str, Any]:
+    """Mark ``out`` incomplete before the experiment ``name`` writes there: write
+    :data:`INCOMPLETE_FILE` (atomically) with the start time, this process and every file
+    already there (``files_before``: relative path → size, modification time in ns and inode).
+    Returns what was written (passed on to :func:`finish_experiment_run`)."""
+    import os
+
+    from hsi_torch.io.atomic import atomic_write_json
+
+    before = _earlier_files(out)
+    state: dict[str, Any] = {
+        "experiment": name,
+        "state": "incomplete",
+        "note": (f"this run of 'hsi-torch experiment {name}' has not finished: it is still "
+                 "running, or it was interrupted. A file listed under files_before whose size "
+                 "and modification time are unchanged is from an earlier run; every other file "
+                 "was written by this run. Run the same command again to complete it; this file "
+                 "is removed when a run completes."),
+        "started": _now(),
+        "pid": os.getpid(),
+        "earlier_run_incomplete": (out / INCOMPLETE_FILE).is_file(),
+        "files_before": {k: {"size": v[0], "mtime_ns": v[1], "inode": v[2]}
+                         for k, v in sorted(before.items())},
+    }  # fmt: skip
+    atomic_write_json(out / INCOMPLETE_FILE, state)
+    return state
+
+
+def finish_experiment_run(out: Path, state: dict[str, Any]) -> dict[str, Any]:
+    """The run that :func:`start_experiment_run` began is complete: write :data:`RUN_RECORD`
+    (``written``: files new or changed since the start; ``from_earlier_runs``: files already
+    there that are unchanged), then remove :data:`INCOMPLETE_FILE`. Returns the record."""
+    from hsi_torch.io.atomic import atomic_write_json
+
+    before = {k: (v["size"], v["mtime_ns"], v["inode"]) for k, v in state["files_before"].items()}
+    after = _earlier_files(out)
+    record = {
+        "experiment": state["experiment"],
+        "state": "complete",
+        "started": state["started"],
+        "finished": _now(),
+        "written": sorted(k for k, v in after.items() if before.get(k) != v),
+        "from_earlier_runs": sorted(k for k, v in after.items() if before.get(k) == v),
+    }
+    atomic_write_json(out / RUN_RECORD, record)
+    (out / INCOMPLETE_FILE).unlink(missing_ok=True)
+    return record
 
 
 #: Written into ``experiment NAME --out`` before the experiment runs, holding ``NAME``: the folder

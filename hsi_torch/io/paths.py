@@ -4,7 +4,8 @@
 :func:`check_input_name` refuses a name that cannot name outputs (not valid UTF-8),
 :func:`check_out_dir` / :func:`ensure_out_dir` check and create the output folder, and
 :func:`output_paths` names the files a reconstruction writes for one input (``DIR/<stem>.tif``,
-``<stem>_preview.png``, ...). Every command that takes inputs or an output folder uses these.
+``<stem>_preview.png``, ...), and :func:`file_states` tells which files of an output folder a
+rerun wrote. Every command that takes inputs or an output folder uses these.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ __all__ = [
     "check_out_dir",
     "ensure_out_dir",
     "output_paths",
+    "file_states",
     "CUBE_SUFFIXES",
 ]
 
@@ -148,3 +150,25 @@ def output_paths(
     if spectra:
         out.append(named("_spectra.png"))
     return out
+
+
+def file_states(folder: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
+    """Every file below ``folder`` (recursively; symlinks not followed into folders): relative
+    path (``/``-separated) → ``(size, modification time in ns, inode)``. Taken before and after
+    a run, a path whose state is unchanged was not written by the run (an atomic write makes a
+    new inode). A missing folder gives ``{}``; this package's temporary files are left out."""
+    from hsi_torch.io.atomic import TEMP_FILE_RE  # lazy: atomic imports numpy
+
+    root = Path(folder)
+    states: dict[str, tuple[int, int, int]] = {}
+    for dirpath, _dirs, files in os.walk(root):
+        for name in files:
+            if TEMP_FILE_RE.match(name):
+                continue
+            p = Path(dirpath) / name
+            try:
+                st = p.stat()
+            except OSError:
+                continue
+            states[p.relative_to(root).as_posix()] = (st.st_size, st.st_mtime_ns, st.st_ino)
+    return states
