@@ -37,11 +37,17 @@ published tables):
 =================  ==============================================================================
 
 ``cube_metrics`` returns all of them in one dict (the keys the demos and experiments report).
+
+The tensor-valued metrics are differentiable (losses for training). Where the estimate equals the
+truth, ``sqrt`` and ``log`` of a zero MSE and ``arccos`` of a cosine of 1 have infinite
+derivatives; there the gradient is 0 (the minimum of RMSE, ERGAS and the angle; PSNR is +inf)
+instead of ``inf·0 = NaN``, and the values are unchanged, bit for bit.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -79,6 +85,23 @@ def _check(estimate: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, t
     return estimate.to(dtype), truth.to(dtype)
 
 
+def _finite_grad(f: Callable[[Tensor], Tensor], x: Tensor, at: Tensor, fill: float) -> Tensor:
+    """Elementwise ``f(x)`` with the gradient 0 where ``at`` (bool, ``x``'s shape), the points
+    where ``f``'s derivative is infinite (``sqrt``, ``log`` at 0; ``arccos`` at ±1), instead of
+    ``inf·0 = NaN``. The values are ``f(x)``'s, bit for bit: ``f`` of the detached ``x`` where
+    ``at``, elsewhere ``f`` of ``x`` with ``fill`` (a point of finite derivative) in the ``at``
+    places. Without autograd it is ``f(x)``."""
+    if not (torch.is_grad_enabled() and x.requires_grad):
+        return f(x)
+    safe = torch.where(at, torch.full((), fill, dtype=x.dtype, device=x.device), x)
+    return torch.where(at, f(x.detach()), f(safe))
+
+
+def _sqrt(x: Tensor) -> Tensor:
+    """``sqrt(x)`` with the gradient 0 at ``x = 0`` (:func:`_finite_grad`)."""
+    return _finite_grad(torch.sqrt, x, x == 0, 1.0)
+
+
 def mse(
     estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[int, ...] | None = None
 ) -> torch.Tensor:
@@ -91,8 +114,9 @@ def mse(
 def rmse(
     estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[int, ...] | None = None
 ) -> torch.Tensor:
-    """Root mean squared error over ``dim`` (all elements when None), in the data's units."""
-    return mse(estimate, truth, dim).sqrt()
+    """Root mean squared error over ``dim`` (all elements when None), in the data's units; the
+    gradient is 0 where the estimate equals the truth (``sqrt`` of a zero MSE)."""
+    return _sqrt(mse(estimate, truth, dim))
 
 
 def psnr(
@@ -108,9 +132,13 @@ def psnr(
         estimate, truth: same shape.
         peak: signal peak (1 for reflectance).
         dim: axes the MSE averages over (None = all), e.g. ``-1`` for a PSNR per spectrum.
+
+    Returns:
+        dB, ``+inf`` where the MSE is 0 (there the gradient is 0, not NaN).
     """
     m = mse(estimate, truth, dim)
-    return 10.0 * torch.log10(torch.as_tensor(peak, dtype=m.dtype, device=m.device) ** 2 / m)
+    p2 = torch.as_tensor(peak, dtype=m.dtype, device=m.device) ** 2
+    return _finite_grad(lambda v: 10.0 * torch.log10(p2 / v), m, m == 0, 1.0)
 
 
 def psnr_from_mse(value: float) -> float:
@@ -121,10 +149,13 @@ def psnr_from_mse(value: float) -> float:
 def spectral_angle_deg(
     estimate: torch.Tensor, truth: torch.Tensor, eps: float = 1e-12
 ) -> torch.Tensor:
-    """Spectral angle (SAM) in degrees between spectra along the **last** axis, shape ``(...)``."""
+    """Spectral angle (SAM) in degrees between spectra along the **last** axis, shape ``(...)``.
+
+    Where the cosine is ±1 (parallel spectra, e.g. the estimate equal to the truth) the gradient
+    is 0, not NaN (``arccos``' derivative is infinite there)."""
     e, t = _check(estimate, truth)
-    cos = (e * t).sum(-1) / (e.norm(dim=-1) * t.norm(dim=-1)).clamp_min(eps)
-    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+    cos = ((e * t).sum(-1) / (e.norm(dim=-1) * t.norm(dim=-1)).clamp_min(eps)).clamp(-1.0, 1.0)
+    return torch.rad2deg(_finite_grad(torch.arccos, cos, cos.abs() == 1, 0.0))
 
 
 # ------------------------------------------------------------------------------------ cubes --
@@ -195,7 +226,8 @@ def _psnr_bands(pe: Tensor, pt: Tensor, quantize: bool = False) -> Tensor:
     if quantize:
         e, t = e.round(), t.round()
     per_band = (e - t).square().mean(0)  # (M,)
-    return (10.0 * torch.log10(255.0**2 / per_band)).mean()
+    db = _finite_grad(lambda v: 10.0 * torch.log10(255.0**2 / v), per_band, per_band == 0, 1.0)
+    return db.mean()
 
 
 def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device):
@@ -329,11 +361,11 @@ def ergas(
 
 def _ergas(pe: Tensor, pt: Tensor, ratio: float) -> Tensor:
     """:func:`ergas` of selected spectra ``(P, M)``."""
-    rmse_b = (pe - pt).square().mean(0).sqrt()
+    rmse_b = _sqrt((pe - pt).square().mean(0))
     mu_b = pt.mean(0)
     if bool((mu_b == 0).any()):
         raise ValueError("ergas: a band of the truth has mean 0 over the selected pixels")
-    return (100.0 / ratio) * ((rmse_b / mu_b).square().mean()).sqrt()
+    return (100.0 / ratio) * _sqrt((rmse_b / mu_b).square().mean())
 
 
 def mrae(

@@ -210,3 +210,116 @@ def test_metric_errors_name_the_problem():
     with pytest.raises(ValueError, match="no pixel"):
         hm.sam(e, e, torch.zeros(8, 8, dtype=torch.bool))
     assert math.isnan(hm.cube_metrics(e + 0.5, e + 0.5)["ssim"])  # no window: NaN, not an error
+
+
+# ------------------------------------------------- gradients where the estimate is the truth --
+
+#: every differentiable metric as a scalar loss of an (M, h, w) estimate and truth
+_LOSSES = {
+    "mse": lambda e, t: hm.mse(e, t),
+    "rmse": lambda e, t: hm.rmse(e, t),
+    "rmse per spectrum": lambda e, t: hm.rmse(e, t, dim=0).mean(),
+    "psnr": lambda e, t: hm.psnr(e, t),
+    "psnr per spectrum": lambda e, t: hm.psnr(e, t, dim=0).mean(),
+    "psnr_bands": lambda e, t: hm.psnr_bands(e, t),
+    "spectral_angle_deg": lambda e, t: hm.spectral_angle_deg(e.permute(1, 2, 0),
+                                                             t.permute(1, 2, 0)).mean(),
+    "sam": lambda e, t: hm.sam(e, t),
+    "ergas": lambda e, t: hm.ergas(e, t),
+    "mrae": lambda e, t: hm.mrae(e, t),
+    "ssim": lambda e, t: hm.ssim(e, t),
+}
+
+
+def _old_values(e, t):
+    """The metrics by their formulas before the gradients were made finite (values to match)."""
+    m = (e - t).square().mean()
+    m_px = (e - t).square().mean(0)
+    cos = (e * t).sum(0) / (e.norm(dim=0) * t.norm(dim=0)).clamp_min(1e-12)
+    pe, pt = e.flatten(1).T, t.flatten(1).T
+    eb, tb = pe.clamp(0, 1) * 255, pt.clamp(0, 1) * 255
+    rmse_b = (pe - pt).square().mean(0).sqrt()
+    return {
+        "rmse": m.sqrt(),
+        "rmse per spectrum": m_px.sqrt(),
+        "psnr": 10.0 * torch.log10(torch.as_tensor(1.0, dtype=m.dtype) ** 2 / m),
+        "psnr per spectrum": 10.0 * torch.log10(torch.as_tensor(1.0, dtype=m.dtype) ** 2 / m_px),
+        "psnr_bands": (10.0 * torch.log10(255.0**2 / (eb - tb).square().mean(0))).mean(),
+        "spectral_angle_deg": torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0))),
+        "ergas": 100.0 * ((rmse_b / pt.mean(0)).square().mean()).sqrt(),
+    }
+
+
+def _new_values(e, t):
+    return {
+        "rmse": hm.rmse(e, t),
+        "rmse per spectrum": hm.rmse(e, t, dim=0),
+        "psnr": hm.psnr(e, t),
+        "psnr per spectrum": hm.psnr(e, t, dim=0),
+        "psnr_bands": hm.psnr_bands(e, t),
+        "spectral_angle_deg": hm.spectral_angle_deg(e.permute(1, 2, 0), t.permute(1, 2, 0)),
+        "ergas": hm.ergas(e, t),
+    }
+
+
+def _half_equal(dtype):
+    """A truth ``(4, 12, 12)``, an estimate equal to it in the left half of the pixels (one
+    of them a black spectrum, 0 in both), and a black truth pixel."""
+    _, t = _pair("cpu", dtype, shape=(4, 12, 12), seed=11)
+    e = t.clone()
+    e[..., 6:] += 0.01 * torch.randn(4, 12, 6, generator=torch.Generator().manual_seed(1),
+                                     dtype=torch.float64).to(dtype)
+    e[:, 3, 2] = 0.0
+    t[:, 3, 2] = 0.0
+    return e, t
+
+
+def test_metric_gradients_are_finite_where_the_estimate_equals_the_truth(dtype):
+    """Each metric as a loss: at an estimate equal to the truth, and where half the pixels are
+    (perfect pixels in a batch), the gradient with respect to the estimate and to the truth is
+    finite everywhere (it was NaN: sqrt and log of a zero MSE, arccos of a cosine of 1); at
+    equality it is 0 for RMSE, PSNR, ERGAS and the angle (their minimum)."""
+    e_half, t_half = _half_equal(dtype)
+    for name, loss in _LOSSES.items():
+        for e0, t0 in ((t_half.clone(), t_half), (e_half, t_half)):
+            e = e0.clone().requires_grad_(True)
+            t = t0.clone().requires_grad_(True)
+            ge, gt = torch.autograd.grad(loss(e, t), (e, t))
+            assert bool(torch.isfinite(ge).all()) and bool(torch.isfinite(gt).all()), name
+        e = t_half.clone().requires_grad_(True)
+        (ge,) = torch.autograd.grad(loss(e, t_half), e)
+        if name in ("rmse", "rmse per spectrum", "psnr", "psnr per spectrum", "psnr_bands",
+                    "ergas", "mse", "mrae"):
+            assert bool((ge == 0).all()), name
+        if name in ("sam", "spectral_angle_deg"):  # rounding: cos = 1 − ulp in a few pixels
+            assert float(ge.abs().max()) < (1e-4 if dtype == torch.float64 else 1.0), name
+
+
+def test_metric_values_are_unchanged_by_the_finite_gradients(dtype):
+    """The finite gradients change no value: bit for bit the former formulas', with and without
+    autograd, at equality (0, +inf dB) and away from it."""
+    e_half, t_half = _half_equal(dtype)
+    for e, t in ((e_half, t_half), (t_half.clone(), t_half)):
+        old = _old_values(e, t)
+        for grad in (False, True):
+            x = e.clone().requires_grad_(grad)
+            new = _new_values(x, t)
+            for name, ref in old.items():
+                assert torch.equal(new[name].detach(), ref), name
+    assert float(hm.psnr(t_half, t_half)) == math.inf and float(hm.rmse(t_half, t_half)) == 0
+
+
+def test_metric_gradients_near_equality_match_finite_differences():
+    """float64, an estimate 1e-3 from the truth (no element closer than 5e-4, so |e − t| and the
+    clip of psnr_bands are smooth there): ``torch.autograd.gradcheck`` of every metric. The
+    angle is ``arccos`` of a cosine near 1, whose value carries ~1e-16/θ of rounding (θ ≈ 1e-3
+    rad here): its central differences are good to ~1e-5 (the gradient is ~1), hence its atol."""
+    g = torch.Generator().manual_seed(5)
+    _, t = _pair("cpu", torch.float64, shape=(2, 11, 12), seed=13)
+    step = 1e-3 * (0.5 + 0.5 * torch.rand(t.shape, generator=g, dtype=torch.float64))
+    sign = torch.where(torch.rand(t.shape, generator=g) < 0.5, -1.0, 1.0).to(torch.float64)
+    e = (t + sign * step).requires_grad_(True)
+    for name, loss in _LOSSES.items():
+        atol = 5e-5 if name in ("sam", "spectral_angle_deg") else 1e-6
+        assert torch.autograd.gradcheck(lambda x, f=loss: f(x, t), (e,), eps=1e-6, atol=atol,
+                                        rtol=1e-4), name

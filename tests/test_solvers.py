@@ -189,6 +189,64 @@ def test_all_masked_pixel_returns_zero_and_is_flagged(device, dtype):
                 assert rel_err(res.x[8:12], ref).max() < RTOL[dtype] * 5
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_used_observation_is_an_error_naming_it(dtype, value):
+    """NaN or ±inf in ``y`` where the mask uses it is a ``ValueError`` (an ``InputError``) that
+    counts the observations and pixels and names the first (pixel, observation): per-pixel dense
+    and factored ``A``, shared ``A`` with and without a mask, both kernels (compiled "auto" and
+    "torch"), both solvers, and through ``solve_nnls``' outer chunks (whole-frame indices).
+    Before the fix the pixel came back as x = 0 (ADMM: NaN), unconverged, or, for -inf,
+    "converged", with no error. The same values where the mask is False are still ignored."""
+    from hsi_torch.errors import InputError
+    from hsi_torch.forward_model import SensingModel
+
+    g = torch.Generator().manual_seed(31)
+    P, V, M = 40, 10, 25
+    model = SensingModel(0.2 + 0.8 * torch.rand(P, V, M, generator=g, dtype=torch.float64),
+                         0.7 + 0.4 * torch.rand(P, V, generator=g, dtype=torch.float64),
+                         torch.rand(3, M, generator=g, dtype=torch.float64) * 20).to(dtype=dtype)
+    A = model.dense()
+    y = torch.bmm(A, torch.rand(P, M, 1, generator=g, dtype=dtype)).squeeze(2)
+    mask = torch.rand(P, 3 * V, generator=g) > 0.2
+    mask[[7, 23], [4, 11]] = True
+    bad = y.clone()
+    bad[7, 4] = value
+    bad[23, 11] = value
+    bad[23, 12] = value
+    mask[23, 12] = False  # not used: not counted
+    bad[30, ~mask[30]] = value  # not used anywhere in the pixel
+    msg = (r"2 used observation\(s\) of 2 pixel\(s\), the first at pixel 7, observation 4 "
+           r"\(y\[7, 4\] = " + str(value).replace("-", "\\-") + r"\).*mask them out")
+    unmasked = y.clone()  # without a mask every observation is used
+    unmasked[[7, 23], [4, 11]] = value
+    cases = [(model, mask, bad), (A, mask, bad), (A[0], mask, bad), (A[0], None, unmasked),
+             (A, None, unmasked)]
+    for a, mk, yb in cases:
+        for solver in ("active_set", "admm"):
+            for backend in ("auto", "torch"):
+                kw = dict(beta=1.0, mask=mk, solver=solver, backend=backend)
+                with pytest.raises(InputError, match=msg):
+                    solve_nnls(a, yb, **kw)
+                with pytest.raises(ValueError, match=msg):
+                    prepare_nnls(a, mask=mk, beta=1.0).solve(yb, solver=solver, backend=backend)
+                # masked out, the same values are ignored: the answer of the frame with zeros
+                mk0 = torch.ones_like(mask) if mk is None else mk.clone()
+                mk0[[7, 23], [4, 11]] = False
+                ok = solve_nnls(a, yb, **{**kw, "mask": mk0})
+                ref = solve_nnls(a, torch.where(mk0, yb, torch.zeros((), dtype=dtype)),
+                                 **{**kw, "mask": mk0})
+                assert torch.equal(ok.x, ref.x) and bool(torch.isfinite(ok.x).all())
+                assert solver == "admm" or bool(ok.converged.all())
+    # outer chunks of solve_nnls: the pixel index and the counts are the whole frame's
+    with pytest.raises(ValueError, match=msg):
+        solve_nnls(A, bad, beta=1.0, mask=mask, chunk_size=5)
+    late = y.clone()
+    late[37, 2] = value
+    with pytest.raises(ValueError, match=r"1 used observation\(s\) of 1 pixel\(s\), the first "
+                                         r"at pixel 37, observation 2"):
+        solve_nnls(A, late, beta=1.0, chunk_size=5)
+
+
 def test_exact_zeros():
     # y = 0 -> x = 0 exactly
     A, _, _ = random_problem(20, seed=4)

@@ -22,7 +22,14 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from hsi_torch.recon.nnls.kkt import _chunk_len, _expand_rows, _rowvec, _take, nnls_kkt_residual
+from hsi_torch.recon.nnls.kkt import (
+    _chunk_len,
+    _expand_rows,
+    _rowvec,
+    _take,
+    check_finite_rhs,
+    nnls_kkt_residual,
+)
 
 if TYPE_CHECKING:
     from hsi_torch.recon.nnls.problem import NNLSProblem
@@ -107,6 +114,7 @@ def _solve_chunk(
     K, r = admm_factors(problem, rho)
     K, r = _take(K, sl), _take(r, sl)
     b = problem.rhs(y, sl)
+    check_finite_rhs(b, y, problem.mask)  # NaN/inf where the mask uses y: an error
     n, m = b.shape
     dev, dt = b.device, b.dtype
     G = problem.gram_matrices(sl)

@@ -41,6 +41,7 @@ from hsi_torch.recon.nnls.kkt import (
     _norm2,
     _rowvec,
     _take,
+    check_finite_rhs,
     nnls_kkt_residual,
 )
 
@@ -102,6 +103,10 @@ def solve_active_set(
     Returns:
         ``x (P, M)``, ``converged (P,)``, ``iterations (P,)``, ``kkt_residual (P,)``,
         ``no_data (P,)`` (the fields of :class:`~hsi_torch.recon.nnls.NNLSResult`).
+
+    Raises:
+        NonFiniteObservations: (an ``InputError``, a ``ValueError``) NaN or ±inf in ``y`` where
+            the mask uses it (found from ``b``, before the fallback runs).
     """
     P = y.shape[0]
     sing = _expand_rows(problem.singular, P)
@@ -110,6 +115,7 @@ def solve_active_set(
     steps = _steps_compiled if use_compiled(problem, backend) else _steps_torch
     st = steps(problem, y, tol, min(max_iter, BPP_ROUNDS), refine, n, n_corr, workers, sing, nod,
                irregular)
+    check_finite_rhs(st.b, y, problem.mask)  # NaN/inf where the mask uses y: an error
     return _finish(problem, st, irregular, nod, tol, max_iter, refine, n_corr)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hsi_torch.errors import InputError
 from hsi_torch.spectral import difference_matrix
 
 __all__ = ["smoothness_gram", "masked_gram", "nnls_kkt_residual"]
@@ -171,3 +172,43 @@ def _kkt_ratio(g: Tensor, x: Tensor, gd: Tensor, gn: Tensor, bnorm: Tensor) -> T
     t = gd * x
     torch.minimum(t, g, out=t)
     return _norm2(t) / (gn * _norm2(x) + bnorm).clamp_min(torch.finfo(x.dtype).tiny)
+
+
+class NonFiniteObservations(InputError):
+    """NaN or ±inf in an observation the mask uses (:func:`check_finite_rhs`)."""
+
+
+def non_finite_observations(y: Tensor, mask: Tensor | None) -> NonFiniteObservations | None:
+    """The error naming the used observations of ``y (P, O)`` that are NaN or ±inf (``mask``
+    ``(P, O)`` bool or ``None`` = all used): how many, in how many pixels, the first by pixel
+    and observation index, and the fix. ``None`` when there are none. A full pass over ``y``:
+    for the error path only."""
+    bad = ~torch.isfinite(y.detach())
+    if mask is not None:
+        bad &= mask
+    px = bad.any(1)
+    n_px = int(px.sum())
+    if n_px == 0:
+        return None
+    p = int(px.nonzero()[0, 0])
+    o = int(bad[p].nonzero()[0, 0])
+    return NonFiniteObservations(
+        f"y holds NaN or inf in {int(bad.sum())} used observation(s) of {n_px} pixel(s), the "
+        f"first at pixel {p}, observation {o} (y[{p}, {o}] = {float(y[p, o])}); the solver "
+        "cannot use them: mask them out (mask=False there: solve_nnls / prepare_nnls take a "
+        "(P, O) bool mask; the reconstruction pipeline's frame mask drops non-finite samples "
+        "this way) or replace them with finite values"
+    )
+
+
+def check_finite_rhs(b: Tensor, y: Tensor, mask: Tensor | None) -> None:
+    """Raise :class:`NonFiniteObservations` when a used observation of ``y (P, O)`` is NaN or
+    ±inf. ``b (n, M)`` are right-hand sides ``Aᵀ W y`` of (some of) its pixels: a non-finite used
+    observation makes its pixel's ``b`` non-finite (``0·inf`` is NaN too), so one sum over
+    ``b`` (``M`` floats a pixel, ~1 ms a full float32 frame) decides whether ``y`` is looked at
+    at all; a finite ``b`` whose sum overflows costs that look and raises nothing."""
+    if bool(torch.isfinite(b.detach().sum())):
+        return
+    err = non_finite_observations(y, mask)
+    if err is not None:
+        raise err

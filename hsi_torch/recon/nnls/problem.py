@@ -25,6 +25,7 @@ from hsi_torch.recon.nnls.admm import solve_admm
 from hsi_torch.recon.nnls.constants import REFINE_STEPS
 from hsi_torch.recon.nnls.frame import solve_active_set
 from hsi_torch.recon.nnls.kkt import (
+    NonFiniteObservations,
     _admm_tol,
     _chunk_len,
     _default_solve_chunk,
@@ -33,6 +34,7 @@ from hsi_torch.recon.nnls.kkt import (
     _gram_norm,
     _rowvec,
     _take,
+    non_finite_observations,
     smoothness_gram,
 )
 
@@ -315,6 +317,11 @@ class NNLSProblem:
 
         Returns:
             :class:`NNLSResult`. Gradients flow only in the fixed-iteration ADMM mode.
+
+        Raises:
+            ValueError: (an :class:`~hsi_torch.errors.InputError`) NaN or ±inf in ``y`` where
+                the mask uses it, naming how many and the first (pixel, observation); NaN or inf
+                where the mask is ``False`` is ignored.
         """
         if backend not in _BACKENDS:
             raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
@@ -532,7 +539,7 @@ def solve_nnls(
         A: ``(O, M)`` shared or ``(P, O, M)`` per pixel (float32 or float64, any device), or a
             :class:`~hsi_torch.forward_model.SensingModel`.
         y: ``(P, O)`` observations (e.g. DN). Entries where ``mask`` is False are ignored (may be
-            NaN).
+            NaN); a NaN or ±inf where it is True is a ``ValueError`` naming the first one.
         beta: smoothness weight (≥ 0) on the data's scale.
         mask: ``(P, O)`` bool, True = observation used; None = all.
         diff_order: 0, 1 (default) or 2.
@@ -594,8 +601,11 @@ def solve_nnls(
         sub = op.select(sl)
         prob = prepare_nnls(sub, mask=None if mask is None else mask[sl], beta=beta,
                             diff_order=diff_order, chunk_size=inner, num_threads=workers)
-        parts.append(prob.solve(y[sl], chunk_size=inner, x0=None if x0 is None else x0[sl],
-                                **kw))
+        try:
+            parts.append(prob.solve(y[sl], chunk_size=inner,
+                                    x0=None if x0 is None else x0[sl], **kw))
+        except NonFiniteObservations:  # named again from the whole y: its pixel indices
+            raise non_finite_observations(y, mask) from None
     if len(parts) == 1:
         return parts[0]
     return NNLSResult(
