@@ -665,8 +665,9 @@ def test_dng_scan_frames_with_a_pedestal_their_black_level_tag_misses_are_refuse
     _add_pedestal(lab, rows, "scan", 64)
     capset = _import_sheet(sheet, rows, tmp_path / "capset")
     with pytest.raises(CalibrationError, match=r"reads 6\d\.\d DN after black subtraction \(R "
-                       r"channel, the frame closest to 0 of the 26 scan frames read with black "
-                       r"level 512 DN \(source: file\): frame_001\.dng, .*; the other frames "
+                       r"channel; R 6\d\.\d, G 6\d\.\d, B 6\d\.\d DN; the frame closest to 0 "
+                       r"of the 26 scan frames read with black level 512 DN \(source: file\): "
+                       r"frame_001\.dng, .*; the other frames "
                        r"read [0-4]\.\d DN \(white, 3 frames\), .*limit 39\.7 DN\): these "
                        r"captures carry a black pedestal of ~6\d DN that their files' black "
                        r"level \(512 DN\) does not include: correct the files' black level \(a "

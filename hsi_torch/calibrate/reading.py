@@ -430,8 +430,10 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
                  f"{src}; its mean, {dark_mean:.0f} DN above that, is subtracted from every "
                  "frame) carries a pedestal the other captures do not: give its black_level in "
                  "the sheet or manifest, or take a dark frame with the same settings")
+    per_colour = ", ".join(f"{k} {v:.1f}" for k, v in zip("RGB", ped["pedestal_dn"],
+                                                           strict=True))  # fmt: skip
     msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
-           f"({'RGB'[c]} channel, {which}; limit {lim:.3g} DN): "
+           f"({'RGB'[c]} channel; {per_colour} DN; {which}; limit {lim:.3g} DN): "
            f"{what}")  # fmt: skip
     if mode == "error":
         raise CalibrationError(msg + " (pedestal_check=warn only warns)")
