@@ -631,12 +631,11 @@ def test_a_dark_frame_with_a_pedestal_of_its_own_is_named_when_too_much_is_subtr
         calibrate_capture_set(capset, progress=False)
 
 
-def _add_pedestal(lab: Path, rows: list[list[str]], role: str, dn: int) -> list[str]:
+def _add_pedestal(lab: Path, rows: list[list[str]], role: str, dn: int) -> None:
     """Rewrite the DNGs of ``role`` with ``dn`` more in the data and the same BlackLevel tag (512):
-    a pedestal the tag does not announce. Returns their names."""
+    a pedestal the tag does not announce."""
     import rawpy
 
-    names = []
     for r in rows[1:]:
         if r[1] == role:
             with rawpy.imread(str(lab / r[0])) as raw:
@@ -645,8 +644,6 @@ def _add_pedestal(lab: Path, rows: list[list[str]], role: str, dn: int) -> list[
             write_dng(lab / r[0], np.clip(m + dn, 0, WHITE), black_level=BLACK,
                       white_level=WHITE, exposure_s=t, make="Lab Optics",
                       model="KaleidoCam 1")  # fmt: skip
-            names.append(Path(r[0]).name)
-    return names
 
 
 def test_dng_scan_frames_with_a_pedestal_their_black_level_tag_misses_are_refused(
