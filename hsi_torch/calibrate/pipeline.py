@@ -23,7 +23,9 @@
    kornia call) with its masks.
 4. **Response** φ^c and the gain field g_v(p) (:func:`calibrate_response`) from the white shots,
    registered with :func:`~hsi_torch.optics.geometry.warp_views`
-   (:func:`~hsi_torch.calibrate.response.estimate_response_field`).
+   (:func:`~hsi_torch.calibrate.response.estimate_response_field`). Then, every scan, white and
+   grid frame read, the **pedestal check** (:func:`~hsi_torch.calibrate.reading.check_pedestal`:
+   the sensor outside the views ≈ 0 after black subtraction, per black level and per role).
 5. **Valid region** (≥ ``min_views`` BRF-modulated views) and the bundle with settings and
    provenance (SHA-256 of every input, software version) (:func:`assemble_bundle`).
 
@@ -187,6 +189,14 @@ class CalibrationReport:
                 + f" DN (limit {max(self.pedestal['pedestal_limit_dn']):.3g} DN, "
                 f"{self.pedestal['outside_pixels']} px sampled per frame)"
             )
+            for g in self.pedestal.get("by_group", []):  # each role / black level on its own
+                lines.append(
+                    f"  {g['role'] or 'frames'} ({g['frames']} frames, black level "
+                    f"{g['black_level_rgb'][0]:.0f} DN, {g['black_level_source']}): "
+                    + ", ".join(f"{c} {v:.1f}" for c, v in zip("RGB", g["pedestal_dn"],
+                                                                strict=True))
+                    + f" DN (limit {max(g['pedestal_limit_dn']):.3g} DN)"
+                )  # fmt: skip
         for n in self.notes:
             lines.append(f"note: {n}")
         if self.timings_s:
@@ -876,8 +886,10 @@ def calibrate_capture_set(
             bar.update(n)
 
     outside = outside_views_index(lay.triangles, lay.sensor_size)
+    roles = {p: "scan" for p, _ in cs.scan}
+    roles.update({p: role for role in ("white", "grid", "dark") for p in getattr(cs, role)})
     reader = CaptureReader(cfg, lay.sensor_size, dev, dt, settings=cs.settings,
-                           outside_index=outside)
+                           outside_index=outside, roles=roles)
     try:
         t0 = time.perf_counter()
         reader.set_dark(cs.dark, cfg.dark)
@@ -898,7 +910,6 @@ def calibrate_capture_set(
         trans = calibrate_transmittance(scan_sel, reader, lay, Hs, patch, wl, cfg, tick)
         notes.extend(reader.scan_notes)
         tm["transmittance"] = time.perf_counter() - t0
-        pedestal = check_pedestal(reader, cfg.pedestal_check, notes)
         if len(reader.cameras) > 1:
             msg = ("the captures name more than one camera (" + ", ".join(sorted(reader.cameras))
                    + "); the bundle records the first one's")  # fmt: skip
@@ -909,6 +920,8 @@ def calibrate_capture_set(
         resp = calibrate_response(cs.white, reader, Hs, lay.reference_bbox, trans, wl, cfg,
                                   notes, tick)  # fmt: skip
         tm["response"] = time.perf_counter() - t0
+        # every role's frames read (the white's here, when the grid is not flat-fielded)
+        pedestal = check_pedestal(reader, cfg.pedestal_check, notes)
 
         t0 = time.perf_counter()
         bundle, modulated, vsum = assemble_bundle(cs, lay, grid, wl, reg, trans, resp, patch,

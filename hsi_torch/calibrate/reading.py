@@ -45,9 +45,13 @@ class CaptureReader:
 
     def __init__(self, cfg: CalibrateConfig, sensor_size: tuple[int, int], device, dtype,
                  *, settings: dict[Path, dict[str, Any]] | None = None,
-                 outside_index: np.ndarray | None = None):  # fmt: skip
+                 outside_index: np.ndarray | None = None,
+                 roles: dict[Path, str] | None = None):  # fmt: skip
         self.cfg, self.size, self.device, self.dtype = cfg, sensor_size, device, dtype
         self.settings = settings or {}
+        #: the role of each capture (``scan``, ``white``, ``grid``, ``dark``): the pedestal is
+        #: checked per role as well as per black level (:meth:`pedestal`)
+        self.roles = roles or {}
         self.dark: torch.Tensor | None = None
         self.dark_files: list[Path] = []
         #: (file, black level (R, G, B), its source) of each dark frame read
@@ -69,7 +73,7 @@ class CaptureReader:
         #: (file, median (3,), robust sigma (3,), white span) per frame read after the dark
         self.pedestals: list[tuple[Path, list[float], list[float], float | None]] = []
         #: per frame of :attr:`pedestals`: the black level it was read with (R, G, B) and its
-        #: source; the frames sharing one are checked together (:meth:`pedestal`)
+        #: source; the frames of one role sharing one are checked together (:meth:`pedestal`)
         self.pedestal_black: dict[Path, tuple[tuple[float, ...], str]] = {}
         self._recording = True
         #: the dark frames' per-pixel mean (whatever ``dark`` mode subtracts), for the defects
@@ -117,7 +121,8 @@ class CaptureReader:
         if self.veil_index is not None:
             img, vinfo = subtract_veil(img, self.veil_index)
             self.veils.append((path.name, [round(v, 3) for v in vinfo["mean_dn"]]))
-        if self._recording and self.outside is not None and self.outside.size:
+        if (self._recording and self.outside is not None and self.outside.size
+                and path not in self.pedestal_black):  # a frame read again: the same level
             st = pedestal_level(img, self.outside)
             if st is not None:
                 black = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern")) or [0.0]
@@ -248,32 +253,71 @@ class CaptureReader:
         (:func:`~hsi_torch.io.radiometry.pedestal_limit`), and ``ok``. With frames read with
         different black levels (a lab's TIFFs without one beside DNGs with theirs), each such
         group is checked on its own and the worst one is returned, ``group`` naming its black
-        level, source and files. ``None`` when no frame had sensor pixels outside the views."""
+        level, source, role (when its frames share one) and files.
+
+        When every such group passes, the frames of each role (:attr:`roles`: scan, white,
+        grid) within it are checked on their own as well — a pedestal in one role's frames only
+        (DNG scan frames whose BlackLevel tag misses it, beside white shots whose tag is right)
+        is otherwise hidden by the other roles' frames that read 0 — and the worst failing one is
+        returned, ``group`` naming its role (``group["by"] == "role"``). ``by_group`` lists
+        every role and black level's frame count, level and limit (when there is more than
+        one). ``None`` when no frame had sensor pixels outside the views."""
         if not self.pedestals:
             return None
-        groups: dict[Any, list] = {}
+        by_black: dict[Any, list] = {}
+        by_role: dict[Any, list] = {}
         for r in self.pedestals:
-            groups.setdefault(self.pedestal_black.get(r[0]), []).append(r)
-        best = None
-        for key, frames in groups.items():
-            level, limit = [], []
-            for c in range(3):
-                f = min(frames, key=lambda r, c=c: abs(r[1][c]))
-                level.append(f[1][c])
-                limit.append(pedestal_limit(f[3], f[2][c]))
-            badness = max(abs(v) / lim for v, lim in zip(level, limit, strict=True))
-            if best is None or badness > best[0]:
-                best = (badness, key, frames, level, limit)
-        _, key, frames, level, limit = best
+            black = self.pedestal_black.get(r[0])
+            by_black.setdefault(black, []).append(r)
+            by_role.setdefault((black, self.roles.get(r[0])), []).append(r)
+        worst = _worst_group(by_black)
+        by = "black level"
+        if worst[0] <= 1.0 and len(by_role) > len(by_black):  # every black level passes
+            role_worst = _worst_group(by_role)
+            if role_worst[0] > 1.0:
+                worst, by = role_worst, "role"
+        _, key, frames, level, limit = worst
         ok = all(abs(v) <= lim for v, lim in zip(level, limit, strict=True))
         n_out = 0 if self.outside is None else int(self.outside.size)
         out = {"pedestal_dn": level, "pedestal_limit_dn": limit, "ok": ok,
                "frames": len(frames), "outside_pixels": n_out}  # fmt: skip
-        if len(groups) > 1 and key is not None:
-            out["group"] = {"black_level_rgb": list(key[0]), "black_level_source": key[1],
+        black = key[0] if by == "role" else key
+        roles = {self.roles.get(r[0]) for r in frames}
+        if (by == "role" or len(by_black) > 1) and black is not None:
+            out["group"] = {"black_level_rgb": list(black[0]), "black_level_source": black[1],
+                            "role": roles.pop() if len(roles) == 1 else None, "by": by,
                             "files": [str(r[0].name) for r in frames],
-                            "groups": len(groups)}  # fmt: skip
+                            "groups": len(by_black)}  # fmt: skip
+        if len(by_role) > 1:
+            out["by_group"] = [
+                {"role": k[1], "black_level_rgb": None if k[0] is None else list(k[0][0]),
+                 "black_level_source": None if k[0] is None else k[0][1], "frames": len(fr),
+                 "pedestal_dn": [round(v, 3) for v in lv],
+                 "pedestal_limit_dn": [round(v, 3) for v in lim]}
+                for _, k, fr, lv, lim in _measure_groups(by_role)
+            ]  # fmt: skip
         return out
+
+
+def _measure_groups(groups: dict[Any, list]) -> list[tuple[float, Any, list, list, list]]:
+    """Per group of :attr:`CaptureReader.pedestals` records: ``(badness, key, frames, level,
+    limit)``: per colour the level closest to 0 of its frames and that frame's limit; badness
+    is the largest level / limit."""
+    out = []
+    for key, frames in groups.items():
+        level, limit = [], []
+        for c in range(3):
+            f = min(frames, key=lambda r, c=c: abs(r[1][c]))
+            level.append(f[1][c])
+            limit.append(pedestal_limit(f[3], f[2][c]))
+        badness = max(abs(v) / lim for v, lim in zip(level, limit, strict=True))
+        out.append((badness, key, frames, level, limit))
+    return out
+
+
+def _worst_group(groups: dict[Any, list]) -> tuple[float, Any, list, list, list]:
+    """The group of :func:`_measure_groups` with the largest badness (the first of equals)."""
+    return max(_measure_groups(groups), key=lambda m: m[0])
 
 
 #: Largest RMS difference between repeated scan frames of one wavelength (8x8 px block means,
@@ -298,6 +342,23 @@ def _pattern_difference(a: torch.Tensor, b: torch.Tensor, sat: torch.Tensor) -> 
     return float(((xm - ym) ** 2).mean().sqrt())
 
 
+def _other_groups_text(by_group: list[dict[str, Any]], group: dict[str, Any], c: int) -> str:
+    """``; the other frames read 2.0 DN (white, 3 frames), …`` in colour ``c``: the level of every
+    group but ``group`` (its black level named when it differs from ``group``'s)."""
+    parts = []
+    for g in by_group:
+        same = (g["black_level_rgb"] == group["black_level_rgb"]
+                and g["black_level_source"] == group["black_level_source"])  # fmt: skip
+        if same and g["role"] == group["role"]:
+            continue
+        text = f"{g['pedestal_dn'][c]:.1f} DN ({g['role'] or 'other'}, {g['frames']} frames"
+        if not same:
+            text += (f", black level {_levels_text(g['black_level_rgb'] or [0.0])} DN, source: "
+                     f"{g['black_level_source']}")  # fmt: skip
+        parts.append(text + ")")
+    return "; the other frames read " + ", ".join(parts) if parts else ""
+
+
 def _levels_text(v: Sequence[float]) -> str:
     if max(v) - min(v) < 0.05:
         return f"{v[0]:.4g}"
@@ -306,9 +367,10 @@ def _levels_text(v: Sequence[float]) -> str:
 
 def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[str, Any] | None:
     """Refuse (``mode="error"``) or warn (``"warn"``) when the sensor outside every view reads
-    more than the limit after black subtraction in every frame read with one black level (all
-    of them, or one group: :meth:`CaptureReader.pedestal`): those captures carry a black
-    pedestal the black level did not remove (or too much was subtracted). Returns the
+    more than the limit after black subtraction in every frame of one role read with one black
+    level (all of them, or one group: :meth:`CaptureReader.pedestal`): those captures carry a
+    black pedestal the black level did not remove (or too much was subtracted). The message
+    names the group's role, black level and files, and the other groups' levels. Returns the
     measurement (:meth:`CaptureReader.pedestal`).
 
     Raises:
@@ -327,18 +389,28 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
     sub = rec["black_level_rgb"][c]
     which = f"the frame closest to 0 of {ped['frames']}"
     group = ped.get("group")
-    if group:  # frames read with different black levels: name the group at fault
+    if group:  # frames of other roles or black levels: name the group at fault
         dark = rec["dark_level_rgb"]
-        sub = group["black_level_rgb"][c] + (dark[c] if dark else 0.0)
+        black = group["black_level_rgb"][c]
+        sub = black + (dark[c] if dark else 0.0)
         files = group["files"]
         names = ", ".join(files[:3]) + (f", … ({len(files)} files)" if len(files) > 3 else "")
-        which = (f"the frame closest to 0 of the {len(files)} read with black level "
+        role = f" {group['role']} frames" if group.get("role") else ""
+        which = (f"the frame closest to 0 of the {len(files)}{role} read with black level "
                  f"{_levels_text(group['black_level_rgb'])} DN (source: "
-                 f"{group['black_level_source']}): {names}; the captures were read with "
-                 f"{group['groups']} different black levels")  # fmt: skip
-    if lvl > 0 and group:
+                 f"{group['black_level_source']}): {names}")  # fmt: skip
+        if group.get("by") != "role" and group["groups"] > 1:
+            which += f"; the captures were read with {group['groups']} different black levels"
+        if group.get("role"):
+            which += _other_groups_text(ped.get("by_group", []), group, c)
+    if lvl > 0 and group and group["black_level_source"] == "file":  # the files' own level
+        what = (f"these captures carry a black pedestal of ~{lvl:.0f} DN that their files' "
+                f"black level ({black:.0f} DN) does not include: correct the files' black level "
+                f"(a DNG's BlackLevel tag) or give their black_level in the sheet or manifest "
+                f"(e.g. {black + lvl:.0f})")  # fmt: skip
+    elif lvl > 0 and group:
         what = (f"these captures carry a black pedestal of ~{lvl:.0f} DN; give their "
-                f"black_level in the sheet or manifest (e.g. {sub + lvl:.0f})")  # fmt: skip
+                f"black_level in the sheet or manifest (e.g. {black + lvl:.0f})")  # fmt: skip
     elif lvl > 0:
         what = (f"the captures carry a black pedestal of ~{lvl:.0f} DN; give black_level in the "
                 f"sheet/manifest/--set (e.g. --set black_level={sub + lvl:.0f}) or add a dark "
@@ -358,8 +430,10 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
                  f"{src}; its mean, {dark_mean:.0f} DN above that, is subtracted from every "
                  "frame) carries a pedestal the other captures do not: give its black_level in "
                  "the sheet or manifest, or take a dark frame with the same settings")
+    per_colour = ", ".join(f"{k} {v:.1f}" for k, v in zip("RGB", ped["pedestal_dn"],
+                                                           strict=True))  # fmt: skip
     msg = (f"the sensor outside the views reads {lvl:.1f} DN after black subtraction "
-           f"({'RGB'[c]} channel, {which}; limit {lim:.3g} DN): "
+           f"({'RGB'[c]} channel; {per_colour} DN; {which}; limit {lim:.3g} DN): "
            f"{what}")  # fmt: skip
     if mode == "error":
         raise CalibrationError(msg + " (pedestal_check=warn only warns)")
