@@ -646,6 +646,16 @@ def _add_pedestal(lab: Path, rows: list[list[str]], role: str, dn: int) -> None:
                       model="KaleidoCam 1")  # fmt: skip
 
 
+def _set_with_pedestal(sim: Path, tmp_path: Path, role: str, dn: float) -> tuple[Path, list, Path]:
+    """A lab's DNG folder of ``sim`` with ``dn`` DN of pedestal in ``role``'s files that their
+    BlackLevel tag misses, imported: ``(sheet, its rows, capture set)``."""
+    lab = tmp_path / "lab"
+    sheet = _lab_folder(sim, lab)
+    rows = list(csv.reader(sheet.open()))
+    _add_pedestal(lab, rows, role, dn)
+    return sheet, rows, _import_sheet(sheet, rows, tmp_path / "capset")
+
+
 def test_dng_scan_frames_with_a_pedestal_their_black_level_tag_misses_are_refused(
     sim: Path, tmp_path: Path
 ):
@@ -656,11 +666,7 @@ def test_dng_scan_frames_with_a_pedestal_their_black_level_tag_misses_are_refuse
     exit 0, no warning, the ColorChecker at 24.2 dB instead of 31.3 dB."""
     from hsi_torch.errors import CalibrationError
 
-    lab = tmp_path / "lab"
-    sheet = _lab_folder(sim, lab)
-    rows = list(csv.reader(sheet.open()))
-    _add_pedestal(lab, rows, "scan", 64)
-    capset = _import_sheet(sheet, rows, tmp_path / "capset")
+    sheet, rows, capset = _set_with_pedestal(sim, tmp_path, "scan", 64)
     with pytest.raises(CalibrationError, match=r"reads 6\d\.\d DN after black subtraction \(R "
                        r"channel; R 6\d\.\d, G 6\d\.\d, B 6\d\.\d DN; the frame closest to 0 "
                        r"of the 26 scan frames read with black level 512 DN \(source: file\): "
@@ -692,11 +698,7 @@ def test_dng_white_shots_with_a_pedestal_their_black_level_tag_misses_are_warned
     ColorChecker at 27.9 dB instead of 31.3 dB."""
     from hsi_torch.calibrate.config import CalibrateConfig
 
-    lab = tmp_path / "lab"
-    sheet = _lab_folder(sim, lab)
-    rows = list(csv.reader(sheet.open()))
-    _add_pedestal(lab, rows, "white", 64)
-    capset = _import_sheet(sheet, rows, tmp_path / "capset")
+    _, _, capset = _set_with_pedestal(sim, tmp_path, "white", 64)
     with pytest.warns(UserWarning, match=r"reads 6\d\.\d DN after black subtraction .*the 3 white "
                       r"frames read with black level 512 DN \(source: file\): white_00\.dng, "
                       r"white_01\.dng, white_02\.dng; the other frames read .*[0-4]\.\d DN "
