@@ -507,11 +507,7 @@ def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refus
                        r"black_level in the sheet"):  # fmt: skip
         calibrate_capture_set(capset, progress=False)
     # with their black level in the sheet, the set calibrates as the DNGs do
-    for r in rows[1:]:
-        if r[1] == "scan":
-            r[4] = str(BLACK)
-    capset2 = _import_sheet(sheet, rows, tmp_path / "capset2")
-    bundle, report = calibrate_capture_set(capset2, progress=False)
+    bundle, report = _calibrate_with_scan_black_level(sheet, rows, tmp_path, BLACK)
     assert report.pedestal["ok"]
 
 
@@ -646,6 +642,16 @@ def _add_pedestal(lab: Path, rows: list[list[str]], role: str, dn: int) -> None:
                       model="KaleidoCam 1")  # fmt: skip
 
 
+def _calibrate_with_scan_black_level(sheet: Path, rows: list, tmp_path: Path, level: float):
+    """The sheet's scan rows given ``level`` as their black level, imported again and
+    calibrated: ``(bundle, report)``."""
+    for r in rows[1:]:
+        if r[1] == "scan":
+            r[4] = str(level)
+    capset = _import_sheet(sheet, rows, tmp_path / "capset2")
+    return calibrate_capture_set(capset, progress=False)
+
+
 def _set_with_pedestal(sim: Path, tmp_path: Path, role: str, dn: float) -> tuple[Path, list, Path]:
     """A lab's DNG folder of ``sim`` with ``dn`` DN of pedestal in ``role``'s files that their
     BlackLevel tag misses, imported: ``(sheet, its rows, capture set)``."""
@@ -678,11 +684,7 @@ def test_dng_scan_frames_with_a_pedestal_their_black_level_tag_misses_are_refuse
                        r"manifest \(e\.g\. 57\d\)"):  # fmt: skip
         calibrate_capture_set(capset, progress=False)
     # their black level in the sheet: the set calibrates, every role ~0 outside the views
-    for r in rows[1:]:
-        if r[1] == "scan":
-            r[4] = str(BLACK + 64)
-    capset2 = _import_sheet(sheet, rows, tmp_path / "capset2")
-    _, report = calibrate_capture_set(capset2, progress=False)
+    _, report = _calibrate_with_scan_black_level(sheet, rows, tmp_path, BLACK + 64)
     assert report.pedestal["ok"]
     by_role = {g["role"]: g for g in report.pedestal["by_group"]}
     assert by_role["scan"]["black_level_source"] == "sheet"
