@@ -366,6 +366,62 @@ def test_an_interrupted_experiment_rerun_marks_the_folder_incomplete(tmp_path, c
         ce.EXPERIMENTS.pop("nd_runs")
 
 
+def test_an_interrupted_demo_rerun_marks_the_folder_incomplete(tmp_path, capsys, monkeypatch):
+    """``demo --out DIR`` rerun into an earlier demo's folder and interrupted midway left a mix
+    of the new run's and the earlier run's files with nothing saying so. Now it is marked as an
+    experiment's folder is: ``INCOMPLETE_RUN.json`` until a run completes (listing the files
+    that were there before), then ``demo_run.json`` (files written, files from earlier runs)."""
+    import json
+    import os
+
+    from hsi_torch.experiments import demo as demo_mod
+    from hsi_torch.experiments.cli_entry import DEMO_MARKER
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / DEMO_MARKER).write_text("")
+    earlier = {"calib.npz": b"the earlier demo's bundle", "colorchecker.tif": b"its cube",
+               "summary.json": b'{"scenes": {}, "files": ["calib.npz"]}'}  # fmt: skip
+    for name, data in earlier.items():
+        (out / name).write_bytes(data)
+    argv = ["demo", "--quick", "--out", str(out), "--set", "progress=false", "--set",
+            "cave=false"]  # fmt: skip
+
+    def interrupted_simulation(cfg, cap_dir, **kw):  # the demo's step 1 stopped by Ctrl-C
+        Path(cap_dir).mkdir(parents=True)
+        (Path(cap_dir) / "manifest.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo_mod, "simulate_capture_set", interrupted_simulation)
+    assert main(argv) == 130
+    assert "holds 3 file(s) of an earlier run" in capsys.readouterr().err
+    mark = json.loads((out / "INCOMPLETE_RUN.json").read_text())  # used not to exist
+    assert mark["state"] == "incomplete" and mark["command"] == "hsi-torch demo --quick"
+    assert sorted(mark["files_before"]) == sorted(earlier)  # not the marker
+    for name, st in mark["files_before"].items():
+        now = os.stat(out / name)
+        assert (now.st_size, now.st_mtime_ns) == (st["size"], st["mtime_ns"])
+    assert (out / "captures" / "manifest.json").is_file()  # the interrupted run's
+    assert (out / "synthetic_scene.npz").is_file()  # written before the simulation
+    assert not (out / "demo_run.json").exists()
+
+    def tiny_demo(out, cfg, *, quick, log):  # a run that completes, without the real work
+        (out / "summary.json").write_text('{"scenes": {}, "files": []}')
+        (out / "captures" / "manifest.json").write_text('{"set": 2}')
+
+    monkeypatch.setattr(demo_mod, "demo", tiny_demo)
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert "holds 5 file(s) of an earlier interrupted run" in cap.err
+    assert "3 file(s) are from an earlier run and were not rewritten" in cap.out
+    assert not (out / "INCOMPLETE_RUN.json").exists()
+    rec = json.loads((out / "demo_run.json").read_text())
+    assert rec["state"] == "complete" and rec["command"] == "hsi-torch demo --quick"
+    assert rec["written"] == ["captures/manifest.json", "resolved_config.yaml", "summary.json"]
+    assert rec["from_earlier_runs"] == ["calib.npz", "colorchecker.tif", "synthetic_scene.npz"]
+    assert (out / "calib.npz").read_bytes() == earlier["calib.npz"]  # nothing deleted
+
+
 def _users_folder(folder: Path, files: dict[str, bytes]) -> Path:
     """``folder`` holding the user's own ``files`` (name → content)."""
     folder.mkdir()

@@ -18,7 +18,8 @@ A run into a folder that holds an earlier run writes its files in place (experim
 folder is marked: :data:`INCOMPLETE_FILE` is written before the experiment starts, listing the
 files already there (from earlier runs) with their size and modification time, and removed when
 the run is complete; :data:`RUN_RECORD` then lists the files the run wrote and those it left from
-an earlier run (see ``docs/experiments.md``).
+an earlier run (see ``docs/experiments.md``). ``hsi-torch demo --out DIR`` marks its folder the
+same way (:func:`start_out_run`, :func:`finish_out_run`; record :data:`DEMO_RUN_RECORD`).
 
 To add an experiment, add a line to :data:`EXPERIMENTS` (or call :func:`register_experiment`).
 """
@@ -33,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment",
-           "run_demo"]
+           "run_demo", "start_out_run", "finish_out_run"]
 
 #: name → (module, schema class, run function)
 EXPERIMENTS: dict[str, tuple[str, str, str]] = {
@@ -90,27 +91,18 @@ def run_experiment(args: argparse.Namespace) -> int:
     out = ensure_out_dir(out)
     atomic_write_text(out / EXPERIMENT_MARKER, f"{args.name}\n")
     run_state = start_experiment_run(out, args.name)
-    if run_state["files_before"]:
-        info(f"--out {out} holds {len(run_state['files_before'])} file(s) of an earlier "
-             f"{'interrupted ' if run_state['earlier_run_incomplete'] else ''}run; this run "
-             f"writes over them in place, and {INCOMPLETE_FILE} marks the folder incomplete "
-             "until it has finished", file=sys.stderr)  # fmt: skip
     t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
-    record = finish_experiment_run(out, run_state)
+    left = finish_experiment_run(out, run_state)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
-    kept = record["from_earlier_runs"]
-    left = (f"; {len(kept)} file(s) are from an earlier run and were not rewritten by this one "
-            f"(listed in {RUN_RECORD}): {', '.join(kept[:5])}{', ...' if len(kept) > 5 else ''}"
-            if kept else "")  # fmt: skip
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
          f"{len(files)} files in {out}: {', '.join(files)}{left}")  # fmt: skip
     return 0
 
 
-#: Written into ``experiment NAME --out`` before the experiment starts and removed when its run
-#: is complete: a folder holding it holds a run that has not finished (still running, or
+#: Written into ``experiment NAME --out`` (and ``demo --out``) before the run starts and removed
+#: when it is complete: a folder holding it holds a run that has not finished (still running, or
 #: interrupted), and it says which files are from an earlier run.
 INCOMPLETE_FILE = "INCOMPLETE_RUN.json"
 
@@ -118,7 +110,10 @@ INCOMPLETE_FILE = "INCOMPLETE_RUN.json"
 #: and the files from an earlier run that it left as they were.
 RUN_RECORD = "experiment_run.json"
 
-_STATUS_FILES = (INCOMPLETE_FILE, RUN_RECORD)
+#: The same record of ``demo --out`` (:data:`INCOMPLETE_FILE` marks a demo's folder the same way).
+DEMO_RUN_RECORD = "demo_run.json"
+
+_STATUS_FILES = (INCOMPLETE_FILE, RUN_RECORD, DEMO_RUN_RECORD)
 
 
 def _now() -> str:
@@ -126,60 +121,89 @@ def _now() -> str:
 
 
 def _earlier_files(out: Path) -> dict[str, tuple[int, int, int]]:
-    """The files below ``out`` other than the marker and the run's status files."""
+    """The files below ``out`` other than the markers and the runs' status files."""
     from hsi_torch.io.paths import file_states
 
     return {k: v for k, v in file_states(out).items()
-            if k not in _STATUS_FILES and k != EXPERIMENT_MARKER}  # fmt: skip
+            if k not in _STATUS_FILES and k not in (EXPERIMENT_MARKER, DEMO_MARKER)}  # fmt: skip
 
 
-def start_experiment_run(out: Path, name: str) -> dict[str, Any]:
-    """Mark ``out`` incomplete before the experiment ``name`` writes there: write
-    :data:`INCOMPLETE_FILE` (atomically) with the start time, this process and every file
-    already there (``files_before``: relative path → size, modification time in ns and inode).
-    Returns what was written (passed on to :func:`finish_experiment_run`)."""
+def start_out_run(out: Path, command: str, record: str, **fields: Any) -> dict[str, Any]:
+    """Mark ``out`` incomplete before ``command`` (e.g. ``hsi-torch demo``) writes there in
+    place: write :data:`INCOMPLETE_FILE` (atomically) with ``fields`` (e.g. ``experiment=NAME``),
+    the start time, this process and every file already there (``files_before``: relative path
+    → size, modification time in ns and inode), and say on stderr when the folder holds files of
+    an earlier run. ``record`` is the file :func:`finish_out_run` writes. Returns what was
+    written (passed on to :func:`finish_out_run`)."""
     import os
 
+    from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_json
 
     before = _earlier_files(out)
     state: dict[str, Any] = {
-        "experiment": name,
+        **fields,
+        "command": command,
         "state": "incomplete",
-        "note": (f"this run of 'hsi-torch experiment {name}' has not finished: it is still "
-                 "running, or it was interrupted. A file listed under files_before whose size "
-                 "and modification time are unchanged is from an earlier run; every other file "
-                 "was written by this run. Run the same command again to complete it; this file "
-                 "is removed when a run completes."),
+        "note": (f"this run of '{command}' has not finished: it is still running, or it was "
+                 "interrupted. A file listed under files_before whose size and modification "
+                 "time are unchanged is from an earlier run; every other file was written by "
+                 "this run. Run the same command again to complete it; this file is removed "
+                 f"when a run completes (and {record} written)."),
         "started": _now(),
         "pid": os.getpid(),
         "earlier_run_incomplete": (out / INCOMPLETE_FILE).is_file(),
+        "record": record,
         "files_before": {k: {"size": v[0], "mtime_ns": v[1], "inode": v[2]}
                          for k, v in sorted(before.items())},
     }  # fmt: skip
     atomic_write_json(out / INCOMPLETE_FILE, state)
+    if before:
+        info(f"--out {out} holds {len(before)} file(s) of an earlier "
+             f"{'interrupted ' if state['earlier_run_incomplete'] else ''}run; this run "
+             f"writes over them in place, and {INCOMPLETE_FILE} marks the folder incomplete "
+             "until it has finished", file=sys.stderr)  # fmt: skip
     return state
 
 
-def finish_experiment_run(out: Path, state: dict[str, Any]) -> dict[str, Any]:
-    """The run that :func:`start_experiment_run` began is complete: write :data:`RUN_RECORD`
-    (``written``: files new or changed since the start; ``from_earlier_runs``: files already
-    there that are unchanged), then remove :data:`INCOMPLETE_FILE`. Returns the record."""
+def finish_out_run(out: Path, state: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """The run that :func:`start_out_run` began is complete: write its record (``state
+    ["record"]``; ``written``: files new or changed since the start; ``from_earlier_runs``:
+    files already there that are unchanged), then remove :data:`INCOMPLETE_FILE`. Returns the
+    record and a text for the run's last line naming the files from an earlier run (``""``
+    when there are none)."""
     from hsi_torch.io.atomic import atomic_write_json
 
+    skip = ("state", "note", "started", "pid", "earlier_run_incomplete", "record",
+            "files_before")  # fmt: skip
     before = {k: (v["size"], v["mtime_ns"], v["inode"]) for k, v in state["files_before"].items()}
     after = _earlier_files(out)
     record = {
-        "experiment": state["experiment"],
+        **{k: v for k, v in state.items() if k not in skip},
         "state": "complete",
         "started": state["started"],
         "finished": _now(),
         "written": sorted(k for k, v in after.items() if before.get(k) != v),
         "from_earlier_runs": sorted(k for k, v in after.items() if before.get(k) == v),
     }
-    atomic_write_json(out / RUN_RECORD, record)
+    atomic_write_json(out / state["record"], record)
     (out / INCOMPLETE_FILE).unlink(missing_ok=True)
-    return record
+    kept = record["from_earlier_runs"]
+    left = (f"; {len(kept)} file(s) are from an earlier run and were not rewritten by this one "
+            f"(listed in {state['record']}): {', '.join(kept[:5])}"
+            f"{', ...' if len(kept) > 5 else ''}" if kept else "")  # fmt: skip
+    return record, left
+
+
+def start_experiment_run(out: Path, name: str) -> dict[str, Any]:
+    """:func:`start_out_run` for ``hsi-torch experiment NAME`` (record :data:`RUN_RECORD`)."""
+    return start_out_run(out, f"hsi-torch experiment {name}", RUN_RECORD, experiment=name)
+
+
+def finish_experiment_run(out: Path, state: dict[str, Any]) -> str:
+    """:func:`finish_out_run` of :func:`start_experiment_run`; returns the text naming the files
+    from an earlier run (``""`` when none)."""
+    return finish_out_run(out, state)[1]
 
 
 #: Written into ``experiment NAME --out`` before the experiment runs, holding ``NAME``: the folder
@@ -272,7 +296,9 @@ def _refuse_not_empty(out: Path, names: list[str], earlier: str, writes: str) ->
 def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
-    :func:`hsi_torch.experiments.demo_full.demo_full`."""
+    :func:`hsi_torch.experiments.demo_full.demo_full`. The folder is marked incomplete
+    (:data:`INCOMPLETE_FILE`) while the demo runs, and :data:`DEMO_RUN_RECORD` written when it
+    completes, as for an experiment."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
@@ -284,14 +310,20 @@ def run_demo(args: argparse.Namespace) -> int:
     out = Path(getattr(args, "out", None) or "demo_output")
     check_demo_out(out)
     out.mkdir(parents=True, exist_ok=True)
+    full, quick = bool(getattr(args, "full", False)), bool(getattr(args, "quick", False))
+    if full and quick:
+        raise ValueError("--full and --quick exclude each other")
     (out / DEMO_MARKER).write_text("a folder written by hsi-torch demo\n", encoding="utf-8")
-    if getattr(args, "full", False):
-        if getattr(args, "quick", False):
-            raise ValueError("--full and --quick exclude each other")
+    command = "hsi-torch demo" + (" --full" if full else " --quick" if quick else "")
+    run_state = start_out_run(out, command, DEMO_RUN_RECORD)
+    if full:
         from hsi_torch.experiments.demo_full import demo_full
 
         demo_full(out, cfg, log=info)
     else:
-        demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
+        demo(out, cfg, quick=quick, log=info)
     write_resolved_config(cfg, out)
+    _record, left = finish_out_run(out, run_state)
+    if left:
+        info(f"demo finished in {out}{left}")
     return 0

@@ -49,6 +49,7 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
 from hsi_torch.config import help_meta, load_config
 from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
+from hsi_torch.experiments.cli_entry import DEMO_RUN_RECORD, INCOMPLETE_FILE
 from hsi_torch.experiments.metrics import (
     colorchecker_scores,
     cube_scores,
@@ -445,7 +446,8 @@ def demo(
         "calibration": {k: v for k, v in cal_scores.items()},
         "scenes": results,
         "timings_s": tm,
-        "files": sorted(p.name for p in out.iterdir() if p.is_file()),
+        "files": sorted(p.name for p in out.iterdir()
+                        if p.is_file() and p.name not in (INCOMPLETE_FILE, DEMO_RUN_RECORD)),
     }
     atomic_write_json(out / "summary.json", summary_d)
 
