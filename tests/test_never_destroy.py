@@ -428,3 +428,61 @@ def _users_folder(folder: Path, files: dict[str, bytes]) -> Path:
     for name, data in files.items():
         (folder / name).write_bytes(data)
     return folder
+
+
+_SCRIPTS_ROOT = Path(__file__).resolve().parents[1] / "scripts"
+
+
+@pytest.mark.parametrize(("script", "args"), [
+    ("drift_small.py", []),
+    ("mismatch_small.py", []),
+    ("error_budget.py", []),
+    ("optics_report.py", []),
+    ("usaf_demosaic.py", ["bilinear"]),
+])  # fmt: skip
+def test_scripts_refuse_an_out_folder_they_did_not_write(tmp_path, script, args):
+    """``scripts/X.py --out lab`` wrote its simulated sets, tables and figures into ``lab``
+    whatever it held (a lab's own files of the same names were replaced). Now each refuses a
+    folder holding files but not its marker before any work, as ``bench_simulate.py``, ``demo``
+    and ``experiment`` do (one helper, :func:`hsi_torch.io.paths.claim_out_dir`); a new folder
+    gets the marker first, so the script's own folder is accepted again."""
+    import runpy
+
+    from hsi_torch.io.paths import claim_out_dir
+
+    lab = _users_folder(tmp_path / "lab", {"notes.txt": b"the lab's", "calib.npz": b"mine"})
+    main_ = runpy.run_path(str(_SCRIPTS_ROOT / script), run_name="not_main")["main"]
+    with pytest.raises(SystemExit, match=f"{script}: error: --out .*lab is not empty \\(calib.npz, "
+                                         f"notes.txt\\) and holds no earlier run of {script}"):
+        main_([*args, "--out", str(lab)])
+    assert {p.name: p.read_bytes() for p in lab.iterdir()} == {"notes.txt": b"the lab's",
+                                                              "calib.npz": b"mine"}  # fmt: skip
+    # the marker each script writes first: its own folder is accepted the next time
+    marker = f".hsi_torch_{script.removesuffix('.py')}"
+    assert f'"{marker}"' in (_SCRIPTS_ROOT / script).read_text()
+    mine = claim_out_dir(tmp_path / "mine", marker, f"run of {script}", "it writes", script=script)
+    (mine / "drift_small.json").write_text("{}")
+    assert claim_out_dir(mine, marker, f"run of {script}", "it writes", script=script) == mine
+
+
+def test_deepinv_pnp_refuses_an_out_file_it_did_not_write(tmp_path):
+    """``scripts/deepinv_pnp.py --out cube.npz`` wrote over any file of that name (a user's own
+    cube, with the pipeline's keys) after the solve, not atomically. Now an existing ``--out``
+    that the script did not write (its key ``written_by``) is refused before any work."""
+    import runpy
+
+    import numpy as np
+
+    mod = runpy.run_path(str(_SCRIPTS_ROOT / "deepinv_pnp.py"), run_name="not_main")
+    theirs = tmp_path / "cube.npz"
+    np.savez(theirs, cube=np.ones((2, 3, 3)))
+    data = theirs.read_bytes()
+    args = ["--bundle", "b.npz", "--capture", "c.tif", "--weights", "w.pth", "--out"]
+    with pytest.raises(SystemExit, match="deepinv_pnp.py: error: --out .*cube.npz exists and "
+                                         "was not written by this script"):  # fmt: skip
+        mod["run"]([*args, str(theirs)])
+    assert theirs.read_bytes() == data
+    ours = tmp_path / "pnp.npz"
+    np.savez(ours, cube=np.ones((2, 3, 3)), written_by=mod["WRITTEN_BY"])
+    mod["_check_out"](ours)  # its own earlier output may be replaced
+    mod["_check_out"](tmp_path / "new.npz")

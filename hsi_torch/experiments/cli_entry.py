@@ -224,8 +224,9 @@ def check_experiment_out(out: Path, name: str) -> None:
         InputError: ``out`` is a folder with files and no earlier run of ``NAME`` (names a few).
     """
     from hsi_torch.errors import InputError
+    from hsi_torch.io.paths import out_entries, refuse_not_empty
 
-    names = _entries(out)
+    names = out_entries(out)
     if not names:
         return
     if EXPERIMENT_MARKER in names:
@@ -239,7 +240,7 @@ def check_experiment_out(out: Path, name: str) -> None:
             f"--out {out} holds a run of the experiment {owner[:40]!r}, not {name!r}; this run "
             "would replace files of the same names there: choose a new or empty folder"
         )
-    _refuse_not_empty(out, names, f"run of the experiment {name!r}",
+    refuse_not_empty(out, names, f"run of the experiment {name!r}",
                       "it writes summary.json, manifest.json, tables, figures and "
                       "resolved_config.yaml")
 
@@ -262,7 +263,9 @@ def check_demo_out(out: Path) -> None:
     """
     import json
 
-    names = _entries(out)
+    from hsi_torch.io.paths import out_entries, refuse_not_empty
+
+    names = out_entries(out)
     if not names or DEMO_MARKER in names:
         return
     try:
@@ -272,25 +275,8 @@ def check_demo_out(out: Path) -> None:
     if isinstance(summary, dict) and "scenes" in summary and ("files" in summary
                                                               or "stages" in summary):
         return  # a demo's summary (quick or --full), written before the marker existed
-    _refuse_not_empty(out, names, "demo run", "the demo writes captures/, calib.npz, "
+    refuse_not_empty(out, names, "demo run", "the demo writes captures/, calib.npz, "
                       "summary.json and a cube and previews per scene")
-
-
-def _entries(out: Path) -> list[str]:
-    """The sorted names in the folder ``out`` (none when it is not a folder)."""
-    return sorted(p.name for p in out.iterdir()) if out.is_dir() else []
-
-
-def _refuse_not_empty(out: Path, names: list[str], earlier: str, writes: str) -> None:
-    """The refusal of an ``--out`` folder holding ``names`` but no earlier ``earlier``, whose
-    run ``writes`` files there (an ``InputError`` naming a few of them)."""
-    from hsi_torch.errors import InputError
-
-    shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
-    raise InputError(
-        f"--out {out} is not empty ({shown}) and holds no earlier {earlier}; {writes} there "
-        "and would replace files of those names: choose a new or empty folder"
-    )
 
 
 def run_demo(args: argparse.Namespace) -> int:
