@@ -15,11 +15,11 @@ it and writes ``out/resolved_config.yaml``.
 
 A run into a folder that holds an earlier run writes its files in place (experiments such as
 ``mismatch`` reuse what an earlier or interrupted run left there), so until it completes the
-folder is marked: :data:`INCOMPLETE_FILE` is written before the experiment starts, listing the
+folder is marked: ``INCOMPLETE_RUN.json`` is written before the experiment starts, listing the
 files already there (from earlier runs) with their size and modification time, and removed when
-the run is complete; :data:`RUN_RECORD` then lists the files the run wrote and those it left from
-an earlier run (see ``docs/experiments.md``). ``hsi-torch demo --out DIR`` marks its folder the
-same way (:func:`start_out_run`, :func:`finish_out_run`; record :data:`DEMO_RUN_RECORD`).
+the run is complete; ``experiment_run.json`` then lists the files the run wrote and those it
+left from an earlier run (see ``docs/experiments.md``). ``hsi-torch demo --out DIR`` marks its
+folder the same way (record ``demo_run.json``); both through :mod:`hsi_torch.io.run_record`.
 
 To add an experiment, add a line to :data:`EXPERIMENTS` (or call :func:`register_experiment`).
 """
@@ -28,13 +28,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 __all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment",
-           "run_demo", "start_out_run", "finish_out_run"]
+           "run_demo"]
 
 #: name → (module, schema class, run function)
 EXPERIMENTS: dict[str, tuple[str, str, str]] = {
@@ -101,108 +100,19 @@ def run_experiment(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Written into ``experiment NAME --out`` (and ``demo --out``) before the run starts and removed
-#: when it is complete: a folder holding it holds a run that has not finished (still running, or
-#: interrupted), and it says which files are from an earlier run.
-INCOMPLETE_FILE = "INCOMPLETE_RUN.json"
-
-#: Written into ``experiment NAME --out`` when a run completes: when it ran, the files it wrote
-#: and the files from an earlier run that it left as they were.
-RUN_RECORD = "experiment_run.json"
-
-#: The same record of ``demo --out`` (:data:`INCOMPLETE_FILE` marks a demo's folder the same way).
-DEMO_RUN_RECORD = "demo_run.json"
-
-_STATUS_FILES = (INCOMPLETE_FILE, RUN_RECORD, DEMO_RUN_RECORD)
-
-
-def _now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-
-
-def _earlier_files(out: Path) -> dict[str, tuple[int, int, int]]:
-    """The files below ``out`` other than the markers and the runs' status files."""
-    from hsi_torch.io.paths import file_states
-
-    return {k: v for k, v in file_states(out).items()
-            if k not in _STATUS_FILES and k not in (EXPERIMENT_MARKER, DEMO_MARKER)}  # fmt: skip
-
-
-def start_out_run(out: Path, command: str, record: str, **fields: Any) -> dict[str, Any]:
-    """Mark ``out`` incomplete before ``command`` (e.g. ``hsi-torch demo``) writes there in
-    place: write :data:`INCOMPLETE_FILE` (atomically) with ``fields`` (e.g. ``experiment=NAME``),
-    the start time, this process and every file already there (``files_before``: relative path
-    → size, modification time in ns and inode), and say on stderr when the folder holds files of
-    an earlier run. ``record`` is the file :func:`finish_out_run` writes. Returns what was
-    written (passed on to :func:`finish_out_run`)."""
-    import os
-
-    from hsi_torch.console import info
-    from hsi_torch.io.atomic import atomic_write_json
-
-    before = _earlier_files(out)
-    state: dict[str, Any] = {
-        **fields,
-        "command": command,
-        "state": "incomplete",
-        "note": (f"this run of '{command}' has not finished: it is still running, or it was "
-                 "interrupted. A file listed under files_before whose size and modification "
-                 "time are unchanged is from an earlier run; every other file was written by "
-                 "this run. Run the same command again to complete it; this file is removed "
-                 f"when a run completes (and {record} written)."),
-        "started": _now(),
-        "pid": os.getpid(),
-        "earlier_run_incomplete": (out / INCOMPLETE_FILE).is_file(),
-        "record": record,
-        "files_before": {k: {"size": v[0], "mtime_ns": v[1], "inode": v[2]}
-                         for k, v in sorted(before.items())},
-    }  # fmt: skip
-    atomic_write_json(out / INCOMPLETE_FILE, state)
-    if before:
-        info(f"--out {out} holds {len(before)} file(s) of an earlier "
-             f"{'interrupted ' if state['earlier_run_incomplete'] else ''}run; this run "
-             f"writes over them in place, and {INCOMPLETE_FILE} marks the folder incomplete "
-             "until it has finished", file=sys.stderr)  # fmt: skip
-    return state
-
-
-def finish_out_run(out: Path, state: dict[str, Any]) -> tuple[dict[str, Any], str]:
-    """The run that :func:`start_out_run` began is complete: write its record (``state
-    ["record"]``; ``written``: files new or changed since the start; ``from_earlier_runs``:
-    files already there that are unchanged), then remove :data:`INCOMPLETE_FILE`. Returns the
-    record and a text for the run's last line naming the files from an earlier run (``""``
-    when there are none)."""
-    from hsi_torch.io.atomic import atomic_write_json
-
-    skip = ("state", "note", "started", "pid", "earlier_run_incomplete", "record",
-            "files_before")  # fmt: skip
-    before = {k: (v["size"], v["mtime_ns"], v["inode"]) for k, v in state["files_before"].items()}
-    after = _earlier_files(out)
-    record = {
-        **{k: v for k, v in state.items() if k not in skip},
-        "state": "complete",
-        "started": state["started"],
-        "finished": _now(),
-        "written": sorted(k for k, v in after.items() if before.get(k) != v),
-        "from_earlier_runs": sorted(k for k, v in after.items() if before.get(k) == v),
-    }
-    atomic_write_json(out / state["record"], record)
-    (out / INCOMPLETE_FILE).unlink(missing_ok=True)
-    kept = record["from_earlier_runs"]
-    left = (f"; {len(kept)} file(s) are from an earlier run and were not rewritten by this one "
-            f"(listed in {state['record']}): {', '.join(kept[:5])}"
-            f"{', ...' if len(kept) > 5 else ''}" if kept else "")  # fmt: skip
-    return record, left
-
-
 def start_experiment_run(out: Path, name: str) -> dict[str, Any]:
-    """:func:`start_out_run` for ``hsi-torch experiment NAME`` (record :data:`RUN_RECORD`)."""
+    """:func:`~hsi_torch.io.run_record.start_out_run` for ``hsi-torch experiment NAME`` (record
+    ``experiment_run.json``)."""
+    from hsi_torch.io.run_record import RUN_RECORD, start_out_run
+
     return start_out_run(out, f"hsi-torch experiment {name}", RUN_RECORD, experiment=name)
 
 
 def finish_experiment_run(out: Path, state: dict[str, Any]) -> str:
-    """:func:`finish_out_run` of :func:`start_experiment_run`; returns the text naming the files
-    from an earlier run (``""`` when none)."""
+    """:func:`~hsi_torch.io.run_record.finish_out_run` of :func:`start_experiment_run`; returns
+    the text naming the files from an earlier run (``""`` when none)."""
+    from hsi_torch.io.run_record import finish_out_run
+
     return finish_out_run(out, state)[1]
 
 
@@ -283,12 +193,13 @@ def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
     :func:`hsi_torch.experiments.demo_full.demo_full`. The folder is marked incomplete
-    (:data:`INCOMPLETE_FILE`) while the demo runs, and :data:`DEMO_RUN_RECORD` written when it
+    (``INCOMPLETE_RUN.json``) while the demo runs, and ``demo_run.json`` written when it
     completes, as for an experiment."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.experiments.demo import DemoConfig, demo
+    from hsi_torch.io.run_record import DEMO_RUN_RECORD, finish_out_run, start_out_run
 
     cfg = load_args_config(args, DemoConfig)
     if getattr(args, "device", None):

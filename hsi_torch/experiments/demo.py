@@ -49,7 +49,6 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
 from hsi_torch.config import help_meta, load_config
 from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
-from hsi_torch.experiments.cli_entry import DEMO_RUN_RECORD, INCOMPLETE_FILE
 from hsi_torch.experiments.metrics import (
     colorchecker_scores,
     cube_scores,
@@ -60,6 +59,7 @@ from hsi_torch.experiments.metrics import (
 from hsi_torch.io import save_cube, save_cube_formats
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_set import read_truth
+from hsi_torch.io.run_record import DEMO_RUN_RECORD, INCOMPLETE_FILE
 from hsi_torch.recon import Reconstructor
 from hsi_torch.refdata import colorchecker_reflectances
 from hsi_torch.resources import DATA_ENV, real_data_dir, shipped_config

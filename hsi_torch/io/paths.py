@@ -17,7 +17,7 @@ import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from hsi_torch.errors import InputError
+from hsi_torch.errors import HSIError, InputError
 
 __all__ = [
     "expand_inputs",
@@ -227,7 +227,6 @@ def claim_out_dir(
         ValueError: ``out`` exists and is not a folder.
         OSError: it cannot be created or the marker written (names the folder).
     """
-    from hsi_torch.errors import HSIError
     from hsi_torch.io.atomic import atomic_write_text  # lazy: atomic imports numpy
 
     try:
