@@ -64,7 +64,8 @@ def score(out: Path, res) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True,
+                    help="output folder: new, empty or this script's own")
     args = ap.parse_args(argv)
     claim_out_dir(args.out, ".hsi_torch_drift_small", "run of drift_small.py",
                   "it writes a capture set per row (ideal/, drift_2_px/, ...), drift_small.json "

@@ -129,7 +129,8 @@ def _ideal(bundle, truth: dict, names: list[str], beta: float) -> tuple[dict, np
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="work folder (simulated sets are reused)")
+    ap.add_argument("--out", required=True,
+                    help="work folder (simulated sets are reused): new, empty or this script's own")
     ap.add_argument("--calibrated", default=None, help="a calibrated full-size bundle")
     ap.add_argument("--beta", type=float, default=DEFAULT_BETA)
     args = ap.parse_args(argv)

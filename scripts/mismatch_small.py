@@ -28,7 +28,8 @@ from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True,
+                    help="output folder: new, empty or this script's own")
     ap.add_argument("--effects", nargs="*", default=None,
                     help=f"subset of {sorted(DOCUMENTED_EFFECTS)} and 'all' (default: every one)")
     ap.add_argument("--noise-seeds", type=int, default=0,

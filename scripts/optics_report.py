@@ -191,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
+    ap.add_argument("--out", type=Path, required=True,
+                    help="output folder for the PNGs: new, empty or this script's own")
     ap.add_argument("--full", action="store_true", help="also trace the full-size camera preset")
     args = ap.parse_args(argv)
     claim_out_dir(args.out, ".hsi_torch_optics_report", "run of optics_report.py",

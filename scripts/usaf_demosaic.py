@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("method", choices=["bilinear", *sorted(METHODS)],
                     help="bilinear: the library's own (a baseline run the same way)")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out", required=True, help="output folder: new, empty or this script's own")
     ap.add_argument("--experiment", default="usaf",
                     help="which experiment to run (default usaf; e.g. spatial, whose scenes "
                          "have coloured edges)")
