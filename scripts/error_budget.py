@@ -136,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     out = claim_out_dir(args.out, ".hsi_torch_error_budget", "run of error_budget.py",
                         "it writes simulated capture sets (rgb_clean/, bayer_clean/, "
-                        "bayer_noisy/), calib/ and error_budget.json", script="error_budget.py")
+                        "bayer_noisy/), calib/ and error_budget.json", script="error_budget.py",
+                        earlier_names=("error_budget.json", "rgb_clean"))
     t0 = time.perf_counter()
     cave = real_data_dir("cave_stuffed_toys")
     scenes = [{"kind": "colorchecker", "name": "colorchecker",

@@ -463,6 +463,10 @@ def test_scripts_refuse_an_out_folder_they_did_not_write(tmp_path, script, args)
     mine = claim_out_dir(tmp_path / "mine", marker, f"run of {script}", "it writes", script=script)
     (mine / "drift_small.json").write_text("{}")
     assert claim_out_dir(mine, marker, f"run of {script}", "it writes", script=script) == mine
+    # a folder of a run from before the marker existed, named by what only the script writes
+    old = _users_folder(tmp_path / "old", {"drift_small.json": b"{}", "notes.txt": b""})
+    assert claim_out_dir(old, marker, "run", "it writes", earlier_names=("drift_small.json",))
+    assert (old / marker).is_file()
 
 
 def test_deepinv_pnp_refuses_an_out_file_it_did_not_write(tmp_path):

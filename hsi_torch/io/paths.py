@@ -201,7 +201,8 @@ def refuse_not_empty(out: str | os.PathLike, names: Sequence[str], earlier: str,
 
 
 def claim_out_dir(
-    out: str | os.PathLike, marker: str, earlier: str, writes: str, *, script: str | None = None
+    out: str | os.PathLike, marker: str, earlier: str, writes: str, *, script: str | None = None,
+    earlier_names: Sequence[str] = (),
 ) -> Path:
     """Take the output folder ``out`` of a command or script that writes into it in place.
 
@@ -218,6 +219,9 @@ def claim_out_dir(
         writes: what the run writes there, for the message (``"it writes drift_small.json"``).
         script: a script's name: errors are raised as ``SystemExit("SCRIPT: error: …")``
             (exit status 1), for a script's ``main``.
+        earlier_names: names in ``out`` that only the writer makes (e.g. its result file or
+            cache folder): a folder holding one is an earlier run from before the writer wrote
+            ``marker``, and is accepted too (as ``demo`` accepts a demo's ``summary.json``).
 
     Returns:
         ``out`` as a :class:`~pathlib.Path`.
@@ -232,7 +236,7 @@ def claim_out_dir(
     try:
         p = check_out_dir(out)
         names = out_entries(p)
-        if names and marker not in names:
+        if names and marker not in names and not set(earlier_names) & set(names):
             refuse_not_empty(p, names, earlier, writes)
         ensure_out_dir(p)
         atomic_write_text(p / marker, f"a folder written by {script or earlier}\n")
