@@ -145,21 +145,11 @@ def _print_table(results: list[dict]) -> None:
 def _check_out(out: Path, configs: list[Path]) -> None:
     """Refuse an ``--out`` that holds files but no earlier run of this script (the refusal of
     ``hsi-torch demo`` and ``experiment``); then create it and write :data:`BENCH_MARKER`."""
-    from hsi_torch.errors import HSIError
-    from hsi_torch.experiments.cli_entry import _entries, _refuse_not_empty
-    from hsi_torch.io.atomic import atomic_write_text
-    from hsi_torch.io.paths import check_out_dir, ensure_out_dir
+    from hsi_torch.io.paths import claim_out_dir
 
-    try:
-        check_out_dir(out)
-        names = _entries(out)
-        if names and BENCH_MARKER not in names:
-            _refuse_not_empty(out, names, "run of bench_simulate.py", "it writes a capture set "
-                              f"per config ({', '.join(f'{c.stem}/' for c in configs)})")
-        ensure_out_dir(out)
-        atomic_write_text(out / BENCH_MARKER, "a folder written by scripts/bench_simulate.py\n")
-    except (HSIError, ValueError, OSError) as exc:
-        raise SystemExit(f"bench_simulate.py: error: {exc}") from None
+    claim_out_dir(out, BENCH_MARKER, "run of bench_simulate.py", "it writes a capture set per "
+                  f"config ({', '.join(f'{c.stem}/' for c in configs)})",
+                  script="bench_simulate.py")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,7 +13,8 @@ proximal step of ``‖A x − y‖²`` (``prox_l2``), the prior step the denoise
 geometrically from ``--sigma-start`` to ``--sigma-end`` (reflectance units). The start is the
 clipped per-pixel least-squares cube. Writes the cube (NPZ, same keys as the pipeline's) and,
 with ``--truth`` (an NPZ or cube file of the same size), prints the metrics of
-:mod:`hsi_torch.metrics` of the start and of the answer.
+:mod:`hsi_torch.metrics` of the start and of the answer. An existing ``--out`` is refused before
+any work unless this script wrote it (its key ``written_by``); the file is written atomically.
 """
 
 from __future__ import annotations
@@ -24,6 +25,24 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+#: Stored in the output ``.npz`` (key ``written_by``): a file holding it may be written over.
+WRITTEN_BY = "scripts/deepinv_pnp.py"
+
+
+def _check_out(out: Path) -> None:
+    """Refuse an ``--out`` that exists and is not an earlier output of this script (an ``.npz``
+    whose ``written_by`` is :data:`WRITTEN_BY`), before any work: it may be the user's cube."""
+    if not out.exists():
+        return
+    try:
+        with np.load(out, allow_pickle=False) as z:
+            ours = "written_by" in z.files and str(z["written_by"]) == WRITTEN_BY
+    except (OSError, ValueError, EOFError):
+        ours = False
+    if not ours:
+        raise SystemExit(f"deepinv_pnp.py: error: --out {out} exists and was not written by "
+                         "this script (it may be your own data): choose a new file name")
 
 
 def run(argv: list[str] | None = None) -> dict:
@@ -44,6 +63,7 @@ def run(argv: list[str] | None = None) -> dict:
                     help="DRUNet widths of the weights file (deepinv's default)")
     ap.add_argument("--drunet-blocks", type=int, default=4)
     args = ap.parse_args(argv)
+    _check_out(args.out)
 
     from deepinv.models import DRUNet
     from deepinv.optim import HQS, L2, PnP
@@ -88,9 +108,12 @@ def run(argv: list[str] | None = None) -> dict:
                              torch.from_numpy(truth), torch.from_numpy(valid))  # fmt: skip
             out["metrics"][name] = m
             print(f"{name}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
+    from hsi_torch.io.atomic import atomic_save_npz
+
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(args.out, cube=cube, valid=valid,
-                        wavelengths_nm=cam.wavelengths_nm.cpu().numpy())  # fmt: skip
+    atomic_save_npz(args.out, {"cube": cube, "valid": valid, "written_by": WRITTEN_BY,
+                               "wavelengths_nm": cam.wavelengths_nm.cpu().numpy()},
+                    compressed=True)  # fmt: skip
     print(f"wrote {args.out}")
     return out
 

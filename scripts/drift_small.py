@@ -30,6 +30,7 @@ from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import load_config
 from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
 from hsi_torch.io.capture_set import read_truth
+from hsi_torch.io.paths import claim_out_dir
 from hsi_torch.recon import Reconstructor
 from hsi_torch.resources import shipped_config
 from hsi_torch.simulate import SimulateConfig, simulate_capture_set
@@ -63,8 +64,13 @@ def score(out: Path, res) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True,
+                    help="output folder: new, empty or this script's own")
     args = ap.parse_args(argv)
+    claim_out_dir(args.out, ".hsi_torch_drift_small", "run of drift_small.py",
+                  "it writes a capture set per row (ideal/, drift_2_px/, ...), drift_small.json "
+                  "and drift_small.md", script="drift_small.py",
+                  earlier_names=("drift_small.json", "ideal"))  # fmt: skip
     rows: dict = {}
     for name, keys in ROWS.items():
         out = args.out / name.replace(" ", "_").replace("°", "deg").replace("+", "")

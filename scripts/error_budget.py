@@ -45,6 +45,7 @@ import torch
 
 from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erode_px, interior_mask
 from hsi_torch.io.capture_set import read_truth
+from hsi_torch.io.paths import claim_out_dir
 from hsi_torch.profiling import run_child
 from hsi_torch.recon.pipeline import DEFAULT_BETA, Reconstructor, assemble_cube
 from hsi_torch.resources import real_data_dir, shipped_config
@@ -128,12 +129,15 @@ def _ideal(bundle, truth: dict, names: list[str], beta: float) -> tuple[dict, np
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="work folder (simulated sets are reused)")
+    ap.add_argument("--out", required=True,
+                    help="work folder (simulated sets are reused): new, empty or this script's own")
     ap.add_argument("--calibrated", default=None, help="a calibrated full-size bundle")
     ap.add_argument("--beta", type=float, default=DEFAULT_BETA)
     args = ap.parse_args(argv)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_out_dir(args.out, ".hsi_torch_error_budget", "run of error_budget.py",
+                        "it writes simulated capture sets (rgb_clean/, bayer_clean/, "
+                        "bayer_noisy/), calib/ and error_budget.json", script="error_budget.py",
+                        earlier_names=("error_budget.json", "rgb_clean"))
     t0 = time.perf_counter()
     cave = real_data_dir("cave_stuffed_toys")
     scenes = [{"kind": "colorchecker", "name": "colorchecker",

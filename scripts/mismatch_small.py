@@ -22,12 +22,14 @@ import argparse
 from pathlib import Path
 
 from hsi_torch.experiments.mismatch import MismatchConfig, run_mismatch
+from hsi_torch.io.paths import claim_out_dir
 from hsi_torch.simulate.mismatch import DOCUMENTED_EFFECTS
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True,
+                    help="output folder: new, empty or this script's own")
     ap.add_argument("--effects", nargs="*", default=None,
                     help=f"subset of {sorted(DOCUMENTED_EFFECTS)} and 'all' (default: every one)")
     ap.add_argument("--noise-seeds", type=int, default=0,
@@ -36,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="no shot/read noise, no quantisation")
     ap.add_argument("--no-remedies", action="store_true", help="skip the remedy column")
     args = ap.parse_args(argv)
+    claim_out_dir(args.out, ".hsi_torch_mismatch_small", "run of mismatch_small.py",
+                  "it writes the mismatch experiment's tables, figures and rows/ (and seed<k>/)",
+                  script="mismatch_small.py", earlier_names=("mismatch.json", "rows"))  # fmt: skip
     kw = {"noise_free": args.noise_free, "remedies": not args.no_remedies}
     if args.effects is not None:
         kw["effects"] = list(args.effects)

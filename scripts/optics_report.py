@@ -38,6 +38,7 @@ from hsi_torch.experiments.systems import (  # noqa: E402
     scene_points,
     view_rays,
 )
+from hsi_torch.io.paths import claim_out_dir  # noqa: E402
 from hsi_torch.optics import (  # noqa: E402
     DEFAULT_CAMERA,
     DEFAULT_GEOMETRY,
@@ -190,10 +191,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
+    ap.add_argument("--out", type=Path, required=True,
+                    help="output folder for the PNGs: new, empty or this script's own")
     ap.add_argument("--full", action="store_true", help="also trace the full-size camera preset")
     args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    claim_out_dir(args.out, ".hsi_torch_optics_report", "run of optics_report.py",
+                  "it writes view_map.png, transmittance.png, opd_polar.png and layout.json",
+                  script="optics_report.py")  # fmt: skip
     torch.set_printoptions(precision=4)
 
     geom, cam, brf, grid = DEFAULT_GEOMETRY, DEFAULT_CAMERA, BRFConfig(), DEFAULT_GRID

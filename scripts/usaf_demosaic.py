@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("method", choices=["bilinear", *sorted(METHODS)],
                     help="bilinear: the library's own (a baseline run the same way)")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out", required=True, help="output folder: new, empty or this script's own")
     ap.add_argument("--experiment", default="usaf",
                     help="which experiment to run (default usaf; e.g. spatial, whose scenes "
                          "have coloured edges)")
@@ -143,6 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="experiment config override (repeatable), e.g. capture_set=DIR")
     a = ap.parse_args(argv)
+    from hsi_torch.io.paths import claim_out_dir
+
+    claim_out_dir(a.out, ".hsi_torch_usaf_demosaic", "run of usaf_demosaic.py",
+                  f"it writes the {a.experiment} experiment's summary.json, tables and figures",
+                  script="usaf_demosaic.py")  # fmt: skip
     from hsi_torch.config import load_config
     from hsi_torch.experiments.cli_entry import resolve_experiment
     from hsi_torch.io.atomic import atomic_write_json

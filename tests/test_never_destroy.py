@@ -366,9 +366,127 @@ def test_an_interrupted_experiment_rerun_marks_the_folder_incomplete(tmp_path, c
         ce.EXPERIMENTS.pop("nd_runs")
 
 
+def test_an_interrupted_demo_rerun_marks_the_folder_incomplete(tmp_path, capsys, monkeypatch):
+    """``demo --out DIR`` rerun into an earlier demo's folder and interrupted midway left a mix
+    of the new run's and the earlier run's files with nothing saying so. Now it is marked as an
+    experiment's folder is: ``INCOMPLETE_RUN.json`` until a run completes (listing the files
+    that were there before), then ``demo_run.json`` (files written, files from earlier runs)."""
+    import json
+    import os
+
+    from hsi_torch.experiments import demo as demo_mod
+    from hsi_torch.experiments.cli_entry import DEMO_MARKER
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / DEMO_MARKER).write_text("")
+    earlier = {"calib.npz": b"the earlier demo's bundle", "colorchecker.tif": b"its cube",
+               "summary.json": b'{"scenes": {}, "files": ["calib.npz"]}'}  # fmt: skip
+    for name, data in earlier.items():
+        (out / name).write_bytes(data)
+    argv = ["demo", "--quick", "--out", str(out), "--set", "progress=false", "--set",
+            "cave=false"]  # fmt: skip
+
+    def interrupted_simulation(cfg, cap_dir, **kw):  # the demo's step 1 stopped by Ctrl-C
+        Path(cap_dir).mkdir(parents=True)
+        (Path(cap_dir) / "manifest.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo_mod, "simulate_capture_set", interrupted_simulation)
+    assert main(argv) == 130
+    assert "holds 3 file(s) of an earlier run" in capsys.readouterr().err
+    mark = json.loads((out / "INCOMPLETE_RUN.json").read_text())  # used not to exist
+    assert mark["state"] == "incomplete" and mark["command"] == "hsi-torch demo --quick"
+    assert sorted(mark["files_before"]) == sorted(earlier)  # not the marker
+    for name, st in mark["files_before"].items():
+        now = os.stat(out / name)
+        assert (now.st_size, now.st_mtime_ns) == (st["size"], st["mtime_ns"])
+    assert (out / "captures" / "manifest.json").is_file()  # the interrupted run's
+    assert (out / "synthetic_scene.npz").is_file()  # written before the simulation
+    assert not (out / "demo_run.json").exists()
+
+    def tiny_demo(out, cfg, *, quick, log):  # a run that completes, without the real work
+        (out / "summary.json").write_text('{"scenes": {}, "files": []}')
+        (out / "captures" / "manifest.json").write_text('{"set": 2}')
+
+    monkeypatch.setattr(demo_mod, "demo", tiny_demo)
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert "holds 5 file(s) of an earlier interrupted run" in cap.err
+    assert "3 file(s) are from an earlier run and were not rewritten" in cap.out
+    assert not (out / "INCOMPLETE_RUN.json").exists()
+    rec = json.loads((out / "demo_run.json").read_text())
+    assert rec["state"] == "complete" and rec["command"] == "hsi-torch demo --quick"
+    assert rec["written"] == ["captures/manifest.json", "resolved_config.yaml", "summary.json"]
+    assert rec["from_earlier_runs"] == ["calib.npz", "colorchecker.tif", "synthetic_scene.npz"]
+    assert (out / "calib.npz").read_bytes() == earlier["calib.npz"]  # nothing deleted
+
+
 def _users_folder(folder: Path, files: dict[str, bytes]) -> Path:
     """``folder`` holding the user's own ``files`` (name → content)."""
     folder.mkdir()
     for name, data in files.items():
         (folder / name).write_bytes(data)
     return folder
+
+
+_SCRIPTS_ROOT = Path(__file__).resolve().parents[1] / "scripts"
+
+
+@pytest.mark.parametrize(("script", "args"), [
+    ("drift_small.py", []),
+    ("mismatch_small.py", []),
+    ("error_budget.py", []),
+    ("optics_report.py", []),
+    ("usaf_demosaic.py", ["bilinear"]),
+])  # fmt: skip
+def test_scripts_refuse_an_out_folder_they_did_not_write(tmp_path, script, args):
+    """``scripts/X.py --out lab`` wrote its simulated sets, tables and figures into ``lab``
+    whatever it held (a lab's own files of the same names were replaced). Now each refuses a
+    folder holding files but not its marker before any work, as ``bench_simulate.py``, ``demo``
+    and ``experiment`` do (one helper, :func:`hsi_torch.io.paths.claim_out_dir`); a new folder
+    gets the marker first, so the script's own folder is accepted again."""
+    import runpy
+
+    from hsi_torch.io.paths import claim_out_dir
+
+    lab = _users_folder(tmp_path / "lab", {"notes.txt": b"the lab's", "calib.npz": b"mine"})
+    main_ = runpy.run_path(str(_SCRIPTS_ROOT / script), run_name="not_main")["main"]
+    with pytest.raises(SystemExit, match=f"{script}: error: --out .*lab is not empty \\(calib.npz, "
+                                         f"notes.txt\\) and holds no earlier run of {script}"):
+        main_([*args, "--out", str(lab)])
+    assert {p.name: p.read_bytes() for p in lab.iterdir()} == {"notes.txt": b"the lab's",
+                                                              "calib.npz": b"mine"}  # fmt: skip
+    # the marker each script writes first: its own folder is accepted the next time
+    marker = f".hsi_torch_{script.removesuffix('.py')}"
+    assert f'"{marker}"' in (_SCRIPTS_ROOT / script).read_text()
+    mine = claim_out_dir(tmp_path / "mine", marker, f"run of {script}", "it writes", script=script)
+    (mine / "drift_small.json").write_text("{}")
+    assert claim_out_dir(mine, marker, f"run of {script}", "it writes", script=script) == mine
+    # a folder of a run from before the marker existed, named by what only the script writes
+    old = _users_folder(tmp_path / "old", {"drift_small.json": b"{}", "notes.txt": b""})
+    assert claim_out_dir(old, marker, "run", "it writes", earlier_names=("drift_small.json",))
+    assert (old / marker).is_file()
+
+
+def test_deepinv_pnp_refuses_an_out_file_it_did_not_write(tmp_path):
+    """``scripts/deepinv_pnp.py --out cube.npz`` wrote over any file of that name (a user's own
+    cube, with the pipeline's keys) after the solve, not atomically. Now an existing ``--out``
+    that the script did not write (its key ``written_by``) is refused before any work."""
+    import runpy
+
+    import numpy as np
+
+    mod = runpy.run_path(str(_SCRIPTS_ROOT / "deepinv_pnp.py"), run_name="not_main")
+    theirs = tmp_path / "cube.npz"
+    np.savez(theirs, cube=np.ones((2, 3, 3)))
+    data = theirs.read_bytes()
+    args = ["--bundle", "b.npz", "--capture", "c.tif", "--weights", "w.pth", "--out"]
+    with pytest.raises(SystemExit, match="deepinv_pnp.py: error: --out .*cube.npz exists and "
+                                         "was not written by this script"):  # fmt: skip
+        mod["run"]([*args, str(theirs)])
+    assert theirs.read_bytes() == data
+    ours = tmp_path / "pnp.npz"
+    np.savez(ours, cube=np.ones((2, 3, 3)), written_by=mod["WRITTEN_BY"])
+    mod["_check_out"](ours)  # its own earlier output may be replaced
+    mod["_check_out"](tmp_path / "new.npz")

@@ -247,6 +247,52 @@ def test_non_finite_used_observation_is_an_error_naming_it(dtype, value):
         solve_nnls(A, late, beta=1.0, chunk_size=5)
 
 
+def test_observations_overflowing_the_problems_dtype_are_an_error_naming_them():
+    """Finite observations too large for the problem's dtype (1e38 in a float32 frame: b = AᵀWy
+    overflows) passed the NaN/inf check, which looks at y, and the pixel silently came back as
+    x = 0. Now an ``InputError`` names the first pixel and says the values overflow the dtype
+    (either solver, either kernel, whole-frame indices through ``solve_nnls``' outer chunks);
+    a float64 y whose cast to a float32 problem makes inf says the cast did it."""
+    from hsi_torch.errors import InputError
+
+    g = torch.Generator().manual_seed(5)
+    P, O, M = 12, 30, 25
+    A = torch.rand(P, O, M, generator=g)
+    y = torch.bmm(A, torch.rand(P, M, 1, generator=g)).squeeze(2)
+    big = y.clone()
+    big[9] = 1e38  # finite in float32; b = Aᵀ W y is not
+    msg = (r"b = A\^T W y overflows float32 in 1 pixel\(s\) whose used observations are finite, "
+           r"the first at pixel 9 .*overflow the problem's dtype.*scale the data.*float64")
+    for solver in ("active_set", "admm"):
+        for backend in ("auto", "torch"):
+            with pytest.raises(InputError, match=msg):
+                prepare_nnls(A, beta=1.0).solve(big, solver=solver, backend=backend)
+            with pytest.raises(InputError, match=msg):
+                solve_nnls(A, big, beta=1.0, solver=solver, backend=backend,
+                           mask=torch.ones(P, O, dtype=torch.bool), chunk_size=4)  # fmt: skip
+    with pytest.raises(InputError, match=msg):  # ADMM's own chunks: the whole frame's index
+        prepare_nnls(A, beta=1.0).solve(big, solver="admm", chunk_size=4)
+    # the same data in float64 solves, and scaled down in float32 too
+    assert bool(solve_nnls(A.double(), big.double(), beta=1.0).converged.all())
+    assert bool(torch.isfinite(solve_nnls(A, big / 1e30, beta=1.0).x).all())
+    # a float64 y cast to a float32 problem: the cast made the inf, and the message says so
+    y64 = y.double()
+    y64[6, 13] = 1e39
+    cast = (r"y is float64 and the problem float32: casting y to float32 made 1 used "
+            r"observation\(s\) of 1 pixel\(s\) inf, the first at pixel 6, observation 13 "
+            r"\(y\[6, 13\] = 1e\+39.*overflow the problem's dtype.*float64")
+    for solver in ("active_set", "admm"):
+        with pytest.raises(InputError, match=cast):
+            prepare_nnls(A, beta=1.0).solve(y64, solver=solver)
+        with pytest.raises(InputError, match=cast):
+            solve_nnls(A, y64, beta=1.0, solver=solver,
+                       mask=torch.ones(P, O, dtype=torch.bool), chunk_size=4)  # fmt: skip
+    # masked out, the value is not used: no error
+    mask = torch.ones(P, O, dtype=torch.bool)
+    mask[6, 13] = False
+    assert bool(torch.isfinite(prepare_nnls(A, mask=mask, beta=1.0).solve(y64).x).all())
+
+
 def test_exact_zeros():
     # y = 0 -> x = 0 exactly
     A, _, _ = random_problem(20, seed=4)

@@ -15,10 +15,11 @@ it and writes ``out/resolved_config.yaml``.
 
 A run into a folder that holds an earlier run writes its files in place (experiments such as
 ``mismatch`` reuse what an earlier or interrupted run left there), so until it completes the
-folder is marked: :data:`INCOMPLETE_FILE` is written before the experiment starts, listing the
+folder is marked: ``INCOMPLETE_RUN.json`` is written before the experiment starts, listing the
 files already there (from earlier runs) with their size and modification time, and removed when
-the run is complete; :data:`RUN_RECORD` then lists the files the run wrote and those it left from
-an earlier run (see ``docs/experiments.md``).
+the run is complete; ``experiment_run.json`` then lists the files the run wrote and those it
+left from an earlier run (see ``docs/experiments.md``). ``hsi-torch demo --out DIR`` marks its
+folder the same way (record ``demo_run.json``); both through :mod:`hsi_torch.io.run_record`.
 
 To add an experiment, add a line to :data:`EXPERIMENTS` (or call :func:`register_experiment`).
 """
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -90,96 +90,30 @@ def run_experiment(args: argparse.Namespace) -> int:
     out = ensure_out_dir(out)
     atomic_write_text(out / EXPERIMENT_MARKER, f"{args.name}\n")
     run_state = start_experiment_run(out, args.name)
-    if run_state["files_before"]:
-        info(f"--out {out} holds {len(run_state['files_before'])} file(s) of an earlier "
-             f"{'interrupted ' if run_state['earlier_run_incomplete'] else ''}run; this run "
-             f"writes over them in place, and {INCOMPLETE_FILE} marks the folder incomplete "
-             "until it has finished", file=sys.stderr)  # fmt: skip
     t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
-    record = finish_experiment_run(out, run_state)
+    left = finish_experiment_run(out, run_state)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
-    kept = record["from_earlier_runs"]
-    left = (f"; {len(kept)} file(s) are from an earlier run and were not rewritten by this one "
-            f"(listed in {RUN_RECORD}): {', '.join(kept[:5])}{', ...' if len(kept) > 5 else ''}"
-            if kept else "")  # fmt: skip
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
          f"{len(files)} files in {out}: {', '.join(files)}{left}")  # fmt: skip
     return 0
 
 
-#: Written into ``experiment NAME --out`` before the experiment starts and removed when its run
-#: is complete: a folder holding it holds a run that has not finished (still running, or
-#: interrupted), and it says which files are from an earlier run.
-INCOMPLETE_FILE = "INCOMPLETE_RUN.json"
-
-#: Written into ``experiment NAME --out`` when a run completes: when it ran, the files it wrote
-#: and the files from an earlier run that it left as they were.
-RUN_RECORD = "experiment_run.json"
-
-_STATUS_FILES = (INCOMPLETE_FILE, RUN_RECORD)
-
-
-def _now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-
-
-def _earlier_files(out: Path) -> dict[str, tuple[int, int, int]]:
-    """The files below ``out`` other than the marker and the run's status files."""
-    from hsi_torch.io.paths import file_states
-
-    return {k: v for k, v in file_states(out).items()
-            if k not in _STATUS_FILES and k != EXPERIMENT_MARKER}  # fmt: skip
-
-
 def start_experiment_run(out: Path, name: str) -> dict[str, Any]:
-    """Mark ``out`` incomplete before the experiment ``name`` writes there: write
-    :data:`INCOMPLETE_FILE` (atomically) with the start time, this process and every file
-    already there (``files_before``: relative path → size, modification time in ns and inode).
-    Returns what was written (passed on to :func:`finish_experiment_run`)."""
-    import os
+    """:func:`~hsi_torch.io.run_record.start_out_run` for ``hsi-torch experiment NAME`` (record
+    ``experiment_run.json``)."""
+    from hsi_torch.io.run_record import RUN_RECORD, start_out_run
 
-    from hsi_torch.io.atomic import atomic_write_json
-
-    before = _earlier_files(out)
-    state: dict[str, Any] = {
-        "experiment": name,
-        "state": "incomplete",
-        "note": (f"this run of 'hsi-torch experiment {name}' has not finished: it is still "
-                 "running, or it was interrupted. A file listed under files_before whose size "
-                 "and modification time are unchanged is from an earlier run; every other file "
-                 "was written by this run. Run the same command again to complete it; this file "
-                 "is removed when a run completes."),
-        "started": _now(),
-        "pid": os.getpid(),
-        "earlier_run_incomplete": (out / INCOMPLETE_FILE).is_file(),
-        "files_before": {k: {"size": v[0], "mtime_ns": v[1], "inode": v[2]}
-                         for k, v in sorted(before.items())},
-    }  # fmt: skip
-    atomic_write_json(out / INCOMPLETE_FILE, state)
-    return state
+    return start_out_run(out, f"hsi-torch experiment {name}", RUN_RECORD, experiment=name)
 
 
-def finish_experiment_run(out: Path, state: dict[str, Any]) -> dict[str, Any]:
-    """The run that :func:`start_experiment_run` began is complete: write :data:`RUN_RECORD`
-    (``written``: files new or changed since the start; ``from_earlier_runs``: files already
-    there that are unchanged), then remove :data:`INCOMPLETE_FILE`. Returns the record."""
-    from hsi_torch.io.atomic import atomic_write_json
+def finish_experiment_run(out: Path, state: dict[str, Any]) -> str:
+    """:func:`~hsi_torch.io.run_record.finish_out_run` of :func:`start_experiment_run`; returns
+    the text naming the files from an earlier run (``""`` when none)."""
+    from hsi_torch.io.run_record import finish_out_run
 
-    before = {k: (v["size"], v["mtime_ns"], v["inode"]) for k, v in state["files_before"].items()}
-    after = _earlier_files(out)
-    record = {
-        "experiment": state["experiment"],
-        "state": "complete",
-        "started": state["started"],
-        "finished": _now(),
-        "written": sorted(k for k, v in after.items() if before.get(k) != v),
-        "from_earlier_runs": sorted(k for k, v in after.items() if before.get(k) == v),
-    }
-    atomic_write_json(out / RUN_RECORD, record)
-    (out / INCOMPLETE_FILE).unlink(missing_ok=True)
-    return record
+    return finish_out_run(out, state)[1]
 
 
 #: Written into ``experiment NAME --out`` before the experiment runs, holding ``NAME``: the folder
@@ -200,8 +134,9 @@ def check_experiment_out(out: Path, name: str) -> None:
         InputError: ``out`` is a folder with files and no earlier run of ``NAME`` (names a few).
     """
     from hsi_torch.errors import InputError
+    from hsi_torch.io.paths import out_entries, refuse_not_empty
 
-    names = _entries(out)
+    names = out_entries(out)
     if not names:
         return
     if EXPERIMENT_MARKER in names:
@@ -215,7 +150,7 @@ def check_experiment_out(out: Path, name: str) -> None:
             f"--out {out} holds a run of the experiment {owner[:40]!r}, not {name!r}; this run "
             "would replace files of the same names there: choose a new or empty folder"
         )
-    _refuse_not_empty(out, names, f"run of the experiment {name!r}",
+    refuse_not_empty(out, names, f"run of the experiment {name!r}",
                       "it writes summary.json, manifest.json, tables, figures and "
                       "resolved_config.yaml")
 
@@ -238,7 +173,9 @@ def check_demo_out(out: Path) -> None:
     """
     import json
 
-    names = _entries(out)
+    from hsi_torch.io.paths import out_entries, refuse_not_empty
+
+    names = out_entries(out)
     if not names or DEMO_MARKER in names:
         return
     try:
@@ -248,35 +185,21 @@ def check_demo_out(out: Path) -> None:
     if isinstance(summary, dict) and "scenes" in summary and ("files" in summary
                                                               or "stages" in summary):
         return  # a demo's summary (quick or --full), written before the marker existed
-    _refuse_not_empty(out, names, "demo run", "the demo writes captures/, calib.npz, "
+    refuse_not_empty(out, names, "demo run", "the demo writes captures/, calib.npz, "
                       "summary.json and a cube and previews per scene")
-
-
-def _entries(out: Path) -> list[str]:
-    """The sorted names in the folder ``out`` (none when it is not a folder)."""
-    return sorted(p.name for p in out.iterdir()) if out.is_dir() else []
-
-
-def _refuse_not_empty(out: Path, names: list[str], earlier: str, writes: str) -> None:
-    """The refusal of an ``--out`` folder holding ``names`` but no earlier ``earlier``, whose
-    run ``writes`` files there (an ``InputError`` naming a few of them)."""
-    from hsi_torch.errors import InputError
-
-    shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
-    raise InputError(
-        f"--out {out} is not empty ({shown}) and holds no earlier {earlier}; {writes} there "
-        "and would replace files of those names: choose a new or empty folder"
-    )
 
 
 def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
-    :func:`hsi_torch.experiments.demo_full.demo_full`."""
+    :func:`hsi_torch.experiments.demo_full.demo_full`. The folder is marked incomplete
+    (``INCOMPLETE_RUN.json``) while the demo runs, and ``demo_run.json`` written when it
+    completes, as for an experiment."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.experiments.demo import DemoConfig, demo
+    from hsi_torch.io.run_record import DEMO_RUN_RECORD, finish_out_run, start_out_run
 
     cfg = load_args_config(args, DemoConfig)
     if getattr(args, "device", None):
@@ -284,14 +207,20 @@ def run_demo(args: argparse.Namespace) -> int:
     out = Path(getattr(args, "out", None) or "demo_output")
     check_demo_out(out)
     out.mkdir(parents=True, exist_ok=True)
+    full, quick = bool(getattr(args, "full", False)), bool(getattr(args, "quick", False))
+    if full and quick:
+        raise ValueError("--full and --quick exclude each other")
     (out / DEMO_MARKER).write_text("a folder written by hsi-torch demo\n", encoding="utf-8")
-    if getattr(args, "full", False):
-        if getattr(args, "quick", False):
-            raise ValueError("--full and --quick exclude each other")
+    command = "hsi-torch demo" + (" --full" if full else " --quick" if quick else "")
+    run_state = start_out_run(out, command, DEMO_RUN_RECORD)
+    if full:
         from hsi_torch.experiments.demo_full import demo_full
 
         demo_full(out, cfg, log=info)
     else:
-        demo(out, cfg, quick=bool(getattr(args, "quick", False)), log=info)
+        demo(out, cfg, quick=quick, log=info)
     write_resolved_config(cfg, out)
+    _record, left = finish_out_run(out, run_state)
+    if left:
+        info(f"demo finished in {out}{left}")
     return 0

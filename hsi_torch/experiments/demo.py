@@ -59,6 +59,7 @@ from hsi_torch.experiments.metrics import (
 from hsi_torch.io import save_cube, save_cube_formats
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_set import read_truth
+from hsi_torch.io.run_record import DEMO_RUN_RECORD, INCOMPLETE_FILE
 from hsi_torch.recon import Reconstructor
 from hsi_torch.refdata import colorchecker_reflectances
 from hsi_torch.resources import DATA_ENV, real_data_dir, shipped_config
@@ -445,7 +446,8 @@ def demo(
         "calibration": {k: v for k, v in cal_scores.items()},
         "scenes": results,
         "timings_s": tm,
-        "files": sorted(p.name for p in out.iterdir() if p.is_file()),
+        "files": sorted(p.name for p in out.iterdir()
+                        if p.is_file() and p.name not in (INCOMPLETE_FILE, DEMO_RUN_RECORD)),
     }
     atomic_write_json(out / "summary.json", summary_d)
 

@@ -2,7 +2,9 @@
 
 :func:`expand_inputs` turns files and glob patterns into the inputs of a run,
 :func:`check_input_name` refuses a name that cannot name outputs (not valid UTF-8),
-:func:`check_out_dir` / :func:`ensure_out_dir` check and create the output folder, and
+:func:`check_out_dir` / :func:`ensure_out_dir` check and create the output folder,
+:func:`claim_out_dir` refuses an output folder holding files of something else (a script's
+``--out``), and
 :func:`output_paths` names the files a reconstruction writes for one input (``DIR/<stem>.tif``,
 ``<stem>_preview.png``, ...), and :func:`file_states` tells which files of an output folder a
 rerun wrote. Every command that takes inputs or an output folder uses these.
@@ -15,7 +17,7 @@ import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from hsi_torch.errors import InputError
+from hsi_torch.errors import HSIError, InputError
 
 __all__ = [
     "expand_inputs",
@@ -25,6 +27,9 @@ __all__ = [
     "ensure_out_dir",
     "output_paths",
     "file_states",
+    "out_entries",
+    "refuse_not_empty",
+    "claim_out_dir",
     "CUBE_SUFFIXES",
 ]
 
@@ -172,3 +177,71 @@ def file_states(folder: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
                 continue
             states[p.relative_to(root).as_posix()] = (st.st_size, st.st_mtime_ns, st.st_ino)
     return states
+
+
+def out_entries(out: str | os.PathLike) -> list[str]:
+    """The sorted names in the folder ``out`` (none when it is not a folder)."""
+    p = Path(out)
+    return sorted(q.name for q in p.iterdir()) if p.is_dir() else []
+
+
+def refuse_not_empty(out: str | os.PathLike, names: Sequence[str], earlier: str,
+                     writes: str) -> None:  # fmt: skip
+    """Refuse the ``--out`` folder ``out`` that holds ``names`` but no earlier ``earlier``
+    (e.g. ``"demo run"``) whose run ``writes`` files there (e.g. ``"it writes a capture set"``).
+
+    Raises:
+        InputError: always; it names the folder and a few of ``names``.
+    """
+    shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+    raise InputError(
+        f"--out {out} is not empty ({shown}) and holds no earlier {earlier}; {writes} there "
+        "and would replace files of those names: choose a new or empty folder"
+    )
+
+
+def claim_out_dir(
+    out: str | os.PathLike, marker: str, earlier: str, writes: str, *, script: str | None = None,
+    earlier_names: Sequence[str] = (),
+) -> Path:
+    """Take the output folder ``out`` of a command or script that writes into it in place.
+
+    ``out`` must be new, empty, or hold ``marker`` (a hidden file naming the folder's writer,
+    left by an earlier or interrupted run of the same writer); a folder holding anything else is
+    refused before anything is written, naming a few of its files (:func:`refuse_not_empty`,
+    the refusal of ``hsi-torch demo`` and ``experiment``). Then the folder is created and
+    ``marker`` written first, so the writer's own folder is accepted the next time.
+
+    Args:
+        out: the output folder.
+        marker: the marker's file name in ``out`` (e.g. ``.hsi_torch_bench_simulate``).
+        earlier: what an earlier run is called in the message (``"run of drift_small.py"``).
+        writes: what the run writes there, for the message (``"it writes drift_small.json"``).
+        script: a script's name: errors are raised as ``SystemExit("SCRIPT: error: …")``
+            (exit status 1), for a script's ``main``.
+        earlier_names: names in ``out`` that only the writer makes (e.g. its result file or
+            cache folder): a folder holding one is an earlier run from before the writer wrote
+            ``marker``, and is accepted too (as ``demo`` accepts a demo's ``summary.json``).
+
+    Returns:
+        ``out`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        InputError: ``out`` holds files but not ``marker``.
+        ValueError: ``out`` exists and is not a folder.
+        OSError: it cannot be created or the marker written (names the folder).
+    """
+    from hsi_torch.io.atomic import atomic_write_text  # lazy: atomic imports numpy
+
+    try:
+        p = check_out_dir(out)
+        names = out_entries(p)
+        if names and marker not in names and not set(earlier_names) & set(names):
+            refuse_not_empty(p, names, earlier, writes)
+        ensure_out_dir(p)
+        atomic_write_text(p / marker, f"a folder written by {script or earlier}\n")
+    except (HSIError, ValueError, OSError) as exc:
+        if script is None:
+            raise
+        raise SystemExit(f"{script}: error: {exc}") from None
+    return p

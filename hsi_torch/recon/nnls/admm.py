@@ -114,7 +114,7 @@ def _solve_chunk(
     K, r = admm_factors(problem, rho)
     K, r = _take(K, sl), _take(r, sl)
     b = problem.rhs(y, sl)
-    check_finite_rhs(b, y, problem.mask)  # NaN/inf where the mask uses y: an error
+    check_finite_rhs(b, y, problem.mask, sl.start or 0)  # NaN/inf, or overflow: an error
     n, m = b.shape
     dev, dt = b.device, b.dtype
     G = problem.gram_matrices(sl)

@@ -115,7 +115,7 @@ def solve_active_set(
     steps = _steps_compiled if use_compiled(problem, backend) else _steps_torch
     st = steps(problem, y, tol, min(max_iter, BPP_ROUNDS), refine, n, n_corr, workers, sing, nod,
                irregular)
-    check_finite_rhs(st.b, y, problem.mask)  # NaN/inf where the mask uses y: an error
+    check_finite_rhs(st.b, y, problem.mask)  # NaN/inf, or b overflowing: an error
     return _finish(problem, st, irregular, nod, tol, max_iter, refine, n_corr)
 
 

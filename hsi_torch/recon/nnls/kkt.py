@@ -201,14 +201,77 @@ def non_finite_observations(y: Tensor, mask: Tensor | None) -> NonFiniteObservat
     )
 
 
-def check_finite_rhs(b: Tensor, y: Tensor, mask: Tensor | None) -> None:
+class ObservationsOverflow(InputError):
+    """Finite observations too large for the problem's dtype: ``b = Aᵀ W y`` overflows it
+    (:func:`rhs_overflow`), or casting ``y`` to it makes them inf (:func:`cast_overflow`)."""
+
+
+_OVERFLOW_FIX = ("scale the data (divide y by a constant, and the solution with it) or solve in "
+                 "float64 (a float64 A or sensing model, and y)")  # fmt: skip
+
+
+def rhs_overflow(b: Tensor, y: Tensor, mask: Tensor | None,
+                 offset: int = 0) -> ObservationsOverflow | None:  # fmt: skip
+    """The error naming the pixels whose right-hand side ``b (n, M)`` is not finite although
+    their used observations ``y`` are (``b`` of the pixels ``offset … offset + n`` of ``y (P,
+    O)``): the values overflow the problem's dtype, which would give those pixels ``x = 0``.
+    ``None`` when ``b`` is finite. For the error path only."""
+    bad = ~torch.isfinite(b.detach()).all(1)
+    n_px = int(bad.sum())
+    if n_px == 0:
+        return None
+    i = int(bad.nonzero()[0, 0])
+    p = offset + i
+    yp = y[p].detach().abs()
+    if mask is not None:
+        yp = torch.where(mask[min(p, mask.shape[0] - 1)], yp, torch.zeros((), dtype=yp.dtype))
+    dt = b.dtype
+    return ObservationsOverflow(
+        f"b = A^T W y overflows {str(dt).removeprefix('torch.')} in {n_px} pixel(s) whose used "
+        f"observations are finite, the first at pixel {p} (largest |y| there "
+        f"{float(yp.max()):.4g}, largest {str(dt).removeprefix('torch.')} "
+        f"{torch.finfo(dt).max:.4g}): the values overflow the problem's dtype and the solver "
+        f"would give those pixels x = 0; {_OVERFLOW_FIX}"
+    )
+
+
+def cast_overflow(
+    y: Tensor, dtype: torch.dtype, mask: Tensor | None
+) -> ObservationsOverflow | None:
+    """The error naming the used observations of ``y (P, O)`` that are finite but become inf when
+    ``y`` is cast to the problem's ``dtype`` (a float64 ``y`` of a float32 problem); ``None``
+    when there are none. A full pass over ``y``: for the error path only."""
+    if y.dtype == dtype or not y.is_floating_point():
+        return None
+    yd = y.detach()
+    bad = torch.isfinite(yd) & ~torch.isfinite(yd.to(dtype))
+    if mask is not None:
+        bad &= mask
+    px = bad.any(1)
+    n_px = int(px.sum())
+    if n_px == 0:
+        return None
+    p = int(px.nonzero()[0, 0])
+    o = int(bad[p].nonzero()[0, 0])
+    src, dst = str(y.dtype).removeprefix("torch."), str(dtype).removeprefix("torch.")
+    return ObservationsOverflow(
+        f"y is {src} and the problem {dst}: casting y to {dst} made {int(bad.sum())} used "
+        f"observation(s) of {n_px} pixel(s) inf, the first at pixel {p}, observation {o} "
+        f"(y[{p}, {o}] = {float(yd[p, o]):.4g}, largest {dst} {torch.finfo(dtype).max:.4g}): "
+        f"the values overflow the problem's dtype; {_OVERFLOW_FIX}"
+    )
+
+
+def check_finite_rhs(b: Tensor, y: Tensor, mask: Tensor | None, offset: int = 0) -> None:
     """Raise :class:`NonFiniteObservations` when a used observation of ``y (P, O)`` is NaN or
-    ±inf. ``b (n, M)`` are right-hand sides ``Aᵀ W y`` of (some of) its pixels: a non-finite used
-    observation makes its pixel's ``b`` non-finite (``0·inf`` is NaN too), so one sum over
-    ``b`` (``M`` floats a pixel, ~1 ms a full float32 frame) decides whether ``y`` is looked at
-    at all; a finite ``b`` whose sum overflows costs that look and raises nothing."""
+    ±inf, and :class:`ObservationsOverflow` when the observations are finite but a pixel's
+    right-hand side is not (they overflow the problem's dtype). ``b (n, M)`` are right-hand
+    sides ``Aᵀ W y`` of the pixels ``offset … offset + n``: a non-finite used observation makes
+    its pixel's ``b`` non-finite (``0·inf`` is NaN too), so one sum over ``b`` (``M`` floats a
+    pixel, ~1 ms a full float32 frame) decides whether ``y`` and ``b`` are looked at at all; a
+    finite ``b`` whose sum overflows costs that look and raises nothing."""
     if bool(torch.isfinite(b.detach().sum())):
         return
-    err = non_finite_observations(y, mask)
+    err = non_finite_observations(y, mask) or rhs_overflow(b, y, mask, offset)
     if err is not None:
         raise err

@@ -26,6 +26,7 @@ from hsi_torch.recon.nnls.constants import REFINE_STEPS
 from hsi_torch.recon.nnls.frame import solve_active_set
 from hsi_torch.recon.nnls.kkt import (
     NonFiniteObservations,
+    ObservationsOverflow,
     _admm_tol,
     _chunk_len,
     _default_solve_chunk,
@@ -34,7 +35,9 @@ from hsi_torch.recon.nnls.kkt import (
     _gram_norm,
     _rowvec,
     _take,
+    cast_overflow,
     non_finite_observations,
+    rhs_overflow,
     smoothness_gram,
 )
 
@@ -321,7 +324,9 @@ class NNLSProblem:
         Raises:
             ValueError: (an :class:`~hsi_torch.errors.InputError`) NaN or ±inf in ``y`` where
                 the mask uses it, naming how many and the first (pixel, observation); NaN or inf
-                where the mask is ``False`` is ignored.
+                where the mask is ``False`` is ignored. Finite observations too large for the
+                problem's dtype (``b = Aᵀ W y`` overflows, or casting a float64 ``y`` to a
+                float32 problem makes inf) raise ``ObservationsOverflow``, naming the first pixel.
         """
         if backend not in _BACKENDS:
             raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
@@ -337,7 +342,21 @@ class NNLSProblem:
     ) -> NNLSResult:
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
-        y = self._check_y(y)
+        y_in, y = y, self._check_y(y)
+        try:
+            return self._solve_cast(y, solver, tol, max_iter, refine, chunk_size, max_memory,
+                                    x0, admm_iters, rho, workers, backend)
+        except (NonFiniteObservations, ObservationsOverflow):
+            err = cast_overflow(y_in, self.dtype, self.mask)  # inf made by the cast: say so
+            if err is None:
+                raise
+            raise err from None
+
+    def _solve_cast(
+        self, y: Tensor, solver: str, tol: float | None, max_iter: int | None,
+        refine: int | None, chunk_size: int | None, max_memory: int | None, x0: Tensor | None,
+        admm_iters: int | None, rho: float | None, workers: int, backend: str,
+    ) -> NNLSResult:
         P, m = y.shape[0], self.num_bands
         if P == 0:
             return _empty_result(m, self.dtype, self.device, solver)
@@ -606,6 +625,13 @@ def solve_nnls(
                                     x0=None if x0 is None else x0[sl], **kw))
         except NonFiniteObservations:  # named again from the whole y: its pixel indices
             raise non_finite_observations(y, mask) from None
+        except ObservationsOverflow:  # likewise
+            err = cast_overflow(y, op.dtype, mask)
+            if err is None:
+                yc = y[sl].to(op.dtype)
+                err = rhs_overflow(prob.rhs(yc, slice(0, yc.shape[0])), y.to(op.dtype), mask,
+                                   offset=s)  # fmt: skip
+            raise err from None
     if len(parts) == 1:
         return parts[0]
     return NNLSResult(
