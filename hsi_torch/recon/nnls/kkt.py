@@ -174,6 +174,19 @@ def _kkt_ratio(g: Tensor, x: Tensor, gd: Tensor, gn: Tensor, bnorm: Tensor) -> T
     return _norm2(t) / (gn * _norm2(x) + bnorm).clamp_min(torch.finfo(x.dtype).tiny)
 
 
+def _first_used(bad: Tensor, mask: Tensor | None) -> tuple[int, int, int, int] | None:
+    """Of the entries ``bad (P, O)`` that ``mask`` uses (``None``: all): how many, in how many
+    pixels, and the first as ``(pixel, observation)``; ``None`` when there are none."""
+    if mask is not None:
+        bad = bad & mask
+    px = bad.any(1)
+    n_px = int(px.sum())
+    if n_px == 0:
+        return None
+    p = int(px.nonzero()[0, 0])
+    return int(bad.sum()), n_px, p, int(bad[p].nonzero()[0, 0])
+
+
 class NonFiniteObservations(InputError):
     """NaN or ±inf in an observation the mask uses (:func:`check_finite_rhs`)."""
 
@@ -183,17 +196,12 @@ def non_finite_observations(y: Tensor, mask: Tensor | None) -> NonFiniteObservat
     ``(P, O)`` bool or ``None`` = all used): how many, in how many pixels, the first by pixel
     and observation index, and the fix. ``None`` when there are none. A full pass over ``y``:
     for the error path only."""
-    bad = ~torch.isfinite(y.detach())
-    if mask is not None:
-        bad &= mask
-    px = bad.any(1)
-    n_px = int(px.sum())
-    if n_px == 0:
+    found = _first_used(~torch.isfinite(y.detach()), mask)
+    if found is None:
         return None
-    p = int(px.nonzero()[0, 0])
-    o = int(bad[p].nonzero()[0, 0])
+    count, n_px, p, o = found
     return NonFiniteObservations(
-        f"y holds NaN or inf in {int(bad.sum())} used observation(s) of {n_px} pixel(s), the "
+        f"y holds NaN or inf in {count} used observation(s) of {n_px} pixel(s), the "
         f"first at pixel {p}, observation {o} (y[{p}, {o}] = {float(y[p, o])}); the solver "
         "cannot use them: mask them out (mask=False there: solve_nnls / prepare_nnls take a "
         "(P, O) bool mask; the reconstruction pipeline's frame mask drops non-finite samples "
@@ -244,18 +252,13 @@ def cast_overflow(
     if y.dtype == dtype or not y.is_floating_point():
         return None
     yd = y.detach()
-    bad = torch.isfinite(yd) & ~torch.isfinite(yd.to(dtype))
-    if mask is not None:
-        bad &= mask
-    px = bad.any(1)
-    n_px = int(px.sum())
-    if n_px == 0:
+    found = _first_used(torch.isfinite(yd) & ~torch.isfinite(yd.to(dtype)), mask)
+    if found is None:
         return None
-    p = int(px.nonzero()[0, 0])
-    o = int(bad[p].nonzero()[0, 0])
+    count, n_px, p, o = found
     src, dst = str(y.dtype).removeprefix("torch."), str(dtype).removeprefix("torch.")
     return ObservationsOverflow(
-        f"y is {src} and the problem {dst}: casting y to {dst} made {int(bad.sum())} used "
+        f"y is {src} and the problem {dst}: casting y to {dst} made {count} used "
         f"observation(s) of {n_px} pixel(s) inf, the first at pixel {p}, observation {o} "
         f"(y[{p}, {o}] = {float(yd[p, o]):.4g}, largest {dst} {torch.finfo(dtype).max:.4g}): "
         f"the values overflow the problem's dtype; {_OVERFLOW_FIX}"
