@@ -452,3 +452,39 @@ def test_a_tv_frame_releases_the_mapped_factors_between_its_stages(bundle_file, 
     if os.path.exists("/proc/self/smaps"):
         assert all(n > 0 for n in calls)  # all three were mapped from the entries
     assert torch.equal(torch.nan_to_num(kept, nan=-1.0), torch.nan_to_num(released, nan=-1.0))
+
+
+_URING = """
+import ctypes, mmap, sys
+import numpy as np
+from hsi_torch.recon import precompute_cache as disk
+params = (ctypes.c_uint8 * 120)()
+fd = ctypes.CDLL(None, use_errno=True).syscall(425, 256, params)  # io_uring_setup (x86-64)
+if fd < 0:
+    sys.exit(3)
+ring = mmap.mmap(fd, 256 * 64, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE,
+                 offset=0x10000000)  # the submission entries: kernel pages, no file behind
+a = np.frombuffer(ring, dtype=np.uint8)
+a[:] = 7
+print(disk.release_pages(a), int(a.sum()) == 7 * a.size)
+"""
+
+
+@linux_only
+def test_release_pages_leaves_mappings_of_kernel_objects_alone(tmp_path):
+    """A mapping with an inode that is no regular file (here an io_uring ring,
+    ``anon_inode:[io_uring]``; a GPU driver's ``/dev`` mappings are alike) holds pages no file
+    keeps: dropped, they read back as a bus error. They are left alone."""
+    import platform
+    import subprocess
+    import sys
+
+    if platform.machine() != "x86_64":
+        pytest.skip("the io_uring_setup syscall number used is x86-64's")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    r = subprocess.run([sys.executable, "-c", _URING], capture_output=True, text=True, env=env,
+                       timeout=120)
+    if r.returncode == 3:
+        pytest.skip("io_uring is not available here")
+    assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
+    assert r.stdout.split() == ["0", "True"]
