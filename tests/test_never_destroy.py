@@ -490,3 +490,23 @@ def test_deepinv_pnp_refuses_an_out_file_it_did_not_write(tmp_path):
     np.savez(ours, cube=np.ones((2, 3, 3)), written_by=mod["WRITTEN_BY"])
     mod["_check_out"](ours)  # its own earlier output may be replaced
     mod["_check_out"](tmp_path / "new.npz")
+
+
+def test_simulate_marker_that_is_a_symlink_never_writes_through_it(tmp_path):
+    """A ``.hsi_torch_simulate_incomplete`` in ``--out`` that is a symbolic link (a folder copied
+    with links, one made by hand) is refused: the run locks the marker and writes its process id
+    into it, which through the link would truncate the file it points at."""
+    from hsi_torch.errors import InputError
+    from hsi_torch.simulate.cli_entry import INCOMPLETE_MARKER, incomplete_run
+
+    users = tmp_path / "notes.txt"
+    users.write_bytes(b"the user's notes\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / INCOMPLETE_MARKER).symlink_to(users)
+    (out / "manifest.json").write_text("{}")
+    with pytest.raises(InputError, match="symbolic link"):
+        with incomplete_run(out, fresh=False):
+            pass
+    assert users.read_bytes() == b"the user's notes\n"
+    assert (out / INCOMPLETE_MARKER).is_symlink()

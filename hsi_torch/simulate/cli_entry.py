@@ -110,7 +110,14 @@ def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
         created = True
     except FileExistsError:
-        fd = os.open(path, os.O_RDWR)
+        try:  # never through a link: the process id written below would truncate its target
+            fd = os.open(path, os.O_RDWR | getattr(os, "O_NOFOLLOW", 0))
+        except OSError as exc:
+            if not path.is_symlink():
+                raise
+            raise InputError(f"--out {out}: {INCOMPLETE_MARKER} is a symbolic link, not a "
+                             "marker this command wrote; remove it, or choose another "
+                             "folder") from exc  # fmt: skip
         created = False
     lock_or_refuse(fd, lambda holder: (
         f"--out {out} is being written by another simulate run (process {holder}) right now; "
