@@ -261,8 +261,9 @@ def test_observations_overflowing_the_problems_dtype_are_an_error_naming_them():
     y = torch.bmm(A, torch.rand(P, M, 1, generator=g)).squeeze(2)
     big = y.clone()
     big[9] = 1e38  # finite in float32; b = Aᵀ W y is not
-    msg = (r"b = A\^T W y overflows float32 in 1 pixel\(s\) whose used observations are finite, "
-           r"the first at pixel 9 .*overflow the problem's dtype.*scale the data.*float64")
+    msg = (r"b = A\^T W y overflows float32 in 1 pixel\(s\)( \(of the pixels \d+ to \d+\))? "
+           r"whose used observations are finite, the first at pixel 9 .*overflow the problem's "
+           r"dtype.*scale the data.*float64")
     for solver in ("active_set", "admm"):
         for backend in ("auto", "torch"):
             with pytest.raises(InputError, match=msg):
@@ -292,6 +293,30 @@ def test_observations_overflowing_the_problems_dtype_are_an_error_naming_them():
     mask[6, 13] = False
     assert bool(torch.isfinite(prepare_nnls(A, mask=mask, beta=1.0).solve(y64).x).all())
 
+
+
+def test_an_overflow_count_found_in_one_chunk_says_which_pixels_it_counted():
+    """With chunks (ADMM's own, ``solve_nnls``' outer ones) the overflow is found in the first
+    chunk holding one: its count is that chunk's, and the message said "in 1 pixel(s)" of a
+    frame where 2 overflow. It now names the pixels counted."""
+    from hsi_torch.errors import InputError
+
+    g = torch.Generator().manual_seed(5)
+    P, O, M = 12, 30, 25
+    A = torch.rand(P, O, M, generator=g)
+    big = torch.bmm(A, torch.rand(P, M, 1, generator=g)).squeeze(2)
+    big[5] = 1e38
+    big[9] = 1e38
+    whole = (r"overflows float32 in 2 pixel\(s\) whose used observations are finite, the first "
+             r"at pixel 5")
+    part = (r"overflows float32 in 1 pixel\(s\) \(of the pixels 4 to 7\) whose used observations "
+            r"are finite, the first at pixel 5")
+    with pytest.raises(InputError, match=whole):
+        prepare_nnls(A, beta=1.0).solve(big, solver="admm")
+    with pytest.raises(InputError, match=part):
+        prepare_nnls(A, beta=1.0).solve(big, solver="admm", chunk_size=4)
+    with pytest.raises(InputError, match=part):
+        solve_nnls(A, big, beta=1.0, chunk_size=4)
 
 def test_exact_zeros():
     # y = 0 -> x = 0 exactly

@@ -234,9 +234,11 @@ def rhs_overflow(b: Tensor, y: Tensor, mask: Tensor | None,
     if mask is not None:
         yp = torch.where(mask[min(p, mask.shape[0] - 1)], yp, torch.zeros((), dtype=yp.dtype))
     dt = b.dtype
+    n = b.shape[0]  # a chunk's b counts its own pixels only: say which
+    among = "" if n >= y.shape[0] else f" (of the pixels {offset} to {offset + n - 1})"
     return ObservationsOverflow(
-        f"b = A^T W y overflows {str(dt).removeprefix('torch.')} in {n_px} pixel(s) whose used "
-        f"observations are finite, the first at pixel {p} (largest |y| there "
+        f"b = A^T W y overflows {str(dt).removeprefix('torch.')} in {n_px} pixel(s){among} whose "
+        f"used observations are finite, the first at pixel {p} (largest |y| there "
         f"{float(yp.max()):.4g}, largest {str(dt).removeprefix('torch.')} "
         f"{torch.finfo(dt).max:.4g}): the values overflow the problem's dtype and the solver "
         f"would give those pixels x = 0; {_OVERFLOW_FIX}"
