@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     claim_out_dir(args.out, ".hsi_torch_drift_small", "run of drift_small.py",
                   "it writes a capture set per row (ideal/, drift_2_px/, ...), drift_small.json "
                   "and drift_small.md", script="drift_small.py",
-                  earlier_names=("drift_small.json", "ideal"))  # fmt: skip
+                  earlier_names=("drift_small.json",))  # fmt: skip
     rows: dict = {}
     for name, keys in ROWS.items():
         out = args.out / name.replace(" ", "_").replace("°", "deg").replace("+", "")

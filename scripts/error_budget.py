@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     out = claim_out_dir(args.out, ".hsi_torch_error_budget", "run of error_budget.py",
                         "it writes simulated capture sets (rgb_clean/, bayer_clean/, "
                         "bayer_noisy/), calib/ and error_budget.json", script="error_budget.py",
-                        earlier_names=("error_budget.json", "rgb_clean"))
+                        earlier_names=("error_budget.json",))
     t0 = time.perf_counter()
     cave = real_data_dir("cave_stuffed_toys")
     scenes = [{"kind": "colorchecker", "name": "colorchecker",

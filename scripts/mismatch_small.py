@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     claim_out_dir(args.out, ".hsi_torch_mismatch_small", "run of mismatch_small.py",
                   "it writes the mismatch experiment's tables, figures and rows/ (and seed<k>/)",
-                  script="mismatch_small.py", earlier_names=("mismatch.json", "rows"))  # fmt: skip
+                  script="mismatch_small.py", earlier_names=("mismatch.json",))  # fmt: skip
     kw = {"noise_free": args.noise_free, "remedies": not args.no_remedies}
     if args.effects is not None:
         kw["effects"] = list(args.effects)

@@ -510,3 +510,35 @@ def test_simulate_marker_that_is_a_symlink_never_writes_through_it(tmp_path):
             pass
     assert users.read_bytes() == b"the user's notes\n"
     assert (out / INCOMPLETE_MARKER).is_symlink()
+
+
+@pytest.mark.parametrize(("script", "cache"), [
+    ("drift_small.py", "ideal"),
+    ("mismatch_small.py", "rows"),
+    ("error_budget.py", "rgb_clean"),
+])  # fmt: skip
+def test_a_users_folder_holding_a_cache_folders_name_is_not_taken_for_an_earlier_run(
+        tmp_path, script, cache):
+    """A lab's folder holding a sub-folder named like one of the script's cached sets (``ideal/``,
+    ``rows/``, ``rgb_clean/``: common names) beside its own files was taken for an earlier run
+    from before the marker and written into (the script's tables, figures and sets over the
+    lab's files of those names, or the lab's set read as the script's). Only the script's result
+    file marks such a run now; the folder is refused before any work."""
+    import runpy
+
+    lab = _users_folder(tmp_path / "lab", {"summary.json": b"the lab's", "notes.txt": b""})
+    (lab / cache).mkdir()
+    (lab / cache / "manifest.json").write_bytes(b"the lab's set")
+    main_ = runpy.run_path(str(_SCRIPTS_ROOT / script), run_name="not_main")["main"]
+
+    def work(*_a, **_k):
+        raise AssertionError("the script started its work in the lab's folder")
+
+    for name in ("simulate_capture_set", "calibrate_capture_set", "run_mismatch", "_simulate",
+                 "real_data_dir"):  # fmt: skip
+        if name in main_.__globals__:
+            main_.__globals__[name] = work
+    with pytest.raises(SystemExit, match=f"{script}: error: --out .*lab is not empty"):
+        main_(["--out", str(lab)])
+    assert sorted(p.name for p in lab.iterdir()) == sorted([cache, "notes.txt", "summary.json"])
+    assert (lab / "summary.json").read_bytes() == b"the lab's"

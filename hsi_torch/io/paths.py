@@ -219,9 +219,10 @@ def claim_out_dir(
         writes: what the run writes there, for the message (``"it writes drift_small.json"``).
         script: a script's name: errors are raised as ``SystemExit("SCRIPT: error: …")``
             (exit status 1), for a script's ``main``.
-        earlier_names: names in ``out`` that only the writer makes (e.g. its result file or
-            cache folder): a folder holding one is an earlier run from before the writer wrote
-            ``marker``, and is accepted too (as ``demo`` accepts a demo's ``summary.json``).
+        earlier_names: names in ``out`` that only the writer makes (e.g. its result file): a
+            folder holding one is an earlier run from before the writer wrote ``marker``, and
+            is accepted too (as ``demo`` accepts a demo's ``summary.json``). Never a generic
+            name (``rows``, ``ideal``): a user's folder holding one would be written into.
 
     Returns:
         ``out`` as a :class:`~pathlib.Path`.
