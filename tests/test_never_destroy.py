@@ -542,3 +542,21 @@ def test_a_users_folder_holding_a_cache_folders_name_is_not_taken_for_an_earlier
         main_(["--out", str(lab)])
     assert sorted(p.name for p in lab.iterdir()) == sorted([cache, "notes.txt", "summary.json"])
     assert (lab / "summary.json").read_bytes() == b"the lab's"
+
+
+def test_a_resume_whose_incomplete_run_completed_meanwhile_is_refused(tmp_path):
+    """A rerun finds ``--out`` incomplete (the marker is there) and resumes without
+    ``--overwrite``; when that run completes before the rerun takes the marker, the marker is
+    gone and the folder is a complete set, which only ``--overwrite`` may replace. The rerun
+    created a new marker and wrote into the complete set; it is refused now."""
+    from hsi_torch.errors import InputError
+    from hsi_torch.simulate.cli_entry import INCOMPLETE_MARKER, incomplete_run
+
+    out = tmp_path / "sim"
+    out.mkdir()
+    (out / "manifest.json").write_text("{}")  # the complete set, its marker removed
+    with pytest.raises(InputError, match="written by another simulate run"):
+        with incomplete_run(out, fresh=False):
+            raise AssertionError("a complete set was written into without --overwrite")
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]
+    assert not (out / INCOMPLETE_MARKER).exists()

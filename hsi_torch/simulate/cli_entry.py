@@ -127,7 +127,10 @@ def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
             same = False
-        if not same or (fresh and not _only_marker_left(out)):
+        # resuming (not fresh) needs the interrupted run's marker: had it to be created, the
+        # run found incomplete has completed (or its marker was removed) since the check, and
+        # the folder is a complete set, which only --overwrite replaces
+        if not same or (fresh and not _only_marker_left(out)) or (not fresh and created):
             if same and created:
                 path.unlink()
             raise InputError(f"--out {out} was written by another simulate run while this one "
