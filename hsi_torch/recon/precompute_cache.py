@@ -403,17 +403,21 @@ _MAPS_LINE = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) \S+ \S+ ([0-9a-f]+):([0-9a-f]
 _MADV_DONTNEED = 4  # Linux
 
 
-def _file_mappings() -> list[tuple[int, int]]:
-    """This process's mappings of regular files, ``(start, end)``, from ``/proc/self/maps``: the
-    named file must be a regular file with the mapping's device and inode. A non-zero inode
-    alone also marks mappings of devices and kernel objects (``anon_inode:[io_uring]``, a GPU
-    driver's ``/dev/...``), whose pages no file holds: dropped, they are lost."""
+def _file_mappings(spans: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """This process's mappings of regular files that overlap ``spans``, ``(start, end)``, from
+    ``/proc/self/maps``: the named file must be a regular file with the mapping's device and
+    inode. A non-zero inode alone also marks mappings of devices and kernel objects
+    (``anon_inode:[io_uring]``, a GPU driver's ``/dev/...``), whose pages no file holds:
+    dropped, they are lost."""
     out = []
     seen: dict[tuple[str, int, int, int], bool] = {}
     with open("/proc/self/maps") as f:
         for line in f:
             m = _MAPS_LINE.match(line.rstrip("\n"))
             if not m or m[5] == "0":
+                continue
+            ms, me = int(m[1], 16), int(m[2], 16)
+            if not any(ms < e and me > s for s, e in spans):
                 continue
             key = (m[6], int(m[3], 16), int(m[4], 16), int(m[5]))
             if key not in seen:
@@ -425,7 +429,7 @@ def _file_mappings() -> list[tuple[int, int]]:
                 except (OSError, ValueError):  # deleted, renamed, unreadable: left alone
                     seen[key] = False
             if seen[key]:
-                out.append((int(m[1], 16), int(m[2], 16)))
+                out.append((ms, me))
     return out
 
 
@@ -487,7 +491,7 @@ def release_pages(*arrays: Any) -> int:
     try:
         import ctypes
 
-        maps = _file_mappings()
+        maps = _file_mappings(spans)
         madvise = ctypes.CDLL(None, use_errno=True).madvise
     except (OSError, AttributeError):  # pragma: no cover - no /proc or no madvise
         return 0
