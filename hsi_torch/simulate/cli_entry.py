@@ -98,7 +98,8 @@ def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
 
     Raises:
         InputError: another run holds the marker's lock (the message names its process), or
-            wrote into ``out`` since it was checked.
+            wrote into ``out`` since it was checked, or the incomplete run found there completed
+            since (its marker is gone); the marker is a symbolic link (never written through).
     """
     from hsi_torch.errors import InputError
     from hsi_torch.io.atomic import lock_or_refuse, mark_lock_holder
