@@ -422,6 +422,28 @@ def test_an_interrupted_demo_rerun_marks_the_folder_incomplete(tmp_path, capsys,
     assert (out / "calib.npz").read_bytes() == earlier["calib.npz"]  # nothing deleted
 
 
+def test_a_demo_marker_that_is_a_symlink_is_never_written_through(tmp_path, monkeypatch):
+    """A ``.hsi_torch_demo`` in ``--out`` that is a symbolic link to the user's file: the demo
+    used to write its marker text through the link (the user's file truncated and replaced);
+    the marker is now written atomically, replacing the link, and the file is unchanged."""
+    from hsi_torch.experiments import demo as demo_mod
+    from hsi_torch.experiments.cli_entry import DEMO_MARKER
+
+    users = tmp_path / "thesis.tex"
+    users.write_bytes(b"the user's own file")
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / DEMO_MARKER).symlink_to(users)
+
+    def tiny_demo(out, cfg, *, quick, log):  # a run that completes, without the real work
+        (out / "summary.json").write_text('{"scenes": {}, "files": []}')
+
+    monkeypatch.setattr(demo_mod, "demo", tiny_demo)
+    assert main(["demo", "--quick", "--out", str(out), "--set", "progress=false"]) == 0
+    assert users.read_bytes() == b"the user's own file"
+    assert not (out / DEMO_MARKER).is_symlink()
+
+
 def _users_folder(folder: Path, files: dict[str, bytes]) -> Path:
     """``folder`` holding the user's own ``files`` (name → content)."""
     folder.mkdir()

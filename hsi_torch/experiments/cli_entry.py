@@ -82,6 +82,7 @@ def run_experiment(args: argparse.Namespace) -> int:
     from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_text
     from hsi_torch.io.paths import ensure_out_dir
+    from hsi_torch.io.run_record import RUN_RECORD, finish_out_run, start_out_run
 
     schema, run = resolve_experiment(args.name)
     cfg = load_args_config(args, schema, default=args.name)
@@ -89,31 +90,16 @@ def run_experiment(args: argparse.Namespace) -> int:
     check_experiment_out(out, args.name)
     out = ensure_out_dir(out)
     atomic_write_text(out / EXPERIMENT_MARKER, f"{args.name}\n")
-    run_state = start_experiment_run(out, args.name)
+    run_state = start_out_run(out, f"hsi-torch experiment {args.name}", RUN_RECORD,
+                              experiment=args.name)
     t0 = time.perf_counter()
     run(cfg, out, device=getattr(args, "device", None))
     write_resolved_config(cfg, out)
-    left = finish_experiment_run(out, run_state)
+    _record, left = finish_out_run(out, run_state)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
          f"{len(files)} files in {out}: {', '.join(files)}{left}")  # fmt: skip
     return 0
-
-
-def start_experiment_run(out: Path, name: str) -> dict[str, Any]:
-    """:func:`~hsi_torch.io.run_record.start_out_run` for ``hsi-torch experiment NAME`` (record
-    ``experiment_run.json``)."""
-    from hsi_torch.io.run_record import RUN_RECORD, start_out_run
-
-    return start_out_run(out, f"hsi-torch experiment {name}", RUN_RECORD, experiment=name)
-
-
-def finish_experiment_run(out: Path, state: dict[str, Any]) -> str:
-    """:func:`~hsi_torch.io.run_record.finish_out_run` of :func:`start_experiment_run`; returns
-    the text naming the files from an earlier run (``""`` when none)."""
-    from hsi_torch.io.run_record import finish_out_run
-
-    return finish_out_run(out, state)[1]
 
 
 #: Written into ``experiment NAME --out`` before the experiment runs, holding ``NAME``: the folder
@@ -199,6 +185,7 @@ def run_demo(args: argparse.Namespace) -> int:
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.experiments.demo import DemoConfig, demo
+    from hsi_torch.io.atomic import atomic_write_text
     from hsi_torch.io.run_record import DEMO_RUN_RECORD, finish_out_run, start_out_run
 
     cfg = load_args_config(args, DemoConfig)
@@ -210,7 +197,8 @@ def run_demo(args: argparse.Namespace) -> int:
     full, quick = bool(getattr(args, "full", False)), bool(getattr(args, "quick", False))
     if full and quick:
         raise ValueError("--full and --quick exclude each other")
-    (out / DEMO_MARKER).write_text("a folder written by hsi-torch demo\n", encoding="utf-8")
+    # atomically: a symlink at the marker's name is replaced, never written through
+    atomic_write_text(out / DEMO_MARKER, "a folder written by hsi-torch demo\n")
     command = "hsi-torch demo" + (" --full" if full else " --quick" if quick else "")
     run_state = start_out_run(out, command, DEMO_RUN_RECORD)
     if full:
