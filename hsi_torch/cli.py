@@ -66,6 +66,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "config": ("hsi_torch.resources", "run_config"),
     "captures": ("hsi_torch.io.capture_import", "run_captures"),
     "view": ("hsi_torch.viewer.cli_entry", "run_view"),
+    "cache": ("hsi_torch.recon.precompute_cache", "run_cache"),
 }
 BENCH_TARGETS = ("solver", "pipeline", "simulate")
 #: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
@@ -140,6 +141,10 @@ EXAMPLES: dict[str | None, list[str]] = {
         "hsi-torch view cubes/scene.tif                # band stack (nm) + sRGB, click: spectra",
         "hsi-torch view demo_output/colorchecker.npz --point 40,52 "
         "--band 550 --screenshot shot.png",
+    ],
+    "cache": [
+        "hsi-torch cache info      # where, the entries, their size, the bound",
+        "hsi-torch cache clear     # remove the entries (recomputed when next needed)",
     ],
 }
 
@@ -362,6 +367,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=float, metavar="NM", help="show the band nearest NM nm")
     p.add_argument("--screenshot", type=Path, metavar="PNG",
                    help="write the window (viewer + spectra) to PNG and exit")
+    _add_global(p, argparse.SUPPRESS)
+
+    p = command("cache", "show or clear the precomputation cache (where, entries, size)")
+    p.add_argument("action", choices=("info", "clear"), help="info: where, entries, size, bound; "
+                   "clear: remove the entries (only what the cache wrote)")  # fmt: skip
+    p.add_argument("--folder", type=Path, metavar="DIR",
+                   help="a cache folder (default: the user cache folder, $HSI_TORCH_CACHE)")
     _add_global(p, argparse.SUPPRESS)
 
     p = sub.add_parser(

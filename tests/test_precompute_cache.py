@@ -5,10 +5,11 @@ entry is refused and recomputed; the bundle and its folder are never written."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import stat
 import warnings
-import zlib
 
 import numpy as np
 import pytest
@@ -126,13 +127,26 @@ def test_off_and_in_memory_bundles_write_nothing(bundle_file, tmp_path, monkeypa
 
 
 def tamper(path, where: float = 0.5) -> None:
-    """Flip four bytes at a fraction of the file (the header and its checksums unchanged)."""
+    """Flip four bytes at a fraction of a file (its size and name unchanged)."""
     size = path.stat().st_size
     with open(path, "r+b") as f:
         f.seek(int(size * where))
         b = f.read(4)
         f.seek(-4, os.SEEK_CUR)
         f.write(bytes(x ^ 0x5A for x in b))
+
+
+def biggest_member(entry):
+    """The largest array file of an entry folder."""
+    return max(entry.glob("*.npy"), key=lambda p: p.stat().st_size)
+
+
+def read_index(entry) -> dict:
+    return json.loads((entry / disk.INDEX).read_text())
+
+
+def write_index(entry, index: dict) -> None:
+    (entry / disk.INDEX).write_text(json.dumps(index))
 
 
 @pytest.mark.parametrize("damage",
@@ -145,28 +159,30 @@ def test_a_bad_entry_is_refused_and_recomputed(bundle_file, tmp_path, damage):
         capture)
     (entry,) = entries(cache)
     if damage == "tampered":
-        tamper(entry)
+        tamper(biggest_member(entry))
     elif damage == "truncated":
-        data = entry.read_bytes()
-        entry.write_bytes(data[: len(data) // 2])
-    elif damage == "foreign":  # another entry's file under this name: its key differs
+        member = biggest_member(entry)
+        data = member.read_bytes()
+        member.write_bytes(data[: len(data) // 2])
+    elif damage == "foreign":  # another entry's folder under this name: its key differs
         other = tmp_path / "other.npz"
         make_bundle(seed=9).save(other)
         fresh_process()
         Reconstructor(other, beta=2.0, precompute_cache=str(cache))
         (foreign,) = [p for p in entries(cache) if p != entry]
-        os.replace(foreign, entry)
+        shutil.rmtree(entry)
+        os.rename(foreign, entry)
     elif damage == "garbage":
-        entry.write_bytes(b"not a zip file at all")
-    elif damage == "header":  # the header edited (its checksum no longer matches)
-        tamper(entry, 0.001)
-    else:  # a header that declares an object array (what a pickle would carry), checksum right
-        data = entry.read_bytes()
-        n = len(disk.MAGIC)
-        length = int.from_bytes(data[n:n + 8], "little")
-        text = data[n + 12:n + 12 + length].replace(b'"|b1"', b'"|O8"', 1)
-        entry.write_bytes(data[:n + 8] + zlib.crc32(text).to_bytes(4, "little") + text
-                          + data[n + 12 + length:])
+        (entry / disk.INDEX).write_bytes(b"not json at all")
+    elif damage == "header":  # the index edited (its MAC no longer matches)
+        index = read_index(entry)
+        index["beta"] = 3.0
+        write_index(entry, index)
+    else:  # an index that declares an object array (what a pickle would carry)
+        index = read_index(entry)
+        name = next(n for n, d in index["arrays"].items() if d["dtype"] == "|b1")
+        index["arrays"][name]["dtype"] = "|O8"
+        write_index(entry, index)
     fresh_process()
     c = counts()
     with warnings.catch_warnings(record=True) as got:
@@ -205,7 +221,7 @@ def test_a_failed_write_is_a_warning(bundle_file, tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(disk, "atomic_write", refuse)
+    monkeypatch.setattr(disk, "_write_new", refuse)
     fresh_process()
     with pytest.warns(disk.PrecomputeCacheWarning, match="could not write"):
         rec = Reconstructor(bundle_file, precompute_cache=str(tmp_path / "c"))
@@ -250,7 +266,7 @@ def test_entries_are_bounded_least_recently_used_first(tmp_path, monkeypatch):
     paths = [disk.entry_path(folder, f"b{i}.npz", f"{i:064x}") for i in range(3)]
     for i, p in enumerate(paths):
         assert disk.save_entry(p, f"{i:064x}", arrays)
-        os.utime(p, ns=(i * 10**9, i * 10**9))
+        os.utime(p / disk.INDEX, ns=(i * 10**9, i * 10**9))  # last used: its index's time
     assert len(entries(folder)) == 3
     assert disk.load_entry(paths[0], f"{0:064x}") is not None  # used: now the newest
     monkeypatch.setenv(disk.MAX_GB_ENV, str(5.5e6 / 2**30))
@@ -316,10 +332,10 @@ def test_the_tv_factor_is_cached_beside_the_sensing(bundle_file, tmp_path):
         c2 = run()
         assert len(packs) == 1  # loaded, not recomputed
         assert torch.equal(torch.nan_to_num(c1, nan=-1.0), torch.nan_to_num(c2, nan=-1.0))
-        tv_entry = max(entries(cache), key=lambda p: p.stat().st_mtime_ns)
-        data = bytearray(tv_entry.read_bytes())
+        (tv_entry,) = [p for p in entries(cache) if (p / "inverse.npy").exists()]
+        data = bytearray((tv_entry / "inverse.npy").read_bytes())
         data[-5] ^= 0xFF  # a flipped byte in the packed inverse
-        tv_entry.write_bytes(bytes(data))
+        (tv_entry / "inverse.npy").write_bytes(bytes(data))
         with pytest.warns(disk.PrecomputeCacheWarning):
             c3 = run()
         assert len(packs) == 2
@@ -488,3 +504,292 @@ def test_release_pages_leaves_mappings_of_kernel_objects_alone(tmp_path):
         pytest.skip("io_uring is not available here")
     assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
     assert r.stdout.split() == ["0", "True"]
+
+
+# ------------------------------------------------------------ trust, cross-checks, the command
+
+
+def relabel(src, dest, key: str, secret: bytes | None = None) -> None:
+    """Put the entry folder ``src`` at ``dest`` holding ``key`` (its MAC recomputed with
+    ``secret`` when given: what only this user's software can do)."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    shutil.copytree(src, dest)
+    index = read_index(dest)
+    index["key"] = key
+    if secret is not None:
+        got = {n: np.load(dest / f"{n}.npy") for n in index["arrays"]}
+        index["mac"] = disk._mac(secret, index, got)
+    write_index(dest, index)
+
+
+def test_another_bundles_entry_relabelled_is_not_used(bundle_file, tmp_path):
+    """An entry made for a bundle with gains ×2, relabelled with the real bundle's key (what a
+    CRC let through: the cube came out 2× too dark, no warning), fails its MAC: refused,
+    recomputed, the cube right."""
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    bright = make_bundle()
+    bright.gain = bright.gain * 2.0
+    other = tmp_path / "bright.npz"
+    bright.save(other)
+    fresh_process()
+    ref = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache)).reconstruct_frame(
+        capture)
+    (entry,) = entries(cache)
+    key = read_index(entry)["key"]
+    fresh_process()
+    Reconstructor(other, beta=2.0, precompute_cache=str(cache))
+    (foreign,) = [p for p in entries(cache) if p != entry]
+    relabel(foreign, entry, key)
+    fresh_process()
+    c = counts()
+    with pytest.warns(disk.PrecomputeCacheWarning, match="refused.*MAC"):
+        rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    assert counts()["loaded"] == c["loaded"]
+    out = rec.reconstruct_frame(capture)
+    assert torch.equal(torch.nan_to_num(out.cube, nan=-1.0), torch.nan_to_num(ref.cube, nan=-1.0))
+
+
+def test_a_hash_memo_line_mapping_a_bundle_to_another_hash_is_ignored(bundle_file, tmp_path,
+                                                                        monkeypatch):
+    """``bundle_hashes.json`` naming this bundle's identity with another bundle's hash (and that
+    bundle's valid line's MAC) would make it load the other bundle's entry: the line's MAC binds
+    identity and hash, so it is ignored and the bundle hashed."""
+    cache = tmp_path / "cache"
+    other = tmp_path / "other.npz"
+    make_bundle(seed=9).save(other)
+    fresh_process()
+    sha_other = disk.content_sha256(other, cache)
+    sha = disk._hash_file(bundle_file)
+    memo = json.loads((cache / disk.HASH_MEMO).read_text())
+    (line,) = memo.values()
+    st = bundle_file.stat()
+    ident = (str(bundle_file.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns,
+             st.st_ctime_ns)
+    memo[json.dumps(ident)] = dict(line)  # this bundle -> the other's hash, the other's MAC
+    (cache / disk.HASH_MEMO).write_text(json.dumps(memo))
+    calls = []
+    real = disk._hash_file
+    monkeypatch.setattr(disk, "_hash_file", lambda p: calls.append(p) or real(p))
+    fresh_process()
+    assert disk.content_sha256(bundle_file, cache) == sha != sha_other and len(calls) == 1
+    fresh_process()  # its own line, written by this software, is used
+    assert disk.content_sha256(bundle_file, cache) == sha and len(calls) == 1
+
+
+@pytest.mark.parametrize("what", ["gram_inv", "gram", "obs_mask", "pixel_index"])
+def test_an_inconsistent_entry_is_refused_before_a_kernel_reads_it(bundle_file, tmp_path, what):
+    """An entry with a valid MAC whose arrays disagree (a short ``gram_inv`` or ``gram``, a short
+    ``obs_mask``, a ``pixel_index`` out of range): refused with a warning naming the array and
+    recomputed; no crash (SIGSEGV in the compiled kernel), no IndexError on every run."""
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    fresh_process()
+    ref = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache)).reconstruct_frame(
+        capture)
+    (entry,) = entries(cache)
+    index = read_index(entry)
+    name = {"gram_inv": "problem.gram_inv", "gram": "problem.gram"}.get(what, what)
+    a = np.load(entry / f"{name}.npy")
+    a = a + len(a) * 7 if what == "pixel_index" else a[: len(a) // 2]
+    np.save(entry / f"{name}.npy", a)
+    index["arrays"][name]["shape"] = list(a.shape)
+    got = {n: np.load(entry / f"{n}.npy") for n in index["arrays"]}
+    index["mac"] = disk._mac(disk._secret(cache, create=False), index, got)
+    write_index(entry, index)
+    fresh_process()
+    c = counts()
+    with pytest.warns(disk.PrecomputeCacheWarning, match=f"refused.*{name}"):
+        rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    assert counts()["factorisation"] == c["factorisation"] + 1
+    out = rec.reconstruct_frame(capture)
+    assert torch.equal(torch.nan_to_num(out.cube, nan=-1.0), torch.nan_to_num(ref.cube, nan=-1.0))
+
+
+def test_an_entry_rewritten_in_place_after_loading_is_not_used_stale(bundle_file, tmp_path):
+    """The entry's ``G⁻¹`` file rewritten in place (same inode) after a reconstructor loaded it:
+    the next frame notices (its size and times changed), warns, and the entry (now failing its
+    MAC) is recomputed: the cube is still right."""
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    fresh_process()
+    ref = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache)).reconstruct_frame(
+        capture)
+    (entry,) = entries(cache)
+    fresh_process()
+    rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    member = entry / "problem.gram_inv.npy"
+    inode = member.stat().st_ino
+    a = np.load(member)
+    with open(member, "r+b") as f:  # in place: the same file, the mapping sees the new bytes
+        f.seek(member.stat().st_size - a.nbytes)
+        f.write((a * 0.5).tobytes())
+    assert member.stat().st_ino == inode
+    c = counts()
+    with pytest.warns(disk.PrecomputeCacheWarning, match="written to after it was loaded"):
+        out = rec.reconstruct_frame(capture)
+    assert counts()["factorisation"] == c["factorisation"] + 1
+    assert torch.equal(torch.nan_to_num(out.cube, nan=-1.0), torch.nan_to_num(ref.cube, nan=-1.0))
+
+
+_TRUNCATE = """
+import sys, warnings
+from pathlib import Path
+import torch
+sys.path.insert(0, sys.argv[3])
+from test_pipeline import make_bundle, render_capture, true_spectra
+from hsi_torch.recon.pipeline import Reconstructor
+bundle, cache = Path(sys.argv[1]), Path(sys.argv[2])
+capture = render_capture(make_bundle(), true_spectra()).float()
+rec = Reconstructor(bundle, beta=2.0, precompute_cache=str(cache))
+(entry,) = [p for p in cache.iterdir() if p.suffix == ".hsicache"]
+for m in entry.glob("*.npy"):
+    m.write_bytes(m.read_bytes()[:128])  # truncated under the mapping (same inode)
+with warnings.catch_warnings(record=True) as got:
+    warnings.simplefilter("always")
+    out = rec.reconstruct_frame(capture)
+print(any("truncated" in str(w.message) for w in got))
+torch.save(out.cube, cache.parent / "cube.pt")
+"""
+
+
+def test_an_entry_truncated_after_loading_is_survived(bundle_file, tmp_path):
+    """Every file of a loaded entry truncated under the mapping: the next frame (in a child
+    process, where a SIGBUS shows as a negative return code) warns and recomputes; the cube is
+    right."""
+    import subprocess
+    import sys
+
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    fresh_process()
+    ref = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache)).reconstruct_frame(
+        capture)
+    tests = os.path.dirname(os.path.abspath(__file__))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    r = subprocess.run([sys.executable, "-c", _TRUNCATE, str(bundle_file), str(cache), tests],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, (r.returncode, r.stderr[-3000:])
+    assert r.stdout.split() == ["True"]
+    out = torch.load(tmp_path / "cube.pt")
+    assert torch.equal(torch.nan_to_num(out, nan=-1.0), torch.nan_to_num(ref.cube, nan=-1.0))
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "1e400", "-1", "abc"])
+def test_a_bad_cache_bound_is_a_warning_naming_the_variable(tmp_path, monkeypatch, value):
+    monkeypatch.setenv(disk.MAX_GB_ENV, value)
+    with pytest.warns(disk.PrecomputeCacheWarning, match=f"{disk.MAX_GB_ENV}=.*default"):
+        assert disk._max_bytes() == int(disk.DEFAULT_MAX_GB * 2**30)
+    path = disk.entry_path(tmp_path / "c", "b.npz", "ab" * 32)
+    with pytest.warns(disk.PrecomputeCacheWarning, match=disk.MAX_GB_ENV):
+        assert disk.save_entry(path, "ab" * 32, {"a": np.arange(3.0)})
+    assert disk.load_entry(path, "ab" * 32) is not None
+
+
+def test_a_cache_folder_others_may_write_is_ignored(bundle_file, tmp_path, monkeypatch):
+    """A cache folder its group may write (a shared folder): its entry is ignored with a warning
+    naming the folder's mode, nothing is written there, and the run uses the user cache folder."""
+    monkeypatch.setenv(disk.CACHE_ENV, str(tmp_path / "user"))
+    cache = tmp_path / "shared"
+    fresh_process()
+    Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    (entry,) = entries(cache)
+    cache.chmod(0o775)
+    before = folder_state(cache)
+    fresh_process()
+    c = counts()
+    with pytest.warns(disk.PrecomputeCacheWarning, match="writable by its group"):
+        Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
+    assert counts()["loaded"] == c["loaded"]
+    assert counts()["factorisation"] == c["factorisation"] + 1
+    assert folder_state(cache) == before
+    assert len(entries(tmp_path / "user" / "precompute")) == 1
+    # asked directly, the entry of such a folder is refused too
+    key = read_index(entry)["key"]
+    with pytest.warns(disk.PrecomputeCacheWarning, match="writable by its group"):
+        assert disk.load_entry(entry, key) is None
+    cache.chmod(0o700)
+    assert disk.load_entry(entry, key) is not None
+
+
+@pytest.mark.parametrize("plant", ["fifo", "device", "symlink", "huge"])
+def test_fifos_devices_links_and_huge_indexes_are_misses(tmp_path, plant):
+    """What is no regular file (a FIFO would hang a reader), a symbolic link, or an index over
+    the bound, where an entry's file should be: refused at once, with a warning."""
+    path = disk.entry_path(tmp_path / "c", "b.npz", "ab" * 32)
+    assert disk.save_entry(path, "ab" * 32, {"a": np.arange(3.0)})
+    target = path / ("a.npy" if plant in ("fifo", "device") else disk.INDEX)
+    target.unlink()
+    if plant == "fifo":
+        os.mkfifo(target)
+    elif plant == "device":
+        target.symlink_to("/dev/zero")
+    elif plant == "symlink":
+        outside = tmp_path / "outside.json"
+        outside.write_text("{}")
+        target.symlink_to(outside)
+    else:
+        with open(target, "wb") as f:
+            f.truncate(disk.MAX_HEADER_BYTES + 1)
+    with pytest.warns(disk.PrecomputeCacheWarning, match="refused"):
+        assert disk.load_entry(path, "ab" * 32) is None
+
+
+def test_concurrent_writers_leave_one_valid_entry(tmp_path):
+    import threading
+
+    folder = tmp_path / "c"
+    path = disk.entry_path(folder, "b.npz", "cd" * 32)
+    arrays = {"a": np.arange(1 << 18, dtype=np.float64), "b": np.ones((7, 3), bool)}
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(
+        disk.save_entry(path, "cd" * 32, arrays))) for _ in range(4)]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(results)
+    assert [p.name for p in folder.iterdir() if not p.name.startswith(".")] == [path.name]
+    got, _meta = disk.load_entry(path, "cd" * 32)
+    assert np.array_equal(got["a"], arrays["a"]) and np.array_equal(got["b"], arrays["b"])
+
+
+def test_a_large_entry_says_its_size(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(disk, "NOTE_BYTES", 1000)
+    path = disk.entry_path(tmp_path / "c", "b.npz", "ef" * 32)
+    disk.save_entry(path, "ef" * 32, {"a": np.arange(1000.0)})
+    err = capsys.readouterr().err
+    assert str(path) in err and "GiB" in err and "hsi-torch cache" in err
+
+
+def test_the_cache_command_shows_and_clears_only_what_it_wrote(tmp_path, capsys):
+    """``hsi-torch cache info`` names the folder, its entries, their size and the bound;
+    ``clear`` removes the entries (name *and* index recognised), never a look-alike, never
+    through a symbolic link, never outside the folder."""
+    from hsi_torch.cli import main
+
+    folder = tmp_path / "c"
+    path = disk.entry_path(folder, "b.npz", "ab" * 32)
+    assert disk.save_entry(path, "ab" * 32, {"a": np.arange(1000.0)})
+    outside = tmp_path / "precious-abababababababababababab.hsicache"
+    outside.mkdir()  # an entry look-alike outside the folder, linked in under an entry's name
+    (outside / disk.INDEX).write_text(json.dumps({"format": 2, "key": "ab" * 32}))
+    (outside / "thesis.npy").write_text("mine")
+    (folder / "link-abababababababababababab.hsicache").symlink_to(outside)
+    (folder / "notes-abababababababababababab.hsicache").write_text("not an entry")
+    (folder / "notes.txt").write_text("mine too")
+    fake = folder / "fake-abababababababababababab.hsicache"
+    fake.mkdir()
+    (fake / "x.npy").write_text("no index: not the cache's")
+    assert main(["cache", "info", "--folder", str(folder)]) == 0
+    out = capsys.readouterr().out
+    assert str(folder) in out and path.name in out and "1 entr" in out and "GiB" in out
+    assert main(["cache", "clear", "--folder", str(folder)]) == 0
+    out = capsys.readouterr().out
+    assert "removed 1 entr" in out
+    assert not path.exists()
+    assert sorted(p.name for p in folder.iterdir()) == sorted(
+        [disk.KEY_FILE, "link-abababababababababababab.hsicache",
+         "notes-abababababababababababab.hsicache", "notes.txt", fake.name])
+    assert (outside / "thesis.npy").read_text() == "mine" and (fake / "x.npy").exists()

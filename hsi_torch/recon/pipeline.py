@@ -58,7 +58,12 @@ from hsi_torch.recon import _compiled as _frame_compiled
 from hsi_torch.recon.checks import BundleRadiometry, exposure_info, prepare_capture
 from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.nnls import cpu_threads, solve_nnls
-from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, sample_pixels
+from hsi_torch.recon.sensing import (
+    BundleSensing,
+    precompute_sensing,
+    refreshed_sensing,
+    sample_pixels,
+)
 from hsi_torch.recon.settings import (
     DEFAULT_BETA,
     SOLVERS,
@@ -867,6 +872,7 @@ class Reconstructor:
         Returns:
             :class:`ReconstructionResult`.
         """
+        self.sensing = refreshed_sensing(self.sensing, self.chunk_size)  # cache entry changed?
         sens = self.sensing
         if not isinstance(image, Tensor) or image.ndim != 3:
             raise ValueError(

@@ -1,4 +1,4 @@
-"""On-disk cache of the per-bundle precomputation, keyed by content, safe to load.
+"""On-disk cache of the per-bundle precomputation, keyed by content, authenticated, safe to load.
 
 The per-bundle precomputation (:func:`hsi_torch.recon.sensing.precompute_sensing`: the sensing
 model of the valid pixels, the static masks, the sampling grid and the solver's per-pixel
@@ -7,68 +7,90 @@ factorisation) costs seconds at full size. It depends only on the bundle file's 
 so a process can store it once and every later process (a second run, a Dask worker, a notebook
 restarted) loads it instead.
 
-**What is stored.** One file per entry (``<bundle stem>-<key>.hsicache``): a JSON header and
-named numeric arrays (the caller decides which: this module stores and returns a
-``{name: array}`` dict and does not care about the layout of the solver's factors). The file is
-the magic line :data:`MAGIC`, the header's length and CRC-32 (little-endian ``uint64``,
-``uint32``), the header — ``format``, ``key``, ``arrays`` (per array: ``dtype``, ``shape``,
-``offset``, ``crc32``) and whatever else the caller records — then the raw C-order bytes of every
-array at an offset that is a multiple of :data:`ALIGN` (so the memory-mapped data is aligned as a
-fresh allocation is, and the kernels that read it take the same paths). It is written atomically
-(:func:`hsi_torch.io.atomic.atomic_write`: a reader sees the whole file or none) and never over
-an input: entries live in a cache folder, never over the bundle.
+**What is stored.** One folder per entry (``<bundle stem>-<key>.hsicache/``) in NumPy's own
+format: every named array is a ``<name>.npy`` file (read by any NumPy; its data starts at a
+multiple of :data:`ALIGN` bytes, so the memory-mapped data is aligned as a fresh allocation is and
+the kernels that read it take the same paths) and ``index.json`` holds ``format``, ``key``,
+``arrays`` (per array: ``dtype``, ``shape``), whatever else the caller records, and ``mac``. The
+caller decides which arrays (this module stores and returns a ``{name: array}`` dict and does not
+care about the layout of the solver's factors). An entry is written in a fresh temporary folder
+and renamed into place (a reader sees the whole entry or none) and never over an input: entries
+live in a cache folder, never over the bundle.
 
 **The key** (:func:`entry_key`) is the SHA-256 of a JSON object holding the caller's parts (the
 bundle file's SHA-256, ``beta``, ``diff_order``, dtype, device type, which factorisation — the
-compiled CPU pass or the torch kernels), this module's
-:data:`FORMAT_VERSION`, the caller's layout version, the torch version, and a digest of the
-source files that compute the precomputation (:data:`SOURCE_FILES`): editing the solver's
-factorisation therefore misses every old entry by itself.
+compiled CPU pass or the torch kernels), this module's :data:`FORMAT_VERSION`, the caller's
+layout version, the torch version, and a digest of the source files that compute the
+precomputation (:data:`SOURCE_FILES`): editing the solver's factorisation therefore misses every
+old entry by itself.
 
-**Loading is safe** (:func:`load_entry`): nothing is unpickled or evaluated — the header is JSON,
-the arrays raw numbers of plain dtypes (booleans, integers, floats; anything else refused); the
-header's CRC-32 must match, the recorded key must equal the key asked for (a foreign file, a
-renamed one), every array must lie inside the file (a truncated one), and every array's CRC-32 is
-recomputed over its bytes (an altered or damaged file). Any failure is a *miss*: a
-:class:`PrecomputeCacheWarning` names the file and the reason, and the caller recomputes (and
-replaces the entry). The arrays come back memory-mapped copy-on-write (``numpy.memmap`` mode
-``"c"``): their pages are shared with the page cache and the file never changes.
+**Trust.** An entry proves that this user's software wrote it for the key asked for: ``mac`` is a
+keyed BLAKE3 (:mod:`blake3`, a MAC as HMAC-SHA256 is, four times faster here: the check runs over
+the ~2 GiB of a full-size entry on every cold start) over the index (key included, so the
+bundle's SHA-256) and every array's bytes, keyed by a per-folder secret (:data:`KEY_FILE`: 32
+random bytes, created ``O_EXCL | O_NOFOLLOW`` with mode ``0600``). Another user, or a file
+copied in, cannot make a valid entry; another bundle's entry relabelled with this key fails the
+check. The memo of bundle hashes (:data:`HASH_MEMO`) is authenticated the same way. A cache folder
+is used only when it is the user's own and not writable by group or others (as ssh and pip
+check): else its entries are ignored with a :class:`PrecomputeCacheWarning` and the run computes.
+
+**Loading is safe** (:func:`load_entry`): nothing is unpickled or evaluated — the index is JSON,
+the arrays plain numbers (booleans, integers, floats; anything else refused); every file is opened
+``O_NOFOLLOW | O_NONBLOCK`` and must be a regular file (a FIFO, a device, a symbolic link is a
+miss); each ``.npy`` header must declare the index's dtype and shape and the file hold exactly
+that many bytes; the MAC is checked over the mapped bytes (what will be used). Any failure is a
+*miss*: a :class:`PrecomputeCacheWarning` names the file and the reason, and the caller recomputes
+(and replaces the entry). The arrays come back memory-mapped copy-on-write: their pages are shared
+with the page cache and the file never changes. The caller cross-checks their shapes against what
+it needs before any kernel reads them (:mod:`hsi_torch.recon.sensing`).
+
+**Changed under the mapping.** An entry file rewritten in place or truncated after loading would
+be read stale, or fault (``SIGBUS``). The files stay open; :func:`changed_since_load` compares
+their size, modification and change times with those checked (a few ``fstat`` calls) and the
+reconstructor asks it before every frame: a changed entry is loaded again (checked) or recomputed,
+with a warning. (A change *during* a frame is not detected: keep the cache folder your own.)
 
 **Where** (:func:`cache_folder`, the reconstruction setting ``precompute_cache``):
 
 - ``"auto"`` (default): the user cache folder, ``$HSI_TORCH_CACHE``, else
   ``$XDG_CACHE_HOME/hsi_torch``, else ``~/.cache/hsi_torch``, subfolder ``precompute/``;
 - ``"beside"``: a folder ``.hsi_torch_cache/`` beside the bundle (falls back to the user cache
-  folder, with a note, where the bundle's folder is not writable);
+  folder, with a note, where the bundle's folder is not writable or that folder not the user's
+  own);
 - ``"off"``: no cache;
-- a folder path: that folder (the user cache folder, with a note, when it cannot be written).
+- a folder path: that folder (the user cache folder, with a note, when it cannot be written or
+  is not the user's own).
 
-The folder is bounded: after a write the least recently used entries (file modification time,
-refreshed on every hit) are removed until the entries take at most ``$HSI_TORCH_CACHE_MAX_GB``
-GiB (default :data:`DEFAULT_MAX_GB`). An entry is not written when the disk would keep less than
-:data:`MIN_FREE_BYTES` free.
+The folder is bounded: after a write the least recently used entries (the modification time of
+their ``index.json``, refreshed on every hit) are removed until the entries take at most
+``$HSI_TORCH_CACHE_MAX_GB`` GiB (default :data:`DEFAULT_MAX_GB`; a value that is not a finite
+number ≥ 0 is refused with a warning and the default used). An entry is not written when the disk
+would keep less than :data:`MIN_FREE_BYTES` free. ``hsi-torch cache info`` / ``clear``
+(:func:`cache_info`, :func:`clear_cache`) show and empty a folder.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import math
 import os
 import re
+import secrets
 import shutil
 import stat
-import struct
 import sys
 import threading
 import warnings
-import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import blake3
 import numpy as np
 
-from hsi_torch.io.atomic import atomic_write, atomic_write_text, json_default
+from hsi_torch.io.atomic import atomic_write_text, json_default
 
 __all__ = [
     "FORMAT_VERSION",
@@ -81,26 +103,34 @@ __all__ = [
     "PrecomputeCacheWarning",
     "user_cache_dir",
     "cache_folder",
+    "folder_problem",
     "entry_key",
     "entry_path",
     "content_sha256",
     "load_entry",
+    "changed_since_load",
+    "loaded_stamp",
     "release_pages",
     "save_entry",
+    "cache_info",
+    "clear_cache",
+    "run_cache",
 ]
 
-#: Version of the entry file format (this module); part of every key.
-FORMAT_VERSION = 1
+#: Version of the entry format (this module); part of every key.
+FORMAT_VERSION = 2
 #: The named policies of the ``precompute_cache`` setting (anything else is a folder path).
 POLICIES = ("auto", "beside", "off")
 #: Environment variable naming the user cache folder (entries go to its ``precompute/``).
 CACHE_ENV = "HSI_TORCH_CACHE"
 #: Environment variable bounding the size of one cache folder, GiB.
 MAX_GB_ENV = "HSI_TORCH_CACHE_MAX_GB"
-#: Default bound of a cache folder, GiB (one full-size float32 entry is about 2.1 GiB).
+#: Default bound of a cache folder, GiB (one full-size float32 entry is about 1.9 GiB).
 DEFAULT_MAX_GB = 16.0
 #: An entry is not written when the disk would keep less than this free, bytes.
 MIN_FREE_BYTES = 2 << 30
+#: Writing an entry at least this large says so on stderr (its size and folder), bytes.
+NOTE_BYTES = 256 << 20
 #: Source files (relative to the package) whose content is part of every key: the code that
 #: computes what is stored.
 SOURCE_FILES = (
@@ -120,19 +150,29 @@ SOURCE_FILES = (
     "recon/spatial/_compiled.py",
 )
 #: Counts of this process: ``hits``, ``misses`` (no entry), ``rejected`` (an entry refused:
-#: foreign, corrupt, unreadable), ``writes``, ``write_skipped`` (no space, not writable).
+#: foreign, corrupt, unreadable, untrusted folder), ``writes``, ``write_skipped`` (no space, not
+#: writable, untrusted folder).
 CACHE_STATS: dict[str, int] = {"hits": 0, "misses": 0, "rejected": 0, "writes": 0,
                                "write_skipped": 0}  # fmt: skip
 
-#: First bytes of an entry file.
-MAGIC = b"HSI_TORCH_PRECOMPUTE\n"
-#: Arrays start at multiples of this many bytes (memory-mapped data aligned as freshly allocated).
+#: The index file of an entry folder.
+INDEX = "index.json"
+#: File of a cache folder holding its secret (the MAC key of its entries and hash memo).
+KEY_FILE = ".hsi_torch_cache_key"
+#: Arrays start at multiples of this many bytes (NumPy's ``.npy`` header padding).
 ALIGN = 64
-#: Largest header accepted, bytes.
+#: Largest index (and ``.npy`` header, and hash memo) accepted, bytes.
 MAX_HEADER_BYTES = 16 << 20
+#: First bytes of an entry of format 1 (one file; recognised by eviction and ``cache clear``).
+OLD_MAGIC = b"HSI_TORCH_PRECOMPUTE\n"
 #: The dtypes an entry may hold: plain booleans, integers, floats and complex numbers.
 _DTYPE_RE = re.compile(r"[<>|=]?(b1|[iu][1248]|f[248]|c(8|16))")
-_ENTRY_RE = re.compile(r"^.+-[0-9a-f]{24}\.hsicache$")
+_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+_ENTRY_RE = re.compile(r"^[A-Za-z0-9_.-]+-(?P<key>[0-9a-f]{24})\.hsicache$")
+_MEMBER_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*\.npy$")
+#: A writer's temporary entry folder / a replaced entry on its way out.
+_TEMP_RE = re.compile(r"^\.(?P<name>.+\.hsicache)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.(tmp|old)$")
+_OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
 _LOCK = threading.Lock()
 _SOURCE_DIGEST: list[str] = []
 #: (realpath, device, inode, size, mtime_ns, ctime_ns) -> hex SHA-256 of the file's content
@@ -144,6 +184,10 @@ HASH_MEMO = "bundle_hashes.json"
 class PrecomputeCacheWarning(UserWarning):
     """An entry of the precomputation cache was refused or could not be written (the
     reconstruction goes on: it recomputes, or keeps what it computed)."""
+
+
+class _Refused(Exception):
+    """An entry that must not be used (the message says why)."""
 
 
 def _warn(message: str) -> None:
@@ -171,6 +215,35 @@ def _writable_folder(folder: Path) -> bool:
     return p.is_dir() and os.access(p, os.W_OK | os.X_OK)
 
 
+def folder_problem(folder: str | os.PathLike) -> str | None:
+    """Why the entries of an existing cache folder must not be trusted, or ``None``.
+
+    The folder must be a folder of this user (``st_uid`` the effective user id) that neither its
+    group nor others may write (mode ``& 0o022 == 0``), as ssh checks ``~/.ssh`` and pip its
+    cache. A folder that does not exist yet is ``None`` (it is made ``0700``). Not checked where
+    the system has no user ids (Windows)."""
+    if not hasattr(os, "geteuid"):  # pragma: no cover - Windows
+        return None
+    try:
+        st = os.stat(folder)
+    except (FileNotFoundError, NotADirectoryError):  # not there (yet): made 0700
+        return None
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror})"
+    if not stat.S_ISDIR(st.st_mode):
+        return "is not a folder"
+    if st.st_uid != os.geteuid():
+        return f"belongs to another user (uid {st.st_uid}, this process runs as {os.geteuid()})"
+    if st.st_mode & 0o022:
+        return (f"is writable by {'group and others' if st.st_mode & 0o002 else 'its group'} "
+                f"(mode {stat.S_IMODE(st.st_mode):04o}; chmod go-w it)")  # fmt: skip
+    return None
+
+
+def _make_folder(folder: Path) -> None:
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+
+
 def cache_folder(
     policy: str | os.PathLike | None, bundle_path: str | os.PathLike | None
 ) -> tuple[Path | None, str | None]:
@@ -182,8 +255,9 @@ def cache_folder(
 
     Returns:
         ``(folder, note)``: the folder (``None``: no cache) and, when the setting could not be
-        followed as given, why (a sentence) — e.g. ``"beside"`` for a read-only bundle folder
-        falls back to the user cache folder.
+        followed as given, why (a sentence) — e.g. ``"beside"`` for a read-only bundle folder, or
+        a folder of another user or writable by others (:func:`folder_problem`), falls back to
+        the user cache folder.
     """
     if policy is None or bundle_path is None or str(policy) == "off":
         return None, None
@@ -194,12 +268,16 @@ def cache_folder(
         want = Path(bundle_path).resolve().parent / ".hsi_torch_cache"
     else:
         want = Path(policy).expanduser()
-    if _writable_folder(want):
+    why = folder_problem(want)
+    if why is None and not _writable_folder(want):
+        why = "is not writable"
+    if why is None:
         return want, None
-    if want != user and _writable_folder(user):
-        return user, (f"precomputation cache folder {want} is not writable: using the user "
-                      f"cache folder {user}")  # fmt: skip
-    return None, f"precomputation cache folder {want} is not writable: no cache"
+    user_why = folder_problem(user)
+    if want != user and user_why is None and _writable_folder(user):
+        return user, (f"precomputation cache folder {want} {why}: its entries are ignored; "
+                      f"using the user cache folder {user}")  # fmt: skip
+    return None, f"precomputation cache folder {want} {why}: no cache"
 
 
 def _source_digest() -> str:
@@ -230,9 +308,99 @@ def entry_key(parts: Mapping[str, Any], layout_version: int) -> str:
 
 
 def entry_path(folder: str | os.PathLike, bundle_path: str | os.PathLike, key: str) -> Path:
-    """``<folder>/<bundle stem>-<first 24 hex digits of key>.hsicache``."""
+    """``<folder>/<bundle stem>-<first 24 hex digits of key>.hsicache`` (an entry folder)."""
     stem = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(bundle_path).stem)[:48] or "bundle"
     return Path(folder) / f"{stem}-{key[:24]}.hsicache"
+
+
+# ------------------------------------------------------------------------ the folder's secret
+
+
+def _read_small(path: str | os.PathLike, limit: int, dir_fd: int | None = None) -> bytes:
+    """The bytes of a regular file of at most ``limit`` bytes, opened without following a
+    symbolic link and without blocking (a FIFO, a device, a link: :class:`_Refused`)."""
+    try:
+        fd = os.open(path, _OPEN_FLAGS, dir_fd=dir_fd)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise _Refused(f"{os.fspath(path)} is a symbolic link") from None
+        raise
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _Refused(f"{os.fspath(path)} is not a regular file")
+        if st.st_size > limit:
+            raise _Refused(f"{os.fspath(path)} has {st.st_size} bytes (at most {limit})")
+        return f.read(limit + 1)
+
+
+def _secret(folder: Path, create: bool) -> bytes | None:
+    """The folder's secret (:data:`KEY_FILE`), made when ``create`` and missing (``None``: none).
+
+    Raises:
+        _Refused: the key file is not a regular ``0600`` file of this user of 32 bytes.
+    """
+    path = folder / KEY_FILE
+    try:
+        fd = os.open(path, _OPEN_FLAGS)
+    except FileNotFoundError:
+        if not create:
+            return None
+        # made complete under a temporary name, then linked into place: a reader never sees a
+        # partial key, and of two processes making it at once, one key wins
+        tmp = folder / f".{KEY_FILE}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                     0o600)  # fmt: skip
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(secrets.token_bytes(32))
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                pass
+        finally:
+            tmp.unlink(missing_ok=True)
+        return _secret(folder, create=False)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise _Refused(f"the key file {path} is a symbolic link") from None
+        raise
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(fd)
+        mine = not hasattr(os, "geteuid") or st.st_uid == os.geteuid()
+        if not (stat.S_ISREG(st.st_mode) and mine and not st.st_mode & 0o077
+                and st.st_size == 32):  # fmt: skip
+            raise _Refused(
+                f"the key file {path} is not a 32-byte file of this user with mode "
+                f"0600 (mode {stat.S_IMODE(st.st_mode):04o}, {st.st_size} bytes)"
+            )
+        return f.read(32)
+
+
+def _hasher(secret: bytes, domain: bytes) -> Any:
+    h = blake3.blake3(key=secret, max_threads=blake3.blake3.AUTO)
+    h.update(b"hsi_torch precompute cache\0" + domain + b"\0")
+    return h
+
+
+def _canonical(obj: Any) -> bytes:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=True).encode("utf-8")
+
+
+def _mac(secret: bytes, index: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> str:
+    """Keyed BLAKE3 of an entry: its index (less ``mac``) and every array's bytes, by name."""
+    head = _canonical({k: v for k, v in index.items() if k != "mac"})
+    h = _hasher(secret, b"entry")
+    h.update(len(head).to_bytes(8, "little") + head)
+    for name in sorted(arrays):
+        a = arrays[name]
+        h.update(name.encode("utf-8") + b"\0" + int(a.nbytes).to_bytes(8, "little"))
+        if a.size:
+            h.update(memoryview(a.reshape(-1).view(np.uint8)))
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------ the bundle's hash
 
 
 def _hash_file(path: Path) -> str:
@@ -243,14 +411,39 @@ def _hash_file(path: Path) -> str:
     return h.hexdigest()
 
 
+def _memo_mac(secret: bytes, ident: str, sha: str) -> str:
+    h = _hasher(secret, b"bundle hash")
+    h.update(_canonical([ident, sha]))
+    return h.hexdigest()
+
+
+def _memo_secret(memo_folder: str | os.PathLike | None) -> tuple[Path, bytes] | None:
+    """The memo file and the folder's secret, where the folder may be trusted (else ``None``)."""
+    if memo_folder is None:
+        return None
+    folder = Path(memo_folder)
+    try:
+        if folder_problem(folder) is not None or not _writable_folder(folder):
+            return None
+        _make_folder(folder)
+        if folder_problem(folder) is not None:
+            return None
+        secret = _secret(folder, create=True)
+    except (OSError, _Refused):
+        return None
+    return (folder / HASH_MEMO, secret) if secret else None
+
+
 def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | None = None) -> str:
     """Hex SHA-256 of a file's content, remembered while the file's identity stays the same.
 
     The identity is the resolved path, device, inode, size, modification *and change* time
     (``st_ctime_ns``: set by the system on every write or metadata change, never by a user), so
     a rewritten or edited file is always hashed again. Remembered in this process, and, with
-    ``memo_folder``, in its ``bundle_hashes.json`` (:data:`HASH_MEMO`) for later processes: a
-    second process then reads no byte of an unchanged bundle.
+    ``memo_folder`` (a trusted cache folder: :func:`folder_problem`), in its
+    ``bundle_hashes.json`` (:data:`HASH_MEMO`) for later processes: a second process then reads no
+    byte of an unchanged bundle. Each remembered hash carries a MAC keyed by the folder's secret:
+    a line written by anyone else (mapping this bundle to another's hash) is ignored.
     """
     p = Path(path)
     st = p.stat()
@@ -258,23 +451,25 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     sha = _HASHES.get(ident)
     if sha is not None:
         return sha
-    memo_path = None if memo_folder is None else Path(memo_folder) / HASH_MEMO
-    memo: dict[str, str] = {}
-    if memo_path is not None and memo_path.is_file():
+    where = _memo_secret(memo_folder)
+    memo: dict[str, Any] = {}
+    if where is not None:
         try:
-            got = json.loads(memo_path.read_text("utf-8"))
-            memo = {str(k): str(v) for k, v in got.items()} if isinstance(got, dict) else {}
-        except (OSError, ValueError):
+            got = json.loads(_read_small(where[0], MAX_HEADER_BYTES))
+            memo = dict(got) if isinstance(got, dict) else {}
+        except (OSError, ValueError, _Refused, RecursionError):
             memo = {}
     text = json.dumps(ident)
-    sha = memo.get(text)
-    if sha is None or not re.fullmatch(r"[0-9a-f]{64}", sha):
+    line = memo.get(text)
+    sha = line.get("sha256") if isinstance(line, dict) else None
+    if not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) and where is not None
+            and line.get("mac") == _memo_mac(where[1], text, sha)):  # fmt: skip
         sha = _hash_file(p)
-        if memo_path is not None:
+        if where is not None:
             memo = dict(list(memo.items())[-255:])
-            memo[text] = sha
+            memo[text] = {"sha256": sha, "mac": _memo_mac(where[1], text, sha)}
             try:
-                atomic_write_text(memo_path, json.dumps(memo, indent=0))
+                atomic_write_text(where[0], json.dumps(memo, indent=0))
             except OSError:
                 pass  # a read-only folder: hashed again next time
     if len(_HASHES) > 64:
@@ -286,116 +481,197 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
 # ---------------------------------------------------------------------------------- reading
 
 
-class _Refused(Exception):
-    """An entry that must not be used (the message says why)."""
+class _Stamp:
+    """The open files of a loaded entry and their size, modification and change times when
+    checked: :meth:`changed` tells whether one was written to since (closed with the arrays)."""
+
+    def __init__(self, entry: Path) -> None:
+        self.entry = entry
+        self.files: list[tuple[str, int, tuple[int, int, int]]] = []
+
+    def add(self, name: str, fd: int) -> None:
+        st = os.fstat(fd)
+        self.files.append((name, fd, (st.st_size, st.st_mtime_ns, st.st_ctime_ns)))
+
+    def changed(self) -> str | None:
+        for name, fd, (size, mtime, ctime) in self.files:
+            try:
+                st = os.fstat(fd)
+            except OSError as exc:  # pragma: no cover - closed under us
+                return f"{name} cannot be checked ({exc})"
+            if st.st_size != size:
+                return f"{name} was truncated or extended ({size} -> {st.st_size} bytes)"
+            if (st.st_mtime_ns, st.st_ctime_ns) != (mtime, ctime):
+                return f"{name} was written to"
+        return None
+
+    def close(self) -> None:
+        for _name, fd, _st in self.files:
+            try:
+                os.close(fd)
+            except OSError:  # pragma: no cover
+                pass
+        self.files = []
+
+    def __del__(self) -> None:
+        self.close()
 
 
-def _aligned(n: int) -> int:
-    return -(-n // ALIGN) * ALIGN
+class _Mapped(np.memmap):
+    """A memory-mapped array of an entry; keeps the entry's :class:`_Stamp` (open files)."""
+
+    _hsi_stamp: _Stamp | None = None
 
 
-def _crc32(buf: Any) -> int:
-    """CRC-32 of a buffer, in 64 MiB steps (zlib releases the GIL on each)."""
-    mv = memoryview(buf).cast("B")
-    c, step = 0, 1 << 26
-    for s in range(0, len(mv), step):
-        c = zlib.crc32(mv[s:s + step], c)
-    return c
+def loaded_stamp(arrays: Mapping[str, np.ndarray]) -> _Stamp | None:
+    """The stamp of the entry ``arrays`` were loaded from (:func:`load_entry`), for
+    :func:`changed_since_load`; ``None`` when none of them is mapped from an entry."""
+    for a in arrays.values():
+        while a is not None:
+            s = getattr(a, "_hsi_stamp", None)
+            if s is not None:
+                return s
+            a = a.base if isinstance(a.base, np.ndarray) else None
+    return None
 
 
-def _check_arrays(table: Any, size: int, start: int) -> dict[str, tuple[np.dtype, tuple, int, int]]:
-    """The array table of a header, checked: ``{name: (dtype, shape, offset, crc)}``."""
+def changed_since_load(stamp: _Stamp | None) -> str | None:
+    """Why the entry of ``stamp`` (:func:`loaded_stamp`) must not be used any more — one of its
+    files was written to, truncated or extended since it was checked — or ``None``.
+
+    A few ``fstat`` calls on the files held open: cheap enough before every frame. A file
+    replaced by a new one (renamed over, removed) is no change: the mapping keeps the old one.
+    """
+    return None if stamp is None else stamp.changed()
+
+
+def _check_table(table: Any) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
+    """The array table of an index, checked: ``{name: (dtype, shape)}``."""
     if not isinstance(table, dict):
         raise _Refused("'arrays' is not an object")
-    out: dict[str, tuple[np.dtype, tuple, int, int]] = {}
+    out: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}
     for name, d in table.items():
+        if not _NAME_RE.fullmatch(str(name)):
+            raise _Refused(f"array name {name!r}")
         if not isinstance(d, dict) or not isinstance(d.get("dtype"), str):
             raise _Refused(f"array {name!r}: no dtype")
         if not _DTYPE_RE.fullmatch(d["dtype"]):
             raise _Refused(f"array {name!r} has dtype {d['dtype']!r} (plain numbers only)")
-        dt = np.dtype(d["dtype"])
-        shape, off, crc = d.get("shape"), d.get("offset"), d.get("crc32")
-        if not (isinstance(shape, list) and all(type(v) is int and v >= 0 for v in shape)
-                and type(off) is int and type(crc) is int):  # fmt: skip
-            raise _Refused(f"array {name!r}: bad shape, offset or checksum")
-        nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
-        if off % ALIGN or off < start or off + nbytes > size:
-            raise _Refused(f"array {name!r}: bytes {off}..{off + nbytes} outside the file's "
-                           f"{size} bytes (truncated?)")  # fmt: skip
-        out[str(name)] = (dt, tuple(shape), off, crc)
+        shape = d.get("shape")
+        if not (isinstance(shape, list) and all(type(v) is int and v >= 0 for v in shape)):
+            raise _Refused(f"array {name!r}: bad shape {shape!r}")
+        out[str(name)] = (np.dtype(d["dtype"]), tuple(shape))
     return out
 
 
-def _read_entry(path: Path, key: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(len(MAGIC) + 12)
-        if len(head) < len(MAGIC) + 12 or head[:len(MAGIC)] != MAGIC:
-            raise _Refused("not a precomputation cache entry (no magic bytes)")
-        length, crc = struct.unpack("<QI", head[len(MAGIC):])
-        if length > MAX_HEADER_BYTES or len(MAGIC) + 12 + length > size:
-            raise _Refused(f"header of {length} bytes")
-        text = f.read(length)
-    if zlib.crc32(text) != crc:
-        raise _Refused("the header's CRC-32 differs (the file was altered or damaged)")
-    meta = json.loads(text.decode("utf-8"))
-    if not isinstance(meta, dict):
-        raise _Refused("the header is not a JSON object")
-    if meta.get("format") != FORMAT_VERSION:
-        raise _Refused(f"format {meta.get('format')!r}, this software reads {FORMAT_VERSION}")
-    if meta.get("key") != key:
-        raise _Refused("it was made for another bundle, settings or software (key differs)")
-    table = _check_arrays(meta.get("arrays"), size, len(MAGIC) + 12 + length)
-    arrays: dict[str, np.ndarray] = {}
-    for name, (dt, shape, off, _crc) in table.items():
-        n = int(np.prod(shape, dtype=np.int64))
-        arrays[name] = (np.memmap(path, dtype=dt, mode="c", offset=off, shape=shape) if n
-                        else np.zeros(shape, dtype=dt))  # fmt: skip
-    bad: list[str] = []
+def _map_member(dir_fd: int, name: str, dt: np.dtype, shape: tuple[int, ...],
+                stamp: _Stamp) -> np.ndarray:  # fmt: skip
+    """The array of ``<name>.npy`` (its header must declare ``dt`` and ``shape`` in C order and
+    the file hold exactly its bytes), memory-mapped copy-on-write."""
+    fname = f"{name}.npy"
+    try:
+        fd = os.open(fname, _OPEN_FLAGS, dir_fd=dir_fd)
+    except OSError as exc:
+        raise _Refused(f"{fname}: {exc.strerror}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _Refused(f"{fname} is not a regular file")
+        f = os.fdopen(os.dup(fd), "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    stamp.add(fname, fd)
+    with f:
+        try:
+            version = np.lib.format.read_magic(f)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0)  # fmt: skip
+            got_shape, fortran, got_dt = read(f, max_header_size=MAX_HEADER_BYTES)
+        except (ValueError, SyntaxError, TypeError, OSError) as exc:
+            raise _Refused(f"{fname}: not a NumPy array file ({exc})") from None
+        if got_dt != dt or tuple(got_shape) != shape or (fortran and len(shape) > 1):
+            raise _Refused(f"{fname} holds {got_dt} {tuple(got_shape)}, the index says {dt} "
+                           f"{shape}")  # fmt: skip
+        offset = f.tell()
+        nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+        if st.st_size != offset + nbytes:
+            raise _Refused(f"{fname} has {st.st_size} bytes, {offset + nbytes} expected "
+                           "(truncated or altered)")  # fmt: skip
+        if offset % ALIGN:
+            raise _Refused(f"{fname}: data at byte {offset}, not a multiple of {ALIGN}")
+        if nbytes == 0:
+            return np.zeros(shape, dtype=dt)
+        a = _Mapped(f, dtype=dt, mode="c", offset=offset, shape=shape)
+    a._hsi_stamp = stamp
+    return a
 
-    def check(part: list[str]) -> None:
-        """Each array's CRC-32 against the header's (two threads share the arrays)."""
-        for n in part:
-            a = arrays[n]
-            if (_crc32(a.reshape(-1).view(np.uint8)) if a.size else 0) != table[n][3]:
-                bad.append(n)
 
-    order = sorted(arrays, key=lambda n: -arrays[n].nbytes)
-    threads = [threading.Thread(target=check, args=(part,))
-               for part in (order[0::2], order[1::2]) if part]  # fmt: skip
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if bad:
-        raise _Refused(f"CRC-32 mismatch in {sorted(bad)} (the file was altered or damaged)")
-    return arrays, meta
+def _read_entry(path: Path, key: str, secret: bytes) -> tuple[dict[str, np.ndarray], dict]:
+    try:
+        dir_fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
+                         | getattr(os, "O_NOFOLLOW", 0))  # fmt: skip
+    except OSError as exc:
+        if exc.errno in (errno.ENOTDIR, errno.ELOOP):
+            raise _Refused("not an entry folder (a file or a symbolic link)") from None
+        raise
+    stamp = _Stamp(path)
+    try:
+        index = json.loads(_read_small(INDEX, MAX_HEADER_BYTES, dir_fd=dir_fd).decode("utf-8"))
+        if not isinstance(index, dict):
+            raise _Refused("the index is not a JSON object")
+        if index.get("format") != FORMAT_VERSION:
+            raise _Refused(f"format {index.get('format')!r}, this software reads "
+                           f"{FORMAT_VERSION}")  # fmt: skip
+        if index.get("key") != key:
+            raise _Refused("it was made for another bundle, settings or software (key differs)")
+        table = _check_table(index.get("arrays"))
+        arrays = {name: _map_member(dir_fd, name, dt, shape, stamp)
+                  for name, (dt, shape) in table.items()}  # fmt: skip
+        if not isinstance(index.get("mac"), str) or index["mac"] != _mac(secret, index, arrays):
+            raise _Refused("its MAC does not verify (not written by this user's software for "
+                           "this key, or altered)")  # fmt: skip
+        try:
+            os.utime(INDEX, dir_fd=dir_fd, follow_symlinks=False)  # recently used: kept
+        except (OSError, NotImplementedError):
+            pass
+    except BaseException:
+        stamp.close()
+        raise
+    finally:
+        os.close(dir_fd)
+    return arrays, index
 
 
 def load_entry(path: str | os.PathLike, key: str) -> tuple[dict[str, np.ndarray], dict] | None:
-    """The arrays and metadata of the entry ``path`` if it holds ``key`` and is intact.
+    """The arrays and index of the entry ``path`` if it holds ``key``, was written by this
+    user's software (its MAC) in a trusted folder (:func:`folder_problem`) and is intact.
 
     Returns:
-        ``({name: array}, meta)`` with the arrays memory-mapped copy-on-write, or ``None``:
-        no entry (a miss), or an entry refused (foreign, altered, truncated, unreadable: a
+        ``({name: array}, index)`` with the arrays memory-mapped copy-on-write (their files stay
+        open: :func:`loaded_stamp`, :func:`changed_since_load`), or ``None``: no entry (a miss),
+        or an entry refused (untrusted folder, foreign, altered, truncated, unreadable: a
         :class:`PrecomputeCacheWarning` names the file and why).
     """
     p = Path(path)
-    if not p.is_file():
+    try:
+        os.lstat(p)
+    except OSError:
         CACHE_STATS["misses"] += 1
         return None
     try:
-        arrays, meta = _read_entry(p, key)
-    except (_Refused, OSError, ValueError, UnicodeDecodeError, struct.error,
-            RecursionError) as exc:  # fmt: skip
+        why = folder_problem(p.parent)
+        if why is not None:
+            raise _Refused(f"the cache folder {p.parent} {why}")
+        secret = _secret(p.parent, create=False)
+        if secret is None:
+            raise _Refused(f"no key file {KEY_FILE} in its folder: it cannot be authenticated")
+        arrays, meta = _read_entry(p, key, secret)
+    except (_Refused, OSError, ValueError, UnicodeDecodeError, RecursionError) as exc:
         CACHE_STATS["rejected"] += 1
         _warn(f"precomputation cache entry {p} refused ({exc}); recomputing")
         return None
     CACHE_STATS["hits"] += 1
-    try:
-        os.utime(p)  # recently used: kept by the size bound
-    except OSError:
-        pass
     return arrays, meta
 
 
@@ -516,64 +792,185 @@ def release_pages(*arrays: Any) -> int:
 
 
 def _max_bytes() -> int:
+    """``$HSI_TORCH_CACHE_MAX_GB`` in bytes (a value that is not a finite number ≥ 0: a warning
+    naming the variable, and the default)."""
     raw = os.environ.get(MAX_GB_ENV)
+    if raw is None or not raw.strip():
+        return int(DEFAULT_MAX_GB * (1 << 30))
     try:
-        gb = float(raw) if raw else DEFAULT_MAX_GB
+        gb = float(raw)
     except ValueError:
+        gb = math.nan
+    if not (math.isfinite(gb) and 0.0 <= gb <= 1e9):
+        _warn(f"${MAX_GB_ENV}={raw!r} is not a size in GiB (a finite number >= 0): using the "
+              f"default {DEFAULT_MAX_GB:g} GiB")  # fmt: skip
         gb = DEFAULT_MAX_GB
-    return int(max(gb, 0.0) * (1 << 30))
+    return int(gb * (1 << 30))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def _entry_kind(path: Path) -> str | None:
+    """What a cache folder's child is, recognised by its name *and* content: ``"entry"`` (an
+    entry folder whose index names its format and a key), ``"old"`` (an entry
+    of format 1: one file starting with :data:`OLD_MAGIC`), ``"temp"`` (a writer's leftover
+    folder whose process is gone), or ``None`` (anything else: never removed). Symbolic links
+    are never followed (``None``)."""
+    m = _ENTRY_RE.match(path.name)
+    t = _TEMP_RE.match(path.name)
+    if not (m or t):
+        return None
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    if m and stat.S_ISREG(st.st_mode):
+        try:
+            fd = os.open(path, _OPEN_FLAGS)
+            with os.fdopen(fd, "rb") as f:
+                return "old" if f.read(len(OLD_MAGIC)) == OLD_MAGIC else None
+        except OSError:
+            return None
+    if not stat.S_ISDIR(st.st_mode):
+        return None
+    if t:
+        return "temp" if not _pid_alive(int(t["pid"])) else None
+    try:
+        index = json.loads(_read_small(path / INDEX, MAX_HEADER_BYTES))
+    except (OSError, ValueError, _Refused, RecursionError):
+        return None
+    key = index.get("key") if isinstance(index, dict) else None
+    ok = (
+        isinstance(index.get("format"), int)
+        and isinstance(key, str)
+        and bool(re.fullmatch(r"[0-9a-f]{64}", key))
+    )
+    return "entry" if ok else None
+
+
+def _entry_bytes(path: Path) -> int:
+    try:
+        if os.path.isdir(path) and not os.path.islink(path):
+            return sum(e.stat(follow_symlinks=False).st_size for e in os.scandir(path))
+        return os.lstat(path).st_size
+    except OSError:
+        return 0
+
+
+def _remove_entry(path: Path) -> bool:
+    """Remove an entry (folder or format-1 file) the cache wrote: only its ``index.json`` and
+    ``*.npy`` files (unlinked, never followed), then the folder if that left it empty."""
+    try:
+        if not stat.S_ISDIR(os.lstat(path).st_mode):
+            path.unlink()
+            return True
+        for e in os.scandir(path):
+            if e.name == INDEX or _MEMBER_RE.match(e.name):
+                os.unlink(e.path)  # a symbolic link is removed, not followed
+        os.rmdir(path)
+        return True
+    except OSError:
+        return False
+
+
+def _entries(folder: Path) -> list[tuple[int, int, Path]]:
+    """``(last used ns, bytes, path)`` of every entry of ``folder`` (format 1 and 2)."""
+    out = []
+    try:
+        children = list(folder.iterdir())
+    except OSError:
+        return out
+    for p in children:
+        kind = _entry_kind(p) if _ENTRY_RE.match(p.name) else None
+        if kind is None:
+            continue
+        try:
+            used = os.lstat(p / INDEX if kind == "entry" else p).st_mtime_ns
+        except OSError:
+            continue
+        out.append((used, _entry_bytes(p), p))
+    return out
 
 
 def _evict(folder: Path, keep: Path, limit: int) -> None:
     """Remove the least recently used entries of ``folder`` (not ``keep``) until the entries
     take at most ``limit`` bytes."""
-    entries = []
-    for p in folder.iterdir():
-        if p.name.startswith(".") or not _ENTRY_RE.match(p.name) or p == keep:
-            continue
-        try:
-            st = p.stat()
-        except OSError:
-            continue
-        entries.append((st.st_mtime_ns, st.st_size, p))
-    total = sum(e[1] for e in entries) + (keep.stat().st_size if keep.exists() else 0)
-    for _mtime, size, p in sorted(entries):
+    entries = [e for e in _entries(folder) if e[2] != keep]
+    total = sum(e[1] for e in entries) + _entry_bytes(keep)
+    for _used, size, p in sorted(entries):
         if total <= limit:
             break
-        try:
-            p.unlink()
+        if _remove_entry(p):
             total -= size
-        except OSError:
-            pass
 
 
-def _write(f: Any, header: dict[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
-    """The entry's bytes: magic, header length and CRC-32, the JSON header (padded with spaces),
-    then every array at a multiple of :data:`ALIGN` bytes."""
-    room = 4096
-    while True:
-        start = _aligned(len(MAGIC) + 12 + room)
-        pos = start
-        for n, a in arrays.items():
-            header["arrays"][n]["offset"] = pos
-            pos = _aligned(pos + a.nbytes)
-        text = json.dumps(header, default=json_default).encode("utf-8")
-        if len(MAGIC) + 12 + len(text) <= start:
-            break
-        room = 2 * len(text)
-    text += b" " * (start - len(MAGIC) - 12 - len(text))
-    f.write(MAGIC + struct.pack("<QI", len(text), zlib.crc32(text)) + text)
-    pos = start
-    for n, a in arrays.items():
-        off = header["arrays"][n]["offset"]
-        f.write(b"\0" * (off - pos))
-        if a.size:
-            f.write(memoryview(a.reshape(-1).view(np.uint8)))
-        pos = off + a.nbytes
+def _write_new(path: Path, write: Any) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                 0o600)  # fmt: skip
+    with os.fdopen(fd, "wb") as f:
+        write(f)
+
+
+def _replaceable(dest: Path) -> bool:
+    """``dest`` (at an entry's own name) holds nothing but an entry's files: a folder of only
+    ``index.json`` and ``*.npy`` files (whatever they hold: a damaged entry is replaced), or an
+    entry of format 1. A symbolic link, or a folder with anything else in it, is not."""
+    if _entry_kind(dest) in ("entry", "old"):
+        return True
+    try:
+        if not stat.S_ISDIR(os.lstat(dest).st_mode):
+            return False
+        return all((e.name == INDEX or _MEMBER_RE.match(e.name)) and not e.is_dir(
+            follow_symlinks=False) for e in os.scandir(dest))  # fmt: skip
+    except OSError:
+        return False
+
+
+def _install(tmp: Path, dest: Path) -> None:
+    """Rename the complete entry folder ``tmp`` onto ``dest``; an entry already there (an
+    older or refused one) is moved aside first and removed; anything else there is left alone
+    (OSError)."""
+    try:
+        os.rename(tmp, dest)
+        return
+    except OSError as exc:
+        if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR, errno.EISDIR):
+            raise
+    if not _replaceable(dest):
+        raise FileExistsError(errno.EEXIST, "something else than a cache entry is there",
+                              str(dest))  # fmt: skip
+    aside = dest.parent / f".{dest.name}.{os.getpid()}-{secrets.token_hex(6)}.old"
+    os.rename(dest, aside)
+    try:
+        os.rename(tmp, dest)
+    except OSError as exc:  # another process put its entry there meanwhile: it stays
+        if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
+            raise
+    _remove_entry(aside)
+
+
+def _note_size(path: Path, nbytes: int, limit: int) -> None:
+    total = sum(e[1] for e in _entries(path.parent))
+    print(
+        f"hsi-torch: precomputation cached in {path} ({nbytes / 2**30:.2f} GiB; the folder "
+        f"holds {total / 2**30:.2f} GiB, at most {limit / 2**30:.1f} GiB: ${MAX_GB_ENV}; "
+        "'hsi-torch cache info' / 'hsi-torch cache clear')",
+        file=sys.stderr,
+    )
 
 
 def save_entry(
-    path: str | os.PathLike, key: str, arrays: Mapping[str, np.ndarray],
+    path: str | os.PathLike,
+    key: str,
+    arrays: Mapping[str, np.ndarray],
     meta: Mapping[str, Any] | None = None,
 ) -> bool:
     """Write an entry atomically (never over anything but an older entry of the same name).
@@ -581,18 +978,19 @@ def save_entry(
     Args:
         path: the entry (from :func:`entry_path`); key: its key (:func:`entry_key`).
         arrays: ``{name: array}``, numeric or bool numpy arrays (names: letters, digits,
-            ``_ . -``).
+            ``_ . -``, not starting with ``.`` or ``-``).
         meta: JSON-serialisable values stored beside the arrays (returned by
             :func:`load_entry`).
 
     Returns:
         Whether the entry was written. Not written (a :class:`PrecomputeCacheWarning` says why):
-        the folder cannot be written, the disk would keep less than :data:`MIN_FREE_BYTES`
-        free, an entry is larger than the folder's bound.
+        the folder cannot be written or is not the user's own (:func:`folder_problem`), the disk
+        would keep less than :data:`MIN_FREE_BYTES` free, an entry is larger than the folder's
+        bound. An entry of at least :data:`NOTE_BYTES` says its size on stderr.
     """
     p = Path(path)
     for n, a in arrays.items():
-        if not re.fullmatch(r"[A-Za-z0-9_.-]+", n):
+        if not _NAME_RE.fullmatch(n):
             raise ValueError(f"cache array name {n!r}: letters, digits, '_', '.', '-' only")
         if a.dtype.hasobject or a.dtype.kind not in "biufc":
             raise TypeError(f"cache array {n!r} has dtype {a.dtype}: numbers only")
@@ -600,29 +998,143 @@ def save_entry(
     limit = _max_bytes()
     if nbytes > limit:
         CACHE_STATS["write_skipped"] += 1
-        _warn(f"precomputation cache: the entry for {p.name} ({nbytes / 2**30:.1f} GiB) exceeds "
-              f"the folder's bound {limit / 2**30:.1f} GiB (${MAX_GB_ENV}); not written")
+        _warn(
+            f"precomputation cache: the entry for {p.name} ({nbytes / 2**30:.1f} GiB) exceeds "
+            f"the folder's bound {limit / 2**30:.1f} GiB (${MAX_GB_ENV}); not written"
+        )
         return False
     flat = {n: np.ascontiguousarray(a) for n, a in arrays.items()}
-    header = {**dict(meta or {}), "format": FORMAT_VERSION, "key": key,
-              "arrays": {n: {"dtype": a.dtype.str, "shape": list(a.shape),
-                             "crc32": _crc32(a.reshape(-1).view(np.uint8)) if a.size else 0}
-                         for n, a in flat.items()}}  # fmt: skip
+    index: dict[str, Any] = {**dict(meta or {}), "format": FORMAT_VERSION, "key": key,
+                             "arrays": {n: {"dtype": a.dtype.str, "shape": list(a.shape)}
+                                        for n, a in flat.items()}}  # fmt: skip
+    index = json.loads(json.dumps(index, default=json_default))  # as it will be read back
     with _LOCK:
+        tmp = None
         try:
-            p.parent.mkdir(parents=True, exist_ok=True)
+            _make_folder(p.parent)
+            why = folder_problem(p.parent)
+            if why is not None:
+                CACHE_STATS["write_skipped"] += 1
+                _warn(f"precomputation cache folder {p.parent} {why}: not written")
+                return False
             free = shutil.disk_usage(p.parent).free
             if free - nbytes < MIN_FREE_BYTES:
                 CACHE_STATS["write_skipped"] += 1
-                _warn(f"precomputation cache: {free / 2**30:.1f} GiB free in {p.parent}, the "
-                      f"entry needs {nbytes / 2**30:.1f} GiB; not written")
+                _warn(
+                    f"precomputation cache: {free / 2**30:.2f} GiB free in {p.parent}, the "
+                    f"entry needs {nbytes / 2**30:.2f} GiB; not written"
+                )
                 return False
-            with atomic_write(p, "wb", fsync=False) as f:  # checked (CRC-32) when read
-                _write(f, header, flat)
+            secret = _secret(p.parent, create=True)
+            assert secret is not None
+            tmp = p.parent / f".{p.name}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
+            tmp.mkdir(mode=0o700)
+            for n, a in flat.items():
+                _write_new(
+                    tmp / f"{n}.npy",
+                    lambda f, a=a: np.lib.format.write_array(f, a, allow_pickle=False),
+                )
+            index["mac"] = _mac(secret, index, flat)
+            text = json.dumps(index, indent=0).encode("utf-8")
+            _write_new(tmp / INDEX, lambda f: f.write(text))
+            _install(tmp, p)
+            tmp = None
             _evict(p.parent, p, limit)
-        except OSError as exc:
+        except (OSError, _Refused) as exc:
             CACHE_STATS["write_skipped"] += 1
             _warn(f"precomputation cache: could not write {p} ({exc}); not cached")
             return False
+        finally:
+            if tmp is not None and tmp.exists():
+                _remove_entry(tmp)
     CACHE_STATS["writes"] += 1
+    if nbytes >= NOTE_BYTES:
+        _note_size(p, nbytes, limit)
     return True
+
+
+# ------------------------------------------------------------------------ hsi-torch cache
+
+
+def cache_info(folder: str | os.PathLike | None = None) -> dict[str, Any]:
+    """What a cache folder holds (default: the user cache folder, :func:`user_cache_dir`).
+
+    Returns:
+        ``{"folder", "exists", "problem"`` (:func:`folder_problem`, ``None``: trusted),
+        ``"entries"`` (``[{"name", "bytes", "last_used"`` (POSIX seconds)``, "format"}]``, most
+        recently used first), ``"total_bytes"``, ``"max_bytes"`` (the bound,
+        ``$HSI_TORCH_CACHE_MAX_GB``)``}``.
+    """
+    f = Path(folder) if folder is not None else user_cache_dir()
+    rows = [{"name": p.name, "bytes": size, "last_used": used / 1e9,
+             "format": 2 if p.is_dir() else 1}
+            for used, size, p in sorted(_entries(f), reverse=True)]  # fmt: skip
+    return {"folder": str(f), "exists": f.is_dir(), "problem": folder_problem(f),
+            "entries": rows, "total_bytes": sum(r["bytes"] for r in rows),
+            "max_bytes": _max_bytes()}  # fmt: skip
+
+
+def clear_cache(folder: str | os.PathLike | None = None) -> dict[str, Any]:
+    """Remove what the cache wrote in a folder (default: the user cache folder): its entries
+    (recognised by name *and* content, :func:`_entry_kind`), the leftovers of killed writers and
+    the memo of bundle hashes. Nothing else is touched; symbolic links are removed, never
+    followed; nothing outside the folder is removed. The folder and its key file stay.
+
+    Returns:
+        ``{"folder", "removed"`` (names)``, "bytes"`` (freed)``, "kept"`` (names of other
+        files left alone)``}``.
+    """
+    f = Path(folder) if folder is not None else user_cache_dir()
+    removed, kept, freed = [], [], 0
+    try:
+        children = sorted(f.iterdir())
+    except FileNotFoundError:
+        children = []
+    for p in children:
+        if p.name == KEY_FILE:
+            continue
+        if p.name == HASH_MEMO and not os.path.islink(p):
+            size = _entry_bytes(p)
+            p.unlink(missing_ok=True)
+            removed.append(p.name)
+            freed += size
+            continue
+        if _entry_kind(p) is None:
+            kept.append(p.name)
+            continue
+        size = _entry_bytes(p)
+        if _remove_entry(p):
+            removed.append(p.name)
+            freed += size
+        else:
+            kept.append(p.name)
+    return {"folder": str(f), "removed": removed, "bytes": freed, "kept": kept}
+
+
+def run_cache(args: Any) -> int:
+    """``hsi-torch cache info | clear [--folder DIR]`` (:func:`cache_info`, :func:`clear_cache`)."""
+    folder = getattr(args, "folder", None)
+    if args.action == "clear":
+        got = clear_cache(folder)
+        n = sum(1 for name in got["removed"] if name != HASH_MEMO)
+        print(f"{got['folder']}: removed {n} entr{'y' if n == 1 else 'ies'} "
+              f"({got['bytes'] / 2**30:.2f} GiB)")  # fmt: skip
+        if got["kept"]:
+            print(f"  left alone (not written by the cache): {', '.join(got['kept'])}")
+        return 0
+    info = cache_info(folder)
+    n = len(info["entries"])
+    print(f"precomputation cache: {info['folder']}" + ("" if info["exists"] else " (not made yet)"))
+    if info["problem"]:
+        print(f"  not used: the folder {info['problem']}")
+    print(f"  {n} entr{'y' if n == 1 else 'ies'}, {info['total_bytes'] / 2**30:.2f} GiB of at most "
+          f"{info['max_bytes'] / 2**30:.1f} GiB (${MAX_GB_ENV})")  # fmt: skip
+    for e in info["entries"]:
+        import time
+
+        used = time.strftime("%Y-%m-%d %H:%M", time.localtime(e["last_used"]))
+        print(
+            f"  {e['name']}  {e['bytes'] / 2**30:.2f} GiB  last used {used}"
+            + ("  (format 1: unused, 'clear' removes it)" if e["format"] == 1 else "")
+        )
+    return 0

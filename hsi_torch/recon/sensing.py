@@ -190,6 +190,7 @@ class BundleSensing:
         state["_staging"] = []
         state["_drift_static"] = {}
         state.pop("_bundle_ref", None)
+        state.pop("_disk_stamp", None)  # a copy holds its own memory, not the entry's files
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -357,6 +358,7 @@ def precompute_sensing(
         sens = None if got is None else _from_cache(*got, dev, entry)
         if sens is not None:
             sens.disk_entry = (Path(folder), path, key)
+            sens._disk_stamp = disk.loaded_stamp(got[0])  # type: ignore[attr-defined]
             BUILD_COUNTS["loaded"] += 1
             _remember(mem_key, sens, cache)
             return sens
@@ -510,6 +512,7 @@ def _from_cache(
         return torch.from_numpy(a if a.flags.writeable else a.copy()).to(dev)
 
     try:
+        check_cached_shapes(arrays, meta)
         model = SensingModel(t("model.transmittance"), t("model.gain"), t("model.response"))
         obs = t("obs_mask")
         state: dict[str, Any] = {}
@@ -538,12 +541,93 @@ def _from_cache(
             diff_order=order, problem=problem, exposure_s=meta["exposure_s"],
             cfa_pattern=meta["cfa_pattern"], radiometry=rad, sample_grid=t("sample_grid"),
         )  # fmt: skip
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        disk._warn(f"precomputation cache entry {entry} does not hold what this software "
-                   f"needs ({type(exc).__name__}: {exc}); recomputing")
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
+        disk._warn(f"precomputation cache entry {entry} refused: it does not hold what this "
+                   f"software needs ({type(exc).__name__}: {exc}); recomputing")
         return None
     sens._problems[(beta, order)] = problem
     return sens
+
+
+#: Shapes of the factorisation's arrays in a cache entry (``P`` pixels, ``M`` bands); others
+#: (a later layout's) are not checked here.
+_PROBLEM_SHAPES = {"gram": "PMM", "gram_inv": "PMM", "gram_diag": "PM", "gram_norm": "P",
+                   "gram_diag_max": "P", "singular": "P", "no_data": "P", "reg": "MM"}  # fmt: skip
+
+
+def check_cached_shapes(arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+    """Cross-check the arrays of a disk-cache entry against each other before any kernel reads
+    them: ``valid (h, w)`` of the reference frame, ``pixel_index`` its ``P`` valid pixels in
+    order, ``wavelengths_nm (M,)``, ``homographies (V, 3, 3)``, the model ``(P, V, M)``,
+    ``(P, V)``, ``(C, M)``, ``obs_mask (P, C·V)``, ``sample_grid (1, V, P, 2)`` and the
+    factorisation (:data:`_PROBLEM_SHAPES`), one float dtype. A compiled kernel trusts these
+    shapes: a short ``gram_inv`` would be read past its end.
+
+    Raises:
+        ValueError: naming the first array that disagrees (the entry is refused and recomputed).
+    """
+    def get(name: str) -> np.ndarray:
+        if name not in arrays:
+            raise ValueError(f"no array {name!r}")
+        return arrays[name]
+
+    def need(name: str, shape: tuple[int, ...], kind: str) -> np.ndarray:
+        a = get(name)
+        if tuple(a.shape) != shape or a.dtype.kind != kind:
+            raise ValueError(f"{name} is {a.dtype} {tuple(a.shape)}, expected {kind} {shape}")
+        return a
+
+    _x0, _y0, w, h = (int(v) for v in meta["reference_bbox"])
+    valid = need("valid", (h, w), "b")
+    P = int(np.count_nonzero(valid))
+    pix = get("pixel_index")
+    if pix.shape != (P,) or pix.dtype.kind not in "iu" or not np.array_equal(
+            pix, np.flatnonzero(valid)):  # fmt: skip
+        raise ValueError(f"pixel_index ({pix.dtype} {tuple(pix.shape)}) is not the indices of "
+                         f"the {P} valid pixels of the {h} x {w} frame")
+    M = int(get("wavelengths_nm").shape[0]) if get("wavelengths_nm").ndim == 1 else -1
+    V = int(get("homographies").shape[0])
+    need("homographies", (V, 3, 3), "f")
+    if M < 1 or V < 1:
+        raise ValueError(f"wavelengths_nm {tuple(get('wavelengths_nm').shape)}: not (M,)")
+    dt = need("model.transmittance", (P, V, M), "f").dtype
+    C = int(get("model.response").shape[0])
+    for name, shape, kind in (("model.gain", (P, V), "f"), ("model.response", (C, M), "f"),
+                              ("obs_mask", (P, C * V), "b"), ("sample_grid", (1, V, P, 2), "f")):
+        a = need(name, shape, kind)
+        if kind == "f" and name != "sample_grid" and a.dtype != dt:
+            raise ValueError(f"{name} is {a.dtype}, the model {dt}")
+    dims = {"P": P, "M": M}
+    for name, how in meta["problem"].items():
+        ref = how.get("array") or how.get("numpy") if isinstance(how, dict) else None
+        if name in _PROBLEM_SHAPES:
+            if ref is None:
+                raise ValueError(f"the factorisation's {name} is not stored")
+            a = need(ref, tuple(dims[c] for c in _PROBLEM_SHAPES[name]), get(ref).dtype.kind)
+            if a.dtype.kind == "f" and a.dtype != dt:
+                raise ValueError(f"{ref} is {a.dtype}, the model {dt}")
+    missing = sorted(set(_PROBLEM_SHAPES) - set(meta["problem"]))
+    if missing:
+        raise ValueError(f"the factorisation's {missing} are not stored")
+
+
+def refreshed_sensing(sens: BundleSensing, chunk_size: int | None = None) -> BundleSensing:
+    """``sens``, or, when the disk-cache entry it was loaded from was written to, truncated or
+    extended since (:func:`~hsi_torch.recon.precompute_cache.changed_since_load`: its mapped
+    arrays would be read stale, or fault), the sensing loaded again (checked) or recomputed, with
+    a warning. Cheap (a few ``fstat`` calls): the reconstructor asks before every frame."""
+    stamp = getattr(sens, "_disk_stamp", None)
+    why = disk.changed_since_load(stamp)
+    if why is None or sens.disk_entry is None:
+        return sens
+    folder, path, _key = sens.disk_entry
+    disk._warn(f"precomputation cache entry {stamp.entry}: {why} after it was loaded; not used "
+               "any more (loaded again if intact, else recomputed)")
+    for k in [k for k, v in _CACHE.items() if v is sens]:
+        del _CACHE[k]
+    return precompute_sensing(path, beta=sens.beta, diff_order=sens.diff_order,
+                              device=sens.device, dtype=sens.model.transmittance.dtype,
+                              chunk_size=chunk_size, disk_cache=folder)  # fmt: skip
 
 
 def sample_pixels(ok: Tensor, num_samples: int) -> Tensor | None:
