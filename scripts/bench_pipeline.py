@@ -124,7 +124,7 @@ def timed_reconstructor(
     rec = Reconstructor(path, **kw)
     _sync(dev)
     t_hit = time.perf_counter() - t0
-    size = sum(p.stat().st_size for p in folder.glob("*.hsicache"))
+    size = sum(p.stat().st_size for p in folder.glob("*.hsicache/*"))  # entry folders
     times = {"precompute_s": t_cold - spent["write"], "cache_write_s": spent["write"],
              "cached_s": t_hit, "cache_gib": size / 2**30}
     print(f"  precomputation of {path.name}: cold {times['precompute_s']:.2f} s (+ "
