@@ -24,7 +24,7 @@ from hsi_torch.config import load_config
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ["simulate", "calibrate", "layout", "reconstruct", "experiment", "demo", "config",
-            "captures"]
+            "captures", "cache"]
 REQUIRED = {
     "simulate": ["--out", "o"],
     "calibrate": ["--captures", "c", "--out", "o"],
@@ -34,6 +34,7 @@ REQUIRED = {
     "demo": [],
     "config": ["list"],
     "captures": ["check", "d"],
+    "cache": ["info"],
 }
 
 
@@ -141,7 +142,8 @@ def check_example(line: str) -> str:
     argv = shlex.split(line, comments=True)
     assert argv[0] == "hsi-torch", line
     argv = argv[1:]
-    if not argv or argv[0] in ("config", "--help", "-h", "--version") or "--help" in argv:
+    cheap = ("config", "--help", "-h", "--version")
+    if not argv or argv[0] in cheap or "--help" in argv or argv[:2] == ["cache", "info"]:
         assert cli.main(argv) == 0, line
         return "ran"
     parser = cli.build_parser()
@@ -149,7 +151,7 @@ def check_example(line: str) -> str:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # unknown / missing argument
         raise AssertionError(f"example does not parse: {line}") from exc
-    if args.command in ("bench", "captures", "view"):  # no configuration file; view needs a display
+    if args.command in ("bench", "captures", "view", "cache"):  # no config; view needs a display
         return "parsed"
     schema, default = _schema_and_default(args)
     load_config(cli.config_source(args, default), schema, args.overrides)

@@ -793,3 +793,32 @@ def test_the_cache_command_shows_and_clears_only_what_it_wrote(tmp_path, capsys)
         [disk.KEY_FILE, "link-abababababababababababab.hsicache",
          "notes-abababababababababababab.hsicache", "notes.txt", fake.name])
     assert (outside / "thesis.npy").read_text() == "mine" and (fake / "x.npy").exists()
+
+
+def test_a_tv_factor_entry_rewritten_after_loading_is_not_used_stale(bundle_file, tmp_path):
+    """The TV prior's packed inverse, loaded from its entry, rewritten in place before the next
+    TV frame: that frame warns, refuses the entry (MAC) and recomputes it; the cube is right."""
+    from hsi_torch.recon.spatial import _compiled as spatial_compiled
+    from hsi_torch.recon.spatial import problem as spatial_problem
+
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed: the TV factor is not packed")
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra())
+    fresh_process()
+    spatial_problem._FACTORS.clear()
+    ref = Reconstructor(bundle_file, beta=2.0, prior="tv", precompute_cache=str(cache))
+    c1 = ref.reconstruct_frame(capture).cube  # writes both entries
+    fresh_process()
+    spatial_problem._FACTORS.clear()
+    rec = Reconstructor(bundle_file, beta=2.0, prior="tv", precompute_cache=str(cache))
+    rec.reconstruct_frame(capture)  # loads both
+    (tv_entry,) = [p for p in entries(cache) if (p / "inverse.npy").exists()]
+    member = tv_entry / "inverse.npy"
+    a = np.load(member)
+    with open(member, "r+b") as f:
+        f.seek(member.stat().st_size - a.nbytes)
+        f.write((a * 3.0).tobytes())
+    with pytest.warns(disk.PrecomputeCacheWarning, match="inverse.npy was written to"):
+        c2 = rec.reconstruct_frame(capture).cube
+    assert torch.equal(torch.nan_to_num(c1, nan=-1.0), torch.nan_to_num(c2, nan=-1.0))

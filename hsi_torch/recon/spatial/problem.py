@@ -275,6 +275,12 @@ class ShiftedInverse:
     def packed(self, row_ptr: np.ndarray, num_pixels: int) -> np.ndarray:
         """:func:`~._compiled.pack_inverse_rows` of the ``num_pixels`` pixels in rows
         ``row_ptr`` (float32/float64 like ``G``; a shared ``G`` is expanded)."""
+        if self._packed is not None and self.disk is not None:  # its entry changed since?
+            why = disk.changed_since_load(disk.loaded_stamp({"inverse": self._packed}))
+            if why is not None:
+                disk._warn(f"precomputation cache entry {self.disk[0]}: {why} after it was "
+                           "loaded; loaded again if intact, else recomputed")  # fmt: skip
+                self._packed = None
         if self._packed is None:
             m = self.gram.shape[-1]
             dt = self.gram.numpy().dtype if self.gram.device.type == "cpu" else np.float64
