@@ -687,6 +687,20 @@ def test_a_bad_cache_bound_is_a_warning_naming_the_variable(tmp_path, monkeypatc
     assert disk.load_entry(path, "ab" * 32) is not None
 
 
+def share_with_a_group(folder) -> str:
+    """Make ``folder`` writable by a group that is not the user's private one (root: any gid;
+    else one of the user's other groups); world-writable where there is none. Returns the
+    warning's words."""
+    gids = [12345] if os.geteuid() == 0 else os.getgroups()
+    gids = [g for g in gids if not disk._private_group(g)]
+    if not gids:
+        folder.chmod(0o777)
+        return "writable by group and others"
+    os.chown(folder, -1, gids[0])
+    folder.chmod(0o775)
+    return "writable by its group"
+
+
 def test_a_cache_folder_others_may_write_is_ignored(bundle_file, tmp_path, monkeypatch):
     """A cache folder its group may write (a shared folder): its entry is ignored with a warning
     naming the folder's mode, nothing is written there, and the run uses the user cache folder."""
@@ -695,11 +709,11 @@ def test_a_cache_folder_others_may_write_is_ignored(bundle_file, tmp_path, monke
     fresh_process()
     Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
     (entry,) = entries(cache)
-    cache.chmod(0o775)
+    words = share_with_a_group(cache)
     before = folder_state(cache)
     fresh_process()
     c = counts()
-    with pytest.warns(disk.PrecomputeCacheWarning, match="writable by its group"):
+    with pytest.warns(disk.PrecomputeCacheWarning, match=words):
         Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))
     assert counts()["loaded"] == c["loaded"]
     assert counts()["factorisation"] == c["factorisation"] + 1
@@ -707,7 +721,7 @@ def test_a_cache_folder_others_may_write_is_ignored(bundle_file, tmp_path, monke
     assert len(entries(tmp_path / "user" / "precompute")) == 1
     # asked directly, the entry of such a folder is refused too
     key = read_index(entry)["key"]
-    with pytest.warns(disk.PrecomputeCacheWarning, match="writable by its group"):
+    with pytest.warns(disk.PrecomputeCacheWarning, match=words):
         assert disk.load_entry(entry, key) is None
     cache.chmod(0o700)
     assert disk.load_entry(entry, key) is not None
@@ -822,3 +836,19 @@ def test_a_tv_factor_entry_rewritten_after_loading_is_not_used_stale(bundle_file
     with pytest.warns(disk.PrecomputeCacheWarning, match="inverse.npy was written to"):
         c2 = rec.reconstruct_frame(capture).cube
     assert torch.equal(torch.nan_to_num(c1, nan=-1.0), torch.nan_to_num(c2, nan=-1.0))
+
+
+def test_the_users_private_group_may_write_the_folder(tmp_path, monkeypatch):
+    """``umask 002`` systems make folders writable by the user's private group (named as the
+    user, no other member): that is the user's own, as Debian's ssh allows; any other group
+    is not."""
+    folder = tmp_path / "c"
+    folder.mkdir(mode=0o775)
+    folder.chmod(0o775)
+    monkeypatch.setattr(disk, "_private_group", lambda gid: True)
+    assert disk.folder_problem(folder) is None
+    monkeypatch.setattr(disk, "_private_group", lambda gid: False)
+    assert "writable by its group" in disk.folder_problem(folder)
+    folder.chmod(0o777)
+    monkeypatch.setattr(disk, "_private_group", lambda gid: True)
+    assert "writable by group and others" in disk.folder_problem(folder)

@@ -219,9 +219,10 @@ def folder_problem(folder: str | os.PathLike) -> str | None:
     """Why the entries of an existing cache folder must not be trusted, or ``None``.
 
     The folder must be a folder of this user (``st_uid`` the effective user id) that neither its
-    group nor others may write (mode ``& 0o022 == 0``), as ssh checks ``~/.ssh`` and pip its
-    cache. A folder that does not exist yet is ``None`` (it is made ``0700``). Not checked where
-    the system has no user ids (Windows)."""
+    group nor others may write (mode ``& 0o022 == 0``), as ssh checks ``~/.ssh``; a group that is
+    the user's private group (named as the user, no other member: the ``umask 002`` systems)
+    counts as the user's own, as Debian's ssh allows. A folder that does not exist yet is
+    ``None`` (it is made ``0700``). Not checked where the system has no user ids (Windows)."""
     if not hasattr(os, "geteuid"):  # pragma: no cover - Windows
         return None
     try:
@@ -234,10 +235,26 @@ def folder_problem(folder: str | os.PathLike) -> str | None:
         return "is not a folder"
     if st.st_uid != os.geteuid():
         return f"belongs to another user (uid {st.st_uid}, this process runs as {os.geteuid()})"
-    if st.st_mode & 0o022:
+    if st.st_mode & 0o022 and (st.st_mode & 0o002 or not _private_group(st.st_gid)):
         return (f"is writable by {'group and others' if st.st_mode & 0o002 else 'its group'} "
                 f"(mode {stat.S_IMODE(st.st_mode):04o}; chmod go-w it)")  # fmt: skip
     return None
+
+
+def _private_group(gid: int) -> bool:
+    """``gid`` is this user's private group: named as the user, the user's primary group, and no
+    other user in it (listed as a member or with it as primary group)."""
+    try:
+        import grp
+        import pwd
+
+        me = pwd.getpwuid(os.geteuid())
+        g = grp.getgrgid(gid)
+        others = [u.pw_name for u in pwd.getpwall() if u.pw_gid == gid and u.pw_uid != me.pw_uid]
+    except (ImportError, KeyError, OSError):
+        return False
+    return g.gr_name == me.pw_name and me.pw_gid == gid and set(g.gr_mem) <= {me.pw_name} and (
+        not others)
 
 
 def _make_folder(folder: Path) -> None:
