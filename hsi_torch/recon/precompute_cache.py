@@ -90,6 +90,7 @@ from typing import Any
 import blake3
 import numpy as np
 
+from hsi_torch import console
 from hsi_torch.io.atomic import atomic_write_text, json_default
 
 __all__ = [
@@ -253,8 +254,12 @@ def _private_group(gid: int) -> bool:
         others = [u.pw_name for u in pwd.getpwall() if u.pw_gid == gid and u.pw_uid != me.pw_uid]
     except (ImportError, KeyError, OSError):
         return False
-    return g.gr_name == me.pw_name and me.pw_gid == gid and set(g.gr_mem) <= {me.pw_name} and (
-        not others)
+    return (
+        g.gr_name == me.pw_name
+        and me.pw_gid == gid
+        and set(g.gr_mem) <= {me.pw_name}
+        and (not others)
+    )
 
 
 def _make_folder(folder: Path) -> None:
@@ -976,11 +981,11 @@ def _install(tmp: Path, dest: Path) -> None:
 
 def _note_size(path: Path, nbytes: int, limit: int) -> None:
     total = sum(e[1] for e in _entries(path.parent))
-    print(
+    console.info(
         f"hsi-torch: precomputation cached in {path} ({nbytes / 2**30:.2f} GiB; the folder "
         f"holds {total / 2**30:.2f} GiB, at most {limit / 2**30:.1f} GiB: ${MAX_GB_ENV}; "
         "'hsi-torch cache info' / 'hsi-torch cache clear')",
-        file=sys.stderr,
+        sys.stderr,
     )
 
 
@@ -1003,7 +1008,7 @@ def save_entry(
         Whether the entry was written. Not written (a :class:`PrecomputeCacheWarning` says why):
         the folder cannot be written or is not the user's own (:func:`folder_problem`), the disk
         would keep less than :data:`MIN_FREE_BYTES` free, an entry is larger than the folder's
-        bound. An entry of at least :data:`NOTE_BYTES` says its size on stderr.
+        bound. An entry of at least :data:`NOTE_BYTES` says its size on stderr (not when quiet).
     """
     p = Path(path)
     for n, a in arrays.items():
