@@ -1115,7 +1115,7 @@ def clear_cache(folder: str | os.PathLike | None = None) -> dict[str, Any]:
     for p in children:
         if p.name == KEY_FILE:
             continue
-        if p.name == HASH_MEMO and not os.path.islink(p):
+        if p.name == HASH_MEMO and os.path.isfile(p) and not os.path.islink(p):
             size = _entry_bytes(p)
             p.unlink(missing_ok=True)
             removed.append(p.name)
