@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# README command 1: install what is needed, then run the end-to-end demo.
+# README command 1: install what the demo needs (this package, no extras), then run the demo.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh

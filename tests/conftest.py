@@ -13,8 +13,10 @@ file keeps its own device list.
 from __future__ import annotations
 
 import atexit
+import importlib.util
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -29,6 +31,38 @@ from hsi_torch.resources import DATA_ENV, real_data_dir
 _CACHE_DIR = tempfile.mkdtemp(prefix="hsi_torch_test_cache_")
 os.environ[CACHE_ENV] = _CACHE_DIR
 atexit.register(shutil.rmtree, _CACHE_DIR, True)
+
+
+def _declare_torchvision_schemas() -> torch.library.Library | None:
+    """Let ``import torchvision`` (hence deepinv and torchmetrics) succeed beside a CPU torch.
+
+    The registry's torchvision for torch 2.13 links CUDA libraries, so its compiled extension
+    ``torchvision/_C.so`` does not load beside the CPU torch; its import then stops at its own
+    unguarded ``register_fake("torchvision::nms")`` / ``("torchvision::qnms")`` ("operator
+    torchvision::nms does not exist"). Where the extension does not load, this declares those two
+    operator schemas (no kernel) through ``torch.library`` before torchvision is imported: its
+    Python modules, deepinv's physics and optimisers and torchmetrics then import and work; only
+    ``torchvision.ops`` (the compiled operators) stays unusable. Test suite only: the package never
+    imports torchvision. Returns the library holding the schemas (kept alive), or None.
+    """
+    spec = importlib.util.find_spec("torchvision")
+    if spec is None or "torchvision" in sys.modules or not spec.submodule_search_locations:
+        return None
+    folder = Path(next(iter(spec.submodule_search_locations)))
+    for ext in sorted(folder.glob("_C*.so")) + sorted(folder.glob("_C*.pyd")):
+        try:
+            torch.ops.load_library(str(ext))
+        except (OSError, ImportError, RuntimeError):
+            continue
+    if hasattr(torch.ops.torchvision, "nms"):
+        return None  # the extension loaded: torchvision is whole
+    lib = torch.library.Library("torchvision", "DEF")
+    for name in ("nms", "qnms"):
+        lib.define(f"{name}(Tensor dets, Tensor scores, float iou_threshold) -> Tensor")
+    return lib
+
+
+_TORCHVISION_SCHEMAS = _declare_torchvision_schemas()
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: the real-data folder: HSI_TORCH_DATA, else ../shared/data/real beside the checkout (or None)

@@ -72,7 +72,7 @@ def test_torch_compile_on_cpu_gives_the_eager_output(setup):
 
 
 def test_readme_module_snippet_runs(tmp_path, monkeypatch):
-    """The README's nn.Module example, run as written in a folder holding a small bundle
+    """The nn.Module example of docs/python_api.md, run as written in a folder holding a bundle
     (calib/calib.npz) and a capture (shots/scene_001.tif) exposed half as long as the white
     reference."""
     import re
@@ -82,7 +82,7 @@ def test_readme_module_snippet_runs(tmp_path, monkeypatch):
 
     from hsi_torch.io import write_capture
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    text = (Path(__file__).resolve().parents[1] / "docs" / "python_api.md").read_text("utf-8")
     block = next(b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S)
                  if "HSIReconstructor.from_bundle" in b)  # fmt: skip
     bundle = make_bundle()
@@ -95,7 +95,7 @@ def test_readme_module_snippet_runs(tmp_path, monkeypatch):
                   {"kind": "rgb", "exposure_s": 0.01})  # fmt: skip
     monkeypatch.chdir(tmp_path)
     ns: dict = {}
-    exec(compile(block, "README.md", "exec"), ns)
+    exec(compile(block, "docs/python_api.md", "exec"), ns)
     assert ns["scale"] == 2.0 and ns["cube"].shape == (1, 8, 20, 20)
     assert ns["net"].weight.grad is not None  # loss.backward() ran
     # the same as the file pipeline (which applies the same exposure ratio)

@@ -3,7 +3,7 @@ plugin (npe2 manifest, reader, click → spectrum, band slider in nm) and ``hsi-
 screenshot.
 
 The napari tests run headless: on a virtual X server (``Xvfb``, started here when no display is
-set; ``scripts/install.sh`` installs it with the Qt/X libraries on Debian) and skip with the
+set; ``scripts/install.sh test`` installs it with the Qt/X libraries on Debian) and skip with the
 reason when napari, Qt or a display cannot be had. ``HSI_TORCH_WRITE_DOC_IMAGES=1`` also writes
 the screenshot to ``docs/img/napari_view.png`` (the README's).
 """
@@ -147,7 +147,7 @@ def display():
         return
     xvfb = shutil.which("Xvfb")
     if xvfb is None:
-        pytest.skip("no display and no Xvfb (scripts/install.sh installs it on Debian)")
+        pytest.skip("no display and no Xvfb (scripts/install.sh test installs it on Debian)")
     num = 90 + os.getpid() % 500
     proc = subprocess.Popen([xvfb, f":{num}", "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip

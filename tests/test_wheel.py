@@ -5,9 +5,12 @@ and `hsi-torch experiment synthetic` from an empty folder.
 Offline by construction: an sdist is built from a copy of the sources (setuptools' PEP 517 hook)
 and the wheel from the unpacked sdist without build isolation (`pip wheel --no-deps
 --no-build-isolation`, the machine's setuptools), so the top-level `configs/` folder is checked
-to travel through both; the venv is made with `--system-site-packages` (torch and the other
-dependencies come from the machine) and the wheel is installed with `--no-index --no-deps`; the
-declared dependencies are then checked against what the venv sees. Skipped, with the reason, when
+to travel through both; the venv is a plain one whose ``.pth`` file adds the running
+interpreter's site-packages folders after its own (torch and the other dependencies come from the
+environment running the tests: a venv, a conda env or a system Python — ``venv
+--system-site-packages`` would see only the *base* Python's packages from inside a venv), and the
+wheel is installed with `--no-index --no-deps`; the declared dependencies are then checked
+against what the venv sees. Skipped, with the reason, when
 the wheel cannot be built here. The subprocesses run without PYTHONPATH, so the package they
 import is the installed wheel (checked).
 """
@@ -16,8 +19,10 @@ from __future__ import annotations
 
 import os
 import shutil
+import site
 import subprocess
 import sys
+import sysconfig
 import tarfile
 import zipfile
 from pathlib import Path
@@ -37,6 +42,35 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str], timeout: int = 600):
 
 def _tail(r: subprocess.CompletedProcess) -> str:
     return (r.stdout[-1500:] + "\n" + r.stderr[-3000:]).strip()
+
+
+def _running_site_dirs() -> list[str]:
+    """The site-packages folders of the interpreter running the tests, in its order: its own
+    (a venv's or conda env's), then the base Python's where it sees them, then the user's."""
+    dirs = list(site.getsitepackages())
+    if site.ENABLE_USER_SITE:
+        dirs.append(site.getusersitepackages())
+    for key in ("purelib", "platlib"):
+        dirs.append(sysconfig.get_paths()[key])
+    out: list[str] = []
+    for d in dirs:
+        if os.path.isdir(d) and d not in out:
+            out.append(d)
+    return out
+
+
+def _see_running_packages(py: Path, cwd: Path, env: dict[str, str]) -> None:
+    """Make the fresh venv of ``py`` see the running interpreter's packages (torch, kornia, …):
+    a ``.pth`` file in its site-packages adds the running interpreter's site folders after its
+    own (``site.addsitedir``, so their own ``.pth`` files apply). ``venv --system-site-packages``
+    does not do this from inside a venv or conda env: it points at the *base* Python, which
+    lacks the environment's packages."""
+    r = _run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], cwd, env)
+    assert r.returncode == 0, _tail(r)
+    purelib = Path(r.stdout.strip().splitlines()[-1])
+    purelib.mkdir(parents=True, exist_ok=True)
+    lines = [f"import site; site.addsitedir({d!r})" for d in _running_site_dirs()]
+    (purelib / "_hsi_torch_test_running_env.pth").write_text("\n".join(lines) + "\n")
 
 
 @pytest.fixture(scope="module")
@@ -74,11 +108,11 @@ def installed(tmp_path_factory):
     if r.returncode != 0 or not wheels:
         pytest.skip(f"cannot build the wheel offline here: {_tail(r)[-600:]}")
     venv = tmp / "venv"
-    r = _run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", venv],
-             tmp, env)  # fmt: skip
+    r = _run([sys.executable, "-m", "venv", "--without-pip", venv], tmp, env)
     if r.returncode != 0:
         pytest.skip(f"cannot create a virtual environment here: {_tail(r)[-600:]}")
     py = venv / "bin" / "python"
+    _see_running_packages(py, tmp, env)
     r = _run([py, "-m", "pip", "install", "--no-index", "--no-deps", wheels[0]], tmp, env)
     assert r.returncode == 0, _tail(r)
     env["PATH"] = f"{venv / 'bin'}{os.pathsep}{env.get('PATH', '')}"
@@ -139,8 +173,9 @@ def test_installed_commands_run_from_an_empty_folder(installed, tmp_path):
         assert (out / f).is_file(), f
     assert "colorchecker: 24 patches" in r.stdout
 
-    r = _run([*hsi, "simulate", "--out", "x", "-q", "--set", "camera.scale=0.5",
-              "--set", "captures.scenes=[]", "--set", "render.figures=false"], work, env)
+    args = ["simulate", "--out", "x", "-q", "--set", "camera.scale=0.5",
+            "--set", "captures.scenes=[]", "--set", "render.figures=false"]  # fmt: skip
+    r = _run([*hsi, *args], work, env)
     assert r.returncode == 0, _tail(r)
     assert r.stdout == ""  # -q
     cfg = yaml.safe_load((work / "x" / "resolved_config.yaml").read_text())
