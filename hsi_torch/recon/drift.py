@@ -81,6 +81,7 @@ __all__ = [
     "DRIFT_AGREE_PX",
     "DRIFT_MIN_VIEWS",
     "DRIFT_MAX_VIEW_SHIFT_PX",
+    "VIEW_STATUSES",
     "motion_points",
     "drift_motion_px",
 ]
@@ -106,9 +107,10 @@ DRIFT_MAX_VIEW_SHIFT_PX = float(_MAX_SHIFT_PX)
 #: px: a measured view agrees with the fitted motion when its shift is within this of the fit's
 #: (the simulator's drifts within the measurable range: at most 0.36 px on the small prototype)
 DRIFT_AGREE_PX = 1.0
-#: the default fewest agreeing views for a drift to be trusted (``drift_min_views``): the
-#: simulator's drifts within the measurable range agree in 5–9 of 9 views; a foreign image, a
-#: drift beyond the range or a periodic scene's false match in 0–3
+#: the default fewest agreeing views for a drift to be trusted (``drift_min_views``): on the
+#: small prototype's ColorChecker, drifts within the measurable range agree in 7–9 of 9 views
+#: (4–5 at its edge, 8–9 px); a foreign image, a drift beyond the range or a repeating
+#: pattern's false match in 0–3
 DRIFT_MIN_VIEWS = 4
 #: the views are aligned on images averaged over ``f × f`` pixel blocks (:func:`_block_factor`):
 #: ``f`` is the largest power of two up to this ...
