@@ -8,7 +8,8 @@ and a 2 px shift alone), calibrated with the shipped ``calibrate.yaml`` from its
 ColorChecker reconstructed (default β, per pixel) with the calibrated and the oracle bundle,
 without and with ``refine_registration``. Scores (reflectance, peak 1): PSNR of the patch-
 interior mean spectra (≥ 0.3 mm inside each patch) and per pixel over the patch interiors, and
-the sensor motion measured from the frame (``stats["drift"]``).
+the sensor motion measured from the frame and how many views agree on it (``stats["drift"]``;
+a refused drift fails the row: :class:`hsi_torch.recon.drift.DriftError`).
 
 Usage::
 
@@ -59,7 +60,7 @@ def score(out: Path, res) -> dict:
     d = res.stats["drift"]
     return {"means_db": means["mean_psnr_db"], "pixel_db": px["psnr_db"],
             "sensor_shift_px": d["sensor_shift_px"], "rotation_deg": d["sensor_rotation_deg"],
-            "fit_residual": res.stats["fit_residual"]}
+            "agreement": d["agreement"], "fit_residual": res.stats["fit_residual"]}
 
 
 def main(argv: list[str] | None = None) -> int:

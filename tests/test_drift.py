@@ -1,7 +1,8 @@
 """Sensor drift measured from the scene itself (:mod:`hsi_torch.recon.drift`): the estimate on
 known shifts (an exact whole-sensor roll and the simulator's drift), zero on an undrifted
-capture, the metadata and the warning of a run, the correction's dB, and the settings keys.
-Small prototype (400 × 384 px), ColorChecker only, oracle bundle."""
+capture, the metadata and the warning of a run, the correction's dB, the settings keys, and
+the refusals (too few views agree, views that disagree, beyond the measurable range, a foreign
+image). Small prototype (400 × 384 px), ColorChecker only, oracle bundle."""
 
 from __future__ import annotations
 
@@ -22,7 +23,13 @@ from hsi_torch.io import load_cube, read_any, read_capture
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.config import ReconstructConfig
-from hsi_torch.recon.drift import corrected_sensing, estimate_drift, motion_points
+from hsi_torch.recon.drift import (
+    DRIFT_AGREE_PX,
+    DriftError,
+    corrected_sensing,
+    estimate_drift,
+    motion_points,
+)
 from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.simulate.oracle import bundle_from_truth
 
@@ -40,14 +47,16 @@ def _simulate(out: Path, *extra: str) -> Path:
 
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory) -> dict[str, Path]:
-    """The small prototype's ColorChecker, ideal and with a (2, 0) px sensor drift, and the
-    oracle bundle of the ideal device."""
+    """The small prototype's ColorChecker, ideal and with a (2, 0), (12, 0) and (30, 0) px
+    sensor drift, and the oracle bundle of the ideal device."""
     root = tmp_path_factory.mktemp("drift")
     ideal = _simulate(root / "ideal")
     drift = _simulate(root / "drift", "--set", "mismatch.drift_shift_px=[2, 0]")
+    far = {f"drift{d}": _simulate(root / f"drift{d}", "--set",
+                                  f"mismatch.drift_shift_px=[{d}, 0]") for d in (12, 30)}
     bundle = root / "oracle.npz"
     bundle_from_truth(ideal).save(bundle)
-    return {"ideal": ideal, "drift": drift, "bundle": bundle}
+    return {"ideal": ideal, "drift": drift, "bundle": bundle, **far}
 
 
 def _image(sim: Path) -> torch.Tensor:
@@ -124,6 +133,8 @@ def test_block_images_are_the_block_means_and_measure_a_shift(sims, monkeypatch)
     full = drift._view_images(sens, img, drift._static(sens))
     monkeypatch.setattr(drift, "_MIN_BLOCKS", 32)
     sens._drift_static.clear()
+    # the sensing is shared (kept per bundle): its 2 × 2 part must not outlive this test
+    monkeypatch.setattr(sens, "_drift_static", {})
     st = drift._static(sens)
     assert st.factor == 2 and len(st.pairs) == 9
     blocks = drift._view_images(sens, img, st)
@@ -231,8 +242,12 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     assert main([*base, "--out", str(tmp_path / "a"), str(cap)]) == 0
     err = capsys.readouterr().err
     assert "WARNING" in err and "drift_warn_px=0.5" in err and "refine_registration" in err
+    # how many views agree, and by how much
+    assert f"9 of 9 views with texture agree within {DRIFT_AGREE_PX:g} px (spread 0." in err
     meta = load_cube(tmp_path / "a" / "colorchecker.npz").metadata
     d = meta["stats"]["drift"]
+    assert d["agreeing_views"] == 9 and d["textured_views"] == 9 and d["refused"] is None
+    assert 0 < d["spread_px"] <= DRIFT_AGREE_PX and d["view_status"][1:] == ["agrees"] * 9
     V = len(d["view_shift_px"])
     assert V == 10 and len(d["correlation"]) == V and len(d["residual_px"]) == V
     assert d["sensor_shift_px"][0] == pytest.approx(2.0, abs=0.2)
@@ -259,7 +274,9 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
 @pytest.mark.parametrize("key, value", [("refine_registration", "maybe"),
                                         ("refine_registration", 1), ("drift_check", "no"),
                                         ("drift_warn_px", 0), ("drift_warn_px", -1.0),
-                                        ("drift_warn_px", "far")])
+                                        ("drift_warn_px", "far"), ("drift_min_views", 1),
+                                        ("drift_min_views", "many"), ("drift_min_views", 4.5),
+                                        ("drift_min_views", True)])
 def test_registration_keys_are_validated_and_errors_name_them(key, value):
     with pytest.raises((ConfigError, ValueError), match=key):
         ReconstructSettings.from_flat({key: value})
@@ -270,9 +287,11 @@ def test_registration_keys_are_validated_and_errors_name_them(key, value):
 def test_registration_keys_load_and_default():
     s = ReconstructSettings()
     assert s.registration.check and not s.registration.refine and s.registration.warn_px == 0.5
-    cfg = load_config({"refine_registration": True, "drift_warn_px": None}, ReconstructConfig)
+    assert s.registration.min_views == 4
+    cfg = load_config({"refine_registration": True, "drift_warn_px": None,
+                       "drift_min_views": 6}, ReconstructConfig)
     r = cfg.settings().registration
-    assert r.refine and r.warn_px is None
+    assert r.refine and r.warn_px is None and r.min_views == 6
 
 
 def test_an_integer_drift_renders_as_the_ideal_capture_moved(tmp_path):
@@ -288,3 +307,159 @@ def test_an_integer_drift_renders_as_the_ideal_capture_moved(tmp_path):
     torch.testing.assert_close(moved[..., :-2], torch.roll(ideal, -2, dims=-1)[..., :-2],
                                rtol=1e-5, atol=1e-3)
     assert float((moved - ideal).abs().mean()) > 10.0
+
+
+# ------------------------------------------------------------------------ refusals
+
+
+def _only_views(sens, img: torch.Tensor, keep: tuple[int, ...]) -> torch.Tensor:
+    """``img`` with every sensor pixel that the views ``keep`` do not sample (beyond 2 px) set
+    to a flat grey: only those views have texture."""
+    px = drift._grid_px(sens).round().long()  # (V, P, 2) sensor (x, y)
+    H, W = img.shape[-2:]
+    near = torch.zeros(H, W, dtype=torch.bool)
+    for v in keep:
+        x, y = px[v, :, 0].clamp(0, W - 1), px[v, :, 1].clamp(0, H - 1)
+        near[y, x] = True
+    near = torch.nn.functional.max_pool2d(near[None, None].float(), 5, 1, 2)[0, 0] > 0
+    return torch.where(near, img, img.mean())
+
+
+def _natural_texture(shape: tuple[int, int], seed: int) -> torch.Tensor:
+    """``(3, H, W)`` a random natural-like (1/f amplitude) texture, 100–900 DN."""
+    H, W = shape
+    gen = torch.Generator().manual_seed(seed)
+    f2 = torch.fft.fftfreq(H)[:, None] ** 2 + torch.fft.fftfreq(W)[None] ** 2
+    phase = torch.exp(2j * math.pi * torch.rand(H, W, generator=gen, dtype=torch.float64))
+    tex = torch.fft.ifft2(phase / f2.clamp(min=1e-4).sqrt()).real
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    return (100 + 800 * tex)[None] * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)[:, None,
+                                                                                        None]
+
+
+def test_the_measurable_range_is_the_search_window_over_the_most_sensitive_view(sims):
+    """The most sensitive views move 2.01× the sensor shift relative to the reference view: a
+    16 px window measures ≈ 8 px of sensor motion. Whole-pixel rolls up to 7 px are measured
+    within 0.1 px and agreed on; from 10 px on, too few views agree (measured below)."""
+    sens = Reconstructor(sims["bundle"], dtype=torch.float64).sensing
+    img = _image(sims["ideal"])
+    for shift in ((3, 0), (-5, 0), (0, 6), (5, 5), (7, 0)):
+        est = estimate_drift(sens, torch.roll(img, shifts=(-shift[1], -shift[0]), dims=(1, 2)))
+        assert est.refusal is None, (shift, est.refusal)
+        assert est.agreeing_views >= 7 and est.orientations >= 3
+        np.testing.assert_allclose(est.sensor_shift_px, shift, atol=0.1)
+    assert est.range_px == pytest.approx(drift.DRIFT_MAX_VIEW_SHIFT_PX / 2.01, abs=0.05)
+    for shift in ((10, 0), (0, 12), (-12, 0), (30, 0)):
+        est = estimate_drift(sens, torch.roll(img, shifts=(-shift[1], -shift[0]), dims=(1, 2)))
+        assert est.refusal is not None and est.agreeing_views < 4, shift
+
+
+@pytest.mark.parametrize("far", [12, 30])
+def test_a_simulated_drift_beyond_the_range_is_refused_never_corrected(sims, far, tmp_path,
+                                                                         capsys):
+    """A 12 px or 30 px sensor drift (beyond the ≈ 8 px the views can measure): formerly
+    fitted from one view as 30.65 / 21.33 px and "corrected"; now the reconstructor raises
+    DriftError naming the views' agreement and the range, the run lists the frame as failed
+    (exit 1, no cube), and the check alone warns that the drift could not be measured."""
+    cap = sims[f"drift{far}"] / "scenes" / "colorchecker.tif"
+    rec = Reconstructor(sims["bundle"], refine_registration=True)
+    with pytest.raises(DriftError) as err:
+        rec.reconstruct_file(cap)
+    msg = str(err.value)
+    assert str(cap) in msg and "refine_registration" in msg
+    assert "views with texture agree within 1 px" in msg and "drift_min_views=4" in msg
+    assert "measurable range is about ±8.0 px" in msg
+    assert isinstance(err.value, ValueError)  # an InputError: bad input, not a crash
+    # the check alone: the cube is made, its drift marked refused and not corrected
+    res = Reconstructor(sims["bundle"]).reconstruct_file(cap)
+    d = res.stats["drift"]
+    assert d["refused"] and d["corrected"] is False and d["agreeing_views"] < 4
+    # the command line: the frame failed, named with the reason; nothing written for it
+    base = ["reconstruct", "--bundle", str(sims["bundle"]), "--no-progress", "--set",
+            "formats=[npz]", "--set", "preview=false"]  # fmt: skip
+    out = tmp_path / "refined"
+    assert main([*base, "--out", str(out), "--set", "refine_registration=true", str(cap)]) == 1
+    err_text = capsys.readouterr().err
+    assert "FAILED" in err_text and "DriftError" in err_text
+    assert "views with texture agree" in err_text and "corrected" not in err_text.replace(
+        "not corrected", "")
+    assert not (out / "colorchecker.npz").exists()
+    assert main([*base, "--out", str(tmp_path / "checked"), str(cap)]) == 0
+    err_text = capsys.readouterr().err
+    assert "drift not measurable" in err_text
+    assert "the sensor moved since calibration" not in err_text
+
+
+def test_a_single_textured_view_is_refused(sims):
+    """Only view 2 (beside the reference) has texture: one view measures the shift, which
+    is never enough (formerly: a motion fitted from it and corrected)."""
+    sens = Reconstructor(sims["bundle"]).sensing
+    img = _only_views(sens, _image(sims["drift"]).float(), (0, 2))
+    est = estimate_drift(sens, img)
+    assert est.textured_views == 1 and est.agreeing_views == 1
+    assert "fewer than drift_min_views=4" in est.refusal
+    assert "1 of 1 views with texture agree" in est.refusal
+    # even with the smallest minimum
+    assert estimate_drift(sens, img, min_views=2).refusal is not None
+    rec = Reconstructor(sims["bundle"], refine_registration=True)
+    with pytest.raises(DriftError, match="1 of 1 views with texture agree"):
+        rec.reconstruct_frame(img)
+
+
+def test_views_that_disagree_are_refused(sims):
+    """The left half of the sensor moved 3 px right, the right half 3 px left (not a rigid
+    motion): the views split into two groups of four; no more agree than disagree."""
+    sens = Reconstructor(sims["bundle"]).sensing
+    img = _image(sims["ideal"]).float()
+    W = img.shape[-1]
+    split = torch.cat([torch.roll(img, -3, dims=2)[..., :W // 2],
+                       torch.roll(img, 3, dims=2)[..., W // 2:]], dim=2)
+    est = estimate_drift(sens, split)
+    disagree = est.view_status == "disagrees"
+    assert disagree.sum() >= 3
+    assert np.all(est.residual_px[disagree] > DRIFT_AGREE_PX)
+    assert est.refusal is not None and "disagree by" in est.refusal
+    assert est.agreeing_views <= int(disagree.sum()) or est.agreeing_views < est.min_views
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_foreign_image_is_refused(sims, seed):
+    """A natural-like random texture over the whole sensor (no kaleidoscope views): every
+    view has texture, none aligns with the reference view."""
+    rec = Reconstructor(sims["bundle"], refine_registration=True)
+    img = _natural_texture(rec.sensing.sensor_size, seed).float()
+    est = estimate_drift(rec.sensing, img)
+    assert est.textured_views == 9 and est.agreeing_views == 0 and est.sensor_shift_px is None
+    with pytest.raises(DriftError, match="0 of 9 views with texture agree"):
+        rec.reconstruct_frame(img)
+
+
+def test_drift_min_views_is_the_threshold(sims):
+    """A 9 px roll, at the edge of the range: 4 views agree (3 orientations), the motion is
+    right; accepted at the default minimum of 4, refused at 5."""
+    sens = Reconstructor(sims["bundle"]).sensing
+    img = torch.roll(_image(sims["ideal"]).float(), shifts=-9, dims=2)
+    est = estimate_drift(sens, img)
+    assert est.agreeing_views == 4 and est.refusal is None
+    np.testing.assert_allclose(est.sensor_shift_px, (9, 0), atol=0.1)
+    assert "fewer than drift_min_views=5" in estimate_drift(sens, img, min_views=5).refusal
+    rec = Reconstructor(sims["bundle"], settings=ReconstructSettings.from_flat(
+        {"refine_registration": True, "drift_min_views": 5}))
+    with pytest.raises(DriftError, match="drift_min_views=5"):
+        rec.reconstruct_frame(img)
+
+
+def test_a_foreign_cameras_raw_is_refused(sims, real_data):
+    """A real camera's RAW (another camera, no kaleidoscope), its mosaic cropped to the small
+    prototype's sensor: formerly "the sensor moved … up to 253 px (… from 1 views)" and
+    corrected; now one view of nine agrees and the frame is refused, wherever it is cropped."""
+    from hsi_torch.io.raw import load_raw
+
+    raw = load_raw(real_data / "raw" / "RAW_KODAK_DC50.KDC")
+    rec = Reconstructor(sims["bundle"], refine_registration=True)
+    H, W = rec.sensing.sensor_size
+    for y, x in ((0, 0), (64, 184), (128, 368)):
+        crop = raw.mosaic[:, y:y + H, x:x + W]
+        with pytest.raises(DriftError, match="of 9 views with texture agree") as err:
+            rec.reconstruct_frame(crop, cfa_pattern=raw.cfa_pattern)
+        assert "fewer than drift_min_views=4" in str(err.value)

@@ -163,6 +163,13 @@ class ReconstructConfig:
         metadata=_help("correct the measured sensor motion before solving (every view sampled "
                        "where the moved sensor put it; see docs/reconstruct.md)"),
     )
+    drift_min_views: int = field(
+        default=4,
+        metadata=_help("the fewest views that must agree on the measured drift (within 1 px "
+                       "of the fitted motion) for it to be trusted; fewer, or a drift beyond "
+                       "the measurable range: refine_registration fails the frame, the check "
+                       "warns that the drift could not be measured"),
+    )
 
     def __post_init__(self) -> None:
         self.settings()  # every value checked where the settings are built (errors name the key)

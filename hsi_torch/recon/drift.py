@@ -37,6 +37,18 @@ each view — and a sample whose moved position falls off the sensor is dropped 
 ``A`` is unchanged: the optics did not move, each reference pixel still sees the same scene
 point through the same filters.
 
+**When it is refused** (:attr:`DriftEstimate.refusal`; ``refine_registration`` raises
+:class:`DriftError`, the check alone warns): the motion is fitted to the views that agree —
+within :data:`DRIFT_AGREE_PX` of the fit, the farthest view left out and the rest fitted again
+while one is farther — and trusted only when at least ``drift_min_views`` (default
+:data:`DRIFT_MIN_VIEWS`) agree, more agree than disagree, they see the scene in at least two
+orientations, and the fitted motion keeps every view with texture inside the search window
+(:data:`DRIFT_MAX_VIEW_SHIFT_PX`; the sensor motion that reaches it is
+:attr:`DriftEstimate.range_px`). Beyond that range the views that would show the motion cannot
+be aligned, and what the others measure (a false match on a repeating pattern, one view's
+shift) fits a wrong motion: the small prototype's 12 px drift was fitted as 30.65 px from one
+view. A frame without texture (a flat field) is not refused: nothing is measured.
+
 **What it cannot see**: motion of parts of the optics relative to each other (a kaleidoscope
 that shifts against the relay lens changes each view's homography in its own way; that shows
 as a large per-view fit residual, :attr:`DriftEstimate.residual_px`, but is not corrected),
@@ -58,11 +70,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from hsi_torch.errors import InputError
+
 __all__ = [
     "DriftEstimate",
+    "DriftError",
     "estimate_drift",
     "corrected_sensing",
     "DRIFT_MIN_CORRELATION",
+    "DRIFT_AGREE_PX",
+    "DRIFT_MIN_VIEWS",
+    "DRIFT_MAX_VIEW_SHIFT_PX",
+    "VIEW_STATUSES",
     "motion_points",
     "drift_motion_px",
 ]
@@ -83,6 +102,16 @@ _MIN_PIXELS = 400
 _MIN_TEXTURE = 1e-4
 #: px: a measured shift larger than this is not trusted (beyond what the common area allows)
 _MAX_SHIFT_PX = 2 * _MARGIN_PX
+#: px: the largest view shift that can be measured (reference-frame px): the search window
+DRIFT_MAX_VIEW_SHIFT_PX = float(_MAX_SHIFT_PX)
+#: px: a measured view agrees with the fitted motion when its shift is within this of the fit's
+#: (the simulator's drifts within the measurable range: at most 0.36 px on the small prototype)
+DRIFT_AGREE_PX = 1.0
+#: the default fewest agreeing views for a drift to be trusted (``drift_min_views``): on the
+#: small prototype's ColorChecker, drifts within the measurable range agree in 7–9 of 9 views
+#: (4–5 at its edge, 8–9 px); a foreign image, a drift beyond the range or a repeating
+#: pattern's false match in 0–3
+DRIFT_MIN_VIEWS = 4
 #: the views are aligned on images averaged over ``f × f`` pixel blocks (:func:`_block_factor`):
 #: ``f`` is the largest power of two up to this ...
 _MAX_BLOCK = 2
@@ -93,6 +122,26 @@ _ECC_ITERATIONS = 100
 _ECC_EPS = 1e-5
 
 
+class DriftError(InputError):
+    """A drift the frame cannot support was to be corrected (``refine_registration``): measured
+    from too few views, by views that disagree, or beyond the measurable range. The message
+    names the views' agreement, the measured motion and the limit (:attr:`DriftEstimate.refusal`);
+    nothing is corrected and no cube is written for the frame."""
+
+
+#: what :attr:`DriftEstimate.view_status` says of a view
+VIEW_STATUSES = {
+    "reference": "the reference view (shift 0 by definition)",
+    "agrees": "measured, and within DRIFT_AGREE_PX of the fitted motion",
+    "disagrees": "measured, but farther than DRIFT_AGREE_PX from the motion the others agree on",
+    "low_correlation": "aligned with a correlation below DRIFT_MIN_CORRELATION",
+    "beyond_range": "aligned to a shift beyond DRIFT_MAX_VIEW_SHIFT_PX",
+    "not_converged": "the alignment failed (no translation maximises the correlation)",
+    "no_texture": "no texture on the view's common area (nothing to align)",
+    "no_overlap": "too little area in common with the reference view",
+}
+
+
 @dataclass
 class DriftEstimate:
     """The drift of one frame (see the module docstring).
@@ -101,15 +150,33 @@ class DriftEstimate:
         view_shift_px: ``(V, 2)`` float64, measured ``d_v = (dx, dy)`` of every view relative to
             the reference view, reference-frame px; NaN where not measured (too few common
             pixels, too little texture, correlation below :data:`DRIFT_MIN_CORRELATION`, a
-            shift beyond 16 px).
+            shift beyond :data:`DRIFT_MAX_VIEW_SHIFT_PX`).
         correlation: ``(V,)`` ECC correlation coefficient of each view's alignment (NaN: not
             measured; 1 for the reference view).
         sensor_shift_px: ``(2,)`` fitted sensor translation ``t`` (sensor px), or ``None``
-            without at least one measured view.
+            without at least one agreeing view.
         sensor_rotation_deg: fitted rotation ``θ`` about the sensor centre (degrees), or
-            ``None`` (fewer than two measured views: only ``t`` is fitted, ``θ`` is 0).
-        residual_px: ``(V,)`` ``|d_v − (u_v − u_0)|`` after the fit (NaN: not measured).
+            ``None`` (fewer than two agreeing views: only ``t`` is fitted, ``θ`` is 0).
+        residual_px: ``(V,)`` ``|d_v − (u_v − u_0)|`` after the fit to the agreeing views
+            (NaN: not measured; a disagreeing view's is above :data:`DRIFT_AGREE_PX`).
         max_view_shift_px: the largest measured ``|d_v|`` (0 without any).
+        view_status: ``(V,)`` what became of each view (a key of :data:`VIEW_STATUSES`).
+        range_px: the measurable sensor translation (px) for this bundle: the one that moves
+            the most sensitive view by :data:`DRIFT_MAX_VIEW_SHIFT_PX` (7.96 px on the small
+            prototype, whose mirrored views move 2.01× the sensor; ``inf`` without any view
+            pair).
+        predicted_view_shift_px: the largest ``|u_v − u_0|`` the fitted motion gives any view
+            with texture, measured or not (0 without a fit); above
+            :data:`DRIFT_MAX_VIEW_SHIFT_PX`, the motion is beyond the measurable range.
+        min_views: the fewest agreeing views asked for (``drift_min_views``).
+        orientations: how many different orientations the agreeing views have (views whose
+            sensitivities to the motion differ by more than a quarter: mirrored, turned; views
+            of one orientation match a repeating pattern falsely alike, so at least 2 are
+            needed).
+        refusal: why the estimate cannot be trusted (too few views agree, the views disagree,
+            beyond the measurable range), one line naming the views' agreement, the measured
+            motion and the limit; ``None`` when it can, or when no view has texture (nothing
+            measured, nothing to refuse).
     """
 
     view_shift_px: np.ndarray
@@ -118,11 +185,53 @@ class DriftEstimate:
     sensor_rotation_deg: float | None
     residual_px: np.ndarray
     max_view_shift_px: float
+    view_status: np.ndarray = dataclasses.field(default_factory=lambda: np.array([], object))
+    range_px: float = math.inf
+    predicted_view_shift_px: float = 0.0
+    min_views: int = DRIFT_MIN_VIEWS
+    orientations: int = 0
+    refusal: str | None = None
 
     @property
     def measured_views(self) -> int:
-        """Views other than the reference whose shift was measured."""
+        """Views other than the reference whose shift was measured (agreeing or not)."""
         return int(np.isfinite(self.view_shift_px[1:, 0]).sum())
+
+    @property
+    def agreeing_views(self) -> int:
+        """Measured views within :data:`DRIFT_AGREE_PX` of the fitted motion (those fitted)."""
+        return int((self.view_status == "agrees").sum())
+
+    @property
+    def textured_views(self) -> int:
+        """Views other than the reference that had texture to align (measured or not)."""
+        return int(sum(s not in ("reference", "no_texture", "no_overlap")
+                       for s in self.view_status))
+
+    @property
+    def spread_px(self) -> float:
+        """The largest residual of an agreeing view (px; 0 without any)."""
+        r = self.residual_px[self.view_status == "agrees"]
+        return float(r.max()) if r.size else 0.0
+
+    def agreement(self) -> str:
+        """One line: how many views agree and by how much, e.g. ``"9 of 9 views with texture
+        agree within 1 px (spread 0.34 px)"``."""
+        n, a = self.agreeing_views, self.textured_views
+        text = (f"{n} of {a} views with texture agree within {DRIFT_AGREE_PX:g} px"
+                + (f" (spread {self.spread_px:.2f} px, {self.orientations} orientation"
+                   f"{'s' if self.orientations != 1 else ''})" if n else ""))
+        counts: dict[str, int] = {}
+        for s in self.view_status[1:]:
+            if s not in ("agrees", "no_texture", "no_overlap"):
+                counts[str(s)] = counts.get(str(s), 0) + 1
+        if counts.get("disagrees"):
+            d = self.residual_px[self.view_status == "disagrees"]
+            counts.pop("disagrees")
+            text += f"; {len(d)} disagree by {float(d.min()):.2f}–{float(d.max()):.2f} px"
+        if counts:
+            text += "; " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in counts.items())
+        return text
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (NaN → ``None``), as stored in the cube's metadata."""
@@ -141,6 +250,17 @@ class DriftEstimate:
             "residual_px": arr(self.residual_px),
             "max_view_shift_px": round(float(self.max_view_shift_px), 3),
             "measured_views": self.measured_views,
+            "view_status": [str(v) for v in self.view_status],
+            "agreeing_views": self.agreeing_views,
+            "orientations": self.orientations,
+            "textured_views": self.textured_views,
+            "spread_px": round(self.spread_px, 3),
+            "agree_px": DRIFT_AGREE_PX,
+            "min_views": self.min_views,
+            "range_px": None if not math.isfinite(self.range_px) else round(self.range_px, 2),
+            "predicted_view_shift_px": round(float(self.predicted_view_shift_px), 3),
+            "agreement": self.agreement(),
+            "refused": self.refusal,
         }
 
 
@@ -230,6 +350,7 @@ class _Static:
     inner: list[np.ndarray]  # per view, uint8: the view's blocks shrunk by the erosion
     taper: list[np.ndarray | None]  # per view, float32 0–1 (None: nothing of the view left)
     pairs: list[_Pair]
+    range_px: float  # the measurable sensor translation (DriftEstimate.range_px)
 
 
 def _present(sens: Any) -> np.ndarray:
@@ -313,7 +434,11 @@ def _build_static(sens: Any, key: tuple) -> _Static:
     if sel is not None:
         ys, xs = ys[sel], xs[sel]
     block_of_pixel = (sel, (ys // f) * wf + xs // f)
-    return _Static(key, f, (hf, wf), block_of_pixel, inner, taper, pairs)
+    # the sensor translation that moves the most sensitive view by the largest measurable shift
+    gain = max((float(np.linalg.norm(p.jacobian[:, :, :2].mean(0), 2)) for p in pairs),
+               default=0.0)
+    range_px = _MAX_SHIFT_PX / gain if gain > 0 else math.inf
+    return _Static(key, f, (hf, wf), block_of_pixel, inner, taper, pairs, range_px)
 
 
 def _view_images(sens: Any, image: Tensor, st: _Static) -> np.ndarray:
@@ -355,18 +480,21 @@ def _features(img: np.ndarray, inner: np.ndarray, taper: np.ndarray | None) -> n
     return mag * taper
 
 
-def _align(ref: np.ndarray, img: np.ndarray, pair: _Pair, f: int) -> tuple[np.ndarray, float]:
+def _align(ref: np.ndarray, img: np.ndarray, pair: _Pair,
+           f: int) -> tuple[np.ndarray, float, str]:
     """Shift ``d`` (px) with ``img(x) ≈ ref(x + d)`` on the pair's common area, from ``f × f``
-    block images, and its ECC correlation (``(nan, nan), nan`` when not measurable)."""
+    block images, its ECC correlation and the view's status (a key of :data:`VIEW_STATUSES`;
+    ``d`` is ``(nan, nan)`` unless ``"agrees"``, which :func:`estimate_drift` may revise)."""
     import cv2  # lazy: OpenCV only when a frame's drift is measured, not at import
 
+    nan2 = np.full(2, np.nan)
     y0, y1, x0, x1 = pair.box
     a = np.ascontiguousarray(ref[y0:y1, x0:x1])
     b = np.ascontiguousarray(img[y0:y1, x0:x1])
     mask = pair.mask
     ma, mb = cv2.mean(a, mask)[0], cv2.mean(b, mask)[0]
     if min(ma, mb) < _MIN_TEXTURE:
-        return np.full(2, np.nan), float("nan")  # no texture (a flat field)
+        return nan2, float("nan"), "no_texture"  # a flat field
     on = mask.astype(np.float32)
     (sx, sy), _ = cv2.phaseCorrelate((a - np.float32(ma)) * on, (b - np.float32(mb)) * on,
                                      pair.window)
@@ -379,21 +507,42 @@ def _align(ref: np.ndarray, img: np.ndarray, pair: _Pair, f: int) -> tuple[np.nd
     try:
         rho, warp = cv2.findTransformECC(a, b, warp, cv2.MOTION_TRANSLATION, crit, mask, 3)
     except cv2.error:
-        return np.full(2, np.nan), float("nan")
+        return nan2, float("nan"), "not_converged"
+    if not (np.isfinite(rho) and rho >= DRIFT_MIN_CORRELATION):
+        return nan2, float(rho), "low_correlation"
     # b(x + w) ≈ a(x) ⇔ img(x) ≈ ref(x − w): d = −w (blocks → px)
     d = -warp[:, 2].astype(np.float64) * f
     if not np.hypot(*d) <= _MAX_SHIFT_PX:
-        return np.full(2, np.nan), float(rho)
-    return d, float(rho)
+        return nan2, float(rho), "beyond_range"
+    return d, float(rho), "agrees"
 
 
-def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
+def _fit(K: list[np.ndarray], y: list[np.ndarray], w: list[float]) -> np.ndarray:
+    """``(t_x, t_y, θ°)``: the weighted least-squares fit of the views' shifts ``y`` (each
+    ``(2,)``) to their sensitivities ``K`` (each ``(2, 3)``), weights ``w``; ``θ`` is 0 (not
+    fitted) from one view."""
+    Km, ym = np.concatenate(K, 0), np.concatenate(y, 0)
+    sw = np.sqrt(np.repeat(np.asarray(w, np.float64), 2))
+    if len(K) >= 2:
+        return np.linalg.lstsq(Km * sw[:, None], ym * sw, rcond=None)[0]
+    return np.append(np.linalg.lstsq(Km[:, :2] * sw[:, None], ym * sw, rcond=None)[0], 0.0)
+
+
+def estimate_drift(sens: Any, image: Tensor, min_views: int = DRIFT_MIN_VIEWS) -> DriftEstimate:
     """Measure each view's shift against the reference view and fit a sensor motion.
+
+    The motion is fitted to the views that agree: the view farthest from the fit is left out
+    (``"disagrees"``) and the rest fitted again, while one is farther than
+    :data:`DRIFT_AGREE_PX`. The estimate is refused (:attr:`DriftEstimate.refusal`) when views
+    had texture to align and fewer than ``min_views`` agree, when no more agree than disagree,
+    or when the fitted motion moves a view with texture beyond the measurable
+    :data:`DRIFT_MAX_VIEW_SHIFT_PX`.
 
     Args:
         sens: the bundle's :class:`~hsi_torch.recon.sensing.BundleSensing` (its sampling grid
             is what the frame is warped with: pass a corrected one to measure what is left).
         image: ``(3, H, W)`` linear RGB of one frame (sensor size, any device and dtype).
+        min_views: the fewest agreeing views for a trusted estimate (``drift_min_views``).
 
     Returns:
         :class:`DriftEstimate`.
@@ -407,40 +556,85 @@ def estimate_drift(sens: Any, image: Tensor) -> DriftEstimate:
     ref = _features(imgs[0], st.inner[0], st.taper[0])
     shifts = np.full((V, 2), np.nan)
     corr = np.full(V, np.nan)
-    shifts[0], corr[0] = 0.0, 1.0
-    rows, rhs, wts, used = [], [], [], []
+    status = np.full(V, "no_overlap", dtype=object)
+    shifts[0], corr[0], status[0] = 0.0, 1.0, "reference"
+    rows: dict[int, np.ndarray] = {}  # view → (2, 3) its sensitivity, weighted by the texture
     for pair in st.pairs:
         v = pair.view
-        d, rho = _align(ref, _features(imgs[v], st.inner[v], st.taper[v]), pair, f)
-        if not (np.isfinite(rho) and rho >= DRIFT_MIN_CORRELATION and np.all(np.isfinite(d))):
-            corr[v] = rho
-            continue
-        shifts[v], corr[v] = d, rho
-        ys, xs = pair.points
-        w = ref[ys, xs].astype(np.float64) + 1e-6
-        rows.append(np.einsum("n,nij->ij", w, pair.jacobian) / w.sum())
-        rhs.append(d)
-        wts.append(rho)
-        used.append(v)
+        shifts[v], corr[v], status[v] = _align(
+            ref, _features(imgs[v], st.inner[v], st.taper[v]), pair, f)
+        if status[v] != "no_texture":
+            ys, xs = pair.points
+            w = ref[ys, xs].astype(np.float64) + 1e-6
+            rows[v] = np.einsum("n,nij->ij", w, pair.jacobian) / w.sum()
+    used = [v for v in range(1, V) if status[v] == "agrees"]
+    p: np.ndarray | None = None
+    while used:  # fit; leave out the view farthest from the fit while one is beyond the limit
+        p = _fit([rows[v] for v in used], [shifts[v] for v in used], [corr[v] for v in used])
+        far = {v: float(np.hypot(*(shifts[v] - rows[v] @ p))) for v in used}
+        worst = max(far, key=far.__getitem__)
+        if far[worst] <= DRIFT_AGREE_PX or len(used) == 1:
+            break
+        status[worst] = "disagrees"
+        used.remove(worst)
     resid = np.full(V, np.nan)
     t: np.ndarray | None = None
     theta: float | None = None
-    if used:
-        K = np.concatenate(rows, 0)  # (2n, 3)
-        y = np.concatenate(rhs, 0)
-        sw = np.sqrt(np.repeat(np.asarray(wts), 2))
-        if len(used) >= 2:
-            p = np.linalg.lstsq(K * sw[:, None], y * sw, rcond=None)[0]
-        else:
-            p = np.append(np.linalg.lstsq(K[:, :2] * sw[:, None], y * sw, rcond=None)[0], 0.0)
+    predicted = 0.0
+    if p is not None:
         t, theta = p[:2], float(p[2]) if len(used) >= 2 else None
-        pred = (K @ p).reshape(-1, 2)
-        for k, v in enumerate(used):
-            resid[v] = float(np.hypot(*(shifts[v] - pred[k])))
+        for v in range(1, V):
+            if np.isfinite(shifts[v, 0]):
+                resid[v] = float(np.hypot(*(shifts[v] - rows[v] @ p)))
         resid[0] = 0.0
+        predicted = max(float(np.hypot(*(k @ p))) for k in rows.values())
     mags = np.hypot(shifts[:, 0], shifts[:, 1])
     mx = float(np.nanmax(mags)) if np.isfinite(mags[1:]).any() else 0.0
-    return DriftEstimate(shifts, corr, t, theta, resid, mx)
+    est = DriftEstimate(shifts, corr, t, theta, resid, mx, status, st.range_px, predicted,
+                        int(min_views), _orientations([rows[v] for v in used]))
+    est.refusal = _refusal(est)
+    return est
+
+
+def _orientations(rows: list[np.ndarray]) -> int:
+    """How many groups of alike sensitivities ``rows`` (each ``(2, 3)``) fall into: two views
+    are alike when their translation columns differ by less than a quarter of the larger."""
+    groups: list[np.ndarray] = []
+    for k in rows:
+        j = k[:, :2]
+        if not any(np.linalg.norm(j - g) < 0.25 * max(np.linalg.norm(j), np.linalg.norm(g))
+                   for g in groups):
+            groups.append(j)
+    return len(groups)
+
+
+def _refusal(est: DriftEstimate) -> str | None:
+    """Why ``est`` cannot be trusted (:attr:`DriftEstimate.refusal`), or ``None``."""
+    textured = est.textured_views
+    if textured == 0:
+        return None  # nothing to align (a flat field): nothing measured, nothing to refuse
+    n = est.agreeing_views
+    disagree = int((est.view_status == "disagrees").sum())
+    why = []
+    if n < est.min_views:
+        why.append(f"fewer than drift_min_views={est.min_views}")
+    elif n <= disagree:
+        why.append("no more views agree than disagree")
+    elif est.orientations < 2:
+        why.append("the views that agree all see the scene in one orientation (a repeating "
+                   "pattern's false match looks alike in them)")
+    if est.predicted_view_shift_px > DRIFT_MAX_VIEW_SHIFT_PX:
+        why.append(f"the fitted motion would move a view by {est.predicted_view_shift_px:.1f} px,"
+                   f" beyond the {DRIFT_MAX_VIEW_SHIFT_PX:g} px search window")
+    if not why:
+        return None
+    fitted = "" if est.sensor_shift_px is None else (
+        f"; fitted shift [{est.sensor_shift_px[0]:.2f}, {est.sensor_shift_px[1]:.2f}] px"
+        + ("" if est.sensor_rotation_deg is None
+           else f", rotation {est.sensor_rotation_deg:.3f}°"))
+    return (f"drift not measurable: {est.agreement()}{fitted}: {'; '.join(why)}; the measurable "
+            f"range is about ±{est.range_px:.1f} px of sensor motion (recalibrate if the sensor "
+            "moved more)")
 
 
 def _sample_box(sens: Any) -> Tensor | None:

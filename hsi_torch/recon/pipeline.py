@@ -56,7 +56,7 @@ from hsi_torch.io.sensor_corrections import subtract_veil
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon import _compiled as _frame_compiled
 from hsi_torch.recon.checks import BundleRadiometry, exposure_info, prepare_capture
-from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
+from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.nnls import cpu_threads, solve_nnls
 from hsi_torch.recon.sensing import (
     BundleSensing,
@@ -751,7 +751,9 @@ class Reconstructor:
         drift_check: measure every frame's sensor drift against the bundle's registration
             (:func:`hsi_torch.recon.drift.estimate_drift`): ``stats["drift"]``.
         refine_registration: correct the measured drift before solving
-            (:func:`hsi_torch.recon.drift.corrected_sensing`); implies ``drift_check``.
+            (:func:`hsi_torch.recon.drift.corrected_sensing`); implies ``drift_check``. A drift
+            the frame cannot support (too few views agree, beyond the measurable range) raises
+            :class:`~hsi_torch.recon.drift.DriftError` (``drift_min_views`` in ``settings``).
         settings: all of the above at once, a
             :class:`~hsi_torch.recon.settings.ReconstructSettings` (what a run passes; e.g.
             ``ReconstructConfig(...).settings()``); the keywords are then left at their defaults.
@@ -902,8 +904,10 @@ class Reconstructor:
         drift = None
         if self.drift_check:
             t1 = time.perf_counter()
-            drift = estimate_drift(sens, img)
+            drift = estimate_drift(sens, img, self.settings.registration.min_views)
             motion_px = drift_motion_px(sens, drift)
+            if self.refine_registration and drift.refusal is not None:
+                raise DriftError(f"{source}: refine_registration: {drift.refusal}")
             if self.refine_registration and drift.sensor_shift_px is not None:
                 sens = corrected_sensing(sens, drift.sensor_shift_px,
                                          drift.sensor_rotation_deg or 0.0)

@@ -333,7 +333,7 @@ class UncertaintySettings:
 @dataclass(frozen=True)
 class RegistrationSettings:
     """The sensor drift measured from each frame (:mod:`hsi_torch.recon.drift`). Flat keys:
-    ``drift_check``, ``drift_warn_px``, ``refine_registration``.
+    ``drift_check``, ``drift_warn_px``, ``refine_registration``, ``drift_min_views``.
 
     Attributes:
         check: measure every frame's drift against the bundle's registration and record it in
@@ -341,11 +341,16 @@ class RegistrationSettings:
         warn_px: warn when the fitted sensor motion moves a view's pixel by more than this
             (px, ``> 0``; ``None``: never).
         refine: correct the measured sensor motion before solving (implies the measurement).
+        min_views: the fewest views (besides the reference) that must agree on the motion for
+            it to be trusted (an integer ``>= 2``); fewer, and ``refine`` refuses the frame
+            (:class:`hsi_torch.recon.drift.DriftError`) and the check warns that the drift
+            could not be measured.
     """
 
     check: bool = True
     warn_px: float | None = 0.5
     refine: bool = False
+    min_views: int = 4
 
     def __post_init__(self) -> None:
         for key, v in (("drift_check", self.check), ("refine_registration", self.refine)):
@@ -356,6 +361,7 @@ class RegistrationSettings:
             if not lim > 0:
                 raise _bad("drift_warn_px", f"must be > 0 (px) or null, got {self.warn_px}")
             object.__setattr__(self, "warn_px", lim)
+        _count("drift_min_views", self.min_views, 2, allow_none=False)
 
 
 #: flat key → (group, field) of :class:`ReconstructSettings`: every field of
@@ -377,6 +383,7 @@ FLAT_KEYS: dict[str, tuple[str, str]] = {
     "noise_quantization_dn": ("uncertainty", "quantization_dn"),
     "drift_check": ("registration", "check"), "drift_warn_px": ("registration", "warn_px"),
     "refine_registration": ("registration", "refine"),
+    "drift_min_views": ("registration", "min_views"),
 }  # fmt: skip
 
 
@@ -466,8 +473,9 @@ class ReconstructSettings:
         if not self.output.preview:
             note("preview_size", "preview is false (no preview image is written)")
         if not (self.registration.check or self.registration.refine):
-            note("drift_warn_px", "the drift is not measured (drift_check and "
-                                  "refine_registration are false)")
+            for key in ("drift_warn_px", "drift_min_views"):
+                note(key, "the drift is not measured (drift_check and refine_registration "
+                          "are false)")
         return out
 
     def key(self) -> str:

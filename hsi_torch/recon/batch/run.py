@@ -485,8 +485,8 @@ def frame_warnings(
     ``fit_residual_warning`` (the bundle probably belongs to another geometry, or the
     black level / exposure is wrong), pixels whose solve did not converge, and the capture
     checks (:func:`hsi_torch.recon.checks.check_warnings`: a pedestal outside the views, an
-    unknown exposure ratio, another camera), and a sensor drift above ``drift_warn_px``
-    (``stats["drift"]``, :mod:`hsi_torch.recon.drift`)."""
+    unknown exposure ratio, another camera), and a sensor drift above ``drift_warn_px`` or one
+    that could not be measured (``stats["drift"]``, :mod:`hsi_torch.recon.drift`)."""
     out: list[str] = check_warnings(stats)
     fit = stats.get("fit_residual")
     lim = as_settings(cfg).output.fit_residual_warning
@@ -498,13 +498,23 @@ def frame_warnings(
         )
     drift = stats.get("drift")
     warn_px = as_settings(cfg).registration.warn_px
-    if isinstance(drift, dict) and warn_px is not None:
+    if isinstance(drift, dict) and isinstance(drift.get("refused"), str):
+        # not measurable (too few views agree, beyond the range): no motion is claimed
+        out.append(f"{drift['refused']}; not corrected, and refine_registration would refuse "
+                   "the frame")
+    elif isinstance(drift, dict) and drift.get("textured_views") == 0 \
+            and as_settings(cfg).registration.refine:
+        out.append("refine_registration: nothing corrected, no view has texture to measure the "
+                   "drift from (a flat field)")
+    elif isinstance(drift, dict) and warn_px is not None:
         moved = drift.get("sensor_motion_px")
         if isinstance(moved, (int, float)) and moved > warn_px:
             t, rot = drift.get("sensor_shift_px"), drift.get("sensor_rotation_deg")
+            agree = drift.get("agreement")
             what = (f"the sensor moved since calibration: up to {moved:.2f} px > "
                     f"drift_warn_px={warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
-                    f"{drift.get('measured_views')} views aligned to the reference view)")
+                    f"{drift.get('measured_views')} views aligned to the reference view"
+                    + (f"; {agree}" if isinstance(agree, str) else "") + ")")
             out.append(what + ("; corrected (refine_registration)" if drift.get("corrected")
                                else "; the views are misaligned and the spectra are biased: "
                                     "--set refine_registration=true corrects it, or recalibrate"))
