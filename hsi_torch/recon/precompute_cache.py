@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from hsi_torch.io.atomic import atomic_write, atomic_write_text, json_default
+from hsi_torch.io.atomic import atomic_write, atomic_write_text, human_size, json_default
 
 __all__ = [
     "FORMAT_VERSION",
@@ -614,8 +614,8 @@ def save_entry(
             free = shutil.disk_usage(p.parent).free
             if free - nbytes < MIN_FREE_BYTES:
                 CACHE_STATS["write_skipped"] += 1
-                _warn(f"precomputation cache: {free / 2**30:.1f} GiB free in {p.parent}, the "
-                      f"entry needs {nbytes / 2**30:.1f} GiB; not written")
+                _warn(f"precomputation cache: {human_size(free)} free in {p.parent}, the "
+                      f"entry needs {human_size(nbytes)}; not written")
                 return False
             with atomic_write(p, "wb", fsync=False) as f:  # checked (CRC-32) when read
                 _write(f, header, flat)
