@@ -57,10 +57,13 @@ _OS_FUNCS = {"replace", "rename", "renames", "remove", "unlink", "rmdir", "remov
 _SHUTIL = {"move", "copy", "copy2", "copyfile", "copytree", "rmtree", "copyfileobj"}
 _NUMPY = {"save", "savez", "savez_compressed", "savetxt"}
 _METHODS = {"write_text", "write_bytes", "savefig", "imwrite", "imsave", "tofile", "touch",
-            "symlink_to", "hardlink_to", "unlink", "rmdir", "rename"}  # fmt: skip
+            "symlink_to", "hardlink_to", "unlink", "rmdir", "rename", "to_netcdf",
+            "to_zarr"}  # fmt: skip
 _WRITE_FLAGS = ("O_WRONLY", "O_RDWR", "O_CREAT", "O_TRUNC", "O_APPEND")
-#: Context managers of the layer whose ``as`` name is a safe target (a staged temporary file).
-_LAYER_CMS = {"atomic_write"}
+#: Context managers whose ``as`` name is a safe target: the layer's staged temporary file, and
+#: the cube writer's staged folder (``io/cube.py``, renamed into place with the layer's
+#: ``replace_file``).
+_LAYER_CMS = {"atomic_write", "_atomic_dir"}
 
 
 def _dotted(node: ast.AST) -> str:
@@ -101,6 +104,8 @@ def _file_writes(call: ast.Call, safe: set[str]) -> str | None:
     # the file written: the first argument (the second of shutil.copyfileobj)
     target = call.args[1 if attr == "copyfileobj" else 0] if len(call.args) > 1 or (
         call.args and attr != "copyfileobj") else None
+    if isinstance(target, ast.Attribute) and target.attr == "name":  # f.name: the staged file
+        target = target.value
     if isinstance(target, ast.Name) and target.id in safe:
         return None
     if full in ("open", "io.open") or (attr == "open" and full != "os.open"):
@@ -162,17 +167,18 @@ def test_the_write_scanner_finds_each_kind_of_write(tmp_path):
         os.open(p, os.O_RDWR | os.O_CREAT); np.save(p, a); np.savez(p, a=a)
         tifffile.imwrite(p, a); fig.savefig(p); shutil.move(a, b); shutil.copy(a, b)
         os.replace(a, b); os.remove(p); os.unlink(p); shutil.rmtree(d); Path(p).unlink()
-        Path(a).replace(b)
+        Path(a).replace(b); da.to_netcdf(p)
         buf = io.BytesIO(); fig.savefig(buf); np.save(buf, a)
         with atomic_write(p) as f:
             np.save(f, a)
             shutil.copyfileobj(src, f)
+            da.to_netcdf(f.name)
         open(p); open(p, "rb"); os.open(p, os.O_RDONLY); "a".replace("a", "b")
     """)
     tree = ast.parse(src)
     safe = _safe_targets(tree)
     hits = [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Call) and _file_writes(n, safe)]
-    assert len(hits) == 18, hits
+    assert len(hits) == 19, hits
     assert max(hits) == 9  # nothing from the BytesIO and atomic_write lines on
 
 

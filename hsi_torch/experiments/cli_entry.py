@@ -182,7 +182,8 @@ def run_demo(args: argparse.Namespace) -> int:
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
     :func:`hsi_torch.experiments.demo_full.demo_full`. The folder is marked incomplete
     (``INCOMPLETE_RUN.json``) while the demo runs, and ``demo_run.json`` written when it
-    completes, as for an experiment."""
+    completes, as for an experiment; the folder's run lock is held meanwhile (a second demo or
+    experiment into it is refused, naming this one's process)."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info

@@ -6,7 +6,8 @@ interrupted rerun would leave a mix of new and old files with nothing saying so.
 :func:`start_out_run` writes :data:`INCOMPLETE_FILE` before the run starts, listing the files
 already there with their size, modification time and inode, and :func:`finish_out_run` writes
 the run's record (:data:`RUN_RECORD`, :data:`DEMO_RUN_RECORD`: the files it wrote and those left
-from an earlier run) and then removes :data:`INCOMPLETE_FILE`.
+from an earlier run) and then removes :data:`INCOMPLETE_FILE`. While a run writes there it holds
+:data:`RUN_LOCK` (:func:`out_run_lock`): a second run into the same folder is refused.
 """
 
 from __future__ import annotations
