@@ -367,6 +367,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=float, metavar="NM", help="show the band nearest NM nm")
     p.add_argument("--screenshot", type=Path, metavar="PNG",
                    help="write the window (viewer + spectra) to PNG and exit")
+    p.add_argument("--overwrite", action="store_true",
+                   help="let --screenshot replace an existing file that is not an earlier "
+                   "screenshot (never a file of the viewed cubes)")
     _add_global(p, argparse.SUPPRESS)
 
     p = command("cache", "show or clear the precomputation cache (where, entries, size)")
@@ -523,9 +526,11 @@ def _remove_if_empty(folder: Path) -> None:
     """Remove ``folder`` and its sub-folders if no file is in any of them."""
     if not folder.is_dir() or any(p.is_file() or p.is_symlink() for p in folder.rglob("*")):
         return
+    from hsi_torch.io.atomic import remove_empty_folder  # lazy: atomic imports numpy
+
     for d in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
-        d.rmdir()
-    folder.rmdir()
+        remove_empty_folder(d)
+    remove_empty_folder(folder)
 
 
 def _dispatch(

@@ -121,7 +121,7 @@ def _check_readable(out: Path) -> None:
         rec = json.loads(m.read_text())
         if rec["status"] == "done":
             for q in rec["outputs"]:
-                assert Path(q).is_file(), (m, q)
+                assert (out / q).is_file(), (m, q)  # relative to --out
 
 
 @pytest.mark.parametrize("seed", SEEDS)

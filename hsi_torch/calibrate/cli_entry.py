@@ -16,8 +16,11 @@ that several bundles can share a folder without overwriting each other's record.
 The four files are replaced together (:func:`hsi_torch.io.atomic.replace_then_commit`): each is
 written to a temporary file beside its destination, and only when all are complete are they moved
 into place. On any error (a folder in the way, a full disk) the previous bundle, report, figure
-and configuration are left exactly as they were. A line on stderr says when an existing bundle is
-replaced. No output may be one of the calibration captures (the same file, whatever its name).
+and configuration are left exactly as they were; a process killed between two of the moves leaves
+the commit's journal (``.hsi_torch_commit-*.json``), and the next run into the folder puts the
+earlier files back first, so a new figure never stays beside the old bundle unmarked. A line on
+stderr says when an existing bundle is replaced. No output may be one of the calibration captures
+(the same file, whatever its name).
 
 ``--oracle``: for a capture set written by ``hsi-torch simulate``, the bundle is built from its
 ground truth (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) instead of calibrated; only
@@ -99,9 +102,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     existed = bundle_path.is_file()
     with replace_then_commit(inputs) as tx:  # all four files or none; the old ones kept till then
         tx.write(fig, lambda t: plot_calibration(bundle, t, report=report))
-        tx.write(bundle_path, bundle.save)
         tx.write(report_path, lambda t: atomic_write_json(t, report.to_dict()))
         tx.write(config_path, lambda t: write_resolved_config(cfg, t.parent, name=t.name))
+        # the bundle is moved last; a kill between the moves leaves the commit's journal, and
+        # the next run into the folder puts the earlier files back
+        tx.write(bundle_path, bundle.save)
     if existed:
         _say_replaced(bundle_path)
     info(str(report))
@@ -172,7 +177,7 @@ def _write_oracle(captures: Path, bundle_path: Path, inputs: Any = ()) -> int:
     existed = bundle_path.is_file()
     with replace_then_commit(inputs) as tx:  # both files or none
         tx.write(fig, lambda t: plot_calibration(bundle, t))
-        tx.write(bundle_path, bundle.save)
+        tx.write(bundle_path, bundle.save)  # moved last (see above)
     if existed:
         _say_replaced(bundle_path)
     info(bundle.summary())

@@ -82,20 +82,22 @@ def run_experiment(args: argparse.Namespace) -> int:
     from hsi_torch.console import info
     from hsi_torch.io.atomic import atomic_write_text
     from hsi_torch.io.paths import ensure_out_dir
-    from hsi_torch.io.run_record import RUN_RECORD, finish_out_run, start_out_run
+    from hsi_torch.io.run_record import RUN_RECORD, finish_out_run, out_run_lock, start_out_run
 
     schema, run = resolve_experiment(args.name)
     cfg = load_args_config(args, schema, default=args.name)
     out = Path(args.out)
     check_experiment_out(out, args.name)
     out = ensure_out_dir(out)
-    atomic_write_text(out / EXPERIMENT_MARKER, f"{args.name}\n")
-    run_state = start_out_run(out, f"hsi-torch experiment {args.name}", RUN_RECORD,
-                              experiment=args.name)
-    t0 = time.perf_counter()
-    run(cfg, out, device=getattr(args, "device", None))
-    write_resolved_config(cfg, out)
-    _record, left = finish_out_run(out, run_state)
+    command = f"hsi-torch experiment {args.name}"
+    with out_run_lock(out, command):  # one run per folder; checked again under the lock
+        check_experiment_out(out, args.name)
+        atomic_write_text(out / EXPERIMENT_MARKER, f"{args.name}\n")
+        run_state = start_out_run(out, command, RUN_RECORD, experiment=args.name)
+        t0 = time.perf_counter()
+        run(cfg, out, device=getattr(args, "device", None))
+        write_resolved_config(cfg, out)
+        _record, left = finish_out_run(out, run_state)
     files = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     info(f"experiment '{args.name}' finished in {time.perf_counter() - t0:.1f} s; "
          f"{len(files)} files in {out}: {', '.join(files)}{left}")  # fmt: skip
@@ -120,14 +122,16 @@ def check_experiment_out(out: Path, name: str) -> None:
         InputError: ``out`` is a folder with files and no earlier run of ``NAME`` (names a few).
     """
     from hsi_torch.errors import InputError
+    from hsi_torch.io.atomic import read_own_bytes
     from hsi_torch.io.paths import out_entries, refuse_not_empty
+    from hsi_torch.io.run_record import RUN_LOCK
 
-    names = out_entries(out)
+    names = [n for n in out_entries(out) if n != RUN_LOCK]
     if not names:
         return
     if EXPERIMENT_MARKER in names:
-        try:
-            owner = (out / EXPERIMENT_MARKER).read_text(encoding="utf-8").strip()
+        try:  # bounded, regular files only: a FIFO planted there cannot hang the check
+            owner = read_own_bytes(out / EXPERIMENT_MARKER, 4096).decode("utf-8").strip()
         except (OSError, ValueError):
             owner = ""
         if owner == name:
@@ -157,17 +161,15 @@ def check_demo_out(out: Path) -> None:
     Raises:
         InputError: ``out`` is a folder with files and no earlier demo run (names a few).
     """
-    import json
-
+    from hsi_torch.io.atomic import read_own_json
     from hsi_torch.io.paths import out_entries, refuse_not_empty
+    from hsi_torch.io.run_record import RUN_LOCK
 
-    names = out_entries(out)
+    names = [n for n in out_entries(out) if n != RUN_LOCK]
     if not names or DEMO_MARKER in names:
         return
-    try:
-        summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        summary = None
+    # bounded, regular files only: a FIFO named summary.json cannot hang the check
+    summary = read_own_json(out / "summary.json", 16 << 20, follow=True)
     if isinstance(summary, dict) and "scenes" in summary and ("files" in summary
                                                               or "stages" in summary):
         return  # a demo's summary (quick or --full), written before the marker existed
@@ -180,13 +182,19 @@ def run_demo(args: argparse.Namespace) -> int:
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
     :func:`hsi_torch.experiments.demo_full.demo_full`. The folder is marked incomplete
     (``INCOMPLETE_RUN.json``) while the demo runs, and ``demo_run.json`` written when it
-    completes, as for an experiment."""
+    completes, as for an experiment; the folder's run lock is held meanwhile (a second demo or
+    experiment into it is refused, naming this one's process)."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
     from hsi_torch.experiments.demo import DemoConfig, demo
     from hsi_torch.io.atomic import atomic_write_text
-    from hsi_torch.io.run_record import DEMO_RUN_RECORD, finish_out_run, start_out_run
+    from hsi_torch.io.run_record import (
+        DEMO_RUN_RECORD,
+        finish_out_run,
+        out_run_lock,
+        start_out_run,
+    )
 
     cfg = load_args_config(args, DemoConfig)
     if getattr(args, "device", None):
@@ -197,18 +205,20 @@ def run_demo(args: argparse.Namespace) -> int:
     full, quick = bool(getattr(args, "full", False)), bool(getattr(args, "quick", False))
     if full and quick:
         raise ValueError("--full and --quick exclude each other")
-    # atomically: a symlink at the marker's name is replaced, never written through
-    atomic_write_text(out / DEMO_MARKER, "a folder written by hsi-torch demo\n")
     command = "hsi-torch demo" + (" --full" if full else " --quick" if quick else "")
-    run_state = start_out_run(out, command, DEMO_RUN_RECORD)
-    if full:
-        from hsi_torch.experiments.demo_full import demo_full
+    with out_run_lock(out, command):  # one run per folder; checked again under the lock
+        check_demo_out(out)
+        # atomically: a symlink at the marker's name is replaced, never written through
+        atomic_write_text(out / DEMO_MARKER, "a folder written by hsi-torch demo\n")
+        run_state = start_out_run(out, command, DEMO_RUN_RECORD)
+        if full:
+            from hsi_torch.experiments.demo_full import demo_full
 
-        demo_full(out, cfg, log=info)
-    else:
-        demo(out, cfg, quick=quick, log=info)
-    write_resolved_config(cfg, out)
-    _record, left = finish_out_run(out, run_state)
+            demo_full(out, cfg, log=info)
+        else:
+            demo(out, cfg, quick=quick, log=info)
+        write_resolved_config(cfg, out)
+        _record, left = finish_out_run(out, run_state)
     if left:
         info(f"demo finished in {out}{left}")
     return 0

@@ -47,7 +47,6 @@ import csv
 import gc
 import io
 import json
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,7 +65,13 @@ from hsi_torch.experiments.metrics import (
     interior_mask,
     spectral_angle_deg_np,
 )
-from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
+from hsi_torch.io.atomic import (
+    atomic_write_json,
+    atomic_write_text,
+    remove_file,
+    remove_tree,
+    replace_file,
+)
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth_meta
 from hsi_torch.metrics import psnr_from_mse
@@ -252,9 +257,9 @@ def _complete(d: Path, make) -> None:
     tmp = d.with_name(d.name + ".partial")
     for old in (tmp, d):
         if old.exists():
-            shutil.rmtree(old)
+            remove_tree(old)
     make(tmp)
-    tmp.rename(d)
+    replace_file(tmp, d)
 
 
 def _captures(cfg: MismatchConfig, out: Path, name: str, ideal_dir: Path) -> Path:
@@ -297,7 +302,7 @@ def _white_captures(cfg: MismatchConfig, out: Path, name: str, caps: Path) -> Pa
         # bundles calibrated from it
         info(f"  {name}: {d} was shot with {got}, not {want}: re-shooting it")
         for stale in d.parent.glob("calib_white*.npz"):
-            stale.unlink()
+            remove_file(stale, missing_ok=False)
     t0 = time.perf_counter()
     _complete(d, lambda tmp: rerender_after_calibration(
         sim, caps, tmp, whites=True, scenes=False, device=cfg.device, log=lambda *a: None))

@@ -1,8 +1,25 @@
-"""Atomic file writes: a temporary file in the destination folder, then ``os.replace``.
+"""The file-safety layer: every output, lock, marker, record and staging file goes through it.
 
-A reader (or a resumed batch run) therefore sees either the complete old file, the complete new
-file, or no file — never a partial one. On any error inside the ``with`` block the temporary file
-is removed and the destination is left untouched.
+- **Outputs** are written create-new-then-rename (:func:`atomic_write` and its helpers, the
+  :class:`ReplaceTransaction` of a step's outputs): a temporary file in the destination folder,
+  created exclusively, then ``os.replace``. A reader (or a resumed batch run) sees the complete
+  old file, the complete new file, or no file — never a partial one; a file already at the name
+  (a symlink, a hard link to the user's data) is replaced, never written through. On any error
+  the temporary file is removed and the destination is left untouched.
+- **Locks and markers written in place** (:func:`open_own_file`, :func:`hold_lock`) are created
+  with ``O_CREAT | O_EXCL | O_NOFOLLOW``; one already there is opened ``O_NOFOLLOW |
+  O_NONBLOCK`` and used only when it is a regular file with one link, owned by this user — a
+  file this process did not just create is never truncated.
+- **Our own small files read back** (done-markers, run records, folder markers) are read by
+  :func:`read_own_bytes` / :func:`read_own_json`: regular files only (a FIFO or a device is
+  refused without blocking: opened ``O_NONBLOCK``, then ``fstat``), at most a bounded size.
+- **Paths read from a folder's own files** are data: :func:`confined` resolves a path relative
+  to a root and refuses an absolute path, ``..`` or a symlinked component, and
+  :func:`remove_confined` deletes only a regular file so confined. :func:`folder_identity` tells
+  a copied folder from the original.
+
+``tests/test_file_safety.py`` walks the package's syntax trees and fails on a file write,
+rename or deletion outside this layer (a short, justified allow-list).
 
 Also re-exports :class:`~hsi_torch.errors.FileFormatError`, the error raised by
 :mod:`hsi_torch.io` for unreadable, truncated or inconsistent files (a ``ValueError`` whose message
@@ -12,12 +29,14 @@ names the file).
 from __future__ import annotations
 
 import contextlib
+import functools
 import glob
 import itertools
 import json
 import os
 import re
 import shutil
+import stat
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
@@ -43,7 +62,43 @@ __all__ = [
     "clean_stale_temp_files_of",
     "lock_or_refuse",
     "mark_lock_holder",
+    "open_own_file",
+    "hold_lock",
+    "read_own_bytes",
+    "read_own_json",
+    "read_file_head",
+    "confined",
+    "relative_to_root",
+    "remove_confined",
+    "remove_file",
+    "remove_tree",
+    "remove_empty_folder",
+    "link_or_copy",
+    "replace_file",
+    "folder_identity",
+    "human_size",
+    "MAX_OWN_FILE",
 ]
+
+#: Largest of our own markers and records that :func:`read_own_bytes` reads (bytes).
+MAX_OWN_FILE = 16 << 20
+
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+
+
+@functools.cache
+def _umask() -> int:
+    """The process's umask (read once: reading it means setting it, which threads would race)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _nofollow_opener(path: str, flags: int) -> int:
+    """``open(..., opener=)`` that never follows a symlink at the last component."""
+    return os.open(path, flags | _NOFOLLOW | _CLOEXEC, 0o600)
 
 #: Name of a temporary file of :func:`atomic_write`: ``.<name>.<pid>-<random>.tmp``.
 TEMP_FILE_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.tmp$")
@@ -86,24 +141,41 @@ def atomic_write(
     try:
         kwargs: dict[str, Any] = {} if mode == "wb" else {"encoding": "utf-8", "newline": ""}
         os.close(fd)
-        with open(tmp, mode, **kwargs) as f:  # opened by name so that f.name is a path
+        # opened by name so that f.name is a path; never through a link planted at that name
+        with open(tmp, mode, opener=_nofollow_opener, **kwargs) as f:
             yield f
             f.flush()
             if fsync:
                 os.fsync(f.fileno())
         # mkstemp creates 0600 files; give the result ordinary permissions (respecting umask).
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, dest)
     except OSError as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        raise named_os_error(exc, dest) from None
+        # an error naming the temporary file (a full disk at the rename) names the destination
+        raise named_os_error(exc, dest, rename=_names_temp(exc, tmp)) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _names_temp(exc: OSError, tmp: str | os.PathLike) -> bool:
+    """Whether ``exc`` names the temporary file ``tmp`` (or no file at all)."""
+    names = {os.fspath(x) for x in (exc.filename, getattr(exc, "filename2", None)) if x}
+    return not names or os.fspath(tmp) in names or any(TEMP_FILE_RE.match(Path(n).name)
+                                                      for n in names)
+
+
+def human_size(nbytes: float) -> str:
+    """A size for a message: ``"12.3 GiB"``, ``"512.0 MiB"``, ``"3.2 KiB"`` or ``"17 bytes"``
+    (never ``"0.0 GiB"`` for a small, non-zero size)."""
+    n = float(nbytes)
+    for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
+        if abs(n) >= 1 << shift:
+            return f"{n / (1 << shift):.1f} {unit}"
+    return f"{int(n)} bytes"
 
 
 def named_os_error(
@@ -166,9 +238,7 @@ def atomic_write_new(folder: str | os.PathLike, names: Iterable[str], data: byte
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        os.chmod(tmp, 0o666 & ~_umask())
         for name in itertools.chain([first], it):
             dest = d / name
             try:
@@ -259,6 +329,7 @@ def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
         The files removed (a missing or unreadable folder gives ``[]``).
     """
     removed: list[Path] = []
+    recover_commits(folder)  # an interrupted commit's backups are needed first
     try:
         entries = list(os.scandir(folder))
     except OSError:
@@ -315,6 +386,306 @@ def mark_lock_holder(fd: int) -> None:
     """Write this process's id into a lock file it holds (read by :func:`lock_or_refuse`)."""
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)
+
+
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+          (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+          (stat.S_ISSOCK, "a socket"), (stat.S_ISLNK, "a symbolic link"))  # fmt: skip
+
+
+def _kind(mode: int) -> str:
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
+
+
+def _not_own(path: Path, st: os.stat_result) -> str | None:
+    """Why the open file ``st`` at ``path`` is not one of our own files (``None``: it is)."""
+    if not stat.S_ISREG(st.st_mode):
+        return f"is {_kind(st.st_mode)}, not a regular file"
+    if st.st_nlink != 1:
+        return f"has {st.st_nlink} hard links (another name of some other file)"
+    if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
+        return f"belongs to another user (uid {st.st_uid})"
+    return None
+
+
+def open_own_file(path: str | os.PathLike, what: str = "lock file") -> tuple[int, bool]:
+    """Open a lock or marker that is written in place, read-write, never through a link.
+
+    Created with ``O_CREAT | O_EXCL | O_NOFOLLOW`` when absent. One already at ``path`` (left by
+    an earlier or a concurrent run) is opened ``O_NOFOLLOW | O_NONBLOCK`` and kept only when it
+    is a regular file with a single link, owned by this user; anything else (a symlink, a hard
+    link to the user's file, a FIFO, a device, someone else's file) is refused before a byte of
+    it is changed.
+
+    Args:
+        path: the lock or marker.
+        what: what it is, for the message (``"lock file"``).
+
+    Returns:
+        ``(fd, created)``: the open descriptor (the caller closes it) and whether this call
+        created the file.
+
+    Raises:
+        InputError: it is not one of our own files (the message names it and says why).
+        OSError: it cannot be opened or created (names it).
+    """
+    p = Path(path)
+    try:
+        return os.open(p, os.O_RDWR | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o644), True
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise named_os_error(exc, p, "creating") from None
+    try:
+        fd = os.open(p, os.O_RDWR | _NOFOLLOW | _NONBLOCK | _CLOEXEC)
+    except OSError as exc:
+        try:
+            st = os.lstat(p)
+        except OSError:
+            raise named_os_error(exc, p, "opening") from None
+        reason = _not_own(p, st) or str(exc.strerror or exc)
+        raise InputError(f"{p} {reason}: not a {what} this program wrote; nothing was written "
+                         "to it: remove it, or choose another folder") from None
+    reason = _not_own(p, os.fstat(fd))
+    if reason is not None:
+        os.close(fd)
+        raise InputError(f"{p} {reason}: not a {what} this program wrote; nothing was written "
+                         "to it: remove it, or choose another folder")
+    os.set_blocking(fd, True)
+    return fd, False
+
+
+def _same_file(path: Path, fd: int) -> bool:
+    """Whether ``path`` (not followed) still names the open file ``fd``."""
+    try:
+        a, b = os.lstat(path), os.fstat(fd)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+@contextlib.contextmanager
+def hold_lock(path: str | os.PathLike, busy: Callable[[str], str], *,
+              remove: bool = True) -> Iterator[int]:  # fmt: skip
+    """Hold the lock file ``path`` (an exclusive ``flock``, this process's id written into it)
+    while the block runs.
+
+    The file is opened by :func:`open_own_file` (never through a symlink or a hard link). When
+    another process holds it, :class:`~hsi_torch.errors.InputError` with ``busy(holder)`` is
+    raised at once (``holder``: that process's id). With ``remove`` the file is deleted when
+    the block ends (while still held: a run waiting on the old file re-opens the name).
+    No locking where ``fcntl`` does not exist (the file is still created safely).
+
+    Yields:
+        The open, locked descriptor.
+    """
+    p = Path(path)
+    while True:
+        fd, _created = open_own_file(p)
+        lock_or_refuse(fd, busy)
+        if _same_file(p, fd):  # not removed by its previous holder meanwhile
+            break
+        os.close(fd)
+    try:
+        mark_lock_holder(fd)
+        yield fd
+    finally:
+        if remove and _same_file(p, fd):
+            with contextlib.suppress(OSError):
+                os.unlink(p)
+        os.close(fd)
+
+
+def read_own_bytes(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
+                   follow: bool = False, what: str = "file") -> bytes:  # fmt: skip
+    """The content of one of our own small files (a marker, a record), read safely.
+
+    Opened ``O_NONBLOCK`` (a FIFO cannot block) and without following a symlink unless
+    ``follow``; then only a regular file of at most ``max_bytes`` is read.
+
+    Raises:
+        FileNotFoundError: it does not exist.
+        FileFormatError: it is not a regular file, or larger than ``max_bytes`` (names it).
+        OSError: it cannot be read.
+    """
+    p = Path(path)
+    try:
+        fd = os.open(p, os.O_RDONLY | _NONBLOCK | _CLOEXEC | (0 if follow else _NOFOLLOW))
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        if not follow and os.path.islink(p):
+            raise FileFormatError(f"{p}: is a symbolic link, not this program's {what}") from None
+        raise named_os_error(exc, p, "reading") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileFormatError(f"{p}: is {_kind(st.st_mode)}, not a regular file; not this "
+                                  f"program's {what}")  # fmt: skip
+        if st.st_size > max_bytes:
+            raise FileFormatError(f"{p}: {human_size(st.st_size)}, larger than this program's "
+                                  f"{what} can be ({human_size(max_bytes)})")  # fmt: skip
+        chunks, left = [], max_bytes + 1
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 20))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+        data = b"".join(chunks)
+        if len(data) > max_bytes:  # grew while read
+            raise FileFormatError(f"{p}: larger than this program's {what} can be "
+                                  f"({human_size(max_bytes)})")  # fmt: skip
+        return data
+    finally:
+        os.close(fd)
+
+
+def read_file_head(path: str | os.PathLike, nbytes: int) -> bytes | None:
+    """The first ``nbytes`` of the regular file ``path`` (not followed through a symlink; a
+    FIFO or a device is not read and cannot block), or ``None`` when it is not such a file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | _NONBLOCK | _CLOEXEC | _NOFOLLOW)
+    except OSError:
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        return os.pread(fd, nbytes, 0)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+
+
+def read_own_json(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
+                  follow: bool = False) -> Any:  # fmt: skip
+    """The JSON value of one of our own small files (:func:`read_own_bytes`), or ``None`` when
+    it is missing, not a regular file, too large, unreadable or not JSON."""
+    try:
+        return json.loads(read_own_bytes(path, max_bytes, follow=follow).decode("utf-8"))
+    except (OSError, ValueError):  # FileFormatError and UnicodeDecodeError are ValueErrors
+        return None
+
+
+def folder_identity(path: str | os.PathLike) -> list[int] | None:
+    """``[st_dev, st_ino]`` of the folder ``path`` (followed), or ``None``: recorded in a
+    folder's markers, a copy of the folder (another inode) is told from the original."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return [int(st.st_dev), int(st.st_ino)]
+
+
+def relative_to_root(root: str | os.PathLike, path: str | os.PathLike) -> str:
+    """``path`` (below ``root``) as a ``/``-separated path relative to ``root``, for a marker.
+
+    Raises:
+        ValueError: ``path`` is not below ``root``.
+    """
+    rel = os.path.relpath(os.path.abspath(path), os.path.abspath(root))
+    if rel == os.curdir or rel.startswith(os.pardir) or os.path.isabs(rel):
+        raise ValueError(f"{path} is not inside {root}")
+    return Path(rel).as_posix()
+
+
+def confined(root: str | os.PathLike, rel: Any) -> Path:
+    """The path that ``rel`` (read from a file inside ``root``: data, not an instruction) names
+    below ``root``, checked to stay there.
+
+    ``rel`` must be a relative, ``/``-separated path without ``.``/``..`` components or
+    empty parts, and no folder on the way below ``root`` may be a symbolic link (the last
+    component may be anything, even absent: it is only ever examined with ``lstat``).
+
+    Raises:
+        InputError: it is not such a path (the message names it and ``root``).
+    """
+    r = Path(root)
+    bad = not isinstance(rel, str) or not rel or "\0" in rel or rel.startswith("/") \
+        or os.path.isabs(rel)
+    parts = [] if bad else rel.split("/")
+    if bad or any(part in ("", ".", "..") for part in parts):
+        raise InputError(f"{r}: the path {str(rel)[:200]!r} in this folder's records does not "
+                         "stay inside it; ignored")
+    here = r
+    for part in parts[:-1]:
+        here = here / part
+        if os.path.islink(here):
+            raise InputError(f"{r}: the path {rel[:200]!r} in this folder's records passes "
+                             f"through the symbolic link {here}; ignored")
+    return r.joinpath(*parts)
+
+
+def remove_confined(root: str | os.PathLike, path: str | os.PathLike) -> bool:
+    """Delete ``path`` only when it is a regular file (not a symlink) inside ``root`` reached
+    without a symlinked folder (:func:`confined`); returns whether it was deleted. Whatever a
+    file inside ``root`` says, nothing outside ``root`` is ever deleted."""
+    try:
+        p = confined(root, relative_to_root(root, path))
+        if not stat.S_ISREG(os.lstat(p).st_mode):
+            return False
+        os.unlink(p)
+    except (InputError, ValueError, OSError):
+        return False
+    return True
+
+
+def remove_file(path: str | os.PathLike, *, missing_ok: bool = True) -> None:
+    """Delete one of our own files (a marker, a lock, a record, a staged file) — a symlink at
+    the name is removed, never followed."""
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        if not missing_ok:
+            raise
+
+
+def link_or_copy(src: str | os.PathLike, dest: str | os.PathLike) -> Path:
+    """Make ``dest`` the same content as ``src``: a hard link (a snapshot that every writer
+    of this package replaces, never writes through), or a copy where links are not supported;
+    made under a temporary name, then renamed onto ``dest`` (a file there is replaced, never
+    written through). Returns ``Path(dest)``."""
+    d = Path(dest)
+    d.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_name(d)
+    try:
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copy2(src, tmp, follow_symlinks=True)
+        os.replace(tmp, d)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise named_os_error(exc, d, rename=True) from None
+    return d
+
+
+def remove_empty_folder(path: str | os.PathLike) -> bool:
+    """Remove the folder ``path`` if it is empty (not a symlink); returns whether it was."""
+    try:
+        if os.path.islink(path):
+            return False
+        os.rmdir(path)
+    except OSError:
+        return False
+    return True
+
+
+def remove_tree(path: str | os.PathLike) -> None:
+    """Delete one of our own folders (a staging folder, a replaced store) and what is in it;
+    symlinks inside are removed, never followed; errors are ignored."""
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def replace_file(src: str | os.PathLike, dest: str | os.PathLike) -> None:
+    """``os.replace(src, dest)`` of one of our own complete files or folders onto ``dest``;
+    an error names ``dest``."""
+    try:
+        os.replace(src, dest)
+    except OSError as exc:
+        raise named_os_error(exc, dest, "replacing", rename=True) from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -452,10 +823,14 @@ class ReplaceTransaction:
         self.replaced: list[Path] = []
         self.committed: list[Path] = []
         self.done = False
+        self._recovered: set[Path] = set()
 
     def check(self, dest: str | os.PathLike) -> Path:
         """Check a destination now (not an input, no folder in the way); returns it."""
         d = Path(dest)
+        if d.parent not in self._recovered:
+            self._recovered.add(d.parent)
+            recover_commits(d.parent)
         check_not_input(d, self.inputs)
         _check_replaceable(d)
         return d
@@ -513,7 +888,14 @@ class ReplaceTransaction:
         return moves
 
     def commit(self) -> list[Path]:
-        """Move every staged output into place; returns the destinations."""
+        """Move every staged output into place; returns the destinations.
+
+        Before the first move, every replaced file is hard-linked to a backup name and a
+        journal (``.hsi_torch_commit-<pid>-<random>.json`` in the first destination's folder)
+        lists the moves: a process killed between two moves (SIGKILL, power loss) leaves the
+        journal, and the next transaction into that folder (or :func:`clean_stale_temp_files`)
+        puts the earlier files back (:func:`recover_commits`) — never new files beside old ones
+        unmarked."""
         if self.done:
             raise RuntimeError("the transaction is already committed or rolled back")
         moves = self._plan()
@@ -523,34 +905,50 @@ class ReplaceTransaction:
                                  f"{src.name} is missing)")
             self.check(dest)
         backups: list[tuple[Path, Path | None]] = []  # (destination, backup or None if new)
+        journal: Path | None = None
+        moved = 0
+        existed = [dest.is_file() or dest.is_symlink() for _src, dest in moves]
         try:
-            for src, dest in moves:
+            for (_src, dest), there in zip(moves, existed, strict=True):
                 backup = None
-                if dest.is_file() or dest.is_symlink():
+                if there:
                     backup = _temp_name(dest, ".old")
                     try:
                         os.link(dest, backup, follow_symlinks=False)
                     except OSError:
                         backup = None  # no hard links here: the move is still atomic per file
+                backups.append((dest, backup))
+            journal = _write_journal(moves, backups)
+            for (src, dest), there in zip(moves, existed, strict=True):
+                if there:
                     self.replaced.append(dest)
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 try:
                     os.replace(src, dest)
                 except OSError as exc:
-                    if backup is not None:
-                        os.unlink(backup)
                     raise named_os_error(exc, dest, "replacing", rename=True) from None
-                backups.append((dest, backup))
+                moved += 1
         except BaseException:
-            for dest, backup in reversed(backups):  # put back what was already moved
+            done = list(zip(backups, existed, strict=False))[:moved]
+            for (dest, backup), there in reversed(done):  # put back what was already moved
                 with contextlib.suppress(OSError):
                     if backup is not None:
                         os.replace(backup, dest)
-                    else:
+                    elif not there:
                         os.unlink(dest)
+            for _dest, backup in backups:
+                if backup is not None:
+                    with contextlib.suppress(OSError):
+                        os.unlink(backup)
+            if journal is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(journal)
             self.replaced.clear()
             self.rollback()
             raise
+        if journal is not None:  # complete: the journal goes first, then the backups
+            with contextlib.suppress(OSError):
+                os.unlink(journal)
         for _dest, backup in backups:
             if backup is not None:
                 with contextlib.suppress(OSError):
@@ -560,6 +958,19 @@ class ReplaceTransaction:
         self.done = True
         self.committed = [dest for _src, dest in moves]
         return self.committed
+
+    def staged_dest(self, path: str | os.PathLike) -> Path | None:
+        """The destination whose staged file (or staged folder's file) ``path`` is, or
+        ``None``."""
+        p = os.path.abspath(path)
+        for dest, tmp in self._files.items():
+            if os.path.abspath(tmp) == p:
+                return dest
+        for dest_dir, tmp_dir in self._trees.items():
+            t = os.path.abspath(tmp_dir)
+            if p == t or p.startswith(t + os.sep):
+                return dest_dir / os.path.relpath(p, t)
+        return None
 
     def rollback(self) -> None:
         """Remove every staged file and folder; the destinations are left as they are."""
@@ -580,8 +991,79 @@ def replace_then_commit(
     tx = ReplaceTransaction(inputs)
     try:
         yield tx
+    except OSError as exc:  # a full disk while staging: name the file, not its staged path
+        tx.rollback()
+        names = [x for x in (exc.filename, getattr(exc, "filename2", None)) if x]
+        dest = next((d for d in map(tx.staged_dest, names) if d is not None), None)
+        if dest is None:
+            raise
+        raise named_os_error(exc, dest, rename=True) from None
     except BaseException:
         tx.rollback()
         raise
     if not tx.done:
         tx.commit()
+
+
+#: A :class:`ReplaceTransaction`'s journal while it moves files: ``.hsi_torch_commit-<pid>-<rnd>
+#: .json`` in the folder of its first destination.
+JOURNAL_RE = re.compile(r"^\.hsi_torch_commit-(?P<pid>[0-9]+)-[0-9a-f]+\.json$")
+
+
+def _write_journal(moves: list[tuple[Path, Path]],
+                   backups: list[tuple[Path, Path | None]]) -> Path | None:  # fmt: skip
+    """Write the journal of the moves (paths relative to its folder: the moves in that folder
+    only) and the inode each new file will have; ``None`` when there is nothing to move."""
+    if not moves:
+        return None
+    folder = moves[0][1].parent
+    entries = []
+    for (src, dest), (_d, backup) in zip(moves, backups, strict=True):
+        if dest.parent != folder:
+            continue
+        entries.append({"dest": dest.name, "backup": backup.name if backup else None,
+                        "new_inode": os.stat(src).st_ino})  # fmt: skip
+    path = folder / f".hsi_torch_commit-{os.getpid()}-{os.urandom(6).hex()}.json"
+    text = json.dumps({"note": "a replacement of these files was interrupted; the next run "
+                       "into this folder puts the earlier files back", "moves": entries})
+    with atomic_write(path, "w") as f:
+        f.write(text)
+    return path
+
+
+def recover_commits(folder: str | os.PathLike) -> list[Path]:
+    """Undo the replacements that a killed :class:`ReplaceTransaction` left half done in
+    ``folder`` (its journal is there and its process is gone): each file it had already moved
+    into place (still the same inode) gets its backup back, or is removed when it was new.
+    The journal's names are confined to ``folder``. Returns the files put back or removed."""
+    done: list[Path] = []
+    try:
+        entries = [e for e in os.scandir(folder) if JOURNAL_RE.match(e.name)]
+    except OSError:
+        return done
+    for entry in entries:
+        m = JOURNAL_RE.match(entry.name)
+        if m is None or _pid_alive(int(m["pid"])):
+            continue
+        rec = read_own_json(entry.path, 1 << 20)
+        moves = rec.get("moves") if isinstance(rec, dict) else None
+        for mv in moves if isinstance(moves, list) else []:
+            try:
+                dest = confined(folder, mv["dest"])
+                if "/" in mv["dest"] or os.lstat(dest).st_ino != int(mv["new_inode"]):
+                    continue  # not moved yet, or changed since
+                backup = mv.get("backup")
+                if backup is None:
+                    os.unlink(dest)
+                else:
+                    b = confined(folder, backup)
+                    if "/" in backup or not TEMP_FILE_RE.match(b.name) \
+                            or not stat.S_ISREG(os.lstat(b).st_mode):
+                        continue
+                    os.replace(b, dest)
+                done.append(dest)
+            except (InputError, OSError, KeyError, TypeError, ValueError):
+                continue
+        with contextlib.suppress(OSError):
+            os.unlink(entry.path)
+    return done

@@ -34,7 +34,6 @@ import contextlib
 import importlib.util
 import json
 import os
-import shutil
 import tempfile
 import time
 import uuid
@@ -49,7 +48,14 @@ import numpy as np
 import torch
 
 from hsi_torch.errors import FileFormatError, MissingFileError
-from hsi_torch.io.atomic import atomic_save_npz, atomic_write, json_default
+from hsi_torch.io.atomic import (
+    atomic_save_npz,
+    atomic_write,
+    json_default,
+    remove_file,
+    remove_tree,
+    replace_file,
+)
 from hsi_torch.io.captures import quiet_tifffile
 
 __all__ = [
@@ -90,9 +96,9 @@ _EXTRA_HINT = "pip install 'hsi-torch[formats]'"
 def remove_output(path: Path) -> None:
     """Remove a written cube file (or a Zarr folder); absent is fine."""
     if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
+        remove_tree(path)
     else:
-        path.unlink(missing_ok=True)
+        remove_file(path)
 
 
 def require_format(fmt: str) -> None:
@@ -303,7 +309,7 @@ def _save_tiff(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
     try:
         vrt = _save_vrt(p, c.shape, wl)
     except BaseException:
-        p.unlink(missing_ok=True)  # no TIFF without its VRT
+        remove_file(p)  # no TIFF without its VRT
         raise
     return [p, vrt]
 
@@ -403,13 +409,13 @@ def _atomic_dir(dest: Path):
         yield tmp
         if dest.exists():
             old = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.old")
-            os.replace(dest, old)
-            os.replace(tmp, dest)
-            shutil.rmtree(old, ignore_errors=True)
+            replace_file(dest, old)
+            replace_file(tmp, dest)
+            remove_tree(old)
         else:
-            os.replace(tmp, dest)
+            replace_file(tmp, dest)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove_tree(tmp)
         raise
 
 
@@ -464,7 +470,7 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
         with atomic_write(hdr, "w") as f:
             f.write("\n".join(lines) + "\n")
     except BaseException:
-        img.unlink(missing_ok=True)  # no data file without its header
+        remove_file(img)  # no data file without its header
         raise
     return [img, hdr]
 

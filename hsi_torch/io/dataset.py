@@ -57,7 +57,6 @@ import contextlib
 import importlib.util
 import json
 import os
-import tempfile
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -72,6 +71,8 @@ from hsi_torch.io.atomic import (
     json_default,
     lock_or_refuse,
     mark_lock_holder,
+    open_own_file,
+    remove_file,
 )
 from hsi_torch.io.cube import _nan_where_invalid, _np
 
@@ -560,9 +561,8 @@ class CubeDataset:
             key = Path(_chunk_key(name, index, len(self.meta[name]["shape"])))
             folder = self.path / key.parent
             for p in folder.glob(f".{key.name}.*.tmp"):
-                with contextlib.suppress(FileNotFoundError):
-                    p.unlink()
-                    removed.append(p)
+                remove_file(p)
+                removed.append(p)
         return removed
 
     # --- low level -------------------------------------------------------------------------
@@ -604,20 +604,8 @@ def _write_json(path: Path, obj: Any) -> None:
 
 def _put(path: Path, data: bytes, fsync: bool = True) -> None:
     """Write ``data`` as ``path``: a temporary file then a rename (atomic; ``fsync`` optional)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}-", suffix=".tmp",
-                               dir=path.parent)  # fmt: skip
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            if fsync:
-                f.flush()
-                os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "wb", fsync=fsync) as f:
+        f.write(data)
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -649,8 +637,10 @@ def _refuse_foreign_folder(p: Path) -> None:
 
 
 def _lock(store: Path) -> int:
-    """An exclusive ``flock`` on the store's lock file (no locking without ``fcntl``)."""
-    fd = os.open(store / _LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    """An exclusive ``flock`` on the store's lock file, opened by
+    :func:`~hsi_torch.io.atomic.open_own_file` (a symlink or hard link planted at its name is
+    refused, never written through; no locking without ``fcntl``)."""
+    fd, _created = open_own_file(store / _LOCK_NAME)
     lock_or_refuse(fd, lambda holder: (
         f"the dataset store {store} is being written by another run (process {holder}) "
         "right now; run again when it has finished, or write into another folder"))

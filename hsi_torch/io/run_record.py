@@ -6,22 +6,26 @@ interrupted rerun would leave a mix of new and old files with nothing saying so.
 :func:`start_out_run` writes :data:`INCOMPLETE_FILE` before the run starts, listing the files
 already there with their size, modification time and inode, and :func:`finish_out_run` writes
 the run's record (:data:`RUN_RECORD`, :data:`DEMO_RUN_RECORD`: the files it wrote and those left
-from an earlier run) and then removes :data:`INCOMPLETE_FILE`.
+from an earlier run) and then removes :data:`INCOMPLETE_FILE`. While a run writes there it holds
+:data:`RUN_LOCK` (:func:`out_run_lock`): a second run into the same folder is refused.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from hsi_torch.console import info
-from hsi_torch.io.atomic import atomic_write_json
+from hsi_torch.io.atomic import atomic_write_json, hold_lock, remove_file
 from hsi_torch.io.paths import file_states
 
-__all__ = ["INCOMPLETE_FILE", "RUN_RECORD", "DEMO_RUN_RECORD", "start_out_run", "finish_out_run"]
+__all__ = ["INCOMPLETE_FILE", "RUN_RECORD", "DEMO_RUN_RECORD", "RUN_LOCK", "start_out_run",
+           "finish_out_run", "out_run_lock"]  # fmt: skip
 
 #: The prefix of the hidden markers that commands and scripts write into their ``--out`` (e.g.
 #: ``.hsi_torch_experiment``, ``.hsi_torch_demo``): not counted as files of a run.
@@ -39,7 +43,29 @@ RUN_RECORD = "experiment_run.json"
 #: The same record of ``demo --out`` (:data:`INCOMPLETE_FILE` marks a demo's folder the same way).
 DEMO_RUN_RECORD = "demo_run.json"
 
+#: The lock that ``demo --out`` and ``experiment NAME --out`` hold while they write there (one
+#: run per folder at a time; removed when the run ends).
+RUN_LOCK = ".hsi_torch_run.lock"
+
 _STATUS_FILES = (INCOMPLETE_FILE, RUN_RECORD, DEMO_RUN_RECORD)
+
+
+@contextlib.contextmanager
+def out_run_lock(out: Path, command: str) -> Iterator[None]:
+    """Hold :data:`RUN_LOCK` in ``out`` (created) while ``command`` writes there in place: a
+    second run into the same folder meanwhile is refused at once, naming the process that holds
+    it (two runs would mix their files, and the first to finish would mark the folder
+    complete). The lock is never opened through a symlink or a hard link planted at its name.
+
+    Raises:
+        InputError: another run holds it (the message names its process id).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    with hold_lock(out / RUN_LOCK, lambda holder: (
+            f"--out {out} is being written by another run (process {holder}) right now; "
+            f"'{command}' would mix its files with that run's: run again when it has "
+            "finished, or choose another folder")):  # fmt: skip
+        yield
 
 
 def _now() -> str:
@@ -105,7 +131,7 @@ def finish_out_run(out: Path, state: dict[str, Any]) -> tuple[dict[str, Any], st
         "from_earlier_runs": sorted(k for k, v in after.items() if before.get(k) == v),
     }
     atomic_write_json(out / state["record"], record)
-    (out / INCOMPLETE_FILE).unlink(missing_ok=True)
+    remove_file(out / INCOMPLETE_FILE)
     kept = record["from_earlier_runs"]
     left = (f"; {len(kept)} file(s) are from an earlier run and were not rewritten by this one "
             f"(listed in {state['record']}): {', '.join(kept[:5])}"

@@ -138,15 +138,31 @@ def make_security(
     )  # fmt: skip
 
 
+#: Schemes of Dask addresses reached without encryption or authentication.
+_PLAIN_SCHEMES = ("tcp://", "ws://", "ucx://")
+
+
 def _warn_plain(address: str) -> None:
-    """A warning for a ``tcp://`` scheduler not on this machine (no encryption, no
-    authentication)."""
-    host = address.split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
-    if address.startswith("tcp://") and host not in ("127.0.0.1", "localhost", "::1"):
+    """A warning for a plaintext (``tcp://``, ``ws://``, ``ucx://``) scheduler not on this
+    machine (no encryption, no authentication)."""
+    if "://" not in address:
+        return
+    host = address.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[0].strip("[]")
+    if address.startswith(_PLAIN_SCHEMES) and host not in ("127.0.0.1", "localhost", "::1"):
         print(f"hsi-torch: warning: the scheduler {address} is reached without encryption or "
               "authentication: whoever can reach it can run code in this process and on the "
               "workers; use tls:// with --tls-ca-file/--tls-cert/--tls-key on networks you do "
               "not fully trust (docs/cluster.md, Security)", file=sys.stderr)
+
+
+def _file_address(path: Path) -> str:
+    """The ``address`` a scheduler file names (``""`` when it cannot be read: the client then
+    reports the file)."""
+    from hsi_torch.io.atomic import read_own_json  # lazy: atomic imports numpy
+
+    doc = read_own_json(path, 1 << 20, follow=True)
+    address = doc.get("address") if isinstance(doc, dict) else None
+    return address if isinstance(address, str) else ""
 
 
 @contextlib.contextmanager
@@ -220,6 +236,8 @@ def connect(
             where = f"scheduler {value}" if kind == "address" else f"scheduler file {value}"
             if kind == "address" and security is None:
                 _warn_plain(str(value))
+            elif kind == "file" and security is None:
+                _warn_plain(_file_address(Path(value)))
             sec = {} if security is None else {"security": security}
             try:
                 client = (distributed.Client(value, timeout=timeout_s, **sec) if kind == "address"

@@ -91,7 +91,7 @@ import blake3
 import numpy as np
 
 from hsi_torch import console
-from hsi_torch.io.atomic import atomic_write_text, json_default
+from hsi_torch.io.atomic import atomic_write_text, human_size, json_default
 
 __all__ = [
     "FORMAT_VERSION",
@@ -1042,10 +1042,8 @@ def save_entry(
             free = shutil.disk_usage(p.parent).free
             if free - nbytes < MIN_FREE_BYTES:
                 CACHE_STATS["write_skipped"] += 1
-                _warn(
-                    f"precomputation cache: {free / 2**30:.2f} GiB free in {p.parent}, the "
-                    f"entry needs {nbytes / 2**30:.2f} GiB; not written"
-                )
+                _warn(f"precomputation cache: {human_size(free)} free in {p.parent}, the "
+                      f"entry needs {human_size(nbytes)}; not written")
                 return False
             secret = _secret(p.parent, create=True)
             assert secret is not None

@@ -99,27 +99,17 @@ def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
     Raises:
         InputError: another run holds the marker's lock (the message names its process), or
             wrote into ``out`` since it was checked, or the incomplete run found there completed
-            since (its marker is gone); the marker is a symbolic link (never written through).
+            since (its marker is gone); the marker is a symbolic link, a hard link, or not a
+            regular file of this user (never written through).
     """
     from hsi_torch.errors import InputError
-    from hsi_torch.io.atomic import lock_or_refuse, mark_lock_holder
+    from hsi_torch.io.atomic import lock_or_refuse, mark_lock_holder, open_own_file, remove_file
     from hsi_torch.io.paths import ensure_out_dir
 
     ensure_out_dir(out)
     path = out / INCOMPLETE_MARKER
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
-        created = True
-    except FileExistsError:
-        try:  # never through a link: the process id written below would truncate its target
-            fd = os.open(path, os.O_RDWR | getattr(os, "O_NOFOLLOW", 0))
-        except OSError as exc:
-            if not path.is_symlink():
-                raise
-            raise InputError(f"--out {out}: {INCOMPLETE_MARKER} is a symbolic link, not a "
-                             "marker this command wrote; remove it, or choose another "
-                             "folder") from exc  # fmt: skip
-        created = False
+    # never through a symlink or a hard link: the process id written below truncates the file
+    fd, created = open_own_file(path, "marker")
     lock_or_refuse(fd, lambda holder: (
         f"--out {out} is being written by another simulate run (process {holder}) right now; "
         "run again when it has finished, or choose another folder"))
@@ -133,7 +123,7 @@ def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
         # the folder is a complete set, which only --overwrite replaces
         if not same or (fresh and not _only_marker_left(out)) or (not fresh and created):
             if same and created:
-                path.unlink()
+                remove_file(path)
             raise InputError(f"--out {out} was written by another simulate run while this one "
                              "started; run again")  # fmt: skip
         mark_lock_holder(fd)
@@ -142,10 +132,10 @@ def incomplete_run(out: Path, fresh: bool = True) -> Iterator[None]:
             yield
         except BaseException:
             if _only_marker_left(out):  # nothing written: no incomplete run to mark
-                with contextlib.suppress(OSError):
-                    path.unlink()
+                remove_file(path)
             raise
-        path.unlink()  # the set is complete (while still locked: a waiting rerun re-checks)
+        # the set is complete (while still locked: a waiting rerun re-checks)
+        remove_file(path, missing_ok=False)
     finally:
         os.close(fd)
 

@@ -18,12 +18,11 @@ references (e.g. under the scene's light) and keeps the base's scenes.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from pathlib import Path
 from typing import Any
 
 from hsi_torch.io import write_capture
+from hsi_torch.io.atomic import atomic_write_text, link_or_copy
 from hsi_torch.io.capture_set import TRUTH_JSON, read_truth_meta
 from hsi_torch.simulate.capture_sets import (
     _capture_metadata,
@@ -60,13 +59,7 @@ def _base_mismatch(base: Path) -> dict[str, Any]:
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        dst.unlink()
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+    link_or_copy(src, dst)  # a hard link: every writer replaces it, never writes through
 
 
 def rerender_after_calibration(
@@ -141,8 +134,8 @@ def rerender_after_calibration(
         if whites:  # the after-calibration effects the white references were shot with
             meta["white_mismatch"] = white_mismatch_of(mm)
         meta["rerendered_after_calibration"] = sorted(redo)
-        truth_json.unlink()  # a link to the base's file: write a new one
-        truth_json.write_text(json.dumps(meta, indent=1))
+        # a link to the base's file: a new one replaces it (never written through)
+        atomic_write_text(truth_json, json.dumps(meta, indent=1))
     keys = sorted({pc.render_key for pc in sel})
     imgs = renderer.render_captures([specs[k] for k in keys], None, after_calibration=True)
     irr = dict(zip(keys, imgs, strict=True))
@@ -151,9 +144,6 @@ def rerender_after_calibration(
         dn, sat = renderer.expose(irr[pc.render_key], exposure, pc.seed)
         meta = _capture_metadata(renderer, pc, exposure)
         meta["saturated_pixels"] = int(sat.sum())
-        dst = out / pc.file
-        if dst.exists():
-            dst.unlink()
-        write_capture(dst, dn, meta)
+        write_capture(out / pc.file, dn, meta)  # atomic: a hard link there is replaced
     log(f"re-rendered {len(sel)} capture(s) after calibration into {out}")
     return sorted(redo)

@@ -35,7 +35,10 @@ from qtpy.QtWidgets import QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayou
 from hsi_torch.io.atomic import atomic_write
 from hsi_torch.viewer.data import Spectrum, is_cube_path, read_layers, spectrum_at
 
-__all__ = ["napari_get_reader", "SpectrumWidget", "view"]
+__all__ = ["napari_get_reader", "SpectrumWidget", "view", "SCREENSHOT_SOFTWARE"]
+
+#: The PNG ``Software`` text of a screenshot written by ``hsi-torch view --screenshot``.
+SCREENSHOT_SOFTWARE = "hsi-torch view"
 
 
 def napari_get_reader(path: str | Sequence[str]) -> Callable[[Any], list] | None:
@@ -310,7 +313,8 @@ def view(
 
         Path(screenshot).parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(screenshot, "wb") as f:  # an earlier PNG kept until this one is whole
-            mpimg.imsave(f, img, format="png")
+            # the tag tells a later --screenshot that this PNG is ours to replace
+            mpimg.imsave(f, img, format="png", metadata={"Software": SCREENSHOT_SOFTWARE})
         viewer.close()
         return viewer
     napari.run()

@@ -51,6 +51,8 @@ from hsi_torch.io.atomic import (
     InputFiles,
     atomic_write_new,
     clean_stale_temp_files,
+    remove_empty_folder,
+    remove_file,
     replace_then_commit,
 )
 from hsi_torch.io.cube import require_format, save_cube_formats
@@ -326,10 +328,9 @@ class ReconstructRun:
         if summary.processed or summary.skipped or self.run_config is None:
             return
         with contextlib.suppress(OSError):
-            Path(self.run_config).unlink()
+            remove_file(self.run_config)
         for d in sorted(self.created, key=lambda q: -len(q.parts)):
-            with contextlib.suppress(OSError):  # only when empty
-                Path(d).rmdir()
+            remove_empty_folder(d)  # only when empty
 
     def reconstructor(self) -> Reconstructor:
         """A :class:`Reconstructor` of this run's bundle and settings (the per-bundle

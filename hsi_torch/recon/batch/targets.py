@@ -9,7 +9,11 @@ Two targets: :class:`FilesTarget` (files per input in a folder: the cube formats
 **Files: resume and ownership.** An input is skipped when its *done-marker* says it finished and
 every output it lists is still the file that was written (same size and modification time: an
 emptied, truncated or replaced output is not "done"). Markers live in ``out/.hsi_torch_done/``
-(one small JSON per input, ``<stem>-<hash of the absolute input path>.json``). Before the work
+(one small JSON per input, ``<stem>-<hash of the absolute input path>.json``). A marker is data,
+not an instruction: its output paths are relative to ``out`` and confined to it (an absolute
+path, ``..`` or a symlinked folder makes the marker void), and it records ``out``'s identity
+(device and inode), so a copy of the folder (``cp -a``) is never tied to the original: its
+markers are void there, and nothing is ever deleted outside ``out``. Before the work
 starts, the marker is written as a *claim* (``"status": "started"``, the planned outputs); after
 it, atomically, as ``"status": "done"`` with the outputs and their sizes and times — so an
 interrupted or failed input is never mistaken for a finished one. The marker also records the
@@ -49,7 +53,6 @@ from __future__ import annotations
 import contextlib
 import glob
 import hashlib
-import json
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -63,8 +66,14 @@ from hsi_torch.io.atomic import (
     check_not_input,
     clean_stale_temp_files,
     clean_stale_temp_files_of,
-    lock_or_refuse,
-    mark_lock_holder,
+    confined,
+    folder_identity,
+    hold_lock,
+    read_own_json,
+    relative_to_root,
+    remove_confined,
+    remove_empty_folder,
+    remove_file,
 )
 from hsi_torch.io.dataset import CubeDataset
 
@@ -131,12 +140,47 @@ def _file_stamp(path: str | os.PathLike) -> list[int] | None:
     return [int(st.st_size), int(st.st_mtime_ns)]
 
 
+#: Largest done-marker read (bytes): one input's outputs, a few hundred bytes each.
+MAX_MARKER = 1 << 20
+
+
 def _read_marker(path: Path) -> dict[str, Any] | None:
-    try:
-        rec = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+    """A done-marker of the folder ``path.parent.parent`` with its output paths made absolute,
+    or ``None`` when it is not one of this folder's own markers: unreadable, not a regular file
+    (a FIFO is refused without blocking), too large, written into another folder (a copy of
+    the folder: ``out_id``, the folder's device and inode, differs) or naming a path that does
+    not stay inside the folder (absolute, ``..``, a symlinked folder). A marker is data: what
+    it says never reaches outside the output folder."""
+    rec = read_own_json(path, MAX_MARKER)
+    out_dir = path.parent.parent
+    if not isinstance(rec, dict) or rec.get("out_id") != folder_identity(out_dir):
         return None
-    return rec if isinstance(rec, dict) else None
+    try:
+        for key in ("outputs", "owned"):
+            if key in rec:
+                rec[key] = [os.path.abspath(confined(out_dir, q)) for q in rec[key]]
+        stamps = rec.get("output_stamps")
+        if isinstance(stamps, dict):
+            rec["output_stamps"] = {os.path.abspath(confined(out_dir, k)): v
+                                    for k, v in stamps.items()}  # fmt: skip
+    except (InputError, TypeError):
+        return None
+    return rec
+
+
+def _write_marker(path: Path, rec: dict[str, Any]) -> None:
+    """Write a done-marker (atomically) with its output paths relative to the output folder
+    and the folder's identity (``out_id``)."""
+    out_dir = path.parent.parent
+    doc = dict(rec)
+    for key in ("outputs", "owned"):
+        if key in doc:
+            doc[key] = [relative_to_root(out_dir, q) for q in doc[key]]
+    if isinstance(doc.get("output_stamps"), dict):
+        doc["output_stamps"] = {relative_to_root(out_dir, k): v
+                                for k, v in doc["output_stamps"].items()}  # fmt: skip
+    doc["out_id"] = folder_identity(out_dir)
+    atomic_write_json(path, doc)
 
 
 def _outputs_intact(rec: dict[str, Any]) -> bool:
@@ -204,40 +248,22 @@ class _Owners:
                 if self.by_output.get(q, ("",))[0] == other:
                     del self.by_output[q]
             self.outputs_of.pop(marker, None)
-            marker.unlink(missing_ok=True)
+            remove_file(marker)
         return None
 
 
 @contextlib.contextmanager
 def _name_lock(out_dir: Path, stem: str) -> Iterator[None]:
-    """Hold ``out_dir/.hsi_torch_done/<stem>.lock`` (an exclusive ``flock``) while the outputs
-    named ``stem`` are written; another run holding it makes this input fail at once, naming
-    that run's process id. (No locking where ``fcntl`` does not exist.)"""
-    if os.name != "posix":  # no fcntl
-        yield
-        return
+    """Hold ``out_dir/.hsi_torch_done/<stem>.lock`` (an exclusive ``flock``,
+    :func:`~hsi_torch.io.atomic.hold_lock`: never through a symlink or a hard link planted
+    there) while the outputs named ``stem`` are written; another run holding it makes this
+    input fail at once, naming that run's process id."""
     folder = out_dir / DONE_DIR
     folder.mkdir(exist_ok=True)
-    path = folder / f"{stem}.lock"
-    while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        lock_or_refuse(fd, lambda holder: (
+    with hold_lock(folder / f"{stem}.lock", lambda holder: (
             f"outputs named '{stem}' in {out_dir} are being written by another run (process "
-            f"{holder}) right now; run again when it has finished"))
-        try:  # still the file at that name? (its holder removes it when done)
-            same = os.stat(path).st_ino == os.fstat(fd).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        os.close(fd)
-    try:
-        mark_lock_holder(fd)
+            f"{holder}) right now; run again when it has finished")):  # fmt: skip
         yield
-    finally:
-        with contextlib.suppress(OSError):
-            os.unlink(path)  # while still held: a waiting run re-checks the name (above)
-        os.close(fd)  # releases the lock
 
 
 class _Claim:
@@ -296,7 +322,7 @@ class _Claim:
             "owned": sorted(set(kept) | set(self.planned)),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
-        atomic_write_json(self.marker, self.record)  # the claim, before any output exists
+        _write_marker(self.marker, self.record)  # the claim, before any output exists
         self.claimed = True
         owners.claim(self.marker, self.key, self.record["owned"])
 
@@ -313,7 +339,7 @@ class _Claim:
                 status="done", outputs=done, output_stamps={p: _file_stamp(p) for p in done},
                 owned=owned, finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
             )  # fmt: skip
-            atomic_write_json(self.marker, self.record)
+            _write_marker(self.marker, self.record)
             self.target.owners.claim(self.marker, self.key, sorted(set(owned) | set(self.planned)))
             return self._remove_stale(set(done))
         finally:
@@ -329,8 +355,7 @@ class _Claim:
             p = str(p)
             if p in done or stamps.get(p) is None or _file_stamp(p) != stamps.get(p):
                 continue  # this run's own, or changed since that run wrote it: kept
-            with contextlib.suppress(OSError):
-                os.unlink(p)
+            if remove_confined(self.target.out, p):  # never outside the output folder
                 removed.append(p)
         return removed
 
@@ -342,16 +367,15 @@ class _Claim:
             self.claimed = False
             try:
                 if self.previous is not None:
-                    atomic_write_json(self.marker, self.previous)
+                    _write_marker(self.marker, self.previous)
                     owners.claim(self.marker, self.key, _owned(self.previous))
                 else:
-                    self.marker.unlink(missing_ok=True)
+                    remove_file(self.marker)
                     owners.outputs_of.pop(self.marker, None)
             except OSError:
                 pass  # the claim stays: the input is redone next time, never skipped
         self.lock.close()
-        with contextlib.suppress(OSError):  # the marker folder, if nothing is in it
-            (self.target.out / DONE_DIR).rmdir()
+        remove_empty_folder(self.target.out / DONE_DIR)  # the marker folder, if nothing is in it
 
     def clean_temps(self) -> None:
         """Temporary files of a killed attempt at this input's outputs (e.g. a worker that
