@@ -211,7 +211,8 @@ def _check_dtype(arr: np.ndarray, p: Path) -> None:
         bad = ~np.isfinite(arr)
         if bad.any():
             raise FileFormatError(f"{p}: image contains {int(bad.sum())} NaN/inf values")
-        top = float(np.abs(arr).max()) if arr.size else 0.0
+    if arr.dtype.kind == "f" or arr.dtype.itemsize > 4:  # 64-bit integers too (< 2^32 else)
+        top = max(abs(float(arr.max())), abs(float(arr.min()))) if arr.size else 0.0
         if top > MAX_SAMPLE_VALUE:
             raise FileFormatError(
                 f"{p}: image values reach {top:.3g}, beyond any sensor's range (at most "
@@ -358,7 +359,11 @@ def _read_npy(
         ) from exc
     meta: dict[str, Any] = {}
     side = p.with_name(p.name + ".json")
-    if side.exists():
+    if side.exists() or side.is_symlink():
+        require_regular_file(side, "metadata sidecar")  # a FIFO would block, /dev/zero fill RAM
+        if side.stat().st_size > _MAX_META_BYTES:
+            raise FileFormatError(f"{side}: the metadata sidecar holds {side.stat().st_size} "
+                                  f"bytes, more than {_MAX_META_BYTES // 2**20} MiB")  # fmt: skip
         try:
             text = side.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
