@@ -505,6 +505,57 @@ def test_a_fifo_is_refused_before_opening(tmp_path):
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_an_npy_metadata_sidecar_must_be_a_regular_file(tmp_path):
+    """The NPY capture's ``x.npy.json`` used to be opened as it was: a FIFO hung the batch,
+    ``/dev/zero`` raised a MemoryError with an empty message."""
+    import signal
+
+    from hsi_torch.io import read_any
+
+    np.save(tmp_path / "x.npy", np.full((8, 8), 100, np.uint16))
+    side = tmp_path / "x.npy.json"
+    os.mkfifo(side)
+    _alarm(10)
+    try:
+        with pytest.raises(HSIError, match=r"x\.npy\.json: is a FIFO"):
+            read_any(tmp_path / "x.npy", cfa_pattern="RGGB")
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+    side.unlink()
+    side.symlink_to("/dev/zero")
+    with pytest.raises(HSIError, match=r"x\.npy\.json: is a character device"):
+        read_any(tmp_path / "x.npy", cfa_pattern="RGGB")
+    side.unlink()
+    side.write_text('{"cfa_pattern": "GRBG"}')
+    assert read_any(tmp_path / "x.npy").metadata["cfa_pattern"] == "GRBG"
+
+
+@pytest.mark.parametrize("dtype, value", [(np.uint64, 2**63 + 5), (np.int64, 2**52)])
+def test_64_bit_integer_captures_are_bounded_like_float_ones(tmp_path, dtype, value):
+    """int64/uint64 samples beyond 2^50 gave cubes of ~1e17 (a uint64 beyond 2^63 wrapped when
+    shifted); they are refused as float ones are. A 64-bit file of sensor counts still reads."""
+    from hsi_torch.io import read_any
+
+    a = np.full((8, 8), 1000, dtype)
+    a[3, 4] = value
+    np.save(tmp_path / "big.npy", a)
+    with pytest.raises(HSIError, match=r"big\.npy: image values reach .*2\^50"):
+        read_any(tmp_path / "big.npy", cfa_pattern="RGGB")
+    a[3, 4] = 2**16
+    np.save(tmp_path / "ok.npy", a)
+    assert float(read_any(tmp_path / "ok.npy", cfa_pattern="RGGB").image.max()) == 2**16
+
+
+def test_a_file_named_npz_that_is_not_an_npz_capture_says_so(tmp_path):
+    from hsi_torch.io import read_any
+
+    (tmp_path / "shot.npz").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)
+    with pytest.raises(HSIError, match=r"shot\.npz: not an NPZ file") as e:
+        read_any(tmp_path / "shot.npz", cfa_pattern="RGGB")
+    assert "allow_pickle" not in str(e.value)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
 def test_a_fifo_among_the_inputs_does_not_hang_the_batch(ws, capsys):
     import signal
 

@@ -38,6 +38,7 @@ import torch
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
+from hsi_torch.io.bounded import require_npz
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
@@ -375,6 +376,7 @@ def _read_npy(
 def _read_npz(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
+    require_npz(p)  # else numpy's hint about allow_pickle, for a file that is no NPZ
     try:
         with np.load(p, allow_pickle=False) as z:
             keys = list(z.keys())
