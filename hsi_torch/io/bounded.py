@@ -13,6 +13,8 @@ more than the cap, and every file they open is a regular file (a FIFO would bloc
   file", never numpy's pickle hint) and the sizes its members declare.
 - :func:`read_json_bounded`: a JSON file that is a regular file of bounded size and depth.
 - :func:`check_store_files`: every file of a Zarr store is a regular file of bounded size.
+- :func:`declared_image_size`: a capture's ``(H, W)`` from its header (TIFF, PNG, NPY, NPZ,
+  camera RAW), before any pixel is decoded: checked against the sensor size first.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ __all__ = [
     "npz_declared",
     "read_json_bounded",
     "check_store_files",
+    "declared_image_size",
 ]
 
 #: Environment variable: the largest decoded cube a reader accepts (GiB).
@@ -177,3 +180,61 @@ def check_store_files(root: str | os.PathLike, max_bytes: int | None = None) -> 
                     f"{f}: a store file of {st.st_size / 2**30:.2f} GiB, more than the "
                     f"{cap / 2**30:.2f} GiB a reader decodes (${MAX_CUBE_GB_ENV})"
                 )
+
+
+def declared_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(H, W)`` of a capture file from its header, nothing decoded: TIFF (the first series),
+    PNG (``IHDR``), NPY/NPZ (the array's ``.npy`` header: ``(H, W)``, ``(C, H, W)`` or
+    ``(H, W, C)`` with C 1 or 3), camera RAW (LibRaw's visible size, before unpacking);
+    ``None`` for a file whose header gives no such shape (the reader then says why).
+
+    Raises:
+        FileFormatError: not a regular file, or a header that cannot be read (naming the file).
+    """
+    from hsi_torch.io.raw import RAW_SUFFIXES  # lazy: raw imports torch
+
+    p = require_regular_file(path, "capture file")
+    suffix = p.suffix.lower()
+    shape: tuple[int, ...] | None = None
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(p) as tif:
+                shape = tuple(tif.series[0].shape) if tif.series else None
+        elif suffix == ".png":
+            from hsi_torch.io.safety import png_header
+
+            (h, w, c), _ = png_header(p)
+            shape = (h, w) if c == 1 else (h, w, c)
+        elif suffix == ".npy":
+            with open(p, "rb") as f:
+                version = np.lib.format.read_magic(f)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0)  # fmt: skip
+                shape = tuple(read(f)[0])
+        elif suffix == ".npz":
+            require_npz(p)
+            with np.load(p, allow_pickle=False) as z:
+                members = {k: v for k, v in npz_declared(z).items() if k != "metadata"}
+                key = "image" if "image" in members else (next(iter(members))
+                                                          if len(members) == 1 else None)
+                shape = members[key][0] if key is not None else None
+        elif suffix in RAW_SUFFIXES:
+            import rawpy  # lazy: LibRaw
+
+            with rawpy.RawPy() as r:
+                r.open_file(str(p))  # the header only: unpack() would decode the pixels
+                shape = (int(r.sizes.height), int(r.sizes.width))
+    except FileFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - each library raises its own types
+        raise FileFormatError(f"{p}: cannot read the image header ({type(exc).__name__}: "
+                              f"{short_text(str(exc), 120)})") from None  # fmt: skip
+    if shape is None or len(shape) not in (2, 3):
+        return None
+    if len(shape) == 2:
+        return int(shape[0]), int(shape[1])
+    if shape[0] in (1, 3):
+        return int(shape[1]), int(shape[2])
+    return (int(shape[0]), int(shape[1])) if shape[-1] in (1, 3) else None

@@ -37,6 +37,7 @@ import csv
 import difflib
 import filecmp
 import glob
+import json
 import math
 import os
 import re
@@ -46,9 +47,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hsi_torch.console import info, warn
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, atomic_write_json
+from hsi_torch.io.bounded import MAX_JSON_BYTES, npz_declared, read_json_bounded, require_npz
 from hsi_torch.io.capture_manifest import CAPTURE_SETTINGS
 from hsi_torch.io.capture_set import (
     CAPTURE_SET_SCHEMA_VERSION,
@@ -59,7 +63,7 @@ from hsi_torch.io.capture_set import (
     read_nominal_layout,
     wavelength_from_name,
 )
-from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_capture
+from hsi_torch.io.captures import SUPPORTED_SUFFIXES
 
 __all__ = [
     "SHEET_COLUMNS",
@@ -283,13 +287,52 @@ def rows_from_patterns(
     return rows
 
 
+def _stored_metadata(p: Path) -> dict[str, Any]:
+    """The JSON metadata a TIFF/NPY/NPZ capture carries (the TIFF's description, the NPY's
+    ``.json`` sidecar, the NPZ's ``metadata`` member), read without decoding a pixel: an import
+    never inflates an image (a small compressed file may hold gigabytes)."""
+    suffix = p.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(p) as tif:
+                text = tif.pages[0].description if len(tif.pages) else ""
+        elif suffix == ".npy":
+            side = p.with_name(p.name + ".json")
+            meta = read_json_bounded(side, "metadata sidecar") if side.exists() else {}
+            return meta if isinstance(meta, dict) else {}
+        elif suffix == ".npz":
+            require_npz(p)
+            with np.load(p, allow_pickle=False) as z:
+                shape, dtype = npz_declared(z).get("metadata", ((1,), np.dtype(np.uint8)))
+                if shape != () or dtype.kind not in "US" or dtype.itemsize > MAX_JSON_BYTES:
+                    return {}
+                text = str(z["metadata"])
+        else:
+            return {}
+        meta = json.loads(text) if text else {}
+    except FileFormatError:
+        raise
+    except (ValueError, RecursionError):
+        return {}  # a foreign description: no metadata
+    except Exception as exc:  # noqa: BLE001 - tifffile/zipfile errors on a damaged file
+        raise FileFormatError(f"{p}: cannot read the file's metadata ({type(exc).__name__}: "
+                              f"{exc})") from None  # fmt: skip
+    return meta if isinstance(meta, dict) else {}
+
+
 def _scan_wavelength(row: SheetRow) -> float | None:
     if row.wavelength_nm is not None:
         return row.wavelength_nm
     lam = wavelength_from_name(row.file.name)
-    if lam is None and row.file.suffix.lower() in (".tif", ".tiff", ".npy", ".npz"):
-        lam = read_capture(row.file)[1].get("wavelength_nm")
-    return None if lam is None else float(lam)
+    if lam is None:
+        lam = _stored_metadata(row.file).get("wavelength_nm")
+    try:
+        return None if lam is None else float(lam)
+    except (TypeError, ValueError):
+        raise FileFormatError(f"{row.file}: its metadata's wavelength_nm {lam!r} is not a "
+                              "number") from None  # fmt: skip
 
 
 @dataclass
