@@ -555,6 +555,49 @@ def test_a_file_named_npz_that_is_not_an_npz_capture_says_so(tmp_path):
     assert "allow_pickle" not in str(e.value)
 
 
+@pytest.fixture
+def no_tiff_decoding(monkeypatch):
+    """Any TIFF pixel decoding fails the test: what is checked must be checked from headers."""
+    import tifffile
+
+    def refuse(*_a, **_k):
+        raise AssertionError("a TIFF was decoded")
+
+    for cls in (tifffile.TiffFile, tifffile.TiffPage, tifffile.TiffPageSeries):
+        monkeypatch.setattr(cls, "asarray", refuse)
+
+
+def test_layout_white_shot_of_another_size_is_refused_from_its_header(tmp_path, capsys,
+                                                                      no_tiff_decoding):
+    """A 140 kB zlib TIFF that inflates to 32 MB (the trial's 0.5 MB one: 2 GB) given as
+    ``layout --white``: refused from its header against the design camera, nothing decoded."""
+    import tifffile
+
+    big = tmp_path / "white.tif"
+    tifffile.imwrite(big, np.zeros((4000, 4000), np.uint16), compression="zlib")
+    assert big.stat().st_size < 1 << 20
+    rc = main(["layout", "--white", str(big), "--out", str(tmp_path / "lay.json")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "white.tif: shot size (H, W) = (4000, 4000) differs from the design " in err
+    assert "decoded" not in err and not (tmp_path / "lay.json").exists()
+
+
+def test_captures_import_reads_no_pixel(tmp_path, no_tiff_decoding):
+    """The import takes a scan frame's wavelength from the file's metadata only (before, the
+    whole image was decoded, with no expected size: a small zlib TIFF inflated to 1.7 GB)."""
+    import tifffile
+
+    from hsi_torch.io.capture_import import import_captures, read_sheet
+
+    for name, lam in (("a.tif", 430.0), ("b.tif", 440.0)):
+        tifffile.imwrite(tmp_path / name, np.full((40, 40), int(lam), np.uint16),
+                         compression="zlib", metadata=None,
+                         description=json.dumps({"wavelength_nm": lam, "kind": "bayer"}))
+    (tmp_path / "sheet.csv").write_text("file,role\na.tif,scan\nb.tif,scan\n")
+    rep = import_captures(read_sheet(tmp_path / "sheet.csv"), tmp_path / "set")
+    assert rep.bands[430.0] == ["a.tif"] and rep.bands[440.0] == ["b.tif"]
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
 def test_a_fifo_among_the_inputs_does_not_hang_the_batch(ws, capsys):
     import signal
