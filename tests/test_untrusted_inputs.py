@@ -598,6 +598,24 @@ def test_captures_import_reads_no_pixel(tmp_path, no_tiff_decoding):
     assert rep.bands[430.0] == ["a.tif"] and rep.bands[440.0] == ["b.tif"]
 
 
+def test_a_raw_of_another_size_is_refused_before_libraw_unpacks_it(tmp_path, monkeypatch):
+    import rawpy
+
+    from hsi_torch.io import read_any
+    from hsi_torch.testing import write_dng
+
+    f = write_dng(tmp_path / "big.dng", np.full((64, 96), 600, np.uint16), black_level=512,
+                  white_level=4095)  # fmt: skip
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the RAW was unpacked")
+
+    monkeypatch.setattr(rawpy, "imread", refuse)  # (load_raw's way in: open and unpack)
+    with pytest.raises(HSIError, match=r"big\.dng: image size \(H, W\) = \(64, 96\) does not "
+                       r"match the expected sensor size \(30, 32\)"):
+        read_any(f, expected_size=(30, 32))
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
 def test_a_fifo_among_the_inputs_does_not_hang_the_batch(ws, capsys):
     import signal

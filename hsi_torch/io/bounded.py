@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from hsi_torch.errors import FileFormatError
-from hsi_torch.io.safety import require_regular_file, short_text
+from hsi_torch.io.safety import png_header, require_regular_file, short_text
 
 __all__ = [
     "MAX_CUBE_GB_ENV",
@@ -198,13 +198,11 @@ def declared_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     shape: tuple[int, ...] | None = None
     try:
         if suffix in (".tif", ".tiff"):
-            import tifffile
+            import tifffile  # lazy: only TIFF headers need it
 
             with tifffile.TiffFile(p) as tif:
                 shape = tuple(tif.series[0].shape) if tif.series else None
         elif suffix == ".png":
-            from hsi_torch.io.safety import png_header
-
             (h, w, c), _ = png_header(p)
             shape = (h, w) if c == 1 else (h, w, c)
         elif suffix == ".npy":

@@ -330,7 +330,7 @@ def _stored_metadata(p: Path) -> dict[str, Any]:
     suffix = p.suffix.lower()
     try:
         if suffix in (".tif", ".tiff"):
-            import tifffile
+            import tifffile  # lazy: only TIFF metadata needs it
 
             with tifffile.TiffFile(p) as tif:
                 text = tif.pages[0].description if len(tif.pages) else ""

@@ -38,7 +38,7 @@ import torch
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
-from hsi_torch.io.bounded import require_npz
+from hsi_torch.io.bounded import declared_image_size, require_npz
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
@@ -626,6 +626,8 @@ def read_any(
             raise ValueError(f"sources[{key!r}] = {src!r} is not one of {SETTING_SOURCES}")
 
     if suffix in RAW_SUFFIXES:
+        if expected_size is not None:  # LibRaw's size from the header, before unpacking
+            _check_size(p, declared_image_size(p) or (), expected_size)
         raw = load_raw(p, demosaic=None, dtype=torch.float64)
         shape = (raw.mosaic.shape[-2], raw.mosaic.shape[-1])
         stored = raw.mosaic + _level_map(raw.black_level, "bayer", shape, p, "black_level")

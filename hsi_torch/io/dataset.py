@@ -618,7 +618,7 @@ def _put(path: Path, data: bytes, fsync: bool = True) -> None:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    obj = json.loads(path.read_text(encoding="utf-8"))
+    obj = read_json_bounded(path, "store metadata")  # a regular file, bounded size and depth
     if not isinstance(obj, dict):
         raise ValueError(f"{path}: not a JSON object")
     return obj
