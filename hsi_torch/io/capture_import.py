@@ -488,11 +488,13 @@ def import_captures(
         e.update(r.settings)
         e["sheet_row"] = r.where
         entries.append((r, e))
-    dups = duplicate_uses([(r.file, scan_label(e.get("wavelength_nm")) if r.role == "scan"
-                            else f"scene {e['name']!r}" if r.role == "scene" else r.role)
-                           for r, e in entries])  # fmt: skip
+    uses = [(r.file, scan_label(e.get("wavelength_nm")) if r.role == "scan"
+             else f"scene {e['name']!r}" if r.role == "scene" else r.role)
+            for r, e in entries]  # fmt: skip
+    dups = duplicate_uses([u for u in uses if not u[1].startswith("scene ")])
     if dups:  # one frame as two wavelengths or roles: before anything is written
         raise InputError("; ".join(dups))
+    warnings += [d for d in duplicate_uses(uses) if d not in dups]  # a scene that is a shot
     missing = [g for g, names in bands.items() if not names]
     repeated = {g: names for g, names in bands.items() if len(names) > 1}
     counts = {t: sum(1 for r in rows if r.role == t) for t in CAPTURE_TYPES}
@@ -715,7 +717,9 @@ def check_capture_set(
             f"{pat} in {', '.join(names[:4])}" + (" ..." if len(names) > 4 else "")
             for pat, names in patterns.items()) + " (calibrate refuses them: frames of another "
             "camera, a crop by one pixel, or a wrong cfa_pattern in the sheet or manifest)"))
-    problems += [("error", d) for d in cs.duplicate_files()]
+    dups = cs.duplicate_files()
+    problems += [("error", d) for d in dups]
+    problems += [("note", d) for d in cs.duplicate_files(scenes=True) if d not in dups]
     missing = [g for g in grid if g not in seen_bands]
     if missing:
         problems.append(("error", "no scan frame for " + ", ".join(f"{g:g}" for g in missing)

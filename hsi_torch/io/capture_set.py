@@ -261,20 +261,21 @@ class CaptureSet:
         if dups:
             raise FileFormatError(f"captures folder {self.root}: " + "; ".join(dups))
 
-    def uses(self) -> list[tuple[Path, str]]:
-        """Every capture with what it is used as: ``(file, "scan frame at 550 nm" | "white" |
-        "grid" | "dark" | "scene 'name'")``."""
+    def uses(self, scenes: bool = False) -> list[tuple[Path, str]]:
+        """Every calibration capture (and with ``scenes``, every scene) with what it is used
+        as: ``(file, "scan frame at 550 nm" | "white" | "grid" | "dark" | "scene 'name'")``."""
         out = [(p, scan_label(lam if lam is not None else wavelength_from_name(p.name)))
                for p, lam in self.scan]  # fmt: skip
         for role in ("white", "grid", "dark"):
             out += [(p, role) for p in getattr(self, role)]
-        return out + [(p, f"scene {n!r}") for n, p in self.scenes.items()]
+        return out + ([(p, f"scene {n!r}") for n, p in self.scenes.items()] if scenes else [])
 
-    def duplicate_files(self) -> list[str]:
-        """One file used as two things — two roles, or scan frames at two wavelengths — found by
-        resolved path and by the bytes (a copy counts): one message per file, naming both uses
-        (:func:`duplicate_uses`). Empty when there is none."""
-        return duplicate_uses(self.uses())
+    def duplicate_files(self, scenes: bool = False) -> list[str]:
+        """One calibration capture used as two things — two roles, or scan frames at two
+        wavelengths — found by resolved path and by the bytes (a copy counts): one message per
+        file, naming both uses (:func:`duplicate_uses`); ``scenes``: the scenes too. Empty when
+        there is none."""
+        return duplicate_uses(self.uses(scenes))
 
     def read(self, path: str | Path, **kwargs: Any) -> Any:
         """:func:`hsi_torch.io.read_any` of one of the set's captures with the manifest's settings
