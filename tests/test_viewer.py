@@ -280,7 +280,7 @@ def test_screenshot_over_a_viewed_cube_is_refused_before_napari_starts(tmp_path,
 
 def test_a_small_file_declaring_a_huge_cube_is_refused_before_decoding(tmp_path, monkeypatch):
     """A 40 kB NPZ of zeros that inflates to 36 MB; the cap made 10 MiB to show the bound (by
-    default 4 GiB, $HSI_TORCH_MAX_CUBE_GB): nothing is decoded, the message names the file."""
+    default 1 GiB, $HSI_TORCH_MAX_CUBE_GB): nothing is decoded, the message names the file."""
     np.savez_compressed(tmp_path / "bomb.npz", cube=np.zeros((25, 600, 600), np.float32),
                         wavelengths_nm=WL)  # fmt: skip
     assert (tmp_path / "bomb.npz").stat().st_size < 100_000

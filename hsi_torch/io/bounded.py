@@ -46,8 +46,9 @@ __all__ = [
 
 #: Environment variable: the largest decoded cube a reader accepts (GiB).
 MAX_CUBE_GB_ENV = "HSI_TORCH_MAX_CUBE_GB"
-#: Default of :data:`MAX_CUBE_GB_ENV` (a full-size 25-band float32 cube is about 0.5 GiB).
-DEFAULT_MAX_CUBE_GB = 4.0
+#: Default of :data:`MAX_CUBE_GB_ENV`: twice a full-size 25-band float32 cube (0.47 GiB); the
+#: viewer holds about 4.5 times the cube at its peak (the band stack, the sRGB composite).
+DEFAULT_MAX_CUBE_GB = 1.0
 #: Largest metadata JSON file read (``.zmetadata``, ``.zattrs``, sidecars), bytes.
 MAX_JSON_BYTES = 64 << 20
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")

@@ -541,7 +541,7 @@ def load_cube(
         wavelengths: ``(M,)`` nm, required only for files that do not carry them.
         device: device of the returned tensors.
         max_bytes: the largest decoded cube accepted (default
-            :func:`~hsi_torch.io.bounded.max_cube_bytes`: ``$HSI_TORCH_MAX_CUBE_GB``, 4 GiB).
+            :func:`~hsi_torch.io.bounded.max_cube_bytes`: ``$HSI_TORCH_MAX_CUBE_GB``, 1 GiB).
 
     Returns:
         :class:`Cube` (float32 cube ``(M, H, W)``, float64 wavelengths in nm, bool valid
