@@ -12,6 +12,11 @@
 * the **sRGB composite** ``(h, w, 3)`` (``(F, h, w, 3)``; CIE 1931, D65, 99.5th percentile of
   luminance as white, :func:`~hsi_torch.colour.cube_to_srgb`), black where not valid.
 
+A file is decoded only after the size it declares is checked against
+``$HSI_TORCH_MAX_CUBE_GB`` (:mod:`hsi_torch.io.bounded`; a run store's files must also be regular
+files, its metadata bounded), so a small compressed file cannot make the viewer allocate
+gigabytes.
+
 :func:`spectrum_at` returns the spectrum (and σ) under a point, refusing points outside the valid
 mask. The napari side (reader, dock widget) is :mod:`hsi_torch.viewer.plugin`.
 """
