@@ -544,9 +544,8 @@ def test_a_sheet_wavelength_that_contradicts_the_file_name_is_refused(tmp_path: 
     """Scan frames named by their wavelength (``mono_550nm.png``) with a sheet one band off
     (550 for ``mono_540nm.png``, …): refused naming the line and both values. Before the fix the
     sheet won in silence: calibration exited 0, B 42 % off, the ColorChecker 5.6 dB lower."""
-    m = np.full((24, 26), 1000, np.uint16)
-    for lam in (540, 550):
-        cv2.imwrite(str(tmp_path / f"mono_{lam}nm.png"), m)
+    for lam in (540, 550):  # two frames (distinct: one frame at two wavelengths is refused)
+        cv2.imwrite(str(tmp_path / f"mono_{lam}nm.png"), np.full((24, 26), 500 + lam, np.uint16))
     sheet = tmp_path / "s.csv"
     sheet.write_text("file,role,wavelength_nm\nmono_540nm.png,scan,540\n"
                      "mono_550nm.png,scan,560\n")  # fmt: skip
