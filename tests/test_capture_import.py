@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -82,7 +83,8 @@ def _lab_folder(sim: Path, lab: Path) -> Path:
                           white_level=WHITE, exposure_s=0.5, **cam)  # fmt: skip
                 rows.append(["Monochromator/frame_550_again.dng", "scan", "550", "", "", "", ""])
             if lam == 670:  # and went on past the grid
-                write_dng(lab / "Monochromator/frame_700.dng", m, black_level=BLACK,
+                write_dng(lab / "Monochromator/frame_700.dng", np.minimum(m + 1, WHITE),
+                          black_level=BLACK,
                           white_level=WHITE, exposure_s=0.5, **cam)  # fmt: skip
                 rows.append(["Monochromator/frame_700.dng", "scan", "700", "", "", "", ""])
         elif e["type"] in ("white", "dark"):
@@ -213,11 +215,11 @@ def test_sheet_errors_name_the_line_and_column(tmp_path: Path):
 def test_patterns_and_a_plain_png_folder(tmp_path: Path, capsys):
     """Name patterns with {nm}; a folder of 16-bit PNGs in scan/ (no manifest) is found."""
     m = (np.arange(24 * 26).reshape(24, 26) % 4000 + 600).astype(np.uint16)
-    for lam in (430, 440, 440.5, 800):
+    for k, lam in enumerate((430, 440, 440.5, 800)):  # distinct frames (one frame is one thing)
         f = tmp_path / "lab/mono" / f"m_{lam:g}nm.png".replace(".5", "p5")
         f.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(f), m)
-    cv2.imwrite(str(tmp_path / "lab/w.png"), m)
+        cv2.imwrite(str(f), m + k)
+    cv2.imwrite(str(tmp_path / "lab/w.png"), m + 9)
     rows = rows_from_patterns({"scan": ["lab/mono/m_{nm}nm.png"], "white": ["lab/w.png"]},
                               base=tmp_path)  # fmt: skip
     assert sorted(r.wavelength_nm for r in rows if r.role == "scan") == [430, 440, 440.5, 800]
@@ -233,10 +235,12 @@ def test_patterns_and_a_plain_png_folder(tmp_path: Path, capsys):
     plain = tmp_path / "plain"
     for lam in range(430, 680, 10):
         (plain / "scan").mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(plain / "scan" / f"scan_{lam}nm.png"), m)
-    for d in ("white", "grid"):
+        img = m.copy()
+        img[-1, -1] = lam
+        cv2.imwrite(str(plain / "scan" / f"scan_{lam}nm.png"), img)
+    for k, d in enumerate(("white", "grid")):
         (plain / d).mkdir()
-        cv2.imwrite(str(plain / d / "x.png"), m)
+        cv2.imwrite(str(plain / d / "x.png"), m + 20 + k)
     cs = read_capture_set(plain)
     cs.require_calibration_captures()  # was: "no monochromator scan captures"
     assert len(cs.scan) == 25
@@ -379,9 +383,9 @@ def test_read_any_metadata_contract(tmp_path: Path):
 
 def test_check_exits_1_when_calibration_would_refuse(tmp_path: Path, capsys):
     m = (np.arange(30 * 32).reshape(30, 32) % 4000 + 600).astype(np.uint16)
-    for f in ("mono/s_430nm.png", "mono/s_700nm.png", "w/w.png"):
+    for k, f in enumerate(("mono/s_430nm.png", "mono/s_700nm.png", "w/w.png")):
         (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(tmp_path / f), m)
+        cv2.imwrite(str(tmp_path / f), m + k)
     (tmp_path / "sheet.csv").write_text("file,role,cfa_pattern\nmono/s_430nm.png,scan,RGGB\n"
                                         "mono/s_700nm.png,scan,RGGB\nw/w.png,white,RGGB\n")
     assert main(["captures", "import", "--sheet", str(tmp_path / "sheet.csv"),
@@ -540,9 +544,8 @@ def test_a_sheet_wavelength_that_contradicts_the_file_name_is_refused(tmp_path: 
     """Scan frames named by their wavelength (``mono_550nm.png``) with a sheet one band off
     (550 for ``mono_540nm.png``, …): refused naming the line and both values. Before the fix the
     sheet won in silence: calibration exited 0, B 42 % off, the ColorChecker 5.6 dB lower."""
-    m = np.full((24, 26), 1000, np.uint16)
-    for lam in (540, 550):
-        cv2.imwrite(str(tmp_path / f"mono_{lam}nm.png"), m)
+    for lam in (540, 550):  # two frames (distinct: one frame at two wavelengths is refused)
+        cv2.imwrite(str(tmp_path / f"mono_{lam}nm.png"), np.full((24, 26), 500 + lam, np.uint16))
     sheet = tmp_path / "s.csv"
     sheet.write_text("file,role,wavelength_nm\nmono_540nm.png,scan,540\n"
                      "mono_550nm.png,scan,560\n")  # fmt: skip
@@ -582,16 +585,25 @@ def test_dark_frames_of_different_exposures_are_averaged_with_a_warning(sim: Pat
 
 
 def test_a_repeated_scan_frame_of_another_wavelength_is_warned_about(sim: Path, tmp_path: Path):
-    """The 560 nm frame listed a second time as 550 nm (a slip in the sheet): the two frames of
-    "550 nm" are averaged, but their patterns differ by ~33 % (noise: < 1 %), and calibration
-    says so, naming both (before: averaged in silence, B 3.7 % off)."""
+    """A second take of the 560 nm frame listed as 550 nm (a slip in the sheet; the same file or
+    a byte copy is refused by the import, see
+    test_one_file_at_two_wavelengths_or_in_two_roles_is_refused): the two frames of "550 nm"
+    are averaged, but their patterns differ by ~33 % (noise: < 1 %), and calibration says so,
+    naming both (before: averaged in silence, B 3.7 % off)."""
+    import rawpy
+
     lab = tmp_path / "lab"
     sheet = _lab_folder(sim, lab)
     rows = list(csv.reader(sheet.open()))
     r560 = next(r for r in rows if r[1] == "scan" and r[2] == "560")
-    rows.append([r560[0], "scan", "550", "", "", "", ""])
+    with rawpy.imread(str(lab / r560[0])) as raw:
+        m = raw.raw_image_visible.astype(np.float64)
+    m[0, 0] = min(m[0, 0] + 1, WHITE)  # another take: not the same bytes
+    write_dng(lab / "Monochromator/retake_560.dng", m, black_level=BLACK, white_level=WHITE,
+              exposure_s=0.5, make="Lab Optics", model="KaleidoCam 1")  # fmt: skip
+    rows.append(["Monochromator/retake_560.dng", "scan", "550", "", "", "", ""])
     capset = _import_sheet(sheet, rows, tmp_path / "capset")
-    with pytest.warns(UserWarning, match=rf"scan: {Path(r560[0]).name} differs from "
+    with pytest.warns(UserWarning, match=r"scan: retake_560\.dng differs from "
                       r"frame_\d+\.dng, the frame of the same wavelength it is averaged with, "
                       r"by [23]\d % RMS") as rec:  # fmt: skip
         _, report = calibrate_capture_set(capset, progress=False)
@@ -755,3 +767,102 @@ def test_clean_sets_pass_the_per_role_pedestal_check_with_stray_light(sim: Path,
     assert max(map(worst, groups.values())) < 0.3
     assert max(groups["white"]["pedestal_dn"]) > 20  # the veil is there, and passes
     assert max(map(abs, groups["scan"]["pedestal_dn"])) < 5
+
+
+# ---------------------------------------------------------------------------------------------
+# one frame as two things; sheets; what `captures check` finds before calibrate
+
+
+def _png_set(folder: Path, names: list[str], size: tuple[int, int] = (30, 32)) -> None:
+    """16-bit grey PNGs of distinct content, one per name."""
+    for k, name in enumerate(names):
+        m = ((np.arange(size[0] * size[1]).reshape(size) * (k + 3)) % 4000 + 600)
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        assert cv2.imwrite(str(folder / name), m.astype(np.uint16))
+
+
+def _tiny_layout(path: Path, size: tuple[int, int] = (30, 32)) -> Path:
+    path.write_text(json.dumps({"schema_version": 1, "sensor_size": list(size),
+                                "triangles_px": [[[1, 1], [20, 1], [1, 20]]], "parity": [1],
+                                "reference_bbox": [0, 0, 16, 16]}))  # fmt: skip
+    return path
+
+
+def test_one_file_at_two_wavelengths_or_in_two_roles_is_refused(tmp_path: Path, capsys):
+    """The 550 nm frame's file listed again at 560 nm (a copied sheet cell), a byte copy of it
+    at 560 nm, or one file as white and dark: the import refuses naming both uses (before:
+    "25 of 25 bands", and B(560) = B(550), 31.8 % off); a hand-written manifest that does it
+    is refused by `captures check` (exit 1) and by calibration."""
+    _png_set(tmp_path, ["m/a.png", "m/b.png", "w.png", "g.png", "d.png"])
+    head = "file,role,wavelength_nm,cfa_pattern\n"
+    base = "m/a.png,scan,550,RGGB\nw.png,white,,RGGB\ng.png,grid,,RGGB\n"
+    shutil.copy(tmp_path / "m/a.png", tmp_path / "m/copy.png")
+    for extra, match in (
+        ("m/a.png,scan,560,RGGB\n", r"a\.png is used as scan frame at 550 nm and as "
+                                          r"scan frame at 560 nm"),
+        ("m/copy.png,scan,560,RGGB\n", r"a\.png, .*copy\.png hold the same bytes and are "
+                                       r"used as scan frame at 550 nm and as scan frame at 560"),
+        ("w.png,dark,,RGGB\n", r"w\.png is used as white and as dark"),
+    ):  # fmt: skip
+        (tmp_path / "sheet.csv").write_text(head + base + extra)
+        out = tmp_path / "set"
+        assert main(["captures", "import", "--sheet", str(tmp_path / "sheet.csv"),
+                     "--out", str(out)]) == 1  # fmt: skip
+        assert re.search(match, capsys.readouterr().err)
+        assert not out.exists()  # nothing written
+    # a manifest written by hand, past the import
+    hand = tmp_path / "hand"
+    _png_set(hand, ["s_550nm.png", "w.png", "g.png"])
+    (hand / "manifest.json").write_text(json.dumps({"schema_version": 1, "cfa_pattern": "RGGB",
+        "captures": [{"file": "s_550nm.png", "type": "scan", "wavelength_nm": 550},
+                     {"file": "s_550nm.png", "type": "scan", "wavelength_nm": 560},
+                     {"file": "w.png", "type": "white"}, {"file": "g.png", "type": "grid"}]}))
+    assert main(["captures", "check", str(hand)]) == 1
+    cap = capsys.readouterr()
+    assert "error: " in cap.err and "scan frame at 550 nm and as scan frame at 560 nm" in cap.err
+    assert cap.out.count("s_550nm.png") >= 2  # the per-file table, both rows
+    with pytest.raises(FileFormatError, match="scan frame at 550 nm and as scan frame at 560"):
+        read_capture_set(hand).require_calibration_captures()
+
+
+def test_sheet_separators_line_breaks_and_repeated_lines(tmp_path: Path):
+    _png_set(tmp_path, ["s_550nm.png", "chart.png"])
+    sheet = tmp_path / "sheet.csv"
+    sheet.write_text("file;role;wavelength_nm\ns_550nm.png;scan;550\n")
+    with pytest.raises(FileFormatError, match=r"sheet.csv: the header 'file;role;wavelength_nm' "
+                       r"is separated by semicolons \(';'\); a capture sheet is comma-separated"):
+        read_sheet(sheet)
+    # a quoted cell over two lines keeps its line break; the line numbers stay those of the file
+    sheet.write_text('file,role,name\nchart.png,scene,"chart\nsecond line"\ns_550nm.png,scan,\n'
+                     "s_550nm.png,scan,\n")
+    with pytest.raises(FileFormatError, match=r"sheet.csv:5: the same line as .*sheet.csv:4"):
+        read_sheet(sheet)
+    sheet.write_text('file,role,name\nchart.png,scene,"chart\nsecond line"\ns_550nm.png,scan,\n')
+    rows = read_sheet(sheet)
+    assert rows[0].name == "chart\nsecond line" and rows[1].where.endswith("sheet.csv:4")
+
+
+def test_check_lists_every_file_and_finds_what_calibrate_refuses(tmp_path: Path, capsys):
+    """Two grid shots of the wrong size: both named, every other file still in the table (before:
+    `check` stopped at the first with no table); calibration captures that mix Bayer patterns:
+    exit 1 naming both (before: refused only by calibrate)."""
+    _png_set(tmp_path, ["s_430nm.png", "w.png", "d.png"])
+    _png_set(tmp_path, ["g1.png", "g2.png"], size=(30, 34))
+    _tiny_layout(tmp_path / "layout.json")
+    (tmp_path / "sheet.csv").write_text(
+        "file,role,cfa_pattern\ns_430nm.png,scan,RGGB\nw.png,white,GRBG\ng1.png,grid,RGGB\n"
+        "g2.png,grid,RGGB\nd.png,dark,RGGB\n")  # fmt: skip
+    assert main(["captures", "import", "--sheet", str(tmp_path / "sheet.csv"), "--layout",
+                 str(tmp_path / "layout.json"), "--out", str(tmp_path / "set")]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["captures", "check", str(tmp_path / "set")]) == 1
+    cap = capsys.readouterr()
+    table = [line for line in cap.out.splitlines() if not line.startswith("note:")]
+    for name in ("s_430nm.png", "w.png", "g1.png", "g2.png", "d.png"):
+        assert sum(name in line for line in table) == 1, name
+    assert sum("REFUSED" in line and "30x34" in line for line in table) == 2
+    for g in ("g1.png", "g2.png"):
+        assert re.search(rf"error: .*{g}: image size \(H, W\) = \(30, 34\) does not match the "
+                         r"expected sensor size \(30, 32\)", cap.err)
+    assert re.search(r"error: the calibration captures mix Bayer patterns: RGGB in s_430nm.png, "
+                     r"d.png; GRBG in w.png", cap.err)

@@ -35,13 +35,12 @@ LAYOUT = {
 
 
 def _write_set(root: Path) -> list[dict]:
-    img = np.full((3, H, W), 100, np.uint16)
     entries = []
-    for file, typ, extra in (("scan/scan_550nm.tif", "scan", {"wavelength_nm": 550.0}),
-                             ("white/white_00.tif", "white", {}),
-                             ("grid/grid_00.tif", "grid", {}),
-                             ("dark/dark_00.tif", "dark", {}),
-                             ("scenes/cc.tif", "scene", {"name": "cc"})):  # fmt: skip
+    for k, (file, typ, extra) in enumerate((
+            ("scan/scan_550nm.tif", "scan", {"wavelength_nm": 550.0}),
+            ("white/white_00.tif", "white", {}), ("grid/grid_00.tif", "grid", {}),
+            ("dark/dark_00.tif", "dark", {}), ("scenes/cc.tif", "scene", {"name": "cc"}))):
+        img = np.full((3, H, W), 100 + k, np.uint16)  # one frame is one thing: distinct
         write_capture(root / file, img, {"kind": "rgb"})
         entries.append({"file": file, "type": typ, "exposure": 0.5, **extra})
     mask = np.zeros((H, W), bool)
@@ -129,3 +128,27 @@ def test_bad_layouts_name_the_key(tmp_path: Path, key, value, match):
     p.write_text(json.dumps({k: v for k, v in LAYOUT.items() if k != "sensor_size"}))
     with pytest.raises(FileFormatError, match="missing key 'sensor_size'"):
         read_nominal_layout(p)
+
+
+@pytest.mark.parametrize("root", ["../elsewhere", "ABS", "link"])
+def test_files_root_outside_the_set_is_refused_unless_allowed(tmp_path: Path, root: str):
+    """``files_root`` used to let a manifest read (and record in its bundle) files anywhere:
+    ``../x``, an absolute path or a symlink out of the folder is refused naming the key, unless
+    the manifest says ``allow_files_outside``; a files_root inside the folder still works."""
+    elsewhere = tmp_path / "elsewhere"
+    entries = _write_set(elsewhere)
+    s = tmp_path / "set"
+    s.mkdir()
+    (s / "link").symlink_to(elsewhere)
+    value = str(elsewhere) if root == "ABS" else root
+    m = {"schema_version": 1, "files_root": value, "captures": entries}
+    (s / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(FileFormatError, match=r"manifest.json: files_root .* points outside the "
+                       r"capture set's folder .*allow_files_outside"):
+        read_capture_set(s)
+    (s / "manifest.json").write_text(json.dumps({**m, "allow_files_outside": True}))
+    assert read_capture_set(s).white == [s / value / "white/white_00.tif"]
+    inner = s / "inner"
+    _write_set(inner)
+    (s / "manifest.json").write_text(json.dumps({**m, "files_root": "inner"}))
+    assert read_capture_set(s).white == [inner / "white/white_00.tif"]

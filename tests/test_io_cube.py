@@ -147,3 +147,86 @@ def test_atomic_write_leaves_nothing_on_error(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert (tmp_path / "n.npz").stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's 0600
+
+
+def _npz_declaring(path, shape, dtype="<f4"):
+    """An NPZ whose ``cube`` member's header declares ``shape`` but holds a few bytes only (what
+    a compressed file of zeros inflates to, without writing gigabytes here)."""
+    import io
+    import zipfile
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": dtype, "fortran_order": False,
+                                                "shape": tuple(shape)})  # fmt: skip
+    wl = io.BytesIO()
+    np.save(wl, WL)
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("cube.npy", head.getvalue() + b"\0" * 64)
+        z.writestr("wavelengths_nm.npy", wl.getvalue())
+    return path
+
+
+def test_npz_cube_declaring_gigabytes_is_refused_before_decoding(tmp_path, monkeypatch):
+    bomb = _npz_declaring(tmp_path / "bomb.npz", (25, 20000, 20000))  # 37 GiB declared
+    assert bomb.stat().st_size < 10_000
+    with pytest.raises(FileFormatError, match=r"bomb.npz.*\(25, 20000, 20000\).*37.25 GiB.*"
+                       r"HSI_TORCH_MAX_CUBE_GB"):
+        load_cube(bomb)
+    # the cap is the caller's to raise, or the environment's
+    path = tmp_path / "c.npz"
+    save_cube(path, np.zeros((25, 64, 64), np.float32), WL)  # 400 kB
+    with pytest.raises(FileFormatError, match="c.npz.*0.00 GiB"):
+        load_cube(path, max_bytes=100_000)
+    monkeypatch.setenv("HSI_TORCH_MAX_CUBE_GB", "0.0001")
+    with pytest.raises(FileFormatError, match="c.npz"):
+        load_cube(path)
+    assert load_cube(path, max_bytes=1 << 20).cube.shape == (25, 64, 64)
+    for bad in ("inf", "nan", "-1", "lots"):
+        monkeypatch.setenv("HSI_TORCH_MAX_CUBE_GB", bad)
+        with pytest.raises(ValueError, match="HSI_TORCH_MAX_CUBE_GB"):
+            load_cube(path)
+
+
+@pytest.mark.parametrize("fmt", [".tif", ".hdr"])
+def test_tiff_and_envi_cubes_are_bounded_by_their_headers(tmp_path, monkeypatch, fmt):
+    save_cube(tmp_path / f"c{fmt}", np.zeros((25, 64, 64), np.float32), WL)
+    monkeypatch.setenv("HSI_TORCH_MAX_CUBE_GB", "0.0001")  # 105 kB < the 410 kB cube
+    with pytest.raises(FileFormatError, match=r"c\.(tif|hdr).*\(25, 64, 64\) float32"):
+        load_cube(tmp_path / f"c{fmt}")
+
+
+def test_a_file_named_npz_that_is_not_one_says_so(tmp_path):
+    (tmp_path / "notes.npz").write_text("just text\n")
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    os.replace(tmp_path / "array.npy", tmp_path / "array.npz")
+    for name, what in (("notes.npz", "starts with b'just'"), ("array.npz", "an NPY array")):
+        with pytest.raises(FileFormatError, match=f"{name}: not an NPZ file") as e:
+            load_cube(tmp_path / name)
+        assert what in str(e.value) and "allow_pickle" not in str(e.value)
+
+
+def test_envi_header_that_describes_another_cube_is_refused(tmp_path, cube_and_valid):
+    cube, _ = cube_and_valid  # (25, 6, 8)
+    save_cube(tmp_path / "c.hdr", cube, WL)
+    hdr = (tmp_path / "c.hdr").read_text()
+    img = (tmp_path / "c.img").read_bytes()
+    # a data file larger than its header says (another cube's, or appended bytes)
+    (tmp_path / "c.img").write_bytes(img + img[: 6 * 8 * 4])
+    with pytest.raises(FileFormatError, match=r"c.img.*holds 4992 bytes.*declares 4800 .*"
+                       "another cube"):
+        load_cube(tmp_path / "c.hdr")
+    (tmp_path / "c.img").write_bytes(img)
+    for key, lie in (("bands = 25", "bands = 24"), ("samples = 8", "samples = 4"),
+                     ("data type = 4", "data type = 5"), ("lines = 6", "lines = 3")):
+        (tmp_path / "c.hdr").write_text(hdr.replace(key, lie))
+        with pytest.raises(FileFormatError, match=r"c\.(img|hdr)"):
+            load_cube(tmp_path / "c.hdr")
+    # bands and the data file agree, the wavelength list does not
+    cut = np.ascontiguousarray(cube[:24])
+    save_cube(tmp_path / "d.hdr", cut, WL[:24])
+    (tmp_path / "d.hdr").write_text((tmp_path / "d.hdr").read_text().replace(
+        "wavelength = {", "wavelength = {420, "))
+    with pytest.raises(FileFormatError, match="d.hdr.*25 values of 'wavelength' for 24 bands"):
+        load_cube(tmp_path / "d.hdr")
+    (tmp_path / "c.hdr").write_text(hdr)
+    assert_close(load_cube(tmp_path / "c.hdr").cube, torch.from_numpy(cube))

@@ -505,6 +505,118 @@ def test_a_fifo_is_refused_before_opening(tmp_path):
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_an_npy_metadata_sidecar_must_be_a_regular_file(tmp_path):
+    """The NPY capture's ``x.npy.json`` used to be opened as it was: a FIFO hung the batch,
+    ``/dev/zero`` raised a MemoryError with an empty message."""
+    import signal
+
+    from hsi_torch.io import read_any
+
+    np.save(tmp_path / "x.npy", np.full((8, 8), 100, np.uint16))
+    side = tmp_path / "x.npy.json"
+    os.mkfifo(side)
+    _alarm(10)
+    try:
+        with pytest.raises(HSIError, match=r"x\.npy\.json: is a FIFO"):
+            read_any(tmp_path / "x.npy", cfa_pattern="RGGB")
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+    side.unlink()
+    side.symlink_to("/dev/zero")
+    with pytest.raises(HSIError, match=r"x\.npy\.json: is a character device"):
+        read_any(tmp_path / "x.npy", cfa_pattern="RGGB")
+    side.unlink()
+    side.write_text('{"cfa_pattern": "GRBG"}')
+    assert read_any(tmp_path / "x.npy").metadata["cfa_pattern"] == "GRBG"
+
+
+@pytest.mark.parametrize("dtype, value", [(np.uint64, 2**63 + 5), (np.int64, 2**52)])
+def test_64_bit_integer_captures_are_bounded_like_float_ones(tmp_path, dtype, value):
+    """int64/uint64 samples beyond 2^50 gave cubes of ~1e17 (a uint64 beyond 2^63 wrapped when
+    shifted); they are refused as float ones are. A 64-bit file of sensor counts still reads."""
+    from hsi_torch.io import read_any
+
+    a = np.full((8, 8), 1000, dtype)
+    a[3, 4] = value
+    np.save(tmp_path / "big.npy", a)
+    with pytest.raises(HSIError, match=r"big\.npy: image values reach .*2\^50"):
+        read_any(tmp_path / "big.npy", cfa_pattern="RGGB")
+    a[3, 4] = 2**16
+    np.save(tmp_path / "ok.npy", a)
+    assert float(read_any(tmp_path / "ok.npy", cfa_pattern="RGGB").image.max()) == 2**16
+
+
+def test_a_file_named_npz_that_is_not_an_npz_capture_says_so(tmp_path):
+    from hsi_torch.io import read_any
+
+    (tmp_path / "shot.npz").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)
+    with pytest.raises(HSIError, match=r"shot\.npz: not an NPZ file") as e:
+        read_any(tmp_path / "shot.npz", cfa_pattern="RGGB")
+    assert "allow_pickle" not in str(e.value)
+
+
+@pytest.fixture
+def no_tiff_decoding(monkeypatch):
+    """Any TIFF pixel decoding fails the test: what is checked must be checked from headers."""
+    import tifffile
+
+    def refuse(*_a, **_k):
+        raise AssertionError("a TIFF was decoded")
+
+    for cls in (tifffile.TiffFile, tifffile.TiffPage, tifffile.TiffPageSeries):
+        monkeypatch.setattr(cls, "asarray", refuse)
+
+
+def test_layout_white_shot_of_another_size_is_refused_from_its_header(tmp_path, capsys,
+                                                                      no_tiff_decoding):
+    """A 140 kB zlib TIFF that inflates to 32 MB (the trial's 0.5 MB one: 2 GB) given as
+    ``layout --white``: refused from its header against the design camera, nothing decoded."""
+    import tifffile
+
+    big = tmp_path / "white.tif"
+    tifffile.imwrite(big, np.zeros((4000, 4000), np.uint16), compression="zlib")
+    assert big.stat().st_size < 1 << 20
+    rc = main(["layout", "--white", str(big), "--out", str(tmp_path / "lay.json")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "white.tif: shot size (H, W) = (4000, 4000) differs from the design " in err
+    assert "decoded" not in err and not (tmp_path / "lay.json").exists()
+
+
+def test_captures_import_reads_no_pixel(tmp_path, no_tiff_decoding):
+    """The import takes a scan frame's wavelength from the file's metadata only (before, the
+    whole image was decoded, with no expected size: a small zlib TIFF inflated to 1.7 GB)."""
+    import tifffile
+
+    from hsi_torch.io.capture_import import import_captures, read_sheet
+
+    for name, lam in (("a.tif", 430.0), ("b.tif", 440.0)):
+        tifffile.imwrite(tmp_path / name, np.full((40, 40), int(lam), np.uint16),
+                         compression="zlib", metadata=None,
+                         description=json.dumps({"wavelength_nm": lam, "kind": "bayer"}))
+    (tmp_path / "sheet.csv").write_text("file,role\na.tif,scan\nb.tif,scan\n")
+    rep = import_captures(read_sheet(tmp_path / "sheet.csv"), tmp_path / "set")
+    assert rep.bands[430.0] == ["a.tif"] and rep.bands[440.0] == ["b.tif"]
+
+
+def test_a_raw_of_another_size_is_refused_before_libraw_unpacks_it(tmp_path, monkeypatch):
+    import rawpy
+
+    from hsi_torch.io import read_any
+    from hsi_torch.testing import write_dng
+
+    f = write_dng(tmp_path / "big.dng", np.full((64, 96), 600, np.uint16), black_level=512,
+                  white_level=4095)  # fmt: skip
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the RAW was unpacked")
+
+    monkeypatch.setattr(rawpy, "imread", refuse)  # (load_raw's way in: open and unpack)
+    with pytest.raises(HSIError, match=r"big\.dng: image size \(H, W\) = \(64, 96\) does not "
+                       r"match the expected sensor size \(30, 32\)"):
+        read_any(f, expected_size=(30, 32))
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
 def test_a_fifo_among_the_inputs_does_not_hang_the_batch(ws, capsys):
     import signal
 

@@ -276,3 +276,73 @@ def test_screenshot_over_a_viewed_cube_is_refused_before_napari_starts(tmp_path,
         assert cli.main(["view", str(cube), "--screenshot", str(target)]) == 1
         assert "is an input of this command" in capsys.readouterr().err
     assert cube.read_bytes() == b"a cube"
+
+
+def test_a_small_file_declaring_a_huge_cube_is_refused_before_decoding(tmp_path, monkeypatch):
+    """A 40 kB NPZ of zeros that inflates to 36 MB; the cap made 10 MiB to show the bound (by
+    default 1 GiB, $HSI_TORCH_MAX_CUBE_GB): nothing is decoded, the message names the file."""
+    np.savez_compressed(tmp_path / "bomb.npz", cube=np.zeros((25, 600, 600), np.float32),
+                        wavelengths_nm=WL)  # fmt: skip
+    assert (tmp_path / "bomb.npz").stat().st_size < 100_000
+    monkeypatch.setenv("HSI_TORCH_MAX_CUBE_GB", str(10 / 1024))
+    decoded = []
+    real = np.lib.format.read_array
+    monkeypatch.setattr(np.lib.format, "read_array",
+                        lambda f, *a, **k: decoded.append(real(f, *a, **k)) or decoded[-1])
+    with pytest.raises(Exception, match=r"bomb.npz.*\(25, 600, 600\) float32.*0.03 GiB.*0.01 GiB"):
+        read_layers(tmp_path / "bomb.npz")
+    assert not any(a.size > 1000 for a in decoded)  # nothing large decoded (the headers only)
+
+
+def _run_store(tmp_path: Path) -> Path:
+    from hsi_torch.io.dataset import CubeDataset, write_frame
+
+    cube, valid, _ = _cube()
+    store = tmp_path / "cubes.zarr"
+    with CubeDataset.open(store, [tmp_path / "a.tif"], WL, cube.shape[1:]) as ds:
+        idx = ds.index[os.path.abspath(tmp_path / "a.tif")]
+    write_frame(store, idx, cube, valid, {"n": 0})
+    return store
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_run_store_with_a_fifo_device_or_bomb_inside_is_refused(tmp_path):
+    """A FIFO chunk used to hang the viewer, a /dev/zero chunk to fill the memory, a deeply
+    nested .zmetadata to raise RecursionError: each is refused naming the file."""
+    pytest.importorskip("xarray")
+    pytest.importorskip("zarr")
+    import signal
+
+    from hsi_torch.errors import FileFormatError
+
+    def timeout(*_):
+        raise TimeoutError("the reader blocked")
+
+    old = signal.signal(signal.SIGALRM, timeout)
+    try:
+        store = _run_store(tmp_path)
+        chunk = store / "cube" / "0.0.0.0"
+        saved = chunk.read_bytes()
+        chunk.unlink()
+        os.mkfifo(chunk)
+        signal.alarm(20)
+        with pytest.raises(FileFormatError, match=r"cube/0\.0\.0\.0: is a FIFO"):
+            read_layers(store)
+        chunk.unlink()
+        chunk.symlink_to("/dev/zero")
+        with pytest.raises(FileFormatError, match=r"cube/0\.0\.0\.0: is a character device"):
+            read_layers(store)
+        chunk.unlink()
+        chunk.write_bytes(saved)
+        assert read_layers(store)[0][0].shape[0] == 1  # the store reads again
+        zm = store / ".zmetadata"
+        zm.write_text("[" * 200_000 + "]" * 200_000)
+        with pytest.raises(FileFormatError, match=r"\.zmetadata.*nested too deeply"):
+            read_layers(store)
+        zm.unlink()
+        os.mkfifo(zm)
+        with pytest.raises(FileFormatError, match=r"\.zmetadata: is a FIFO"):
+            read_layers(store)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)

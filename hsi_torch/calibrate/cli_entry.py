@@ -227,6 +227,7 @@ def run_layout(args: argparse.Namespace) -> int:
         check_not_input,
         replace_then_commit,
     )
+    from hsi_torch.io.bounded import declared_image_size
     from hsi_torch.io.capture_set import read_capture_set
     from hsi_torch.io.paths import check_out_dir
     from hsi_torch.resources import shipped_config
@@ -263,8 +264,16 @@ def run_layout(args: argparse.Namespace) -> int:
                         cfa_pattern=ccfg.cfa_pattern, black_level=ccfg.black_level,
                         white_level=ccfg.white_level).image  # fmt: skip
 
-    first = read(white_files[0], None)
-    size = (int(first.shape[-2]), int(first.shape[-1]))
+    # every shot's size from its header, before any pixel is decoded (a small compressed file
+    # may inflate to gigabytes): the design camera's sensor size
+    size = (int(camera.height_px), int(camera.width_px))
+    for p in [*white_files, *grid_files, *dark_files]:
+        hw = declared_image_size(p)
+        if hw is not None and hw != size:
+            raise InputError(f"{p}: shot size (H, W) = {hw} differs from the design camera's "
+                             f"{size}; give the design of this camera (camera.width_px, "
+                             "height_px, pixel_pitch_mm, focal_length_mm in the design config)")
+    first = read(white_files[0], size)
     dark = None
     if dark_files:
         dark = sum(read(p, size) for p in dark_files) / len(dark_files)

@@ -37,6 +37,8 @@ import csv
 import difflib
 import filecmp
 import glob
+import io
+import json
 import math
 import os
 import re
@@ -46,20 +48,33 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hsi_torch.console import info, warn
-from hsi_torch.errors import FileFormatError, InputError, MissingFileError
+from hsi_torch.errors import FileFormatError, HSIError, InputError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, atomic_write_json
+from hsi_torch.io.bounded import (
+    MAX_JSON_BYTES,
+    declared_image_size,
+    npz_declared,
+    read_json_bounded,
+    require_npz,
+)
 from hsi_torch.io.capture_manifest import CAPTURE_SETTINGS
 from hsi_torch.io.capture_set import (
+    ALLOW_OUTSIDE_KEY,
     CAPTURE_SET_SCHEMA_VERSION,
     CAPTURE_TYPES,
     MANIFEST,
     NOMINAL_LAYOUT,
+    duplicate_uses,
     read_capture_set,
     read_nominal_layout,
+    scan_label,
     wavelength_from_name,
 )
-from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_capture
+from hsi_torch.io.captures import SUPPORTED_SUFFIXES
+from hsi_torch.io.safety import short_text
 
 __all__ = [
     "SHEET_COLUMNS",
@@ -172,12 +187,24 @@ def read_sheet(path: str | os.PathLike) -> list[SheetRow]:
     except (OSError, UnicodeDecodeError) as exc:
         raise FileFormatError(f"capture sheet {sheet}: cannot read it as UTF-8 text "
                               f"({exc})") from None
-    reader = csv.reader(text.splitlines())
-    header = next(reader, None)
+    reader = csv.reader(io.StringIO(text, newline=""))  # a quoted cell keeps its line breaks
+    try:
+        header = next(reader, None)
+    except csv.Error as exc:
+        raise FileFormatError(f"capture sheet {sheet}: not a CSV file ({exc})") from None
     if not header or not any(h.strip() for h in header):
         raise FileFormatError(f"capture sheet {sheet}: empty; the first line is the header "
                               f"({','.join(SHEET_COLUMNS[:3])},...)")  # fmt: skip
     cols = [h.strip().lower() for h in header]
+    if len(cols) == 1:
+        sep = next((c for c in ";\t|" if c in header[0]), None)
+        if sep is not None:
+            name = {";": "semicolons (';')", "\t": "tabs", "|": "'|'"}[sep]
+            raise FileFormatError(
+                f"capture sheet {sheet}: the header {short_text(header[0], 80)!r} is separated by "
+                f"{name}; a capture sheet is comma-separated: save it as CSV with ',' between "
+                "the cells (spreadsheets in some locales write ';')"
+            )
     for c in cols:
         if c not in SHEET_COLUMNS:
             raise FileFormatError(
@@ -191,10 +218,23 @@ def read_sheet(path: str | os.PathLike) -> list[SheetRow]:
     if len(set(cols)) != len(cols):
         raise FileFormatError(f"capture sheet {sheet}: a column appears twice ({','.join(cols)})")
     rows: list[SheetRow] = []
-    for line_no, cells in enumerate(reader, start=2):
+    seen: dict[tuple[str, ...], str] = {}  # a line's cells -> where it was first
+    line_no = reader.line_num + 1
+    while True:
+        try:
+            cells = next(reader, None)
+        except csv.Error as exc:
+            raise FileFormatError(f"{sheet}:{line_no}: not a CSV line ({exc})") from None
+        if cells is None:
+            break
+        where, line_no = f"{sheet}:{line_no}", reader.line_num + 1
         if not any(c.strip() for c in cells) or cells[0].strip().startswith("#"):
             continue
-        where = f"{sheet}:{line_no}"
+        key = tuple(c.strip() for c in cells[:len(cols)])
+        if key in seen:
+            raise FileFormatError(f"{where}: the same line as {seen[key]} (an exact duplicate "
+                                  "row would count the capture twice); delete one")  # fmt: skip
+        seen[key] = where
         if len(cells) > len(cols) and any(c.strip() for c in cells[len(cols):]):
             raise FileFormatError(f"{where}: {len(cells)} cells but the header has {len(cols)} "
                                   "columns")  # fmt: skip
@@ -283,13 +323,52 @@ def rows_from_patterns(
     return rows
 
 
+def _stored_metadata(p: Path) -> dict[str, Any]:
+    """The JSON metadata a TIFF/NPY/NPZ capture carries (the TIFF's description, the NPY's
+    ``.json`` sidecar, the NPZ's ``metadata`` member), read without decoding a pixel: an import
+    never inflates an image (a small compressed file may hold gigabytes)."""
+    suffix = p.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile  # lazy: only TIFF metadata needs it
+
+            with tifffile.TiffFile(p) as tif:
+                text = tif.pages[0].description if len(tif.pages) else ""
+        elif suffix == ".npy":
+            side = p.with_name(p.name + ".json")
+            meta = read_json_bounded(side, "metadata sidecar") if side.exists() else {}
+            return meta if isinstance(meta, dict) else {}
+        elif suffix == ".npz":
+            require_npz(p)
+            with np.load(p, allow_pickle=False) as z:
+                shape, dtype = npz_declared(z).get("metadata", ((1,), np.dtype(np.uint8)))
+                if shape != () or dtype.kind not in "US" or dtype.itemsize > MAX_JSON_BYTES:
+                    return {}
+                text = str(z["metadata"])
+        else:
+            return {}
+        meta = json.loads(text) if text else {}
+    except FileFormatError:
+        raise
+    except (ValueError, RecursionError):
+        return {}  # a foreign description: no metadata
+    except Exception as exc:  # noqa: BLE001 - tifffile/zipfile errors on a damaged file
+        raise FileFormatError(f"{p}: cannot read the file's metadata ({type(exc).__name__}: "
+                              f"{exc})") from None  # fmt: skip
+    return meta if isinstance(meta, dict) else {}
+
+
 def _scan_wavelength(row: SheetRow) -> float | None:
     if row.wavelength_nm is not None:
         return row.wavelength_nm
     lam = wavelength_from_name(row.file.name)
-    if lam is None and row.file.suffix.lower() in (".tif", ".tiff", ".npy", ".npz"):
-        lam = read_capture(row.file)[1].get("wavelength_nm")
-    return None if lam is None else float(lam)
+    if lam is None:
+        lam = _stored_metadata(row.file).get("wavelength_nm")
+    try:
+        return None if lam is None else float(lam)
+    except (TypeError, ValueError):
+        raise FileFormatError(f"{row.file}: its metadata's wavelength_nm {lam!r} is not a "
+                              "number") from None  # fmt: skip
 
 
 @dataclass
@@ -409,6 +488,13 @@ def import_captures(
         e.update(r.settings)
         e["sheet_row"] = r.where
         entries.append((r, e))
+    uses = [(r.file, scan_label(e.get("wavelength_nm")) if r.role == "scan"
+             else f"scene {e['name']!r}" if r.role == "scene" else r.role)
+            for r, e in entries]  # fmt: skip
+    dups = duplicate_uses([u for u in uses if not u[1].startswith("scene ")])
+    if dups:  # one frame as two wavelengths or roles: before anything is written
+        raise InputError("; ".join(dups))
+    warnings += [d for d in duplicate_uses(uses) if d not in dups]  # a scene that is a shot
     missing = [g for g, names in bands.items() if not names]
     repeated = {g: names for g, names in bands.items() if len(names) > 1}
     counts = {t: sum(1 for r in rows if r.role == t) for t in CAPTURE_TYPES}
@@ -477,6 +563,8 @@ def import_captures(
         except ValueError:  # another drive (Windows)
             root_ref = str(common)
         manifest["files_root"] = Path(root_ref).as_posix()
+        if Path(root_ref).is_absolute() or root_ref.split(os.sep)[0] == os.pardir:
+            manifest[ALLOW_OUTSIDE_KEY] = True  # the lab's files, referenced where they are
         for r, e in entries:
             e["file"] = r.file.resolve().relative_to(common).as_posix()
     for src, dst in layout_files:
@@ -549,10 +637,13 @@ def check_capture_set(
     Returns:
         ``(rows, problems)``: per capture ``{"file", "role", "band_nm", "kind", "size",
         "cfa_pattern", "black_level", "black_level_source", "white_level", "exposure_s",
-        "exposure_source", "camera"}``; ``problems``: ``(level, text)`` with level ``"error"``
-        (calibration will refuse the set: no layout, a band without a frame, no white or grid
-        shots) or ``"note"`` (repeated frames, frames near no band, mixed cameras, black levels
-        that are the default 0, captures without a known exposure when others have one).
+        "exposure_source", "camera", "error"}`` — every file, a file that cannot be read as
+        calibration will (wrong size, bad metadata, …) with its ``"error"``; ``problems``:
+        ``(level, text)`` with level ``"error"`` (calibration will refuse the set: no layout, a
+        band without a frame, no white or grid shots, a file refused, calibration captures of
+        mixed Bayer patterns, one file in two roles or at two wavelengths) or ``"note"``
+        (repeated frames, frames near no band, mixed cameras, black levels that are the default
+        0, captures without a known exposure when others have one).
 
     Raises:
         HSIError: the set cannot be read (naming the file and key).
@@ -576,16 +667,33 @@ def check_capture_set(
     files += [(p, f"scene {n}", None) for n, p in cs.scenes.items()]
     rows = []
     seen_bands: dict[float, int] = {}
+    def band_of(lam: float) -> float | None:
+        j = min(range(len(grid)), key=lambda k: abs(grid[k] - float(lam)))
+        return grid[j] if abs(grid[j] - float(lam)) <= tol_nm else None
+
     for p, role, lam in files:
-        cap = cs.read(p, expected_size=size)
+        try:  # every file is listed: a bad one is an error of its row, the others still read
+            cap = cs.read(p, expected_size=size)
+        except HSIError as exc:
+            try:
+                hw = declared_image_size(p)
+            except HSIError:
+                hw = None
+            problems.append(("error", str(exc)))
+            band = band_of(lam) if role == "scan" and lam is not None else None
+            if band is not None:  # (the band has a frame: this one is refused by name)
+                seen_bands[band] = seen_bands.get(band, 0) + 1
+            rows.append({"file": str(p), "role": role, "wavelength_nm": lam, "band_nm": band,
+                         "size": list(hw) if hw else None, "error": str(exc),
+                         **dict.fromkeys(_CHECK_KEYS)})  # fmt: skip
+            continue
         m = cap.metadata
         band = None
         if role == "scan":
             if lam is None:
                 lam = m.get("wavelength_nm")
             if lam is not None:
-                j = min(range(len(grid)), key=lambda k: abs(grid[k] - float(lam)))
-                band = grid[j] if abs(grid[j] - float(lam)) <= tol_nm else None
+                band = band_of(lam)
                 if band is not None:
                     seen_bands[band] = seen_bands.get(band, 0) + 1
         make = " ".join(x for x in (m.get("camera_make"), m.get("camera_model")) if x) or None
@@ -597,8 +705,21 @@ def check_capture_set(
             "black_level_source": m.get("black_level_source"), "white_level": m.get("white_level"),
             "exposure_s": exposure, "exposure_source": m.get("exposure_source"),
             "relative_exposure": m.get("exposure"),
-            "camera": make,
+            "camera": make, "error": None,
         })  # fmt: skip
+    # what calibrate refuses besides: one sensor has one Bayer pattern; one frame is one thing
+    patterns: dict[str, list[str]] = {}
+    for r in rows:
+        if r["role"] in ("scan", "white", "grid", "dark") and r["kind"] == "bayer":
+            patterns.setdefault(str(r["cfa_pattern"]), []).append(Path(r["file"]).name)
+    if len(patterns) > 1:
+        problems.append(("error", "the calibration captures mix Bayer patterns: " + "; ".join(
+            f"{pat} in {', '.join(names[:4])}" + (" ..." if len(names) > 4 else "")
+            for pat, names in patterns.items()) + " (calibrate refuses them: frames of another "
+            "camera, a crop by one pixel, or a wrong cfa_pattern in the sheet or manifest)"))
+    dups = cs.duplicate_files()
+    problems += [("error", d) for d in dups]
+    problems += [("note", d) for d in cs.duplicate_files(scenes=True) if d not in dups]
     missing = [g for g in grid if g not in seen_bands]
     if missing:
         problems.append(("error", "no scan frame for " + ", ".join(f"{g:g}" for g in missing)
@@ -606,7 +727,8 @@ def check_capture_set(
     for g, n in seen_bands.items():
         if n > 1:
             problems.append(("note", f"{n} scan frames at {g:g} nm: calibration averages them"))
-    off = [r for r in rows if r["role"] == "scan" and r["band_nm"] is None]
+    off = [r for r in rows if r["role"] == "scan" and r["band_nm"] is None
+           and r["wavelength_nm"] is not None]  # fmt: skip
     if off:
         problems.append(("note", "scan frames near no band (not used): " + ", ".join(
             f"{Path(r['file']).name} ({r['wavelength_nm']:g} nm)" for r in off)))
@@ -627,6 +749,11 @@ def check_capture_set(
     return rows, problems
 
 
+#: the per-file keys of check_capture_set's rows that an unreadable file leaves empty
+_CHECK_KEYS = ("kind", "cfa_pattern", "black_level", "black_level_source", "white_level",
+               "exposure_s", "exposure_source", "relative_exposure", "camera")  # fmt: skip
+
+
 def _format_check(rows: list[dict[str, Any]], problems: list[tuple[str, str]]) -> str:
     def lv(v: Any) -> str:
         if v is None:
@@ -635,14 +762,19 @@ def _format_check(rows: list[dict[str, Any]], problems: list[tuple[str, str]]) -
             return "/".join(f"{x:g}" for x in v) if len(set(v)) > 1 else f"{v[0]:g}"
         return f"{v:g}"
 
-    lines = ["role         file                                 band   black (source)        "
-             "white   CFA   exposure (source)      camera"]
+    lines = ["role         file                                 band   size       black (source)"
+             "        white   CFA   exposure (source)      camera"]
     for r in rows:
         band = f"{r['band_nm']:g}" if r["band_nm"] is not None else "-"
+        hw = "x".join(map(str, r["size"])) if r.get("size") else "?"
+        if r.get("error"):
+            lines.append(f"{r['role'][:12]:<12} {Path(r['file']).name[-36:]:<36} {band:>5}  "
+                         f"{hw:<10} REFUSED (see the errors)")  # fmt: skip
+            continue
         exp = (f"{r['exposure_s']:g} s ({r['exposure_source']})" if r["exposure_s"] is not None
                else "unknown")  # fmt: skip
         lines.append(
-            f"{r['role'][:12]:<12} {Path(r['file']).name[-36:]:<36} {band:>5}  "
+            f"{r['role'][:12]:<12} {Path(r['file']).name[-36:]:<36} {band:>5}  {hw:<10} "
             f"{lv(r['black_level']) + ' (' + str(r['black_level_source']) + ')':<21} "
             f"{lv(r['white_level']):>7} {r['cfa_pattern'] or 'RGB':<5} {exp:<22} "
             f"{r['camera'] or '-'}"

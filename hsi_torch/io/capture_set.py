@@ -41,9 +41,10 @@ happens, so reading a bundle or a capture never loads it.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,8 @@ __all__ = [
     "read_truth",
     "read_truth_meta",
     "wavelength_from_name",
+    "duplicate_uses",
+    "scan_label",
     "write_capture_set_index",
     "write_truth",
     "encode_mask_png",
@@ -244,7 +247,9 @@ class CaptureSet:
         return read_nominal_layout(self.layout_path)
 
     def require_calibration_captures(self) -> None:
-        """Raise naming what is missing when there is no scan, white or grid capture."""
+        """Raise naming what is missing when there is no scan, white or grid capture, and
+        naming both uses when one file (or a byte-identical copy) is used in two roles or at
+        two wavelengths (:meth:`duplicate_files`)."""
         where = f"{MANIFEST}" if self.manifest is not None else "folders scan/, white/, grid/"
         for name, lst in (("monochromator scan", self.scan), ("white-reference", self.white),
                           ("circle-grid", self.grid)):  # fmt: skip
@@ -252,6 +257,25 @@ class CaptureSet:
                 raise FileFormatError(
                     f"captures folder {self.root}: no {name} captures (looked in {where})"
                 )
+        dups = self.duplicate_files()
+        if dups:
+            raise FileFormatError(f"captures folder {self.root}: " + "; ".join(dups))
+
+    def uses(self, scenes: bool = False) -> list[tuple[Path, str]]:
+        """Every calibration capture (and with ``scenes``, every scene) with what it is used
+        as: ``(file, "scan frame at 550 nm" | "white" | "grid" | "dark" | "scene 'name'")``."""
+        out = [(p, scan_label(lam if lam is not None else wavelength_from_name(p.name)))
+               for p, lam in self.scan]  # fmt: skip
+        for role in ("white", "grid", "dark"):
+            out += [(p, role) for p in getattr(self, role)]
+        return out + ([(p, f"scene {n!r}") for n, p in self.scenes.items()] if scenes else [])
+
+    def duplicate_files(self, scenes: bool = False) -> list[str]:
+        """One calibration capture used as two things — two roles, or scan frames at two
+        wavelengths — found by resolved path and by the bytes (a copy counts): one message per
+        file, naming both uses (:func:`duplicate_uses`); ``scenes``: the scenes too. Empty when
+        there is none."""
+        return duplicate_uses(self.uses(scenes))
 
     def read(self, path: str | Path, **kwargs: Any) -> Any:
         """:func:`hsi_torch.io.read_any` of one of the set's captures with the manifest's settings
@@ -309,6 +333,76 @@ class CaptureSet:
         return out
 
 
+def scan_label(lam: float | None) -> str:
+    return "scan frame at " + (f"{lam:g} nm" if lam is not None else "an unknown wavelength")
+
+
+def _digest(p: Path, head: int | None = None) -> str:
+    """SHA-256 of the file's bytes (its first ``head`` bytes when given), read in blocks."""
+    h = hashlib.sha256()
+    with open(p, "rb") as f:
+        if head is not None:
+            h.update(f.read(head))
+        else:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def duplicate_uses(uses: Sequence[tuple[Path, str]]) -> list[str]:
+    """Files used under two different labels (``"white"``, ``"scan frame at 550 nm"``, …): the
+    same file by resolved path, or another file with the same bytes (a copy). The same file
+    twice under one label is reported too (it would count twice); byte-identical copies under one
+    label are not (repeated frames of a noiseless simulation can be).
+
+    Returns:
+        One message per duplicated file, naming each file and its uses. The bytes are compared
+        by size, then the SHA-256 of the first MiB, then of the whole file, so distinct frames
+        cost one MiB read each.
+    """
+    by_path: dict[Path, list[tuple[Path, str]]] = {}
+    for p, label in uses:
+        try:
+            key = p.resolve()
+        except (OSError, RuntimeError):
+            key = p
+        by_path.setdefault(key, []).append((p, label))
+    groups: dict[Any, list[Path]] = {}
+    for key in by_path:
+        try:
+            groups.setdefault(key.stat().st_size, []).append(key)
+        except OSError:
+            continue  # a missing file is reported by its reader
+    same: list[list[Path]] = []
+    for keys in groups.values():
+        for stage in (1 << 20, None):
+            if len(keys) < 2:
+                break
+            sub: dict[str, list[Path]] = {}
+            for k in keys:
+                sub.setdefault(_digest(k, stage), []).append(k)
+            keys = [k for ks in sub.values() if len(ks) > 1 for k in ks]
+            if stage is None:
+                same += [ks for ks in sub.values() if len(ks) > 1]
+        # (keys left with one member each are unique)
+    merged = [[k] for k in by_path if not any(k in ks for ks in same)] + same
+    out = []
+    for keys in merged:
+        entries = [e for k in keys for e in by_path[k]]
+        labels = list(dict.fromkeys(label for _, label in entries))
+        if len(labels) < 2:
+            if len(by_path[keys[0]]) > 1 and len(keys) == 1:  # one file listed again
+                out.append(f"{entries[0][0]} is listed {len(entries)} times as {labels[0]}: "
+                           "a frame counts once; delete the repeated entry")  # fmt: skip
+            continue
+        names = list(dict.fromkeys(str(p) for p, _ in entries))
+        what = (f"{names[0]} is used as " if len(names) == 1 else
+                f"{', '.join(names)} hold the same bytes and are used as ")  # fmt: skip
+        out.append(what + " and as ".join(labels) + ": one frame cannot be both (a copied line of "
+                   "the sheet or manifest?); give each use its own capture")  # fmt: skip
+    return out
+
+
 def _folder_files(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
@@ -329,6 +423,16 @@ def _check_version(d: Mapping[str, Any], path: Path) -> None:
 ALLOW_OUTSIDE_KEY = "allow_files_outside"
 
 
+def _inside(root: Path, value: str) -> bool:
+    """``root / value`` is a relative path that resolves (``..`` and symlinks followed) inside
+    ``root``."""
+    try:
+        return not Path(value).is_absolute() and (root / value).resolve().is_relative_to(
+            root.resolve())
+    except (OSError, RuntimeError, ValueError):  # a symlink loop, ...
+        return False
+
+
 def _manifest_path(root: Path, value: Any, mpath: Path, key: str, outside_ok: bool) -> Path:
     """The file a manifest entry names: a relative path string that resolves (symlinks
     followed) inside ``root`` (the set's folder, or the manifest's ``files_root``), unless
@@ -341,12 +445,7 @@ def _manifest_path(root: Path, value: Any, mpath: Path, key: str, outside_ok: bo
     p = root / value
     if outside_ok:
         return p
-    try:
-        inside = Path(value).is_absolute() is False and p.resolve().is_relative_to(
-            root.resolve())
-    except (OSError, RuntimeError, ValueError):  # a symlink loop, ...
-        inside = False
-    if not inside:
+    if not _inside(root, value):
         raise FileFormatError(
             f"{mpath}: {key} {short_repr(value, 120)} points outside the capture set's folder "
             f"{root} (absolute, '..' or a symlink out of it); only files inside it are read "
@@ -413,6 +512,12 @@ def read_capture_set(
                 raise FileFormatError(f"{mpath}: files_root must be a folder name, got "
                                       f"{short_repr(fr, 80)}")  # fmt: skip
             files_root = root / fr
+            if not outside_ok and not _inside(root, fr):
+                raise FileFormatError(
+                    f"{mpath}: files_root {short_repr(fr, 120)} points outside the capture set's "
+                    f"folder {root} (absolute, '..' or a symlink out of it); the captures are "
+                    f"read from inside it unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true"
+                )
             if not files_root.is_dir():
                 raise MissingFileError(f"{mpath}: files_root {files_root} is not a folder")
         entries = manifest.get("captures", [])

@@ -38,6 +38,7 @@ import torch
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
+from hsi_torch.io.bounded import declared_image_size, require_npz
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
@@ -211,7 +212,8 @@ def _check_dtype(arr: np.ndarray, p: Path) -> None:
         bad = ~np.isfinite(arr)
         if bad.any():
             raise FileFormatError(f"{p}: image contains {int(bad.sum())} NaN/inf values")
-        top = float(np.abs(arr).max()) if arr.size else 0.0
+    if arr.dtype.kind == "f" or arr.dtype.itemsize > 4:  # 64-bit integers too (< 2^32 else)
+        top = max(abs(float(arr.max())), abs(float(arr.min()))) if arr.size else 0.0
         if top > MAX_SAMPLE_VALUE:
             raise FileFormatError(
                 f"{p}: image values reach {top:.3g}, beyond any sensor's range (at most "
@@ -358,7 +360,11 @@ def _read_npy(
         ) from exc
     meta: dict[str, Any] = {}
     side = p.with_name(p.name + ".json")
-    if side.exists():
+    if side.exists() or side.is_symlink():
+        require_regular_file(side, "metadata sidecar")  # a FIFO would block, /dev/zero fill RAM
+        if side.stat().st_size > _MAX_META_BYTES:
+            raise FileFormatError(f"{side}: the metadata sidecar holds {side.stat().st_size} "
+                                  f"bytes, more than {_MAX_META_BYTES // 2**20} MiB")  # fmt: skip
         try:
             text = side.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
@@ -370,6 +376,7 @@ def _read_npy(
 def _read_npz(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
+    require_npz(p)  # else numpy's hint about allow_pickle, for a file that is no NPZ
     try:
         with np.load(p, allow_pickle=False) as z:
             keys = list(z.keys())
@@ -619,6 +626,8 @@ def read_any(
             raise ValueError(f"sources[{key!r}] = {src!r} is not one of {SETTING_SOURCES}")
 
     if suffix in RAW_SUFFIXES:
+        if expected_size is not None:  # LibRaw's size from the header, before unpacking
+            _check_size(p, declared_image_size(p) or (), expected_size)
         raw = load_raw(p, demosaic=None, dtype=torch.float64)
         shape = (raw.mosaic.shape[-2], raw.mosaic.shape[-1])
         stored = raw.mosaic + _level_map(raw.black_level, "bayer", shape, p, "black_level")

@@ -56,7 +56,15 @@ from hsi_torch.io.atomic import (
     remove_tree,
     replace_file,
 )
+from hsi_torch.io.bounded import (
+    MAX_JSON_BYTES,
+    check_declared,
+    check_store_files,
+    npz_declared,
+    require_npz,
+)
 from hsi_torch.io.captures import quiet_tifffile
+from hsi_torch.io.safety import require_regular_file
 
 __all__ = [
     "Cube",
@@ -526,14 +534,20 @@ def load_cube(
     path: str | os.PathLike,
     wavelengths: Any | None = None,
     device: torch.device | str | None = None,
+    max_bytes: int | None = None,
 ) -> Cube:
     """Read a cube written by :func:`save_cube` or by other tools (ENVI any interleave/dtype via
     ``spectral``; TIFF stacks ``(M, H, W)``; NPZ with ``cube`` + ``wavelengths_nm``).
+
+    The size the file declares (NPZ member headers, TIFF series, ENVI header, Zarr/NetCDF
+    variable) is checked before anything is decoded (:mod:`hsi_torch.io.bounded`).
 
     Args:
         path: ``.tif/.tiff``, ``.hdr/.img`` or ``.npz``.
         wavelengths: ``(M,)`` nm, required only for files that do not carry them.
         device: device of the returned tensors.
+        max_bytes: the largest decoded cube accepted (default
+            :func:`~hsi_torch.io.bounded.max_cube_bytes`: ``$HSI_TORCH_MAX_CUBE_GB``, 1 GiB).
 
     Returns:
         :class:`Cube` (float32 cube ``(M, H, W)``, float64 wavelengths in nm, bool valid
@@ -558,7 +572,10 @@ def load_cube(
     wl: np.ndarray | None = None
     try:
         if kind == "npz":
+            require_npz(p)
             with np.load(p, allow_pickle=False) as z:
+                for name, (shape, dtype) in npz_declared(z).items():  # before decoding
+                    check_declared(p, shape, dtype, max_bytes, f"cube array {name!r}")
                 if "cube" not in z:
                     raise FileFormatError(
                         f"{p}: NPZ has no array 'cube' (found {sorted(z.keys())})"
@@ -568,11 +585,11 @@ def load_cube(
                 valid = z["valid"].astype(bool) if "valid" in z else None
                 meta = json.loads(str(z["metadata"])) if "metadata" in z else {}
         elif kind == "tiff":
-            c, wl, meta = _load_tiff(p)
+            c, wl, meta = _load_tiff(p, max_bytes)
         elif kind in OPTIONAL_FORMATS:
-            c, wl, valid, meta = _load_xarray(p, kind)
+            c, wl, valid, meta = _load_xarray(p, kind, max_bytes)
         else:
-            c, wl, meta = _load_envi(p)
+            c, wl, meta = _load_envi(p, max_bytes)
     except FileFormatError:
         raise
     except Exception as exc:
@@ -613,14 +630,20 @@ def _json_dict(text: str | None) -> dict[str, Any]:
     return parsed if isinstance(parsed, dict) else {}
 
 
-def _load_tiff(p: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+def _load_tiff(
+    p: Path, max_bytes: int | None = None
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
     """Our OME-TIFF (JSON in the OME Image Description), any OME-TIFF whose channels carry
     emission wavelengths or ``"<λ> nm"`` names, or an older file with JSON in the page
     description; other TIFF stacks ``(M, H, W)`` without wavelengths."""
     import tifffile
 
 
+    require_regular_file(p, "cube file")
     with quiet_tifffile(), tifffile.TiffFile(p) as tif:
+        if not tif.series:
+            raise FileFormatError(f"{p}: TIFF file has no image data")
+        check_declared(p, tif.series[0].shape, tif.series[0].dtype, max_bytes)
         c = tif.asarray()
         ome = tif.ome_metadata if tif.is_ome else None
         desc = tif.pages[0].description if len(tif.pages) else ""
@@ -662,7 +685,7 @@ def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:
     return np.asarray(out, dtype=np.float64) if out else None
 
 
-def _load_xarray(p: Path, kind: str):
+def _load_xarray(p: Path, kind: str, max_bytes: int | None = None):
     xr = _import_xarray(f"reading {p}")
     if kind == "zarr":  # before xarray decodes anything: no codec that runs code (pickle)
         from hsi_torch.io.dataset import (  # lazy: dataset imports this module
@@ -671,11 +694,15 @@ def _load_xarray(p: Path, kind: str):
         )
 
         check_zarr_codecs(p, SAFE_CODECS)
+        check_store_files(p, max_bytes)  # no FIFO, device or huge chunk
+    else:
+        require_regular_file(p, "cube file")
     opener = xr.open_dataset if kind == "netcdf" else xr.open_zarr
     with opener(p) as ds:
         if "cube" not in ds:
             raise FileFormatError(f"{p}: no variable 'cube' (found {sorted(ds.data_vars)})")
         da = ds["cube"].transpose("wavelength", ...)
+        check_declared(p, da.shape, da.dtype, max_bytes)  # (lazy until .values)
         c = np.asarray(da.values)
         wl = np.asarray(da["wavelength"].values, dtype=np.float64)
         scale = _UNIT_TO_NM.get(str(da["wavelength"].attrs.get("units", "nm")).lower())
@@ -702,25 +729,47 @@ _UNIT_TO_NM = {
 }
 
 
-def _load_envi(p: Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+def _load_envi(
+    p: Path, max_bytes: int | None = None
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """An ENVI cube whose data file holds exactly what its header declares (lines × samples ×
+    bands × the data type's size after the header offset; a file of another size means the
+    header describes another cube: refused, naming both sizes)."""
     import spectral.io.envi as envi
 
     hdr, img = _envi_paths(p)
+    require_regular_file(hdr, "ENVI header")
+    if hdr.stat().st_size > MAX_JSON_BYTES:
+        raise FileFormatError(f"{hdr}: an ENVI header of {hdr.stat().st_size} bytes (at most "
+                              f"{MAX_JSON_BYTES // 2**20} MiB is read)")  # fmt: skip
+    if img.exists():
+        require_regular_file(img, "ENVI data file")
     image = envi.open(str(hdr), str(img) if img.exists() else None)
+    require_regular_file(image.filename, "ENVI data file")
     h, w, m = image.nrows, image.ncols, image.nbands
-    expected = image.offset + h * w * m * np.dtype(image.dtype).itemsize
+    dtype = np.dtype(image.dtype)
+    check_declared(hdr, (m, h, w), dtype, max_bytes)
+    expected = image.offset + h * w * m * dtype.itemsize
     actual = Path(image.filename).stat().st_size
-    if actual < expected:
+    if actual != expected:
         raise FileFormatError(
-            f"{image.filename}: ENVI data file is truncated ({actual} bytes, header needs "
-            f"{expected})"
+            f"{image.filename}: the ENVI data file holds {actual} bytes but its header {hdr.name} "
+            f"declares {expected} ({h} lines x {w} samples x {m} bands of {dtype}"
+            + (f" after a {image.offset}-byte offset" if image.offset else "")
+            + "): " + ("truncated" if actual < expected else "the header describes another "
+                       "cube (bands, samples, lines or data type)")
         )
+    centers = image.bands.centers
+    for key, values in (("wavelength", centers), ("band names", image.metadata.get(
+            "band names"))):
+        if values and len(values) != m:
+            raise FileFormatError(f"{hdr}: the header lists {len(values)} values of "
+                                  f"'{key}' for {m} bands")  # fmt: skip
     with warnings.catch_warnings():  # NaN marks invalid pixels here; not worth a warning
         warnings.simplefilter("ignore")
         arr = np.asarray(image.load())  # (lines, samples, bands)
     meta = dict(image.metadata)
     wl = None
-    centers = image.bands.centers
     if centers:
         unit = (image.bands.band_unit or "nm").strip().lower()
         scale = _UNIT_TO_NM.get(unit)

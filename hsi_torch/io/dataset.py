@@ -74,6 +74,7 @@ from hsi_torch.io.atomic import (
     open_own_file,
     remove_file,
 )
+from hsi_torch.io.bounded import check_store_files, read_json_bounded
 from hsi_torch.io.cube import _nan_where_invalid, _np
 
 __all__ = [
@@ -225,12 +226,8 @@ def check_zarr_codecs(
     """
     root = Path(path)
 
-    def load(p: Path) -> Any:
-        try:
-            return json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
-            raise FileFormatError(f"{root}: {p.relative_to(root)} is not readable JSON "
-                                  f"({_short(str(exc), 120)})") from None  # fmt: skip
+    def load(p: Path) -> Any:  # a regular file of bounded size and depth (no FIFO, no bomb)
+        return read_json_bounded(p, "store metadata")
 
     zmeta = root / ".zmetadata"
     if zmeta.is_file():
@@ -609,7 +606,7 @@ def _put(path: Path, data: bytes, fsync: bool = True) -> None:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    obj = json.loads(path.read_text(encoding="utf-8"))
+    obj = read_json_bounded(path, "store metadata")  # a regular file, bounded size and depth
     if not isinstance(obj, dict):
         raise ValueError(f"{path}: not a JSON object")
     return obj
@@ -714,4 +711,5 @@ def open_dataset(path: str | os.PathLike):
     if not (p / ".zgroup").is_file():
         raise FileFormatError(f"{p}: not a Zarr store (no .zgroup)")
     check_zarr_codecs(p)
+    check_store_files(p)  # every chunk a regular file of bounded size
     return xr.open_zarr(p, consolidated=True)

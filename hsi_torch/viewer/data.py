@@ -12,13 +12,17 @@
 * the **sRGB composite** ``(h, w, 3)`` (``(F, h, w, 3)``; CIE 1931, D65, 99.5th percentile of
   luminance as white, :func:`~hsi_torch.colour.cube_to_srgb`), black where not valid.
 
+A file is decoded only after the size it declares is checked against
+``$HSI_TORCH_MAX_CUBE_GB`` (:mod:`hsi_torch.io.bounded`; a run store's files must also be regular
+files, its metadata bounded), so a small compressed file cannot make the viewer allocate
+gigabytes.
+
 :func:`spectrum_at` returns the spectrum (and σ) under a point, refusing points outside the valid
 mask. The napari side (reader, dock widget) is :mod:`hsi_torch.viewer.plugin`.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +33,7 @@ import torch
 
 from hsi_torch.colour import cube_to_srgb
 from hsi_torch.errors import FileFormatError
+from hsi_torch.io.bounded import check_declared, read_json_bounded
 from hsi_torch.io.cube import load_cube
 
 __all__ = [
@@ -74,12 +79,10 @@ def std_companion(path: str | os.PathLike) -> Path | None:
 
 def _is_run_store(p: Path) -> bool:
     attrs = p / ".zattrs"
-    if not (p.is_dir() and attrs.is_file()):
+    if not (p.is_dir() and attrs.exists()):
         return False
-    try:
-        return "hsi_torch_dataset" in json.loads(attrs.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
+    meta = read_json_bounded(attrs, "store attributes")  # a FIFO or a bomb refused by name
+    return isinstance(meta, dict) and "hsi_torch_dataset" in meta
 
 
 def band_axis(wavelengths_nm: np.ndarray) -> tuple[float, float] | None:
@@ -135,17 +138,18 @@ def _layers(
     return [(cube, kw, "image"), (_srgb(cube, wl, valid), rgb_kw, "image")]
 
 
-def read_layers(path: str | os.PathLike) -> list[LayerData]:
+def read_layers(path: str | os.PathLike, max_bytes: int | None = None) -> list[LayerData]:
     """Layer-data tuples (band stack, sRGB composite) of a cube file or run store (module
-    docstring).
+    docstring). The cube's declared size is checked before it is decoded: at most
+    ``max_bytes`` (default ``$HSI_TORCH_MAX_CUBE_GB`` GiB, :mod:`hsi_torch.io.bounded`).
 
     Raises:
         MissingFileError, FileFormatError: as :func:`~hsi_torch.io.cube.load_cube`.
     """
     p = Path(path)
     if p.suffix.lower() == ".zarr" and _is_run_store(p):
-        return _read_run_store(p)
-    c = load_cube(p)
+        return _read_run_store(p, max_bytes)
+    c = load_cube(p, max_bytes=max_bytes)
     cube = c.cube.numpy()
     wl = c.wavelengths.numpy()
     valid = c.valid.numpy()
@@ -157,7 +161,7 @@ def read_layers(path: str | os.PathLike) -> list[LayerData]:
     else:
         comp = std_companion(p)
         if comp is not None:
-            std = load_cube(comp).cube.numpy()
+            std = load_cube(comp, max_bytes=max_bytes).cube.numpy()
     if std is not None and std.shape != cube.shape:
         raise FileFormatError(f"{p}: standard deviation {std.shape} does not match the cube "
                               f"{cube.shape}")  # fmt: skip
@@ -165,14 +169,16 @@ def read_layers(path: str | os.PathLike) -> list[LayerData]:
     return _layers(_stem(p), cube, wl, valid, std, p)
 
 
-def _read_run_store(p: Path) -> list[LayerData]:
+def _read_run_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
     from hsi_torch.io.dataset import open_dataset  # lazy: needs xarray + zarr (optional)
 
-    ds = open_dataset(p)
+    ds = open_dataset(p)  # codecs, metadata and chunk files checked before any decoding
     done = np.asarray(ds["done"].values, bool)
     if not done.any():
         raise FileFormatError(f"{p}: the run store has no complete frame yet")
     idx = np.flatnonzero(done)
+    check_declared(p, (idx.size, *ds["cube"].shape[1:]), ds["cube"].dtype, max_bytes,
+                   f"set of {idx.size} complete frames")  # fmt: skip
     cube = np.asarray(ds["cube"].values[idx], np.float32)  # (F, M, h, w)
     valid = np.asarray(ds["valid"].values[idx], bool)
     wl = np.asarray(ds["wavelength"].values, np.float64)
