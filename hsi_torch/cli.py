@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.cli_common import config_source, load_args_config
+from hsi_torch.provenance import command_line
 
 __all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config", "config_source"]
 
@@ -500,7 +501,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     created: list[Path] = []  # an --out folder this command creates
     rc = 1
     try:
-        rc = _dispatch(args, extra, debug, created)
+        with command_line(argv, PROG):  # the run records hold the whole command line
+            rc = _dispatch(args, extra, debug, created)
     finally:
         if rc != 0 and created:  # a failed command leaves no empty folder behind
             _remove_if_empty(created[0])

@@ -71,6 +71,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.console import info
     from hsi_torch.io.atomic import ReplaceTransaction, atomic_write_json, replace_then_commit
     from hsi_torch.io.paths import check_out_dir
+    from hsi_torch.provenance import provenance
 
     bundle_path, report_path, config_path = output_paths(args.out)
     if bundle_path.is_dir():
@@ -100,7 +101,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     with replace_then_commit(inputs) as tx:  # all four files or none; the old ones kept till then
         tx.write(fig, lambda t: plot_calibration(bundle, t, report=report))
         tx.write(bundle_path, bundle.save)
-        tx.write(report_path, lambda t: atomic_write_json(t, report.to_dict()))
+        tx.write(report_path, lambda t: atomic_write_json(
+            t, {**report.to_dict(), "provenance": provenance()}))
         tx.write(config_path, lambda t: write_resolved_config(cfg, t.parent, name=t.name))
     if existed:
         _say_replaced(bundle_path)

@@ -56,6 +56,7 @@ from hsi_torch.io.atomic import (
 from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.profiling import release_freed_memory
+from hsi_torch.provenance import provenance
 from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
@@ -468,8 +469,11 @@ def write_run_config(
     folder = out / RUNS_DIR
     clean_stale_temp_files(folder)
     base = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    prov = provenance()
     header = (
         f"resolved configuration of a 'hsi-torch reconstruct' run, hsi_torch {__version__}\n"
+        + (f"command: {prov['command']}\n" if prov["command"] else "")
+        + f"torch {prov['torch']}, numpy {prov['numpy']}, python {prov['python']}\n"
         f"started {time.strftime('%Y-%m-%d %H:%M:%S')}, {num_inputs} input(s), bundle "
         f"{os.path.abspath(bundle_path)}\n"
         f"rerun with: hsi-torch reconstruct --config <this file> --bundle BUNDLE --out DIR INPUTS"
