@@ -279,7 +279,9 @@ def build_parser() -> argparse.ArgumentParser:
         "config: its geometry and camera; default the shipped simulate.yaml) to the white\n"
         "shot by a similarity (scale, rotation, shift of the optical axis), checks every\n"
         "view's parity on the circle-grid shots and writes nominal_layout.json with an\n"
-        "overlay PNG to check by eye (see docs/calibration.md).",
+        "overlay PNG to check by eye (see docs/calibration.md). Refused (exit 1, nothing\n"
+        "written) when the white shot's edges do not single out the fit (--min-edge-contrast)\n"
+        "or the grid shots decide no view's parity.",
     )  # fmt: skip
     _add_common(p, device=False)
     p.add_argument("--captures", type=Path, default=None,
@@ -290,6 +292,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib-config", type=Path, default=None, metavar="YAML",
                    help="calibrate config for reading and grid detection (default: shipped)")
     p.add_argument("--force", action="store_true", help="replace an existing layout/overlay")
+    p.add_argument("--min-edge-contrast", type=float, default=None, metavar="X",
+                   help="refuse a fit whose edges are less than X times stronger on the white "
+                        "shot than off the fit (default 2; a device's white gives 3 or more)")
     p.add_argument(
         "--out", "-o", type=Path, required=True,
         help="the layout file (NAME.json; the overlay is NAME_overlay.png beside it) or a "

@@ -202,11 +202,15 @@ def run_layout(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch layout``: propose ``nominal_layout.json`` from the design
     (a simulate-style config: geometry + camera) fitted to the white shot(s), parities checked
     on the grid shots (:mod:`hsi_torch.calibrate.layout_fit`); writes the layout and its
-    overlay PNG, nothing on an error."""
+    overlay PNG, nothing on an error or when the shots do not support the fit
+    (:func:`~hsi_torch.calibrate.layout_fit.check_layout_confidence`, limit
+    ``--min-edge-contrast``)."""
     import torch
 
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.layout_fit import (
+        MIN_EDGE_CONTRAST,
+        check_layout_confidence,
         draw_layout_overlay,
         layout_document,
         propose_layout,
@@ -281,6 +285,9 @@ def run_layout(args: argparse.Namespace) -> int:
         white.mean(0), tiles, grids, det,
         min_inlier_fraction=ccfg.registration.min_inlier_fraction,
     )  # fmt: skip
+    # refused (nothing written) when the shots do not single out the fit
+    limit = getattr(args, "min_edge_contrast", None)
+    check_layout_confidence(proposal, MIN_EDGE_CONTRAST if limit is None else float(limit))
     src = config_source(args, "simulate")
     doc = layout_document(proposal, sources={
         "design": str(src) if src is not None else "defaults",
