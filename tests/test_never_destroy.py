@@ -162,7 +162,7 @@ def test_a_file_the_run_did_not_write_is_never_written_over(tmp_path, capsys):
     capsys.readouterr()
     # a file put there by someone else is refused even after the run's own files
     (out / "a_spectra.png").write_bytes(b"someone's plot")
-    assert main([*run, "--set", "spectra_points=[[1, 1]]", str(inp)]) == 1
+    assert main([*run, "--set", "spectra_pixels=[[1, 1]]", str(inp)]) == 1
     assert "refusing to write over a_spectra.png" in capsys.readouterr().err
     assert (out / "a_spectra.png").read_bytes() == b"someone's plot"
 
