@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.cli_common import config_source, load_args_config
+from hsi_torch.provenance import command_line
 
 __all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config", "config_source"]
 
@@ -283,7 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
         "config: its geometry and camera; default the shipped simulate.yaml) to the white\n"
         "shot by a similarity (scale, rotation, shift of the optical axis), checks every\n"
         "view's parity on the circle-grid shots and writes nominal_layout.json with an\n"
-        "overlay PNG to check by eye (see docs/calibration.md).",
+        "overlay PNG to check by eye (see docs/calibration.md). Refused (exit 1, nothing\n"
+        "written) when the white shot's edges do not single out the fit (--min-edge-contrast)\n"
+        "or the grid shots decide no view's parity.",
     )  # fmt: skip
     _add_common(p, device=False)
     p.add_argument("--captures", type=Path, default=None,
@@ -294,6 +297,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib-config", type=Path, default=None, metavar="YAML",
                    help="calibrate config for reading and grid detection (default: shipped)")
     p.add_argument("--force", action="store_true", help="replace an existing layout/overlay")
+    p.add_argument("--min-edge-contrast", type=float, default=None, metavar="X",
+                   help="refuse a fit whose edges are less than X times stronger on the white "
+                        "shot than off the fit (default 2; a device's white gives 3 or more)")
     p.add_argument(
         "--out", "-o", type=Path, required=True,
         help="the layout file (NAME.json; the overlay is NAME_overlay.png beside it) or a "
@@ -515,7 +521,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     created: list[Path] = []  # an --out folder this command creates
     rc = 1
     try:
-        rc = _dispatch(args, extra, debug, created)
+        with command_line(argv, PROG):  # the run records hold the whole command line
+            rc = _dispatch(args, extra, debug, created)
     finally:
         if rc != 0 and created:  # a failed command leaves no empty folder behind
             _remove_if_empty(created[0])

@@ -18,9 +18,10 @@ that is relative is joined to the config file's folder (for a dict source: ``bas
 the current directory; for a command-line override: the current directory); ``~`` is expanded.
 
 Errors: :class:`ConfigError` (a ``ValueError``) naming the source file and the dotted key —
-unknown key (with the closest valid key suggested), wrong type, value not among the ``Literal``
-choices, missing required key, missing file, invalid YAML, and errors raised by a schema's
-``__post_init__``.
+unknown key (with the closest valid key suggested; a key a schema lists in its class attribute
+``__renamed_keys__`` — ``{old key: what to write instead}`` — with that text), wrong type,
+value not among the ``Literal`` choices, missing required key, missing file, invalid YAML, and
+errors raised by a schema's ``__post_init__``.
 
 Example:
     >>> @dataclass
@@ -449,9 +450,12 @@ def _convert_dataclass(value: Any, cls: type, path: KeyPath, ctx: _Ctx) -> Any:
     hints = typing.get_type_hints(cls, include_extras=True)
     fields = [f for f in dataclasses.fields(cls) if f.init]
     names = [f.name for f in fields]
+    renamed = getattr(cls, "__renamed_keys__", None) or {}
     for key in value:
         if not isinstance(key, str):
             raise ctx.error(path, f"keys must be strings, got {_got(key)}")
+        if key not in names and key in renamed:  # a key of an earlier release
+            raise ctx.error((*path, key), renamed[key])
         if key not in names:
             close = difflib.get_close_matches(key, names, n=1, cutoff=0.6)
             hint = f" (did you mean '{_fmt_key((*path, close[0]))}'?)" if close else ""

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from hsi_torch.calibrate.layout_fit import confirm_parity
+from hsi_torch.calibrate.layout_fit import MIN_EDGE_CONTRAST, confirm_parity
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
     RegistrationResult,
@@ -94,6 +94,9 @@ def test_layout_of_the_design_as_built(sim: Path, tmp_path: Path, capsys):
     assert np.hypot(*fit["shift_px"]) < 0.15
     ev = fit["parity_evidence"]
     assert [e["status"] for e in ev] == ["confirmed"] * 10
+    conf = fit["confidence"]  # no false refusal: well clear of the limit (measured 3.39)
+    assert conf["edge_contrast"] >= 1.5 * MIN_EDGE_CONTRAST and conf["parities_confirmed"] == 9
+    assert "edge contrast" in printed and "decided by the grid shots: 9 of 9 views" in printed
     # the other parity keeps about a third of the grid points: the evidence is clear
     for e in ev[1:]:
         wrong = e["inliers"][f"{-e['chosen']:+d}"]
@@ -246,3 +249,65 @@ def test_a_forced_rerun_that_fails_keeps_the_earlier_layout_and_overlay(
                  "--no-progress"]) == 1  # fmt: skip
     assert "is an input of this command" in capsys.readouterr().err
     assert twin.read_bytes() == digest and not (lab / "w.json").exists()
+
+
+def _buildings(h: int, w: int, seed: int = 0) -> np.ndarray:
+    """A building-like photo: sky, blocks of different brightness, rows of windows (strong
+    straight edges everywhere, as the photo of buildings a user gave as the white shot)."""
+    g = np.random.default_rng(seed)
+    img = np.full((h, w), 0.5)
+    img[: h // 4] = np.linspace(0.9, 0.7, h // 4)[:, None]
+    for _ in range(6):
+        x0, bw, y0 = g.integers(0, w - 60), g.integers(60, 160), g.integers(h // 8, h // 2)
+        img[y0:, x0 : x0 + bw] = g.uniform(0.2, 0.6)
+        for yy in range(y0 + 8, h - 10, 22):
+            for xx in range(x0 + 6, x0 + bw - 10, 18):
+                img[yy : yy + 12, xx : xx + 10] = g.uniform(0.05, 0.95)
+    return (1000 * img).astype(np.float32)
+
+
+def _photo(kind: str, h: int, w: int) -> np.ndarray:
+    if kind == "buildings":
+        return _buildings(h, w)
+    data = pytest.importorskip("skimage.data")
+    transform = pytest.importorskip("skimage.transform")
+    return (1000 * transform.resize(data.camera().astype(np.float32), (h, w))).astype(np.float32)
+
+
+@pytest.mark.parametrize("kind", ["buildings", "cameraman"])
+def test_layout_refuses_a_photo_as_the_white_shot(kind: str, tmp_path: Path, capsys):
+    """A photo of buildings given as the white shot was fitted (edge score 0.247, above the true
+    device's 0.242), every parity unconfirmed, and written with "check the overlay, then
+    calibrate with it", exit 0. The fitted edges of a photo are hardly stronger than the same
+    edges anywhere else on it (measured 1.04x; a real photo, the cameraman, 1.09x; the
+    simulated device's white 3.39x): refused, naming the scores and the limit, nothing
+    written; a lower ``--min-edge-contrast`` lets it through."""
+    white = tmp_path / f"{kind}.npy"
+    np.save(white, np.stack([_photo(kind, 384, 400)] * 3))  # (3, H, W) linear RGB
+    out = tmp_path / "lay" / "nominal_layout.json"
+    assert main(["layout", "--white", str(white), "--out", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    m = re.search(r"edge score ([\d.]+) is ([\d.]+)x the score of the same edges displaced off "
+                  r"the fit \(([\d.]+); the design as traced scores ([\d.]+)\), below the limit "
+                  r"2x", err)  # fmt: skip
+    assert m is not None, err
+    assert float(m[2]) < 1.5 and "does not show this design's views" in err
+    assert not out.exists() and not out.with_name("nominal_layout_overlay.png").exists()
+    if kind == "buildings":  # the limit is the user's to set
+        assert main(["layout", "--white", str(white), "--out", str(out), "--no-progress", "-q",
+                     "--min-edge-contrast", "0.5"]) == 0  # fmt: skip
+        doc = json.loads(out.read_text())["layout_fit"]["confidence"]
+        assert doc["edge_contrast"] == pytest.approx(float(m[2]), abs=0.01)
+
+
+def test_layout_refuses_grid_shots_that_decide_no_parity(sim: Path, tmp_path: Path, capsys):
+    """The right white shot, but "grid shots" in which no grid is found (here: white shots):
+    every parity unconfirmed used to be a note and exit 0; now refused."""
+    out = tmp_path / "lay.json"
+    whites = [str(p) for p in sorted((sim / "white").glob("*.tif"))]
+    darks = [str(p) for p in sorted((sim / "dark").glob("*.tif"))]
+    code = main(["layout", "--white", *whites, "--grid", *whites[:2], "--dark", *darks,
+                 "--out", str(out), "--no-progress"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 1 and "the grid shots confirm no view's parity (0 of 9 views" in err
+    assert not out.exists()

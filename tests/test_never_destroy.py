@@ -162,7 +162,7 @@ def test_a_file_the_run_did_not_write_is_never_written_over(tmp_path, capsys):
     capsys.readouterr()
     # a file put there by someone else is refused even after the run's own files
     (out / "a_spectra.png").write_bytes(b"someone's plot")
-    assert main([*run, "--set", "spectra_points=[[1, 1]]", str(inp)]) == 1
+    assert main([*run, "--set", "spectra_pixels=[[1, 1]]", str(inp)]) == 1
     assert "refusing to write over a_spectra.png" in capsys.readouterr().err
     assert (out / "a_spectra.png").read_bytes() == b"someone's plot"
 
@@ -396,7 +396,8 @@ def test_an_interrupted_demo_rerun_marks_the_folder_incomplete(tmp_path, capsys,
     assert main(argv) == 130
     assert "holds 3 file(s) of an earlier run" in capsys.readouterr().err
     mark = json.loads((out / "INCOMPLETE_RUN.json").read_text())  # used not to exist
-    assert mark["state"] == "incomplete" and mark["command"] == "hsi-torch demo --quick"
+    assert mark["state"] == "incomplete"
+    assert mark["command"] == " ".join(["hsi-torch", *argv])  # the whole command line
     assert sorted(mark["files_before"]) == sorted(earlier)  # not the marker
     for name, st in mark["files_before"].items():
         now = os.stat(out / name)
@@ -416,7 +417,7 @@ def test_an_interrupted_demo_rerun_marks_the_folder_incomplete(tmp_path, capsys,
     assert "3 file(s) are from an earlier run and were not rewritten" in cap.out
     assert not (out / "INCOMPLETE_RUN.json").exists()
     rec = json.loads((out / "demo_run.json").read_text())
-    assert rec["state"] == "complete" and rec["command"] == "hsi-torch demo --quick"
+    assert rec["state"] == "complete" and rec["command"] == " ".join(["hsi-torch", *argv])
     assert rec["written"] == ["captures/manifest.json", "resolved_config.yaml", "summary.json"]
     assert rec["from_earlier_runs"] == ["calib.npz", "colorchecker.tif", "synthetic_scene.npz"]
     assert (out / "calib.npz").read_bytes() == earlier["calib.npz"]  # nothing deleted

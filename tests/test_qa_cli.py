@@ -114,7 +114,7 @@ def test_literal_path_with_glob_characters(tmp_path):
 def test_pngs_get_ordinary_permissions(ws):
     tmp, bpath, caps, _ = ws
     out = tmp / "out"
-    assert _rec(bpath, out, "--set", "spectra_points=[[10, 10]]", str(caps / "a.npy")) == 0
+    assert _rec(bpath, out, "--set", "spectra_pixels=[[10, 10]]", str(caps / "a.npy")) == 0
     umask = os.umask(0)
     os.umask(umask)
     want = 0o666 & ~umask
@@ -288,7 +288,7 @@ def test_spectra_plot_leaves_invalid_points_out(ws, monkeypatch):
 
     monkeypatch.setattr(colour, "plot_spectra", spy)
     # (1, 1) lies in the 2-view corner of the test bundle (invalid), (10, 10) is valid
-    assert _rec(bpath, tmp / "out", "--set", "spectra_points=[[10, 10], [1, 1]]", "--set", "beta=0",
+    assert _rec(bpath, tmp / "out", "--set", "spectra_pixels=[[10, 10], [1, 1]]", "--set", "beta=0",
                 str(caps / "a.npy")) == 0  # fmt: skip
     s = seen["spectra"]
     assert torch.isfinite(s[0]).all() and float(s[0].max()) > 0.1

@@ -38,7 +38,7 @@ def test_reconstruct_cli_end_to_end(workspace, capsys):
     tmp, bpath, caps, s = workspace
     out = tmp / "out"
     argv = ["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
-            "--set", "beta=0", "--set", "dtype=float64", "--set", "spectra_points=[[10, 10]]",
+            "--set", "beta=0", "--set", "dtype=float64", "--set", "spectra_pixels=[[10, 10]]",
             str(caps / "*.tif"), str(caps / "*.npy")]
     code = main(argv)
     err = capsys.readouterr().err
@@ -98,8 +98,47 @@ def test_reconstruct_cli_errors(workspace, capsys):
                  str(caps / "a.npy")])
     assert code == 1 and "missing.npz" in capsys.readouterr().err
     code = main(["reconstruct", "--bundle", str(bpath), "--out", str(out),
-                 "--set", "spectra_points=[[50, 1]]", str(caps / "a.npy")])
-    assert code == 1 and "spectra_points" in capsys.readouterr().err
+                 "--set", "spectra_pixels=[[1, 50]]", str(caps / "a.npy")])
+    assert code == 1 and "'spectra_pixels': pixel (row=1, col=50)" in capsys.readouterr().err
+
+
+def test_spectra_pixels_are_row_col_and_the_old_key_is_refused(workspace, tmp_path, capsys,
+                                                                monkeypatch):  # fmt: skip
+    """``spectra_points`` was (x, y) while ``view --point`` is (row, col): a pixel copied from
+    one to the other was another pixel. The key is now ``spectra_pixels``, [row, col]; the old
+    key is refused (command line, config file, Python) saying how to swap it."""
+    import hsi_torch.colour as colour
+    from hsi_torch.errors import ConfigError
+    from hsi_torch.recon.batch import run as run_mod
+    from hsi_torch.recon.settings import ReconstructSettings
+
+    tmp, bpath, caps, _ = workspace
+    old = ["reconstruct", "--bundle", str(bpath), "--out", str(tmp_path / "o"),
+           str(caps / "a.npy")]  # fmt: skip
+    assert main([*old, "--set", "spectra_points=[[4, 3]]"]) == 1
+    err = capsys.readouterr().err
+    assert "renamed to spectra_pixels, whose pixels are [row, col]" in err
+    assert "spectra_points=[[400, 300]] becomes spectra_pixels=[[300, 400]]" in err
+    cfg = tmp_path / "old.yaml"
+    cfg.write_text("spectra_points: [[4, 3]]\n")
+    assert main([*old, "--config", str(cfg)]) == 1
+    assert "renamed to spectra_pixels" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="renamed to spectra_pixels"):
+        ReconstructSettings.from_flat(spectra_points=[[4, 3]])
+    assert not (tmp_path / "o").exists()
+    # the order: a 20 x 30 frame takes row 5, col 25 and refuses row 25, col 5
+    run_mod._check_points([(5, 25)], 20, 30)
+    with pytest.raises(ValueError, match=r"pixel \(row=25, col=5\) is outside"):
+        run_mod._check_points([(25, 5)], 20, 30)
+    # the plot shows the spectrum of row 1, col 3
+    plotted = {}
+    monkeypatch.setattr(colour, "plot_spectra",
+                        lambda wl, spectra, **kw: plotted.update(spectra=spectra, **kw))
+    cube = torch.arange(2 * 4 * 6, dtype=torch.float32).reshape(2, 4, 6)
+    run_mod._plot_points(cube, torch.ones(4, 6, dtype=torch.bool), torch.tensor([500.0, 510.0]),
+                         tmp_path / "x", [(1, 3)])  # fmt: skip
+    torch.testing.assert_close(plotted["spectra"][0], cube[:, 1, 3])
+    assert plotted["labels"] == ["(row 1, col 3)"]
 
 
 def test_reconstruct_cli_warns_for_a_bundle_from_another_geometry(workspace, capsys):
@@ -193,7 +232,7 @@ def test_write_outputs_same_files_as_per_format_writers(tmp_path):
     colour.save_preview_png = boom
     try:
         with pytest.raises(OSError, match="disk full"):
-            write_outputs(res, tmp_path / "g", ReconstructConfig(spectra_points=[[1, 2]]))
+            write_outputs(res, tmp_path / "g", ReconstructConfig(spectra_pixels=[[2, 1]]))
     finally:
         colour.save_preview_png = orig_prev
     assert not any(p.name.startswith("g") for p in tmp_path.iterdir())

@@ -55,7 +55,7 @@ def test_uncertainty_run_plots_spectra_with_the_band(tmp_path, monkeypatch):
     monkeypatch.setattr(colour, "plot_spectra", spy)
     out = tmp_path / "out"
     assert main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
-                 "--set", "uncertainty=true", "--set", "spectra_points=[[10, 10]]",
+                 "--set", "uncertainty=true", "--set", "spectra_pixels=[[10, 10]]",
                  str(tmp_path / "a.npy")]) == 0  # fmt: skip
     assert (out / "a_spectra.png").is_file()
     std = seen["std"]

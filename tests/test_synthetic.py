@@ -217,3 +217,23 @@ def test_design_spec_errors():
         DesignSpec(kind="csv")
     with pytest.raises(ValueError, match="scene_point"):
         DesignSpec(kind="this_system", scene_point="corner")
+
+
+def test_bundle_design_pixel_is_row_col(tmp_path):
+    """The ``pixel`` of a bundle design is [row, col], the order of every point option."""
+    from test_pipeline import WL, make_bundle
+
+    from hsi_torch.experiments.systems import bundle_design
+    from hsi_torch.spectral import SpectralGrid
+
+    b = make_bundle()
+    path = tmp_path / "calib.npz"
+    b.save(path)
+    grid = SpectralGrid(np.asarray(WL, np.float64))
+    d = bundle_design(path, grid, pixel=[5, 12])  # row 5, col 12 of the 20 x 20 frame
+    w = b.frame_size[1]
+    want = b.sensing_model(torch.tensor([5 * w + 12]), dtype=torch.float64).dense().mean(0)
+    torch.testing.assert_close(d.matrix, want)
+    assert d.info["pixel"] == [5, 12]
+    with pytest.raises(ValueError, match=r"pixel \(row 1, col 12\) .* is not seen by every view"):
+        bundle_design(path, grid, pixel=[1, 12])  # row < 4: view 3 absent (test_pipeline)

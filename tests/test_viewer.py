@@ -346,3 +346,50 @@ def test_run_store_with_a_fifo_device_or_bomb_inside_is_refused(tmp_path):
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
+
+
+def test_spectra_follow_the_displayed_frame_and_the_band_slider_is_in_nm(tmp_path, viewer):
+    """``view run/cubes.zarr --point 80,40`` with frame 1 displayed plotted frame 0's spectrum;
+    napari's band slider showed the band index. Now the points' spectra are replotted from the
+    displayed frame, and the band slider is labelled with the band's wavelength, for a run store
+    and for a single TIFF cube alike."""
+    pytest.importorskip("xarray")
+    pytest.importorskip("zarr")
+    from hsi_torch.io.dataset import CubeDataset, write_frame
+    from hsi_torch.viewer.plugin import SpectrumWidget
+
+    cube, valid, _ = _cube()
+    store = tmp_path / "cubes.zarr"
+    sources = [tmp_path / "a.tif", tmp_path / "b.tif"]
+    with CubeDataset.open(store, sources, WL, cube.shape[1:]) as ds:
+        idx = [ds.index[os.path.abspath(s)] for s in sources]
+    valid1 = valid.copy()
+    valid1[20, 30] = False  # not valid in frame 1
+    write_frame(store, idx[0], cube, valid, {"n": 0})
+    write_frame(store, idx[1], 0.5 * cube, valid1, {"n": 1})
+    for data, kw, kind in read_layers(store):
+        getattr(viewer, f"add_{kind}")(data, **kw)
+    band = next(ly for ly in viewer.layers if ly.metadata.get("hsi_torch"))
+    viewer.layers.selection.active = band
+    w = SpectrumWidget(viewer)
+    w.add_point(band.data_to_world([0, 3, 12, 31]))  # frame 0, pixel (row 12, col 31)
+    w.add_point(band.data_to_world([0, 3, 20, 30]))
+    np.testing.assert_allclose(w.points[0][1].values, cube[:, 12, 31], rtol=1e-6)
+    viewer.dims.set_point(0, float(band.data_to_world([1, 0, 0, 0])[0]))  # show frame 1
+    assert w.current_frame() == 1
+    (_, sp), (_, gone) = w.points
+    assert sp.frame == 1 and (sp.row, sp.col) == (12, 31)
+    np.testing.assert_allclose(sp.values, 0.5 * cube[:, 12, 31], rtol=1e-6)  # was frame 0's
+    np.testing.assert_allclose(w.ax.get_lines()[0].get_ydata(), 0.5 * cube[:, 12, 31], rtol=1e-6)
+    assert gone.frame == 1 and np.isnan(gone.values).all()  # not valid there: no curve
+    w.slider.setValue(12)
+    assert viewer.dims.axis_labels[1] == "550 nm" and w.band_label.text() == "550 nm"
+
+    viewer.layers.clear()
+    for data, kw, kind in read_layers(_write(tmp_path, "tiff")):
+        getattr(viewer, f"add_{kind}")(data, **kw)
+    band = next(ly for ly in viewer.layers if ly.metadata.get("hsi_torch"))
+    viewer.layers.selection.active = band
+    w2 = SpectrumWidget(viewer)
+    w2.slider.setValue(5)
+    assert viewer.dims.axis_labels[0] == "480 nm" and w2.current_frame() is None

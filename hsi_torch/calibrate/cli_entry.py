@@ -74,6 +74,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hsi_torch.console import info
     from hsi_torch.io.atomic import ReplaceTransaction, atomic_write_json, replace_then_commit
     from hsi_torch.io.paths import check_out_dir
+    from hsi_torch.provenance import provenance
 
     bundle_path, report_path, config_path = output_paths(args.out)
     if bundle_path.is_dir():
@@ -102,7 +103,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     existed = bundle_path.is_file()
     with replace_then_commit(inputs) as tx:  # all four files or none; the old ones kept till then
         tx.write(fig, lambda t: plot_calibration(bundle, t, report=report))
-        tx.write(report_path, lambda t: atomic_write_json(t, report.to_dict()))
+        tx.write(report_path, lambda t: atomic_write_json(
+            t, {**report.to_dict(), "provenance": provenance()}))
         tx.write(config_path, lambda t: write_resolved_config(cfg, t.parent, name=t.name))
         # the bundle is moved last; a kill between the moves leaves the commit's journal, and
         # the next run into the folder puts the earlier files back
@@ -205,11 +207,15 @@ def run_layout(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch layout``: propose ``nominal_layout.json`` from the design
     (a simulate-style config: geometry + camera) fitted to the white shot(s), parities checked
     on the grid shots (:mod:`hsi_torch.calibrate.layout_fit`); writes the layout and its
-    overlay PNG, nothing on an error."""
+    overlay PNG, nothing on an error or when the shots do not support the fit
+    (:func:`~hsi_torch.calibrate.layout_fit.check_layout_confidence`, limit
+    ``--min-edge-contrast``)."""
     import torch
 
     from hsi_torch.calibrate.config import CalibrateConfig
     from hsi_torch.calibrate.layout_fit import (
+        MIN_EDGE_CONTRAST,
+        check_layout_confidence,
         draw_layout_overlay,
         layout_document,
         propose_layout,
@@ -293,6 +299,9 @@ def run_layout(args: argparse.Namespace) -> int:
         white.mean(0), tiles, grids, det,
         min_inlier_fraction=ccfg.registration.min_inlier_fraction,
     )  # fmt: skip
+    # refused (nothing written) when the shots do not single out the fit
+    limit = getattr(args, "min_edge_contrast", None)
+    check_layout_confidence(proposal, MIN_EDGE_CONTRAST if limit is None else float(limit))
     src = config_source(args, "simulate")
     doc = layout_document(proposal, sources={
         "design": str(src) if src is not None else "defaults",

@@ -70,6 +70,9 @@ __all__ = [
     "edge_map",
     "fit_similarity",
     "confirm_parity",
+    "check_layout_confidence",
+    "LayoutRefused",
+    "MIN_EDGE_CONTRAST",
     "propose_layout",
     "layout_document",
     "draw_layout_overlay",
@@ -314,6 +317,8 @@ class SimilarityFit:
         edge_score: mean edge strength (:func:`edge_map`, σ = 1 px) at the fitted edge points
             (views' edges, disks); ``design_edge_score`` the same for the design as traced.
         coarse: the coarse search's best ``(scale, rotation_deg, dx, dy)``.
+        background_edge_score: the same points displaced off the fit (the median over
+            :data:`BACKGROUND_SHIFTS`): what the image's edges give a layout anywhere.
     """
 
     matrix: np.ndarray
@@ -323,6 +328,15 @@ class SimilarityFit:
     edge_score: float
     design_edge_score: float
     coarse: tuple[float, float, float, float]
+    background_edge_score: float = float("nan")
+
+    @property
+    def edge_contrast(self) -> float:
+        """``edge_score / background_edge_score``: how much stronger the image's edges are on
+        the fitted layout than off it (≈ 1: the image has no edges where the layout has them
+        more than anywhere else)."""
+        b = self.background_edge_score
+        return self.edge_score / b if b > 0 else math.inf
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -332,7 +346,33 @@ class SimilarityFit:
             "shift_px": list(self.shift_px),
             "edge_score": self.edge_score,
             "design_edge_score": self.design_edge_score,
+            "background_edge_score": self.background_edge_score,
+            "edge_contrast": self.edge_contrast,
         }
+
+
+#: Displacements of the fitted edge points, as fractions of the image's shorter side (24: two
+#: radii × 12 directions), at which :func:`fit_similarity` measures the background edge score.
+#: They move every point off a tile edge (edges are a few px wide, the displacements ≥ 5 % of the
+#: side) and keep most of them on the image.
+BACKGROUND_SHIFTS = tuple(
+    (r * math.cos(math.radians(a)), r * math.sin(math.radians(a)))
+    for r in (0.05, 0.1) for a in range(15, 360, 30)
+)  # fmt: skip
+
+
+def _background_score(edges: torch.Tensor, pts: torch.Tensor) -> float:
+    """The median over :data:`BACKGROUND_SHIFTS` of the mean edge strength at ``pts (N, 2)``
+    (full-resolution px) displaced by each shift, counting only points on the image."""
+    h, w = edges.shape
+    D = float(min(h, w))
+    vals = []
+    for dx, dy in BACKGROUND_SHIFTS:
+        q = pts + torch.tensor([dx * D, dy * D], dtype=pts.dtype)
+        on = (q[:, 0] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] >= 0) & (q[:, 1] <= h - 1)
+        if int(on.sum()) >= max(8, pts.shape[0] // 4):
+            vals.append(float(_sample(edges, q[on], 1.0).mean()))
+    return float(np.median(vals)) if vals else float("nan")
 
 
 def fit_similarity(
@@ -425,15 +465,17 @@ def fit_similarity(
         e = edge_map(img, 1.0)
         pts = torch.from_numpy(_edge_points(tiles, 0.75))
         mat = _similarity(params, centre, radius)
-        score = float(_sample(e, apply_homography(mat, pts), 1.0).mean())
+        fitted = apply_homography(mat, pts)
+        score = float(_sample(e, fitted, 1.0).mean())
         design = float(_sample(e, pts, 1.0).mean())
+        background = _background_score(e, fitted)
     a = mat[:2, :2].numpy()
     shift = apply_homography(mat, centre[None])[0] - centre
     return SimilarityFit(
         matrix=mat.numpy(), scale=float(math.sqrt(abs(np.linalg.det(a)))),
         rotation_deg=float(math.degrees(math.atan2(a[1, 0], a[0, 0]))),
         shift_px=(float(shift[0]), float(shift[1])), edge_score=score, design_edge_score=design,
-        coarse=(sc0, rd0, tx0, ty0),
+        coarse=(sc0, rd0, tx0, ty0), background_edge_score=background,
     )  # fmt: skip
 
 
@@ -560,15 +602,40 @@ class LayoutProposal:
     reference_bbox: tuple[int, int, int, int]
     notes: list[str] = field(default_factory=list)
 
+    def confidence(self) -> dict[str, Any]:
+        """How far the proposal can be trusted: the edge scores (fitted, design as traced,
+        background: the fitted edges displaced off the fit) and their ratio ``edge_contrast``,
+        and per parity status the views other than the reference (``parities_confirmed`` also
+        counts ``flipped``: the grid shots decided the parity; ``grid_shots``: whether there
+        were any)."""
+        f = self.fit
+        status = [e.status for e in self.parity_evidence if e.view != 0]
+        return {
+            "edge_score": f.edge_score,
+            "design_edge_score": f.design_edge_score,
+            "background_edge_score": f.background_edge_score,
+            "edge_contrast": f.edge_contrast,
+            "grid_shots": bool(self.parity_evidence),
+            "parities_confirmed": sum(s in ("confirmed", "flipped") for s in status),
+            "parities_flipped": status.count("flipped"),
+            "parities_unconfirmed": status.count("unconfirmed"),
+        }
+
     def __str__(self) -> str:
         f = self.fit
+        c = self.confidence()
         lines = [
             f"layout fitted to the white shot: scale {f.scale:.4f}, rotation "
             f"{f.rotation_deg:+.3f} deg, principal point shifted by ({f.shift_px[0]:+.2f}, "
             f"{f.shift_px[1]:+.2f}) px; edge score {f.edge_score:.3f} (design as traced "
-            f"{f.design_edge_score:.3f})",
-            f"{len(self.parity)} views, reference bbox {list(self.reference_bbox)}",
-        ]
+            f"{f.design_edge_score:.3f}; off the fit {f.background_edge_score:.3f}: edge "
+            f"contrast {f.edge_contrast:.2f}x)",
+            f"{len(self.parity)} views, reference bbox {list(self.reference_bbox)}"
+            + (f"; parities decided by the grid shots: {c['parities_confirmed']} of "
+               f"{len(self.parity) - 1} views"
+               + (f" ({c['parities_flipped']} flipped)" if c["parities_flipped"] else "")
+               if c["grid_shots"] else ""),
+        ]  # fmt: skip
         lines += ["  " + str(e) for e in self.parity_evidence]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
@@ -644,6 +711,57 @@ def propose_layout(
                           (x0, y0, x1 - x0 + 1, y1 - y0 + 1), notes)  # fmt: skip
 
 
+#: ``hsi-torch layout`` refuses a fit whose edge contrast (:attr:`SimilarityFit.edge_contrast`)
+#: is below this. White shots of the simulated device (as designed, off the design, under a
+#: veil of stray light) give 3.4-3.6; natural and building-like photos 1.0-1.2
+#: (``docs/calibration.md``).
+MIN_EDGE_CONTRAST = 2.0
+
+
+class LayoutRefused(InputError):
+    """The white (or grid) shots do not support the proposed layout (see
+    :func:`check_layout_confidence`)."""
+
+
+def check_layout_confidence(
+    proposal: LayoutProposal, min_edge_contrast: float = MIN_EDGE_CONTRAST
+) -> dict[str, Any]:
+    """Refuse a proposal the shots do not support; returns :meth:`LayoutProposal.confidence`.
+
+    Two limits: the fitted layout's edges must be at least ``min_edge_contrast`` times stronger
+    on the white shot than the same edges displaced off the fit (a photo with edges everywhere,
+    e.g. of buildings, scores about as well anywhere: the fit found nothing); and with grid
+    shots, at least one view other than the reference must have its parity decided by them
+    (none decided: the fitted triangles do not hold the grid's views).
+
+    Raises:
+        LayoutRefused: either limit is missed; the message names the measured scores, the
+            limit and what to check.
+    """
+    c = proposal.confidence()
+    if not c["edge_contrast"] >= min_edge_contrast:  # also NaN: no background measured
+        raise LayoutRefused(
+            f"the white shot does not show this design's views: the fitted layout's edge score "
+            f"{c['edge_score']:.3f} is {c['edge_contrast']:.2f}x the score of the same edges "
+            f"displaced off the fit ({c['background_edge_score']:.3f}; the design as traced "
+            f"scores {c['design_edge_score']:.3f}), below the limit {min_edge_contrast:g}x (white "
+            "shots of the simulated device give 3.4x or more). Give evenly lit, in-focus "
+            "white shots of this device (objective on) and the design of this device; nothing "
+            "was written"
+        )
+    if c["grid_shots"] and c["parities_confirmed"] == 0:
+        V = len(proposal.parity)
+        raise LayoutRefused(
+            f"the grid shots confirm no view's parity (0 of {V - 1} views besides the "
+            f"reference; edge contrast {c['edge_contrast']:.2f}x): the fitted triangles do not "
+            "hold the grid's views, or the grid is not found in them. Check that the grid "
+            "shots are of this device and the grid settings (registration.pattern_size of "
+            "--calib-config), or run without --grid to keep the design's parities "
+            "unconfirmed; nothing was written"
+        )
+    return c
+
+
 def layout_document(proposal: LayoutProposal, sources: dict[str, Any] | None = None
                     ) -> dict[str, Any]:  # fmt: skip
     """The JSON object of ``nominal_layout.json`` (the keys
@@ -674,6 +792,7 @@ def layout_document(proposal: LayoutProposal, sources: dict[str, Any] | None = N
         "method": "design ray trace, similarity fitted to the white shot's edges; parity from "
                   "the circle-grid shots",
         **pr.fit.to_dict(),
+        "confidence": pr.confidence(),
         "parity_evidence": [dataclasses.asdict(e) for e in pr.parity_evidence],
         "notes": list(pr.notes),
         **({"sources": sources} if sources else {}),

@@ -129,7 +129,7 @@ class DesignSpec:
     bounces: int = field(default=DEFAULT_FACED_BOUNCES, metadata={"help": "faced: N (i = 0…N)"})
     path: Path | None = field(default=None, metadata={"help": "bundle .npz or design CSV"})
     pixel: list[int] | None = field(
-        default=None, metadata={"help": "bundle: (x, y) reference-frame pixel; None = mean"}
+        default=None, metadata={"help": "bundle: [row, col] reference-frame pixel; None = mean"}
     )
     scene_point: str = field(
         default="centre", metadata={"help": "this_system: 'centre' or 'mean' (of 7 points)"}

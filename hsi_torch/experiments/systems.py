@@ -461,7 +461,7 @@ def bundle_design(
     """This system's channels from a calibration bundle (:class:`~hsi_torch.io.CalibrationBundle`).
 
     ``A_p[(v,c), m] = gain[v,p] B[v,m,p] Δλ_m phi[c,m]`` averaged over the valid pixels where every
-    view is present, or at ``pixel = (x, y)`` of the reference frame. ``phi`` is the calibrated
+    view is present, or at ``pixel = (row, col)`` of the reference frame. ``phi`` is the calibrated
     φ = l·f, so the calibration's illuminant is used as is. The bundle's wavelengths must equal
     ``grid``.
     """
@@ -475,12 +475,13 @@ def bundle_design(
     h, w = b.frame_size
     vm = np.asarray(b.view_mask).reshape(b.num_views, -1)
     if pixel is not None:
-        x, y = (int(v) for v in pixel)
-        if not (0 <= x < w and 0 <= y < h):
-            raise ValueError(f"pixel {(x, y)} lies outside the reference frame {w}x{h} of {path}")
-        idx = np.array([y * w + x])
+        r, c = (int(v) for v in pixel)
+        if not (0 <= r < h and 0 <= c < w):
+            raise ValueError(f"pixel (row {r}, col {c}) lies outside the reference frame ({h} "
+                             f"rows, {w} columns) of {path}")  # fmt: skip
+        idx = np.array([r * w + c])
         if not vm[:, idx[0]].all():
-            raise ValueError(f"pixel {(x, y)} of {path} is not seen by every view")
+            raise ValueError(f"pixel (row {r}, col {c}) of {path} is not seen by every view")
     else:
         full = vm.all(0) & np.asarray(b.valid).reshape(-1)
         idx = np.flatnonzero(full)

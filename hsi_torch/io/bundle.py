@@ -65,12 +65,12 @@ from typing import Any
 import numpy as np
 import torch
 
-import hsi_torch
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
 from hsi_torch.io.radiometry import CameraIdentity
 from hsi_torch.io.safety import require_regular_file, short_repr
+from hsi_torch.provenance import package_version, provenance
 from hsi_torch.spectral import band_widths
 
 __all__ = [
@@ -144,7 +144,9 @@ def make_provenance(
     inputs: Mapping[str, str | os.PathLike] | Iterable[str | os.PathLike] = (),
     **extra: Any,
 ) -> dict[str, Any]:
-    """Provenance record: SHA-256 of each input file, UTC creation time, plus ``extra`` items.
+    """Provenance record: SHA-256 of each input file, UTC creation time, the run (``run``:
+    command line, package version, git commit, torch / NumPy / Python versions, see
+    :func:`hsi_torch.provenance.provenance`), plus ``extra`` items.
 
     Args:
         inputs: files (``{label: path}`` or a list of paths; a list is labelled by file name).
@@ -155,6 +157,7 @@ def make_provenance(
     return {
         "inputs_sha256": hashes,
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "run": provenance(),
         **extra,
     }
 
@@ -193,7 +196,7 @@ def _np(x: Any) -> np.ndarray:
 
 
 def _software_version() -> str:
-    return str(getattr(hsi_torch, "__version__", "unknown"))
+    return package_version()
 
 
 @dataclass

@@ -6,8 +6,10 @@ interrupted rerun would leave a mix of new and old files with nothing saying so.
 :func:`start_out_run` writes :data:`INCOMPLETE_FILE` before the run starts, listing the files
 already there with their size, modification time and inode, and :func:`finish_out_run` writes
 the run's record (:data:`RUN_RECORD`, :data:`DEMO_RUN_RECORD`: the files it wrote and those left
-from an earlier run) and then removes :data:`INCOMPLETE_FILE`. While a run writes there it holds
-:data:`RUN_LOCK` (:func:`out_run_lock`): a second run into the same folder is refused.
+from an earlier run, and the run's provenance: the whole command line, the package version and
+git commit, the torch / NumPy / Python versions) and then removes :data:`INCOMPLETE_FILE`. While a
+run writes there it holds :data:`RUN_LOCK` (:func:`out_run_lock`): a second run into the same
+folder is refused.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 from hsi_torch.console import info
 from hsi_torch.io.atomic import atomic_write_json, hold_lock, remove_file
 from hsi_torch.io.paths import file_states
+from hsi_torch.provenance import provenance
 
 __all__ = ["INCOMPLETE_FILE", "RUN_RECORD", "DEMO_RUN_RECORD", "RUN_LOCK", "start_out_run",
            "finish_out_run", "out_run_lock"]  # fmt: skip
@@ -82,14 +85,19 @@ def _earlier_files(out: Path) -> dict[str, tuple[int, int, int]]:
 def start_out_run(out: Path, command: str, record: str, **fields: Any) -> dict[str, Any]:
     """Mark ``out`` incomplete before ``command`` (e.g. ``hsi-torch demo``) writes there in
     place: write :data:`INCOMPLETE_FILE` (atomically) with ``fields`` (e.g. ``experiment=NAME``),
-    the start time, this process and every file already there (``files_before``: relative path
-    → size, modification time in ns and inode), and say on stderr when the folder holds files of
-    an earlier run. ``record`` is the file :func:`finish_out_run` writes. Returns what was
-    written (passed on to :func:`finish_out_run`)."""
+    the start time, this process, the run's provenance (:func:`hsi_torch.provenance.provenance`:
+    the whole command line, the package version and git commit, the torch / NumPy / Python
+    versions; ``command`` is the whole command line when the run came from it) and every file
+    already there (``files_before``: relative path → size, modification time in ns and inode),
+    and say on stderr when the folder holds files of an earlier run. ``record`` is the file
+    :func:`finish_out_run` writes. Returns what was written (passed on to
+    :func:`finish_out_run`)."""
     before = _earlier_files(out)
+    prov = provenance()
     state: dict[str, Any] = {
         **fields,
-        "command": command,
+        "command": prov["command"] or command,
+        "provenance": prov,
         "state": "incomplete",
         "note": (f"this run of '{command}' has not finished: it is still running, or it was "
                  "interrupted. A file listed under files_before whose size and modification "

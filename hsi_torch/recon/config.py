@@ -13,7 +13,12 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from hsi_torch.config import help_meta
-from hsi_torch.recon.settings import BETA_MAX, MAX_PREVIEW_SIZE, ReconstructSettings
+from hsi_torch.recon.settings import (
+    BETA_MAX,
+    MAX_PREVIEW_SIZE,
+    RENAMED_KEYS,
+    ReconstructSettings,
+)
 
 __all__ = ["ReconstructConfig", "BETA_MAX"]
 
@@ -28,6 +33,9 @@ _help = help_meta
 @dataclass
 class ReconstructConfig:
     """Settings of a reconstruction run (see the field help texts)."""
+
+    #: keys of earlier releases, refused by the loader with what to write instead
+    __renamed_keys__ = RENAMED_KEYS
 
     beta: float = field(
         default=1e4,  # = hsi_torch.recon.pipeline.DEFAULT_BETA (kept importable without torch)
@@ -81,9 +89,9 @@ class ReconstructConfig:
         default=512, metadata=_help("the preview's longer side is enlarged (integer factor, "
                                     "nearest neighbour) to at least this many px; 0: native; "
                                     f"at most {MAX_PREVIEW_SIZE}"))
-    spectra_points: list[tuple[int, int]] = field(
+    spectra_pixels: list[tuple[int, int]] = field(
         default_factory=list,
-        metadata=_help("reference-frame pixels [x, y] whose spectra are plotted (PNG)"),
+        metadata=_help("reference-frame pixels [row, col] whose spectra are plotted (PNG)"),
     )
     chunk_size: int | None = field(
         default=None, metadata=_help("pixels per solver chunk (null: solver default)")

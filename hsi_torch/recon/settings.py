@@ -255,25 +255,25 @@ class InputSettings:
 @dataclass(frozen=True)
 class OutputSettings:
     """What a run writes per input. Flat keys: ``formats``, ``preview``, ``preview_size``,
-    ``spectra_points``, ``fit_residual_warning``.
+    ``spectra_pixels``, ``fit_residual_warning``.
 
     Attributes:
         formats: cube files (:data:`CUBE_FORMATS`), no duplicates.
         preview: write the sRGB preview PNG; preview_size: its longer side is enlarged to at
             least this many px (0: native; at most :data:`MAX_PREVIEW_SIZE`).
-        spectra_points: reference-frame pixels ``(x, y)`` whose spectra are plotted.
+        spectra_pixels: reference-frame pixels ``(row, col)`` whose spectra are plotted.
         fit_residual_warning: warn above this relative fit residual (``None``: never).
     """
 
     formats: tuple[str, ...] = ("tiff", "envi", "npz")
     preview: bool = True
     preview_size: int = 512
-    spectra_points: tuple[tuple[int, int], ...] = ()
+    spectra_pixels: tuple[tuple[int, int], ...] = ()
     fit_residual_warning: float | None = 0.15
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "formats", _frozen(self.formats))
-        object.__setattr__(self, "spectra_points", _frozen(self.spectra_points))
+        object.__setattr__(self, "spectra_pixels", _frozen(self.spectra_pixels))
         for f in self.formats:
             _choice("formats", f, CUBE_FORMATS)
         if len(set(self.formats)) != len(self.formats):
@@ -285,9 +285,9 @@ class OutputSettings:
         ):
             raise _bad("preview_size", f"must be an integer in 0..{MAX_PREVIEW_SIZE} (px), got "
                                        f"{self.preview_size!r}")  # fmt: skip
-        for p in self.spectra_points:
+        for p in self.spectra_pixels:
             if len(p) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in p):
-                raise _bad("spectra_points", f"points must be [x, y] integer pairs, got {p!r}")
+                raise _bad("spectra_pixels", f"pixels must be [row, col] integer pairs, got {p!r}")
         if self.fit_residual_warning is not None:
             lim = _number("fit_residual_warning", self.fit_residual_warning)
             if not lim > 0:
@@ -367,6 +367,15 @@ class RegistrationSettings:
 #: flat key → (group, field) of :class:`ReconstructSettings`: every field of
 #: :class:`~hsi_torch.recon.config.ReconstructConfig`, plus ``sat_threshold`` and
 #: ``noise_quantization_dn`` (keywords of the Python API only)
+#: Keys of earlier releases, refused with what to write instead. ``spectra_points`` was
+#: ``[x, y]`` = ``[col, row]``; every point option is now ``[row, col]`` (napari's order).
+RENAMED_KEYS: dict[str, str] = {
+    "spectra_points": "renamed to spectra_pixels, whose pixels are [row, col] (the order of "
+                      "'hsi-torch view --point' and napari); spectra_points was [x, y] = "
+                      "[col, row]: swap each pair, e.g. spectra_points=[[400, 300]] becomes "
+                      "spectra_pixels=[[300, 400]]",
+}  # fmt: skip
+
 FLAT_KEYS: dict[str, tuple[str, str]] = {
     **{k: ("solve", k) for k in ("beta", "diff_order", "solver", "admm_iters", "chunk_size",
                                  "min_views", "nan_invalid", "device", "dtype")},
@@ -375,7 +384,7 @@ FLAT_KEYS: dict[str, tuple[str, str]] = {
     "spatial_iters": ("prior", "spatial_iters"),
     **{k: ("input", k) for k in ("demosaic", "cfa_pattern", "black_level", "white_level",
                                  "exposure_correction", "exposure_s", "sat_threshold")},
-    **{k: ("output", k) for k in ("formats", "preview", "preview_size", "spectra_points",
+    **{k: ("output", k) for k in ("formats", "preview", "preview_size", "spectra_pixels",
                                   "fit_residual_warning")},
     "uncertainty": ("uncertainty", "enabled"),
     "noise_electrons_per_dn": ("uncertainty", "electrons_per_dn"),
@@ -417,7 +426,7 @@ class ReconstructSettings:
         for k, v in {**(values or {}), **keywords}.items():
             where = FLAT_KEYS.get(k)
             if where is None:
-                raise _bad(k, "unknown reconstruction setting")
+                raise _bad(k, RENAMED_KEYS.get(k, "unknown reconstruction setting"))
             groups[where[0]][where[1]] = _frozen(v)
         return cls(**{g: _GROUPS[g](**kw) for g, kw in groups.items()})
 
@@ -440,7 +449,7 @@ class ReconstructSettings:
         for k, v in keywords.items():
             where = FLAT_KEYS.get(k)
             if where is None:
-                raise _bad(k, "unknown reconstruction setting")
+                raise _bad(k, RENAMED_KEYS.get(k, "unknown reconstruction setting"))
             groups.setdefault(where[0], {})[where[1]] = _frozen(v)
         changed = {g: dataclasses.replace(getattr(self, g), **kw) for g, kw in groups.items()}
         return dataclasses.replace(self, **changed)

@@ -36,6 +36,7 @@ from hsi_torch.io.capture_set import write_capture_set_index, write_truth
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
 from hsi_torch.optics.geometry import apply_homography
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
+from hsi_torch.provenance import provenance
 from hsi_torch.refdata import filter_transmittance, read_spectral_csv
 from hsi_torch.resources import DATA_ENV, real_data_dir
 from hsi_torch.simulate import figures
@@ -557,4 +558,6 @@ def _truth_json(cfg, renderer: CaptureRenderer, truth, scene_names, arrays) -> d
         "design": renderer.design.to_dict(),
         "config": json.loads(json.dumps(to_dict(cfg), default=str)),
         "supersample_offsets_px": subpixel_offsets(renderer.supersample).tolist(),
+        # the command line, package version, git commit, torch / NumPy / Python versions
+        "provenance": provenance(),
     }

@@ -12,7 +12,10 @@ the widget under *Plugins → hsi-torch*. ``hsi-torch view FILE`` opens files wi
   click to the plot (several at once, each in its own colour, with a ±σ band when the cube has a
   standard deviation; a click outside the valid mask adds nothing and says so); the spectrum
   under the cursor is drawn as a dashed line while the mouse moves; a band slider labelled in nm
-  moves the viewer to that band; *Clear* empties the plot.
+  moves the viewer to that band (and napari's own band slider is labelled with the band's
+  wavelength, for every file format); *Clear* empties the plot. Pixels are ``(row, col)``, napari's
+  order. On a run store's frame axis the plotted spectra follow the displayed frame: moving to
+  another frame replots every point from that frame.
 
 This module imports napari, Qt and matplotlib's Qt backend: only napari (through the manifest) and
 the ``view`` command import it.
@@ -129,6 +132,28 @@ class SpectrumWidget(QWidget):
         self.slider.setValue(self.current_band())
         self.slider.blockSignals(False)
         self.band_label.setText(f"{wl[self.slider.value()]:.0f} nm")
+        self._label_band_axis()
+
+    def _label_band_axis(self) -> None:
+        """Name napari's band slider by the shown band's wavelength (``"550 nm"``): its own
+        label is the band index, and the axis is in nm only for a uniform grid."""
+        ly, wl = self._layer(), self.wavelengths()
+        if ly is None or wl is None:
+            return
+        dim = self._band_dim(ly)
+        labels = list(self.viewer.dims.axis_labels)
+        text = f"{wl[self.current_band()]:.0f} nm"
+        if 0 <= dim < len(labels) and labels[dim] != text:
+            labels[dim] = text
+            self.viewer.dims.axis_labels = labels
+
+    def current_frame(self) -> int | None:
+        """The frame the viewer shows of a run store's band stack (None for a single cube)."""
+        ly = self._layer()
+        if ly is None or ly.data.ndim != 4:
+            return None
+        d = ly.world_to_data(list(self.viewer.dims.point))
+        return int(np.clip(round(float(d[0])), 0, ly.data.shape[0] - 1))
 
     def current_band(self) -> int:
         """The band the viewer shows (index into :meth:`wavelengths`)."""
@@ -167,6 +192,28 @@ class SpectrumWidget(QWidget):
             self.slider.setValue(b)
             self.slider.blockSignals(False)
         self.band_label.setText(f"{wl[b]:.0f} nm")
+        self._label_band_axis()
+        self._follow_frame()
+
+    def _follow_frame(self) -> None:
+        """Replot every point of a run store from the displayed frame (a pixel not valid in
+        that frame is drawn as a gap)."""
+        frame = self.current_frame()
+        if frame is None or all(sp.frame in (None, frame) for _, sp in self.points):
+            return
+        moved: list[tuple[str, Spectrum]] = []
+        for name, sp in self.points:
+            ly = self.viewer.layers[name] if name in self.viewer.layers else None
+            if ly is None or ly.data.ndim != 4 or sp.frame == frame:
+                moved.append((name, sp))
+                continue
+            new = spectrum_at(ly.data, ly.metadata, sp.row, sp.col, frame)
+            if new is None:  # not valid in this frame: the point stays, without a curve
+                new = Spectrum(sp.row, sp.col, sp.wavelengths_nm,
+                               np.full_like(sp.values, np.nan), None, frame)  # fmt: skip
+            moved.append((name, new))
+        self.points = moved
+        self.redraw()
 
     # -- points ---------------------------------------------------------------------------------
     def spectrum_at_world(self, position: Sequence[float]) -> tuple[str, Spectrum] | None:
@@ -202,7 +249,7 @@ class SpectrumWidget(QWidget):
             return
         coords = []
         for _, sp in self.points:
-            d = np.zeros(ly.ndim)
+            d = np.asarray(ly.world_to_data(list(self.viewer.dims.point)), np.float64)
             d[-2], d[-1] = sp.row, sp.col
             coords.append(np.asarray(ly.data_to_world(d))[-2:])
         data = np.asarray(coords, np.float64).reshape(-1, 2)
@@ -297,8 +344,7 @@ def view(
         widget.slider.setValue(int(np.argmin(np.abs(widget.wavelengths() - float(band_nm)))))
     for r, c in points:
         ly = widget._layer()
-        d = np.zeros(ly.ndim)
-        d[-3] = widget.current_band()
+        d = np.asarray(ly.world_to_data(list(viewer.dims.point)), np.float64)  # shown frame
         d[-2], d[-1] = r, c
         widget.add_point(ly.data_to_world(d))
     if screenshot is not None:

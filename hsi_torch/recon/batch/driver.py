@@ -37,6 +37,7 @@ from typing import IO, Any, Protocol
 
 from hsi_torch.console import info, progress_bar, warn
 from hsi_torch.io.paths import check_input_name, shown_path
+from hsi_torch.provenance import provenance
 from hsi_torch.recon.batch.targets import OutputTarget
 
 __all__ = [
@@ -79,6 +80,8 @@ class RunSummary:
             prepared it in this run; a restarted worker appears once per process).
         threads: worker → its torch and numba thread counts during its last frame.
         store: the dataset store, if any.
+        provenance: the command line, package version, git commit and the torch / NumPy /
+            Python versions of the run (:func:`hsi_torch.provenance.provenance`).
     """
 
     processed: list[Path] = field(default_factory=list)
@@ -92,6 +95,7 @@ class RunSummary:
     prepare_s: dict[str, float] = field(default_factory=dict)
     threads: dict[str, dict[str, int]] = field(default_factory=dict)
     store: Path | None = None
+    provenance: dict[str, Any] = field(default_factory=provenance)
 
     @property
     def total(self) -> int:

@@ -24,6 +24,7 @@ from hsi_torch.config import load_config
 from hsi_torch.console import warn
 from hsi_torch.io.atomic import InputFiles
 from hsi_torch.io.dataset import DATASET_NAME, require_dataset_packages
+from hsi_torch.provenance import provenance
 from hsi_torch.recon.batch.driver import Executor, InlineExecutor, RunSummary, drive
 from hsi_torch.recon.batch.run import ReconstructRun, check_run, output_paths
 from hsi_torch.recon.batch.targets import FilesTarget, OutputTarget, StoreTarget, input_stamp
@@ -157,7 +158,8 @@ def execute(
     )  # fmt: skip
     target: OutputTarget
     if output_format == "zarr":
-        attrs = {"bundle": str(run.bundle_path), "hsi_torch_version": __version__}
+        attrs = {"bundle": str(run.bundle_path), "hsi_torch_version": __version__,
+                 "provenance": provenance()}
         target = StoreTarget(out / DATASET_NAME, run.inputs, run.wavelengths_nm, run.frame_size,
                              attrs, run.fingerprint)  # fmt: skip
     else:

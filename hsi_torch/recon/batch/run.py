@@ -1,7 +1,7 @@
 """A checked reconstruction run: many captures, one bundle → cube files, one input at a time.
 
 :func:`check_run` checks everything a run needs before anything is written (the cube formats'
-optional packages, the inputs — files or globs —, the device, the bundle, ``spectra_points`` and
+optional packages, the inputs — files or globs —, the device, the bundle, ``spectra_pixels`` and
 ``min_views`` against the bundle) and gives a :class:`ReconstructRun`; :meth:`ReconstructRun.start`
 creates the output folder and the run's configuration file. :func:`reconstruct_input` reads and
 reconstructs one input, :func:`write_outputs` writes its files; a task
@@ -11,7 +11,7 @@ cluster's workers, so every run writes the same files (:mod:`hsi_torch.recon.bat
 For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
 its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
 ``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65, enlarged, with a caption) and, with
-``spectra_points``, ``<stem>_spectra.png``; with ``uncertainty``, the per-band standard deviation
+``spectra_pixels``, ``<stem>_spectra.png``; with ``uncertainty``, the per-band standard deviation
 as ``<stem>_std.*`` in the non-NPZ formats, the key ``std`` in ``<stem>.npz`` and a map of the mean
 relative standard deviation, ``<stem>_std.png``. Every file is written atomically; if writing an
 input's outputs fails, the files already written for that input are removed. Each run records its
@@ -58,6 +58,7 @@ from hsi_torch.io.atomic import (
 from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.profiling import release_freed_memory
+from hsi_torch.provenance import provenance
 from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
@@ -84,7 +85,7 @@ def output_paths(stem: Path, settings: ReconstructSettings | ReconstructConfig) 
     s = as_settings(settings)
     o = s.output
     return paths.output_paths(stem, o.formats, uncertainty=s.uncertainty.enabled,
-                              preview=o.preview, spectra=bool(o.spectra_points))  # fmt: skip
+                              preview=o.preview, spectra=bool(o.spectra_pixels))  # fmt: skip
 
 
 def preview_caption(
@@ -106,11 +107,12 @@ def preview_caption(
 
 
 def _check_points(points: Sequence[tuple[int, int]], h: int, w: int) -> None:
-    for x, y in points:
-        if not (0 <= x < w and 0 <= y < h):
+    """Refuse a ``spectra_pixels`` pixel ``(row, col)`` outside the ``h × w`` frame."""
+    for r, c in points:
+        if not (0 <= r < h and 0 <= c < w):
             raise ValueError(
-                f"config key 'spectra_points': point (x={x}, y={y}) is outside the reference "
-                f"frame (w={w}, h={h})"
+                f"config key 'spectra_pixels': pixel (row={r}, col={c}) is outside the "
+                f"reference frame ({h} rows, {w} columns; [row, col] order)"
             )
 
 
@@ -158,8 +160,8 @@ def _write_staged(
     valid = result.valid.detach().cpu()
     wl = result.wavelengths_nm.detach().cpu()
     h, w = cube.shape[-2:]
-    if cfg.spectra_points:
-        _check_points(cfg.spectra_points, h, w)
+    if cfg.spectra_pixels:
+        _check_points(cfg.spectra_pixels, h, w)
     tm = timings if timings is not None else {}
 
     def timed(name: str, fn: Callable[[], list[Path]]) -> Callable[[], list[Path]]:
@@ -194,9 +196,9 @@ def _write_staged(
         if std is not None:
             jobs.append(timed("std_preview", lambda: [
                 _save_std_map(cube, std, valid, s, cfg.preview_size)]))
-    if cfg.spectra_points:
+    if cfg.spectra_pixels:
         jobs.append(timed("spectra", lambda: [
-            _plot_points(cube, valid, wl, s, cfg.spectra_points, std)]))
+            _plot_points(cube, valid, wl, s, cfg.spectra_pixels, std)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
     # which release the GIL); every file is still atomic
     results: list[list[Path]] = []
@@ -242,19 +244,19 @@ def _plot_points(
     points: Sequence[tuple[int, int]],
     std: torch.Tensor | None = None,
 ) -> Path:
-    """The spectra at ``points`` (``(x, y)``) → ``<stem>_spectra.png``, with a ±1σ band when
-    the run computed the uncertainty (``std``, ``(M, h, w)``)."""
+    """The spectra at ``points`` (``(row, col)``) → ``<stem>_spectra.png``, with a ±1σ band
+    when the run computed the uncertainty (``std``, ``(M, h, w)``)."""
 
-    xs = torch.tensor([p[0] for p in points])
-    ys = torch.tensor([p[1] for p in points])
+    ys = torch.tensor([p[0] for p in points])
+    xs = torch.tensor([p[1] for p in points])
     spectra = cube[:, ys, xs].T  # (K, M)
     # invalid points are left out of the plot (NaN), not drawn as a flat zero spectrum
     spectra = torch.where(valid[ys, xs].unsqueeze(1), spectra, float("nan"))
     if not bool(valid[ys, xs].any()):
         spectra = torch.zeros_like(spectra)  # nothing to draw; keep the axes finite
     labels = [
-        f"(x={x}, y={y})" + ("" if bool(valid[y, x]) else " invalid")
-        for x, y in points
+        f"(row {r}, col {c})" + ("" if bool(valid[r, c]) else " invalid")
+        for r, c in points
     ]
     sd = None if std is None else torch.where(valid[ys, xs].unsqueeze(1), std[:, ys, xs].T,
                                               float("nan"))  # fmt: skip
@@ -360,7 +362,7 @@ def check_run(
     packages (unless ``formats=False``: a run writing a dataset store instead), the inputs (a
     glob matching nothing fails here), the device (``device_here=False``: only its name — the
     frames run on other machines, e.g. GPU workers of a driver without one), the bundle,
-    ``spectra_points`` and ``min_views`` against the bundle; the bundle's SHA-256 is computed."""
+    ``spectra_pixels`` and ``min_views`` against the bundle; the bundle's SHA-256 is computed."""
     if device:
         cfg.device = str(device)
     settings = cfg.settings()
@@ -375,7 +377,7 @@ def check_run(
     bundle_path = Path(os.path.abspath(bundle))
     b = load_bundle(bundle_path)
     h, w = b.frame_size
-    points = settings.output.spectra_points
+    points = settings.output.spectra_pixels
     if points:
         _check_points(points, h, w)
     if settings.solve.min_views > b.num_views:
@@ -469,8 +471,11 @@ def write_run_config(
     folder = out / RUNS_DIR
     clean_stale_temp_files(folder)
     base = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    prov = provenance()
     header = (
         f"resolved configuration of a 'hsi-torch reconstruct' run, hsi_torch {__version__}\n"
+        + (f"command: {prov['command']}\n" if prov["command"] else "")
+        + f"torch {prov['torch']}, numpy {prov['numpy']}, python {prov['python']}\n"
         f"started {time.strftime('%Y-%m-%d %H:%M:%S')}, {num_inputs} input(s), bundle "
         f"{os.path.abspath(bundle_path)}\n"
         f"rerun with: hsi-torch reconstruct --config <this file> --bundle BUNDLE --out DIR INPUTS"
