@@ -140,9 +140,13 @@ def test_deepinv_adjointness(device):
     err = float(physics.adjointness_test(x, num_samples=4))
     assert err < 1e-10
     # deepinv's own norm estimate agrees with the largest singular value of the stacked A_p
+    # (its power iteration starts from torch.randn: seeded, as it failed in 1 of 4 runs unseeded)
     A = physics.camera.sensing.model.dense() * physics.camera.sensing.obs_mask[..., None]
     top = float(torch.linalg.matrix_norm(A, ord=2).max() ** 2)
-    assert float(physics.compute_sqnorm(x, max_iter=500, tol=1e-9)) == pytest.approx(top, rel=1e-3)
+    torch.manual_seed(0)
+    est = float(physics.compute_sqnorm(x, max_iter=500, tol=1e-9))
+    # a power iteration approaches it from below (measured 3e-5 to 1.5e-3 under, by seed)
+    assert top * (1 - 5e-3) <= est <= top * (1 + 1e-9)
 
 
 def test_deepinv_noise_model_draws_the_sensor_noise(device):
