@@ -136,6 +136,19 @@ def test_layout_corrects_an_off_design_camera_and_calibrates(sim_off: Path, tmp_
     print(format_scores(s))
     assert targets_met(s) == {"B": True, "phi": True, "gain": True, "homography": True}
     assert s["valid_iou"] > 0.94
+    # the off-design edges score 0.089 as designed, 0.241 fitted: well clear of the limit
+    assert fit["confidence"]["edge_contrast"] >= 1.5 * MIN_EDGE_CONTRAST
+    # the records hold the whole command lines (simulate's --config and every --set) and the
+    # version that names the code
+    import hsi_torch
+
+    sim_rec = json.loads((sim_off / "ground_truth" / "truth.json").read_text())["provenance"]
+    assert "--config" in sim_rec["argv"] and "camera.cx=205.5" in sim_rec["argv"]
+    assert sim_rec["hsi_torch_version"] == hsi_torch.__version__
+    cal_rec = json.loads((tmp_path / "cal" / "calib.report.json").read_text())["provenance"]
+    assert cal_rec["argv"] == ["hsi-torch", "calibrate", "--captures", str(lab), "--out",
+                               str(tmp_path / "cal"), "-q"]  # fmt: skip
+    assert cal_rec["torch"] == torch.__version__
 
 
 def test_calibrate_refuses_two_flipped_parities(sim: Path, tmp_path: Path, capsys):
