@@ -95,8 +95,8 @@ DRIFT_MIN_CORRELATION = 0.5
 #: boundary's own edge is not scene texture), then tapered to 0 over :data:`_TAPER_PX`.
 _ERODE_PX = 2
 _TAPER_PX = 6
-#: px: the common area compared is shrunk by this much more (the largest drift measured well
-#: is about this size).
+#: px: the common area compared is shrunk by this much more (so that a shifted view's content
+#: stays on it).
 _MARGIN_PX = 8
 #: fewest common pixels for a view to be measured
 _MIN_PIXELS = 400
