@@ -240,6 +240,12 @@ def test_a_flat_field_measures_nothing_and_corrects_nothing(sims):
     assert d["measured_views"] == 0 and d["sensor_shift_px"] is None
     assert d["corrected"] is False and d["sensor_motion_px"] == 0.0
     assert d["view_shift_px"][0] == [0.0, 0.0] and d["view_shift_px"][1] == [None, None]
+    # nothing to measure is not refused, but the run says nothing was corrected
+    assert d["textured_views"] == 0 and d["refused"] is None
+    from hsi_torch.recon.batch.run import frame_warnings
+
+    said = frame_warnings(res.stats, rec.settings)
+    assert any("nothing corrected, no view has texture" in w for w in said), said
 
 
 def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_path, capsys):
