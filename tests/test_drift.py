@@ -40,6 +40,10 @@ _SCENES_ONLY = ["--set", "captures.scan_wavelengths_nm=[]", "--set", "captures.w
                              "{width_mm: 8.4, center_mm: [0.0, 1.4]}}]"]  # fmt: skip
 
 
+_USAF = ("captures.scenes=[{kind: usaf, name: usaf, params: {groups: [2, 3, 4], magnification: "
+         "1.0, center_mm: [0.0, 1.0]}}]")
+
+
 def _simulate(out: Path, *extra: str) -> Path:
     assert main(["-q", "simulate", "--out", str(out), *_SCENES_ONLY, *extra]) == 0
     return out
@@ -48,15 +52,18 @@ def _simulate(out: Path, *extra: str) -> Path:
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory) -> dict[str, Path]:
     """The small prototype's ColorChecker, ideal and with a (2, 0), (12, 0) and (30, 0) px
-    sensor drift, and the oracle bundle of the ideal device."""
+    sensor drift, its USAF target with a (12, 0) and (30, 0) px drift, and the oracle bundle of
+    the ideal device."""
     root = tmp_path_factory.mktemp("drift")
     ideal = _simulate(root / "ideal")
     drift = _simulate(root / "drift", "--set", "mismatch.drift_shift_px=[2, 0]")
     far = {f"drift{d}": _simulate(root / f"drift{d}", "--set",
                                   f"mismatch.drift_shift_px=[{d}, 0]") for d in (12, 30)}
+    usaf = {f"usaf{d}": _simulate(root / f"usaf{d}", "--set", _USAF, "--set",
+                                  f"mismatch.drift_shift_px=[{d}, 0]") for d in (12, 30)}
     bundle = root / "oracle.npz"
     bundle_from_truth(ideal).save(bundle)
-    return {"ideal": ideal, "drift": drift, "bundle": bundle, **far}
+    return {"ideal": ideal, "drift": drift, "bundle": bundle, **far, **usaf}
 
 
 def _image(sim: Path) -> torch.Tensor:
@@ -233,6 +240,12 @@ def test_a_flat_field_measures_nothing_and_corrects_nothing(sims):
     assert d["measured_views"] == 0 and d["sensor_shift_px"] is None
     assert d["corrected"] is False and d["sensor_motion_px"] == 0.0
     assert d["view_shift_px"][0] == [0.0, 0.0] and d["view_shift_px"][1] == [None, None]
+    # nothing to measure is not refused, but the run says nothing was corrected
+    assert d["textured_views"] == 0 and d["refused"] is None
+    from hsi_torch.recon.batch.run import frame_warnings
+
+    said = frame_warnings(res.stats, rec.settings)
+    assert any("nothing corrected, no view has texture" in w for w in said), said
 
 
 def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_path, capsys):
@@ -338,9 +351,10 @@ def _natural_texture(shape: tuple[int, int], seed: int) -> torch.Tensor:
 
 
 def test_the_measurable_range_is_the_search_window_over_the_most_sensitive_view(sims):
-    """The most sensitive views move 2.01× the sensor shift relative to the reference view: a
-    16 px window measures ≈ 8 px of sensor motion. Whole-pixel rolls up to 7 px are measured
-    within 0.1 px and agreed on; from 10 px on, too few views agree (measured below)."""
+    """The most sensitive views move 2.01× the sensor shift relative to the reference view: the
+    32 px window allows ≈ 16 px of sensor motion. On the ColorChecker (a grid of patches)
+    whole-pixel rolls up to 7 px are measured within 0.1 px and agreed on; from 10 px on the
+    patches match falsely or not at all, too few views agree, and it is refused (below)."""
     sens = Reconstructor(sims["bundle"], dtype=torch.float64).sensing
     img = _image(sims["ideal"])
     for shift in ((3, 0), (-5, 0), (0, 6), (5, 5), (7, 0)):
@@ -354,13 +368,29 @@ def test_the_measurable_range_is_the_search_window_over_the_most_sensitive_view(
         assert est.refusal is not None and est.agreeing_views < 4, shift
 
 
+def test_a_12_px_drift_of_a_textured_scene_is_measured_and_corrected(sims):
+    """The USAF target drifted 12 px (its mirrored views move 21 px): every view agrees on the
+    motion, within 0.1 px, and it is corrected; drifted 30 px (beyond the window) it is
+    refused."""
+    rec = Reconstructor(sims["bundle"], refine_registration=True)
+    res = rec.reconstruct_file(sims["usaf12"] / "scenes" / "usaf.tif")
+    d = res.stats["drift"]
+    assert d["corrected"] is True and d["refused"] is None
+    assert d["agreeing_views"] == 9 and d["spread_px"] < 0.5
+    np.testing.assert_allclose(d["sensor_shift_px"], (12.0, 0.0), atol=0.1)
+    assert d["max_view_shift_px"] > drift._MARGIN_PX * 2  # beyond the former 16 px window
+    with pytest.raises(DriftError, match="fewer than drift_min_views=4"):
+        rec.reconstruct_file(sims["usaf30"] / "scenes" / "usaf.tif")
+
+
 @pytest.mark.parametrize("far", [12, 30])
-def test_a_simulated_drift_beyond_the_range_is_refused_never_corrected(sims, far, tmp_path,
-                                                                         capsys):
-    """A 12 px or 30 px sensor drift (beyond the ≈ 8 px the views can measure): formerly
-    fitted from one view as 30.65 / 21.33 px and "corrected"; now the reconstructor raises
-    DriftError naming the views' agreement and the range, the run lists the frame as failed
-    (exit 1, no cube), and the check alone warns that the drift could not be measured."""
+def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims, far, tmp_path,
+                                                                           capsys):
+    """A 12 px or 30 px sensor drift of the ColorChecker (its patches match falsely or not at
+    all): formerly fitted from one view as 30.65 / 21.33 px and "corrected"; now the
+    reconstructor raises DriftError naming the views' agreement and the range, the run lists
+    the frame as failed (exit 1, no cube), and the check alone warns that the drift could not
+    be measured."""
     cap = sims[f"drift{far}"] / "scenes" / "colorchecker.tif"
     rec = Reconstructor(sims["bundle"], refine_registration=True)
     with pytest.raises(DriftError) as err:
@@ -368,7 +398,7 @@ def test_a_simulated_drift_beyond_the_range_is_refused_never_corrected(sims, far
     msg = str(err.value)
     assert str(cap) in msg and "refine_registration" in msg
     assert "views with texture agree within 1 px" in msg and "drift_min_views=4" in msg
-    assert "measurable range is about ±8.0 px" in msg
+    assert "at most ±15.9 px of sensor motion can be measured" in msg
     assert isinstance(err.value, ValueError)  # an InputError: bad input, not a crash
     # the check alone: the cube is made, its drift marked refused and not corrected
     res = Reconstructor(sims["bundle"]).reconstruct_file(cap)
