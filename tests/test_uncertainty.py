@@ -274,7 +274,7 @@ def test_reconstruct_cli_writes_the_std(tmp_path):
     assert std.shape == cube.cube.shape and std.dtype == torch.float32
     assert bool(torch.isnan(std[:, ~cube.valid]).all())
     # the same numbers as the Python API with the same settings
-    rec = Reconstructor(bpath, uncertainty=True, noise=SensorNoise(read_noise_e=5.0))
+    rec = Reconstructor(bpath, uncertainty=True, noise_read_e=5.0)
     ref = rec.reconstruct_file(tmp_path / "c.tif").std
     torch.testing.assert_close(std, ref.float(), equal_nan=True)
     assert bool((std[:, cube.valid] >= 0).all()) and bool((std[:, cube.valid] > 0).any())

@@ -51,6 +51,7 @@ import torch
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write, json_default
 from hsi_torch.io.captures import quiet_tifffile
+from hsi_torch.io.zarr_codecs import SAFE_CODECS, check_zarr_codecs
 
 __all__ = [
     "Cube",
@@ -659,11 +660,6 @@ def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:
 def _load_xarray(p: Path, kind: str):
     xr = _import_xarray(f"reading {p}")
     if kind == "zarr":  # before xarray decodes anything: no codec that runs code (pickle)
-        from hsi_torch.io.dataset import (  # lazy: dataset imports this module
-            SAFE_CODECS,
-            check_zarr_codecs,
-        )
-
         check_zarr_codecs(p, SAFE_CODECS)
     opener = xr.open_dataset if kind == "netcdf" else xr.open_zarr
     with opener(p) as ds:

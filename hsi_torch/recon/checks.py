@@ -8,7 +8,7 @@
   (:mod:`hsi_torch.io.radiometry`); a frame that reads more carries a black pedestal that was not
   removed, and gets a warning naming the level.
 - **Exposure.** A capture's observations are scaled by ``t_white / t_capture``
-  (:func:`~hsi_torch.recon.pipeline.exposure_scale`) when both exposures are known in the same
+  (:func:`exposure_scale`) when both exposures are known in the same
   unit; the result's statistics then say ``radiometric_scale: "reflectance"`` and the ratio.
   Otherwise ``radiometric_scale: "relative"`` and a warning: the cube is not reflectance.
 - **Camera.** The capture's camera identity (make/model, CFA pattern, the file's own black and
@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from hsi_torch.errors import InputError
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.radiometry import (
     CameraIdentity,
@@ -46,6 +47,7 @@ __all__ = [
     "check_notes",
     "check_warnings",
     "exposure_info",
+    "exposure_scale",
     "prepare_capture",
 ]
 
@@ -251,6 +253,28 @@ def prepare_capture(
     return stats
 
 
+def exposure_scale(capture_exposure_s: Any, white_exposure_s: float | None) -> float:
+    """Factor applied to a capture's observations: ``t_white / t_capture`` (1 when unknown).
+
+    The response ``phi`` (hence ``A``) is calibrated on white-reference shots taken with exposure
+    ``t_white``: a white reflector imaged with exposure ``t`` reads ``t / t_white`` times the
+    calibrated values. Scaling ``y`` by ``t_white / t`` keeps reconstructed spectra in
+    reflectance units relative to the white reference, whatever the capture's exposure.
+    """
+    if white_exposure_s is None or capture_exposure_s is None:
+        return 1.0
+    try:
+        t = float(capture_exposure_s)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(
+            f"capture metadata 'exposure_s' is not a number: {capture_exposure_s!r}"
+        ) from None
+    if not t > 0 or t == float("inf"):
+        raise InputError(f"capture metadata 'exposure_s' must be > 0, got {capture_exposure_s!r}")
+    return float(white_exposure_s) / t
+
+
+
 def _ratio_text(r: float) -> str:
     """``t_capture / t_white`` as words: ``"1/2"``, ``"2x"``, ``"0.37x"``."""
     for v, fmt in ((1 / r, "1/{}"), (r, "{}x")):
@@ -303,8 +327,6 @@ def exposure_info(
                      f"reference's {words[w_unit]}: not comparable, not scaled; the cube's scale "
                      "is relative, not reflectance")  # fmt: skip
         return None, stats
-    from hsi_torch.recon.pipeline import exposure_scale  # lazy: the pipeline imports this module
-
     k = exposure_scale(t, w)
     r = 1.0 / k
     if abs(r - 1) < 1e-9:
