@@ -3,7 +3,8 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, testing, metrics, cli_common → foundation only
+                 resources, refdata, colour, testing, metrics, cli_common, devices
+                 → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
     calibrate    (captures → bundle)                          → foundation, optics
@@ -37,7 +38,7 @@ PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
               "profiling", "resources", "refdata", "colour", "testing", "metrics",
-              "cli_common")  # fmt: skip
+              "cli_common", "devices")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},

@@ -555,9 +555,9 @@ def test_a_bad_device_is_named():
     from hsi_torch.recon.module import HSIReconstructor
 
     bundle = make_bundle()
-    with pytest.raises(ValueError, match="device 'gpu' is not a torch device"):
+    with pytest.raises(ValueError, match="device 'gpu': not a torch device"):
         Reconstructor(bundle, device="gpu")
-    with pytest.raises(ValueError, match="device 'gpu' is not a torch device"):
+    with pytest.raises(ValueError, match="device 'gpu': not a torch device"):
         HSIReconstructor.from_bundle(bundle, device="gpu")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="device 'cuda:0': CUDA is not available"):

@@ -66,6 +66,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hsi_torch.config import load_config, to_dict
+from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -482,7 +483,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = {"float32": torch.float32, "float64": torch.float64}[cfg.dtype]
+    dt = torch_dtype(cfg.dtype)
     cfg.__post_init__()  # the ablation list and beta may have been edited after construction
     ablate = list(cfg.ablate)
     ideal = "warp" in ablate

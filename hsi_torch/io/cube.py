@@ -31,7 +31,6 @@ Convention:
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import json
 import os
 import shutil
@@ -48,7 +47,7 @@ from xml.sax.saxutils import escape as _xml_escape
 import numpy as np
 import torch
 
-from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.errors import FileFormatError, MissingFileError, require_packages
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write, json_default
 from hsi_torch.io.captures import quiet_tifffile
 from hsi_torch.io.zarr_codecs import SAFE_CODECS, check_zarr_codecs
@@ -105,12 +104,7 @@ def require_format(fmt: str) -> None:
     """
     if fmt not in _FORMAT_SUFFIX:
         raise ValueError(f"unknown cube format {fmt!r}; one of {', '.join(CUBE_FORMATS)}")
-    for mod in OPTIONAL_FORMATS.get(fmt, ()):
-        if importlib.util.find_spec(mod) is None:
-            raise ModuleNotFoundError(
-                f"the cube format {fmt!r} needs the optional package {mod!r}: {_EXTRA_HINT}",
-                name=mod,
-            )
+    require_packages(OPTIONAL_FORMATS.get(fmt, ()), f"the cube format {fmt!r}", _EXTRA_HINT)
 
 
 def _import_xarray(what: str):

@@ -54,7 +54,6 @@ Reading::
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import json
 import os
 import tempfile
@@ -65,7 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.errors import FileFormatError, InputError, require_packages
 from hsi_torch.io.atomic import (
     atomic_write,
     atomic_write_text,
@@ -113,11 +112,8 @@ def require_dataset_packages(read: bool = False) -> None:
     Raises:
         ModuleNotFoundError: one is missing (the message says what to install).
     """
-    for mod in ("numcodecs",) + (("xarray", "zarr") if read else ()):
-        if importlib.util.find_spec(mod) is None:
-            raise ModuleNotFoundError(
-                f"the Zarr dataset store needs the optional package {mod!r}: {_HINT}", name=mod
-            )
+    require_packages(("numcodecs",) + (("xarray", "zarr") if read else ()),
+                     "the Zarr dataset store", _HINT)  # fmt: skip
 
 
 def _codec(config: dict[str, Any] | None):

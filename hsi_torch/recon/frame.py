@@ -70,7 +70,6 @@ __all__ = [
     "prepare_input",
     "check_min_views",
     "sensor_noise",
-    "torch_dtype",
     "FIT_RESIDUAL_SAMPLES",
 ]
 
@@ -598,12 +597,6 @@ def _no_valid_reason(info: dict[str, Any], min_views: int, num_views: int) -> st
         parts.append(f"{other} of {total} observations are not finite (NaN/inf samples)")
     parts.append(f"no pixel has min_views={min_views} views with a usable observation")
     return "; ".join(parts)
-
-
-
-def torch_dtype(name: str) -> torch.dtype:
-    """``"float32"`` / ``"float64"`` (the settings' ``dtype``) → the torch dtype."""
-    return torch.float64 if name == "float64" else torch.float32
 
 
 

@@ -41,12 +41,13 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import InputError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.recon.corrections import correct_frames
-from hsi_torch.recon.frame import check_min_views, prepare_input, reconstruct_frame, torch_dtype
+from hsi_torch.recon.frame import check_min_views, prepare_input, reconstruct_frame
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.sensing import BundleSensing, build_sensing, load_bundle, precompute_sensing
 from hsi_torch.recon.settings import ReconstructSettings, with_overrides

@@ -19,11 +19,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import FileFormatError, InputError
 from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.captures import CaptureDefaults
 from hsi_torch.io.cube import cube_to_xarray
-from hsi_torch.recon.checks import exposure_info, exposure_scale, prepare_capture
+from hsi_torch.recon.checks import exposure_info, exposure_scale, measure_capture
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
 from hsi_torch.recon.drift import corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.frame import (
@@ -31,10 +33,9 @@ from hsi_torch.recon.frame import (
     check_min_views,
     prepare_input,
     reconstruct_frame,
-    torch_dtype,
 )
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
-from hsi_torch.recon.settings import DEFAULT_BETA, ReconstructSettings, with_overrides
+from hsi_torch.recon.settings import DEFAULT_BETA, FLAT_KEYS, ReconstructSettings, with_overrides
 from hsi_torch.recon.uncertainty import RAW_LAYOUTS, sampling_variance_factor
 
 __all__ = [
@@ -264,44 +265,45 @@ class Reconstructor:
                 raise FileFormatError(f"{src}: {exc}") from None  # the file's metadata at fault
             raise
 
-    def reconstruct_file(
-        self,
-        path: str | os.PathLike,
-        demosaic: str = "bilinear",
-        *,
-        cfa_pattern: str | None = None,
-        black_level: float | list[float] | None = None,
-        white_level: float | None = None,
-        exposure_s: float | None = None,
-    ) -> ReconstructionResult:
+    def reconstruct_file(self, path: str | os.PathLike, **overrides: Any) -> ReconstructionResult:
         """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it.
 
-        The file's full-resolution size is checked against the bundle (errors name the file):
-        the sensor size, or for Bayer files read with ``demosaic="half"`` (a bundle made at half
-        resolution) twice the sensor size. ``cfa_pattern``, ``black_level``, ``white_level``
-        override the file's metadata; a Bayer file without a pattern gets the bundle's, a file
-        without a black level the calibration's (``settings["black_level_rgb"]``), a file without
-        an exposure ``exposure_s`` (s). The statistics also hold the black level used and its
-        source, the pedestal outside the views, the camera and its differences from the bundle's
-        (:func:`hsi_torch.recon.checks.prepare_capture`); :func:`hsi_torch.recon.checks.
-        check_warnings` turns them into warnings. ``timings["load"]`` is the read (and demosaic).
+        The reading follows the settings' ``input`` group (``demosaic``, ``cfa_pattern``,
+        ``black_level``, ``white_level`` override the file's metadata; ``overrides``: flat keys of
+        that group changed for this file, e.g. ``demosaic="half"``). What a file does not say it
+        gets from the bundle, in the reader (:meth:`capture_defaults`): a Bayer file without a
+        pattern the bundle's, a file without a black level the calibration's, a file without an
+        exposure the ``exposure_s`` setting. The file's full-resolution size is checked against
+        the bundle (errors name the file): the sensor size, or for Bayer files read with
+        ``demosaic="half"`` (a bundle made at half resolution) twice the sensor size. The
+        statistics also hold the black level used and its source, the pedestal outside the views,
+        the camera and its differences from the bundle's
+        (:func:`hsi_torch.recon.checks.measure_capture`, which only measures);
+        :func:`hsi_torch.recon.checks.check_warnings` turns them into warnings.
+        ``timings["load"]`` is the read (and demosaic).
         """
-        if demosaic not in ("bilinear", "half"):
-            raise ValueError(f"demosaic must be 'bilinear' or 'half', got {demosaic!r}")
+        s = self.settings
+        if overrides:
+            groups = {k: FLAT_KEYS.get(k, ("?", k))[0] for k in overrides}
+            other = sorted(k for k, g in groups.items() if g != "input")
+            if other:
+                raise TypeError(f"reconstruct_file takes reading settings only (the input "
+                                f"group), not {', '.join(other)}")  # fmt: skip
+            s = s.replace(**overrides)
+        read = s.input
         p = Path(path)
         sens = self.sensing
         t0 = time.perf_counter()
         cap = read_any(
-            p, expected_size=sens.sensor_size if demosaic == "bilinear" else None,
-            demosaic=demosaic, cfa_pattern=cfa_pattern, black_level=black_level,
-            white_level=white_level, dtype=sens.dtype, device=sens.device,
-            default_cfa_pattern=sens.cfa_pattern,
+            p, expected_size=sens.sensor_size if read.demosaic == "bilinear" else None,
+            demosaic=read.demosaic, cfa_pattern=read.cfa_pattern, black_level=_listed(
+                read.black_level), white_level=read.white_level, dtype=sens.dtype,
+            device=sens.device, defaults=self.capture_defaults(read.exposure_s),
         )  # fmt: skip
-        if demosaic == "half":
+        if read.demosaic == "half":
             _check_half_size(cap, sens, p)
         apply_bundle_corrections(cap, sens.radiometry)  # before the pedestal is measured
-        checks = prepare_capture(cap, sens.radiometry, black_level=black_level,
-                                 exposure_s=exposure_s, sensor_size=sens.sensor_size)  # fmt: skip
+        checks = measure_capture(cap, sens.radiometry, sensor_size=sens.sensor_size)
         _sync(sens.device)
         t_load = time.perf_counter() - t0
         res = self.reconstruct_capture(cap)
@@ -311,6 +313,20 @@ class Reconstructor:
         res.stats["metadata"] = cap.metadata
         return res
 
+    def capture_defaults(self, exposure_s: float | None = None) -> CaptureDefaults:
+        """What :func:`~hsi_torch.io.read_any` gives a file that does not say: the bundle's
+        black level (R, G, B, as its calibration subtracted) and CFA pattern, and
+        ``exposure_s`` (default: the settings')."""
+        sens = self.sensing
+        rad = sens.radiometry
+        t = self.settings.input.exposure_s if exposure_s is None else exposure_s
+        return CaptureDefaults(black_level_rgb=None if rad is None else rad.black_level_rgb,
+                               cfa_pattern=sens.cfa_pattern, exposure_s=t)  # fmt: skip
+
+
+def _listed(level: Any) -> Any:
+    """A settings black level (a number or a tuple) in read_any's form."""
+    return list(level) if isinstance(level, tuple) else level
 
 
 def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.devices import resolve_device
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.radiometry import CameraIdentity
@@ -288,22 +289,6 @@ def _cfa_from_settings(bundle: CalibrationBundle) -> str | None:
     return str(v) if isinstance(v, str) else None
 
 
-def _device(device: torch.device | str | None) -> torch.device:
-    """``device`` as a torch device (``None``: the CPU); a name torch does not know, or CUDA
-    where this torch has none, is a ``ValueError`` naming the device (not torch's own
-    ``RuntimeError`` / ``AssertionError`` from deep inside the precomputation)."""
-    if device is None:
-        return torch.device("cpu")
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError) as exc:
-        raise ValueError(f"device {device!r} is not a torch device ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {str(device)!r}: CUDA is not available on this machine or in "
-                         "this torch build (use device='cpu')")
-    return dev
-
-
 def precompute_sensing(
     bundle: CalibrationBundle | str | os.PathLike,
     *,
@@ -335,7 +320,7 @@ def precompute_sensing(
     """
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-    dev = _device(device)
+    dev = resolve_device(device)
     beta, diff_order = float(beta), int(diff_order)
     path = Path(bundle) if isinstance(bundle, (str, os.PathLike)) else None
     folder, note = disk.cache_folder(disk_cache, path)
