@@ -217,7 +217,7 @@ def test_monte_carlo_coverage(layout, device, dtype):
     x = mosaic(img, "RGGB") if layout == "bayer" else img
     dn = sensor.expose((x * g).unsqueeze(0).expand(N, *x.shape).contiguous()).dn
     rec = Reconstructor(bundle, beta=1e4, device=device, dtype=dtype, uncertainty=True,
-                        noise=SensorNoise(electrons_per_dn=g, read_noise_e=r))  # fmt: skip
+                        noise_electrons_per_dn=g, noise_read_e=r)  # fmt: skip
     cubes, stds = [], []
     for i in range(N):  # independent captures of the same scene
         res = rec.reconstruct_frame(dn[i].to(device, dtype))
