@@ -196,11 +196,11 @@ class Reconstructor:
         corr: dict[str, Any] = {}
         if bundle_corrections:
             img, sat, corr = correct_frames(img, sat, sens.radiometry)
-        st_ = self.settings
-        scale = (exposure_scale(exposure_s, sens.exposure_s) if st_.input.exposure_correction
+        settings = self.settings
+        scale = (exposure_scale(exposure_s, sens.exposure_s) if settings.input.exposure_correction
                  else 1.0)  # fmt: skip
         factor = None
-        if st_.uncertainty.enabled:
+        if settings.uncertainty.enabled:
             layout = "bayer" if image.shape[0] == 1 else (raw_layout or "rgb")
             if layout not in RAW_LAYOUTS:
                 raise ValueError(f"raw_layout must be one of {RAW_LAYOUTS}, got {raw_layout!r}")
@@ -210,17 +210,17 @@ class Reconstructor:
         _sync(sens.device)
         t_demosaic = time.perf_counter() - t0
         drift = None
-        if st_.registration.check or st_.registration.refine:
+        if settings.registration.check or settings.registration.refine:
             t1 = time.perf_counter()
             drift = estimate_drift(sens, img)
             motion_px = drift_motion_px(sens, drift)
-            if st_.registration.refine and drift.sensor_shift_px is not None:
+            if settings.registration.refine and drift.sensor_shift_px is not None:
                 sens = corrected_sensing(sens, drift.sensor_shift_px,
                                          drift.sensor_rotation_deg or 0.0)
             t_drift = time.perf_counter() - t1
         with torch.no_grad():
             out = reconstruct_frame(
-                sens, img.unsqueeze(0), st_, None if sat is None else sat.unsqueeze(0),
+                sens, img.unsqueeze(0), settings, None if sat is None else sat.unsqueeze(0),
                 scale=None if scale == 1.0 else scale, sampling_factor=factor,
             )  # fmt: skip
         cube, valid, stats, t = out.cube, out.valid, out.stats, out.timings
