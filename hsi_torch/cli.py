@@ -449,24 +449,6 @@ def _run_entry(args: argparse.Namespace) -> int:
     return _exit_code(func(args))
 
 
-def _check_device(name: str) -> None:
-    """Refuse an unknown or unavailable ``--device`` before any work (or output) starts."""
-    import torch
-
-    try:
-        dev = torch.device(name)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"--device {name!r}: not a torch device ({_one_line(exc)})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {name!r}: CUDA is not available on this machine/torch build")
-    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise ValueError(
-            f"--device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)"
-        )
-    if dev.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"--device {name!r}: MPS is not available on this machine/torch build")
-
-
 def _is_missing_cuda(exc: BaseException) -> bool:
     """torch's own error for a CUDA device it does not have (e.g. a config key ``device: cuda``)."""
     if not isinstance(exc, (AssertionError, RuntimeError)) or "CUDA" not in str(exc):
@@ -566,7 +548,9 @@ def _dispatch(
                 args.target = "pipeline"
             return _run_bench(args, extra)
         if getattr(args, "device", None):
-            _check_device(args.device)
+            from hsi_torch.devices import resolve_device  # lazy: the CLI starts without torch
+
+            resolve_device(args.device, "--device")
         out = getattr(args, "out", None)
         if args.command in _FOLDER_OUT and out is not None:
             from hsi_torch.io.paths import check_out_dir

@@ -24,7 +24,11 @@ without a traceback.
 
 from __future__ import annotations
 
+import importlib.util
+from collections.abc import Iterable
+
 __all__ = [
+    "require_packages",
     "HSIError",
     "FileFormatError",
     "MissingFileError",
@@ -74,3 +78,16 @@ class NoValidPixelsError(InputError):
 
 class CalibrationError(HSIError, ValueError):
     """Calibration captures that cannot give a bundle (the message names the files at fault)."""
+
+
+def require_packages(modules: Iterable[str], what: str, hint: str) -> None:
+    """Check, without importing them, that optional packages are installed.
+
+    Raises:
+        ModuleNotFoundError: the first one missing: ``"<what> needs the optional package
+            '<module>': <hint>"`` (``name`` set to the module).
+    """
+    for mod in modules:
+        if importlib.util.find_spec(mod) is None:
+            raise ModuleNotFoundError(f"{what} needs the optional package {mod!r}: {hint}",
+                                      name=mod)  # fmt: skip

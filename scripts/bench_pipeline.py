@@ -65,12 +65,9 @@ import torch
 
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.profiling import RssSampler, peak_rss_gib
-from hsi_torch.recon.pipeline import (
-    Reconstructor,
-    exposure_scale,
-    observations_from_samples,
-    sample_views,
-)
+from hsi_torch.recon.checks import exposure_scale
+from hsi_torch.recon.frame import observations_from_samples, sample_views
+from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.spectral import DEFAULT_GRID, band_widths, difference_matrix
 

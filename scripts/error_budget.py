@@ -47,7 +47,8 @@ from hsi_torch.experiments.metrics import colorchecker_scores, cube_scores, erod
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.io.paths import claim_out_dir
 from hsi_torch.profiling import run_child
-from hsi_torch.recon.pipeline import DEFAULT_BETA, Reconstructor, assemble_cube
+from hsi_torch.recon.frame import assemble_cube
+from hsi_torch.recon.pipeline import DEFAULT_BETA, Reconstructor
 from hsi_torch.resources import real_data_dir, shipped_config
 from hsi_torch.simulate.oracle import bundle_from_truth
 

@@ -91,7 +91,10 @@ def main() -> None:
     noise = SensorNoise(sensor.gain_e_per_dn, sensor.read_noise_e,
                         1.0 if sensor.quantize else 0.0)  # fmt: skip
     bundle = bundle_from_truth(args.captures)
-    rec = Reconstructor(bundle, beta=args.beta, dtype=dtype, uncertainty=True, noise=noise)
+    rec = Reconstructor(bundle, beta=args.beta, dtype=dtype, uncertainty=True,
+                        noise_electrons_per_dn=noise.electrons_per_dn,
+                        noise_read_e=noise.read_noise_e,
+                        noise_quantization_dn=noise.quantization_dn)
     pattern = sensor.cfa_pattern
     cubes, stds, stds_rgb = [], [], []
     t0 = time.perf_counter()

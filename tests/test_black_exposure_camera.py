@@ -30,7 +30,6 @@ from hsi_torch.io.radiometry import (
     camera_mismatches,
     outside_views_index,
     pedestal_limit,
-    subtract_black_rgb,
 )
 from hsi_torch.recon import Reconstructor
 from hsi_torch.recon.checks import check_notes, check_warnings, exposure_info
@@ -50,22 +49,38 @@ def test_black_level_forms():
     assert black_level_rgb("abc") is None and black_level_rgb(None) is None
 
 
-def test_bundle_black_subtracted_after_reading_equals_reading_with_it(tmp_path):
-    """A per-colour black level subtracted from the demosaiced image equals reading the mosaic
-    with that black level (both demosaics form a colour from its own sites only)."""
+def test_the_bundles_black_level_is_applied_by_the_reader(tmp_path):
+    """A file without a black level read with the bundle's per-colour level as a default equals
+    reading the mosaic with that level as its Bayer cell, and subtracting it from either
+    demosaic (both form a colour from its own sites only); a level given, or the file's own,
+    wins (the one rule, :func:`black_level_rule`)."""
+    from hsi_torch.io.captures import CaptureDefaults, black_level_rule
+
     g = np.random.default_rng(0)
     mos = (600 + 3000 * g.random((24, 30))).astype(np.uint16)
     p = tmp_path / "plain.tif"
     tifffile.imwrite(p, mos, photometric="minisblack", metadata=None)
-    rgb = [510.0, 512.0, 515.0]
+    rgb = (510.0, 512.0, 515.0)
+    bundle = CaptureDefaults(black_level_rgb=rgb, cfa_pattern="GBRG")
     for demosaic in ("bilinear", "half"):
         ref = read_any(p, cfa_pattern="GBRG", black_level=[512, 515, 510, 512],
                        demosaic=demosaic, dtype=torch.float64)  # GBRG cell: G B / R G
-        cap = read_any(p, cfa_pattern="GBRG", demosaic=demosaic, dtype=torch.float64)
-        subtract_black_rgb(cap, rgb)
+        cap = read_any(p, demosaic=demosaic, dtype=torch.float64, defaults=bundle)
         torch.testing.assert_close(cap.image, ref.image, rtol=0, atol=1e-9)
         torch.testing.assert_close(cap.mosaic, ref.mosaic, rtol=0, atol=1e-9)
         assert torch.equal(cap.saturated, ref.saturated)
+        zero = read_any(p, cfa_pattern="GBRG", demosaic=demosaic, dtype=torch.float64)
+        torch.testing.assert_close(cap.image, zero.image - torch.tensor(rgb).view(3, 1, 1),
+                                   rtol=0, atol=1e-9)  # fmt: skip
+        assert cap.metadata["black_level_source"] == "bundle"
+        assert cap.metadata["black_level"] == list(rgb)
+        given = read_any(p, demosaic=demosaic, black_level=7, dtype=torch.float64,
+                         defaults=bundle)  # fmt: skip
+        assert given.metadata["black_level_source"] == "config"
+        torch.testing.assert_close(given.image, zero.image - 7, rtol=0, atol=1e-9)
+    assert black_level_rule(None, "config", None, (0.0, 0.0, 0.0)) == (0.0, "default")
+    assert black_level_rule(None, "config", 64, rgb) == (64, "file")
+    assert black_level_rule(3, "sheet", 64, rgb) == (3, "sheet")
 
 
 def test_outside_views_index_and_limit():
@@ -506,7 +521,7 @@ def test_pedestal_limit_is_the_calibrations_when_the_captures_white_level_is_a_g
     in silence (the ColorChecker 54 % too bright). With the calibration's white level known the
     limit is its span's, 40 DN, and the pedestal is named."""
     from hsi_torch.io.captures import LinearCapture
-    from hsi_torch.recon.checks import BundleRadiometry, prepare_capture
+    from hsi_torch.recon.checks import BundleRadiometry, measure_capture
 
     g = torch.Generator().manual_seed(0)
     img = 64.0 + torch.randn(3, 30, 30, generator=g, dtype=torch.float64)
@@ -514,10 +529,10 @@ def test_pedestal_limit_is_the_calibrations_when_the_captures_white_level_is_a_g
                            outside_index=np.arange(0, 900, 7))  # fmt: skip
 
     def stats(white_level: float, source: str) -> dict:
-        meta = {"kind": "rgb", "black_level": 512.0, "white_level": white_level,
-                "white_level_source": source}  # fmt: skip
+        meta = {"kind": "rgb", "black_level": 512.0, "black_level_source": "config",
+                "white_level": white_level, "white_level_source": source}  # fmt: skip
         cap = LinearCapture(img.clone(), torch.zeros_like(img, dtype=torch.bool), meta, None)
-        return prepare_capture(cap, rad, black_level=512.0, sensor_size=(30, 30))
+        return measure_capture(cap, rad, sensor_size=(30, 30))
 
     st = stats(65535.0, "default")
     assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (16383 - 512), abs=0.01)

@@ -5,7 +5,6 @@ configs say what the schemas say."""
 from __future__ import annotations
 
 import dataclasses
-import inspect
 
 import pytest
 import yaml
@@ -21,7 +20,6 @@ from hsi_torch.experiments.usaf import USAFConfig
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry, PrototypeDesign
 from hsi_torch.optics.sensor import DiffuserModel, SensorModel
 from hsi_torch.recon.config import ReconstructConfig
-from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.resources import shipped_config, shipped_config_names
 from hsi_torch.simulate.config import (
     BRFSection,
@@ -105,16 +103,18 @@ def test_blob_section_is_the_detector_default():
     assert detector.blob == BlobDetectorParams()
 
 
-def test_reconstruct_config_defaults_are_the_reconstructors():
-    sig = inspect.signature(Reconstructor.__init__).parameters
+def test_reconstruct_config_is_generated_from_the_settings():
+    """One definition: each key of reconstruct.yaml has the settings field's default and help
+    text (a setting added to a group reaches the YAML schema without being listed again)."""
+    from hsi_torch.recon.settings import FLAT_KEYS, GROUPS, ReconstructSettings
+
     cfg = _defaults(ReconstructConfig)
-    # device and dtype: the command's settings ("cpu", "float32"); the class follows its inputs
-    shared = [n for n in cfg if n in sig and sig[n].default is not inspect.Parameter.empty
-              and n not in ("device", "dtype")]  # fmt: skip
-    assert {"beta", "diff_order", "solver"} <= set(shared)
-    for n in shared:
-        assert cfg[n] == sig[n].default, f"ReconstructConfig.{n} = {cfg[n]!r}, Reconstructor: " \
-            f"{sig[n].default!r}"
+    flat = ReconstructSettings().flat()
+    assert cfg and all(cfg[k] == flat[k] for k in cfg)
+    for f in dataclasses.fields(ReconstructConfig):
+        group, name = FLAT_KEYS[f.name]
+        (src,) = [g for g in dataclasses.fields(GROUPS[group]) if g.name == name]
+        assert f.metadata["help"] == src.metadata["help"] and f.metadata["help"]
 
 
 def test_shipped_simulate_yaml_is_the_schema_default():

@@ -223,10 +223,11 @@ def test_corrected_samples_off_the_sensor_are_dropped(sims):
     # the original is untouched, the factorisation shared
     assert sens.sample_inside is None and moved.problem is sens.problem
     # a frame solved on it drops those observations (and re-solves the pixels concerned)
-    from hsi_torch.recon.pipeline import reconstruct_batch
+    from hsi_torch.recon.frame import reconstruct_frame
+    from hsi_torch.recon.settings import ReconstructSettings
 
     img = _image(sims["ideal"]).float()[None]
-    _, valid, infos, _ = reconstruct_batch(moved, img)
+    _, valid, infos, _, _ = reconstruct_frame(moved, img, ReconstructSettings())
     assert infos[0]["num_resolved"] > 0
     assert infos[0]["usable_observations"] < infos[0]["observations"]
     assert infos[0]["num_valid"] <= sens.num_pixels

@@ -3,7 +3,7 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, testing, metrics, cli_common, provenance
+                 resources, refdata, colour, testing, metrics, cli_common, provenance, devices
                  → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
@@ -38,7 +38,7 @@ PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
               "profiling", "resources", "refdata", "colour", "testing", "metrics",
-              "cli_common", "provenance")  # fmt: skip
+              "cli_common", "provenance", "devices")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},
@@ -71,8 +71,9 @@ def stage_of(module: str) -> str:
     raise AssertionError(f"{module}: not assigned to a stage (add it to this test's table)")
 
 
-def _imports(path: Path) -> list[tuple[str, int, bool]]:
-    """``(imported module, line, inside a function)`` of every import of a file."""
+def _imports(path: Path, type_checking: bool = True) -> list[tuple[str, int, bool]]:
+    """``(imported module, line, inside a function)`` of every import of a file
+    (``type_checking=False``: without those under ``if TYPE_CHECKING:``, never run)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     me = _module_name(path)
     package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
@@ -80,6 +81,9 @@ def _imports(path: Path) -> list[tuple[str, int, bool]]:
 
     def visit(node: ast.AST, in_func: bool) -> None:
         for child in ast.iter_child_nodes(node):
+            if not type_checking and isinstance(child, ast.If) and \
+                    "TYPE_CHECKING" in ast.unparse(child.test):
+                continue
             func = in_func or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef))
             if isinstance(child, ast.Import):
                 out.extend((a.name, child.lineno, in_func) for a in child.names)
@@ -300,3 +304,66 @@ def test_the_spatial_admm_loop_is_written_once():
         hits += [f"{path.name}:{i + 1}" for i, ln in enumerate(text.splitlines())
                  if "range(CHECK_EVERY)" in ln or "prim <= tol" in ln]
     assert len(hits) == 2 and all(h.startswith("admm.py:") for h in hits), hits
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Package module → the package modules it imports (module level and inside functions, not
+    the type checker's ``if TYPE_CHECKING:`` imports; a package's own name stands for its
+    ``__init__``)."""
+    graph: dict[str, set[str]] = {}
+    for path in _files():
+        me = _module_name(path)
+        graph[me] = {mod for mod, _, _ in _imports(path, type_checking=False)
+                     if (mod == "hsi_torch" or mod.startswith("hsi_torch.")) and mod != me
+                     and _is_module(mod)}  # fmt: skip
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_import_graph_has_no_cycle():
+    """No module imports (directly or through others) a module that imports it back, counting
+    the imports inside functions too: each module can be read, tested and changed from the
+    bottom up."""
+    graph = _import_graph()
+    assert "hsi_torch.recon.sensing" in graph["hsi_torch.recon.module"]  # the graph is read
+    cycles = _cycles(graph)
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []

@@ -15,17 +15,16 @@ import numpy as np
 import pytest
 import torch
 from scipy.optimize import nnls
+from torch import Tensor
 
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.raw import demosaic_bilinear, mosaic
+from hsi_torch.optics.geometry import warp_views
 from hsi_torch.recon import sensing as sensing_mod
-from hsi_torch.recon.pipeline import (
-    Reconstructor,
-    build_observations,
-    observations_from_samples,
-    sample_views,
-    warp_capture,
-)
+from hsi_torch.recon.frame import observations_from_samples, reconstruct_frame, sample_views
+from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.recon.sensing import BundleSensing
+from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.spectral import band_widths, difference_matrix
 
 WL = np.arange(430.0, 641.0, 30.0)  # 8 bands: 3V = 12 >= M, exact recovery with beta = 0
@@ -292,6 +291,54 @@ def _tilted(bundle: CalibrationBundle, seed: int = 0) -> CalibrationBundle:
     return dataclasses.replace(bundle, view_homographies=np.stack(Hs))
 
 
+def warp_capture(
+    sens: BundleSensing, images: Tensor, saturated: Tensor | None = None
+) -> tuple[Tensor, Tensor | None]:
+    """Warp all views of ``(B, 3, H, W)`` images (and masks) into the reference frame, one call.
+
+    Returns:
+        ``(B, V, 3, h, w)`` warped values and ``(B, V, 3, h, w)`` warped saturation weights
+        (float in [0, 1]; ``None`` without a mask).
+    """
+    x = images
+    if saturated is not None:
+        x = torch.cat([images, saturated.to(images.dtype)], dim=1)
+    warped, _ = warp_views(x, sens.homographies.to(images.device), sens.reference_bbox)
+    if saturated is None:
+        return warped, None
+    return warped[:, :, :3], warped[:, :, 3:]
+
+
+
+def build_observations(
+    sens: BundleSensing,
+    warped: Tensor,
+    warped_sat: Tensor | None = None,
+    sat_threshold: float = 1e-3,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Observations and per-frame masks of the bundle's valid pixels.
+
+    Args:
+        warped: ``(B, V, 3, h, w)``; warped_sat: same shape (weights) or ``None``.
+
+    Returns:
+        ``y (B, P, 3V)`` (``o = 3v + c``), ``mask (B, P, 3V)`` bool (static ∧ unsaturated ∧ finite),
+        ``saturated (B, P, 3V)`` bool (within the static mask).
+    """
+    B, V, C, h, w = warped.shape
+    pix = sens.pixel_index.to(warped.device)
+    y = warped.reshape(B, V * C, h * w).index_select(2, pix).transpose(1, 2)
+    static = sens.obs_mask.to(warped.device).unsqueeze(0)
+    finite = torch.isfinite(y)
+    if warped_sat is not None:
+        sat = warped_sat.reshape(B, V * C, h * w).index_select(2, pix).transpose(1, 2)
+        sat = (sat > sat_threshold) & static
+    else:
+        sat = torch.zeros_like(finite)
+    return y, static & finite & ~sat, sat
+
+
+
 def test_sample_views_equals_full_frame_warp(device, dtype):
     bundle = _tilted(make_bundle())
     sens = sensing_mod.precompute_sensing(bundle, beta=1.0, device=device, dtype=dtype,
@@ -339,7 +386,7 @@ def test_fit_residual_flags_a_bundle_from_another_geometry():
     assert good.stats["num_not_converged"] == 0
     # independent computation on the same evenly spaced pixels: sqrt(sum ||W(A s - y)||^2 /
     # sum ||W y||^2) over the pixels whose ||W y|| is at least the (lower) median
-    from hsi_torch.recon.pipeline import FIT_RESIDUAL_SAMPLES
+    from hsi_torch.recon.frame import FIT_RESIDUAL_SAMPLES
 
     pix = torch.as_tensor(bundle.valid).reshape(-1).nonzero().squeeze(1)
     k = min(pix.numel(), FIT_RESIDUAL_SAMPLES)
@@ -370,8 +417,9 @@ def test_default_beta_is_the_config_default():
     from hsi_torch.recon.pipeline import DEFAULT_BETA
 
     assert DEFAULT_BETA == ReconstructConfig().beta == 1e4
+    assert ReconstructSettings().solve.beta == DEFAULT_BETA
     for fn in (Reconstructor.__init__, HSIReconstructor.from_bundle):
-        assert inspect.signature(fn).parameters["beta"].default == DEFAULT_BETA, fn
+        assert inspect.signature(fn).parameters["settings"].default is None, fn
     sensing_mod.clear_sensing_cache()
     assert Reconstructor(make_bundle()).sensing.beta == 1e4
 
@@ -440,9 +488,8 @@ def test_read_any_integer_fast_path_is_exact(tmp_path):
 def test_inplace_and_autograd_paths_agree():
     """No-grad frames mask/scale the observations in place (premasked solve); with autograd the
     copies are kept. Both give the same cube, NaN and saturated samples included."""
-    from hsi_torch.recon.pipeline import reconstruct_batch
-
     dt = torch.float64
+    s = ReconstructSettings()
     bundle = make_bundle(white_exposure_s=0.01)
     sens = sensing_mod.precompute_sensing(bundle, beta=3.0, dtype=dt, cache=False)
     img = render_capture(bundle, true_spectra(zeros=True)).to(dt)[None]
@@ -450,9 +497,9 @@ def test_inplace_and_autograd_paths_agree():
     sat = torch.zeros_like(img, dtype=torch.bool)
     sat[0, 1, :20, 20:30] = True
     with torch.no_grad():
-        c1, v1, st1, _ = reconstruct_batch(sens, img, sat, scale=0.5)
+        c1, v1, st1, _, _ = reconstruct_frame(sens, img, s, sat, scale=0.5)
     x = img.clone().requires_grad_(True)
-    c2, v2, st2, _ = reconstruct_batch(sens, x, sat, scale=0.5)
+    c2, v2, st2, _, _ = reconstruct_frame(sens, x, s, sat, scale=0.5)
     assert c2.requires_grad and st1[0]["num_resolved"] > 0
     torch.testing.assert_close(c2.detach(), c1, equal_nan=True, rtol=1e-12, atol=1e-12)
     assert torch.equal(v1, v2) and st1[0]["fit_residual"] == pytest.approx(st2[0]["fit_residual"])
@@ -508,9 +555,9 @@ def test_a_bad_device_is_named():
     from hsi_torch.recon.module import HSIReconstructor
 
     bundle = make_bundle()
-    with pytest.raises(ValueError, match="device 'gpu' is not a torch device"):
+    with pytest.raises(ValueError, match="device 'gpu': not a torch device"):
         Reconstructor(bundle, device="gpu")
-    with pytest.raises(ValueError, match="device 'gpu' is not a torch device"):
+    with pytest.raises(ValueError, match="device 'gpu': not a torch device"):
         HSIReconstructor.from_bundle(bundle, device="gpu")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="device 'cuda:0': CUDA is not available"):

@@ -24,7 +24,8 @@ from hsi_torch.recon.settings import (
 
 def test_every_config_key_has_its_place_and_the_defaults_agree():
     cfg = ReconstructConfig()
-    assert {f.name for f in dataclasses.fields(cfg)} <= set(FLAT_KEYS)
+    assert {f.name for f in dataclasses.fields(cfg)} == set(FLAT_KEYS) - {
+        "sat_threshold", "noise_quantization_dn"}  # the Python API's own
     s = cfg.settings()
     assert s == ReconstructSettings()  # the configuration's defaults are the settings'
     flat = s.flat()
@@ -72,17 +73,31 @@ def test_validated_once_with_the_key_named_whatever_the_route():
             make()
     with pytest.raises(ConfigError, match="key 'nope'"):
         ReconstructSettings.from_flat(nope=1)
-    with pytest.raises(TypeError, match="not both.*beta"):
-        Reconstructor(bundle, beta=3.0, settings=ReconstructSettings())
+    with pytest.raises(ConfigError, match="key 'lam': must be >= 0"):
+        Reconstructor(bundle, ReconstructSettings(), lam=-1.0)  # overrides: validated alike
+    with pytest.raises(TypeError, match="must be a ReconstructSettings"):
+        Reconstructor(bundle, {"beta": 3.0})
 
 
-def test_settings_or_keywords_give_the_same_reconstruction():
+def test_the_reconstructors_take_the_settings_whole():
+    """No keyword lists: the settings are given whole; keywords are flat-key overrides on them
+    (``settings.replace``), whatever their number."""
+    import inspect
+
+    for fn in (Reconstructor.__init__, HSIReconstructor.__init__, HSIReconstructor.from_bundle):
+        params = inspect.signature(fn).parameters
+        assert not set(params) & set(FLAT_KEYS), fn  # no setting copied into a signature
+        assert "settings" in params and any(p.kind is p.VAR_KEYWORD for p in params.values())
+
+
+def test_settings_or_overrides_give_the_same_reconstruction():
     bundle = make_bundle()
     img = render_capture(bundle, true_spectra())
-    s = ReconstructSettings.from_flat(beta=0.0, dtype="float64", device=None, min_views=3)
+    s = ReconstructSettings.from_flat(beta=0.0, dtype="float64", min_views=3)
     by_settings = Reconstructor(bundle, settings=s)
     by_keywords = Reconstructor(bundle, beta=0.0, dtype=torch.float64)
     assert by_settings.settings == by_keywords.settings == s
+    assert Reconstructor(bundle, s.replace(beta=5.0), beta=0.0).settings == s
     a = by_settings.reconstruct_frame(img)
     b = by_keywords.reconstruct_frame(img)
     torch.testing.assert_close(a.cube, b.cube, equal_nan=True, rtol=0, atol=0)
@@ -105,7 +120,7 @@ def test_the_workers_cache_is_keyed_by_the_settings(tmp_path):
     # another value of any setting: prepared again
     other = dataclasses.replace(run, settings=run.settings.replace(min_views=4))
     rec2, secs2 = tasks.prepared_reconstructor(tasks.FramePlan(run=other))
-    assert secs2 is not None and rec2 is not rec and rec2.min_views == 4
+    assert secs2 is not None and rec2 is not rec and rec2.settings.solve.min_views == 4
 
     # a field added to the settings (and forgotten everywhere else) still changes the key
     @dataclass_frozen

@@ -266,7 +266,7 @@ def test_frame_tolerance_scores_like_the_converged_answer(device, monkeypatch):
     95 % of the converged minimiser's error reduction over per-pixel NNLS (the converged one
     takes many more iterations); the distance between the two is under a tenth of per-pixel's
     error."""
-    import hsi_torch.recon.pipeline as pipeline
+    import hsi_torch.recon.frame as pipeline
 
     bundle = make_bundle()
     s = _piecewise()

@@ -217,7 +217,7 @@ def test_monte_carlo_coverage(layout, device, dtype):
     x = mosaic(img, "RGGB") if layout == "bayer" else img
     dn = sensor.expose((x * g).unsqueeze(0).expand(N, *x.shape).contiguous()).dn
     rec = Reconstructor(bundle, beta=1e4, device=device, dtype=dtype, uncertainty=True,
-                        noise=SensorNoise(electrons_per_dn=g, read_noise_e=r))  # fmt: skip
+                        noise_electrons_per_dn=g, noise_read_e=r)  # fmt: skip
     cubes, stds = [], []
     for i in range(N):  # independent captures of the same scene
         res = rec.reconstruct_frame(dn[i].to(device, dtype))
@@ -274,7 +274,7 @@ def test_reconstruct_cli_writes_the_std(tmp_path):
     assert std.shape == cube.cube.shape and std.dtype == torch.float32
     assert bool(torch.isnan(std[:, ~cube.valid]).all())
     # the same numbers as the Python API with the same settings
-    rec = Reconstructor(bpath, uncertainty=True, noise=SensorNoise(read_noise_e=5.0))
+    rec = Reconstructor(bpath, uncertainty=True, noise_read_e=5.0)
     ref = rec.reconstruct_file(tmp_path / "c.tif").std
     torch.testing.assert_close(std, ref.float(), equal_nan=True)
     assert bool((std[:, cube.valid] >= 0).all()) and bool((std[:, cube.valid] > 0).any())

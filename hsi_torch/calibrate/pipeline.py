@@ -73,6 +73,7 @@ from hsi_torch.calibrate.transmittance import (
 from hsi_torch.calibrate.validity import ValidRegionSummary, valid_region
 from hsi_torch.config import to_dict
 from hsi_torch.console import progress_bar, progress_enabled
+from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import CalibrationError, FileFormatError
 from hsi_torch.io.bundle import CalibrationBundle, make_provenance
 from hsi_torch.io.capture_set import (
@@ -108,7 +109,6 @@ __all__ = [
     "calibrate_capture_set",
 ]
 
-_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: Saturated samples are replaced by this value before :func:`brf_transmittance` (which then
 #: excludes them through ``saturation_level``); it never enters a mean.
 _SAT_SENTINEL = 1e20
@@ -863,7 +863,7 @@ def calibrate_capture_set(
     tm: dict[str, float] = {}
     notes: list[str] = []
     dev = torch.device(device or cfg.device)
-    dt = _DTYPES[cfg.dtype]
+    dt = torch_dtype(cfg.dtype)
     cs = read_capture_set(captures_dir, layout=cfg.layout, brf_free_mask=cfg.brf_free_mask)
     cs.require_calibration_captures()
     lay = cs.layout()

@@ -27,7 +27,6 @@ from hsi_torch.io.capture_set import CaptureSet, wavelength_from_name
 from hsi_torch.io.radiometry import (
     CameraIdentity,
     black_level_rgb,
-    file_has_black_level,
     pedestal_level,
     pedestal_limit,
 )
@@ -84,14 +83,6 @@ class CaptureReader:
         self.veil_index: np.ndarray | None = None
         self.veils: list[tuple[str, list[float]]] = []
 
-    def _black_source(self, path: Path, meta: dict[str, Any]) -> str:
-        src = meta.get("black_level_source")
-        if isinstance(src, str) and src:
-            return src
-        if self.cfg.black_level is not None:
-            return "config"
-        return "file" if file_has_black_level(path) else "default"
-
     def overrides(self, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
         """read_any's keyword overrides for ``path`` and their sources: the manifest's settings
         for the file, then the config's ``cfa_pattern``/``black_level``/``white_level``."""
@@ -114,8 +105,7 @@ class CaptureReader:
         if meta.get("kind") == "bayer":
             self._check_cfa(path, meta.get("cfa_pattern"), sources.get("cfa_pattern"))
             self.cfa_pattern = meta.get("cfa_pattern")
-        src = self._black_source(path, meta)
-        meta["black_level_source"] = src
+        src = str(meta["black_level_source"])  # read_any's black_level_rule (no bundle yet)
         self._note_identity(meta, src)
         img = cap.image if self.dark is None else cap.image - self.dark
         if self.veil_index is not None:

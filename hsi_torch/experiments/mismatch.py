@@ -398,7 +398,8 @@ def score_captures(
             raise RuntimeError(f"{captures}: the remedy {k!r} asked for, but the bundle does "
                                "not record it")
     white_mm = read_truth_meta(captures).get("white_mismatch", {})
-    out: dict[str, Any] = {"applied": {**want, "refine_registration": rec.refine_registration,
+    refine = rec.settings.registration.refine
+    out: dict[str, Any] = {"applied": {**want, "refine_registration": refine,
                                        "white_mismatch": white_mm}, "drift": {}}
 
     def drift_stats(name: str, res) -> None:

@@ -27,6 +27,7 @@ from hsi_torch.calibrate import brf_transmittance
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import load_config
+from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.opd_estimate import (
     OPDEstimate,
@@ -435,7 +436,7 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = torch.device(device or cfg.device or "cpu")
-    dt = {"float32": torch.float32, "float64": torch.float64}[cfg.dtype]
+    dt = torch_dtype(cfg.dtype)
     if not cfg.inputs:
         raise ValueError("opd: `inputs` is empty")
     names = [i.name or i.kind for i in cfg.inputs]

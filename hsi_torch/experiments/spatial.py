@@ -38,6 +38,7 @@ import torch
 
 from hsi_torch.config import load_config
 from hsi_torch.console import info as log
+from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
     colorchecker_scores,
@@ -263,7 +264,7 @@ def run_spatial(cfg: SpatialConfig, out: str | Path, *, device: str | None = Non
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = {"float32": torch.float32, "float64": torch.float64}[cfg.dtype]
+    dt = torch_dtype(cfg.dtype)
     oracle = cfg.bundle == "oracle"
     cs = Path(cfg.captures) if cfg.captures is not None else _simulate(cfg, out, dev, oracle)
     truth, _ = read_truth(cs)

@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch import refdata
+from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -524,7 +525,7 @@ def _plot_responses(out: Path, designs: list[SensingDesign], scales: list[float]
 
 
 def _dtype(name: str) -> torch.dtype:
-    return {"float32": torch.float32, "float64": torch.float64}[name]
+    return torch_dtype(name)
 
 
 def run_synthetic(

@@ -66,6 +66,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hsi_torch.config import load_config, to_dict
+from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -79,7 +80,8 @@ from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
-from hsi_torch.recon.pipeline import ReconstructionResult, assemble_cube, solve_observations
+from hsi_torch.recon.frame import assemble_cube, solve_observations
+from hsi_torch.recon.pipeline import ReconstructionResult
 from hsi_torch.recon.spatial import DEFAULT_LAM
 from hsi_torch.resources import shipped_config
 from hsi_torch.simulate.capture_sets import build_renderer, build_scene, simulate_capture_set
@@ -299,8 +301,7 @@ def ideal_observations(rec: Reconstructor, renderer: Any, scene: Any, *, noise: 
         sat = s_.squeeze(2).permute(2, 0, 1).reshape(P, O)
     y = y.to(sens.dtype)
     mask = sens.obs_mask.to(y.device) & torch.isfinite(y) & ~sat.to(y.device)
-    xs, ok, info = solve_observations(sens, y, mask, min_views=rec.min_views, prior=rec.prior,
-                                      lam=rec.lam, spatial_iters=rec.spatial_iters)
+    xs, ok, info = solve_observations(sens, y, mask, rec.settings)
     cube, valid = assemble_cube(sens, xs, ok, nan_invalid=True)
     return cube, valid, info
 
@@ -482,7 +483,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = {"float32": torch.float32, "float64": torch.float64}[cfg.dtype]
+    dt = torch_dtype(cfg.dtype)
     cfg.__post_init__()  # the ablation list and beta may have been edited after construction
     ablate = list(cfg.ablate)
     ideal = "warp" in ablate

@@ -39,6 +39,7 @@ import torch
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
 from hsi_torch.io.bounded import declared_image_size, require_npz
+from hsi_torch.io.radiometry import capture_exposure
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
     DemosaicMethod,
@@ -57,6 +58,8 @@ __all__ = [
     "read_any",
     "SUPPORTED_SUFFIXES",
     "SETTING_SOURCES",
+    "CaptureDefaults",
+    "black_level_rule",
 ]
 
 CAPTURE_FORMAT_VERSION = 1
@@ -67,6 +70,48 @@ SUPPORTED_SUFFIXES = (*_TIFF_SUFFIXES, *_PNG_SUFFIXES, ".npy", ".npz", *RAW_SUFF
 #: the file itself, a capture sheet, a capture-set manifest, the command's configuration, or the
 #: reader's default.
 SETTING_SOURCES = ("file", "sheet", "manifest", "config", "default")
+
+
+@dataclass(frozen=True)
+class CaptureDefaults:
+    """What a capture file that does not say it gets from its calibration (and the run's
+    settings): :func:`read_any` applies these, once, where it reads the file.
+
+    Attributes:
+        black_level_rgb: ``(R, G, B)`` DN the calibration subtracted from its own captures (the
+            files' black level plus the dark frames' mean; source ``"bundle"``), for a file
+            without a black level of its own (:func:`black_level_rule`).
+        cfa_pattern: the pattern of a Bayer file that names none (e.g. the bundle's).
+        exposure_s: the exposure time (s) of a file whose metadata has none (source
+            ``"config"``).
+    """
+
+    black_level_rgb: tuple[float, float, float] | None = None
+    cfa_pattern: str | None = None
+    exposure_s: float | None = None
+
+
+def black_level_rule(
+    given: Any, given_source: str, file_level: Any, default_rgb: Any = None
+) -> tuple[Any, str]:
+    """Which black level applies to a capture, and its source — the one rule, for calibration
+    and reconstruction alike: the level given (a setting, a sheet or manifest: ``given_source``),
+    else the file's own (``"file"``), else the calibration's ``(R, G, B)`` (``"bundle"``; only
+    when not all zero), else 0 (``"default"``)."""
+    if given is not None:
+        return given, given_source
+    if file_level is not None:
+        return file_level, "file"
+    if default_rgb is not None and any(float(v) != 0 for v in default_rgb):
+        return [float(v) for v in default_rgb], "bundle"
+    return 0.0, "default"
+
+
+def _rgb_as_cell(rgb: list[float], pattern: str) -> list[float]:
+    """An ``(R, G, B)`` level as the 4 values of the Bayer cell of ``pattern`` (row-major):
+    subtracting it from the mosaic equals subtracting ``rgb`` from either demosaic (both form a
+    colour from its own sites with weights summing to one)."""
+    return [rgb["RGB".index(c)] for c in pattern]
 
 
 @dataclass
@@ -557,6 +602,7 @@ def read_any(
     camera_make: str | None = None,
     camera_model: str | None = None,
     sources: Mapping[str, str] | None = None,
+    defaults: CaptureDefaults | None = None,
 ) -> LinearCapture:
     """Read any supported capture (TIFF, PNG, NPY, NPZ, camera RAW) as linear RGB.
 
@@ -581,6 +627,9 @@ def read_any(
         sources: where each keyword override came from, by name (``{"black_level": "sheet",
             "exposure_s": "manifest"}``): one of :data:`SETTING_SOURCES`; an override not named
             here counts as ``"config"``.
+        defaults: what a file that does not say gets from its calibration
+            (:class:`CaptureDefaults`: black level, CFA pattern, exposure time); its
+            ``cfa_pattern`` is used when ``default_cfa_pattern`` is not given.
 
     Returns:
         :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
@@ -592,14 +641,16 @@ def read_any(
     - ``cfa_pattern``: the pattern used (Bayer), ``None`` for RGB files without one;
     - ``black_level``: what was subtracted (DN: a number, 4 Bayer-cell or 3 RGB values) and
       ``black_level_source``: ``"file"`` (RAW/DNG black level, our JSON metadata), ``"sheet"``,
-      ``"manifest"``, ``"config"`` (a keyword override, labelled by ``sources``) or
-      ``"default"`` (nothing given: 0 was subtracted);
+      ``"manifest"``, ``"config"`` (a keyword override, labelled by ``sources``), ``"bundle"``
+      (``defaults.black_level_rgb``) or ``"default"`` (nothing given: 0 was subtracted)
+      (:func:`black_level_rule`);
     - ``white_level``: the saturation level used (DN) or ``None`` (a float file without one),
       and ``white_level_source``: ``"file"``, ``"sheet"``, ``"manifest"``, ``"config"``,
       ``"default"`` (the integer type's maximum) or ``None`` (none);
     - ``exposure_s``: the exposure time in seconds (``float``) or ``None`` when unknown, and
       ``exposure_source``: ``"file"`` (JSON ``exposure_s`` or EXIF ``ExposureTime``), ``"sheet"``,
-      ``"manifest"``, ``"config"``, or ``None`` when unknown. (The simulator's relative
+      ``"manifest"``, ``"config"`` (an override, or ``defaults.exposure_s`` for a file with no
+      exposure of its own), or ``None`` when unknown. (The simulator's relative
       ``exposure`` key is kept as it is and is not an ``exposure_s``.)
     - ``camera_make``, ``camera_model``: ``str`` or ``None`` (override, else our JSON metadata,
       else EXIF ``Make``/``Model`` of a TIFF or RAW/DNG).
@@ -646,15 +697,31 @@ def read_any(
     kind = meta["kind"]
     h, w = (stored if stored is not None else arr).shape[-2:]
     _check_size(p, (h, w), expected_size)
+    dflt = defaults or CaptureDefaults()
+    pattern = None
+    if kind == "bayer":
+        pattern = cfa_pattern or meta.get("cfa_pattern") or default_cfa_pattern or dflt.cfa_pattern
+        if not pattern:
+            raise FileFormatError(
+                f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
+                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB; "
+                "in a capture sheet or manifest: its cfa_pattern)"
+            )
+        try:
+            pattern = validate_cfa_pattern(pattern)
+        except (TypeError, ValueError) as exc:
+            raise FileFormatError(f"{p}: {exc}") from exc
 
-    bl = black_level if black_level is not None else meta.get("black_level", 0.0)
+    bl, bl_source = black_level_rule(black_level, srcs.get("black_level", "config"),
+                                     meta.get("black_level"), dflt.black_level_rgb)  # fmt: skip
+    bl_map = _rgb_as_cell(bl, pattern) if bl_source == "bundle" and kind == "bayer" else bl
     wl = white_level if white_level is not None else meta.get("white_level")
     wl_source = (srcs.get("white_level", "config") if white_level is not None
                  else "file" if wl is not None else None)  # fmt: skip
     if wl is None and np.dtype(stored_dtype).kind in "ui":
         wl = float(np.iinfo(np.dtype(stored_dtype)).max)
         wl_source = "default"
-    black = _level_map(bl, kind, (h, w), p, "black_level")
+    black = _level_map(bl_map, kind, (h, w), p, "black_level")
     white = _level_map(wl, kind, (h, w), p, "white_level") if wl is not None else None
     if stored is None and not normalize and _exact_in(arr, black, white, dtype):
         # integer data and integral levels: stored − black is exact in ``dtype``, so it is
@@ -691,24 +758,15 @@ def read_any(
     out_meta.update(kind=kind, black_level=_jsonable(bl), white_level=_jsonable(wl),
                     white_level_source=wl_source, source=str(p))  # fmt: skip
     out_meta.update(_contract_metadata(
-        p, meta, srcs, black_given=black_level is not None, exposure_s=exposure_s,
+        p, meta, black_source=bl_source, sources=srcs, exposure_s=exposure_s,
         camera_make=camera_make, camera_model=camera_model,
         exif=_file_exif(p) if suffix in RAW_SUFFIXES or (
             suffix in _TIFF_SUFFIXES and "hsi_torch_capture" not in meta) else {},
     ))  # fmt: skip
+    if dflt.exposure_s is not None and capture_exposure(out_meta)[0] is None:
+        out_meta.update(exposure_s=float(dflt.exposure_s), exposure_source="config")
     out_meta.setdefault("cfa_pattern", None)
     if kind == "bayer":
-        pattern = cfa_pattern or meta.get("cfa_pattern") or default_cfa_pattern
-        if not pattern:
-            raise FileFormatError(
-                f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
-                "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB; "
-                "in a capture sheet or manifest: its cfa_pattern)"
-            )
-        try:
-            pattern = validate_cfa_pattern(pattern)
-        except (TypeError, ValueError) as exc:
-            raise FileFormatError(f"{p}: {exc}") from exc
         out_meta.update(cfa_pattern=pattern, demosaic=demosaic)
         try:
             rgb = _demosaic(lin, pattern, demosaic)
@@ -758,16 +816,12 @@ def _file_exif(p: Path) -> dict[str, Any]:
 
 
 def _contract_metadata(
-    p: Path, meta: Mapping[str, Any], sources: Mapping[str, str], *, black_given: bool,
+    p: Path, meta: Mapping[str, Any], *, black_source: str, sources: Mapping[str, str],
     exposure_s: float | None, camera_make: str | None, camera_model: str | None,
     exif: Mapping[str, Any],
 ) -> dict[str, Any]:
     """The metadata keys every :class:`LinearCapture` carries (see :func:`read_any`)."""
-    out: dict[str, Any] = {}
-    if black_given:
-        out["black_level_source"] = sources.get("black_level", "config")
-    else:
-        out["black_level_source"] = "file" if meta.get("black_level") is not None else "default"
+    out: dict[str, Any] = {"black_level_source": black_source}
     if exposure_s is not None:
         try:
             t = float(exposure_s)

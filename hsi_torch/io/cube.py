@@ -31,7 +31,6 @@ Convention:
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import json
 import os
 import tempfile
@@ -47,7 +46,7 @@ from xml.sax.saxutils import escape as _xml_escape
 import numpy as np
 import torch
 
-from hsi_torch.errors import FileFormatError, MissingFileError
+from hsi_torch.errors import FileFormatError, MissingFileError, require_packages
 from hsi_torch.io.atomic import (
     atomic_save_npz,
     atomic_write,
@@ -65,6 +64,7 @@ from hsi_torch.io.bounded import (
 )
 from hsi_torch.io.captures import quiet_tifffile
 from hsi_torch.io.safety import require_regular_file
+from hsi_torch.io.zarr_codecs import SAFE_CODECS, check_zarr_codecs
 
 __all__ = [
     "Cube",
@@ -118,12 +118,7 @@ def require_format(fmt: str) -> None:
     """
     if fmt not in _FORMAT_SUFFIX:
         raise ValueError(f"unknown cube format {fmt!r}; one of {', '.join(CUBE_FORMATS)}")
-    for mod in OPTIONAL_FORMATS.get(fmt, ()):
-        if importlib.util.find_spec(mod) is None:
-            raise ModuleNotFoundError(
-                f"the cube format {fmt!r} needs the optional package {mod!r}: {_EXTRA_HINT}",
-                name=mod,
-            )
+    require_packages(OPTIONAL_FORMATS.get(fmt, ()), f"the cube format {fmt!r}", _EXTRA_HINT)
 
 
 def _import_xarray(what: str):
@@ -688,11 +683,6 @@ def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:
 def _load_xarray(p: Path, kind: str, max_bytes: int | None = None):
     xr = _import_xarray(f"reading {p}")
     if kind == "zarr":  # before xarray decodes anything: no codec that runs code (pickle)
-        from hsi_torch.io.dataset import (  # lazy: dataset imports this module
-            SAFE_CODECS,
-            check_zarr_codecs,
-        )
-
         check_zarr_codecs(p, SAFE_CODECS)
         check_store_files(p, max_bytes)  # no FIFO, device or huge chunk
     else:

@@ -54,7 +54,6 @@ Reading::
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import json
 import os
 from collections.abc import Iterator, Sequence
@@ -64,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.errors import FileFormatError, InputError, require_packages
 from hsi_torch.io.atomic import (
     atomic_write,
     atomic_write_text,
@@ -76,6 +75,13 @@ from hsi_torch.io.atomic import (
 )
 from hsi_torch.io.bounded import check_store_files, read_json_bounded
 from hsi_torch.io.cube import _nan_where_invalid, _np
+from hsi_torch.io.safety import short_repr
+from hsi_torch.io.zarr_codecs import (
+    SAFE_CODECS,
+    STORE_CODECS,
+    check_array_meta,
+    check_zarr_codecs,
+)
 
 __all__ = [
     "CubeDataset",
@@ -108,148 +114,8 @@ def require_dataset_packages(read: bool = False) -> None:
     Raises:
         ModuleNotFoundError: one is missing (the message says what to install).
     """
-    for mod in ("numcodecs",) + (("xarray", "zarr") if read else ()):
-        if importlib.util.find_spec(mod) is None:
-            raise ModuleNotFoundError(
-                f"the Zarr dataset store needs the optional package {mod!r}: {_HINT}", name=mod
-            )
-
-
-#: The codecs of the run's store (what this module writes) → the configuration keys they may
-#: carry besides ``id``. Nothing else is ever decoded from a ``cubes.zarr``.
-STORE_CODECS: dict[str, frozenset[str]] = {
-    "zstd": frozenset({"level", "checksum"}),
-    "vlen-utf8": frozenset(),
-}
-#: Codecs accepted in a cube file's Zarr store (``<stem>.zarr``, written by xarray/zarr):
-#: numcodecs' compressors, checksums and filters that decode bytes without running code (no
-#: ``pickle``; Zarr 3 names included). Configuration keys are not restricted.
-SAFE_CODECS: frozenset[str] = frozenset({
-    "zstd", "blosc", "lz4", "gzip", "zlib", "bz2", "lzma", "vlen-utf8", "vlen-bytes",
-    "delta", "fixedscaleoffset", "quantize", "bitround", "shuffle", "packbits", "astype",
-    "crc32", "crc32c", "adler32", "fletcher32", "jenkins_lookup3",
-    "bytes", "transpose", "sharding_indexed",
-})  # fmt: skip
-#: dtypes of the run's store's arrays
-_STORE_DTYPES = frozenset({"<f4", "<f8", "<i8", "|b1", "|O"})
-
-
-def _short(value: Any, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _codec_list(meta: dict[str, Any], key: str, store: Any, array: str) -> list[Any] | None:
-    """``meta[key]`` (an array's ``filters`` or Zarr 3 ``codecs``): ``None`` or a list.
-
-    Raises:
-        FileFormatError: anything else (naming the store, the array and the key).
-    """
-    value = meta.get(key)
-    if value is not None and not isinstance(value, list):
-        raise FileFormatError(f"{store}: array {array!r}: {key} {_short(value)} is not a list")
-    return value
-
-
-def _check_codec(conf: Any, allowed: Any, array: str, role: str, store: Any) -> None:
-    if not isinstance(conf, dict):
-        raise FileFormatError(f"{store}: array {array!r}: its {role} is not a codec "
-                              f"description ({_short(conf)})")  # fmt: skip
-    cid = conf.get("id", conf.get("name"))
-    names = sorted(allowed)
-    if not isinstance(cid, str) or cid not in allowed:
-        raise FileFormatError(
-            f"{store}: array {array!r} names the {role} codec {_short(cid)}, which is not one "
-            f"this store is read with ({', '.join(names)}); refusing to decode it (a crafted "
-            "store can run code through a codec such as 'pickle')"
-        )
-    if isinstance(allowed, dict):
-        bad = [k for k, v in conf.items() if k != "id" and not (
-            type(v) is int if k == "level" else type(v) is bool)]  # fmt: skip
-        if bad and not [k for k in bad if k not in allowed[cid]]:
-            raise FileFormatError(f"{store}: array {array!r}: {role} codec {cid!r} with "
-                                  f"settings of the wrong type ({_short(bad)})")  # fmt: skip
-        extra = sorted(str(k) for k in conf if k not in ("id", *allowed[cid]))
-        if extra:
-            raise FileFormatError(f"{store}: array {array!r}: {role} codec {cid!r} with "
-                                  f"unexpected settings {_short(extra)}")  # fmt: skip
-
-
-def _check_array_meta(meta: Any, array: str, store: Any, allowed: Any = None) -> None:
-    """Refuse array metadata (Zarr 2 ``.zarray`` or Zarr 3 ``zarr.json``) whose compressor,
-    filters or codecs are not in ``allowed`` (default :data:`STORE_CODECS`, which also fixes
-    the dtypes)."""
-    strict = allowed is None
-    allowed = STORE_CODECS if strict else allowed
-    if not isinstance(meta, dict):
-        raise FileFormatError(f"{store}: array {array!r}: metadata is not a JSON object")
-    comp = meta.get("compressor")
-    if comp is not None:
-        _check_codec(comp, allowed, array, "compressor", store)
-    filters = _codec_list(meta, "filters", store, array)
-    for f in filters or []:
-        _check_codec(f, allowed, array, "filter", store)
-    codecs = _codec_list(meta, "codecs", store, array)  # Zarr 3
-    if codecs is not None:
-        for c in codecs:
-            _check_codec(c, allowed, array, "codec", store)
-            inner = c.get("configuration", {}) if isinstance(c, dict) else {}
-            for key in ("codecs", "index_codecs"):  # sharding: codecs inside codecs
-                for ci in (inner.get(key) or []) if isinstance(inner, dict) else []:
-                    _check_codec(ci, allowed, array, "codec", store)
-    if strict:
-        dt = meta.get("dtype")
-        if not isinstance(dt, str) or dt not in _STORE_DTYPES:
-            raise FileFormatError(f"{store}: array {array!r} has dtype {_short(dt)}, not one of "
-                                  f"this store's ({', '.join(sorted(_STORE_DTYPES))})")  # fmt: skip
-        if dt == "|O" and [f.get("id") for f in filters or []] != ["vlen-utf8"]:
-            raise FileFormatError(f"{store}: array {array!r}: an object array must have the "
-                                  "vlen-utf8 filter")  # fmt: skip
-
-
-def check_zarr_codecs(
-    path: str | os.PathLike, allowed: Any = None, max_arrays: int = 10_000
-) -> None:
-    """Check every array of the Zarr store at ``path`` before anything is decoded: the arrays
-    of its consolidated metadata (``.zmetadata``), and the ``.zarray`` / ``zarr.json`` files
-    of its folder and of each folder one level below (where the arrays of a group are).
-
-    Args:
-        path: the store's folder.
-        allowed: codec ids accepted (default :data:`STORE_CODECS`, the run's store; a cube
-            file's store uses :data:`SAFE_CODECS`).
-        max_arrays: bound on the sub-folders looked at.
-
-    Raises:
-        FileFormatError: a codec outside ``allowed`` (the message names the array and codec),
-            or metadata that is not JSON.
-    """
-    root = Path(path)
-
-    def load(p: Path) -> Any:  # a regular file of bounded size and depth (no FIFO, no bomb)
-        return read_json_bounded(p, "store metadata")
-
-    zmeta = root / ".zmetadata"
-    if zmeta.is_file():
-        md = load(zmeta)
-        entries = md.get("metadata") if isinstance(md, dict) else None
-        if not isinstance(entries, dict):
-            raise FileFormatError(f"{root}: .zmetadata holds no 'metadata' object")
-        for key, meta in entries.items():
-            if str(key).endswith((".zarray", "zarr.json")):
-                _check_array_meta(meta, str(key).rsplit("/", 1)[0], root, allowed)
-    folders = [root]
-    with contextlib.suppress(OSError):
-        folders += [Path(e.path) for e in os.scandir(root) if e.is_dir()][:max_arrays]
-    for d in folders:
-        for name in (".zarray", "zarr.json"):
-            f = d / name
-            if f.is_file():
-                meta = load(f)
-                if name == "zarr.json" and isinstance(meta, dict) and (
-                        meta.get("node_type") != "array"):
-                    continue
-                _check_array_meta(meta, d.name if d != root else "/", root, allowed)
+    require_packages(("numcodecs",) + (("xarray", "zarr") if read else ()),
+                     "the Zarr dataset store", _HINT)  # fmt: skip
 
 
 def _codec(config: dict[str, Any] | None):
@@ -257,8 +123,9 @@ def _codec(config: dict[str, Any] | None):
         return None
     cid = config.get("id") if isinstance(config, dict) else None
     if cid not in STORE_CODECS:  # every metadata was checked; never decode with another codec
-        raise FileFormatError(f"refusing to use the codec {_short(cid)}: the dataset store is "
-                              f"read only with {', '.join(sorted(STORE_CODECS))}")  # fmt: skip
+        raise FileFormatError(f"refusing to use the codec {short_repr(cid, 60)}: the dataset "
+                              "store is read only with "
+                              f"{', '.join(sorted(STORE_CODECS))}")  # fmt: skip
     import numcodecs  # lazy: optional dependency (comes with zarr, the cluster extra)
 
     return numcodecs.get_codec(dict(config))
@@ -437,7 +304,7 @@ class CubeDataset:
                 f"{self.path}: not a hsi_torch dataset store ({exc}); write into another folder"
             ) from None
         for name, meta in self.meta.items():  # before any chunk is decoded
-            _check_array_meta(meta, name, self.path)
+            check_array_meta(meta, name, self.path)
         self._check_layout()
         if self.attrs.get("hsi_torch_dataset") != DATASET_VERSION:
             raise FileFormatError(
@@ -475,8 +342,9 @@ class CubeDataset:
             meta = self.meta[name]
             if n < 0 or meta.get("shape") != shape or meta.get("chunks") != chunks:
                 raise FileFormatError(
-                    f"{self.path}: array {name!r} has shape {_short(meta.get('shape'))} and "
-                    f"chunks {_short(meta.get('chunks'))}, not this layout's {shape} and "
+                    f"{self.path}: array {name!r} has shape "
+                    f"{short_repr(meta.get('shape'), 60)} and chunks "
+                    f"{short_repr(meta.get('chunks'), 60)}, not this layout's {shape} and "
                     f"{chunks} (frames, {m} bands, {h}x{w} frames)")
             if meta.get("order", "C") != "C":
                 raise FileFormatError(f"{self.path}: array {name!r} is not in C order")
@@ -486,7 +354,7 @@ class CubeDataset:
             if got != (dtype, comp, filters):
                 raise FileFormatError(
                     f"{self.path}: array {name!r} has dtype, compressor and filters "
-                    f"{_short(got)}, not this layout's {(dtype, comp, filters)}")
+                    f"{short_repr(got, 60)}, not this layout's {(dtype, comp, filters)}")
 
     def _check(self, wavelengths_nm: Sequence[float], frame_size: tuple[int, int]) -> None:
         wl = [float(x) for x in wavelengths_nm]
@@ -580,7 +448,7 @@ class CubeDataset:
             raise
         except Exception as exc:  # noqa: BLE001 - numcodecs/numpy errors on a damaged chunk
             raise FileFormatError(f"{p}: cannot decode this chunk of array {name!r} "
-                                  f"({type(exc).__name__}: {_short(str(exc), 120)})") from None
+                                  f"({type(exc).__name__}: {short_repr(str(exc), 120)})") from None
 
     def _write_metadata(self) -> None:
         """The consolidated metadata (``.zmetadata``), what ``xarray.open_zarr`` reads."""
@@ -675,7 +543,7 @@ def write_frame(
         metas = {n: _read_json(root / n / ".zarray") for n in ("cube", "valid", "metadata",
                                                                  "done")}  # fmt: skip
         for name, meta in metas.items():
-            _check_array_meta(meta, name, root)
+            check_array_meta(meta, name, root)
         _META_CACHE[key] = metas
     n = int(metas["done"]["shape"][0])
     if not 0 <= index < n:

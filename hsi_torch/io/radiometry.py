@@ -16,17 +16,15 @@ Conventions:
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from hsi_torch.io.raw import RAW_SUFFIXES, cfa_masks, validate_cfa_pattern
+from hsi_torch.io.raw import validate_cfa_pattern
 
 __all__ = [
     "PEDESTAL_FRACTION",
@@ -36,11 +34,9 @@ __all__ = [
     "camera_mismatches",
     "capture_exposure",
     "default_margin_px",
-    "file_has_black_level",
     "outside_views_index",
     "pedestal_level",
     "pedestal_limit",
-    "subtract_black_rgb",
 ]
 
 #: The pedestal limit's share of the white level's span above black (0.25 %: 41 DN of 14-bit
@@ -93,59 +89,6 @@ def black_level_rgb(level: Any, cfa_pattern: str | None = None) -> list[float] |
             out.append(float(np.mean([v[i] for i in range(4) if colours[i] == c])))
         return out
     return None
-
-
-def subtract_black_rgb(capture: Any, black_rgb: Sequence[float]) -> None:
-    """Subtract a per-colour black level from a :class:`~hsi_torch.io.LinearCapture` read with
-    black 0, in place: its ``image`` ``(3, H, W)`` and, for a Bayer capture, its ``mosaic``.
-
-    Exact for Bayer captures: both demosaics (bilinear, 2×2 binning) form each colour from that
-    colour's sites only with weights summing to one, so a constant per colour passes through.
-    The saturation mask (stored value ≥ white level) does not change.
-    """
-    img = capture.image
-    b = torch.as_tensor([float(x) for x in black_rgb], dtype=img.dtype, device=img.device)
-    capture.image = img - b.view(3, 1, 1)
-    mosaic = getattr(capture, "mosaic", None)
-    pattern = capture.metadata.get("cfa_pattern")
-    if mosaic is not None and pattern:
-        m = cfa_masks(pattern, mosaic.shape[-2], mosaic.shape[-1], mosaic.device, mosaic.dtype)
-        capture.mosaic = mosaic - (m * b.to(mosaic.dtype).view(3, 1, 1)).sum(0, keepdim=True)
-
-
-def file_has_black_level(path: str | Path) -> bool:
-    """Whether a capture file carries a black level of its own, from its metadata only (no pixel
-    is decoded): camera RAW always does; a TIFF with a JSON description, an NPY's
-    ``<file>.npy.json`` sidecar or an NPZ's ``metadata`` does when it holds ``black_level``.
-    A file that cannot be read answers ``False`` (the reader reports it)."""
-    p = Path(path)
-    suffix = p.suffix.lower()
-    if suffix in RAW_SUFFIXES:
-        return True
-    meta: Any = None
-    try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile  # lazy: only TIFF inputs need it
-
-            with tifffile.TiffFile(p) as tif:
-                desc = tif.pages[0].description if len(tif.pages) else ""
-            meta = json.loads(desc) if desc else None
-        elif suffix == ".npy":
-            side = p.with_name(p.name + ".json")
-            meta = json.loads(side.read_text(encoding="utf-8")) if side.is_file() else None
-        elif suffix == ".npz":
-            with np.load(p, allow_pickle=False) as z:
-                if "metadata" in z.files:
-                    raw = z["metadata"]
-                    item = raw.item() if raw.ndim == 0 else None
-                    text = item.decode("utf-8") if isinstance(item, bytes) else item
-                    meta = json.loads(text) if isinstance(text, str) else None
-    except Exception:  # noqa: BLE001 - unreadable: read_any names the fault
-        return False
-    return isinstance(meta, dict) and meta.get("black_level") is not None
-
-
-# ----------------------------------------------------------------------------------- exposure
 
 
 def capture_exposure(metadata: Mapping[str, Any]) -> tuple[Any, str | None, str | None]:

@@ -1,6 +1,6 @@
 """Compiled CPU pass of the pipeline's per-pixel bookkeeping (numba, optional).
 
-:func:`~hsi_torch.recon.pipeline.solve_observations` needs, per frame, the pixels that keep
+:func:`~hsi_torch.recon.frame.solve_observations` needs, per frame, the pixels that keep
 enough views, the pixels whose frame mask differs from the static one (they are re-solved with
 their own mask) and the observations with the masked entries set to 0. As torch operations these
 are five passes over ``(P, 3V)`` tensors (a masked copy, a comparison, two reductions over a

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch.io.bundle import CalibrationBundle
-from hsi_torch.recon.pipeline import observations_from_samples, prepare_input, sample_views
+from hsi_torch.recon.frame import observations_from_samples, prepare_input, sample_views
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
 from hsi_torch.recon.spatial import grid_edges, total_variation
 from hsi_torch.recon.uncertainty import SensorNoise, observation_variance, sampling_variance_factor
@@ -165,7 +165,7 @@ class CameraOperator:
                 bundle's sensor size.
             saturated: same shape, bool (samples left out), or ``None``.
             exposure_scale: ``t_white / t_capture``
-                (:func:`~hsi_torch.recon.pipeline.exposure_scale`).
+                (:func:`~hsi_torch.recon.checks.exposure_scale`).
             cfa_pattern: for a Bayer input (default the bundle's).
 
         Returns:

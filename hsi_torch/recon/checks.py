@@ -3,18 +3,20 @@
 - **Black level.** A file that carries no black level of its own (a plain TIFF, PNG or NPY; camera
   RAW always carries one) gets the one the calibration used: the bundle's ``black_level_rgb``
   (the files' black level plus the dark frames' mean, per colour). An explicit ``black_level``
-  setting wins over both.
+  setting wins over both. The reader applies this (:func:`hsi_torch.io.captures.
+  black_level_rule`, with the bundle's :class:`~hsi_torch.io.captures.CaptureDefaults`); here it
+  is only reported.
 - **Pedestal.** After black subtraction, the sensor outside every view must read ≈ 0
   (:mod:`hsi_torch.io.radiometry`); a frame that reads more carries a black pedestal that was not
   removed, and gets a warning naming the level.
 - **Exposure.** A capture's observations are scaled by ``t_white / t_capture``
-  (:func:`~hsi_torch.recon.pipeline.exposure_scale`) when both exposures are known in the same
+  (:func:`exposure_scale`) when both exposures are known in the same
   unit; the result's statistics then say ``radiometric_scale: "reflectance"`` and the ratio.
   Otherwise ``radiometric_scale: "relative"`` and a warning: the cube is not reflectance.
 - **Camera.** The capture's camera identity (make/model, CFA pattern, the file's own black and
   white levels) is compared with the bundle's; every difference is a warning.
 
-:func:`prepare_capture` and :func:`exposure_info` fill a frame's statistics,
+:func:`measure_capture` and :func:`exposure_info` fill a frame's statistics,
 :func:`check_warnings` and :func:`check_notes` turn them into the lines a run prints.
 """
 
@@ -23,22 +25,20 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hsi_torch.errors import InputError
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.radiometry import (
     CameraIdentity,
     black_level_rgb,
     camera_mismatches,
     capture_exposure,
-    file_has_black_level,
     outside_views_index,
     pedestal_level,
     pedestal_limit,
-    subtract_black_rgb,
 )
 
 __all__ = [
@@ -46,7 +46,8 @@ __all__ = [
     "check_notes",
     "check_warnings",
     "exposure_info",
-    "prepare_capture",
+    "exposure_scale",
+    "measure_capture",
 ]
 
 
@@ -159,22 +160,18 @@ def _span(meta: Mapping[str, Any]) -> float | None:
     return float(wl) - float(np.mean(black))
 
 
-def prepare_capture(
+def measure_capture(
     capture: Any,
     radiometry: BundleRadiometry | None,
     *,
-    black_level: Any = None,
-    exposure_s: float | None = None,
     sensor_size: tuple[int, int] | None = None,
 ) -> dict[str, Any]:
-    """Complete a capture read with :func:`~hsi_torch.io.read_any` from what the bundle knows,
-    in place, and measure it; returns the statistics to add to the frame's.
+    """Measure a capture read with :func:`~hsi_torch.io.read_any` (which already applied the
+    bundle's defaults: :class:`~hsi_torch.io.captures.CaptureDefaults`) against what the bundle
+    knows; the capture is not changed. Returns the statistics to add to the frame's.
 
-    - ``black_level_source``: ``"config"`` when ``black_level`` was given, else the metadata's
-      (``"file"``, …), else whether the file carries one; a capture with none gets the bundle's
-      ``black_level_rgb`` subtracted (source ``"bundle"``).
-    - ``exposure_s`` (the ``exposure_s`` setting): the capture's exposure when its metadata has
-      none (source ``"config"``).
+    - ``black_level``, ``black_level_source`` (as read, :func:`~hsi_torch.io.captures.
+      black_level_rule`) and ``black_level_rgb`` (per colour).
     - ``pedestal_dn`` / ``pedestal_limit_dn``: per colour, the median outside every view and its
       limit (full-resolution captures of the bundle's sensor size only).
     - ``camera`` and ``camera_mismatch``: the capture's camera and its differences from the
@@ -187,30 +184,13 @@ def prepare_capture(
         sensor_size: ``(H, W)`` the outside-view indices refer to.
     """
     meta = capture.metadata
-    path = getattr(capture, "path", None)
-    if black_level is not None:
-        src = "config"
-    else:
-        given = meta.get("black_level_source")
-        if isinstance(given, str) and given:
-            src = given
-        else:
-            src = "file" if path is not None and file_has_black_level(Path(path)) else "default"
-    meta["black_level_source"] = src
+    src = meta.get("black_level_source")
     stats: dict[str, Any] = {}
     rad = radiometry
-    if src == "default" and rad is not None and rad.black_level_rgb is not None \
-            and any(v != 0 for v in rad.black_level_rgb):  # fmt: skip
-        subtract_black_rgb(capture, rad.black_level_rgb)
-        meta["black_level"] = list(rad.black_level_rgb)
-        meta["black_level_source"] = src = "bundle"
     stats["black_level"] = meta.get("black_level")
     stats["black_level_source"] = src
     # per colour, for the messages: a Bayer cell's 4 values need the pattern to be read so
     stats["black_level_rgb"] = black_level_rgb(meta.get("black_level"), meta.get("cfa_pattern"))
-    if capture_exposure(meta)[0] is None and exposure_s is not None:
-        meta["exposure_s"] = float(exposure_s)
-        meta["exposure_source"] = "config"
     if rad is None:
         return stats
     img = capture.image
@@ -249,6 +229,28 @@ def prepare_capture(
             "instead, unless this RGB is a linear demosaic of the same sensor's counts"
         )
     return stats
+
+
+def exposure_scale(capture_exposure_s: Any, white_exposure_s: float | None) -> float:
+    """Factor applied to a capture's observations: ``t_white / t_capture`` (1 when unknown).
+
+    The response ``phi`` (hence ``A``) is calibrated on white-reference shots taken with exposure
+    ``t_white``: a white reflector imaged with exposure ``t`` reads ``t / t_white`` times the
+    calibrated values. Scaling ``y`` by ``t_white / t`` keeps reconstructed spectra in
+    reflectance units relative to the white reference, whatever the capture's exposure.
+    """
+    if white_exposure_s is None or capture_exposure_s is None:
+        return 1.0
+    try:
+        t = float(capture_exposure_s)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(
+            f"capture metadata 'exposure_s' is not a number: {capture_exposure_s!r}"
+        ) from None
+    if not t > 0 or t == float("inf"):
+        raise InputError(f"capture metadata 'exposure_s' must be > 0, got {capture_exposure_s!r}")
+    return float(white_exposure_s) / t
+
 
 
 def _ratio_text(r: float) -> str:
@@ -303,8 +305,6 @@ def exposure_info(
                      f"reference's {words[w_unit]}: not comparable, not scaled; the cube's scale "
                      "is relative, not reflectance")  # fmt: skip
         return None, stats
-    from hsi_torch.recon.pipeline import exposure_scale  # lazy: the pipeline imports this module
-
     k = exposure_scale(t, w)
     r = 1.0 / k
     if abs(r - 1) < 1e-9:
@@ -331,7 +331,7 @@ def check_notes(stats: Mapping[str, Any]) -> list[str]:
 
 
 def check_warnings(stats: Mapping[str, Any]) -> list[str]:
-    """Warnings about a frame from :func:`prepare_capture` and :func:`exposure_info`'s
+    """Warnings about a frame from :func:`measure_capture` and :func:`exposure_info`'s
     statistics: a pedestal outside the views, an exposure ratio that is unknown, a camera that
     differs from the bundle's."""
     out: list[str] = []

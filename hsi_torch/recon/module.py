@@ -5,9 +5,10 @@ precomputation (the factored sensing model of the reconstructed pixels, static m
 sampling grid, the solver's Gram matrices and inverses) are
 registered buffers, so ``.to(device)``/``.cuda()`` move everything and ``.double()`` switches the
 precision (the factorisation is then recomputed in the new dtype). The forward pass is exactly
-:func:`hsi_torch.recon.pipeline.reconstruct_batch` — the same code as the file pipeline.
+:func:`hsi_torch.recon.frame.reconstruct_frame` — the same code as the file pipeline, with the
+same :class:`~hsi_torch.recon.settings.ReconstructSettings`.
 
-Differentiable with respect to the input: see :mod:`hsi_torch.recon.pipeline` (straight-through
+Differentiable with respect to the input: see :mod:`hsi_torch.recon.frame` (straight-through
 reduced solve on the solver's free set for the active-set method; fixed-iteration ADMM is
 differentiated through its iterations).
 
@@ -23,8 +24,9 @@ with one graph break at the solver, and the result equals the eager one (tested)
 the reconstructed pixels) and, as extra state, the sensor size, reference-frame box, white
 exposure and ``phi`` in the bundle's float64. ``load_state_dict`` checks the whole state dict
 first and then rebuilds everything derived from it (the factored sensing model, observation mask,
-sampling grid, Gram matrices and their inverses) exactly as :meth:`HSIReconstructor.from_bundle`
-does, so the output is bit for bit that of a module built from the other bundle (float32 and
+sampling grid, Gram matrices and their inverses) with the build of
+:func:`hsi_torch.recon.sensing.build_sensing` that :meth:`HSIReconstructor.from_bundle` uses,
+so the output is bit for bit that of a module built from the other bundle (float32 and
 float64, tested); a
 state dict of another geometry (views, bands, reference frame, sensor) raises
 :class:`~hsi_torch.errors.InputError` and leaves the module as it was.
@@ -33,33 +35,22 @@ state dict of another geometry (views, bands, reference frame, sensor) raises
 from __future__ import annotations
 
 import os
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
+from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import InputError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import view_sample_grid
+from hsi_torch.recon.corrections import correct_frames
+from hsi_torch.recon.frame import check_min_views, prepare_input, reconstruct_frame
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
-from hsi_torch.recon.pipeline import (
-    DEFAULT_BETA,
-    check_min_views,
-    correct_frames,
-    prepare_input,
-    reconstruct_batch,
-    torch_dtype,
-)
-from hsi_torch.recon.sensing import BundleSensing, load_bundle, precompute_sensing
-from hsi_torch.recon.settings import (
-    ReconstructSettings,
-    dtype_name,
-    keyword_defaults,
-    settings_or_keywords,
-)
-from hsi_torch.recon.spatial import DEFAULT_LAM
-from hsi_torch.spectral import band_widths
+from hsi_torch.recon.sensing import BundleSensing, build_sensing, load_bundle, precompute_sensing
+from hsi_torch.recon.settings import ReconstructSettings, with_overrides
 
 __all__ = ["HSIReconstructor", "ReconstructionOutput", "OUTPUTS"]
 
@@ -120,45 +111,25 @@ class HSIReconstructor(nn.Module):
         self,
         sensing: BundleSensing,
         bundle: CalibrationBundle,
+        settings: ReconstructSettings | None = None,
         *,
-        solver: str = "active_set",
-        admm_iters: int | None = None,
-        cfa_pattern: str | None = None,
-        chunk_size: int | None = None,
-        min_views: int = 3,
-        nan_invalid: bool = True,
-        sat_threshold: float = 1e-3,
-        prior: str = "none",
-        lam: float | str = DEFAULT_LAM,
-        spatial_iters: int | None = None,
         output: str = "result",
         fill_value: float = 0.0,
-        settings: ReconstructSettings | None = None,
+        **overrides: Any,
     ) -> None:
         super().__init__()
         if output not in OUTPUTS:
             raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
         self.output = output
         self.fill_value = float(fill_value)
-        given = dict(solver=solver, admm_iters=admm_iters, cfa_pattern=cfa_pattern,
-                     chunk_size=chunk_size, min_views=min_views, nan_invalid=nan_invalid,
-                     sat_threshold=sat_threshold, prior=prior, lam=lam,
-                     spatial_iters=spatial_iters)  # fmt: skip
-        defaults = keyword_defaults(HSIReconstructor.__init__)
-        s = settings_or_keywords(settings, given, defaults, given)
-        #: the settings, grouped and frozen (β and the difference order: the sensing's)
+        s = with_overrides(settings, overrides)
+        #: the settings, grouped and frozen (β and the difference order: the sensing's; the
+        #: module returns no standard deviation, so ``uncertainty`` is not computed)
         self.settings = s
-        sv, pr = s.solve, s.prior
-        self.prior, self.lam, self.spatial_iters = pr.kind, pr.lam, pr.spatial_iters
+        self._frame_settings = s.replace(uncertainty=False) if s.uncertainty.enabled else s
         dev, dt = sensing.device, sensing.dtype
-        check_min_views(sv.min_views, sensing.num_views)
-        self.solver = sv.solver
-        self.admm_iters = sv.admm_iters
+        check_min_views(s.solve.min_views, sensing.num_views)
         self.cfa_pattern = s.input.cfa_pattern or sensing.cfa_pattern
-        self.chunk_size = sv.chunk_size
-        self.min_views = int(sv.min_views)
-        self.nan_invalid = bool(sv.nan_invalid)
-        self.sat_threshold = float(s.input.sat_threshold)
         self.beta = sensing.beta
         self.diff_order = sensing.diff_order
         self.sensor_size = sensing.sensor_size
@@ -203,63 +174,39 @@ class HSIReconstructor(nn.Module):
     def from_bundle(
         cls,
         bundle: CalibrationBundle | str | os.PathLike,
+        settings: ReconstructSettings | None = None,
         *,
-        beta: float = DEFAULT_BETA,
-        solver: str = "active_set",
-        diff_order: int = 1,
-        admm_iters: int | None = None,
-        cfa_pattern: str | None = None,
-        device: torch.device | str | None = None,
-        dtype: torch.dtype = torch.float32,
-        chunk_size: int | None = None,
-        min_views: int = 3,
-        nan_invalid: bool = True,
-        prior: str = "none",
-        lam: float | str = DEFAULT_LAM,
-        spatial_iters: int | None = None,
         output: str = "result",
         fill_value: float = 0.0,
-        settings: ReconstructSettings | None = None,
+        **overrides: Any,
     ) -> HSIReconstructor:
         """Build from a bundle (object or ``.npz`` path).
 
         Args:
-            beta: smoothness weight on ``‖D s‖²``, on the data's DN² scale (default
-                :data:`~hsi_torch.recon.pipeline.DEFAULT_BETA` = 1e4, as ``ReconstructConfig``).
-                diff_order: 0, 1, 2.
-            solver: ``"active_set"`` (exact; gradient of the final reduced solve) or ``"admm"``
-                (``admm_iters=N``: exactly ``N`` differentiable iterations; ``None``: to
-                tolerance, gradient as for the active set).
-            cfa_pattern: for ``(B, 1, H, W)`` Bayer inputs (default: the bundle's
-                ``settings["cfa_pattern"]``).
-            device, dtype: of the buffers (movable later with ``.to``).
-            prior, lam, spatial_iters: ``prior="tv"``: spatial-spectral reconstruction with a
-                vectorial TV prior (:class:`~hsi_torch.recon.pipeline.Reconstructor`); for
-                gradients give ``spatial_iters=N`` (exactly ``N`` differentiable ADMM
-                iterations).
+            settings: every reconstruction setting
+                (:class:`~hsi_torch.recon.settings.ReconstructSettings`; default: the
+                defaults): β and the difference order, the solver (``"active_set"``: exact,
+                gradient of the final reduced solve; ``"admm"`` with ``admm_iters=N``: exactly
+                ``N`` differentiable iterations), ``cfa_pattern`` for ``(B, 1, H, W)`` Bayer
+                inputs (default: the bundle's), ``device``/``dtype`` of the buffers (movable
+                later with ``.to``), the prior (``prior="tv"``; for gradients give
+                ``spatial_iters=N``).
             output: ``"result"`` (default): ``forward`` returns
                 :class:`ReconstructionOutput` ``(cube, valid)``; ``"cube"``: the cube tensor
                 alone, ``(B, M, h, w)``, invalid pixels set to ``fill_value`` — the form for
                 ``nn.Sequential(rec, nn.Conv2d(M, …))``. Not a reconstruction setting: the
                 module's output form.
             fill_value: the value of invalid pixels with ``output="cube"`` (default 0.0).
-            settings: all of the reconstruction keywords above at once, a
-                :class:`~hsi_torch.recon.settings.ReconstructSettings` (the keywords are then
-                left at their defaults).
+            overrides: flat settings keys changed on ``settings`` (e.g. ``beta=1e3``,
+                ``dtype=torch.float64``; :func:`~hsi_torch.recon.settings.with_overrides`).
         """
-        given = dict(beta=beta, solver=solver, diff_order=diff_order, admm_iters=admm_iters,
-                     cfa_pattern=cfa_pattern, device=device, dtype=dtype, chunk_size=chunk_size,
-                     min_views=min_views, nan_invalid=nan_invalid, prior=prior, lam=lam,
-                     spatial_iters=spatial_iters)  # fmt: skip
-        flat = {**given, "device": None if device is None else str(device),
-                "dtype": dtype_name(dtype)}  # fmt: skip
-        s = settings_or_keywords(settings, given, keyword_defaults(cls.from_bundle), flat)
+        s = with_overrides(settings, overrides)
         b = load_bundle(bundle)
         sens = precompute_sensing(
             b, beta=s.solve.beta, diff_order=s.solve.diff_order, device=s.solve.device,
             dtype=torch_dtype(s.solve.dtype), chunk_size=s.solve.chunk_size,
         )  # fmt: skip
-        return cls(sens, b, settings=s, output=output, fill_value=fill_value)
+        return cls(sens, b, s, output=output, fill_value=fill_value)
 
     def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
         dt = self.model_transmittance.dtype
@@ -280,7 +227,7 @@ class HSIReconstructor(nn.Module):
             )  # fmt: skip
             p = prepare_nnls(
                 self._model(), mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
-                chunk_size=self.chunk_size,
+                chunk_size=self.settings.solve.chunk_size,
             )  # fmt: skip
             self.gram, self.gram_inv, self.gram_diag, self.gram_norm = (
                 p.gram, p.gram_inv, p.gram_diag, p.gram_norm
@@ -409,16 +356,16 @@ class HSIReconstructor(nn.Module):
                     g.to(vals["phi"].dtype), vals["phi"].cpu()):  # fmt: skip
                 phi64 = g
         ex["phi_float64"] = phi64
-        wl = vals["wavelengths_nm"].to("cpu", torch.float64)
-        model = SensingModel.from_factors(
-            vals["B"], vals["gain"], phi64, band_widths(wl), pixel_index=pix,
-            device=self.gram.device, dtype=self.gram.dtype,
+        arrays = SimpleNamespace(
+            wavelengths_nm=vals["wavelengths_nm"], B=vals["B"], gain=vals["gain"], phi=phi64,
+            view_mask=vals["view_mask"], valid=vals["valid_region"],
+            view_homographies=vals["homographies"], sensor_size=self.sensor_size,
+            reference_bbox=self.reference_bbox,
         )  # fmt: skip
-        obs = vals["view_mask"].reshape(V, -1)[:, pix].T.repeat_interleave(3, dim=1)
-        grid = view_sample_grid(vals["homographies"], self.reference_bbox, self.sensor_size, pix,
-                           dtype=model.dtype)  # fmt: skip
-        p = prepare_nnls(model, mask=obs, beta=self.beta, diff_order=self.diff_order,
-                         chunk_size=self.chunk_size)  # fmt: skip
+        sens = build_sensing([arrays], beta=self.beta, diff_order=self.diff_order,
+                             device=self.gram.device, dtype=self.gram.dtype,
+                             chunk_size=self.settings.solve.chunk_size)  # fmt: skip
+        model, obs, grid, p = sens.model, sens.obs_mask, sens.grid(), sens.problem
         vals.update(model_transmittance=model.transmittance, model_gain=model.gain,
                     model_response=model.response, obs_mask=obs, sample_grid=grid,
                     gram=p.gram, gram_inv=p.gram_inv, gram_diag=p.gram_diag,
@@ -525,7 +472,7 @@ class HSIReconstructor(nn.Module):
     @torch.compiler.disable
     def correct(self, rgb: Tensor, saturated: Tensor | None) -> tuple[Tensor, Tensor | None]:
         """The bundle's sensor corrections on ``(B, 3, H, W)`` linear RGB and its saturation
-        mask (:func:`~hsi_torch.recon.pipeline.correct_frames`): for a bundle calibrated with
+        mask (:func:`~hsi_torch.recon.corrections.correct_frames`): for a bundle calibrated with
         ``stray_light: subtract`` the veil fitted on each frame's unreached pixels is subtracted
         (a constant for autograd: the gradient passes through unchanged); for ``defects: mask``
         the hot and dead pixels are marked saturated. Other bundles: returned as given."""
@@ -539,20 +486,18 @@ class HSIReconstructor(nn.Module):
         """Warp, observations, exact solve and assembly of ``(B, 3, H, W)`` linear RGB (the part
         of :meth:`forward` that ``torch.compile`` leaves to eager mode; no statistics, no
         timing)."""
-        cube, valid, _, _ = reconstruct_batch(
-            self.sensing(), rgb, saturated, scale=exposure_scale, solver=self.solver,
-            admm_iters=self.admm_iters, chunk_size=self.chunk_size, min_views=self.min_views,
-            nan_invalid=self.nan_invalid, sat_threshold=self.sat_threshold, stats=False,
-            prior=self.prior, lam=self.lam, spatial_iters=self.spatial_iters,
-        )  # fmt: skip
-        return cube, valid
+        out = reconstruct_frame(self.sensing(), rgb, self._frame_settings, saturated,
+                                scale=exposure_scale, stats=False)  # fmt: skip
+        return out.cube, out.valid
 
     def extra_repr(self) -> str:
         h, w = self.frame_size
         return (
             f"views={self.homographies.shape[0]}, bands={self.num_bands}, "
             f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
-            f"beta={self.beta:g}, diff_order={self.diff_order}, solver={self.solver!r}"
-            + (f", prior='tv', lam={self.lam}" if self.prior == "tv" else "")
+            f"beta={self.beta:g}, diff_order={self.diff_order}, "
+            f"solver={self.settings.solve.solver!r}"
+            + (f", prior='tv', lam={self.settings.prior.lam}" if self.settings.prior.kind == "tv"
+               else "")
             + (f", output='cube', fill_value={self.fill_value:g}" if self.output == "cube" else "")
         )

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.devices import resolve_device
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.radiometry import CameraIdentity
@@ -62,10 +63,12 @@ from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.nnls.problem import compiled_factorisation
+from hsi_torch.spectral import band_widths
 
 __all__ = [
     "BundleSensing",
     "precompute_sensing",
+    "build_sensing",
     "load_bundle",
     "bundle_exposure",
     "clear_sensing_cache",
@@ -287,22 +290,6 @@ def _cfa_from_settings(bundle: CalibrationBundle) -> str | None:
     return str(v) if isinstance(v, str) else None
 
 
-def _device(device: torch.device | str | None) -> torch.device:
-    """``device`` as a torch device (``None``: the CPU); a name torch does not know, or CUDA
-    where this torch has none, is a ``ValueError`` naming the device (not torch's own
-    ``RuntimeError`` / ``AssertionError`` from deep inside the precomputation)."""
-    if device is None:
-        return torch.device("cpu")
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError) as exc:
-        raise ValueError(f"device {device!r} is not a torch device ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {str(device)!r}: CUDA is not available on this machine or in "
-                         "this torch build (use device='cpu')")
-    return dev
-
-
 def precompute_sensing(
     bundle: CalibrationBundle | str | os.PathLike,
     *,
@@ -334,7 +321,7 @@ def precompute_sensing(
     """
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-    dev = _device(device)
+    dev = resolve_device(device)
     beta, diff_order = float(beta), int(diff_order)
     path = Path(bundle) if isinstance(bundle, (str, os.PathLike)) else None
     folder, note = disk.cache_folder(disk_cache, path)
@@ -368,30 +355,16 @@ def precompute_sensing(
         _CACHE.move_to_end(id_key)
         return _CACHE[id_key]
     BUILD_COUNTS["sensing"] += 1
-    valid = torch.as_tensor(b.valid, device=dev)
-    pix = valid.reshape(-1).nonzero().squeeze(1)
-    model = b.sensing_model(pix, device=dev, dtype=dtype)
-    obs = b.observation_mask(device=dev, pixel_index=pix)
-    x0, y0, w, h = (int(v) for v in b.reference_bbox)
-    fields = dict(
-        wavelengths_nm=torch.as_tensor(b.wavelengths_nm, dtype=torch.float64),
-        sensor_size=(int(b.sensor_size[0]), int(b.sensor_size[1])),
-        reference_bbox=(x0, y0, w, h),
-        homographies=torch.as_tensor(b.view_homographies, device=dev, dtype=torch.float64),
-        exposure_s=bundle_exposure(b), cfa_pattern=_cfa_from_settings(b),
-        radiometry=BundleRadiometry.from_bundle(b, bundle_exposure(b)),
-    )  # fmt: skip
     # identity check for the cache, without keeping the bundle's full-frame arrays alive: a
     # bundle loaded here from a path is freed before the factorisation's memory is taken
     ref = weakref.ref(b)
+    exposure = bundle_exposure(b)
+    extra = dict(exposure_s=exposure, cfa_pattern=_cfa_from_settings(b),
+                 radiometry=BundleRadiometry.from_bundle(b, exposure))  # fmt: skip
+    hand_over = [b]
     del b
-    problem = _factorise(model, obs, beta, diff_order, chunk_size)
-    sens = BundleSensing(
-        valid=valid, pixel_index=pix, model=model, obs_mask=obs, beta=beta,
-        diff_order=diff_order, problem=problem, **fields,
-    )  # fmt: skip
-    sens._problems[(beta, diff_order)] = problem
-    sens.grid()  # the frames' sampling positions, once per bundle
+    sens = build_sensing(hand_over, beta=beta, diff_order=diff_order, device=dev, dtype=dtype,
+                         chunk_size=chunk_size, **extra)  # fmt: skip
     sens._bundle_ref = ref  # type: ignore[attr-defined]
     release_freed_memory()  # the factorisation's chunk temporaries (≈ 0.3 GiB at full size)
     if entry is not None and key is not None:
@@ -401,6 +374,57 @@ def precompute_sensing(
         sens.disk_entry = (Path(folder), path, key)
         _remember(mem_key, sens, cache)
     _remember(id_key, sens, cache)
+    return sens
+
+
+def build_sensing(
+    source: list[Any],
+    *,
+    beta: float,
+    diff_order: int,
+    device: torch.device,
+    dtype: torch.dtype,
+    chunk_size: int | None = None,
+    **extra: Any,
+) -> BundleSensing:
+    """The :class:`BundleSensing` of a bundle's arrays: sensing model, static mask,
+    factorisation and sampling grid (the one build, for :func:`precompute_sensing` and for
+    :meth:`hsi_torch.recon.module.HSIReconstructor.load_state_dict`).
+
+    Args:
+        source: a one-item list holding a :class:`CalibrationBundle` or an object with its
+            array attributes (``wavelengths_nm``, ``B (V, M, h, w)``, ``gain (V, h, w)``,
+            ``phi (3, M)`` (float64 best), ``view_mask (V, h, w)``, ``valid (h, w)``,
+            ``view_homographies (V, 3, 3)``, ``sensor_size``, ``reference_bbox``); emptied once
+            the arrays are read, so that a bundle nothing else holds is freed before the
+            factorisation takes its memory.
+        beta, diff_order, chunk_size: of the factorisation; device, dtype: of the tensors.
+        extra: further :class:`BundleSensing` fields (``exposure_s``, ``cfa_pattern``,
+            ``radiometry``).
+    """
+    b = source.pop()
+    valid = torch.as_tensor(b.valid, device=device)
+    pix = valid.reshape(-1).nonzero().squeeze(1)
+    wl = torch.as_tensor(b.wavelengths_nm).to("cpu", torch.float64)
+    model = SensingModel.from_factors(
+        torch.as_tensor(b.B), torch.as_tensor(b.gain), torch.as_tensor(b.phi), band_widths(wl),
+        pixel_index=pix.cpu(), device=device, dtype=dtype,
+    )  # fmt: skip
+    V = int(b.view_homographies.shape[0])
+    vm = torch.as_tensor(b.view_mask, device=device).reshape(V, -1)
+    obs = vm[:, pix.to(vm.device)].T.repeat_interleave(3, dim=1)
+    x0, y0, w, h = (int(v) for v in b.reference_bbox)
+    fields = dict(
+        wavelengths_nm=wl, sensor_size=(int(b.sensor_size[0]), int(b.sensor_size[1])),
+        reference_bbox=(x0, y0, w, h),
+        homographies=torch.as_tensor(b.view_homographies).to(device, torch.float64),
+    )  # fmt: skip
+    del b
+    problem = _factorise(model, obs, beta, diff_order, chunk_size)
+    sens = BundleSensing(valid=valid, pixel_index=pix, model=model, obs_mask=obs, beta=beta,
+                         diff_order=diff_order, problem=problem, **fields, **extra)  # fmt: skip
+    sens._problems[(beta, diff_order)] = problem
+    sens.grid()  # the frames' sampling positions, once per bundle
     return sens
 
 

@@ -6,12 +6,16 @@ order, the solver, chunking, ``min_views``, NaN for invalid pixels, device, prec
 correction, saturation threshold), ``output`` (cube formats, preview, spectra plot, the
 fit-residual warning), ``uncertainty`` (on/off and the sensor's noise model) and
 ``registration`` (the drift measured from each frame, its warning and correction). It is built once
-per run from the flat :class:`~hsi_torch.recon.config.ReconstructConfig`
-(:meth:`ReconstructSettings.from_config`; the YAML files and ``--set key=value`` keep their flat
-keys) or from the keywords of :class:`~hsi_torch.recon.pipeline.Reconstructor` and
-:meth:`~hsi_torch.recon.module.HSIReconstructor.from_bundle`
-(:meth:`ReconstructSettings.from_flat`), and passed whole to the reconstructor, the nn.Module and
-the workers of a distributed run.
+per run from flat keys (:meth:`ReconstructSettings.from_flat`: a YAML file, ``--set key=value``,
+the keyword overrides of :class:`~hsi_torch.recon.pipeline.Reconstructor`) and passed whole to the
+reconstructor, the nn.Module and the workers of a distributed run.
+
+**One definition**: every setting is one field of one group, with its default, its help text
+(``metadata["help"]``) and, where it differs from the field's name, its flat key
+(``metadata["key"]``). The flat names (:data:`FLAT_KEYS`) and the YAML schema of
+``reconstruct.yaml`` (:class:`~hsi_torch.recon.config.ReconstructConfig`, with its help texts
+and defaults) are generated from these groups; a field marked ``metadata["yaml"] = False`` is a
+setting of the Python API only.
 
 **Validation happens here and only here**: each group checks its values in ``__post_init__``;
 errors are :class:`~hsi_torch.config.ConfigError` (a ``ValueError``) that name the flat key
@@ -22,21 +26,19 @@ errors are :class:`~hsi_torch.config.ConfigError` (a ``ValueError``) that name t
 field added to any group is part of the key without being listed anywhere (the workers' cache
 of prepared reconstructors uses it).
 
-No torch here (the configuration is importable without it); the defaults are those of
-:class:`~hsi_torch.recon.pipeline.Reconstructor` (tested).
+No torch here (the configuration is importable without it).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
-import inspect
 import json
 import math
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from hsi_torch.config import ConfigError
 
@@ -54,6 +56,9 @@ __all__ = [
     "LAM_RULES",
     "CUBE_FORMATS",
     "MAX_PREVIEW_SIZE",
+    "FLAT_KEYS",
+    "RENAMED_KEYS",
+    "with_overrides",
 ]
 
 #: Default smoothness weight β on ‖D s‖² (DN² scale; best measured on the default prototype).
@@ -74,6 +79,21 @@ DEMOSAICS = ("bilinear", "half")
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 #: largest ``preview_size`` (px): a 16384² RGB preview is already 0.8 GB in memory
 MAX_PREVIEW_SIZE = 16384
+
+
+CubeFormat = Literal["tiff", "envi", "npz", "netcdf", "zarr"]
+CfaPattern = Literal["RGGB", "BGGR", "GRBG", "GBRG"]
+
+
+def _set(default: Any, help: str, key: str | None = None, yaml: bool = True) -> Any:
+    """A settings field: its default, help text, flat key (``None``: the field's name) and
+    whether ``reconstruct.yaml`` has it (``False``: the Python API only)."""
+    meta: dict[str, Any] = {"help": help, "yaml": yaml}
+    if key is not None:
+        meta["key"] = key
+    if isinstance(default, (list, tuple)):
+        return field(default_factory=lambda: _frozen(default), metadata=meta)
+    return field(default=default, metadata=meta)
 
 
 def _bad(key: str, message: str) -> ConfigError:
@@ -113,9 +133,10 @@ def _frozen(value: Any) -> Any:
     return value
 
 
-def _thaw(value: Any) -> Any:
+def thaw(value: Any) -> Any:
+    """Tuples (and tuples of tuples) as lists: the YAML form."""
     if isinstance(value, tuple):
-        return [_thaw(v) for v in value]
+        return [thaw(v) for v in value]
     return value
 
 
@@ -137,18 +158,29 @@ class SolveSettings:
             a folder (:mod:`hsi_torch.recon.precompute_cache`). Not part of the outputs.
     """
 
-    beta: float = DEFAULT_BETA
-    diff_order: int = 1
-    solver: str = "active_set"
-    admm_iters: int | None = None
-    chunk_size: int | None = None
-    min_views: int = 3
-    nan_invalid: bool = True
-    device: str | None = "cpu"
-    dtype: str = "float32"
-    precompute_cache: str = "auto"
+    beta: float = _set(DEFAULT_BETA, "smoothness weight on ||D s||^2, on the data's scale (DN^2); "
+                       "1e-2..1e6 (1e4: best measured on the default prototype)")
+    diff_order: int = _set(1, "order of the difference operator D: 1, 2, or 0 (Tikhonov)")
+    solver: Literal["active_set", "admm"] = _set("active_set", "exact active set, or ADMM")
+    admm_iters: int | None = _set(None, "ADMM: fixed iteration count (null: run to tolerance)")
+    chunk_size: int | None = _set(None, "pixels per solver chunk (null: solver default)")
+    min_views: int = _set(3, "views a pixel needs to be valid")
+    nan_invalid: bool = _set(True, "invalid pixels are NaN (else 0) in the cube")
+    device: str | None = _set("cpu", "torch device (cpu, cuda, cuda:1, ...; null: the bundle's)")
+    dtype: Literal["float32", "float64"] = _set(
+        "float32", "precision of the sensing matrices and the solve")
+    precompute_cache: str = _set(
+        "auto", "where the per-bundle precomputation (sensing model, masks, factorisation) is "
+        "cached between runs: auto (the user cache folder, $HSI_TORCH_CACHE or "
+        "~/.cache/hsi_torch), beside (a .hsi_torch_cache folder beside the bundle), off, or a "
+        "folder")
 
     def __post_init__(self) -> None:
+        if not isinstance(self.dtype, str):  # a torch dtype given as an override
+            object.__setattr__(self, "dtype", str(self.dtype).removeprefix("torch."))
+        if self.device is not None and not isinstance(self.device, str) and \
+                type(self.device).__name__ == "device":  # a torch.device given as an override
+            object.__setattr__(self, "device", str(self.device))
         beta = _number("beta", self.beta)
         if not 0 <= beta <= BETA_MAX:
             raise _bad("beta", f"must be between 0 and {BETA_MAX:g}, got {self.beta:g} (the "
@@ -180,9 +212,16 @@ class PriorSettings:
         spatial_iters: fixed ADMM iterations of the TV solve (``None``: to tolerance).
     """
 
-    kind: str = "none"
-    lam: float | str = _DEFAULT_LAM
-    spatial_iters: int | None = None
+    kind: Literal["none", "tv"] = _set(
+        "none", "none: per-pixel NNLS; tv: spatial-spectral reconstruction with a vectorial "
+        "total-variation prior, warm-started from the per-pixel answer", key="prior")
+    lam: float | Literal["auto", "discrepancy"] = _set(
+        _DEFAULT_LAM, "prior=tv: relative TV weight, lambda = lam * sigma * sqrt(median trace G) "
+        "with sigma the frame's noise level (DN) from its per-pixel residuals; auto: per frame, "
+        "minimum of a Monte-Carlo SURE risk estimate; discrepancy: per frame, Morozov's "
+        "discrepancy principle")
+    spatial_iters: int | None = _set(
+        None, "prior=tv: fixed ADMM iterations (null: run to tolerance)")
 
     def __post_init__(self) -> None:
         _choice("prior", self.kind, PRIORS)
@@ -216,13 +255,27 @@ class InputSettings:
         sat_threshold: warped saturation weight above which an observation is saturated.
     """
 
-    demosaic: str = "bilinear"
-    cfa_pattern: str | None = None
-    black_level: float | tuple[float, ...] | None = None
-    white_level: float | None = None
-    exposure_correction: bool = True
-    exposure_s: float | None = None
-    sat_threshold: float = 1e-3
+    demosaic: Literal["bilinear", "half"] = _set(
+        "bilinear", "Bayer inputs: bilinear (full resolution) or half (2x2 binning; needs a "
+        "bundle made at half resolution)")
+    cfa_pattern: CfaPattern | None = _set(
+        None, "Bayer inputs: CFA pattern (null: the file's metadata, else the pattern the "
+        "bundle was calibrated with)")
+    black_level: float | tuple[float, ...] | None = _set(
+        None, "black level subtracted from the stored values, DN: scalar, 4 values (Bayer cell) "
+        "or 3 (R, G, B) (null: the file's metadata, else the calibration's, recorded in the "
+        "bundle, else 0)")
+    white_level: float | None = _set(
+        None, "saturation level, DN, > 0 (null: the file's metadata, else the integer type's "
+        "maximum)")
+    exposure_correction: bool = _set(
+        True, "scale observations by t_white / t_capture when both exposures are known")
+    exposure_s: float | None = _set(
+        None, "exposure time of the captures, s, for a file whose metadata has none "
+        "(RAW/DNG/TIFF EXIF, exposure_s); scaled by t_white / t_capture against the bundle's "
+        "white reference (null: unknown, the cube's scale is relative)")
+    sat_threshold: float = _set(
+        1e-3, "warped saturation weight above which an observation is saturated", yaml=False)
 
     def __post_init__(self) -> None:
         _choice("demosaic", self.demosaic, DEMOSAICS)
@@ -265,11 +318,20 @@ class OutputSettings:
         fit_residual_warning: warn above this relative fit residual (``None``: never).
     """
 
-    formats: tuple[str, ...] = ("tiff", "envi", "npz")
-    preview: bool = True
-    preview_size: int = 512
-    spectra_pixels: tuple[tuple[int, int], ...] = ()
-    fit_residual_warning: float | None = 0.15
+    formats: tuple[CubeFormat, ...] = _set(
+        ("tiff", "envi", "npz"), "cube files written per input: tiff (OME-TIFF .tif + GDAL "
+        ".vrt), envi (.hdr/.img), npz, netcdf (.nc), zarr (.zarr); netcdf/zarr need pip "
+        "install 'hsi-torch[formats]'")
+    preview: bool = _set(True, "write an sRGB preview PNG (D65)")
+    preview_size: int = _set(
+        512, "the preview's longer side is enlarged (integer factor, nearest neighbour) to at "
+        f"least this many px; 0: native; at most {MAX_PREVIEW_SIZE}")
+    spectra_pixels: tuple[tuple[int, int], ...] = _set(
+        (), "reference-frame pixels [row, col] whose spectra are plotted (PNG)")
+    fit_residual_warning: float | None = _set(
+        0.15, "warn when a frame's relative fit residual (pooled over its brighter half, see "
+        "recon.frame.fit_residual) exceeds this: a bundle of another geometry gives 0.21-0.25, "
+        "the right bundle 0.01-0.03 (0.11 with 1/20 of the exposure); null: never")
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "formats", _frozen(self.formats))
@@ -308,10 +370,17 @@ class UncertaintySettings:
             DN, ``≥ 0`` (a keyword of the Python API, through its ``noise``).
     """
 
-    enabled: bool = False
-    electrons_per_dn: float | None = None
-    read_e: float = 3.0
-    quantization_dn: float = 1.0
+    enabled: bool = _set(
+        False, "also write the standard deviation of every band from the sensor noise: "
+        "<stem>_std.* beside the cube in the non-NPZ formats, the key 'std' in <stem>.npz and a "
+        "map <stem>_std.png (see docs/reconstruct.md)", key="uncertainty")
+    electrons_per_dn: float | None = _set(
+        None, "uncertainty: sensor conversion gain, e-/DN (null: the simulator's default sensor, "
+        "30000 e- / (16383 - 512) DN = 1.89)", key="noise_electrons_per_dn")
+    read_e: float = _set(3.0, "uncertainty: sensor read noise sigma, electrons",
+                         key="noise_read_e")
+    quantization_dn: float = _set(1.0, "uncertainty: the ADC step, DN",
+                                  key="noise_quantization_dn", yaml=False)
 
     def __post_init__(self) -> None:
         if self.electrons_per_dn is not None:
@@ -347,10 +416,21 @@ class RegistrationSettings:
             could not be measured.
     """
 
-    check: bool = True
-    warn_px: float | None = 0.5
-    refine: bool = False
-    min_views: int = 4
+    check: bool = _set(
+        True, "measure each frame's drift against the bundle's registration (views aligned to "
+        "the reference view; a sensor shift and rotation fitted) and store it in the cube's "
+        "metadata (stats.drift)", key="drift_check")
+    warn_px: float | None = _set(
+        0.5, "warn when the measured sensor motion moves a view's pixel by more than this many "
+        "px (null: never)", key="drift_warn_px")
+    refine: bool = _set(
+        False, "correct the measured sensor motion before solving (every view sampled where "
+        "the moved sensor put it; see docs/reconstruct.md)", key="refine_registration")
+    min_views: int = _set(
+        4, "the fewest views that must agree on the measured drift (within 1 px of the fitted "
+        "motion) for it to be trusted; fewer, or a drift beyond the measurable range: "
+        "refine_registration fails the frame, the check warns that the drift could not be "
+        "measured", key="drift_min_views")
 
     def __post_init__(self) -> None:
         for key, v in (("drift_check", self.check), ("refine_registration", self.refine)):
@@ -364,9 +444,6 @@ class RegistrationSettings:
         _count("drift_min_views", self.min_views, 2, allow_none=False)
 
 
-#: flat key → (group, field) of :class:`ReconstructSettings`: every field of
-#: :class:`~hsi_torch.recon.config.ReconstructConfig`, plus ``sat_threshold`` and
-#: ``noise_quantization_dn`` (keywords of the Python API only)
 #: Keys of earlier releases, refused with what to write instead. ``spectra_points`` was
 #: ``[x, y]`` = ``[col, row]``; every point option is now ``[row, col]`` (napari's order).
 RENAMED_KEYS: dict[str, str] = {
@@ -374,25 +451,6 @@ RENAMED_KEYS: dict[str, str] = {
                       "'hsi-torch view --point' and napari); spectra_points was [x, y] = "
                       "[col, row]: swap each pair, e.g. spectra_points=[[400, 300]] becomes "
                       "spectra_pixels=[[300, 400]]",
-}  # fmt: skip
-
-FLAT_KEYS: dict[str, tuple[str, str]] = {
-    **{k: ("solve", k) for k in ("beta", "diff_order", "solver", "admm_iters", "chunk_size",
-                                 "min_views", "nan_invalid", "device", "dtype")},
-    "precompute_cache": ("solve", "precompute_cache"),
-    "prior": ("prior", "kind"), "lam": ("prior", "lam"),
-    "spatial_iters": ("prior", "spatial_iters"),
-    **{k: ("input", k) for k in ("demosaic", "cfa_pattern", "black_level", "white_level",
-                                 "exposure_correction", "exposure_s", "sat_threshold")},
-    **{k: ("output", k) for k in ("formats", "preview", "preview_size", "spectra_pixels",
-                                  "fit_residual_warning")},
-    "uncertainty": ("uncertainty", "enabled"),
-    "noise_electrons_per_dn": ("uncertainty", "electrons_per_dn"),
-    "noise_read_e": ("uncertainty", "read_e"),
-    "noise_quantization_dn": ("uncertainty", "quantization_dn"),
-    "drift_check": ("registration", "check"), "drift_warn_px": ("registration", "warn_px"),
-    "refine_registration": ("registration", "refine"),
-    "drift_min_views": ("registration", "min_views"),
 }  # fmt: skip
 
 
@@ -422,22 +480,17 @@ class ReconstructSettings:
         Raises:
             ConfigError: an unknown key or an invalid value (naming the key).
         """
-        groups: dict[str, dict[str, Any]] = {g: {} for g in _GROUPS}
+        groups: dict[str, dict[str, Any]] = {g: {} for g in GROUPS}
         for k, v in {**(values or {}), **keywords}.items():
             where = FLAT_KEYS.get(k)
             if where is None:
                 raise _bad(k, RENAMED_KEYS.get(k, "unknown reconstruction setting"))
             groups[where[0]][where[1]] = _frozen(v)
-        return cls(**{g: _GROUPS[g](**kw) for g, kw in groups.items()})
-
-    @classmethod
-    def from_config(cls, cfg: Any) -> ReconstructSettings:
-        """Settings from a :class:`~hsi_torch.recon.config.ReconstructConfig` (every field)."""
-        return cls.from_flat({f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
+        return cls(**{g: GROUPS[g](**kw) for g, kw in groups.items()})
 
     def flat(self) -> dict[str, Any]:
         """The flat keys and values (lists, as in a YAML file); ``from_flat(s.flat()) == s``."""
-        return {k: _thaw(getattr(getattr(self, g), f)) for k, (g, f) in FLAT_KEYS.items()}
+        return {k: thaw(getattr(getattr(self, g), f)) for k, (g, f) in FLAT_KEYS.items()}
 
     def replace(self, **keywords: Any) -> ReconstructSettings:
         """A copy with some flat keys changed (the groups changed are validated again).
@@ -468,7 +521,7 @@ class ReconstructSettings:
 
         def note(key: str, why: str) -> None:
             if changed(key):
-                value = _thaw(getattr(getattr(self, FLAT_KEYS[key][0]), FLAT_KEYS[key][1]))
+                value = thaw(getattr(getattr(self, FLAT_KEYS[key][0]), FLAT_KEYS[key][1]))
                 out.append(f"setting {key}={value!r} has no effect: {why}")
 
         if self.prior.kind == "none":
@@ -493,56 +546,43 @@ class ReconstructSettings:
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-_GROUPS: dict[str, Any] = {
+#: group name → its settings class
+GROUPS: dict[str, Any] = {
     f.name: f.default_factory for f in dataclasses.fields(ReconstructSettings)
+}
+
+#: flat key → (group, field) of :class:`ReconstructSettings`, generated from the groups' fields
+#: (``metadata["key"]``, else the field's name): the keys of ``reconstruct.yaml`` and ``--set``,
+#: plus the Python API's own (``sat_threshold``, ``noise_quantization_dn``)
+FLAT_KEYS: dict[str, tuple[str, str]] = {
+    f.metadata.get("key", f.name): (g, f.name)
+    for g, cls in GROUPS.items()
+    for f in dataclasses.fields(cls)
 }
 
 _DEFAULTS = ReconstructSettings()
 
 
-def settings_or_keywords(
-    settings: ReconstructSettings | None,
-    keywords: Mapping[str, Any],
-    defaults: Mapping[str, Any],
-    flat: Mapping[str, Any],
+def with_overrides(
+    settings: ReconstructSettings | None, overrides: Mapping[str, Any]
 ) -> ReconstructSettings:
-    """The settings of a constructor that takes either ``settings=`` or its keywords.
-
-    Built from keywords, the keys that have no effect with the others
-    (:meth:`ReconstructSettings.inert`) are a ``UserWarning`` at the constructor's caller;
-    settings given whole are not warned about (a run warns once, in its driver).
-
-    Args:
-        settings: given whole (then every keyword must be left at its default), or ``None``.
-        keywords: the keyword arguments as passed; defaults: their defaults.
-        flat: the keywords as flat settings keys (built into the settings when ``settings`` is
-            ``None``).
+    """``settings`` (``None``: the defaults) with some flat keys changed — the keyword
+    convenience of the reconstructors. Keys that then have no effect
+    (:meth:`ReconstructSettings.inert`) are a ``UserWarning`` at the reconstructor's caller;
+    settings given whole without overrides are not warned about (a run warns once, in its
+    driver).
 
     Raises:
-        TypeError: ``settings`` is not :class:`ReconstructSettings`, or keywords were changed
-            beside it.
-        ConfigError: an invalid keyword value (naming it).
+        TypeError: ``settings`` is not :class:`ReconstructSettings`.
+        ConfigError: an unknown key or an invalid value (naming the key).
     """
     if settings is None:
-        built = ReconstructSettings.from_flat(flat)
-        for msg in built.inert():
-            warnings.warn(msg, UserWarning, stacklevel=3)
-        return built
-    if not isinstance(settings, ReconstructSettings):
+        settings = _DEFAULTS
+    elif not isinstance(settings, ReconstructSettings):
         raise TypeError(f"settings must be a ReconstructSettings, got {type(settings).__name__}")
-    changed = sorted(k for k, v in keywords.items()
-                     if v is not defaults[k] and v != defaults[k])  # fmt: skip
-    if changed:
-        raise TypeError("give the settings either whole (settings=) or as keywords, not both "
-                        f"(also given: {', '.join(changed)})")  # fmt: skip
-    return settings
-
-
-def keyword_defaults(fn: Any) -> dict[str, Any]:
-    """``{name: default}`` of ``fn``'s parameters (for :func:`settings_or_keywords`)."""
-    return {n: p.default for n, p in inspect.signature(fn).parameters.items()}
-
-
-def dtype_name(dtype: Any) -> str:
-    """``torch.float32`` (or ``"float32"``) → ``"float32"``, the settings' form."""
-    return str(dtype).removeprefix("torch.")
+    if not overrides:
+        return settings
+    out = settings.replace(**overrides)
+    for msg in out.inert():
+        warnings.warn(msg, UserWarning, stacklevel=3)
+    return out

@@ -31,6 +31,7 @@ import torch
 
 from hsi_torch.config import to_dict, write_resolved_config
 from hsi_torch.console import progress_bar, progress_enabled
+from hsi_torch.devices import torch_dtype
 from hsi_torch.io import load_cube, write_capture
 from hsi_torch.io.capture_set import write_capture_set_index, write_truth
 from hsi_torch.optics import BRFConfig, CameraModel, KaleidoscopeGeometry
@@ -61,7 +62,6 @@ __all__ = [
     "simulate_capture_set",
 ]
 
-_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 # =============================================================================================
@@ -119,7 +119,7 @@ def build_renderer(cfg: SimulateConfig, device: str | None = None) -> CaptureRen
         supersample=r.supersample, max_reflections=r.max_reflections,
         scan_fwhm_nm=cfg.captures.scan_fwhm_nm, scan_line=cfg.captures.scan_line,
         scan_exposure=cfg.captures.scan_exposure, chunk=r.chunk,
-        device=device or r.device, dtype=_DTYPES[r.dtype], view_inset_px=r.view_inset_px,
+        device=device or r.device, dtype=torch_dtype(r.dtype), view_inset_px=r.view_inset_px,
         mismatch=cfg.mismatch, design=cfg.design.to_design(curves),
     )
 

@@ -44,7 +44,7 @@ import torch
 
 from hsi_torch import __version__, colour
 from hsi_torch.config import ConfigError, config_yaml
-from hsi_torch.console import info, warn
+from hsi_torch.devices import resolve_device
 from hsi_torch.errors import NoValidPixelsError
 from hsi_torch.io import paths
 from hsi_torch.io.atomic import (
@@ -57,7 +57,6 @@ from hsi_torch.io.atomic import (
 )
 from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
-from hsi_torch.profiling import release_freed_memory
 from hsi_torch.provenance import provenance
 from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
@@ -68,7 +67,7 @@ from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.recon.uncertainty import relative_std_map
 
 __all__ = [
-    "ReconstructRun", "check_run", "reconstruct_input", "reconstruct_to_files",
+    "ReconstructRun", "check_run", "reconstruct_input",
     "write_outputs", "output_paths", "frame_warnings", "preview_caption", "write_run_config",
     "RUNS_DIR", "as_settings",
 ]
@@ -266,16 +265,6 @@ def _plot_points(
     return path
 
 
-def _resolve_device(name: str, here: bool = True) -> torch.device:
-    try:
-        dev = torch.device(name)
-    except RuntimeError as exc:
-        raise ValueError(f"config key 'device': invalid torch device {name!r} ({exc})") from None
-    if here and dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"config key 'device': {name!r} requested but CUDA is not available")
-    return dev
-
-
 @dataclass
 class ReconstructRun:
     """A checked ``reconstruct`` run: inputs expanded, configuration, device and bundle validated,
@@ -373,7 +362,7 @@ def check_run(
             except ModuleNotFoundError as exc:
                 raise ValueError(f"config key 'formats': {exc}") from None
     inputs = expand_inputs(inputs)  # a glob matching nothing fails before anything is written
-    _resolve_device(settings.solve.device, here=device_here)
+    resolve_device(settings.solve.device, "config key 'device':", here=device_here)
     bundle_path = Path(os.path.abspath(bundle))
     b = load_bundle(bundle_path)
     h, w = b.frame_size
@@ -414,11 +403,8 @@ def reconstruct_input(
         NoValidPixelsError: not a single pixel could be reconstructed (the reason named).
     """
 
-    cfg, read = run.cfg, run.settings.input
-    res = rec.reconstruct_file(
-        path, read.demosaic, cfa_pattern=read.cfa_pattern, black_level=read.black_level,
-        white_level=read.white_level, exposure_s=read.exposure_s,
-    )  # fmt: skip
+    cfg = run.cfg
+    res = rec.reconstruct_file(path)  # read as rec.settings (= run.settings) say
     if res.stats.get("num_valid", 0) == 0:
         raise NoValidPixelsError(
             f"{path}: no valid pixel: {res.stats.get('no_valid_reason') or 'unknown reason'}"
@@ -438,22 +424,6 @@ def reconstruct_input(
         "timings_s": res.timings,
     }
     return res, meta, warnings
-
-
-def reconstruct_to_files(rec: Reconstructor, path: Path, run: ReconstructRun) -> list[Path]:
-    """Reconstruct one input and write its files (:func:`write_outputs`) into the run's folder;
-    warnings are printed. Returns the files written."""
-
-    res, meta, warnings = reconstruct_input(rec, path, run)
-    for msg in meta.get("notes", []):
-        info(f"{path.name}: {msg}")
-    for msg in warnings:
-        warn(f"WARNING {path}: {msg}")
-    written = write_outputs(res, run.out_dir / path.stem, run.settings, meta,
-                            inputs=[path, run.bundle_path])
-    del res
-    release_freed_memory()  # frames do not pile up freed blocks in the allocator's arenas
-    return written
 
 
 RUNS_DIR = "runs"

@@ -35,13 +35,13 @@ import torch
 
 from hsi_torch.errors import InputError, MissingFileError
 from hsi_torch.io.atomic import atomic_write_bytes
-from hsi_torch.io.bundle import file_sha256
 from hsi_torch.io.dataset import write_frame
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon._numba import set_threads, thread_counts
 from hsi_torch.recon.batch.run import ReconstructRun, reconstruct_input, write_outputs
 from hsi_torch.recon.distributed import in_dask_worker
 from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.recon.precompute_cache import content_sha256
 
 __all__ = [
     "FramePlan",
@@ -129,7 +129,7 @@ def _bundle_file(plan: FramePlan, bundle_bytes: bytes | None) -> Path:
         ) from None
     if not plan.verify_bundle or (st.st_size, st.st_mtime_ns) == tuple(run.bundle_stamp):
         return path
-    if file_sha256(path) != run.bundle_sha256:
+    if content_sha256(path) != run.bundle_sha256:  # the run's own hash function
         raise InputError(
             f"calibration bundle {path} {where} is not the client's file (SHA-256 differs); "
             "use --send-bundle (reconstruct_many(..., send_bundle=True))"
