@@ -224,20 +224,32 @@ def _plant(at: Path, target: Path, how: str) -> None:
         os.link(target, at)
 
 
-@contextlib.contextmanager
-def _deadline(seconds: float):
-    """Raise ``TimeoutError`` in the block after ``seconds`` (a blocked ``open`` included)."""
+def _within(seconds: float, fn, *fifos: Path):
+    """``fn()``'s result (or its exception) if it returns within ``seconds``; otherwise the test
+    fails, and the ``fifos`` get a writer so that the blocked thread ends. (A thread, not an
+    alarm: a signal may reach another of the process's threads and leave ``open`` blocked.)"""
+    import threading
 
-    def on_alarm(signum, frame):
-        raise TimeoutError(f"still blocked after {seconds} s")
+    box: dict = {}
 
-    old = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
+    def run():
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            box["error"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(seconds)
+    if t.is_alive():
+        for f in fifos:  # release a reader blocked on the FIFO
+            with contextlib.suppress(OSError):
+                os.close(os.open(f, os.O_WRONLY | os.O_NONBLOCK))
+        t.join(5)
+        pytest.fail(f"still blocked after {seconds} s (a FIFO was opened)")
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
 
 
 # --- locks never written through (H1, H2, H3) ------------------------------------------------
@@ -308,8 +320,8 @@ def test_own_lock_files_are_reused_and_foreign_ones_refused(tmp_path):
     assert not created
     fifo = tmp_path / "f.lock"
     os.mkfifo(fifo)
-    with _deadline(5), pytest.raises(InputError, match="FIFO"):
-        open_own_file(fifo)
+    with pytest.raises(InputError, match="FIFO"):
+        _within(5, lambda: open_own_file(fifo), fifo)
 
 
 # --- demo and experiment take a lock (H11) ---------------------------------------------------
@@ -509,21 +521,20 @@ def test_a_fifo_in_out_does_not_hang_the_pre_checks(tmp_path, ws):
     demo_out = tmp_path / "d"
     demo_out.mkdir()
     os.mkfifo(demo_out / "summary.json")
-    with _deadline(10), pytest.raises(InputError, match="holds no earlier demo run"):
-        check_demo_out(demo_out)
+    with pytest.raises(InputError, match="holds no earlier demo run"):
+        _within(10, lambda: check_demo_out(demo_out), demo_out / "summary.json")
     exp_out = tmp_path / "e"
     exp_out.mkdir()
     os.mkfifo(exp_out / ".hsi_torch_experiment")
-    with _deadline(10), pytest.raises(InputError, match="holds a run of the experiment"):
-        check_experiment_out(exp_out, "design")
+    with pytest.raises(InputError, match="holds a run of the experiment"):
+        _within(10, lambda: check_experiment_out(exp_out, "design"),
+                exp_out / ".hsi_torch_experiment")  # fmt: skip
     _tmp, _bpath, caps = ws
     out = tmp_path / "r"
     marker = _marker_path(out, caps / "a.npy")
     marker.parent.mkdir(parents=True)
     os.mkfifo(marker)
-    with _deadline(10):
-        target = FilesTarget(out)
-        assert not target.is_done(caps / "a.npy")
+    assert _within(10, lambda: FilesTarget(out).is_done(caps / "a.npy"), marker) is False
 
 
 def test_own_files_are_read_bounded_and_regular_only(tmp_path):
@@ -537,13 +548,12 @@ def test_own_files_are_read_bounded_and_regular_only(tmp_path):
     assert read_own_json(big, 1000) is None
     fifo = tmp_path / "fifo.json"
     os.mkfifo(fifo)
-    with _deadline(5):
-        assert read_own_json(fifo) is None
-        with pytest.raises(FileFormatError, match="FIFO"):
-            read_own_bytes(fifo)
+    assert _within(5, lambda: read_own_json(fifo), fifo) is None
+    with pytest.raises(FileFormatError, match="FIFO"):
+        _within(5, lambda: read_own_bytes(fifo), fifo)
     if os.path.exists("/dev/zero"):
-        with _deadline(5), pytest.raises(FileFormatError, match="character device"):
-            read_own_bytes("/dev/zero", follow=True)
+        with pytest.raises(FileFormatError, match="character device"):
+            _within(5, lambda: read_own_bytes("/dev/zero", follow=True))
     (tmp_path / "ok.json").write_text('{"a": 1}')
     assert read_own_json(tmp_path / "ok.json") == {"a": 1}
 
