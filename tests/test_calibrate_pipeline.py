@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 import torch
 
 from hsi_torch.calibrate.cli_entry import output_paths
@@ -179,9 +180,14 @@ def test_empty_and_misplaced_brf_free_mask(sim: Path, tmp_path: Path, capsys):
 def test_grid_found_in_no_image(sim: Path, tmp_path: Path, capsys):
     d = _copy_set(sim, tmp_path / "set")
     m = json.loads((d / "manifest.json").read_text())
-    for c in m["captures"]:
-        if c["type"] == "grid":
-            c["file"] = "white/white_00.tif"  # flat white: no circles anywhere
+    # a flat white re-shot as each grid (a copy of the white, its last pixel changed: one file in
+    # two roles, or a byte copy of it, is refused before the grid search)
+    white = tifffile.imread(d / "white" / "white_00.tif")
+    for i, c in enumerate(c for c in m["captures"] if c["type"] == "grid"):
+        flat = white.copy()
+        flat.flat[-1] = flat.flat[-1] + 1 + i if flat.flat[-1] < 1000 else flat.flat[-1] - 1 - i
+        c["file"] = f"grid/flat_{i}.tif"
+        tifffile.imwrite(d / c["file"], flat)
     (d / "manifest.json").write_text(json.dumps(m))
     err = _calibrate_fails(d, tmp_path, capsys)
     assert "circle grid (4, 5) found in none" in err and "reference view 0" in err
