@@ -182,12 +182,20 @@ def test_grid_found_in_no_image(sim: Path, tmp_path: Path, capsys):
     m = json.loads((d / "manifest.json").read_text())
     # a flat white re-shot as each grid (a copy of the white, its last pixel changed: one file in
     # two roles, or a byte copy of it, is refused before the grid search)
-    white = tifffile.imread(d / "white" / "white_00.tif")
+    # (written into a folder of the copy's own: its grid/ is a link to the shared set)
+    src = d / "white" / "white_00.tif"
+    (d / "flat_grids").mkdir()
     for i, c in enumerate(c for c in m["captures"] if c["type"] == "grid"):
-        flat = white.copy()
-        flat.flat[-1] = flat.flat[-1] + 1 + i if flat.flat[-1] < 1000 else flat.flat[-1] - 1 - i
-        c["file"] = f"grid/flat_{i}.tif"
-        tifffile.imwrite(d / c["file"], flat)
+        c["file"] = f"flat_grids/flat_{i}.tif"
+        shutil.copy(src, d / c["file"])
+        with tifffile.TiffFile(d / c["file"]) as tf:  # the pixel data's place in the file
+            page = tf.pages[0]
+            offset = page.dataoffsets[-1] + page.databytecounts[-1] - 1
+        with open(d / c["file"], "r+b") as f:  # its last byte changed: a distinct re-shot
+            f.seek(offset)
+            last = f.read(1)[0]
+            f.seek(offset)
+            f.write(bytes([(last + 1 + i) % 256]))
     (d / "manifest.json").write_text(json.dumps(m))
     err = _calibrate_fails(d, tmp_path, capsys)
     assert "circle grid (4, 5) found in none" in err and "reference view 0" in err
