@@ -136,3 +136,19 @@ def real_data() -> Path:
     if REAL_DATA is None:
         pytest.skip(f"no real-data folder ({DATA_ENV} unset and ../shared/data/real absent)")
     return REAL_DATA
+
+
+@pytest.fixture
+def ws(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A tiny bundle ``calib.npz`` and one capture ``caps/a.npy`` made from it (a module may
+    define its own ``ws`` instead)."""
+    import numpy as np
+    from test_pipeline import make_bundle, render_capture, true_spectra
+
+    bundle = make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB")
+    bpath = tmp_path / "calib.npz"
+    bundle.save(bpath)
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    np.save(caps / "a.npy", render_capture(bundle, true_spectra()).numpy())
+    return tmp_path, bpath, caps

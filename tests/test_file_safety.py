@@ -185,20 +185,6 @@ def test_the_write_scanner_finds_each_kind_of_write(tmp_path):
 # --- fixtures --------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def ws(tmp_path):
-    """A tiny bundle ``calib.npz`` and one capture ``caps/a.npy`` made from it."""
-    from test_pipeline import make_bundle, render_capture, true_spectra
-
-    bundle = make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB")
-    bpath = tmp_path / "calib.npz"
-    bundle.save(bpath)
-    caps = tmp_path / "caps"
-    caps.mkdir()
-    np.save(caps / "a.npy", render_capture(bundle, true_spectra()).numpy())
-    return tmp_path, bpath, caps
-
-
 def _rec(bpath: Path, out: Path, *extra: str) -> int:
     return main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--no-progress",
                  "--set", "dtype=float64", "--set", "beta=0", *extra])  # fmt: skip

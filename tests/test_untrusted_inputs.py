@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_pipeline import make_bundle, render_capture, true_spectra
+from test_pipeline import make_bundle
 
 from hsi_torch.cli import main
 from hsi_torch.errors import HSIError, InputError
@@ -26,18 +26,6 @@ from hsi_torch.io.atomic import (
     check_not_input,
     replace_then_commit,
 )
-
-
-@pytest.fixture
-def ws(tmp_path):
-    """A tiny bundle ``calib.npz`` and one capture ``caps/a.npy`` made from it."""
-    bundle = make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB")
-    bpath = tmp_path / "calib.npz"
-    bundle.save(bpath)
-    caps = tmp_path / "caps"
-    caps.mkdir()
-    np.save(caps / "a.npy", render_capture(bundle, true_spectra()).numpy())
-    return tmp_path, bpath, caps
 
 
 def _rec(bpath, out, *extra):
