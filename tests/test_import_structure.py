@@ -3,7 +3,8 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, testing, metrics, cli_common, provenance, devices
+                 resources, refdata, colour, testing, metrics, cli_common, provenance, devices,
+                 findings
                  → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
     simulate     (renderer, scenes, capture sets, oracle)     → foundation, optics
@@ -38,7 +39,7 @@ PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
               "profiling", "resources", "refdata", "colour", "testing", "metrics",
-              "cli_common", "provenance", "devices")  # fmt: skip
+              "cli_common", "provenance", "devices", "findings")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
     "optics": {"foundation", "optics"},
