@@ -26,6 +26,14 @@ Convention:
     - TIFF, ENVI, NetCDF and Zarr have no separate mask plane in the cube: pixels where ``valid``
       is False are written as NaN (NetCDF/Zarr also keep ``valid``), and on loading ``valid`` is
       "all bands finite" (or the stored mask). NPZ stores cube values untouched plus the mask.
+    - **Findings** (:class:`hsi_torch.findings.Finding`, what the checks found about the cube)
+      are stored in every format as the metadata key ``"findings"``: a JSON list of
+      :meth:`~hsi_torch.findings.Finding.to_dict` objects, inside the metadata JSON of NPZ
+      (``metadata``), OME-TIFF (``Image/Description``), NetCDF and Zarr (the attribute
+      ``hsi_torch_metadata``); ENVI, whose header keeps no other metadata, gets the header field
+      ``hsi_torch findings = [...]`` (the same JSON list on one line). :func:`load_cube` gives them
+      back as :attr:`Cube.findings`; :func:`read_cube_findings` reads them (and
+      :func:`read_cube_metadata` the whole metadata) without decoding the cube.
 """
 
 from __future__ import annotations
@@ -37,7 +45,7 @@ import tempfile
 import time
 import uuid
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -46,7 +54,8 @@ from xml.sax.saxutils import escape as _xml_escape
 import numpy as np
 import torch
 
-from hsi_torch.errors import FileFormatError, MissingFileError, require_packages
+from hsi_torch.errors import FileFormatError, InputError, MissingFileError, require_packages
+from hsi_torch.findings import Finding, findings_from_dicts
 from hsi_torch.io.atomic import (
     atomic_save_npz,
     atomic_write,
@@ -71,6 +80,8 @@ __all__ = [
     "save_cube",
     "save_cube_formats",
     "load_cube",
+    "read_cube_metadata",
+    "read_cube_findings",
     "cube_to_xarray",
     "require_format",
     "remove_output",
@@ -139,8 +150,10 @@ class Cube:
         cube: ``(M, H, W)`` float32 (NaN where invalid for TIFF/ENVI files).
         wavelengths: ``(M,)`` float64, nm.
         valid: ``(H, W)`` bool.
-        metadata: the stored metadata (TIFF/NPZ JSON; ENVI header fields).
+        metadata: the stored metadata (TIFF/NPZ/NetCDF/Zarr JSON; ENVI header fields); the
+            stored findings, if any, as a list of dicts under ``"findings"``.
         path: the file read.
+        findings: the findings stored with the cube, decoded (``[]`` when none were stored).
     """
 
     cube: torch.Tensor
@@ -148,6 +161,7 @@ class Cube:
     valid: torch.Tensor
     metadata: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
+    findings: list[Finding] = field(default_factory=list)
 
     def to_xarray(self):
         """This cube as an ``xarray.DataArray`` (see :func:`cube_to_xarray`)."""
@@ -217,6 +231,7 @@ def save_cube(
     valid: Any | None = None,
     metadata: dict[str, Any] | None = None,
     fmt: CubeFormat | None = None,
+    findings: Iterable[Finding] | None = None,
 ) -> list[Path]:
     """Write a spectral cube atomically as OME-TIFF (+ GDAL ``.vrt``), ENVI, NPZ, NetCDF or Zarr
     (format from the suffix or ``fmt``; see the module docstring).
@@ -230,6 +245,8 @@ def save_cube(
         metadata: JSON-serialisable extras (TIFF/NPZ/NetCDF/Zarr; ENVI keeps only
             ``description``).
         fmt: force a format.
+        findings: stored as the metadata key ``"findings"`` (every format, ENVI included;
+            replaces a ``"findings"`` key of ``metadata``).
 
     Returns:
         The files written (two for TIFF: ``.tif`` then ``.vrt``; two for ENVI: ``.img`` then
@@ -241,7 +258,24 @@ def save_cube(
     p = Path(path)
     kind = _format_of(p, fmt)
     c, wl, v = _prepare(cube, wavelengths, valid)
-    return _save_prepared(p, kind, c, wl, v, metadata)
+    return _save_prepared(p, kind, c, wl, v, _with_findings(metadata, findings))
+
+
+def _with_findings(
+    metadata: dict[str, Any] | None, findings: Iterable[Finding] | None
+) -> dict[str, Any] | None:
+    """``metadata`` with ``findings`` (or Finding objects already under ``"findings"``) as
+    the list of their dicts."""
+    items = findings if findings is not None else (metadata or {}).get("findings")
+    if items is None:
+        return metadata
+    if not isinstance(items, (list, tuple)) and findings is None:
+        raise InputError(f"metadata 'findings' must be a list of findings, got "
+                         f"{type(items).__name__}")  # fmt: skip
+    dicts = [f.to_dict() if isinstance(f, Finding) else f for f in items]
+    for d in dicts:  # checked before anything is written
+        Finding.from_dict(d)
+    return {**(metadata or {}), "findings": dicts}
 
 
 def _save_prepared(
@@ -445,6 +479,10 @@ def _envi_paths(p: Path) -> tuple[Path, Path]:
     return stem.with_suffix(".hdr"), stem.with_suffix(".img")
 
 
+#: The ENVI header field that holds the findings (a JSON list on one line).
+_ENVI_FINDINGS = "hsi_torch findings"
+
+
 def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> list[Path]:
     hdr, img = _envi_paths(p)
     m, h, w = c.shape
@@ -467,6 +505,9 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
         "band names = {" + ", ".join(_band_name(x) for x in wl) + "}",
         "data ignore value = nan",
     ]
+    if meta.get("findings") is not None:  # one line, not in braces: ENVI readers keep it whole
+        lines.append(f"{_ENVI_FINDINGS} = " + json.dumps(meta["findings"], default=json_default,
+                                                          ensure_ascii=True))  # fmt: skip
     with atomic_write(img, "wb") as f:  # the array's own buffer, no bytes copy
         f.write(memoryview(np.ascontiguousarray(c, dtype="<f4")).cast("B"))
     try:
@@ -487,6 +528,7 @@ def save_cube_formats(
     formats: Sequence[CubeFormat] = ("npz", "tiff", "envi"),
     timings: dict[str, float] | None = None,
     npz_arrays: dict[str, Any] | None = None,
+    findings: Iterable[Finding] | None = None,
 ) -> list[Path]:
     """Write the cube in several formats: ``<stem>.npz``, ``<stem>.tif`` (+ ``.vrt``),
     ``<stem>.hdr/.img``, ``<stem>.nc``, ``<stem>.zarr``.
@@ -496,8 +538,10 @@ def save_cube_formats(
     ``timings``: if given, receives the seconds spent per format (``"prepare"`` for the shared
     conversion). ``npz_arrays``: more arrays (tensors or arrays, by key; not the cube's own keys)
     stored in the NPZ, e.g. the reconstruction's per-band standard deviation ``"std"``.
+    ``findings``: stored with the cube in every format (as :func:`save_cube`'s).
     """
     s = Path(stem)
+    metadata = _with_findings(metadata, findings)
     for fmt in formats:
         if fmt not in _FORMAT_SUFFIX:
             raise ValueError(f"formats: unknown cube format {fmt!r} ({', '.join(CUBE_FORMATS)})")
@@ -608,13 +652,110 @@ def load_cube(
         valid = np.isfinite(c).all(axis=0)
     elif valid.shape != c.shape[1:]:
         raise FileFormatError(f"{p}: valid mask {valid.shape} does not match cube {c.shape}")
+    findings = _decode_findings(p, meta)
     return Cube(
         cube=torch.from_numpy(np.ascontiguousarray(c)).to(device),
         wavelengths=torch.from_numpy(wl).to(device),
         valid=torch.from_numpy(np.ascontiguousarray(valid)).to(device),
         metadata=meta,
         path=p,
+        findings=findings,
     )
+
+
+def _decode_findings(p: Path, meta: dict[str, Any]) -> list[Finding]:
+    """The findings stored in ``meta`` (an ENVI header's field is parsed into ``"findings"``
+    first, in place).
+
+    Raises:
+        FileFormatError: the stored findings are not a list of findings (naming ``p``).
+    """
+    raw = meta.pop(_ENVI_FINDINGS, None)
+    if isinstance(raw, str):
+        try:
+            meta["findings"] = json.loads(raw)
+        except json.JSONDecodeError as exc:
+            raise FileFormatError(f"{p}: the header field '{_ENVI_FINDINGS}' is not JSON "
+                                  f"({exc})") from None  # fmt: skip
+    try:
+        return findings_from_dicts(meta.get("findings"), source=f"{p}: metadata")
+    except InputError as exc:
+        msg = str(exc)
+        raise FileFormatError(msg if msg.startswith(str(p)) else
+                              f"{p}: metadata 'findings': {msg}") from None  # fmt: skip
+
+
+def read_cube_metadata(path: str | os.PathLike) -> dict[str, Any]:
+    """A cube file's stored metadata, without decoding the cube (the NPZ's ``metadata`` member,
+    the OME-TIFF's description, the ENVI header, the NetCDF/Zarr attributes): cheap whatever
+    the cube's size. The stored findings, if any, are under ``"findings"`` (a list of dicts;
+    the ENVI header's field is parsed into it).
+
+    Raises:
+        MissingFileError, FileFormatError: as :func:`load_cube`.
+    """
+    p = Path(path)
+    kind = _format_of(p, None)
+    target = _envi_paths(p)[0] if kind == "envi" else p
+    if not target.exists():
+        raise MissingFileError(f"cube file not found: {target}")
+    if kind in OPTIONAL_FORMATS:
+        require_format(kind)
+    try:
+        if kind == "npz":
+            require_npz(p)
+            with np.load(p, allow_pickle=False) as z:
+                declared = npz_declared(z)
+                if "metadata" not in declared:
+                    return {}
+                shape, dtype = declared["metadata"]
+                check_declared(p, shape, dtype, MAX_JSON_BYTES, "cube array 'metadata'")
+                meta = _json_dict(str(z["metadata"]))
+        elif kind == "tiff":
+            import tifffile
+
+            require_regular_file(p, "cube file")
+            with quiet_tifffile(), tifffile.TiffFile(p) as tif:
+                meta = _tiff_meta(tif)[0]
+        elif kind == "envi":
+            import spectral.io.envi as envi
+
+            require_regular_file(target, "ENVI header")
+            if target.stat().st_size > MAX_JSON_BYTES:
+                raise FileFormatError(f"{target}: an ENVI header of {target.stat().st_size} "
+                                      "bytes")  # fmt: skip
+            meta = dict(envi.read_envi_header(str(target)))
+        else:
+            xr = _import_xarray(f"reading {p}")
+            if kind == "zarr":
+                check_zarr_codecs(p, SAFE_CODECS)
+                check_store_files(p)
+            else:
+                require_regular_file(p, "cube file")
+            opener = xr.open_dataset if kind == "netcdf" else xr.open_zarr
+            with opener(p) as ds:  # lazy: the cube's chunks are not read
+                if "cube" not in ds:
+                    raise FileFormatError(f"{p}: no variable 'cube' (found "
+                                          f"{sorted(ds.data_vars)})")  # fmt: skip
+                meta = _json_dict(ds["cube"].attrs.get("hsi_torch_metadata"))
+    except FileFormatError:
+        raise
+    except Exception as exc:
+        raise FileFormatError(f"{p}: cannot read the metadata of a {kind.upper()} cube "
+                              f"({type(exc).__name__}: {exc})") from exc  # fmt: skip
+    _decode_findings(p, meta)  # checked (and the ENVI field parsed)
+    return meta
+
+
+def read_cube_findings(path: str | os.PathLike) -> list[Finding]:
+    """The findings stored with a cube file (``[]`` when it has none), read from its metadata
+    only (:func:`read_cube_metadata`).
+
+    Raises:
+        MissingFileError, FileFormatError: the file is missing or unreadable, or a stored
+            finding is malformed (the message names the file).
+    """
+    return _decode_findings(Path(path), read_cube_metadata(path))
 
 
 def _json_dict(text: str | None) -> dict[str, Any]:
@@ -640,8 +781,18 @@ def _load_tiff(
             raise FileFormatError(f"{p}: TIFF file has no image data")
         check_declared(p, tif.series[0].shape, tif.series[0].dtype, max_bytes)
         c = tif.asarray()
-        ome = tif.ome_metadata if tif.is_ome else None
-        desc = tif.pages[0].description if len(tif.pages) else ""
+        meta, wl = _tiff_meta(tif)
+    if c.ndim == 2:
+        c = c[None]
+    return c, wl, meta
+
+
+def _tiff_meta(tif: Any) -> tuple[dict[str, Any], np.ndarray | None]:
+    """The metadata and wavelengths of an open ``tifffile.TiffFile`` (no pixel decoded)."""
+    import tifffile
+
+    ome = tif.ome_metadata if tif.is_ome else None
+    desc = tif.pages[0].description if len(tif.pages) else ""
     meta: dict[str, Any] = {}
     wl = None
     if ome:
@@ -656,9 +807,7 @@ def _load_tiff(
         meta = _json_dict(desc)
     if "wavelengths_nm" in meta:
         wl = np.asarray(meta["wavelengths_nm"], dtype=np.float64)
-    if c.ndim == 2:
-        c = c[None]
-    return c, wl, meta
+    return meta, wl
 
 
 def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:

@@ -12,9 +12,14 @@ complete):
 4. **hand out** its task (``task(*args(input, frame))``, a function that returns
    ``{"ok": True, "outputs": [...], "warnings": [...], ...}`` or ``{"ok": False, "error",
    "traceback"}`` instead of raising);
-5. **collect** the result: notes (what was assumed) and warnings printed, then **finish** (the
-   marker says "done") or
+5. **collect** the result: notes (what was assumed) and warnings printed, its findings kept
+   (:attr:`RunSummary.findings`), then **finish** (the marker says "done") or
    **abandon** (the earlier marker back) and record the failure.
+
+A skipped input's findings are those stored with its outputs
+(:meth:`OutputTarget.stored_findings <hsi_torch.recon.batch.targets.FilesTarget.stored_findings>`,
+read from the cube's metadata only): printed again and kept in the summary, so a rerun reports
+what the first run found.
 
 A failure at any step fails that input alone (its reason and traceback in
 :attr:`RunSummary.failed`); the others run. ``KeyboardInterrupt`` (and any other
@@ -36,6 +41,7 @@ from pathlib import Path
 from typing import IO, Any, Protocol
 
 from hsi_torch.console import info, progress_bar, warn
+from hsi_torch.findings import Finding, findings_from_dicts, findings_summary
 from hsi_torch.io.paths import check_input_name, shown_path
 from hsi_torch.provenance import provenance
 from hsi_torch.recon.batch.targets import OutputTarget
@@ -82,6 +88,11 @@ class RunSummary:
         store: the dataset store, if any.
         provenance: the command line, package version, git commit and the torch / NumPy /
             Python versions of the run (:func:`hsi_torch.provenance.provenance`).
+        findings: input → its findings (:class:`~hsi_torch.findings.Finding`): those its task
+            reported (processed, and failed ones that carried any) or those stored with its
+            outputs (skipped).
+        findings_report: the run's JSON report of them, once written
+            (:func:`hsi_torch.recon.batch.report.write_findings_report`).
     """
 
     processed: list[Path] = field(default_factory=list)
@@ -96,6 +107,8 @@ class RunSummary:
     threads: dict[str, dict[str, int]] = field(default_factory=dict)
     store: Path | None = None
     provenance: dict[str, Any] = field(default_factory=provenance)
+    findings: dict[Path, list[Finding]] = field(default_factory=dict)
+    findings_report: Path | None = None
 
     @property
     def total(self) -> int:
@@ -118,6 +131,10 @@ class RunSummary:
             f"(outputs exist), {len(self.failed)} failed in {self.elapsed_s:.1f} s"
         )
         lines = [head]
+        every = [f for fs in self.findings.values() for f in fs]
+        if every or self.findings_report is not None:
+            where = f" (report: {shown_path(self.findings_report)})" if self.findings_report else ""
+            lines.append(f"  findings: {findings_summary(every)}{where}")
         if self.cleaned:
             lines.append(f"  removed {len(self.cleaned)} stale temporary file(s) of an "
                          "interrupted run")
@@ -189,6 +206,34 @@ def _failure_text(exc: BaseException) -> str:
     return text
 
 
+def _task_findings(inp: Path, result: dict[str, Any] | None) -> list[Finding]:
+    """The findings a task's result carries (``"findings"``: a list of dicts); an unreadable
+    entry becomes a ``run.findings_unreadable`` warning instead of failing the input."""
+    try:
+        return findings_from_dicts((result or {}).get("findings"), source=f"task of {inp}")
+    except ValueError as exc:
+        return [Finding("run.findings_unreadable", "warning", str(exc), source=str(inp))]
+
+
+def _stored_findings(target: OutputTarget, inp: Path) -> list[Finding]:
+    """The findings stored with a skipped input's outputs, printed as the run's own are (notes
+    as info, the rest as warnings); an unreadable store of them is itself a warning."""
+    read = getattr(target, "stored_findings", None)
+    try:
+        found = list(read(inp)) if read is not None else []
+    except (OSError, ValueError) as exc:  # FileFormatError, InputError: the message names it
+        found = [Finding("run.findings_unreadable", "warning",
+                         f"the findings stored with the skipped input's outputs cannot be read: "
+                         f"{exc}", source=str(inp))]  # fmt: skip
+    name = shown_path(inp)
+    for f in found:
+        if f.severity == "info":
+            info(f"{Path(name).name} (skipped, stored): {f.text()}")
+        else:
+            warn(f"WARNING {name} (skipped; stored with its outputs): {f.text()}")
+    return found
+
+
 def call_process(process: Callable[[Path], Any], input_path: str, frame: int | None = None
                  ) -> dict[str, Any]:  # fmt: skip
     """A task of :func:`drive` from a plain ``process(path) -> output path(s) or None`` that
@@ -254,6 +299,7 @@ def drive(
                 summary.threads[worker] = result["threads"]
                 if result.get("prepare_s") is not None:
                     summary.prepare_s[f"{worker} pid {result['pid']}"] = result["prepare_s"]
+            summary.findings[inp] = _task_findings(inp, result)
             if exc is not None or result is None or not result.get("ok"):
                 target.fail(handle)
                 if exc is not None:
@@ -289,6 +335,7 @@ def drive(
                     check_input_name(inp)
                     if resume and target.is_done(inp):
                         summary.skipped.append(inp)
+                        summary.findings[inp] = _stored_findings(target, inp)
                         bar.update(1)
                         continue
                     handle = target.begin(inp)
@@ -322,4 +369,5 @@ def drive(
             summary.elapsed_s = time.perf_counter() - t0
     summary.processed.sort(key=order.__getitem__)
     summary.failed.sort(key=lambda f: order[f.input])
+    summary.findings = dict(sorted(summary.findings.items(), key=lambda kv: order[kv[0]]))
     return summary

@@ -26,6 +26,7 @@ from hsi_torch.io.atomic import InputFiles
 from hsi_torch.io.dataset import DATASET_NAME, require_dataset_packages
 from hsi_torch.provenance import provenance
 from hsi_torch.recon.batch.driver import Executor, InlineExecutor, RunSummary, drive
+from hsi_torch.recon.batch.report import write_findings_report
 from hsi_torch.recon.batch.run import ReconstructRun, check_run, output_paths
 from hsi_torch.recon.batch.targets import FilesTarget, OutputTarget, StoreTarget, input_stamp
 from hsi_torch.recon.batch.tasks import FramePlan, forget_prepared, reconstruct_task
@@ -147,6 +148,8 @@ def execute(
     thread count; in this process: unchanged). ``verify_bundle``: workers check their bundle
     file's SHA-256 (a cluster whose workers may not share this file system). ``send_bundle``:
     the tasks get the bundle's bytes (:meth:`Executor.share`) instead of its path.
+    A run that wrote anything ends with its findings report, ``OUT/runs/<run>.findings.json``
+    (:mod:`hsi_torch.recon.batch.report`; ``summary.findings_report``).
     """
     for msg in run.settings.inert():  # once per run, not once per frame
         warn(f"WARNING: {msg}")
@@ -180,6 +183,11 @@ def execute(
     summary = drive(run.inputs, target, executor, reconstruct_task, task_args, resume=resume,
                     progress=progress)  # fmt: skip
     run.discard_if_nothing_written(summary)
+    if run.run_config is not None and run.run_config.exists():  # not when it made nothing
+        store = target.store
+        skipped = ((lambda p: [store]) if store is not None
+                   else (lambda p: output_paths(out / p.stem, run.settings)))  # fmt: skip
+        write_findings_report(summary, out, run.run_config, skipped)
     return summary
 
 

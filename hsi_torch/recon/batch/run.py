@@ -46,6 +46,7 @@ from hsi_torch import __version__, colour
 from hsi_torch.config import ConfigError, config_yaml
 from hsi_torch.devices import resolve_device
 from hsi_torch.errors import NoValidPixelsError
+from hsi_torch.findings import Finding, findings_from_dicts
 from hsi_torch.io import paths
 from hsi_torch.io.atomic import (
     InputFiles,
@@ -69,6 +70,7 @@ from hsi_torch.recon.uncertainty import relative_std_map
 __all__ = [
     "ReconstructRun", "check_run", "reconstruct_input",
     "write_outputs", "output_paths", "frame_warnings", "preview_caption", "write_run_config",
+    "findings_flag",
     "RUNS_DIR", "as_settings",
 ]
 
@@ -92,7 +94,9 @@ def preview_caption(
     settings: ReconstructSettings | ReconstructConfig,
     metadata: dict[str, Any] | None = None,
 ) -> str:
-    """The preview's caption: scene (the input's stem), bundle file, β, rendering."""
+    """The preview's caption: scene (the input's stem), bundle file, β, rendering; then, when
+    the metadata's ``"findings"`` hold warnings or errors, a second line flagging them
+    (:func:`findings_flag`)."""
     s = as_settings(settings)
     parts = [name]
     bundle = (metadata or {}).get("bundle")
@@ -102,7 +106,23 @@ def preview_caption(
     if s.prior.kind == "tv":
         parts.append(f"TV lam {s.prior.lam}")
     parts.append("sRGB D65")
-    return " | ".join(parts)
+    flag = findings_flag(findings_from_dicts((metadata or {}).get("findings")))
+    return " | ".join(parts) + (f"\n{flag}" if flag else "")
+
+
+def findings_flag(findings: Sequence[Finding]) -> str:
+    """``"(!) 2 warnings: fit.residual, capture.pedestal"`` for the warnings and errors among
+    ``findings`` (their distinct codes, in order), ``""`` when there are none. ASCII: the
+    caption font has no warning sign."""
+    bad = [f for f in findings if f.severity in ("warning", "error")]
+    if not bad:
+        return ""
+    codes = list(dict.fromkeys(f.code for f in bad))
+    n_err = sum(f.severity == "error" for f in bad)
+    n_warn = len(bad) - n_err
+    counts = [f"{n} {w}" + ("s" if n > 1 else "")
+              for n, w in ((n_err, "error"), (n_warn, "warning")) if n]  # fmt: skip
+    return f"(!) {', '.join(counts)}: {', '.join(codes)}"
 
 
 def _check_points(points: Sequence[tuple[int, int]], h: int, w: int) -> None:
@@ -410,6 +430,8 @@ def reconstruct_input(
             f"{path}: no valid pixel: {res.stats.get('no_valid_reason') or 'unknown reason'}"
         )
     warnings = frame_warnings(res.stats, run.settings)
+    notes = check_notes(res.stats)
+    findings = _frame_findings(res, notes, warnings)
     cap_meta = res.stats.pop("metadata", {})
     run_config = run.run_config
     meta = {
@@ -417,13 +439,29 @@ def reconstruct_input(
         "bundle": os.path.abspath(run.bundle_path),
         "capture_exposure_s": cap_meta.get("exposure_s"),
         "radiometric_scale": res.stats.get("radiometric_scale"),
-        "notes": check_notes(res.stats),
+        "notes": notes,
+        "findings": [f.to_dict() for f in findings],
         "config": {k: v for k, v in vars(cfg).items()},
         "run_config": run_config.relative_to(run.out_dir).as_posix() if run_config else None,
         "stats": res.stats,
         "timings_s": res.timings,
     }
     return res, meta, warnings
+
+
+def _frame_findings(
+    res: ReconstructionResult, notes: Sequence[str], warnings: Sequence[str]
+) -> list[Finding]:
+    """The findings stored with the frame's cube and reported by the run.
+
+    Bridge until every check yields findings: the result's own ``findings`` when it has them,
+    else one ``run.note`` info per note and one ``run.warning`` warning per warning line
+    (codes that name no check). The one place to swap when the checks yield findings."""
+    own = getattr(res, "findings", None)
+    if own is not None:
+        return list(own)
+    return ([Finding("run.note", "info", n) for n in notes]
+            + [Finding("run.warning", "warning", w) for w in warnings])  # fmt: skip
 
 
 RUNS_DIR = "runs"

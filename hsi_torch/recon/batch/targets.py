@@ -40,6 +40,11 @@ is done, the outputs of its previous run that this run did not make (a rerun wit
 earlier cube; only those still exactly as that run wrote them (size, time), and the run reports
 each one.
 
+**Findings of a skipped input** (:meth:`FilesTarget.stored_findings`,
+:meth:`StoreTarget.stored_findings`): read from the metadata of its cube file (the first of
+``.npz``, ``.tif``, ``.nc``, ``.hdr``, ``.zarr`` among its outputs; the cube itself is not
+decoded) or of its frame in the store.
+
 **The store**: a frame is done when its ``done`` flag is set and its metadata name the same
 input file (size, time) and fingerprint (:mod:`hsi_torch.io.dataset`).
 
@@ -60,6 +65,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from hsi_torch.errors import InputError
+from hsi_torch.findings import Finding, findings_from_dicts
 from hsi_torch.io.atomic import (
     InputFiles,
     atomic_write_json,
@@ -75,6 +81,7 @@ from hsi_torch.io.atomic import (
     remove_empty_folder,
     remove_file,
 )
+from hsi_torch.io.cube import read_cube_findings
 from hsi_torch.io.dataset import CubeDataset
 
 __all__ = ["OutputTarget", "FilesTarget", "StoreTarget", "DONE_DIR", "input_stamp"]
@@ -93,7 +100,8 @@ class OutputTarget(Protocol):
     a handle; ``frame(handle)``: its frame in the store (``None`` for files);
     ``finish(handle, outputs)``: its outputs are written (returns the earlier run's outputs it
     removed as stale); ``fail(handle)``: it failed or was
-    interrupted (nothing of the claim is left)."""
+    interrupted (nothing of the claim is left); ``stored_findings(input)``: the findings stored
+    with a done input's outputs (optional: the driver reports none for a target without it)."""
 
     store: Path | None
 
@@ -104,6 +112,11 @@ class OutputTarget(Protocol):
     def frame(self, handle: Any) -> int | None: ...
     def finish(self, handle: Any, outputs: Sequence[str]) -> list[str]: ...
     def fail(self, handle: Any) -> None: ...
+    def stored_findings(self, inp: Path) -> list[Finding]: ...
+
+
+#: The cube files whose metadata a skipped input's findings are read from, cheapest first.
+_FINDINGS_FROM = (".npz", ".tif", ".nc", ".hdr", ".zarr")
 
 
 def input_stamp(inp: Path) -> list[int]:
@@ -433,6 +446,24 @@ class FilesTarget:
             return False  # other settings, or another bundle
         return _outputs_intact(rec)
 
+    def stored_findings(self, inp: Path) -> list[Finding]:
+        """The findings stored with a done input's cube (its first output among ``.npz``,
+        ``.tif``, ``.nc``, ``.hdr``, ``.zarr`` named ``<stem>.<suffix>``; metadata only).
+
+        Raises:
+            FileFormatError: that file's stored findings are malformed (naming it).
+        """
+        rec = _read_marker(_marker_path(self.out, inp))
+        outputs = rec.get("outputs") if rec is not None else None
+        if not isinstance(outputs, list):
+            return []
+        by_name = {Path(q).name: Path(q) for q in outputs if isinstance(q, str)}
+        for suffix in _FINDINGS_FROM:
+            cube = by_name.get(inp.stem + suffix)
+            if cube is not None:
+                return read_cube_findings(cube)
+        return []
+
     def begin(self, inp: Path) -> _Claim:
         claim = _Claim(self, inp)
         try:
@@ -517,6 +548,24 @@ class StoreTarget:
         except OSError:
             return False
         return rec.get("input_stamp") == stamp and rec.get("fingerprint") == self.fingerprint
+
+    def stored_findings(self, inp: Path) -> list[Finding]:
+        """The findings stored in a done input's frame metadata.
+
+        Raises:
+            InputError: they are malformed (naming the store and the frame).
+        """
+        ds = self._ds()
+        i = ds.index.get(os.path.abspath(inp))
+        rec = None if i is None else ds.frame_record(i)
+        if rec is None:
+            return []
+        where = f"{self.store}: frame {i}'s metadata"
+        try:
+            return findings_from_dicts(rec.get("findings"), source=where)
+        except InputError as exc:
+            msg = str(exc)
+            raise InputError(msg if msg.startswith(where) else f"{where}: {msg}") from None
 
     def begin(self, inp: Path) -> int:
         _require_input(inp)

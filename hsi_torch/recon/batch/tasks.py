@@ -187,8 +187,10 @@ def reconstruct_task(
         bundle_bytes: the bundle's content (``send_bundle``), else ``None``: its path.
 
     Returns:
-        ``{"ok": True, "outputs", "warnings", "notes", "worker", "pid", "prepare_s", "seconds",
-        "threads"}`` or ``{"ok": False, "error", "traceback", "worker", ...}``.
+        ``{"ok": True, "outputs", "warnings", "notes", "findings", "worker", "pid", "prepare_s",
+        "seconds", "threads"}`` or ``{"ok": False, "error", "traceback", "findings", "worker",
+        ...}`` (``findings``: :meth:`~hsi_torch.findings.Finding.to_dict` of each; a refused
+        frame's are its exception's ``findings``).
     """
     with _FRAME_LOCK:
         t0 = time.perf_counter()
@@ -215,10 +217,11 @@ def reconstruct_task(
         except Exception as exc:  # noqa: BLE001 - reported to the driver with its traceback
             return {**info, "ok": False, "error": f"{type(exc).__name__}: {exc}",
                     "traceback": traceback.format_exc(),
+                    "findings": [f.to_dict() for f in getattr(exc, "findings", None) or []],
                     "seconds": time.perf_counter() - t0}  # fmt: skip
         finally:
             release_freed_memory()
         WORKER_STATS["frames"] += 1
         return {**info, "ok": True, "outputs": outputs, "warnings": warnings,
-                "notes": list(meta.get("notes", [])),
+                "notes": list(meta.get("notes", [])), "findings": meta.get("findings", []),
                 "seconds": time.perf_counter() - t0}  # fmt: skip
