@@ -8,7 +8,9 @@
   valid; its band axis is scaled to nanometres when the grid is uniform (``scale`` = step,
   ``translate`` = first band: the viewer's band coordinate *is* the wavelength) and the layer's
   ``metadata`` holds ``wavelengths_nm``, ``valid``, ``std`` (when the ``_std`` companion or the
-  NPZ key ``std`` exists) and the file;
+  NPZ key ``std`` exists), the file and the ``findings`` stored with the cube
+  (:class:`~hsi_torch.findings.Finding` list; a cube file's, not a run store's); a cube with
+  warnings or errors says so in its layers' names (``"scene (bands) (!) 2 warnings"``);
 * the **sRGB composite** ``(h, w, 3)`` (``(F, h, w, 3)``; CIE 1931, D65, 99.5th percentile of
   luminance as white, :func:`~hsi_torch.colour.cube_to_srgb`), black where not valid.
 
@@ -33,6 +35,7 @@ import torch
 
 from hsi_torch.colour import cube_to_srgb
 from hsi_torch.errors import FileFormatError
+from hsi_torch.findings import Finding, findings_summary
 from hsi_torch.io.bounded import check_declared, read_json_bounded
 from hsi_torch.io.cube import load_cube
 
@@ -120,19 +123,22 @@ def _layers(
     std: np.ndarray | None,
     path: Path,
     frames: list[str] | None = None,
+    findings: list[Finding] | None = None,
 ) -> list[LayerData]:
     ax = band_axis(wl)
     lead = cube.ndim - 3  # 1 with a frame axis
     meta = {"hsi_torch": True, "wavelengths_nm": wl, "valid": valid, "std": std,
-            "path": str(path), "frames": frames}  # fmt: skip
-    kw: dict[str, Any] = {"name": f"{name} (bands)", "metadata": meta,
+            "path": str(path), "frames": frames, "findings": list(findings or [])}  # fmt: skip
+    bad = [f for f in findings or [] if f.severity != "info"]
+    flag = f" (!) {findings_summary(bad)}" if bad else ""
+    kw: dict[str, Any] = {"name": f"{name} (bands){flag}", "metadata": meta,
                           "contrast_limits": _contrast(cube), "colormap": "gray"}  # fmt: skip
     if ax is not None:
         kw["scale"] = [1.0] * lead + [ax[1], 1.0, 1.0]
         kw["translate"] = [0.0] * lead + [ax[0], 0.0, 0.0]
         kw["units"] = ["pixel"] * lead + ["nm", "pixel", "pixel"]
     kw["axis_labels"] = (["frame"] if lead else []) + ["wavelength", "y", "x"]
-    rgb_kw: dict[str, Any] = {"name": f"{name} (sRGB)", "rgb": True,
+    rgb_kw: dict[str, Any] = {"name": f"{name} (sRGB){flag}", "rgb": True,
                               "metadata": {"hsi_torch_srgb": True, "path": str(path)}}  # fmt: skip
     rgb_kw["axis_labels"] = (["frame"] if lead else []) + ["y", "x"]
     return [(cube, kw, "image"), (_srgb(cube, wl, valid), rgb_kw, "image")]
@@ -166,7 +172,7 @@ def read_layers(path: str | os.PathLike, max_bytes: int | None = None) -> list[L
         raise FileFormatError(f"{p}: standard deviation {std.shape} does not match the cube "
                               f"{cube.shape}")  # fmt: skip
     cube = np.where(valid[None], cube, np.nan).astype(np.float32)
-    return _layers(_stem(p), cube, wl, valid, std, p)
+    return _layers(_stem(p), cube, wl, valid, std, p, findings=c.findings)
 
 
 def _read_run_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
