@@ -23,7 +23,8 @@ Modules: :mod:`~hsi_torch.recon.batch.entry` (:func:`run_reconstruction`,
 :func:`reconstruct_many`), :mod:`~hsi_torch.recon.batch.driver` (the loop, executors, the
 summary), :mod:`~hsi_torch.recon.batch.targets` (output targets),
 :mod:`~hsi_torch.recon.batch.tasks` (the worker side), :mod:`~hsi_torch.recon.batch.run` (the
-checked run, one input's reconstruction and files). Dask is imported only inside
+checked run, one input's reconstruction and files), :mod:`~hsi_torch.recon.batch.report` (the
+run's findings report). Dask is imported only inside
 :mod:`hsi_torch.recon.distributed`, and only when a cluster is used. The names below are imported
 lazily.
 """

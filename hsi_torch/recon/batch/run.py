@@ -46,7 +46,7 @@ from hsi_torch import __version__, colour
 from hsi_torch.config import ConfigError, config_yaml
 from hsi_torch.devices import resolve_device
 from hsi_torch.errors import NoValidPixelsError
-from hsi_torch.findings import Finding, findings_from_dicts
+from hsi_torch.findings import Finding
 from hsi_torch.io import paths
 from hsi_torch.io.atomic import (
     InputFiles,
@@ -106,7 +106,8 @@ def preview_caption(
     if s.prior.kind == "tv":
         parts.append(f"TV lam {s.prior.lam}")
     parts.append("sRGB D65")
-    flag = findings_flag(findings_from_dicts((metadata or {}).get("findings")))
+    stored = (metadata or {}).get("findings") or []
+    flag = findings_flag([f if isinstance(f, Finding) else Finding.from_dict(f) for f in stored])
     return " | ".join(parts) + (f"\n{flag}" if flag else "")
 
 
