@@ -48,7 +48,8 @@ Reading::
     ds = xarray.open_zarr("out/cubes.zarr")
     ds.cube.isel(frame=0).sel(wavelength=550)      # (h, w)
     ds.cube.where(ds.done, drop=True)              # complete frames only
-    json.loads(ds.metadata[0].values.item())       # one frame's metadata
+    json.loads(ds.metadata[0].values.item())       # one frame's metadata; its "findings":
+                                                   # the frame's findings (Finding.to_dict list)
 """
 
 from __future__ import annotations

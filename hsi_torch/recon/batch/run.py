@@ -23,7 +23,8 @@ anything else is reconstructed again. Two inputs with the same stem from differe
 write the same files: the later one fails with an error naming both (in the same run or a later
 one) and the earlier one's outputs are kept. A capture of which not a single pixel could be
 reconstructed (all saturated, no finite data, ...) fails with the reason; no all-NaN cube is
-written.
+written. Every cube's metadata also holds the frame's findings (``"findings"``,
+:mod:`hsi_torch.io.cube`), and its preview's caption flags their warnings.
 """
 
 from __future__ import annotations
