@@ -227,3 +227,25 @@ def test_viewer_layers_carry_the_findings(tmp_path: Path) -> None:
     save_cube(tmp_path / "clean.npz", cube, wl, findings=[FINDINGS[1]])  # info only: no flag
     (_, bands, _), _ = read_layers(tmp_path / "clean.npz")
     assert bands["name"] == "clean (bands)" and bands["metadata"]["findings"] == [FINDINGS[1]]
+
+
+def test_cli_rerun_prints_the_stored_findings_and_their_count(ws, capsys) -> None:
+    from hsi_torch.cli import main
+
+    root, bundle, caps = ws
+    out = root / "out"
+    argv = ["reconstruct", "--bundle", str(bundle), "--out", str(out), "--no-progress",
+            "--set", "fit_residual_warning=1e-12", "--set", "formats=[npz]",
+            str(caps / "a.npy")]  # fmt: skip
+    assert main(argv) == 0
+    first = capsys.readouterr().err
+    assert "1 processed" in first and "findings: 2 warnings (report: " in first
+    assert main(argv) == 0
+    second = capsys.readouterr().err
+    assert "1 skipped" in second and "findings: 2 warnings (report: " in second
+    assert second.count("(skipped; stored with its outputs): warning [") == 2
+    reports = sorted((out / "runs").glob("*" + REPORT_SUFFIX))
+    assert len(reports) == 2  # one per run
+    docs = [json.loads(r.read_text()) for r in reports]  # (names in the same second: any order)
+    assert sorted(d["inputs"][0]["status"] for d in docs) == ["processed", "skipped"]
+    assert docs[0]["inputs"][0]["findings"] == docs[1]["inputs"][0]["findings"]
