@@ -18,7 +18,13 @@ from hsi_torch.io.atomic import (
 )
 from hsi_torch.io.bundle import CalibrationBundle, file_sha256, make_provenance
 from hsi_torch.io.captures import LinearCapture, read_any, read_capture, write_capture
-from hsi_torch.io.cube import Cube, load_cube, save_cube, save_cube_formats
+from hsi_torch.io.cube import (
+    Cube,
+    load_cube,
+    read_cube_findings,
+    save_cube,
+    save_cube_formats,
+)
 from hsi_torch.io.raw import (
     RawImage,
     bayer_half,
@@ -47,6 +53,7 @@ __all__ = [
     "write_capture",
     "Cube",
     "load_cube",
+    "read_cube_findings",
     "save_cube",
     "save_cube_formats",
     "RawImage",
