@@ -51,6 +51,7 @@ __all__ = [
     "Spectrum",
     "spectrum_at",
     "band_axis",
+    "LazyFrames",
 ]
 
 #: File suffixes the reader accepts (a ``.zarr`` folder is a cube or the run store).
@@ -196,28 +197,63 @@ def _read_run_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
     return _layers(_stem(p), cube, wl, valid, None, p, frames)
 
 
-def _read_sequence_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
-    """The band stack ``(T, M, h, w)`` and sRGB ``(T, h, w, 3)`` of a sequence store as lazy
-    Dask arrays (one frame decoded at a time; each frame's size checked first)."""
-    import dask  # lazy: the sequence store's lazy layers need dask (the cluster extra)
-    import dask.array as da
+class LazyFrames:
+    """A read-only ``(T, ...)`` array whose frame ``k`` is ``frame(k)``, computed only when
+    indexed (what napari asks for: the frame shown); ``np.asarray`` of the whole computes every
+    frame. Enough of the array protocol for napari's image layers (``shape``, ``dtype``,
+    ``ndim``, ``__getitem__``, ``__array__``)."""
 
+    def __init__(self, frame: Any, n: int, frame_shape: tuple[int, ...], dtype: Any) -> None:
+        self._frame = frame
+        self.shape = (int(n), *(int(v) for v in frame_shape))
+        self.dtype = np.dtype(dtype)
+        self.ndim = len(self.shape)
+        self.size = int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        first, rest = key[0], key[1:]
+        if isinstance(first, (int, np.integer)):
+            k = int(first) + (self.shape[0] if int(first) < 0 else 0)
+            if not 0 <= k < self.shape[0]:
+                raise IndexError(f"frame {int(first)} outside {self.shape[0]} frames")
+            return np.asarray(self._frame(k), self.dtype)[rest]
+        ks = np.arange(self.shape[0])[first]
+        stack = [np.asarray(self._frame(int(k)), self.dtype) for k in np.atleast_1d(ks)]
+        out = np.stack(stack) if stack else np.empty((0, *self.shape[1:]), self.dtype)
+        return out[(slice(None), *rest)]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+
+def _read_sequence_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
+    """The band stack ``(T, M, h, w)`` and sRGB ``(T, h, w, 3)`` of a sequence store as
+    :class:`LazyFrames` (one frame decoded at a time; the frame size checked first)."""
     ds = open_sequence_store(p)  # codecs, metadata and chunk files checked before decoding
     n = int(ds.sizes["time"])
     if n == 0:
         raise FileFormatError(f"{p}: the sequence store has no frame yet")
     m, h, w = (int(v) for v in ds["cube"].shape[1:])
     check_declared(p, (m, h, w), np.float32, max_bytes, "frame")
-    cube = ds["cube"].data  # (T, M, h, w), one chunk per frame
-    valid = ds["valid"].data
     wl = np.asarray(ds["wavelength"].values, np.float64)
 
-    def rgb(k: int) -> np.ndarray:
-        return _srgb(np.asarray(cube[k], np.float32), wl, np.asarray(valid[k], bool))
+    def cube_at(k: int) -> np.ndarray:
+        return np.asarray(ds["cube"][k].values, np.float32)
 
-    first = _layers(_stem(p), np.asarray(cube[0], np.float32), wl, np.asarray(valid[0], bool),
-                    None, p)  # fmt: skip
-    (_, kw, _), (_, rgb_kw, _) = first
+    def valid_at(k: int) -> np.ndarray:
+        return np.asarray(ds["valid"][k].values, bool)
+
+    def rgb_at(k: int) -> np.ndarray:
+        return _srgb(cube_at(k), wl, valid_at(k))
+
+    cube = LazyFrames(cube_at, n, (m, h, w), np.float32)
+    valid = LazyFrames(valid_at, n, (h, w), bool)
+    (_, kw, _), (_, rgb_kw, _) = _layers(_stem(p), cube[0], wl, valid[0], None, p)
     for key, lead in (("scale", 1.0), ("translate", 0.0), ("units", "pixel")):
         if key in kw:
             kw[key] = [lead, *kw[key]]
@@ -225,9 +261,7 @@ def _read_sequence_store(p: Path, max_bytes: int | None = None) -> list[LayerDat
     rgb_kw["axis_labels"] = ["time", "y", "x"]
     kw["metadata"].update(valid=valid, frames=[str(s) for s in ds["source"].values],
                           times_s=np.asarray(ds["time"].values, np.float64))  # fmt: skip
-    srgb = da.stack([da.from_delayed(dask.delayed(rgb)(k), (h, w, 3), np.float32)
-                     for k in range(n)])  # fmt: skip
-    return [(cube, kw, "image"), (srgb, rgb_kw, "image")]
+    return [(cube, kw, "image"), (LazyFrames(rgb_at, n, (h, w, 3), np.float32), rgb_kw, "image")]
 
 
 @dataclass
