@@ -63,6 +63,7 @@ from typing import Any
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
 from hsi_torch.io.bounded import declared_image_size
 from hsi_torch.io.captures import SUPPORTED_SUFFIXES, LinearCapture, quiet_tifffile, read_any
+from hsi_torch.io.live_files import is_temporary_name, looks_complete
 from hsi_torch.io.paths import expand_inputs
 from hsi_torch.io.safety import require_regular_file, short_text
 
@@ -86,10 +87,6 @@ __all__ = [
 TIME_SOURCES = ("sheet", "name", "exif", "index", "mtime")
 #: Largest sheet read (bytes).
 _MAX_SHEET_BYTES = 16 << 20
-#: Name endings of files still being written by tethering or copying software.
-_TEMP_SUFFIXES = (".tmp", ".temp", ".part", ".partial", ".crdownload", ".download", ".filepart",
-                  ".inprogress", ".swp", "~")  # fmt: skip
-
 _ELAPSED = re.compile(
     r"(?<![A-Za-z0-9])t[=_-]?(?P<v>\d+(?:\.\d+)?)(?P<u>ms|s)?(?![A-Za-z0-9])", re.IGNORECASE
 )
@@ -193,13 +190,6 @@ class CaptureSequence(Sequence[SequenceFrame]):
 def natural_key(name: str) -> list[Any]:
     """Sort key of a file name with runs of digits compared as numbers (``f2`` < ``f10``)."""
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
-
-
-def is_temporary_name(name: str) -> bool:
-    """A name that tethering or copying software gives a file it is still writing (a hidden
-    name, ``*.tmp``, ``*.part``, ``*.crdownload``, ...): never a frame."""
-    low = name.lower()
-    return name.startswith((".", "~$")) or low.endswith(_TEMP_SUFFIXES)
 
 
 def time_from_name(name: str) -> tuple[float | None, _dt.datetime | None]:
@@ -311,68 +301,6 @@ def frame_time(
             raise InputError(f"{p}: a file arriving on its own cannot be timed by {src!r} "
                              "(use name, exif or mtime)")  # fmt: skip
     raise InputError(f"{p}: no time from {time_from} for this file")
-
-
-def looks_complete(path: str | os.PathLike) -> bool:
-    """Whether a capture file is whole by its own structure (a file still being written is
-    not): an NPY holds the bytes its header declares, an NPZ has its ZIP directory (written
-    last), a PNG ends with its ``IEND`` chunk, a TIFF (and TIFF-based RAW: DNG, NEF, CR2, ARW,
-    ...) holds every strip or tile its pages point to. Other RAW formats: ``True`` (their
-    writers are judged by a stable size alone). Never raises: ``False`` when it cannot tell."""
-    p = Path(path)
-    try:
-        size = os.stat(p).st_size
-        if size == 0:
-            return False
-        suffix = p.suffix.lower()
-        if suffix == ".npy":
-            import numpy as np  # lazy: numpy is loaded by the readers anyway
-
-            with open(p, "rb") as f:
-                version = np.lib.format.read_magic(f)
-                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                        else np.lib.format.read_array_header_2_0)  # fmt: skip
-                shape, _, dtype = read(f)
-                need = f.tell() + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-            return size >= need
-        if suffix == ".npz":
-            import zipfile
-
-            with zipfile.ZipFile(p) as z:
-                return z.testzip() is None
-        if suffix == ".png":
-            with open(p, "rb") as f:
-                f.seek(max(0, size - 12))
-                return b"IEND" in f.read()
-        import tifffile  # lazy: TIFF and TIFF-based RAW
-
-        try:
-            with quiet_tifffile(), tifffile.TiffFile(p) as tif:
-                end = 0
-                for page in tif.pages:
-                    offs = getattr(page, "dataoffsets", ()) or ()
-                    counts = getattr(page, "databytecounts", ()) or ()
-                    end = max([end] + [o + c for o, c in zip(offs, counts, strict=False)])
-                return end <= size and len(tif.pages) > 0
-        except Exception:  # noqa: BLE001 - not readable as a TIFF (yet)
-            return suffix not in (
-                ".tif",
-                ".tiff",
-                ".dng",
-                ".nef",
-                ".cr2",
-                ".arw",
-                ".pef",
-                ".orf",
-                ".rw2",
-                ".srw",
-                ".kdc",
-                ".dcr",
-                ".3fr",
-                ".erf",
-            )
-    except Exception:  # noqa: BLE001 - a header not written yet, a file removed meanwhile
-        return False
 
 
 def _iso(t: _dt.datetime) -> str:
