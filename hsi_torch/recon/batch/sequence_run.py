@@ -284,7 +284,7 @@ def run_sequence(
     store_path = Path(out_dir) / SEQUENCE_NAME
     if time_from == "auto" and resume and is_sequence_store(store_path):
         src = _read_json(store_path / ".zattrs").get("time_source")
-        time_from = src if isinstance(src, str) and src != "mtime" else "auto"
+        time_from = src if isinstance(src, str) else "auto"  # the store's frames' rule
     seq = (
         inputs
         if isinstance(inputs, CaptureSequence)

@@ -106,6 +106,8 @@ class FolderWatcher:
         self._clock = clock
         #: path -> (size, mtime_ns, since when unchanged)
         self._seen: dict[str, tuple[int, int, float]] = {}
+        #: path -> (size, mtime_ns) at which it was found whole
+        self._whole: dict[str, tuple[int, int]] = {}
         self._last_activity = clock()
 
     def stop(self) -> None:
@@ -143,7 +145,8 @@ class FolderWatcher:
                 pending.append(p)
                 continue
             steady = now - old[2]
-            if steady >= self.settle_s and looks_complete(p):
+            if steady >= self.settle_s and (self._whole.get(key) == sig or looks_complete(p)):
+                self._whole[key] = sig  # (not parsed again while unchanged)
                 ready.append(p)
             elif steady >= self.stale_s:
                 self.done.add(key)
