@@ -280,6 +280,26 @@ def test_reconstruct_sequence_cli_resumes_and_matches_single_frames(tmp_path, bu
     assert torch.allclose(torch.where(res.valid, res.cube, torch.nan), ref, equal_nan=True)
 
 
+def test_multipage_tiff_frames_are_reconstructed_page_by_page(tmp_path, bundle_path):
+    frames = [_frame(k) for k in range(2)]
+    with tifffile.TiffWriter(tmp_path / "burst.tif") as tw:
+        for k, f in enumerate(frames):
+            tw.write(np.ascontiguousarray(f.transpose(1, 2, 0)), photometric="rgb",
+                     description=json.dumps({"time_s": 0.04 * k}))  # fmt: skip
+    for k, f in enumerate(frames):  # the same images as single files: the reference
+        np.save(tmp_path / f"single{k}.npy", f)
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--bundle", str(bundle_path), "--out", str(out), "--no-progress",
+                 *SET, str(tmp_path / "burst.tif")]) == 0  # fmt: skip
+    ds = open_sequence_store(out / "sequence.zarr")
+    assert ds.sizes["time"] == 2 and np.allclose(ds.time.values, [0.0, 0.04])
+    assert ds.source.values[1].endswith("burst.tif#page=1")
+    for k in range(2):
+        ref = _cold(bundle_path, tmp_path / f"single{k}.npy").numpy()
+        assert np.allclose(ds.cube.isel(time=k).values, ref, rtol=1e-5, atol=1e-6,
+                           equal_nan=True)  # fmt: skip
+
+
 # ---------------------------------------------------------------------------------------------
 # hsi-torch watch
 
