@@ -452,10 +452,10 @@ def write_animated_preview(
     decoded at a time.
 
     All frames share one white (the ``percentile``-th luminance of the middle frame's valid
-    pixels), so that a brightening scene is seen to brighten (per-frame normalisation would
-    hide it). At most ``max_frames`` frames are shown (every k-th frame of a longer sequence)
-    and each is shrunk (nearest neighbour) to at most ``max_side`` px on its longer side; the
-    GIF's frame duration is ``1 / fps`` (the times themselves are in the store).
+    pixels, of those shown), so that a brightening scene is seen to brighten (per-frame
+    normalisation would hide it). At most ``max_frames`` frames are shown (every k-th frame of a
+    longer sequence) and each is shrunk (nearest neighbour) to at most ``max_side`` px on its
+    longer side; the GIF's frame duration is ``1 / fps`` (the times themselves are in the store).
 
     Returns:
         ``path``, or ``None`` when the store has no frame.
@@ -471,13 +471,14 @@ def write_animated_preview(
     wl = torch.tensor(st.wavelengths_nm, dtype=torch.float64)
     stride = max(1, -(-n // max(1, int(max_frames))))
     idx = list(range(0, n, stride))
-    _, _, mid, mid_valid = next(iter_store_frames(p, [idx[len(idx) // 2]]))
-    y = cube_to_xyz(torch.from_numpy(np.nan_to_num(mid)).double(), wl)[1]
-    vals = y[torch.from_numpy(mid_valid)]
-    ref = float(torch.quantile(vals, percentile / 100.0)) if vals.numel() else 1.0
-    ref = ref if ref > 0 else 1.0
     h, w = st.frame_size
     step = max(1, -(-max(h, w) // max(1, int(max_side))))
+    _, _, mid, mid_valid = next(iter_store_frames(p, [idx[len(idx) // 2]]))
+    mid = np.nan_to_num(mid[:, ::step, ::step])  # the white from the pixels shown
+    y = cube_to_xyz(torch.from_numpy(mid).double(), wl)[1]
+    vals = y[torch.from_numpy(np.ascontiguousarray(mid_valid[::step, ::step]))]
+    ref = float(torch.quantile(vals, percentile / 100.0)) if vals.numel() else 1.0
+    ref = ref if ref > 0 else 1.0
     images = []
     for _, _, cube, valid in iter_store_frames(p, idx):
         c = torch.from_numpy(np.nan_to_num(cube[:, ::step, ::step])).double()
