@@ -185,8 +185,14 @@ def test_store_appends_resumes_and_cuts_back(tmp_path):
     store = tmp_path / "s.zarr"
     with SequenceStore.open(store, wl, (3, 4)) as st:
         for k in range(3):
-            st.append(cubes[k], valid, time_s=0.1 * k, source=f"f{k}", timestamp=None,
-                      findings=[Finding("fit.residual", "warning", "high", measured=0.2)])
+            st.append(
+                cubes[k],
+                valid,
+                time_s=0.1 * k,
+                source=f"f{k}",
+                timestamp=None,
+                findings=[Finding("fit.residual", "warning", "high", measured=0.2)],
+            )
         with pytest.raises(InputError, match="f9.*not after the store's last frame"):
             st.append(cubes[3], valid, time_s=0.1, source="f9")
     # a writer killed between two .zarray updates: the longer arrays are cut back when opened
@@ -360,5 +366,21 @@ def test_watcher_stops_when_idle_and_skips_known_files(tmp_path):
                       known={str((tmp_path / "a.npy").resolve())})  # fmt: skip
     got = [p.name for p in w.files()]
     assert got == ["b.npy"] and "idle-timeout" in (w.stop_reason or "")
+    # an abandoned half-written file is given up (reported), not waited for forever
+    data = _npy_bytes(np.zeros((3, 40, 40)))
+    (tmp_path / "c.npy").write_bytes(data[: len(data) // 2])
+    w = FolderWatcher(
+        tmp_path,
+        settle_s=0.05,
+        poll_s=0.02,
+        idle_timeout_s=0.6,
+        stale_s=0.2,
+        known={str((tmp_path / n).resolve()) for n in ("a.npy", "b.npy")},
+    )
+    assert list(w.files()) == [] and [p.name for p, _ in w.given_up] == ["c.npy"]
+    stop = threading.Event()
+    stop.set()  # e.g. Ctrl-C in another thread
+    w = FolderWatcher(tmp_path, stop=stop)
+    assert list(w.files()) == [] and w.stop_reason == "stopped"
     with pytest.raises(InputError, match="not a folder"):
         FolderWatcher(tmp_path / "a.npy")
