@@ -10,6 +10,7 @@ simulate       ``hsi_torch.simulate.cli_entry.run_simulate``    render captures 
 calibrate      ``hsi_torch.calibrate.cli_entry.run_calibrate``  captures → calibration bundle
 layout         ``hsi_torch.calibrate.cli_entry.run_layout``     white/grid shots → nominal layout
 reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + captures → cubes
+watch          ``hsi_torch.recon.cli_entry.run_watch``          live folder → sequence store
 experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
 demo           ``hsi_torch.experiments.cli_entry.run_demo``     the README's main command
 config         ``hsi_torch.resources.run_config``               show / copy a shipped config
@@ -62,6 +63,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
     "calibrate": ("hsi_torch.calibrate.cli_entry", "run_calibrate"),
     "layout": ("hsi_torch.calibrate.cli_entry", "run_layout"),
     "reconstruct": ("hsi_torch.recon.cli_entry", "run_reconstruct"),
+    "watch": ("hsi_torch.recon.cli_entry", "run_watch"),
     "experiment": ("hsi_torch.experiments.cli_entry", "run_experiment"),
     "demo": ("hsi_torch.experiments.cli_entry", "run_demo"),
     "config": ("hsi_torch.resources", "run_config"),
@@ -71,7 +73,7 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
 }
 BENCH_TARGETS = ("solver", "pipeline", "simulate")
 #: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
-_FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo")
+_FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo", "watch")
 
 
 def _version() -> str:
@@ -114,6 +116,13 @@ EXAMPLES: dict[str | None, list[str]] = {
         "'shots/*.tif'",
         "hsi-torch reconstruct --bundle calib/calib.npz --out run1/ --format zarr "
         "--scheduler tcp://head:8786 'shots/*.dng'",
+        "hsi-torch reconstruct --bundle calib/calib.npz --out seq/ --sequence 'burst/*.dng'"
+        "   # seq/sequence.zarr + sequence_preview.gif",
+        "hsi-torch reconstruct --bundle calib/calib.npz --out seq/ burst/   # a folder: a sequence",
+    ],
+    "watch": [
+        "hsi-torch watch --bundle calib/calib.npz --out live/ tether/   # Ctrl-C stops",
+        "hsi-torch watch --bundle calib/calib.npz --out live/ --idle-timeout 60 tether/",
     ],
     "experiment": [
         "hsi-torch experiment synthetic --out out/synthetic",
@@ -235,6 +244,35 @@ def _add_cluster_options(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+def _add_sequence_options(p: argparse.ArgumentParser, watch: bool) -> None:
+    """``reconstruct``'s sequence options, and ``watch``'s (hsi_torch.io.sequence)."""
+    g = p.add_argument_group("sequences (moving scenes; pip install 'hsi-torch[cluster]')")
+    if not watch:
+        g.add_argument("--sequence", action="store_true",
+                       help="the inputs are one sequence in time order: write OUT/sequence.zarr "
+                            "(time axis) and OUT/sequence_preview.gif; a folder, a sheet or a "
+                            "multi-page TIFF is a sequence without it")  # fmt: skip
+    g.add_argument("--time-from", default="auto",
+                   choices=("auto", "name", "exif", "mtime") if watch else
+                   ("auto", "sheet", "name", "exif", "index", "mtime"),
+                   help="each frame's time: its name (t=12.5s, 20261207-130500.250), EXIF "
+                        "DateTimeOriginal+SubSecTimeOriginal, " + (
+                            "or the file's modification time (auto: in that order)" if watch
+                            else "a sheet's column, the frame index, or the modification "
+                                 "time (auto: sheet, name, EXIF, index)"))  # fmt: skip
+    if not watch:
+        g.add_argument("--frame-interval", type=float, default=None, metavar="S",
+                       help="seconds between frames timed by their index (default 1)")
+        return
+    g.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="stop after N frames")
+    g.add_argument("--idle-timeout", type=float, default=None, metavar="S",
+                   help="stop when no new file arrived for S seconds (default: never)")
+    g.add_argument("--settle", type=float, default=1.0, metavar="S",
+                   help="a file is complete when unchanged for S seconds and whole by its own "
+                        "structure (default 1)")  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``hsi-torch`` (sub-command stored in ``args.command``)."""
     raw = argparse.RawDescriptionHelpFormatter
@@ -315,7 +353,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="re-process inputs whose outputs already exist",
     )  # fmt: skip
     _add_cluster_options(p)
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="capture files or glob patterns")
+    _add_sequence_options(p, watch=False)
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="capture files or glob patterns; a folder, a sheet (.csv) or a "
+                        "multi-page TIFF is a sequence (see --sequence)")  # fmt: skip
+
+    p = command("watch", "reconstruct each capture as it is written into a folder")
+    _add_common(p)
+    p.add_argument("--bundle", "-b", type=Path, required=True, help="calibration bundle (.npz)")
+    p.add_argument("--out", "-o", type=Path, required=True,
+                   help="output folder: OUT/sequence.zarr (resumable by reconstruct "
+                        "--sequence), OUT/latest_preview.png, OUT/sequence_preview.gif")
+    _add_sequence_options(p, watch=True)
+    p.add_argument("folder", type=Path, metavar="FOLDER",
+                   help="the folder the camera's tethering software writes into")  # fmt: skip
 
     p = command("experiment",
                 "run a named experiment (synthetic, design, opd, usaf, spatial, mismatch)")

@@ -24,7 +24,7 @@ from hsi_torch.config import load_config
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ["simulate", "calibrate", "layout", "reconstruct", "experiment", "demo", "config",
-            "captures", "cache"]
+            "captures", "cache", "watch"]
 REQUIRED = {
     "simulate": ["--out", "o"],
     "calibrate": ["--captures", "c", "--out", "o"],
@@ -35,6 +35,7 @@ REQUIRED = {
     "config": ["list"],
     "captures": ["check", "d"],
     "cache": ["info"],
+    "watch": ["--bundle", "b.npz", "--out", "o", "d"],
 }
 
 
@@ -122,7 +123,7 @@ def _schema_and_default(args):
         from hsi_torch.simulate.config import SimulateConfig
 
         return SimulateConfig, "simulate"
-    if args.command == "reconstruct":
+    if args.command in ("reconstruct", "watch"):
         from hsi_torch.recon.config import ReconstructConfig
 
         return ReconstructConfig, "reconstruct"

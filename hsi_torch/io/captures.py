@@ -327,12 +327,14 @@ def quiet_tifffile() -> Iterator[None]:
 
 
 def _read_tiff(
-    p: Path, expected_size: tuple[int, int] | None = None
+    p: Path, expected_size: tuple[int, int] | None = None, page: int | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     import tifffile
 
     try:
         with quiet_tifffile(), tifffile.TiffFile(p) as tif:
+            if page is not None:  # one page of a multi-page TIFF (a sequence's frame)
+                return _read_tiff_page(p, tif, page, expected_size)
             if not tif.series:
                 raise FileFormatError(f"{p}: TIFF file has no image data")
             if len(tif.series) > 1:
@@ -364,6 +366,27 @@ def _read_tiff(
             parsed = None
         if isinstance(parsed, dict):
             meta = parsed
+    return arr, meta
+
+
+def _read_tiff_page(
+    p: Path, tif: Any, page: int, expected_size: tuple[int, int] | None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Page ``page`` of an open multi-page TIFF, checked from its header before decoding."""
+    n = len(tif.pages)
+    if not 0 <= page < n:
+        raise FileFormatError(f"{p}: no page {page} (the TIFF has {n} page(s))")
+    pg = tif.pages[page]
+    _check_header(p, tuple(pg.shape), np.dtype(pg.dtype), expected_size)
+    arr = pg.asarray()
+    meta: dict[str, Any] = {}
+    try:
+        parsed = json.loads(pg.description or "")
+    except (json.JSONDecodeError, RecursionError):
+        parsed = None
+    if isinstance(parsed, dict):
+        meta = parsed
+    meta["page"] = page
     return arr, meta
 
 
@@ -513,7 +536,7 @@ def _read_png(
 
 
 def _read_stored(
-    p: Path, expected_size: tuple[int, int] | None = None
+    p: Path, expected_size: tuple[int, int] | None = None, page: int | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Stored array as (C, H, W) numpy (file dtype) and metadata with ``kind`` filled in.
 
@@ -521,8 +544,10 @@ def _read_stored(
     the pixels are read (and again after reading)."""
     _check_exists(p)
     suffix = p.suffix.lower()
+    if page is not None and suffix not in _TIFF_SUFFIXES:
+        raise FileFormatError(f"{p}: page {page} asked of a file that is not a TIFF")
     if suffix in _TIFF_SUFFIXES:
-        arr, meta = _read_tiff(p, expected_size)
+        arr, meta = _read_tiff(p, expected_size, page)
     elif suffix in _PNG_SUFFIXES:
         arr, meta = _read_png(p, expected_size)
     elif suffix == ".npy":
@@ -603,6 +628,7 @@ def read_any(
     camera_model: str | None = None,
     sources: Mapping[str, str] | None = None,
     defaults: CaptureDefaults | None = None,
+    page: int | None = None,
 ) -> LinearCapture:
     """Read any supported capture (TIFF, PNG, NPY, NPZ, camera RAW) as linear RGB.
 
@@ -630,6 +656,8 @@ def read_any(
         defaults: what a file that does not say gets from its calibration
             (:class:`CaptureDefaults`: black level, CFA pattern, exposure time); its
             ``cfa_pattern`` is used when ``default_cfa_pattern`` is not given.
+        page: read only this page of a multi-page TIFF (a frame of a sequence,
+            :mod:`hsi_torch.io.sequence`; its JSON description is its metadata, ``page`` added).
 
     Returns:
         :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
@@ -677,6 +705,8 @@ def read_any(
             raise ValueError(f"sources[{key!r}] = {src!r} is not one of {SETTING_SOURCES}")
 
     if suffix in RAW_SUFFIXES:
+        if page is not None:
+            raise FileFormatError(f"{p}: page {page} asked of a camera RAW file")
         if expected_size is not None:  # LibRaw's size from the header, before unpacking
             _check_size(p, declared_image_size(p) or (), expected_size)
         raw = load_raw(p, demosaic=None, dtype=torch.float64)
@@ -691,7 +721,7 @@ def read_any(
         }
         stored_dtype = "uint16"
     else:
-        arr, meta = _read_stored(p, expected_size)
+        arr, meta = _read_stored(p, expected_size, page)
         stored_dtype = str(arr.dtype)
         stored = None
     kind = meta["kind"]

@@ -7,6 +7,11 @@ are created. Without ``--scheduler``/``--scheduler-file`` the inputs run one aft
 this process (progress bar, continues past bad files, every failure reported at the end, exit
 status 1 when any failed) and Dask is not imported; with them, on a Dask cluster's workers (the
 same outputs). ``--format zarr`` writes one dataset store instead of files per input.
+
+``--sequence`` (or one folder, one sheet ``.csv`` or one multi-page TIFF as the input, which is
+said) reconstructs the inputs as one sequence in time order into ``OUT/sequence.zarr``
+(:func:`hsi_torch.recon.batch.sequence_run.run_sequence`); ``hsi-torch watch`` reconstructs a live
+folder into the same store (:func:`hsi_torch.recon.batch.watch.watch_folder`).
 """
 
 from __future__ import annotations
@@ -14,11 +19,15 @@ from __future__ import annotations
 import argparse
 
 from hsi_torch.cli_common import load_args_config
+from hsi_torch.console import info
+from hsi_torch.io.sequence import is_sequence_input
 from hsi_torch.recon.batch.driver import RunSummary
 from hsi_torch.recon.batch.entry import run_reconstruction
+from hsi_torch.recon.batch.sequence_run import run_sequence
+from hsi_torch.recon.batch.watch import watch_folder
 from hsi_torch.recon.config import ReconstructConfig
 
-__all__ = ["run_reconstruct"]
+__all__ = ["run_reconstruct", "run_watch"]
 
 
 def run_reconstruct(args: argparse.Namespace) -> RunSummary:
@@ -29,6 +38,21 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
     ``send_bundle``. Returns the :class:`hsi_torch.recon.batch.driver.RunSummary`.
     """
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
+    sequence = bool(getattr(args, "sequence", False))
+    if not sequence and is_sequence_input(args.inputs):
+        info(f"{args.inputs[0]}: a folder, a sheet or a multi-page TIFF: reconstructed as a "
+             "sequence (--sequence) into OUT/sequence.zarr")  # fmt: skip
+        sequence = True
+    if sequence:
+        _refuse_with_sequence(args)
+        return run_sequence(
+            args.inputs, args.bundle, args.out, cfg,
+            time_from=getattr(args, "time_from", "auto"),
+            frame_interval_s=getattr(args, "frame_interval", None),
+            resume=getattr(args, "resume", True), progress=getattr(args, "progress", True),
+            device=getattr(args, "device", None),
+            config_source=str(args.config) if getattr(args, "config", None) else None,
+        )  # fmt: skip
     return run_reconstruction(
         args.inputs, args.bundle, args.out, cfg,
         scheduler=getattr(args, "scheduler", None),
@@ -40,5 +64,30 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
         send_bundle=bool(getattr(args, "send_bundle", False)),
         tls=(getattr(args, "tls_ca_file", None), getattr(args, "tls_cert", None),
              getattr(args, "tls_key", None)),
+        config_source=str(args.config) if getattr(args, "config", None) else None,
+    )  # fmt: skip
+
+
+def _refuse_with_sequence(args: argparse.Namespace) -> None:
+    """The options a sequence run does not take (it runs in this process, into its own store)."""
+    for opt in ("scheduler", "scheduler_file", "threads_per_worker", "send_bundle"):
+        if getattr(args, opt, None):
+            raise ValueError(f"--{opt.replace('_', '-')}: a sequence runs in this process, frame "
+                             "after frame (--sequence)")  # fmt: skip
+    if (getattr(args, "format", None) or "files") != "files":
+        raise ValueError("--format: a sequence is written to OUT/sequence.zarr (--sequence)")
+
+
+def run_watch(args: argparse.Namespace) -> RunSummary:
+    """Entry point of ``hsi-torch watch`` (see :mod:`hsi_torch.recon.batch.watch`).
+
+    ``args``: ``bundle``, ``out``, ``folder``, ``config``, ``overrides``, ``device``,
+    ``time_from``, ``max_frames``, ``idle_timeout``, ``settle``.
+    """
+    cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
+    return watch_folder(
+        args.folder, args.bundle, args.out, cfg, time_from=args.time_from,
+        max_frames=args.max_frames, idle_timeout_s=args.idle_timeout, settle_s=args.settle,
+        device=getattr(args, "device", None),
         config_source=str(args.config) if getattr(args, "config", None) else None,
     )  # fmt: skip

@@ -1,8 +1,9 @@
 """What the viewer shows, without napari: cubes read into layer data, spectra at points.
 
 :func:`read_layers` turns any cube file this package writes (OME-TIFF ``.tif``, ENVI
-``.hdr/.img``, ``.npz``, NetCDF ``.nc``, a Zarr cube ``.zarr`` and the run's Zarr store
-``cubes.zarr`` with its frame axis) into napari layer-data tuples ``(data, kwargs, "image")``:
+``.hdr/.img``, ``.npz``, NetCDF ``.nc``, a Zarr cube ``.zarr``, the run's Zarr store
+``cubes.zarr`` with its frame axis and a sequence store ``sequence.zarr`` with its time axis) into
+napari layer-data tuples ``(data, kwargs, "image")``:
 
 * the **band stack** ``(M, h, w)`` (``(F, M, h, w)`` for the run store), float32, NaN where not
   valid; its band axis is scaled to nanometres when the grid is uniform (``scale`` = step,
@@ -13,6 +14,11 @@
   warnings or errors says so in its layers' names (``"scene (bands) (!) 2 warnings"``);
 * the **sRGB composite** ``(h, w, 3)`` (``(F, h, w, 3)``; CIE 1931, D65, 99.5th percentile of
   luminance as white, :func:`~hsi_torch.colour.cube_to_srgb`), black where not valid.
+
+A sequence store is read lazily (Dask arrays, one frame decoded when napari shows it, its sRGB
+composite computed then; the viewer's slider moves along ``time``), so a sequence of any length
+opens: only one frame must fit ``$HSI_TORCH_MAX_CUBE_GB``. The layers' ``metadata`` also hold
+``frames`` (the inputs) and ``times_s``.
 
 A file is decoded only after the size it declares is checked against
 ``$HSI_TORCH_MAX_CUBE_GB`` (:mod:`hsi_torch.io.bounded`; a run store's files must also be regular
@@ -38,6 +44,7 @@ from hsi_torch.errors import FileFormatError
 from hsi_torch.findings import Finding, findings_summary
 from hsi_torch.io.bounded import check_declared, read_json_bounded
 from hsi_torch.io.cube import load_cube
+from hsi_torch.io.sequence_store import is_sequence_store, open_sequence_store
 
 __all__ = [
     "CUBE_SUFFIXES",
@@ -47,6 +54,7 @@ __all__ = [
     "Spectrum",
     "spectrum_at",
     "band_axis",
+    "LazyFrames",
 ]
 
 #: File suffixes the reader accepts (a ``.zarr`` folder is a cube or the run store).
@@ -155,6 +163,8 @@ def read_layers(path: str | os.PathLike, max_bytes: int | None = None) -> list[L
     p = Path(path)
     if p.suffix.lower() == ".zarr" and _is_run_store(p):
         return _read_run_store(p, max_bytes)
+    if p.suffix.lower() == ".zarr" and is_sequence_store(p):
+        return _read_sequence_store(p, max_bytes)
     c = load_cube(p, max_bytes=max_bytes)
     cube = c.cube.numpy()
     wl = c.wavelengths.numpy()
@@ -193,6 +203,73 @@ def _read_run_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
     return _layers(_stem(p), cube, wl, valid, None, p, frames)
 
 
+class LazyFrames:
+    """A read-only ``(T, ...)`` array whose frame ``k`` is ``frame(k)``, computed only when
+    indexed (what napari asks for: the frame shown); ``np.asarray`` of the whole computes every
+    frame. Enough of the array protocol for napari's image layers (``shape``, ``dtype``,
+    ``ndim``, ``__getitem__``, ``__array__``)."""
+
+    def __init__(self, frame: Any, n: int, frame_shape: tuple[int, ...], dtype: Any) -> None:
+        self._frame = frame
+        self.shape = (int(n), *(int(v) for v in frame_shape))
+        self.dtype = np.dtype(dtype)
+        self.ndim = len(self.shape)
+        self.size = int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        first, rest = key[0], key[1:]
+        if isinstance(first, (int, np.integer)):
+            k = int(first) + (self.shape[0] if int(first) < 0 else 0)
+            if not 0 <= k < self.shape[0]:
+                raise IndexError(f"frame {int(first)} outside {self.shape[0]} frames")
+            return np.asarray(self._frame(k), self.dtype)[rest]
+        ks = np.arange(self.shape[0])[first]
+        stack = [np.asarray(self._frame(int(k)), self.dtype) for k in np.atleast_1d(ks)]
+        out = np.stack(stack) if stack else np.empty((0, *self.shape[1:]), self.dtype)
+        return out[(slice(None), *rest)]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+
+def _read_sequence_store(p: Path, max_bytes: int | None = None) -> list[LayerData]:
+    """The band stack ``(T, M, h, w)`` and sRGB ``(T, h, w, 3)`` of a sequence store as
+    :class:`LazyFrames` (one frame decoded at a time; the frame size checked first)."""
+    ds = open_sequence_store(p)  # codecs, metadata and chunk files checked before decoding
+    n = int(ds.sizes["time"])
+    if n == 0:
+        raise FileFormatError(f"{p}: the sequence store has no frame yet")
+    m, h, w = (int(v) for v in ds["cube"].shape[1:])
+    check_declared(p, (m, h, w), np.float32, max_bytes, "frame")
+    wl = np.asarray(ds["wavelength"].values, np.float64)
+
+    def cube_at(k: int) -> np.ndarray:
+        return np.asarray(ds["cube"][k].values, np.float32)
+
+    def valid_at(k: int) -> np.ndarray:
+        return np.asarray(ds["valid"][k].values, bool)
+
+    def rgb_at(k: int) -> np.ndarray:
+        return _srgb(cube_at(k), wl, valid_at(k))
+
+    cube = LazyFrames(cube_at, n, (m, h, w), np.float32)
+    valid = LazyFrames(valid_at, n, (h, w), bool)
+    (_, kw, _), (_, rgb_kw, _) = _layers(_stem(p), cube[0], wl, valid[0], None, p)
+    for key, lead in (("scale", 1.0), ("translate", 0.0), ("units", "pixel")):
+        if key in kw:
+            kw[key] = [lead, *kw[key]]
+    kw["axis_labels"] = ["time", *kw["axis_labels"]]
+    rgb_kw["axis_labels"] = ["time", "y", "x"]
+    kw["metadata"].update(valid=valid, frames=[str(s) for s in ds["source"].values],
+                          times_s=np.asarray(ds["time"].values, np.float64))  # fmt: skip
+    return [(cube, kw, "image"), (LazyFrames(rgb_at, n, (h, w, 3), np.float32), rgb_kw, "image")]
+
+
 @dataclass
 class Spectrum:
     """The spectrum under one pixel.
@@ -216,14 +293,14 @@ def spectrum_at(
     """The spectrum of a band-stack layer (``read_layers``' first tuple) at pixel ``(row, col)``
     (rounded to the nearest pixel); None outside the image or the valid mask."""
     r, c = int(round(float(row))), int(round(float(col)))
-    valid = np.asarray(metadata["valid"])
+    valid = metadata["valid"]  # (a sequence's is lazy: only the frame shown is decoded)
     if data.ndim == 4:
         f = int(frame or 0)
         if not 0 <= f < data.shape[0]:
             return None
-        stack, v = data[f], valid[f]
+        stack, v = data[f], np.asarray(valid[f])
     else:
-        f, stack, v = None, data, valid
+        f, stack, v = None, data, np.asarray(valid)
     h, w = v.shape
     if not (0 <= r < h and 0 <= c < w) or not bool(v[r, c]):
         return None
