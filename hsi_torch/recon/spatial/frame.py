@@ -15,7 +15,6 @@ from hsi_torch.recon.nnls.constants import BPP_ROUNDS, REFINE_STEPS
 from hsi_torch.recon.nnls.kkt import _default_tol
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.spatial import _compiled as compiled
-from hsi_torch.recon.spatial import subspace
 from hsi_torch.recon.spatial.admm import SpatialResult, solve_spatial
 from hsi_torch.recon.spatial.lam import DEFAULT_LAM, LAM_RULES
 from hsi_torch.recon.spatial.noise import (
@@ -185,10 +184,7 @@ def _solve_subspace(
     ADMM without the bound, then every pixel's exact NNLS with the TV's pull held fixed."""
     prob = sens.problem
     with torch.no_grad():
-        if subspace.BASIS == "noise":
-            basis = subspace.noise_basis(prob.gram_inv, rank)
-        else:
-            basis = spectral_basis(x0, rank, ok)
+        basis = spectral_basis(x0, rank, ok)
         row_ginv = None
         if sp.row_index is not None:
             row_ginv = torch.cholesky_inverse(torch.linalg.cholesky(row_gram))

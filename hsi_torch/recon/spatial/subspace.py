@@ -19,21 +19,25 @@ Solved in two steps:
    complement ``S_p = (Uᵀ G_p⁻¹ U)⁻¹`` and ``b̃_p = S_p Uᵀ G_p⁻¹ b_p`` (one batched product with
    the stored per-pixel ``G⁻¹``), so the spatial problem is the ADMM of :mod:`.admm` on ``k``
    channels (the compiled kernels, ``(S_p + ρI)⁻¹`` packed, the same ``ρ`` as the full-band
-   problem), without the projection onto ``z ≥ 0`` (a coefficient may be negative). Its
-   answer ``c`` determines the TV's pull on every pixel, ``φ_p = b̃_p − S_p c_p``
+   problem), without the projection onto ``z ≥ 0`` (a coefficient may be negative),
+   warm-started from ``Uᵀ G_p⁻¹ b_p`` (the minimiser for ``λ = 0``, so ``λ = 0`` returns the
+   per-pixel NNLS answer). Its answer ``c`` determines the TV's pull on every pixel, ``φ_p = b̃_p − S_p c_p``
    (``= (λ/2)·(KD)ᵀp`` at the optimum: a vector of the subspace).
 2. **Non-negativity, exact per pixel.** Each pixel then solves its own NNLS with that pull held
    fixed: ``min_{s ≥ 0} q_p(s) + 2 (U φ_p)ᵀ s``, i.e. the per-pixel solver with the right-hand
-   side ``b_p − U φ_p`` (the compiled active-set kernel, KKT-exact). Where the unconstrained
-   minimiser ``G_p⁻¹(b_p − U φ_p)`` of step 1 is non-negative this is that minimiser, and so
-   the minimiser of the problem above with ``s ≥ 0``; where it is not, the bound is enforced
-   with the TV's pull of step 1 (not re-balanced against the neighbours).
+   side ``b_p − U φ_p`` (the compiled active-set kernel, KKT-exact). A pixel whose
+   unconstrained answer ``G_p⁻¹(b_p − U φ_p)`` is non-negative keeps it; where every pixel's
+   is, the result is also the minimiser of the problem above with ``s ≥ 0``. Elsewhere the
+   bound is enforced with the TV's pull of step 1 held fixed (not re-balanced against the
+   neighbours): a deviation from the full-band problem's minimiser.
 
 Cost per ADMM iteration: ``k(k + 1)/2`` numbers of the packed inverse and ``k`` channels of
 dual iterations per pixel instead of ``M(M + 1)/2`` and ``M``; the extra work per frame is the
 basis (an ``M × M`` covariance of the per-pixel answers), ``G⁻¹U`` and ``S`` (batched
 products with ``G⁻¹``), the factor of ``S + ρI`` (``k × k`` per pixel), and the second
-per-pixel NNLS pass.
+per-pixel NNLS pass. Measured (``docs/spatial.md``, "Spectral subspace"): the scores of the
+full-band solve need ``k`` close to ``M``, and with the basis chosen per frame its set-up
+costs more than the iterations save, so it is an option (``spectral_rank``), not the default.
 """
 
 from __future__ import annotations
@@ -48,11 +52,7 @@ from torch import Tensor
 from hsi_torch.recon.nnls import _compiled as nnls_compiled
 from hsi_torch.recon.spatial.problem import ShiftedInverse, SpatialProblem
 
-#: Which basis :func:`~hsi_torch.recon.spatial.solve_frame` uses: ``"signal"``
-#: (:func:`spectral_basis` of the per-pixel answers) or ``"noise"`` (:func:`noise_basis`).
-BASIS = "signal"
-
-__all__ = ["spectral_basis", "noise_basis", "SubspaceProblem", "subspace_problem", "restore_nonneg"]
+__all__ = ["spectral_basis", "SubspaceProblem", "subspace_problem", "restore_nonneg"]
 
 
 def spectral_basis(x: Tensor, k: int, active: Tensor | None = None) -> Tensor:
@@ -80,24 +80,6 @@ def spectral_basis(x: Tensor, k: int, active: Tensor | None = None) -> Tensor:
     u = torch.full((m,), 1.0 / math.sqrt(m), dtype=torch.float64, device=x.device)
     r = xd - (xd @ u).unsqueeze(1) * u
     return _rotated_basis(r.T @ r, k, x.dtype)
-
-
-def noise_basis(ginv: Tensor, k: int, samples: int = 4096) -> Tensor:
-    """An orthonormal basis ``U (M, k)`` of the directions where the per-pixel answers are
-    noisiest: the flat spectrum, then the leading eigenvectors of the mean ``G_p⁻¹`` (the
-    per-pixel solution's noise covariance up to ``σ²``) over ``samples`` evenly spaced pixels,
-    restricted to the complement of the flat spectrum; rotated as in :func:`spectral_basis`.
-
-    Args:
-        ginv: ``(P|1, M, M)`` per-pixel ``G⁻¹``; k: ``1 ≤ k ≤ M``.
-    """
-    m = ginv.shape[-1]
-    if not 1 <= int(k) <= m:
-        raise ValueError(f"the subspace rank k must be in [1, {m}], got {k}")
-    n = ginv.shape[0]
-    idx = torch.linspace(0, n - 1, min(n, samples), device=ginv.device).long()
-    cov = ginv.index_select(0, idx).to(torch.float64).mean(0)
-    return _rotated_basis(cov, int(k), ginv.dtype)
 
 
 def _rotated_basis(cov: Tensor, k: int, dtype: torch.dtype) -> Tensor:
