@@ -21,8 +21,8 @@ Solved in two steps:
    channels (the compiled kernels, ``(S_p + ρI)⁻¹`` packed, the same ``ρ`` as the full-band
    problem), without the projection onto ``z ≥ 0`` (a coefficient may be negative),
    warm-started from ``Uᵀ G_p⁻¹ b_p`` (the minimiser for ``λ = 0``, so ``λ = 0`` returns the
-   per-pixel NNLS answer). Its answer ``c`` determines the TV's pull on every pixel, ``φ_p = b̃_p − S_p c_p``
-   (``= (λ/2)·(KD)ᵀp`` at the optimum: a vector of the subspace).
+   per-pixel NNLS answer). Its answer ``c`` determines the TV's pull on every pixel,
+   ``φ_p = b̃_p − S_p c_p`` (``= (λ/2)·(KD)ᵀp`` at the optimum: a vector of the subspace).
 2. **Non-negativity, exact per pixel.** Each pixel then solves its own NNLS with that pull held
    fixed: ``min_{s ≥ 0} q_p(s) + 2 (U φ_p)ᵀ s``, i.e. the per-pixel solver with the right-hand
    side ``b_p − U φ_p`` (the compiled active-set kernel, KKT-exact). A pixel whose
