@@ -135,7 +135,7 @@ def test_subspace_solve_is_the_minimiser_of_the_subspace_tv_problem(alpha):
     assert res.converged
     phi = sub.b - (sub.problem.gram @ res.x.unsqueeze(2)).squeeze(2)
     s = torch.linalg.solve(G, (b - phi @ U.T).unsqueeze(2)).squeeze(2)  # full-band minimiser
-    ref = torch.from_numpy(_condat_vu_sub(G.numpy(), b.numpy(), U.numpy(), lam, hw, 12000, alpha))
+    ref = torch.from_numpy(_condat_vu_sub(G.numpy(), b.numpy(), U.numpy(), lam, hw, 8000, alpha))
 
     def f(x):
         return float(torch.einsum("pm,pmn,pn->", x, G, x) - 2 * (b * x).sum()) + lam * _tv_sub(
