@@ -420,7 +420,7 @@ def bench_spatial(rec: Reconstructor, cap_path: Path, args: argparse.Namespace,
     from hsi_torch.recon.spatial import RHO_SCALE
 
     lam = args.lam if args.lam in ("auto", "discrepancy") else float(args.lam)
-    tv = Reconstructor(rec.sensing, prior="tv", lam=lam)
+    tv = Reconstructor(rec.sensing, prior="tv", lam=lam, spectral_rank=args.spectral_rank)
     sampler = RssSampler()
     sampler.start()
     t0 = time.perf_counter()
@@ -435,7 +435,8 @@ def bench_spatial(rec: Reconstructor, cap_path: Path, args: argparse.Namespace,
     sampler.stop()
     solve, frame, st = min(runs, key=lambda v: v[0])
     pp_frame = best_pp["total"] - best_pp["write"]
-    print(f"  spatial (TV, lam {st['lam']:.3g}, rho scale {RHO_SCALE:g}), best of "
+    print(f"  spatial (TV, lam {st['lam']:.3g}, rho scale {RHO_SCALE:g}, spectral rank "
+          f"{st['spectral_rank']}), best of "
           f"{args.spatial_frames} after a warm-up of {t_warm:.1f} s: solve {solve:.3f} s = "
           f"{solve / best_pp['solve']:.1f}x the per-pixel solve ({best_pp['solve']:.3f} s), "
           f"frame without writing {frame:.3f} s = {frame / pp_frame:.1f}x the per-pixel frame "
@@ -519,6 +520,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spatial-frames", type=int, default=3,
                     help="frames timed in the spatial-spectral (TV) mode (0: skip it)")
     ap.add_argument("--lam", default=str(DEFAULT_LAM), help="TV mode: relative weight, or auto")
+    ap.add_argument("--spectral-rank", type=int, default=None,
+                    help="TV mode: the prior on this many leading spectral components "
+                         "(spectral_rank; default: all bands)")
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
     dtype = torch.float64 if args.dtype == "float64" else torch.float32

@@ -29,6 +29,8 @@ def main() -> None:
     ap.add_argument("--beta", type=float, default=1e4)
     ap.add_argument("--lam", default=str(DEFAULT_LAM), help="relative TV weight, or auto")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--spectral-rank", type=int, default=None,
+                    help="the TV on this many leading spectral components (default: all bands)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     args = ap.parse_args()
@@ -36,7 +38,7 @@ def main() -> None:
     dt = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     t0 = time.perf_counter()
     pp = Reconstructor(args.bundle, beta=args.beta, device=args.device, dtype=dt)
-    tv = Reconstructor(pp.sensing, prior="tv", lam=lam)
+    tv = Reconstructor(pp.sensing, prior="tv", lam=lam, spectral_rank=args.spectral_rank)
     print(f"precomputation {time.perf_counter() - t0:.1f} s; {pp.sensing.num_pixels} pixels, "
           f"{pp.sensing.num_bands} bands, frame {pp.sensing.frame_size}")
     print("capture | per-pixel solve s | TV solve s | ratio | ADMM iterations | lam")

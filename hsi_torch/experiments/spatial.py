@@ -81,6 +81,10 @@ class SpatialConfig:
         default_factory=lambda: [DEFAULT_LAM, "auto"],
         metadata=_h("TV weights to compare with per-pixel: relative lam values, auto (SURE), "
                    "discrepancy"))
+    ranks: list[int] = field(
+        default_factory=list,
+        metadata=_h("also the TV on k leading spectral components (spectral_rank), at the first "
+                    "numeric lams entry (default lam if none), for each k listed"))
     erode_mm: float = field(
         default=0.3, metadata=_h("ColorChecker interiors: mm inside a patch on the diffuser"))
     scenes: list[str] = field(
@@ -281,6 +285,9 @@ def run_spatial(cfg: SpatialConfig, out: str | Path, *, device: str | None = Non
         names = list(cfg.scenes)
     methods: list[tuple[str, dict[str, Any]]] = [("per-pixel", {"prior": "none"})]
     methods += [(f"tv lam={lam}", {"prior": "tv", "lam": lam}) for lam in cfg.lams]
+    lam_k = next((v for v in cfg.lams if not isinstance(v, str)), DEFAULT_LAM)
+    methods += [(f"tv lam={lam_k} k={k}", {"prior": "tv", "lam": lam_k, "spectral_rank": int(k)})
+                for k in cfg.ranks]
     recs = {m: Reconstructor(bundle, beta=cfg.beta, diff_order=cfg.diff_order, device=dev,
                              dtype=dt, **kw) for m, kw in methods}  # fmt: skip
     rows: list[dict[str, Any]] = []

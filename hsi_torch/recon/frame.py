@@ -352,7 +352,7 @@ def solve_observations(
             raise ValueError("prior='tv' with gradients needs spatial_iters=N (fixed, "
                              "differentiable iterations)")
         x, sinfo = spatial_solve_frame(sens, yc, mask, ok, changed, x, lam=pr.lam,
-                                       iters=pr.spatial_iters)
+                                       iters=pr.spatial_iters, rank=pr.spectral_rank)
     elif grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
     if prior != "tv" and x.device.type == "cpu" and not x.requires_grad:

@@ -203,13 +203,16 @@ class SolveSettings:
 
 @dataclass(frozen=True)
 class PriorSettings:
-    """The spatial prior. Flat keys: ``prior`` (= ``kind``), ``lam``, ``spatial_iters``.
+    """The spatial prior. Flat keys: ``prior`` (= ``kind``), ``lam``, ``spatial_iters``,
+    ``spectral_rank``.
 
     Attributes:
         kind: ``"none"`` (per-pixel NNLS) or ``"tv"`` (vectorial total variation).
         lam: relative TV weight (finite, ``≥ 0``) or a per-frame rule: ``"auto"`` (SURE) or
             ``"discrepancy"`` (Morozov).
         spatial_iters: fixed ADMM iterations of the TV solve (``None``: to tolerance).
+        spectral_rank: ``k``: the TV on the ``k`` leading spectral components and the
+            complement per pixel (:mod:`hsi_torch.recon.spatial.subspace`; ``None``: all bands).
     """
 
     kind: Literal["none", "tv"] = _set(
@@ -222,6 +225,9 @@ class PriorSettings:
         "discrepancy principle")
     spatial_iters: int | None = _set(
         None, "prior=tv: fixed ADMM iterations (null: run to tolerance)")
+    spectral_rank: int | None = _set(
+        None, "prior=tv: the TV on the k leading spectral components of the frame's per-pixel "
+        "answer, the complement per pixel (null: on all bands)")
 
     def __post_init__(self) -> None:
         _choice("prior", self.kind, PRIORS)
@@ -235,6 +241,7 @@ class PriorSettings:
                 raise _bad("lam", f"must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
             object.__setattr__(self, "lam", lam)
         _count("spatial_iters", self.spatial_iters, 1)
+        _count("spectral_rank", self.spectral_rank, 1)
 
 
 @dataclass(frozen=True)
@@ -525,7 +532,7 @@ class ReconstructSettings:
                 out.append(f"setting {key}={value!r} has no effect: {why}")
 
         if self.prior.kind == "none":
-            for key in ("lam", "spatial_iters"):
+            for key in ("lam", "spatial_iters", "spectral_rank"):
                 note(key, "it applies to the spatial prior only (prior: tv), and prior is none")
         if self.solve.solver == "active_set":
             note("admm_iters", "it applies to solver: admm only, and the solver is active_set")

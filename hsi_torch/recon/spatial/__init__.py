@@ -24,6 +24,8 @@ Modules, one idea each:
 * :mod:`~hsi_torch.recon.spatial.admm`: the ADMM loop and its stopping rule, one step per
   backend (torch, or the compiled CPU kernels of :mod:`~hsi_torch.recon.spatial._compiled`);
 * :mod:`~hsi_torch.recon.spatial.lam`: the ``λ`` rules (fixed, SURE, discrepancy);
+* :mod:`~hsi_torch.recon.spatial.subspace`: the TV on ``k`` leading spectral components, the
+  complement per pixel (``solve_frame(..., rank=k)``, the ``spectral_rank`` setting);
 * :mod:`~hsi_torch.recon.spatial.frame`: one frame of the pipeline (:func:`solve_frame`).
 
 The scale of ``λ``: with noise of standard deviation ``σ`` (DN) on the observations, the

@@ -67,8 +67,8 @@ if AVAILABLE:
                     out[i, j] = acc[j]
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _start_state(b, z0, gram, row_slot, row_gram, rho, bT, zT, uT,
-                     num_chunks):  # pragma: no cover - compiled
+    def _start_state(b, z0, gram, row_slot, row_gram, rho, bT, zT, uT, num_chunks,
+                     lo):  # pragma: no cover - compiled
         n, m = b.shape
         shared = gram.shape[0] == 1
         for ch in _nb.prange(num_chunks):
@@ -77,7 +77,7 @@ if AVAILABLE:
             for i in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
                 for j in range(m):
                     zj = z0[i, j]
-                    z[j] = zj if zj > 0 else 0.0
+                    z[j] = zj if zj > lo else lo
                     g[j] = 0.0
                 k = row_slot[i]
                 S = row_gram[k] if k >= 0 else (gram[0] if shared else gram[i])
@@ -91,15 +91,16 @@ if AVAILABLE:
                     uT[j, i] = (b[i, j] - g[j]) / rho
 
     @_nb.njit(error_model="numpy", fastmath=_FAST)
-    def _primal_row(v, t, r, rs, r_up, rs_up, wrow, wfrom, wto, out, a, b, c,
-                    off):  # pragma: no cover - compiled
-        """``max(v − t (KD)ᵀr, 0)`` of one row into ``out (M, W + 2)``, every column of
-        ``a:b`` (padded indices; the row's span) at once: ``r``, ``rs`` the row's dual ``(2, M, W +
-        2)`` and band sums ``(2, W + 2)``, ``r_up``, ``rs_up`` the row above's; ``wrow`` the
-        row's horizontal edge weights (``wrow[X]``: column ``X − 1`` to ``X``), ``wfrom`` the
-        vertical ones from the row above, ``wto`` those to the row below (1-D rows: a 2-D slice
-        is typed non-contiguous). ``K``'s part is the same for every band: ``c·(wl Σr_l,x +
-        wu Σr_u,y − wx Σr_x − wy Σr_y)``, ``c = (α − 1)/M``; ``off`` ``(W + 2,)`` scratch.
+    def _primal_row(v, t, r, rs, r_up, rs_up, wrow, wfrom, wto, out, a, b, c, off,
+                    lo):  # pragma: no cover - compiled
+        """``max(v − t (KD)ᵀr, lo)`` (``lo``: 0, or ``−∞`` for no bound) of one row into
+        ``out (M, W + 2)``, every column of ``a:b`` (padded indices; the row's span) at once:
+        ``r``, ``rs`` the row's dual ``(2, M, W + 2)`` and band sums ``(2, W + 2)``, ``r_up``,
+        ``rs_up`` the row above's; ``wrow`` the row's horizontal edge weights (``wrow[X]``:
+        column ``X − 1`` to ``X``), ``wfrom`` the vertical ones from the row above, ``wto``
+        those to the row below (1-D rows: a 2-D slice is typed non-contiguous). ``K``'s part is
+        the same for every band: ``c·(wl Σr_l,x + wu Σr_u,y − wx Σr_x − wy Σr_y)``,
+        ``c = (α − 1)/M``; ``off`` ``(W + 2,)`` scratch.
         Columns are unsigned indices: numba checks a signed index for wrap-around, which keeps
         LLVM from vectorising the loops."""
         m = v.shape[0]
@@ -114,7 +115,7 @@ if AVAILABLE:
                 d = (wrow[X - one] * r[0, j, X - one] + wfrom[X] * r_up[1, j, X]
                      - wrow[X] * r[0, j, X] - wto[X] * r[1, j, X] + off[X])
                 val = v[j, X] - t * d
-                out[j, X] = val if val > 0 else 0
+                out[j, X] = val if val > lo else lo
 
     @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _dual_row(zk, zn, r, p_old, p_new, ps_new, r_new, rs_new, want_r, step, mom, one, c,
@@ -313,7 +314,7 @@ if AVAILABLE:
     @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _fgp_one_block(bi, inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in,
                        x_out, u_out, rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out,
-                       ps_out, z_out, blocks, row_ptr, col, span, ex, ey):  # pragma: no cover
+                       ps_out, z_out, blocks, row_ptr, col, span, ex, ey, zlo):  # pragma: no cover
         """One block of rows of :func:`_fgp_block` (its own thread)."""
         n_it = moms.shape[0]
         m = b.shape[0]
@@ -373,7 +374,7 @@ if AVAILABLE:
                 if j == n_it:  # the primal of the final dual, scattered into z_out
                     _primal_row(ring_v[y % nv], t, ring_p[n_it, y & 3], ring_ps[n_it, y & 3],
                                 ring_p[n_it, up], ring_ps[n_it, up], wrow, wfrom, wto, zrow,
-                                xa, xb, c, scale)
+                                xa, xb, c, scale, zlo)
                     lo, hi = row_ptr[y], row_ptr[y + 1]
                     x0 = span[y, 0]
                     cont = span[y, 1] - x0 == hi - lo
@@ -383,12 +384,12 @@ if AVAILABLE:
                 p_old = rr[y & 3] if j == 0 else ring_p[j, y & 3]
                 if y == ylo:  # this iteration's first row: its own primal first
                     _primal_row(ring_v[y % nv], t, rr[y & 3], rrs[y & 3], rr[up], rrs[up],
-                                wrow, wfrom, wto, ring_z[j, y & 1], xa, xb, c, scale)
+                                wrow, wfrom, wto, ring_z[j, y & 1], xa, xb, c, scale, zlo)
                 if y + 1 < h:  # the next row's primal, from r before this row's update
                     a2, b2 = span[y + 1, 0] + 1, span[y + 1, 1] + 1
                     _primal_row(ring_v[(y + 1) % nv], t, rr[(y + 1) & 3], rrs[(y + 1) & 3],
                                 rr[y & 3], rrs[y & 3], ex[y + 1], ey[y + 1], ey[y + 2],
-                                ring_z[j, (y + 1) & 1], a2, b2, c, scale)
+                                ring_z[j, (y + 1) & 1], a2, b2, c, scale, zlo)
                 last = j + 1 == n_it
                 _dual_row(ring_z[j, y & 1], ring_z[j, (y + 1) & 1], rr[y & 3], p_old,
                           ring_p[j + 1, y & 3], ring_ps[j + 1, y & 3], ring_r[j + 1, y & 3],
@@ -405,13 +406,13 @@ if AVAILABLE:
     @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
     def _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
                    rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out, ps_out, z_out, blocks,
-                   row_ptr, col, span, ex, ey):  # pragma: no cover - compiled
+                   row_ptr, col, span, ex, ey, zlo):  # pragma: no cover - compiled
         for bi in _nb.prange(blocks.shape[0] - 1):
             # int64 both when typed and when lowered (prange's index is then
             # uint64): one compiled signature, not two
             _fgp_one_block(np.int64(bi), inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in,
                            z_in, x_out, u_out, rho, update_u, t, step, moms, one, c, p_in, ps_in,
-                           p_out, ps_out, z_out, blocks, row_ptr, col, span, ex, ey)
+                           p_out, ps_out, z_out, blocks, row_ptr, col, span, ex, ey, zlo)
 
 
 def _chunks(n: int) -> int:
@@ -427,10 +428,12 @@ def sym_apply(mat: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
 
 
 def start_state(b: np.ndarray, z0: np.ndarray, gram: np.ndarray, row_slot: np.ndarray,
-                row_gram: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ADMM warm start on band-major state, in one pass: ``z = max(z0, 0)``, ``u = (b −
-    G z)/ρ`` (pixels with ``row_slot ≥ 0``: their ``row_gram``), with ``b``, as ``(M, P)``
-    arrays (``b``, ``z0`` pixel-major ``(P, M)``; ``gram (P|1, M, M)`` symmetric).
+                row_gram: np.ndarray, rho: float,
+                nonneg: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ADMM warm start on band-major state, in one pass: ``z = max(z0, 0)`` (``z = z0``
+    without ``nonneg``), ``u = (b − G z)/ρ`` (pixels with ``row_slot ≥ 0``: their
+    ``row_gram``), with ``b``, as ``(M, P)`` arrays (``b``, ``z0`` pixel-major ``(P, M)``;
+    ``gram (P|1, M, M)`` symmetric).
 
     Returns:
         ``bT``, ``zT``, ``uT``.
@@ -439,7 +442,7 @@ def start_state(b: np.ndarray, z0: np.ndarray, gram: np.ndarray, row_slot: np.nd
     bT, zT, uT = (np.empty((m, n), b.dtype) for _ in range(3))
     if n:
         _start_state(b, z0, gram, row_slot, row_gram, float(rho), bT, zT, uT,
-                     _chunks(n // 256))
+                     _chunks(n // 256), 0.0 if nonneg else -np.inf)
     return bT, zT, uT
 
 
@@ -523,7 +526,7 @@ def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
               update_u: bool, t: float, step: float, moms: np.ndarray, p_in: np.ndarray,
               ps_in: np.ndarray, p_out: np.ndarray, ps_out: np.ndarray, z_out: np.ndarray,
               grid: tuple[np.ndarray, ...], blocks: np.ndarray,
-              brightness_weight: float = 1.0) -> None:
+              brightness_weight: float = 1.0, nonneg: bool = True) -> None:
     """One ADMM iteration in one pass over the frame, on band-major ``(M, P)`` state: the
     x-update (``u ← u_in + x_in − z_in`` if ``update_u``, ``x = (G + ρI)⁻¹(b + ρ(z_in − u))``,
     ``v = x + u``), then ``J = len(moms)`` FGP dual iterations of the TV prox from ``r = p_in``
@@ -544,7 +547,8 @@ def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
     its neighbours (``J − j`` rows on each side for iteration ``j``, one more for the
     x-update: redundant work; the inputs are only read, every output is double-buffered), so
     blocks never wait for each other. ``K``: the brightness weighting ``I − (1 − α) u uᵀ``
-    (``u`` the flat spectrum), applied through band sums.
+    (``u`` the flat spectrum), applied through band sums. Without ``nonneg`` the primal is not
+    projected (``z(r) = v − t (KD)ᵀr``: the prox of the TV alone).
 
     Args:
         inv_rows: :func:`pack_inverse_rows`; row_slot: ``(P,)`` int64, ``≥ 0`` where a pixel
@@ -559,4 +563,5 @@ def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
     c = ty((brightness_weight - 1.0) / b.shape[0])
     _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
                ty(rho), bool(update_u), ty(t), ty(step), np.asarray(moms, b.dtype), ty(1), c,
-               p_in, ps_in, p_out, ps_out, z_out, blocks, row_ptr, col, span, EX, EY)
+               p_in, ps_in, p_out, ps_out, z_out, blocks, row_ptr, col, span, EX, EY,
+               ty(0 if nonneg else -np.inf))

@@ -95,6 +95,7 @@ def solve_spatial(
     num_threads: int | None = 1,
     backend: str = "auto",
     brightness_weight: float = 1.0,
+    nonneg: bool = True,
 ) -> SpatialResult:
     """ADMM for ``min_{s ≥ 0} Σ_p s_pᵀG_p s_p − 2 b_pᵀ s_p + λ·TV(s)`` (see the module docstring).
 
@@ -123,6 +124,9 @@ def solve_spatial(
             it does not apply). Both run the same iterations; they agree to rounding.
         brightness_weight: ``α ∈ (0, 1]``, the TV's weight on the flat-spectrum component of
             every jump (:func:`~.operators.brightness_weighted`; 1: plain vectorial TV).
+        nonneg: the bound ``s ≥ 0`` (default). ``False`` solves the problem without it (the
+            TV prox alone; the spectral-subspace mode's coefficients, :mod:`.subspace`): the
+            compiled backend only (tolerance-driven, CPU, numba).
 
     Returns:
         :class:`SpatialResult`.
@@ -132,13 +136,14 @@ def solve_spatial(
     if not 0.0 < float(brightness_weight) <= 1.0:
         raise ValueError(f"brightness_weight must be in (0, 1], got {brightness_weight}")
     return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters, backend,
-                          num_threads, float(brightness_weight))
+                          num_threads, float(brightness_weight), bool(nonneg))
 
 
 def _solve_spatial(
     problem: SpatialProblem, b: Tensor, lam: float | Tensor, x0: Tensor | None,
     tol: float | None, max_iter: int, iters: int | None, inner_iters: int,
     backend: str = "auto", num_threads: int | None = 1, alpha: float = 1.0,
+    nonneg: bool = True,
 ) -> SpatialResult:
     kernel_threads = torch.get_num_threads()
     P, m = problem.num_pixels, problem.num_bands
@@ -160,18 +165,20 @@ def _solve_spatial(
     rho = problem.rho
     t = (lam if isinstance(lam, Tensor) else lam_f) / (2.0 * rho)
     if x0 is None:
-        z = problem.apply_inv(b).clamp_min(0)
+        z = problem.apply_inv(b)
+        z = z.clamp_min(0) if nonneg else z
     else:
         if x0.shape != (P, m):
             raise ValueError(f"x0 must be ({P}, {m}), got {tuple(x0.shape)}")
-        z = x0.to(b.dtype).clamp_min(0)
+        z = x0.to(b.dtype)
+        z = z.clamp_min(0) if nonneg else z
     inputs = None
     if iters is None and backend != "torch":
         inputs = problem.compiled_inputs()
     if inputs is not None:  # the warm start's u is formed by the compiled pass itself
         with torch.no_grad():
             cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
-                                  kernel_threads)
+                                  kernel_threads, nonneg)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
             # the TV factor is not read again until the next frame's ADMM: its pages of the
@@ -179,6 +186,9 @@ def _solve_spatial(
             disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
             return SpatialResult(z_out, it, done, prim, dual, lam_f, rho)
+    if not nonneg:
+        raise ValueError("nonneg=False needs the compiled backend (numba, a CPU problem, pixels "
+                         "in row-major order, the tolerance-driven mode)")
     if backend == "compiled" and iters is None:
         raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
                          "row-major order")
@@ -299,9 +309,9 @@ class _CompiledStep:
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, t: float, lam: float, inner_iters: int, alpha: float,
-                 num_blocks: int = 1) -> None:
+                 num_blocks: int = 1, nonneg: bool = True) -> None:
         self.inv_rows, graph = inputs
-        self.rho, self.lam, self.alpha = problem.rho, lam, alpha
+        self.rho, self.lam, self.alpha, self.nonneg = problem.rho, lam, alpha, nonneg
         self.t = t if lam > 0 else 0.0
         self.step = fgp_dual_step(t) if t > 0 else 0.0
 
@@ -318,7 +328,7 @@ class _CompiledStep:
         # optimum), in one pass
         self.b, self.z, self.u = compiled.start_state(
             np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
-            np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho)
+            np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho, nonneg)
         # G is not read by the iterations: its pages of a mapped cache entry leave the
         # resident set while the ADMM state exists (the next frame reads them back)
         disk.release_pages(problem.gram)
@@ -348,7 +358,7 @@ class _CompiledStep:
         compiled.fgp_block(self.inv_rows, self.row_slot, self.row_inv, self.row_has_slot, self.b,
                            self.x, self.u, self.z, self.x2, self.u2, self.rho, i > 0, self.t,
                            self.step, self.moms, self.p, self.psum, self.p2, self.psum2, self.z2,
-                           self.grid, self.blocks, self.alpha)
+                           self.grid, self.blocks, self.alpha, self.nonneg)
         self.z_prev = self.z  # the previous z, kept until the next iteration writes over it
         self.x, self.x2, self.u, self.u2 = self.x2, self.x, self.u2, self.u
         self.z, self.z2 = self.z2, self.z

@@ -11,8 +11,11 @@ from torch import Tensor
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon.nnls import _compiled as nnls_compiled
+from hsi_torch.recon.nnls.constants import BPP_ROUNDS, REFINE_STEPS
+from hsi_torch.recon.nnls.kkt import _default_tol
 from hsi_torch.recon.sensing import BundleSensing
-from hsi_torch.recon.spatial.admm import solve_spatial
+from hsi_torch.recon.spatial import _compiled as compiled
+from hsi_torch.recon.spatial.admm import SpatialResult, solve_spatial
 from hsi_torch.recon.spatial.lam import DEFAULT_LAM, LAM_RULES
 from hsi_torch.recon.spatial.noise import (
     NOISE_SAMPLES,
@@ -20,7 +23,8 @@ from hsi_torch.recon.spatial.noise import (
     lam_scale,
     mean_square_residual,
 )
-from hsi_torch.recon.spatial.problem import bundle_spatial_problem, guide_weights
+from hsi_torch.recon.spatial.problem import SpatialProblem, bundle_spatial_problem, guide_weights
+from hsi_torch.recon.spatial.subspace import restore_nonneg, spectral_basis, subspace_problem
 
 __all__ = ["FRAME_TOL", "FRAME_INNER_ITERS", "BRIGHTNESS_WEIGHT", "solve_frame"]
 
@@ -58,6 +62,7 @@ def solve_frame(
     max_iter: int = 2000,
     guided: bool = False,
     brightness_weight: float = BRIGHTNESS_WEIGHT,
+    rank: int | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -80,6 +85,10 @@ def solve_frame(
             (:func:`guide_weights`): less smoothing across edges the RGB image shows.
         brightness_weight: the TV's weight ``α`` on jumps of the flat-spectrum component
             (:data:`BRIGHTNESS_WEIGHT`; 1: plain vectorial TV).
+        rank: ``k < M``: the prior on the ``k`` leading spectral components of ``x0`` and the
+            complement per pixel (:mod:`~hsi_torch.recon.spatial.subspace`; the compiled CPU
+            path with a fixed ``lam``; elsewhere, and for ``None`` or ``k = M``, the full-band
+            solve).
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -89,10 +98,10 @@ def solve_frame(
         ``mean_square_residual`` (DN², of the answer, on the noise estimate's
         :data:`NOISE_SAMPLES` pixels), ``spatial_iterations``,
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``,
-        ``brightness_weight``.
+        ``brightness_weight``, ``spectral_rank`` (``k``, or ``M``: the full-band solve).
     """
     return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
-                        guided, brightness_weight)
+                        guided, brightness_weight, rank)
 
 
 def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
@@ -111,7 +120,7 @@ def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
 def _solve_frame(
     sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, changed: Tensor, x0: Tensor,
     lam: float | str, iters: int | None, inner_iters: int, tol: float | None, max_iter: int,
-    guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT,
+    guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT, rank: int | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     auto = isinstance(lam, str)
     if auto and lam not in LAM_RULES:
@@ -142,17 +151,50 @@ def _solve_frame(
         else:
             lam, extra = 0.0, {"lam_rule": f"{lam} (no noise estimate: lam = 0)"}
     lam_abs = lam * scale
-    # the per-pixel G⁻¹ is not read by the spatial solve: its pages of a mapped precomputation
-    # cache entry leave the resident set until the next frame's warm start
-    disk.release_pages(prob.gram_inv)
-    res = solve_spatial(sp, b, lam_abs, x0=x0, tol=tol, max_iter=max_iter, iters=iters,
-                        inner_iters=inner_iters, brightness_weight=alpha)
+    m = x0.shape[1]
+    if (rank is not None and int(rank) < m and iters is None and not auto
+            and compiled.AVAILABLE and nnls_compiled.AVAILABLE and b.device.type == "cpu"
+            and sp.compiled_inputs() is not None):
+        res, k = _solve_subspace(sens, sp, b, lam_abs, x0, ok, int(rank), row_gram, tol,
+                                 max_iter, inner_iters, alpha), int(rank)
+    else:
+        # the per-pixel G⁻¹ is not read by the spatial solve: its pages of a mapped
+        # precomputation cache entry leave the resident set until the next frame's warm start
+        disk.release_pages(prob.gram_inv)
+        res = solve_spatial(sp, b, lam_abs, x0=x0, tol=tol, max_iter=max_iter, iters=iters,
+                            inner_iters=inner_iters, brightness_weight=alpha)
+        k = m
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
-        "brightness_weight": alpha,
+        "brightness_weight": alpha, "spectral_rank": k,
         "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok, NOISE_SAMPLES),
         "spatial_iterations": res.iterations, "spatial_converged": res.converged,
         "spatial_primal_residual": res.primal_residual,
         "spatial_dual_residual": res.dual_residual, "rho": res.rho,
     }  # fmt: skip
     return res.x, info
+
+
+def _solve_subspace(
+    sens: BundleSensing, sp: SpatialProblem, b: Tensor, lam_abs: float, x0: Tensor, ok: Tensor,
+    rank: int, row_gram: Tensor | None, tol: float | None, max_iter: int, inner_iters: int,
+    alpha: float,
+) -> SpatialResult:
+    """The prior on the ``rank`` leading components of ``x0`` (:mod:`.subspace`): the reduced
+    ADMM without the bound, then every pixel's exact NNLS with the TV's pull held fixed."""
+    prob = sens.problem
+    with torch.no_grad():
+        basis = spectral_basis(x0, rank, ok)
+        row_ginv = None
+        if sp.row_index is not None:
+            row_ginv = torch.cholesky_inverse(torch.linalg.cholesky(row_gram))
+        sub = subspace_problem(sp, prob.gram_inv, b, basis, row_ginv)
+        res = solve_spatial(sub.problem, sub.b, lam_abs, x0=sub.start, tol=tol, max_iter=max_iter,
+                            inner_iters=inner_iters, brightness_weight=alpha, nonneg=False)
+        P = x0.shape[0]
+        skip = (prob.singular | prob.no_data).expand(P)
+        x, _ = restore_nonneg(sub, res.x, b, prob.gram, prob.gram_inv, prob.gram_diag,
+                              prob.gram_norm, skip, _default_tol(b.dtype, x0.shape[1]),
+                              BPP_ROUNDS, REFINE_STEPS, torch.get_num_threads(), row_gram)
+    return SpatialResult(x, res.iterations, res.converged, res.primal_residual,
+                         res.dual_residual, res.lam, res.rho)
