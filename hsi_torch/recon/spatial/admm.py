@@ -71,6 +71,8 @@ class SpatialResult:
         iterations: ADMM iterations run; converged: the stopping rule was met (always True in
             the fixed-iteration mode); primal_residual, dual_residual: the last relative residuals
             (see the module docstring); lam: the ``λ`` used (objective scale); rho: the penalty.
+        dual: the TV prox's final dual state (compiled backend: band-major arrays; ``None``
+            elsewhere), for ``dual0`` of the next frame's solve.
     """
 
     x: Tensor
@@ -80,6 +82,7 @@ class SpatialResult:
     dual_residual: float
     lam: float
     rho: float
+    dual: tuple | None = None
 
 
 def solve_spatial(
@@ -95,6 +98,7 @@ def solve_spatial(
     num_threads: int | None = 1,
     backend: str = "auto",
     brightness_weight: float = 1.0,
+    dual0: tuple | None = None,
 ) -> SpatialResult:
     """ADMM for ``min_{s ≥ 0} Σ_p s_pᵀG_p s_p − 2 b_pᵀ s_p + λ·TV(s)`` (see the module docstring).
 
@@ -123,6 +127,9 @@ def solve_spatial(
             it does not apply). Both run the same iterations; they agree to rounding.
         brightness_weight: ``α ∈ (0, 1]``, the TV's weight on the flat-spectrum component of
             every jump (:func:`~.operators.brightness_weighted`; 1: plain vectorial TV).
+        dual0: the TV prox's dual to start from (:attr:`SpatialResult.dual` of a previous solve
+            of the same problem size, e.g. the previous frame of a sequence; compiled backend
+            only, ignored elsewhere and where its shape differs). Default: zeros.
 
     Returns:
         :class:`SpatialResult`.
@@ -132,13 +139,14 @@ def solve_spatial(
     if not 0.0 < float(brightness_weight) <= 1.0:
         raise ValueError(f"brightness_weight must be in (0, 1], got {brightness_weight}")
     return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters, backend,
-                          num_threads, float(brightness_weight))
+                          num_threads, float(brightness_weight), dual0)
 
 
 def _solve_spatial(
     problem: SpatialProblem, b: Tensor, lam: float | Tensor, x0: Tensor | None,
     tol: float | None, max_iter: int, iters: int | None, inner_iters: int,
     backend: str = "auto", num_threads: int | None = 1, alpha: float = 1.0,
+    dual0: tuple | None = None,
 ) -> SpatialResult:
     kernel_threads = torch.get_num_threads()
     P, m = problem.num_pixels, problem.num_bands
@@ -171,14 +179,15 @@ def _solve_spatial(
     if inputs is not None:  # the warm start's u is formed by the compiled pass itself
         with torch.no_grad():
             cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
-                                  kernel_threads)
+                                  kernel_threads, dual0)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
             # the TV factor is not read again until the next frame's ADMM: its pages of the
             # mapped precomputation cache leave the resident set (the warm start is next)
             disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
-            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho)
+            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho,
+                                 (cstep.p.copy(), cstep.psum.copy()))
     if backend == "compiled" and iters is None:
         raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
                          "row-major order")
@@ -299,7 +308,7 @@ class _CompiledStep:
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, t: float, lam: float, inner_iters: int, alpha: float,
-                 num_blocks: int = 1) -> None:
+                 num_blocks: int = 1, dual0: tuple | None = None) -> None:
         self.inv_rows, graph = inputs
         self.rho, self.lam, self.alpha = problem.rho, lam, alpha
         self.t = t if lam > 0 else 0.0
@@ -330,6 +339,10 @@ class _CompiledStep:
         self.p2 = np.zeros_like(self.p)
         self.psum = np.zeros((2, P), self.z.dtype)
         self.psum2 = np.zeros_like(self.psum)
+        if (dual0 is not None and dual0[0].shape == self.p.shape
+                and dual0[1].shape == self.psum.shape):  # a warm start of the dual
+            self.p[...] = dual0[0]
+            self.psum[...] = dual0[1]
         self.grid = problem.fgp_grid()
         self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
         row_ptr = self.grid[0]

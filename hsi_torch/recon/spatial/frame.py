@@ -58,6 +58,8 @@ def solve_frame(
     max_iter: int = 2000,
     guided: bool = False,
     brightness_weight: float = BRIGHTNESS_WEIGHT,
+    start: Tensor | None = None,
+    dual: tuple | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -80,6 +82,10 @@ def solve_frame(
             (:func:`guide_weights`): less smoothing across edges the RGB image shows.
         brightness_weight: the TV's weight ``α`` on jumps of the flat-spectrum component
             (:data:`BRIGHTNESS_WEIGHT`; 1: plain vectorial TV).
+        start: ``(P, M)`` the ADMM's start instead of ``x0`` (e.g. the previous frame's answer
+            in a sequence; ``x0`` still gives the noise estimate); dual: the TV prox's dual to
+            start from (``info["spatial_dual"]`` of a previous frame, :func:`solve_spatial`'s
+            ``dual0``).
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -89,10 +95,10 @@ def solve_frame(
         ``mean_square_residual`` (DN², of the answer, on the noise estimate's
         :data:`NOISE_SAMPLES` pixels), ``spatial_iterations``,
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``,
-        ``brightness_weight``.
+        ``brightness_weight``, ``spatial_dual`` (the final dual state, for ``dual``).
     """
     return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
-                        guided, brightness_weight)
+                        guided, brightness_weight, start, dual)
 
 
 def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
@@ -111,7 +117,8 @@ def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
 def _solve_frame(
     sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, changed: Tensor, x0: Tensor,
     lam: float | str, iters: int | None, inner_iters: int, tol: float | None, max_iter: int,
-    guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT,
+    guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT, start: Tensor | None = None,
+    dual: tuple | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     auto = isinstance(lam, str)
     if auto and lam not in LAM_RULES:
@@ -145,14 +152,15 @@ def _solve_frame(
     # the per-pixel G⁻¹ is not read by the spatial solve: its pages of a mapped precomputation
     # cache entry leave the resident set until the next frame's warm start
     disk.release_pages(prob.gram_inv)
-    res = solve_spatial(sp, b, lam_abs, x0=x0, tol=tol, max_iter=max_iter, iters=iters,
-                        inner_iters=inner_iters, brightness_weight=alpha)
+    z0 = x0 if start is None else start.detach().to(device=x0.device, dtype=x0.dtype)
+    res = solve_spatial(sp, b, lam_abs, x0=z0, tol=tol, max_iter=max_iter, iters=iters,
+                        inner_iters=inner_iters, brightness_weight=alpha, dual0=dual)
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
         "brightness_weight": alpha,
         "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok, NOISE_SAMPLES),
         "spatial_iterations": res.iterations, "spatial_converged": res.converged,
         "spatial_primal_residual": res.primal_residual,
-        "spatial_dual_residual": res.dual_residual, "rho": res.rho,
+        "spatial_dual_residual": res.dual_residual, "rho": res.rho, "spatial_dual": res.dual,
     }  # fmt: skip
     return res.x, info
