@@ -12,18 +12,19 @@ in the settings' ``sequence`` group (:class:`~hsi_torch.recon.settings.SequenceS
   per-pixel solution elsewhere) and its TV prox from the previous dual (its answer agrees with
   the cold one only to the ADMM's stopping rule).
 * **A temporal prior** (``temporal="quadratic"``, per-pixel solve only): each pixel solves
-  ``min_{s≥0} ‖W(As − y)‖² + β‖Ds‖² + μ_p‖s − s_prev‖²`` with ``s_prev`` the previous frame's
-  answer, i.e. ``G + μ_p I`` and ``b + μ_p s_prev`` (the factorisation of ``G + μ_p I`` made once
-  per sequence and reused), where the data say the pixel did not change. The **motion gate**: a
-  pixel is static when its previous answer fits this frame's observations at most
-  ``temporal_gate · |F_p| · σ̂_p²`` worse than its own per-pixel fit (``σ̂_p²`` the pixel's noise
-  variance from its fit residual, ``|F_p|`` its free bands: the noise rule of the spatial prior's
-  ``σ̂``, :func:`~hsi_torch.recon.spatial.noise.estimate_noise`, applied per pixel, so shot noise
-  that grows with brightness does not read as motion). Moving pixels, pixels whose observation
-  mask changed and the first frame keep their per-pixel answer. ``μ_p = temporal_weight ·
-  trace(G_p)/M``: relative to the pixel's data curvature (both terms are quadratic, so unlike the
-  TV weight it needs no noise scale; ``temporal_weight = 1`` weighs the previous answer about as
-  much as one frame's data).
+  ``min_{s≥0} ‖W(As − y)‖² + β‖Ds‖² + w·‖s − s_prev‖²_G`` with ``s_prev`` the previous frame's
+  answer and ``‖v‖²_G = vᵀGv`` the pixel's own data metric (``G = AᵀWA + βDᵀD``), where the data
+  say the pixel did not change: the previous answer counts as ``w`` (``temporal_weight``) more
+  frames of data, in every direction as well determined as the data make it. The minimiser is
+  the per-pixel NNLS solution for ``b̃ = (b + wGs_prev)/(1 + w)`` with the same ``G``, so the
+  bundle's factorisation is reused and the exact active-set solver gives it. The **motion
+  gate**: a pixel is static when its previous answer fits this frame's observations at most
+  ``temporal_gate · |F_p| · σ̂_p²`` worse than its own per-pixel fit (``|F_p|`` its free bands;
+  ``σ̂_p²`` the pixel's noise variance: its own fit residual per spare observation, so shot noise
+  that grows with brightness does not read as motion, and at least the frame's pooled ``σ̂²`` of
+  the spatial prior's rule, :func:`~hsi_torch.recon.spatial.noise.frame_noise_level`, for pixels
+  with few spare observations). Moving pixels, pixels whose observation mask changed and the
+  first frame keep their per-pixel answer.
 * **Drift as a path** (``drift_track``): every frame's sensor motion is measured
   (:func:`~hsi_torch.recon.drift.estimate_drift`) and a straight line in time is fitted to the
   last ``drift_window`` measurements (least squares in shift x, y and rotation); the frame is
@@ -70,6 +71,7 @@ from hsi_torch.recon.nnls import NNLSProblem
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.settings import ReconstructSettings, with_overrides
+from hsi_torch.recon.spatial.noise import frame_noise_level
 
 __all__ = ["SequenceReconstructor", "DriftPath", "temporal_problem"]
 
@@ -163,32 +165,25 @@ class _Identity:
         return y if idx is None else y[idx]
 
 
-def temporal_problem(problem: NNLSProblem, mu: Tensor) -> NNLSProblem:
-    """The per-pixel problems with the temporal penalty: ``G + μ_p I`` (``mu (P,)``) and their
-    inverses, solved with right-hand sides ``b + μ_p s_prev`` given directly as ``y``."""
+def temporal_problem(problem: NNLSProblem, num_pixels: int) -> NNLSProblem:
+    """The per-pixel problems of the temporal prior, solved with their right-hand sides given
+    directly as ``y``: the prior ``w‖s − s_prev‖²_G`` (``G`` the pixel's own Gram matrix) turns
+    ``½sᵀGs − bᵀs`` into ``½(1 + w)sᵀGs − (b + wGs_prev)ᵀs``, whose minimiser over ``s ≥ 0`` is
+    that of ``½sᵀGs − b̃ᵀs`` with ``b̃ = (b + wGs_prev)/(1 + w)``: the same ``G`` and its stored
+    factorisation, shared with ``problem`` (nothing is factorised again)."""
     G = problem.gram
-    P, m = mu.shape[0], G.shape[-1]
-    eye = torch.eye(m, dtype=G.dtype, device=G.device)
-    Gt = G.expand(P, m, m) + mu.to(G.dtype).view(P, 1, 1) * eye
-    L, info = torch.linalg.cholesky_ex(Gt)
-    Ht = torch.cholesky_inverse(L)
-    sing = info != 0
-    Ht = torch.where(sing.view(P, 1, 1), torch.zeros((), dtype=G.dtype, device=G.device), Ht)
-    diag = Gt.diagonal(dim1=1, dim2=2).contiguous()
-    gn = problem.gram_norm.expand(P) + mu.to(G.dtype)
-    nod = problem.no_data.expand(P)
-    op = _Identity(P, m, G.dtype, G.device)
+    op = _Identity(num_pixels, G.shape[-1], G.dtype, G.device)
     return NNLSProblem(
-        op,
+        op,  # type: ignore[arg-type]
         None,
         problem.beta,
         problem.diff_order,
-        Gt.contiguous(),  # type: ignore[arg-type]
-        Ht.contiguous(),
-        diag,
-        gn.contiguous(),
-        sing,
-        nod.clone(),
+        G,
+        problem.gram_inv,
+        problem.gram_diag,
+        problem.gram_norm,
+        problem.singular,
+        problem.no_data,
     )
 
 
@@ -230,7 +225,6 @@ class SequenceReconstructor:
         )
         self.path = DriftPath(s.sequence.drift_window, s.sequence.drift_jump_px)
         self._temporal: NNLSProblem | None = None
-        self._mu: Tensor | None = None
         self._prev: Tensor | None = None  # (P, M) the last answer (temporal prior)
         self._prev_ok: Tensor | None = None
         self.frame_index = 0
@@ -391,7 +385,13 @@ class SequenceReconstructor:
             r_prev = ((model.A(prev) - y) * w).square().sum(1)
             n = w.sum(1)
             k = (x > 0).sum(1).to(sens.dtype)
+            # the pixel's noise variance: its own fit residual per spare observation, at least
+            # the frame's pooled estimate (the spatial prior's rule, with the fit's effective
+            # degrees of freedom): a pixel with few spare observations has no estimate of its own
+            sigma = frame_noise_level(sens, y, mask, ok, x)
             var = r_fit / (n - k).clamp_min(1.0)
+            if math.isfinite(sigma):
+                var = var.clamp_min(sigma * sigma)
             changed = (mask != sens.obs_mask.to(mask.device)).any(1)
             static = (
                 ok
@@ -399,14 +399,11 @@ class SequenceReconstructor:
                 & ~changed
                 & (r_prev - r_fit <= sq.temporal_gate * k.clamp_min(1.0) * var)
             )
-            if self._temporal is None:
-                G = prob.gram
-                tr = G.diagonal(dim1=1, dim2=2).sum(1).expand(x.shape[0])
-                self._mu = sq.temporal_weight * tr / M
-                self._temporal = temporal_problem(prob, self._mu)
-            mu = self._mu
+            if self._temporal is None or self._temporal.gram is not prob.gram:
+                self._temporal = temporal_problem(prob, x.shape[0])
+            wt = sq.temporal_weight
             b = model.A_adjoint(y)
-            bt = b + mu.view(-1, 1) * prev
+            bt = (b + wt * prob.gram_apply(prev)) / (1.0 + wt)
             sol = self._temporal.solve(bt, x0=x if self.warm is not None else None)
             xt = torch.where(static.unsqueeze(1), sol.x, x)
         cube, valid = assemble_cube(sens, xt, ok, self.settings.solve.nan_invalid)

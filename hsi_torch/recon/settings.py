@@ -466,11 +466,11 @@ class SequenceSettings:
             static pixels and its TV prox from the previous dual. Off by default: it ran as many
             iterations as the cold start, and its tolerance-stopped answers can be further from
             the optimum than the cold ones (``docs/sequences.md``).
-        temporal: ``"none"`` or ``"quadratic"``: a penalty ``μ‖s_t − s_{t−1}‖²`` per pixel on
-            the change of its spectrum since the previous frame's answer, on the pixels whose
-            data the previous answer still explains (the motion gate, ``temporal_gate``).
-        temporal_weight: ``μ`` relative to each pixel's data curvature, ``μ_p = w·trace(G_p)/M``
-            (``> 0``).
+        temporal: ``"none"`` or ``"quadratic"``: a penalty ``w‖s_t − s_{t−1}‖²_G`` per pixel on
+            the change of its spectrum since the previous frame's answer (``G`` the pixel's Gram
+            matrix), on the pixels whose data the previous answer still explains (the motion
+            gate, ``temporal_gate``).
+        temporal_weight: ``w``: the previous answer counts as ``w`` frames of data (``> 0``).
         temporal_gate: a pixel is static when its previous answer explains this frame's
             observations within ``gate·|F|`` times its own noise variance (estimated from its
             fit residual; ``|F|`` its free bands) more than its own fit does (``> 0``).
@@ -489,8 +489,9 @@ class SequenceSettings:
     temporal: str = _set("none", "temporal prior: none or quadratic (a gated penalty on the "
                          "change of each pixel's spectrum since the previous frame)",
                          key="temporal", yaml=False)
-    temporal_weight: float = _set(1.0, "the temporal penalty relative to each pixel's data "
-                                  "curvature trace(G)/M", key="temporal_weight", yaml=False)
+    temporal_weight: float = _set(1.0, "the temporal penalty's weight: the previous answer "
+                                  "counts as this many frames of data", key="temporal_weight",
+                                  yaml=False)
     temporal_gate: float = _set(4.0, "motion gate: how much worse (in the pixel's noise "
                                 "variance per free band) the previous answer may fit this "
                                 "frame's data", key="temporal_gate", yaml=False)
