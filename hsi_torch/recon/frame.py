@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
@@ -61,6 +62,7 @@ from hsi_torch.recon.uncertainty import (
 
 __all__ = [
     "FrameOutput",
+    "WarmStart",
     "reconstruct_frame",
     "sample_views",
     "observations_from_samples",
@@ -75,6 +77,36 @@ __all__ = [
 
 #: Pixels (evenly spaced over the bundle's valid pixels) on which the fit residual is evaluated.
 FIT_RESIDUAL_SAMPLES = 4096
+
+
+@dataclass
+class WarmStart:
+    """The solver state one frame hands the next (a sequence of captures of one bundle).
+
+    Passed to :func:`solve_observations` / :func:`reconstruct_frame` (one frame at a time), it
+    is read as the start of the solves and then overwritten with this frame's state. The
+    answers do not depend on it beyond the solvers' tolerances: the active-set method ends at
+    the same KKT point from any start, the spatial ADMM at the same optimum to its tolerance.
+
+    Attributes:
+        per_pixel: start the active-set solve of the pixels that pivot from the zero set of
+            ``x`` (the previous frame's per-pixel solution) instead of the solver's own start.
+        spatial: start the spatial prior's ADMM from ``spatial_x`` (the previous frame's
+            answer) and its TV prox from ``spatial_dual`` instead of this frame's per-pixel
+            solution and a zero dual.
+        x: ``(P, M)`` the last per-pixel solution (``None`` before the first frame).
+        spatial_x: ``(P, M)`` the last spatial answer; spatial_dual: its TV prox dual.
+    """
+
+    per_pixel: bool = True
+    spatial: bool = True
+    x: Tensor | None = None
+    spatial_x: Tensor | None = None
+    spatial_dual: tuple | None = None
+
+    def reset(self) -> None:
+        """Forget the state (the next frame starts cold)."""
+        self.x = self.spatial_x = self.spatial_dual = None
 
 
 
@@ -254,12 +286,13 @@ def _reduced_resolve(
 def _solve_per_pixel(
     sens: BundleSensing, y: Tensor, mask: Tensor, V: int, min_views: int, premasked: bool,
     solver: str, admm_iters: int | None, chunk_size: int | None, threads: int,
+    x_start: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int]:
     """The per-pixel part of :func:`solve_observations`: the valid and changed pixels, the
     masked ``y``, the prepared problem's solve and the exact re-solves of the changed pixels.
     ``threads``: the solver's CPU threads (torch's own count is lowered to 1 around this call).
     Returns ``ok``, ``changed``, ``yc``, ``x``, ``converged``, ``kkt``, ``iterations``, the
-    number re-solved."""
+    number re-solved. ``x_start``: the frame solve's warm start (``problem.solve``'s ``x0``)."""
     P = y.shape[0]
     static = sens.obs_mask
     if (y.device.type == "cpu" and static.device.type == "cpu" and _frame_compiled.AVAILABLE
@@ -280,7 +313,7 @@ def _solve_per_pixel(
     kw: dict[str, Any] = dict(solver=solver, chunk_size=chunk_size, num_threads=threads)
     if solver == "admm" and admm_iters is not None:
         kw["admm_iters"] = int(admm_iters)
-    res = sens.problem.solve(yc, **kw)
+    res = sens.problem.solve(yc, x0=x_start, **kw)
     x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
     n_changed = int(torch.count_nonzero(changed))
     if n_changed:
@@ -300,6 +333,24 @@ def _solve_per_pixel(
 
 
 
+#: The spatial warm start keeps the previous frame's answer on the pixels whose per-pixel
+#: solution changed by at most this many times the frame's median change (the static ones).
+STATIC_CHANGE_FACTOR = 4.0
+
+
+def _spatial_start(x: Tensor, prev_x: Tensor, prev_spatial: Tensor, ok: Tensor) -> Tensor:
+    """The spatial ADMM's warm start: the previous frame's spatial answer where the pixel is
+    static (its per-pixel solution moved by ``≤`` :data:`STATIC_CHANGE_FACTOR` × the median
+    squared change over the valid pixels: the noise, when most of the scene is still), this
+    frame's per-pixel solution where it moved (a moving pixel's previous answer is a worse
+    start than its own data)."""
+    d = (x - prev_x.to(x)).square().sum(1)
+    if not bool(ok.any()):
+        return x
+    keep = ok & (d <= STATIC_CHANGE_FACTOR * d[ok].median())
+    return torch.where(keep.unsqueeze(1), prev_spatial.to(x), x)
+
+
 def solve_observations(
     sens: BundleSensing,
     y: Tensor,
@@ -308,6 +359,7 @@ def solve_observations(
     *,
     premasked: bool = False,
     stats: bool = True,
+    warm: WarmStart | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Solve one frame's ``P`` pixels with the precomputed factorisation (+ exact re-solves).
 
@@ -327,6 +379,8 @@ def solve_observations(
             as is, without a masked copy.
         stats: compute ``info`` (host syncs: counts, KKT statistics, fit residual); ``False``:
             ``info`` is empty and only the solve's own control flow reads the device.
+        warm: the previous frame's state (:class:`WarmStart`): read as the solves' start,
+            then replaced by this frame's.
 
     Returns:
         ``x (P, M)`` (0 where invalid), ``ok (P,)`` bool, ``info`` (counts, KKT statistics).
@@ -340,9 +394,19 @@ def solve_observations(
     # solver (a multi-threaded element-wise kernel waits at its barrier for a core another
     # process holds; the compiled pass has its own threads)
     threads = torch.get_num_threads()
+    x_start = prev_x = None if warm is None else warm.x
+    if (warm is not None and warm.per_pixel and warm.x is not None
+            and warm.x.shape == (P, sens.num_bands)
+            and not (torch.is_grad_enabled() and y.requires_grad)):
+        x_start = warm.x.to(device=y.device, dtype=sens.dtype)
+    else:
+        x_start = None
     with cpu_threads(y.device, 1):
         ok, changed, yc, x, conv, kkt, iters, n_changed = _solve_per_pixel(
-            sens, y, mask, V, min_views, premasked, solver, admm_iters, sv.chunk_size, threads)
+            sens, y, mask, V, min_views, premasked, solver, admm_iters, sv.chunk_size, threads,
+            x_start)
+    if warm is not None:
+        warm.x = x.detach().clone()
     native_grad = solver == "admm" and admm_iters is not None
     grad = torch.is_grad_enabled() and yc.requires_grad
     sinfo: dict[str, Any] = {}
@@ -351,8 +415,16 @@ def solve_observations(
         if grad and pr.spatial_iters is None:
             raise ValueError("prior='tv' with gradients needs spatial_iters=N (fixed, "
                              "differentiable iterations)")
+        start, dual = None, None
+        if (warm is not None and warm.spatial and warm.spatial_x is not None
+                and prev_x is not None and warm.spatial_x.shape == x.shape == prev_x.shape):
+            start, dual = _spatial_start(x, prev_x, warm.spatial_x, ok), warm.spatial_dual
         x, sinfo = spatial_solve_frame(sens, yc, mask, ok, changed, x, lam=pr.lam,
-                                       iters=pr.spatial_iters, rank=pr.spectral_rank)
+                                       iters=pr.spatial_iters, rank=pr.spectral_rank,
+                                       start=start, dual=dual)
+        sdual = sinfo.pop("spatial_dual", None)
+        if warm is not None:
+            warm.spatial_x, warm.spatial_dual = x.detach().clone(), sdual
     elif grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
     if prior != "tv" and x.device.type == "cpu" and not x.requires_grad:
@@ -478,6 +550,7 @@ def reconstruct_frame(
     scale: Tensor | float | None = None,
     stats: bool = True,
     sampling_factor: Tensor | None = None,
+    warm: WarmStart | None = None,
 ) -> FrameOutput:
     """Frames → cubes: the one frame function of :class:`~hsi_torch.recon.pipeline.Reconstructor`
     and :class:`~hsi_torch.recon.module.HSIReconstructor`.
@@ -494,6 +567,9 @@ def reconstruct_frame(
             ``False`` (the ``nn.Module``): no timing, no statistics, no extra sync.
         sampling_factor: with uncertainty, the ``(P, 3V)`` variance factor of the observations
             (:func:`~hsi_torch.recon.uncertainty.sampling_variance_factor`; ``None``: 1).
+        warm: the solver state of the previous frame (:class:`WarmStart`, a sequence), read and
+            replaced by this frame's; with a batch of several frames they are solved in order,
+            each starting from the one before.
 
     Returns:
         :class:`FrameOutput`.
@@ -532,7 +608,7 @@ def reconstruct_frame(
     num_obs = int(torch.count_nonzero(sens.obs_mask)) if stats else 0
     for i in range(y.shape[0]):
         x, ok, info = solve_observations(sens, y[i], mask[i], settings, premasked=inplace,
-                                         stats=stats)  # fmt: skip
+                                         stats=stats, warm=warm)  # fmt: skip
         if stats:
             info["observations"] = num_obs
             info["usable_observations"] = int(torch.count_nonzero(mask[i]))

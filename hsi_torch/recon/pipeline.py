@@ -29,6 +29,7 @@ from hsi_torch.recon.checks import exposure_info, exposure_scale, measure_captur
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
 from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.frame import (
+    WarmStart,
     _sync,
     check_min_views,
     prepare_input,
@@ -163,6 +164,7 @@ class Reconstructor:
         source: str = "capture",
         raw_layout: str | None = None,
         bundle_corrections: bool = True,
+        warm: WarmStart | None = None,
     ) -> ReconstructionResult:
         """Reconstruct one capture.
 
@@ -179,6 +181,8 @@ class Reconstructor:
             bundle_corrections: apply the corrections the bundle's calibration applied
                 (:func:`correct_frames`: veil subtracted, hot and dead pixels masked; reported
                 in the statistics); ``False`` for an image already corrected.
+            warm: the previous frame's solver state (:class:`~hsi_torch.recon.frame.WarmStart`;
+                a sequence, :mod:`hsi_torch.recon.sequence`), read and replaced by this frame's.
 
         Returns:
             :class:`ReconstructionResult`.
@@ -227,7 +231,7 @@ class Reconstructor:
         with torch.no_grad():
             out = reconstruct_frame(
                 sens, img.unsqueeze(0), settings, None if sat is None else sat.unsqueeze(0),
-                scale=None if scale == 1.0 else scale, sampling_factor=factor,
+                scale=None if scale == 1.0 else scale, sampling_factor=factor, warm=warm,
             )  # fmt: skip
         cube, valid, stats, t = out.cube, out.valid, out.stats, out.timings
         st = stats[0]

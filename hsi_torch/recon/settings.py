@@ -50,6 +50,8 @@ __all__ = [
     "OutputSettings",
     "UncertaintySettings",
     "RegistrationSettings",
+    "SequenceSettings",
+    "TEMPORAL_KINDS",
     "DEFAULT_BETA",
     "SOLVERS",
     "PRIORS",
@@ -451,6 +453,77 @@ class RegistrationSettings:
         _count("drift_min_views", self.min_views, 2, allow_none=False)
 
 
+#: the temporal prior's kinds (``sequence_temporal``)
+TEMPORAL_KINDS = ("none", "quadratic")
+
+
+@dataclass(frozen=True)
+class SequenceSettings:
+    """Frames of one sequence reconstructed in order (:mod:`hsi_torch.recon.sequence`). Flat
+    keys: ``warm_start``, ``warm_spatial``, ``temporal``, ``temporal_weight``,
+    ``temporal_gate``, ``drift_track``, ``drift_window``, ``drift_jump_px``. Settings of the
+    Python API (not in ``reconstruct.yaml``).
+
+    Attributes:
+        warm_start: the per-pixel active-set solve of the pixels that pivot starts from the
+            previous frame's zero set (the same KKT points as cold solves). Off by default: on
+            the simulated moving scene it was not faster than the solver's own start
+            (``docs/sequences.md``).
+        warm_spatial: the spatial prior's ADMM starts from the previous frame's answer on the
+            static pixels and its TV prox from the previous dual. Off by default: it ran as many
+            iterations as the cold start, and its tolerance-stopped answers can be further from
+            the optimum than the cold ones (``docs/sequences.md``).
+        temporal: ``"none"`` or ``"quadratic"``: a penalty ``w‖s_t − s_{t−1}‖²_G`` per pixel on
+            the change of its spectrum since the previous frame's answer (``G`` the pixel's Gram
+            matrix), on the pixels whose data the previous answer still explains (the motion
+            gate, ``temporal_gate``).
+        temporal_weight: ``w``: the previous answer counts as ``w`` frames of data (``> 0``).
+        temporal_gate: a pixel is static when its previous answer explains this frame's
+            observations within ``gate·|F|`` times its own noise variance (estimated from its
+            fit residual; ``|F|`` its free bands) more than its own fit does (``> 0``).
+        drift_track: measure every frame's sensor drift and correct the drift of a smooth path
+            fitted over the recent frames instead of each frame's own estimate.
+        drift_window: frames the path is fitted over (an integer ``>= 2``).
+        drift_jump_px: a frame whose measured drift is this far (px) from the path's prediction
+            is a jump (a ``drift_jump`` finding): the path restarts from it (``> 0``).
+    """
+
+    warm_start: bool = _set(False, "start each frame's per-pixel active-set solve from the "
+                            "previous frame's zero set", key="warm_start", yaml=False)
+    warm_spatial: bool = _set(False, "start each frame's spatial-prior ADMM from the previous "
+                              "frame's answer (static pixels) and TV dual", key="warm_spatial",
+                              yaml=False)
+    temporal: str = _set("none", "temporal prior: none or quadratic (a gated penalty on the "
+                         "change of each pixel's spectrum since the previous frame)",
+                         key="temporal", yaml=False)
+    temporal_weight: float = _set(1.0, "the temporal penalty's weight: the previous answer "
+                                  "counts as this many frames of data", key="temporal_weight",
+                                  yaml=False)
+    temporal_gate: float = _set(4.0, "motion gate: how much worse (in the pixel's noise "
+                                "variance per free band) the previous answer may fit this "
+                                "frame's data", key="temporal_gate", yaml=False)
+    drift_track: bool = _set(False, "measure the drift of every frame and correct a smooth path "
+                             "fitted over the recent frames", key="drift_track", yaml=False)
+    drift_window: int = _set(10, "frames the drift path is fitted over", key="drift_window",
+                             yaml=False)
+    drift_jump_px: float = _set(0.5, "a measured drift this far (px) from the path's "
+                                "prediction is a jump: flagged, and the path restarts",
+                                key="drift_jump_px", yaml=False)
+
+    def __post_init__(self) -> None:
+        for key, v in (("warm_start", self.warm_start), ("warm_spatial", self.warm_spatial),
+                       ("drift_track", self.drift_track)):
+            if not isinstance(v, bool):
+                raise _bad(key, f"must be true or false, got {v!r}")
+        _choice("temporal", self.temporal, TEMPORAL_KINDS)
+        for key in ("temporal_weight", "temporal_gate", "drift_jump_px"):
+            v = _number(key, getattr(self, key))
+            if not v > 0:
+                raise _bad(key, f"must be > 0, got {v}")
+            object.__setattr__(self, key, v)
+        _count("drift_window", self.drift_window, 2, allow_none=False)
+
+
 #: Keys of earlier releases, refused with what to write instead. ``spectra_points`` was
 #: ``[x, y]`` = ``[col, row]``; every point option is now ``[row, col]`` (napari's order).
 RENAMED_KEYS: dict[str, str] = {
@@ -471,11 +544,16 @@ class ReconstructSettings:
     output: OutputSettings = field(default_factory=OutputSettings)
     uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
     registration: RegistrationSettings = field(default_factory=RegistrationSettings)
+    sequence: SequenceSettings = field(default_factory=SequenceSettings)
 
     def __post_init__(self) -> None:  # rules across groups
         if self.prior.kind != "none" and self.uncertainty.enabled:
             raise _bad("uncertainty", "true is the per-pixel solver's noise model; it does not "
                                       f"hold for prior={self.prior.kind} (use prior: none)")
+        if self.sequence.temporal != "none" and self.prior.kind != "none":
+            raise _bad("temporal", f"{self.sequence.temporal!r} is a prior of the per-pixel "
+                                   f"solve; it does not combine with prior={self.prior.kind} "
+                                   "(use prior: none)")
 
     @classmethod
     def from_flat(

@@ -285,7 +285,8 @@ if AVAILABLE:
     @_nb.njit(cache=True, error_model="numpy")
     def _frame_kernel_chunk(ch, G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half,
                             patience, floor, sweeps, x_out, z_out, plain, r_out, status, rounds,
-                            num_chunks, fused, y, mask, Bt, gain, resp):  # pragma: no cover
+                            num_chunks, fused, y, mask, Bt, gain, resp, zinit,
+                            use_init):  # pragma: no cover
         """One chunk of :func:`_frame_kernel`'s pixels (one thread's work)."""
         n, m = b.shape
         shared = G.shape[0] == 1
@@ -329,7 +330,10 @@ if AVAILABLE:
                         need = True
             st, rnd, have_g = DONE, 0, False
             if need:
-                if sweeps > 0:
+                if use_init:  # a given start (the previous frame's zero set)
+                    for j in range(m):
+                        Z[j] = zinit[r, j]
+                elif sweeps > 0:
                     _start_zero_set(G, p, x0, gd, sweeps, xc, gc, wc, Z)
                 else:
                     for j in range(m):
@@ -380,13 +384,15 @@ if AVAILABLE:
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _frame_kernel(G, H, b, gd, gn, skip, tol, max_rounds, refine, frac, half, patience,
                       floor, sweeps, x_out, z_out, plain, r_out, status, rounds, num_chunks,
-                      fused, y, mask, Bt, gain, resp):  # pragma: no cover - compiled
+                      fused, y, mask, Bt, gain, resp, zinit,
+                      use_init):  # pragma: no cover - compiled
         for ch in _nb.prange(num_chunks):
             # int64 both when typed and when lowered (prange's index is then
             # uint64): one compiled signature, not two
             _frame_kernel_chunk(np.int64(ch), G, H, b, gd, gn, skip, tol, max_rounds, refine, frac,
                                 half, patience, floor, sweeps, x_out, z_out, plain, r_out, status,
-                                rounds, num_chunks, fused, y, mask, Bt, gain, resp)
+                                rounds, num_chunks, fused, y, mask, Bt, gain, resp, zinit,
+                                use_init)
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _adjoint_kernel(y, mask, Bt, gain, resp, out, num_chunks):  # pragma: no cover
@@ -543,6 +549,7 @@ def solve_frame_cpu(
     G: np.ndarray, H: np.ndarray, b: np.ndarray, gd: np.ndarray, gn: np.ndarray,
     skip: np.ndarray, tol: float, max_rounds: int, refine: int, num_threads: int,
     factors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    zero_set: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Steps 1–3 of the active-set solve for every pixel in one compiled pass.
 
@@ -562,7 +569,10 @@ def solve_frame_cpu(
         gd: ``(P|1, M)`` ``diag G``; gn: ``(P|1,)`` the ``‖G‖₂`` bound; skip: ``(P,)`` bool
         (singular or without data: no pivoting); factors: ``None`` (``b`` given), or
         ``(y (P, O), mask (P, O) bool, transmittance (P, V, M), gain (P, V), response (C, M))``
-        with ``O = V·C`` and ``o = C·v + c`` (:class:`~hsi_torch.forward_model.SensingModel`).
+        with ``O = V·C`` and ``o = C·v + c`` (:class:`~hsi_torch.forward_model.SensingModel`);
+        zero_set: ``(P, M)`` bool first zero set of the pixels that pivot (a warm start, e.g.
+        the previous frame's ``x == 0``) instead of the coordinate-descent start; the exchange
+        rules terminate from any start, so only the rounds change.
 
     Returns:
         ``x (P, M) ≥ 0``, ``Z (P, M)`` bool zero sets, ``residual (P,)`` float64, ``status (P,)``
@@ -594,11 +604,16 @@ def solve_frame_cpu(
                 f"solve_frame_cpu: factors y {y.shape}, mask {mask.shape}, transmittance "
                 f"{Bt.shape}, gain {gain.shape}, response {resp.shape} do not match "
                 f"b {b.shape} as (P, V·C), (P, V·C), (P, V, M), (P, V), (C, M)")
+    if zero_set is not None and zero_set.shape != (n, m):
+        raise ValueError(f"solve_frame_cpu: zero_set must be {(n, m)}, got {zero_set.shape}")
+    zinit = (np.zeros((1, m), np.bool_) if zero_set is None
+             else np.ascontiguousarray(zero_set, dtype=np.bool_))
     with threads(num_threads):
         _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine),
                       float(INFEASIBILITY_FRACTION), int(zero_set_limit(m)), int(MURTY_PATIENCE),
                       float(COMPILED_FLOOR), int(START_SWEEPS), x, z, plain, res, status,
-                      rounds, min(n, 512), factors is not None, *fac)
+                      rounds, min(n, 512), factors is not None, *fac, zinit,
+                      zero_set is not None)
     return x, z, res, status, rounds, plain
 
 

@@ -231,6 +231,7 @@ def _bucket_plan(m: int, hybrid: bool, device: torch.device) -> tuple[Tensor, li
 def _bpp(
     H: Tensor, idx: Tensor, x0: Tensor, gd: Tensor, thr: Tensor, max_iter: int,
     b: Tensor | None = None, free_solve: FreeSetSolver | None = None,
+    z0: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Block principal pivoting (Júdice–Pires, Kim–Park) with zero-set or free-set solves.
 
@@ -252,6 +253,8 @@ def _bpp(
         max_iter: maximum number of exchange rounds.
         b: ``(n, M)`` right-hand sides and free_solve: a :class:`FreeSetSolver`; without them
             every solve is a zero-set solve.
+        z0: ``(n, M)`` bool first zero sets (a warm start) instead of the negative entries of
+            ``x0``.
 
     Returns:
         ``x (n, M)``, ``Z (n, M)`` final zero sets, ``done (n,)``, ``failed (n,)`` (a small
@@ -272,7 +275,7 @@ def _bpp(
         kz = Zs.sum(1)
         return torch.where(kz > half, (m + 1) + (m - kz), kz) if hybrid else kz
 
-    Z = x0 * gd < -thr
+    Z = x0 * gd < -thr if z0 is None else z0.clone()
     z0_empty = ~Z.any(1)  # candidates without a clearly negative entry: 0 rounds if done at once
     # working set, kept sorted by the bucket key so that each bucket is a contiguous slice
     key = sort_key(Z)

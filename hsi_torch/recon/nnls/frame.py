@@ -89,7 +89,7 @@ def use_compiled(problem: NNLSProblem, backend: str) -> bool:
 
 def solve_active_set(
     problem: NNLSProblem, y: Tensor, tol: float, max_iter: int, refine: int, n: int, n_corr: int,
-    workers: int, backend: str = "auto",
+    workers: int, backend: str = "auto", zero_set: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Active-set solve of the whole frame ``y (P, O)`` (see the module docstring).
 
@@ -98,7 +98,8 @@ def solve_active_set(
             most :data:`~hsi_torch.recon.nnls.constants.BPP_ROUNDS` of them); refine: steps of
             iterative refinement; n: pixels per chunk of the streamed stages; n_corr: pixels per
             correction batch; workers: CPU threads sharing the chunks (1 elsewhere); backend:
-            :func:`use_compiled`.
+            :func:`use_compiled`; zero_set: ``(P, M)`` bool first zero set of the pixels that
+            pivot (a warm start; default: each kernel's own start).
 
     Returns:
         ``x (P, M)``, ``converged (P,)``, ``iterations (P,)``, ``kkt_residual (P,)``,
@@ -114,14 +115,14 @@ def solve_active_set(
     irregular = sing | nod  # x = H b = 0 there (H = 0 or b = 0)
     steps = _steps_compiled if use_compiled(problem, backend) else _steps_torch
     st = steps(problem, y, tol, min(max_iter, BPP_ROUNDS), refine, n, n_corr, workers, sing, nod,
-               irregular)
+               irregular, zero_set)
     check_finite_rhs(st.b, y, problem.mask)  # NaN/inf, or b overflowing: an error
     return _finish(problem, st, irregular, nod, tol, max_iter, refine, n_corr)
 
 
 def _steps_compiled(
     problem: NNLSProblem, y: Tensor, tol: float, rounds: int, refine: int, n: int, n_corr: int,
-    workers: int, sing: Tensor, nod: Tensor, irregular: Tensor,
+    workers: int, sing: Tensor, nod: Tensor, irregular: Tensor, zero_set: Tensor | None = None,
 ) -> _Steps:
     """Steps 1–3 pixel by pixel in one compiled pass (:func:`_compiled.solve_frame_cpu`)."""
     P, m = y.shape[0], problem.num_bands
@@ -136,6 +137,7 @@ def _steps_compiled(
     out = _compiled.solve_frame_cpu(
         problem.gram.numpy(), problem.gram_inv.numpy(), b.numpy(), problem.gram_diag.numpy(),
         problem.gram_norm.numpy(), irregular.numpy(), tol, rounds, refine, workers, factors,
+        None if zero_set is None else zero_set.numpy(),
     )  # fmt: skip
     x, zset = torch.from_numpy(out[0]), torch.from_numpy(out[1])
     r = torch.from_numpy(out[2]).to(problem.dtype)
@@ -164,7 +166,7 @@ def _fused_factors(problem: NNLSProblem, y: Tensor) -> tuple | None:
 
 def _steps_torch(
     problem: NNLSProblem, y: Tensor, tol: float, rounds: int, refine: int, n: int, n_corr: int,
-    workers: int, sing: Tensor, nod: Tensor, irregular: Tensor,
+    workers: int, sing: Tensor, nod: Tensor, irregular: Tensor, zero_set: Tensor | None = None,
 ) -> _Steps:
     """Steps 1–3 with the batched torch kernels, streamed over pixel chunks."""
     P, m = y.shape[0], problem.num_bands
@@ -209,7 +211,7 @@ def _steps_torch(
         def correct(sl: slice) -> None:
             ic = idx[sl]
             xs, zs, ds, fs, its = _bpp(H, ic, x[ic], gd[ic], thr[ic].unsqueeze(1), rounds, b[ic],
-                                       free_solve)
+                                       free_solve, None if zero_set is None else zero_set[ic])
             x[ic], zset[ic], done[ic], iters[ic] = xs, zs, ds, its
             redo[ic] |= fs | ~ds
 

@@ -307,7 +307,11 @@ class NNLSProblem:
             refine: at most this many steps of iterative refinement (on the final zero set), only
                 for pixels whose KKT residual exceeds ``tol`` (default 2).
             chunk_size / max_memory: pixels per chunk, or a working-memory budget in bytes.
-            x0: ``(P, M)`` ADMM warm start (e.g. the previous frame's solution).
+            x0: ``(P, M)`` warm start (e.g. the previous frame's solution): ADMM starts from
+                it; the active-set method starts the pixels that need pivoting from its zero set
+                ``x0 == 0`` (instead of the negative entries of ``G⁻¹b`` or the compiled
+                kernel's coordinate-descent start). The answer is the same (the exchange rules
+                terminate from any start); only the rounds change.
             admm_iters: run exactly this many ADMM iterations (no data-dependent stopping,
                 differentiable w.r.t. ``y``). Ignored by the active-set method.
             rho: ADMM penalty; default per pixel ``trace(G)/M``.
@@ -383,7 +387,8 @@ class NNLSProblem:
                                 default=_default_solve_chunk(self.device))
             with torch.no_grad():
                 out = solve_active_set(self, y, tol, max_iter or 10 * m, int(refine), n,
-                                       n_corr, workers, backend)
+                                       n_corr, workers, backend,
+                                       None if x0 is None else x0 == 0)
             return NNLSResult(*out, solver)
         out = solve_admm(self, y, tol, max_iter or 5000, chunk_size, max_memory, admm_iters, rho,
                          x0)

@@ -71,6 +71,8 @@ class SpatialResult:
         iterations: ADMM iterations run; converged: the stopping rule was met (always True in
             the fixed-iteration mode); primal_residual, dual_residual: the last relative residuals
             (see the module docstring); lam: the ``λ`` used (objective scale); rho: the penalty.
+        dual: the TV prox's final dual state (compiled backend: band-major arrays; ``None``
+            elsewhere), for ``dual0`` of the next frame's solve.
     """
 
     x: Tensor
@@ -80,6 +82,7 @@ class SpatialResult:
     dual_residual: float
     lam: float
     rho: float
+    dual: tuple | None = None
 
 
 def solve_spatial(
@@ -96,6 +99,7 @@ def solve_spatial(
     backend: str = "auto",
     brightness_weight: float = 1.0,
     nonneg: bool = True,
+    dual0: tuple | None = None,
 ) -> SpatialResult:
     """ADMM for ``min_{s ≥ 0} Σ_p s_pᵀG_p s_p − 2 b_pᵀ s_p + λ·TV(s)`` (see the module docstring).
 
@@ -127,6 +131,9 @@ def solve_spatial(
         nonneg: the bound ``s ≥ 0`` (default). ``False`` solves the problem without it (the
             TV prox alone; the spectral-subspace mode's coefficients, :mod:`.subspace`): the
             compiled backend only (tolerance-driven, CPU, numba).
+        dual0: the TV prox's dual to start from (:attr:`SpatialResult.dual` of a previous solve
+            of the same problem size, e.g. the previous frame of a sequence; compiled backend
+            only, ignored elsewhere and where its shape differs). Default: zeros.
 
     Returns:
         :class:`SpatialResult`.
@@ -136,7 +143,7 @@ def solve_spatial(
     if not 0.0 < float(brightness_weight) <= 1.0:
         raise ValueError(f"brightness_weight must be in (0, 1], got {brightness_weight}")
     return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters, backend,
-                          num_threads, float(brightness_weight), bool(nonneg))
+                          num_threads, float(brightness_weight), bool(nonneg), dual0)
 
 
 def _solve_spatial(
@@ -144,6 +151,7 @@ def _solve_spatial(
     tol: float | None, max_iter: int, iters: int | None, inner_iters: int,
     backend: str = "auto", num_threads: int | None = 1, alpha: float = 1.0,
     nonneg: bool = True,
+    dual0: tuple | None = None,
 ) -> SpatialResult:
     kernel_threads = torch.get_num_threads()
     P, m = problem.num_pixels, problem.num_bands
@@ -178,14 +186,15 @@ def _solve_spatial(
     if inputs is not None:  # the warm start's u is formed by the compiled pass itself
         with torch.no_grad():
             cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
-                                  kernel_threads, nonneg)
+                                  kernel_threads, nonneg, dual0)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
             # the TV factor is not read again until the next frame's ADMM: its pages of the
             # mapped precomputation cache leave the resident set (the warm start is next)
             disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
-            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho)
+            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho,
+                                 (cstep.p.copy(), cstep.psum.copy()))
     if not nonneg:
         raise ValueError("nonneg=False needs the compiled backend (numba, a CPU problem, pixels "
                          "in row-major order, the tolerance-driven mode)")
@@ -309,7 +318,7 @@ class _CompiledStep:
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, t: float, lam: float, inner_iters: int, alpha: float,
-                 num_blocks: int = 1, nonneg: bool = True) -> None:
+                 num_blocks: int = 1, nonneg: bool = True, dual0: tuple | None = None) -> None:
         self.inv_rows, graph = inputs
         self.rho, self.lam, self.alpha, self.nonneg = problem.rho, lam, alpha, nonneg
         self.t = t if lam > 0 else 0.0
@@ -340,6 +349,10 @@ class _CompiledStep:
         self.p2 = np.zeros_like(self.p)
         self.psum = np.zeros((2, P), self.z.dtype)
         self.psum2 = np.zeros_like(self.psum)
+        if (dual0 is not None and dual0[0].shape == self.p.shape
+                and dual0[1].shape == self.psum.shape):  # a warm start of the dual
+            self.p[...] = dual0[0]
+            self.psum[...] = dual0[1]
         self.grid = problem.fgp_grid()
         self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
         row_ptr = self.grid[0]

@@ -63,6 +63,8 @@ def solve_frame(
     guided: bool = False,
     brightness_weight: float = BRIGHTNESS_WEIGHT,
     rank: int | None = None,
+    start: Tensor | None = None,
+    dual: tuple | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -89,6 +91,10 @@ def solve_frame(
             complement per pixel (:mod:`~hsi_torch.recon.spatial.subspace`; the compiled CPU
             path with a fixed ``lam``; elsewhere, and for ``None`` or ``k = M``, the full-band
             solve).
+        start: ``(P, M)`` the ADMM's start instead of ``x0`` (e.g. the previous frame's answer
+            in a sequence; ``x0`` still gives the noise estimate); dual: the TV prox's dual to
+            start from (``info["spatial_dual"]`` of a previous frame, :func:`solve_spatial`'s
+            ``dual0``).
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -98,10 +104,11 @@ def solve_frame(
         ``mean_square_residual`` (DN², of the answer, on the noise estimate's
         :data:`NOISE_SAMPLES` pixels), ``spatial_iterations``,
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``,
-        ``brightness_weight``, ``spectral_rank`` (``k``, or ``M``: the full-band solve).
+        ``brightness_weight``, ``spectral_rank`` (``k``, or ``M``: the full-band solve),
+        ``spatial_dual`` (the final dual state, for ``dual``).
     """
     return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
-                        guided, brightness_weight, rank)
+                        guided, brightness_weight, rank, start, dual)
 
 
 def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
@@ -121,6 +128,7 @@ def _solve_frame(
     sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, changed: Tensor, x0: Tensor,
     lam: float | str, iters: int | None, inner_iters: int, tol: float | None, max_iter: int,
     guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT, rank: int | None = None,
+    start: Tensor | None = None, dual: tuple | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     auto = isinstance(lam, str)
     if auto and lam not in LAM_RULES:
@@ -161,8 +169,9 @@ def _solve_frame(
         # the per-pixel G⁻¹ is not read by the spatial solve: its pages of a mapped
         # precomputation cache entry leave the resident set until the next frame's warm start
         disk.release_pages(prob.gram_inv)
-        res = solve_spatial(sp, b, lam_abs, x0=x0, tol=tol, max_iter=max_iter, iters=iters,
-                            inner_iters=inner_iters, brightness_weight=alpha)
+        z0 = x0 if start is None else start.detach().to(device=x0.device, dtype=x0.dtype)
+        res = solve_spatial(sp, b, lam_abs, x0=z0, tol=tol, max_iter=max_iter, iters=iters,
+                            inner_iters=inner_iters, brightness_weight=alpha, dual0=dual)
         k = m
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
@@ -170,7 +179,7 @@ def _solve_frame(
         "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok, NOISE_SAMPLES),
         "spatial_iterations": res.iterations, "spatial_converged": res.converged,
         "spatial_primal_residual": res.primal_residual,
-        "spatial_dual_residual": res.dual_residual, "rho": res.rho,
+        "spatial_dual_residual": res.dual_residual, "rho": res.rho, "spatial_dual": res.dual,
     }  # fmt: skip
     return res.x, info
 

@@ -1,0 +1,238 @@
+"""Sequences: warm starts give the cold answers, the temporal prior lowers the error of a noisy
+still scene and keeps out of a moving part, the drift path tracks a growing drift and flags a
+jump, the moving scenes of the simulator move as specified. Tiny bundles (test_pipeline's) and
+analytic scenes: fast."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_pipeline import make_bundle, render_capture, true_spectra
+
+from hsi_torch.config import ConfigError
+from hsi_torch.recon.frame import WarmStart
+from hsi_torch.recon.nnls import _compiled as nnls_compiled
+from hsi_torch.recon.nnls import nnls_kkt_residual, prepare_nnls
+from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.recon.sequence import DriftPath, SequenceReconstructor
+from hsi_torch.recon.settings import ReconstructSettings
+from hsi_torch.simulate.motion import Illumination, Layer, LayeredScene, Motion
+
+BACKENDS = ["torch"] + (["compiled"] if nnls_compiled.AVAILABLE else [])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_warm_started_active_set_ends_at_the_cold_kkt_point(backend):
+    """Starting from another frame's zero set changes the rounds, not the answer: the same x as
+    the cold solve and the KKT residual within the tolerance on every pixel."""
+    g = torch.Generator().manual_seed(0)
+    P, O, M = 400, 30, 12
+    A = torch.rand(P, O, M, generator=g, dtype=torch.float64)
+    s0 = (torch.rand(P, M, generator=g, dtype=torch.float64) - 0.6).clamp_min(0)
+    s1 = (s0 + 0.3 * torch.randn(P, M, generator=g, dtype=torch.float64)).clamp_min(0)
+    prob = prepare_nnls(A, beta=0.5, diff_order=1)
+    y0 = torch.einsum("pom,pm->po", A, s0) + 0.05 * torch.randn(
+        P, O, generator=g, dtype=torch.float64
+    )
+    y1 = torch.einsum("pom,pm->po", A, s1) + 0.05 * torch.randn(
+        P, O, generator=g, dtype=torch.float64
+    )
+    prev = prob.solve(y0, backend=backend).x
+    assert int((prev == 0).sum()) > 2 * P  # a real zero set to start from
+    cold = prob.solve(y1, backend=backend)
+    warm = prob.solve(y1, backend=backend, x0=prev)
+    torch.testing.assert_close(warm.x, cold.x, rtol=1e-9, atol=1e-9)
+    G = prob.gram
+    b = torch.einsum("pom,po->pm", A, y1)
+    kkt = nnls_kkt_residual(G, b, warm.x, prob.gram_norm)
+    assert bool(warm.converged.all()) and float(kkt.max()) <= 1e-10
+
+
+def _frames(bundle, n: int, noise: float, seed: int = 0, change=None, growth: float = 0.02):
+    """``n`` captures of spectra growing by ``growth`` a frame, with some exact zeros (pivoting
+    pixels), Gaussian noise of ``noise`` DN; ``change(t, s)`` edits frame ``t``'s truth."""
+    base = true_spectra(zeros=True)
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for t in range(n):
+        s = base * (1 + growth * t)
+        if change is not None:
+            s = change(t, s)
+        img = render_capture(bundle, s)
+        img = img + noise * torch.randn(img.shape, generator=g, dtype=img.dtype)
+        out.append((s, img))
+    return out
+
+
+@pytest.mark.parametrize("prior", ["none", "tv"])
+def test_warm_sequence_matches_cold_frames(prior):
+    """The per-pixel warm start gives the cold cubes: the same KKT points, and with the spatial
+    prior the same start (this frame's per-pixel answer), so the same spatial answer."""
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior=prior)
+    cold = Reconstructor(bundle, **kw)
+    seq = SequenceReconstructor(cold.sensing, warm_start=True, **kw)
+    for _, img in _frames(bundle, 3, noise=0.5):
+        a = cold.reconstruct_frame(img)
+        b = seq.reconstruct(img)
+        v = a.valid
+        assert torch.equal(v, b.valid)
+        torch.testing.assert_close(b.cube[:, v], a.cube[:, v], rtol=1e-8, atol=1e-8)
+    assert seq.warm is not None and seq.warm.x is not None
+    assert b.stats["sequence"]["warm"] and b.stats["sequence"]["frame"] == 2
+
+
+def test_the_spatial_start_keeps_the_previous_answer_on_static_pixels_only():
+    """``warm_spatial``: static pixels (per-pixel change within 4× the median) start from the
+    previous spatial answer, a moved pixel from its own per-pixel solution."""
+    from hsi_torch.recon.frame import _spatial_start
+
+    g = torch.Generator().manual_seed(0)
+    prev_x = torch.rand(50, 4, generator=g, dtype=torch.float64)
+    x = prev_x + 0.01 * torch.randn(50, 4, generator=g, dtype=torch.float64)
+    x[7] += 1.0  # moved
+    prev_sp = torch.full_like(x, 0.5)
+    ok = torch.ones(50, dtype=torch.bool)
+    ok[3] = False
+    z = _spatial_start(x, prev_x, prev_sp, ok)
+    torch.testing.assert_close(z[7], x[7])
+    torch.testing.assert_close(z[3], x[3])  # invalid: its own
+    keep = torch.ones(50, dtype=torch.bool)
+    keep[[3, 7]] = False
+    assert int((z[keep] == 0.5).all(1).sum()) >= 40  # most static pixels kept the previous
+
+
+def test_the_temporal_prior_lowers_the_error_and_stays_out_of_a_moving_part():
+    """A noisy still scene: by frame 3 the temporal prior's answer is closer to the truth than
+    the independent frame's (the KKT conditions of the temporal problem hold). A patch that
+    changes at frame 4 is gated out: its pixels keep their own (independent) answers."""
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False)
+    ind = Reconstructor(bundle, **kw)
+    seq = SequenceReconstructor(ind.sensing, temporal="quadratic", **kw)
+
+    def change(t: int, s: torch.Tensor) -> torch.Tensor:
+        if t >= 4:
+            s = s.clone()
+            s[:, 10:16, 10:16] = s[:, 10:16, 10:16].flip(0) + 0.5
+        return s
+
+    frames = _frames(bundle, 6, noise=3.0, seed=2, change=change, growth=0.0)
+    for t, (s, img) in enumerate(frames):
+        a = ind.reconstruct_frame(img)
+        b = seq.reconstruct(img)
+        v = a.valid
+        if t == 3:  # still scene so far
+            ea = float((a.cube[:, v] - s[:, v]).norm())
+            eb = float((b.cube[:, v] - s[:, v]).norm())
+            assert eb < 0.8 * ea
+            assert b.stats["sequence"]["temporal_static_fraction"] > 0.9
+            assert b.stats["sequence"]["temporal_max_kkt"] <= 1e-10
+        if t == 4:  # the patch changed: gated out
+            patch = torch.zeros_like(v)
+            patch[10:16, 10:16] = True
+            pv = v & patch
+            torch.testing.assert_close(b.cube[:, pv], a.cube[:, pv])
+            assert b.stats["sequence"]["temporal_static"] <= int((v & ~patch).sum())
+
+
+def test_temporal_settings_are_validated():
+    with pytest.raises(ConfigError, match="temporal"):
+        ReconstructSettings.from_flat(temporal="kalman")
+    with pytest.raises(ConfigError, match="temporal"):
+        ReconstructSettings.from_flat(temporal="quadratic", prior="tv")
+    with pytest.raises(ConfigError, match="drift_window"):
+        ReconstructSettings.from_flat(drift_window=1)
+    with pytest.raises(ConfigError, match="temporal_weight"):
+        ReconstructSettings.from_flat(temporal_weight=0)
+
+
+def test_the_drift_path_tracks_a_growing_drift_and_flags_a_jump():
+    """Measurements of a drift growing 0.1 px a frame with 0.05 px noise: the path is closer to
+    the truth than the measurements (rms), within 0.1 px on every frame after the third; a 2 px
+    jump is a ``drift.jump`` warning and the path restarts from it."""
+    rng = np.random.default_rng(0)
+    path = DriftPath(window=10, jump_px=0.5)
+    err_m, err_p = [], []
+    for t in range(30):
+        true = np.array([0.1 * t, -0.05 * t, 0.0])
+        meas = true + np.r_[rng.normal(0, 0.05, 2), 0.0]
+        p, found = path.update(t, meas)
+        assert found == []
+        err_m.append(float(np.hypot(*(meas - true)[:2])))
+        err_p.append(float(np.hypot(*(p - true)[:2])))
+        if t >= 3:
+            assert err_p[-1] < 0.1
+    assert math.sqrt(np.mean(np.square(err_p[3:]))) < math.sqrt(np.mean(np.square(err_m[3:])))
+    p, found = path.update(30, np.array([3.0 + 2.0, -1.5, 0.0]))
+    assert [f.code for f in found] == ["drift.jump"] and found[0].severity == "warning"
+    assert found[0].measured > 1.9 and found[0].limit == 0.5
+    np.testing.assert_allclose(p, [5.0, -1.5, 0.0])  # restarted from the jump
+    p, found = path.update(31, None)
+    assert [f.code for f in found] == ["drift.unmeasured"]
+    np.testing.assert_allclose(p, [5.0, -1.5, 0.0])
+
+
+class _Stripes:
+    """Reflectance = a band-independent ramp in x plus a step at y = 0 (analytic)."""
+
+    extent = (-2.0, 2.0, -1.0, 1.0)
+
+    def reflectance(self, xy: torch.Tensor, wl) -> torch.Tensor:
+        r = 0.25 + 0.1 * xy[:, 0] + 0.2 * (xy[:, 1] > 0).to(xy.dtype)
+        return r.unsqueeze(1).expand(-1, len(wl)).clone()
+
+
+def test_moving_layers_move_as_specified():
+    """Frame t of a layer translated, rotated and scaled shows the still layer at the inverse
+    motion; the top layer covers the bottom one inside its moved extent; the illuminant's
+    flicker and tilt are as specified."""
+    wl = torch.tensor([450.0, 550.0, 650.0], dtype=torch.float64)
+    still = _Stripes()
+    mo = Motion(
+        shift_mm_per_frame=(0.1, -0.05),
+        rotation_deg_per_frame=3.0,
+        scale_per_frame=0.01,
+        centre_mm=(0.0, 0.0),
+    )
+    g = torch.Generator().manual_seed(0)
+    pts = (torch.rand(500, 2, generator=g, dtype=torch.float64) - 0.5) * 1.5
+    for t in (0, 4, 10):
+        sc = LayeredScene([Layer(still, mo)], t)
+        th, s = math.radians(3.0 * t), 1.01**t
+        moved = torch.stack(
+            [
+                s * (math.cos(th) * pts[:, 0] - math.sin(th) * pts[:, 1]),
+                s * (math.sin(th) * pts[:, 0] + math.cos(th) * pts[:, 1]),
+            ],
+            1,
+        )
+        moved = moved + torch.tensor([0.1 * t, -0.05 * t], dtype=torch.float64)
+        torch.testing.assert_close(sc.reflectance(moved, wl), still.reflectance(pts, wl))
+
+    # a top layer (a constant patch) covers the bottom one inside its moved extent only
+    class _Patch:
+        extent = (-0.2, 0.2, -0.2, 0.2)
+
+        def reflectance(self, xy, w):
+            return torch.full((xy.shape[0], len(w)), 0.9, dtype=xy.dtype)
+
+    sc = LayeredScene([Layer(still), Layer(_Patch(), Motion(shift_mm_per_frame=(0.5, 0.0)))], 2)
+    q = torch.tensor([[1.0, 0.0], [0.0, 0.5]], dtype=torch.float64)
+    r = sc.reflectance(q, wl)
+    assert torch.allclose(r[0], torch.full((3,), 0.9, dtype=torch.float64))
+    torch.testing.assert_close(r[1], still.reflectance(q[1:], wl)[0])
+    assert sc.extent[1] == pytest.approx(2.0)
+    ill = Illumination(flicker=0.1, period_frames=4.0, tilt_per_frame=0.01)
+    torch.testing.assert_close(ill.spectrum(1, wl), 1.1 * (1 + 0.01 * (wl - 550.0) / 100.0))
+    torch.testing.assert_close(ill.spectrum(0, wl), torch.ones(3, dtype=torch.float64))
+
+
+def test_warm_start_state_is_reset():
+    w = WarmStart()
+    w.x = torch.zeros(3, 2)
+    w.reset()
+    assert w.x is None and w.spatial_x is None and w.spatial_dual is None
