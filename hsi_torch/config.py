@@ -130,6 +130,15 @@ def help_meta(text: str) -> dict[str, str]:
     return {"help": text}
 
 
+def option(default: Any = dataclasses.MISSING, text: str = "", *, factory: Any = None) -> Any:
+    """A schema field with its help text: ``option(1.0, "...")`` is
+    ``field(default=1.0, metadata=help_meta("..."))``; ``option(text="...", factory=list)`` a
+    ``default_factory`` field."""
+    if factory is not None:
+        return field(default_factory=factory, metadata=help_meta(text))
+    return field(default=default, metadata=help_meta(text))
+
+
 def parse_override(text: str) -> tuple[KeyPath, Any]:
     """Parse ``"a.b.c=value"`` into ``(("a", "b", "c"), yaml.safe_load("value"))``.
 
@@ -142,9 +151,7 @@ def parse_override(text: str) -> tuple[KeyPath, Any]:
     key = key.strip()
     if not key or any(not p for p in key.split(".")):
         raise ConfigError(f"override {text!r} has an empty key part")
-    parts: list[str | int] = [
-        int(p) if p.isascii() and p.isdigit() else p for p in key.split(".")
-    ]
+    parts: list[str | int] = [int(p) if p.isascii() and p.isdigit() else p for p in key.split(".")]
     try:
         value = safe_yaml_load(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
@@ -228,7 +235,8 @@ def _refuse_duplicate_keys(node: yaml.MappingNode) -> None:
             seen[ident] = key
             continue
         raise yaml.constructor.ConstructorError(
-            None, None,
+            None,
+            None,
             f"key {short_repr(key.value)} is given twice in one mapping (first at line "
             f"{first.start_mark.line + 1}); YAML would keep the later value in silence: keep "
             "one of them",

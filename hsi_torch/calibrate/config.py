@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from hsi_torch.calibrate.registration import BlobDetectorParams
 from hsi_torch.calibrate.response import DEFAULT_BETA_PHI, DEFAULT_GAMMA_H
-from hsi_torch.config import help_meta, to_dict
+from hsi_torch.config import help_meta, option, to_dict
 
 __all__ = [
     "BlobSection",
@@ -32,67 +32,47 @@ _BLOBS = BlobDetectorParams()
 class BlobSection:
     """``cv2.SimpleBlobDetector`` limits (areas in px² of the parity-corrected view crop)."""
 
-    min_area: float = field(
-        default=_BLOBS.min_area,
-        metadata=_h("smallest blob area, px^2 (small prototype's circles: r ~ 2.8 px, ~25 px^2)"),
+    min_area: float = option(
+        _BLOBS.min_area,
+        "smallest blob area, px^2 (small prototype's circles: r ~ 2.8 px, ~25 px^2)",
     )
-    max_area: float = field(default=_BLOBS.max_area, metadata=_h("largest blob area, px^2"))
-    min_circularity: float = field(
-        default=_BLOBS.min_circularity, metadata=_h("0 disables the filter")
-    )
-    min_convexity: float = field(default=_BLOBS.min_convexity, metadata=_h("0 disables the filter"))
-    min_inertia_ratio: float = field(
-        default=_BLOBS.min_inertia_ratio, metadata=_h("0 disables the filter")
-    )
-    min_threshold: float = field(
-        default=_BLOBS.min_threshold, metadata=_h("first binarisation threshold")
-    )
-    max_threshold: float = field(
-        default=_BLOBS.max_threshold, metadata=_h("last binarisation threshold")
-    )
-    threshold_step: float = field(default=_BLOBS.threshold_step, metadata=_h("threshold step"))
-    min_dist_between_blobs: float = field(default=_BLOBS.min_dist_between_blobs, metadata=_h("px"))
-    min_repeatability: int = field(
-        default=_BLOBS.min_repeatability, metadata=_h("thresholds a blob must survive")
-    )
-    blob_color: int = field(
-        default=_BLOBS.blob_color, metadata=_h("0: dark circles, 255: light circles")
-    )
+    max_area: float = option(_BLOBS.max_area, "largest blob area, px^2")
+    min_circularity: float = option(_BLOBS.min_circularity, "0 disables the filter")
+    min_convexity: float = option(_BLOBS.min_convexity, "0 disables the filter")
+    min_inertia_ratio: float = option(_BLOBS.min_inertia_ratio, "0 disables the filter")
+    min_threshold: float = option(_BLOBS.min_threshold, "first binarisation threshold")
+    max_threshold: float = option(_BLOBS.max_threshold, "last binarisation threshold")
+    threshold_step: float = option(_BLOBS.threshold_step, "threshold step")
+    min_dist_between_blobs: float = option(_BLOBS.min_dist_between_blobs, "px")
+    min_repeatability: int = option(_BLOBS.min_repeatability, "thresholds a blob must survive")
+    blob_color: int = option(_BLOBS.blob_color, "0: dark circles, 255: light circles")
 
 
 @dataclass
 class RegistrationSection:
     """Circle-grid detection and homography fit (:func:`hsi_torch.calibrate.register_views`)."""
 
-    pattern_size: tuple[int, int] = field(
-        default=(4, 5), metadata=_h("asymmetric grid (points per row, rows), OpenCV order")
+    pattern_size: tuple[int, int] = option(
+        (4, 5), "asymmetric grid (points per row, rows), OpenCV order"
     )
     blob: BlobSection = field(default_factory=BlobSection)
-    equalize: Literal["none", "clahe", "auto"] = field(
-        default="auto", metadata=_h("auto: plain image, then CLAHE-equalised")
+    equalize: Literal["none", "clahe", "auto"] = option(
+        "auto", "auto: plain image, then CLAHE-equalised"
     )
-    margin_px: int = field(default=6, metadata=_h("margin around each triangle's crop, px"))
-    fill_outside: bool = field(
-        default=True, metadata=_h("paint pixels outside the triangle with the background")
+    margin_px: int = option(6, "margin around each triangle's crop, px")
+    fill_outside: bool = option(True, "paint pixels outside the triangle with the background")
+    ransac_threshold_px: float = option(1.0, "RANSAC inlier threshold, px")
+    min_inlier_fraction: float = option(
+        0.8,
+        "a view whose grid fit keeps fewer RANSAC inliers is refused (a flipped parity "
+        "in the nominal layout keeps about a third)",
     )
-    ransac_threshold_px: float = field(default=1.0, metadata=_h("RANSAC inlier threshold, px"))
-    min_inlier_fraction: float = field(
-        default=0.8,
-        metadata=_h(
-            "a view whose grid fit keeps fewer RANSAC inliers is refused (a flipped parity "
-            "in the nominal layout keeps about a third)"
-        ),
+    flat_field: bool = option(
+        True,
+        "divide the grid shots by the mean white shot before detection (removes the "
+        "views' transmittance fringes and vignetting from the target)",
     )
-    flat_field: bool = field(
-        default=True,
-        metadata=_h(
-            "divide the grid shots by the mean white shot before detection (removes the "
-            "views' transmittance fringes and vignetting from the target)"
-        ),
-    )
-    inset_px: float = field(
-        default=1.0, metadata=_h("view masks: source point at least this far inside the triangle")
-    )
+    inset_px: float = option(1.0, "view masks: source point at least this far inside the triangle")
 
     def __post_init__(self) -> None:
         if len(self.pattern_size) != 2 or min(self.pattern_size) < 2:
@@ -109,33 +89,25 @@ class RegistrationSection:
 class TransmittanceSection:
     """BRF transmittance from the monochromator scan (:func:`brf_transmittance`)."""
 
-    lit_threshold: float = field(
-        default=0.05, metadata=_h("a pixel is lit when max_j B >= this (between triangles: dark)")
+    lit_threshold: float = option(
+        0.05, "a pixel is lit when max_j B >= this (between triangles: dark)"
     )
-    weight_power: float = field(
-        default=1.0, metadata=_h("colour weights ∝ BRF-free patch mean ** power (1: ∝ signal)")
+    weight_power: float = option(1.0, "colour weights ∝ BRF-free patch mean ** power (1: ∝ signal)")
+    wavelength_tol_nm: float = option(
+        0.5, "largest |scan wavelength - grid wavelength| accepted, nm"
     )
-    wavelength_tol_nm: float = field(
-        default=0.5, metadata=_h("largest |scan wavelength - grid wavelength| accepted, nm")
+    brf_free_erode_px: float = option(
+        1.5, "without brf_free_mask.png: keep polygon pixels this far inside the disk"
     )
-    brf_free_erode_px: float = field(
-        default=1.5,
-        metadata=_h("without brf_free_mask.png: keep polygon pixels this far inside the disk"),
+    brf_free_margin_px: float = option(
+        1.5, "reference-frame pixels within the disk + this margin are not modulated"
     )
-    brf_free_margin_px: float = field(
-        default=1.5,
-        metadata=_h("reference-frame pixels within the disk + this margin are not modulated"),
+    max_patch_ratio: float = option(
+        0.8,
+        "refuse a 'BRF-free' patch when the reference view elsewhere reaches this "
+        "fraction of its brightness (median over the view): the patch is filtered",
     )
-    max_patch_ratio: float = field(
-        default=0.8,
-        metadata=_h(
-            "refuse a 'BRF-free' patch when the reference view elsewhere reaches this "
-            "fraction of its brightness (median over the view): the patch is filtered"
-        ),
-    )
-    frames_per_chunk: int = field(
-        default=4, metadata=_h("scan frames processed together (memory bound at full scale)")
-    )
+    frames_per_chunk: int = option(4, "scan frames processed together (memory bound at full scale)")
 
     def __post_init__(self) -> None:
         if self.frames_per_chunk < 1:
@@ -148,57 +120,42 @@ class TransmittanceSection:
 class ResponseSection:
     """φ^c(λ) and the gain field g_v(p) from the white shots (:func:`estimate_response_field`)."""
 
-    beta_phi: float = field(
-        default=DEFAULT_BETA_PHI,
-        metadata=_h(
-            "smoothness weight on ||D phi||^2, relative to the data scale "
-            "s = sum w ||b||^2 / M when normalise (the original prototype's absolute 8e5 "
-            "is 0.6 on the small simulated set, 0.011 at full size)"
-        ),
+    beta_phi: float = option(
+        DEFAULT_BETA_PHI,
+        "smoothness weight on ||D phi||^2, relative to the data scale "
+        "s = sum w ||b||^2 / M when normalise (the original prototype's absolute 8e5 "
+        "is 0.6 on the small simulated set, 0.011 at full size)",
     )
-    gamma_h: float = field(
-        default=DEFAULT_GAMMA_H,
-        metadata=_h("weight of the shape prior ||phi - alpha f~||^2 (relative as beta_phi)"),
+    gamma_h: float = option(
+        DEFAULT_GAMMA_H, "weight of the shape prior ||phi - alpha f~||^2 (relative as beta_phi)"
     )
-    normalise: bool = field(
-        default=True,
-        metadata=_h(
-            "beta_phi, gamma_h relative to the data scale (one setting for every sensor "
-            "size); false: absolute weights, as the original prototype"
-        ),
+    normalise: bool = option(
+        True,
+        "beta_phi, gamma_h relative to the data scale (one setting for every sensor "
+        "size); false: absolute weights, as the original prototype",
     )
-    n_iter: int = field(default=3, metadata=_h("alternations (original prototype: 3)"))
-    refine_steps: int = field(
-        default=20, metadata=_h("joint Levenberg-Marquardt steps after the alternations")
+    n_iter: int = option(3, "alternations (original prototype: 3)")
+    refine_steps: int = option(20, "joint Levenberg-Marquardt steps after the alternations")
+    degree: int = option(2, "total degree of the Legendre gain field")
+    smoothness: float = option(1e-3, "relative ridge on the non-constant gain coefficients")
+    diff_order: int = option(1, "order of D in the phi smoothness term")
+    camera_sensitivity: str = option(
+        "Canon EOS 5D Mark II",
+        "shape prior f~: a camera name (hsi_torch.refdata.list_cameras), CSV or "
+        "JSON file, or 'flat'",
     )
-    degree: int = field(default=2, metadata=_h("total degree of the Legendre gain field"))
-    smoothness: float = field(
-        default=1e-3, metadata=_h("relative ridge on the non-constant gain coefficients")
+    saturation_margin: float = option(
+        1e-3, "white sample counts as saturated above this warped weight"
     )
-    diff_order: int = field(default=1, metadata=_h("order of D in the phi smoothness term"))
-    camera_sensitivity: str = field(
-        default="Canon EOS 5D Mark II",
-        metadata=_h(
-            "shape prior f~: a camera name (hsi_torch.refdata.list_cameras), CSV or "
-            "JSON file, or 'flat'"
-        ),
+    max_pixels: int | None = option(
+        100_000,
+        "estimate phi and the gain field on a regular sub-grid of at most this many "
+        "reference-frame pixels (null: all; the small prototype has ~12 500)",
     )
-    saturation_margin: float = field(
-        default=1e-3, metadata=_h("white sample counts as saturated above this warped weight")
-    )
-    max_pixels: int | None = field(
-        default=100_000,
-        metadata=_h(
-            "estimate phi and the gain field on a regular sub-grid of at most this many "
-            "reference-frame pixels (null: all; the small prototype has ~12 500)"
-        ),
-    )
-    max_saturated_fraction: float = field(
-        default=0.05,
-        metadata=_h(
-            "a white shot with more of its registered view pixels saturated is dropped "
-            "(with a warning) while another shot is below; all above: an error"
-        ),
+    max_saturated_fraction: float = option(
+        0.05,
+        "a white shot with more of its registered view pixels saturated is dropped "
+        "(with a warning) while another shot is below; all above: an error",
     )
 
     def __post_init__(self) -> None:

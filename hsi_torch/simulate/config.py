@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from hsi_torch.config import help_meta
+from hsi_torch.config import option
 from hsi_torch.optics.birefringence import BRFConfig
 from hsi_torch.optics.designs import PrototypeDesign
 from hsi_torch.optics.kaleidoscope import CameraModel, KaleidoscopeGeometry
@@ -54,7 +54,6 @@ __all__ = [
 ]
 
 
-_h = help_meta
 _GEOMETRY = KaleidoscopeGeometry()
 _CAMERA = CameraModel()
 _BRF = BRFConfig()
@@ -74,44 +73,34 @@ def _positive(obj: Any, *names: str) -> None:
 class GeometryConfig:
     """Tapered kaleidoscope (fields of :class:`~hsi_torch.optics.KaleidoscopeGeometry`)."""
 
-    a_in_mm: float = field(
-        default=_GEOMETRY.a_in_mm, metadata=_h("entrance side at the diffuser, mm")
+    a_in_mm: float = option(_GEOMETRY.a_in_mm, "entrance side at the diffuser, mm")
+    a_out_mm: float = option(_GEOMETRY.a_out_mm, "exit side, mm (taper: a_out > a_in)")
+    length_mm: float = option(_GEOMETRY.length_mm, "tube length, mm")
+    pupil_distance_mm: float = option(
+        _GEOMETRY.pupil_distance_mm, "camera pupil beyond the exit, mm"
     )
-    a_out_mm: float = field(
-        default=_GEOMETRY.a_out_mm, metadata=_h("exit side, mm (taper: a_out > a_in)")
+    mirror_reflectance: float = option(_GEOMETRY.mirror_reflectance, "reflectance per bounce")
+    max_reflections: int = option(_GEOMETRY.max_reflections, "reflections that count as views")
+    vertices_in: list[tuple[float, float]] | None = option(
+        None, "3 entrance vertices (mm, counter-clockwise) or null"
     )
-    length_mm: float = field(default=_GEOMETRY.length_mm, metadata=_h("tube length, mm"))
-    pupil_distance_mm: float = field(
-        default=_GEOMETRY.pupil_distance_mm, metadata=_h("camera pupil beyond the exit, mm")
+    brf_free_center_mm: tuple[float, float] | None = option(
+        None, "BRF-free disk centre (mm); null = 60 % towards vertex 0"
     )
-    mirror_reflectance: float = field(
-        default=_GEOMETRY.mirror_reflectance, metadata=_h("reflectance per bounce")
-    )
-    max_reflections: int = field(
-        default=_GEOMETRY.max_reflections, metadata=_h("reflections that count as views")
-    )
-    vertices_in: list[tuple[float, float]] | None = field(
-        default=None, metadata=_h("3 entrance vertices (mm, counter-clockwise) or null")
-    )
-    brf_free_center_mm: tuple[float, float] | None = field(
-        default=None, metadata=_h("BRF-free disk centre (mm); null = 60 % towards vertex 0")
-    )
-    brf_free_radius_mm: float = field(
-        default=_GEOMETRY.brf_free_radius_mm, metadata=_h("BRF-free disk radius, mm")
-    )
+    brf_free_radius_mm: float = option(_GEOMETRY.brf_free_radius_mm, "BRF-free disk radius, mm")
 
 
 @dataclass
 class CameraConfig:
     """Pinhole camera (fields of :class:`~hsi_torch.optics.CameraModel`)."""
 
-    width_px: int = field(default=_CAMERA.width_px, metadata=_h("sensor width, px"))
-    height_px: int = field(default=_CAMERA.height_px, metadata=_h("sensor height, px"))
-    pixel_pitch_mm: float = field(default=_CAMERA.pixel_pitch_mm, metadata=_h("pixel pitch, mm"))
-    focal_length_mm: float = field(default=_CAMERA.focal_length_mm, metadata=_h("focal length, mm"))
-    cx: float | None = field(default=None, metadata=_h("principal point x, px (null = centre)"))
-    cy: float | None = field(default=None, metadata=_h("principal point y, px (null = centre)"))
-    scale: float = field(default=1.0, metadata=_h("resample the sensor (CameraModel.scaled)"))
+    width_px: int = option(_CAMERA.width_px, "sensor width, px")
+    height_px: int = option(_CAMERA.height_px, "sensor height, px")
+    pixel_pitch_mm: float = option(_CAMERA.pixel_pitch_mm, "pixel pitch, mm")
+    focal_length_mm: float = option(_CAMERA.focal_length_mm, "focal length, mm")
+    cx: float | None = option(None, "principal point x, px (null = centre)")
+    cy: float | None = option(None, "principal point y, px (null = centre)")
+    scale: float = option(1.0, "resample the sensor (CameraModel.scaled)")
 
     def __post_init__(self) -> None:
         _positive(self, "scale")
@@ -121,26 +110,15 @@ class CameraConfig:
 class BRFSection:
     """Birefringent filter between polarizers (fields of :class:`~hsi_torch.optics.BRFConfig`)."""
 
-    material: str = field(default=str(_BRF.material), metadata=_h("quartz | calcite | polymer"))
-    thickness_mm: float = field(default=_BRF.thickness_mm, metadata=_h("plate thickness, mm"))
-    axis_tilt_deg: float = field(
-        default=_BRF.axis_tilt_deg, metadata=_h("optic axis tilt out of the plate")
-    )
-    axis_azimuth_deg: float = field(
-        default=_BRF.axis_azimuth_deg, metadata=_h("azimuth of the projected axis")
-    )
-    psi_deg: float = field(default=_BRF.psi_deg, metadata=_h("retarder axis vs polarizer"))
-    chi_deg: float = field(
-        default=_BRF.chi_deg, metadata=_h("analyser vs polarizer (90 = crossed)")
-    )
-    outside_index: float = field(
-        default=_BRF.outside_index, metadata=_h("index of the outside medium")
-    )
-    polarizer_efficiency: float = field(
-        default=0.9,
-        metadata=_h(
-            "transmission of the polarizer pair for the passed polarization (stack = ½·eff·T_BRF)"
-        ),
+    material: str = option(str(_BRF.material), "quartz | calcite | polymer")
+    thickness_mm: float = option(_BRF.thickness_mm, "plate thickness, mm")
+    axis_tilt_deg: float = option(_BRF.axis_tilt_deg, "optic axis tilt out of the plate")
+    axis_azimuth_deg: float = option(_BRF.axis_azimuth_deg, "azimuth of the projected axis")
+    psi_deg: float = option(_BRF.psi_deg, "retarder axis vs polarizer")
+    chi_deg: float = option(_BRF.chi_deg, "analyser vs polarizer (90 = crossed)")
+    outside_index: float = option(_BRF.outside_index, "index of the outside medium")
+    polarizer_efficiency: float = option(
+        0.9, "transmission of the polarizer pair for the passed polarization (stack = ½·eff·T_BRF)"
     )
 
     def __post_init__(self) -> None:
@@ -159,36 +137,28 @@ class DesignSection:
     ``brf`` section is a thin section whose OPD each grain scales (``grain_*``).
     """
 
-    kind: Literal["this_system", "manakov", "fujimoto"] = field(
-        default="this_system", metadata=_h("this_system | manakov | fujimoto")
+    kind: Literal["this_system", "manakov", "fujimoto"] = option(
+        "this_system", "this_system | manakov | fujimoto"
     )
-    filter_centers_nm: list[float] | None = field(
-        default=None,
-        metadata=_h("manakov: band-pass centres of views 1..V-1, nm; null = evenly spaced "
-                    "over filter_span_nm"),
+    filter_centers_nm: list[float] | None = option(
+        None,
+        "manakov: band-pass centres of views 1..V-1, nm; null = evenly spaced over filter_span_nm",
     )
-    filter_span_nm: tuple[float, float] = field(
-        default=_DESIGN.filter_span_nm, metadata=_h("manakov: first and last default centre, nm")
+    filter_span_nm: tuple[float, float] = option(
+        _DESIGN.filter_span_nm, "manakov: first and last default centre, nm"
     )
-    filter_fwhm_nm: float = field(
-        default=_DESIGN.filter_fwhm_nm, metadata=_h("manakov: band-pass FWHM, nm")
+    filter_fwhm_nm: float = option(_DESIGN.filter_fwhm_nm, "manakov: band-pass FWHM, nm")
+    filter_peak: float = option(_DESIGN.filter_peak, "manakov: band-pass peak transmittance")
+    filters: list[str] | None = option(
+        None,
+        "manakov: measured filters of views 1..V-1 (CSV wavelength_nm,T or gel "
+        "codes such as L068); replace the band-pass set",
     )
-    filter_peak: float = field(
-        default=_DESIGN.filter_peak, metadata=_h("manakov: band-pass peak transmittance")
+    grain_size_mm: float = option(_DESIGN.grain_size_mm, "fujimoto: mean grain size, mm")
+    grain_opd_factor: tuple[float, float] = option(
+        _DESIGN.grain_opd_factor, "fujimoto: range of the per-grain factor on the plate's OPD"
     )
-    filters: list[str] | None = field(
-        default=None,
-        metadata=_h("manakov: measured filters of views 1..V-1 (CSV wavelength_nm,T or gel "
-                    "codes such as L068); replace the band-pass set"),
-    )
-    grain_size_mm: float = field(
-        default=_DESIGN.grain_size_mm, metadata=_h("fujimoto: mean grain size, mm")
-    )
-    grain_opd_factor: tuple[float, float] = field(
-        default=_DESIGN.grain_opd_factor,
-        metadata=_h("fujimoto: range of the per-grain factor on the plate's OPD"),
-    )
-    grain_seed: int = field(default=_DESIGN.grain_seed, metadata=_h("fujimoto: grain map seed"))
+    grain_seed: int = option(_DESIGN.grain_seed, "fujimoto: grain map seed")
 
     def __post_init__(self) -> None:
         self.to_design()  # validates
@@ -198,11 +168,14 @@ class DesignSection:
         the resolved ``filters``, see :func:`hsi_torch.simulate.capture_sets.build_renderer`)."""
         return PrototypeDesign(
             kind=self.kind,
-            filter_centers_nm=(None if self.filter_centers_nm is None
-                               else tuple(self.filter_centers_nm)),
+            filter_centers_nm=(
+                None if self.filter_centers_nm is None else tuple(self.filter_centers_nm)
+            ),
             filter_span_nm=tuple(self.filter_span_nm),  # type: ignore[arg-type]
-            filter_fwhm_nm=self.filter_fwhm_nm, filter_peak=self.filter_peak,
-            filter_curves=filter_curves, grain_size_mm=self.grain_size_mm,
+            filter_fwhm_nm=self.filter_fwhm_nm,
+            filter_peak=self.filter_peak,
+            filter_curves=filter_curves,
+            grain_size_mm=self.grain_size_mm,
             grain_opd_factor=tuple(self.grain_opd_factor),  # type: ignore[arg-type]
             grain_seed=int(self.grain_seed),
         )
@@ -212,46 +185,33 @@ class DesignSection:
 class SensorSection:
     """Raw sensor (fields of :class:`~hsi_torch.optics.sensor.SensorModel`)."""
 
-    output: Literal["bayer", "rgb"] = field(default=_SENSOR.output, metadata=_h("bayer | rgb"))
+    output: Literal["bayer", "rgb"] = option(_SENSOR.output, "bayer | rgb")
     cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = _SENSOR.cfa_pattern  # type: ignore[assignment]
-    bit_depth: int = field(default=_SENSOR.bit_depth, metadata=_h("ADC bits"))
-    white_level: float | None = field(
-        default=_SENSOR.white_level, metadata=_h("DN; null = 2^bits - 1")
+    bit_depth: int = option(_SENSOR.bit_depth, "ADC bits")
+    white_level: float | None = option(_SENSOR.white_level, "DN; null = 2^bits - 1")
+    black_level: float = option(_SENSOR.black_level, "DN offset")
+    full_well_e: float | None = option(_SENSOR.full_well_e, "electrons")
+    electrons_per_dn: float | None = option(_SENSOR.electrons_per_dn, "null = full well/range")
+    read_noise_e: float = option(_SENSOR.read_noise_e, "read noise sigma, electrons")
+    shot_noise: bool = option(_SENSOR.shot_noise, "Poisson photon noise")
+    exposure: float = option(
+        0.8,
+        "scene/white/grid exposure: a white target seen without the "
+        "filter stack fills this fraction of the full well",
     )
-    black_level: float = field(default=_SENSOR.black_level, metadata=_h("DN offset"))
-    full_well_e: float | None = field(default=_SENSOR.full_well_e, metadata=_h("electrons"))
-    electrons_per_dn: float | None = field(
-        default=_SENSOR.electrons_per_dn, metadata=_h("null = full well/range")
-    )
-    read_noise_e: float = field(
-        default=_SENSOR.read_noise_e, metadata=_h("read noise sigma, electrons")
-    )
-    shot_noise: bool = field(default=_SENSOR.shot_noise, metadata=_h("Poisson photon noise"))
-    exposure: float = field(
-        default=0.8,
-        metadata=_h(
-            "scene/white/grid exposure: a white target seen without the "
-            "filter stack fills this fraction of the full well"
-        ),
-    )
-    quantize: bool = field(default=_SENSOR.quantize, metadata=_h("round to integer DN"))
-    psf_sigma_px: float = field(
-        default=_SENSOR.psf_sigma_px, metadata=_h("lens PSF sigma, px (0 = none)")
-    )
+    quantize: bool = option(_SENSOR.quantize, "round to integer DN")
+    psf_sigma_px: float = option(_SENSOR.psf_sigma_px, "lens PSF sigma, px (0 = none)")
 
 
 @dataclass
 class ObjectiveConfig:
     """Objective lens in front of the diffuser (absent during the monochromator scan)."""
 
-    vignetting: float = field(
-        default=0.2,
-        metadata=_h("V(X) = 1 - vignetting·(|X|/R)², R = circumradius of the entrance triangle"),
+    vignetting: float = option(
+        0.2, "V(X) = 1 - vignetting·(|X|/R)², R = circumradius of the entrance triangle"
     )
-    transmission: float = field(default=0.9, metadata=_h("flat transmission tau_obj"))
-    transmission_csv: str | None = field(
-        default=None, metadata=_h("CSV wavelength_nm,value (replaces `transmission`)")
-    )
+    transmission: float = option(0.9, "flat transmission tau_obj")
+    transmission_csv: str | None = option(None, "CSV wavelength_nm,value (replaces `transmission`)")
 
     def __post_init__(self) -> None:
         if not 0 <= self.vignetting < 1:
@@ -264,12 +224,8 @@ class ObjectiveConfig:
 class DiffuserConfig:
     """Diffuser (fields of :class:`~hsi_torch.optics.sensor.DiffuserModel`)."""
 
-    falloff_k: float = field(
-        default=_DIFFUSER.falloff_k, metadata=_h("angular fall-off D(α) = cos^k α")
-    )
-    blur_sigma_mm: float = field(
-        default=_DIFFUSER.blur_sigma_mm, metadata=_h("scene blur on the diffuser, mm")
-    )
+    falloff_k: float = option(_DIFFUSER.falloff_k, "angular fall-off D(α) = cos^k α")
+    blur_sigma_mm: float = option(_DIFFUSER.blur_sigma_mm, "scene blur on the diffuser, mm")
 
     def __post_init__(self) -> None:
         if self.falloff_k < 0 or self.blur_sigma_mm < 0:
@@ -280,32 +236,26 @@ class DiffuserConfig:
 class RenderConfig:
     """Numerics of the renderer."""
 
-    grid_start_nm: float = field(default=430.0, metadata=_h("reconstruction grid start, nm"))
-    grid_stop_nm: float = field(default=670.0, metadata=_h("reconstruction grid stop, nm"))
-    grid_step_nm: float = field(default=10.0, metadata=_h("reconstruction grid step, nm"))
-    fine_step_nm: float = field(
-        default=2.0,
-        metadata=_h("internal wavelength step; the band-pass is the grid +- half a grid step"),
+    grid_start_nm: float = option(430.0, "reconstruction grid start, nm")
+    grid_stop_nm: float = option(670.0, "reconstruction grid stop, nm")
+    grid_step_nm: float = option(10.0, "reconstruction grid step, nm")
+    fine_step_nm: float = option(
+        2.0, "internal wavelength step; the band-pass is the grid +- half a grid step"
     )
-    supersample: int = field(default=2, metadata=_h("s: s×s rays per sensor pixel"))
-    max_reflections: int = field(
-        default=3,
-        metadata=_h(
-            "reflections traced for the image (higher-order tiles are drawn but are no views)"
-        ),
+    supersample: int = option(2, "s: s×s rays per sensor pixel")
+    max_reflections: int = option(
+        3, "reflections traced for the image (higher-order tiles are drawn but are no views)"
     )
-    chunk: int = field(default=1 << 16, metadata=_h("rays per batch (memory bound)"))
-    device: str = field(default="cpu", metadata=_h("torch device (--device overrides)"))
-    dtype: Literal["float32", "float64"] = field(default="float64", metadata=_h("render dtype"))
-    seed: int = field(default=0, metadata=_h("noise seed (each capture gets seed + index)"))
-    progress: bool = field(default=True, metadata=_h("tqdm progress bars on stderr"))
-    figures: bool = field(default=True, metadata=_h("write OUT/figures/*.png"))
-    view_inset_px: float = field(
-        default=1.0,
-        metadata=_h(
-            "truth view_mask: distance a reference pixel's source point "
-            "must keep from its triangle's edges, px"
-        ),
+    chunk: int = option(1 << 16, "rays per batch (memory bound)")
+    device: str = option("cpu", "torch device (--device overrides)")
+    dtype: Literal["float32", "float64"] = option("float64", "render dtype")
+    seed: int = option(0, "noise seed (each capture gets seed + index)")
+    progress: bool = option(True, "tqdm progress bars on stderr")
+    figures: bool = option(True, "write OUT/figures/*.png")
+    view_inset_px: float = option(
+        1.0,
+        "truth view_mask: distance a reference pixel's source point "
+        "must keep from its triangle's edges, px",
     )
 
     def __post_init__(self) -> None:
@@ -337,11 +287,11 @@ DEFAULT_GRID_POSES: tuple[GridPose, ...] = (
 class GridConfig:
     """OpenCV asymmetric circle grid used for registration."""
 
-    pattern_size: tuple[int, int] = field(default=(4, 5), metadata=_h("(cols, rows) as OpenCV"))
-    spacing_mm: float = field(default=1.0, metadata=_h("OpenCV squareSize on the diffuser, mm"))
-    radius_mm: float = field(default=0.38, metadata=_h("circle radius, mm"))
-    poses: list[GridPose] = field(
-        default_factory=lambda: list(DEFAULT_GRID_POSES), metadata=_h("poses (>= 3 recommended)")
+    pattern_size: tuple[int, int] = option((4, 5), "(cols, rows) as OpenCV")
+    spacing_mm: float = option(1.0, "OpenCV squareSize on the diffuser, mm")
+    radius_mm: float = option(0.38, "circle radius, mm")
+    poses: list[GridPose] = option(
+        text="poses (>= 3 recommended)", factory=lambda: list(DEFAULT_GRID_POSES)
     )
 
 
@@ -373,22 +323,20 @@ DEFAULT_SCENES: tuple[SceneSpec, ...] = (
 class CapturesConfig:
     """Which captures to render."""
 
-    scan_wavelengths_nm: list[float] | None = field(
-        default=None, metadata=_h("monochromator wavelengths; null = the reconstruction grid")
+    scan_wavelengths_nm: list[float] | None = option(
+        None, "monochromator wavelengths; null = the reconstruction grid"
     )
-    scan_fwhm_nm: float = field(default=10.0, metadata=_h("monochromator line FWHM, nm"))
-    scan_line: Literal["gaussian", "triangle"] = field(
-        default="gaussian", metadata=_h("line shape (triangle = equal entrance/exit slits)")
+    scan_fwhm_nm: float = option(10.0, "monochromator line FWHM, nm")
+    scan_line: Literal["gaussian", "triangle"] = option(
+        "gaussian", "line shape (triangle = equal entrance/exit slits)"
     )
-    scan_exposure: float = field(
-        default=0.8,
-        metadata=_h(
-            "the BRF-free patch at the brightest scan line and colour "
-            "fills this fraction of the full well"
-        ),
+    scan_exposure: float = option(
+        0.8,
+        "the BRF-free patch at the brightest scan line and colour "
+        "fills this fraction of the full well",
     )
-    white_shots: int = field(default=3, metadata=_h("white-reference captures"))
-    dark_frames: int = field(default=1, metadata=_h("dark frames (type 'dark')"))
+    white_shots: int = option(3, "white-reference captures")
+    dark_frames: int = option(1, "dark frames (type 'dark')")
     grid: GridConfig = field(default_factory=GridConfig)
     scenes: list[SceneSpec] = field(default_factory=lambda: list(DEFAULT_SCENES))
 
@@ -411,9 +359,9 @@ class SimulateConfig:
     brf: BRFSection = field(default_factory=BRFSection)
     design: DesignSection = field(default_factory=DesignSection)
     sensor: SensorSection = field(default_factory=SensorSection)
-    illuminant: str = field(default="D65", metadata=_h("CIE name (D65, A, ...) or CSV path"))
-    camera_sensitivity: str = field(
-        default="Canon EOS 5D Mark II", metadata=_h("camera name, CSV or rawtoaces JSON path")
+    illuminant: str = option("D65", "CIE name (D65, A, ...) or CSV path")
+    camera_sensitivity: str = option(
+        "Canon EOS 5D Mark II", "camera name, CSV or rawtoaces JSON path"
     )
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     diffuser: DiffuserConfig = field(default_factory=DiffuserConfig)

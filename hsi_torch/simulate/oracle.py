@@ -38,19 +38,12 @@ def bundle_from_truth(capture_dir: str | Path) -> CalibrationBundle:
         "white_exposure_s": manifest.get("exposure", meta.get("exposure")),
         "white_exposure_unit": "relative",  # the simulator's exposure, as its captures carry it
     }
+    same = ("wavelengths_nm", "view_homographies", "sensor_size", "reference_bbox", "B", "phi")
+    same += ("gain", "view_mask", "modulated", "valid")  # the truth's keys are the bundle's names
     return CalibrationBundle(
-        wavelengths_nm=truth["wavelengths_nm"],
+        **{k: truth[k] for k in same},
         triangles=truth["layout_triangles"],
         parity=truth["layout_parity"],
-        view_homographies=truth["view_homographies"],
-        sensor_size=truth["sensor_size"],
-        reference_bbox=truth["reference_bbox"],
-        B=truth["B"],
-        phi=truth["phi"],
-        gain=truth["gain"],
-        view_mask=truth["view_mask"],
-        modulated=truth["modulated"],
-        valid=truth["valid"],
         reflection_sequences=[tuple(s) for s in seqs],
         settings=settings,
         provenance={"truth": str(root / TRUTH_NPZ)},
