@@ -136,7 +136,7 @@ def test_sampling_grid_buffer_recomputed_in_new_dtype():
     bundle = _tilted(make_bundle())  # non-integer sampling positions
     mod = HSIReconstructor.from_bundle(bundle, beta=1.0)
     assert mod.sample_grid.dtype == torch.float32 and mod.sample_grid.shape[:2] == (1, 4)
-    assert mod.sensing() is mod.sensing()  # view (and its work buffer) kept between calls
+    assert mod.sensing is mod.sensing  # view (and its work buffer) kept between calls
     mod = mod.double()
     ref = view_sample_grid(torch.as_tensor(bundle.view_homographies), mod.reference_bbox,
                            mod.sensor_size, mod.pixel_index, dtype=torch.float64)
