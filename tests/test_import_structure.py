@@ -3,7 +3,7 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, testing, metrics, cli_common, provenance, devices,
+                 resources, refdata, colour, metrics, cli_common, provenance, devices,
                  findings
                  → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
-              "profiling", "resources", "refdata", "colour", "testing", "metrics",
+              "profiling", "resources", "refdata", "colour", "metrics",
               "cli_common", "provenance", "devices", "findings")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},

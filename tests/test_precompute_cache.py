@@ -282,8 +282,8 @@ def test_entries_are_bounded_least_recently_used_first(tmp_path, monkeypatch):
 
 def test_the_bundle_hash_is_remembered_by_file_identity(bundle_file, tmp_path, monkeypatch):
     calls = []
-    real = disk._hash_file
-    monkeypatch.setattr(disk, "_hash_file", lambda p: calls.append(p) or real(p))
+    real = disk.file_sha256
+    monkeypatch.setattr(disk, "file_sha256", lambda p: calls.append(p) or real(p))
     memo = tmp_path / "memo"
     fresh_process()
     sha = disk.content_sha256(bundle_file, memo)
@@ -561,7 +561,7 @@ def test_a_hash_memo_line_mapping_a_bundle_to_another_hash_is_ignored(bundle_fil
     make_bundle(seed=9).save(other)
     fresh_process()
     sha_other = disk.content_sha256(other, cache)
-    sha = disk._hash_file(bundle_file)
+    sha = disk.file_sha256(bundle_file)
     memo = json.loads((cache / disk.HASH_MEMO).read_text())
     (line,) = memo.values()
     st = bundle_file.stat()
@@ -570,8 +570,8 @@ def test_a_hash_memo_line_mapping_a_bundle_to_another_hash_is_ignored(bundle_fil
     memo[json.dumps(ident)] = dict(line)  # this bundle -> the other's hash, the other's MAC
     (cache / disk.HASH_MEMO).write_text(json.dumps(memo))
     calls = []
-    real = disk._hash_file
-    monkeypatch.setattr(disk, "_hash_file", lambda p: calls.append(p) or real(p))
+    real = disk.file_sha256
+    monkeypatch.setattr(disk, "file_sha256", lambda p: calls.append(p) or real(p))
     fresh_process()
     assert disk.content_sha256(bundle_file, cache) == sha != sha_other and len(calls) == 1
     fresh_process()  # its own line, written by this software, is used

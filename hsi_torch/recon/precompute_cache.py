@@ -92,6 +92,7 @@ import numpy as np
 
 from hsi_torch import console
 from hsi_torch.io.atomic import atomic_write_text, human_size, json_default
+from hsi_torch.io.safety import file_sha256
 
 __all__ = [
     "FORMAT_VERSION",
@@ -108,6 +109,7 @@ __all__ = [
     "entry_key",
     "entry_path",
     "content_sha256",
+    "remember_sha256",
     "load_entry",
     "changed_since_load",
     "loaded_stamp",
@@ -425,14 +427,6 @@ def _mac(secret: bytes, index: Mapping[str, Any], arrays: Mapping[str, np.ndarra
 # ------------------------------------------------------------------------ the bundle's hash
 
 
-def _hash_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _memo_mac(secret: bytes, ident: str, sha: str) -> str:
     h = _hasher(secret, b"bundle hash")
     h.update(_canonical([ident, sha]))
@@ -456,6 +450,20 @@ def _memo_secret(memo_folder: str | os.PathLike | None) -> tuple[Path, bytes] | 
     return (folder / HASH_MEMO, secret) if secret else None
 
 
+def _identity(p: Path, st: os.stat_result) -> tuple:
+    return (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def remember_sha256(path: str | os.PathLike, sha: str, before: os.stat_result) -> None:
+    """Remember in this process that the file at ``path`` hashes to ``sha`` (computed by the
+    caller from the bytes it read, e.g. :meth:`~hsi_torch.io.bundle.CalibrationBundle.load_hashed`)
+    — only if its identity (:func:`content_sha256`) is still ``before``, taken before the read."""
+    p = Path(path)
+    ident = _identity(p, before)
+    if _identity(p, p.stat()) == ident:
+        _HASHES[ident] = sha
+
+
 def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | None = None) -> str:
     """Hex SHA-256 of a file's content, remembered while the file's identity stays the same.
 
@@ -468,8 +476,7 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     a line written by anyone else (mapping this bundle to another's hash) is ignored.
     """
     p = Path(path)
-    st = p.stat()
-    ident = (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    ident = _identity(p, p.stat())
     sha = _HASHES.get(ident)
     if sha is not None:
         return sha
@@ -486,7 +493,7 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     sha = line.get("sha256") if isinstance(line, dict) else None
     if not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) and where is not None
             and line.get("mac") == _memo_mac(where[1], text, sha)):  # fmt: skip
-        sha = _hash_file(p)
+        sha = file_sha256(p)
         if where is not None:
             memo = dict(list(memo.items())[-255:])
             memo[text] = {"sha256": sha, "mac": _memo_mac(where[1], text, sha)}
@@ -1042,8 +1049,10 @@ def save_entry(
             free = shutil.disk_usage(p.parent).free
             if free - nbytes < MIN_FREE_BYTES:
                 CACHE_STATS["write_skipped"] += 1
-                _warn(f"precomputation cache: {human_size(free)} free in {p.parent}, the "
-                      f"entry needs {human_size(nbytes)}; not written")
+                _warn(
+                    f"precomputation cache: {human_size(free)} free in {p.parent}, the "
+                    f"entry needs {human_size(nbytes)}; not written"
+                )
                 return False
             secret = _secret(p.parent, create=True)
             assert secret is not None

@@ -43,6 +43,29 @@ FRAME_INNER_ITERS = 5
 BRIGHTNESS_WEIGHT = 0.3
 
 
+def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
+    """``Aᵀ y`` of every pixel (``y`` 0 where ``mask`` is False): the NNLS kernel's compiled
+    right-hand side on the CPU (one pass over the factors, ~4× the torch batched products), the
+    model's operator elsewhere or where ``y`` needs a gradient."""
+    if (
+        nnls_compiled.AVAILABLE
+        and y.device.type == "cpu"
+        and isinstance(model, SensingModel)
+        and not model.shared
+        and not (y.requires_grad and torch.is_grad_enabled())
+    ):
+        out = nnls_compiled.adjoint_frame(
+            y.detach().numpy(),
+            mask.numpy(),
+            model.transmittance.numpy(),
+            model.gain.numpy(),
+            model.response.numpy(),
+            torch.get_num_threads(),
+        )
+        return torch.from_numpy(out)
+    return model.A_adjoint(y)
+
+
 def solve_frame(
     sens: BundleSensing,
     y: Tensor,
@@ -91,28 +114,6 @@ def solve_frame(
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``,
         ``brightness_weight``.
     """
-    return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
-                        guided, brightness_weight)
-
-
-def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
-    """``Aᵀ y`` of every pixel (``y`` 0 where ``mask`` is False): the NNLS kernel's compiled
-    right-hand side on the CPU (one pass over the factors, ~4× the torch batched products), the
-    model's operator elsewhere or where ``y`` needs a gradient."""
-    if (nnls_compiled.AVAILABLE and y.device.type == "cpu" and isinstance(model, SensingModel)
-            and not model.shared and not (y.requires_grad and torch.is_grad_enabled())):
-        out = nnls_compiled.adjoint_frame(
-            y.detach().numpy(), mask.numpy(), model.transmittance.numpy(), model.gain.numpy(),
-            model.response.numpy(), torch.get_num_threads())
-        return torch.from_numpy(out)
-    return model.A_adjoint(y)
-
-
-def _solve_frame(
-    sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, changed: Tensor, x0: Tensor,
-    lam: float | str, iters: int | None, inner_iters: int, tol: float | None, max_iter: int,
-    guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT,
-) -> tuple[Tensor, dict[str, Any]]:
     auto = isinstance(lam, str)
     if auto and lam not in LAM_RULES:
         raise ValueError(f"lam must be a number >= 0, 'auto' or 'discrepancy', got {lam!r}")
@@ -138,18 +139,28 @@ def _solve_frame(
             rule = LAM_RULES[lam]
             with torch.no_grad():
                 lam, x0, extra = rule(sp, sens, b.detach(), y, mask, ok, x0, sigma, scale,
-                                      inner_iters, max_iter, tol, changed, alpha)
+                                      inner_iters, max_iter, tol, changed,
+                                      brightness_weight)  # fmt: skip
         else:
             lam, extra = 0.0, {"lam_rule": f"{lam} (no noise estimate: lam = 0)"}
     lam_abs = lam * scale
     # the per-pixel G⁻¹ is not read by the spatial solve: its pages of a mapped precomputation
     # cache entry leave the resident set until the next frame's warm start
     disk.release_pages(prob.gram_inv)
-    res = solve_spatial(sp, b, lam_abs, x0=x0, tol=tol, max_iter=max_iter, iters=iters,
-                        inner_iters=inner_iters, brightness_weight=alpha)
+    res = solve_spatial(
+        sp,
+        b,
+        lam_abs,
+        x0=x0,
+        tol=tol,
+        max_iter=max_iter,
+        iters=iters,
+        inner_iters=inner_iters,
+        brightness_weight=brightness_weight,
+    )
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
-        "brightness_weight": alpha,
+        "brightness_weight": brightness_weight,
         "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok, NOISE_SAMPLES),
         "spatial_iterations": res.iterations, "spatial_converged": res.converged,
         "spatial_primal_residual": res.primal_residual,
