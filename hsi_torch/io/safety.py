@@ -3,6 +3,8 @@
 - :func:`require_regular_file`: an input must be a regular file (a symlink to one is fine)
   before it is opened; a FIFO, a device or a socket is refused by name (opening a FIFO blocks
   until a writer appears: a batch would hang forever).
+- :func:`file_kind`: what a file that is not a regular one is (a FIFO, a device, ...), the
+  one wording of every such refusal.
 - :func:`file_sha256`: the one content hash of a file (bundles, inputs, provenance, the
   precomputation cache's key), or of the bytes already read from it.
 - :func:`short_repr`: ``repr`` of a value cut to a bounded length, for error messages about
@@ -38,7 +40,13 @@ _KINDS = (
     (stat.S_ISCHR, "a character device"),
     (stat.S_ISBLK, "a block device"),
     (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISLNK, "a symbolic link"),
 )
+
+
+def file_kind(mode: int) -> str:
+    """What a file that is not a regular one is, from its ``st_mode``, for error messages."""
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
 
 
 def require_regular_file(path: str | os.PathLike, what: str = "input file") -> Path:
@@ -56,8 +64,9 @@ def require_regular_file(path: str | os.PathLike, what: str = "input file") -> P
     except (OSError, ValueError) as exc:
         raise FileFormatError(f"{p}: cannot read the {what} ({exc})") from None
     if not stat.S_ISREG(mode):
-        kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
-        raise FileFormatError(f"{p}: is {kind}, not a regular file; a {what} must be a file")
+        raise FileFormatError(
+            f"{p}: is {file_kind(mode)}, not a regular file; a {what} must be a file"
+        )
     return p
 
 

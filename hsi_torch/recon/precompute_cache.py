@@ -91,7 +91,7 @@ import blake3
 import numpy as np
 
 from hsi_torch import console
-from hsi_torch.io.atomic import atomic_write_text, human_size, json_default
+from hsi_torch.io.atomic import atomic_write_text, human_size, json_default, read_own_bytes
 from hsi_torch.io.safety import file_sha256
 
 __all__ = [
@@ -340,24 +340,6 @@ def entry_path(folder: str | os.PathLike, bundle_path: str | os.PathLike, key: s
 # ------------------------------------------------------------------------ the folder's secret
 
 
-def _read_small(path: str | os.PathLike, limit: int, dir_fd: int | None = None) -> bytes:
-    """The bytes of a regular file of at most ``limit`` bytes, opened without following a
-    symbolic link and without blocking (a FIFO, a device, a link: :class:`_Refused`)."""
-    try:
-        fd = os.open(path, _OPEN_FLAGS, dir_fd=dir_fd)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise _Refused(f"{os.fspath(path)} is a symbolic link") from None
-        raise
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise _Refused(f"{os.fspath(path)} is not a regular file")
-        if st.st_size > limit:
-            raise _Refused(f"{os.fspath(path)} has {st.st_size} bytes (at most {limit})")
-        return f.read(limit + 1)
-
-
 def _secret(folder: Path, create: bool) -> bytes | None:
     """The folder's secret (:data:`KEY_FILE`), made when ``create`` and missing (``None``: none).
 
@@ -484,7 +466,9 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     memo: dict[str, Any] = {}
     if where is not None:
         try:
-            got = json.loads(_read_small(where[0], MAX_HEADER_BYTES))
+            got = json.loads(
+                read_own_bytes(where[0], MAX_HEADER_BYTES, what="cache file", error=_Refused)
+            )
             memo = dict(got) if isinstance(got, dict) else {}
         except (OSError, ValueError, _Refused, RecursionError):
             memo = {}
@@ -646,7 +630,11 @@ def _read_entry(path: Path, key: str, secret: bytes) -> tuple[dict[str, np.ndarr
         raise
     stamp = _Stamp(path)
     try:
-        index = json.loads(_read_small(INDEX, MAX_HEADER_BYTES, dir_fd=dir_fd).decode("utf-8"))
+        index = json.loads(
+            read_own_bytes(
+                INDEX, MAX_HEADER_BYTES, what="cache index", dir_fd=dir_fd, error=_Refused
+            ).decode("utf-8")
+        )
         if not isinstance(index, dict):
             raise _Refused("the index is not a JSON object")
         if index.get("format") != FORMAT_VERSION:
@@ -873,7 +861,9 @@ def _entry_kind(path: Path) -> str | None:
     if t:
         return "temp" if not _pid_alive(int(t["pid"])) else None
     try:
-        index = json.loads(_read_small(path / INDEX, MAX_HEADER_BYTES))
+        index = json.loads(
+            read_own_bytes(path / INDEX, MAX_HEADER_BYTES, what="cache index", error=_Refused)
+        )
     except (OSError, ValueError, _Refused, RecursionError):
         return None
     key = index.get("key") if isinstance(index, dict) else None
