@@ -852,3 +852,41 @@ def test_the_users_private_group_may_write_the_folder(tmp_path, monkeypatch):
     folder.chmod(0o777)
     monkeypatch.setattr(disk, "_private_group", lambda gid: True)
     assert "writable by group and others" in disk.folder_problem(folder)
+
+
+def _mapped_file(t: torch.Tensor) -> str | None:
+    """The file whose mapping holds ``t``'s memory, from ``/proc/self/maps`` (``None``: none)."""
+    addr = t.data_ptr()
+    with open("/proc/self/maps") as f:
+        for line in f:
+            parts = line.split()
+            lo, hi = (int(v, 16) for v in parts[0].split("-"))
+            if lo <= addr < hi:
+                return parts[5] if len(parts) > 5 else None
+    return None
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="needs /proc/self/maps")
+def test_the_reconstructors_buffers_are_the_mapped_cache_entry(bundle_file, tmp_path):
+    """A reconstructor loaded from the disk cache registers the entry's memory-mapped arrays as
+    its buffers, not copies: the buffers are the sensing's tensors and their memory is a mapping
+    of the entry's files; ``forward`` and the file method give the same cube; the object works
+    in ``nn.Sequential``."""
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    fresh_process()
+    Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))  # writes the entry
+    fresh_process()
+    c0 = counts()
+    rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache), output="cube")
+    assert counts()["loaded"] == c0["loaded"] + 1
+    sens = rec.sensing
+    assert rec.gram is sens.problem.gram and rec.model_transmittance is sens.model.transmittance
+    (entry,) = entries(cache)
+    for name in ("gram", "gram_inv", "model_transmittance"):
+        where = _mapped_file(getattr(rec, name))
+        assert where is not None and where.startswith(str(entry)), (name, where)
+    assert rec.B is None and "B" not in rec.state_dict()  # no full-frame calibration kept
+    res = rec.reconstruct_frame(capture)
+    cube = torch.nn.Sequential(rec, torch.nn.Identity())(capture[None])[0]
+    torch.testing.assert_close(cube, torch.where(res.valid, res.cube, 0.0), rtol=0, atol=0)

@@ -212,6 +212,8 @@ class HSIReconstructor(nn.Module):
         ...                     nn.Conv2d(25, 8, 3))  # doctest: +SKIP
     """
 
+    #: ``keep_calibration``'s default (``None``: when ``bundle`` is a :class:`CalibrationBundle`)
+    default_keep_calibration: bool | None = None
     wavelengths_nm: Tensor
     B: Tensor
     phi: Tensor
@@ -253,6 +255,8 @@ class HSIReconstructor(nn.Module):
         # forward returns no standard deviation, so it does not compute one
         self._frame_settings = s.replace(uncertainty=False) if s.uncertainty.enabled else s
         sv = s.solve
+        if keep_calibration is None:
+            keep_calibration = self.default_keep_calibration
         if keep_calibration is None:
             keep_calibration = isinstance(bundle, CalibrationBundle)
         calib: CalibrationBundle | None = None
@@ -366,7 +370,7 @@ class HSIReconstructor(nn.Module):
             "sensor_size": list(self.sensor_size),
             "reference_bbox": list(self.reference_bbox),
             "exposure_s": self.exposure_s,
-            "phi_float64": self._phi64.tolist(),
+            **({} if self._phi64 is None else {"phi_float64": self._phi64.tolist()}),
         }
 
     def set_extra_state(self, state: Any) -> None:
@@ -858,18 +862,8 @@ class Reconstructor(HSIReconstructor):
         >>> res.cube.shape, res.valid.sum(), res.timings  # doctest: +SKIP
     """
 
-    def __init__(
-        self,
-        bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
-        settings: ReconstructSettings | None = None,
-        *,
-        output: str = "result",
-        fill_value: float = 0.0,
-        keep_calibration: bool = False,
-        **overrides: Any,
-    ) -> None:
-        super().__init__(bundle, settings, output=output, fill_value=fill_value,
-                         keep_calibration=keep_calibration, **overrides)  # fmt: skip
+    #: ``keep_calibration``'s default: never
+    default_keep_calibration: bool | None = False
 
 
 def _derived(sens: BundleSensing) -> dict[str, Tensor]:
