@@ -201,6 +201,9 @@ def test_reconstruction_loads_neither_calibration_nor_opencv():
                                                                     "hsi_torch.simulate",
                                                                     "hsi_torch.experiments")))
     assert not leaked, f"reconstruction loads {leaked}"
+    # the module's compiler-disabled methods import torch's compiler on first use only
+    # (it costs about 70 MiB and a second that a process reconstructing files never needs)
+    assert "torch._dynamo" not in mods and "sympy" not in mods
 
 
 def test_the_simulator_does_not_load_calibration():

@@ -151,6 +151,13 @@ class ReconstructionOutput(NamedTuple):
     valid: Tensor
 
 
+def _eager(fn: Any) -> Any:
+    """``torch.compiler.disable(fn)``, applied on the first call (torch's own lazy form of it):
+    importing the compiler takes about 70 MiB and a second, which a process that only
+    reconstructs files never needs."""
+    return torch._disable_dynamo(fn)  # type: ignore[attr-defined]
+
+
 class HSIReconstructor(nn.Module):
     """Captures → spectral cubes on the bundle's reference frame: one object for tensors, batches
     and networks (``forward``) and for captures and files (:meth:`reconstruct_frame`,
@@ -623,7 +630,7 @@ class HSIReconstructor(nn.Module):
             return torch.where(valid.unsqueeze(1), cube, fill).to(out_dtype)
         return ReconstructionOutput(cube.to(out_dtype), valid)
 
-    @torch.compiler.disable
+    @_eager
     def correct(self, rgb: Tensor, saturated: Tensor | None) -> tuple[Tensor, Tensor | None]:
         """The bundle's sensor corrections on ``(B, 3, H, W)`` linear RGB and its saturation
         mask (:func:`~hsi_torch.recon.corrections.correct_frames`): for a bundle calibrated with
@@ -633,7 +640,7 @@ class HSIReconstructor(nn.Module):
         rgb, saturated, _ = correct_frames(rgb, saturated, self.radiometry)
         return rgb, saturated
 
-    @torch.compiler.disable
+    @_eager
     def reconstruct_prepared(
         self, rgb: Tensor, saturated: Tensor | None, exposure_scale: Tensor | float | None
     ) -> tuple[Tensor, Tensor]:
