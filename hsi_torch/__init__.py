@@ -15,7 +15,7 @@ from typing import Any
 _LAZY = {
     "SpectralGrid": "hsi_torch.spectral",
     "DEFAULT_GRID": "hsi_torch.spectral",
-    "HSIReconstructor": "hsi_torch.recon.module",
+    "HSIReconstructor": "hsi_torch.recon.pipeline",
     "Reconstructor": "hsi_torch.recon.pipeline",
     "CalibrationBundle": "hsi_torch.io.bundle",
 }

@@ -100,8 +100,10 @@ def spectra_to_xyz(
         spectra = spectra.to(torch.get_default_dtype())
     w, wl = _weights(wavelengths, illuminant, spectra.device, spectra.dtype)
     if spectra.shape[-1] != wl.numel():
-        raise ValueError(f"spectra have {spectra.shape[-1]} samples on the last axis but "
-                         f"{wl.numel()} wavelengths were given")
+        raise ValueError(
+            f"spectra have {spectra.shape[-1]} samples on the last axis but "
+            f"{wl.numel()} wavelengths were given"
+        )
     return spectra @ w.T
 
 
@@ -235,14 +237,17 @@ def _masked_xyz(
     valid region (finite XYZ implies a finite spectrum) take the ``nan_to_num`` route."""
     v = torch.as_tensor(valid, device=cube.device).bool().unsqueeze(-3)
     if v.shape[-2:] != cube.shape[-2:]:
-        raise ValueError(f"valid must have shape (..., H, W) = {tuple(cube.shape[-2:])}, got "
-                         f"{tuple(valid.shape)}")
+        raise ValueError(
+            f"valid must have shape (..., H, W) = {tuple(cube.shape[-2:])}, got "
+            f"{tuple(valid.shape)}"
+        )
     xyz = cube_to_xyz(cube, wavelengths, illuminant)
     zero = torch.zeros((), dtype=xyz.dtype, device=xyz.device)
     xyz = torch.where(v, xyz, zero)
     if not bool(torch.isfinite(xyz).all()):
-        xyz = cube_to_xyz(torch.where(v, torch.nan_to_num(cube, nan=0.0), 0.0), wavelengths,
-                          illuminant)
+        xyz = cube_to_xyz(
+            torch.where(v, torch.nan_to_num(cube, nan=0.0), 0.0), wavelengths, illuminant
+        )
     return xyz
 
 
@@ -337,15 +342,7 @@ def save_labelled_png(
 
 def save_png_rgb(rgb: torch.Tensor, path: str | os.PathLike) -> Path:
     """Write a ``(3, H, W)`` image in [0, 1] (already encoded) as an 8-bit PNG, atomically."""
-    import cv2  # lazy: OpenCV only to write PNGs; reconstruction does not load it
-
-    bgr = np.ascontiguousarray(_to_u8_hwc(rgb)[..., ::-1])
-    ok, buf = cv2.imencode(".png", bgr)
-    if not ok:
-        raise RuntimeError(f"PNG encoding failed for {path}")
-    path = Path(path)
-    _atomic_write_bytes(path, buf.tobytes())
-    return path
+    return _write_png(_to_u8_hwc(rgb), path)
 
 
 def save_preview_png(
@@ -372,8 +369,15 @@ def save_preview_png(
     cube = torch.as_tensor(cube)
     if cube.ndim != 3:
         raise ValueError(f"cube must have shape (M, H, W), got {tuple(cube.shape)}")
-    rgb = cube_to_srgb(cube, wavelengths, illuminant, normalise=normalise,
-                       percentile=percentile, exposure=exposure, valid=valid)
+    rgb = cube_to_srgb(
+        cube,
+        wavelengths,
+        illuminant,
+        normalise=normalise,
+        percentile=percentile,
+        exposure=exposure,
+        valid=valid,
+    )
     if caption is None and not min_size:
         return save_png_rgb(rgb, path)
     return save_labelled_png(rgb, path, caption=caption, min_size=min_size)
@@ -447,11 +451,16 @@ def plot_spectra(
     t = t_wl = None
     if truth is not None:
         t = np.atleast_2d(to_np(truth))
-        t_wl = wl if truth_wavelengths is None else to_np(
-            refdata.as_wavelengths(truth_wavelengths, dtype=torch.float64))
+        t_wl = (
+            wl
+            if truth_wavelengths is None
+            else to_np(refdata.as_wavelengths(truth_wavelengths, dtype=torch.float64))
+        )
         if t.shape[0] != s.shape[0] or t.shape[1] != t_wl.size:
-            raise ValueError(f"truth shape {t.shape} does not match spectra {s.shape} / "
-                             f"{t_wl.size} truth wavelengths")
+            raise ValueError(
+                f"truth shape {t.shape} does not match spectra {s.shape} / "
+                f"{t_wl.size} truth wavelengths"
+            )
     k = s.shape[0]
     sd = None if std is None else np.atleast_2d(to_np(std))
     if sd is not None and sd.shape != s.shape:
@@ -488,8 +497,11 @@ def plot_spectra(
     fig.supxlabel("wavelength (nm)")
     fig.supylabel(ylabel)
     if title:
-        fig.suptitle(title + ("  (solid: estimate, dashed: truth)" if t is not None else "")
-                     + ("  (band: ±1σ)" if sd is not None else ""))
+        fig.suptitle(
+            title
+            + ("  (solid: estimate, dashed: truth)" if t is not None else "")
+            + ("  (band: ±1σ)" if sd is not None else "")
+        )
     fig.tight_layout()
     if path is not None:
         import io

@@ -34,6 +34,7 @@ import resource
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -41,7 +42,9 @@ from scipy.optimize import nnls
 
 from hsi_torch.recon.nnls import prepare_nnls, solve_nnls
 from hsi_torch.spectral import difference_matrix
-from hsi_torch.testing import synthetic_brf_problem
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' problems
+from synthetic_data import synthetic_brf_problem  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:

@@ -569,7 +569,7 @@ def test_pedestal_warning_of_a_dng_names_the_level_it_subtracted(lab, bundle, tm
     in: the warning says 512 DN were subtracted and suggests 768. Before the fix it said
     "black level subtracted 0 DN" and "--set black_level=257", which a user following it would
     have made worse (the cube 3 dB instead of 31)."""
-    from hsi_torch.testing import write_dng
+    from synthetic_data import write_dng
 
     cc = tifffile.imread(lab["sim"] / "scenes" / "colorchecker.tif").astype(np.float64)
     f = write_dng(tmp_path / "ped.dng", cc + 256, black_level=512, white_level=16383,

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from synthetic_data import write_dng
 
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.cli import main
@@ -29,7 +30,6 @@ from hsi_torch.io.capture_manifest import check_manifest, manifest_keys, manifes
 from hsi_torch.io.capture_set import read_capture_set, read_nominal_layout, read_truth
 from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.resources import shipped_config
-from hsi_torch.testing import write_dng
 
 BLACK, WHITE = 512, 16383  # the simulated sensor: 14 bit, black level 512
 T_WHITE = 0.02  # the lab's white shots: 20 ms; the scene at half of it

@@ -135,8 +135,9 @@ def _lab_files(sim: Path, ws: Path) -> None:
     import csv
     import json
 
+    from synthetic_data import write_dng
+
     from hsi_torch.io import read_capture
-    from hsi_torch.testing import write_dng
 
     def dng(src: Path, dst: Path, exposure_s: float) -> None:
         img, meta = read_capture(src)

@@ -48,7 +48,6 @@ ALLOWED = {
     "hsi_torch/io/atomic.py": "the file-safety layer itself",
     "hsi_torch/recon/precompute_cache.py": "the precompute cache's own entries and eviction "
     "(a folder of the cache's own, checked and bounded there)",
-    "hsi_torch/testing.py": "test fixtures written into a test's own temporary folder",
 }
 
 _WRITE_MODES = set("wax+")

@@ -3,7 +3,7 @@
 Stages, bottom to top, and what each may import::
 
     foundation   errors, spectral, bayer, config, io, forward_model, console, profiling,
-                 resources, refdata, colour, testing, metrics, cli_common, provenance, devices,
+                 resources, refdata, colour, metrics, cli_common, provenance, devices,
                  findings
                  → foundation only
     optics       (virtual prototype optics, plane geometry)  → foundation, but not io
@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hsi_torch"
 
 FOUNDATION = ("errors", "spectral", "bayer", "config", "io", "forward_model", "console",
-              "profiling", "resources", "refdata", "colour", "testing", "metrics",
+              "profiling", "resources", "refdata", "colour", "metrics",
               "cli_common", "provenance", "devices", "findings")  # fmt: skip
 ALLOWED = {
     "foundation": {"foundation"},
@@ -201,6 +201,9 @@ def test_reconstruction_loads_neither_calibration_nor_opencv():
                                                                     "hsi_torch.simulate",
                                                                     "hsi_torch.experiments")))
     assert not leaked, f"reconstruction loads {leaked}"
+    # the module's compiler-disabled methods import torch's compiler on first use only
+    # (it costs about 70 MiB and a second that a process reconstructing files never needs)
+    assert "torch._dynamo" not in mods and "sympy" not in mods
 
 
 def test_the_simulator_does_not_load_calibration():
@@ -360,7 +363,7 @@ def test_the_import_graph_has_no_cycle():
     the imports inside functions too: each module can be read, tested and changed from the
     bottom up."""
     graph = _import_graph()
-    assert "hsi_torch.recon.sensing" in graph["hsi_torch.recon.module"]  # the graph is read
+    assert "hsi_torch.recon.sensing" in graph["hsi_torch.recon.pipeline"]  # the graph is read
     cycles = _cycles(graph)
     assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
 

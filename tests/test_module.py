@@ -136,7 +136,7 @@ def test_sampling_grid_buffer_recomputed_in_new_dtype():
     bundle = _tilted(make_bundle())  # non-integer sampling positions
     mod = HSIReconstructor.from_bundle(bundle, beta=1.0)
     assert mod.sample_grid.dtype == torch.float32 and mod.sample_grid.shape[:2] == (1, 4)
-    assert mod.sensing() is mod.sensing()  # view (and its work buffer) kept between calls
+    assert mod.sensing is mod.sensing  # view (and its work buffer) kept between calls
     mod = mod.double()
     ref = view_sample_grid(torch.as_tensor(bundle.view_homographies), mod.reference_bbox,
                            mod.sensor_size, mod.pixel_index, dtype=torch.float64)
@@ -163,3 +163,34 @@ def test_deepcopy_and_torch_save_roundtrip(tmp_path):
     loaded = torch.load(tmp_path / "mod.pt", weights_only=False)
     for m in (twin, loaded):
         torch.testing.assert_close(m(x, sat).cube, ref, equal_nan=True, rtol=0, atol=0)
+
+
+def test_one_object_for_networks_and_files(tmp_path):
+    """The module and the file front door are one class: a module built with ``from_bundle``
+    reconstructs files, and ``Reconstructor`` (the same class without the full-frame calibration
+    arrays) runs as a module; both give the same cube. ``Reconstructor`` keeps no calibration in
+    its state dict and refuses to load one; the module's state dict loads into another module."""
+    from hsi_torch.errors import InputError
+    from hsi_torch.io import write_capture
+    from hsi_torch.recon.pipeline import HSIReconstructor as OneClass
+
+    assert HSIReconstructor is OneClass and issubclass(Reconstructor, HSIReconstructor)
+    bundle = make_bundle()
+    x = render_capture(bundle, true_spectra(seed=3)).float()
+    mod = HSIReconstructor.from_bundle(bundle, beta=3.0)
+    rec = Reconstructor(bundle, beta=3.0)
+    by_method = mod.reconstruct_frame(x)  # the file API on the module
+    by_forward = rec(x[None])  # the module API on the file front door
+    torch.testing.assert_close(by_method.cube, by_forward.cube[0], equal_nan=True, rtol=0, atol=0)
+    assert torch.equal(by_method.valid, by_forward.valid[0])
+    path = tmp_path / "frame.tif"
+    write_capture(path, x)
+    a, b = mod.reconstruct_file(path), rec.reconstruct_file(path)
+    torch.testing.assert_close(a.cube, b.cube, equal_nan=True, rtol=0, atol=0)
+    assert a.stats["num_valid"] == b.stats["num_valid"] > 0
+    assert "B" in mod.state_dict() and "B" not in rec.state_dict()
+    with pytest.raises(InputError, match="without the bundle's calibration arrays"):
+        rec.load_state_dict(mod.state_dict())
+    other = HSIReconstructor.from_bundle(make_bundle(seed=5), beta=3.0)
+    other.load_state_dict(mod.state_dict())
+    torch.testing.assert_close(other(x[None]).cube, mod(x[None]).cube, equal_nan=True)

@@ -282,8 +282,8 @@ def test_entries_are_bounded_least_recently_used_first(tmp_path, monkeypatch):
 
 def test_the_bundle_hash_is_remembered_by_file_identity(bundle_file, tmp_path, monkeypatch):
     calls = []
-    real = disk._hash_file
-    monkeypatch.setattr(disk, "_hash_file", lambda p: calls.append(p) or real(p))
+    real = disk.file_sha256
+    monkeypatch.setattr(disk, "file_sha256", lambda p: calls.append(p) or real(p))
     memo = tmp_path / "memo"
     fresh_process()
     sha = disk.content_sha256(bundle_file, memo)
@@ -561,7 +561,7 @@ def test_a_hash_memo_line_mapping_a_bundle_to_another_hash_is_ignored(bundle_fil
     make_bundle(seed=9).save(other)
     fresh_process()
     sha_other = disk.content_sha256(other, cache)
-    sha = disk._hash_file(bundle_file)
+    sha = disk.file_sha256(bundle_file)
     memo = json.loads((cache / disk.HASH_MEMO).read_text())
     (line,) = memo.values()
     st = bundle_file.stat()
@@ -570,8 +570,8 @@ def test_a_hash_memo_line_mapping_a_bundle_to_another_hash_is_ignored(bundle_fil
     memo[json.dumps(ident)] = dict(line)  # this bundle -> the other's hash, the other's MAC
     (cache / disk.HASH_MEMO).write_text(json.dumps(memo))
     calls = []
-    real = disk._hash_file
-    monkeypatch.setattr(disk, "_hash_file", lambda p: calls.append(p) or real(p))
+    real = disk.file_sha256
+    monkeypatch.setattr(disk, "file_sha256", lambda p: calls.append(p) or real(p))
     fresh_process()
     assert disk.content_sha256(bundle_file, cache) == sha != sha_other and len(calls) == 1
     fresh_process()  # its own line, written by this software, is used
@@ -852,3 +852,41 @@ def test_the_users_private_group_may_write_the_folder(tmp_path, monkeypatch):
     folder.chmod(0o777)
     monkeypatch.setattr(disk, "_private_group", lambda gid: True)
     assert "writable by group and others" in disk.folder_problem(folder)
+
+
+def _mapped_file(t: torch.Tensor) -> str | None:
+    """The file whose mapping holds ``t``'s memory, from ``/proc/self/maps`` (``None``: none)."""
+    addr = t.data_ptr()
+    with open("/proc/self/maps") as f:
+        for line in f:
+            parts = line.split()
+            lo, hi = (int(v, 16) for v in parts[0].split("-"))
+            if lo <= addr < hi:
+                return parts[5] if len(parts) > 5 else None
+    return None
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="needs /proc/self/maps")
+def test_the_reconstructors_buffers_are_the_mapped_cache_entry(bundle_file, tmp_path):
+    """A reconstructor loaded from the disk cache registers the entry's memory-mapped arrays as
+    its buffers, not copies: the buffers are the sensing's tensors and their memory is a mapping
+    of the entry's files; ``forward`` and the file method give the same cube; the object works
+    in ``nn.Sequential``."""
+    cache = tmp_path / "cache"
+    capture = render_capture(make_bundle(), true_spectra()).float()
+    fresh_process()
+    Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache))  # writes the entry
+    fresh_process()
+    c0 = counts()
+    rec = Reconstructor(bundle_file, beta=2.0, precompute_cache=str(cache), output="cube")
+    assert counts()["loaded"] == c0["loaded"] + 1
+    sens = rec.sensing
+    assert rec.gram is sens.problem.gram and rec.model_transmittance is sens.model.transmittance
+    (entry,) = entries(cache)
+    for name in ("gram", "gram_inv", "model_transmittance"):
+        where = _mapped_file(getattr(rec, name))
+        assert where is not None and where.startswith(str(entry)), (name, where)
+    assert rec.B is None and "B" not in rec.state_dict()  # no full-frame calibration kept
+    res = rec.reconstruct_frame(capture)
+    cube = torch.nn.Sequential(rec, torch.nn.Identity())(capture[None])[0]
+    torch.testing.assert_close(cube, torch.where(res.valid, res.cube, 0.0), rtol=0, atol=0)

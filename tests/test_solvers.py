@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 from scipy.optimize import nnls
+from synthetic_data import synthetic_brf_problem
 
 from hsi_torch.recon.nnls import NNLSResult, prepare_nnls, solve_nnls
 from hsi_torch.spectral import difference_matrix
-from hsi_torch.testing import synthetic_brf_problem
 
 # relative (per-pixel L2) agreement with SciPy on well-conditioned problems
 RTOL = {torch.float64: 1e-8, torch.float32: 1e-4}

@@ -588,9 +588,9 @@ def test_captures_import_reads_no_pixel(tmp_path, no_tiff_decoding):
 
 def test_a_raw_of_another_size_is_refused_before_libraw_unpacks_it(tmp_path, monkeypatch):
     import rawpy
+    from synthetic_data import write_dng
 
     from hsi_torch.io import read_any
-    from hsi_torch.testing import write_dng
 
     f = write_dng(tmp_path / "big.dng", np.full((64, 96), 600, np.uint16), black_level=512,
                   white_level=4095)  # fmt: skip

@@ -524,7 +524,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     if ideal:
         cube_i, valid_i, st_i = ideal_observations(rec, renderer, scene,
                                                    noise="noise" not in ablate, seed=cfg.seed)
-        res = ReconstructionResult(cube_i, valid_i, rec.wavelengths_nm, st_i, {})
+        res = ReconstructionResult(cube_i, valid_i, rec.sensing.wavelengths_nm, st_i, {})
     else:
         res = rec.reconstruct_file(cs / "scenes" / "usaf.tif")
     tm["reconstruct"] = time.perf_counter() - t0

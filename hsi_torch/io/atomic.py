@@ -29,6 +29,7 @@ names the file).
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import glob
 import itertools
@@ -45,6 +46,7 @@ from typing import IO, Any
 import numpy as np
 
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.io.safety import file_kind
 
 __all__ = [
     "FileFormatError",
@@ -100,6 +102,7 @@ def _nofollow_opener(path: str, flags: int) -> int:
     """``open(..., opener=)`` that never follows a symlink at the last component."""
     return os.open(path, flags | _NOFOLLOW | _CLOEXEC, 0o600)
 
+
 #: Name of a temporary file of :func:`atomic_write`: ``.<name>.<pid>-<random>.tmp``.
 TEMP_FILE_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.tmp$")
 
@@ -136,8 +139,9 @@ def atomic_write(
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.{os.getpid()}-", suffix=".tmp",
-                               dir=dest.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{dest.name}.{os.getpid()}-", suffix=".tmp", dir=dest.parent
+    )
     try:
         kwargs: dict[str, Any] = {} if mode == "wb" else {"encoding": "utf-8", "newline": ""}
         os.close(fd)
@@ -164,8 +168,9 @@ def atomic_write(
 def _names_temp(exc: OSError, tmp: str | os.PathLike) -> bool:
     """Whether ``exc`` names the temporary file ``tmp`` (or no file at all)."""
     names = {os.fspath(x) for x in (exc.filename, getattr(exc, "filename2", None)) if x}
-    return not names or os.fspath(tmp) in names or any(TEMP_FILE_RE.match(Path(n).name)
-                                                      for n in names)
+    return (
+        not names or os.fspath(tmp) in names or any(TEMP_FILE_RE.match(Path(n).name) for n in names)
+    )
 
 
 def human_size(nbytes: float) -> str:
@@ -388,19 +393,10 @@ def mark_lock_holder(fd: int) -> None:
     os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)
 
 
-_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
-          (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-          (stat.S_ISSOCK, "a socket"), (stat.S_ISLNK, "a symbolic link"))  # fmt: skip
-
-
-def _kind(mode: int) -> str:
-    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
-
-
 def _not_own(path: Path, st: os.stat_result) -> str | None:
     """Why the open file ``st`` at ``path`` is not one of our own files (``None``: it is)."""
     if not stat.S_ISREG(st.st_mode):
-        return f"is {_kind(st.st_mode)}, not a regular file"
+        return f"is {file_kind(st.st_mode)}, not a regular file"
     if st.st_nlink != 1:
         return f"has {st.st_nlink} hard links (another name of some other file)"
     if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
@@ -444,13 +440,17 @@ def open_own_file(path: str | os.PathLike, what: str = "lock file") -> tuple[int
         except OSError:
             raise named_os_error(exc, p, "opening") from None
         reason = _not_own(p, st) or str(exc.strerror or exc)
-        raise InputError(f"{p} {reason}: not a {what} this program wrote; nothing was written "
-                         "to it: remove it, or choose another folder") from None
+        raise InputError(
+            f"{p} {reason}: not a {what} this program wrote; nothing was written "
+            "to it: remove it, or choose another folder"
+        ) from None
     reason = _not_own(p, os.fstat(fd))
     if reason is not None:
         os.close(fd)
-        raise InputError(f"{p} {reason}: not a {what} this program wrote; nothing was written "
-                         "to it: remove it, or choose another folder")
+        raise InputError(
+            f"{p} {reason}: not a {what} this program wrote; nothing was written "
+            "to it: remove it, or choose another folder"
+        )
     os.set_blocking(fd, True)
     return fd, False
 
@@ -497,34 +497,38 @@ def hold_lock(path: str | os.PathLike, busy: Callable[[str], str], *,
 
 
 def read_own_bytes(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
-                   follow: bool = False, what: str = "file") -> bytes:  # fmt: skip
-    """The content of one of our own small files (a marker, a record), read safely.
+                   follow: bool = False, what: str = "file", dir_fd: int | None = None,
+                   error: type[Exception] = FileFormatError) -> bytes:  # fmt: skip
+    """The content of one of our own small files (a marker, a record, a cache index), read safely.
 
     Opened ``O_NONBLOCK`` (a FIFO cannot block) and without following a symlink unless
-    ``follow``; then only a regular file of at most ``max_bytes`` is read.
+    ``follow`` (``dir_fd``: ``path`` relative to that open folder); then only a regular file of at
+    most ``max_bytes`` is read.
 
     Raises:
         FileNotFoundError: it does not exist.
-        FileFormatError: it is not a regular file, or larger than ``max_bytes`` (names it).
+        error: (default :class:`FileFormatError`) it is a symbolic link, not a regular file, or
+            larger than ``max_bytes`` (names it); the precompute cache passes its own, a miss.
         OSError: it cannot be read.
     """
     p = Path(path)
     try:
-        fd = os.open(p, os.O_RDONLY | _NONBLOCK | _CLOEXEC | (0 if follow else _NOFOLLOW))
+        fd = os.open(p, os.O_RDONLY | _NONBLOCK | _CLOEXEC | (0 if follow else _NOFOLLOW),
+                     dir_fd=dir_fd)  # fmt: skip
     except FileNotFoundError:
         raise
     except OSError as exc:
-        if not follow and os.path.islink(p):
-            raise FileFormatError(f"{p}: is a symbolic link, not this program's {what}") from None
+        if not follow and (exc.errno == errno.ELOOP or (dir_fd is None and os.path.islink(p))):
+            raise error(f"{p}: is a symbolic link, not this program's {what}") from None
         raise named_os_error(exc, p, "reading") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise FileFormatError(f"{p}: is {_kind(st.st_mode)}, not a regular file; not this "
-                                  f"program's {what}")  # fmt: skip
+            raise error(f"{p}: is {file_kind(st.st_mode)}, not a regular file; not this "
+                        f"program's {what}")  # fmt: skip
         if st.st_size > max_bytes:
-            raise FileFormatError(f"{p}: {human_size(st.st_size)}, larger than this program's "
-                                  f"{what} can be ({human_size(max_bytes)})")  # fmt: skip
+            raise error(f"{p}: {human_size(st.st_size)}, larger than this program's "
+                        f"{what} can be ({human_size(max_bytes)})")  # fmt: skip
         chunks, left = [], max_bytes + 1
         while left > 0:
             b = os.read(fd, min(left, 1 << 20))
@@ -534,8 +538,8 @@ def read_own_bytes(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
             left -= len(b)
         data = b"".join(chunks)
         if len(data) > max_bytes:  # grew while read
-            raise FileFormatError(f"{p}: larger than this program's {what} can be "
-                                  f"({human_size(max_bytes)})")  # fmt: skip
+            raise error(f"{p}: larger than this program's {what} can be "
+                        f"({human_size(max_bytes)})")  # fmt: skip
         return data
     finally:
         os.close(fd)
@@ -602,18 +606,27 @@ def confined(root: str | os.PathLike, rel: Any) -> Path:
         InputError: it is not such a path (the message names it and ``root``).
     """
     r = Path(root)
-    bad = not isinstance(rel, str) or not rel or "\0" in rel or rel.startswith("/") \
+    bad = (
+        not isinstance(rel, str)
+        or not rel
+        or "\0" in rel
+        or rel.startswith("/")
         or os.path.isabs(rel)
+    )
     parts = [] if bad else rel.split("/")
     if bad or any(part in ("", ".", "..") for part in parts):
-        raise InputError(f"{r}: the path {str(rel)[:200]!r} in this folder's records does not "
-                         "stay inside it; ignored")
+        raise InputError(
+            f"{r}: the path {str(rel)[:200]!r} in this folder's records does not "
+            "stay inside it; ignored"
+        )
     here = r
     for part in parts[:-1]:
         here = here / part
         if os.path.islink(here):
-            raise InputError(f"{r}: the path {rel[:200]!r} in this folder's records passes "
-                             f"through the symbolic link {here}; ignored")
+            raise InputError(
+                f"{r}: the path {rel[:200]!r} in this folder's records passes "
+                f"through the symbolic link {here}; ignored"
+            )
     return r.joinpath(*parts)
 
 
@@ -777,8 +790,10 @@ def check_not_input(
 def _check_replaceable(dest: Path) -> None:
     """Refuse a destination that a file cannot replace (a folder), naming it."""
     if dest.is_dir() and not dest.is_symlink():
-        raise InputError(f"cannot write {dest}: a folder of that name is in the way (a file is "
-                         "written there; move the folder away)")
+        raise InputError(
+            f"cannot write {dest}: a folder of that name is in the way (a file is "
+            "written there; move the folder away)"
+        )
     if dest.parent.exists() and not dest.parent.is_dir():
         raise InputError(f"cannot write {dest}: {dest.parent} is not a folder")
 
@@ -901,8 +916,10 @@ class ReplaceTransaction:
         moves = self._plan()
         for src, dest in moves:  # every check before the first move
             if not src.is_file():
-                raise InputError(f"the new {dest} was not written completely (its staged file "
-                                 f"{src.name} is missing)")
+                raise InputError(
+                    f"the new {dest} was not written completely (its staged file "
+                    f"{src.name} is missing)"
+                )
             self.check(dest)
         backups: list[tuple[Path, Path | None]] = []  # (destination, backup or None if new)
         journal: Path | None = None
@@ -1024,8 +1041,13 @@ def _write_journal(moves: list[tuple[Path, Path]],
         entries.append({"dest": dest.name, "backup": backup.name if backup else None,
                         "new_inode": os.stat(src).st_ino})  # fmt: skip
     path = folder / f".hsi_torch_commit-{os.getpid()}-{os.urandom(6).hex()}.json"
-    text = json.dumps({"note": "a replacement of these files was interrupted; the next run "
-                       "into this folder puts the earlier files back", "moves": entries})
+    text = json.dumps(
+        {
+            "note": "a replacement of these files was interrupted; the next run "
+            "into this folder puts the earlier files back",
+            "moves": entries,
+        }
+    )
     with atomic_write(path, "w") as f:
         f.write(text)
     return path
@@ -1057,8 +1079,11 @@ def recover_commits(folder: str | os.PathLike) -> list[Path]:
                     os.unlink(dest)
                 else:
                     b = confined(folder, backup)
-                    if "/" in backup or not TEMP_FILE_RE.match(b.name) \
-                            or not stat.S_ISREG(os.lstat(b).st_mode):
+                    if (
+                        "/" in backup
+                        or not TEMP_FILE_RE.match(b.name)
+                        or not stat.S_ISREG(os.lstat(b).st_mode)
+                    ):
                         continue
                     os.replace(b, dest)
                 done.append(dest)

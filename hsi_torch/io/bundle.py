@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import hashlib
+import io
 import json
 import os
 import zipfile
@@ -69,7 +69,7 @@ from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
 from hsi_torch.io.radiometry import CameraIdentity
-from hsi_torch.io.safety import require_regular_file, short_repr
+from hsi_torch.io.safety import file_sha256, require_regular_file, short_repr
 from hsi_torch.provenance import package_version, provenance
 from hsi_torch.spectral import band_widths
 
@@ -129,15 +129,6 @@ _FILE_KEYS = {
     "modulated": "modulated",
     "valid": "valid",
 }
-
-
-def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """Hex SHA-256 of a file's content."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def make_provenance(
@@ -351,28 +342,59 @@ class CalibrationBundle:
         return atomic_save_npz(path, arrays)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> CalibrationBundle:
-        """Read and validate a bundle; errors name the file and the offending key."""
+    def load_hashed(cls, path: str | os.PathLike) -> tuple[CalibrationBundle, str]:
+        """Read the file once: the bundle (:meth:`load`) and its SHA-256
+        (:func:`~hsi_torch.io.safety.file_sha256`), both from the same bytes. The members are
+        checked from the zip directory first, and a file larger than its members is refused
+        before it is read whole."""
         p = Path(path)
-        if p.is_dir():
+        bound = cls._checked_path(p)
+        size = p.stat().st_size
+        if size > bound:
             raise FileFormatError(
-                f"calibration bundle {p} is a folder, not a bundle file (give the .npz written by "
-                "'hsi-torch calibrate')"
+                f"calibration bundle {p}: {size} bytes, more than its members hold ({bound}); "
+                "refusing to read it"
             )
-        if not p.exists():
-            raise MissingFileError(f"calibration bundle {p} does not exist")
-        require_regular_file(p, "calibration bundle")  # a FIFO would block the reader forever
-        if not zipfile.is_zipfile(p):  # np.load would guess .npy/pickle and say something odd
-            raise FileFormatError(
+        raw = p.read_bytes()
+        return cls.load(p, raw=raw), file_sha256(raw)
+
+    @staticmethod
+    def _checked_path(p: Path, raw: bytes | None = None) -> int:
+        """The checks before a bundle is decompressed (a folder, a missing or irregular file, not
+        a zip archive, :func:`_check_members`); ``raw``: the file's bytes, already read. Returns
+        the bytes its zip directory accounts for."""
+        if raw is None:
+            if p.is_dir():
+                raise FileFormatError(
+                    f"calibration bundle {p} is a folder, not a bundle file (give the .npz "
+                    "written by 'hsi-torch calibrate')"
+                )
+            if not p.exists():
+                raise MissingFileError(f"calibration bundle {p} does not exist")
+            require_regular_file(p, "calibration bundle")  # a FIFO would block the reader
+        if not zipfile.is_zipfile(p if raw is None else io.BytesIO(raw)):  # np.load would guess
+            raise FileFormatError(  # .npy/pickle: say it here
                 f"calibration bundle {p}: not a readable NPZ file (not a zip archive: corrupt, "
                 "truncated or another format)"
             )
         try:
-            _check_members(p)  # known members, sizes bounded: before anything is decompressed
-            with np.load(p, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
+            return _check_members(p, raw)  # known members, sizes bounded: before decompressing
         except FileFormatError:
             raise
+        except Exception as exc:  # zipfile/format errors
+            raise FileFormatError(
+                f"calibration bundle {p}: not a readable NPZ file ({exc})"
+            ) from exc
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, *, raw: bytes | None = None) -> CalibrationBundle:
+        """Read and validate a bundle; errors name the file and the offending key. ``raw``: the
+        file's bytes, already read (:meth:`load_hashed`)."""
+        p = Path(path)
+        cls._checked_path(p, raw)
+        try:
+            with np.load(p if raw is None else io.BytesIO(raw), allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
         except Exception as exc:  # zipfile/format errors
             raise FileFormatError(
                 f"calibration bundle {p}: not a readable NPZ file ({exc})"
@@ -399,8 +421,7 @@ class CalibrationBundle:
             ) from exc
         if not isinstance(meta, dict):
             raise FileFormatError(
-                f"calibration bundle {p}: 'meta' must be a JSON object, got "
-                f"{type(meta).__name__}"
+                f"calibration bundle {p}: 'meta' must be a JSON object, got {type(meta).__name__}"
             )
         ver = meta.get("schema_version")
         if type(ver) is not int or ver not in READABLE_SCHEMA_VERSIONS:
@@ -530,7 +551,6 @@ class CalibrationBundle:
         )
 
 
-
 def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype from a member's ``.npy`` header (a few hundred bytes decompressed)."""
     with zf.open(info) as f:
@@ -542,7 +562,7 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, 
     return tuple(int(v) for v in shape), np.dtype(dtype)
 
 
-def _check_members(p: Path) -> None:
+def _check_members(p: Path, raw: bytes | None = None) -> int:
     """Refuse a bundle file with a member this software does not know, or one whose size (from
     the zip directory and its ``.npy`` header) exceeds what the bundle's own layout implies —
     before any member but the small ``meta`` and ``layout_reference_bbox`` is decompressed.
@@ -550,9 +570,10 @@ def _check_members(p: Path) -> None:
     Known members: the arrays of ``_FILE_KEYS``, ``meta``, :data:`OPTIONAL_MEMBERS` and the
     ``extra_<name>`` arrays that ``meta`` lists under ``extras``. Bounds: ``V``, ``M`` from the
     headers of ``layout_triangles`` and ``wavelengths_nm``, ``h × w`` from the reference box
-    (inside the sensor), then :func:`_max_elements` per member (``B``: ``V·M·h·w``)."""
+    (inside the sensor), then :func:`_max_elements` per member (``B``: ``V·M·h·w``). Returns the
+    bytes the zip directory accounts for (members, their names and headers)."""
     where = f"calibration bundle {p}"
-    with zipfile.ZipFile(p) as zf:
+    with zipfile.ZipFile(p if raw is None else io.BytesIO(raw)) as zf:
         infos = zf.infolist()
         if len(infos) > MAX_MEMBERS:
             raise FileFormatError(f"{where}: {len(infos)} members, more than a bundle has")
@@ -576,7 +597,8 @@ def _check_members(p: Path) -> None:
         if meta_info.file_size > MAX_META_BYTES:
             raise FileFormatError(
                 f"{where}: member 'meta' is {meta_info.file_size} bytes, more than "
-                f"{MAX_META_BYTES >> 20} MiB of metadata; refusing to decompress it")
+                f"{MAX_META_BYTES >> 20} MiB of metadata; refusing to decompress it"
+            )
         shape, dtype = _npy_header(zf, meta_info)
         if shape == () and dtype.kind == "U":
             with zf.open(meta_info) as f:
@@ -587,22 +609,27 @@ def _check_members(p: Path) -> None:
             if isinstance(meta, dict):
                 ver = meta.get("schema_version")
                 if type(ver) is not int or ver not in READABLE_SCHEMA_VERSIONS:  # (a newer
-                    raise FileFormatError(                                       # layout's members)
+                    raise FileFormatError(  # layout's members)
                         f"{where}: schema_version {short_repr(ver)} is not supported (this "
                         f"software reads versions "
-                        f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))})")
+                        f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))})"
+                    )
                 if isinstance(meta.get("extras"), list):
                     extras_named = meta["extras"]
         for name, info in by_name.items():
             if name in known:
                 continue
-            ok = (name.startswith("extra_") and info.filename.endswith(".npy")
-                  and (extras_named is None or name[len("extra_"):] in extras_named))
+            ok = (
+                name.startswith("extra_")
+                and info.filename.endswith(".npy")
+                and (extras_named is None or name[len("extra_") :] in extras_named)
+            )
             if not ok:
                 raise FileFormatError(
                     f"{where}: unknown member {short_repr(info.filename)} (a bundle holds "
                     f"meta, {', '.join(_FILE_KEYS.values())} and the extra_<name> arrays its "
-                    "meta lists); refusing the file")
+                    "meta lists); refusing the file"
+                )
         headers = {}
         for name, info in by_name.items():
             if name == "meta":
@@ -653,9 +680,12 @@ def _check_members(p: Path) -> None:
                 raise FileFormatError(
                     f"{where}: member '{name}' declares shape {short_repr(shape)} ({dtype}), "
                     f"more than the bundle's layout allows (V={V} views, M={M} bands, reference "
-                    f"frame {h}x{w}: at most {cap} elements); refusing to decompress it")
+                    f"frame {h}x{w}: at most {cap} elements); refusing to decompress it"
+                )
             declared = by_name[name].file_size
             if declared > n * dtype.itemsize + 65536:
                 raise FileFormatError(
                     f"{where}: member '{name}' holds {declared} bytes, far more than its header's "
-                    f"{short_repr(shape)} {dtype}; refusing to decompress it")
+                    f"{short_repr(shape)} {dtype}; refusing to decompress it"
+                )
+    return sum(i.compress_size + 2 * len(i.filename) + 256 for i in infos) + 65536

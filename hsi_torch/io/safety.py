@@ -3,12 +3,17 @@
 - :func:`require_regular_file`: an input must be a regular file (a symlink to one is fine)
   before it is opened; a FIFO, a device or a socket is refused by name (opening a FIFO blocks
   until a writer appears: a batch would hang forever).
+- :func:`file_kind`: what a file that is not a regular one is (a FIFO, a device, ...), the
+  one wording of every such refusal.
+- :func:`file_sha256`: the one content hash of a file (bundles, inputs, provenance, the
+  precomputation cache's key), or of the bytes already read from it.
 - :func:`short_repr`: ``repr`` of a value cut to a bounded length, for error messages about
   values read from a file (a YAML alias bomb expands to gigabytes when printed whole).
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import reprlib
 import stat
@@ -17,7 +22,14 @@ from typing import Any
 
 from hsi_torch.errors import FileFormatError, MissingFileError
 
-__all__ = ["require_regular_file", "short_repr", "short_text", "png_header", "MAX_REPR"]
+__all__ = [
+    "require_regular_file",
+    "file_sha256",
+    "short_repr",
+    "short_text",
+    "png_header",
+    "MAX_REPR",
+]
 
 #: Longest ``repr`` of a value put into an error message (characters).
 MAX_REPR = 200
@@ -28,7 +40,13 @@ _KINDS = (
     (stat.S_ISCHR, "a character device"),
     (stat.S_ISBLK, "a block device"),
     (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISLNK, "a symbolic link"),
 )
+
+
+def file_kind(mode: int) -> str:
+    """What a file that is not a regular one is, from its ``st_mode``, for error messages."""
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
 
 
 def require_regular_file(path: str | os.PathLike, what: str = "input file") -> Path:
@@ -46,8 +64,9 @@ def require_regular_file(path: str | os.PathLike, what: str = "input file") -> P
     except (OSError, ValueError) as exc:
         raise FileFormatError(f"{p}: cannot read the {what} ({exc})") from None
     if not stat.S_ISREG(mode):
-        kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
-        raise FileFormatError(f"{p}: is {kind}, not a regular file; a {what} must be a file")
+        raise FileFormatError(
+            f"{p}: is {file_kind(mode)}, not a regular file; a {what} must be a file"
+        )
     return p
 
 
@@ -56,6 +75,19 @@ _REPR.maxstring = MAX_REPR
 _REPR.maxother = MAX_REPR
 _REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 8
 _REPR.maxlevel = 3
+
+
+def file_sha256(source: str | os.PathLike | bytes | memoryview, chunk: int = 1 << 22) -> str:
+    """Hex SHA-256 of a file's content, read in ``chunk``-byte blocks, or of ``source`` itself
+    when it is the bytes already read from a file."""
+    h = hashlib.sha256()
+    if isinstance(source, (bytes, memoryview)):
+        h.update(source)
+        return h.hexdigest()
+    with open(source, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
 
 
 def short_repr(value: Any, limit: int = MAX_REPR) -> str:

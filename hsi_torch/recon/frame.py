@@ -28,7 +28,7 @@ masks, solve, assemble (:func:`reconstruct_frame`; no per-pixel Python).
 Every choice (solver, ``min_views``, prior, ...) comes from one
 :class:`~hsi_torch.recon.settings.ReconstructSettings`, passed whole.
 
-Gradients (used by :class:`~hsi_torch.recon.module.HSIReconstructor`): the active-set solver (and
+Gradients (used by :class:`~hsi_torch.recon.pipeline.HSIReconstructor`): the active-set solver (and
 tolerance-driven ADMM) run without autograd; when the input requires grad, the answer is passed
 through one differentiable *reduced solve* on its free set ``F = {m : x_m > 0}``:
 ``x_F = G_FF⁻¹ (Aᵀ W y)_F``, ``x_Z = 0`` — the exact derivative of the NNLS solution wherever the
@@ -553,7 +553,7 @@ def reconstruct_frame(
     warm: WarmStart | None = None,
 ) -> FrameOutput:
     """Frames → cubes: the one frame function of :class:`~hsi_torch.recon.pipeline.Reconstructor`
-    and :class:`~hsi_torch.recon.module.HSIReconstructor`.
+    and :class:`~hsi_torch.recon.pipeline.HSIReconstructor`.
 
     Args:
         sens: the bundle's precomputation (β and the difference order are its own).

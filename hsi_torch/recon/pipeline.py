@@ -1,30 +1,71 @@
-"""The file front door: :class:`Reconstructor` turns a bundle plus settings into cubes from
-tensors, captures or files, through the one frame function
-(:func:`hsi_torch.recon.frame.reconstruct_frame`).
+"""The one reconstructor: :class:`HSIReconstructor` turns a bundle plus settings into cubes from
+tensors (``forward``: an ``nn.Module`` for batches, gradients, ``nn.Sequential`` and
+``torch.compile``), captures or files (:meth:`~HSIReconstructor.reconstruct_frame`,
+:meth:`~HSIReconstructor.reconstruct_capture`, :meth:`~HSIReconstructor.reconstruct_file`), all
+through the one frame function :func:`hsi_torch.recon.frame.reconstruct_frame`.
+:class:`Reconstructor` is the same class built for files: it keeps no full-frame calibration
+arrays (see ``keep_calibration``).
 
 The per-frame maths are :mod:`hsi_torch.recon.frame`; the bundle's sensor corrections
 :mod:`hsi_torch.recon.corrections`; what is measured about a capture (pedestal, camera,
-exposure) :mod:`hsi_torch.recon.checks`; the ``nn.Module`` (batches, gradients,
-``torch.compile``) :class:`hsi_torch.recon.module.HSIReconstructor`, on the same frame function.
+exposure) :mod:`hsi_torch.recon.checks`.
+
+Buffers: the per-bundle precomputation (the factored sensing model of the reconstructed pixels,
+static masks, the views' sampling grid, the solver's Gram matrices and inverses) is registered as
+non-persistent buffers — the very tensors of the :class:`~hsi_torch.recon.sensing.BundleSensing`
+the object was built from, so a precomputation loaded memory-mapped from the disk cache stays
+mapped (no copy). With ``keep_calibration`` the bundle's calibration products (``B``, ``phi``,
+``gain``, ``view_mask``) are persistent buffers too. ``.to(device)``/``.cuda()`` move everything
+and ``.double()`` switches the precision (the factorisation is then recomputed in the new dtype);
+:attr:`HSIReconstructor.sensing` is then a view of the moved buffers.
+
+Differentiable with respect to the input: see :mod:`hsi_torch.recon.frame` (straight-through
+reduced solve on the solver's free set for the active-set method; fixed-iteration ADMM is
+differentiated through its iterations).
+
+``torch.compile``: the forward pass does no timing and computes no statistics (no ``.item()``);
+the input checks and the Bayer demosaic are traced, and the warp + observations + solve +
+assembly run in :meth:`HSIReconstructor.reconstruct_prepared`, wrapped with
+``torch.compiler.disable``: the exact active-set solver's data-dependent control flow (which
+pixels need pivoting, grouped by the size of their zero set) would otherwise break the graph
+dozens of times and recompile for every frame. A network around the module therefore compiles
+with one graph break at the solver, and the result equals the eager one (tested).
+
+``state_dict()`` holds the calibration (``B``, ``phi``, ``gain``, masks, homographies, wavelengths,
+the reconstructed pixels) and, as extra state, the sensor size, reference-frame box, white
+exposure and ``phi`` in the bundle's float64. ``load_state_dict`` checks the whole state dict
+first and then rebuilds everything derived from it (the factored sensing model, observation mask,
+sampling grid, Gram matrices and their inverses) with the build of
+:func:`hsi_torch.recon.sensing.build_sensing` that :meth:`HSIReconstructor.from_bundle` uses,
+so the output is bit for bit that of a module built from the other bundle (float32 and
+float64, tested); a state dict of another geometry (views, bands, reference frame, sensor)
+raises :class:`~hsi_torch.errors.InputError` and leaves the module as it was. An object built
+without the calibration arrays (``keep_calibration=False``, :class:`Reconstructor`) refuses to
+load a state dict.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, NamedTuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.forward_model import SensingModel
 from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.captures import CaptureDefaults
 from hsi_torch.io.cube import cube_to_xarray
+from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.recon.checks import exposure_info, exposure_scale, measure_capture
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
 from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
@@ -35,13 +76,23 @@ from hsi_torch.recon.frame import (
     prepare_input,
     reconstruct_frame,
 )
-from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, refreshed_sensing
+from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
+from hsi_torch.recon.sensing import (
+    BundleSensing,
+    build_sensing,
+    load_bundle,
+    precompute_sensing,
+    refreshed_sensing,
+)
 from hsi_torch.recon.settings import DEFAULT_BETA, FLAT_KEYS, ReconstructSettings, with_overrides
 from hsi_torch.recon.uncertainty import RAW_LAYOUTS, sampling_variance_factor
 
 __all__ = [
     "ReconstructionResult",
+    "ReconstructionOutput",
+    "HSIReconstructor",
     "Reconstructor",
+    "OUTPUTS",
     "DEFAULT_BETA",
     "ReconstructSettings",
     "exposure_scale",
@@ -90,68 +141,527 @@ class ReconstructionResult:
                               self.valid.detach().cpu(), metadata)  # fmt: skip
 
 
+#: What ``forward`` returns: ``"result"`` (cube and valid mask) or ``"cube"`` (the cube alone).
+OUTPUTS = ("result", "cube")
 
-class Reconstructor:
-    """Reconstruct frames that share one calibration bundle (all precomputation done once).
+
+class ReconstructionOutput(NamedTuple):
+    """``cube (B, M, h, w)`` (NaN or 0 where invalid) and ``valid (B, h, w)`` bool."""
+
+    cube: Tensor
+    valid: Tensor
+
+
+def _eager(fn: Any) -> Any:
+    """``torch.compiler.disable(fn)``, applied on the first call (torch's own lazy form of it):
+    importing the compiler takes about 70 MiB and a second, which a process that only
+    reconstructs files never needs."""
+    return torch._disable_dynamo(fn)  # type: ignore[attr-defined]
+
+
+class HSIReconstructor(nn.Module):
+    """Captures → spectral cubes on the bundle's reference frame: one object for tensors, batches
+    and networks (``forward``) and for captures and files (:meth:`reconstruct_frame`,
+    :meth:`reconstruct_capture`, :meth:`reconstruct_file`), all precomputation done once.
+
+    ``forward(x)`` takes ``(B, 3, H, W)`` linear RGB (DN above black, on the calibration's
+    exposure scale) or ``(B, 1, H, W)`` Bayer mosaics, ``H×W`` the bundle's sensor size, and
+    returns :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))`` — or, built with
+    ``output="cube"``, the cube tensor alone with invalid pixels set to ``fill_value``, so that it
+    drops into ``nn.Sequential``. The input may have any float dtype; the output has the input's
+    dtype. The input must be on the object's device. A bundle calibrated with
+    ``stray_light: subtract`` or ``defects: mask`` has its corrections repeated on every frame
+    (:meth:`correct`), as ``hsi-torch reconstruct`` does. The file methods add timings, statistics,
+    the drift check and the per-band standard deviation (``uncertainty``).
 
     Args:
         bundle: :class:`CalibrationBundle`, its path, or a ready :class:`BundleSensing`.
         settings: every setting (:class:`~hsi_torch.recon.settings.ReconstructSettings`; what a
-            run passes; default: the defaults): β and the difference order, the solver,
-            ``device``/``dtype`` of the bundle tensors and the solve, ``min_views``, the prior
+            run passes; default: the defaults): β and the difference order, the solver
+            (``"active_set"``: exact, gradient of the final reduced solve; ``"admm"`` with
+            ``admm_iters=N``: exactly ``N`` differentiable iterations), ``device``/``dtype`` of
+            the buffers and the solve (movable later with ``.to``), ``min_views``, the prior
             (``prior="tv"``: spatial-spectral reconstruction with a vectorial total-variation
-            prior, warm-started from the per-pixel answer, :mod:`hsi_torch.recon.spatial`),
-            ``exposure_correction``, ``uncertainty`` (the standard deviation of every band,
-            :attr:`ReconstructionResult.std`, from the settings' sensor noise model), the drift
-            check and correction (:mod:`hsi_torch.recon.drift`; a drift the frame cannot support —
-            too few views agree, beyond the measurable range — raises
-            :class:`~hsi_torch.recon.drift.DriftError` under ``refine_registration``), and where
-            the per-bundle precomputation is cached between processes (``precompute_cache``,
+            prior, warm-started from the per-pixel answer, :mod:`hsi_torch.recon.spatial`; for
+            gradients give ``spatial_iters=N``), ``cfa_pattern`` for ``forward``'s Bayer inputs
+            (default: the bundle's), ``exposure_correction``, ``uncertainty`` (the standard
+            deviation of every band, :attr:`ReconstructionResult.std`, from the settings' sensor
+            noise model; file methods only), the drift check and correction
+            (:mod:`hsi_torch.recon.drift`; a drift the frame cannot support — too few views
+            agree, beyond the measurable range — raises
+            :class:`~hsi_torch.recon.drift.DriftError` under ``refine_registration``; file
+            methods only), and where the per-bundle precomputation of a bundle given as a path is
+            cached between processes (``precompute_cache``,
             :mod:`hsi_torch.recon.precompute_cache`).
+        output: ``"result"`` (default): ``forward`` returns :class:`ReconstructionOutput`
+            ``(cube, valid)``; ``"cube"``: the cube tensor alone, ``(B, M, h, w)``, invalid
+            pixels set to ``fill_value`` — the form for ``nn.Sequential(rec, nn.Conv2d(M, …))``.
+            Not a reconstruction setting: the module's output form.
+        fill_value: the value of invalid pixels with ``output="cube"`` (default 0.0).
+        keep_calibration: keep the bundle's full-frame calibration arrays (``B``, ``phi``,
+            ``gain``, ``view_mask``) as persistent buffers, so that ``state_dict`` carries the
+            calibration. Default: kept when ``bundle`` is a :class:`CalibrationBundle` (and by
+            :meth:`from_bundle`); not for a path (whose precomputation may then come from the disk
+            cache without reading the bundle) or a :class:`BundleSensing`. Without them
+            ``forward`` and the file methods work the same, and ``load_state_dict`` refuses.
         overrides: flat settings keys changed on ``settings``
             (:meth:`~hsi_torch.recon.settings.ReconstructSettings.replace`, e.g. ``beta=1e3``,
             ``prior="tv"``, ``dtype=torch.float64``); keys that then have no effect are a
             ``UserWarning``. :attr:`settings` holds the result, validated.
 
     Example:
-        >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
-        >>> res = rec.reconstruct_file("scene.tif")  # doctest: +SKIP
-        >>> res.cube.shape, res.valid.sum(), res.timings  # doctest: +SKIP
+        >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=1e4).to("cuda")  # doctest: +SKIP
+        >>> cube, valid = rec(rgb)          # rgb (B, 3, H, W) on cuda  # doctest: +SKIP
+        >>> loss = cube[valid.unsqueeze(1).expand_as(cube)].mean()  # doctest: +SKIP
+        >>> loss.backward()  # doctest: +SKIP
+        >>> res = rec.reconstruct_file("scene.tif")  # the same object on a file  # doctest: +SKIP
+        >>> net = nn.Sequential(HSIReconstructor.from_bundle("calib.npz", output="cube",
+        ...                                                  fill_value=0.0),
+        ...                     nn.Conv2d(25, 8, 3))  # doctest: +SKIP
     """
+
+    #: ``keep_calibration``'s default (``None``: when ``bundle`` is a :class:`CalibrationBundle`)
+    default_keep_calibration: bool | None = None
+    wavelengths_nm: Tensor
+    B: Tensor
+    phi: Tensor
+    gain: Tensor
+    view_mask: Tensor
+    valid_region: Tensor
+    homographies: Tensor
+    pixel_index: Tensor
+    model_transmittance: Tensor
+    model_gain: Tensor
+    model_response: Tensor
+    obs_mask: Tensor
+    sample_grid: Tensor
+    gram: Tensor
+    gram_inv: Tensor
+    gram_diag: Tensor
+    gram_norm: Tensor
+    singular: Tensor
+    no_data: Tensor
 
     def __init__(
         self,
         bundle: CalibrationBundle | BundleSensing | str | os.PathLike,
         settings: ReconstructSettings | None = None,
+        *,
+        output: str = "result",
+        fill_value: float = 0.0,
+        keep_calibration: bool | None = None,
         **overrides: Any,
     ) -> None:
+        super().__init__()
+        if output not in OUTPUTS:
+            raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
+        self.output = output
+        self.fill_value = float(fill_value)
         s = with_overrides(settings, overrides)
         #: the settings, grouped and frozen (:class:`~hsi_torch.recon.settings.ReconstructSettings`)
         self.settings = s
+        # forward returns no standard deviation, so it does not compute one
+        self._frame_settings = s.replace(uncertainty=False) if s.uncertainty.enabled else s
         sv = s.solve
+        if keep_calibration is None:
+            keep_calibration = self.default_keep_calibration
+        if keep_calibration is None:
+            keep_calibration = isinstance(bundle, CalibrationBundle)
+        calib: CalibrationBundle | None = None
         if isinstance(bundle, BundleSensing):
-            self.sensing = bundle.with_regularisation(sv.beta, sv.diff_order)
+            if keep_calibration:
+                raise ValueError("keep_calibration needs the bundle (a CalibrationBundle or its "
+                                 "path), not a BundleSensing")  # fmt: skip
+            sens = bundle.with_regularisation(sv.beta, sv.diff_order)
         else:
-            self.sensing = precompute_sensing(
+            if keep_calibration:
+                calib = load_bundle(bundle)
+                bundle = calib
+            sens = precompute_sensing(
                 bundle, beta=sv.beta, diff_order=sv.diff_order, device=sv.device,
                 dtype=torch_dtype(sv.dtype), chunk_size=sv.chunk_size,
                 disk_cache=sv.precompute_cache,
             )  # fmt: skip
-        check_min_views(sv.min_views, self.sensing.num_views)
-        self._factors: dict[tuple[str, str | None, torch.dtype], Tensor] = {}
+        check_min_views(sv.min_views, sens.num_views)
+        dev, dt = sens.device, sens.dtype
+        self._factors: dict[tuple, Tensor] = {}
+        self.cfa_pattern = s.input.cfa_pattern or sens.cfa_pattern
+        self.beta = sens.beta
+        self.diff_order = sens.diff_order
+        self.sensor_size = sens.sensor_size
+        self.reference_bbox = sens.reference_bbox
+        self.exposure_s = sens.exposure_s
+        #: what the bundle records about its sensor corrections (veil, hot and dead pixels):
+        #: ``forward`` repeats them on every frame, as the calibration did
+        self.radiometry = sens.radiometry
+        rad = self.radiometry
+        self._corrects = rad is not None and (
+            rad.veil_index is not None
+            or (rad.defect_index is not None and rad.defect_index.size > 0)
+        )
+        # φ as the bundle holds it (float64): the sensing model is formed from it, so a module
+        # rebuilt from a state dict forms the same model bit for bit in any buffer precision
+        self._phi64 = (
+            None if calib is None else torch.as_tensor(calib.phi, dtype=torch.float64).cpu()
+        )
+        # calibration products (persistent; None without keep_calibration)
+        self.register_buffer("wavelengths_nm", sens.wavelengths_nm.to(dev, dt))
+        for name in ("B", "phi", "gain"):
+            self.register_buffer(name, None if calib is None else torch.as_tensor(
+                getattr(calib, name), device=dev, dtype=dt))  # fmt: skip
+        self.register_buffer("view_mask", None if calib is None
+                             else torch.as_tensor(calib.view_mask, device=dev))  # fmt: skip
+        self.register_buffer("valid_region", sens.valid.to(dev))
+        self.register_buffer("homographies", sens.homographies.to(dev))
+        self.register_buffer("pixel_index", sens.pixel_index.to(dev))
+        # derived per-bundle precomputation: the sensing's own tensors (not saved in state_dict)
+        for name, t in _derived(sens).items():
+            self.register_buffer(name, t, persistent=False)
+        #: the sensing the buffers came from (its radiometry, disk-cache entry, work buffers)
+        self._held = sens
+        self._sensing_cache: tuple[tuple, BundleSensing] | None = None
+
+    # ------------------------------------------------------------------------------ build
+    @classmethod
+    def from_bundle(
+        cls,
+        bundle: CalibrationBundle | str | os.PathLike,
+        settings: ReconstructSettings | None = None,
+        *,
+        output: str = "result",
+        fill_value: float = 0.0,
+        **overrides: Any,
+    ) -> HSIReconstructor:
+        """Build from a bundle (object or ``.npz`` path), keeping its calibration arrays
+        (``keep_calibration=True``: ``state_dict`` carries them); the arguments are those of the
+        class."""
+        return cls(load_bundle(bundle), settings, output=output, fill_value=fill_value,
+                   keep_calibration=True, **overrides)  # fmt: skip
+
+    def _apply(self, fn: Any, recurse: bool = True) -> HSIReconstructor:  # type: ignore[override]
+        dt = self.model_transmittance.dtype
+        # the solver factorises in float32 or float64 only: refuse another precision (.half(),
+        # .bfloat16(), .to(torch.float16)) before any buffer is converted, leaving the module
+        # as it was
+        new_dt = fn(torch.zeros((), dtype=dt, device=self.model_transmittance.device)).dtype
+        if new_dt not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"HSIReconstructor runs in float32 or float64, not {new_dt} (the "
+                "module is unchanged; its output follows the input's dtype anyway)"
+            )
+        out = super()._apply(fn, recurse)
+        self._sensing_cache = None
+        self._factors = {}
+        if self.model_transmittance.dtype != dt:  # precision changed: refactorise in the new dtype
+            # sampling positions recomputed in float64 from the bundle, not re-rounded
+            self.sample_grid = view_sample_grid(
+                self.homographies, self.reference_bbox, self.sensor_size, self.pixel_index,
+                dtype=self.model_transmittance.dtype,
+            )  # fmt: skip
+            p = prepare_nnls(
+                self._model(), mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
+                chunk_size=self.settings.solve.chunk_size,
+            )  # fmt: skip
+            self.gram, self.gram_inv, self.gram_diag, self.gram_norm = (
+                p.gram,
+                p.gram_inv,
+                p.gram_diag,
+                p.gram_norm,
+            )
+            self.singular, self.no_data = p.singular, p.no_data
+        return out
+
+    # ------------------------------------------------------------------------------ state
+    def get_extra_state(self) -> dict[str, Any]:
+        """The bundle's geometry and white exposure (plain values, saved in ``state_dict``)."""
+        return {
+            "sensor_size": list(self.sensor_size),
+            "reference_bbox": list(self.reference_bbox),
+            "exposure_s": self.exposure_s,
+            **({} if self._phi64 is None else {"phi_float64": self._phi64.tolist()}),
+        }
+
+    def set_extra_state(self, state: Any) -> None:
+        """Set by :meth:`_load_from_state_dict` (checked there); kept for the ``nn.Module``
+        protocol."""
+        self.exposure_s = state.get("exposure_s") if isinstance(state, dict) else None
+
+    def _load_from_state_dict(
+        self,
+        state_dict: dict[str, Any],
+        prefix: str,
+        local_metadata: dict[str, Any],
+        strict: bool,
+        missing_keys: list[str],
+        unexpected_keys: list[str],
+        error_msgs: list[str],
+    ) -> None:
+        """All or nothing: check every entry, rebuild the derived tensors, then swap them in.
+
+        Missing or unexpected keys under ``strict`` load nothing (torch then raises naming
+        them); a state dict of another geometry raises :class:`InputError`. With
+        ``strict=False`` missing entries keep their current values.
+        """
+        if self.B is None:
+            raise InputError(
+                f"{type(self).__name__}.load_state_dict: this object was built without the "
+                "bundle's calibration arrays (from a path, a BundleSensing, or as a "
+                "Reconstructor); build it with HSIReconstructor.from_bundle to load a state dict"
+            )
+        names = [n for n in self._buffers if n not in self._non_persistent_buffers_set]
+        extra_key = prefix + "_extra_state"
+        given = {n: state_dict[prefix + n] for n in names if prefix + n in state_dict}
+        missing = [prefix + n for n in names if prefix + n not in state_dict]
+        unexpected = [
+            k for k in state_dict
+            if k.startswith(prefix) and k[len(prefix):] not in names and k != extra_key
+            and "." not in k[len(prefix):]
+        ]  # fmt: skip
+        missing_keys.extend(missing)
+        if strict:
+            unexpected_keys.extend(unexpected)
+            if missing or unexpected:
+                return  # nothing changes; load_state_dict raises naming the keys
+        new, extra = self._rebuilt(given, state_dict.get(extra_key))
+        for name, tensor in new.items():
+            setattr(self, name, tensor)
+        self.exposure_s = extra.get("exposure_s", self.exposure_s)
+        self._phi64 = extra["phi_float64"]
+        self._sensing_cache = None
+
+    def _rebuilt(
+        self, given: dict[str, Any], extra: Any
+    ) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """Checked persistent buffers (``given`` over the current ones) and every derived tensor
+        rebuilt from them; raises :class:`InputError` before anything is changed."""
+        V, M, h, w = (int(v) for v in self.B.shape)
+        geometry = f"{V} views, {M} bands, reference frame {h}x{w}"
+
+        def fail(what: str) -> InputError:
+            return InputError(
+                f"HSIReconstructor.load_state_dict: a state dict of another geometry: {what}; "
+                f"this module has {geometry} (build a new module with "
+                "HSIReconstructor.from_bundle for that bundle)"
+            )
+
+        shapes = {
+            "wavelengths_nm": (M,), "B": (V, M, h, w), "phi": (3, M), "gain": (V, h, w),
+            "view_mask": (V, h, w), "valid_region": (h, w), "homographies": (V, 3, 3),
+        }  # fmt: skip
+        vals: dict[str, Tensor] = {}
+        for name, cur in self._buffers.items():
+            if name in self._non_persistent_buffers_set or cur is None:
+                continue
+            v = given.get(name, cur)
+            if not isinstance(v, Tensor):
+                raise InputError(
+                    f"HSIReconstructor.load_state_dict: '{name}' must be a tensor, got "
+                    f"{type(v).__name__}"
+                )
+            if name in shapes and tuple(v.shape) != shapes[name]:
+                raise fail(f"'{name}' has shape {tuple(v.shape)}, expected {shapes[name]}")
+            if cur.dtype == torch.bool and v.dtype != torch.bool:
+                raise InputError(f"HSIReconstructor.load_state_dict: '{name}' must be bool, got "
+                                 f"{v.dtype}")  # fmt: skip
+            if cur.is_floating_point() and not (
+                v.is_floating_point() and bool(torch.isfinite(v).all())
+            ):
+                raise InputError(f"HSIReconstructor.load_state_dict: '{name}' must be finite "
+                                 f"floating point ({v.dtype})")  # fmt: skip
+            vals[name] = v.detach().to(device=cur.device, dtype=cur.dtype).clone()
+        pix = vals["valid_region"].reshape(-1).nonzero().squeeze(1)
+        if not torch.equal(vals["pixel_index"].to(pix.device), pix):
+            raise InputError(
+                "HSIReconstructor.load_state_dict: 'pixel_index' is not the set of pixels of "
+                "'valid_region' (an inconsistent state dict)"
+            )
+        ex: dict[str, Any] = {}
+        if extra is not None:
+            if not isinstance(extra, dict):
+                raise InputError("HSIReconstructor.load_state_dict: '_extra_state' must be a "
+                                 f"dict, got {type(extra).__name__}")  # fmt: skip
+            for key, mine in (("sensor_size", self.sensor_size),
+                              ("reference_bbox", self.reference_bbox)):  # fmt: skip
+                theirs = extra.get(key)
+                if theirs is not None and tuple(int(v) for v in theirs) != tuple(mine):
+                    raise fail(f"{key} {tuple(int(v) for v in theirs)}, expected {tuple(mine)}")
+            exp = extra.get("exposure_s")
+            ex["exposure_s"] = float(exp) if isinstance(exp, (int, float)) else None
+        # the float64 φ of the extra state when it is the φ buffer (not one changed since)
+        phi64 = vals["phi"].to("cpu", torch.float64)
+        given64 = extra.get("phi_float64") if isinstance(extra, dict) else None
+        if given64 is not None:
+            try:
+                g = torch.as_tensor(given64, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                g = None
+            if g is not None and g.shape == phi64.shape and torch.equal(
+                    g.to(vals["phi"].dtype), vals["phi"].cpu()):  # fmt: skip
+                phi64 = g
+        ex["phi_float64"] = phi64
+        arrays = SimpleNamespace(
+            wavelengths_nm=vals["wavelengths_nm"], B=vals["B"], gain=vals["gain"], phi=phi64,
+            view_mask=vals["view_mask"], valid=vals["valid_region"],
+            view_homographies=vals["homographies"], sensor_size=self.sensor_size,
+            reference_bbox=self.reference_bbox,
+        )  # fmt: skip
+        sens = build_sensing([arrays], beta=self.beta, diff_order=self.diff_order,
+                             device=self.gram.device, dtype=self.gram.dtype,
+                             chunk_size=self.settings.solve.chunk_size)  # fmt: skip
+        vals.update(_derived(sens))
+        return vals, ex
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickling / ``copy.deepcopy``: the derived views are rebuilt on use."""
+        state = self.__dict__.copy()
+        state["_sensing_cache"] = None
+        return state
+
+    # ------------------------------------------------------------------------------ use
+    @property
+    def num_bands(self) -> int:
+        return int(self.model_transmittance.shape[2])
+
+    def _model(self) -> SensingModel:
+        return SensingModel(self.model_transmittance, self.model_gain, self.model_response)
 
     @property
-    def wavelengths_nm(self) -> Tensor:
-        return self.sensing.wavelengths_nm
+    def frame_size(self) -> tuple[int, int]:
+        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
 
+    @property
+    def sensing(self) -> BundleSensing:
+        """The :class:`BundleSensing` of the buffers: the one the object was built from while
+        the buffers are its tensors; after ``.to()``, ``.double()`` or ``load_state_dict`` a view
+        of the new buffers (shares their memory; kept while they are unchanged, so its frame work
+        buffer is reused between calls)."""
+        held = self._held
+        mine = _derived(held)
+        if (
+            all(getattr(self, n) is t for n, t in mine.items())
+            and held.exposure_s == self.exposure_s
+        ):
+            return held
+        key = (
+            self.gram.device, self.gram.dtype, self.model_transmittance.data_ptr(),
+            self.gram.data_ptr(), self.sample_grid.data_ptr(), self.homographies.data_ptr(),
+            self.exposure_s,
+        )  # fmt: skip
+        if self._sensing_cache is None or self._sensing_cache[0] != key:
+            self._sensing_cache = (key, self._make_sensing())
+        return self._sensing_cache[1]
+
+    def _make_sensing(self) -> BundleSensing:
+        model = self._model()
+        return dataclasses.replace(
+            self._held,
+            wavelengths_nm=self.wavelengths_nm.detach().to("cpu", torch.float64),
+            homographies=self.homographies, valid=self.valid_region, pixel_index=self.pixel_index,
+            model=model, obs_mask=self.obs_mask, beta=self.beta, diff_order=self.diff_order,
+            problem=NNLSProblem(
+                model, self.obs_mask, self.beta, self.diff_order, self.gram, self.gram_inv,
+                self.gram_diag, self.gram_norm, self.singular, self.no_data,
+            ),
+            exposure_s=self.exposure_s, sample_grid=self.sample_grid, sample_inside=None,
+            _problems={}, staging_lock=threading.Lock(), _staging=[], disk_entry=None,
+            _drift_static={},
+        )  # fmt: skip
+
+    def _refreshed(self) -> BundleSensing:
+        """:attr:`sensing`, after re-mapping the disk-cache entry the buffers came from when it
+        changed under its mapping (:func:`~hsi_torch.recon.sensing.refreshed_sensing`; cheap:
+        a few ``fstat`` calls, asked before every frame)."""
+        held = self._held
+        sens = self.sensing
+        if sens is held:
+            new = refreshed_sensing(held, self.settings.solve.chunk_size)
+            if new is not held:
+                self._held = sens = new
+                for name, t in {
+                    "valid_region": new.valid,
+                    "homographies": new.homographies,
+                    "pixel_index": new.pixel_index,
+                    **_derived(new),
+                }.items():
+                    setattr(self, name, t)
+                self._sensing_cache = None
+        return sens
+
+    def forward(
+        self,
+        x: Tensor,
+        saturated: Tensor | None = None,
+        exposure_scale: Tensor | float | None = None,
+    ) -> ReconstructionOutput | Tensor:
+        """Reconstruct a batch.
+
+        Args:
+            x: ``(B, 3, H, W)`` linear RGB or ``(B, 1, H, W)`` Bayer, float, on this module's
+                device.
+            saturated: optional bool mask of ``x``'s shape (saturated samples are masked).
+            exposure_scale: optional scalar or ``(B,)`` factor on the observations.
+
+        Returns:
+            :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``; built with
+            ``output="cube"``: the cube alone, ``(B, M, h, w)``, ``fill_value`` where invalid.
+        """
+        if not isinstance(x, Tensor) or x.ndim != 4:
+            raise ValueError(
+                "x must be a (B, 3, H, W) or (B, 1, H, W) tensor, got "
+                f"{tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__}"
+            )
+        if not x.is_floating_point():
+            raise TypeError(f"x must be floating point, got {x.dtype}")
+        if tuple(x.shape[-2:]) != tuple(self.sensor_size):
+            raise ValueError(
+                f"x has sensor size {tuple(x.shape[-2:])} but the bundle expects "
+                f"{tuple(self.sensor_size)}"
+            )
+        if x.device != self.gram.device:
+            raise ValueError(
+                f"x is on {x.device} but the module is on {self.gram.device}; call .to({x.device})"
+            )
+        out_dtype = x.dtype
+        rgb, sat = prepare_input(x, saturated, self.cfa_pattern)
+        if self._corrects:  # no graph break for a bundle without corrections
+            rgb, sat = self.correct(rgb, sat)
+        cube, valid = self.reconstruct_prepared(rgb, sat, exposure_scale)
+        if self.output == "cube":
+            fill = torch.full((), self.fill_value, dtype=cube.dtype, device=cube.device)
+            return torch.where(valid.unsqueeze(1), cube, fill).to(out_dtype)
+        return ReconstructionOutput(cube.to(out_dtype), valid)
+
+    @_eager
+    def correct(self, rgb: Tensor, saturated: Tensor | None) -> tuple[Tensor, Tensor | None]:
+        """The bundle's sensor corrections on ``(B, 3, H, W)`` linear RGB and its saturation
+        mask (:func:`~hsi_torch.recon.corrections.correct_frames`): for a bundle calibrated with
+        ``stray_light: subtract`` the veil fitted on each frame's unreached pixels is subtracted
+        (a constant for autograd: the gradient passes through unchanged); for ``defects: mask``
+        the hot and dead pixels are marked saturated. Other bundles: returned as given."""
+        rgb, saturated, _ = correct_frames(rgb, saturated, self.radiometry)
+        return rgb, saturated
+
+    @_eager
+    def reconstruct_prepared(
+        self, rgb: Tensor, saturated: Tensor | None, exposure_scale: Tensor | float | None
+    ) -> tuple[Tensor, Tensor]:
+        """Warp, observations, exact solve and assembly of ``(B, 3, H, W)`` linear RGB (the part
+        of :meth:`forward` that ``torch.compile`` leaves to eager mode; no statistics, no
+        timing)."""
+        out = reconstruct_frame(self._refreshed(), rgb, self._frame_settings, saturated,
+                                scale=exposure_scale, stats=False)  # fmt: skip
+        return out.cube, out.valid
+
+    # ------------------------------------------------------------------------------ files
     def sampling_factor(self, layout: str, cfa_pattern: str | None = None) -> Tensor:
         """``(P, 3V)`` variance factor of the observations for captures made as ``layout``
         (:func:`~hsi_torch.recon.uncertainty.sampling_variance_factor`); kept per layout."""
         sens = self.sensing
-        key = (layout, cfa_pattern if layout == "bayer" else None, sens.dtype)
+        key = (layout, cfa_pattern if layout == "bayer" else None, sens.dtype, sens.device)
         if key not in self._factors:
             self._factors[key] = sampling_variance_factor(
-                sens.grid(), sens.sensor_size, layout, cfa_pattern)  # type: ignore[arg-type]
+                sens.grid(), sens.sensor_size, layout, cfa_pattern
+            )  # type: ignore[arg-type]
         return self._factors[key]
 
     def reconstruct_frame(
@@ -187,9 +697,7 @@ class Reconstructor:
         Returns:
             :class:`ReconstructionResult`.
         """
-        # the disk-cache entry changed under its mapping?
-        self.sensing = refreshed_sensing(self.sensing, self.settings.solve.chunk_size)
-        sens = self.sensing
+        sens = self._refreshed()  # the disk-cache entry changed under its mapping?
         if not isinstance(image, Tensor) or image.ndim != 3:
             raise ValueError(
                 f"{source}: image must be a (3, H, W) or (1, H, W) tensor, got "
@@ -225,8 +733,9 @@ class Reconstructor:
             if settings.registration.refine and drift.refusal is not None:
                 raise DriftError(f"{source}: refine_registration: {drift.refusal}")
             if settings.registration.refine and drift.sensor_shift_px is not None:
-                sens = corrected_sensing(sens, drift.sensor_shift_px,
-                                         drift.sensor_rotation_deg or 0.0)
+                sens = corrected_sensing(
+                    sens, drift.sensor_shift_px, drift.sensor_rotation_deg or 0.0
+                )
             t_drift = time.perf_counter() - t1
         with torch.no_grad():
             out = reconstruct_frame(
@@ -239,8 +748,11 @@ class Reconstructor:
         st.update(corr)
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
-            st["drift"] = {**drift.to_dict(), "corrected": sens is not self.sensing,
-                           "sensor_motion_px": round(motion_px, 3)}
+            st["drift"] = {
+                **drift.to_dict(),
+                "corrected": sens is not self._refreshed(),
+                "sensor_motion_px": round(motion_px, 3),
+            }
             timings["drift"] = t_drift
         timings["total"] = time.perf_counter() - t0
         std = None if out.std is None else out.std[0]
@@ -333,6 +845,49 @@ class Reconstructor:
         return CaptureDefaults(black_level_rgb=None if rad is None else rad.black_level_rgb,
                                cfa_pattern=sens.cfa_pattern, exposure_s=t)  # fmt: skip
 
+    def extra_repr(self) -> str:
+        h, w = self.frame_size
+        return (
+            f"views={self.homographies.shape[0]}, bands={self.num_bands}, "
+            f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
+            f"beta={self.beta:g}, diff_order={self.diff_order}, "
+            f"solver={self.settings.solve.solver!r}"
+            + (
+                f", prior='tv', lam={self.settings.prior.lam}"
+                if self.settings.prior.kind == "tv"
+                else ""
+            )
+            + (f", output='cube', fill_value={self.fill_value:g}" if self.output == "cube" else "")
+        )
+
+
+class Reconstructor(HSIReconstructor):
+    """:class:`HSIReconstructor` built for files: the same class, the same methods, ``forward``
+    included, without the bundle's full-frame calibration arrays (``keep_calibration=False``
+    by default: a bundle given as a path is then never read when its precomputation is in the
+    disk cache, and its arrays are freed after the build).
+
+    Example:
+        >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
+        >>> res = rec.reconstruct_file("scene.tif")  # doctest: +SKIP
+        >>> res.cube.shape, res.valid.sum(), res.timings  # doctest: +SKIP
+    """
+
+    #: ``keep_calibration``'s default: never
+    default_keep_calibration: bool | None = False
+
+
+def _derived(sens: BundleSensing) -> dict[str, Tensor]:
+    """The buffers made from the per-bundle precomputation, by name: ``sens``'s own tensors."""
+    p = sens.problem
+    return {
+        "model_transmittance": sens.model.transmittance, "model_gain": sens.model.gain,
+        "model_response": sens.model.response, "obs_mask": sens.obs_mask,
+        "sample_grid": sens.grid(), "gram": p.gram, "gram_inv": p.gram_inv,
+        "gram_diag": p.gram_diag, "gram_norm": p.gram_norm, "singular": p.singular,
+        "no_data": p.no_data,
+    }  # fmt: skip
+
 
 def _listed(level: Any) -> Any:
     """A settings black level (a number or a tuple) in read_any's form."""
@@ -358,4 +913,3 @@ def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:
                 f"{path}: RGB image size (H, W) = {full} does not match the calibration bundle's "
                 f"sensor size {(H, W)} (demosaic='half' bins Bayer mosaics only)"
             )
-

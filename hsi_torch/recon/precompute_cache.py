@@ -91,7 +91,8 @@ import blake3
 import numpy as np
 
 from hsi_torch import console
-from hsi_torch.io.atomic import atomic_write_text, human_size, json_default
+from hsi_torch.io.atomic import atomic_write_text, human_size, json_default, read_own_bytes
+from hsi_torch.io.safety import file_sha256
 
 __all__ = [
     "FORMAT_VERSION",
@@ -108,6 +109,7 @@ __all__ = [
     "entry_key",
     "entry_path",
     "content_sha256",
+    "remember_sha256",
     "load_entry",
     "changed_since_load",
     "loaded_stamp",
@@ -338,24 +340,6 @@ def entry_path(folder: str | os.PathLike, bundle_path: str | os.PathLike, key: s
 # ------------------------------------------------------------------------ the folder's secret
 
 
-def _read_small(path: str | os.PathLike, limit: int, dir_fd: int | None = None) -> bytes:
-    """The bytes of a regular file of at most ``limit`` bytes, opened without following a
-    symbolic link and without blocking (a FIFO, a device, a link: :class:`_Refused`)."""
-    try:
-        fd = os.open(path, _OPEN_FLAGS, dir_fd=dir_fd)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise _Refused(f"{os.fspath(path)} is a symbolic link") from None
-        raise
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise _Refused(f"{os.fspath(path)} is not a regular file")
-        if st.st_size > limit:
-            raise _Refused(f"{os.fspath(path)} has {st.st_size} bytes (at most {limit})")
-        return f.read(limit + 1)
-
-
 def _secret(folder: Path, create: bool) -> bytes | None:
     """The folder's secret (:data:`KEY_FILE`), made when ``create`` and missing (``None``: none).
 
@@ -425,14 +409,6 @@ def _mac(secret: bytes, index: Mapping[str, Any], arrays: Mapping[str, np.ndarra
 # ------------------------------------------------------------------------ the bundle's hash
 
 
-def _hash_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _memo_mac(secret: bytes, ident: str, sha: str) -> str:
     h = _hasher(secret, b"bundle hash")
     h.update(_canonical([ident, sha]))
@@ -456,6 +432,20 @@ def _memo_secret(memo_folder: str | os.PathLike | None) -> tuple[Path, bytes] | 
     return (folder / HASH_MEMO, secret) if secret else None
 
 
+def _identity(p: Path, st: os.stat_result) -> tuple:
+    return (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def remember_sha256(path: str | os.PathLike, sha: str, before: os.stat_result) -> None:
+    """Remember in this process that the file at ``path`` hashes to ``sha`` (computed by the
+    caller from the bytes it read, e.g. :meth:`~hsi_torch.io.bundle.CalibrationBundle.load_hashed`)
+    — only if its identity (:func:`content_sha256`) is still ``before``, taken before the read."""
+    p = Path(path)
+    ident = _identity(p, before)
+    if _identity(p, p.stat()) == ident:
+        _HASHES[ident] = sha
+
+
 def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | None = None) -> str:
     """Hex SHA-256 of a file's content, remembered while the file's identity stays the same.
 
@@ -468,8 +458,7 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     a line written by anyone else (mapping this bundle to another's hash) is ignored.
     """
     p = Path(path)
-    st = p.stat()
-    ident = (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    ident = _identity(p, p.stat())
     sha = _HASHES.get(ident)
     if sha is not None:
         return sha
@@ -477,7 +466,9 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     memo: dict[str, Any] = {}
     if where is not None:
         try:
-            got = json.loads(_read_small(where[0], MAX_HEADER_BYTES))
+            got = json.loads(
+                read_own_bytes(where[0], MAX_HEADER_BYTES, what="cache file", error=_Refused)
+            )
             memo = dict(got) if isinstance(got, dict) else {}
         except (OSError, ValueError, _Refused, RecursionError):
             memo = {}
@@ -486,7 +477,7 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
     sha = line.get("sha256") if isinstance(line, dict) else None
     if not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) and where is not None
             and line.get("mac") == _memo_mac(where[1], text, sha)):  # fmt: skip
-        sha = _hash_file(p)
+        sha = file_sha256(p)
         if where is not None:
             memo = dict(list(memo.items())[-255:])
             memo[text] = {"sha256": sha, "mac": _memo_mac(where[1], text, sha)}
@@ -639,7 +630,11 @@ def _read_entry(path: Path, key: str, secret: bytes) -> tuple[dict[str, np.ndarr
         raise
     stamp = _Stamp(path)
     try:
-        index = json.loads(_read_small(INDEX, MAX_HEADER_BYTES, dir_fd=dir_fd).decode("utf-8"))
+        index = json.loads(
+            read_own_bytes(
+                INDEX, MAX_HEADER_BYTES, what="cache index", dir_fd=dir_fd, error=_Refused
+            ).decode("utf-8")
+        )
         if not isinstance(index, dict):
             raise _Refused("the index is not a JSON object")
         if index.get("format") != FORMAT_VERSION:
@@ -866,7 +861,9 @@ def _entry_kind(path: Path) -> str | None:
     if t:
         return "temp" if not _pid_alive(int(t["pid"])) else None
     try:
-        index = json.loads(_read_small(path / INDEX, MAX_HEADER_BYTES))
+        index = json.loads(
+            read_own_bytes(path / INDEX, MAX_HEADER_BYTES, what="cache index", error=_Refused)
+        )
     except (OSError, ValueError, _Refused, RecursionError):
         return None
     key = index.get("key") if isinstance(index, dict) else None
@@ -1042,8 +1039,10 @@ def save_entry(
             free = shutil.disk_usage(p.parent).free
             if free - nbytes < MIN_FREE_BYTES:
                 CACHE_STATS["write_skipped"] += 1
-                _warn(f"precomputation cache: {human_size(free)} free in {p.parent}, the "
-                      f"entry needs {human_size(nbytes)}; not written")
+                _warn(
+                    f"precomputation cache: {human_size(free)} free in {p.parent}, the "
+                    f"entry needs {human_size(nbytes)}; not written"
+                )
                 return False
             secret = _secret(p.parent, create=True)
             assert secret is not None

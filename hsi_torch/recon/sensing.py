@@ -389,7 +389,7 @@ def build_sensing(
 ) -> BundleSensing:
     """The :class:`BundleSensing` of a bundle's arrays: sensing model, static mask,
     factorisation and sampling grid (the one build, for :func:`precompute_sensing` and for
-    :meth:`hsi_torch.recon.module.HSIReconstructor.load_state_dict`).
+    :meth:`hsi_torch.recon.pipeline.HSIReconstructor.load_state_dict`).
 
     Args:
         source: a one-item list holding a :class:`CalibrationBundle` or an object with its

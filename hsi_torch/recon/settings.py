@@ -115,6 +115,17 @@ def _number(key: str, value: Any) -> float:
     return v
 
 
+def _positive_or_none(obj: Any, name: str, key: str, unit: str = "") -> None:
+    """Check the field ``name`` of a frozen settings group: ``None`` or a finite number ``> 0``
+    (``key``: its flat key, named in the error), stored as a float."""
+    value = getattr(obj, name)
+    if value is not None:
+        v = _number(key, value)
+        if not v > 0:
+            raise _bad(key, f"must be > 0{unit} or null, got {value}")
+        object.__setattr__(obj, name, v)
+
+
 def _count(key: str, value: Any, minimum: int, allow_none: bool = True) -> None:
     if value is None and allow_none:
         return
@@ -160,8 +171,11 @@ class SolveSettings:
             a folder (:mod:`hsi_torch.recon.precompute_cache`). Not part of the outputs.
     """
 
-    beta: float = _set(DEFAULT_BETA, "smoothness weight on ||D s||^2, on the data's scale (DN^2); "
-                       "1e-2..1e6 (1e4: best measured on the default prototype)")
+    beta: float = _set(
+        DEFAULT_BETA,
+        "smoothness weight on ||D s||^2, on the data's scale (DN^2); "
+        "1e-2..1e6 (1e4: best measured on the default prototype)",
+    )
     diff_order: int = _set(1, "order of the difference operator D: 1, 2, or 0 (Tikhonov)")
     solver: Literal["active_set", "admm"] = _set("active_set", "exact active set, or ADMM")
     admm_iters: int | None = _set(None, "ADMM: fixed iteration count (null: run to tolerance)")
@@ -170,23 +184,32 @@ class SolveSettings:
     nan_invalid: bool = _set(True, "invalid pixels are NaN (else 0) in the cube")
     device: str | None = _set("cpu", "torch device (cpu, cuda, cuda:1, ...; null: the bundle's)")
     dtype: Literal["float32", "float64"] = _set(
-        "float32", "precision of the sensing matrices and the solve")
+        "float32", "precision of the sensing matrices and the solve"
+    )
     precompute_cache: str = _set(
-        "auto", "where the per-bundle precomputation (sensing model, masks, factorisation) is "
+        "auto",
+        "where the per-bundle precomputation (sensing model, masks, factorisation) is "
         "cached between runs: auto (the user cache folder, $HSI_TORCH_CACHE or "
         "~/.cache/hsi_torch), beside (a .hsi_torch_cache folder beside the bundle), off, or a "
-        "folder")
+        "folder",
+    )
 
     def __post_init__(self) -> None:
         if not isinstance(self.dtype, str):  # a torch dtype given as an override
             object.__setattr__(self, "dtype", str(self.dtype).removeprefix("torch."))
-        if self.device is not None and not isinstance(self.device, str) and \
-                type(self.device).__name__ == "device":  # a torch.device given as an override
+        if (
+            self.device is not None
+            and not isinstance(self.device, str)
+            and type(self.device).__name__ == "device"
+        ):  # a torch.device given as an override
             object.__setattr__(self, "device", str(self.device))
         beta = _number("beta", self.beta)
         if not 0 <= beta <= BETA_MAX:
-            raise _bad("beta", f"must be between 0 and {BETA_MAX:g}, got {self.beta:g} (the "
-                               "useful range is about 1e-2..1e6)")
+            raise _bad(
+                "beta",
+                f"must be between 0 and {BETA_MAX:g}, got {self.beta:g} (the "
+                "useful range is about 1e-2..1e6)",
+            )
         object.__setattr__(self, "beta", beta)
         if self.diff_order not in (0, 1, 2) or isinstance(self.diff_order, bool):
             raise _bad("diff_order", f"must be 0, 1 or 2, got {self.diff_order!r}")
@@ -218,18 +241,26 @@ class PriorSettings:
     """
 
     kind: Literal["none", "tv"] = _set(
-        "none", "none: per-pixel NNLS; tv: spatial-spectral reconstruction with a vectorial "
-        "total-variation prior, warm-started from the per-pixel answer", key="prior")
+        "none",
+        "none: per-pixel NNLS; tv: spatial-spectral reconstruction with a vectorial "
+        "total-variation prior, warm-started from the per-pixel answer",
+        key="prior",
+    )
     lam: float | Literal["auto", "discrepancy"] = _set(
-        _DEFAULT_LAM, "prior=tv: relative TV weight, lambda = lam * sigma * sqrt(median trace G) "
+        _DEFAULT_LAM,
+        "prior=tv: relative TV weight, lambda = lam * sigma * sqrt(median trace G) "
         "with sigma the frame's noise level (DN) from its per-pixel residuals; auto: per frame, "
         "minimum of a Monte-Carlo SURE risk estimate; discrepancy: per frame, Morozov's "
-        "discrepancy principle")
+        "discrepancy principle",
+    )
     spatial_iters: int | None = _set(
-        None, "prior=tv: fixed ADMM iterations (null: run to tolerance)")
+        None, "prior=tv: fixed ADMM iterations (null: run to tolerance)"
+    )
     spectral_rank: int | None = _set(
-        None, "prior=tv: the TV on the k leading spectral components of the frame's per-pixel "
-        "answer, the complement per pixel (null: on all bands)")
+        None,
+        "prior=tv: the TV on the k leading spectral components of the frame's per-pixel "
+        "answer, the complement per pixel (null: on all bands)",
+    )
 
     def __post_init__(self) -> None:
         _choice("prior", self.kind, PRIORS)
@@ -265,26 +296,37 @@ class InputSettings:
     """
 
     demosaic: Literal["bilinear", "half"] = _set(
-        "bilinear", "Bayer inputs: bilinear (full resolution) or half (2x2 binning; needs a "
-        "bundle made at half resolution)")
+        "bilinear",
+        "Bayer inputs: bilinear (full resolution) or half (2x2 binning; needs a "
+        "bundle made at half resolution)",
+    )
     cfa_pattern: CfaPattern | None = _set(
-        None, "Bayer inputs: CFA pattern (null: the file's metadata, else the pattern the "
-        "bundle was calibrated with)")
+        None,
+        "Bayer inputs: CFA pattern (null: the file's metadata, else the pattern the "
+        "bundle was calibrated with)",
+    )
     black_level: float | tuple[float, ...] | None = _set(
-        None, "black level subtracted from the stored values, DN: scalar, 4 values (Bayer cell) "
+        None,
+        "black level subtracted from the stored values, DN: scalar, 4 values (Bayer cell) "
         "or 3 (R, G, B) (null: the file's metadata, else the calibration's, recorded in the "
-        "bundle, else 0)")
+        "bundle, else 0)",
+    )
     white_level: float | None = _set(
-        None, "saturation level, DN, > 0 (null: the file's metadata, else the integer type's "
-        "maximum)")
+        None,
+        "saturation level, DN, > 0 (null: the file's metadata, else the integer type's maximum)",
+    )
     exposure_correction: bool = _set(
-        True, "scale observations by t_white / t_capture when both exposures are known")
+        True, "scale observations by t_white / t_capture when both exposures are known"
+    )
     exposure_s: float | None = _set(
-        None, "exposure time of the captures, s, for a file whose metadata has none "
+        None,
+        "exposure time of the captures, s, for a file whose metadata has none "
         "(RAW/DNG/TIFF EXIF, exposure_s); scaled by t_white / t_capture against the bundle's "
-        "white reference (null: unknown, the cube's scale is relative)")
+        "white reference (null: unknown, the cube's scale is relative)",
+    )
     sat_threshold: float = _set(
-        1e-3, "warped saturation weight above which an observation is saturated", yaml=False)
+        1e-3, "warped saturation weight above which an observation is saturated", yaml=False
+    )
 
     def __post_init__(self) -> None:
         _choice("demosaic", self.demosaic, DEMOSAICS)
@@ -298,11 +340,7 @@ class InputSettings:
             object.__setattr__(self, "black_level", tuple(_number("black_level", v) for v in bl))
         elif bl is not None:
             object.__setattr__(self, "black_level", _number("black_level", bl))
-        if self.white_level is not None:
-            wl = _number("white_level", self.white_level)
-            if not wl > 0:
-                raise _bad("white_level", f"must be > 0 or null, got {self.white_level}")
-            object.__setattr__(self, "white_level", wl)
+        _positive_or_none(self, "white_level", "white_level")
         if self.exposure_s is not None:
             t = _number("exposure_s", self.exposure_s)
             if not (0 < t < float("inf")):
@@ -328,19 +366,26 @@ class OutputSettings:
     """
 
     formats: tuple[CubeFormat, ...] = _set(
-        ("tiff", "envi", "npz"), "cube files written per input: tiff (OME-TIFF .tif + GDAL "
+        ("tiff", "envi", "npz"),
+        "cube files written per input: tiff (OME-TIFF .tif + GDAL "
         ".vrt), envi (.hdr/.img), npz, netcdf (.nc), zarr (.zarr); netcdf/zarr need pip "
-        "install 'hsi-torch[formats]'")
+        "install 'hsi-torch[formats]'",
+    )
     preview: bool = _set(True, "write an sRGB preview PNG (D65)")
     preview_size: int = _set(
-        512, "the preview's longer side is enlarged (integer factor, nearest neighbour) to at "
-        f"least this many px; 0: native; at most {MAX_PREVIEW_SIZE}")
+        512,
+        "the preview's longer side is enlarged (integer factor, nearest neighbour) to at "
+        f"least this many px; 0: native; at most {MAX_PREVIEW_SIZE}",
+    )
     spectra_pixels: tuple[tuple[int, int], ...] = _set(
-        (), "reference-frame pixels [row, col] whose spectra are plotted (PNG)")
+        (), "reference-frame pixels [row, col] whose spectra are plotted (PNG)"
+    )
     fit_residual_warning: float | None = _set(
-        0.15, "warn when a frame's relative fit residual (pooled over its brighter half, see "
+        0.15,
+        "warn when a frame's relative fit residual (pooled over its brighter half, see "
         "recon.frame.fit_residual) exceeds this: a bundle of another geometry gives 0.21-0.25, "
-        "the right bundle 0.01-0.03 (0.11 with 1/20 of the exposure); null: never")
+        "the right bundle 0.01-0.03 (0.11 with 1/20 of the exposure); null: never",
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "formats", _frozen(self.formats))
@@ -351,20 +396,17 @@ class OutputSettings:
             raise _bad("formats", f"has duplicates: {list(self.formats)}")
         if not self.formats and not self.preview:
             raise _bad("formats", "nothing to write: formats is empty and preview is false")
-        if isinstance(self.preview_size, bool) or not isinstance(self.preview_size, int) or not (
-            0 <= self.preview_size <= MAX_PREVIEW_SIZE
+        if (
+            isinstance(self.preview_size, bool)
+            or not isinstance(self.preview_size, int)
+            or not (0 <= self.preview_size <= MAX_PREVIEW_SIZE)
         ):
             raise _bad("preview_size", f"must be an integer in 0..{MAX_PREVIEW_SIZE} (px), got "
                                        f"{self.preview_size!r}")  # fmt: skip
         for p in self.spectra_pixels:
             if len(p) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in p):
                 raise _bad("spectra_pixels", f"pixels must be [row, col] integer pairs, got {p!r}")
-        if self.fit_residual_warning is not None:
-            lim = _number("fit_residual_warning", self.fit_residual_warning)
-            if not lim > 0:
-                raise _bad("fit_residual_warning",
-                           f"must be > 0 or null, got {self.fit_residual_warning}")
-            object.__setattr__(self, "fit_residual_warning", lim)
+        _positive_or_none(self, "fit_residual_warning", "fit_residual_warning")
 
 
 @dataclass(frozen=True)
@@ -380,24 +422,25 @@ class UncertaintySettings:
     """
 
     enabled: bool = _set(
-        False, "also write the standard deviation of every band from the sensor noise: "
+        False,
+        "also write the standard deviation of every band from the sensor noise: "
         "<stem>_std.* beside the cube in the non-NPZ formats, the key 'std' in <stem>.npz and a "
-        "map <stem>_std.png (see docs/reconstruct.md)", key="uncertainty")
+        "map <stem>_std.png (see docs/reconstruct.md)",
+        key="uncertainty",
+    )
     electrons_per_dn: float | None = _set(
-        None, "uncertainty: sensor conversion gain, e-/DN (null: the simulator's default sensor, "
-        "30000 e- / (16383 - 512) DN = 1.89)", key="noise_electrons_per_dn")
-    read_e: float = _set(3.0, "uncertainty: sensor read noise sigma, electrons",
-                         key="noise_read_e")
-    quantization_dn: float = _set(1.0, "uncertainty: the ADC step, DN",
-                                  key="noise_quantization_dn", yaml=False)
+        None,
+        "uncertainty: sensor conversion gain, e-/DN (null: the simulator's default sensor, "
+        "30000 e- / (16383 - 512) DN = 1.89)",
+        key="noise_electrons_per_dn",
+    )
+    read_e: float = _set(3.0, "uncertainty: sensor read noise sigma, electrons", key="noise_read_e")
+    quantization_dn: float = _set(
+        1.0, "uncertainty: the ADC step, DN", key="noise_quantization_dn", yaml=False
+    )
 
     def __post_init__(self) -> None:
-        if self.electrons_per_dn is not None:
-            g = _number("noise_electrons_per_dn", self.electrons_per_dn)
-            if not g > 0:
-                raise _bad("noise_electrons_per_dn",
-                           f"must be > 0 or null, got {self.electrons_per_dn}")
-            object.__setattr__(self, "electrons_per_dn", g)
+        _positive_or_none(self, "electrons_per_dn", "noise_electrons_per_dn")
         r = _number("noise_read_e", self.read_e)
         if not r >= 0:
             raise _bad("noise_read_e", f"must be >= 0, got {self.read_e}")
@@ -426,30 +469,38 @@ class RegistrationSettings:
     """
 
     check: bool = _set(
-        True, "measure each frame's drift against the bundle's registration (views aligned to "
+        True,
+        "measure each frame's drift against the bundle's registration (views aligned to "
         "the reference view; a sensor shift and rotation fitted) and store it in the cube's "
-        "metadata (stats.drift)", key="drift_check")
+        "metadata (stats.drift)",
+        key="drift_check",
+    )
     warn_px: float | None = _set(
-        0.5, "warn when the measured sensor motion moves a view's pixel by more than this many "
-        "px (null: never)", key="drift_warn_px")
+        0.5,
+        "warn when the measured sensor motion moves a view's pixel by more than this many "
+        "px (null: never)",
+        key="drift_warn_px",
+    )
     refine: bool = _set(
-        False, "correct the measured sensor motion before solving (every view sampled where "
-        "the moved sensor put it; see docs/reconstruct.md)", key="refine_registration")
+        False,
+        "correct the measured sensor motion before solving (every view sampled where "
+        "the moved sensor put it; see docs/reconstruct.md)",
+        key="refine_registration",
+    )
     min_views: int = _set(
-        4, "the fewest views that must agree on the measured drift (within 1 px of the fitted "
+        4,
+        "the fewest views that must agree on the measured drift (within 1 px of the fitted "
         "motion) for it to be trusted; fewer, or a drift beyond the measurable range: "
         "refine_registration fails the frame, the check warns that the drift could not be "
-        "measured", key="drift_min_views")
+        "measured",
+        key="drift_min_views",
+    )
 
     def __post_init__(self) -> None:
         for key, v in (("drift_check", self.check), ("refine_registration", self.refine)):
             if not isinstance(v, bool):
                 raise _bad(key, f"must be true or false, got {v!r}")
-        if self.warn_px is not None:
-            lim = _number("drift_warn_px", self.warn_px)
-            if not lim > 0:
-                raise _bad("drift_warn_px", f"must be > 0 (px) or null, got {self.warn_px}")
-            object.__setattr__(self, "warn_px", lim)
+        _positive_or_none(self, "warn_px", "drift_warn_px", " (px)")
         _count("drift_min_views", self.min_views, 2, allow_none=False)
 
 
@@ -488,31 +539,63 @@ class SequenceSettings:
             is a jump (a ``drift_jump`` finding): the path restarts from it (``> 0``).
     """
 
-    warm_start: bool = _set(False, "start each frame's per-pixel active-set solve from the "
-                            "previous frame's zero set", key="warm_start", yaml=False)
-    warm_spatial: bool = _set(False, "start each frame's spatial-prior ADMM from the previous "
-                              "frame's answer (static pixels) and TV dual", key="warm_spatial",
-                              yaml=False)
-    temporal: str = _set("none", "temporal prior: none or quadratic (a gated penalty on the "
-                         "change of each pixel's spectrum since the previous frame)",
-                         key="temporal", yaml=False)
-    temporal_weight: float = _set(1.0, "the temporal penalty's weight: the previous answer "
-                                  "counts as this many frames of data", key="temporal_weight",
-                                  yaml=False)
-    temporal_gate: float = _set(4.0, "motion gate: how much worse (in the pixel's noise "
-                                "variance per free band) the previous answer may fit this "
-                                "frame's data", key="temporal_gate", yaml=False)
-    drift_track: bool = _set(False, "measure the drift of every frame and correct a smooth path "
-                             "fitted over the recent frames", key="drift_track", yaml=False)
-    drift_window: int = _set(10, "frames the drift path is fitted over", key="drift_window",
-                             yaml=False)
-    drift_jump_px: float = _set(0.5, "a measured drift this far (px) from the path's "
-                                "prediction is a jump: flagged, and the path restarts",
-                                key="drift_jump_px", yaml=False)
+    warm_start: bool = _set(
+        False,
+        "start each frame's per-pixel active-set solve from the previous frame's zero set",
+        key="warm_start",
+        yaml=False,
+    )
+    warm_spatial: bool = _set(
+        False,
+        "start each frame's spatial-prior ADMM from the previous "
+        "frame's answer (static pixels) and TV dual",
+        key="warm_spatial",
+        yaml=False,
+    )
+    temporal: str = _set(
+        "none",
+        "temporal prior: none or quadratic (a gated penalty on the "
+        "change of each pixel's spectrum since the previous frame)",
+        key="temporal",
+        yaml=False,
+    )
+    temporal_weight: float = _set(
+        1.0,
+        "the temporal penalty's weight: the previous answer counts as this many frames of data",
+        key="temporal_weight",
+        yaml=False,
+    )
+    temporal_gate: float = _set(
+        4.0,
+        "motion gate: how much worse (in the pixel's noise "
+        "variance per free band) the previous answer may fit this "
+        "frame's data",
+        key="temporal_gate",
+        yaml=False,
+    )
+    drift_track: bool = _set(
+        False,
+        "measure the drift of every frame and correct a smooth path fitted over the recent frames",
+        key="drift_track",
+        yaml=False,
+    )
+    drift_window: int = _set(
+        10, "frames the drift path is fitted over", key="drift_window", yaml=False
+    )
+    drift_jump_px: float = _set(
+        0.5,
+        "a measured drift this far (px) from the path's "
+        "prediction is a jump: flagged, and the path restarts",
+        key="drift_jump_px",
+        yaml=False,
+    )
 
     def __post_init__(self) -> None:
-        for key, v in (("warm_start", self.warm_start), ("warm_spatial", self.warm_spatial),
-                       ("drift_track", self.drift_track)):
+        for key, v in (
+            ("warm_start", self.warm_start),
+            ("warm_spatial", self.warm_spatial),
+            ("drift_track", self.drift_track),
+        ):
             if not isinstance(v, bool):
                 raise _bad(key, f"must be true or false, got {v!r}")
         _choice("temporal", self.temporal, TEMPORAL_KINDS)
@@ -548,12 +631,18 @@ class ReconstructSettings:
 
     def __post_init__(self) -> None:  # rules across groups
         if self.prior.kind != "none" and self.uncertainty.enabled:
-            raise _bad("uncertainty", "true is the per-pixel solver's noise model; it does not "
-                                      f"hold for prior={self.prior.kind} (use prior: none)")
+            raise _bad(
+                "uncertainty",
+                "true is the per-pixel solver's noise model; it does not "
+                f"hold for prior={self.prior.kind} (use prior: none)",
+            )
         if self.sequence.temporal != "none" and self.prior.kind != "none":
-            raise _bad("temporal", f"{self.sequence.temporal!r} is a prior of the per-pixel "
-                                   f"solve; it does not combine with prior={self.prior.kind} "
-                                   "(use prior: none)")
+            raise _bad(
+                "temporal",
+                f"{self.sequence.temporal!r} is a prior of the per-pixel "
+                f"solve; it does not combine with prior={self.prior.kind} "
+                "(use prior: none)",
+            )
 
     @classmethod
     def from_flat(
@@ -621,8 +710,9 @@ class ReconstructSettings:
             note("preview_size", "preview is false (no preview image is written)")
         if not (self.registration.check or self.registration.refine):
             for key in ("drift_warn_px", "drift_min_views"):
-                note(key, "the drift is not measured (drift_check and refine_registration "
-                          "are false)")
+                note(
+                    key, "the drift is not measured (drift_check and refine_registration are false)"
+                )
         return out
 
     def key(self) -> str:

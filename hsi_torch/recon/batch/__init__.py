@@ -6,7 +6,7 @@ One path from the command line (or Python) to a solved frame::
     reconstruct_many() ────┴─► entry.run_reconstruction   the one decision: this process or a
                                  │                        cluster; files or a dataset store
                                  ├─ run.check_run          config → ReconstructSettings (once),
-                                 │                         inputs, bundle (SHA-256 once), device
+                                 │                         inputs, bundle (read once), device
                                  └─ entry.execute
                                       ├─ targets.FilesTarget | targets.StoreTarget   (resume,
                                       │                      claims, markers, the store)

@@ -57,22 +57,29 @@ from hsi_torch.io.atomic import (
     remove_file,
     replace_then_commit,
 )
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.provenance import provenance
 from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
-from hsi_torch.recon.precompute_cache import content_sha256
-from hsi_torch.recon.sensing import load_bundle
+from hsi_torch.recon.precompute_cache import remember_sha256
 from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.recon.uncertainty import relative_std_map
 
 __all__ = [
-    "ReconstructRun", "check_run", "reconstruct_input",
-    "write_outputs", "output_paths", "frame_warnings", "preview_caption", "write_run_config",
+    "ReconstructRun",
+    "check_run",
+    "reconstruct_input",
+    "write_outputs",
+    "output_paths",
+    "frame_warnings",
+    "preview_caption",
+    "write_run_config",
     "findings_flag",
-    "RUNS_DIR", "as_settings",
+    "RUNS_DIR",
+    "as_settings",
 ]
 
 
@@ -197,14 +204,28 @@ def _write_staged(
     std = None if result.std is None else result.std.detach().to("cpu", torch.float32)
     npz_std = None if std is None else {"std": std}
     jobs = [
-        timed(f, partial(save_cube_formats, s, cube, wl, valid, metadata, formats=(f,),
-                         npz_arrays=npz_std if f == "npz" else None))
+        timed(
+            f,
+            partial(
+                save_cube_formats,
+                s,
+                cube,
+                wl,
+                valid,
+                metadata,
+                formats=(f,),
+                npz_arrays=npz_std if f == "npz" else None,
+            ),
+        )
         for f in cfg.formats
     ]
     if std is not None:  # the standard deviation as a cube of its own beside the cube
         s_std = s.with_name(s.name + "_std")
-        meta_std = {**(metadata or {}), "quantity": "standard deviation of every band "
-                    "(sensor noise, free-set linearisation; 0 on bands at the bound)"}
+        meta_std = {
+            **(metadata or {}),
+            "quantity": "standard deviation of every band "
+            "(sensor noise, free-set linearisation; 0 on bands at the bound)",
+        }
         jobs += [timed(f"{f}_std", partial(save_cube_formats, s_std, std, wl, valid, meta_std,
                                            formats=(f,)))
                  for f in cfg.formats if f != "npz"]  # fmt: skip
@@ -212,14 +233,24 @@ def _write_staged(
         # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
         path = s.with_name(s.name + "_preview.png")
         caption = preview_caption(s.name, settings, metadata)
-        jobs.append(timed("preview", lambda: [colour.save_preview_png(
-            cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size)]))
+        jobs.append(
+            timed(
+                "preview",
+                lambda: [
+                    colour.save_preview_png(
+                        cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size
+                    )
+                ],
+            )
+        )
         if std is not None:
-            jobs.append(timed("std_preview", lambda: [
-                _save_std_map(cube, std, valid, s, cfg.preview_size)]))
+            jobs.append(
+                timed("std_preview", lambda: [_save_std_map(cube, std, valid, s, cfg.preview_size)])
+            )
     if cfg.spectra_pixels:
-        jobs.append(timed("spectra", lambda: [
-            _plot_points(cube, valid, wl, s, cfg.spectra_pixels, std)]))
+        jobs.append(
+            timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg.spectra_pixels, std)])
+        )
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
     # which release the GIL); every file is still atomic
     results: list[list[Path]] = []
@@ -250,11 +281,14 @@ def _save_std_map(
     img = torch.where(ok, grey, torch.zeros_like(grey)).expand(3, -1, -1)
     img = torch.where(ok, img, bad)
     med = float(rel[ok].median()) if bool(ok.any()) else float("nan")
-    caption = (f"{s.name} | mean relative std (sum of band std / sum of bands) from sensor noise"
-               f" | black 0 %, white {100 * top:.3g} % (99th pct), median {100 * med:.3g} %"
-               " | dark red: invalid")
-    return colour.save_labelled_png(img, s.with_name(s.name + "_std.png"), caption=caption,
-                                    min_size=preview_size)
+    caption = (
+        f"{s.name} | mean relative std (sum of band std / sum of bands) from sensor noise"
+        f" | black 0 %, white {100 * top:.3g} % (99th pct), median {100 * med:.3g} %"
+        " | dark red: invalid"
+    )
+    return colour.save_labelled_png(
+        img, s.with_name(s.name + "_std.png"), caption=caption, min_size=preview_size
+    )
 
 
 def _plot_points(
@@ -275,15 +309,19 @@ def _plot_points(
     spectra = torch.where(valid[ys, xs].unsqueeze(1), spectra, float("nan"))
     if not bool(valid[ys, xs].any()):
         spectra = torch.zeros_like(spectra)  # nothing to draw; keep the axes finite
-    labels = [
-        f"(row {r}, col {c})" + ("" if bool(valid[r, c]) else " invalid")
-        for r, c in points
-    ]
+    labels = [f"(row {r}, col {c})" + ("" if bool(valid[r, c]) else " invalid") for r, c in points]
     sd = None if std is None else torch.where(valid[ys, xs].unsqueeze(1), std[:, ys, xs].T,
                                               float("nan"))  # fmt: skip
     path = s.with_name(s.name + "_spectra.png")
-    colour.plot_spectra(wl, spectra, labels=labels, path=path, std=sd,
-                        title=s.name, ylabel="reflectance (relative to white reference)")
+    colour.plot_spectra(
+        wl,
+        spectra,
+        labels=labels,
+        path=path,
+        std=sd,
+        title=s.name,
+        ylabel="reflectance (relative to white reference)",
+    )
     return path
 
 
@@ -386,7 +424,12 @@ def check_run(
     inputs = expand_inputs(inputs)  # a glob matching nothing fails before anything is written
     resolve_device(settings.solve.device, "config key 'device':", here=device_here)
     bundle_path = Path(os.path.abspath(bundle))
-    b = load_bundle(bundle_path)
+    before = bundle_path.stat() if bundle_path.is_file() else None
+    # read once: checked whole and hashed from the same bytes (the hash remembered for the
+    # reconstructor's cache key)
+    b, sha = CalibrationBundle.load_hashed(bundle_path)
+    if before is not None:
+        remember_sha256(bundle_path, sha, before)
     h, w = b.frame_size
     points = settings.output.spectra_pixels
     if points:
@@ -402,10 +445,8 @@ def check_run(
     # factors, and the full-frame arrays are freed before the factorisation takes its memory
     del b
     st = bundle_path.stat()
-    sha = content_sha256(bundle_path)  # remembered: the reconstructor's cache key needs it
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
-    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache",
-               "drift_warn_px")
+    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache", "drift_warn_px")
     config = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(
@@ -469,9 +510,7 @@ def _frame_findings(
 RUNS_DIR = "runs"
 
 
-def write_run_config(
-    cfg: ReconstructConfig, out: Path, bundle_path: Path, num_inputs: int
-) -> Path:
+def write_run_config(cfg: ReconstructConfig, out: Path, bundle_path: Path, num_inputs: int) -> Path:
     """Write this run's resolved configuration to ``out/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml`` (a
     new file per run, never one of an earlier or concurrent run; ``-2``, ``-3``, ... if a run of
     the same process already used the name) and return its path. The file appears complete or
@@ -516,24 +555,39 @@ def frame_warnings(
     warn_px = as_settings(cfg).registration.warn_px
     if isinstance(drift, dict) and isinstance(drift.get("refused"), str):
         # not measurable (too few views agree, beyond the range): no motion is claimed
-        out.append(f"{drift['refused']}; not corrected, and refine_registration would refuse "
-                   "the frame")
-    elif isinstance(drift, dict) and drift.get("textured_views") == 0 \
-            and as_settings(cfg).registration.refine:
-        out.append("refine_registration: nothing corrected, no view has texture to measure the "
-                   "drift from (a flat field)")
+        out.append(
+            f"{drift['refused']}; not corrected, and refine_registration would refuse the frame"
+        )
+    elif (
+        isinstance(drift, dict)
+        and drift.get("textured_views") == 0
+        and as_settings(cfg).registration.refine
+    ):
+        out.append(
+            "refine_registration: nothing corrected, no view has texture to measure the "
+            "drift from (a flat field)"
+        )
     elif isinstance(drift, dict) and warn_px is not None:
         moved = drift.get("sensor_motion_px")
         if isinstance(moved, (int, float)) and moved > warn_px:
             t, rot = drift.get("sensor_shift_px"), drift.get("sensor_rotation_deg")
             agree = drift.get("agreement")
-            what = (f"the sensor moved since calibration: up to {moved:.2f} px > "
-                    f"drift_warn_px={warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
-                    f"{drift.get('measured_views')} views aligned to the reference view"
-                    + (f"; {agree}" if isinstance(agree, str) else "") + ")")
-            out.append(what + ("; corrected (refine_registration)" if drift.get("corrected")
-                               else "; the views are misaligned and the spectra are biased: "
-                                    "--set refine_registration=true corrects it, or recalibrate"))
+            what = (
+                f"the sensor moved since calibration: up to {moved:.2f} px > "
+                f"drift_warn_px={warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
+                f"{drift.get('measured_views')} views aligned to the reference view"
+                + (f"; {agree}" if isinstance(agree, str) else "")
+                + ")"
+            )
+            out.append(
+                what
+                + (
+                    "; corrected (refine_registration)"
+                    if drift.get("corrected")
+                    else "; the views are misaligned and the spectra are biased: "
+                    "--set refine_registration=true corrects it, or recalibrate"
+                )
+            )
     n = int(stats.get("num_not_converged", 0))
     if n:
         out.append(
@@ -542,4 +596,3 @@ def frame_warnings(
             "dtype=float64 or a larger beta"
         )
     return out
-

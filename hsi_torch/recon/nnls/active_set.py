@@ -93,8 +93,12 @@ def _zero_set_solve(
     """
     n, m = v.shape
     if k == 0:
-        return v.clone(), torch.zeros_like(v), torch.ones((n,), dtype=torch.bool,
-                                                           device=v.device), None
+        return (
+            v.clone(),
+            torch.zeros_like(v),
+            torch.ones((n,), dtype=torch.bool, device=v.device),
+            None,
+        )
     zero = torch.zeros((), dtype=v.dtype, device=v.device)
     # indices of Z first (ascending), then free ones as padding (their λ comes out exactly 0)
     zi = torch.argsort((~Z).to(torch.uint8), dim=1, stable=True)[:, :k]
@@ -102,18 +106,26 @@ def _zero_set_solve(
     # rows H[Z, :] (n, k, M): one contiguous row copy each (H symmetric: also the columns)
     rows = zi if H.shape[0] == 1 else idx.unsqueeze(1) * m + zi
     R = H.view(-1, m).index_select(0, rows.reshape(-1)).view(n, k, m)
-    Hzz = R.gather(2, zi.unsqueeze(1).expand(n, k, k))
-    eye = torch.eye(k, dtype=v.dtype, device=v.device)
-    Hzz = torch.where(zv.unsqueeze(2) & zv.unsqueeze(1), Hzz, eye)
-    L, info = torch.linalg.cholesky_ex(Hzz)
-    ok = info == 0
-    L = torch.where(ok.view(n, 1, 1), L, eye)
+    L, ok = _padded_cholesky(R, zi, zv)
     rhs = torch.where(zv, v.gather(1, zi), zero).unsqueeze(2)
     t = torch.linalg.solve_triangular(L, rhs, upper=False)
     lam_k = -torch.linalg.solve_triangular(L.transpose(1, 2), t, upper=True).squeeze(2)
     x = (v + _rowvec(lam_k, R)).masked_fill(Z, 0.0)
     lam = torch.zeros_like(v).scatter_(1, zi, lam_k)
     return x, lam, ok, (zi, R, L)
+
+
+def _padded_cholesky(rows: Tensor, cols: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Cholesky factors ``L (n, k, k)`` of the blocks ``rows[:, :, cols]`` (``rows (n, k, M)``,
+    ``cols (n, k)``), entries where ``valid (n, k)`` is False padded with identity rows and
+    columns, and ``ok (n,)``: the factorisation succeeded (identity where it did not)."""
+    n, k = cols.shape
+    block = rows.gather(2, cols.unsqueeze(1).expand(n, k, k))
+    eye = torch.eye(k, dtype=rows.dtype, device=rows.device)
+    block = torch.where(valid.unsqueeze(2) & valid.unsqueeze(1), block, eye)
+    L, info = torch.linalg.cholesky_ex(block)
+    ok = info == 0
+    return torch.where(ok.view(n, 1, 1), L, eye), ok
 
 
 #: bucket bounds on the padded system size k (pixels with k in (e_i, e_{i+1}] share one padded
@@ -136,9 +148,7 @@ class FreeSetSolver:
     def __init__(self, gram: Tensor) -> None:
         self.gram = gram
 
-    def __call__(
-        self, gi: Tensor, F: Tensor, b: Tensor, k: int
-    ) -> tuple[Tensor, Tensor, Tensor]:
+    def __call__(self, gi: Tensor, F: Tensor, b: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor]:
         """``x`` (zeros off ``F``), ``λ = (Gx − b)`` on ``Z`` (0 on ``F``) and ``ok`` for rows
         with global pixel indices ``gi``, free sets ``F (n, M)`` (``|F| ≤ k``) and ``b (n, M)``."""
         n, m = b.shape
@@ -150,12 +160,7 @@ class FreeSetSolver:
         G = self.gram
         rows = fi if G.shape[0] == 1 else gi.unsqueeze(1) * m + fi
         C = G.view(-1, m).index_select(0, rows.reshape(-1)).view(n, k, m)  # G[F, :] = G[:, F]ᵀ
-        Gff = C.gather(2, fi.unsqueeze(1).expand(n, k, k))
-        eye = torch.eye(k, dtype=b.dtype, device=b.device)
-        Gff = torch.where(fv.unsqueeze(2) & fv.unsqueeze(1), Gff, eye)
-        L, info = torch.linalg.cholesky_ex(Gff)
-        ok = info == 0
-        L = torch.where(ok.view(n, 1, 1), L, eye)
+        L, ok = _padded_cholesky(C, fi, fv)
         rhs = torch.where(fv, b.gather(1, fi), zero).unsqueeze(2)
         xf = torch.where(fv, torch.cholesky_solve(rhs, L).squeeze(2), zero)  # (n, k)
         x = torch.zeros_like(b).scatter_(1, fi, xf)
@@ -163,11 +168,16 @@ class FreeSetSolver:
         return x, torch.where(F, zero, g), ok
 
 
-
-
 def _bucketed_solve(
-    H: Tensor, gi: Tensor, Z: Tensor, v: Tensor, b: Tensor | None, free_solve, sizes: list[int],
-    modes: list[bool], bounds: list[int],
+    H: Tensor,
+    gi: Tensor,
+    Z: Tensor,
+    v: Tensor,
+    b: Tensor | None,
+    free_solve,
+    sizes: list[int],
+    modes: list[bool],
+    bounds: list[int],
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Equality-constrained solves for rows sorted into buckets of one padded size and mode.
 
@@ -199,10 +209,12 @@ def _zero_set_solve_any(H: Tensor, gi: Tensor, Z: Tensor, v: Tensor) -> tuple[Te
     sizes = [e for e in _K_EDGES if e < m] + [m]
     cnt = Z.sum(1)
     order = torch.argsort(cnt, stable=True)
-    bounds = torch.searchsorted(cnt[order], torch.tensor(sizes, device=v.device),
-                                right=True).tolist()
-    xs, _, oks = _bucketed_solve(H, gi[order], Z[order], v[order], None, None, sizes,
-                                 [False] * len(sizes), bounds)
+    bounds = torch.searchsorted(
+        cnt[order], torch.tensor(sizes, device=v.device), right=True
+    ).tolist()
+    xs, _, oks = _bucketed_solve(
+        H, gi[order], Z[order], v[order], None, None, sizes, [False] * len(sizes), bounds
+    )
     x = torch.empty_like(v)
     ok = torch.empty_like(oks)
     x[order] = xs
@@ -210,8 +222,9 @@ def _zero_set_solve_any(H: Tensor, gi: Tensor, Z: Tensor, v: Tensor) -> tuple[Te
     return x, ok
 
 
-def _bucket_plan(m: int, hybrid: bool, device: torch.device) -> tuple[Tensor, list[int],
-                                                                       list[bool]]:
+def _bucket_plan(
+    m: int, hybrid: bool, device: torch.device
+) -> tuple[Tensor, list[int], list[bool]]:
     """Bucket edges on the sort key of :func:`_bpp` with each bucket's padded size and mode.
 
     Key: ``|Z|`` for zero-set rows, ``(m + 1) + |F|`` for free-set rows (hybrid only), so one
@@ -229,8 +242,14 @@ def _bucket_plan(m: int, hybrid: bool, device: torch.device) -> tuple[Tensor, li
 
 
 def _bpp(
-    H: Tensor, idx: Tensor, x0: Tensor, gd: Tensor, thr: Tensor, max_iter: int,
-    b: Tensor | None = None, free_solve: FreeSetSolver | None = None,
+    H: Tensor,
+    idx: Tensor,
+    x0: Tensor,
+    gd: Tensor,
+    thr: Tensor,
+    max_iter: int,
+    b: Tensor | None = None,
+    free_solve: FreeSetSolver | None = None,
     z0: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Block principal pivoting (Júdice–Pires, Kim–Park) with zero-set or free-set solves.
@@ -300,8 +319,9 @@ def _bpp(
         failed[w] = ~ok
         improved = nv < best
         full_block = improved | (backup >= 1)
-        backup = torch.where(improved, torch.full_like(backup, MURTY_PATIENCE),
-                             (backup - 1).clamp_min(0))
+        backup = torch.where(
+            improved, torch.full_like(backup, MURTY_PATIENCE), (backup - 1).clamp_min(0)
+        )
         best = torch.where(improved, nv, best)
         last = (m - 1) - infeas.flip(1).to(torch.uint8).argmax(1)  # Murty: largest index
         single = torch.zeros_like(infeas).scatter_(1, last.view(-1, 1), True)

@@ -107,29 +107,7 @@ def solve_frame(
         ``brightness_weight``, ``spectral_rank`` (``k``, or ``M``: the full-band solve),
         ``spatial_dual`` (the final dual state, for ``dual``).
     """
-    return _solve_frame(sens, y, mask, ok, changed, x0, lam, iters, inner_iters, tol, max_iter,
-                        guided, brightness_weight, rank, start, dual)
-
-
-def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
-    """``Aᵀ y`` of every pixel (``y`` 0 where ``mask`` is False): the NNLS kernel's compiled
-    right-hand side on the CPU (one pass over the factors, ~4× the torch batched products), the
-    model's operator elsewhere or where ``y`` needs a gradient."""
-    if (nnls_compiled.AVAILABLE and y.device.type == "cpu" and isinstance(model, SensingModel)
-            and not model.shared and not (y.requires_grad and torch.is_grad_enabled())):
-        out = nnls_compiled.adjoint_frame(
-            y.detach().numpy(), mask.numpy(), model.transmittance.numpy(), model.gain.numpy(),
-            model.response.numpy(), torch.get_num_threads())
-        return torch.from_numpy(out)
-    return model.A_adjoint(y)
-
-
-def _solve_frame(
-    sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, changed: Tensor, x0: Tensor,
-    lam: float | str, iters: int | None, inner_iters: int, tol: float | None, max_iter: int,
-    guided: bool = False, alpha: float = BRIGHTNESS_WEIGHT, rank: int | None = None,
-    start: Tensor | None = None, dual: tuple | None = None,
-) -> tuple[Tensor, dict[str, Any]]:
+    alpha = brightness_weight
     auto = isinstance(lam, str)
     if auto and lam not in LAM_RULES:
         raise ValueError(f"lam must be a number >= 0, 'auto' or 'discrepancy', got {lam!r}")
@@ -182,6 +160,19 @@ def _solve_frame(
         "spatial_dual_residual": res.dual_residual, "rho": res.rho, "spatial_dual": res.dual,
     }  # fmt: skip
     return res.x, info
+
+
+def _adjoint(model: Any, y: Tensor, mask: Tensor) -> Tensor:
+    """``Aᵀ y`` of every pixel (``y`` 0 where ``mask`` is False): the NNLS kernel's compiled
+    right-hand side on the CPU (one pass over the factors, ~4× the torch batched products), the
+    model's operator elsewhere or where ``y`` needs a gradient."""
+    if (nnls_compiled.AVAILABLE and y.device.type == "cpu" and isinstance(model, SensingModel)
+            and not model.shared and not (y.requires_grad and torch.is_grad_enabled())):
+        out = nnls_compiled.adjoint_frame(
+            y.detach().numpy(), mask.numpy(), model.transmittance.numpy(), model.gain.numpy(),
+            model.response.numpy(), torch.get_num_threads())
+        return torch.from_numpy(out)
+    return model.A_adjoint(y)
 
 
 def _solve_subspace(

@@ -1,4 +1,5 @@
-"""Helpers for tests and benchmarks: realistic random problems with the camera's structure."""
+"""Test and benchmark helpers (tests/ and scripts/bench_solver.py): realistic random problems with
+the camera's structure, and DNG files written the way cameras write them."""
 
 from __future__ import annotations
 
