@@ -675,6 +675,7 @@ class HSIReconstructor(nn.Module):
         raw_layout: str | None = None,
         bundle_corrections: bool = True,
         warm: WarmStart | None = None,
+        sensing: BundleSensing | None = None,
     ) -> ReconstructionResult:
         """Reconstruct one capture.
 
@@ -693,11 +694,15 @@ class HSIReconstructor(nn.Module):
                 in the statistics); ``False`` for an image already corrected.
             warm: the previous frame's solver state (:class:`~hsi_torch.recon.frame.WarmStart`;
                 a sequence, :mod:`hsi_torch.recon.sequence`), read and replaced by this frame's.
+            sensing: solve with this :class:`BundleSensing` instead of the object's own (the same
+                bundle's geometry, e.g. corrected for a drift the caller tracked over a sequence;
+                the statistics then say ``drift.corrected``).
 
         Returns:
             :class:`ReconstructionResult`.
         """
-        sens = self._refreshed()  # the disk-cache entry changed under its mapping?
+        own = self._refreshed()  # the disk-cache entry changed under its mapping?
+        sens = own if sensing is None else sensing
         if not isinstance(image, Tensor) or image.ndim != 3:
             raise ValueError(
                 f"{source}: image must be a (3, H, W) or (1, H, W) tensor, got "
@@ -750,7 +755,7 @@ class HSIReconstructor(nn.Module):
         if drift is not None:
             st["drift"] = {
                 **drift.to_dict(),
-                "corrected": sens is not self._refreshed(),
+                "corrected": sens is not own,
                 "sensor_motion_px": round(motion_px, 3),
             }
             timings["drift"] = t_drift

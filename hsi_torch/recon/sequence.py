@@ -309,22 +309,19 @@ class SequenceReconstructor:
             seq_stats["drift_path"] = None if path is None else [round(float(v), 4) for v in path]
             if path is not None:
                 sens = corrected_sensing(self.base_sensing, path[:2], float(path[2]))
-        rec.sensing = sens
-        try:
-            res = rec.reconstruct_frame(
-                image,
-                saturated,
-                exposure_s=exposure_s,
-                cfa_pattern=cfa_pattern,
-                source=src,
-                warm=self.warm,
+        res = rec.reconstruct_frame(
+            image,
+            saturated,
+            exposure_s=exposure_s,
+            cfa_pattern=cfa_pattern,
+            source=src,
+            warm=self.warm,
+            sensing=sens,
+        )
+        if sq.temporal == "quadratic":
+            self._temporal_step(
+                res, sens, image, saturated, exposure_s, pattern, prepared, seq_stats
             )
-            if sq.temporal == "quadratic":
-                self._temporal_step(
-                    res, sens, image, saturated, exposure_s, pattern, prepared, seq_stats
-                )
-        finally:
-            rec.sensing = self.base_sensing
         res.stats["sequence"] = seq_stats
         res.stats["findings"] = [f.to_dict() for f in found]
         self.findings += found
