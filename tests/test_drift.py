@@ -243,10 +243,9 @@ def test_a_flat_field_measures_nothing_and_corrects_nothing(sims):
     assert d["view_shift_px"][0] == [0.0, 0.0] and d["view_shift_px"][1] == [None, None]
     # nothing to measure is not refused, but the run says nothing was corrected
     assert d["textured_views"] == 0 and d["refused"] is None
-    from hsi_torch.recon.batch.run import frame_warnings
-
-    said = frame_warnings(res.stats, rec.settings)
-    assert any("nothing corrected, no view has texture" in w for w in said), said
+    said = res.findings
+    assert [f.code for f in said] == ["drift.no_texture"], said
+    assert "nothing corrected, no view has texture" in said[0].message
 
 
 def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_path, capsys):
@@ -272,9 +271,10 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     assert "drift_warn_px" not in capsys.readouterr().err  # (the fit residual still warns)
     assert main([*base, "--out", str(tmp_path / "c"), "--set", "refine_registration=true",
                  str(cap)]) == 0
-    err = capsys.readouterr().err
-    assert "corrected (refine_registration)" in err
-    assert "fit residual" not in err  # the corrected views explain the capture again
+    said = capsys.readouterr()
+    # corrected: a note (info, stdout), no longer a warning
+    assert "[drift.corrected]" in said.out and "corrected (refine_registration)" in said.out
+    assert "WARNING" not in said.err  # the corrected views explain the capture again
     assert load_cube(tmp_path / "c" / "colorchecker.npz").metadata["stats"]["drift"]["corrected"]
     # an undrifted capture: no warning; drift_check=false: nothing measured
     ideal = sims["ideal"] / "scenes" / "colorchecker.tif"

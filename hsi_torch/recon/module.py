@@ -43,9 +43,11 @@ from torch import Tensor, nn
 
 from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import InputError
+from hsi_torch.findings import RefusedError, refusals, warn_findings
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.optics.geometry import view_sample_grid
+from hsi_torch.recon.checks import batch_pedestal_findings
 from hsi_torch.recon.corrections import correct_frames
 from hsi_torch.recon.frame import check_min_views, prepare_input, reconstruct_frame
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
@@ -434,7 +436,10 @@ class HSIReconstructor(nn.Module):
 
         Args:
             x: ``(B, 3, H, W)`` linear RGB or ``(B, 1, H, W)`` Bayer, float, on this module's
-                device.
+                device, in DN above black (the black level subtracted, as the calibration
+                did); a pedestal left in is a :class:`~hsi_torch.findings.CaptureWarning` or,
+                far beyond its limit, :class:`~hsi_torch.findings.RefusedError`
+                (:meth:`check_input`).
             saturated: optional bool mask of ``x``'s shape (saturated samples are masked).
             exposure_scale: optional scalar or ``(B,)`` factor on the observations.
 
@@ -486,9 +491,27 @@ class HSIReconstructor(nn.Module):
         """Warp, observations, exact solve and assembly of ``(B, 3, H, W)`` linear RGB (the part
         of :meth:`forward` that ``torch.compile`` leaves to eager mode; no statistics, no
         timing)."""
+        self.check_input(rgb)
         out = reconstruct_frame(self.sensing(), rgb, self._frame_settings, saturated,
                                 scale=exposure_scale, stats=False)  # fmt: skip
         return out.cube, out.valid
+
+    def check_input(self, rgb: Tensor) -> None:
+        """The input convention's guard: ``(B, 3, H, W)`` linear RGB must be DN above black.
+        The sensor pixels outside every view (the bundle's ``radiometry.outside_index``) must
+        then read ≈ 0; a pedestal above its limit is a :class:`~hsi_torch.findings.CaptureWarning`
+        (``capture.pedestal``), and beyond ``pedestal_refuse_factor`` times it (e.g. the
+        simulator's ``expose()`` DN with their 512 DN black level: cubes 5.5x too bright)
+        :class:`~hsi_torch.findings.RefusedError`; under ``strict`` the warning refuses too
+        (:func:`hsi_torch.recon.checks.batch_pedestal_findings`). A gather of a few thousand
+        pixels and one ``(B, 3)`` copy to the host per call; run inside
+        :meth:`reconstruct_prepared`, so ``torch.compile`` sees no extra graph break."""
+        found = batch_pedestal_findings(rgb, self.radiometry, self.settings,
+                                        "HSIReconstructor input")  # fmt: skip
+        refused = refusals(found)
+        if refused:
+            raise RefusedError("; ".join(f.text() for f in refused), found)
+        warn_findings(found, stacklevel=3)
 
     def extra_repr(self) -> str:
         h, w = self.frame_size

@@ -10,9 +10,12 @@ exposure) :mod:`hsi_torch.recon.checks`; the ``nn.Module`` (batches, gradients,
 
 from __future__ import annotations
 
+import functools
 import os
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from contextvars import ContextVar
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +24,18 @@ from torch import Tensor
 
 from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.findings import Finding, RefusedError, refusals, warn_findings
 from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.captures import CaptureDefaults
 from hsi_torch.io.cube import cube_to_xarray
-from hsi_torch.recon.checks import exposure_info, exposure_scale, measure_capture
+from hsi_torch.recon.checks import (
+    drift_refused_finding,
+    exposure_info,
+    exposure_scale,
+    frame_findings,
+    measure_capture,
+)
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
 from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.frame import (
@@ -72,6 +82,9 @@ class ReconstructionResult:
         std: ``(M, h, w)`` standard deviation of every band from the sensor noise
             (:mod:`hsi_torch.recon.uncertainty`; 0 on bands at the bound, NaN where ``valid``
             is False), or ``None`` when the reconstructor was made without ``uncertainty=True``.
+        findings: what the checks found about the frame
+            (:func:`hsi_torch.recon.checks.frame_findings`; info and warnings only — a frame
+            with an error finding raises :class:`~hsi_torch.findings.RefusedError` instead).
     """
 
     cube: Tensor
@@ -80,6 +93,7 @@ class ReconstructionResult:
     stats: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     std: Tensor | None = None
+    findings: list[Finding] = field(default_factory=list)
 
     def to_xarray(self, metadata: dict[str, Any] | None = None):
         """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
@@ -88,6 +102,41 @@ class ReconstructionResult:
         return cube_to_xarray(self.cube.detach().cpu(), self.wavelengths_nm.detach().cpu(),
                               self.valid.detach().cpu(), metadata)  # fmt: skip
 
+
+#: set while a :class:`Reconstructor` method judges its result: the calls it makes (capture →
+#: frame) leave the judging to it
+_JUDGING: ContextVar[bool] = ContextVar("hsi_torch_judging", default=False)
+
+
+def _judged(method: Callable[..., ReconstructionResult]) -> Callable[..., ReconstructionResult]:
+    """The front door's verdict, in one place: the outermost ``reconstruct_*`` call turns its
+    result's statistics into findings (:func:`~hsi_torch.recon.checks.frame_findings`, under the
+    reconstructor's settings), refuses the frame on an error finding
+    (:class:`~hsi_torch.findings.RefusedError`, naming the source, each finding's measured value,
+    limit and fix), raises the warnings as Python warnings
+    (:func:`~hsi_torch.findings.warn_findings`) and attaches them all to
+    :attr:`ReconstructionResult.findings`."""
+
+    @functools.wraps(method)
+    def judged(self: Reconstructor, *args: Any, **kwargs: Any) -> ReconstructionResult:
+        if _JUDGING.get():
+            return method(self, *args, **kwargs)
+        token = _JUDGING.set(True)
+        try:
+            res = method(self, *args, **kwargs)
+        finally:
+            _JUDGING.reset(token)
+        source = str(res.stats.get("source", "capture"))
+        res.findings = frame_findings(res.stats, self.settings, source)
+        refused = refusals(res.findings)
+        if refused:
+            raise RefusedError(f"{source}: refused: " + "; ".join(
+                replace(f, source=None).text() for f in refused),
+                res.findings)  # fmt: skip
+        warn_findings(res.findings, stacklevel=2)  # at the caller of reconstruct_*
+        return res
+
+    return judged
 
 
 class Reconstructor:
@@ -106,7 +155,14 @@ class Reconstructor:
             too few views agree, beyond the measurable range — raises
             :class:`~hsi_torch.recon.drift.DriftError` under ``refine_registration``), and where
             the per-bundle precomputation is cached between processes (``precompute_cache``,
-            :mod:`hsi_torch.recon.precompute_cache`).
+            :mod:`hsi_torch.recon.precompute_cache`), the limits of the checks (``output``
+            group: ``fit_residual_warning``, ``fit_residual_limit``, ``pedestal_refuse_factor``,
+            ``strict``).
+
+    Every ``reconstruct_*`` method judges its result: the checks' findings are attached
+    (:attr:`ReconstructionResult.findings`), its warnings raised as Python warnings of their
+    :class:`~hsi_torch.findings.HSIWarning` subclass, and a frame the data contradicts (an
+    error finding) raises :class:`~hsi_torch.findings.RefusedError`.
         overrides: flat settings keys changed on ``settings``
             (:meth:`~hsi_torch.recon.settings.ReconstructSettings.replace`, e.g. ``beta=1e3``,
             ``prior="tv"``, ``dtype=torch.float64``); keys that then have no effect are a
@@ -153,6 +209,7 @@ class Reconstructor:
                 sens.grid(), sens.sensor_size, layout, cfa_pattern)  # type: ignore[arg-type]
         return self._factors[key]
 
+    @_judged
     def reconstruct_frame(
         self,
         image: Tensor,
@@ -219,7 +276,8 @@ class Reconstructor:
             drift = estimate_drift(sens, img, settings.registration.min_views)
             motion_px = drift_motion_px(sens, drift)
             if settings.registration.refine and drift.refusal is not None:
-                raise DriftError(f"{source}: refine_registration: {drift.refusal}")
+                raise DriftError(f"{source}: refine_registration: {drift.refusal}",
+                                 [drift_refused_finding(drift.to_dict(), "error", source)])
             if settings.registration.refine and drift.sensor_shift_px is not None:
                 sens = corrected_sensing(sens, drift.sensor_shift_px,
                                          drift.sensor_rotation_deg or 0.0)
@@ -232,6 +290,7 @@ class Reconstructor:
         cube, valid, stats, t = out.cube, out.valid, out.stats, out.timings
         st = stats[0]
         st["exposure_scale"] = scale
+        st["source"] = source
         st.update(corr)
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
@@ -242,6 +301,7 @@ class Reconstructor:
         std = None if out.std is None else out.std[0]
         return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)
 
+    @_judged
     def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
         """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``, the
         exposure from ``metadata``: ``exposure_s``, else the simulator's relative ``exposure``,
@@ -271,6 +331,7 @@ class Reconstructor:
                 raise FileFormatError(f"{src}: {exc}") from None  # the file's metadata at fault
             raise
 
+    @_judged
     def reconstruct_file(self, path: str | os.PathLike, **overrides: Any) -> ReconstructionResult:
         """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it.
 
@@ -285,7 +346,7 @@ class Reconstructor:
         statistics also hold the black level used and its source, the pedestal outside the views,
         the camera and its differences from the bundle's
         (:func:`hsi_torch.recon.checks.measure_capture`, which only measures);
-        :func:`hsi_torch.recon.checks.check_warnings` turns them into warnings.
+        :func:`hsi_torch.recon.checks.frame_findings` turns them into findings.
         ``timings["load"]`` is the read (and demosaic).
         """
         s = self.settings
