@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import hsi_torch.recon.drift as drift
 from hsi_torch.cli import main
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.experiments.metrics import colorchecker_scores, erode_px
+from hsi_torch.findings import RefusedError
 from hsi_torch.io import load_cube, read_any, read_capture
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
@@ -494,3 +496,36 @@ def test_a_foreign_cameras_raw_is_refused(sims, real_data):
         with pytest.raises(DriftError, match="of 9 views with texture agree") as err:
             rec.reconstruct_frame(crop, cfa_pattern=raw.cfa_pattern)
         assert "fewer than drift_min_views=4" in str(err.value)
+        (f,) = err.value.findings  # a RefusedError with its finding
+        assert (f.code, f.severity) == ("drift.unmeasurable", "error") and f.measured < 4
+    # without refine_registration: the drift cannot be measured and the fit residual (0.25) is
+    # above its warning: neither the bundle nor a drift explains the capture, refused too
+    check = Reconstructor(sims["bundle"])
+    with pytest.raises(RefusedError, match="neither the bundle nor a drift") as err:
+        check.reconstruct_frame(raw.mosaic[:, :H, :W], cfa_pattern=raw.cfa_pattern)
+    found = {f.code: f for f in err.value.findings}
+    assert found["drift.unmeasurable"].severity == "error"
+    assert found["fit.residual"].severity == "warning" and found["fit.residual"].measured > 0.15
+
+
+def test_the_module_guards_against_a_pedestal(sims):
+    """The simulator's DN with their 512 DN black level fed to the nn.Module: refused (formerly a
+    cube 5.5x too bright, no warning); a pedestal a few times its limit: a CaptureWarning; DN
+    above black: nothing."""
+    from hsi_torch.findings import CaptureWarning, HSIWarning
+    from hsi_torch.recon.checks import batch_pedestal_findings
+    from hsi_torch.recon.module import HSIReconstructor
+
+    rec = HSIReconstructor.from_bundle(sims["bundle"])
+    x = _image(sims["ideal"]).float()[None]  # (1, 3, H, W) DN above black
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", HSIWarning)
+        assert bool(rec(x).valid.any())
+    with pytest.raises(RefusedError, match=r"\[capture.pedestal\].*subtract the black level"):
+        rec(x + 512.0)
+    (f,) = batch_pedestal_findings(x + 512.0, rec.radiometry, rec.settings)
+    assert f.measured > 10 * f.limit
+    with pytest.warns(CaptureWarning, match="capture.pedestal"):
+        rec(x + 3 * f.limit)
+    with pytest.raises(RefusedError):  # strict: the warning refuses
+        HSIReconstructor.from_bundle(sims["bundle"], strict=True)(x + 3 * f.limit)

@@ -95,7 +95,8 @@ def test_a_warning_reaches_python_as_its_class_and_the_result(tiny):
         ("capture.black_level_from_bundle", "info"), ("fit.residual", "warning")]
     assert res.findings[1].source == str(tiny["capture"])
     with pytest.warns(CaptureWarning, match="exposure unknown"):  # another area, its class
-        Reconstructor(tiny["bundle"], drift_check=False).reconstruct_file(tiny["capture"])
+        Reconstructor(tiny["bundle"], white_level=16383,
+                      drift_check=False).reconstruct_file(tiny["capture"])  # fmt: skip
     # the default limits and a complete capture: no warning
     with warnings.catch_warnings():
         warnings.simplefilter("error", HSIWarning)
