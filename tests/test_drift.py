@@ -20,7 +20,7 @@ import hsi_torch.recon.drift as drift
 from hsi_torch.cli import main
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.experiments.metrics import colorchecker_scores, erode_px
-from hsi_torch.findings import RefusedError
+from hsi_torch.findings import DriftWarning, RefusedError
 from hsi_torch.io import load_cube, read_any, read_capture
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
@@ -392,8 +392,9 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
     """A 12 px or 30 px sensor drift of the ColorChecker (its patches match falsely or not at
     all): formerly fitted from one view as 30.65 / 21.33 px and "corrected"; now the
     reconstructor raises DriftError naming the views' agreement and the range, the run lists
-    the frame as failed (exit 1, no cube), and the check alone warns that the drift could not
-    be measured."""
+    the frame as failed (exit 1, no cube). The check alone refuses it too (the fit residual is
+    above its warning: neither the bundle nor a drift explains the capture); with that warning
+    off, it warns that the drift could not be measured."""
     cap = sims[f"drift{far}"] / "scenes" / "colorchecker.tif"
     rec = Reconstructor(sims["bundle"], refine_registration=True)
     with pytest.raises(DriftError) as err:
@@ -403,8 +404,15 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
     assert "views with texture agree within 1 px" in msg and "drift_min_views=4" in msg
     assert "at most ±15.9 px of sensor motion can be measured" in msg
     assert isinstance(err.value, ValueError)  # an InputError: bad input, not a crash
-    # the check alone: the cube is made, its drift marked refused and not corrected
-    res = Reconstructor(sims["bundle"]).reconstruct_file(cap)
+    # the check alone: refused, the drift not measurable and the fit residual above its warning
+    with pytest.raises(RefusedError, match="neither the bundle nor a drift") as refused:
+        Reconstructor(sims["bundle"]).reconstruct_file(cap)
+    found = {f.code: f for f in refused.value.findings}
+    assert found["drift.unmeasurable"].severity == "error"
+    assert found["drift.unmeasurable"].measured < 4 and found["fit.residual"].measured > 0.15
+    # without the fit residual's warning: the cube is made, its drift marked refused, a warning
+    with pytest.warns(DriftWarning, match="drift not measurable"):
+        res = Reconstructor(sims["bundle"], fit_residual_warning=None).reconstruct_file(cap)
     d = res.stats["drift"]
     assert d["refused"] and d["corrected"] is False and d["agreeing_views"] < 4
     # the command line: the frame failed, named with the reason; nothing written for it
@@ -417,8 +425,9 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
     assert "views with texture agree" in err_text and "corrected" not in err_text.replace(
         "not corrected", "")
     assert not (out / "colorchecker.npz").exists()
-    assert main([*base, "--out", str(tmp_path / "checked"), str(cap)]) == 0
+    assert main([*base, "--out", str(tmp_path / "checked"), str(cap)]) == 1
     err_text = capsys.readouterr().err
+    assert "FAILED" in err_text and "RefusedError" in err_text
     assert "drift not measurable" in err_text
     assert "the sensor moved since calibration" not in err_text
 

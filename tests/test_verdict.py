@@ -71,7 +71,8 @@ def test_strict_turns_a_warning_into_a_failed_frame(tiny, tmp_path, capsys):
     assert _run(tiny, tmp_path / "a") == 0
     said = capsys.readouterr()
     assert "WARNING" in said.err and "[capture.exposure_unknown]" in said.err
-    assert "[capture.black_level_from_bundle]" in said.out  # a note, not a warning
+    assert "cap.npy: black level 512 DN from the calibration bundle" in said.out  # a note
+    assert "[capture.black_level_from_bundle]" in said.out
     assert (tmp_path / "a" / "cap.npz").is_file()
     assert _run(tiny, tmp_path / "b", "--strict") == 1
     err = capsys.readouterr().err

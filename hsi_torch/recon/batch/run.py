@@ -461,7 +461,8 @@ def write_run_config(
 
 
 def finding_line(finding: Finding) -> str:
-    """How a run prints a finding about an input (the input is named beside it): its code,
-    message, measured value and limit, and fix (:meth:`~hsi_torch.findings.Finding.text`
-    without the source)."""
-    return dataclasses.replace(finding, source=None).text().split(" ", 1)[1]
+    """How a run prints a finding about an input (named beside it, as before findings): its
+    message, measured value and limit, fix, then its code —
+    ``"<message> (measured …, limit …); fix: <fix> [<code>]"``."""
+    text = dataclasses.replace(finding, source=None).text()  # "<severity> [<code>] <rest>"
+    return text.split("] ", 1)[1] + f" [{finding.code}]"
