@@ -158,15 +158,15 @@ class Reconstructor:
             :mod:`hsi_torch.recon.precompute_cache`), the limits of the checks (``output``
             group: ``fit_residual_warning``, ``fit_residual_limit``, ``pedestal_refuse_factor``,
             ``strict``).
+        overrides: flat settings keys changed on ``settings``
+            (:meth:`~hsi_torch.recon.settings.ReconstructSettings.replace`, e.g. ``beta=1e3``,
+            ``prior="tv"``, ``dtype=torch.float64``); keys that then have no effect are a
+            ``UserWarning``. :attr:`settings` holds the result, validated.
 
     Every ``reconstruct_*`` method judges its result: the checks' findings are attached
     (:attr:`ReconstructionResult.findings`), its warnings raised as Python warnings of their
     :class:`~hsi_torch.findings.HSIWarning` subclass, and a frame the data contradicts (an
     error finding) raises :class:`~hsi_torch.findings.RefusedError`.
-        overrides: flat settings keys changed on ``settings``
-            (:meth:`~hsi_torch.recon.settings.ReconstructSettings.replace`, e.g. ``beta=1e3``,
-            ``prior="tv"``, ``dtype=torch.float64``); keys that then have no effect are a
-            ``UserWarning``. :attr:`settings` holds the result, validated.
 
     Example:
         >>> rec = Reconstructor("calib.npz", beta=1e4)  # doctest: +SKIP
