@@ -542,7 +542,7 @@ def batch_pedestal_findings(
         source: what the finding names.
     """
     rad = radiometry
-    if rad is None or rad.outside_index.size < 16 or rgb.ndim != 4:
+    if rad is None or rad.outside_index.size < 16 or rgb.ndim != 4 or rgb.shape[0] == 0:
         return []
     idx = torch.as_tensor(rad.outside_index, device=rgb.device)
     b, c = rgb.shape[:2]
