@@ -541,7 +541,8 @@ def test_pedestal_limit_is_the_calibrations_when_the_captures_white_level_is_a_g
     st = stats(65535.0, "default")
     assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (16383 - 512), abs=0.01)
     (f,) = [f for f in frame_findings(st) if f.code == "capture.pedestal"]
-    assert "black pedestal of ~64 DN" in f.fix and f.severity == "warning" and f.measured == 64
+    assert "black pedestal of ~64 DN" in f.fix and f.severity == "warning"
+    assert f.measured == pytest.approx(64, abs=0.5) and f.limit == st["pedestal_limit_dn"][0]
     # a white level the file states is the file's own: its span
     st = stats(65535.0, "file")
     assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (65535 - 512), abs=0.01)

@@ -206,7 +206,11 @@ def measure_capture(
     img = capture.image
     if rad.outside_index.size and (sensor_size is None
                                    or tuple(img.shape[-2:]) == tuple(sensor_size)):  # fmt: skip
-        st = pedestal_level(img, rad.outside_index)
+        idx = rad.outside_index
+        if capture.saturated is not None:  # a saturated sample says nothing of the black level
+            sat = capture.saturated.reshape(capture.saturated.shape[0], -1).any(0)
+            idx = idx[~sat[torch.as_tensor(idx, device=sat.device)].cpu().numpy()]
+        st = pedestal_level(img, idx)
         if st is not None:
             span = _span(meta)
             if meta.get("white_level_source") in ("default", None) and \
@@ -522,7 +526,7 @@ def drift_refused_finding(drift: Mapping[str, Any], severity: str = "error",
 
 def batch_pedestal_findings(
     rgb: torch.Tensor, radiometry: BundleRadiometry | None, settings: ReconstructSettings,
-    source: str = "input",
+    source: str = "input", saturated: torch.Tensor | None = None,
 ) -> list[Finding]:
     """The pedestal check of :func:`capture_findings` on a batch of linear RGB frames that are
     supposed to be DN above black (the :class:`~hsi_torch.recon.module.HSIReconstructor`'s input
@@ -540,6 +544,8 @@ def batch_pedestal_findings(
         radiometry: the bundle's (``None``: nothing checked).
         settings: the limits (``pedestal_refuse_factor``, ``strict``).
         source: what the finding names.
+        saturated: ``rgb``'s saturation mask (bool, same shape) or ``None``: saturated samples
+            are left out (a frame with fewer than 16 unsaturated ones is not checked).
     """
     rad = radiometry
     if rad is None or rad.outside_index.size < 16 or rgb.ndim != 4 or rgb.shape[0] == 0:
@@ -548,9 +554,14 @@ def batch_pedestal_findings(
     b, c = rgb.shape[:2]
     x = rgb.detach().reshape(b, c, -1).index_select(2, idx).to(torch.float64)
     x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-    med = x.median(dim=2).values
-    mad = (x - med[..., None]).abs().median(dim=2).values
-    both = torch.stack([med, 1.4826 * mad]).cpu().numpy()  # one copy: (2, B, 3)
+    if saturated is not None:
+        sat = saturated.reshape(b, c, -1).index_select(2, idx).any(1, keepdim=True)
+        x = torch.where(sat, torch.nan, x)
+    med = x.nanmedian(dim=2).values
+    mad = (x - med[..., None]).abs().nanmedian(dim=2).values
+    n = (~torch.isnan(x)).sum(2).to(med.dtype)
+    both = np.nan_to_num(torch.stack([med, 1.4826 * mad, n]).cpu().numpy())  # one copy
+    both[0][both[2] < 16] = 0.0  # too few unsaturated samples: not judged
     black = float(np.mean(rad.black_level_rgb)) if rad.black_level_rgb is not None else 0.0
     span = rad.white_level_dn - black if rad.white_level_dn is not None else None
     lim = np.vectorize(lambda s: pedestal_limit(span, float(s)))(both[1])

@@ -491,23 +491,23 @@ class HSIReconstructor(nn.Module):
         """Warp, observations, exact solve and assembly of ``(B, 3, H, W)`` linear RGB (the part
         of :meth:`forward` that ``torch.compile`` leaves to eager mode; no statistics, no
         timing)."""
-        self.check_input(rgb)
+        self.check_input(rgb, saturated)
         out = reconstruct_frame(self.sensing(), rgb, self._frame_settings, saturated,
                                 scale=exposure_scale, stats=False)  # fmt: skip
         return out.cube, out.valid
 
-    def check_input(self, rgb: Tensor) -> None:
+    def check_input(self, rgb: Tensor, saturated: Tensor | None = None) -> None:
         """The input convention's guard: ``(B, 3, H, W)`` linear RGB must be DN above black.
         The sensor pixels outside every view (the bundle's ``radiometry.outside_index``) must
         then read ≈ 0; a pedestal above its limit is a :class:`~hsi_torch.findings.CaptureWarning`
         (``capture.pedestal``), and beyond ``pedestal_refuse_factor`` times it (e.g. the
         simulator's ``expose()`` DN with their 512 DN black level: cubes 5.5x too bright)
         :class:`~hsi_torch.findings.RefusedError`; under ``strict`` the warning refuses too
-        (:func:`hsi_torch.recon.checks.batch_pedestal_findings`). A gather of a few thousand
-        pixels and one ``(B, 3)`` copy to the host per call; run inside
+        (:func:`hsi_torch.recon.checks.batch_pedestal_findings`; saturated samples left out).
+        A gather of a few thousand pixels and one ``(B, 3)`` copy to the host per call; run inside
         :meth:`reconstruct_prepared`, so ``torch.compile`` sees no extra graph break."""
         found = batch_pedestal_findings(rgb, self.radiometry, self.settings,
-                                        "HSIReconstructor input")  # fmt: skip
+                                        "HSIReconstructor input", saturated)  # fmt: skip
         refused = refusals(found)
         if refused:
             raise RefusedError("; ".join(f.text() for f in refused), found)
