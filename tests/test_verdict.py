@@ -93,7 +93,9 @@ def test_a_warning_reaches_python_as_its_class_and_the_result(tiny):
     assert w.message.finding.code == "fit.residual" and w.message.finding.limit == 1e-6
     assert w.filename == __file__  # points at the caller
     assert [(f.code, f.severity) for f in res.findings] == [
-        ("capture.black_level_from_bundle", "info"), ("fit.residual", "warning")]
+        ("capture.black_level_from_bundle", "info"),
+        ("fit.residual", "warning"),
+    ]
     assert res.findings[1].source == str(tiny["capture"])
     with pytest.warns(CaptureWarning, match="exposure unknown"):  # another area, its class
         Reconstructor(tiny["bundle"], white_level=16383,
@@ -116,22 +118,37 @@ def test_frame_findings_codes_and_limits():
            "black_level_rgb": [512.0] * 3, "black_level_source": "file"}  # fmt: skip
     (f,) = frame_findings(ped, s, "a.tif")
     assert (f.code, f.severity, f.measured, f.limit, f.source) == (
-        "capture.pedestal", "warning", 50.0, 40.0, "a.tif")
+        "capture.pedestal",
+        "warning",
+        50.0,
+        40.0,
+        "a.tif",
+    )
     assert "black_level=562" in f.fix
     (f,) = frame_findings({**ped, "pedestal_dn": [-501.0, 2.0, 2.0]}, s)
     assert f.severity == "error"
-    (f,) = frame_findings({**ped, "pedestal_dn": [-501.0, 2.0, 2.0]},
-                          s.replace(pedestal_refuse_factor=None))
+    (f,) = frame_findings(
+        {**ped, "pedestal_dn": [-501.0, 2.0, 2.0]}, s.replace(pedestal_refuse_factor=None)
+    )
     assert f.severity == "warning"
-    drift = {"refused": "drift not measurable: 1 of 9 views with texture agree",
-             "agreeing_views": 1, "min_views": 4, "textured_views": 9}
+    drift = {
+        "refused": "drift not measurable: 1 of 9 views with texture agree",
+        "agreeing_views": 1,
+        "min_views": 4,
+        "textured_views": 9,
+    }
     (f,) = frame_findings({"drift": drift, "fit_residual": 0.05}, s)
     assert (f.code, f.severity) == ("drift.unmeasurable", "warning")
     codes = [(f.code, f.severity) for f in frame_findings({"drift": drift, "fit_residual": 0.3},
                                                           s)]  # fmt: skip
     assert codes == [("fit.residual", "warning"), ("drift.unmeasurable", "error")]
-    moved = {"sensor_motion_px": 2.1, "sensor_shift_px": [2.0, 0.0], "measured_views": 9,
-             "textured_views": 9, "refused": None}
+    moved = {
+        "sensor_motion_px": 2.1,
+        "sensor_shift_px": [2.0, 0.0],
+        "measured_views": 9,
+        "textured_views": 9,
+        "refused": None,
+    }
     (f,) = frame_findings({"drift": moved}, s)
     assert (f.code, f.severity, f.measured, f.limit) == ("drift.moved", "warning", 2.1, 0.5)
     (f,) = frame_findings({"drift": {**moved, "corrected": True}}, s)
@@ -142,8 +159,12 @@ def test_frame_findings_codes_and_limits():
             "camera_mismatch": ["make: A vs B"], "mosaic_note": "rgb", "data_scale_note": "x",
             "saturated_observations": 5, "observations": 100}  # fmt: skip
     got = [(f.code, f.severity) for f in frame_findings(many, s)]
-    assert got == [("capture.saturated", "info"), ("capture.exposure_unknown", "warning"),
-                   ("capture.data_scale", "warning"), ("capture.rgb_for_mosaic", "warning"),
-                   ("capture.camera_mismatch", "warning")]
+    assert got == [
+        ("capture.saturated", "info"),
+        ("capture.exposure_unknown", "warning"),
+        ("capture.data_scale", "warning"),
+        ("capture.rgb_for_mosaic", "warning"),
+        ("capture.camera_mismatch", "warning"),
+    ]
     strict = [(f.code, f.severity) for f in frame_findings(many, s.replace(strict=True))]
     assert strict == [(c, "info" if v == "info" else "error") for c, v in got]
