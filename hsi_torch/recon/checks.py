@@ -524,6 +524,10 @@ def drift_refused_finding(drift: Mapping[str, Any], severity: str = "error",
         fix="check that the bundle is this device's, or recalibrate (grid shots)")
 
 
+#: the most outside-the-views samples :func:`batch_pedestal_findings` reads per frame and colour
+MODULE_PEDESTAL_SAMPLES = 4096
+
+
 def batch_pedestal_findings(
     rgb: torch.Tensor, radiometry: BundleRadiometry | None, settings: ReconstructSettings,
     source: str = "input", saturated: torch.Tensor | None = None,
@@ -536,8 +540,8 @@ def batch_pedestal_findings(
     frame and colour; an error beyond ``pedestal_refuse_factor`` times the limit), escalated
     under ``strict``; ``[]`` when the bundle records no outside pixels.
 
-    Cost: one gather of at most ~``PEDESTAL_MAX_SAMPLES`` pixels per frame and colour, two
-    medians and one device-to-host copy of ``(B, 3)`` values.
+    Cost: one gather of about :data:`MODULE_PEDESTAL_SAMPLES` pixels per frame and colour (every
+    k-th of the bundle's samples), two medians and one device-to-host copy of ``(B, 3)`` values.
 
     Args:
         rgb: ``(B, 3, H, W)`` at the bundle's sensor size.
@@ -550,7 +554,9 @@ def batch_pedestal_findings(
     rad = radiometry
     if rad is None or rad.outside_index.size < 16 or rgb.ndim != 4 or rgb.shape[0] == 0:
         return []
-    idx = torch.as_tensor(rad.outside_index, device=rgb.device)
+    # every k-th of the bundle's samples, at most ~MODULE_PEDESTAL_SAMPLES: a median to a DN
+    step = max(1, rad.outside_index.size // MODULE_PEDESTAL_SAMPLES)
+    idx = torch.as_tensor(rad.outside_index[::step], device=rgb.device)
     b, c = rgb.shape[:2]
     x = rgb.detach().reshape(b, c, -1).index_select(2, idx).to(torch.float64)
     x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
