@@ -352,6 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-resume", dest="resume", action="store_false",
         help="re-process inputs whose outputs already exist",
     )  # fmt: skip
+    p.add_argument("--strict", action="store_true",
+                   help="every warning about a frame refuses it: no cube, the run exits 1 "
+                        "(the setting strict)")  # fmt: skip
     _add_cluster_options(p)
     _add_sequence_options(p, watch=False)
     p.add_argument("inputs", nargs="+", metavar="INPUT",

@@ -139,7 +139,8 @@ class Finding:
 
 class RefusedError(InputError):
     """A result the data contradicts: the frame is refused and no cube is written.
-    ``.findings`` holds the error findings (and, under ``strict``, the escalated warnings)."""
+    ``.findings`` holds the findings of what was refused: its error findings (under ``strict``
+    the escalated warnings too), and the frame's other findings beside them."""
 
     def __init__(self, message: str, findings: Iterable[Finding] = ()) -> None:
         super().__init__(message)

@@ -32,7 +32,7 @@ from hsi_torch.io.radiometry import (
     pedestal_limit,
 )
 from hsi_torch.recon import Reconstructor
-from hsi_torch.recon.checks import check_notes, check_warnings, exposure_info
+from hsi_torch.recon.checks import exposure_info, frame_findings
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.resources import shipped_config
 
@@ -125,7 +125,9 @@ def test_exposure_info_words_and_units():
     assert st["exposure_note"] == "exposure 4x of the white's: scaled x0.25"
     t, st = exposure_info({}, rad, 0.02)
     assert t is None and st["radiometric_scale"] == "relative"
-    assert "exposure_s" in st["exposure_note"] and "relative" in check_warnings(st)[0]
+    (f,) = frame_findings(st)
+    assert "exposure_s" in st["exposure_note"] and "relative" in f.message
+    assert f.code == "capture.exposure_unknown" and f.severity == "warning"
     # the simulator's relative exposure is not comparable with seconds
     t, st = exposure_info({"exposure": 0.4}, rad, 0.02)
     assert t is None and st["radiometric_scale"] == "relative" and "not comparable" in \
@@ -134,9 +136,11 @@ def test_exposure_info_words_and_units():
     t, st = exposure_info({"exposure_s": 0.04}, BundleRadiometry(), 0.02)
     assert t == 0.04 and st["radiometric_scale"] == "reflectance"
     _, st = exposure_info({"exposure_s": 0.04}, rad, 0.02, correction=False)
-    assert st["radiometric_scale"] == "uncorrected" and check_warnings(st) == []
-    assert check_notes({**st, "radiometric_scale": "reflectance", "exposure_scale": 2.0,
-                        "exposure_note": "n"}) == ["n"]
+    assert st["radiometric_scale"] == "uncorrected" and frame_findings(st) == []
+    (f,) = frame_findings({**st, "radiometric_scale": "reflectance", "exposure_scale": 2.0,
+                           "exposure_note": "n"})
+    assert (f.code, f.severity, f.message, f.measured) == ("capture.exposure_scaled", "info", "n",
+                                                           2.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -536,7 +540,9 @@ def test_pedestal_limit_is_the_calibrations_when_the_captures_white_level_is_a_g
 
     st = stats(65535.0, "default")
     assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (16383 - 512), abs=0.01)
-    assert any("black pedestal of ~64 DN" in w for w in check_warnings(st))
+    (f,) = [f for f in frame_findings(st) if f.code == "capture.pedestal"]
+    assert "black pedestal of ~64 DN" in f.fix and f.severity == "warning"
+    assert f.measured == pytest.approx(64, abs=0.5) and f.limit == st["pedestal_limit_dn"][0]
     # a white level the file states is the file's own: its span
     st = stats(65535.0, "file")
     assert st["pedestal_limit_dn"][0] == pytest.approx(0.0025 * (65535 - 512), abs=0.01)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import hsi_torch.recon.drift as drift
 from hsi_torch.cli import main
 from hsi_torch.config import ConfigError, load_config
 from hsi_torch.experiments.metrics import colorchecker_scores, erode_px
+from hsi_torch.findings import DriftWarning, RefusedError
 from hsi_torch.io import load_cube, read_any, read_capture
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
@@ -243,10 +245,9 @@ def test_a_flat_field_measures_nothing_and_corrects_nothing(sims):
     assert d["view_shift_px"][0] == [0.0, 0.0] and d["view_shift_px"][1] == [None, None]
     # nothing to measure is not refused, but the run says nothing was corrected
     assert d["textured_views"] == 0 and d["refused"] is None
-    from hsi_torch.recon.batch.run import frame_warnings
-
-    said = frame_warnings(res.stats, rec.settings)
-    assert any("nothing corrected, no view has texture" in w for w in said), said
+    (said,) = [f for f in res.findings if f.code.startswith("drift.")]
+    assert said.code == "drift.no_texture" and said.severity == "warning"
+    assert "nothing corrected, no view has texture" in said.message
 
 
 def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_path, capsys):
@@ -272,9 +273,10 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     assert "drift_warn_px" not in capsys.readouterr().err  # (the fit residual still warns)
     assert main([*base, "--out", str(tmp_path / "c"), "--set", "refine_registration=true",
                  str(cap)]) == 0
-    err = capsys.readouterr().err
-    assert "corrected (refine_registration)" in err
-    assert "fit residual" not in err  # the corrected views explain the capture again
+    said = capsys.readouterr()
+    # corrected: a note (info, stdout), no longer a warning
+    assert "[drift.corrected]" in said.out and "corrected (refine_registration)" in said.out
+    assert "WARNING" not in said.err  # the corrected views explain the capture again
     assert load_cube(tmp_path / "c" / "colorchecker.npz").metadata["stats"]["drift"]["corrected"]
     # an undrifted capture: no warning; drift_check=false: nothing measured
     ideal = sims["ideal"] / "scenes" / "colorchecker.tif"
@@ -390,8 +392,9 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
     """A 12 px or 30 px sensor drift of the ColorChecker (its patches match falsely or not at
     all): formerly fitted from one view as 30.65 / 21.33 px and "corrected"; now the
     reconstructor raises DriftError naming the views' agreement and the range, the run lists
-    the frame as failed (exit 1, no cube), and the check alone warns that the drift could not
-    be measured."""
+    the frame as failed (exit 1, no cube). The check alone refuses it too (the fit residual is
+    above its warning: neither the bundle nor a drift explains the capture); with that warning
+    off, it warns that the drift could not be measured."""
     cap = sims[f"drift{far}"] / "scenes" / "colorchecker.tif"
     rec = Reconstructor(sims["bundle"], refine_registration=True)
     with pytest.raises(DriftError) as err:
@@ -401,8 +404,16 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
     assert "views with texture agree within 1 px" in msg and "drift_min_views=4" in msg
     assert "at most ±15.9 px of sensor motion can be measured" in msg
     assert isinstance(err.value, ValueError)  # an InputError: bad input, not a crash
-    # the check alone: the cube is made, its drift marked refused and not corrected
-    res = Reconstructor(sims["bundle"]).reconstruct_file(cap)
+    # the check alone: refused, the drift not measurable and the fit residual above its warning
+    with pytest.raises(RefusedError, match="neither the bundle nor a drift") as refused:
+        Reconstructor(sims["bundle"]).reconstruct_file(cap)
+    found = {f.code: f for f in refused.value.findings}
+    assert found["drift.unmeasurable"].severity == "error"
+    assert found["drift.unmeasurable"].measured < 4 and found["fit.residual"].measured > 0.15
+    # without the fit residual's limits: the cube is made, its drift marked refused, a warning
+    with pytest.warns(DriftWarning, match="drift not measurable"):
+        res = Reconstructor(sims["bundle"], fit_residual_warning=None,
+                            fit_residual_limit=None).reconstruct_file(cap)  # fmt: skip
     d = res.stats["drift"]
     assert d["refused"] and d["corrected"] is False and d["agreeing_views"] < 4
     # the command line: the frame failed, named with the reason; nothing written for it
@@ -415,8 +426,9 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
     assert "views with texture agree" in err_text and "corrected" not in err_text.replace(
         "not corrected", "")
     assert not (out / "colorchecker.npz").exists()
-    assert main([*base, "--out", str(tmp_path / "checked"), str(cap)]) == 0
+    assert main([*base, "--out", str(tmp_path / "checked"), str(cap)]) == 1
     err_text = capsys.readouterr().err
+    assert "FAILED" in err_text and "RefusedError" in err_text
     assert "drift not measurable" in err_text
     assert "the sensor moved since calibration" not in err_text
 
@@ -494,3 +506,36 @@ def test_a_foreign_cameras_raw_is_refused(sims, real_data):
         with pytest.raises(DriftError, match="of 9 views with texture agree") as err:
             rec.reconstruct_frame(crop, cfa_pattern=raw.cfa_pattern)
         assert "fewer than drift_min_views=4" in str(err.value)
+        (f,) = err.value.findings  # a RefusedError with its finding
+        assert (f.code, f.severity) == ("drift.unmeasurable", "error") and f.measured < 4
+    # without refine_registration: the drift cannot be measured and the fit residual (0.25) is
+    # above its warning: neither the bundle nor a drift explains the capture, refused too
+    check = Reconstructor(sims["bundle"])
+    with pytest.raises(RefusedError, match="neither the bundle nor a drift") as err:
+        check.reconstruct_frame(raw.mosaic[:, :H, :W], cfa_pattern=raw.cfa_pattern)
+    found = {f.code: f for f in err.value.findings}
+    assert found["drift.unmeasurable"].severity == "error"
+    assert found["fit.residual"].severity == "warning" and found["fit.residual"].measured > 0.15
+
+
+def test_the_module_guards_against_a_pedestal(sims):
+    """The simulator's DN with their 512 DN black level fed to the nn.Module: refused (formerly a
+    cube 5.5x too bright, no warning); a pedestal a few times its limit: a CaptureWarning; DN
+    above black: nothing."""
+    from hsi_torch.findings import CaptureWarning, HSIWarning
+    from hsi_torch.recon.checks import batch_pedestal_findings
+    from hsi_torch.recon.module import HSIReconstructor
+
+    rec = HSIReconstructor.from_bundle(sims["bundle"])
+    x = _image(sims["ideal"]).float()[None]  # (1, 3, H, W) DN above black
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", HSIWarning)
+        assert bool(rec(x).valid.any())
+    with pytest.raises(RefusedError, match=r"\[capture.pedestal\].*subtract the black level"):
+        rec(x + 512.0)
+    (f,) = batch_pedestal_findings(x + 512.0, rec.radiometry, rec.settings)
+    assert f.measured > 10 * f.limit
+    with pytest.warns(CaptureWarning, match="capture.pedestal"):
+        rec(x + 3 * f.limit)
+    with pytest.raises(RefusedError):  # strict: the warning refuses
+        HSIReconstructor.from_bundle(sims["bundle"], strict=True)(x + 3 * f.limit)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from hsi_torch.cli import main
-from hsi_torch.recon.batch.run import frame_warnings
+from hsi_torch.recon.checks import frame_findings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.simulate.oracle import bundle_from_truth
@@ -47,7 +47,8 @@ def test_dark_capture_right_bundle_no_warning(dark_set: Path):
     res = rec.reconstruct_file(dark_set / "scenes" / "colorchecker.tif")
     fit = res.stats["fit_residual"]
     assert 0.05 < fit < 0.15, fit  # noise-dominated (0.03 at the default exposure), no warning
-    assert not any("fit residual" in w for w in frame_warnings(res.stats, ReconstructConfig()))
+    assert not [f for f in frame_findings(res.stats, ReconstructConfig().settings())
+                if f.code == "fit.residual"]
 
 
 def test_bundle_of_another_geometry_warns(dark_set: Path, other_geometry: Path):
@@ -55,5 +56,5 @@ def test_bundle_of_another_geometry_warns(dark_set: Path, other_geometry: Path):
     res = rec.reconstruct_file(dark_set / "scenes" / "colorchecker.tif")
     fit = res.stats["fit_residual"]
     assert fit > 0.2, fit
-    warnings = frame_warnings(res.stats, ReconstructConfig())
-    assert any("fit residual" in w and "geometry" in w for w in warnings)
+    found = frame_findings(res.stats, ReconstructConfig().settings())
+    assert any(f.code == "fit.residual" and "geometry" in f.fix for f in found)

@@ -165,20 +165,27 @@ def test_reconstruct_cli_warns_for_a_bundle_from_another_geometry(workspace, cap
     assert st["fit_residual"] > 0.1 > 1e-3 > fit_ok and st["num_not_converged"] == 0
 
 
-def test_frame_warnings():
-    from hsi_torch.recon.batch.run import frame_warnings
+def test_frame_findings_limits():
+    from hsi_torch.recon.checks import frame_findings
     from hsi_torch.recon.config import ReconstructConfig
 
-    cfg = ReconstructConfig()
+    cfg = ReconstructConfig().settings()
     ok = {"fit_residual": 0.03, "num_not_converged": 0, "num_valid": 100, "max_kkt": 1e-7}
-    assert frame_warnings(ok, cfg) == []
-    w = frame_warnings({**ok, "fit_residual": 0.25, "num_not_converged": 7}, cfg)
-    assert len(w) == 2 and "0.250 > 0.1" in w[0] and "7 of 100 pixels" in w[1]
-    off = ReconstructConfig(fit_residual_warning=None)
-    assert frame_warnings({**ok, "fit_residual": 0.25}, off) == []
-    assert frame_warnings({**ok, "fit_residual": float("nan")}, cfg) == []
+    assert frame_findings(ok, cfg) == []
+    w = frame_findings({**ok, "fit_residual": 0.25, "num_not_converged": 7}, cfg)
+    assert [(f.code, f.severity) for f in w] == [("fit.residual", "warning"),
+                                                  ("fit.not_converged", "warning")]
+    assert "0.250 > fit_residual_warning=0.15" in w[0].message and "7 of 100 pixels" in w[1].message
+    assert (w[0].measured, w[0].limit, w[1].measured) == (0.25, 0.15, 7)
+    (e,) = frame_findings({**ok, "fit_residual": 0.9}, cfg)
+    assert (e.severity, e.limit) == ("error", 0.5)
+    off = ReconstructConfig(fit_residual_warning=None).settings()
+    assert frame_findings({**ok, "fit_residual": 0.25}, off) == []
+    assert frame_findings({**ok, "fit_residual": float("nan")}, cfg) == []
     with pytest.raises(ValueError, match="fit_residual_warning"):
         ReconstructConfig(fit_residual_warning=0.0)
+    with pytest.raises(ValueError, match="fit_residual_limit"):
+        ReconstructConfig(fit_residual_limit=-1)
 
 
 def test_write_outputs_same_files_as_per_format_writers(tmp_path):

@@ -16,20 +16,25 @@
 - **Camera.** The capture's camera identity (make/model, CFA pattern, the file's own black and
   white levels) is compared with the bundle's; every difference is a warning.
 
-:func:`measure_capture` and :func:`exposure_info` fill a frame's statistics,
-:func:`check_warnings` and :func:`check_notes` turn them into the lines a run prints.
+:func:`measure_capture` and :func:`exposure_info` fill a frame's statistics;
+:func:`frame_findings` turns them (with the solve's fit residual and the drift) into
+:class:`~hsi_torch.findings.Finding` objects: facts (info), doubts (warning) and refusals (error:
+the data contradicts the result, no cube is written).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 
 from hsi_torch.errors import InputError
+from hsi_torch.findings import Finding, escalated
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.radiometry import (
     CameraIdentity,
@@ -40,13 +45,18 @@ from hsi_torch.io.radiometry import (
     pedestal_level,
     pedestal_limit,
 )
+from hsi_torch.recon.settings import ReconstructSettings
 
 __all__ = [
     "BundleRadiometry",
-    "check_notes",
-    "check_warnings",
+    "batch_pedestal_findings",
+    "capture_findings",
+    "drift_findings",
+    "drift_refused_finding",
     "exposure_info",
     "exposure_scale",
+    "fit_findings",
+    "frame_findings",
     "measure_capture",
 ]
 
@@ -196,7 +206,11 @@ def measure_capture(
     img = capture.image
     if rad.outside_index.size and (sensor_size is None
                                    or tuple(img.shape[-2:]) == tuple(sensor_size)):  # fmt: skip
-        st = pedestal_level(img, rad.outside_index)
+        idx = rad.outside_index
+        if capture.saturated is not None:  # a saturated sample says nothing of the black level
+            sat = capture.saturated.reshape(capture.saturated.shape[0], -1).any(0)
+            idx = idx[~sat[torch.as_tensor(idx, device=sat.device)].cpu().numpy()]
+        st = pedestal_level(img, idx)
         if st is not None:
             span = _span(meta)
             if meta.get("white_level_source") in ("default", None) and \
@@ -217,6 +231,9 @@ def measure_capture(
     note = data_scale_note(meta, rad, mism)
     if note:
         stats["data_scale_note"] = note
+        wl = meta.get("white_level")
+        stats["white_level"] = float(wl) if isinstance(wl, (int, float)) else None
+        stats["calibration_white_level"] = rad.white_level_dn
     cal_cfa = rad.camera.cfa_pattern if rad.camera is not None else None
     if meta.get("kind") == "rgb" and cal_cfa:
         # the fit cannot tell: a white-balanced RGB fits at 0.10, a tone-curved one at 0.09
@@ -315,26 +332,68 @@ def exposure_info(
     return t, stats
 
 
-def check_notes(stats: Mapping[str, Any]) -> list[str]:
-    """Informational lines about a frame: the exposure scaling (when not 1) and a black level
-    taken from the bundle."""
-    out = []
-    if stats.get("radiometric_scale") == "reflectance" and \
-            abs(float(stats.get("exposure_scale", 1.0)) - 1) > 1e-9:  # fmt: skip
-        out.append(str(stats.get("exposure_note")))
+def frame_findings(
+    stats: Mapping[str, Any], settings: ReconstructSettings | None = None,
+    source: str | None = None,
+) -> list[Finding]:
+    """Every check about one reconstructed frame, as :class:`~hsi_torch.findings.Finding` objects
+    (codes in ``docs/bad_inputs.md``), from its statistics (:func:`measure_capture`,
+    :func:`exposure_info` and :meth:`hsi_torch.recon.pipeline.Reconstructor.reconstruct_frame`'s).
+
+    ``capture.*``: the black level taken from the bundle and an exposure scaled [info], samples
+    at the white level [info], a pedestal outside the views [warning; error beyond
+    ``pedestal_refuse_factor`` times its limit], an unknown exposure ratio, another camera, another
+    data scale, an RGB file for a Bayer bundle [warning]. ``fit.*``: the relative fit residual
+    [warning above ``fit_residual_warning``, error above ``fit_residual_limit``], pixels whose
+    solve did not converge [warning]. ``drift.*``: a drift above ``drift_warn_px`` [warning;
+    info once corrected], one that could not be measured [warning; an error with a fit residual
+    above ``fit_residual_warning`` (neither the bundle nor a drift explains the capture), and
+    under ``refine_registration``, raised before the solve as
+    :class:`~hsi_torch.recon.drift.DriftError`], nothing to measure it from under
+    ``refine_registration`` [warning]. With ``strict`` every warning is an error
+    (:func:`~hsi_torch.findings.escalated`).
+
+    Args:
+        stats: the frame's statistics (:attr:`ReconstructionResult.stats`).
+        settings: the limits (default: the defaults).
+        source: what the findings are about (the file), or ``None``.
+
+    Returns:
+        The findings, capture first, then fit, then drift.
+    """
+    s = settings if settings is not None else ReconstructSettings()
+    out = capture_findings(stats, s, source) + fit_findings(stats, s, source)
+    out += drift_findings(stats, s, source)
+    return escalated(out, s.output.strict)
+
+
+def capture_findings(
+    stats: Mapping[str, Any], settings: ReconstructSettings, source: str | None = None
+) -> list[Finding]:
+    """The ``capture.*`` findings of :func:`frame_findings` (not escalated)."""
+    out: list[Finding] = []
+
+    def add(code: str, severity: str, message: str, measured: Any = None, limit: Any = None,
+            fix: str | None = None) -> None:
+        out.append(Finding(code, severity, message, measured, limit, fix, source))
+
     if stats.get("black_level_source") == "bundle":
         b = black_level_rgb(stats.get("black_level")) or [0.0]
         lv = f"{b[0]:.4g}" if max(b) - min(b) < 0.05 else "[" + ", ".join(f"{v:.4g}"
                                                                           for v in b) + "]"
-        out.append(f"black level {lv} DN from the calibration bundle (the file carries none)")
-    return out
-
-
-def check_warnings(stats: Mapping[str, Any]) -> list[str]:
-    """Warnings about a frame from :func:`measure_capture` and :func:`exposure_info`'s
-    statistics: a pedestal outside the views, an exposure ratio that is unknown, a camera that
-    differs from the bundle's."""
-    out: list[str] = []
+        add("capture.black_level_from_bundle", "info",
+            f"black level {lv} DN from the calibration bundle (the file carries none)",
+            measured=[round(v, 4) for v in b],
+            fix="give black_level (--set black_level=...) if the file's black level differs")
+    if stats.get("radiometric_scale") == "reflectance" and \
+            abs(float(stats.get("exposure_scale", 1.0)) - 1) > 1e-9:  # fmt: skip
+        add("capture.exposure_scaled", "info", str(stats.get("exposure_note")),
+            measured=float(stats.get("exposure_scale", 1.0)))
+    sat, obs = stats.get("saturated_observations"), stats.get("observations")
+    if isinstance(sat, int) and sat > 0 and isinstance(obs, int) and obs > 0:
+        add("capture.saturated", "info",
+            f"{sat} of {obs} observations at the white level, left out of the fit",
+            measured=round(sat / obs, 6), fix="a shorter exposure keeps the highlights")
     ped, lim = stats.get("pedestal_dn"), stats.get("pedestal_limit_dn")
     if isinstance(ped, list) and isinstance(lim, list) and len(ped) == len(lim) == 3:
         c = max(range(3), key=lambda i: abs(ped[i]) / max(lim[i], 1e-12))
@@ -349,18 +408,183 @@ def check_warnings(stats: Mapping[str, Any]) -> list[str]:
             else:
                 fix = (f"the black level subtracted is ~{-ped[c]:.0f} DN too high; give the right "
                        f"black_level (e.g. --set black_level={sub + ped[c]:.0f})")  # fmt: skip
-            out.append(
+            factor = settings.output.pedestal_refuse_factor
+            hard = factor is not None and abs(ped[c]) > factor * lim[c]
+            add("capture.pedestal", "error" if hard else "warning",
                 f"the sensor outside the views reads {ped[c]:.1f} DN after black subtraction "
-                f"({'RGB'[c]} channel, limit {lim[c]:.3g} DN; black level subtracted "
-                f"{sub:.4g} DN, source: {src}): {fix}"
-            )
+                f"({'RGB'[c]} channel; black level subtracted {sub:.4g} DN, source: {src})"
+                + (f": more than pedestal_refuse_factor={factor:g} times the limit, the black "
+                   "level is wrong" if hard else ""),
+                measured=round(float(ped[c]), 3), limit=round(float(lim[c]), 3), fix=fix)
     if stats.get("radiometric_scale") == "relative":
-        out.append(str(stats.get("exposure_note")))
-    for key in ("data_scale_note", "mosaic_note"):
-        if stats.get(key):
-            out.append(str(stats[key]))
+        add("capture.exposure_unknown", "warning", str(stats.get("exposure_note")),
+            measured=stats.get("capture_exposure"), limit=stats.get("white_exposure"),
+            fix="give the capture's exposure (--set exposure_s=...) and calibrate with the "
+                "white shots' exposure recorded")
+    if stats.get("data_scale_note"):
+        add("capture.data_scale", "warning", str(stats["data_scale_note"]),
+            measured=stats.get("white_level"), limit=stats.get("calibration_white_level"))
+    if stats.get("mosaic_note"):
+        add("capture.rgb_for_mosaic", "warning", str(stats["mosaic_note"]), measured="rgb",
+            fix="reconstruct the raw mosaic (RAW/DNG or a Bayer TIFF)")
     mism = stats.get("camera_mismatch")
     if isinstance(mism, list) and mism:
-        out.append("camera: " + "; ".join(str(m) for m in mism) + " (a bundle of another "
-                   "camera gives wrong spectra; calibrate this camera)")
+        add("capture.camera_mismatch", "warning",
+            "camera: " + "; ".join(str(m) for m in mism) + " (a bundle of another camera gives "
+            "wrong spectra)", measured=stats.get("camera"), fix="calibrate this camera")
     return out
+
+
+def fit_findings(
+    stats: Mapping[str, Any], settings: ReconstructSettings, source: str | None = None
+) -> list[Finding]:
+    """The ``fit.*`` findings of :func:`frame_findings` (not escalated)."""
+    out: list[Finding] = []
+    fit = stats.get("fit_residual")
+    warn, hard = settings.output.fit_residual_warning, settings.output.fit_residual_limit
+    if isinstance(fit, float) and math.isfinite(fit):
+        over = [(lim, sev) for lim, sev in ((hard, "error"), (warn, "warning"))
+                if lim is not None and fit > lim]
+        if over:
+            lim, sev = over[0]
+            key = "fit_residual_limit" if sev == "error" else "fit_residual_warning"
+            out.append(Finding(
+                "fit.residual", sev,
+                f"relative fit residual {fit:.3f} > {key}={lim:g}: the spectra do not explain "
+                "the capture" + ("; refused" if sev == "error" else ""),
+                measured=round(fit, 4), limit=lim, source=source,
+                fix="is the calibration bundle from this camera and geometry, and are the black "
+                    "level and exposure right?"))  # fmt: skip
+    n = int(stats.get("num_not_converged", 0) or 0)
+    if n:
+        out.append(Finding(
+            "fit.not_converged", "warning",
+            f"{n} of {stats.get('num_valid', '?')} pixels did not converge (KKT residual above "
+            "the solver tolerance)", measured=n, limit=0, source=source,
+            fix="try dtype=float64 or a larger beta"))  # fmt: skip
+    return out
+
+
+def drift_findings(
+    stats: Mapping[str, Any], settings: ReconstructSettings, source: str | None = None
+) -> list[Finding]:
+    """The ``drift.*`` findings of :func:`frame_findings` (not escalated)."""
+    drift = stats.get("drift")
+    reg = settings.registration
+    if not isinstance(drift, Mapping):
+        return []
+    if isinstance(drift.get("refused"), str):
+        # not measurable (too few views agree, beyond the range): no motion is claimed. With a
+        # fit residual above its warning too, neither the bundle nor any drift of the sensor
+        # explains the capture (another camera's RAW: 1 of 9 views, 0.25): refused
+        fit, warn = stats.get("fit_residual"), settings.output.fit_residual_warning
+        unexplained = (isinstance(fit, float) and warn is not None and fit > warn)
+        f = drift_refused_finding(drift, "error" if reg.refine or unexplained else "warning",
+                                  source)  # fmt: skip
+        if unexplained and not reg.refine:
+            f = dataclasses.replace(f, message=f.message.replace(
+                ", and refine_registration would refuse the frame", "") + f"; with the fit "
+                f"residual {fit:.3f} > fit_residual_warning={warn:g}, neither the bundle nor a "
+                "drift of the sensor explains the capture: refused")  # fmt: skip
+        return [f]
+    if drift.get("textured_views") == 0 and reg.refine:
+        return [Finding("drift.no_texture", "warning", "refine_registration: nothing corrected, "
+                        "no view has texture to measure the drift from (a flat field)",
+                        measured=0, limit=1, source=source,
+                        fix="measure the drift on a textured capture of the same session")]
+    moved = drift.get("sensor_motion_px")
+    if reg.warn_px is None or not isinstance(moved, (int, float)) or not moved > reg.warn_px:
+        return []
+    t, rot = drift.get("sensor_shift_px"), drift.get("sensor_rotation_deg")
+    agree = drift.get("agreement")
+    what = (f"the sensor moved since calibration: up to {moved:.2f} px > "
+            f"drift_warn_px={reg.warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
+            f"{drift.get('measured_views')} views aligned to the reference view"
+            + (f"; {agree}" if isinstance(agree, str) else "") + ")")
+    if drift.get("corrected"):
+        return [Finding("drift.corrected", "info", what + "; corrected (refine_registration)",
+                        measured=round(float(moved), 3), limit=reg.warn_px, source=source)]
+    return [Finding("drift.moved", "warning", what + "; the views are misaligned and the "
+                    "spectra are biased", measured=round(float(moved), 3), limit=reg.warn_px,
+                    fix="--set refine_registration=true corrects it, or recalibrate",
+                    source=source)]
+
+
+def drift_refused_finding(drift: Mapping[str, Any], severity: str = "error",
+                          source: str | None = None) -> Finding:
+    """``drift.unmeasurable``: the drift estimate (:meth:`~hsi_torch.recon.drift.DriftEstimate.
+    to_dict`) is refused — too few views agree, the views disagree, beyond the measurable range
+    (``drift["refused"]`` says which). ``measured``: the agreeing views; ``limit``:
+    ``drift_min_views``."""
+    return Finding(
+        "drift.unmeasurable", severity,
+        f"{drift.get('refused')}; not corrected"
+        + ("" if severity == "error" else ", and refine_registration would refuse the frame"),
+        measured=drift.get("agreeing_views"), limit=drift.get("min_views"), source=source,
+        fix="check that the bundle is this device's, or recalibrate (grid shots)")
+
+
+#: the most outside-the-views samples :func:`batch_pedestal_findings` reads per frame and colour
+MODULE_PEDESTAL_SAMPLES = 4096
+
+
+def batch_pedestal_findings(
+    rgb: torch.Tensor, radiometry: BundleRadiometry | None, settings: ReconstructSettings,
+    source: str = "input", saturated: torch.Tensor | None = None,
+) -> list[Finding]:
+    """The pedestal check of :func:`capture_findings` on a batch of linear RGB frames that are
+    supposed to be DN above black (the :class:`~hsi_torch.recon.module.HSIReconstructor`'s input
+    convention): per frame and colour, the median at the bundle's sampled pixels outside every
+    view (``radiometry.outside_index``) against :func:`~hsi_torch.io.radiometry.pedestal_limit`
+    (the calibration's white span, 5 robust σ). One finding (``capture.pedestal``, the worst
+    frame and colour; an error beyond ``pedestal_refuse_factor`` times the limit), escalated
+    under ``strict``; ``[]`` when the bundle records no outside pixels.
+
+    Cost: one gather of about :data:`MODULE_PEDESTAL_SAMPLES` pixels per frame and colour (every
+    k-th of the bundle's samples), two medians and one device-to-host copy of ``(B, 3)`` values.
+
+    Args:
+        rgb: ``(B, 3, H, W)`` at the bundle's sensor size.
+        radiometry: the bundle's (``None``: nothing checked).
+        settings: the limits (``pedestal_refuse_factor``, ``strict``).
+        source: what the finding names.
+        saturated: ``rgb``'s saturation mask (bool, same shape) or ``None``: saturated samples
+            are left out (a frame with fewer than 16 unsaturated ones is not checked).
+    """
+    rad = radiometry
+    if rad is None or rad.outside_index.size < 16 or rgb.ndim != 4 or rgb.shape[0] == 0:
+        return []
+    # every k-th of the bundle's samples, at most ~MODULE_PEDESTAL_SAMPLES: a median to a DN
+    step = max(1, rad.outside_index.size // MODULE_PEDESTAL_SAMPLES)
+    idx = torch.as_tensor(rad.outside_index[::step], device=rgb.device)
+    b, c = rgb.shape[:2]
+    x = rgb.detach().reshape(b, c, -1).index_select(2, idx).to(torch.float64)
+    x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+    if saturated is not None:
+        sat = saturated.reshape(b, c, -1).index_select(2, idx).any(1, keepdim=True)
+        x = torch.where(sat, torch.nan, x)
+    med = x.nanmedian(dim=2).values
+    mad = (x - med[..., None]).abs().nanmedian(dim=2).values
+    n = (~torch.isnan(x)).sum(2).to(med.dtype)
+    both = np.nan_to_num(torch.stack([med, 1.4826 * mad, n]).cpu().numpy())  # one copy
+    both[0][both[2] < 16] = 0.0  # too few unsaturated samples: not judged
+    black = float(np.mean(rad.black_level_rgb)) if rad.black_level_rgb is not None else 0.0
+    span = rad.white_level_dn - black if rad.white_level_dn is not None else None
+    lim = np.vectorize(lambda s: pedestal_limit(span, float(s)))(both[1])
+    ratio = np.abs(both[0]) / lim
+    k, ch = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    ped, limit = float(both[0][k, ch]), float(lim[k, ch])
+    if not abs(ped) > limit:
+        return []
+    factor = settings.output.pedestal_refuse_factor
+    hard = factor is not None and abs(ped) > factor * limit
+    f = Finding(
+        "capture.pedestal", "error" if hard else "warning",
+        f"frame {k} of {b}: the sensor outside the views reads {ped:.1f} DN ({'RGB'[ch]} "
+        "channel); the input must be linear DN above black" + (
+            f", and this is more than pedestal_refuse_factor={factor:g} times the limit"
+            if hard else ""),
+        measured=round(ped, 3), limit=round(limit, 3), source=source,
+        fix=(f"subtract the black level (~{ped:.0f} DN) from the input" if ped > 0 else
+             f"the black level subtracted is ~{-ped:.0f} DN too high"))  # fmt: skip
+    return escalated([f], settings.output.strict)

@@ -34,10 +34,12 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
     """Entry point of ``hsi-torch reconstruct`` (see :mod:`hsi_torch.cli`).
 
     ``args``: ``bundle``, ``out``, ``inputs``, ``config``, ``overrides``, ``device``, ``resume``,
-    ``progress``, ``format``, ``scheduler``, ``scheduler_file``, ``threads_per_worker``,
+    ``progress``, ``strict``, ``format``, ``scheduler``, ``scheduler_file``, ``threads_per_worker``,
     ``send_bundle``. Returns the :class:`hsi_torch.recon.batch.driver.RunSummary`.
     """
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
+    if getattr(args, "strict", False):
+        cfg.strict = True  # every warning refuses its frame
     sequence = bool(getattr(args, "sequence", False))
     if not sequence and is_sequence_input(args.inputs):
         info(f"{args.inputs[0]}: a folder, a sheet or a multi-page TIFF: reconstructed as a "

@@ -72,7 +72,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hsi_torch.errors import InputError
+from hsi_torch.findings import RefusedError
 
 __all__ = [
     "DriftEstimate",
@@ -127,11 +127,13 @@ _ECC_ITERATIONS = 100
 _ECC_EPS = 1e-5
 
 
-class DriftError(InputError):
+class DriftError(RefusedError):
     """A drift the frame cannot support was to be corrected (``refine_registration``): measured
     from too few views, by views that disagree, or beyond the measurable range. The message
     names the views' agreement, the measured motion and the limit (:attr:`DriftEstimate.refusal`);
-    nothing is corrected and no cube is written for the frame."""
+    nothing is corrected and no cube is written for the frame. A
+    :class:`~hsi_torch.findings.RefusedError`: ``.findings`` holds its ``drift.unmeasurable``
+    error finding."""
 
 
 #: what :attr:`DriftEstimate.view_status` says of a view

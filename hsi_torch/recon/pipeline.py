@@ -47,10 +47,13 @@ load a state dict.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from contextvars import ContextVar
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, NamedTuple
@@ -60,13 +63,21 @@ from torch import Tensor, nn
 
 from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import FileFormatError, InputError
+from hsi_torch.findings import Finding, RefusedError, refusals, warn_findings
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.captures import CaptureDefaults
 from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.optics.geometry import view_sample_grid
-from hsi_torch.recon.checks import exposure_info, exposure_scale, measure_capture
+from hsi_torch.recon.checks import (
+    batch_pedestal_findings,
+    drift_refused_finding,
+    exposure_info,
+    exposure_scale,
+    frame_findings,
+    measure_capture,
+)
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
 from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
 from hsi_torch.recon.frame import (
@@ -124,6 +135,9 @@ class ReconstructionResult:
         std: ``(M, h, w)`` standard deviation of every band from the sensor noise
             (:mod:`hsi_torch.recon.uncertainty`; 0 on bands at the bound, NaN where ``valid``
             is False), or ``None`` when the reconstructor was made without ``uncertainty=True``.
+        findings: what the checks found about the frame
+            (:func:`hsi_torch.recon.checks.frame_findings`; info and warnings only — a frame
+            with an error finding raises :class:`~hsi_torch.findings.RefusedError` instead).
     """
 
     cube: Tensor
@@ -132,6 +146,7 @@ class ReconstructionResult:
     stats: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     std: Tensor | None = None
+    findings: list[Finding] = field(default_factory=list)
 
     def to_xarray(self, metadata: dict[str, Any] | None = None):
         """The cube as an ``xarray.DataArray`` ``(wavelength, y, x)``, wavelength in nm, the
@@ -139,6 +154,42 @@ class ReconstructionResult:
         ``pip install 'hsi-torch[formats]'``)."""
         return cube_to_xarray(self.cube.detach().cpu(), self.wavelengths_nm.detach().cpu(),
                               self.valid.detach().cpu(), metadata)  # fmt: skip
+
+
+#: set while a reconstructor's method judges its result: the calls it makes (capture → frame)
+#: leave the judging to it
+_JUDGING: ContextVar[bool] = ContextVar("hsi_torch_judging", default=False)
+
+
+def _judged(method: Callable[..., ReconstructionResult]) -> Callable[..., ReconstructionResult]:
+    """The front door's verdict, in one place: the outermost ``reconstruct_*`` call turns its
+    result's statistics into findings (:func:`~hsi_torch.recon.checks.frame_findings`, under the
+    reconstructor's settings), refuses the frame on an error finding
+    (:class:`~hsi_torch.findings.RefusedError`, naming the source, each finding's measured value,
+    limit and fix), raises the warnings as Python warnings
+    (:func:`~hsi_torch.findings.warn_findings`) and attaches them all to
+    :attr:`ReconstructionResult.findings`."""
+
+    @functools.wraps(method)
+    def judged(self: Any, *args: Any, **kwargs: Any) -> ReconstructionResult:
+        if _JUDGING.get():
+            return method(self, *args, **kwargs)
+        token = _JUDGING.set(True)
+        try:
+            res = method(self, *args, **kwargs)
+        finally:
+            _JUDGING.reset(token)
+        source = str(res.stats.get("source", "capture"))
+        res.findings = frame_findings(res.stats, self.settings, source)
+        refused = refusals(res.findings)
+        if refused:
+            raise RefusedError(f"{source}: refused: " + "; ".join(
+                replace(f, source=None).text() for f in refused),
+                res.findings)  # fmt: skip
+        warn_findings(res.findings, stacklevel=2)  # at the caller of reconstruct_*
+        return res
+
+    return judged
 
 
 #: What ``forward`` returns: ``"result"`` (cube and valid mask) or ``"cube"`` (the cube alone).
@@ -192,7 +243,9 @@ class HSIReconstructor(nn.Module):
             :class:`~hsi_torch.recon.drift.DriftError` under ``refine_registration``; file
             methods only), and where the per-bundle precomputation of a bundle given as a path is
             cached between processes (``precompute_cache``,
-            :mod:`hsi_torch.recon.precompute_cache`).
+            :mod:`hsi_torch.recon.precompute_cache`), the limits of the checks (``output``
+            group: ``fit_residual_warning``, ``fit_residual_limit``, ``pedestal_refuse_factor``,
+            ``strict``).
         output: ``"result"`` (default): ``forward`` returns :class:`ReconstructionOutput`
             ``(cube, valid)``; ``"cube"``: the cube tensor alone, ``(B, M, h, w)``, invalid
             pixels set to ``fill_value`` — the form for ``nn.Sequential(rec, nn.Conv2d(M, …))``.
@@ -208,6 +261,12 @@ class HSIReconstructor(nn.Module):
             (:meth:`~hsi_torch.recon.settings.ReconstructSettings.replace`, e.g. ``beta=1e3``,
             ``prior="tv"``, ``dtype=torch.float64``); keys that then have no effect are a
             ``UserWarning``. :attr:`settings` holds the result, validated.
+
+    Every ``reconstruct_*`` method judges its result: the checks' findings are attached
+    (:attr:`ReconstructionResult.findings`), its warnings raised as Python warnings of their
+    :class:`~hsi_torch.findings.HSIWarning` subclass, and a frame the data contradicts (an
+    error finding) raises :class:`~hsi_torch.findings.RefusedError`. ``forward`` checks the
+    pedestal outside the views (:meth:`check_input`).
 
     Example:
         >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=1e4).to("cuda")  # doctest: +SKIP
@@ -601,6 +660,10 @@ class HSIReconstructor(nn.Module):
             saturated: optional bool mask of ``x``'s shape (saturated samples are masked).
             exposure_scale: optional scalar or ``(B,)`` factor on the observations.
 
+        ``x`` must be in DN above black (the black level subtracted, as the calibration did); a
+        pedestal left in is a :class:`~hsi_torch.findings.CaptureWarning` or, far beyond its
+        limit, :class:`~hsi_torch.findings.RefusedError` (:meth:`check_input`).
+
         Returns:
             :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``; built with
             ``output="cube"``: the cube alone, ``(B, M, h, w)``, ``fill_value`` where invalid.
@@ -648,9 +711,27 @@ class HSIReconstructor(nn.Module):
         """Warp, observations, exact solve and assembly of ``(B, 3, H, W)`` linear RGB (the part
         of :meth:`forward` that ``torch.compile`` leaves to eager mode; no statistics, no
         timing)."""
+        self.check_input(rgb, saturated)
         out = reconstruct_frame(self._refreshed(), rgb, self._frame_settings, saturated,
                                 scale=exposure_scale, stats=False)  # fmt: skip
         return out.cube, out.valid
+
+    def check_input(self, rgb: Tensor, saturated: Tensor | None = None) -> None:
+        """The input convention's guard: ``(B, 3, H, W)`` linear RGB must be DN above black.
+        The sensor pixels outside every view (the bundle's ``radiometry.outside_index``) must
+        then read ≈ 0; a pedestal above its limit is a :class:`~hsi_torch.findings.CaptureWarning`
+        (``capture.pedestal``), and beyond ``pedestal_refuse_factor`` times it (e.g. the
+        simulator's ``expose()`` DN with their 512 DN black level: cubes 5.5x too bright)
+        :class:`~hsi_torch.findings.RefusedError`; under ``strict`` the warning refuses too
+        (:func:`hsi_torch.recon.checks.batch_pedestal_findings`; saturated samples left out).
+        A gather of a few thousand pixels and one ``(B, 3)`` copy to the host per call; run inside
+        :meth:`reconstruct_prepared`, so ``torch.compile`` sees no extra graph break."""
+        found = batch_pedestal_findings(rgb, self.radiometry, self.settings,
+                                        "HSIReconstructor input", saturated)  # fmt: skip
+        refused = refusals(found)
+        if refused:
+            raise RefusedError("; ".join(f.text() for f in refused), found)
+        warn_findings(found, stacklevel=3)
 
     # ------------------------------------------------------------------------------ files
     def sampling_factor(self, layout: str, cfa_pattern: str | None = None) -> Tensor:
@@ -664,6 +745,7 @@ class HSIReconstructor(nn.Module):
             )  # type: ignore[arg-type]
         return self._factors[key]
 
+    @_judged
     def reconstruct_frame(
         self,
         image: Tensor,
@@ -736,7 +818,8 @@ class HSIReconstructor(nn.Module):
             drift = estimate_drift(sens, img, settings.registration.min_views)
             motion_px = drift_motion_px(sens, drift)
             if settings.registration.refine and drift.refusal is not None:
-                raise DriftError(f"{source}: refine_registration: {drift.refusal}")
+                raise DriftError(f"{source}: refine_registration: {drift.refusal}",
+                                 [drift_refused_finding(drift.to_dict(), "error", source)])
             if settings.registration.refine and drift.sensor_shift_px is not None:
                 sens = corrected_sensing(
                     sens, drift.sensor_shift_px, drift.sensor_rotation_deg or 0.0
@@ -750,6 +833,7 @@ class HSIReconstructor(nn.Module):
         cube, valid, stats, t = out.cube, out.valid, out.stats, out.timings
         st = stats[0]
         st["exposure_scale"] = scale
+        st["source"] = source
         st.update(corr)
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
@@ -763,6 +847,7 @@ class HSIReconstructor(nn.Module):
         std = None if out.std is None else out.std[0]
         return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)
 
+    @_judged
     def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
         """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``, the
         exposure from ``metadata``: ``exposure_s``, else the simulator's relative ``exposure``,
@@ -792,6 +877,7 @@ class HSIReconstructor(nn.Module):
                 raise FileFormatError(f"{src}: {exc}") from None  # the file's metadata at fault
             raise
 
+    @_judged
     def reconstruct_file(self, path: str | os.PathLike, **overrides: Any) -> ReconstructionResult:
         """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it.
 
@@ -806,7 +892,7 @@ class HSIReconstructor(nn.Module):
         statistics also hold the black level used and its source, the pedestal outside the views,
         the camera and its differences from the bundle's
         (:func:`hsi_torch.recon.checks.measure_capture`, which only measures);
-        :func:`hsi_torch.recon.checks.check_warnings` turns them into warnings.
+        :func:`hsi_torch.recon.checks.frame_findings` turns them into findings.
         ``timings["load"]`` is the read (and demosaic).
         """
         s = self.settings

@@ -355,7 +355,8 @@ class InputSettings:
 @dataclass(frozen=True)
 class OutputSettings:
     """What a run writes per input. Flat keys: ``formats``, ``preview``, ``preview_size``,
-    ``spectra_pixels``, ``fit_residual_warning``.
+    ``spectra_pixels``, ``fit_residual_warning``, ``fit_residual_limit``,
+    ``pedestal_refuse_factor``, ``strict``.
 
     Attributes:
         formats: cube files (:data:`CUBE_FORMATS`), no duplicates.
@@ -363,6 +364,10 @@ class OutputSettings:
             least this many px (0: native; at most :data:`MAX_PREVIEW_SIZE`).
         spectra_pixels: reference-frame pixels ``(row, col)`` whose spectra are plotted.
         fit_residual_warning: warn above this relative fit residual (``None``: never).
+        fit_residual_limit: refuse a frame above this relative fit residual (``None``: never).
+        pedestal_refuse_factor: refuse a frame whose pedestal outside the views is more than
+            this many times its warning limit (``None``: never).
+        strict: every warning finding about a frame is an error (the frame is refused).
     """
 
     formats: tuple[CubeFormat, ...] = _set(
@@ -386,6 +391,23 @@ class OutputSettings:
         "recon.frame.fit_residual) exceeds this: a bundle of another geometry gives 0.21-0.25, "
         "the right bundle 0.01-0.03 (0.11 with 1/20 of the exposure); null: never",
     )
+    fit_residual_limit: float | None = _set(
+        0.5,
+        "refuse a frame whose relative fit residual exceeds this (the bundle does not "
+        "explain the capture: an sRGB PNG gives 1.0, another camera's RAW 0.27); no cube is "
+        "written; null: never",
+    )
+    pedestal_refuse_factor: float | None = _set(
+        10.0,
+        "refuse a frame whose sensor outside the views reads more than this many times "
+        "the pedestal warning limit after black subtraction (an all-wrong black level); null: "
+        "never",
+    )
+    strict: bool = _set(
+        False,
+        "every warning about a frame is an error: the frame is refused, no cube is "
+        "written (reconstruct --strict)",
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "formats", _frozen(self.formats))
@@ -406,7 +428,10 @@ class OutputSettings:
         for p in self.spectra_pixels:
             if len(p) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in p):
                 raise _bad("spectra_pixels", f"pixels must be [row, col] integer pairs, got {p!r}")
-        _positive_or_none(self, "fit_residual_warning", "fit_residual_warning")
+        for key in ("fit_residual_warning", "fit_residual_limit", "pedestal_refuse_factor"):
+            _positive_or_none(self, key, key)
+        if not isinstance(self.strict, bool):
+            raise _bad("strict", f"must be true or false, got {self.strict!r}")
 
 
 @dataclass(frozen=True)

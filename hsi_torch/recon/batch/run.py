@@ -30,10 +30,12 @@ written. Every cube's metadata also holds the frame's findings (``"findings"``,
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -47,7 +49,7 @@ from hsi_torch import __version__, colour
 from hsi_torch.config import ConfigError, config_yaml
 from hsi_torch.devices import resolve_device
 from hsi_torch.errors import NoValidPixelsError
-from hsi_torch.findings import Finding
+from hsi_torch.findings import Finding, HSIWarning
 from hsi_torch.io import paths
 from hsi_torch.io.atomic import (
     InputFiles,
@@ -61,7 +63,6 @@ from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.cube import require_format, save_cube_formats
 from hsi_torch.io.paths import check_out_dir, ensure_out_dir, expand_inputs
 from hsi_torch.provenance import provenance
-from hsi_torch.recon.checks import check_notes, check_warnings
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 from hsi_torch.recon.precompute_cache import remember_sha256
@@ -74,7 +75,7 @@ __all__ = [
     "reconstruct_input",
     "write_outputs",
     "output_paths",
-    "frame_warnings",
+    "finding_line",
     "preview_caption",
     "write_run_config",
     "findings_flag",
@@ -446,7 +447,16 @@ def check_run(
     del b
     st = bundle_path.stat()
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
-    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache", "drift_warn_px")
+    ignored = (
+        "device",
+        "chunk_size",
+        "fit_residual_warning",
+        "precompute_cache",
+        "drift_warn_px",
+        "fit_residual_limit",
+        "pedestal_refuse_factor",
+        "strict",
+    )
     config = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(
@@ -458,23 +468,25 @@ def check_run(
 
 def reconstruct_input(
     rec: Reconstructor, path: Path, run: ReconstructRun
-) -> tuple[ReconstructionResult, dict[str, Any], list[str]]:
+) -> tuple[ReconstructionResult, dict[str, Any], list[Finding]]:
     """Read and reconstruct one input: the result, its metadata (as stored with the cube) and
-    its warnings (:func:`frame_warnings`, to be shown by the caller).
+    its findings (:attr:`ReconstructionResult.findings`, to be shown by the caller; not raised
+    as Python warnings here).
 
     Raises:
+        RefusedError: the data contradicts the result (an error finding; ``strict``: any
+            warning), :class:`~hsi_torch.findings.RefusedError` with the findings.
         NoValidPixelsError: not a single pixel could be reconstructed (the reason named).
     """
 
     cfg = run.cfg
-    res = rec.reconstruct_file(path)  # read as rec.settings (= run.settings) say
+    with warnings.catch_warnings():  # the run shows them itself, one line each
+        warnings.simplefilter("ignore", HSIWarning)
+        res = rec.reconstruct_file(path)  # read as rec.settings (= run.settings) say
     if res.stats.get("num_valid", 0) == 0:
         raise NoValidPixelsError(
             f"{path}: no valid pixel: {res.stats.get('no_valid_reason') or 'unknown reason'}"
         )
-    warnings = frame_warnings(res.stats, run.settings)
-    notes = check_notes(res.stats)
-    findings = _frame_findings(res, notes, warnings)
     cap_meta = res.stats.pop("metadata", {})
     run_config = run.run_config
     meta = {
@@ -482,29 +494,14 @@ def reconstruct_input(
         "bundle": os.path.abspath(run.bundle_path),
         "capture_exposure_s": cap_meta.get("exposure_s"),
         "radiometric_scale": res.stats.get("radiometric_scale"),
-        "notes": notes,
-        "findings": [f.to_dict() for f in findings],
+        "notes": [f.message for f in res.findings if f.severity == "info"],
+        "findings": [f.to_dict() for f in res.findings],
         "config": {k: v for k, v in vars(cfg).items()},
         "run_config": run_config.relative_to(run.out_dir).as_posix() if run_config else None,
         "stats": res.stats,
         "timings_s": res.timings,
     }
-    return res, meta, warnings
-
-
-def _frame_findings(
-    res: ReconstructionResult, notes: Sequence[str], warnings: Sequence[str]
-) -> list[Finding]:
-    """The findings stored with the frame's cube and reported by the run.
-
-    Bridge until every check yields findings: the result's own ``findings`` when it has them,
-    else one ``run.note`` info per note and one ``run.warning`` warning per warning line
-    (codes that name no check). The one place to swap when the checks yield findings."""
-    own = getattr(res, "findings", None)
-    if own is not None:
-        return list(own)
-    return ([Finding("run.note", "info", n) for n in notes]
-            + [Finding("run.warning", "warning", w) for w in warnings])  # fmt: skip
+    return res, meta, list(res.findings)
 
 
 RUNS_DIR = "runs"
@@ -533,66 +530,9 @@ def write_run_config(cfg: ReconstructConfig, out: Path, bundle_path: Path, num_i
     return atomic_write_new(folder, names, config_yaml(cfg, header).encode("utf-8"))
 
 
-def frame_warnings(
-    stats: dict[str, Any], cfg: ReconstructSettings | ReconstructConfig
-) -> list[str]:
-    """Warnings about one reconstructed frame: a fit residual above
-    ``fit_residual_warning`` (the bundle probably belongs to another geometry, or the
-    black level / exposure is wrong), pixels whose solve did not converge, and the capture
-    checks (:func:`hsi_torch.recon.checks.check_warnings`: a pedestal outside the views, an
-    unknown exposure ratio, another camera), and a sensor drift above ``drift_warn_px`` or one
-    that could not be measured (``stats["drift"]``, :mod:`hsi_torch.recon.drift`)."""
-    out: list[str] = check_warnings(stats)
-    fit = stats.get("fit_residual")
-    lim = as_settings(cfg).output.fit_residual_warning
-    if lim is not None and isinstance(fit, float) and fit > lim:
-        out.append(
-            f"relative fit residual {fit:.3f} > {lim:g}: the spectra do not explain the "
-            "capture; is the calibration bundle from this camera and geometry (and are the black "
-            "level and exposure right)?"
-        )
-    drift = stats.get("drift")
-    warn_px = as_settings(cfg).registration.warn_px
-    if isinstance(drift, dict) and isinstance(drift.get("refused"), str):
-        # not measurable (too few views agree, beyond the range): no motion is claimed
-        out.append(
-            f"{drift['refused']}; not corrected, and refine_registration would refuse the frame"
-        )
-    elif (
-        isinstance(drift, dict)
-        and drift.get("textured_views") == 0
-        and as_settings(cfg).registration.refine
-    ):
-        out.append(
-            "refine_registration: nothing corrected, no view has texture to measure the "
-            "drift from (a flat field)"
-        )
-    elif isinstance(drift, dict) and warn_px is not None:
-        moved = drift.get("sensor_motion_px")
-        if isinstance(moved, (int, float)) and moved > warn_px:
-            t, rot = drift.get("sensor_shift_px"), drift.get("sensor_rotation_deg")
-            agree = drift.get("agreement")
-            what = (
-                f"the sensor moved since calibration: up to {moved:.2f} px > "
-                f"drift_warn_px={warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
-                f"{drift.get('measured_views')} views aligned to the reference view"
-                + (f"; {agree}" if isinstance(agree, str) else "")
-                + ")"
-            )
-            out.append(
-                what
-                + (
-                    "; corrected (refine_registration)"
-                    if drift.get("corrected")
-                    else "; the views are misaligned and the spectra are biased: "
-                    "--set refine_registration=true corrects it, or recalibrate"
-                )
-            )
-    n = int(stats.get("num_not_converged", 0))
-    if n:
-        out.append(
-            f"{n} of {stats.get('num_valid', '?')} pixels did not converge (KKT residual above "
-            f"the solver tolerance; max {stats.get('max_kkt', float('nan')):.1e}); try "
-            "dtype=float64 or a larger beta"
-        )
-    return out
+def finding_line(finding: Finding) -> str:
+    """How a run prints a finding about an input (named beside it, as before findings): its
+    message, measured value and limit, fix, then its code —
+    ``"<message> (measured …, limit …); fix: <fix> [<code>]"``."""
+    text = dataclasses.replace(finding, source=None).text()  # "<severity> [<code>] <rest>"
+    return text.split("] ", 1)[1] + f" [{finding.code}]"

@@ -29,13 +29,14 @@ from __future__ import annotations
 import os
 import time
 import traceback
+import warnings
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from hsi_torch.console import info, progress_bar, warn
 from hsi_torch.errors import HSIError, InputError, NoValidPixelsError
-from hsi_torch.findings import Finding, findings_from_dicts
+from hsi_torch.findings import Finding, HSIWarning, findings_from_dicts
 from hsi_torch.io.captures import read_any
 from hsi_torch.io.dataset import _read_json, require_dataset_packages
 from hsi_torch.io.sequence import CaptureSequence, SequenceFrame, open_sequence
@@ -46,8 +47,8 @@ from hsi_torch.io.sequence_store import (
     write_animated_preview,
 )
 from hsi_torch.recon.batch.driver import RunFailure, RunSummary
-from hsi_torch.recon.batch.run import ReconstructRun, check_run, frame_warnings
-from hsi_torch.recon.checks import check_notes, measure_capture
+from hsi_torch.recon.batch.run import ReconstructRun, check_run
+from hsi_torch.recon.checks import measure_capture
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.corrections import apply_bundle_corrections
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor, _check_half_size, _listed
@@ -115,7 +116,7 @@ def _reconstruct_page(rec: Reconstructor, frame: SequenceFrame) -> Reconstructio
 
 
 def _reconstruct_sequence(
-    rec: Reconstructor, frames: Iterable[SequenceFrame]
+    rec: Reconstructor, frames: Iterable[SequenceFrame], quiet: bool = True
 ) -> Iterator[tuple[SequenceFrame, ReconstructionResult | BaseException]]:
     """THE per-frame function of every sequence (batch, live folder, Python): ``(frame, result)``
     for each frame in order, or ``(frame, error)`` for a frame that could not be read or
@@ -125,10 +126,15 @@ def _reconstruct_sequence(
     Today: each frame independently through the front door
     (:func:`reconstruct_frame_of_sequence`, a cold solve). A reconstructor that carries state
     from frame to frame (warm starts, a temporal prior) goes here, keeping this contract.
+    ``quiet``: the findings are not raised as Python warnings (a run reports them itself);
+    they are on every result (:attr:`ReconstructionResult.findings`) either way.
     """
     for frame in frames:
         try:
-            res = reconstruct_frame_of_sequence(rec, frame)
+            with warnings.catch_warnings():
+                if quiet:  # the run reports them, one line each
+                    warnings.simplefilter("ignore", HSIWarning)
+                res = reconstruct_frame_of_sequence(rec, frame)
         except (HSIError, ValueError, OSError) as exc:  # the frame's fault: reported, go on
             exc.__traceback_text__ = traceback.format_exc()  # type: ignore[attr-defined]
             yield frame, exc
@@ -165,7 +171,7 @@ def sequence_cubes(
         isinstance(frames, list) and frames and not isinstance(frames[0], SequenceFrame)
     ):
         frames = open_sequence(frames, time_from=time_from, frame_interval_s=frame_interval_s)
-    for frame, out in _reconstruct_sequence(reconstructor, frames):  # type: ignore[arg-type]
+    for frame, out in _reconstruct_sequence(reconstructor, frames, quiet=False):  # type: ignore[arg-type]
         if isinstance(out, BaseException):
             raise out
         yield frame, out
@@ -174,27 +180,14 @@ def sequence_cubes(
 # ----------------------------------------------------------------------------------------------
 # what is stored with each frame
 
-#: a frame warning's finding code, from words of its text (the checks give text today)
-_CODES = (("fit residual", "fit.residual"), ("did not converge", "fit.not_converged"),
-          ("sensor moved", "drift.motion"), ("refine_registration", "drift.unmeasurable"),
-          ("drift", "drift.unmeasurable"), ("pedestal", "capture.pedestal"),
-          ("exposure", "capture.exposure"), ("camera", "capture.camera"),
-          ("black level", "capture.black_level"))  # fmt: skip
-
-
 def frame_findings(res: ReconstructionResult, run: ReconstructRun, source: str) -> list[Finding]:
-    """The frame's findings: those the reconstruction returned (``stats["findings"]``, when the
-    checks give them), else its warnings (:func:`~hsi_torch.recon.batch.run.frame_warnings`)
-    each as a ``"warning"`` finding whose code is read from its text."""
+    """The frame's findings: those the front door judged (:attr:`ReconstructionResult.findings`)
+    and any a sequence reconstruction adds (``stats["findings"]``, e.g. a drift path's jump)."""
+    out = list(res.findings)
     given = res.stats.get("findings")
-    if isinstance(given, list) and given:
-        return [f if isinstance(f, Finding) else findings_from_dicts([f], source)[0]
+    if isinstance(given, list):
+        out += [f if isinstance(f, Finding) else findings_from_dicts([f], source)[0]
                 for f in given]  # fmt: skip
-    out = []
-    for text in frame_warnings(res.stats, run.settings):
-        low = text.lower()
-        code = next((c for word, c in _CODES if word in low), "capture.check")
-        out.append(Finding(code, "warning", text, source=source))
     return out
 
 
@@ -211,7 +204,8 @@ def frame_metadata(
         "source": frame.source, "bundle": os.path.abspath(run.bundle_path),
         "time_s": frame.time_s, "timestamp": frame.timestamp, "time_source": frame.time_source,
         "page": frame.page, "capture_exposure_s": cap_meta.get("exposure_s"),
-        "radiometric_scale": stats.get("radiometric_scale"), "notes": check_notes(stats),
+        "radiometric_scale": stats.get("radiometric_scale"),
+        "notes": [f.message for f in res.findings if f.severity == "info"],
         "config": dict(vars(run.cfg)),
         "run_config": run_config.relative_to(run.out_dir).as_posix() if run_config else None,
         "stats": stats, "timings_s": res.timings, **extra,

@@ -34,11 +34,17 @@ from typing import Any
 import torch
 
 from hsi_torch.errors import InputError, MissingFileError
+from hsi_torch.findings import RefusedError
 from hsi_torch.io.atomic import atomic_write_bytes
 from hsi_torch.io.dataset import write_frame
 from hsi_torch.profiling import release_freed_memory
 from hsi_torch.recon._numba import set_threads, thread_counts
-from hsi_torch.recon.batch.run import ReconstructRun, reconstruct_input, write_outputs
+from hsi_torch.recon.batch.run import (
+    ReconstructRun,
+    finding_line,
+    reconstruct_input,
+    write_outputs,
+)
 from hsi_torch.recon.distributed import in_dask_worker
 from hsi_torch.recon.pipeline import Reconstructor
 from hsi_torch.recon.precompute_cache import content_sha256
@@ -187,10 +193,11 @@ def reconstruct_task(
         bundle_bytes: the bundle's content (``send_bundle``), else ``None``: its path.
 
     Returns:
-        ``{"ok": True, "outputs", "warnings", "notes", "findings", "worker", "pid", "prepare_s",
-        "seconds", "threads"}`` or ``{"ok": False, "error", "traceback", "findings", "worker",
-        ...}`` (``findings``: :meth:`~hsi_torch.findings.Finding.to_dict` of each; a refused
-        frame's are its exception's ``findings``).
+        ``{"ok": True, "outputs", "warnings", "notes", "findings", "worker", "pid",
+        "prepare_s", "seconds", "threads"}`` or ``{"ok": False, "error", "traceback",
+        "findings", "worker", ...}``: ``warnings`` and ``notes`` the lines the run prints (the
+        warning and info findings), ``findings`` every finding as
+        :meth:`~hsi_torch.findings.Finding.to_dict` (a refused frame's with its errors).
     """
     with _FRAME_LOCK:
         t0 = time.perf_counter()
@@ -202,7 +209,7 @@ def reconstruct_task(
             rec, info["prepare_s"] = prepared_reconstructor(plan, bundle_bytes)
             run = plan.run
             path = Path(input_path)
-            res, meta, warnings = reconstruct_input(rec, path, run)
+            res, meta, findings = reconstruct_input(rec, path, run)
             if plan.output_format == "zarr":
                 if plan.store is None or frame is None:
                     raise ValueError("a dataset-store task needs the store and its frame")
@@ -215,13 +222,16 @@ def reconstruct_task(
                 outputs = [str(p) for p in written]
             del res
         except Exception as exc:  # noqa: BLE001 - reported to the driver with its traceback
+            refused = getattr(exc, "findings", None) if isinstance(exc, RefusedError) else None
             return {**info, "ok": False, "error": f"{type(exc).__name__}: {exc}",
                     "traceback": traceback.format_exc(),
-                    "findings": [f.to_dict() for f in getattr(exc, "findings", None) or []],
+                    "findings": [f.to_dict() for f in refused or []],
                     "seconds": time.perf_counter() - t0}  # fmt: skip
         finally:
             release_freed_memory()
         WORKER_STATS["frames"] += 1
-        return {**info, "ok": True, "outputs": outputs, "warnings": warnings,
-                "notes": list(meta.get("notes", [])), "findings": meta.get("findings", []),
+        return {**info, "ok": True, "outputs": outputs,
+                "warnings": [finding_line(f) for f in findings if f.severity == "warning"],
+                "notes": [finding_line(f) for f in findings if f.severity == "info"],
+                "findings": [f.to_dict() for f in findings],
                 "seconds": time.perf_counter() - t0}  # fmt: skip
