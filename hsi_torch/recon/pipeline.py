@@ -27,7 +27,12 @@ from hsi_torch.io.captures import CaptureDefaults
 from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.recon.checks import exposure_info, exposure_scale, measure_capture
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
-from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
+from hsi_torch.recon.drift import (
+    corrected_sensing,
+    drift_decision,
+    drift_motion_px,
+    estimate_drift,
+)
 from hsi_torch.recon.frame import (
     _sync,
     check_min_views,
@@ -218,9 +223,10 @@ class Reconstructor:
             t1 = time.perf_counter()
             drift = estimate_drift(sens, img, settings.registration.min_views)
             motion_px = drift_motion_px(sens, drift)
-            if settings.registration.refine and drift.refusal is not None:
-                raise DriftError(f"{source}: refine_registration: {drift.refusal}")
-            if settings.registration.refine and drift.sensor_shift_px is not None:
+            reg = settings.registration
+            correct, drift_finding = drift_decision(drift, motion_px, reg.refine, reg.warn_px,
+                                                    source)
+            if correct:
                 sens = corrected_sensing(sens, drift.sensor_shift_px,
                                          drift.sensor_rotation_deg or 0.0)
             t_drift = time.perf_counter() - t1
@@ -236,7 +242,10 @@ class Reconstructor:
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
             st["drift"] = {**drift.to_dict(), "corrected": sens is not self.sensing,
-                           "sensor_motion_px": round(motion_px, 3)}
+                           "sensor_motion_px": round(motion_px, 3),
+                           "refine_registration": settings.registration.refine,
+                           "finding": None if drift_finding is None
+                           else drift_finding.to_dict()}
             timings["drift"] = t_drift
         timings["total"] = time.perf_counter() - t0
         std = None if out.std is None else out.std[0]

@@ -479,7 +479,7 @@ def frame_warnings(
         out.append(f"{drift['refused']}; not corrected, and refine_registration would refuse "
                    "the frame")
     elif isinstance(drift, dict) and drift.get("textured_views") == 0 \
-            and as_settings(cfg).registration.refine:
+            and as_settings(cfg).registration.refine is True:
         out.append("refine_registration: nothing corrected, no view has texture to measure the "
                    "drift from (a flat field)")
     elif isinstance(drift, dict) and warn_px is not None:
