@@ -39,6 +39,7 @@ from hsi_torch.recon.frame import (
     prepare_input,
     reconstruct_frame,
 )
+from hsi_torch.recon.illuminant import illuminant_finding
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing, refreshed_sensing
 from hsi_torch.recon.settings import DEFAULT_BETA, FLAT_KEYS, ReconstructSettings, with_overrides
 from hsi_torch.recon.uncertainty import RAW_LAYOUTS, sampling_variance_factor
@@ -237,6 +238,9 @@ class Reconstructor:
             )  # fmt: skip
         cube, valid, stats, t = out.cube, out.valid, out.stats, out.timings
         st = stats[0]
+        ill = illuminant_finding(cube[0], valid[0], sens.wavelengths_nm, source=source)
+        if ill is not None:  # the scene's light against the white reference's (a finding)
+            st["illuminant"] = ill.to_dict()
         st["exposure_scale"] = scale
         st.update(corr)
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
