@@ -106,12 +106,14 @@ def test_no_veil_no_subtraction_and_an_info_finding():
         warn_findings([f])
 
 
-def test_an_unmeasurable_veil_is_a_warning():
+def test_an_unmeasurable_veil_is_said():
     lit = torch.full((3, H, W), 800.0, dtype=torch.float64)  # light everywhere: nothing unreached
     out, reader = _decide(lit)
     f = out["findings"][0]
-    assert f.code == "calibration.stray_light_unmeasured" and f.severity == "warning"
+    assert f.code == "calibration.stray_light_unmeasured" and f.severity == "info"  # auto
     assert f.measured < f.limit and reader.veil_index is None
+    out, reader = _decide(lit, stray_light="subtract")  # asked for: a warning
+    assert out["findings"][0].severity == "warning" and reader.veil_index is None
 
 
 def test_defects_present_are_masked_absent_are_not():

@@ -817,11 +817,10 @@ def sensor_corrections(
         ``extras["defect_pixels"]`` ``(D,)`` int64 flat sensor indices.
     """
     out: dict[str, Any] = {"settings": {}, "extras": {}, "findings": []}
-    if cfg.stray_light == "none" and cfg.defects == "none" and not cs.white:
-        return out
     if not cs.white:
-        raise ValueError("stray_light and defects (auto, subtract, mask) need white frames: "
-                         "set stray_light=none and defects=none to calibrate without them")
+        if cfg.stray_light == "subtract" or cfg.defects == "mask":
+            raise ValueError("stray_light: subtract and defects: mask need white frames")
+        return out  # auto: nothing to decide from
     was = reader._recording
     reader._recording = False  # a pre-read: the pedestal is recorded when the frames are used
     try:

@@ -23,8 +23,9 @@ samples.
 Every decision, automatic or explicit, is a :class:`~hsi_torch.findings.Finding` (codes
 ``calibration.stray_light``, ``calibration.stray_light_unmeasured``, ``calibration.defects``):
 ``info`` when the data and the setting agree (a veil measured and subtracted, none measured and
-none subtracted), ``warning`` when an explicit ``none`` leaves a measured veil or defects in
-place, or when the veil cannot be measured (too few unreached samples).
+none subtracted; under ``auto``, a veil that cannot be measured: too few unreached samples),
+``warning`` when an explicit ``none`` leaves a measured veil or defects in place, or when
+``subtract`` cannot measure the veil.
 """
 
 from __future__ import annotations
@@ -84,9 +85,9 @@ def stray_light_finding(
         samples: unreached sensor samples the veil was measured on.
         subtract: whether the veil is subtracted.
     """
-    if level is None:
+    if level is None:  # asked for (subtract): a warning; auto: a fact
         return Finding(
-            "calibration.stray_light_unmeasured", "warning",
+            "calibration.stray_light_unmeasured", "warning" if mode == "subtract" else "info",
             f"the veil of stray light cannot be measured: only {samples} unreached sensor "
             f"samples (the views and their neighbours light the whole sensor); not subtracted "
             f"(stray_light: {mode})", measured=samples, limit=MIN_UNREACHED,

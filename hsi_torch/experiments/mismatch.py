@@ -11,6 +11,17 @@ oracle bundle (the truth of the calibrated, ideal-model device). Scores against 
 patch; PSNR and SAM) and per pixel over the patch interiors, and, when the set holds the CAVE
 scene, per pixel over its valid footprint. "Lost" is ideal − effect.
 
+**Shipped defaults** (the ``defaults`` scores): every row calibrated with the shipped
+``calibrate.yaml`` (``stray_light: auto``, ``defects: auto``: the remedies the white and dark
+frames call for, :mod:`hsi_torch.calibrate.remedies`) and reconstructed with the shipped settings
+(``refine_registration: auto``, :func:`hsi_torch.recon.drift.drift_decision`): what a lab gets
+without knowing its device's departures. The findings (the bundle's decisions, each scene's
+drift decision and illuminant check) are kept with the scores (``findings``) and summarised in
+the table (:func:`decisions`). The ``calibrated`` and ``remedy`` scores apply the remedies
+exactly as named (:data:`NO_REMEDY` plus the remedy's parts; the registration refined only by
+the ``refine`` part); a calibration whose automatic decisions equal the remedies asked for is
+reused for them (the same calibration).
+
 **Remedies** (``remedies: true``), measured on the same captures (:data:`ROW_REMEDIES`; the
 ``remedy`` column names every part a number includes):
 
