@@ -476,7 +476,7 @@ def frame_warnings(
     warn_px = as_settings(cfg).registration.warn_px
     if isinstance(drift, dict) and isinstance(drift.get("refused"), str):
         # not measurable (too few views agree, beyond the range): no motion is claimed
-        out.append(f"{drift['refused']}; not corrected, and refine_registration would refuse "
+        out.append(f"{drift['refused']}; not corrected, and refine_registration=true would refuse "
                    "the frame")
     elif isinstance(drift, dict) and drift.get("textured_views") == 0 \
             and as_settings(cfg).registration.refine is True:
