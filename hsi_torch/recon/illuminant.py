@@ -10,8 +10,8 @@ takes the mean spectrum of the brightest ``top_fraction`` of the valid pixels an
 long-wavelength end (≥ 620 nm) with its short end (≤ 480 nm):
 
 - a ratio beyond ``limit`` (default :data:`ILLUMINANT_RATIO_LIMIT`, 3) either way is a
-  ``capture.illuminant`` warning: a tungsten (CIE A) scene against a D65 white reads ≈ 6 on the
-  ColorChecker's white patch, the reverse ≈ 1/6;
+  ``capture.illuminant`` warning: the small prototype's ColorChecker under tungsten (CIE A)
+  against a D65 white reads 7.4, under the white's own light 0.94–0.96;
 - within it, an ``info`` finding records the ratio.
 
 **When it cannot tell**: a scene whose brightest surfaces are themselves strongly coloured (a
