@@ -290,8 +290,9 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     ideal = sims["ideal"] / "scenes" / "colorchecker.tif"
     assert main([*base, "--out", str(tmp_path / "d"), str(ideal)]) == 0
     assert "WARNING" not in capsys.readouterr().err
+    # (refine_registration: auto measures the drift to decide: false too)
     assert main([*base, "--out", str(tmp_path / "e"), "--set", "drift_check=false",
-                 str(ideal)]) == 0
+                 "--set", "refine_registration=false", str(ideal)]) == 0
     assert "drift" not in load_cube(tmp_path / "e" / "colorchecker.npz").metadata["stats"]
 
 
