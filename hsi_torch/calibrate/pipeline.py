@@ -832,11 +832,14 @@ def sensor_corrections(
     if idx.size >= MIN_UNREACHED:
         _, info = estimate_veil(white, idx)
         level = veil_level(white, info["mean_dn"])
+    # auto subtracts a glare (a veil shaped across the sensor), not a flat offset: that is a
+    # black pedestal the pedestal check must judge, not stray light
+    flat = level is not None and "exp-quadratic" not in info["model"]
     subtract = level is not None and (
         cfg.stray_light == "subtract"
-        or (cfg.stray_light == "auto" and max(level) > cfg.stray_light_threshold))
+        or (cfg.stray_light == "auto" and max(level) > cfg.stray_light_threshold and not flat))
     f = stray_light_finding(cfg.stray_light, level, cfg.stray_light_threshold, int(idx.size),
-                            subtract, source="white frames")
+                            subtract, source="white frames", flat=flat)
     out["findings"].append(f)
     if level is not None:
         out["settings"]["stray_light_level"] = [round(v, 6) for v in level]

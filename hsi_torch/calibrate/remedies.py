@@ -74,8 +74,10 @@ def stray_light_finding(
     samples: int,
     subtract: bool,
     source: str | None = None,
+    flat: bool = False,
 ) -> Finding:
-    """The finding of the ``stray_light`` decision.
+    """The finding of the ``stray_light`` decision (``flat``: the veil fitted as a constant, a
+    black pedestal rather than glare, which ``auto`` leaves to the pedestal check).
 
     Args:
         mode: the setting (``"auto"``, ``"subtract"``, ``"none"``).
@@ -111,6 +113,13 @@ def stray_light_finding(
             limit=threshold,
             source=source,
         )
+    if top > threshold and flat and mode == "auto":
+        return Finding(
+            "calibration.stray_light", "info",
+            f"{what}: above the threshold but flat across the sensor, a black pedestal rather "
+            "than glare: not subtracted (the pedestal check judges it)", measured=top,
+            limit=threshold, fix="--set stray_light=subtract to remove it anyway",
+            source=source)  # fmt: skip
     if top > threshold:  # only an explicit none leaves a veil above the threshold
         return Finding(
             "calibration.stray_light",
