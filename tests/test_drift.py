@@ -189,9 +189,10 @@ def test_non_finite_samples_count_as_zero(sims):
 
 
 def test_refine_registration_recovers_the_lost_db(sims):
-    ideal = _means_db(sims["ideal"], Reconstructor(sims["bundle"]).reconstruct_file(
-        sims["ideal"] / "scenes" / "colorchecker.tif"))
-    drifted = Reconstructor(sims["bundle"]).reconstruct_file(
+    ideal_res = Reconstructor(sims["bundle"]).reconstruct_file(
+        sims["ideal"] / "scenes" / "colorchecker.tif")
+    ideal = _means_db(sims["ideal"], ideal_res)
+    drifted = Reconstructor(sims["bundle"], refine_registration=False).reconstruct_file(
         sims["drift"] / "scenes" / "colorchecker.tif")
     fixed = Reconstructor(sims["bundle"], refine_registration=True).reconstruct_file(
         sims["drift"] / "scenes" / "colorchecker.tif")
@@ -201,6 +202,15 @@ def test_refine_registration_recovers_the_lost_db(sims):
     assert drifted.stats["drift"]["corrected"] is False
     assert fixed.stats["drift"]["corrected"] is True
     assert fixed.stats["drift"]["sensor_motion_px"] == pytest.approx(2.0, abs=0.2)
+    # the default (auto): the reliable 2 px drift is corrected, the same cube as true; the
+    # undrifted capture's measured motion is below drift_warn_px and left alone
+    auto = Reconstructor(sims["bundle"]).reconstruct_file(
+        sims["drift"] / "scenes" / "colorchecker.tif")
+    assert auto.stats["drift"]["corrected"] is True
+    assert auto.stats["drift"]["finding"]["code"] == "drift.corrected"
+    torch.testing.assert_close(auto.cube, fixed.cube, equal_nan=True)
+    assert ideal_res.stats["drift"]["corrected"] is False
+    assert ideal_res.stats["drift"]["finding"]["code"] == "drift.below_warning"
 
 
 def test_corrected_samples_off_the_sensor_are_dropped(sims):
@@ -282,8 +292,9 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     ideal = sims["ideal"] / "scenes" / "colorchecker.tif"
     assert main([*base, "--out", str(tmp_path / "d"), str(ideal)]) == 0
     assert "WARNING" not in capsys.readouterr().err
+    # (refine_registration: auto measures the drift to decide: false too)
     assert main([*base, "--out", str(tmp_path / "e"), "--set", "drift_check=false",
-                 str(ideal)]) == 0
+                 "--set", "refine_registration=false", str(ideal)]) == 0
     assert "drift" not in load_cube(tmp_path / "e" / "colorchecker.npz").metadata["stats"]
 
 
@@ -302,7 +313,8 @@ def test_registration_keys_are_validated_and_errors_name_them(key, value):
 
 def test_registration_keys_load_and_default():
     s = ReconstructSettings()
-    assert s.registration.check and not s.registration.refine and s.registration.warn_px == 0.5
+    assert s.registration.check and s.registration.refine == "auto"
+    assert s.registration.warn_px == 0.5
     assert s.registration.min_views == 4
     cfg = load_config({"refine_registration": True, "drift_warn_px": None,
                        "drift_min_views": 6}, ReconstructConfig)
@@ -416,6 +428,7 @@ def test_a_colorchecker_drift_it_cannot_measure_is_refused_never_corrected(sims,
                             fit_residual_limit=None).reconstruct_file(cap)  # fmt: skip
     d = res.stats["drift"]
     assert d["refused"] and d["corrected"] is False and d["agreeing_views"] < 4
+    assert d["finding"]["code"] == "drift.unmeasurable" and d["finding"]["severity"] == "warning"
     # the command line: the frame failed, named with the reason; nothing written for it
     base = ["reconstruct", "--bundle", str(sims["bundle"]), "--no-progress", "--set",
             "formats=[npz]", "--set", "preview=false"]  # fmt: skip

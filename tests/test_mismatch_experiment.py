@@ -293,6 +293,24 @@ def test_mismatch_experiment_rows_remedy_and_cache(mm_run, small_set: Path, monk
     assert data["ideal"]["remedy"]["applied"] == {
         "stray_light": True, "defects": True, "refine_registration": True, "white_mismatch": {}}
     assert cc("ideal", "calibrated") - cc("drift", "calibrated") > 3.0
+    # the shipped defaults: nothing switched on for the ideal device (its calibration is the
+    # calibrated column's, not done twice), the veil measured and subtracted (the remedy's own
+    # calibration, reused), the drift corrected; each within 1 dB of the ideal device
+    rows = out / "rows"
+    assert (rows / "ideal" / "calib_defaults.npz").is_file()
+    assert not (rows / "ideal" / "calib.npz").exists()
+    assert not (rows / "stray_light" / "calib_stray_light.npz").exists()
+    assert cc("stray_light", "defaults") == cc("stray_light", "remedy")
+    assert data["ideal"]["defaults"]["applied"]["stray_light"] is False
+    assert data["stray_light"]["defaults"]["applied"]["stray_light"] is True
+    assert data["drift"]["defaults"]["drift"]["colorchecker"]["corrected"] is True
+    for row in ("stray_light", "drift"):
+        assert cc("ideal", "calibrated") - cc(row, "defaults") < 1.0, row
+    lines = {line.split(" | ")[0].strip("| "): line for line in md.splitlines()[2:]}
+    assert "veil subtracted" in lines["stray_light"]
+    assert "drift corrected (colorchecker)" in lines["drift"]
+    # the scene under A with a D65 white: not correctable, but said (measured ratio 7.4)
+    assert "illuminant warning (colorchecker" in lines["all"]
     # a scene-only effect: the ideal calibration frames linked, its scenes rendered anew
     drift = out / "rows" / "drift" / "captures"
     assert os.path.samefile(drift / "white" / "white_00.tif", small_set / "white" / "white_00.tif")

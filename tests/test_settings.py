@@ -147,9 +147,13 @@ def test_keys_without_effect_are_named_once_per_run(tmp_path, capsys):
     from hsi_torch.cli import main
 
     s = ReconstructSettings.from_flat(lam=2, admm_iters=5, noise_read_e=7, drift_check=False,
-                                      drift_warn_px=2, preview=False, preview_size=99)  # fmt: skip
+                                      refine_registration=False, drift_warn_px=2, preview=False,
+                                      preview_size=99)  # fmt: skip
     msgs = s.inert()
     assert len(msgs) == 5
+    # refine_registration: auto (the default) measures the drift, and decides by drift_warn_px
+    assert not any("drift_warn_px" in m for m in ReconstructSettings.from_flat(
+        drift_check=False, drift_warn_px=2).inert())
     assert msgs[0].startswith("setting lam=2.0 has no effect") and "prior: tv" in msgs[0]
     assert any("admm_iters=5" in m and "active_set" in m for m in msgs)
     assert not ReconstructSettings.from_flat(prior="tv", lam=2, solver="admm",

@@ -222,20 +222,32 @@ class CalibrateConfig:
             "warn only says so"
         ),
     )
-    stray_light: Literal["none", "subtract"] = field(
-        default="none",
+    stray_light: Literal["auto", "none", "subtract"] = field(
+        default="auto",
         metadata=_h(
-            "subtract: estimate the veil of stray light in every lit frame from the sensor area "
-            "no light reaches (judged on the white) and subtract it; the bundle records it, so "
+            "the veil of stray light, measured on the white where no light reaches (judged on "
+            "the white): auto subtracts it from every lit frame when it is above "
+            "stray_light_threshold, subtract always, none never; the bundle records it, so "
             "reconstruction subtracts it from the captures too"
         ),
     )
-    defects: Literal["none", "mask"] = field(
-        default="none",
+    stray_light_threshold: float = field(
+        default=0.002,
         metadata=_h(
-            "mask: find hot (dark frames) and dead (white frames) pixels and write them into "
-            "the bundle; reconstruction drops the observations that sample them"
+            "stray_light: auto subtracts a veil above this fraction of the white's mean "
+            "(largest colour; the ideal device reads ~0, the documented 2 % veil ~0.02)"
         ),
+    )
+    defects: Literal["auto", "none", "mask"] = field(
+        default="auto",
+        metadata=_h(
+            "hot (dark frames) and dead (white frames) pixels: auto masks them when at least "
+            "defect_min_pixels are found, mask always writes what is found, none never; "
+            "reconstruction drops the observations that sample a masked pixel"
+        ),
+    )
+    defect_min_pixels: int = field(
+        default=1, metadata=_h("defects: auto masks when at least this many raw pixels are found")
     )
     defect_hot_sigma: float = field(
         default=10.0, metadata=_h("hot: dark above its median by this many robust sigmas")
@@ -267,6 +279,14 @@ class CalibrateConfig:
             raise ValueError(f"min_views must be >= 1, got {self.min_views}")
         if not self.defect_hot_sigma > 0:
             raise ValueError(f"defect_hot_sigma must be > 0, got {self.defect_hot_sigma}")
+        if not 0 <= self.stray_light_threshold < 1:
+            raise ValueError(
+                f"stray_light_threshold must be in [0, 1), got {self.stray_light_threshold}"
+            )
+        if not (isinstance(self.defect_min_pixels, int) and self.defect_min_pixels >= 1):
+            raise ValueError(
+                f"defect_min_pixels must be an integer >= 1, got {self.defect_min_pixels!r}"
+            )
         if not 0 < self.defect_dead_ratio < 1:
             raise ValueError(f"defect_dead_ratio must be in (0, 1), got {self.defect_dead_ratio}")
 

@@ -65,6 +65,14 @@ from hsi_torch.calibrate.registration import (
     check_registration,
     register_views,
 )
+from hsi_torch.calibrate.remedies import (
+    MIN_UNREACHED,
+    defects_finding,
+    findings_dicts,
+    flat_indices,
+    stray_light_finding,
+    veil_level,
+)
 from hsi_torch.calibrate.response import ResponseResult, estimate_response_field
 from hsi_torch.calibrate.transmittance import (
     brf_transmittance,
@@ -75,6 +83,7 @@ from hsi_torch.config import to_dict
 from hsi_torch.console import progress_bar, progress_enabled
 from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import CalibrationError, FileFormatError
+from hsi_torch.findings import findings_from_dicts, warn_findings
 from hsi_torch.io.bundle import CalibrationBundle, make_provenance
 from hsi_torch.io.capture_set import (
     CaptureSet,
@@ -87,7 +96,12 @@ from hsi_torch.io.radiometry import (
     default_margin_px,
     outside_views_index,
 )
-from hsi_torch.io.sensor_corrections import estimate_veil, find_defects, unreached_index
+from hsi_torch.io.sensor_corrections import (
+    dilate_mask,
+    estimate_veil,
+    find_defects,
+    unreached_index,
+)
 from hsi_torch.optics.geometry import warp_views
 from hsi_torch.spectral import SpectralGrid, band_widths
 
@@ -149,6 +163,9 @@ class CalibrationReport:
     black_level: str = ""
     pedestal: dict[str, Any] | None = None
     camera: str | None = None
+    #: the remedies' decisions (:mod:`hsi_torch.calibrate.remedies`), as
+    #: :meth:`hsi_torch.findings.Finding.to_dict`; also in the bundle's ``settings["findings"]``
+    findings: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -197,6 +214,8 @@ class CalibrationReport:
                                                                 strict=True))
                     + f" DN (limit {max(g['pedestal_limit_dn']):.3g} DN)"
                 )  # fmt: skip
+        for f in findings_from_dicts(self.findings, "report"):
+            lines.append(f"finding: {f.text()}")
         for n in self.notes:
             lines.append(f"note: {n}")
         if self.timings_s:
@@ -778,57 +797,72 @@ def sensor_corrections(
     cs: CaptureSet, reader: CaptureReader, outside: np.ndarray, cfg: CalibrateConfig,
     notes: list[str],
 ) -> dict[str, Any]:
-    """Set up the ``stray_light`` and ``defects`` remedies (after the dark frames are read).
+    """Decide and set up the ``stray_light`` and ``defects`` remedies (after the dark frames are
+    read; :mod:`hsi_torch.calibrate.remedies`).
 
-    ``stray_light: subtract``: the unreached sensor samples are the geometric outside of the
-    views where the mean white frame is dark (:func:`~hsi_torch.io.sensor_corrections.
-    unreached_index`, margin twice the pedestal check's); the reader then subtracts the veil
-    measured there from every frame it reads. ``defects: mask``: hot pixels from the dark
-    frames' per-pixel mean, dead pixels from the mean white frame
-    (:func:`~hsi_torch.io.sensor_corrections.find_defects`).
+    The veil is measured on the mean white frame at the unreached sensor samples (the
+    geometric outside of the views where the mean white frame is dark,
+    :func:`~hsi_torch.io.sensor_corrections.unreached_index`, margin twice the pedestal
+    check's); ``stray_light: auto`` subtracts it when its level relative to the white is above
+    ``stray_light_threshold``, ``subtract`` always, ``none`` never (the reader then subtracts
+    it from every frame it reads). Hot pixels come from the dark frames' per-pixel mean, dead
+    pixels from the mean white frame (:func:`~hsi_torch.io.sensor_corrections.find_defects`);
+    ``defects: auto`` masks them when at least ``defect_min_pixels`` are found, ``mask``
+    always, ``none`` never. Each decision is a finding (also when the setting is explicit).
 
     Returns:
-        ``{"settings": {...}, "extras": {...}}`` for the bundle: ``settings["stray_light"]``
-        (``"subtract"``), ``settings["defects"]`` (counts), ``extras["unreached_index"]``
-        ``(K,)`` int64 and ``extras["defect_pixels"]`` ``(D,)`` int64 flat sensor indices.
+        ``{"settings": {...}, "extras": {...}, "findings": [Finding, ...]}`` for the bundle:
+        ``settings["stray_light"]`` (``"subtract"`` when subtracted), ``settings["defects"]``
+        (counts, when masked), ``extras["unreached_index"]`` ``(K,)`` int64 and
+        ``extras["defect_pixels"]`` ``(D,)`` int64 flat sensor indices.
     """
-    out: dict[str, Any] = {"settings": {}, "extras": {}}
-    if cfg.stray_light == "none" and cfg.defects == "none":
-        return out
+    out: dict[str, Any] = {"settings": {}, "extras": {}, "findings": []}
     if not cs.white:
-        raise ValueError("stray_light: subtract and defects: mask need white frames")
+        if cfg.stray_light == "subtract" or cfg.defects == "mask":
+            raise ValueError("stray_light: subtract and defects: mask need white frames")
+        return out  # auto: nothing to decide from
     was = reader._recording
     reader._recording = False  # a pre-read: the pedestal is recorded when the frames are used
     try:
         white, _, _ = reader.read_mean(list(cs.white))
     finally:
         reader._recording = was
-    if cfg.stray_light == "subtract":
-        idx = unreached_index(white, outside, margin_px=2.0 * default_margin_px(reader.size))
-        if idx.size < 64:
-            msg = (f"stray_light: subtract: only {idx.size} unreached sensor samples (the views "
-                   "and their neighbours light the whole sensor); the veil is not subtracted")
-            warnings.warn(msg, UserWarning, stacklevel=3)
-            notes.append(msg)
-        else:
-            _, info = estimate_veil(white, idx)
-            reader.veil_index = idx
-            out["settings"]["stray_light"] = "subtract"
-            out["settings"]["stray_light_white_veil_dn"] = [round(v, 3) for v in info["mean_dn"]]
-            out["extras"]["unreached_index"] = idx
-            notes.append(f"stray light: veil measured on {idx.size} unreached sensor samples and "
-                         f"subtracted from every lit frame; on the white its mean is "
-                         f"{', '.join(f'{v:.2f}' for v in info['mean_dn'])} DN (R, G, B)")
-    if cfg.defects == "mask":
-        bad = find_defects(reader.dark_pixels, white, hot_sigma=cfg.defect_hot_sigma,
-                           dead_ratio=cfg.defect_dead_ratio)
-        pix = bad.reshape(-1).nonzero().squeeze(1).cpu().numpy().astype(np.int64)
-        out["settings"]["defects"] = {
-            "pixels": int(pix.size), "from": "dark and white" if reader.dark_pixels is not None
-            else "white only (no dark frames: hot pixels not found)"}
+    idx = unreached_index(white, outside, margin_px=2.0 * default_margin_px(reader.size))
+    level = None
+    if idx.size >= MIN_UNREACHED:
+        _, info = estimate_veil(white, idx)
+        level = veil_level(white, info["mean_dn"])
+    # auto subtracts a glare (a veil shaped across the sensor), not a flat offset: that is a
+    # black pedestal the pedestal check must judge, not stray light
+    flat = level is not None and "exp-quadratic" not in info["model"]
+    subtract = level is not None and (
+        cfg.stray_light == "subtract"
+        or (cfg.stray_light == "auto" and max(level) > cfg.stray_light_threshold and not flat))
+    f = stray_light_finding(cfg.stray_light, level, cfg.stray_light_threshold, int(idx.size),
+                            subtract, source="white frames", flat=flat)
+    out["findings"].append(f)
+    if level is not None:
+        out["settings"]["stray_light_level"] = [round(v, 6) for v in level]
+    if subtract:
+        reader.veil_index = idx
+        out["settings"]["stray_light"] = "subtract"
+        out["settings"]["stray_light_white_veil_dn"] = [round(v, 3) for v in info["mean_dn"]]
+        out["extras"]["unreached_index"] = idx
+
+    origin = ("dark and white" if reader.dark_pixels is not None
+              else "white only (no dark frames: hot pixels not found)")
+    raw = find_defects(reader.dark_pixels, white, hot_sigma=cfg.defect_hot_sigma,
+                       dead_ratio=cfg.defect_dead_ratio, dilate_px=0)
+    n_raw = int(raw.sum())
+    mask = cfg.defects == "mask" or (cfg.defects == "auto" and n_raw >= cfg.defect_min_pixels)
+    pix = flat_indices(dilate_mask(raw, 1)) if mask else np.zeros(0, np.int64)
+    f = defects_finding(cfg.defects, n_raw, int(pix.size), cfg.defect_min_pixels, mask, origin,
+                        source="dark and white frames")
+    out["findings"].append(f)
+    if mask:
+        out["settings"]["defects"] = {"pixels": int(pix.size), "raw_pixels": n_raw,
+                                      "from": origin}
         out["extras"]["defect_pixels"] = pix
-        notes.append(f"defects: {pix.size} sensor pixels masked (hot in the dark frames, dead in "
-                     "the white, dilated by the demosaic's 3x3 footprint)")
     return out
 
 
@@ -899,6 +933,7 @@ def calibrate_capture_set(
         dark_mode = cfg.dark if cs.dark else "none (no dark frames; black level only)"
         tm["dark"] = time.perf_counter() - t0
         corrections = sensor_corrections(cs, reader, outside, cfg, notes)
+        warn_findings(corrections["findings"], stacklevel=2)
 
         t0 = time.perf_counter()
         reg = register_grid_shots(cs, reader, lay, cfg, notes, tick)
@@ -926,9 +961,9 @@ def calibrate_capture_set(
         t0 = time.perf_counter()
         bundle, modulated, vsum = assemble_bundle(cs, lay, grid, wl, reg, trans, resp, patch,
                                                   reader, dark_mode, cfg, pedestal)  # fmt: skip
-        if corrections["settings"]:
-            bundle.settings.update(corrections["settings"])
-            bundle.extras.update(corrections["extras"])
+        bundle.settings.update(corrections["settings"])
+        bundle.extras.update(corrections["extras"])
+        bundle.settings["findings"] = findings_dicts(corrections["findings"])
         tm["bundle"] = time.perf_counter() - t0
         tick(1, "bundle")
     finally:
@@ -956,6 +991,7 @@ def calibrate_capture_set(
         black_level=bundle.settings["black_level_source"],
         pedestal=pedestal,
         camera=None if reader.camera is None else reader.camera.name,
+        findings=findings_dicts(corrections["findings"]),
     )
     return bundle, report
 

@@ -11,6 +11,17 @@ oracle bundle (the truth of the calibrated, ideal-model device). Scores against 
 patch; PSNR and SAM) and per pixel over the patch interiors, and, when the set holds the CAVE
 scene, per pixel over its valid footprint. "Lost" is ideal − effect.
 
+**Shipped defaults** (the ``defaults`` scores): every row calibrated with the shipped
+``calibrate.yaml`` (``stray_light: auto``, ``defects: auto``: the remedies the white and dark
+frames call for, :mod:`hsi_torch.calibrate.remedies`) and reconstructed with the shipped settings
+(``refine_registration: auto``, :func:`hsi_torch.recon.drift.drift_decision`): what a lab gets
+without knowing its device's departures. The findings (the bundle's decisions, each scene's
+drift decision and illuminant check) are kept with the scores (``findings``) and summarised in
+the table (:func:`decisions`). The ``calibrated`` and ``remedy`` scores apply the remedies
+exactly as named (:data:`NO_REMEDY` plus the remedy's parts; the registration refined only by
+the ``refine`` part); a calibration whose automatic decisions equal the remedies asked for is
+reused for them (the same calibration).
+
 **Remedies** (``remedies: true``), measured on the same captures (:data:`ROW_REMEDIES`; the
 ``remedy`` column names every part a number includes):
 
@@ -86,7 +97,7 @@ from hsi_torch.simulate.rerender import rerender_after_calibration, white_mismat
 
 __all__ = ["MismatchConfig", "run_mismatch", "row_keys", "AFTER_CALIBRATION_EFFECTS",
            "REMEDIES", "REMEDY_PARTS", "ROW_REMEDIES", "remedy_parts", "remedy_name",
-           "mismatch_table"]
+           "mismatch_table", "decisions", "with_refine", "NO_REMEDY"]
 
 #: effects that act on the scene captures only: their rows reuse the ideal calibration
 AFTER_CALIBRATION_EFFECTS = ("drift", "brf_temperature", "scene_illuminant")
@@ -231,9 +242,17 @@ def _sim_cfg(cfg: MismatchConfig, keys: dict[str, Any]) -> SimulateConfig:
                         *_overrides(keys)])
 
 
-def _cal_cfg(cfg: MismatchConfig, remedy: tuple[str, ...] = ()) -> CalibrateConfig:
+#: calibrate overrides of the "calibrated" and "remedy" bundles: the remedies exactly as asked
+#: (the shipped ``auto`` decides by the data; the "defaults" column keeps it)
+NO_REMEDY = ("stray_light=none", "defects=none")
+
+
+def _cal_cfg(cfg: MismatchConfig, remedy: tuple[str, ...] | None = ()) -> CalibrateConfig:
+    """The calibration's config: ``remedy`` ``None`` is the shipped defaults (``auto``), a
+    tuple the remedies it names and no other."""
+    sets = [] if remedy is None else [*NO_REMEDY, *remedy]
     return load_config(shipped_config("calibrate"), CalibrateConfig,
-                       ["progress=false", *cfg.calibrate_set, *remedy])
+                       ["progress=false", *cfg.calibrate_set, *sets])
 
 
 class _Row:
@@ -311,9 +330,21 @@ def _white_captures(cfg: MismatchConfig, out: Path, name: str, caps: Path) -> Pa
     return d
 
 
+def _decided(path: Path) -> tuple[bool, bool]:
+    """(veil subtracted, defects masked) of a bundle on disk."""
+    b = CalibrationBundle.load(path)
+    return b.settings.get("stray_light") == "subtract", "defect_pixels" in b.extras
+
+
 def _bundle(cfg: MismatchConfig, captures: Path, path: Path,
-            remedy: tuple[str, ...] = ()) -> Path:
-    """Calibrate ``captures`` into ``path`` once (reused)."""
+            remedy: tuple[str, ...] | None = (), defaults: Path | None = None) -> Path:
+    """Calibrate ``captures`` into ``path`` once (reused). ``remedy`` ``None``: the shipped
+    defaults. ``defaults``: the same captures' defaults bundle, returned instead when its
+    decisions are the remedies asked for (the same calibration, bit for bit)."""
+    if remedy is not None and defaults is not None and defaults.is_file() \
+            and _decided(defaults) == ("stray_light=subtract" in remedy,
+                                       "defects=mask" in remedy):
+        return defaults
     if not path.is_file():
         t0 = time.perf_counter()
         bundle, _ = calibrate_capture_set(captures, _cal_cfg(cfg, remedy), device=cfg.device,
@@ -321,7 +352,8 @@ def _bundle(cfg: MismatchConfig, captures: Path, path: Path,
         bundle.save(path)
         del bundle
         gc.collect()
-        info(f"  calibrated {captures.parent.name}{' (remedy)' if remedy else ''} in "
+        tag = " (shipped defaults)" if remedy is None else " (remedy)" if remedy else ""
+        info(f"  calibrated {captures.parent.name}{tag} in "
              f"{time.perf_counter() - t0:.0f} s")
     return path
 
@@ -357,17 +389,29 @@ class _Reconstructors:
         self.kept: dict[str, Reconstructor] = {}
 
     def get(self, key: str | None, make) -> Reconstructor:
+        """A reconstructor of the bundle ``make()`` gives (a path or a bundle), the registration
+        never refined (the "calibrated" and "oracle" columns; :func:`with_refine` for others)."""
         if key is not None and key in self.kept:
             return self.kept[key]
         b = make()
         b = CalibrationBundle.load(b) if isinstance(b, Path) else b
         # not in the module's cache: a row's own bundle is freed with its reconstructor
         sens = precompute_sensing(b, beta=self.cfg.beta, device=self.cfg.device, cache=False)
+        found = list(b.settings.get("findings") or [])
         del b
-        rec = Reconstructor(sens, beta=self.cfg.beta)
+        rec = Reconstructor(sens, beta=self.cfg.beta, refine_registration=False)
+        rec.bundle_findings = found  # the calibration's decisions, for the scores
         if key is not None:
             self.kept[key] = rec
         return rec
+
+
+def with_refine(rec: Reconstructor, refine: bool | str) -> Reconstructor:
+    """``rec``'s factorisation with ``refine_registration=refine`` (and its bundle's
+    findings)."""
+    out = Reconstructor(rec.sensing, beta=rec.settings.solve.beta, refine_registration=refine)
+    out.bundle_findings = getattr(rec, "bundle_findings", [])
+    return out
 
 
 def score_captures(
@@ -400,13 +444,18 @@ def score_captures(
     white_mm = read_truth_meta(captures).get("white_mismatch", {})
     refine = rec.settings.registration.refine
     out: dict[str, Any] = {"applied": {**want, "refine_registration": refine,
-                                       "white_mismatch": white_mm}, "drift": {}}
+                                       "white_mismatch": white_mm}, "drift": {},
+                           "findings": list(getattr(rec, "bundle_findings", []))}
 
     def drift_stats(name: str, res) -> None:
         d = res.stats.get("drift")
         if d is not None:
             out["drift"][name] = {k: d.get(k) for k in ("corrected", "sensor_shift_px",
                                                         "sensor_rotation_deg", "measured_views")}
+            if d.get("finding"):
+                out["findings"].append({**d["finding"], "source": name})
+        if res.stats.get("illuminant"):
+            out["findings"].append({**res.stats["illuminant"], "source": name})
     pidx = truth["colorchecker_patch_index"]
     spectra = np.asarray(truth["colorchecker_spectra"], np.float64)
     e = erode_px(truth, cfg.erode_mm)
@@ -482,13 +531,18 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
             raise FileNotFoundError(f"ideal_captures: {ideal_dir}/manifest.json not found")
     else:
         ideal_dir = _captures(cfg, out, "ideal", ideal.dir)
+    ideal_defaults = _bundle(cfg, ideal_dir, ideal.dir / "calib_defaults.npz", None)
     ideal_bundle = (Path(cfg.ideal_bundle) if cfg.ideal_bundle is not None
-                    else _bundle(cfg, ideal_dir, ideal.dir / "calib.npz"))
+                    else _bundle(cfg, ideal_dir, ideal.dir / "calib.npz",
+                                 defaults=ideal_defaults))
     rows: dict[str, _Row] = {"ideal": ideal}
     recs = _Reconstructors(cfg)
     ideal_rec = lambda: recs.get("ideal", lambda: ideal_bundle)  # noqa: E731
     ideal_oracle = lambda: recs.get("oracle", lambda: bundle_from_truth(ideal_dir))  # noqa: E731
+    ideal_def = lambda: with_refine(recs.get("ideal_defaults", lambda: ideal_defaults),  # noqa: E731
+                                    "auto")
     _score_variant(ideal, "calibrated", lambda: score_captures(ideal_dir, ideal_rec(), cfg))
+    _score_variant(ideal, "defaults", lambda: score_captures(ideal_dir, ideal_def(), cfg))
     _score_variant(ideal, "oracle", lambda: score_captures(ideal_dir, ideal_oracle(), cfg))
     calibrated_of: dict[str, Any] = {"ideal": ideal_rec}
     caps_of: dict[str, Path] = {"ideal": ideal_dir}
@@ -497,16 +551,22 @@ def run_mismatch(cfg: MismatchConfig, out: Path, *, device: str | None = None) -
         info(f"row {name}: mismatch {row_keys(name)}")
         caps = caps_of[name] = _captures(cfg, out, name, ideal_dir)
         if name in AFTER_CALIBRATION_EFFECTS:
-            calibrated = ideal_rec
+            calibrated, defaults = ideal_rec, ideal_def
         else:
+            # the shipped defaults first: a calibration whose decisions are the remedies asked
+            # for is that bundle (no second calibration)
+            defaults = lambda c=caps, r=row: with_refine(recs.get(  # noqa: E731
+                None, lambda: _bundle(cfg, c, r.dir / "calib_defaults.npz", None)), "auto")
             calibrated = lambda c=caps, r=row: recs.get(  # noqa: E731
-                None, lambda: _bundle(cfg, c, r.dir / "calib.npz"))
+                None, lambda: _bundle(cfg, c, r.dir / "calib.npz",
+                                      defaults=r.dir / "calib_defaults.npz"))
         calibrated_of[name] = calibrated
         # the truth (and its oracle) is the ideal device's unless the filter's thickness map,
         # which is in the truth's B, is on
         own_truth = any(k.startswith("brf_thickness") for k in row_keys(name))
         oracle = ((lambda c=caps: recs.get(None, lambda: bundle_from_truth(c))) if own_truth
                   else ideal_oracle)
+        _score_variant(row, "defaults", lambda c=caps, f=defaults: score_captures(c, f(), cfg))
         _score_variant(row, "calibrated", lambda c=caps, f=calibrated: score_captures(c, f(), cfg))
         _score_variant(row, "oracle", lambda c=caps, f=oracle: score_captures(c, f(), cfg))
         if cfg.remedies and name in ("stray_light", "sensor_defects", "drift"):
@@ -553,14 +613,39 @@ def _remedy(cfg: MismatchConfig, out: Path, name: str, caps: Path, calibrated,
                   *(["defects=mask"] if "defects" in parts else [])])
     if "white" in parts or sets:
         tag = "_".join(p for p in ("white", "stray_light", "defects") if p in parts)
-        rec = recs.get(None, lambda: _bundle(cfg, caps, row_dir / f"calib_{tag}.npz", sets))
+        own = None if "white" in parts else row_dir / "calib_defaults.npz"
+        rec = recs.get(None, lambda: _bundle(cfg, caps, row_dir / f"calib_{tag}.npz", sets,
+                                             defaults=own))
     else:
         rec = calibrated()
     if "refine" in parts:
         # the same factorisation; every scene's drift measured and its sampling corrected
-        rec = Reconstructor(rec.sensing, beta=cfg.beta, refine_registration=True)
+        rec = with_refine(rec, True)
     return score_captures(caps, rec, cfg, {"stray_light": "stray_light" in parts,
                                            "defects": "defects" in parts})
+
+
+def decisions(findings: list[dict[str, Any]]) -> str:
+    """What the shipped defaults decided, from a score's findings: the remedies they switched
+    on (veil subtracted, defects masked, drift corrected per scene) and every warning."""
+    out: list[str] = []
+    for f in findings:
+        code, sev, msg = f.get("code"), f.get("severity"), str(f.get("message", ""))
+        if code == "calibration.stray_light" and sev == "info" and "subtracted from" in msg:
+            text = "veil subtracted"
+        elif code == "calibration.defects" and sev == "info" and "masked with" in msg:
+            text = f"{f.get('measured')} defects masked"
+        elif code == "drift.corrected":
+            text = f"drift corrected ({f.get('source')})"
+        elif code == "capture.illuminant" and sev == "warning":
+            text = f"illuminant warning ({f.get('source')}: ratio {f.get('measured')})"
+        elif sev in ("warning", "error"):
+            text = f"{code} {sev} ({f.get('source')})"
+        else:
+            continue
+        if text not in out:
+            out.append(text)
+    return "; ".join(out) or "—"
 
 
 def _fmt(v: float | None, ref: float | None = None) -> str:
@@ -586,6 +671,7 @@ def mismatch_table(data: dict[str, Any]) -> tuple[str, list[dict[str, str]]]:
     for name, r in data.items():
         row = {"effect": name}
         for variant, ref_variant, label in (("calibrated", "calibrated", "calibrated"),
+                                            ("defaults", "calibrated", "shipped defaults"),
                                             ("oracle", "oracle", "oracle"),
                                             ("remedy", "calibrated", "remedy")):
             row[f"{label}: CC means dB"] = _fmt(get(r, variant, "colorchecker", "means_db"),
@@ -601,6 +687,9 @@ def mismatch_table(data: dict[str, Any]) -> tuple[str, list[dict[str, str]]]:
                                                 get(ideal, ref_variant, "cave", "pixel_db"))
                 if label != "oracle":
                     row[f"{label}: CAVE SAM °"] = _fmt(get(r, variant, "cave", "pixel_sam"))
+            if label == "shipped defaults":
+                row["shipped defaults: decided"] = decisions(
+                    (r.get("defaults") or {}).get("findings", []))
         row["remedy"] = r.get("remedy_name") or "—"
         rows.append(row)
     head = list(rows[0])

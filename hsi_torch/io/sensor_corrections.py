@@ -10,12 +10,14 @@ extrapolated under the views: ``exp`` of a quadratic in the normalised sensor co
 Gaussian-like glare of any centre, width and tilt), or a constant when the blocks do not hold a
 clearly positive veil (too few, or a constant fits them as well). :func:`subtract_veil` removes
 it. The veil must be removed from the calibration frames (white, scan, grid) and from the scene
-captures alike: calibration ``stray_light: subtract`` does the first and records it in the
-bundle, so reconstruction with that bundle does the second.
+captures alike: calibration does the first (``stray_light: auto``, the default, when the veil
+measured on the white is above a threshold; ``subtract`` always) and records it in the bundle, so
+reconstruction with that bundle does the second.
 
 **Hot and dead pixels.** :func:`find_defects` flags hot pixels (far above the dark frame's
 level) and dead pixels (far below their neighbours in a white frame, where it is lit), dilated by
-the demosaic's footprint. Calibration ``defects: mask`` writes them into the bundle; a
+the demosaic's footprint. Calibration ``defects: auto`` (the default: when any is found) or
+``mask`` writes them into the bundle; a
 reconstruction with that bundle drops every observation that samples one of them, as it drops
 saturated samples.
 """
@@ -29,7 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["estimate_veil", "subtract_veil", "find_defects", "unreached_index", "VEIL_BLOCKS"]
+__all__ = ["estimate_veil", "subtract_veil", "find_defects", "dilate_mask", "unreached_index",
+           "VEIL_BLOCKS"]
 
 #: blocks along the sensor's longer side in which the unreached samples are averaged
 VEIL_BLOCKS = 24
@@ -218,7 +221,9 @@ def find_defects(
             where a colour is the minimum of its 3 × 3 neighbours and reads less than
             ``dead_ratio`` times the lower quartile of its 5 × 5 window, where that quartile is
             at least ``lit_fraction`` of the frame's 99th percentile (tile edges, where half
-            the window is dark, are not taken).
+            the window is dark, are not taken), and whose other 3 × 3 neighbours all read at
+            least a quarter of that quartile (a tile's corner, a colour's own edge are not
+            taken: their dark samples come in groups).
         dilate_px: the flags are dilated by this many px (a bilinear demosaic spreads one raw
             sample over its 3 × 3 neighbours).
 
@@ -253,8 +258,17 @@ def find_defects(
             # of a tile's edge (half the window dark): edges are not taken for dead pixels
             q = _local_kth(wv, 5, 7)
             trough = -F.max_pool2d(-wv[None, None], 3, stride=1, padding=1)[0, 0]
-            bad |= (q >= lit_fraction * top) & (q > 0) & (wv < dead_ratio * q) & (wv <= trough)
-    if dilate_px > 0:
-        k = 2 * int(dilate_px) + 1
-        bad = F.max_pool2d(bad[None, None].float(), k, stride=1, padding=int(dilate_px))[0, 0] > 0
-    return bad
+            # isolated: the demosaic darkens a dead sample's 3 x 3 neighbours by at most half,
+            # a tile's corner or a colour's own edge leaves dark neighbours beside it
+            second = _local_kth(wv, 3, 2)
+            bad |= ((q >= lit_fraction * top) & (q > 0) & (wv < dead_ratio * q) & (wv <= trough)
+                    & (second >= 0.25 * q))  # fmt: skip
+    return dilate_mask(bad, dilate_px)
+
+
+def dilate_mask(mask: torch.Tensor, px: int) -> torch.Tensor:
+    """``(H, W)`` bool ``mask`` dilated by a ``(2·px + 1)²`` square (``px <= 0``: unchanged)."""
+    if px <= 0:
+        return mask
+    k = 2 * int(px) + 1
+    return F.max_pool2d(mask[None, None].float(), k, stride=1, padding=int(px))[0, 0] > 0

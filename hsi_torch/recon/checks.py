@@ -364,6 +364,9 @@ def frame_findings(
     s = settings if settings is not None else ReconstructSettings()
     out = capture_findings(stats, s, source) + fit_findings(stats, s, source)
     out += drift_findings(stats, s, source)
+    ill = stats.get("illuminant")  # the scene's light against the white's (recon/illuminant.py)
+    if isinstance(ill, Mapping):
+        out.append(Finding.from_dict(ill))
     return escalated(out, s.output.strict)
 
 
@@ -479,15 +482,15 @@ def drift_findings(
         # explains the capture (another camera's RAW: 1 of 9 views, 0.25): refused
         fit, warn = stats.get("fit_residual"), settings.output.fit_residual_warning
         unexplained = (isinstance(fit, float) and warn is not None and fit > warn)
-        f = drift_refused_finding(drift, "error" if reg.refine or unexplained else "warning",
-                                  source)  # fmt: skip
-        if unexplained and not reg.refine:
+        sev = "error" if reg.refine is True or unexplained else "warning"
+        f = drift_refused_finding(drift, sev, source)
+        if unexplained and reg.refine is not True:
             f = dataclasses.replace(f, message=f.message.replace(
                 ", and refine_registration would refuse the frame", "") + f"; with the fit "
                 f"residual {fit:.3f} > fit_residual_warning={warn:g}, neither the bundle nor a "
                 "drift of the sensor explains the capture: refused")  # fmt: skip
         return [f]
-    if drift.get("textured_views") == 0 and reg.refine:
+    if drift.get("textured_views") == 0 and reg.refine is True:
         return [Finding("drift.no_texture", "warning", "refine_registration: nothing corrected, "
                         "no view has texture to measure the drift from (a flat field)",
                         measured=0, limit=1, source=source,
@@ -506,7 +509,8 @@ def drift_findings(
                         measured=round(float(moved), 3), limit=reg.warn_px, source=source)]
     return [Finding("drift.moved", "warning", what + "; the views are misaligned and the "
                     "spectra are biased", measured=round(float(moved), 3), limit=reg.warn_px,
-                    fix="--set refine_registration=true corrects it, or recalibrate",
+                    fix="--set refine_registration=true (or auto, the default) corrects it, or "
+                    "recalibrate",
                     source=source)]
 
 

@@ -51,6 +51,14 @@ ColorChecker (a grid of patches) beyond 9 px, whose 12 px drift was fitted as 30
 view before, while its USAF and CAVE scenes measure 12 px right. A frame without texture (a
 flat field) is not refused: nothing is measured.
 
+**When it is corrected** (:func:`drift_decision`): ``refine_registration: auto`` (the default)
+corrects a frame's drift when it is measured reliably (no refusal) and the fitted motion moves
+a view's pixel by more than ``drift_warn_px`` (0.5 px): below that the correction would change
+the cube by less than the noise, and a drift it cannot measure is not "corrected" by a guess —
+the frame is kept as calibrated, with a ``drift.unmeasurable`` warning finding.
+``refine_registration: true`` corrects whatever is measured and refuses (:class:`DriftError`)
+a frame whose drift cannot be measured; ``false`` never corrects (the check still measures).
+
 **What it cannot see**: motion of parts of the optics relative to each other (a kaleidoscope
 that shifts against the relay lens changes each view's homography in its own way; that shows
 as a large per-view fit residual, :attr:`DriftEstimate.residual_px`, but is not corrected),
@@ -72,7 +80,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hsi_torch.findings import RefusedError
+from hsi_torch.findings import Finding, RefusedError
 
 __all__ = [
     "DriftEstimate",
@@ -86,6 +94,7 @@ __all__ = [
     "VIEW_STATUSES",
     "motion_points",
     "drift_motion_px",
+    "drift_decision",
 ]
 
 #: ECC correlation coefficient below which a view's alignment is not trusted (left out of the
@@ -704,3 +713,60 @@ def corrected_sensing(sens: Any, shift_px: Any, rotation_deg: float) -> Any:
         grid[0, v] = moved
         torch.all(moved.abs() <= 1, -1, out=inside[v])  # 0 ≤ x ≤ W − 1 and 0 ≤ y ≤ H − 1
     return dataclasses.replace(sens, sample_grid=grid, sample_inside=inside.to(sens.device))
+
+
+def drift_decision(
+    est: DriftEstimate, motion_px: float, refine: bool | str, warn_px: float | None,
+    source: str | None = None,
+) -> tuple[bool, Finding | None]:
+    """Whether to correct a frame's measured drift, and the finding that says what happened.
+
+    Args:
+        est: the frame's :func:`estimate_drift`.
+        motion_px: :func:`drift_motion_px` of ``est`` (the largest displacement of a pixel a
+            view uses, px).
+        refine: ``refine_registration`` (``True``, ``False`` or ``"auto"``).
+        warn_px: ``drift_warn_px`` (px; ``None``: ``"auto"`` corrects any reliable drift).
+        source: what the frame is (a file), for the finding and the error.
+
+    Returns:
+        ``(correct, finding)``: ``finding`` is ``None`` under ``refine=False`` (the check's own
+        warnings speak for it); codes ``drift.corrected`` (info), ``drift.below_warning``
+        (info: measured, not corrected), ``drift.unmeasurable`` (warning: not corrected),
+        ``drift.no_texture`` (info: nothing to measure).
+
+    Raises:
+        DriftError: ``refine is True`` and the drift cannot be measured (``est.refusal``).
+    """
+    if refine is False:
+        return False, None
+    if refine is True and est.refusal is not None:
+        raise DriftError(f"{source or 'frame'}: refine_registration: {est.refusal}")
+    mode = "auto" if refine == "auto" else "true"
+    if est.textured_views == 0:
+        return False, Finding(
+            "drift.no_texture", "info", "no view has texture to measure the drift from (a flat "
+            f"field): nothing measured, nothing corrected (refine_registration: {mode})",
+            measured=0, limit=est.min_views, source=source)  # fmt: skip
+    if est.refusal is not None:
+        return False, Finding(
+            "drift.unmeasurable", "warning",
+            f"{est.refusal}; not corrected (refine_registration: auto): if the sensor moved, "
+            "the views are misaligned and the spectra biased",
+            measured=est.agreeing_views, limit=est.min_views,
+            fix="recalibrate (or photograph a scene with texture in every view)",
+            source=source)  # fmt: skip
+    if est.sensor_shift_px is None:
+        return False, None
+    t = [round(float(v), 3) for v in est.sensor_shift_px]
+    rot = round(float(est.sensor_rotation_deg or 0.0), 4)
+    what = (f"sensor drift measured reliably ({est.agreement()}): shift {t} px, rotation "
+            f"{rot}°, moving a view's pixel by up to {motion_px:.2f} px")
+    limit = None if refine is True else warn_px
+    if refine == "auto" and warn_px is not None and not motion_px > warn_px:
+        return False, Finding("drift.below_warning", "info",
+                              f"{what}: within drift_warn_px={warn_px:g}, not corrected",
+                              measured=round(motion_px, 3), limit=warn_px, source=source)
+    return True, Finding("drift.corrected", "info",
+                         f"{what}: corrected (refine_registration: {mode})",
+                         measured=round(motion_px, 3), limit=limit, source=source)

@@ -79,7 +79,13 @@ from hsi_torch.recon.checks import (
     measure_capture,
 )
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
-from hsi_torch.recon.drift import DriftError, corrected_sensing, drift_motion_px, estimate_drift
+from hsi_torch.recon.drift import (
+    DriftError,
+    corrected_sensing,
+    drift_decision,
+    drift_motion_px,
+    estimate_drift,
+)
 from hsi_torch.recon.frame import (
     WarmStart,
     _sync,
@@ -87,6 +93,7 @@ from hsi_torch.recon.frame import (
     prepare_input,
     reconstruct_frame,
 )
+from hsi_torch.recon.illuminant import illuminant_finding
 from hsi_torch.recon.nnls import NNLSProblem, prepare_nnls
 from hsi_torch.recon.sensing import (
     BundleSensing,
@@ -817,10 +824,13 @@ class HSIReconstructor(nn.Module):
             t1 = time.perf_counter()
             drift = estimate_drift(sens, img, settings.registration.min_views)
             motion_px = drift_motion_px(sens, drift)
-            if settings.registration.refine and drift.refusal is not None:
+            reg = settings.registration
+            if reg.refine is True and drift.refusal is not None:
                 raise DriftError(f"{source}: refine_registration: {drift.refusal}",
                                  [drift_refused_finding(drift.to_dict(), "error", source)])
-            if settings.registration.refine and drift.sensor_shift_px is not None:
+            correct, drift_finding = drift_decision(drift, motion_px, reg.refine, reg.warn_px,
+                                                    source)  # fmt: skip
+            if correct:
                 sens = corrected_sensing(
                     sens, drift.sensor_shift_px, drift.sensor_rotation_deg or 0.0
                 )
@@ -832,6 +842,9 @@ class HSIReconstructor(nn.Module):
             )  # fmt: skip
         cube, valid, stats, t = out.cube, out.valid, out.stats, out.timings
         st = stats[0]
+        ill = illuminant_finding(cube[0], valid[0], sens.wavelengths_nm, source=source)
+        if ill is not None:  # the scene's light against the white reference's (a finding)
+            st["illuminant"] = ill.to_dict()
         st["exposure_scale"] = scale
         st["source"] = source
         st.update(corr)
@@ -841,6 +854,8 @@ class HSIReconstructor(nn.Module):
                 **drift.to_dict(),
                 "corrected": sens is not own,
                 "sensor_motion_px": round(motion_px, 3),
+                "refine_registration": settings.registration.refine,
+                "finding": None if drift_finding is None else drift_finding.to_dict(),
             }
             timings["drift"] = t_drift
         timings["total"] = time.perf_counter() - t0

@@ -486,7 +486,12 @@ class RegistrationSettings:
             the statistics (``stats["drift"]``, stored with the cube).
         warn_px: warn when the fitted sensor motion moves a view's pixel by more than this
             (px, ``> 0``; ``None``: never).
-        refine: correct the measured sensor motion before solving (implies the measurement).
+        refine: correct the measured sensor motion before solving (implies the measurement):
+            ``True`` always (a drift that cannot be measured refuses the frame,
+            :class:`hsi_torch.recon.drift.DriftError`), ``False`` never, ``"auto"`` (the
+            default) when it is measured reliably and moves a view's pixel by more than
+            ``warn_px``, and a drift that cannot be measured is not corrected (the frame is kept,
+            with a ``drift.unmeasurable`` finding; :func:`hsi_torch.recon.drift.drift_decision`).
         min_views: the fewest views (besides the reference) that must agree on the motion for
             it to be trusted (an integer ``>= 2``); fewer, and ``refine`` refuses the frame
             (:class:`hsi_torch.recon.drift.DriftError`) and the check warns that the drift
@@ -506,10 +511,12 @@ class RegistrationSettings:
         "px (null: never)",
         key="drift_warn_px",
     )
-    refine: bool = _set(
-        False,
+    refine: bool | Literal["auto"] = _set(
+        "auto",
         "correct the measured sensor motion before solving (every view sampled where "
-        "the moved sensor put it; see docs/reconstruct.md)",
+        "the moved sensor put it; see docs/reconstruct.md): auto when it is measured reliably "
+        "and above drift_warn_px (a drift that cannot be measured is left, with a finding), "
+        "true always (one that cannot be measured refuses the frame), false never",
         key="refine_registration",
     )
     min_views: int = _set(
@@ -522,9 +529,10 @@ class RegistrationSettings:
     )
 
     def __post_init__(self) -> None:
-        for key, v in (("drift_check", self.check), ("refine_registration", self.refine)):
-            if not isinstance(v, bool):
-                raise _bad(key, f"must be true or false, got {v!r}")
+        if not isinstance(self.check, bool):
+            raise _bad("drift_check", f"must be true or false, got {self.check!r}")
+        if not (isinstance(self.refine, bool) or self.refine == "auto"):
+            raise _bad("refine_registration", f"must be true, false or auto, got {self.refine!r}")
         _positive_or_none(self, "warn_px", "drift_warn_px", " (px)")
         _count("drift_min_views", self.min_views, 2, allow_none=False)
 
