@@ -66,6 +66,7 @@ from hsi_torch.calibrate.registration import (
     register_views,
 )
 from hsi_torch.calibrate.remedies import (
+    FLAT_VEIL_GAIN,
     MIN_UNREACHED,
     defects_finding,
     findings_dicts,
@@ -834,7 +835,7 @@ def sensor_corrections(
         level = veil_level(white, info["mean_dn"])
     # auto subtracts a glare (a veil shaped across the sensor), not a flat offset: that is a
     # black pedestal the pedestal check must judge, not stray light
-    flat = level is not None and "exp-quadratic" not in info["model"]
+    flat = level is not None and max(info.get("shape_gain") or [1.0]) < FLAT_VEIL_GAIN
     subtract = level is not None and (
         cfg.stray_light == "subtract"
         or (cfg.stray_light == "auto" and max(level) > cfg.stray_light_threshold and not flat))

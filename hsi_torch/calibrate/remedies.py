@@ -38,6 +38,7 @@ import torch
 from hsi_torch.findings import Finding
 
 __all__ = [
+    "FLAT_VEIL_GAIN",
     "VEIL_THRESHOLD",
     "MIN_UNREACHED",
     "veil_level",
@@ -48,6 +49,10 @@ __all__ = [
 #: relative veil (veil mean / white mean over the sensor, largest colour) above which
 #: ``stray_light: auto`` subtracts it
 VEIL_THRESHOLD = 0.002
+#: a veil whose shaped (exp-quadratic) fit explains the unreached blocks less than this many
+#: times better than a constant is flat: a black pedestal the pedestal check judges, which
+#: ``stray_light: auto`` does not subtract (glare falls off across the sensor)
+FLAT_VEIL_GAIN = 2.0
 #: fewest unreached sensor samples the veil is measured on
 MIN_UNREACHED = 64
 

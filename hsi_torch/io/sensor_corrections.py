@@ -102,14 +102,17 @@ def estimate_veil(
         ``(veil, info)``: ``veil`` ``(C, H, W)`` in ``image``'s dtype and device (zeros when the
         index holds fewer than 6 usable blocks); ``info``: per colour ``model``
         (``"exp-quadratic"``, ``"constant"`` or ``"none"``), ``mean_dn`` (the veil's mean over
-        the sensor), ``blocks`` used and ``rms_dn`` (fit residual over the blocks).
+        the sensor), ``blocks`` used, ``rms_dn`` (fit residual over the blocks) and
+        ``shape_gain`` (the constant's squared residual over the shaped fit's, ≥ 1; ≈ 1 for a
+        flat offset, whose shaped fit only takes its 5 extra parameters' share of the noise).
     """
     if image.ndim != 3:
         raise ValueError(f"image must be (C, H, W), got {tuple(image.shape)}")
     C, H, W = image.shape
     idx = np.asarray(outside_index, dtype=np.int64).ravel()
     veil = torch.zeros_like(image)
-    info: dict[str, Any] = {"model": [], "mean_dn": [], "blocks": [], "rms_dn": []}
+    info: dict[str, Any] = {"model": [], "mean_dn": [], "blocks": [], "rms_dn": [],
+                            "shape_gain": []}  # fmt: skip
     if idx.size == 0:
         info["model"] = ["none"] * C
         info["mean_dn"] = [0.0] * C
@@ -141,17 +144,19 @@ def estimate_veil(
             info["mean_dn"].append(0.0)
             info["blocks"].append(len(sel))
             info["rms_dn"].append(float("nan"))
+            info["shape_gain"].append(1.0)
             continue
         m = np.array([_robust_mean(vals[c, s:e]) for s, e in sel])
         const = max(0.0, float((n * m).sum() / n.sum()))
         sse_const = float((n * (m - const) ** 2).sum())
-        model, surf = "constant", None
+        model, surf, gain = "constant", None, 1.0
         pos = m > 0
         if pos.mean() >= 0.8 and pos.sum() >= 6:
             w = np.sqrt(n[pos] * m[pos])
             coef, *_ = np.linalg.lstsq(design[pos] * w[:, None], np.log(m[pos]) * w, rcond=None)
             pred = np.exp(np.clip(design @ coef, -50, math.log(2.0 * m.max() + 1e-12)))
             sse = float((n * (m - pred) ** 2).sum())
+            gain = min(sse_const / sse, 1e6) if sse > 0 else 1e6
             if sse < sse_const:
                 model = "exp-quadratic"
                 expo = sum(float(k) * f for k, f in zip(coef, full, strict=True))
@@ -165,6 +170,7 @@ def estimate_veil(
         info["mean_dn"].append(float(surf.mean()))
         info["blocks"].append(len(sel))
         info["rms_dn"].append(rms)
+        info["shape_gain"].append(gain)
     return veil, info
 
 
