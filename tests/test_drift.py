@@ -264,7 +264,9 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     cap = sims["drift"] / "scenes" / "colorchecker.tif"
     base = ["reconstruct", "--bundle", str(sims["bundle"]), "--no-progress", "--set",
             "formats=[npz]", "--set", "preview=false"]  # fmt: skip
-    assert main([*base, "--out", str(tmp_path / "a"), str(cap)]) == 0
+    # the check alone (refine_registration=false): a warning
+    checked = [*base, "--set", "refine_registration=false"]
+    assert main([*checked, "--out", str(tmp_path / "a"), str(cap)]) == 0
     err = capsys.readouterr().err
     assert "WARNING" in err and "drift_warn_px=0.5" in err and "refine_registration" in err
     # how many views agree, and by how much
@@ -279,7 +281,8 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     assert max(math.hypot(*s) for s in d["view_shift_px"] if s[0] is not None) > 3.0
     json.dumps(meta)  # JSON-ready
     # a higher threshold: no warning; corrected: the warning says so
-    assert main([*base, "--out", str(tmp_path / "b"), "--set", "drift_warn_px=5", str(cap)]) == 0
+    assert main([*checked, "--out", str(tmp_path / "b"), "--set", "drift_warn_px=5",
+                 str(cap)]) == 0
     assert "drift_warn_px" not in capsys.readouterr().err  # (the fit residual still warns)
     assert main([*base, "--out", str(tmp_path / "c"), "--set", "refine_registration=true",
                  str(cap)]) == 0
@@ -288,6 +291,10 @@ def test_run_metadata_holds_the_drift_and_warns_above_the_threshold(sims, tmp_pa
     assert "[drift.corrected]" in said.out and "corrected (refine_registration)" in said.out
     assert "WARNING" not in said.err  # the corrected views explain the capture again
     assert load_cube(tmp_path / "c" / "colorchecker.npz").metadata["stats"]["drift"]["corrected"]
+    # the default (auto): measured reliably above drift_warn_px, so corrected too
+    assert main([*base, "--out", str(tmp_path / "f"), str(cap)]) == 0
+    said = capsys.readouterr()
+    assert "[drift.corrected]" in said.out and "WARNING" not in said.err
     # an undrifted capture: no warning; drift_check=false: nothing measured
     ideal = sims["ideal"] / "scenes" / "colorchecker.tif"
     assert main([*base, "--out", str(tmp_path / "d"), str(ideal)]) == 0

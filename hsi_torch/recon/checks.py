@@ -364,8 +364,10 @@ def frame_findings(
     s = settings if settings is not None else ReconstructSettings()
     out = capture_findings(stats, s, source) + fit_findings(stats, s, source)
     out += drift_findings(stats, s, source)
-    ill = stats.get("illuminant")  # the scene's light against the white's (recon/illuminant.py)
-    if isinstance(ill, Mapping):
+    # the scene's light against the white's (recon/illuminant.py): a finding when it differs;
+    # the ratio within its limit stays in the statistics only (not a line on every frame)
+    ill = stats.get("illuminant")
+    if isinstance(ill, Mapping) and ill.get("severity") != "info":
         out.append(Finding.from_dict(ill))
     return escalated(out, s.output.strict)
 
