@@ -893,8 +893,11 @@ class HSIReconstructor(nn.Module):
             raise
 
     @_judged
-    def reconstruct_file(self, path: str | os.PathLike, **overrides: Any) -> ReconstructionResult:
-        """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it.
+    def reconstruct_file(
+        self, path: str | os.PathLike, *, page: int | None = None, **overrides: Any
+    ) -> ReconstructionResult:
+        """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it (``page``: one page
+        of a multi-page TIFF, e.g. a frame of a sequence; default: the file's only image).
 
         The reading follows the settings' ``input`` group (``demosaic``, ``cfa_pattern``,
         ``black_level``, ``white_level`` override the file's metadata; ``overrides``: flat keys of
@@ -926,7 +929,7 @@ class HSIReconstructor(nn.Module):
             p, expected_size=sens.sensor_size if read.demosaic == "bilinear" else None,
             demosaic=read.demosaic, cfa_pattern=read.cfa_pattern, black_level=_listed(
                 read.black_level), white_level=read.white_level, dtype=sens.dtype,
-            device=sens.device, defaults=self.capture_defaults(read.exposure_s),
+            device=sens.device, defaults=self.capture_defaults(read.exposure_s), page=page,
         )  # fmt: skip
         if read.demosaic == "half":
             _check_half_size(cap, sens, p)

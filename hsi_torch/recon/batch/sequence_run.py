@@ -37,7 +37,6 @@ from typing import Any
 from hsi_torch.console import info, progress_bar, warn
 from hsi_torch.errors import HSIError, InputError, NoValidPixelsError
 from hsi_torch.findings import Finding, HSIWarning, findings_from_dicts
-from hsi_torch.io.captures import read_any
 from hsi_torch.io.dataset import _read_json, require_dataset_packages
 from hsi_torch.io.sequence import CaptureSequence, SequenceFrame, open_sequence
 from hsi_torch.io.sequence_store import (
@@ -48,10 +47,8 @@ from hsi_torch.io.sequence_store import (
 )
 from hsi_torch.recon.batch.driver import RunFailure, RunSummary
 from hsi_torch.recon.batch.run import ReconstructRun, check_run
-from hsi_torch.recon.checks import measure_capture
 from hsi_torch.recon.config import ReconstructConfig
-from hsi_torch.recon.corrections import apply_bundle_corrections
-from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor, _check_half_size, _listed
+from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
 __all__ = [
     "sequence_cubes",
@@ -71,47 +68,18 @@ SEQUENCE_PREVIEW = "sequence_preview.gif"
 
 
 def reconstruct_frame_of_sequence(rec: Reconstructor, frame: SequenceFrame) -> ReconstructionResult:
-    """One frame through the front door, read as ``rec.settings`` say: a file by
-    :meth:`Reconstructor.reconstruct_file`; a page of a multi-page TIFF decoded alone and
-    reconstructed the same way (:meth:`Reconstructor.reconstruct_capture`, after the same
-    reading, bundle corrections and capture checks).
+    """One frame through the front door, read as ``rec.settings`` say
+    (:meth:`Reconstructor.reconstruct_file`; a page of a multi-page TIFF decoded alone).
 
     Raises:
         NoValidPixelsError: not a single pixel could be reconstructed (the reason named).
     """
-    if frame.page is None:
-        res = rec.reconstruct_file(frame.path)
-    else:
-        res = _reconstruct_page(rec, frame)
+    res = rec.reconstruct_file(frame.path, page=frame.page)
     if res.stats.get("num_valid", 0) == 0:
         raise NoValidPixelsError(
             f"{frame.source}: no valid pixel: "
             f"{res.stats.get('no_valid_reason') or 'unknown reason'}"
         )
-    return res
-
-
-def _reconstruct_page(rec: Reconstructor, frame: SequenceFrame) -> ReconstructionResult:
-    """:meth:`Reconstructor.reconstruct_file` for one page (the same steps, in the same order)."""
-    read = rec.settings.input
-    sens = rec.sensing
-    t0 = time.perf_counter()
-    cap = read_any(
-        frame.path, expected_size=sens.sensor_size if read.demosaic == "bilinear" else None,
-        demosaic=read.demosaic, cfa_pattern=read.cfa_pattern,
-        black_level=_listed(read.black_level), white_level=read.white_level, dtype=sens.dtype,
-        device=sens.device, defaults=rec.capture_defaults(read.exposure_s), page=frame.page,
-    )  # fmt: skip
-    if read.demosaic == "half":
-        _check_half_size(cap, sens, frame.path)
-    apply_bundle_corrections(cap, sens.radiometry)
-    checks = measure_capture(cap, sens.radiometry, sensor_size=sens.sensor_size)
-    t_load = time.perf_counter() - t0
-    res = rec.reconstruct_capture(cap)
-    res.timings = {"load": t_load, **res.timings}
-    res.timings["total"] += t_load
-    res.stats.update(checks)
-    res.stats["metadata"] = cap.metadata
     return res
 
 
