@@ -43,12 +43,9 @@ __all__ = ["AVAILABLE", "sym_apply", "start_state", "fgp_grid", "fgp_blocks", "f
 #: vectorise (no assumptions about NaN or infinities)
 _FAST = {"reassoc", "contract", "nsz", "arcp"}
 #: Pixels of a row taken at a time by the x-update of :func:`fgp_block`, and the pixels of one
-#: block of the packed inverse (:func:`pack_inverse_rows`): the inverse is read as one sequential
-#: stream. 256 (the longest rows in one to four runs): the fused pass 10–15 % faster than with 64
-#: in four of four interleaved pairs (``scripts/bench_fgp_pass.py``, one thread, CPU time), the
-#: x-update alone no slower; the same sums per pixel in the same order. The packed layout depends
-#: on it (:data:`hsi_torch.recon.spatial.problem.TV_CACHE_LAYOUT`).
-_ROW_CHUNK = 256
+#: block of the packed inverse (:func:`pack_inverse_rows`): its scratch stays in the first-level
+#: cache, and the inverse is read as one sequential stream.
+_ROW_CHUNK = 64
 
 if AVAILABLE:
 

@@ -311,9 +311,8 @@ class ShiftedInverse:
         return self._packed
 
 
-#: Layout version of the TV factor's precomputation-cache entries (:func:`bundle_spatial_problem`;
-#: 2: runs of up to 256 pixels, :data:`~._compiled._ROW_CHUNK`).
-TV_CACHE_LAYOUT = 2
+#: Layout version of the TV factor's precomputation-cache entries (:func:`bundle_spatial_problem`).
+TV_CACHE_LAYOUT = 1
 
 #: Pixels factorised at once by :func:`prepare_spatial`: the Cholesky factor and the shifted
 #: Gram matrices exist for one chunk at a time (at the full-size prototype's 306 000 pixels the
