@@ -56,8 +56,9 @@ from hsi_torch.experiments.metrics import (
     format_metrics,
     interior_mask,
 )
+from hsi_torch.experiments.report import save_figure
 from hsi_torch.io import save_cube, save_cube_formats
-from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json
+from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.io.run_record import DEMO_RUN_RECORD, INCOMPLETE_FILE
 from hsi_torch.recon import Reconstructor
@@ -179,17 +180,10 @@ def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scor
         f"{scores_orc['mean_sam_deg']:.2f}° (reflectance vs wavelength, nm)"
     )
     fig.tight_layout()
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -> None:
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -210,10 +204,7 @@ def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -
         ax.grid(alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def _score_text(e: dict[str, Any], key: str) -> str:

@@ -45,7 +45,8 @@ from hsi_torch.experiments.metrics import (
     cube_scores,
     erode_px,
 )
-from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
+from hsi_torch.experiments.report import save_figure
+from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
@@ -192,15 +193,6 @@ def _write_tables(out: Path, rows: list[dict[str, Any]]) -> str:
     return md
 
 
-def _png(fig: Any, path: Path) -> None:
-    import matplotlib.pyplot as plt  # lazy: matplotlib only for the figures
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
-
-
 def _plot_errors(path: Path, name: str, truth: np.ndarray, cubes: dict[str, np.ndarray],
                  valid: np.ndarray) -> None:
     import matplotlib  # lazy: matplotlib only for the figures
@@ -226,7 +218,7 @@ def _plot_errors(path: Path, name: str, truth: np.ndarray, cubes: dict[str, np.n
     axes[-1].axis("off")
     fig.colorbar(im2, ax=axes[-1], fraction=0.046)
     fig.tight_layout()
-    _png(fig, path)
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def _plot_spectra(path: Path, name: str, wl: np.ndarray, truth: np.ndarray,
@@ -257,7 +249,7 @@ def _plot_spectra(path: Path, name: str, wl: np.ndarray, truth: np.ndarray,
         ax.grid(alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=6)
     fig.tight_layout()
-    _png(fig, path)
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def run_spatial(cfg: SpatialConfig, out: str | Path, *, device: str | None = None
