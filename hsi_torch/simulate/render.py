@@ -81,6 +81,7 @@ from hsi_torch.optics import (
 from hsi_torch.optics.birefringence import polarizer_transmittance
 from hsi_torch.optics.geometry import (
     apply_homography,
+    pixel_centres,
     points_in_triangle,
     reference_pixel_points,
     view_sample_grid,
@@ -629,16 +630,14 @@ class CaptureRenderer:
             it = progress(it, desc="tracing + rendering", unit="band")
         for y0 in it:
             y1 = min(h, y0 + rows_per)
-            ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev, dtype=torch.float64),
-                                    torch.arange(w, device=dev, dtype=torch.float64),
-                                    indexing="ij")
-            base = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)  # (P, 2)
+            base = pixel_centres(y1 - y0, w, device=dev).reshape(-1, 2)  # (P, 2)
+            base[:, 1] += y0
             pts = (base[:, None, :] + offs[None]).reshape(-1, 2)
             if self.mismatch.distorted or (after_calibration and self.mismatch.drifted):
                 pts = self.sensor_to_pinhole(pts, after_calibration)
             tr = trace_rays(geom, self.camera, pts.to(dt), sequences=seqs, chunk=self.chunk)
             keep = torch.nonzero(tr.view_index >= 0).squeeze(1)
-            pix = (ys.reshape(-1).long() * w + xs.reshape(-1).long()).repeat_interleave(s2)
+            pix = torch.arange(y0 * w, y1 * w, device=dev).repeat_interleave(s2)
             hit = tr.hit_xy[keep]
             yield y0, y1, SubpixelTrace(
                 pixel=pix[keep], alpha=tr.alpha[keep], sigma=tr.sigma[keep], hit_xy=hit,
