@@ -40,19 +40,12 @@ Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) 
 
 reproduces the noise-free rendering to the discretisation error of the 10 nm grid.
 
-How it is computed (:meth:`CaptureRenderer.render_captures`): the sensor is rendered one band of
-rows at a time (≈ ``chunk`` sub-pixel rays); a band's rays are traced, and per ray the filter
-stack is written ``Tstack(λ) = A + B · cos(2π · OPD(λ) / λ)`` (:meth:`stack_cosine_form`), so
-every capture's spectral integral is ``A · Σ W + B · (cos @ W)``: the ``(rays, L)`` cosine matrix
-is evaluated once per band and meets one weight matrix holding every scan line, the white target,
-the spectrally flat targets and each multi-spectral scene's endmember spectra
-(``S(X, λ) = Σ_k a_k(X) E_k(λ)``, :mod:`hsi_torch.simulate.scenes`). Blurred scenes are kept as
-their ``K`` abundance planes (CAVE 31, ColorChecker 25, bar/circle targets 1), not as ``L``-band
-cubes. With Bayer output each ray is shaded in its pixel's colour only. Memory is the ``K``
-images plus one band. Precision: the render dtype (float32 at full size) for rays, cosines,
-scene rasters and images; float64 for the view layout, the spectral weights (built in float64,
-then cast), and the ground truth (its traces, ``B`` before the float32 store, scene truth), so
-the truth is as exact as the optics it describes.
+How it is computed (:meth:`CaptureRenderer.render_captures`; docs/simulate.md, *Numerics and
+measured times*): one band of sensor rows at a time; per ray ``Tstack(λ) = A + B · cos(2π ·
+OPD(λ) / λ)`` (:meth:`stack_cosine_form`), so one ``(rays, L)`` cosine matrix per band meets one
+weight matrix holding every capture's spectra, scenes as ``K`` abundance planes × endmember
+spectra. Precision: the render dtype for rays, cosines, rasters and images; float64 for the view
+layout, the spectral weights and the ground truth.
 """
 
 from __future__ import annotations
