@@ -58,10 +58,6 @@ def _base_mismatch(base: Path) -> dict[str, Any]:
     return dict(read_truth_meta(base).get("mismatch") or {})
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    link_or_copy(src, dst)  # a hard link: every writer replaces it, never writes through
-
-
 def rerender_after_calibration(
     cfg: SimulateConfig,
     base_dir: str | Path,
@@ -125,7 +121,7 @@ def rerender_after_calibration(
     for p in sorted(base.rglob("*")):
         rel = p.relative_to(base).as_posix()
         if p.is_file() and rel not in redo:
-            _link_or_copy(p, out / rel)
+            link_or_copy(p, out / rel)  # a hard link: every writer replaces it
     truth_json = out / TRUTH_JSON
     if truth_json.is_file():
         meta = read_truth_meta(out)
