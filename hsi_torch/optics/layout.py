@@ -1,12 +1,9 @@
 """View layout of the kaleidoscope on the sensor, derived from a ray trace.
 
-Convention:
-    Sensor pixels ``(x, y)`` (column, row; centres at integers). Homographies act on homogeneous
-    column vectors and are normalised to ``H[2, 2] = 1``. ``view_homographies[v]`` maps sensor px
-    of view ``v`` to sensor px of the reference view (``H_0 = I``); ``diffuser_homographies[v]``
-    maps diffuser mm ``(X, Y, 1)`` to sensor px of view ``v``. Both are fitted by a normalised DLT
-    on traced (hit point, pixel) pairs; for planar mirrors the mapping is exactly projective, so
-    the fit residual measures only numerical error.
+Convention: that of :mod:`hsi_torch.optics.geometry`; homographies are normalised to
+``H[2, 2] = 1``, and ``diffuser_homographies[v]`` maps diffuser mm ``(X, Y, 1)`` to sensor px of
+view ``v``. Both kinds are fitted by a normalised DLT on traced (hit point, pixel) pairs; for planar
+mirrors the mapping is exactly projective, so the fit residual measures only numerical error.
 """
 
 from __future__ import annotations
