@@ -56,7 +56,7 @@ from hsi_torch.experiments.metrics import (
     format_metrics,
     interior_mask,
 )
-from hsi_torch.experiments.report import save_figure
+from hsi_torch.experiments.report import new_figure, save_figure
 from hsi_torch.io import save_cube, save_cube_formats
 from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.capture_set import read_truth
@@ -159,12 +159,7 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
 
 
 def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scores_orc) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(4, 6, figsize=(15, 9), sharex=True, sharey=True)
+    fig, axes = new_figure(4, 6, figsize=(15, 9), sharex=True, sharey=True)
     for k, ax in enumerate(axes.flat):
         ax.plot(wl, truth[k], "k-", lw=2, label="truth")
         ax.plot(wl, est_cal[k], "r-", lw=1.3, label="calibrated")
@@ -184,17 +179,12 @@ def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scor
 
 
 def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     ys, xs = np.nonzero(mask)
     if not len(ys):
         return
     rng = np.random.default_rng(0)
     pick = rng.choice(len(ys), size=min(n, len(ys)), replace=False)
-    fig, axes = plt.subplots(1, len(pick), figsize=(3 * len(pick), 3), sharey=True)
+    fig, axes = new_figure(1, len(pick), figsize=(3 * len(pick), 3), sharey=True)
     for ax, i in zip(np.atleast_1d(axes), pick, strict=False):
         y, x = ys[i], xs[i]
         ax.plot(wl, truth[:, y, x], "k-", lw=2, label="truth")
