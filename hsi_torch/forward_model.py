@@ -40,7 +40,39 @@ def _gram(a: Tensor, mask: Tensor | None, reg: Tensor | None) -> Tensor:
     return G if reg is None else G + reg
 
 
-class SensingModel:
+def _rows(t: Tensor, idx: Tensor | slice) -> Tensor:
+    """Rows ``idx`` (a slice: a view; an index tensor: a copy) of ``t``."""
+    return t[idx] if isinstance(idx, slice) else t.index_select(0, idx)
+
+
+class _PerPixel:
+    """What both sensing classes derive from their ``(P, …)`` per-pixel tensor ``_per_pixel``."""
+
+    _per_pixel: Tensor
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self._per_pixel.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self._per_pixel.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._per_pixel.dtype
+
+    @property
+    def shared(self) -> bool:
+        """One sensing matrix for every pixel (``P = 1``)."""
+        return self.num_pixels == 1
+
+    def _index(self, idx: Tensor | slice | Sequence[int]) -> Tensor | slice:
+        return idx if isinstance(idx, slice) else torch.as_tensor(idx, dtype=torch.long,
+                                                                   device=self.device)
+
+
+class SensingModel(_PerPixel):
     """Per-pixel linear sensing ``y_p = A_p s_p`` with ``A_p = g_v(p) B_v(p, λ) Δλ φ^c(λ)``.
 
     A small physics class in the style of a deep-inverse ``Physics``: ``A``, ``A_adjoint``,
@@ -84,6 +116,10 @@ class SensingModel:
         self.gain = gain
         self.response = response
 
+    @property
+    def _per_pixel(self) -> Tensor:  # type: ignore[override]
+        return self.transmittance
+
     # -- construction ---------------------------------------------------------------------------
     @classmethod
     def from_factors(
@@ -121,10 +157,6 @@ class SensingModel:
 
     # -- shapes -------------------------------------------------------------------------------
     @property
-    def num_pixels(self) -> int:
-        return int(self.transmittance.shape[0])
-
-    @property
     def num_views(self) -> int:
         return int(self.transmittance.shape[1])
 
@@ -140,32 +172,17 @@ class SensingModel:
     def num_bands(self) -> int:
         return int(self.transmittance.shape[2])
 
-    @property
-    def device(self) -> torch.device:
-        return self.transmittance.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.transmittance.dtype
-
-    @property
-    def shared(self) -> bool:
-        """One sensing matrix for every pixel (``P = 1``)."""
-        return self.num_pixels == 1
-
     def to(self, device: torch.device | str | None = None,
            dtype: torch.dtype | None = None) -> SensingModel:
         """The same model on another device / in another floating dtype."""
         return SensingModel(*(t.to(device=device, dtype=dtype) for t in
                               (self.transmittance, self.gain, self.response)))
 
-    def _factors(self, idx: Tensor | slice | None, n: int) -> tuple[Tensor, Tensor]:
+    def _factors(self, idx: Tensor | slice | None) -> tuple[Tensor, Tensor]:
         B, g = self.transmittance, self.gain
         if self.shared or idx is None:
             return B, g
-        if isinstance(idx, slice):
-            return B[idx], g[idx]
-        return B.index_select(0, idx), g.index_select(0, idx)
+        return _rows(B, idx), _rows(g, idx)
 
     # -- operators ------------------------------------------------------------------------------
     def A(self, s: Tensor, idx: Tensor | slice | None = None) -> Tensor:
@@ -173,7 +190,7 @@ class SensingModel:
 
         With a shared model (``P = 1``) every row of ``s`` uses the same matrix.
         """
-        B, g = self._factors(idx, s.shape[0])
+        B, g = self._factors(idx)
         n = s.shape[0]
         rs = s.unsqueeze(2) * self.response.T  # (n, M, C): r_cm s_m
         if B.shape[0] == 1:
@@ -184,7 +201,7 @@ class SensingModel:
 
     def A_adjoint(self, y: Tensor, idx: Tensor | slice | None = None) -> Tensor:
         """``Aᵀ y``: ``(n, 3V)`` → ``(n, M)``. Masked observations must be zero in ``y``."""
-        B, g = self._factors(idx, y.shape[0])
+        B, g = self._factors(idx)
         n = y.shape[0]
         u = y.reshape(n, self.num_views, self.num_channels) * g.unsqueeze(2)  # (n, V, C)
         # Σ_c r_cm Σ_v u_vc B_vm: one (C, V) × (V, M) product per pixel reads B once
@@ -193,14 +210,14 @@ class SensingModel:
 
     def dense(self, idx: Tensor | slice | None = None) -> Tensor:
         """Dense sensing matrices ``(n, 3V, M)`` of pixels ``idx`` (``(1, 3V, M)`` if shared)."""
-        B, g = self._factors(idx, 0)
+        B, g = self._factors(idx)
         a = (g.unsqueeze(2) * B).unsqueeze(2) * self.response  # (n, V, C, M)
         return a.reshape(a.shape[0], -1, self.num_bands)
 
     def columns(self, idx: Tensor, cols: Tensor) -> Tensor:
         """Columns ``A_p[:, cols_p]`` ``(n, 3V, k)`` of pixels ``idx (n,)`` at band indices
         ``cols (n, k)`` (a different set per pixel)."""
-        B, g = self._factors(idx, cols.shape[0])
+        B, g = self._factors(idx)
         n, k = cols.shape
         if B.shape[0] == 1:
             B, g = B.expand(n, -1, -1), g.expand(n, -1)
@@ -224,7 +241,7 @@ class SensingModel:
         per-view mask and ``r`` the response — a ``V``-term product per pixel instead of a
         ``3V``-term one, without forming the dense matrices (equal to rounding).
         """
-        B, g = self._factors(idx, 0)
+        B, g = self._factors(idx)
         V, C = self.num_views, self.num_channels
         wv = None
         if mask is not None and B.shape[0] == mask.shape[0] and mask.shape[1] == V * C:
@@ -244,11 +261,8 @@ class SensingModel:
         """The model of a subset of pixels (a view for a slice, else a copy of their factors)."""
         if self.shared:
             return self
-        if isinstance(idx, slice):
-            return SensingModel(self.transmittance[idx], self.gain[idx], self.response)
-        i = torch.as_tensor(idx, dtype=torch.long, device=self.device)
-        return SensingModel(self.transmittance.index_select(0, i), self.gain.index_select(0, i),
-                            self.response)
+        i = self._index(idx)
+        return SensingModel(_rows(self.transmittance, i), _rows(self.gain, i), self.response)
 
     def memory_bytes(self) -> int:
         """Bytes held by the factors."""
@@ -256,7 +270,7 @@ class SensingModel:
                        for t in (self.transmittance, self.gain, self.response)))
 
 
-class DenseSensing:
+class DenseSensing(_PerPixel):
     """Per-pixel sensing given by dense matrices ``A (P, O, M)`` (or ``(1, O, M)``, shared).
 
     The same interface as :class:`SensingModel` (``A``, ``A_adjoint``, ``dense``, ``gram``), for
@@ -273,8 +287,8 @@ class DenseSensing:
         self.matrices = A
 
     @property
-    def num_pixels(self) -> int:
-        return int(self.matrices.shape[0])
+    def _per_pixel(self) -> Tensor:  # type: ignore[override]
+        return self.matrices
 
     @property
     def num_obs(self) -> int:
@@ -284,27 +298,12 @@ class DenseSensing:
     def num_bands(self) -> int:
         return int(self.matrices.shape[2])
 
-    @property
-    def device(self) -> torch.device:
-        return self.matrices.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.matrices.dtype
-
-    @property
-    def shared(self) -> bool:
-        return self.num_pixels == 1
-
     def to(self, device: torch.device | str | None = None,
            dtype: torch.dtype | None = None) -> DenseSensing:
         return DenseSensing(self.matrices.to(device=device, dtype=dtype))
 
     def dense(self, idx: Tensor | slice | None = None) -> Tensor:
-        A = self.matrices
-        if self.shared or idx is None:
-            return A
-        return A[idx] if isinstance(idx, slice) else A.index_select(0, idx)
+        return self.matrices if self.shared or idx is None else _rows(self.matrices, idx)
 
     def columns(self, idx: Tensor, cols: Tensor) -> Tensor:
         """Columns ``A_p[:, cols_p]`` ``(n, O, k)`` of pixels ``idx`` at band indices ``cols``."""
@@ -333,12 +332,7 @@ class DenseSensing:
         return _gram(self.dense(idx), mask, reg)
 
     def select(self, idx: Tensor | slice | Sequence[int]) -> DenseSensing:
-        if self.shared:
-            return self
-        if isinstance(idx, slice):
-            return DenseSensing(self.matrices[idx])
-        i = torch.as_tensor(idx, dtype=torch.long, device=self.device)
-        return DenseSensing(self.matrices.index_select(0, i))
+        return self if self.shared else DenseSensing(_rows(self.matrices, self._index(idx)))
 
     def memory_bytes(self) -> int:
         return int(self.matrices.numel() * self.matrices.element_size())

@@ -407,26 +407,22 @@ def cube_metrics(
     e, t, m = _cubes(torch.as_tensor(estimate), torch.as_tensor(truth),
                      None if mask is None else torch.as_tensor(mask))  # fmt: skip
     pe, pt = _pixels(e, m), _pixels(t, m)  # validated, cropped and gathered once for all
-    try:
-        s = float(_ssim(e, t, m, data_range=1.0, window=11, sigma=1.5, k1=0.01, k2=0.03,
-                        per_band=False))
-    except ValueError:
-        s = math.nan
-    try:
-        er = float(_ergas(pe, pt, ergas_ratio))
-    except ValueError:
-        er = math.nan
-    try:
-        mr = float(_mrae(pe, pt, mrae_min_truth))
-    except ValueError:
-        mr = math.nan
     mse_v = float((pe - pt).square().mean())
     return {
         "psnr_db": psnr_from_mse(mse_v),
         "psnr_bands_db": float(_psnr_bands(pe, pt)),
-        "ssim": s,
+        "ssim": _or_nan(lambda: _ssim(e, t, m, data_range=1.0, window=11, sigma=1.5, k1=0.01,
+                                      k2=0.03, per_band=False)),
         "sam_deg": float(spectral_angle_deg(pe, pt).mean()),
-        "ergas": er,
+        "ergas": _or_nan(lambda: _ergas(pe, pt, ergas_ratio)),
         "rmse": math.sqrt(mse_v),
-        "mrae": mr,
+        "mrae": _or_nan(lambda: _mrae(pe, pt, mrae_min_truth)),
     }
+
+
+def _or_nan(value: Callable[[], Tensor]) -> float:
+    """``float(value())``, or NaN where the metric does not apply (it raises ``ValueError``)."""
+    try:
+        return float(value())
+    except ValueError:
+        return math.nan

@@ -1,27 +1,17 @@
 """``hsi-torch experiment NAME [--config C] --out DIR``: dispatch to the named experiment; and
 ``hsi-torch demo`` (:func:`run_demo`).
 
-Command modules import lazily (so ``hsi-torch --help`` starts fast): the experiment's module,
-and everything a command needs, is imported when the command runs.
+:data:`EXPERIMENTS` maps a name to ``(module, schema class name, run function name)``; the module
+is imported only when its experiment runs (so ``hsi-torch --help`` starts fast). A run function
+``run(cfg, out: Path, *, device: str | None = None) -> dict`` writes its tables and figures into
+``out``; this entry point loads the config (``--config``, else the shipped ``NAME.yaml`` or the
+schema's defaults; ``--set``), calls it and writes ``out/resolved_config.yaml``.
 
-Without ``--config`` the shipped ``NAME.yaml`` is used (``hsi-torch config show NAME``), or the
-schema's defaults for an experiment that ships none.
-
-The registry maps a name to ``(module, schema class name, run function name)``; the module is
-imported only when its experiment runs. A run function has the signature
-``run(cfg, out: Path, *, device: str | None = None) -> dict`` and writes its tables and figures
-into ``out``; this entry point loads and validates the config (``--config``, ``--set``), calls
-it and writes ``out/resolved_config.yaml``.
-
-A run into a folder that holds an earlier run writes its files in place (experiments such as
-``mismatch`` reuse what an earlier or interrupted run left there), so until it completes the
-folder is marked: ``INCOMPLETE_RUN.json`` is written before the experiment starts, listing the
-files already there (from earlier runs) with their size and modification time, and removed when
-the run is complete; ``experiment_run.json`` then lists the files the run wrote and those it
-left from an earlier run (see ``docs/experiments.md``). ``hsi-torch demo --out DIR`` marks its
-folder the same way (record ``demo_run.json``); both through :mod:`hsi_torch.io.run_record`.
-
-To add an experiment, add a line to :data:`EXPERIMENTS` (or call :func:`register_experiment`).
+A run may write into a folder holding an earlier run of the same experiment; until it completes
+the folder is marked ``INCOMPLETE_RUN.json``, and ``experiment_run.json`` (the demo:
+``demo_run.json``) then lists what it wrote and what it left (:mod:`hsi_torch.io.run_record`;
+docs/experiments.md). To add an experiment, add a line to :data:`EXPERIMENTS` (or call
+:func:`register_experiment`).
 """
 
 from __future__ import annotations
@@ -74,9 +64,8 @@ def resolve_experiment(name: str) -> tuple[type, Any]:
 
 
 def run_experiment(args: argparse.Namespace) -> int:
-    """CLI entry: ``args.name``, ``args.config`` (Path or None = the shipped ``<name>.yaml``,
-    else the schema's defaults),
-    ``args.overrides``, ``args.out``, ``args.device``. Returns the exit status (0)."""
+    """CLI entry: ``args.name``, ``args.config`` (Path or None), ``args.overrides``,
+    ``args.out``, ``args.device``. Returns the exit status (0)."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info
@@ -180,10 +169,8 @@ def check_demo_out(out: Path) -> None:
 def run_demo(args: argparse.Namespace) -> int:
     """Entry point of ``hsi-torch demo`` (``--out DIR``, ``--quick``, ``--full``, ``--set``):
     :func:`hsi_torch.experiments.demo.demo`, or with ``--full``
-    :func:`hsi_torch.experiments.demo_full.demo_full`. The folder is marked incomplete
-    (``INCOMPLETE_RUN.json``) while the demo runs, and ``demo_run.json`` written when it
-    completes, as for an experiment; the folder's run lock is held meanwhile (a second demo or
-    experiment into it is refused, naming this one's process)."""
+    :func:`hsi_torch.experiments.demo_full.demo_full`; the folder is marked and locked as for an
+    experiment."""
     from hsi_torch.cli_common import load_args_config
     from hsi_torch.config import write_resolved_config
     from hsi_torch.console import info

@@ -56,8 +56,9 @@ from hsi_torch.experiments.metrics import (
     format_metrics,
     interior_mask,
 )
+from hsi_torch.experiments.report import new_figure, save_figure
 from hsi_torch.io import save_cube, save_cube_formats
-from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json
+from hsi_torch.io.atomic import atomic_write_json
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.io.run_record import DEMO_RUN_RECORD, INCOMPLETE_FILE
 from hsi_torch.recon import Reconstructor
@@ -158,12 +159,7 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
 
 
 def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scores_orc) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(4, 6, figsize=(15, 9), sharex=True, sharey=True)
+    fig, axes = new_figure(4, 6, figsize=(15, 9), sharex=True, sharey=True)
     for k, ax in enumerate(axes.flat):
         ax.plot(wl, truth[k], "k-", lw=2, label="truth")
         ax.plot(wl, est_cal[k], "r-", lw=1.3, label="calibrated")
@@ -179,28 +175,16 @@ def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scor
         f"{scores_orc['mean_sam_deg']:.2f}° (reflectance vs wavelength, nm)"
     )
     fig.tight_layout()
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -> None:
-    import io
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     ys, xs = np.nonzero(mask)
     if not len(ys):
         return
     rng = np.random.default_rng(0)
     pick = rng.choice(len(ys), size=min(n, len(ys)), replace=False)
-    fig, axes = plt.subplots(1, len(pick), figsize=(3 * len(pick), 3), sharey=True)
+    fig, axes = new_figure(1, len(pick), figsize=(3 * len(pick), 3), sharey=True)
     for ax, i in zip(np.atleast_1d(axes), pick, strict=False):
         y, x = ys[i], xs[i]
         ax.plot(wl, truth[:, y, x], "k-", lw=2, label="truth")
@@ -210,10 +194,7 @@ def _plot_pixels(path: Path, wl, truth, cal, orc, mask, name: str, n: int = 6) -
         ax.grid(alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def _score_text(e: dict[str, Any], key: str) -> str:

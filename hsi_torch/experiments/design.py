@@ -1,26 +1,18 @@
-"""BRF and taper design sweep: rank configurations by the conditioning of the sensing matrix.
+"""BRF and taper design sweep: rank configurations by the conditioning of the sensing matrix
+(docs/experiments.md, *BRF / taper design sweep*, gives the default sweep and its results).
 
-For every kaleidoscope geometry of the sweep (exit side ``a_out_mm`` × tube ``length_mm``, the
-entrance side and the camera fixed) the sensor is traced once and the rays that see
-:func:`~hsi_torch.experiments.systems.scene_points` (7 diffuser points: the centre, and half-way
-to the vertices and to the edge midpoints) in each of the ``V`` views give ``(α, σ, g_v)``. For
-every filter (material × thickness × optic-axis tilt θ × azimuth) the stacked ``3V × M`` sensing
-matrix ``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` is formed at each point (``φ = l f``,
-D65 × Canon EOS 5D Mark II by default) and its 2-norm condition number computed
-(``torch.linalg.cond``, batched over all tilts × azimuths × points at once). A design's score is
-the **worst** (max) condition number over the points (``rank_by: median`` uses the median).
+For every kaleidoscope geometry (``a_out_mm`` × ``length_mm``) the sensor is traced once and the
+rays that see :func:`~hsi_torch.experiments.systems.scene_points` in each of the ``V`` views give
+``(α, σ, g_v)``. For every filter (material × thickness × tilt θ × azimuth) the ``3V × M`` matrix
+``A[(v,c), m] = g_v B_v(λ_m) Δλ_m φ^c(λ_m)`` is formed at each point and its 2-norm condition
+number computed (batched over tilts × azimuths × points); a design's score is the **worst** over
+the points (``rank_by: median``: the median). Designs whose modulation period
+``λ²/max|OPD| < min_period_nm`` at the shortest wavelength are flagged ``ok = False`` (the grid
+would alias them) and ranked last.
 
-Designs whose largest |OPD| at the shortest wavelength gives a modulation period
-``λ²/OPD < min_period_nm`` are flagged ``ok = False`` (the 10 nm grid would alias them) and
-ranked after all feasible ones.
-
-The ``top_k`` feasible designs by condition number, plus the default prototype, are then scored
-by simulated PSNR with the synthetic experiment's machinery
-(:func:`hsi_torch.experiments.synthetic.evaluate_design`: 24 ColorChecker patches, exposure
-matched to 255 DN, σ = 1 DN, its seeds and β sweep, best β) using the sensing matrix at the
-diffuser centre. The best configuration (highest PSNR among those) is written as a simulator
-config ``best_prototype.yaml`` (keys ``geometry``, ``brf``, ``illuminant`` and
-``camera_sensitivity`` of :class:`hsi_torch.simulate.config.SimulateConfig`; the rest default).
+The ``top_k`` feasible designs plus the default prototype are then scored by simulated PSNR
+(:func:`hsi_torch.experiments.synthetic.evaluate_design`, σ = 1 DN, sensing matrix at the diffuser
+centre); the best is written as the simulator config ``best_prototype.yaml``.
 
 Command: ``hsi-torch experiment design --out DIR`` (the shipped ``design.yaml``).
 """

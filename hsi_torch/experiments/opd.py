@@ -161,11 +161,8 @@ def _load_prototype(cfg: OPDConfig):
 
 
 def _bundle_points(bundle, pts: OPDPointsSpec) -> MeasuredPoints:
-    return points_from_reference_frame(
-        torch.as_tensor(bundle.B), torch.as_tensor(bundle.wavelengths_nm),
-        torch.as_tensor(bundle.view_homographies), torch.as_tensor(bundle.triangles),
-        tuple(int(v) for v in bundle.reference_bbox), torch.as_tensor(bundle.modulated),
-        num_ring=pts.num_ring, ring_fraction=pts.ring_fraction)
+    keys = ("B", "wavelengths_nm", "view_homographies", "triangles", "reference_bbox", "modulated")
+    return _truth_points({k: getattr(bundle, k) for k in keys}, pts)
 
 
 def calibrated_bundle(capture_set: str | Path, calibrate_config: str | Path | None = None, *,

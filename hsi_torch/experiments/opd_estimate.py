@@ -1,31 +1,18 @@
-"""OPD estimation: the optical path difference of a view-channel from its transmittance spectrum.
+"""OPD estimation: the optical path difference of a view-channel from its transmittance spectrum
+(docs/experiments.md, *OPD validation*, gives the estimator and its measured errors).
 
-Estimator (batched over spectra, any device/dtype; :func:`estimate_opd`). Between crossed
-polarizers ``T(k) ∝ ½[1 − cos(2π Δ k)]`` with ``k = 1/λ`` (nm⁻¹), so the modulation frequency in
-``k`` *is* the OPD ``Δ`` in nm:
+Between crossed polarizers ``T(k) ∝ ½[1 − cos(2π Δ k)]`` with ``k = 1/λ`` (nm⁻¹), so the
+modulation frequency in ``k`` *is* the OPD ``Δ`` in nm. :func:`estimate_opd` (batched, any
+device/dtype): **coarse**, the largest non-DC FFT bin of ``T`` resampled onto ``N`` uniform ``k``
+samples, mean removed, windowed (one bin ``1/(N δk)`` ≈ 1.2 µm over 430–670 nm); **fft**, the same
+zero-padded ``pad_factor``× with a parabolic peak; **fit**, a least-squares cosine
+``T ≈ a + b·cos(2π Δ (k − k_c) + φ)`` on the original samples (grid search within ± one coarse
+bin, then Levenberg–Marquardt), unbiased for a pure cosine where the FFT peak is not (2–5 fringes).
 
-1. **coarse**: ``T`` is resampled linearly onto ``N`` uniform samples in ``k`` (``N`` = the number
-   of input samples by default), the mean removed, a window applied (Hann by default) and the
-   largest non-DC FFT bin taken. One bin is ``1/(N δk)`` ≈ 1.2 µm of OPD over 430–670 nm.
-2. **fft**: the same windowed signal zero-padded ``pad_factor``× and the peak refined by parabolic
-   interpolation of the magnitude.
-3. **fit**: a least-squares cosine ``T ≈ a + b·cos(2π Δ (k − k_c) + φ)`` on the *original*
-   ``(1/λ_m, T_m)`` samples (no resampling error): a grid search over ``Δ`` within ± one coarse
-   bin of the FFT estimate (the model is linear in ``a, b cos φ, b sin φ`` for fixed ``Δ``), then
-   Levenberg–Marquardt on all four parameters.
-
-With only 2–5 fringes in the band the FFT peak is biased by the negative-frequency image and the
-window; the cosine fit is unbiased for a pure cosine (tests: < 1e-4 relative).
-
-**Dispersion.** ``Δ`` depends on λ (the plate's birefringence disperses), so the fringe phase is
-``2π Δ(k) k`` and its local frequency in ``k`` is the *group* OPD
-``Δ_g = d(Δ k)/dk = Δ − λ dΔ/dλ`` (≈ 10 % above ``Δ`` for quartz). A single-frequency fit over
-the band measures ``Δ_g`` near the band-centre wavenumber ``k_0 = ½(1/λ_min + 1/λ_max)``
-(λ_0 ≈ 523.8 nm for 430–670 nm). The experiment therefore compares the estimates with the ray
-tracer's **group OPD at k_0** (the dispersion-aware prediction, :func:`group_opd_nm`) and also
-lists the phase OPD at 550 nm (the :class:`~hsi_torch.optics.ViewLayout` convention).
-The calibrated ``B`` is averaged over the monochromator line: that damps the modulation but does
-not move its frequency.
+**Dispersion.** A single-frequency fit measures the *group* OPD ``Δ_g = d(Δ k)/dk = Δ − λ dΔ/dλ``
+near ``k_0 = ½(1/λ_min + 1/λ_max)``, so the estimates are compared with the ray tracer's group OPD
+at ``k_0`` (:func:`group_opd_nm`); the phase OPD at 550 nm (the
+:class:`~hsi_torch.optics.ViewLayout` convention) is listed too.
 """
 
 from __future__ import annotations

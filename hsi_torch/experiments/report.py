@@ -111,12 +111,12 @@ def new_figure(*args: Any, **kwargs: Any) -> tuple[Any, Any]:
     return plt.subplots(*args, **kwargs)
 
 
-def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110) -> Path:
-    """Save a Matplotlib figure as PNG atomically and close it."""
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110, tight: bool = True) -> Path:
+    """Save a Matplotlib figure as PNG atomically and close it (``tight``: crop to its contents)."""
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=dpi, **({"bbox_inches": "tight"} if tight else {}))
     plt.close(fig)
     return atomic_write_bytes(path, buf.getvalue())
 

@@ -45,7 +45,8 @@ from hsi_torch.experiments.metrics import (
     cube_scores,
     erode_px,
 )
-from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
+from hsi_torch.experiments.report import new_figure, save_figure
+from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
 from hsi_torch.recon import Reconstructor
@@ -192,27 +193,13 @@ def _write_tables(out: Path, rows: list[dict[str, Any]]) -> str:
     return md
 
 
-def _png(fig: Any, path: Path) -> None:
-    import matplotlib.pyplot as plt  # lazy: matplotlib only for the figures
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
-
-
 def _plot_errors(path: Path, name: str, truth: np.ndarray, cubes: dict[str, np.ndarray],
                  valid: np.ndarray) -> None:
-    import matplotlib  # lazy: matplotlib only for the figures
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: matplotlib only for the figures
-
     errs = {k: np.where(valid, np.sqrt(np.mean((c - truth) ** 2, 0)), np.nan)
             for k, c in cubes.items()}  # fmt: skip
     vmax = float(np.nanpercentile(np.concatenate([e[valid] for e in errs.values()]), 99))
     keys = list(errs)
-    fig, axes = plt.subplots(1, len(keys) + 1, figsize=(3.6 * (len(keys) + 1), 3.4))
+    fig, axes = new_figure(1, len(keys) + 1, figsize=(3.6 * (len(keys) + 1), 3.4))
     for ax, k in zip(axes, keys, strict=False):
         im = ax.imshow(errs[k], vmin=0, vmax=vmax, cmap="magma")
         ax.set_title(f"{name}: {k}\nRMS error over bands", fontsize=8)
@@ -226,16 +213,11 @@ def _plot_errors(path: Path, name: str, truth: np.ndarray, cubes: dict[str, np.n
     axes[-1].axis("off")
     fig.colorbar(im2, ax=axes[-1], fraction=0.046)
     fig.tight_layout()
-    _png(fig, path)
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def _plot_spectra(path: Path, name: str, wl: np.ndarray, truth: np.ndarray,
                   cubes: dict[str, np.ndarray], valid: np.ndarray, n: int = 6) -> None:
-    import matplotlib  # lazy: matplotlib only for the figures
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: matplotlib only for the figures
-
     level = truth.mean(0)
     gy, gx = np.gradient(level)
     edge = np.hypot(gx, gy)
@@ -246,7 +228,7 @@ def _plot_spectra(path: Path, name: str, wl: np.ndarray, truth: np.ndarray,
     order = np.argsort(edge[ys, xs])
     pick = list(order[-(n // 2):]) + list(order[np.linspace(0, len(order) // 2, n - n // 2,
                                                             dtype=int)])  # fmt: skip
-    fig, axes = plt.subplots(1, len(pick), figsize=(3 * len(pick), 3), sharey=True)
+    fig, axes = new_figure(1, len(pick), figsize=(3 * len(pick), 3), sharey=True)
     for ax, i in zip(np.atleast_1d(axes), pick, strict=False):
         y, x = ys[i], xs[i]
         ax.plot(wl, truth[:, y, x], "k-", lw=2, label="truth")
@@ -257,7 +239,7 @@ def _plot_spectra(path: Path, name: str, wl: np.ndarray, truth: np.ndarray,
         ax.grid(alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=6)
     fig.tight_layout()
-    _png(fig, path)
+    save_figure(fig, path, dpi=90, tight=False)
 
 
 def run_spatial(cfg: SpatialConfig, out: str | Path, *, device: str | None = None

@@ -524,10 +524,6 @@ def _plot_responses(out: Path, designs: list[SensingDesign], scales: list[float]
 # the command
 
 
-def _dtype(name: str) -> torch.dtype:
-    return torch_dtype(name)
-
-
 def run_synthetic(
     cfg: SyntheticConfig, out: str | Path, *, device: str | None = None
 ) -> dict[str, Any]:
@@ -542,7 +538,7 @@ def run_synthetic(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = torch.device(device or cfg.device or "cpu")
-    dt = _dtype(cfg.dtype)
+    dt = torch_dtype(cfg.dtype)
     grid = cfg.wavelengths.grid()
     refl, patch_names = refdata.reflectance_set(cfg.reflectances, grid, device=dev, dtype=dt)
     seeds = list(range(cfg.seed, cfg.seed + cfg.num_seeds))

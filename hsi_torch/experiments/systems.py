@@ -264,9 +264,7 @@ def this_system_matrices(
     Returns:
         ``(A (P, 3V, M), points_mm (P, 2), layout)``.
     """
-    geom, cam, brf_ = _optics(geometry, camera_model, brf)
-    trace = trace_sensor(geom, cam, dtype=torch.float64)
-    layout = build_view_layout(geom, cam, brf_, trace=trace)
+    geom, cam, brf_, layout = _traced(geometry, camera_model, brf)
     pts = scene_points(geom) if points_mm is None else points_mm.to("cpu", torch.float64)
     alpha, sigma, thr = view_rays(geom, cam, layout, pts)
     phi = phi_matrix(camera, illuminant, grid)
@@ -294,17 +292,7 @@ def this_system_design(
             sensing matrices of the 7 :func:`scene_points` averaged) or ``(X, Y)`` in mm.
         other arguments: see :func:`this_system_matrices`.
     """
-    if isinstance(scene_point, str):
-        if scene_point not in ("centre", "center", "mean"):
-            raise ValueError(
-                f"scene_point must be 'centre', 'mean' or (X, Y) mm, got {scene_point!r}"
-            )
-        pts = None
-    else:
-        xy = [float(v) for v in scene_point]
-        if len(xy) != 2:
-            raise ValueError(f"scene_point must be (X, Y) in mm, got {scene_point!r}")
-        pts = torch.tensor([xy], dtype=torch.float64)
+    pts = _point_xy(scene_point, ("centre", "center", "mean"))
     a, p, layout = this_system_matrices(
         grid, geometry=geometry, camera_model=camera_model, brf=brf, camera=camera,
         illuminant=illuminant, points_mm=pts, device=device, dtype=dtype,
@@ -324,15 +312,24 @@ def this_system_design(
     return SensingDesign(name, mat, names, grid, info)
 
 
-def _scene_point_xy(scene_point: str | Sequence[float], geometry: Any) -> Tensor:
+def _point_xy(scene_point: str | Sequence[float], names: tuple[str, ...]) -> Tensor | None:
+    """``(1, 2)`` float64 point (mm) of ``(X, Y)``, or None for one of ``names``."""
     if isinstance(scene_point, str):
-        if scene_point not in ("centre", "center"):
-            raise ValueError(f"scene_point must be 'centre' or (X, Y) mm, got {scene_point!r}")
-        return scene_points(geometry)[:1]
+        if scene_point not in names:
+            shown = ", ".join(repr(n) for n in names if n != "center")
+            raise ValueError(f"scene_point must be {shown} or (X, Y) mm, got {scene_point!r}")
+        return None
     xy = [float(v) for v in scene_point]
     if len(xy) != 2:
         raise ValueError(f"scene_point must be (X, Y) in mm, got {scene_point!r}")
     return torch.tensor([xy], dtype=torch.float64)
+
+
+def _traced(geometry: Any, camera_model: Any, brf: Any) -> tuple[Any, Any, Any, Any]:
+    """``(geometry, camera, brf, layout)``: the optics built by :func:`_optics` and their layout."""
+    geom, cam, brf_ = _optics(geometry, camera_model, brf)
+    layout = build_view_layout(geom, cam, brf_, trace=trace_sensor(geom, cam, dtype=torch.float64))
+    return geom, cam, brf_, layout
 
 
 def _coded_design(
@@ -352,10 +349,9 @@ def _coded_design(
     """``A[(v,c), m] = g_v T_v(λ_m) Δλ_m φ^c(λ_m)`` of a :class:`PrototypeDesign` at one scene
     point: ``T_v`` the view's filter (``manakov``) or the BRF transmittance with the OPD times the
     thin section's grain factor at the point (``fujimoto``)."""
-    geom, cam, brf_ = _optics(geometry, camera_model, brf)
-    trace = trace_sensor(geom, cam, dtype=torch.float64)
-    layout = build_view_layout(geom, cam, brf_, trace=trace)
-    pts = _scene_point_xy(scene_point, geom)
+    geom, cam, brf_, layout = _traced(geometry, camera_model, brf)
+    pts = _point_xy(scene_point, ("centre", "center"))
+    pts = scene_points(geom)[:1] if pts is None else pts
     alpha, sigma, thr = view_rays(geom, cam, layout, pts)  # (1, V)
     wl = grid.wavelengths(dtype=torch.float64)
     info: dict[str, Any] = {"kind": design.kind, "design": design.to_dict(),

@@ -1,53 +1,24 @@
 """Spatial resolution with a USAF 1951 target: the finest resolvable group/element
-per reconstructed band, compared with an RGB reference imaged without the add-on.
+per reconstructed band, compared with an RGB reference imaged without the add-on
+(docs/experiments.md, *USAF 1951 resolution*, describes the set-up, the ablations and the results).
 
-**Target and scale.** The simulator's :class:`~hsi_torch.simulate.scenes.USAF1951Scene` (bars 0.9,
-background 0.05, both orientations per element) is placed on the diffuser (object side of the
-add-on = image plane of the objective) inside the reference view. ``magnification`` is diffuser mm
-per target mm, so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm is in *target* (object-plane) units and the
-diffuser sees ``r / magnification``. The reference frame samples the diffuser at ``p`` mm per
-pixel: its Nyquist limit is ``1/(2p)`` lp/mm on the diffuser, ``magnification/(2p)`` on the
-target. The default is the original prototype's scale: the full-size prototype (``p`` = 0.0187 mm),
-magnification 1/16 (the RGB reference then resolves G0 E2 = 1.12 lp/mm, as the original's does)
-and a 10 µm diffuser blur (docs/experiments.md gives both arguments).
+**Scale.** ``magnification`` is diffuser mm per target mm, so ``r(G, E) = 2^{G+(E−1)/6}`` lp/mm
+is in *target* units and the diffuser sees ``r / magnification``; a reference frame sampling the
+diffuser at ``p`` mm per pixel has its Nyquist limit at ``magnification/(2p)`` lp/mm on the target.
 
-**Ablations.** ``ablate`` switches factors off one at a time to find what limits the bands:
-``diffuser`` (no blur), ``demosaic`` (full-RGB sensor), ``noise`` (no shot/read noise or
-quantisation), ``beta`` (β = 0), ``warp`` (:func:`ideal_observations`: every view observes exactly
-the reference pixel's footprint — no view sampling, warp or demosaic).
+**HSI**: the capture rendered through the prototype and reconstructed from the oracle or a
+calibrated bundle. **RGB reference** (:func:`rgb_reference`): the same scene sampled at the
+reference frame's diffuser points, weighted by ``φ`` and vignetting only, then the same sensor
+model and bilinear demosaic; channels white-balanced, ``gray`` their mean.
 
-**HSI.** The USAF capture is rendered through the prototype (kaleidoscope, BRF, diffuser, Bayer
-sensor with noise; ``hsi_torch.simulate.simulate_capture_set``) and reconstructed with
-:class:`hsi_torch.recon.Reconstructor` from the oracle bundle (the simulator's truth) or a
-calibrated bundle.
+**Contrast criterion.** Per bar triplet, Michelson contrast ``C = (min bars − max gaps) /
+(min bars + max gaps)`` of a profile sampled at the bar and gap centres; an element is
+*resolved* when ``C ≥ threshold``, and the limit is the finest element before the first
+unresolved one (elements not wholly inside the valid region are skipped).
 
-**RGB reference.** The same scene imaged directly on a sensor with the same image-plane scale:
-the reflectance is sampled at the diffuser points of the reference frame's pixels (``s × s``
-sub-samples, :meth:`CaptureRenderer.reference_diffuser_points`), weighted by the same
-illuminant × camera sensitivity × objective (``φ``, normalised with ``κ``) and objective
-vignetting — no kaleidoscope, diffuser fall-off, polarizers or BRF — then the same
-:class:`~hsi_torch.optics.sensor.SensorModel` (Bayer mosaic, shot/read noise, same exposure) and
-bilinear demosaic. Channels are white-balanced; ``gray`` is their mean.
-
-**Contrast criterion.** Per bar triplet, a profile across the bars is sampled (bilinear) at the
-three bar centres and the two gap centres, each averaged along the central ``length_fraction`` of
-the bars. Michelson contrast ``C = (min bars − max gaps) / (min bars + max gaps)``: every bar
-must stand above both gaps. An element is *resolved* when ``C ≥ threshold`` (default 0.1) for
-the chosen orientations (``both`` by default). The limit is the finest element of the
-coarse-to-fine sequence before the first unresolved one (elements not fully inside the valid
-reconstruction region are skipped).
-
-**Against the truth.** The reconstructed cube is also scored against the simulator's true
-reflectance of the target (``scene_usaf`` of the capture set's ground truth) over the valid
-pixels, with the field's metrics of :func:`hsi_torch.metrics.cube_metrics` (PSNR whole cube peak
-1 and per band on 0–255, SSIM, SAM, ERGAS, RMSE, MRAE): ``resolution.md``'s last table,
-``summary.json``'s ``metrics``. They do not apply to the RGB reference (three colour channels,
-no spectrum to compare with the truth's).
-
-**Reusing a capture set.** ``capture_set`` names a previous run's ``OUT/capture_set``: nothing is
-simulated, after :func:`check_reusable_capture_set` has confirmed the capture would be the same
-(rows that change only the reconstruction: β, the prior, ideal registration).
-
+The reconstructed cube is also scored against the true reflectance with
+:func:`hsi_torch.metrics.cube_metrics` (not the RGB reference: it has no spectrum).
+``capture_set`` reuses a previous run's capture set after :func:`check_reusable_capture_set`.
 Command: ``hsi-torch experiment usaf --out DIR`` (the shipped ``usaf.yaml``).
 """
 

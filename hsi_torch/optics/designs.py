@@ -1,33 +1,21 @@
-"""Design kinds of the virtual prototype: what codes the spectrum behind the kaleidoscope.
-
-The same tapered kaleidoscope, diffuser, camera and sensor can carry three spectral coders
-(:class:`PrototypeDesign`, the ``design:`` section of the simulate config):
+"""Design kinds of the virtual prototype: what codes the spectrum behind the kaleidoscope
+(:class:`PrototypeDesign`, the ``design:`` section of the simulate config; docs/simulate.md,
+*Design kinds*, gives the models' sources and defaults).
 
 - ``this_system`` (default): a birefringent filter (BRF) between polarizers directly behind the
-  diffuser; each view crosses it at its own angle, so each view sees its own OPD
-  (:class:`~hsi_torch.optics.BRFConfig`).
-- ``manakov`` — after Manakov et al., *A reconfigurable camera add-on for high dynamic range,
-  multispectral, polarization, and light-field imaging*, ACM TOG 32(4) 2013: no BRF and no
-  polarizers; one spectral filter per view, in the plane where the views separate (their
-  "filter plane", behind the kaleidoscope). View ``v ≥ 1`` gets filter ``v − 1`` of a set; the
-  reference view ``v = 0`` carries none, so it is the unfiltered reference calibration divides
-  by (the role our BRF-free patch plays). Tiles of higher order than the views are masked.
-  The default set is Gaussian band-pass filters (:func:`gaussian_bandpass`) with centres evenly
-  spaced over the band and an FWHM close to their spacing, so the set tiles the band (the
-  original used nine narrow band-pass filters with centres 420–700 nm); any measured curves
-  (CSV) can replace them.
-- ``fujimoto`` — after Fujimoto et al. 2025 (a natural birefringent thin-section filter): the
-  BRF is a petrographic thin section, a mosaic of crystal grains whose birefringence differs
-  from grain to grain, so its OPD is a *map over the aperture*. Modelled as the ``brf`` plate
-  (material, thickness, axis) whose OPD every ray multiplies by the factor of the grain it
-  crosses (:meth:`PrototypeDesign.grain_factor`): grains are the cells of a jittered-grid
-  Voronoi tessellation of the diffuser plane with mean size ``grain_size_mm``, each with a factor
-  drawn uniformly from ``grain_opd_factor``. A grain whose optic axis is tilted by ``θ`` out of
-  the section's plane has the effective birefringence ``Δn cos²θ``, so across grains the factor
-  on the nominal plate's OPD spans an order of magnitude.
+  diffuser; each view crosses it at its own angle and sees its own OPD.
+- ``manakov`` (after Manakov et al., ACM TOG 32(4) 2013): no BRF and no polarizers; view
+  ``v ≥ 1`` carries filter ``v − 1`` of a set (default: Gaussian band-passes tiling the band,
+  :func:`gaussian_bandpass`; or measured curves), the reference view none; higher-order tiles
+  are masked.
+- ``fujimoto`` (after Fujimoto et al. 2025): a birefringent thin section, modelled as the ``brf``
+  plate whose OPD every ray multiplies by the factor of the grain it crosses
+  (:meth:`PrototypeDesign.grain_factor`: cells of a jittered-grid Voronoi tessellation with mean
+  size ``grain_size_mm``, factors drawn uniformly from ``grain_opd_factor``; a grain tilted by
+  ``θ`` has birefringence ``Δn cos²θ``).
 
-Everything here is deterministic physics on tensors (no I/O): filter curves read from files are
-handed in as arrays (``filter_curves``).
+Deterministic physics on tensors (no I/O): filter curves read from files are handed in as arrays
+(``filter_curves``).
 """
 
 from __future__ import annotations

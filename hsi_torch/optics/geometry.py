@@ -35,6 +35,7 @@ __all__ = [
     "points_in_triangle",
     "reference_to_view_points",
     "reference_pixel_points",
+    "pixel_centres",
     "view_sample_grid",
     "reference_to_source_matrices",
     "view_masks",
@@ -112,6 +113,14 @@ def reference_pixel_points(
     idx = torch.as_tensor(pixel_index, device=device)
     q = torch.stack([idx % w + x0, idx // w + y0], dim=1)
     return q.to(torch.float64).to(dtype)
+
+
+def pixel_centres(height: int, width: int, *, device: torch.device | str | None = None,
+                  dtype: torch.dtype = torch.float64) -> Tensor:
+    """``(H, W, 2)`` sensor px ``(x, y)`` of every pixel centre."""
+    ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
+                            torch.arange(width, device=device, dtype=dtype), indexing="ij")
+    return torch.stack([xs, ys], -1)
 
 
 def reference_to_view_points(view_homographies: Tensor, points: Tensor) -> Tensor:

@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from .geometry import points_in_triangle
+from .geometry import pixel_centres, points_in_triangle
 
 __all__ = [
     "KaleidoscopeGeometry",
@@ -224,13 +224,8 @@ class CameraModel:
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> torch.Tensor:
         """``(H·W, 2)`` pixel-centre coordinates ``(x, y)``, row-major."""
-        dtype = dtype or torch.get_default_dtype()
-        ys, xs = torch.meshgrid(
-            torch.arange(self.height_px, device=device, dtype=dtype),
-            torch.arange(self.width_px, device=device, dtype=dtype),
-            indexing="ij",
-        )
-        return torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)
+        return pixel_centres(self.height_px, self.width_px, device=device,
+                             dtype=dtype or torch.get_default_dtype()).reshape(-1, 2)
 
     def scaled(self, factor: float) -> CameraModel:
         """Same optics with the sensor resampled by ``factor`` (pitch / factor, size × factor)."""

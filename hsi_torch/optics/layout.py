@@ -1,12 +1,9 @@
 """View layout of the kaleidoscope on the sensor, derived from a ray trace.
 
-Convention:
-    Sensor pixels ``(x, y)`` (column, row; centres at integers). Homographies act on homogeneous
-    column vectors and are normalised to ``H[2, 2] = 1``. ``view_homographies[v]`` maps sensor px
-    of view ``v`` to sensor px of the reference view (``H_0 = I``); ``diffuser_homographies[v]``
-    maps diffuser mm ``(X, Y, 1)`` to sensor px of view ``v``. Both are fitted by a normalised DLT
-    on traced (hit point, pixel) pairs; for planar mirrors the mapping is exactly projective, so
-    the fit residual measures only numerical error.
+Convention: that of :mod:`hsi_torch.optics.geometry`; homographies are normalised to
+``H[2, 2] = 1``, and ``diffuser_homographies[v]`` maps diffuser mm ``(X, Y, 1)`` to sensor px of
+view ``v``. Both kinds are fitted by a normalised DLT on traced (hit point, pixel) pairs; for planar
+mirrors the mapping is exactly projective, so the fit residual measures only numerical error.
 """
 
 from __future__ import annotations
@@ -20,7 +17,7 @@ import numpy as np
 import torch
 
 from .birefringence import BRFConfig
-from .geometry import apply_homography, points_in_triangle
+from .geometry import apply_homography, pixel_centres, points_in_triangle
 from .kaleidoscope import CameraModel, KaleidoscopeGeometry, RayTrace, trace_sensor
 
 __all__ = [
@@ -174,25 +171,15 @@ class ViewLayout:
     def triangle_mask(self, view: int, device: torch.device | str | None = None) -> torch.Tensor:
         """``(H, W)`` bool: pixel centres inside view ``view``'s triangle."""
         h, w = self.sensor_size
-        ys, xs = torch.meshgrid(
-            torch.arange(h, device=device, dtype=torch.float64),
-            torch.arange(w, device=device, dtype=torch.float64),
-            indexing="ij",
-        )
         tri = self.triangles[view].to(device=device, dtype=torch.float64)
-        return points_in_triangle(torch.stack([xs, ys], -1).reshape(-1, 2), tri).reshape(h, w)
+        return points_in_triangle(pixel_centres(h, w, device=device).reshape(-1, 2),
+                                  tri).reshape(h, w)
 
     def brf_free_mask_sensor(
         self, view: int = 0, device: torch.device | str | None = None
     ) -> torch.Tensor:
         """``(H, W)`` bool: pixels of view ``view`` whose diffuser point is in the BRF-free disk."""
-        h, w = self.sensor_size
-        ys, xs = torch.meshgrid(
-            torch.arange(h, device=device, dtype=torch.float64),
-            torch.arange(w, device=device, dtype=torch.float64),
-            indexing="ij",
-        )
-        xy = self.sensor_to_diffuser(view, torch.stack([xs, ys], -1).to(device))
+        xy = self.sensor_to_diffuser(view, pixel_centres(*self.sensor_size, device=device))
         c = torch.tensor(self.brf_free_center_mm, device=device, dtype=torch.float64)
         inside = ((xy - c) ** 2).sum(-1) <= self.brf_free_radius_mm**2
         return inside & self.triangle_mask(view, device)

@@ -1,21 +1,12 @@
 """``hsi-torch simulate [--config C] --out DIR [--set key=value ...] [--device D] [--overwrite]``
 (without ``--config``: the shipped ``simulate.yaml``, the README's default prototype).
 
-``--out`` must be a new or empty folder: a folder that holds files (above all one laid out like a
-device's capture set: ``manifest.json``, ``scan/``, ``white/``) is refused unless
-``--overwrite`` is given. With ``--overwrite`` the new set is rendered into a temporary folder
-inside ``DIR`` and its files are moved into place only when all of them are complete
-(:func:`hsi_torch.io.atomic.replace_then_commit`): a failed run leaves the old files as they
-were, and files of ``DIR`` the new set does not contain are kept. No output may be one of the
-command's inputs (its configuration file, a scene cube, a spectrum file).
-
-A run into a new or empty folder first writes the marker :data:`INCOMPLETE_MARKER` there (and
-holds an exclusive lock on it while it runs), and removes it only once the whole set is written
-(``resolved_config.yaml`` last). A folder holding that marker is therefore an incomplete run of
-this command (interrupted, or still running): a rerun renders the set into it again without
-``--overwrite``, replacing files of the same names and deleting none, and says which files of the
-interrupted run it left in place; a run still holding the lock makes the rerun refuse, naming its
-process. A complete set carries no marker and is refused as before."""
+``--out`` must be a new or empty folder, a folder holding an incomplete run of this command (its
+:data:`INCOMPLETE_MARKER`, written first, locked while the run lasts and removed once the whole
+set is written: a rerun finishes it, deleting nothing), or ``--overwrite`` is given (the new set is
+staged and moved into place when complete, :func:`hsi_torch.io.atomic.replace_then_commit`). No
+output may be one of the command's inputs. docs/simulate.md, *The command*, tells the rules in
+full."""
 
 from __future__ import annotations
 

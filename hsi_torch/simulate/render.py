@@ -40,19 +40,12 @@ Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) 
 
 reproduces the noise-free rendering to the discretisation error of the 10 nm grid.
 
-How it is computed (:meth:`CaptureRenderer.render_captures`): the sensor is rendered one band of
-rows at a time (≈ ``chunk`` sub-pixel rays); a band's rays are traced, and per ray the filter
-stack is written ``Tstack(λ) = A + B · cos(2π · OPD(λ) / λ)`` (:meth:`stack_cosine_form`), so
-every capture's spectral integral is ``A · Σ W + B · (cos @ W)``: the ``(rays, L)`` cosine matrix
-is evaluated once per band and meets one weight matrix holding every scan line, the white target,
-the spectrally flat targets and each multi-spectral scene's endmember spectra
-(``S(X, λ) = Σ_k a_k(X) E_k(λ)``, :mod:`hsi_torch.simulate.scenes`). Blurred scenes are kept as
-their ``K`` abundance planes (CAVE 31, ColorChecker 25, bar/circle targets 1), not as ``L``-band
-cubes. With Bayer output each ray is shaded in its pixel's colour only. Memory is the ``K``
-images plus one band. Precision: the render dtype (float32 at full size) for rays, cosines,
-scene rasters and images; float64 for the view layout, the spectral weights (built in float64,
-then cast), and the ground truth (its traces, ``B`` before the float32 store, scene truth), so
-the truth is as exact as the optics it describes.
+How it is computed (:meth:`CaptureRenderer.render_captures`; docs/simulate.md, *Numerics and
+measured times*): one band of sensor rows at a time; per ray ``Tstack(λ) = A + B · cos(2π ·
+OPD(λ) / λ)`` (:meth:`stack_cosine_form`), so one ``(rays, L)`` cosine matrix per band meets one
+weight matrix holding every capture's spectra, scenes as ``K`` abundance planes × endmember
+spectra. Precision: the render dtype for rays, cosines, rasters and images; float64 for the view
+layout, the spectral weights and the ground truth.
 """
 
 from __future__ import annotations
@@ -81,6 +74,7 @@ from hsi_torch.optics import (
 from hsi_torch.optics.birefringence import polarizer_transmittance
 from hsi_torch.optics.geometry import (
     apply_homography,
+    pixel_centres,
     points_in_triangle,
     reference_pixel_points,
     view_sample_grid,
@@ -629,16 +623,14 @@ class CaptureRenderer:
             it = progress(it, desc="tracing + rendering", unit="band")
         for y0 in it:
             y1 = min(h, y0 + rows_per)
-            ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev, dtype=torch.float64),
-                                    torch.arange(w, device=dev, dtype=torch.float64),
-                                    indexing="ij")
-            base = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)  # (P, 2)
+            base = pixel_centres(y1 - y0, w, device=dev).reshape(-1, 2)  # (P, 2)
+            base[:, 1] += y0
             pts = (base[:, None, :] + offs[None]).reshape(-1, 2)
             if self.mismatch.distorted or (after_calibration and self.mismatch.drifted):
                 pts = self.sensor_to_pinhole(pts, after_calibration)
             tr = trace_rays(geom, self.camera, pts.to(dt), sequences=seqs, chunk=self.chunk)
             keep = torch.nonzero(tr.view_index >= 0).squeeze(1)
-            pix = (ys.reshape(-1).long() * w + xs.reshape(-1).long()).repeat_interleave(s2)
+            pix = torch.arange(y0 * w, y1 * w, device=dev).repeat_interleave(s2)
             hit = tr.hit_xy[keep]
             yield y0, y1, SubpixelTrace(
                 pixel=pix[keep], alpha=tr.alpha[keep], sigma=tr.sigma[keep], hit_xy=hit,

@@ -6,13 +6,9 @@ scan, white, grid and dark frames, the ground truth and therefore the calibratio
 the ideal device. :func:`rerender_after_calibration` renders the scene captures (optionally also
 the white references: a white reference shot under the scene's light) with the config's
 mismatch, writes them into a new folder and hard-links (or copies) every other file of a base
-capture set rendered from the same config without the effect. At full size this skips the
-scan's 25 frames, the grids and the truth: one render pass instead of a whole set.
-
-The base set may itself have device effects (stray light, hot pixels, …): the config must then
-hold the same device keys (checked against the base's ``ground_truth/truth.json``), and the
-re-rendered captures get them too. ``scenes=False, whites=True`` re-shoots only the white
-references (e.g. under the scene's light) and keeps the base's scenes.
+capture set rendered from the same config without the effect (device effects of the base set
+must be the config's too). At full size this skips the scan's 25 frames, the grids and the
+truth: one render pass instead of a whole set.
 """
 
 from __future__ import annotations
@@ -56,10 +52,6 @@ def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
 def _base_mismatch(base: Path) -> dict[str, Any]:
     """The base set's recorded mismatch keys (``{}``: an ideal set, or no record)."""
     return dict(read_truth_meta(base).get("mismatch") or {})
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    link_or_copy(src, dst)  # a hard link: every writer replaces it, never writes through
 
 
 def rerender_after_calibration(
@@ -125,7 +117,7 @@ def rerender_after_calibration(
     for p in sorted(base.rglob("*")):
         rel = p.relative_to(base).as_posix()
         if p.is_file() and rel not in redo:
-            _link_or_copy(p, out / rel)
+            link_or_copy(p, out / rel)  # a hard link: every writer replaces it
     truth_json = out / TRUTH_JSON
     if truth_json.is_file():
         meta = read_truth_meta(out)
