@@ -79,6 +79,7 @@ __all__ = [
     "replace_file",
     "folder_identity",
     "human_size",
+    "pid_alive",
     "MAX_OWN_FILE",
 ]
 
@@ -308,7 +309,7 @@ def atomic_save_npz(
     return Path(path)
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """Whether a process ``pid`` exists (``True`` when that cannot be told, e.g. on Windows)."""
     if os.name == "nt":  # os.kill(pid, 0) would send CTRL_C_EVENT there
         return True
@@ -341,7 +342,7 @@ def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
         return removed
     for entry in entries:
         m = TEMP_FILE_RE.match(entry.name)
-        if m is None or _pid_alive(int(m["pid"])):
+        if m is None or pid_alive(int(m["pid"])):
             continue
         if entry.is_dir(follow_symlinks=False):  # a killed transaction's staging folder
             shutil.rmtree(entry.path, ignore_errors=True)
@@ -362,7 +363,7 @@ def clean_stale_temp_files_of(path: str | os.PathLike) -> list[Path]:
     removed: list[Path] = []
     for t in p.parent.glob(f".{glob.escape(p.name)}.*.tmp"):
         m = TEMP_FILE_RE.match(t.name)
-        if m is None or m["name"] != p.name or _pid_alive(int(m["pid"])):
+        if m is None or m["name"] != p.name or pid_alive(int(m["pid"])):
             continue
         with contextlib.suppress(FileNotFoundError):
             t.unlink()
@@ -1065,7 +1066,7 @@ def recover_commits(folder: str | os.PathLike) -> list[Path]:
         return done
     for entry in entries:
         m = JOURNAL_RE.match(entry.name)
-        if m is None or _pid_alive(int(m["pid"])):
+        if m is None or pid_alive(int(m["pid"])):
             continue
         rec = read_own_json(entry.path, 1 << 20)
         moves = rec.get("moves") if isinstance(rec, dict) else None
