@@ -135,13 +135,6 @@ def _no_tick(n: int = 1, stage: str | None = None) -> None:
     """A progress callback that does nothing."""
 
 
-# =============================================================================================
-# reading captures
-# =============================================================================================
-
-
-
-
 @dataclass
 class CalibrationReport:
     """What :func:`calibrate_capture_set` did and measured (printable, JSON-able)."""
@@ -356,8 +349,6 @@ def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
 # =============================================================================================
 
 
-
-
 def check_sensor_size(cs: CaptureSet, lay: NominalLayout) -> None:
     """The manifest's ``sensor_size`` (when it has one) must be the layout's.
 
@@ -446,7 +437,8 @@ def register_grid_shots(
 ) -> RegistrationResult:
     """View homographies from the circle-grid shots (:func:`register_views`), each shot divided
     by the mean white shot first when ``registration.flat_field`` (the target's own reflectance,
-    free of the views' transmittance fringes, vignetting and fall-off).
+    free of the views' transmittance fringes, vignetting and fall-off, which otherwise bias
+    circle centres by a few tenths of a pixel at full sensor size).
 
     Raises:
         ValueError: the grid was found in no shot for some view (naming the files).
@@ -454,10 +446,7 @@ def register_grid_shots(
     det_cfg = GridDetectorConfig.from_dict(cfg.detector_dict())
     flat = None
     if cfg.registration.flat_field and cs.white:
-        # the grid shots divided by the mean white shot: the target's own reflectance, free
-        # of the views' transmittance fringes, vignetting and fall-off (which otherwise bias
-        # circle centres by a few tenths of a pixel at full sensor size)
-        # (saturated samples left out of the mean, shot by shot)
+        # saturated samples left out of the mean, shot by shot
         count = None
         for p in cs.white:
             img, sat, _ = reader.read(p)
@@ -720,8 +709,9 @@ def assemble_bundle(
     Besides the grid, β's and detector settings, ``settings`` record the white shots' exposure
     (``white_exposure_s``, ``white_exposure_unit``, ``white_exposure_source``), the black level
     a capture without its own must get (``black_level_rgb``, ``black_level_source``,
-    ``dark_level_rgb``, :meth:`_Reader.black_level_record`), the camera's identity (``camera``:
-    :class:`~hsi_torch.io.radiometry.CameraIdentity`) and the pedestal measured (``pedestal``).
+    ``dark_level_rgb``, :meth:`~hsi_torch.calibrate.reading.CaptureReader.black_level_record`),
+    the camera's identity (``camera``: :class:`~hsi_torch.io.radiometry.CameraIdentity`) and the
+    pedestal measured (``pedestal``).
 
     Raises:
         ValueError: no pixel has ``min_views`` modulated views.
@@ -995,7 +985,3 @@ def calibrate_capture_set(
         findings=findings_dicts(corrections["findings"]),
     )
     return bundle, report
-
-
-#: the reader's former private name (kept for callers of the old name)
-_Reader = CaptureReader
