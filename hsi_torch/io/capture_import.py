@@ -67,6 +67,7 @@ from hsi_torch.io.capture_set import (
     CAPTURE_TYPES,
     MANIFEST,
     NOMINAL_LAYOUT,
+    ROLE_FOLDERS,
     duplicate_uses,
     read_capture_set,
     read_nominal_layout,
@@ -91,7 +92,6 @@ __all__ = [
 SHEET_COLUMNS = ("file", "role", "wavelength_nm", "exposure_s", "black_level", "white_level",
                  "cfa_pattern", "name", "camera_make", "camera_model")  # fmt: skip
 _NUMERIC = ("wavelength_nm", "exposure_s", "white_level")
-_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
 #: the calibration grid the import report is made for (calibrate.yaml's defaults)
 DEFAULT_GRID_NM = (430.0, 670.0, 10.0)
 
@@ -531,10 +531,10 @@ def import_captures(
     if copy:
         used: set[str] = set()
         for r, e in entries:
-            rel = f"{_FOLDERS[r.role]}/{r.file.name}"
+            rel = f"{ROLE_FOLDERS[r.role]}/{r.file.name}"
             k = 1
             while rel in used:
-                rel = f"{_FOLDERS[r.role]}/{r.file.stem}_{k}{r.file.suffix}"
+                rel = f"{ROLE_FOLDERS[r.role]}/{r.file.stem}_{k}{r.file.suffix}"
                 k += 1
             used.add(rel)
             shots.append((r.file, out / rel))

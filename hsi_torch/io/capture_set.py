@@ -49,6 +49,7 @@ __all__ = [
     "ALLOW_OUTSIDE_KEY",
     "CAPTURE_SUFFIXES",
     "CAPTURE_TYPES",
+    "ROLE_FOLDERS",
     "MANIFEST",
     "NOMINAL_LAYOUT",
     "BRF_FREE_MASK",
@@ -80,7 +81,8 @@ CAPTURE_TYPES = ("scan", "white", "grid", "dark", "scene")
 #: File suffixes of captures found in the sub-folders of a folder without a manifest.
 CAPTURE_SUFFIXES = SUPPORTED_SUFFIXES  # every file read_any reads
 _WL_RE = re.compile(r"(\d+(?:[.p]\d+)?)\s*nm", re.IGNORECASE)
-_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
+#: The sub-folder of each capture type (a folder without a manifest; ``captures import --copy``).
+ROLE_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
 
 
 def wavelength_from_name(name: str) -> float | None:
@@ -530,11 +532,10 @@ def read_capture_set(
             elif t in ("white", "grid", "dark"):
                 getattr(cs, t).append(p)
     else:
-        cs.scan = [(p, wavelength_from_name(p.name)) for p in _folder_files(root / "scan")]
-        cs.white = _folder_files(root / "white")
-        cs.grid = _folder_files(root / "grid")
-        cs.dark = _folder_files(root / "dark")
-        cs.scenes = {p.stem: p for p in _folder_files(root / "scenes")}
+        found = {t: _folder_files(root / sub) for t, sub in ROLE_FOLDERS.items()}
+        cs.scan = [(p, wavelength_from_name(p.name)) for p in found["scan"]]
+        cs.white, cs.grid, cs.dark = found["white"], found["grid"], found["dark"]
+        cs.scenes = {p.stem: p for p in found["scene"]}
     if layout is not None:
         cs.layout_path = Path(layout)
     elif cs.manifest is not None and cs.manifest.get("nominal_layout"):
