@@ -437,23 +437,19 @@ def open_own_file(path: str | os.PathLike, what: str = "lock file") -> tuple[int
         fd = os.open(p, os.O_RDWR | _NOFOLLOW | _NONBLOCK | _CLOEXEC)
     except OSError as exc:
         try:
-            st = os.lstat(p)
+            reason = _not_own(p, os.lstat(p)) or str(exc.strerror or exc)
         except OSError:
             raise named_os_error(exc, p, "opening") from None
-        reason = _not_own(p, st) or str(exc.strerror or exc)
-        raise InputError(
-            f"{p} {reason}: not a {what} this program wrote; nothing was written "
-            "to it: remove it, or choose another folder"
-        ) from None
-    reason = _not_own(p, os.fstat(fd))
-    if reason is not None:
+    else:
+        reason = _not_own(p, os.fstat(fd))
+        if reason is None:
+            os.set_blocking(fd, True)
+            return fd, False
         os.close(fd)
-        raise InputError(
-            f"{p} {reason}: not a {what} this program wrote; nothing was written "
-            "to it: remove it, or choose another folder"
-        )
-    os.set_blocking(fd, True)
-    return fd, False
+    raise InputError(
+        f"{p} {reason}: not a {what} this program wrote; nothing was written "
+        "to it: remove it, or choose another folder"
+    ) from None
 
 
 def _same_file(path: Path, fd: int) -> bool:
@@ -530,14 +526,8 @@ def read_own_bytes(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
         if st.st_size > max_bytes:
             raise error(f"{p}: {human_size(st.st_size)}, larger than this program's "
                         f"{what} can be ({human_size(max_bytes)})")  # fmt: skip
-        chunks, left = [], max_bytes + 1
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 20))
-            if not b:
-                break
-            chunks.append(b)
-            left -= len(b)
-        data = b"".join(chunks)
+        with open(fd, "rb", closefd=False) as f:
+            data = f.read(max_bytes + 1)  # until the end, or one byte too many
         if len(data) > max_bytes:  # grew while read
             raise error(f"{p}: larger than this program's {what} can be "
                         f"({human_size(max_bytes)})")  # fmt: skip
@@ -841,6 +831,10 @@ class ReplaceTransaction:
         self.done = False
         self._recovered: set[Path] = set()
 
+    def _check_open(self) -> None:
+        if self.done:
+            raise RuntimeError("the transaction is already committed or rolled back")
+
     def check(self, dest: str | os.PathLike) -> Path:
         """Check a destination now (not an input, no folder in the way); returns it."""
         d = Path(dest)
@@ -854,8 +848,7 @@ class ReplaceTransaction:
     def stage(self, dest: str | os.PathLike) -> Path:
         """The temporary path to write ``dest``'s new content to (created empty here; a writer
         may replace it, e.g. with its own atomic write). Its folder is created."""
-        if self.done:
-            raise RuntimeError("the transaction is already committed or rolled back")
+        self._check_open()
         d = self.check(dest)
         if d in self._files:
             return self._files[d]
@@ -883,8 +876,7 @@ class ReplaceTransaction:
         """A temporary folder inside ``dest_dir`` in which a writer lays out files; at
         :meth:`commit` every file below it moves to the same relative path below ``dest_dir``
         (files of ``dest_dir`` the writer did not produce are kept)."""
-        if self.done:
-            raise RuntimeError("the transaction is already committed or rolled back")
+        self._check_open()
         d = Path(dest_dir)
         if d.exists() and not d.is_dir():
             raise InputError(f"output folder {d} exists and is not a folder")
@@ -912,8 +904,7 @@ class ReplaceTransaction:
         journal, and the next transaction into that folder (or :func:`clean_stale_temp_files`)
         puts the earlier files back (:func:`recover_commits`) — never new files beside old ones
         unmarked."""
-        if self.done:
-            raise RuntimeError("the transaction is already committed or rolled back")
+        self._check_open()
         moves = self._plan()
         for src, dest in moves:  # every check before the first move
             if not src.is_file():
