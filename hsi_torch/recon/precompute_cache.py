@@ -39,6 +39,7 @@ import shutil
 import stat
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -53,6 +54,7 @@ from hsi_torch.io.atomic import (
     human_size,
     json_default,
     pid_alive,
+    read_file_head,
     read_own_bytes,
 )
 from hsi_torch.io.safety import file_sha256
@@ -800,12 +802,7 @@ def _entry_kind(path: Path) -> str | None:
     except OSError:
         return None
     if m and stat.S_ISREG(st.st_mode):
-        try:
-            fd = os.open(path, _OPEN_FLAGS)
-            with os.fdopen(fd, "rb") as f:
-                return "old" if f.read(len(OLD_MAGIC)) == OLD_MAGIC else None
-        except OSError:
-            return None
+        return "old" if read_file_head(path, len(OLD_MAGIC)) == OLD_MAGIC else None
     if not stat.S_ISDIR(st.st_mode):
         return None
     if t:
@@ -1098,8 +1095,6 @@ def run_cache(args: Any) -> int:
     print(f"  {n} entr{'y' if n == 1 else 'ies'}, {info['total_bytes'] / 2**30:.2f} GiB of at most "
           f"{info['max_bytes'] / 2**30:.1f} GiB (${MAX_GB_ENV})")  # fmt: skip
     for e in info["entries"]:
-        import time
-
         used = time.strftime("%Y-%m-%d %H:%M", time.localtime(e["last_used"]))
         print(
             f"  {e['name']}  {e['bytes'] / 2**30:.2f} GiB  last used {used}"
