@@ -501,7 +501,12 @@ def confirm_parity(
     *,
     min_inlier_fraction: float = 0.8,
 ) -> list[ParityEvidence]:
-    """Each view's parity from the circle-grid shots (see the module docstring, step 3).
+    """Each view's parity from the circle-grid shots: the grid is detected in the view with and
+    without undoing a mirror flip and fitted to the reference view's detections by RANSAC
+    (:func:`~hsi_torch.calibrate.registration.fit_homography`); a parity is supported when at
+    least ``min_inlier_fraction`` of the points are inliers and the homography's orientation
+    agrees with it (mirrored views reverse orientation). The better supported parity wins;
+    without evidence the design's is kept and reported as unconfirmed.
 
     Args:
         grid_images: grid shots (as :func:`~hsi_torch.calibrate.registration.to_gray_uint8`

@@ -18,17 +18,11 @@ Scale ambiguity: ``(s·g, φ/s)`` explain the data equally well. After every g-s
 normalised so that the **reference view's gain has mean 1** (over its masked pixels for a field)
 and φ is multiplied by the same factor, so ``g·φ`` — what the sensing matrix uses — is unchanged.
 
-Normalised weights (``normalise=True``, the default of :func:`estimate_response` and
-:func:`estimate_response_field`): the data term is a *sum* over observations (shots × pixels ×
-views), so absolute weights ``β_φ``, ``γ_h`` weaken the prior in proportion to the number of
-observations — a full-size sensor has ~55× the pixels of the small simulated one, and the
-calibration's systematic errors (transmittance, demosaicing, registration) do not average out
-with more pixels. The weights are therefore given relative to the data:
-``β_eff = β_φ · s``, ``γ_eff = γ_h · s`` with ``s = Σ_obs w ‖b_obs‖² / M`` the mean diagonal of the
-data's Gram matrix ``Σ w b bᵀ`` (:func:`data_scale`). ``s`` grows with the number of observations
-and does not depend on the signal level (``I`` and ``φ`` scale together, so both sides of the
-objective scale alike). The original prototype's absolute ``β_φ = γ_h = 8·10⁵`` is
-``normalise=False``; :attr:`ResponseResult.beta_phi_effective` reports the absolute weights used.
+Normalised weights (``normalise=True``, the default): ``β_eff = β_φ · s``, ``γ_eff = γ_h · s``
+with ``s = Σ_obs w ‖b_obs‖² / M`` (:func:`data_scale`), so the prior does not weaken as the number
+of observations grows (a full-size sensor has ~55× the pixels of the small simulated one);
+``normalise=False`` gives the original prototype's absolute weights. The reasons and the
+measurements are in ``docs/calibration.md``, *Response*.
 """
 
 from __future__ import annotations
