@@ -566,11 +566,8 @@ def read_own_json(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
 def folder_identity(path: str | os.PathLike) -> list[int] | None:
     """``[st_dev, st_ino]`` of the folder ``path`` (followed), or ``None``: recorded in a
     folder's markers, a copy of the folder (another inode) is told from the original."""
-    try:
-        st = os.stat(path)
-    except (OSError, ValueError):
-        return None
-    return [int(st.st_dev), int(st.st_ino)]
+    ident = _identity(path)
+    return None if ident is None else list(ident)
 
 
 def relative_to_root(root: str | os.PathLike, path: str | os.PathLike) -> str:
