@@ -28,6 +28,7 @@ it. The full rules (key, format, trust, folders, bound, measured cost) are in
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
@@ -323,10 +324,8 @@ def _secret(folder: Path, create: bool) -> bytes | None:
         tmp = folder / f".{KEY_FILE}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
         try:
             _write_new(tmp, lambda f: f.write(secrets.token_bytes(32)))
-            try:
+            with contextlib.suppress(FileExistsError):
                 os.link(tmp, path)
-            except FileExistsError:
-                pass
         finally:
             tmp.unlink(missing_ok=True)
         return _secret(folder, create=False)
@@ -444,10 +443,8 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
         if where is not None:
             memo = dict(list(memo.items())[-255:])
             memo[text] = {"sha256": sha, "mac": _memo_mac(where[1], text, sha)}
-            try:
+            with contextlib.suppress(OSError):  # a read-only folder: hashed again next time
                 atomic_write_text(where[0], json.dumps(memo, indent=0))
-            except OSError:
-                pass  # a read-only folder: hashed again next time
     if len(_HASHES) > 64:
         _HASHES.clear()
     _HASHES[ident] = sha
@@ -483,10 +480,8 @@ class _Stamp:
 
     def close(self) -> None:
         for _name, fd, _st in self.files:
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:  # pragma: no cover
-                pass
         self.files = []
 
     def __del__(self) -> None:
@@ -610,10 +605,8 @@ def _read_entry(path: Path, key: str, secret: bytes) -> tuple[dict[str, np.ndarr
         if not isinstance(index.get("mac"), str) or index["mac"] != _mac(secret, index, arrays):
             raise _Refused("its MAC does not verify (not written by this user's software for "
                            "this key, or altered)")  # fmt: skip
-        try:
-            os.utime(INDEX, dir_fd=dir_fd, follow_symlinks=False)  # recently used: kept
-        except (OSError, NotImplementedError):
-            pass
+        with contextlib.suppress(OSError, NotImplementedError):  # recently used: kept
+            os.utime(INDEX, dir_fd=dir_fd, follow_symlinks=False)
     except BaseException:
         stamp.close()
         raise
