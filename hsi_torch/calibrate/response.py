@@ -238,26 +238,11 @@ def _residual_rms(I, b, g, phi, w) -> float:
 
 
 def _refine_joint(
-    I: torch.Tensor,
-    b: torch.Tensor,
-    w: torch.Tensor,
-    L: torch.Tensor,
-    C: torch.Tensor,
-    phi: torch.Tensor,
-    alpha: torch.Tensor,
-    f: torch.Tensor,
-    *,
-    beta_phi: float,
-    gamma_h: float,
-    reg: float,
-    ridge_w: torch.Tensor,
-    ridge_c0: torch.Tensor,
-    ref_coef: torch.Tensor,
-    reference_view: int,
-    diff_order: int,
-    steps: int,
-    tol: float = 1e-10,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    I: torch.Tensor, b: torch.Tensor, w: torch.Tensor, L: torch.Tensor, C: torch.Tensor,
+    phi: torch.Tensor, alpha: torch.Tensor, f: torch.Tensor, *, beta_phi: float, gamma_h: float,
+    reg: float, ridge_w: torch.Tensor, ridge_c0: torch.Tensor, ref_coef: torch.Tensor,
+    reference_view: int, diff_order: int, steps: int, tol: float = 1e-10,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
     """Joint Levenberg–Marquardt refinement of (φ, α, C) under the gauge ``ref_coef·C_ref = 1``.
 
     Objective: ``Σ w (I − g a)² + β‖Dφ‖² + γ‖φ − α f̃‖² + Σ_v λ_v Σ_k ridge_w_k (C_vk − c0_k)²``
@@ -392,11 +377,8 @@ def estimate_response(
     N, V, M = b.shape
     dt, dev = I.dtype, I.device
     w = _obs_weights(weights, N, V, I)
-    g = (
-        torch.ones(V, dtype=dt, device=dev)
-        if g_init is None
-        else torch.as_tensor(g_init, dtype=dt, device=dev).clone()
-    )
+    g = (torch.ones(V, dtype=dt, device=dev) if g_init is None
+         else torch.as_tensor(g_init, dtype=dt, device=dev).clone())  # fmt: skip
     hist: list[float] = []
     beta_phi, gamma_h = _weights(beta_phi, gamma_h, normalise, b, w)
     kw = dict(weights=w, beta_phi=beta_phi, gamma_h=gamma_h, diff_order=diff_order)
@@ -409,24 +391,11 @@ def estimate_response(
     if refine_steps > 0:
         one = torch.ones(1, dtype=dt, device=dev)
         phi, alpha, C = _refine_joint(
-            I,
-            b,
-            w,
-            torch.ones(N, 1, dtype=dt, device=dev),
-            g[:, None],
-            phi,
-            alpha,
-            torch.as_tensor(f_prior, dtype=dt, device=dev),
-            beta_phi=beta_phi,
-            gamma_h=gamma_h,
-            reg=gain_reg,
-            ridge_w=one,
-            ridge_c0=one,
-            ref_coef=one,
-            reference_view=reference_view,
-            diff_order=diff_order,
-            steps=refine_steps,
-        )
+            I, b, w, torch.ones(N, 1, dtype=dt, device=dev), g[:, None], phi, alpha,
+            torch.as_tensor(f_prior, dtype=dt, device=dev), beta_phi=beta_phi, gamma_h=gamma_h,
+            reg=gain_reg, ridge_w=one, ridge_c0=one, ref_coef=one,
+            reference_view=reference_view, diff_order=diff_order, steps=refine_steps,
+        )  # fmt: skip
         g = C[:, 0] / C[reference_view, 0]
     hist.append(_residual_rms(I, b, g.expand(N, V), phi, w))
     return ResponseResult(phi, alpha, g, None, hist, beta_phi, gamma_h)
@@ -635,24 +604,11 @@ def estimate_response_field(
         Lobs = L.reshape(L.shape[0], -1).T  # (h*w, K)
         ref_coef = Lobs[ref.reshape(-1)].mean(0)
         phi, alpha, coef = _refine_joint(
-            Iobs,
-            bobs,
-            wobs,
-            Lobs,
-            coef,
-            phi,
-            alpha,
-            torch.as_tensor(f_prior, dtype=dt, device=dev),
-            beta_phi=beta_phi,
-            gamma_h=gamma_h,
-            reg=smoothness,
-            ridge_w=deg * deg,
-            ridge_c0=torch.zeros_like(deg),
-            ref_coef=ref_coef,
-            reference_view=reference_view,
-            diff_order=diff_order,
-            steps=refine_steps,
-        )
+            Iobs, bobs, wobs, Lobs, coef, phi, alpha,
+            torch.as_tensor(f_prior, dtype=dt, device=dev), beta_phi=beta_phi, gamma_h=gamma_h,
+            reg=smoothness, ridge_w=deg * deg, ridge_c0=torch.zeros_like(deg), ref_coef=ref_coef,
+            reference_view=reference_view, diff_order=diff_order, steps=refine_steps,
+        )  # fmt: skip
         gain = torch.einsum("vk,khw->vhw", coef, L)
     hist.append(_residual_rms(Iobs, bobs, gobs(gain), phi, wobs / S))
     if full_basis is not None:  # the field on the whole frame, gauge over the whole reference mask
