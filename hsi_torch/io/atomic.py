@@ -942,23 +942,11 @@ class ReplaceTransaction:
                         os.replace(backup, dest)
                     elif not there:
                         os.unlink(dest)
-            for _dest, backup in backups:
-                if backup is not None:
-                    with contextlib.suppress(OSError):
-                        os.unlink(backup)
-            if journal is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(journal)
+            _discard(journal, backups)
             self.replaced.clear()
             self.rollback()
             raise
-        if journal is not None:  # complete: the journal goes first, then the backups
-            with contextlib.suppress(OSError):
-                os.unlink(journal)
-        for _dest, backup in backups:
-            if backup is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(backup)
+        _discard(journal, backups)  # complete
         for tmp_dir in self._trees.values():
             shutil.rmtree(tmp_dir, ignore_errors=True)
         self.done = True
@@ -1014,6 +1002,15 @@ def replace_then_commit(
 #: A :class:`ReplaceTransaction`'s journal while it moves files: ``.hsi_torch_commit-<pid>-<rnd>
 #: .json`` in the folder of its first destination.
 JOURNAL_RE = re.compile(r"^\.hsi_torch_commit-(?P<pid>[0-9]+)-[0-9a-f]+\.json$")
+
+
+def _discard(journal: Path | None, backups: list[tuple[Path, Path | None]]) -> None:
+    """Remove a finished commit's journal first, then its backups (a backup left by a kill
+    in between is a stale temporary file, removed by :func:`clean_stale_temp_files`)."""
+    for f in (journal, *(b for _d, b in backups)):
+        if f is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(f)
 
 
 def _write_journal(moves: list[tuple[Path, Path]],
