@@ -461,16 +461,10 @@ def _read_npz(
                         f"shape {mshape}"
                     )
             arr = z[key]
-            meta_raw = z["metadata"] if "metadata" in keys else None
             meta_text = None
-            if meta_raw is not None and meta_raw.ndim == 0 and meta_raw.dtype.kind in "US":
-                item = meta_raw.item()
+            if "metadata" in keys:  # a 0-d str array (its header was checked)
+                item = z["metadata"].item()
                 meta_text = item.decode("utf-8") if isinstance(item, bytes) else str(item)
-            elif meta_raw is not None:
-                raise FileFormatError(
-                    f"{p}: 'metadata' must be a JSON string (0-d str array), got a "
-                    f"{meta_raw.dtype} array of shape {meta_raw.shape}"
-                )
     except FileFormatError:
         raise
     except Exception as exc:
