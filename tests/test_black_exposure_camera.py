@@ -435,12 +435,13 @@ def test_calibrate_pedestal_check_modes(tmp_path):
     import warnings
 
     from hsi_torch.calibrate.config import CalibrateConfig
-    from hsi_torch.calibrate.pipeline import _Reader, check_pedestal
+    from hsi_torch.calibrate.pipeline import check_pedestal
+    from hsi_torch.calibrate.reading import CaptureReader
     from hsi_torch.errors import CalibrationError
 
-    def reader(levels: list[float], black: float = 0.0) -> _Reader:
-        r = _Reader(CalibrateConfig(), (10, 10), "cpu", torch.float32,
-                    outside_index=np.arange(100))
+    def reader(levels: list[float], black: float = 0.0) -> CaptureReader:
+        r = CaptureReader(CalibrateConfig(), (10, 10), "cpu", torch.float32,
+                          outside_index=np.arange(100))
         r.black_rgb, r.black_source = [black] * 3, "default"
         r.pedestals = [(tmp_path / f"f{i}.tif", [v] * 3, [2.0] * 3, 16383.0 - black)
                        for i, v in enumerate(levels)]  # fmt: skip

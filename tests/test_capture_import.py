@@ -411,7 +411,7 @@ def test_repeated_scan_frames_are_averaged_at_one_exposure(tmp_path: Path):
     import torch
 
     from hsi_torch.calibrate.config import CalibrateConfig
-    from hsi_torch.calibrate.pipeline import _Reader
+    from hsi_torch.calibrate.reading import CaptureReader
 
     a = np.full((24, 26), 1000, np.uint16)
     b = np.full((24, 26), 2000, np.uint16)
@@ -421,8 +421,8 @@ def test_repeated_scan_frames_are_averaged_at_one_exposure(tmp_path: Path):
     pa, pb = tmp_path / "a.png", tmp_path / "b.png"
     settings = {pa: {"exposure_s": (0.01, "sheet"), "cfa_pattern": ("RGGB", "sheet")},
                 pb: {"exposure_s": (0.02, "sheet"), "cfa_pattern": ("RGGB", "sheet")}}
-    r = _Reader(CalibrateConfig(black_level=0.0), (24, 26), "cpu", torch.float64,
-                settings=settings)
+    r = CaptureReader(CalibrateConfig(black_level=0.0), (24, 26), "cpu", torch.float64,
+                      settings=settings)
     img, sat, meta = r.read_mean((pa, pb))
     assert meta["black_level_source"] == "config" and meta["exposure_source"] == "sheet"
     ok = ~sat.any(0)

@@ -9,18 +9,14 @@ calibration succeeded (each file atomically):
   (:func:`hsi_torch.calibrate.figures.plot_calibration`);
 - ``OUT/resolved_config.yaml`` — the configuration (rerun with ``--config``).
 
-``--out NAME.npz`` names the bundle file itself (the earlier form, kept): ``NAME.npz``,
-``NAME.report.json``, ``NAME_diagnostics.png`` and ``NAME.resolved_config.yaml`` beside it, so
-that several bundles can share a folder without overwriting each other's record.
+``--out NAME.npz`` names the bundle file itself: ``NAME.npz``, ``NAME.report.json``,
+``NAME_diagnostics.png`` and ``NAME.resolved_config.yaml`` beside it, so that several bundles can
+share a folder.
 
-The four files are replaced together (:func:`hsi_torch.io.atomic.replace_then_commit`): each is
-written to a temporary file beside its destination, and only when all are complete are they moved
-into place. On any error (a folder in the way, a full disk) the previous bundle, report, figure
-and configuration are left exactly as they were; a process killed between two of the moves leaves
-the commit's journal (``.hsi_torch_commit-*.json``), and the next run into the folder puts the
-earlier files back first, so a new figure never stays beside the old bundle unmarked. A line on
-stderr says when an existing bundle is replaced. No output may be one of the calibration captures
-(the same file, whatever its name).
+The four files are replaced together (:func:`hsi_torch.io.atomic.replace_then_commit`): on any
+error the previous ones are left as they were, and a run killed between two moves is undone by
+the next run into the folder. A line on stderr says when an existing bundle is replaced. No
+output may be one of the calibration captures (the same file, whatever its name).
 
 ``--oracle``: for a capture set written by ``hsi-torch simulate``, the bundle is built from its
 ground truth (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) instead of calibrated; only
@@ -134,10 +130,10 @@ _BUNDLE_MEMBERS = {"meta.npy", "B.npy", "phi.npy", "gain.npy"}
 
 
 def _check_replaces_a_bundle(bundle_path: Path) -> None:
-    """``--out NAME.npz`` may replace an earlier bundle (a rerun), never another file: a lab's
-    ``results.npz`` given as ``--out`` by mistake was replaced by the bundle, exit 0. A file
-    whose zip members are a bundle's counts as an earlier bundle (even one this version would
-    refuse to load); anything else is refused before the calibration starts.
+    """``--out NAME.npz`` may replace an earlier bundle (a rerun), never another file (a lab's
+    ``results.npz``). A file whose zip members are a bundle's counts as an earlier bundle (even
+    one this version would refuse to load); anything else is refused before the calibration
+    starts.
 
     Raises:
         InputError: ``bundle_path`` exists and is not a calibration bundle.

@@ -1,35 +1,15 @@
 """Propose ``nominal_layout.json`` from the design's ray trace fitted to a white shot (the work
-behind ``hsi-torch layout``).
+behind ``hsi-torch layout``; the method, step by step, is in ``docs/calibration.md``).
 
-A real device is never exactly the design: the optical axis meets the sensor a few pixels off
-its centre, the tube is turned a little about its axis, the objective's focal length differs by
-a per cent. Each of these moves the whole kaleidoscope image by a **similarity** about the
-principal point (shift, rotation, scale; exact for a pinhole camera on the tube's axis). So:
-
-1. :func:`trace_design` traces the design (geometry + camera) once and keeps every *tile* on
-   the sensor — the views and, one reflection further, the tiles around them — as triangles
-   with their diffuser homographies (diffuser mm → sensor px) and the BRF-free disk's image in
-   each. Tracing runs on a reduced copy of the sensor (at most ``max_trace_pixels``); the
-   triangles are exact projective images, so nothing is lost.
-2. :func:`fit_similarity` finds the similarity ``T`` that puts the traced view edges and disk
-   outlines on the edges of the white shot: the edge map (:func:`edge_map`) is the gradient
-   magnitude of the Gaussian-smoothed white shot divided by the local mean brightness and
-   softly limited (vignetting, fall-off and the views' different throughputs are smooth or
-   piecewise constant; the tile boundaries and the BRF-free disks are sharp; the edge of the lit
-   region does not dominate). A coarse search over rotation × scale with the shift found by one
-   FFT cross-correlation each, then a coarse-to-fine gradient refinement (Adam on the mean edge
-   strength sampled at the transformed points; pyramid of edge maps down to 1 px, the two
-   finest levels on the views' BRF-free disks alone).
-3. :func:`confirm_parity` checks every view's mirror parity on the circle-grid shots: the grid
-   is detected in the view with and without undoing a mirror flip and fitted to the reference
-   view's detections by RANSAC (:func:`~hsi_torch.calibrate.registration.fit_homography`); a
-   parity is supported when at least ``min_inlier_fraction`` of the points are inliers and the
-   homography's orientation agrees with it (mirrored views reverse orientation). The better
-   supported parity wins; without evidence the design's is kept and reported as unconfirmed.
-4. :func:`layout_document` writes what :func:`hsi_torch.io.capture_set.read_nominal_layout`
-   reads (views' triangles, parity, reflection sequences, reference bbox, BRF-free patch
-   polygon) plus the fit's record; :func:`draw_layout_overlay` draws the white shot with the
-   fitted triangles, view numbers and parities for a check by eye.
+A real device differs from its design (axis off centre, tube turned, focal length off by a per
+cent); each moves the whole kaleidoscope image by a **similarity** about the principal point
+(exact for a pinhole camera on the tube's axis). :func:`trace_design` traces the design's tiles
+(views and their neighbours) once; :func:`fit_similarity` finds the similarity that puts their
+edges and the BRF-free disks' outlines on the white shot's :func:`edge_map` (coarse search with
+FFT shifts, then coarse-to-fine Adam refinement); :func:`confirm_parity` checks each view's
+mirror parity on the grid shots; :func:`layout_document` writes what
+:func:`hsi_torch.io.capture_set.read_nominal_layout` reads, :func:`draw_layout_overlay` an image
+to check by eye.
 
 Coordinates: sensor px ``(x, y)`` = (column, row), pixel centres at integers; angles in radians
 in code (degrees in the record), scales relative to the design.
@@ -521,7 +501,12 @@ def confirm_parity(
     *,
     min_inlier_fraction: float = 0.8,
 ) -> list[ParityEvidence]:
-    """Each view's parity from the circle-grid shots (see the module docstring, step 3).
+    """Each view's parity from the circle-grid shots: the grid is detected in the view with and
+    without undoing a mirror flip and fitted to the reference view's detections by RANSAC
+    (:func:`~hsi_torch.calibrate.registration.fit_homography`); a parity is supported when at
+    least ``min_inlier_fraction`` of the points are inliers and the homography's orientation
+    agrees with it (mirrored views reverse orientation). The better supported parity wins;
+    without evidence the design's is kept and reported as unconfirmed.
 
     Args:
         grid_images: grid shots (as :func:`~hsi_torch.calibrate.registration.to_gray_uint8`

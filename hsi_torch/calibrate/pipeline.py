@@ -1,33 +1,20 @@
 """Calibration captures → :class:`~hsi_torch.io.bundle.CalibrationBundle`: the work behind
-``hsi-torch calibrate``, one function per stage, all on the device/dtype of the config.
+``hsi-torch calibrate``, one function per stage, all on the device/dtype of the config (the
+procedure, step by step, is in ``docs/calibration.md``).
 
-1. **Inputs** (:func:`hsi_torch.io.capture_set.read_capture_set`): a capture folder with
-   ``manifest.json`` (as written by ``hsi-torch simulate``) or, for a real device, the folders
-   ``scan/``, ``white/``, ``grid/`` and optionally ``dark/``, plus ``nominal_layout.json`` (view
-   triangles, parity, reference bbox, BRF-free patch) and the BRF-free mask
-   (``brf_free_mask.png`` or the layout's disk polygon, eroded). :func:`group_scan_frames`
-   gives every band of the grid its scan frames (wavelength from the manifest entry, the file
-   name such as ``scan_550nm.tif``, or the file's metadata ``wavelength_nm``; repeated frames of
-   a band are averaged, frames near no band listed in the report);
-   :func:`brf_free_patch` builds the patch masks. Every capture is read linearly with
-   :func:`hsi_torch.io.read_any` (black level subtracted, Bayer → **bilinear demosaic**,
-   saturation mask), with the manifest's per-file and set-level settings (``cfa_pattern``,
-   ``black_level``, ``white_level``, ``exposure_s``; the config's overrides win), and checked
-   against the layout's sensor size; the dark frames' mean is then subtracted
-   (``dark: per_pixel | mean | none``).
+1. **Inputs**: the capture set (:func:`hsi_torch.io.capture_set.read_capture_set`), every band's
+   scan frames (:func:`~hsi_torch.calibrate.reading.group_scan_frames`), the BRF-free patch
+   (:func:`brf_free_patch`); every capture read linearly by
+   :class:`~hsi_torch.calibrate.reading.CaptureReader` (the manifest's settings, the config's
+   overrides winning; **bilinear demosaic**; the dark frames' mean subtracted).
 2. **Registration** (:func:`register_grid_shots`) from the circle-grid shots, flat-fielded by the
-   white shots (:func:`~hsi_torch.calibrate.registration.register_views`), per-view report.
-3. **BRF transmittance** (:func:`calibrate_transmittance`) from the scan
-   (:func:`~hsi_torch.calibrate.transmittance.brf_transmittance`, chunked over frames), carried
-   into the reference frame (:func:`~hsi_torch.calibrate.transmittance.to_reference_frame`, one
-   kornia call) with its masks.
-4. **Response** φ^c and the gain field g_v(p) (:func:`calibrate_response`) from the white shots,
-   registered with :func:`~hsi_torch.optics.geometry.warp_views`
-   (:func:`~hsi_torch.calibrate.response.estimate_response_field`). Then, every scan, white and
-   grid frame read, the **pedestal check** (:func:`~hsi_torch.calibrate.reading.check_pedestal`:
-   the sensor outside the views ≈ 0 after black subtraction, per black level and per role).
+   white shots.
+3. **BRF transmittance** (:func:`calibrate_transmittance`) from the scan, carried into the
+   reference frame.
+4. **Response** φ^c and the gain field g_v(p) (:func:`calibrate_response`) from the white shots;
+   then the **pedestal check** (:func:`~hsi_torch.calibrate.reading.check_pedestal`).
 5. **Valid region** (≥ ``min_views`` BRF-modulated views) and the bundle with settings and
-   provenance (SHA-256 of every input, software version) (:func:`assemble_bundle`).
+   provenance (:func:`assemble_bundle`).
 
 :func:`calibrate_capture_set` runs the stages in order. Scoring a bundle against a simulated
 set's ground truth is :mod:`hsi_torch.experiments.calibration_scores`.
@@ -56,7 +43,6 @@ from hsi_torch.calibrate.reading import (
     check_pedestal,
     group_scan_frames,
     scan_wavelengths,
-    select_scan_frames,
 )
 from hsi_torch.calibrate.registration import (
     GridDetectorConfig,
@@ -111,7 +97,6 @@ __all__ = [
     "PatchMasks",
     "TransmittanceStage",
     "ResponseStage",
-    "select_scan_frames",
     "ScanSelection",
     "scan_wavelengths",
     "group_scan_frames",
@@ -133,13 +118,6 @@ Tick = Callable[..., None]
 
 def _no_tick(n: int = 1, stage: str | None = None) -> None:
     """A progress callback that does nothing."""
-
-
-# =============================================================================================
-# reading captures
-# =============================================================================================
-
-
 
 
 @dataclass
@@ -356,8 +334,6 @@ def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
 # =============================================================================================
 
 
-
-
 def check_sensor_size(cs: CaptureSet, lay: NominalLayout) -> None:
     """The manifest's ``sensor_size`` (when it has one) must be the layout's.
 
@@ -446,7 +422,8 @@ def register_grid_shots(
 ) -> RegistrationResult:
     """View homographies from the circle-grid shots (:func:`register_views`), each shot divided
     by the mean white shot first when ``registration.flat_field`` (the target's own reflectance,
-    free of the views' transmittance fringes, vignetting and fall-off).
+    free of the views' transmittance fringes, vignetting and fall-off, which otherwise bias
+    circle centres by a few tenths of a pixel at full sensor size).
 
     Raises:
         ValueError: the grid was found in no shot for some view (naming the files).
@@ -454,10 +431,7 @@ def register_grid_shots(
     det_cfg = GridDetectorConfig.from_dict(cfg.detector_dict())
     flat = None
     if cfg.registration.flat_field and cs.white:
-        # the grid shots divided by the mean white shot: the target's own reflectance, free
-        # of the views' transmittance fringes, vignetting and fall-off (which otherwise bias
-        # circle centres by a few tenths of a pixel at full sensor size)
-        # (saturated samples left out of the mean, shot by shot)
+        # saturated samples left out of the mean, shot by shot
         count = None
         for p in cs.white:
             img, sat, _ = reader.read(p)
@@ -720,8 +694,9 @@ def assemble_bundle(
     Besides the grid, β's and detector settings, ``settings`` record the white shots' exposure
     (``white_exposure_s``, ``white_exposure_unit``, ``white_exposure_source``), the black level
     a capture without its own must get (``black_level_rgb``, ``black_level_source``,
-    ``dark_level_rgb``, :meth:`_Reader.black_level_record`), the camera's identity (``camera``:
-    :class:`~hsi_torch.io.radiometry.CameraIdentity`) and the pedestal measured (``pedestal``).
+    ``dark_level_rgb``, :meth:`~hsi_torch.calibrate.reading.CaptureReader.black_level_record`),
+    the camera's identity (``camera``: :class:`~hsi_torch.io.radiometry.CameraIdentity`) and the
+    pedestal measured (``pedestal``).
 
     Raises:
         ValueError: no pixel has ``min_views`` modulated views.
@@ -995,7 +970,3 @@ def calibrate_capture_set(
         findings=findings_dicts(corrections["findings"]),
     )
     return bundle, report
-
-
-#: the reader's former private name (kept for callers of the old name)
-_Reader = CaptureReader

@@ -33,7 +33,7 @@ from hsi_torch.io.radiometry import (
 from hsi_torch.io.sensor_corrections import subtract_veil
 
 __all__ = ["CaptureReader", "check_pedestal", "ScanSelection", "scan_wavelengths",
-           "group_scan_frames", "select_scan_frames"]
+           "group_scan_frames"]
 
 
 class CaptureReader:
@@ -261,10 +261,10 @@ class CaptureReader:
             by_black.setdefault(black, []).append(r)
             by_role.setdefault((black, self.roles.get(r[0])), []).append(r)
         role_groups = _measure_groups(by_role)  # measured once: the check and the report
-        worst = _worst_group(_measure_groups(by_black))
+        worst = max(_measure_groups(by_black), key=lambda m: m[0])
         by = "black level"
         if worst[0] <= 1.0 and len(by_role) > len(by_black):  # every black level passes
-            role_worst = _worst_group(role_groups)
+            role_worst = max(role_groups, key=lambda m: m[0])  # the first of equals
             if role_worst[0] > 1.0:
                 worst, by = role_worst, "role"
         _, key, frames, level, limit = worst
@@ -304,13 +304,6 @@ def _measure_groups(groups: dict[Any, list]) -> list[tuple[float, Any, list, lis
         badness = max(abs(v) / lim for v, lim in zip(level, limit, strict=True))
         out.append((badness, key, frames, level, limit))
     return out
-
-
-def _worst_group(measured: list[tuple[float, Any, list, list, list]]
-                 ) -> tuple[float, Any, list, list, list]:  # fmt: skip
-    """Of :func:`_measure_groups`' groups, the one with the largest badness (the first of
-    equals)."""
-    return max(measured, key=lambda m: m[0])
 
 
 #: Largest RMS difference between repeated scan frames of one wavelength (8x8 px block means,
@@ -436,7 +429,7 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
 
 
 # =============================================================================================
-# report
+# which scan frames
 # =============================================================================================
 
 
@@ -531,24 +524,3 @@ def group_scan_frames(
     frames = [(tuple(g), lam) for g, lam in zip(groups, grid, strict=True)]
     repeated = [(lam, fs) for fs, lam in frames if len(fs) > 1]
     return ScanSelection(frames, outside, repeated)
-
-
-def select_scan_frames(
-    cs: CaptureSet, wavelengths_nm: torch.Tensor, tol_nm: float
-) -> list[tuple[Path, float]]:
-    """The nearest scan frame of every band of the grid (checked before any image is read);
-    :func:`group_scan_frames` gives all of them (repeated frames, frames outside the grid).
-
-    A frame's wavelength is its manifest entry's, else the ``<number>nm`` in its name, else the
-    ``wavelength_nm`` of its TIFF/NPY/NPZ metadata.
-
-    Raises:
-        ValueError: a frame's wavelength is unknown, or a band has no frame within ``tol_nm``.
-    """
-    scan = scan_wavelengths(cs)
-    scan_nm = [float(lam) for _, lam in scan]
-    try:
-        idx = match_wavelengths(scan_nm, wavelengths_nm.cpu(), tol_nm)
-    except ValueError as exc:
-        raise ValueError(f"captures {cs.root}: {exc}") from exc
-    return [scan[int(i)] for i in idx]

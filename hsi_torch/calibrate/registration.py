@@ -404,12 +404,10 @@ def register_views(
 ) -> RegistrationResult:
     """Estimate each view's homography to the reference view from circle-grid target images.
 
-    For every image the grid is detected in each parity-corrected triangle crop and mapped back
-    to sensor px. The ordering returned by the detector is checked against the reference view's
-    (both the given and the reversed order are fitted by least squares on that image; the one with
-    the lower error is kept — this resolves the 180° ambiguity of the grid ordering). The chosen
-    correspondences of all images are aggregated and ``cv2.findHomography(..., cv2.RANSAC,
-    config.ransac_threshold_px)`` gives ``H_v``; the reference view gets the identity.
+    For every image the grid is detected in each parity-corrected triangle crop
+    (:func:`detect_in_views`); each view's correspondences with the reference view over all
+    images give ``H_v`` (:func:`fit_homography`: the 180° ordering ambiguity resolved per image,
+    then RANSAC with ``config.ransac_threshold_px``); the reference view gets the identity.
 
     Args:
         images: target images (each as accepted by :func:`to_gray_uint8`), same sensor size.

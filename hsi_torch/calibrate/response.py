@@ -18,17 +18,11 @@ Scale ambiguity: ``(s·g, φ/s)`` explain the data equally well. After every g-s
 normalised so that the **reference view's gain has mean 1** (over its masked pixels for a field)
 and φ is multiplied by the same factor, so ``g·φ`` — what the sensing matrix uses — is unchanged.
 
-Normalised weights (``normalise=True``, the default of :func:`estimate_response` and
-:func:`estimate_response_field`): the data term is a *sum* over observations (shots × pixels ×
-views), so absolute weights ``β_φ``, ``γ_h`` weaken the prior in proportion to the number of
-observations — a full-size sensor has ~55× the pixels of the small simulated one, and the
-calibration's systematic errors (transmittance, demosaicing, registration) do not average out
-with more pixels. The weights are therefore given relative to the data:
-``β_eff = β_φ · s``, ``γ_eff = γ_h · s`` with ``s = Σ_obs w ‖b_obs‖² / M`` the mean diagonal of the
-data's Gram matrix ``Σ w b bᵀ`` (:func:`data_scale`). ``s`` grows with the number of observations
-and does not depend on the signal level (``I`` and ``φ`` scale together, so both sides of the
-objective scale alike). The original prototype's absolute ``β_φ = γ_h = 8·10⁵`` is
-``normalise=False``; :attr:`ResponseResult.beta_phi_effective` reports the absolute weights used.
+Normalised weights (``normalise=True``, the default): ``β_eff = β_φ · s``, ``γ_eff = γ_h · s``
+with ``s = Σ_obs w ‖b_obs‖² / M`` (:func:`data_scale`), so the prior does not weaken as the number
+of observations grows (a full-size sensor has ~55× the pixels of the small simulated one);
+``normalise=False`` gives the original prototype's absolute weights. The reasons and the
+measurements are in ``docs/calibration.md``, *Response*.
 """
 
 from __future__ import annotations
@@ -244,26 +238,11 @@ def _residual_rms(I, b, g, phi, w) -> float:
 
 
 def _refine_joint(
-    I: torch.Tensor,
-    b: torch.Tensor,
-    w: torch.Tensor,
-    L: torch.Tensor,
-    C: torch.Tensor,
-    phi: torch.Tensor,
-    alpha: torch.Tensor,
-    f: torch.Tensor,
-    *,
-    beta_phi: float,
-    gamma_h: float,
-    reg: float,
-    ridge_w: torch.Tensor,
-    ridge_c0: torch.Tensor,
-    ref_coef: torch.Tensor,
-    reference_view: int,
-    diff_order: int,
-    steps: int,
-    tol: float = 1e-10,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    I: torch.Tensor, b: torch.Tensor, w: torch.Tensor, L: torch.Tensor, C: torch.Tensor,
+    phi: torch.Tensor, alpha: torch.Tensor, f: torch.Tensor, *, beta_phi: float, gamma_h: float,
+    reg: float, ridge_w: torch.Tensor, ridge_c0: torch.Tensor, ref_coef: torch.Tensor,
+    reference_view: int, diff_order: int, steps: int, tol: float = 1e-10,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
     """Joint Levenberg–Marquardt refinement of (φ, α, C) under the gauge ``ref_coef·C_ref = 1``.
 
     Objective: ``Σ w (I − g a)² + β‖Dφ‖² + γ‖φ − α f̃‖² + Σ_v λ_v Σ_k ridge_w_k (C_vk − c0_k)²``
@@ -398,11 +377,8 @@ def estimate_response(
     N, V, M = b.shape
     dt, dev = I.dtype, I.device
     w = _obs_weights(weights, N, V, I)
-    g = (
-        torch.ones(V, dtype=dt, device=dev)
-        if g_init is None
-        else torch.as_tensor(g_init, dtype=dt, device=dev).clone()
-    )
+    g = (torch.ones(V, dtype=dt, device=dev) if g_init is None
+         else torch.as_tensor(g_init, dtype=dt, device=dev).clone())  # fmt: skip
     hist: list[float] = []
     beta_phi, gamma_h = _weights(beta_phi, gamma_h, normalise, b, w)
     kw = dict(weights=w, beta_phi=beta_phi, gamma_h=gamma_h, diff_order=diff_order)
@@ -415,24 +391,11 @@ def estimate_response(
     if refine_steps > 0:
         one = torch.ones(1, dtype=dt, device=dev)
         phi, alpha, C = _refine_joint(
-            I,
-            b,
-            w,
-            torch.ones(N, 1, dtype=dt, device=dev),
-            g[:, None],
-            phi,
-            alpha,
-            torch.as_tensor(f_prior, dtype=dt, device=dev),
-            beta_phi=beta_phi,
-            gamma_h=gamma_h,
-            reg=gain_reg,
-            ridge_w=one,
-            ridge_c0=one,
-            ref_coef=one,
-            reference_view=reference_view,
-            diff_order=diff_order,
-            steps=refine_steps,
-        )
+            I, b, w, torch.ones(N, 1, dtype=dt, device=dev), g[:, None], phi, alpha,
+            torch.as_tensor(f_prior, dtype=dt, device=dev), beta_phi=beta_phi, gamma_h=gamma_h,
+            reg=gain_reg, ridge_w=one, ridge_c0=one, ref_coef=one,
+            reference_view=reference_view, diff_order=diff_order, steps=refine_steps,
+        )  # fmt: skip
         g = C[:, 0] / C[reference_view, 0]
     hist.append(_residual_rms(I, b, g.expand(N, V), phi, w))
     return ResponseResult(phi, alpha, g, None, hist, beta_phi, gamma_h)
@@ -641,24 +604,11 @@ def estimate_response_field(
         Lobs = L.reshape(L.shape[0], -1).T  # (h*w, K)
         ref_coef = Lobs[ref.reshape(-1)].mean(0)
         phi, alpha, coef = _refine_joint(
-            Iobs,
-            bobs,
-            wobs,
-            Lobs,
-            coef,
-            phi,
-            alpha,
-            torch.as_tensor(f_prior, dtype=dt, device=dev),
-            beta_phi=beta_phi,
-            gamma_h=gamma_h,
-            reg=smoothness,
-            ridge_w=deg * deg,
-            ridge_c0=torch.zeros_like(deg),
-            ref_coef=ref_coef,
-            reference_view=reference_view,
-            diff_order=diff_order,
-            steps=refine_steps,
-        )
+            Iobs, bobs, wobs, Lobs, coef, phi, alpha,
+            torch.as_tensor(f_prior, dtype=dt, device=dev), beta_phi=beta_phi, gamma_h=gamma_h,
+            reg=smoothness, ridge_w=deg * deg, ridge_c0=torch.zeros_like(deg), ref_coef=ref_coef,
+            reference_view=reference_view, diff_order=diff_order, steps=refine_steps,
+        )  # fmt: skip
         gain = torch.einsum("vk,khw->vhw", coef, L)
     hist.append(_residual_rms(Iobs, bobs, gobs(gain), phi, wobs / S))
     if full_basis is not None:  # the field on the whole frame, gauge over the whole reference mask

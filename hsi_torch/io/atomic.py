@@ -79,6 +79,7 @@ __all__ = [
     "replace_file",
     "folder_identity",
     "human_size",
+    "pid_alive",
     "MAX_OWN_FILE",
 ]
 
@@ -308,7 +309,7 @@ def atomic_save_npz(
     return Path(path)
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """Whether a process ``pid`` exists (``True`` when that cannot be told, e.g. on Windows)."""
     if os.name == "nt":  # os.kill(pid, 0) would send CTRL_C_EVENT there
         return True
@@ -341,7 +342,7 @@ def clean_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
         return removed
     for entry in entries:
         m = TEMP_FILE_RE.match(entry.name)
-        if m is None or _pid_alive(int(m["pid"])):
+        if m is None or pid_alive(int(m["pid"])):
             continue
         if entry.is_dir(follow_symlinks=False):  # a killed transaction's staging folder
             shutil.rmtree(entry.path, ignore_errors=True)
@@ -362,7 +363,7 @@ def clean_stale_temp_files_of(path: str | os.PathLike) -> list[Path]:
     removed: list[Path] = []
     for t in p.parent.glob(f".{glob.escape(p.name)}.*.tmp"):
         m = TEMP_FILE_RE.match(t.name)
-        if m is None or m["name"] != p.name or _pid_alive(int(m["pid"])):
+        if m is None or m["name"] != p.name or pid_alive(int(m["pid"])):
             continue
         with contextlib.suppress(FileNotFoundError):
             t.unlink()
@@ -436,23 +437,19 @@ def open_own_file(path: str | os.PathLike, what: str = "lock file") -> tuple[int
         fd = os.open(p, os.O_RDWR | _NOFOLLOW | _NONBLOCK | _CLOEXEC)
     except OSError as exc:
         try:
-            st = os.lstat(p)
+            reason = _not_own(p, os.lstat(p)) or str(exc.strerror or exc)
         except OSError:
             raise named_os_error(exc, p, "opening") from None
-        reason = _not_own(p, st) or str(exc.strerror or exc)
-        raise InputError(
-            f"{p} {reason}: not a {what} this program wrote; nothing was written "
-            "to it: remove it, or choose another folder"
-        ) from None
-    reason = _not_own(p, os.fstat(fd))
-    if reason is not None:
+    else:
+        reason = _not_own(p, os.fstat(fd))
+        if reason is None:
+            os.set_blocking(fd, True)
+            return fd, False
         os.close(fd)
-        raise InputError(
-            f"{p} {reason}: not a {what} this program wrote; nothing was written "
-            "to it: remove it, or choose another folder"
-        )
-    os.set_blocking(fd, True)
-    return fd, False
+    raise InputError(
+        f"{p} {reason}: not a {what} this program wrote; nothing was written "
+        "to it: remove it, or choose another folder"
+    ) from None
 
 
 def _same_file(path: Path, fd: int) -> bool:
@@ -529,14 +526,8 @@ def read_own_bytes(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
         if st.st_size > max_bytes:
             raise error(f"{p}: {human_size(st.st_size)}, larger than this program's "
                         f"{what} can be ({human_size(max_bytes)})")  # fmt: skip
-        chunks, left = [], max_bytes + 1
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 20))
-            if not b:
-                break
-            chunks.append(b)
-            left -= len(b)
-        data = b"".join(chunks)
+        with open(fd, "rb", closefd=False) as f:
+            data = f.read(max_bytes + 1)  # until the end, or one byte too many
         if len(data) > max_bytes:  # grew while read
             raise error(f"{p}: larger than this program's {what} can be "
                         f"({human_size(max_bytes)})")  # fmt: skip
@@ -575,11 +566,8 @@ def read_own_json(path: str | os.PathLike, max_bytes: int = MAX_OWN_FILE, *,
 def folder_identity(path: str | os.PathLike) -> list[int] | None:
     """``[st_dev, st_ino]`` of the folder ``path`` (followed), or ``None``: recorded in a
     folder's markers, a copy of the folder (another inode) is told from the original."""
-    try:
-        st = os.stat(path)
-    except (OSError, ValueError):
-        return None
-    return [int(st.st_dev), int(st.st_ino)]
+    ident = _identity(path)
+    return None if ident is None else list(ident)
 
 
 def relative_to_root(root: str | os.PathLike, path: str | os.PathLike) -> str:
@@ -840,6 +828,10 @@ class ReplaceTransaction:
         self.done = False
         self._recovered: set[Path] = set()
 
+    def _check_open(self) -> None:
+        if self.done:
+            raise RuntimeError("the transaction is already committed or rolled back")
+
     def check(self, dest: str | os.PathLike) -> Path:
         """Check a destination now (not an input, no folder in the way); returns it."""
         d = Path(dest)
@@ -853,8 +845,7 @@ class ReplaceTransaction:
     def stage(self, dest: str | os.PathLike) -> Path:
         """The temporary path to write ``dest``'s new content to (created empty here; a writer
         may replace it, e.g. with its own atomic write). Its folder is created."""
-        if self.done:
-            raise RuntimeError("the transaction is already committed or rolled back")
+        self._check_open()
         d = self.check(dest)
         if d in self._files:
             return self._files[d]
@@ -882,8 +873,7 @@ class ReplaceTransaction:
         """A temporary folder inside ``dest_dir`` in which a writer lays out files; at
         :meth:`commit` every file below it moves to the same relative path below ``dest_dir``
         (files of ``dest_dir`` the writer did not produce are kept)."""
-        if self.done:
-            raise RuntimeError("the transaction is already committed or rolled back")
+        self._check_open()
         d = Path(dest_dir)
         if d.exists() and not d.is_dir():
             raise InputError(f"output folder {d} exists and is not a folder")
@@ -911,8 +901,7 @@ class ReplaceTransaction:
         journal, and the next transaction into that folder (or :func:`clean_stale_temp_files`)
         puts the earlier files back (:func:`recover_commits`) — never new files beside old ones
         unmarked."""
-        if self.done:
-            raise RuntimeError("the transaction is already committed or rolled back")
+        self._check_open()
         moves = self._plan()
         for src, dest in moves:  # every check before the first move
             if not src.is_file():
@@ -953,23 +942,11 @@ class ReplaceTransaction:
                         os.replace(backup, dest)
                     elif not there:
                         os.unlink(dest)
-            for _dest, backup in backups:
-                if backup is not None:
-                    with contextlib.suppress(OSError):
-                        os.unlink(backup)
-            if journal is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(journal)
+            _discard(journal, backups)
             self.replaced.clear()
             self.rollback()
             raise
-        if journal is not None:  # complete: the journal goes first, then the backups
-            with contextlib.suppress(OSError):
-                os.unlink(journal)
-        for _dest, backup in backups:
-            if backup is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(backup)
+        _discard(journal, backups)  # complete
         for tmp_dir in self._trees.values():
             shutil.rmtree(tmp_dir, ignore_errors=True)
         self.done = True
@@ -1027,6 +1004,15 @@ def replace_then_commit(
 JOURNAL_RE = re.compile(r"^\.hsi_torch_commit-(?P<pid>[0-9]+)-[0-9a-f]+\.json$")
 
 
+def _discard(journal: Path | None, backups: list[tuple[Path, Path | None]]) -> None:
+    """Remove a finished commit's journal first, then its backups (a backup left by a kill
+    in between is a stale temporary file, removed by :func:`clean_stale_temp_files`)."""
+    for f in (journal, *(b for _d, b in backups)):
+        if f is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(f)
+
+
 def _write_journal(moves: list[tuple[Path, Path]],
                    backups: list[tuple[Path, Path | None]]) -> Path | None:  # fmt: skip
     """Write the journal of the moves (paths relative to its folder: the moves in that folder
@@ -1065,7 +1051,7 @@ def recover_commits(folder: str | os.PathLike) -> list[Path]:
         return done
     for entry in entries:
         m = JOURNAL_RE.match(entry.name)
-        if m is None or _pid_alive(int(m["pid"])):
+        if m is None or pid_alive(int(m["pid"])):
             continue
         rec = read_own_json(entry.path, 1 << 20)
         moves = rec.get("moves") if isinstance(rec, dict) else None

@@ -186,10 +186,6 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
-def _software_version() -> str:
-    return package_version()
-
-
 @dataclass
 class CalibrationBundle:
     """Calibration products in reference-frame coordinates (see the module docstring for shapes).
@@ -218,16 +214,12 @@ class CalibrationBundle:
     reflection_sequences: list[tuple[int, ...]] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
-    software_version: str = field(default_factory=_software_version)
+    software_version: str = field(default_factory=package_version)
     schema_version: int = SCHEMA_VERSION
     extras: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for k in _FLOAT_KEYS:
-            setattr(self, k, _np(getattr(self, k)))
-        for k in _INT_KEYS:
-            setattr(self, k, _np(getattr(self, k)))
-        for k in _BOOL_KEYS:
+        for k in (*_FLOAT_KEYS, *_INT_KEYS, *_BOOL_KEYS):
             setattr(self, k, _np(getattr(self, k)))
         self.extras = {str(k): _np(v) for k, v in self.extras.items()}
         self.reflection_sequences = [tuple(int(i) for i in s) for s in self.reflection_sequences]
@@ -295,28 +287,17 @@ class CalibrationBundle:
         if not np.all(np.isfinite(det)) or np.any(np.abs(det) < 1e-12):
             fail("view_homographies", "must be invertible (a view's homography is singular)")
         h, w = self.frame_size
-        expect = {
-            "B": (V, M, h, w),
-            "phi": (3, M),
-            "gain": (V, h, w),
-            "view_mask": (V, h, w),
-            "modulated": (V, h, w),
-            "valid": (h, w),
-        }
+        expect = {"B": (V, M, h, w), "phi": (3, M), "gain": (V, h, w), "view_mask": (V, h, w),
+                  "modulated": (V, h, w), "valid": (h, w)}  # fmt: skip
         for k, shp in expect.items():
             if getattr(self, k).shape != shp:
-                fail(
-                    k,
-                    f"has shape {getattr(self, k).shape}, expected {shp} (V={V}, M={M}, "
-                    f"reference frame {h}x{w})",
-                )
+                fail(k, f"has shape {getattr(self, k).shape}, expected {shp} (V={V}, M={M}, "
+                        f"reference frame {h}x{w})")  # fmt: skip
         if self.reflection_sequences and len(self.reflection_sequences) != V:
             fail("reflection_sequences", f"has {len(self.reflection_sequences)} entries, not {V}")
         if int(self.schema_version) not in READABLE_SCHEMA_VERSIONS:
-            fail(
-                "schema_version",
-                f"is {self.schema_version}; this software reads {list(READABLE_SCHEMA_VERSIONS)}",
-            )
+            fail("schema_version", f"is {self.schema_version}; this software reads "
+                                   f"{list(READABLE_SCHEMA_VERSIONS)}")  # fmt: skip
         _check_radiometry_settings(self.settings, fail)
 
     # ---------------------------------------------------------------- I/O
@@ -391,7 +372,7 @@ class CalibrationBundle:
         """Read and validate a bundle; errors name the file and the offending key. ``raw``: the
         file's bytes, already read (:meth:`load_hashed`)."""
         p = Path(path)
-        cls._checked_path(p, raw)
+        cls._checked_path(p, raw)  # 'meta' and every array member present
         try:
             with np.load(p if raw is None else io.BytesIO(raw), allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
@@ -402,11 +383,6 @@ class CalibrationBundle:
         for k, v in data.items():  # np.load gives the raw bytes of a member that is no array
             if not isinstance(v, np.ndarray):
                 raise FileFormatError(f"calibration bundle {p}: member '{k}' is not an array")
-        if "meta" not in data:
-            raise FileFormatError(
-                f"calibration bundle {p}: missing key 'meta' (not a bundle written by "
-                "'hsi-torch calibrate')"
-            )
         raw_meta = data["meta"]
         if raw_meta.ndim != 0 or raw_meta.dtype.kind != "U":
             raise FileFormatError(
@@ -429,9 +405,6 @@ class CalibrationBundle:
                 f"calibration bundle {p}: schema_version {ver!r} is not supported "
                 f"(this software reads versions {', '.join(map(str, READABLE_SCHEMA_VERSIONS))})"
             )
-        missing = [fk for fk in _FILE_KEYS.values() if fk not in data]
-        if missing:
-            raise FileFormatError(f"calibration bundle {p}: missing key(s) {missing}")
         kw = {k: data[fk] for k, fk in _FILE_KEYS.items()}
         extras = {k[len("extra_") :]: v for k, v in data.items() if k.startswith("extra_")}
         bundle = cls.__new__(cls)  # bypass __post_init__ so errors can name the file

@@ -1,34 +1,15 @@
 """A lab's own folder of photos → a capture set (``hsi-torch captures import``), and the check of
-a set (``hsi-torch captures check``).
+a set (``hsi-torch captures check``); the sheet, the patterns and both commands' output are
+described in ``docs/calibration.md``, *Your own photos*.
 
-The roles, wavelengths and per-file settings come from a **sheet** — a CSV file with a header::
-
-    file,role,wavelength_nm,exposure_s,black_level,white_level,cfa_pattern,name
-    mono/m_430.dng,scan,430,,,,,
-    mono/m_430b.dng,scan,430,,,,,          # a repeated frame: averaged by calibration
-    flat/w1.tif,white,,0.02,512,16383,RGGB,
-    dots/g1.png,grid,,,512,,RGGB,
-    scenes/chart.dng,scene,,,,,,colorchecker
-
-``file`` is relative to the sheet's folder; ``role`` is ``scan | white | grid | dark | scene``;
-every other column is optional (:data:`SHEET_COLUMNS`) and an **empty cell means "not given"**:
-the file's own metadata (RAW/DNG black and white level, CFA pattern, EXIF ``ExposureTime``,
-``Make``, ``Model``) or the defaults apply. A line whose ``file`` starts with ``#`` is a comment.
-Or from **name patterns** (:func:`rows_from_patterns`): ``--scan 'mono/*_{nm}nm.dng'`` (``{nm}``
-matches the wavelength, ``552`` or ``552.5`` or ``552p5``), ``--white 'w/*.tif'``, ``--grid``,
-``--dark``, ``--scene`` (the scene's name is the file's stem).
-
-:func:`import_captures` writes ``OUT/manifest.json`` (the published schema,
-:mod:`hsi_torch.io.capture_manifest`) that **references** the files where they are
-(``files_root``; ``copy=True`` copies them into ``OUT/<role>/``), the sheet's settings as
-per-file settings (``settings_source: "sheet"``), the nominal layout (copied into the set, with
-its BRF-free mask) and an import report: the scan frames per band of the calibration grid
-(430–670 nm every 10 nm by default), the repeated frames of a band (calibration averages them)
-and the frames near no band (listed; calibration does not use them).
-
-:func:`check_capture_set` reads every capture of a set as calibration will and returns what it
-will use per file: the wavelength band, black level and its source, white level, CFA pattern,
-exposure and its source, camera make/model.
+The roles, wavelengths and per-file settings come from a **sheet** (:func:`read_sheet`: a CSV file
+with a header ``file,role,...`` of :data:`SHEET_COLUMNS`; ``file`` relative to the sheet's folder;
+an empty cell means "not given", a ``file`` starting with ``#`` is a comment) or from **name
+patterns** (:func:`rows_from_patterns`: ``{nm}`` in a scan pattern is the wavelength).
+:func:`import_captures` writes ``OUT/manifest.json`` referencing the files where they are
+(``files_root``; ``copy=True`` copies them into ``OUT/<role>/``) with the sheet's settings per
+file, the nominal layout, and a report per band of the calibration grid.
+:func:`check_capture_set` reads every capture as calibration will and lists what it will use.
 """
 
 from __future__ import annotations
@@ -67,6 +48,7 @@ from hsi_torch.io.capture_set import (
     CAPTURE_TYPES,
     MANIFEST,
     NOMINAL_LAYOUT,
+    ROLE_FOLDERS,
     duplicate_uses,
     read_capture_set,
     read_nominal_layout,
@@ -91,7 +73,6 @@ __all__ = [
 SHEET_COLUMNS = ("file", "role", "wavelength_nm", "exposure_s", "black_level", "white_level",
                  "cfa_pattern", "name", "camera_make", "camera_model")  # fmt: skip
 _NUMERIC = ("wavelength_nm", "exposure_s", "white_level")
-_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
 #: the calibration grid the import report is made for (calibrate.yaml's defaults)
 DEFAULT_GRID_NM = (430.0, 670.0, 10.0)
 
@@ -419,6 +400,12 @@ def _grid(grid_nm: tuple[float, float, float]) -> list[float]:
     return [start + k * step for k in range(n)]
 
 
+def _band_of(grid: list[float], lam: float, tol_nm: float) -> float | None:
+    """The band of ``grid`` nearest to ``lam`` (nm), ``None`` when none is within ``tol_nm``."""
+    j = min(range(len(grid)), key=lambda k: abs(grid[k] - float(lam)))
+    return grid[j] if abs(grid[j] - float(lam)) <= tol_nm else None
+
+
 def import_captures(
     rows: Sequence[SheetRow],
     out: str | os.PathLike,
@@ -473,9 +460,9 @@ def import_captures(
                     "cell takes the name's) or the file name"
                 )
             e["wavelength_nm"] = lam
-            j = min(range(len(grid)), key=lambda k: abs(grid[k] - lam))
-            if abs(grid[j] - lam) <= tol_nm:
-                bands[grid[j]].append(r.file.name)
+            band = _band_of(grid, lam, tol_nm)
+            if band is not None:
+                bands[band].append(r.file.name)
             else:
                 outside.append((r.file.name, lam))
         if r.role == "scene":
@@ -531,10 +518,10 @@ def import_captures(
     if copy:
         used: set[str] = set()
         for r, e in entries:
-            rel = f"{_FOLDERS[r.role]}/{r.file.name}"
+            rel = f"{ROLE_FOLDERS[r.role]}/{r.file.name}"
             k = 1
             while rel in used:
-                rel = f"{_FOLDERS[r.role]}/{r.file.stem}_{k}{r.file.suffix}"
+                rel = f"{ROLE_FOLDERS[r.role]}/{r.file.stem}_{k}{r.file.suffix}"
                 k += 1
             used.add(rel)
             shots.append((r.file, out / rel))
@@ -569,7 +556,8 @@ def import_captures(
             e["file"] = r.file.resolve().relative_to(common).as_posix()
     for src, dst in layout_files:
         dst.parent.mkdir(parents=True, exist_ok=True)
-        _copy_unless_same(src, dst)
+        if not _same_content(src, dst):  # a set imported into the folder of its layout keeps it
+            _atomic_copy(src, dst)
     if lay is not None:
         manifest["nominal_layout"] = NOMINAL_LAYOUT
         manifest["sensor_size"] = list(lay.sensor_size)
@@ -584,13 +572,6 @@ def import_captures(
     mpath = atomic_write_json(out / MANIFEST, manifest)
     read_capture_set(out)  # the set reads back (every file found, every key known)
     return ImportReport(mpath, counts, bands, repeated, outside, missing, warnings)
-
-
-def _copy_unless_same(src: Path, dst: Path) -> None:
-    """Copy ``src`` to ``dst`` (a set imported into the folder that holds its layout keeps it)."""
-    if _same_content(src, dst):
-        return
-    _atomic_copy(src, dst)
 
 
 def _atomic_copy(src: Path, dst: Path, stat: bool = False) -> None:
@@ -667,10 +648,6 @@ def check_capture_set(
     files += [(p, f"scene {n}", None) for n, p in cs.scenes.items()]
     rows = []
     seen_bands: dict[float, int] = {}
-    def band_of(lam: float) -> float | None:
-        j = min(range(len(grid)), key=lambda k: abs(grid[k] - float(lam)))
-        return grid[j] if abs(grid[j] - float(lam)) <= tol_nm else None
-
     for p, role, lam in files:
         try:  # every file is listed: a bad one is an error of its row, the others still read
             cap = cs.read(p, expected_size=size)
@@ -680,7 +657,7 @@ def check_capture_set(
             except HSIError:
                 hw = None
             problems.append(("error", str(exc)))
-            band = band_of(lam) if role == "scan" and lam is not None else None
+            band = _band_of(grid, lam, tol_nm) if role == "scan" and lam is not None else None
             if band is not None:  # (the band has a frame: this one is refused by name)
                 seen_bands[band] = seen_bands.get(band, 0) + 1
             rows.append({"file": str(p), "role": role, "wavelength_nm": lam, "band_nm": band,
@@ -693,7 +670,7 @@ def check_capture_set(
             if lam is None:
                 lam = m.get("wavelength_nm")
             if lam is not None:
-                band = band_of(lam)
+                band = _band_of(grid, lam, tol_nm)
                 if band is not None:
                     seen_bands[band] = seen_bands.get(band, 0) + 1
         make = " ".join(x for x in (m.get("camera_make"), m.get("camera_model")) if x) or None

@@ -16,24 +16,12 @@ Folder format (manifest schema version :data:`CAPTURE_SET_SCHEMA_VERSION` = 1)::
     ROOT/ground_truth/truth.npz + truth.json   simulated sets only
 
 A capture entry's ``type`` is ``scan`` (with ``wavelength_nm``), ``white``, ``grid``, ``dark`` or
-``scene`` (with ``name``). The manifest's keys are published as a JSON Schema
-(:mod:`hsi_torch.io.capture_manifest`): per-file and set-level settings (``cfa_pattern``,
-``black_level``, ``white_level``, ``exposure_s``, …) are honoured by calibration
-(:attr:`CaptureSet.settings`), descriptive keys (``seed``, ``pose``, …) are recorded, and any
-other key is refused by name. ``files_root`` (optional) is the folder the entries' ``file`` paths
-are relative to (``hsi-torch captures import`` writes it to reference a lab's files in place).
-A folder without ``manifest.json`` (a real device) is read from its sub-folders ``scan/``,
-``white/``, ``grid/``, ``dark/``, ``scenes/``; a scan frame's wavelength then comes from its name
-(``scan_550nm.tif``, ``mono_552p5nm.dng``) or from its own metadata.
-
-**Paths stay inside the set.** Every path a manifest names (``captures[k].file``,
-``nominal_layout``, ``brf_free_mask``, the layout's ``brf_free_patch.usable_mask``) must be a
-relative path that resolves (``..`` and symlinks followed) to a file inside ``ROOT``: a
-manifest cannot make a calibration read, and record in its bundle's provenance, a file elsewhere
-(``../x``, ``/etc/...``, a symlink out of the folder). A manifest's author who means it opts in
-with the top-level key ``"allow_files_outside": true``. Entries of the wrong type (a ``file``
-that is a number, null or a list; a ``wavelength_nm`` that is not a number) are refused with an
-error naming the manifest and the key.
+``scene`` (with ``name``); the manifest's keys are published as a JSON Schema
+(:mod:`hsi_torch.io.capture_manifest`; the table of keys is in ``docs/calibration.md``, *The
+manifest*). A folder without ``manifest.json`` (a real device) is read from its sub-folders; a
+scan frame's wavelength then comes from its name (``scan_550nm.tif``, ``mono_552p5nm.dng``) or its
+metadata. Every path a manifest names must resolve (``..`` and symlinks followed) to a file inside
+``ROOT`` (or ``files_root``) unless the manifest says ``"allow_files_outside": true``.
 
 The BRF-free mask is a PNG; OpenCV, which decodes and encodes it, is imported only where that
 happens, so reading a bundle or a capture never loads it.
@@ -41,7 +29,6 @@ happens, so reading a bundle or a capture never loads it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from collections.abc import Mapping, Sequence
@@ -55,13 +42,14 @@ from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_manifest import check_manifest, entry_settings
 from hsi_torch.io.captures import SUPPORTED_SUFFIXES, read_any
-from hsi_torch.io.safety import short_repr
+from hsi_torch.io.safety import file_sha256, short_repr
 
 __all__ = [
     "CAPTURE_SET_SCHEMA_VERSION",
     "ALLOW_OUTSIDE_KEY",
     "CAPTURE_SUFFIXES",
     "CAPTURE_TYPES",
+    "ROLE_FOLDERS",
     "MANIFEST",
     "NOMINAL_LAYOUT",
     "BRF_FREE_MASK",
@@ -93,7 +81,8 @@ CAPTURE_TYPES = ("scan", "white", "grid", "dark", "scene")
 #: File suffixes of captures found in the sub-folders of a folder without a manifest.
 CAPTURE_SUFFIXES = SUPPORTED_SUFFIXES  # every file read_any reads
 _WL_RE = re.compile(r"(\d+(?:[.p]\d+)?)\s*nm", re.IGNORECASE)
-_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
+#: The sub-folder of each capture type (a folder without a manifest; ``captures import --copy``).
+ROLE_FOLDERS = {"scan": "scan", "white": "white", "grid": "grid", "dark": "dark", "scene": "scenes"}
 
 
 def wavelength_from_name(name: str) -> float | None:
@@ -338,15 +327,11 @@ def scan_label(lam: float | None) -> str:
 
 
 def _digest(p: Path, head: int | None = None) -> str:
-    """SHA-256 of the file's bytes (its first ``head`` bytes when given), read in blocks."""
-    h = hashlib.sha256()
+    """SHA-256 of the file's bytes (its first ``head`` bytes when given)."""
+    if head is None:
+        return file_sha256(p)
     with open(p, "rb") as f:
-        if head is not None:
-            h.update(f.read(head))
-        else:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-    return h.hexdigest()
+        return file_sha256(f.read(head))
 
 
 def duplicate_uses(uses: Sequence[tuple[Path, str]]) -> list[str]:
@@ -547,11 +532,10 @@ def read_capture_set(
             elif t in ("white", "grid", "dark"):
                 getattr(cs, t).append(p)
     else:
-        cs.scan = [(p, wavelength_from_name(p.name)) for p in _folder_files(root / "scan")]
-        cs.white = _folder_files(root / "white")
-        cs.grid = _folder_files(root / "grid")
-        cs.dark = _folder_files(root / "dark")
-        cs.scenes = {p.stem: p for p in _folder_files(root / "scenes")}
+        found = {t: _folder_files(root / sub) for t, sub in ROLE_FOLDERS.items()}
+        cs.scan = [(p, wavelength_from_name(p.name)) for p in found["scan"]]
+        cs.white, cs.grid, cs.dark = found["white"], found["grid"], found["dark"]
+        cs.scenes = {p.stem: p for p in found["scene"]}
     if layout is not None:
         cs.layout_path = Path(layout)
     elif cs.manifest is not None and cs.manifest.get("nominal_layout"):

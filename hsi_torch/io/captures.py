@@ -1,24 +1,15 @@
-"""Capture files: 16-bit TIFF with JSON metadata, NPY/NPZ arrays, camera RAW — one linear reader.
+"""Capture files: 16-bit TIFF with JSON metadata, PNG, NPY/NPZ, camera RAW — one linear reader.
 
-File format written by :func:`write_capture` (read back by :func:`read_capture`):
-    - A single-page uncompressed **uint16 TIFF**: a Bayer mosaic as a grey ``H×W`` page
-      (``kind = "bayer"``) or an RGB image as an ``H×W×3`` RGB page (``kind = "rgb"``), so ordinary
-      viewers open it.
-    - The TIFF ``ImageDescription`` holds a JSON object with at least ``"hsi_torch_capture": 1``
-      (format version) and ``"kind"``; the simulator and users add ``"cfa_pattern"`` (required
-      for Bayer), ``"black_level"`` (scalar, 4 values for the Bayer cell positions in row-major
-      order, or 3 values for R, G, B), ``"white_level"`` (DN), ``"exposure_s"``, ``"wavelength_nm"``
-      (monochromator scan frames), ``"role"``, ... Any JSON-serialisable keys are kept.
+:func:`write_capture` writes (and :func:`read_capture` reads back) a single-page uncompressed
+**uint16 TIFF**: a Bayer mosaic as a grey ``H×W`` page (``kind = "bayer"``) or an ``H×W×3`` RGB
+page (``kind = "rgb"``); its ``ImageDescription`` is a JSON object with ``"hsi_torch_capture": 1``
+(format version), ``"kind"``, ``"cfa_pattern"`` (required for Bayer), ``"black_level"`` (scalar,
+4 values for the Bayer cell positions in row-major order, or 3 for R, G, B), ``"white_level"``
+(DN), ``"exposure_s"``, ``"wavelength_nm"``, ... (any JSON-serialisable keys are kept).
 
 :func:`read_any` turns any supported file into *linear* RGB ``(3, H, W)`` (value = stored − black,
-float, DN; or normalised to the white level), a saturation mask and the metadata. Bayer inputs are
-demosaiced (``"bilinear"``, full resolution, the default; or ``"half"``, see
-:mod:`hsi_torch.io.raw`). Supported suffixes: ``.tif/.tiff``, ``.png`` (8/16-bit grey or RGB,
-decoded by OpenCV, imported only for PNGs), ``.npy`` (optional sidecar ``<file>.npy.json`` with
-metadata), ``.npz`` (array ``image`` + optional JSON string ``metadata``) and camera RAW
-(``.dng``, ``.cr2``, ``.nef``, ``.kdc``, ...; through rawpy, linear). The exposure time and the
-camera's make and model of a TIFF or RAW/DNG come from its EXIF tags (``exifread``) when our JSON
-metadata does not give them.
+float, DN; or normalised to the white level), a saturation mask and the metadata; the suffixes,
+the value convention and the metadata contract are in ``docs/io_config_cli.md``, *Captures in*.
 """
 
 from __future__ import annotations
@@ -314,16 +305,22 @@ def _check_header(
 
 
 @contextlib.contextmanager
-def quiet_tifffile() -> Iterator[None]:
-    """Silence tifffile's log messages about a damaged file (unnamed lines such as
-    "incorrect StripOffsets count") while reading: our own error names the file instead."""
-    log = logging.getLogger("tifffile")
+def _quiet(logger: str) -> Iterator[None]:
+    """Silence a library's log messages while it reads a file (unnamed lines such as
+    "incorrect StripOffsets count", a foreign file's odd EXIF tags): our own error names the
+    file instead."""
+    log = logging.getLogger(logger)
     level = log.level
     log.setLevel(logging.CRITICAL)
     try:
         yield
     finally:
         log.setLevel(level)
+
+
+def quiet_tifffile() -> contextlib.AbstractContextManager[None]:
+    """Silence tifffile's log messages about a damaged file while reading (:func:`_quiet`)."""
+    return _quiet("tifffile")
 
 
 def _read_tiff(
@@ -358,15 +355,16 @@ def _read_tiff(
         raise FileFormatError(
             f"{p}: cannot read TIFF ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
         ) from exc
-    meta: dict[str, Any] = {}
-    if desc:  # a foreign TIFF's description (not our JSON) is not metadata: ignored
-        try:
-            parsed = json.loads(desc)
-        except (json.JSONDecodeError, RecursionError):
-            parsed = None
-        if isinstance(parsed, dict):
-            meta = parsed
-    return arr, meta
+    return arr, _description_metadata(desc)
+
+
+def _description_metadata(desc: str | None) -> dict[str, Any]:
+    """Our JSON metadata in a TIFF page's description; a foreign description is ignored."""
+    try:
+        parsed = json.loads(desc or "")
+    except (json.JSONDecodeError, RecursionError):
+        return {}
+    return parsed if isinstance(parsed, dict) else {}
 
 
 def _read_tiff_page(
@@ -378,16 +376,7 @@ def _read_tiff_page(
         raise FileFormatError(f"{p}: no page {page} (the TIFF has {n} page(s))")
     pg = tif.pages[page]
     _check_header(p, tuple(pg.shape), np.dtype(pg.dtype), expected_size)
-    arr = pg.asarray()
-    meta: dict[str, Any] = {}
-    try:
-        parsed = json.loads(pg.description or "")
-    except (json.JSONDecodeError, RecursionError):
-        parsed = None
-    if isinstance(parsed, dict):
-        meta = parsed
-    meta["page"] = page
-    return arr, meta
+    return pg.asarray(), {**_description_metadata(pg.description), "page": page}
 
 
 def _parse_metadata(text: str, where: str) -> dict[str, Any]:
@@ -472,16 +461,10 @@ def _read_npz(
                         f"shape {mshape}"
                     )
             arr = z[key]
-            meta_raw = z["metadata"] if "metadata" in keys else None
             meta_text = None
-            if meta_raw is not None and meta_raw.ndim == 0 and meta_raw.dtype.kind in "US":
-                item = meta_raw.item()
+            if "metadata" in keys:  # a 0-d str array (its header was checked)
+                item = z["metadata"].item()
                 meta_text = item.decode("utf-8") if isinstance(item, bytes) else str(item)
-            elif meta_raw is not None:
-                raise FileFormatError(
-                    f"{p}: 'metadata' must be a JSON string (0-d str array), got a "
-                    f"{meta_raw.dtype} array of shape {meta_raw.shape}"
-                )
     except FileFormatError:
         raise
     except Exception as exc:
@@ -522,7 +505,7 @@ def _read_png(
     nch = _PNG_CHANNELS[ctype]
     shape = (height, width) if nch == 1 else (height, width, 3)
     _check_header(p, shape, np.dtype(np.uint16 if depth == 16 else np.uint8), expected_size)
-    import cv2  # lazy: OpenCV decodes PNG captures only (see the module docstring)
+    import cv2  # lazy: OpenCV decodes PNG captures only
 
     try:
         arr = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
@@ -814,16 +797,11 @@ def _file_exif(p: Path) -> dict[str, Any]:
     ~30 ms for a full-size TIFF's tags.)"""
     import exifread  # lazy: only TIFF and RAW files have EXIF to read
 
-    log = logging.getLogger("exifread")
-    level = log.level
-    log.setLevel(logging.CRITICAL)  # a foreign file's odd tags are not the user's problem
     try:
-        with open(p, "rb") as f:
+        with _quiet("exifread"), open(p, "rb") as f:
             tags = exifread.process_file(f, details=False)
     except Exception:  # noqa: BLE001 - EXIF is optional information; the pixels are read elsewhere
         return {}
-    finally:
-        log.setLevel(level)
     out: dict[str, Any] = {}
     for name in ("EXIF ExposureTime", "Image ExposureTime"):
         tag = tags.get(name)

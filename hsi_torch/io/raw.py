@@ -1,16 +1,11 @@
-"""Camera RAW files as *linear* sensor data.
+"""Camera RAW files as *linear* sensor data (rawpy/LibRaw, never ``postprocess``: no white
+balance, colour conversion, gamma, flips or LibRaw demosaic; ``docs/io_config_cli.md``, *Camera
+RAW*).
 
-RAW files are read through ``rawpy`` (LibRaw) and never through ``postprocess``: no white balance,
-no colour-space conversion, no gamma, no flips/rotation, no LibRaw demosaic. We take
-``raw_image_visible`` (the visible sensor area, uint16 DN), subtract the per-channel black level
-(``black_level_per_channel``, indexed through ``raw_colors_visible``) and record the white level.
-Values are linear DN *above black* (``raw − black``, float; may be slightly negative from read
-noise; not clipped) unless ``normalize=True``, where they are divided by ``white − black`` so that
-1.0 is the saturation level; saturated pixels are those whose *raw* value is ``>= white_level``.
-
-The Bayer utilities (CFA pattern convention, :func:`mosaic`, :func:`demosaic_bilinear`,
-:func:`bayer_half`, :func:`demosaic_saturation`, ...) live in :mod:`hsi_torch.bayer` and are
-re-exported here.
+Values are ``raw_image_visible − black`` (DN, float, per CFA position from
+``black_level_per_channel``; not clipped), or divided by ``white − black`` with
+``normalize=True``; saturated where the raw value is ``>= white_level``. The Bayer utilities live
+in :mod:`hsi_torch.bayer` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -23,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsi_torch.bayer import (  # re-exported: the Bayer utilities were first defined here
+from hsi_torch.bayer import (  # re-exported
     DemosaicMethod,
     bayer_half,
     cfa_masks,

@@ -1,76 +1,34 @@
 """On-disk cache of the per-bundle precomputation, keyed by content, authenticated, safe to load.
 
-The per-bundle precomputation (:func:`hsi_torch.recon.sensing.precompute_sensing`: the sensing
-model of the valid pixels, the static masks, the sampling grid and the solver's per-pixel
-factorisation) costs seconds at full size. It depends only on the bundle file's content, on
-``(beta, diff_order)``, on the precision and the device type, and on the code that computes it,
-so a process can store it once and every later process (a second run, a Dask worker, a notebook
-restarted) loads it instead.
+The per-bundle precomputation (:func:`hsi_torch.recon.sensing.precompute_sensing`) costs seconds at
+full size and depends only on the bundle file's content, ``(beta, diff_order)``, the precision,
+the device type and the code that computes it; a process stores it once and later processes load
+it. The full rules (key, format, trust, folders, bound, measured cost) are in
+``docs/reconstruct.md``, *The precomputation cache*; in short:
 
-**What is stored.** One folder per entry (``<bundle stem>-<key>.hsicache/``) in NumPy's own
-format: every named array is a ``<name>.npy`` file (read by any NumPy; its data starts at a
-multiple of :data:`ALIGN` bytes, so the memory-mapped data is aligned as a fresh allocation is and
-the kernels that read it take the same paths) and ``index.json`` holds ``format``, ``key``,
-``arrays`` (per array: ``dtype``, ``shape``), whatever else the caller records, and ``mac``. The
-caller decides which arrays (this module stores and returns a ``{name: array}`` dict and does not
-care about the layout of the solver's factors). An entry is written in a fresh temporary folder
-and renamed into place (a reader sees the whole entry or none) and never over an input: entries
-live in a cache folder, never over the bundle.
-
-**The key** (:func:`entry_key`) is the SHA-256 of a JSON object holding the caller's parts (the
-bundle file's SHA-256, ``beta``, ``diff_order``, dtype, device type, which factorisation — the
-compiled CPU pass or the torch kernels), this module's :data:`FORMAT_VERSION`, the caller's
-layout version, the torch version, and a digest of the source files that compute the
-precomputation (:data:`SOURCE_FILES`): editing the solver's factorisation therefore misses every
-old entry by itself.
-
-**Trust.** An entry proves that this user's software wrote it for the key asked for: ``mac`` is a
-keyed BLAKE3 (:mod:`blake3`, a MAC as HMAC-SHA256 is, four times faster here: the check runs over
-the ~2 GiB of a full-size entry on every cold start) over the index (key included, so the
-bundle's SHA-256) and every array's bytes, keyed by a per-folder secret (:data:`KEY_FILE`: 32
-random bytes, created ``O_EXCL | O_NOFOLLOW`` with mode ``0600``). Another user, or a file
-copied in, cannot make a valid entry; another bundle's entry relabelled with this key fails the
-check. The memo of bundle hashes (:data:`HASH_MEMO`) is authenticated the same way. A cache folder
-is used only when it is the user's own and not writable by group or others (as ssh and pip
-check): else its entries are ignored with a :class:`PrecomputeCacheWarning` and the run computes.
-
-**Loading is safe** (:func:`load_entry`): nothing is unpickled or evaluated — the index is JSON,
-the arrays plain numbers (booleans, integers, floats; anything else refused); every file is opened
-``O_NOFOLLOW | O_NONBLOCK`` and must be a regular file (a FIFO, a device, a symbolic link is a
-miss); each ``.npy`` header must declare the index's dtype and shape and the file hold exactly
-that many bytes; the MAC is checked over the mapped bytes (what will be used). Any failure is a
-*miss*: a :class:`PrecomputeCacheWarning` names the file and the reason, and the caller recomputes
-(and replaces the entry). The arrays come back memory-mapped copy-on-write: their pages are shared
-with the page cache and the file never changes. The caller cross-checks their shapes against what
-it needs before any kernel reads them (:mod:`hsi_torch.recon.sensing`).
-
-**Changed under the mapping.** An entry file rewritten in place or truncated after loading would
-be read stale, or fault (``SIGBUS``). The files stay open; :func:`changed_since_load` compares
-their size, modification and change times with those checked (a few ``fstat`` calls) and the
-reconstructor asks it before every frame: a changed entry is loaded again (checked) or recomputed,
-with a warning. (A change *during* a frame is not detected: keep the cache folder your own.)
-
-**Where** (:func:`cache_folder`, the reconstruction setting ``precompute_cache``):
-
-- ``"auto"`` (default): the user cache folder, ``$HSI_TORCH_CACHE``, else
-  ``$XDG_CACHE_HOME/hsi_torch``, else ``~/.cache/hsi_torch``, subfolder ``precompute/``;
-- ``"beside"``: a folder ``.hsi_torch_cache/`` beside the bundle (falls back to the user cache
-  folder, with a note, where the bundle's folder is not writable or that folder not the user's
-  own);
-- ``"off"``: no cache;
-- a folder path: that folder (the user cache folder, with a note, when it cannot be written or
-  is not the user's own).
-
-The folder is bounded: after a write the least recently used entries (the modification time of
-their ``index.json``, refreshed on every hit) are removed until the entries take at most
-``$HSI_TORCH_CACHE_MAX_GB`` GiB (default :data:`DEFAULT_MAX_GB`; a value that is not a finite
-number ≥ 0 is refused with a warning and the default used). An entry is not written when the disk
-would keep less than :data:`MIN_FREE_BYTES` free. ``hsi-torch cache info`` / ``clear``
-(:func:`cache_info`, :func:`clear_cache`) show and empty a folder.
+- **Entry**: a folder ``<bundle stem>-<key>.hsicache/`` of ``<name>.npy`` files (data at a
+  multiple of :data:`ALIGN` bytes: mapped data aligned as a fresh allocation keeps the kernels on
+  the same paths) and ``index.json`` (``format``, ``key``, ``arrays``: dtype and shape per array,
+  the caller's metadata, ``mac``), written in a temporary folder and renamed into place.
+- **Key** (:func:`entry_key`): SHA-256 of the caller's parts, :data:`FORMAT_VERSION`, the caller's
+  layout version, the torch version and a digest of :data:`SOURCE_FILES`.
+- **Trust**: ``mac`` is a keyed BLAKE3 (four times faster than HMAC-SHA256 here; it runs over
+  ~2 GiB on every cold start) over the index and every array's bytes, keyed by the folder's
+  secret (:data:`KEY_FILE`); the hash memo (:data:`HASH_MEMO`) is authenticated the same way. A
+  folder is used only when it is the user's own and not writable by group or others
+  (:func:`folder_problem`).
+- **Loading** (:func:`load_entry`): JSON and plain-number ``.npy`` only, every file opened
+  ``O_NOFOLLOW | O_NONBLOCK`` and checked against the index, the MAC checked over the mapped
+  bytes; any failure is a miss with a :class:`PrecomputeCacheWarning`. Arrays come back
+  memory-mapped copy-on-write; :func:`changed_since_load` tells a file changed under the mapping.
+- **Where** (:func:`cache_folder`): ``"auto"``, ``"beside"``, ``"off"`` or a folder; bounded by
+  ``$HSI_TORCH_CACHE_MAX_GB`` (least recently used entries removed), never written when the disk
+  would keep less than :data:`MIN_FREE_BYTES`; ``hsi-torch cache info | clear``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
@@ -82,6 +40,7 @@ import shutil
 import stat
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -91,7 +50,14 @@ import blake3
 import numpy as np
 
 from hsi_torch import console
-from hsi_torch.io.atomic import atomic_write_text, human_size, json_default, read_own_bytes
+from hsi_torch.io.atomic import (
+    atomic_write_text,
+    human_size,
+    json_default,
+    pid_alive,
+    read_file_head,
+    read_own_bytes,
+)
 from hsi_torch.io.safety import file_sha256
 
 __all__ = [
@@ -175,7 +141,8 @@ _ENTRY_RE = re.compile(r"^[A-Za-z0-9_.-]+-(?P<key>[0-9a-f]{24})\.hsicache$")
 _MEMBER_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*\.npy$")
 #: A writer's temporary entry folder / a replaced entry on its way out.
 _TEMP_RE = re.compile(r"^\.(?P<name>.+\.hsicache)\.(?P<pid>[0-9]+)-[A-Za-z0-9_]+\.(tmp|old)$")
-_OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_OPEN_FLAGS = os.O_RDONLY | _NOFOLLOW | getattr(os, "O_NONBLOCK", 0)
 _LOCK = threading.Lock()
 _SOURCE_DIGEST: list[str] = []
 #: (realpath, device, inode, size, mtime_ns, ctime_ns) -> hex SHA-256 of the file's content
@@ -355,15 +322,10 @@ def _secret(folder: Path, create: bool) -> bytes | None:
         # made complete under a temporary name, then linked into place: a reader never sees a
         # partial key, and of two processes making it at once, one key wins
         tmp = folder / f".{KEY_FILE}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
-                     0o600)  # fmt: skip
         try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(secrets.token_bytes(32))
-            try:
+            _write_new(tmp, lambda f: f.write(secrets.token_bytes(32)))
+            with contextlib.suppress(FileExistsError):
                 os.link(tmp, path)
-            except FileExistsError:
-                pass
         finally:
             tmp.unlink(missing_ok=True)
         return _secret(folder, create=False)
@@ -481,10 +443,8 @@ def content_sha256(path: str | os.PathLike, memo_folder: str | os.PathLike | Non
         if where is not None:
             memo = dict(list(memo.items())[-255:])
             memo[text] = {"sha256": sha, "mac": _memo_mac(where[1], text, sha)}
-            try:
+            with contextlib.suppress(OSError):  # a read-only folder: hashed again next time
                 atomic_write_text(where[0], json.dumps(memo, indent=0))
-            except OSError:
-                pass  # a read-only folder: hashed again next time
     if len(_HASHES) > 64:
         _HASHES.clear()
     _HASHES[ident] = sha
@@ -520,10 +480,8 @@ class _Stamp:
 
     def close(self) -> None:
         for _name, fd, _st in self.files:
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:  # pragma: no cover
-                pass
         self.files = []
 
     def __del__(self) -> None:
@@ -622,8 +580,7 @@ def _map_member(dir_fd: int, name: str, dt: np.dtype, shape: tuple[int, ...],
 
 def _read_entry(path: Path, key: str, secret: bytes) -> tuple[dict[str, np.ndarray], dict]:
     try:
-        dir_fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
-                         | getattr(os, "O_NOFOLLOW", 0))  # fmt: skip
+        dir_fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW)
     except OSError as exc:
         if exc.errno in (errno.ENOTDIR, errno.ELOOP):
             raise _Refused("not an entry folder (a file or a symbolic link)") from None
@@ -648,10 +605,8 @@ def _read_entry(path: Path, key: str, secret: bytes) -> tuple[dict[str, np.ndarr
         if not isinstance(index.get("mac"), str) or index["mac"] != _mac(secret, index, arrays):
             raise _Refused("its MAC does not verify (not written by this user's software for "
                            "this key, or altered)")  # fmt: skip
-        try:
-            os.utime(INDEX, dir_fd=dir_fd, follow_symlinks=False)  # recently used: kept
-        except (OSError, NotImplementedError):
-            pass
+        with contextlib.suppress(OSError, NotImplementedError):  # recently used: kept
+            os.utime(INDEX, dir_fd=dir_fd, follow_symlinks=False)
     except BaseException:
         stamp.close()
         raise
@@ -825,16 +780,6 @@ def _max_bytes() -> int:
     return int(gb * (1 << 30))
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:
-        return True
-    return True
-
-
 def _entry_kind(path: Path) -> str | None:
     """What a cache folder's child is, recognised by its name *and* content: ``"entry"`` (an
     entry folder whose index names its format and a key), ``"old"`` (an entry
@@ -850,16 +795,11 @@ def _entry_kind(path: Path) -> str | None:
     except OSError:
         return None
     if m and stat.S_ISREG(st.st_mode):
-        try:
-            fd = os.open(path, _OPEN_FLAGS)
-            with os.fdopen(fd, "rb") as f:
-                return "old" if f.read(len(OLD_MAGIC)) == OLD_MAGIC else None
-        except OSError:
-            return None
+        return "old" if read_file_head(path, len(OLD_MAGIC)) == OLD_MAGIC else None
     if not stat.S_ISDIR(st.st_mode):
         return None
     if t:
-        return "temp" if not _pid_alive(int(t["pid"])) else None
+        return "temp" if not pid_alive(int(t["pid"])) else None
     try:
         index = json.loads(
             read_own_bytes(path / INDEX, MAX_HEADER_BYTES, what="cache index", error=_Refused)
@@ -932,8 +872,7 @@ def _evict(folder: Path, keep: Path, limit: int) -> None:
 
 
 def _write_new(path: Path, write: Any) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
-                 0o600)  # fmt: skip
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o600)
     with os.fdopen(fd, "wb") as f:
         write(f)
 
@@ -1149,8 +1088,6 @@ def run_cache(args: Any) -> int:
     print(f"  {n} entr{'y' if n == 1 else 'ies'}, {info['total_bytes'] / 2**30:.2f} GiB of at most "
           f"{info['max_bytes'] / 2**30:.1f} GiB (${MAX_GB_ENV})")  # fmt: skip
     for e in info["entries"]:
-        import time
-
         used = time.strftime("%Y-%m-%d %H:%M", time.localtime(e["last_used"]))
         print(
             f"  {e['name']}  {e['bytes'] / 2**30:.2f} GiB  last used {used}"
