@@ -231,13 +231,6 @@ class NNLSProblem:
         return int(sum(t.numel() * t.element_size() for t in ts))
 
     # -- Gram products ----------------------------------------------------------------------
-    def _mask_rows(self, idx: Tensor | slice | None) -> Tensor | None:
-        if self.mask is None:
-            return None
-        if idx is None:
-            return self.mask
-        return self.mask[idx] if isinstance(idx, slice) else self.mask.index_select(0, idx)
-
     def gram_matrices(self, idx: Tensor | slice | None = None) -> Tensor:
         """Stored ``G`` of pixels ``idx`` ``(n, M, M)`` (``(1, M, M)`` when shared)."""
         G = self.gram
