@@ -560,12 +560,10 @@ def solve_nnls(
         beta: smoothness weight (≥ 0) on the data's scale.
         mask: ``(P, O)`` bool, True = observation used; None = all.
         diff_order: 0, 1 (default) or 2.
-        **options: :class:`SolveOptions`, as :meth:`NNLSProblem.solve` takes them (``solver``:
-            ``"active_set"`` exact, or ``"admm"``; ``tol``, ``max_iter``, ``refine``, ``x0``,
-            ``admm_iters``, ``rho``, ``num_threads``, ``backend``). ``chunk_size`` /
-            ``max_memory`` (pixels per chunk or a working-memory budget in bytes) also bound the
-            outer chunks here: each is factorised and solved on its own, so memory stays bounded
-            (per-pixel ``A``; default 131 072 pixels per outer chunk on CPU).
+        **options: :class:`SolveOptions`, as :meth:`NNLSProblem.solve` takes them.
+            ``chunk_size`` / ``max_memory`` also bound the outer chunks here: each is factorised
+            and solved on its own, so memory stays bounded (per-pixel ``A``; default 131 072
+            pixels per outer chunk on CPU).
 
     Returns:
         :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
@@ -632,11 +630,5 @@ def solve_nnls(
             raise err from None
     if len(parts) == 1:
         return parts[0]
-    return NNLSResult(
-        torch.cat([r.x for r in parts]),
-        torch.cat([r.converged for r in parts]),
-        torch.cat([r.iterations for r in parts]),
-        torch.cat([r.kkt_residual for r in parts]),
-        torch.cat([r.no_data for r in parts]),
-        solver,
-    )
+    fields = ("x", "converged", "iterations", "kkt_residual", "no_data")
+    return NNLSResult(*(torch.cat([getattr(r, f) for r in parts]) for f in fields), solver)
