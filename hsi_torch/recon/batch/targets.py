@@ -30,7 +30,7 @@ import glob
 import hashlib
 import os
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -195,16 +195,14 @@ class _Owners:
         self.by_output: dict[str, tuple[str, Path]] = {}
         self.outputs_of: dict[Path, list[str]] = {}
         folder = out_dir / DONE_DIR
-        markers = sorted(folder.glob("*.json")) if folder.is_dir() else []
-        for m in markers:
-            rec = _read_marker(m)
-            if rec is None or not isinstance(rec.get("input"), str):
-                continue
-            self.claim(m, rec["input"], _owned(rec))
+        self._read(sorted(folder.glob("*.json")) if folder.is_dir() else [])
 
     def refresh(self, out_dir: Path, stem: str) -> None:
         """Re-read the markers of inputs named ``stem`` (another run may have written some)."""
-        for m in (out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"):
+        self._read((out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"))
+
+    def _read(self, markers: Iterable[Path]) -> None:
+        for m in markers:
             rec = _read_marker(m)
             if rec is not None and isinstance(rec.get("input"), str):
                 self.claim(m, rec["input"], _owned(rec))

@@ -328,26 +328,18 @@ class NNLSProblem:
         if backend not in _BACKENDS:
             raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
         workers = workers_for(self.device, num_threads)
-        with cpu_threads(self.device, 1):
-            return self._solve(y, solver, tol, max_iter, refine, chunk_size, max_memory, x0,
-                               admm_iters, rho, workers, backend)
-
-    def _solve(
-        self, y: Tensor, solver: str, tol: float | None, max_iter: int | None,
-        refine: int | None, chunk_size: int | None, max_memory: int | None, x0: Tensor | None,
-        admm_iters: int | None, rho: float | None, workers: int, backend: str = "auto",
-    ) -> NNLSResult:
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
         y_in, y = y, self._check_y(y)
-        try:
-            return self._solve_cast(y, solver, tol, max_iter, refine, chunk_size, max_memory,
-                                    x0, admm_iters, rho, workers, backend)
-        except (NonFiniteObservations, ObservationsOverflow):
-            err = cast_overflow(y_in, self.dtype, self.mask)  # inf made by the cast: say so
-            if err is None:
-                raise
-            raise err from None
+        with cpu_threads(self.device, 1):
+            try:
+                return self._solve_cast(y, solver, tol, max_iter, refine, chunk_size,
+                                        max_memory, x0, admm_iters, rho, workers, backend)
+            except (NonFiniteObservations, ObservationsOverflow):
+                err = cast_overflow(y_in, self.dtype, self.mask)  # inf made by the cast: say so
+                if err is None:
+                    raise
+                raise err from None
 
     def _solve_cast(
         self, y: Tensor, solver: str, tol: float | None, max_iter: int | None,
