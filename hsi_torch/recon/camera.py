@@ -11,16 +11,11 @@ tensors, the layout of image-restoration libraries (deepinv, a network's input):
   pixels outside the valid region are 0; values of ``x`` outside the valid region are ignored.
 * ``A_adjoint``: its exact transpose, ``(N, 3V, h, w)`` → ``(N, M, h, w)`` (0 outside the valid
   region).
-* :meth:`CameraOperator.observe`: a capture ``(N, 3, H, W)`` (or a Bayer mosaic) → its registered
-  observations in the same layout, with the mask of the usable ones (the pipeline's sampling of
-  the views: bilinear, saturation and non-finite samples masked), so that ``A x ≈ y`` on the mask.
-* :meth:`CameraOperator.noise_variance`: the variance of each observation from the sensor's shot,
-  read and quantisation noise (:mod:`hsi_torch.recon.uncertainty`).
 
-The per-pixel reconstruction solves ``min_{x ≥ 0} ‖mask·(A x − y)‖² + β‖D x‖²`` pixel by pixel;
-:meth:`CameraOperator.objective` evaluates that objective plus the TV term of the spatial mode
-(:mod:`hsi_torch.recon.spatial`) on a cube, so that any other solver's answer can be scored on the
-same scale. ``hsi_torch.recon.deepinv_physics`` wraps this operator as a deepinv ``LinearPhysics``.
+:meth:`CameraOperator.observe` turns captures into observations in the same layout (with the mask
+of the usable ones, so that ``A x ≈ y`` on the mask), :meth:`CameraOperator.noise_variance` gives
+their variance, and :meth:`CameraOperator.objective` scores any solver's cube on the pipeline's
+scale. ``hsi_torch.recon.deepinv_physics`` wraps this operator as a deepinv ``LinearPhysics``.
 """
 
 from __future__ import annotations

@@ -3,22 +3,16 @@
 Needs deepinv (``pip install 'hsi-torch[deepinv]'``); this module is the only one that imports
 it, and nothing imports this module unless asked.
 
-* :class:`CameraPhysics` — a ``deepinv.physics.LinearPhysics`` built from a calibration bundle:
-  ``A`` from a cube ``(N, M, h, w)`` to the registered observations ``(N, 3V, h, w)`` and its
-  exact adjoint (:class:`~hsi_torch.recon.camera.CameraOperator`), the data term's proximal
-  operator in closed form (``A`` is block diagonal over pixels), and the sensor's noise
-  (:class:`CameraNoise`) as its noise model.
-* :class:`CameraNoise` — a ``deepinv.physics.NoiseModel`` drawing the observation noise of
-  :mod:`hsi_torch.recon.uncertainty` (shot, read and quantisation noise of the raw samples,
-  scaled by the exposure ratio and the views' sampling; Gaussian with that variance).
-* :class:`BandwiseDenoiser` — runs a grey-image denoiser (e.g. deepinv's ``DRUNet`` with
-  ``in_channels=1`` and weights from a local file) on every band of a cube, so that
-  plug-and-play priors trained on grey images apply to spectral cubes.
-* :class:`VectorialTVPrior` — a ``deepinv.optim.Prior``: the spatial mode's vectorial TV on the
-  valid grid, ``Σ‖K∇x‖`` (:func:`~hsi_torch.recon.spatial.total_variation`) plus ``x ≥ 0``, with
-  its proximal operator (:func:`~hsi_torch.recon.spatial.prox_tv_nonneg`), so that deepinv's
-  PGD / FISTA / ADMM / DRS / HQS solve the TV mode's problem (deepinv's own ``TVPrior`` is the
-  band-by-band TV).
+* :class:`CameraPhysics` — a ``deepinv.physics.LinearPhysics`` of a calibration bundle
+  (:class:`~hsi_torch.recon.camera.CameraOperator`: ``A``, its exact adjoint, the data term's
+  proximal operator in closed form) with :class:`CameraNoise` as its noise model.
+* :class:`CameraNoise` — a ``deepinv.physics.NoiseModel``: Gaussian with the variance of
+  :mod:`hsi_torch.recon.uncertainty` (shot, read and quantisation noise, exposure, sampling).
+* :class:`BandwiseDenoiser` — a grey-image denoiser (e.g. ``DRUNet`` with ``in_channels=1``) run
+  on every band, so that plug-and-play priors trained on grey images apply to cubes.
+* :class:`VectorialTVPrior` — a ``deepinv.optim.Prior``: the spatial mode's vectorial TV plus
+  ``x ≥ 0`` with its proximal operator, so that deepinv's PGD / FISTA / ADMM / DRS / HQS solve
+  the TV mode's problem (deepinv's own ``TVPrior`` is the band-by-band TV).
 
 Scales: ``y`` in DN above black on the calibration's exposure scale (as the pipeline's), ``x``
 reflectance. deepinv's ``L2(sigma)`` data term is ``‖A x − y‖² / (2σ²)``: with

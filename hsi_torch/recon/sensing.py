@@ -1,34 +1,19 @@
 """Per-bundle precomputation for reconstruction: sensing matrices, static masks, factorisation.
 
 Everything that depends only on the calibration bundle (and on ``beta``/``diff_order``) is done
-once and reused by every frame that shares the bundle:
-
-- the flat indices of the reconstructed pixels (the bundle's ``valid`` region, row-major over the
-  reference frame), ``pixel_index (P,)``;
-- the per-pixel sensing operator in factored form (:class:`~hsi_torch.forward_model.SensingModel`:
-  ``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]``, view-major observations;
-  ``V·M`` numbers a pixel instead of the dense ``3V·M``);
-- the static observation mask ``obs_mask (P, 3V)`` (view ``v`` present and BRF-modulated at ``p``);
-- the sampling grid ``sample_grid (1, V, P, 2)``: where every valid pixel of every view lies on the
-  sensor (``H_v⁻¹`` applied to the reference sensor px in float64), in grid_sample's normalised
-  ``align_corners=True`` coordinates (:func:`~hsi_torch.optics.geometry.view_sample_grid`), so a
-  frame is warped by *one* ``kornia.geometry.transform.remap`` call over the valid pixels only;
-- the solver factorisation (:func:`hsi_torch.recon.nnls.prepare_nnls`): per-pixel Gram matrices
-  and their inverses for the static mask, one per ``(beta, diff_order)``.
+once and reused by every frame that shares the bundle (:class:`BundleSensing`): the valid pixels'
+flat indices, the factored sensing operator (:class:`~hsi_torch.forward_model.SensingModel`,
+``A_p[3v + c, m] = gain[v, p] · B[v, m, p] · Δλ_m · phi[c, m]``: ``V·M`` numbers a pixel instead
+of the dense ``3V·M``), the static observation mask, the sampling grid (``H_v⁻¹`` applied to the
+reference sensor px in float64, so a frame is warped by *one* ``remap`` over the valid pixels
+only) and the solver factorisation (:func:`hsi_torch.recon.nnls.prepare_nnls`).
 
 :func:`precompute_sensing` keeps a small cache keyed by the bundle object's identity, device,
-dtype, ``beta`` and ``diff_order``, so building several
-:class:`~hsi_torch.recon.pipeline.Reconstructor` objects for the same bundle does not repeat the
-work (:data:`BUILD_COUNTS` counts the builds). The cache holds the bundle weakly: a bundle that
-is no longer referenced is freed (its full-frame arrays are not needed after the build).
-
-Across processes, a bundle given as a *file* is cached on disk (``disk_cache``, the
-reconstruction setting ``precompute_cache``; :mod:`hsi_torch.recon.precompute_cache`): the
-arrays above and every tensor of the factorisation are stored under a key made of the file's
-SHA-256, ``beta``, ``diff_order``, the dtype, the device type and the code's version, and a later
-process loads them (memory-mapped) instead of reading the bundle and factorising
-(``BUILD_COUNTS["loaded"]`` counts those loads); within a process the same file and settings
-share one :class:`BundleSensing`.
+dtype, ``beta`` and ``diff_order`` (:data:`BUILD_COUNTS` counts the builds); it holds the bundle
+weakly, so a bundle no longer referenced is freed. A bundle given as a *file* is also cached on
+disk (the setting ``precompute_cache``; :mod:`hsi_torch.recon.precompute_cache`) under a key of
+the file's SHA-256, ``beta``, ``diff_order``, the dtype, the device type and the code's version;
+a later process loads the entry memory-mapped (``BUILD_COUNTS["loaded"]``).
 
 Convention:
     Observation index ``o = 3·v + c`` (``v = 0`` the reference view, ``c`` = R, G, B).
@@ -442,17 +427,52 @@ _SHARED = {"sensing": "model", "mask": "obs_mask"}
 _JSON_SCALARS = (bool, int, float, str, type(None))
 
 
-def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
-    """The arrays and metadata of a disk-cache entry for ``sens`` (``None``: the factorisation
-    holds something that is neither a tensor, an array nor a JSON scalar: not cached).
+def _encode(name: str, v: Any, arrays: dict[str, np.ndarray]) -> dict[str, Any] | None:
+    """How a cache entry stores the field value ``v`` (an array goes into ``arrays`` under
+    ``name``); ``None``: a kind it does not know (then nothing is cached: a field dropped on the
+    way through the cache would change what a cached run does)."""
+    if isinstance(v, Tensor):
+        arrays[name] = v.detach().cpu().numpy()
+        return {"array": name}
+    if isinstance(v, np.ndarray):
+        arrays[name] = np.asarray(v)
+        return {"numpy": name}
+    if isinstance(v, CameraIdentity):
+        return {"camera": v.to_dict()}
+    if isinstance(v, tuple) and all(isinstance(x, _JSON_SCALARS) for x in v):
+        return {"tuple": list(v)}
+    if isinstance(v, _JSON_SCALARS):
+        return {"value": v}
+    if isinstance(v, (dict, list)) and not v:
+        return {"empty": type(v).__name__}
+    return None
 
-    Every tensor attribute of the :class:`~hsi_torch.recon.nnls.NNLSProblem` is stored under
+
+def _decode(how: dict[str, Any], arrays: dict[str, np.ndarray], t: Any) -> Any:
+    """The value :func:`_encode` stored as ``how`` (``t(name)``: a stored tensor, on the device)."""
+    if "array" in how:
+        return t(how["array"])
+    if "numpy" in how:
+        return np.array(arrays[how["numpy"]])
+    if "camera" in how:
+        return CameraIdentity.from_dict(how["camera"])
+    if "tuple" in how:
+        return tuple(how["tuple"])
+    if "value" in how:
+        return how["value"]
+    return {"dict": {}, "list": []}[how["empty"]]
+
+
+def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
+    """The arrays and metadata of a disk-cache entry for ``sens`` (``None``: a field of the
+    factorisation or of the radiometry is of a kind :func:`_encode` does not know: not cached).
+
+    Every attribute of the :class:`~hsi_torch.recon.nnls.NNLSProblem` is stored under
     ``problem.<name>`` whatever the solver keeps, so a change of its layout needs no change
     here."""
     def host(t: Tensor) -> np.ndarray:
         return t.detach().cpu().numpy()
 
-    rad = sens.radiometry
     arrays: dict[str, np.ndarray] = {
         "valid": host(sens.valid), "pixel_index": host(sens.pixel_index),
         "obs_mask": host(sens.obs_mask), "sample_grid": host(sens.grid()),
@@ -465,21 +485,18 @@ def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any
         own = _SHARED.get(name)
         if own is not None and v is (sens.model if own == "model" else sens.obs_mask):
             problem[name] = {"shared": own}
-        elif isinstance(v, Tensor):
-            arrays[f"problem.{name}"] = host(v)
-            problem[name] = {"array": f"problem.{name}"}
-        elif isinstance(v, np.ndarray):
-            arrays[f"problem.{name}"] = v
-            problem[name] = {"numpy": f"problem.{name}"}
-        elif isinstance(v, _JSON_SCALARS):
-            problem[name] = {"value": v}
-        elif isinstance(v, (dict, list)) and not v:
-            problem[name] = {"empty": type(v).__name__}
+        elif (how := _encode(f"problem.{name}", v, arrays)) is not None:
+            problem[name] = how
         else:
             return None
-    rad_meta = None if rad is None else _radiometry_to_cache(rad, arrays)
-    if rad is not None and rad_meta is None:
-        return None
+    rad_meta = None
+    if sens.radiometry is not None:
+        rad_meta = {}
+        for f in dataclasses.fields(sens.radiometry):
+            how = _encode(f"radiometry.{f.name}", getattr(sens.radiometry, f.name), arrays)
+            if how is None:
+                return None
+            rad_meta[f.name] = how
     meta = {
         "sensor_size": list(sens.sensor_size), "reference_bbox": list(sens.reference_bbox),
         "beta": sens.beta, "diff_order": sens.diff_order, "exposure_s": sens.exposure_s,
@@ -487,43 +504,6 @@ def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any
         "radiometry": rad_meta,
     }  # fmt: skip
     return arrays, meta
-
-
-def _radiometry_to_cache(rad: BundleRadiometry, arrays: dict[str, np.ndarray]
-                         ) -> dict[str, Any] | None:  # fmt: skip
-    """Every field of ``rad`` for the cache (arrays into ``arrays``), or ``None`` when one is of
-    a kind this does not know (then nothing is cached: a field dropped on the way through the
-    cache would change what a cached run does, e.g. the bundle's stray-light and defect
-    corrections)."""
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(rad):
-        v = getattr(rad, f.name)
-        if isinstance(v, np.ndarray):
-            arrays[f"radiometry.{f.name}"] = np.asarray(v)
-            out[f.name] = {"array": f"radiometry.{f.name}"}
-        elif isinstance(v, CameraIdentity):
-            out[f.name] = {"camera": v.to_dict()}
-        elif isinstance(v, tuple) and all(isinstance(x, _JSON_SCALARS) for x in v):
-            out[f.name] = {"tuple": list(v)}
-        elif isinstance(v, _JSON_SCALARS):
-            out[f.name] = {"value": v}
-        else:
-            return None
-    return out
-
-
-def _radiometry_from_cache(r: dict[str, Any], arrays: dict[str, np.ndarray]) -> BundleRadiometry:
-    kw: dict[str, Any] = {}
-    for name, how in r.items():
-        if "array" in how:
-            kw[name] = np.array(arrays[how["array"]])
-        elif "camera" in how:
-            kw[name] = CameraIdentity.from_dict(how["camera"])
-        elif "tuple" in how:
-            kw[name] = tuple(how["tuple"])
-        else:
-            kw[name] = how["value"]
-    return BundleRadiometry(**kw)
 
 
 def _from_cache(
@@ -539,22 +519,13 @@ def _from_cache(
         check_cached_shapes(arrays, meta)
         model = SensingModel(t("model.transmittance"), t("model.gain"), t("model.response"))
         obs = t("obs_mask")
-        state: dict[str, Any] = {}
-        for name, how in meta["problem"].items():
-            if "shared" in how:
-                state[name] = model if how["shared"] == "model" else obs
-            elif "array" in how:
-                state[name] = t(how["array"])
-            elif "numpy" in how:
-                state[name] = np.array(arrays[how["numpy"]])
-            elif "value" in how:
-                state[name] = how["value"]
-            else:
-                state[name] = {"dict": {}, "list": []}[how["empty"]]
         problem = NNLSProblem.__new__(NNLSProblem)
-        problem.__dict__.update(state)
+        problem.__dict__.update({
+            name: (model if how["shared"] == "model" else obs) if "shared" in how
+            else _decode(how, arrays, t) for name, how in meta["problem"].items()})  # fmt: skip
         r = meta["radiometry"]
-        rad = None if r is None else _radiometry_from_cache(r, arrays)
+        rad = None if r is None else BundleRadiometry(
+            **{name: _decode(how, arrays, t) for name, how in r.items()})  # fmt: skip
         x0, y0, w, h = (int(v) for v in meta["reference_bbox"])
         beta, order = float(meta["beta"]), int(meta["diff_order"])
         sens = BundleSensing(

@@ -1,57 +1,39 @@
 """Per-pixel uncertainty of the per-pixel NNLS reconstruction: a standard deviation for every band.
 
+What it is, its assumptions and its measured coverage: ``docs/reconstruct.md``, *Uncertainty*.
+
 **The estimator.** Per pixel the solver returns
-``ŝ = argmin_{s ≥ 0} ‖W^{1/2}(A s − y)‖² + β‖D s‖²`` (``W = diag(w_o)``; the pipeline's ``w`` is the
-0/1 frame mask). Let ``F = {m : ŝ_m > 0}`` be the free set and ``Z`` the bands on the bound. While
-``F`` does not change under small perturbations of ``y`` (strict complementarity: every bound band
-has a strictly positive Lagrange multiplier), the solution is the linear map
+``ŝ = argmin_{s ≥ 0} ‖W^{1/2}(A s − y)‖² + β‖D s‖²`` (``W = diag(w_o)``, the pipeline's 0/1 frame
+mask). On the free set ``F = {m : ŝ_m > 0}`` (bands ``Z`` on the bound), while ``F`` does not
+change under small perturbations of ``y``, the solution is linear in ``y``:
 
 .. math::
 
     ŝ_F = G_{FF}^{-1} (Aᵀ W y)_F, \\quad ŝ_Z = 0, \\qquad G = AᵀWA + β DᵀD,
 
-so for observations with covariance ``Σ_y``
-
-.. math::
-
     \\mathrm{Cov}(ŝ_F) = G_{FF}^{-1} \\, (A_Fᵀ W Σ_y W A_F) \\, G_{FF}^{-1}, \\qquad
-    \\mathrm{Cov}(ŝ_Z) = 0,
+    \\mathrm{Cov}(ŝ_Z) = 0.
 
-which is ``σ² (G_{FF})^{-1}`` for ``β = 0``, ``W = I`` and ``Σ_y = σ² I``. The reported standard
-deviation of band ``m`` is ``sqrt(Cov_mm)`` on ``F`` and **0 on** ``Z``: a band held at the bound
-by a positive multiplier stays there under small noise; its spread is one-sided and small, and a
-symmetric ``±σ`` would not describe it. Assumptions, stated once:
+The reported standard deviation is ``sqrt(Cov_mm)`` on ``F`` and 0 on ``Z`` (a band held at the
+bound by a positive multiplier stays there under small noise). Deviations from the exact spread:
+bands that flip between free and bound are not described (linearisation), the bias from β is not
+included (the spread around ŝ's own mean), and ``Σ_y`` is diagonal per pixel and estimated from
+the measured values (plug-in).
 
-1. *Linearisation at the free set*: bands that flip between free and bound from one noise
-   realisation to the next (those near 0 relative to their ``σ``) are not described.
-2. *The bias from β is not included*: ``E[ŝ_F] = G_FF⁻¹ (AᵀWA s)_F ≠ s_F`` for ``β > 0``. The
-   standard deviation is the spread of ``ŝ`` around its own mean (what repeated captures of the
-   same scene would show), not the error against the true spectrum.
-3. ``Σ_y`` is diagonal per pixel (see below) and estimated from the measured signal itself
-   (plug-in: the noisy observation stands for its mean).
-
-**The observation noise.** A raw sensor sample (DN above black) with mean ``μ`` carries shot noise
-(Poisson electrons, ``μ·g`` e⁻ at a conversion gain of ``g`` e⁻/DN), Gaussian read noise ``σ_r``
-e⁻ and the quantisation of a step ``q`` DN::
+**The observation noise.** A raw sample (DN above black) with mean ``μ``, conversion gain ``g``
+e⁻/DN, read noise ``σ_r`` e⁻ and quantisation step ``q`` DN::
 
     var_raw(μ) = μ / g + (σ_r / g)² + q² / 12        [DN²]
 
-An observation ``y_o`` of the pipeline (:mod:`hsi_torch.recon.pipeline`) is the capture, scaled
-by the exposure ratio ``k = t_white / t_capture``, sampled bilinearly at the pixel's position in
-view ``v``; a Bayer capture is demosaiced bilinearly first. It is therefore a linear combination
-``k Σ_j c_oj raw_j`` of raw samples of one colour, and
+An observation is ``k Σ_j c_oj raw_j`` (exposure ratio ``k = t_white / t_capture``, bilinear
+sampling of the view, after a bilinear demosaic for Bayer data), so
 
     var(y_o) = k² · var_raw(y_o / k) · ‖c_o‖²
 
-assuming the raw variance is constant over the (at most 4 × 4 px) footprint. ``‖c_o‖²``, the
-*sampling factor* (:func:`sampling_variance_factor`), is exact: ``Σ_j w_j²`` of the four bilinear
-weights for an RGB capture (independent samples per pixel and channel, as a 3-sensor camera or the
-simulator's ``rgb`` output), ``wᵀ K w`` for a bilinearly demosaiced Bayer capture (``K`` the
-covariance of the four demosaiced neighbours for unit raw variance, from
-:func:`~hsi_torch.io.raw.demosaic_bilinear` itself), and ``Σ_j w_j²`` halved for green after
-2 × 2 binning (the mean of two green sites). Different colours use different CFA sites and
-different views different sensor areas, so ``Σ_y`` is diagonal within a pixel; neighbouring
-reconstructed pixels are correlated, which a per-pixel standard deviation does not describe.
+(raw variance constant over the at most 4 × 4 px footprint). The *sampling factor* ``‖c_o‖²``
+(:func:`sampling_variance_factor`) is ``Σ_j w_j²`` of the four bilinear weights for an RGB
+capture, ``wᵀ K w`` for a bilinearly demosaiced Bayer capture (``K`` from
+:func:`demosaic_tap_covariance`), and ``Σ_j w_j²`` halved for green after 2 × 2 binning.
 
 Everything is batched over pixels (chunks of ``chunk_size``; no per-pixel Python), on any device
 and in any floating dtype; the small ``M × M`` systems are solved in float64 by default.
@@ -331,13 +313,12 @@ def nnls_band_std(
         fast = None if stored is None else stored[sl]
         nf = 0 if fast is None else int(torch.count_nonzero(fast))
         std = torch.zeros((n, M), dtype=cd, device=dev)
-        if nf == n:  # all bands free, the problem's mask: G⁻¹ is stored (the common case)
-            H = problem.gram_inv
-            Hs = H if H.shape[0] == 1 else H[sl]
-            out[sl] = torch.matmul(E, Hs.to(cd)).square().sum(1).sqrt().to(x.dtype)
-            return
         if nf:
             H = problem.gram_inv
+            if nf == n:  # all bands free, the problem's mask: G⁻¹ is stored (the common case)
+                Hs = H if H.shape[0] == 1 else H[sl]
+                out[sl] = torch.matmul(E, Hs.to(cd)).square().sum(1).sqrt().to(x.dtype)
+                return
             i = fast.nonzero().squeeze(1)
             Hs = H.expand(nf, -1, -1) if H.shape[0] == 1 else H.index_select(0, i + sl.start)
             std[i] = torch.matmul(E[i], Hs.to(cd)).square().sum(1).sqrt()

@@ -1,35 +1,14 @@
 """The findings report of a reconstruction run: one JSON file per run in its output folder.
 
-Every run that writes anything (at least one input processed or skipped) writes
-``OUT/runs/<run>.findings.json`` beside its configuration file ``OUT/runs/<run>.yaml`` (same
-``<run>`` name, so a later run into the same folder never overwrites it; a run whose every
-input failed leaves nothing behind, as its configuration file). It lists every input with its
-status, outputs, findings and failure reason::
-
-    {
-      "hsi_torch_findings_report": 1,
-      "run_config": "runs/20261207-141500-4242.yaml",
-      "out": "/abs/OUT",
-      "store": null,
-      "elapsed_s": 12.3,
-      "counts": {"processed": 1, "skipped": 1, "failed": 1},
-      "findings_summary": "2 warnings, 1 info",
-      "provenance": {"command": "...", "version": "...", "git_commit": "...", ...},
-      "inputs": [
-        {"input": "/abs/a.npy", "status": "processed",
-         "outputs": ["/abs/OUT/a.npz", ...], "findings": [{"code": "fit.residual", ...}],
-         "error": null},
-        {"input": "/abs/b.npy", "status": "skipped", "outputs": [...],
-         "findings": [...], "error": null},
-        {"input": "/abs/c.npy", "status": "failed", "outputs": [], "findings": [],
-         "error": "NoValidPixelsError: ..."}
-      ]
-    }
-
-``findings`` are :meth:`hsi_torch.findings.Finding.to_dict` objects (read them back with
-:func:`hsi_torch.findings.findings_from_dicts`); a skipped input's are those stored with its
-cube (read back from the cube's metadata), its ``outputs`` the files the run would have written
-for it (which exist: that is why it was skipped).
+Every run that processed or skipped an input writes ``OUT/runs/<run>.findings.json`` beside its
+configuration file ``OUT/runs/<run>.yaml`` (its layout, an example and when it is written:
+``docs/reconstruct.md``, *Findings*). Keys: ``hsi_torch_findings_report`` (:data:`REPORT_VERSION`),
+``run_config`` (relative to ``out``), ``out``, ``store``, ``elapsed_s``, ``counts``
+(processed / skipped / failed), ``findings_summary``, ``provenance`` and ``inputs``: one row per
+input with ``input``, ``status``, ``outputs`` (absolute; a skipped input's are the files the run
+would have written for it), ``findings`` (:meth:`hsi_torch.findings.Finding.to_dict`; read back
+with :func:`hsi_torch.findings.findings_from_dicts`; a skipped input's are those stored with its
+cube) and ``error``.
 """
 
 from __future__ import annotations

@@ -6,25 +6,10 @@ optional packages, the inputs — files or globs —, the device, the bundle, ``
 creates the output folder and the run's configuration file. :func:`reconstruct_input` reads and
 reconstructs one input, :func:`write_outputs` writes its files; a task
 (:func:`hsi_torch.recon.batch.tasks.reconstruct_task`) does both, in this process or on a
-cluster's workers, so every run writes the same files (:mod:`hsi_torch.recon.batch`).
-
-For every input ``DIR/<stem>``: the cube in the configured formats (``<stem>.tif`` OME-TIFF with
-its GDAL ``<stem>.vrt``, ``<stem>.hdr/.img``, ``<stem>.npz``; optionally ``<stem>.nc`` and
-``<stem>.zarr``), ``<stem>_preview.png`` (sRGB, D65, enlarged, with a caption) and, with
-``spectra_pixels``, ``<stem>_spectra.png``; with ``uncertainty``, the per-band standard deviation
-as ``<stem>_std.*`` in the non-NPZ formats, the key ``std`` in ``<stem>.npz`` and a map of the mean
-relative standard deviation, ``<stem>_std.png``. Every file is written atomically; if writing an
-input's outputs fails, the files already written for that input are removed. Each run records its
-configuration in a file of its own, ``DIR/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml`` (rerun it with
-``--config``; a later run into the same folder never overwrites it), and every cube's metadata
-holds its configuration and the name of that file (``run_config``). Resume skips inputs whose
-outputs exist unchanged and were made from the same input file, configuration and bundle —
-anything else is reconstructed again. Two inputs with the same stem from different folders would
-write the same files: the later one fails with an error naming both (in the same run or a later
-one) and the earlier one's outputs are kept. A capture of which not a single pixel could be
-reconstructed (all saturated, no finite data, ...) fails with the reason; no all-NaN cube is
-written. Every cube's metadata also holds the frame's findings (``"findings"``,
-:mod:`hsi_torch.io.cube`), and its preview's caption flags their warnings.
+cluster's workers, so every run writes the same files (:mod:`hsi_torch.recon.batch`). The files
+of an input (cube formats, ``_preview.png``, ``_spectra.png``, ``_std.*``), the run's
+configuration file ``DIR/runs/<YYYYmmdd-HHMMSS>-<pid>.yaml``, resume and ownership are described
+in ``docs/reconstruct.md``.
 """
 
 from __future__ import annotations
@@ -204,22 +189,9 @@ def _write_staged(
 
     std = None if result.std is None else result.std.detach().to("cpu", torch.float32)
     npz_std = None if std is None else {"std": std}
-    jobs = [
-        timed(
-            f,
-            partial(
-                save_cube_formats,
-                s,
-                cube,
-                wl,
-                valid,
-                metadata,
-                formats=(f,),
-                npz_arrays=npz_std if f == "npz" else None,
-            ),
-        )
-        for f in cfg.formats
-    ]
+    jobs = [timed(f, partial(save_cube_formats, s, cube, wl, valid, metadata, formats=(f,),
+                             npz_arrays=npz_std if f == "npz" else None))
+            for f in cfg.formats]  # fmt: skip
     if std is not None:  # the standard deviation as a cube of its own beside the cube
         s_std = s.with_name(s.name + "_std")
         meta_std = {
@@ -234,24 +206,14 @@ def _write_staged(
         # invalid pixels black (as a zero spectrum), without a NaN-free copy of the cube
         path = s.with_name(s.name + "_preview.png")
         caption = preview_caption(s.name, settings, metadata)
-        jobs.append(
-            timed(
-                "preview",
-                lambda: [
-                    colour.save_preview_png(
-                        cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size
-                    )
-                ],
-            )
-        )
+        jobs.append(timed("preview", lambda: [colour.save_preview_png(
+            cube, wl, path, valid=valid, caption=caption, min_size=cfg.preview_size)]))  # fmt: skip
         if std is not None:
-            jobs.append(
-                timed("std_preview", lambda: [_save_std_map(cube, std, valid, s, cfg.preview_size)])
-            )
+            jobs.append(timed("std_preview",
+                              lambda: [_save_std_map(cube, std, valid, s, cfg.preview_size)]))
     if cfg.spectra_pixels:
-        jobs.append(
-            timed("spectra", lambda: [_plot_points(cube, valid, wl, s, cfg.spectra_pixels, std)])
-        )
+        jobs.append(timed("spectra",
+                          lambda: [_plot_points(cube, valid, wl, s, cfg.spectra_pixels, std)]))
     # the files are independent: written concurrently (mostly kernel copies and fsync waits,
     # which release the GIL); every file is still atomic
     results: list[list[Path]] = []
@@ -276,12 +238,11 @@ def _save_std_map(
     (black 0, white the 99th percentile of the valid pixels), invalid pixels dark red."""
     rel = relative_std_map(cube, std, valid)
     ok = torch.isfinite(rel)
-    top = float(torch.quantile(rel[ok].double(), 0.99)) if bool(ok.any()) else 0.0
+    any_ok = bool(ok.any())
+    top = float(torch.quantile(rel[ok].double(), 0.99)) if any_ok else 0.0
     grey = (rel / top if top > 0 else torch.zeros_like(rel)).clamp(0, 1)
-    bad = torch.tensor([0.35, 0.0, 0.0]).view(3, 1, 1)
-    img = torch.where(ok, grey, torch.zeros_like(grey)).expand(3, -1, -1)
-    img = torch.where(ok, img, bad)
-    med = float(rel[ok].median()) if bool(ok.any()) else float("nan")
+    img = torch.where(ok, grey.expand(3, -1, -1), torch.tensor([0.35, 0.0, 0.0]).view(3, 1, 1))
+    med = float(rel[ok].median()) if any_ok else float("nan")
     caption = (
         f"{s.name} | mean relative std (sum of band std / sum of bands) from sensor noise"
         f" | black 0 %, white {100 * top:.3g} % (99th pct), median {100 * med:.3g} %"
@@ -314,15 +275,8 @@ def _plot_points(
     sd = None if std is None else torch.where(valid[ys, xs].unsqueeze(1), std[:, ys, xs].T,
                                               float("nan"))  # fmt: skip
     path = s.with_name(s.name + "_spectra.png")
-    colour.plot_spectra(
-        wl,
-        spectra,
-        labels=labels,
-        path=path,
-        std=sd,
-        title=s.name,
-        ylabel="reflectance (relative to white reference)",
-    )
+    colour.plot_spectra(wl, spectra, labels=labels, path=path, std=sd, title=s.name,
+                        ylabel="reflectance (relative to white reference)")
     return path
 
 
@@ -447,16 +401,8 @@ def check_run(
     del b
     st = bundle_path.stat()
     # keys that change the outputs (not where/how fast they are computed, nor warnings)
-    ignored = (
-        "device",
-        "chunk_size",
-        "fit_residual_warning",
-        "precompute_cache",
-        "drift_warn_px",
-        "fit_residual_limit",
-        "pedestal_refuse_factor",
-        "strict",
-    )
+    ignored = ("device", "chunk_size", "fit_residual_warning", "precompute_cache",
+               "drift_warn_px", "fit_residual_limit", "pedestal_refuse_factor", "strict")
     config = {k: v for k, v in vars(cfg).items() if k not in ignored}
     fingerprint = fingerprint_of({"config": config, "bundle_sha256": sha})
     return ReconstructRun(
@@ -496,7 +442,7 @@ def reconstruct_input(
         "radiometric_scale": res.stats.get("radiometric_scale"),
         "notes": [f.message for f in res.findings if f.severity == "info"],
         "findings": [f.to_dict() for f in res.findings],
-        "config": {k: v for k, v in vars(cfg).items()},
+        "config": dict(vars(cfg)),
         "run_config": run_config.relative_to(run.out_dir).as_posix() if run_config else None,
         "stats": res.stats,
         "timings_s": res.timings,

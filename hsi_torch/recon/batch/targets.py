@@ -4,53 +4,23 @@ Two targets: :class:`FilesTarget` (files per input in a folder: the cube formats
 :class:`StoreTarget` (one Zarr dataset store for the run, a frame per input). The run's driver
 (:func:`hsi_torch.recon.batch.driver.drive`) calls, per input, :meth:`~OutputTarget.is_done`
 (resume), :meth:`~OutputTarget.begin` before the work is handed out, then
-:meth:`~OutputTarget.finish` with the outputs or :meth:`~OutputTarget.fail`.
+:meth:`~OutputTarget.finish` with the outputs or :meth:`~OutputTarget.fail`. The user-facing rules
+(resume, outputs belonging to one input, never over a file the folder's runs did not write, stale
+outputs removed) are in ``docs/reconstruct.md`` and ``docs/io_config_cli.md``.
 
-**Files: resume and ownership.** An input is skipped when its *done-marker* says it finished and
-every output it lists is still the file that was written (same size and modification time: an
-emptied, truncated or replaced output is not "done"). Markers live in ``out/.hsi_torch_done/``
-(one small JSON per input, ``<stem>-<hash of the absolute input path>.json``). A marker is data,
-not an instruction: its output paths are relative to ``out`` and confined to it (an absolute
-path, ``..`` or a symlinked folder makes the marker void), and it records ``out``'s identity
-(device and inode), so a copy of the folder (``cp -a``) is never tied to the original: its
-markers are void there, and nothing is ever deleted outside ``out``. Before the work
-starts, the marker is written as a *claim* (``"status": "started"``, the planned outputs); after
-it, atomically, as ``"status": "done"`` with the outputs and their sizes and times — so an
-interrupted or failed input is never mistaken for a finished one. The marker also records the
-input file's size and modification time and the run's ``fingerprint`` (a hash of the settings and
-the bundle's content): an input that changed since, or a rerun with other settings or another
-bundle, is processed again instead of being skipped.
-
-**Outputs belong to one input.** With ``planned_outputs(input)``, an input whose outputs were
-claimed by *another* input — e.g. ``A/x.tif`` and ``B/x.tif`` both writing ``out/x.*`` — fails
-with an error naming both inputs, in the same run or a later one, instead of overwriting the
-other's files. The claim lapses once none of the other input's outputs exists any more (delete
-them to hand the names over). While an input's outputs are written, the name lock
-``out/.hsi_torch_done/<stem>.lock`` is held: another run writing the same names meanwhile fails
-that input, naming the process that holds it.
-
-**Never over a file this folder's runs did not write.** A file already at one of an input's
-output paths that no marker gives to that input — the lab's own ``x.tif`` beside the ``x.dng``
-reconstructed into its folder, a cube made by another program, anything — fails the input before
-its work starts, naming the file; nothing is written over it. A marker keeps every output its
-input's runs wrote and that still exists (``owned``: e.g. the ``_std`` files of an earlier run
-with ``uncertainty``), so a later run with other outputs may still replace them. Once an input
-is done, the outputs of its previous run that this run did not make (a rerun without
-``uncertainty`` leaves no ``_std`` file of its own) are removed, since they would describe an
-earlier cube; only those still exactly as that run wrote them (size, time), and the run reports
-each one.
-
-**Findings of a skipped input** (:meth:`FilesTarget.stored_findings`,
-:meth:`StoreTarget.stored_findings`): read from the metadata of its cube file (the first of
-``.npz``, ``.tif``, ``.nc``, ``.hdr``, ``.zarr`` among its outputs; the cube itself is not
-decoded) or of its frame in the store.
-
-**The store**: a frame is done when its ``done`` flag is set and its metadata name the same
-input file (size, time) and fingerprint (:mod:`hsi_torch.io.dataset`).
-
-**Leftovers of killed runs**: :meth:`OutputTarget.cleaned` removes the temporary files that
-killed writers left (:func:`hsi_torch.io.atomic.clean_stale_temp_files`: only this package's own
-``.<name>.<pid>-<random>.tmp`` files whose process is gone).
+**Done-markers** (files target): ``out/.hsi_torch_done/<stem>-<hash of the absolute input
+path>.json``, written as a claim (``"status": "started"``, the planned outputs) before the work
+and atomically as ``"status": "done"`` (outputs with size and mtime, ``owned``: every output of
+the input's runs that still exists) after it; they record the input's ``[size, mtime_ns]``, the
+run's ``fingerprint`` and ``out``'s identity (device, inode). A marker is data: its paths are
+relative to ``out`` and confined to it, and one written in another folder (a copy) is void, so
+nothing is ever deleted outside ``out``. The name lock ``out/.hsi_torch_done/<stem>.lock`` is
+held while an input's outputs are written. A skipped input's findings are read from the
+metadata of its cube (the first of ``.npz``, ``.tif``, ``.nc``, ``.hdr``, ``.zarr``) or of its
+frame in the store; a store's frame is done when its ``done`` flag is set and its metadata name
+the same input (size, time) and fingerprint (:mod:`hsi_torch.io.dataset`).
+:meth:`OutputTarget.cleaned` removes the temporary files killed writers left
+(:func:`hsi_torch.io.atomic.clean_stale_temp_files`).
 """
 
 from __future__ import annotations
@@ -60,7 +30,7 @@ import glob
 import hashlib
 import os
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -169,31 +139,29 @@ def _read_marker(path: Path) -> dict[str, Any] | None:
     if not isinstance(rec, dict) or rec.get("out_id") != folder_identity(out_dir):
         return None
     try:
-        for key in ("outputs", "owned"):
-            if key in rec:
-                rec[key] = [os.path.abspath(confined(out_dir, q)) for q in rec[key]]
-        stamps = rec.get("output_stamps")
-        if isinstance(stamps, dict):
-            rec["output_stamps"] = {os.path.abspath(confined(out_dir, k)): v
-                                    for k, v in stamps.items()}  # fmt: skip
+        return _map_paths(rec, lambda q: os.path.abspath(confined(out_dir, q)))
     except (InputError, TypeError):
         return None
-    return rec
 
 
 def _write_marker(path: Path, rec: dict[str, Any]) -> None:
     """Write a done-marker (atomically) with its output paths relative to the output folder
     and the folder's identity (``out_id``)."""
     out_dir = path.parent.parent
-    doc = dict(rec)
-    for key in ("outputs", "owned"):
-        if key in doc:
-            doc[key] = [relative_to_root(out_dir, q) for q in doc[key]]
-    if isinstance(doc.get("output_stamps"), dict):
-        doc["output_stamps"] = {relative_to_root(out_dir, k): v
-                                for k, v in doc["output_stamps"].items()}  # fmt: skip
+    doc = _map_paths(dict(rec), lambda q: relative_to_root(out_dir, q))
     doc["out_id"] = folder_identity(out_dir)
     atomic_write_json(path, doc)
+
+
+def _map_paths(rec: dict[str, Any], fn: Callable[[str], str]) -> dict[str, Any]:
+    """``rec`` (changed in place) with ``fn`` applied to its output paths: the ``outputs`` and
+    ``owned`` lists and the keys of ``output_stamps``."""
+    for key in ("outputs", "owned"):
+        if key in rec:
+            rec[key] = [fn(q) for q in rec[key]]
+    if isinstance(rec.get("output_stamps"), dict):
+        rec["output_stamps"] = {fn(k): v for k, v in rec["output_stamps"].items()}
+    return rec
 
 
 def _outputs_intact(rec: dict[str, Any]) -> bool:
@@ -227,16 +195,14 @@ class _Owners:
         self.by_output: dict[str, tuple[str, Path]] = {}
         self.outputs_of: dict[Path, list[str]] = {}
         folder = out_dir / DONE_DIR
-        markers = sorted(folder.glob("*.json")) if folder.is_dir() else []
-        for m in markers:
-            rec = _read_marker(m)
-            if rec is None or not isinstance(rec.get("input"), str):
-                continue
-            self.claim(m, rec["input"], _owned(rec))
+        self._read(sorted(folder.glob("*.json")) if folder.is_dir() else [])
 
     def refresh(self, out_dir: Path, stem: str) -> None:
         """Re-read the markers of inputs named ``stem`` (another run may have written some)."""
-        for m in (out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"):
+        self._read((out_dir / DONE_DIR).glob(f"{glob.escape(stem)}-*.json"))
+
+    def _read(self, markers: Iterable[Path]) -> None:
+        for m in markers:
             rec = _read_marker(m)
             if rec is not None and isinstance(rec.get("input"), str):
                 self.claim(m, rec["input"], _owned(rec))
@@ -537,11 +503,15 @@ class StoreTarget:
             out += clean_stale_temp_files(self.store / name)
         return out
 
-    def is_done(self, inp: Path) -> bool:
+    def _record(self, inp: Path) -> tuple[int | None, dict[str, Any] | None]:
+        """The frame of ``inp`` and its record (``None``: no frame, or not complete)."""
         ds = self._ds()
         i = ds.index.get(os.path.abspath(inp))
-        rec = None if i is None else ds.frame_record(i)
-        if rec is None:  # no frame, or not complete
+        return i, None if i is None else ds.frame_record(i)
+
+    def is_done(self, inp: Path) -> bool:
+        _i, rec = self._record(inp)
+        if rec is None:
             return False
         try:
             stamp = input_stamp(inp)
@@ -555,9 +525,7 @@ class StoreTarget:
         Raises:
             InputError: they are malformed (naming the store and the frame).
         """
-        ds = self._ds()
-        i = ds.index.get(os.path.abspath(inp))
-        rec = None if i is None else ds.frame_record(i)
+        i, rec = self._record(inp)
         if rec is None:
             return []
         where = f"{self.store}: frame {i}'s metadata"

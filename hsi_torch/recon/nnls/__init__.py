@@ -12,39 +12,26 @@ normal-equation form this is the convex quadratic programme ``min ½ xᵀGx − 
 ``G = Aᵀ W A + β DᵀD`` and ``b = Aᵀ W y``; its KKT conditions are ``x ≥ 0``, ``g = Gx − b ≥ 0`` and
 ``x ⊙ g = 0``.
 
-Solver ``"active_set"`` (exact, finite termination):
+Solver ``"active_set"`` (exact, finite termination; the method and its measured choices in
+``docs/solver.md``):
 
-1. Per calibration (:func:`prepare_nnls`, done once when ``A``, mask and ``beta`` are fixed):
-   the Gram matrices ``G_p``, their explicit inverses ``H_p = G_p⁻¹`` (batched Cholesky) and a
-   lower bound of ``‖G_p‖₂``. A frame then costs, streamed over cache-sized pixel chunks,
-   ``b = Aᵀ W y`` and ``x = H b`` (two batched row-vector products).
-2. Pixels whose ``x`` has a negative entry are gathered into one compacted sub-batch and run
-   *block principal pivoting* (Júdice & Pires; Kim & Park's NNLS variant) on the zero set ``Z``,
-   starting from ``Z`` = the negative entries (usually already the answer). The solution with
-   ``x_Z = 0`` is ``x = x₀ − H[:, Z] H_ZZ⁻¹ x₀_Z`` and its multipliers ``λ_Z = −H_ZZ⁻¹ x₀_Z``
-   (the gradient on ``Z``), so a round reads ``|Z|`` rows of ``H`` and factorises a
-   ``|Z| × |Z|`` system per pixel (pixels bucketed by ``|Z|``, padded within a bucket). Infeasible
-   variables (``x_F < 0`` or ``λ_Z < 0``) are exchanged; after three rounds without progress
-   only the largest one (Murty's rule: finite termination for positive definite ``G``). Pixels
-   leave the working set as they finish; those not settled after 16 rounds (badly conditioned
-   ``G`` cycling through single pivots) continue with Lawson–Hanson (3.).
-3. An independent KKT check with the exact ``G`` and ``b`` for every pixel (streamed), as a
-   normwise backward error (:func:`nnls_kkt_residual`); pixels above ``tol`` (default ``M·eps``)
-   get up to ``refine`` steps of iterative refinement on their zero set. Pixels whose ``G`` is
-   singular or numerically so (``beta = 0`` with rank-deficient ``A``, few observations), or that
-   still fail, use the Lawson–Hanson active-set method on a principal-pivot tableau of ``G``
-   starting from ``x = 0``; a variable only enters the free set while its reduced pivot is safely
-   positive, so the free columns stay independent and the KKT conditions hold at the end.
+1. Per calibration (:func:`prepare_nnls`): ``G_p``, ``H_p = G_p⁻¹`` (batched Cholesky) and a
+   lower bound of ``‖G_p‖₂``. A frame then costs ``b = Aᵀ W y`` and ``x₀ = H b``, streamed over
+   pixel chunks.
+2. Pixels whose ``x₀`` has a negative entry run *block principal pivoting* (Júdice & Pires; Kim &
+   Park's NNLS variant) on the zero set ``Z``: ``x = x₀ − H[:, Z] H_ZZ⁻¹ x₀_Z``,
+   ``λ_Z = −H_ZZ⁻¹ x₀_Z``; infeasible variables (``x_F < 0`` or ``λ_Z < 0``) are exchanged, after
+   three rounds without progress only the largest (Murty's rule); pixels not settled after 16
+   rounds continue with Lawson–Hanson.
+3. An independent KKT check with the exact ``G`` and ``b`` (:func:`nnls_kkt_residual`, a
+   normwise backward error); pixels above ``tol`` (default ``M·eps``) get up to ``refine`` steps
+   of iterative refinement; singular pixels and those still failing use Lawson–Hanson on a
+   principal-pivot tableau of ``G`` from ``x = 0``.
 
 On CPU every kernel runs single-threaded and the pixels are split between ``num_threads`` Python
-threads instead (default ``torch.get_num_threads()``): thousands of small multi-threaded kernels
-stall at their barriers whenever another process holds a core (see
-:func:`~hsi_torch.recon.nnls._threads.workers_for`).
-
-``solver="admm"`` (:mod:`hsi_torch.recon.nnls.admm`): ADMM on ``x = z, z ≥ 0`` with per-pixel
-``(G + ρI)⁻¹`` precomputed, warm started from the clamped unconstrained solution (or a given
-``x0``). With ``admm_iters=N`` it runs exactly ``N`` iterations with out-of-place torch ops
-only, so the result is differentiable w.r.t. ``y``.
+threads (:func:`~hsi_torch.recon.nnls._threads.workers_for`). ``solver="admm"``
+(:mod:`hsi_torch.recon.nnls.admm`): ADMM on ``x = z, z ≥ 0``; with ``admm_iters=N`` it runs
+exactly ``N`` iterations, differentiable w.r.t. ``y``.
 
 Convention:
     ``A``: ``(O, M)`` shared by all pixels or ``(P, O, M)`` one per pixel; ``y``: ``(P, O)``;

@@ -16,18 +16,13 @@ batched rounds on CPU. Same method and exchange rules as the batched
   largest-index exchange after three rounds without fewer infeasible variables
   (:data:`~hsi_torch.recon.nnls.constants.MURTY_PATIENCE`).
 
-Only the first zero set differs: the batched kernels start from the negative entries of ``x0``,
-this one from a few sweeps of projected coordinate descent on the pixel's problem
-(:data:`~hsi_torch.recon.nnls.constants.START_SWEEPS`, :func:`_start_zero_set`), which lands
-close to the answer's zero set (about half the rounds on dark pixels). The exchange rules
-terminate from any start, and the strictly convex problem has one solution, so both kernels give
-the same answers (to rounding and the KKT tolerance) in different numbers of rounds.
+Only the first zero set differs (:data:`~hsi_torch.recon.nnls.constants.START_SWEEPS`,
+:func:`_start_zero_set`): same answers (to rounding and the KKT tolerance), fewer rounds.
 
 numba is an optional accelerator (:mod:`hsi_torch.recon._numba`): without it (or with
-``HSI_TORCH_NO_NUMBA=1``) the batched torch kernels are used. The exchange rules (the threshold,
-Murty's counter, the zero-set/free-set switch) come from :mod:`~hsi_torch.recon.nnls.constants`
-as arguments. The first call in a new environment compiles the kernel (~15 s, cached on disk
-by numba next to this file, or in ``NUMBA_CACHE_DIR``).
+``HSI_TORCH_NO_NUMBA=1``) the batched torch kernels are used. The first call in a new
+environment compiles the kernel (~15 s, cached on disk by numba next to this file, or in
+``NUMBA_CACHE_DIR``).
 """
 
 from __future__ import annotations

@@ -1,10 +1,5 @@
-"""CPU threading of the batched solver: single-threaded kernels on worker threads.
-
-The solver runs thousands of small batched kernels. On a small machine shared with other
-processes every multi-threaded kernel waits at its barrier for a thread the OS has not scheduled,
-so on CPU each kernel runs single-threaded and the pixels are split between worker threads
-instead (torch releases the GIL inside kernels).
-"""
+"""CPU threading of the batched solver: single-threaded kernels on worker threads (why:
+:func:`workers_for`)."""
 
 from __future__ import annotations
 
@@ -24,8 +19,7 @@ def cpu_threads(device: torch.device | str, num_threads: int | None) -> Iterator
     ``num_threads=None`` keeps torch's setting. The setting is process-wide while the block runs.
     """
     dev = torch.device(device)
-    if num_threads is not None and int(num_threads) < 1:
-        raise ValueError(f"num_threads must be >= 1 or None, got {num_threads}")
+    _check_threads(num_threads)
     old = torch.get_num_threads()
     if dev.type != "cpu" or num_threads is None or int(num_threads) >= old:
         yield
@@ -47,11 +41,15 @@ def workers_for(device: torch.device, num_threads: int | None) -> int:
     kernels and instead splits the pixels between ``num_threads`` Python threads (torch releases
     the GIL inside kernels), which never wait for each other within a kernel.
     """
-    if num_threads is not None and int(num_threads) < 1:
-        raise ValueError(f"num_threads must be >= 1 or None, got {num_threads}")
+    _check_threads(num_threads)
     if device.type != "cpu":
         return 1
     return int(num_threads) if num_threads is not None else torch.get_num_threads()
+
+
+def _check_threads(num_threads: int | None) -> None:
+    if num_threads is not None and int(num_threads) < 1:
+        raise ValueError(f"num_threads must be >= 1 or None, got {num_threads}")
 
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
@@ -61,8 +59,7 @@ def for_chunks(fn: Callable[[slice], None], num: int, n: int, workers: int) -> N
     """Call ``fn(slice)`` for consecutive chunks of ``n`` of ``range(num)``.
 
     With ``workers > 1`` the chunks are split into ``workers`` contiguous blocks run by that many
-    threads (``fn`` must write disjoint outputs). Each thread runs single-threaded kernels, so no
-    kernel waits at a thread barrier for a core that another process holds.
+    threads (``fn`` must write disjoint outputs).
     """
     chunks = [slice(s, min(num, s + n)) for s in range(0, num, max(1, n))]
     if workers <= 1 or len(chunks) <= 1:

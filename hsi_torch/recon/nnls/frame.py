@@ -245,12 +245,11 @@ def _steps_torch(
                 continue
             li = fix.nonzero().squeeze(1)  # few: those rows only
             gl = li + sl.start
-            Hl = Hs if Hs.shape[0] == 1 else Hs[li]
+            Hl = _take(Hs, li)
             xl = xs[li]
             xn = (xl - _rowvec(g[li], Hl)).clamp_min_(0)
             gn = problem.gram_apply(xn, gl).sub_(bs[li])
-            rn = _kkt_ratio(gn, xn, gd if gd.shape[0] == 1 else gd[li],
-                            gns if gns.shape[0] == 1 else gns[li], bnorm[sl][li])
+            rn = _kkt_ratio(gn, xn, _take(gd, li), _take(gns, li), bnorm[sl][li])
             ok = (rn < rs[li]).unsqueeze(1)
             xs[li] = torch.where(ok, xn, xl)
             g[li] = torch.where(ok, gn, g[li])
@@ -297,7 +296,7 @@ def _finish(
         eps = float(torch.finfo(dt).eps)
         piv_tol = min(eps**0.5, 100.0 * m * eps)
         xs, ds, its = _lawson_hanson(Gs, bs, thr_s, piv_tol, max_iter)
-        rs = nnls_kkt_residual(Gs, bs, xs, gn_all if gn_all.shape[0] == 1 else gn_all[ic])
+        rs = nnls_kkt_residual(Gs, bs, xs, _take(gn_all, ic))
         better = ~(rs >= r[ic])  # keep the earlier answer where it was at least as good
         x[ic] = torch.where(better.view(-1, 1), xs, x[ic])
         done[ic] = torch.where(better, ds, done[ic])
@@ -323,10 +322,9 @@ def _refine_rows(
     """
     H = problem.gram_inv
     Gs = problem.gram_matrices(idx)
-    Hs = H if H.shape[0] == 1 else H[idx]
+    Hs = _take(H, idx)
     g = _rowvec(x, Gs) - b
     u = -_rowvec(torch.where(Z, torch.zeros((), dtype=x.dtype, device=x.device), g), Hs)
     d, ok = _zero_set_solve_any(H, idx, Z, u)
     xs = torch.where(ok.view(-1, 1), x + d, x).clamp_min(0)
-    gn = problem.gram_norm if problem.gram_norm.shape[0] == 1 else problem.gram_norm[idx]
-    return xs, nnls_kkt_residual(Gs, b, xs, gn)
+    return xs, nnls_kkt_residual(Gs, b, xs, _take(problem.gram_norm, idx))

@@ -37,8 +37,9 @@ def _rowvec(
     return r.squeeze(1) if out is None else out
 
 
-def _take(t: Tensor | None, sl: slice) -> Tensor | None:
-    """Slice a per-pixel tensor, pass shared (leading dim 1) and ``None`` through."""
+def _take(t: Tensor | None, sl: slice | Tensor) -> Tensor | None:
+    """Rows ``sl`` (a slice or an index tensor) of a per-pixel tensor; shared (leading dim 1)
+    and ``None`` pass through."""
     if t is None or t.shape[0] == 1:
         return t
     return t[sl]

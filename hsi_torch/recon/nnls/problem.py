@@ -231,13 +231,6 @@ class NNLSProblem:
         return int(sum(t.numel() * t.element_size() for t in ts))
 
     # -- Gram products ----------------------------------------------------------------------
-    def _mask_rows(self, idx: Tensor | slice | None) -> Tensor | None:
-        if self.mask is None:
-            return None
-        if idx is None:
-            return self.mask
-        return self.mask[idx] if isinstance(idx, slice) else self.mask.index_select(0, idx)
-
     def gram_matrices(self, idx: Tensor | slice | None = None) -> Tensor:
         """Stored ``G`` of pixels ``idx`` ``(n, M, M)`` (``(1, M, M)`` when shared)."""
         G = self.gram
@@ -335,26 +328,18 @@ class NNLSProblem:
         if backend not in _BACKENDS:
             raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
         workers = workers_for(self.device, num_threads)
-        with cpu_threads(self.device, 1):
-            return self._solve(y, solver, tol, max_iter, refine, chunk_size, max_memory, x0,
-                               admm_iters, rho, workers, backend)
-
-    def _solve(
-        self, y: Tensor, solver: str, tol: float | None, max_iter: int | None,
-        refine: int | None, chunk_size: int | None, max_memory: int | None, x0: Tensor | None,
-        admm_iters: int | None, rho: float | None, workers: int, backend: str = "auto",
-    ) -> NNLSResult:
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}")
         y_in, y = y, self._check_y(y)
-        try:
-            return self._solve_cast(y, solver, tol, max_iter, refine, chunk_size, max_memory,
-                                    x0, admm_iters, rho, workers, backend)
-        except (NonFiniteObservations, ObservationsOverflow):
-            err = cast_overflow(y_in, self.dtype, self.mask)  # inf made by the cast: say so
-            if err is None:
-                raise
-            raise err from None
+        with cpu_threads(self.device, 1):
+            try:
+                return self._solve_cast(y, solver, tol, max_iter, refine, chunk_size,
+                                        max_memory, x0, admm_iters, rho, workers, backend)
+            except (NonFiniteObservations, ObservationsOverflow):
+                err = cast_overflow(y_in, self.dtype, self.mask)  # inf made by the cast: say so
+                if err is None:
+                    raise
+                raise err from None
 
     def _solve_cast(
         self, y: Tensor, solver: str, tol: float | None, max_iter: int | None,
@@ -567,12 +552,10 @@ def solve_nnls(
         beta: smoothness weight (≥ 0) on the data's scale.
         mask: ``(P, O)`` bool, True = observation used; None = all.
         diff_order: 0, 1 (default) or 2.
-        **options: :class:`SolveOptions`, as :meth:`NNLSProblem.solve` takes them (``solver``:
-            ``"active_set"`` exact, or ``"admm"``; ``tol``, ``max_iter``, ``refine``, ``x0``,
-            ``admm_iters``, ``rho``, ``num_threads``, ``backend``). ``chunk_size`` /
-            ``max_memory`` (pixels per chunk or a working-memory budget in bytes) also bound the
-            outer chunks here: each is factorised and solved on its own, so memory stays bounded
-            (per-pixel ``A``; default 131 072 pixels per outer chunk on CPU).
+        **options: :class:`SolveOptions`, as :meth:`NNLSProblem.solve` takes them.
+            ``chunk_size`` / ``max_memory`` also bound the outer chunks here: each is factorised
+            and solved on its own, so memory stays bounded (per-pixel ``A``; default 131 072
+            pixels per outer chunk on CPU).
 
     Returns:
         :class:`NNLSResult` with ``x (P, M)``, ``converged``, ``iterations``, ``kkt_residual``,
@@ -639,11 +622,5 @@ def solve_nnls(
             raise err from None
     if len(parts) == 1:
         return parts[0]
-    return NNLSResult(
-        torch.cat([r.x for r in parts]),
-        torch.cat([r.converged for r in parts]),
-        torch.cat([r.iterations for r in parts]),
-        torch.cat([r.kkt_residual for r in parts]),
-        torch.cat([r.no_data for r in parts]),
-        solver,
-    )
+    fields = ("x", "converged", "iterations", "kkt_residual", "no_data")
+    return NNLSResult(*(torch.cat([getattr(r, f) for r in parts]) for f in fields), solver)
