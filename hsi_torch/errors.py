@@ -24,11 +24,14 @@ without a traceback.
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 __all__ = [
     "require_packages",
+    "lazy_attributes",
     "HSIError",
     "FileFormatError",
     "MissingFileError",
@@ -91,3 +94,16 @@ def require_packages(modules: Iterable[str], what: str, hint: str) -> None:
         if importlib.util.find_spec(mod) is None:
             raise ModuleNotFoundError(f"{what} needs the optional package {mod!r}: {hint}",
                                       name=mod)  # fmt: skip
+
+
+def lazy_attributes(package: str, table: Mapping[str, str]) -> Callable[[str], Any]:
+    """A package's module-level ``__getattr__`` that imports ``table[name]`` (a module) on the
+    first use of ``name`` and returns its attribute ``name``; any other name is an
+    ``AttributeError`` naming ``package``."""
+
+    def __getattr__(name: str) -> Any:
+        if name in table:
+            return getattr(importlib.import_module(table[name]), name)
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return __getattr__

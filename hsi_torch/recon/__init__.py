@@ -6,8 +6,7 @@ Heavy parts are imported lazily (``from hsi_torch.recon import Reconstructor``).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from hsi_torch.errors import lazy_attributes
 
 _LAZY = {
     "BundleSensing": "hsi_torch.recon.sensing",
@@ -24,7 +23,4 @@ _LAZY = {
 __all__ = list(_LAZY)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'hsi_torch.recon' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)

@@ -31,8 +31,7 @@ lazily.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from hsi_torch.errors import lazy_attributes
 
 _LAZY = {
     "run_reconstruction": "hsi_torch.recon.batch.entry",
@@ -47,7 +46,4 @@ _LAZY = {
 __all__ = list(_LAZY)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'hsi_torch.recon.batch' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
