@@ -28,7 +28,22 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["SensingModel", "DenseSensing"]
+__all__ = ["SensingModel", "DenseSensing", "OnDevice"]
+
+
+class OnDevice:
+    """``device`` and ``dtype`` of an object from the attribute named by its ``_ON`` (a tensor,
+    or an object with ``device`` and ``dtype``, such as the sensing it holds)."""
+
+    _ON = ""
+
+    @property
+    def device(self) -> torch.device:
+        return getattr(self, self._ON).device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return getattr(self, self._ON).dtype
 
 
 def _gram(a: Tensor, mask: Tensor | None, reg: Tensor | None) -> Tensor:
@@ -40,7 +55,7 @@ def _gram(a: Tensor, mask: Tensor | None, reg: Tensor | None) -> Tensor:
     return G if reg is None else G + reg
 
 
-class SensingModel:
+class SensingModel(OnDevice):
     """Per-pixel linear sensing ``y_p = A_p s_p`` with ``A_p = g_v(p) B_v(p, λ) Δλ φ^c(λ)``.
 
     A small physics class in the style of a deep-inverse ``Physics``: ``A``, ``A_adjoint``,
@@ -61,6 +76,8 @@ class SensingModel:
         >>> model.A_adjoint(y).shape
         torch.Size([100, 25])
     """
+
+    _ON = "transmittance"
 
     def __init__(self, transmittance: Tensor, gain: Tensor, response: Tensor) -> None:
         for name, t, nd in (("transmittance", transmittance, 3), ("gain", gain, 2),
@@ -139,14 +156,6 @@ class SensingModel:
     @property
     def num_bands(self) -> int:
         return int(self.transmittance.shape[2])
-
-    @property
-    def device(self) -> torch.device:
-        return self.transmittance.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.transmittance.dtype
 
     @property
     def shared(self) -> bool:
@@ -256,12 +265,14 @@ class SensingModel:
                        for t in (self.transmittance, self.gain, self.response)))
 
 
-class DenseSensing:
+class DenseSensing(OnDevice):
     """Per-pixel sensing given by dense matrices ``A (P, O, M)`` (or ``(1, O, M)``, shared).
 
     The same interface as :class:`SensingModel` (``A``, ``A_adjoint``, ``dense``, ``gram``), for
     problems without the camera's factored structure (other designs, tests, user matrices).
     """
+
+    _ON = "matrices"
 
     def __init__(self, A: Tensor) -> None:
         if not isinstance(A, Tensor):
@@ -283,14 +294,6 @@ class DenseSensing:
     @property
     def num_bands(self) -> int:
         return int(self.matrices.shape[2])
-
-    @property
-    def device(self) -> torch.device:
-        return self.matrices.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.matrices.dtype
 
     @property
     def shared(self) -> bool:
