@@ -96,14 +96,17 @@ def require_packages(modules: Iterable[str], what: str, hint: str) -> None:
                                       name=mod)  # fmt: skip
 
 
-def lazy_attributes(package: str, table: Mapping[str, str]) -> Callable[[str], Any]:
-    """A package's module-level ``__getattr__`` that imports ``table[name]`` (a module) on the
-    first use of ``name`` and returns its attribute ``name``; any other name is an
-    ``AttributeError`` naming ``package``."""
+def lazy_attributes(
+    package: str, modules: Mapping[str, Iterable[str]]
+) -> tuple[list[str], Callable[[str], Any]]:
+    """``(__all__, __getattr__)`` of a package whose names are imported on first use:
+    ``modules`` maps a module to the names it defines; ``__getattr__`` imports a name's module
+    and returns the attribute, and raises ``AttributeError`` naming ``package`` for any other."""
+    table = {name: mod for mod, names in modules.items() for name in names}
 
     def __getattr__(name: str) -> Any:
         if name in table:
             return getattr(importlib.import_module(table[name]), name)
         raise AttributeError(f"module {package!r} has no attribute {name!r}")
 
-    return __getattr__
+    return list(table), __getattr__

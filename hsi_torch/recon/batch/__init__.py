@@ -33,17 +33,8 @@ from __future__ import annotations
 
 from hsi_torch.errors import lazy_attributes
 
-_LAZY = {
-    "run_reconstruction": "hsi_torch.recon.batch.entry",
-    "reconstruct_many": "hsi_torch.recon.batch.entry",
-    "RunSummary": "hsi_torch.recon.batch.driver",
-    "RunFailure": "hsi_torch.recon.batch.driver",
-    "print_summary": "hsi_torch.recon.batch.driver",
-    "ReconstructRun": "hsi_torch.recon.batch.run",
-    "check_run": "hsi_torch.recon.batch.run",
-}
-
-__all__ = list(_LAZY)
-
-
-__getattr__ = lazy_attributes(__name__, _LAZY)
+__all__, __getattr__ = lazy_attributes(__name__, {
+    "hsi_torch.recon.batch.entry": ("run_reconstruction", "reconstruct_many"),
+    "hsi_torch.recon.batch.driver": ("RunSummary", "RunFailure", "print_summary"),
+    "hsi_torch.recon.batch.run": ("ReconstructRun", "check_run"),
+})  # fmt: skip
