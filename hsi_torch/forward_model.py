@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["SensingModel", "DenseSensing", "OnDevice"]
+__all__ = ["SensingModel", "DenseSensing", "OnDevice", "PerPixel"]
 
 
 class OnDevice:
@@ -46,6 +46,23 @@ class OnDevice:
         return getattr(self, self._ON).dtype
 
 
+class PerPixel(OnDevice):
+    """Sizes of a per-pixel sensing whose ``_ON`` tensor is ``(P, ·, M)`` (``P = 1``: shared)."""
+
+    @property
+    def num_pixels(self) -> int:
+        return int(getattr(self, self._ON).shape[0])
+
+    @property
+    def num_bands(self) -> int:
+        return int(getattr(self, self._ON).shape[2])
+
+    @property
+    def shared(self) -> bool:
+        """One sensing matrix for every pixel (``P = 1``)."""
+        return self.num_pixels == 1
+
+
 def _gram(a: Tensor, mask: Tensor | None, reg: Tensor | None) -> Tensor:
     """``aᵀ W a (+ reg)`` for dense ``a (n|1, O, M)`` and an ``(n, O)`` bool mask."""
     if mask is not None and a.shape[0] == 1 and mask.shape[0] != 1:
@@ -55,7 +72,7 @@ def _gram(a: Tensor, mask: Tensor | None, reg: Tensor | None) -> Tensor:
     return G if reg is None else G + reg
 
 
-class SensingModel(OnDevice):
+class SensingModel(PerPixel):
     """Per-pixel linear sensing ``y_p = A_p s_p`` with ``A_p = g_v(p) B_v(p, λ) Δλ φ^c(λ)``.
 
     A small physics class in the style of a deep-inverse ``Physics``: ``A``, ``A_adjoint``,
@@ -138,10 +155,6 @@ class SensingModel(OnDevice):
 
     # -- shapes -------------------------------------------------------------------------------
     @property
-    def num_pixels(self) -> int:
-        return int(self.transmittance.shape[0])
-
-    @property
     def num_views(self) -> int:
         return int(self.transmittance.shape[1])
 
@@ -152,15 +165,6 @@ class SensingModel(OnDevice):
     @property
     def num_obs(self) -> int:
         return self.num_views * self.num_channels
-
-    @property
-    def num_bands(self) -> int:
-        return int(self.transmittance.shape[2])
-
-    @property
-    def shared(self) -> bool:
-        """One sensing matrix for every pixel (``P = 1``)."""
-        return self.num_pixels == 1
 
     def to(self, device: torch.device | str | None = None,
            dtype: torch.dtype | None = None) -> SensingModel:
@@ -265,7 +269,7 @@ class SensingModel(OnDevice):
                        for t in (self.transmittance, self.gain, self.response)))
 
 
-class DenseSensing(OnDevice):
+class DenseSensing(PerPixel):
     """Per-pixel sensing given by dense matrices ``A (P, O, M)`` (or ``(1, O, M)``, shared).
 
     The same interface as :class:`SensingModel` (``A``, ``A_adjoint``, ``dense``, ``gram``), for
@@ -284,20 +288,8 @@ class DenseSensing(OnDevice):
         self.matrices = A
 
     @property
-    def num_pixels(self) -> int:
-        return int(self.matrices.shape[0])
-
-    @property
     def num_obs(self) -> int:
         return int(self.matrices.shape[1])
-
-    @property
-    def num_bands(self) -> int:
-        return int(self.matrices.shape[2])
-
-    @property
-    def shared(self) -> bool:
-        return self.num_pixels == 1
 
     def to(self, device: torch.device | str | None = None,
            dtype: torch.dtype | None = None) -> DenseSensing:
