@@ -55,7 +55,7 @@ from torch import Tensor
 
 from hsi_torch.devices import resolve_device
 from hsi_torch.forward_model import OnDevice, SensingModel
-from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.io.bundle import CalibrationBundle, ReferenceFrame
 from hsi_torch.io.radiometry import CameraIdentity
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.profiling import release_freed_memory
@@ -129,7 +129,7 @@ def bundle_exposure(bundle: CalibrationBundle) -> float | None:
 
 
 @dataclass
-class BundleSensing(OnDevice):
+class BundleSensing(OnDevice, ReferenceFrame):
     """Per-bundle tensors used by every frame (see the module docstring).
 
     Attributes:
@@ -233,10 +233,6 @@ class BundleSensing(OnDevice):
     @property
     def num_pixels(self) -> int:
         return int(self.pixel_index.shape[0])
-
-    @property
-    def frame_size(self) -> tuple[int, int]:
-        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
 
 
     def with_regularisation(self, beta: float, diff_order: int = 1) -> BundleSensing:
