@@ -24,11 +24,14 @@ without a traceback.
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 __all__ = [
     "require_packages",
+    "lazy_attributes",
     "HSIError",
     "FileFormatError",
     "MissingFileError",
@@ -91,3 +94,19 @@ def require_packages(modules: Iterable[str], what: str, hint: str) -> None:
         if importlib.util.find_spec(mod) is None:
             raise ModuleNotFoundError(f"{what} needs the optional package {mod!r}: {hint}",
                                       name=mod)  # fmt: skip
+
+
+def lazy_attributes(
+    package: str, modules: Mapping[str, Iterable[str]]
+) -> tuple[list[str], Callable[[str], Any]]:
+    """``(__all__, __getattr__)`` of a package whose names are imported on first use:
+    ``modules`` maps a module to the names it defines; ``__getattr__`` imports a name's module
+    and returns the attribute, and raises ``AttributeError`` naming ``package`` for any other."""
+    table = {name: mod for mod, names in modules.items() for name in names}
+
+    def __getattr__(name: str) -> Any:
+        if name in table:
+            return getattr(importlib.import_module(table[name]), name)
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return list(table), __getattr__

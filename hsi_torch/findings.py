@@ -41,6 +41,7 @@ __all__ = [
     "warn_findings",
     "escalated",
     "refusals",
+    "refuse_or_warn",
     "worst_severity",
     "findings_from_dicts",
     "findings_summary",
@@ -178,6 +179,34 @@ def escalated(findings: Iterable[Finding], strict: bool) -> list[Finding]:
 def refusals(findings: Iterable[Finding]) -> list[Finding]:
     """The ``"error"`` findings (those that refuse a frame)."""
     return [f for f in findings if f.severity == "error"]
+
+
+def refuse_or_warn(findings: Iterable[Finding], strict: bool = False, source: str | None = None,
+                   stacklevel: int = 2) -> list[Finding]:
+    """The verdict on a frame's findings: escalated under ``strict`` (:func:`escalated`), a
+    :class:`RefusedError` on any error finding, else every warning raised as a Python warning
+    (:func:`warn_findings`; ``stacklevel`` 2 points at the caller of the function that calls
+    this one).
+
+    Args:
+        source: named once at the head of the refusal's message (``"<source>: refused: ..."``,
+            the findings' own sources left out); ``None``: the findings' texts alone.
+
+    Returns:
+        The findings, escalated (nothing refused).
+
+    Raises:
+        RefusedError: an error finding; ``.findings`` holds them all.
+    """
+    out = escalated(findings, strict)
+    refused = refusals(out)
+    if refused:
+        if source is None:
+            raise RefusedError("; ".join(f.text() for f in refused), out)
+        raise RefusedError(f"{source}: refused: " + "; ".join(
+            replace(f, source=None).text() for f in refused), out)  # fmt: skip
+    warn_findings(out, stacklevel=stacklevel + 1)
+    return out
 
 
 def worst_severity(findings: Iterable[Finding]) -> str | None:

@@ -28,7 +28,43 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["SensingModel", "DenseSensing"]
+__all__ = ["SensingModel", "DenseSensing", "OnDevice", "PerPixel"]
+
+
+class OnDevice:
+    """``device`` and ``dtype`` of an object from the attribute named by its ``_ON`` (a tensor,
+    or an object with ``device`` and ``dtype``, such as the sensing it holds)."""
+
+    _ON = ""
+
+    @property
+    def device(self) -> torch.device:
+        return getattr(self, self._ON).device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return getattr(self, self._ON).dtype
+
+
+class PerPixel(OnDevice):
+    """Sizes of a per-pixel sensing whose ``_ON`` tensor is ``(P, ·, M)`` (``P = 1``: shared)."""
+
+    @property
+    def num_pixels(self) -> int:
+        return int(getattr(self, self._ON).shape[0])
+
+    @property
+    def num_bands(self) -> int:
+        return int(getattr(self, self._ON).shape[2])
+
+    @property
+    def shared(self) -> bool:
+        """One sensing matrix for every pixel (``P = 1``)."""
+        return self.num_pixels == 1
+
+    def _index(self, idx: Tensor | slice | Sequence[int]) -> Tensor | slice:
+        return idx if isinstance(idx, slice) else torch.as_tensor(idx, dtype=torch.long,
+                                                                   device=self.device)
 
 
 def _gram(a: Tensor, mask: Tensor | None, reg: Tensor | None) -> Tensor:
@@ -45,34 +81,7 @@ def _rows(t: Tensor, idx: Tensor | slice) -> Tensor:
     return t[idx] if isinstance(idx, slice) else t.index_select(0, idx)
 
 
-class _PerPixel:
-    """What both sensing classes derive from their ``(P, …)`` per-pixel tensor ``_per_pixel``."""
-
-    _per_pixel: Tensor
-
-    @property
-    def num_pixels(self) -> int:
-        return int(self._per_pixel.shape[0])
-
-    @property
-    def device(self) -> torch.device:
-        return self._per_pixel.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self._per_pixel.dtype
-
-    @property
-    def shared(self) -> bool:
-        """One sensing matrix for every pixel (``P = 1``)."""
-        return self.num_pixels == 1
-
-    def _index(self, idx: Tensor | slice | Sequence[int]) -> Tensor | slice:
-        return idx if isinstance(idx, slice) else torch.as_tensor(idx, dtype=torch.long,
-                                                                   device=self.device)
-
-
-class SensingModel(_PerPixel):
+class SensingModel(PerPixel):
     """Per-pixel linear sensing ``y_p = A_p s_p`` with ``A_p = g_v(p) B_v(p, λ) Δλ φ^c(λ)``.
 
     A small physics class in the style of a deep-inverse ``Physics``: ``A``, ``A_adjoint``,
@@ -93,6 +102,8 @@ class SensingModel(_PerPixel):
         >>> model.A_adjoint(y).shape
         torch.Size([100, 25])
     """
+
+    _ON = "transmittance"
 
     def __init__(self, transmittance: Tensor, gain: Tensor, response: Tensor) -> None:
         for name, t, nd in (("transmittance", transmittance, 3), ("gain", gain, 2),
@@ -115,10 +126,6 @@ class SensingModel(_PerPixel):
         self.transmittance = transmittance
         self.gain = gain
         self.response = response
-
-    @property
-    def _per_pixel(self) -> Tensor:  # type: ignore[override]
-        return self.transmittance
 
     # -- construction ---------------------------------------------------------------------------
     @classmethod
@@ -167,10 +174,6 @@ class SensingModel(_PerPixel):
     @property
     def num_obs(self) -> int:
         return self.num_views * self.num_channels
-
-    @property
-    def num_bands(self) -> int:
-        return int(self.transmittance.shape[2])
 
     def to(self, device: torch.device | str | None = None,
            dtype: torch.dtype | None = None) -> SensingModel:
@@ -270,12 +273,14 @@ class SensingModel(_PerPixel):
                        for t in (self.transmittance, self.gain, self.response)))
 
 
-class DenseSensing(_PerPixel):
+class DenseSensing(PerPixel):
     """Per-pixel sensing given by dense matrices ``A (P, O, M)`` (or ``(1, O, M)``, shared).
 
     The same interface as :class:`SensingModel` (``A``, ``A_adjoint``, ``dense``, ``gram``), for
     problems without the camera's factored structure (other designs, tests, user matrices).
     """
+
+    _ON = "matrices"
 
     def __init__(self, A: Tensor) -> None:
         if not isinstance(A, Tensor):
@@ -287,16 +292,8 @@ class DenseSensing(_PerPixel):
         self.matrices = A
 
     @property
-    def _per_pixel(self) -> Tensor:  # type: ignore[override]
-        return self.matrices
-
-    @property
     def num_obs(self) -> int:
         return int(self.matrices.shape[1])
-
-    @property
-    def num_bands(self) -> int:
-        return int(self.matrices.shape[2])
 
     def to(self, device: torch.device | str | None = None,
            dtype: torch.dtype | None = None) -> DenseSensing:

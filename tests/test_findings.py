@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 import warnings
 
 import pytest
@@ -14,10 +15,12 @@ from hsi_torch.findings import (
     Finding,
     FitWarning,
     HSIWarning,
+    RefusedError,
     escalated,
     findings_from_dicts,
     findings_summary,
     refusals,
+    refuse_or_warn,
     warn_findings,
     warning_class,
     worst_severity,
@@ -63,6 +66,26 @@ def test_warn_findings_raises_only_warnings_with_the_finding_attached() -> None:
     assert len(caught) == 1 and caught[0].category is FitWarning
     assert caught[0].message.finding == _fit()
     assert "measured 0.27, limit 0.15" in str(caught[0].message)
+
+
+def _judge_here(fs: list[Finding], **kw) -> list[Finding]:
+    return refuse_or_warn(fs, **kw)  # stacklevel 2: the warning points at the caller of this
+
+
+def test_refuse_or_warn_warns_at_the_caller_or_refuses_naming_the_source() -> None:
+    info = Finding("capture.black_level", "info", "from the bundle")
+    with pytest.warns(FitWarning) as caught:
+        line = sys._getframe().f_lineno + 1
+        out = _judge_here([_fit(), info])
+    assert out == [_fit(), info]
+    assert (caught[0].filename, caught[0].lineno) == (__file__, line)
+    with pytest.raises(RefusedError, match=r"^a\.dng: refused: error \[fit") as refused:
+        refuse_or_warn([_fit(), info], strict=True, source="a.dng")
+    assert "a.dng" not in str(refused.value)[len("a.dng: "):]  # named once, at the head
+    assert [f.severity for f in refused.value.findings] == ["error", "info"]
+    with pytest.raises(RefusedError) as refused:
+        refuse_or_warn([_fit()], strict=True)  # no source: the findings' own texts
+    assert str(refused.value) == refused.value.findings[0].text()
 
 
 def test_strict_makes_warnings_errors_and_summaries_count() -> None:

@@ -22,7 +22,7 @@ from hsi_torch.experiments.mismatch import decisions
 from hsi_torch.findings import CalibrationWarning, Finding, warn_findings
 from hsi_torch.io.radiometry import outside_views_index
 from hsi_torch.recon import Reconstructor
-from hsi_torch.recon.drift import DriftError, DriftEstimate, drift_decision
+from hsi_torch.recon.drift import DriftError, DriftEstimate, drift_decision, drift_finding
 from hsi_torch.recon.illuminant import ILLUMINANT_RATIO_LIMIT, illuminant_finding
 from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.resources import shipped_config
@@ -159,25 +159,42 @@ def _estimate(
 
 def test_drift_decision_rules():
     ok, bad = _estimate(), _estimate(refusal="drift not measurable: 1 of 5 views agree")
+
+    def said(est, motion, refine, corrected, **fit):
+        d = {**est.to_dict(), "sensor_motion_px": motion, "corrected": corrected}
+        return drift_finding(d, refine, 0.5, "a.tif", **fit)
+
     # auto: a reliable drift above the warning level is corrected
-    correct, f = drift_decision(ok, 2.3, "auto", 0.5, "a.tif")
-    assert correct and f.code == "drift.corrected" and f.severity == "info"
+    assert drift_decision(ok, 2.3, "auto", 0.5, "a.tif")
+    f = said(ok, 2.3, "auto", True)
+    assert f.code == "drift.corrected" and f.severity == "info"
     assert f.measured == 2.3 and f.limit == 0.5 and f.source == "a.tif"
     # ... below it, measured and left
-    correct, f = drift_decision(ok, 0.3, "auto", 0.5)
-    assert not correct and f.code == "drift.below_warning"
-    # ... not measurable: refused, never corrected, and a warning says so
-    correct, f = drift_decision(bad, 2.3, "auto", 0.5)
-    assert not correct and f.code == "drift.unmeasurable" and f.severity == "warning"
+    assert not drift_decision(ok, 0.3, "auto", 0.5)
+    assert said(ok, 0.3, "auto", False).code == "drift.below_warning"
+    # ... not measurable: refused, never corrected, and a warning says so (an error when the
+    # fit residual is above its warning too)
+    assert not drift_decision(bad, 2.3, "auto", 0.5)
+    f = said(bad, 2.3, "auto", False)
+    assert f.code == "drift.unmeasurable" and f.severity == "warning"
     assert "not measurable" in f.message and "recalibrate" in f.fix
-    # ... a flat field: nothing to measure
-    correct, f = drift_decision(_estimate(textured=False), 0.0, "auto", 0.5)
-    assert not correct and f.code == "drift.no_texture"
-    # true: whatever is measured; not measurable refuses the frame; false: no decision
-    assert drift_decision(ok, 0.3, True, 0.5)[0]
-    with pytest.raises(DriftError, match="b.tif: refine_registration: drift not measurable"):
+    f = said(bad, 2.3, "auto", False, fit_residual=0.3, fit_warning=0.15)
+    assert f.severity == "error" and "neither the bundle nor a drift" in f.message
+    # ... a flat field: nothing to measure (a warning only when the correction was asked for)
+    flat = _estimate(textured=False)
+    assert not drift_decision(flat, 0.0, "auto", 0.5)
+    assert said(flat, 0.0, "auto", False).severity == "info"
+    assert said(flat, 0.0, True, False).severity == "warning"
+    assert said(flat, 0.0, True, False).code == "drift.no_texture"
+    # true: whatever is measured; not measurable refuses the frame with its error finding
+    assert drift_decision(ok, 0.3, True, 0.5)
+    with pytest.raises(DriftError, match="b.tif: refine_registration: drift not measurable") as e:
         drift_decision(bad, 2.3, True, 0.5, "b.tif")
-    assert drift_decision(ok, 2.3, False, 0.5) == (False, None)
+    assert [(f.code, f.severity) for f in e.value.findings] == [("drift.unmeasurable", "error")]
+    # false: never corrected; the check still says the sensor moved
+    assert not drift_decision(ok, 2.3, False, 0.5)
+    f = said(ok, 2.3, False, False)
+    assert f.code == "drift.moved" and f.severity == "warning" and "refine_registration" in f.fix
 
 
 def test_refine_registration_auto_is_the_default_and_validated():

@@ -19,10 +19,12 @@ more than the cap, and every file they open is a regular file (a FIFO would bloc
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +44,7 @@ __all__ = [
     "read_json_bounded",
     "check_store_files",
     "declared_image_size",
+    "csv_lines",
 ]
 
 #: Environment variable: the largest decoded cube a reader accepts (GiB).
@@ -237,3 +240,24 @@ def declared_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     if shape[0] in (1, 3):
         return int(shape[1]), int(shape[2])
     return (int(shape[0]), int(shape[1])) if shape[-1] in (1, 3) else None
+
+
+def csv_lines(reader: Any, name: Any) -> Iterator[tuple[str, list[str]]]:
+    """The data lines of a sheet's ``csv.reader`` after its header: ``(where, cells)``, ``where``
+    being ``"<name>:<line>"`` (the line a row starts on); blank lines and lines whose first cell
+    starts with ``#`` (comments) are skipped.
+
+    Raises:
+        FileFormatError: a line the CSV rules cannot parse, naming ``name`` and the line.
+    """
+    line_no = reader.line_num + 1
+    while True:
+        try:
+            cells = next(reader, None)
+        except csv.Error as exc:
+            raise FileFormatError(f"{name}:{line_no}: not a CSV line ({exc})") from None
+        if cells is None:
+            return
+        where, line_no = f"{name}:{line_no}", reader.line_num + 1
+        if any(c.strip() for c in cells) and not cells[0].strip().startswith("#"):
+            yield where, cells

@@ -77,6 +77,7 @@ __all__ = [
     "READABLE_SCHEMA_VERSIONS",
     "SCHEMA_VERSION",
     "CalibrationBundle",
+    "ReferenceFrame",
     "file_sha256",
     "make_provenance",
 ]
@@ -186,8 +187,15 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
+class ReferenceFrame:
+    """``frame_size``, ``(h, w)`` of the reference frame, from the ``reference_bbox``
+    ``(x0, y0, w, h)`` of a bundle or of what is built from it."""
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        return int(self.reference_bbox[3]), int(self.reference_bbox[2])  # type: ignore[attr-defined]
 @dataclass
-class CalibrationBundle:
+class CalibrationBundle(ReferenceFrame):
     """Calibration products in reference-frame coordinates (see the module docstring for shapes).
 
     Array fields accept numpy arrays or tensors and are stored as numpy arrays. Construction
@@ -233,11 +241,6 @@ class CalibrationBundle:
     @property
     def num_bands(self) -> int:
         return int(self.wavelengths_nm.shape[0])
-
-    @property
-    def frame_size(self) -> tuple[int, int]:
-        """``(h, w)`` of the reference frame."""
-        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
 
     def validate(self, source: str = "<in memory>") -> None:
         """Check dtypes and the consistency of all shapes; raise naming the key and ``source``."""

@@ -36,6 +36,7 @@ from hsi_torch.errors import FileFormatError, HSIError, InputError, MissingFileE
 from hsi_torch.io.atomic import atomic_write, atomic_write_json
 from hsi_torch.io.bounded import (
     MAX_JSON_BYTES,
+    csv_lines,
     declared_image_size,
     npz_declared,
     read_json_bounded,
@@ -200,17 +201,7 @@ def read_sheet(path: str | os.PathLike) -> list[SheetRow]:
         raise FileFormatError(f"capture sheet {sheet}: a column appears twice ({','.join(cols)})")
     rows: list[SheetRow] = []
     seen: dict[tuple[str, ...], str] = {}  # a line's cells -> where it was first
-    line_no = reader.line_num + 1
-    while True:
-        try:
-            cells = next(reader, None)
-        except csv.Error as exc:
-            raise FileFormatError(f"{sheet}:{line_no}: not a CSV line ({exc})") from None
-        if cells is None:
-            break
-        where, line_no = f"{sheet}:{line_no}", reader.line_num + 1
-        if not any(c.strip() for c in cells) or cells[0].strip().startswith("#"):
-            continue
+    for where, cells in csv_lines(reader, sheet):
         key = tuple(c.strip() for c in cells[:len(cols)])
         if key in seen:
             raise FileFormatError(f"{where}: the same line as {seen[key]} (an exact duplicate "

@@ -21,27 +21,17 @@ import torch
 from hsi_torch.bayer import (  # re-exported
     DemosaicMethod,
     bayer_half,
-    cfa_masks,
-    demosaic,
     demosaic_bilinear,
     demosaic_saturation,
-    mosaic,
     validate_cfa_pattern,
 )
+from hsi_torch.bayer import __all__ as bayer_names
+from hsi_torch.bayer import cfa_masks as cfa_masks
+from hsi_torch.bayer import demosaic as demosaic
+from hsi_torch.bayer import mosaic as mosaic
 from hsi_torch.errors import FileFormatError, MissingFileError
 
-__all__ = [
-    "RawImage",
-    "load_raw",
-    "validate_cfa_pattern",
-    "cfa_masks",
-    "mosaic",
-    "bayer_half",
-    "demosaic_bilinear",
-    "demosaic",
-    "demosaic_saturation",
-    "DemosaicMethod",
-]
+__all__ = ["RawImage", "load_raw", *bayer_names]
 
 RAW_SUFFIXES = (
     ".kdc", ".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".orf", ".rw2",

@@ -61,7 +61,7 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
-from hsi_torch.io.bounded import declared_image_size
+from hsi_torch.io.bounded import csv_lines, declared_image_size
 from hsi_torch.io.captures import SUPPORTED_SUFFIXES, LinearCapture, quiet_tifffile, read_any
 from hsi_torch.io.live_files import is_temporary_name, looks_complete
 from hsi_torch.io.paths import expand_inputs
@@ -605,17 +605,7 @@ def _read_sequence_sheet(
         )
     entries: list[tuple[Path, int | None]] = []
     times: list[tuple[float | None, _dt.datetime | None]] = []
-    line_no = reader.line_num + 1
-    while True:
-        try:
-            cells = next(reader, None)
-        except csv.Error as exc:
-            raise FileFormatError(f"{p}:{line_no}: not a CSV line ({exc})") from None
-        if cells is None:
-            break
-        where, line_no = f"{p}:{line_no}", reader.line_num + 1
-        if not any(c.strip() for c in cells) or cells[0].strip().startswith("#"):
-            continue
+    for where, cells in csv_lines(reader, p):
         row = dict(zip(cols, (c.strip() for c in cells), strict=False))
         if not row.get("file"):
             raise FileFormatError(f"{where}: no file")

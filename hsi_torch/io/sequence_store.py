@@ -27,7 +27,8 @@ y, x        coordinates                 int64                   reference-frame 
 The root attributes hold ``hsi_torch_sequence`` (layout version), ``wavelengths_nm``,
 ``frame_size``, ``time_origin`` (the first frame's date and time, or ``None``), ``time_source``
 and ``bundle``. ``cube`` is compressed with Zstandard (level 1), as in the run's store
-(:mod:`hsi_torch.io.dataset`, whose chunk encoding, codec checks and lock this module reuses).
+(:mod:`hsi_torch.io.dataset`); both are written by :mod:`hsi_torch.io.zarr_group` (chunk
+encoding, codec checks, the lock).
 
 **Appended, resumable.** Every frame is one chunk of each time-axis array, written atomically
 (temporary file + rename, :mod:`hsi_torch.io.atomic`); only then is the time axis lengthened (the
@@ -70,21 +71,10 @@ from hsi_torch.findings import Finding
 from hsi_torch.io.atomic import atomic_write, json_default
 from hsi_torch.io.bounded import check_declared, check_store_files
 from hsi_torch.io.cube import _nan_where_invalid, _np
-from hsi_torch.io.dataset import (
-    _VLEN,
-    _ZSTD,
-    _array_meta,
-    _chunk_key,
-    _decode,
-    _encode,
-    _lock,
-    _read_json,
-    _refuse_foreign_folder,
-    _write_json,
-    require_dataset_packages,
-)
+from hsi_torch.io.dataset import require_dataset_packages
 from hsi_torch.io.safety import short_repr
 from hsi_torch.io.zarr_codecs import check_array_meta, check_zarr_codecs
+from hsi_torch.io.zarr_group import ZarrGroup, axis_array, read_json, write_json
 
 __all__ = [
     "SEQUENCE_NAME",
@@ -103,8 +93,6 @@ SEQUENCE_VERSION = 1
 #: The arrays along the time axis (one chunk per frame each).
 _TIME_VARS = ("cube", "valid", "time", "timestamp", "source", "findings", "metadata")
 _ARRAYS = (*_TIME_VARS, "wavelength", "y", "x")
-_LOCK_NAME = ".hsi_torch.lock"
-_STORE_ENTRIES = frozenset({*_ARRAYS, ".zgroup", ".zattrs", ".zmetadata", _LOCK_NAME})
 #: each array's dtype, compressor id, filter ids
 _LAYOUT: dict[str, tuple[str, str | None, list[str]]] = {
     "cube": ("<f4", "zstd", []), "valid": ("|b1", "zstd", []), "time": ("<f8", None, []),
@@ -120,12 +108,12 @@ def is_sequence_store(path: str | os.PathLike) -> bool:
     if not (p / ".zgroup").is_file() or not (p / ".zattrs").is_file():
         return False
     try:
-        return _read_json(p / ".zattrs").get("hsi_torch_sequence") is not None
+        return read_json(p / ".zattrs").get("hsi_torch_sequence") is not None
     except (OSError, ValueError):
         return False
 
 
-class SequenceStore:
+class SequenceStore(ZarrGroup):
     """The writer's handle on a sequence store (:meth:`open`; appends with :meth:`append`).
 
     Attributes:
@@ -136,15 +124,16 @@ class SequenceStore:
         attrs: the root attributes.
     """
 
+    KIND = "sequence store"
+    AXIS = "time"
+    AXIS_ARRAYS = _TIME_VARS
+    ARRAYS = _ARRAYS
+    LAYOUT = _LAYOUT
+
     def __init__(self, path: Path) -> None:
-        self.path = path
-        self.attrs: dict[str, Any] = {}
-        self.meta: dict[str, dict[str, Any]] = {}
-        self._var_attrs: dict[str, dict[str, Any]] = {}
+        super().__init__(path)
         self.sources: list[str] = []
         self.times_s: list[float] = []
-        self.wavelengths_nm: list[float] = []
-        self.frame_size: tuple[int, int] = (0, 0)
 
     @classmethod
     @contextlib.contextmanager
@@ -164,20 +153,10 @@ class SequenceStore:
             FileFormatError: ``path`` is a folder that is not a sequence store.
         """
         require_dataset_packages()
-        p = Path(path)
-        _refuse_foreign_folder(p)
-        p.mkdir(parents=True, exist_ok=True)
-        fd = _lock(p)
-        try:
+        with cls._locked(path) as (p, _fd):
             st = cls(p)
-            if (p / ".zgroup").is_file():
-                st._load()
-                st._check(wavelengths_nm, frame_size)
-            else:
-                st._create(wavelengths_nm, frame_size, attrs or {})
+            st._open_or_create(wavelengths_nm, frame_size, attrs)
             yield st
-        finally:
-            os.close(fd)
 
     def __len__(self) -> int:
         return len(self.sources)
@@ -185,70 +164,24 @@ class SequenceStore:
     # --- creation and loading ------------------------------------------------------------
     def _create(self, wavelengths_nm: Sequence[float], frame_size: tuple[int, int],
                 attrs: dict[str, Any]) -> None:  # fmt: skip
-        wl = np.asarray(wavelengths_nm, dtype=np.float64)
-        h, w = (int(v) for v in frame_size)
-        m = int(wl.size)
-        self.attrs = {
+        attrs = {
             "hsi_torch_sequence": SEQUENCE_VERSION,
             "description": "hsi_torch spectral cubes of a sequence, one per frame along 'time'",
-            "wavelengths_nm": wl.tolist(), "wavelength_units": "nm", "frame_size": [h, w],
+            "wavelengths_nm": [float(v) for v in wavelengths_nm], "wavelength_units": "nm",
+            "frame_size": [int(v) for v in frame_size],
             "time_origin": None, "time_source": None, **attrs,
         }  # fmt: skip
-        s = _array_meta
-        self.meta = {
-            "cube": s([0, m, h, w], [1, m, h, w], "<f4", "NaN", _ZSTD),
-            "valid": s([0, h, w], [1, h, w], "|b1", None, _ZSTD),
-            "time": s([0], [1], "<f8", "NaN"),
-            "timestamp": s([0], [1], "|O", None, _ZSTD, _VLEN),
-            "source": s([0], [1], "|O", None, _ZSTD, _VLEN),
-            "findings": s([0], [1], "|O", None, _ZSTD, _VLEN),
-            "metadata": s([0], [1], "|O", None, _ZSTD, _VLEN),
-            "wavelength": s([m], [m], "<f8", "NaN"),
-            "y": s([h], [h], "<i8", None),
-            "x": s([w], [w], "<i8", None),
-        }
-        self._var_attrs = {
-            "cube": {"_ARRAY_DIMENSIONS": ["time", "wavelength", "y", "x"],
-                     "long_name": "spectral cube (reflectance relative to the white reference)",
-                     "coordinates": "source timestamp"},
-            "valid": {"_ARRAY_DIMENSIONS": ["time", "y", "x"],
-                      "long_name": "pixel reconstructed (>= min_views views)"},
-            "time": {"_ARRAY_DIMENSIONS": ["time"], "units": "s",
-                     "long_name": "seconds since the first frame"},
-            "timestamp": {"_ARRAY_DIMENSIONS": ["time"],
-                          "long_name": "the frame's date and time, ISO 8601 ('' if unknown)"},
-            "source": {"_ARRAY_DIMENSIONS": ["time"], "long_name": "input file"},
-            "findings": {"_ARRAY_DIMENSIONS": ["time"],
-                         "long_name": "the frame's findings, JSON list"},
-            "metadata": {"_ARRAY_DIMENSIONS": ["time"], "long_name": "the frame's metadata, JSON"},
-            "wavelength": {"_ARRAY_DIMENSIONS": ["wavelength"], "units": "nm",
-                           "long_name": "band centre wavelength"},
-            "y": {"_ARRAY_DIMENSIONS": ["y"], "units": "pixel",
-                  "long_name": "reference-frame row"},
-            "x": {"_ARRAY_DIMENSIONS": ["x"], "units": "pixel",
-                  "long_name": "reference-frame column"},
-        }  # fmt: skip
-        for name, meta in self.meta.items():
-            (self.path / name).mkdir(exist_ok=True)
-            _write_json(self.path / name / ".zarray", meta)
-            _write_json(self.path / name / ".zattrs", self._var_attrs[name])
-        self._write_chunk("wavelength", 0, wl)
-        self._write_chunk("y", 0, np.arange(h, dtype=np.int64))
-        self._write_chunk("x", 0, np.arange(w, dtype=np.int64))
-        _write_json(self.path / ".zattrs", self.attrs)
-        self._write_consolidated()
-        _write_json(self.path / ".zgroup", {"zarr_format": 2})  # last: now it is a store
-        self.wavelengths_nm = wl.tolist()
-        self.frame_size = (h, w)
+        self._create_group(attrs, "source timestamp", {
+            "time": axis_array("time", "<f8", "seconds since the first frame", units="s"),
+            "timestamp": axis_array("time", "|O", "the frame's date and time, ISO 8601 ('' if "
+                                    "unknown)"),
+            "source": axis_array("time", "|O", "input file"),
+            "findings": axis_array("time", "|O", "the frame's findings, JSON list"),
+            "metadata": axis_array("time", "|O", "the frame's metadata, JSON"),
+        })
 
     def _load(self) -> None:
-        try:
-            self.attrs = _read_json(self.path / ".zattrs")
-            self.meta = {n: _read_json(self.path / n / ".zarray") for n in _ARRAYS}
-            self._var_attrs = {n: _read_json(self.path / n / ".zattrs") for n in _ARRAYS}
-        except (OSError, ValueError) as exc:
-            raise FileFormatError(f"{self.path}: not a hsi_torch sequence store ({exc}); write "
-                                  "into another folder") from None  # fmt: skip
+        self._read_metadata()
         if self.attrs.get("hsi_torch_sequence") != SEQUENCE_VERSION:
             raise FileFormatError(
                 f"{self.path}: not a hsi_torch sequence store of layout version "
@@ -257,15 +190,7 @@ class SequenceStore:
                 "folder")  # fmt: skip
         for name, meta in self.meta.items():  # before any chunk is decoded
             check_array_meta(meta, name, self.path)
-            got = (
-                meta.get("dtype"),
-                (meta.get("compressor") or {}).get("id"),
-                [f.get("id") for f in meta.get("filters") or []],
-            )
-            if got != _LAYOUT[name]:
-                raise FileFormatError(f"{self.path}: array {name!r} has dtype, compressor and "
-                                      f"filters {short_repr(got, 60)}, not this layout's "
-                                      f"{_LAYOUT[name]}")  # fmt: skip
+            self._check_codecs(name)
         self.wavelengths_nm = [float(v) for v in self.attrs.get("wavelengths_nm", [])]
         self.frame_size = tuple(int(v) for v in self.attrs.get("frame_size", (0, 0)))  # type: ignore[assignment]
         h, w = self.frame_size
@@ -281,21 +206,10 @@ class SequenceStore:
         self.sources = [str(self._read_chunk("source", k)[0]) for k in range(n)]
         self.times_s = [float(self._read_chunk("time", k)[0]) for k in range(n)]
 
-    def _check(self, wavelengths_nm: Sequence[float], frame_size: tuple[int, int]) -> None:
-        wl = [float(x) for x in wavelengths_nm]
-        if len(wl) != len(self.wavelengths_nm) or not np.allclose(wl, self.wavelengths_nm):
-            raise InputError(f"{self.path}: the store holds cubes of {len(self.wavelengths_nm)} "
-                             f"bands, this bundle gives {len(wl)} bands (another bundle); write "
-                             "into another folder")  # fmt: skip
-        if tuple(int(v) for v in frame_size) != tuple(self.frame_size):
-            raise InputError(f"{self.path}: the store holds frames of (h, w) = "
-                             f"{tuple(self.frame_size)}, this bundle gives {tuple(frame_size)}; "
-                             "write into another folder")  # fmt: skip
-
     def set_attrs(self, **attrs: Any) -> None:
         """Update root attributes (e.g. ``time_origin`` when the first frame is appended)."""
         self.attrs.update(attrs)
-        _write_json(self.path / ".zattrs", self.attrs)
+        write_json(self.path / ".zattrs", self.attrs)
         self._write_consolidated()
 
     # --- appending -----------------------------------------------------------------------
@@ -359,38 +273,6 @@ class SequenceStore:
         self.times_s.append(t)
         return k
 
-    def _set_length(self, n: int) -> None:
-        for name in _TIME_VARS:
-            self.meta[name]["shape"][0] = n
-            _write_json(self.path / name / ".zarray", self.meta[name])
-        self._write_consolidated()
-
-    # --- low level -----------------------------------------------------------------------
-    def _write_chunk(self, name: str, index: int, data: np.ndarray) -> None:
-        meta = self.meta[name]
-        with atomic_write(self.path / _chunk_key(name, index, len(meta["shape"])), "wb") as f:
-            f.write(_encode(meta, data))
-
-    def _read_chunk(self, name: str, index: int) -> np.ndarray:
-        meta = self.meta[name]
-        p = self.path / _chunk_key(name, index, len(meta["shape"]))
-        try:
-            return _decode(meta, p.read_bytes())
-        except OSError as exc:
-            raise FileFormatError(f"{p}: chunk of array {name!r} missing or unreadable "
-                                  f"({exc})") from None  # fmt: skip
-        except FileFormatError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - numcodecs/numpy errors on a damaged chunk
-            raise FileFormatError(f"{p}: cannot decode this chunk of array {name!r} "
-                                  f"({type(exc).__name__})") from None  # fmt: skip
-
-    def _write_consolidated(self) -> None:
-        md: dict[str, Any] = {".zgroup": {"zarr_format": 2}, ".zattrs": self.attrs}
-        for name, meta in self.meta.items():
-            md[f"{name}/.zarray"] = meta
-            md[f"{name}/.zattrs"] = self._var_attrs[name]
-        _write_json(self.path / ".zmetadata", {"zarr_consolidated_format": 1, "metadata": md})
 
 
 def _checked(path: str | os.PathLike) -> Path:

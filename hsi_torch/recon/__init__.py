@@ -6,25 +6,13 @@ Heavy parts are imported lazily (``from hsi_torch.recon import Reconstructor``).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from hsi_torch.errors import lazy_attributes
 
-_LAZY = {
-    "BundleSensing": "hsi_torch.recon.sensing",
-    "precompute_sensing": "hsi_torch.recon.sensing",
-    "Reconstructor": "hsi_torch.recon.pipeline",
-    "ReconstructionResult": "hsi_torch.recon.pipeline",
-    "HSIReconstructor": "hsi_torch.recon.pipeline",
-    "ReconstructionOutput": "hsi_torch.recon.pipeline",
-    "ReconstructConfig": "hsi_torch.recon.config",
-    "ReconstructSettings": "hsi_torch.recon.settings",
-    "reconstruct_many": "hsi_torch.recon.batch.entry",
-}
-
-__all__ = list(_LAZY)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'hsi_torch.recon' has no attribute {name!r}")
+__all__, __getattr__ = lazy_attributes(__name__, {
+    "hsi_torch.recon.sensing": ("BundleSensing", "precompute_sensing"),
+    "hsi_torch.recon.pipeline": ("Reconstructor", "ReconstructionResult", "HSIReconstructor",
+                                 "ReconstructionOutput"),
+    "hsi_torch.recon.config": ("ReconstructConfig",),
+    "hsi_torch.recon.settings": ("ReconstructSettings",),
+    "hsi_torch.recon.batch.entry": ("reconstruct_many",),
+})  # fmt: skip

@@ -24,7 +24,6 @@ the data contradicts the result, no cube is written).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ from hsi_torch.io.radiometry import (
     pedestal_level,
     pedestal_limit,
 )
+from hsi_torch.recon.drift import drift_finding
 from hsi_torch.recon.settings import ReconstructSettings
 
 __all__ = [
@@ -52,7 +52,6 @@ __all__ = [
     "batch_pedestal_findings",
     "capture_findings",
     "drift_findings",
-    "drift_refused_finding",
     "exposure_info",
     "exposure_scale",
     "fit_findings",
@@ -473,61 +472,22 @@ def fit_findings(
 def drift_findings(
     stats: Mapping[str, Any], settings: ReconstructSettings, source: str | None = None
 ) -> list[Finding]:
-    """The ``drift.*`` findings of :func:`frame_findings` (not escalated)."""
+    """The ``drift.*`` findings of :func:`frame_findings` (not escalated): the frame's
+    :func:`~hsi_torch.recon.drift.drift_finding` under ``settings``; a measurement within
+    ``drift_warn_px`` (``drift.below_warning``, a corrected motion below it, ``drift.no_texture``
+    but under ``refine_registration: true``) stays in the statistics only, not a line on every
+    frame."""
     drift = stats.get("drift")
-    reg = settings.registration
     if not isinstance(drift, Mapping):
         return []
-    if isinstance(drift.get("refused"), str):
-        # not measurable (too few views agree, beyond the range): no motion is claimed. With a
-        # fit residual above its warning too, neither the bundle nor any drift of the sensor
-        # explains the capture (another camera's RAW: 1 of 9 views, 0.25): refused
-        fit, warn = stats.get("fit_residual"), settings.output.fit_residual_warning
-        unexplained = (isinstance(fit, float) and warn is not None and fit > warn)
-        sev = "error" if reg.refine is True or unexplained else "warning"
-        f = drift_refused_finding(drift, sev, source)
-        if unexplained and reg.refine is not True:
-            f = dataclasses.replace(f, message=f.message.replace(
-                ", and refine_registration would refuse the frame", "") + f"; with the fit "
-                f"residual {fit:.3f} > fit_residual_warning={warn:g}, neither the bundle nor a "
-                "drift of the sensor explains the capture: refused")  # fmt: skip
-        return [f]
-    if drift.get("textured_views") == 0 and reg.refine is True:
-        return [Finding("drift.no_texture", "warning", "refine_registration: nothing corrected, "
-                        "no view has texture to measure the drift from (a flat field)",
-                        measured=0, limit=1, source=source,
-                        fix="measure the drift on a textured capture of the same session")]
-    moved = drift.get("sensor_motion_px")
-    if reg.warn_px is None or not isinstance(moved, (int, float)) or not moved > reg.warn_px:
+    reg = settings.registration
+    f = drift_finding(drift, reg.refine, reg.warn_px, source, stats.get("fit_residual"),
+                      settings.output.fit_residual_warning)  # fmt: skip
+    if f is None:
         return []
-    t, rot = drift.get("sensor_shift_px"), drift.get("sensor_rotation_deg")
-    agree = drift.get("agreement")
-    what = (f"the sensor moved since calibration: up to {moved:.2f} px > "
-            f"drift_warn_px={reg.warn_px:g} (fitted shift {t} px, rotation {rot}°, from "
-            f"{drift.get('measured_views')} views aligned to the reference view"
-            + (f"; {agree}" if isinstance(agree, str) else "") + ")")
-    if drift.get("corrected"):
-        return [Finding("drift.corrected", "info", what + "; corrected (refine_registration)",
-                        measured=round(float(moved), 3), limit=reg.warn_px, source=source)]
-    return [Finding("drift.moved", "warning", what + "; the views are misaligned and the "
-                    "spectra are biased", measured=round(float(moved), 3), limit=reg.warn_px,
-                    fix="--set refine_registration=true (or auto, the default) corrects it, or "
-                    "recalibrate",
-                    source=source)]
-
-
-def drift_refused_finding(drift: Mapping[str, Any], severity: str = "error",
-                          source: str | None = None) -> Finding:
-    """``drift.unmeasurable``: the drift estimate (:meth:`~hsi_torch.recon.drift.DriftEstimate.
-    to_dict`) is refused — too few views agree, the views disagree, beyond the measurable range
-    (``drift["refused"]`` says which). ``measured``: the agreeing views; ``limit``:
-    ``drift_min_views``."""
-    return Finding(
-        "drift.unmeasurable", severity,
-        f"{drift.get('refused')}; not corrected"
-        + ("" if severity == "error" else ", and refine_registration would refuse the frame"),
-        measured=drift.get("agreeing_views"), limit=drift.get("min_views"), source=source,
-        fix="check that the bundle is this device's, or recalibrate (grid shots)")
+    m = f.measured
+    above = reg.warn_px is not None and isinstance(m, (int, float)) and m > reg.warn_px
+    return [f] if f.severity != "info" or above else []
 
 
 #: the most outside-the-views samples :func:`batch_pedestal_findings` reads per frame and colour

@@ -72,6 +72,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import weakref
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,6 +96,7 @@ __all__ = [
     "motion_points",
     "drift_motion_px",
     "drift_decision",
+    "drift_finding",
 ]
 
 #: ECC correlation coefficient below which a view's alignment is not trusted (left out of the
@@ -718,8 +720,8 @@ def corrected_sensing(sens: Any, shift_px: Any, rotation_deg: float) -> Any:
 def drift_decision(
     est: DriftEstimate, motion_px: float, refine: bool | str, warn_px: float | None,
     source: str | None = None,
-) -> tuple[bool, Finding | None]:
-    """Whether to correct a frame's measured drift, and the finding that says what happened.
+) -> bool:
+    """Whether to correct a frame's measured drift (what is said of it: :func:`drift_finding`).
 
     Args:
         est: the frame's :func:`estimate_drift`.
@@ -727,46 +729,95 @@ def drift_decision(
             view uses, px).
         refine: ``refine_registration`` (``True``, ``False`` or ``"auto"``).
         warn_px: ``drift_warn_px`` (px; ``None``: ``"auto"`` corrects any reliable drift).
-        source: what the frame is (a file), for the finding and the error.
+        source: what the frame is (a file), for the error.
 
     Returns:
-        ``(correct, finding)``: ``finding`` is ``None`` under ``refine=False`` (the check's own
-        warnings speak for it); codes ``drift.corrected`` (info), ``drift.below_warning``
-        (info: measured, not corrected), ``drift.unmeasurable`` (warning: not corrected),
-        ``drift.no_texture`` (info: nothing to measure).
+        ``True`` to correct: ``refine`` is ``True``, or ``"auto"`` and the drift is measured
+        reliably and moves a view's pixel by more than ``warn_px``.
 
     Raises:
-        DriftError: ``refine is True`` and the drift cannot be measured (``est.refusal``).
+        DriftError: ``refine is True`` and the drift cannot be measured (``est.refusal``), with
+            its ``drift.unmeasurable`` error finding.
     """
     if refine is False:
-        return False, None
-    if refine is True and est.refusal is not None:
-        raise DriftError(f"{source or 'frame'}: refine_registration: {est.refusal}")
-    mode = "auto" if refine == "auto" else "true"
-    if est.textured_views == 0:
-        return False, Finding(
-            "drift.no_texture", "info", "no view has texture to measure the drift from (a flat "
-            f"field): nothing measured, nothing corrected (refine_registration: {mode})",
-            measured=0, limit=est.min_views, source=source)  # fmt: skip
+        return False
     if est.refusal is not None:
-        return False, Finding(
-            "drift.unmeasurable", "warning",
-            f"{est.refusal}; not corrected (refine_registration: auto): if the sensor moved, "
-            "the views are misaligned and the spectra biased",
-            measured=est.agreeing_views, limit=est.min_views,
-            fix="recalibrate (or photograph a scene with texture in every view)",
-            source=source)  # fmt: skip
-    if est.sensor_shift_px is None:
-        return False, None
-    t = [round(float(v), 3) for v in est.sensor_shift_px]
-    rot = round(float(est.sensor_rotation_deg or 0.0), 4)
-    what = (f"sensor drift measured reliably ({est.agreement()}): shift {t} px, rotation "
-            f"{rot}°, moving a view's pixel by up to {motion_px:.2f} px")
-    limit = None if refine is True else warn_px
-    if refine == "auto" and warn_px is not None and not motion_px > warn_px:
-        return False, Finding("drift.below_warning", "info",
-                              f"{what}: within drift_warn_px={warn_px:g}, not corrected",
-                              measured=round(motion_px, 3), limit=warn_px, source=source)
-    return True, Finding("drift.corrected", "info",
-                         f"{what}: corrected (refine_registration: {mode})",
-                         measured=round(motion_px, 3), limit=limit, source=source)
+        if refine is True:
+            raise DriftError(f"{source or 'frame'}: refine_registration: {est.refusal}",
+                             [drift_finding(est.to_dict(), True, warn_px, source)])
+        return False
+    if est.textured_views == 0 or est.sensor_shift_px is None:
+        return False
+    return refine is True or warn_px is None or motion_px > warn_px
+
+
+def drift_finding(
+    drift: Mapping[str, Any], refine: bool | str, warn_px: float | None,
+    source: str | None = None, fit_residual: float | None = None,
+    fit_warning: float | None = None,
+) -> Finding | None:
+    """The one ``drift.*`` finding of a frame (stored as ``stats["drift"]["finding"]`` and, when
+    it is more than a measurement within its limit, among the cube's findings).
+
+    Args:
+        drift: the frame's ``stats["drift"]`` (:meth:`DriftEstimate.to_dict` plus
+            ``sensor_motion_px`` and ``corrected``; missing keys read as unknown).
+        refine: ``refine_registration``; warn_px: ``drift_warn_px`` (px, or ``None``).
+        source: what the frame is (a file).
+        fit_residual, fit_warning: the frame's relative fit residual and
+            ``fit_residual_warning``: a drift that cannot be measured while the residual is
+            above its warning is an error (neither the bundle nor a drift explains the capture).
+
+    Returns:
+        ``drift.unmeasurable`` (warning; error under ``refine is True`` or with the residual
+        above its warning), ``drift.no_texture`` (warning under ``refine is True``, else info),
+        ``drift.corrected`` (info), ``drift.moved`` (warning: above ``warn_px``, not corrected),
+        ``drift.below_warning`` (info: within ``warn_px``, not corrected), or ``None`` (no
+        motion measured). Not escalated.
+    """
+    refused = drift.get("refused")
+    if isinstance(refused, str):  # not measurable: no motion is claimed
+        fit = fit_residual
+        unexplained = isinstance(fit, float) and fit_warning is not None and fit > fit_warning
+        if unexplained and refine is not True:
+            tail = (f"; with the fit residual {fit:.3f} > fit_residual_warning={fit_warning:g}, "
+                    "neither the bundle nor a drift of the sensor explains the capture: refused")
+        else:
+            tail = "" if refine is True else ", and refine_registration would refuse the frame"
+        return Finding(
+            "drift.unmeasurable", "error" if refine is True or unexplained else "warning",
+            f"{refused}; not corrected{tail}", measured=drift.get("agreeing_views"),
+            limit=drift.get("min_views"), source=source,
+            fix="check that the bundle is this device's, or recalibrate (grid shots)")
+    if drift.get("textured_views") == 0:
+        if refine is True:
+            return Finding("drift.no_texture", "warning", "refine_registration: nothing "
+                           "corrected, no view has texture to measure the drift from (a flat "
+                           "field)", measured=0, limit=1, source=source,
+                           fix="measure the drift on a textured capture of the same session")
+        return Finding("drift.no_texture", "info", "no view has texture to measure the drift "
+                       "from (a flat field): nothing measured, nothing corrected", measured=0,
+                       limit=1, source=source)  # fmt: skip
+    moved = drift.get("sensor_motion_px")
+    if not isinstance(moved, (int, float)) or drift.get("sensor_shift_px") is None:
+        return None
+    above = warn_px is not None and moved > warn_px
+    agree = drift.get("agreement")
+    detail = (f"fitted shift {drift.get('sensor_shift_px')} px, rotation "
+              f"{drift.get('sensor_rotation_deg')}°, from {drift.get('measured_views')} views "
+              "aligned to the reference view" + (f"; {agree}" if isinstance(agree, str) else ""))
+    limit = "" if warn_px is None else f" {'>' if above else '<='} drift_warn_px={warn_px:g}"
+    what = f"the sensor moved since calibration: up to {moved:.2f} px{limit} ({detail})"
+    m = round(float(moved), 3)
+    if drift.get("corrected"):
+        return Finding("drift.corrected", "info", what + "; corrected (refine_registration)",
+                       measured=m, limit=warn_px, source=source)
+    if above:
+        return Finding("drift.moved", "warning", what + "; the views are misaligned and the "
+                       "spectra are biased", measured=m, limit=warn_px,
+                       fix="--set refine_registration=true (or auto, the default) corrects it, "
+                       "or recalibrate", source=source)  # fmt: skip
+    if warn_px is None:  # not corrected, and no level to compare with: nothing to say
+        return None
+    return Finding("drift.below_warning", "info", what + "; within it, not corrected",
+                   measured=m, limit=warn_px, source=source)

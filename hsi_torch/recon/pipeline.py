@@ -53,7 +53,7 @@ import threading
 import time
 from collections.abc import Callable
 from contextvars import ContextVar
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, NamedTuple
@@ -63,7 +63,7 @@ from torch import Tensor, nn
 
 from hsi_torch.devices import torch_dtype
 from hsi_torch.errors import FileFormatError, InputError
-from hsi_torch.findings import Finding, RefusedError, refusals, warn_findings
+from hsi_torch.findings import Finding, refuse_or_warn
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io import read_any
 from hsi_torch.io.bundle import CalibrationBundle
@@ -72,7 +72,6 @@ from hsi_torch.io.cube import cube_to_xarray
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.recon.checks import (
     batch_pedestal_findings,
-    drift_refused_finding,
     exposure_info,
     exposure_scale,
     frame_findings,
@@ -80,9 +79,9 @@ from hsi_torch.recon.checks import (
 )
 from hsi_torch.recon.corrections import apply_bundle_corrections, correct_frames
 from hsi_torch.recon.drift import (
-    DriftError,
     corrected_sensing,
     drift_decision,
+    drift_finding,
     drift_motion_px,
     estimate_drift,
 )
@@ -187,14 +186,9 @@ def _judged(method: Callable[..., ReconstructionResult]) -> Callable[..., Recons
         finally:
             _JUDGING.reset(token)
         source = str(res.stats.get("source", "capture"))
-        res.findings = frame_findings(res.stats, self.settings, source)
-        refused = refusals(res.findings)
-        if refused:
-            raise RefusedError(f"{source}: refused: " + "; ".join(
-                replace(f, source=None).text() for f in refused),
-                res.findings)  # fmt: skip
-        warn_findings(res.findings, stacklevel=2)  # at the caller of reconstruct_*
-        return res
+        res.findings = refuse_or_warn(frame_findings(res.stats, self.settings, source),
+                                      self.settings.output.strict, source)  # fmt: skip
+        return res  # (the warnings point at the caller of reconstruct_*)
 
     return judged
 
@@ -735,10 +729,7 @@ class HSIReconstructor(nn.Module):
         :meth:`reconstruct_prepared`, so ``torch.compile`` sees no extra graph break."""
         found = batch_pedestal_findings(rgb, self.radiometry, self.settings,
                                         "HSIReconstructor input", saturated)  # fmt: skip
-        refused = refusals(found)
-        if refused:
-            raise RefusedError("; ".join(f.text() for f in refused), found)
-        warn_findings(found, stacklevel=3)
+        refuse_or_warn(found, self.settings.output.strict, stacklevel=3)
 
     # ------------------------------------------------------------------------------ files
     def sampling_factor(self, layout: str, cfa_pattern: str | None = None) -> Tensor:
@@ -825,12 +816,7 @@ class HSIReconstructor(nn.Module):
             drift = estimate_drift(sens, img, settings.registration.min_views)
             motion_px = drift_motion_px(sens, drift)
             reg = settings.registration
-            if reg.refine is True and drift.refusal is not None:
-                raise DriftError(f"{source}: refine_registration: {drift.refusal}",
-                                 [drift_refused_finding(drift.to_dict(), "error", source)])
-            correct, drift_finding = drift_decision(drift, motion_px, reg.refine, reg.warn_px,
-                                                    source)  # fmt: skip
-            if correct:
+            if drift_decision(drift, motion_px, reg.refine, reg.warn_px, source):
                 sens = corrected_sensing(
                     sens, drift.sensor_shift_px, drift.sensor_rotation_deg or 0.0
                 )
@@ -850,13 +836,16 @@ class HSIReconstructor(nn.Module):
         st.update(corr)
         timings = {"demosaic": t_demosaic, **t} if image.shape[0] == 1 else dict(t)
         if drift is not None:
+            reg = settings.registration
             st["drift"] = {
                 **drift.to_dict(),
                 "corrected": sens is not own,
                 "sensor_motion_px": round(motion_px, 3),
-                "refine_registration": settings.registration.refine,
-                "finding": None if drift_finding is None else drift_finding.to_dict(),
+                "refine_registration": reg.refine,
             }
+            said = drift_finding(st["drift"], reg.refine, reg.warn_px, source,
+                                 st.get("fit_residual"), settings.output.fit_residual_warning)
+            st["drift"]["finding"] = None if said is None else said.to_dict()
             timings["drift"] = t_drift
         timings["total"] = time.perf_counter() - t0
         std = None if out.std is None else out.std[0]

@@ -39,8 +39,8 @@ import torch
 from torch import Tensor
 
 from hsi_torch.devices import resolve_device
-from hsi_torch.forward_model import SensingModel
-from hsi_torch.io.bundle import CalibrationBundle
+from hsi_torch.forward_model import OnDevice, SensingModel
+from hsi_torch.io.bundle import CalibrationBundle, ReferenceFrame
 from hsi_torch.io.radiometry import CameraIdentity
 from hsi_torch.optics.geometry import view_sample_grid
 from hsi_torch.profiling import release_freed_memory
@@ -114,7 +114,7 @@ def bundle_exposure(bundle: CalibrationBundle) -> float | None:
 
 
 @dataclass
-class BundleSensing:
+class BundleSensing(OnDevice, ReferenceFrame):
     """Per-bundle tensors used by every frame (see the module docstring).
 
     Attributes:
@@ -148,6 +148,7 @@ class BundleSensing:
             ``dataclasses.replace`` makes, rebuilt when their masks or homographies differ).
     """
 
+    _ON = "model"  # (no annotation: a class attribute, not a field)
     wavelengths_nm: Tensor
     sensor_size: tuple[int, int]
     reference_bbox: tuple[int, int, int, int]
@@ -218,17 +219,6 @@ class BundleSensing:
     def num_pixels(self) -> int:
         return int(self.pixel_index.shape[0])
 
-    @property
-    def frame_size(self) -> tuple[int, int]:
-        return int(self.reference_bbox[3]), int(self.reference_bbox[2])
-
-    @property
-    def device(self) -> torch.device:
-        return self.model.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.model.dtype
 
     def with_regularisation(self, beta: float, diff_order: int = 1) -> BundleSensing:
         """A view of the same sensing with another ``(beta, diff_order)``: ``A``/masks are shared,

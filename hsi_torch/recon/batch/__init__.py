@@ -31,23 +31,10 @@ lazily.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from hsi_torch.errors import lazy_attributes
 
-_LAZY = {
-    "run_reconstruction": "hsi_torch.recon.batch.entry",
-    "reconstruct_many": "hsi_torch.recon.batch.entry",
-    "RunSummary": "hsi_torch.recon.batch.driver",
-    "RunFailure": "hsi_torch.recon.batch.driver",
-    "print_summary": "hsi_torch.recon.batch.driver",
-    "ReconstructRun": "hsi_torch.recon.batch.run",
-    "check_run": "hsi_torch.recon.batch.run",
-}
-
-__all__ = list(_LAZY)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'hsi_torch.recon.batch' has no attribute {name!r}")
+__all__, __getattr__ = lazy_attributes(__name__, {
+    "hsi_torch.recon.batch.entry": ("run_reconstruction", "reconstruct_many"),
+    "hsi_torch.recon.batch.driver": ("RunSummary", "RunFailure", "print_summary"),
+    "hsi_torch.recon.batch.run": ("ReconstructRun", "check_run"),
+})  # fmt: skip

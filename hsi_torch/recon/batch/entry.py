@@ -213,13 +213,7 @@ def reconstruct_many(
     *,
     config: ReconstructConfig | Mapping[str, Any] | str | os.PathLike | None = None,
     overrides: list[str] | None = None,
-    output_format: str = "files",
-    resume: bool = True,
-    progress: bool = True,
-    device: str | None = None,
-    threads_per_worker: int | None = None,
-    send_bundle: bool = False,
-    security: Any | None = None,
+    **options: Any,
 ) -> RunSummary:
     """Reconstruct many captures with one bundle, on a Dask cluster or in this process
     (:func:`run_reconstruction` from Python).
@@ -233,16 +227,12 @@ def reconstruct_many(
             ``None``: this process.
         config: a :class:`ReconstructConfig`, a mapping, a YAML file, or ``None`` (the shipped
             ``reconstruct.yaml``); ``overrides``: ``["beta=1e3", ...]`` on top.
-        output_format: ``"files"`` (the configured cube formats, previews) or ``"zarr"`` (one
-            dataset store ``out_dir/cubes.zarr``).
-        resume: skip inputs whose outputs exist (unchanged, same input, settings and bundle).
-        progress: a progress bar over completed inputs on stderr.
-        device: torch device of the frames (``"cuda"``: each worker its GPU).
-        threads_per_worker: torch/numba threads per frame on a worker (default: cores / N for
-            ``local:N``, else each worker's Dask thread count).
-        send_bundle: send the bundle's bytes to the workers (they do not see its file).
-        security: for a ``tls://`` scheduler spec, a ``distributed.security.Security``
-            (:func:`hsi_torch.recon.distributed.make_security`).
+        options: :func:`run_reconstruction`'s keywords, as documented there:
+            ``output_format`` (``"files"``, the configured cube formats and previews, or
+            ``"zarr"``, one dataset store ``out_dir/cubes.zarr``), ``resume``, ``progress``,
+            ``device`` (``"cuda"``: each worker its GPU), ``threads_per_worker`` (default: cores
+            / N for ``local:N``, else each worker's Dask thread count), ``send_bundle``,
+            ``security`` (for a ``tls://`` scheduler spec).
 
     Returns:
         The :class:`~hsi_torch.recon.batch.driver.RunSummary`: ``processed``, ``skipped``,
@@ -261,8 +251,5 @@ def reconstruct_many(
     """
     cfg = load_run_config(config, overrides)
     spec = str(client) if isinstance(client, (str, os.PathLike)) else None
-    return run_reconstruction(
-        inputs, bundle, out_dir, cfg, scheduler=spec, client=None if spec else client,
-        output_format=output_format, resume=resume, progress=progress, device=device,
-        threads_per_worker=threads_per_worker, send_bundle=send_bundle, security=security,
-    )  # fmt: skip
+    return run_reconstruction(inputs, bundle, out_dir, cfg, scheduler=spec,
+                              client=None if spec else client, **options)  # fmt: skip

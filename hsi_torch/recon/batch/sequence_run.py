@@ -43,10 +43,10 @@ from hsi_torch.io.sequence_store import (
     SEQUENCE_NAME,
     SequenceStore,
     is_sequence_store,
-    write_animated_preview,
 )
 from hsi_torch.recon.batch.driver import RunFailure, RunSummary
 from hsi_torch.recon.batch.run import ReconstructRun, check_run
+from hsi_torch.recon.batch.sequence_finish import finish_sequence_run
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
 
@@ -272,13 +272,8 @@ def run_sequence(
             finally:
                 bar.close()
         n = len(store)
-    if preview and n:
-        gif = write_animated_preview(store.path, out / SEQUENCE_PREVIEW)
-        if gif is not None:
-            summary.outputs[store.path] = [store.path, gif]
-    summary.elapsed_s = time.perf_counter() - t_start
-    run.discard_if_nothing_written(summary)
-    return summary
+    gif = out / SEQUENCE_PREVIEW if preview and n else None
+    return finish_sequence_run(summary, run, store.path, gif, t_start)
 
 
 def _frames_to_do(

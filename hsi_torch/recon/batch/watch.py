@@ -48,9 +48,10 @@ from hsi_torch.io.sequence import (
     looks_complete,
     natural_key,
 )
-from hsi_torch.io.sequence_store import SEQUENCE_NAME, SequenceStore, write_animated_preview
+from hsi_torch.io.sequence_store import SEQUENCE_NAME, SequenceStore
 from hsi_torch.recon.batch.driver import RunFailure, RunSummary
 from hsi_torch.recon.batch.run import check_run
+from hsi_torch.recon.batch.sequence_finish import finish_sequence_run
 from hsi_torch.recon.batch.sequence_run import (
     SEQUENCE_PREVIEW,
     _reconstruct_sequence,
@@ -293,10 +294,5 @@ def watch_folder(
             summary.failed.append(RunFailure(p, f"IncompleteFile: {why}"))
         n = len(store)
     info(f"watch ended: {watcher.stop_reason or 'stopped'}; {n} frame(s) in {store.path}")
-    if preview and n:
-        gif = write_animated_preview(store.path, out / SEQUENCE_PREVIEW)
-        if gif is not None:
-            summary.outputs[store.path] = [store.path, gif]
-    summary.elapsed_s = time.perf_counter() - t_start
-    run.discard_if_nothing_written(summary)
-    return summary
+    gif = out / SEQUENCE_PREVIEW if preview and n else None
+    return finish_sequence_run(summary, run, store.path, gif, t_start)

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 from typing_extensions import Unpack  # Python 3.10 (a dependency of torch)
 
-from hsi_torch.forward_model import DenseSensing, SensingModel
+from hsi_torch.forward_model import DenseSensing, OnDevice, SensingModel
 from hsi_torch.recon.nnls import _compiled
 from hsi_torch.recon.nnls._threads import cpu_threads, for_chunks, workers_for
 from hsi_torch.recon.nnls.admm import solve_admm
@@ -153,7 +153,7 @@ def _check_inputs(
     return op, mask, beta
 
 
-class NNLSProblem:
+class NNLSProblem(OnDevice):
     """Precomputed per-pixel factorisations of one sensing configuration; reuse for every frame.
 
     Build with :func:`prepare_nnls`. Holds the sensing operator (a reference), the mask, the
@@ -171,6 +171,8 @@ class NNLSProblem:
         singular: ``(1|P,)`` bool, ``G`` (numerically) singular: those pixels use
             Lawson–Hanson. no_data: ``(1|P,)`` bool, all observations masked.
     """
+
+    _ON = "sensing"
 
     def __init__(
         self,
@@ -216,13 +218,6 @@ class NNLSProblem:
     def num_bands(self) -> int:
         return self.sensing.num_bands
 
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.sensing.dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.sensing.device
 
     def memory_bytes(self) -> int:
         """Bytes held by the factorisation (not the operator or the mask)."""
