@@ -71,6 +71,9 @@ def main() -> None:
     ap.add_argument("--beta", type=float, default=1e4)
     ap.add_argument("--modes", default="both", choices=["both", "per", "spatial"],
                     help="the warm part's modes: per pixel, spatial prior or both")
+    ap.add_argument("--spatial-warm", default="both", choices=["both", "state", "reused"],
+                    help="the spatial mode's warm starts: the ADMM state, with the noise level "
+                         "reused, or both")
     ap.add_argument("--cache", default=None, help="folder of the warm part's simulated frames")
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -131,9 +134,11 @@ def main() -> None:
         # warm-started once per warm start, in the same process)
         modes = [m for m in (("per pixel", pp, {"per pixel": WarmStart(spatial=False)}),
                              ("spatial prior", tv, {
-                                 "state": WarmStart(per_pixel=False),
-                                 "state + noise reused": WarmStart(per_pixel=False,
-                                                                   reuse_noise=True)}))
+                                 k: w for k, w in (
+                                     ("state", WarmStart(per_pixel=False)),
+                                     ("state + noise reused", WarmStart(per_pixel=False,
+                                                                        reuse_noise=True)))
+                                 if args.spatial_warm in ("both", k.split()[-1])}))
                  if args.modes in ("both", m[0].split()[0])]
         for name, rec, warms in modes:
             tc: list[float] = []

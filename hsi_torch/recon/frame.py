@@ -361,8 +361,8 @@ WARM_CHECK_EVERY = 1
 #: is within this of 1.
 NOISE_REUSE_GAIN = 0.1
 
-#: The static test and the gain of :func:`_spatial_start` are measured on at most this many valid
-#: pixels (evenly spaced).
+#: The static test of :func:`_spatial_start` takes its median over at most this many valid pixels
+#: (evenly spaced).
 START_SAMPLES = 16384
 
 
@@ -372,12 +372,13 @@ def _spatial_start(x: Tensor, prev_x: Tensor, prev_spatial: Tensor,
     ``g`` where the pixel is static, this frame's per-pixel solution where it moved (a moving
     pixel's previous answer is a worse start than its own data).
 
-    The gain ``g``, the median over the valid pixels of ``⟨x_p, x'_p⟩ / ‖x'_p‖²`` (``x'`` the
-    previous per-pixel solution; the median: moving parts do not pull it), follows a change of
-    the light or the exposure between frames (a flicker moves every pixel's optimum by the same
-    factor). A pixel is static when its per-pixel
-    solution moved from ``g·x'_p`` by ``≤`` :data:`STATIC_CHANGE_FACTOR` × the median squared
-    change over the valid pixels (the noise, when most of the scene is still).
+    The gain ``g``, the ratio of the sums of all bands of all valid pixels ``Σx / Σx'`` (``x'``
+    the previous per-pixel solution; sums, so that the noise averages out: a ratio of norms or
+    of per-pixel projections is biased by it), follows a change of the light or the exposure
+    between frames (a flicker moves every pixel's optimum by the same factor). A pixel is static
+    when its per-pixel solution moved from ``g·x'_p`` by ``≤`` :data:`STATIC_CHANGE_FACTOR` ×
+    the median squared change over the valid pixels (the noise, when most of the scene is
+    still).
 
     Returns:
         the start ``(P, M)``, the static pixels ``(P,)`` bool (where the previous frame's ADMM
@@ -388,10 +389,8 @@ def _spatial_start(x: Tensor, prev_x: Tensor, prev_spatial: Tensor,
         return x, torch.zeros_like(ok), 1.0
     prev_x = prev_x.to(x)
     sample = idx[:: max(1, idx.numel() // START_SAMPLES)]  # the medians on a sample
-    xo, po = x[sample], prev_x[sample]
-    den = po.square().sum(1)
-    lit = den > 0
-    g = float(((xo[lit] * po[lit]).sum(1) / den[lit]).median()) if bool(lit.any()) else 1.0
+    den = float(prev_x[idx].sum())
+    g = float(x[idx].sum()) / den if den > 0 else 1.0
     g = g if math.isfinite(g) and g > 0 else 1.0
     d = (x - g * prev_x).square().sum(1)
     keep = ok & (d <= STATIC_CHANGE_FACTOR * d[sample].median())
