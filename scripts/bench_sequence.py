@@ -126,7 +126,7 @@ def main() -> None:
                 d = {k: getattr(f, k) for k in ("image", "saturated", "truth", "moved")}
                 torch.save(d, fp)
                 print(f"[warm] simulated frame {i} ({time.perf_counter() - ts:.0f} s)")
-            yield SimpleNamespace(index=i, **d)
+            yield SimpleNamespace(**{**d, "index": i})
 
     if "warm" in parts:
         tv = Reconstructor(sens, prior="tv", drift_check=False)
