@@ -555,10 +555,12 @@ class SequenceSettings:
             previous frame's zero set (the same KKT points as cold solves). Off by default: on
             the simulated moving scene it was not faster than the solver's own start
             (``docs/sequences.md``).
-        warm_spatial: the spatial prior's ADMM starts from the previous frame's answer on the
-            static pixels and its TV prox from the previous dual. Off by default: it ran as many
-            iterations as the cold start, and its tolerance-stopped answers can be further from
-            the optimum than the cold ones (``docs/sequences.md``).
+        warm_spatial: the spatial prior's ADMM starts from the previous frame's state (answer and
+            scaled dual on the static pixels, the TV prox's dual) and checks its stopping rule
+            every iteration: the same optimum to the solver's tolerance. Off by default: on the
+            simulated moving scene it saved one or two of twenty iterations (consecutive frames'
+            optima differ by about as much as a frame's per-pixel start differs from its own;
+            ``docs/sequences.md``).
         warm_noise: with ``warm_spatial``, a frame within 10 % of the light and exposure of the
             frame whose noise level was last estimated reuses that noise level ``σ̂`` and so its
             ``λ`` (``stats["noise_sigma_given"]``): the frame's answer is the optimum of the
