@@ -11,15 +11,23 @@ a rotating ColorChecker, :mod:`hsi_torch.simulate.motion`, forward engine, oracl
 * ``drift``: drift growing 0.1 px a frame: the tracked path's error per frame and the PSNR of
   the path-corrected frames vs the same frames without drift.
 
-Full size by default; ``--small`` for the 400 × 384 px prototype.
+Full size by default; ``--small`` for the 400 × 384 px prototype. ``--cache DIR``: the
+``warm`` part's bundle and frames are read from ``DIR`` (``bundle.pt``, ``frame_000.pt`` …: a
+dict of ``image``, ``saturated``, ``truth``, ``moved``), written there first if absent (the
+full-size simulation takes minutes a frame on a loaded machine; a second run reuses it).
+The spatial mode's warm starts are ``WarmStart(per_pixel=False)`` (the ADMM's state) and the
+same with ``reuse_noise=True`` (the noise level, hence ``λ``, of the frame it was last estimated
+on); the per-pixel warm start is measured in its own row.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import time
+from types import SimpleNamespace
 
 import torch
 
@@ -61,17 +69,31 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--parts", default="warm,temporal,drift")
     ap.add_argument("--beta", type=float, default=1e4)
+    ap.add_argument("--modes", default="both", choices=["both", "per", "spatial"],
+                    help="the warm part's modes: per pixel, spatial prior or both")
+    ap.add_argument("--spatial-warm", default="both", choices=["both", "state", "reused"],
+                    help="the spatial mode's warm starts: the ADMM state, with the noise level "
+                         "reused, or both")
+    ap.add_argument("--cache", default=None, help="folder of the warm part's simulated frames")
     args = ap.parse_args()
-    parts = set(args.parts.split(","))
     t0 = time.perf_counter()
     size = "small" if args.small else "full"
-    renderer, _ = sequence_renderer(size, ["render.supersample=1", "diffuser.blur_sigma_mm=0"])
-    gt = renderer.ground_truth()
-    bundle = oracle_bundle(renderer, gt)
+    parts = set(args.parts.split(","))
+    cache = args.cache
+    cached = cache is not None and os.path.exists(os.path.join(cache, "bundle.pt"))
+    if cached and parts == {"warm"}:  # the frames are read back: no renderer needed
+        renderer, gt = None, None
+        bundle = torch.load(os.path.join(cache, "bundle.pt"), weights_only=False)
+    else:
+        renderer, _ = sequence_renderer(
+            size, ["render.supersample=1", "diffuser.blur_sigma_mm=0"]
+        )
+        gt = renderer.ground_truth()
+        bundle = oracle_bundle(renderer, gt)
     pp = Reconstructor(bundle, beta=args.beta, drift_check=False)
     sens = pp.sensing
     print(
-        f"{size}: sensor {renderer.sensor_size}, {sens.num_pixels} pixels, setup "
+        f"{size}: sensor {tuple(bundle.sensor_size.tolist())}, {sens.num_pixels} pixels, setup "
         f"{time.perf_counter() - t0:.1f} s; torch threads {torch.get_num_threads()}"
     )
     layers = cave_and_chart()
@@ -80,30 +102,88 @@ def main() -> None:
     def frames(**kw):
         return simulate_sequence(renderer, layers, n, truth=gt, **kw)
 
+    def warm_frames():
+        """The warm part's frames (5 % flicker), through ``--cache`` where given."""
+        if cache is None:
+            yield from frames(illumination=Illumination(flicker=0.05))
+            return
+        os.makedirs(cache, exist_ok=True)
+        path = os.path.join(cache, "bundle.pt")
+        if not os.path.exists(path):
+            torch.save(bundle, path)
+        ts = time.perf_counter()
+        sim = None
+        for i in range(n):
+            fp = os.path.join(cache, f"frame_{i:03d}.pt")
+            if os.path.exists(fp):
+                d = torch.load(fp)
+            else:
+                if sim is None:
+                    sim = iter(frames(illumination=Illumination(flicker=0.05)))
+                    for _ in range(i):
+                        next(sim)
+                f = next(sim)
+                d = {k: getattr(f, k) for k in ("image", "saturated", "truth", "moved")}
+                torch.save(d, fp)
+                print(f"[warm] simulated frame {i} ({time.perf_counter() - ts:.0f} s)")
+            yield SimpleNamespace(**{**d, "index": i})
+
     if "warm" in parts:
         tv = Reconstructor(sens, prior="tv", drift_check=False)
-        for name, rec in (("per pixel", pp), ("spatial prior", tv)):
-            warm = WarmStart()
-            tc, tw, dpsnr, its = [], [], [], []
-            for f in frames(illumination=Illumination(flicker=0.05)):
+        # per mode: the reconstructor and its warm starts (each frame solved cold once and
+        # warm-started once per warm start, in the same process)
+        modes = [m for m in (("per pixel", pp, {"per pixel": WarmStart(spatial=False)}),
+                             ("spatial prior", tv, {
+                                 k: w for k, w in (
+                                     ("state", WarmStart(per_pixel=False)),
+                                     ("state + noise reused", WarmStart(per_pixel=False,
+                                                                        reuse_noise=True)))
+                                 if args.spatial_warm in ("both", k.split()[-1])}))
+                 if args.modes in ("both", m[0].split()[0])]
+        for name, rec, warms in modes:
+            tc: list[float] = []
+            tw: dict[str, list[float]] = {k: [] for k in warms}
+            dp: dict[str, list[float]] = {k: [] for k in warms}
+            its: dict[str, list[int]] = {k: [] for k in warms}
+            its_c: list[int] = []
+            for f in warm_frames():
                 c = rec.reconstruct_frame(f.image, f.saturated)
-                w = rec.reconstruct_frame(f.image, f.saturated, warm=warm)
-                if f.index > 0:  # frame 0 has no previous frame (and compiles)
-                    tc.append(c.timings["solve"])
-                    tw.append(w.timings["solve"])
-                    its.append(
-                        (c.stats.get("spatial_iterations"), w.stats.get("spatial_iterations"))
-                    )
                 pc = psnr_sam(c.cube, f.truth, c.valid)[0]
-                pw = psnr_sam(w.cube, f.truth, w.valid)[0]
-                dpsnr.append(pw - pc)
-            mc, mw = statistics.median(tc), statistics.median(tw)
-            print(
-                f"[warm] {name}: solve median cold {mc:.3f} s ({1 / mc:.2f} frames/s), warm "
-                f"{mw:.3f} s ({1 / mw:.2f} frames/s), speed-up {mc / mw:.2f}x; PSNR warm − "
-                f"cold per frame: min {min(dpsnr):+.4f} max {max(dpsnr):+.4f} dB"
-                + (f"; ADMM iterations cold/warm {its[len(its) // 2]}" if its[0][0] else "")
-            )
+                line = f"[warm] {name} frame {f.index:2d}: cold {c.timings['solve']:.3f} s"
+                if rec is tv:
+                    its_c.append(c.stats["spatial_iterations"])
+                    line += f" ({its_c[-1]} it)"
+                line += f", PSNR {pc:.3f} dB"
+                for k, warm in warms.items():
+                    w = rec.reconstruct_frame(f.image, f.saturated, warm=warm)
+                    pw = psnr_sam(w.cube, f.truth, w.valid)[0]
+                    if f.index > 0:  # frame 0 has no previous frame (and compiles)
+                        tw[k].append(w.timings["solve"])
+                        dp[k].append(pw - pc)
+                        if rec is tv:
+                            its[k].append(w.stats["spatial_iterations"])
+                    line += f"; {k} {w.timings['solve']:.3f} s"
+                    if rec is tv:
+                        line += (f" ({w.stats['spatial_iterations']} it, static "
+                                 f"{w.stats.get('spatial_warm_static')}, gain "
+                                 f"{w.stats.get('spatial_warm_gain', 1.0):.3f}, σ given "
+                                 f"{w.stats.get('noise_sigma_given')})")
+                    line += f" {pw - pc:+.4f} dB"
+                if f.index > 0:
+                    tc.append(c.timings["solve"])
+                print(line, flush=True)
+            mc = statistics.median(tc)
+            for k in warms:
+                mw = statistics.median(tw[k])
+                print(
+                    f"[warm] {name}, {k}: solve median cold {mc:.3f} s ({1 / mc:.2f} frames/s), "
+                    f"warm {mw:.3f} s ({1 / mw:.2f} frames/s), speed-up {mc / mw:.2f}x "
+                    f"(sums {sum(tc):.1f} / {sum(tw[k]):.1f} s); PSNR warm − cold per frame: "
+                    f"min {min(dp[k]):+.4f} max {max(dp[k]):+.4f} dB"
+                    + (f"; ADMM iterations median cold {statistics.median(its_c)}, warm "
+                       f"{statistics.median(its[k])}" if rec is tv else ""),
+                    flush=True,
+                )
         print(f"[warm] peak RSS {peak_rss_gib():.2f} GiB")
 
     if "temporal" in parts:

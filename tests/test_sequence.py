@@ -97,12 +97,19 @@ def test_the_spatial_start_keeps_the_previous_answer_on_static_pixels_only():
     prev_sp = torch.full_like(x, 0.5)
     ok = torch.ones(50, dtype=torch.bool)
     ok[3] = False
-    z = _spatial_start(x, prev_x, prev_sp, ok)
+    z, kept, gain = _spatial_start(x, prev_x, prev_sp, ok)
+    assert gain == pytest.approx(1.0, abs=0.05)  # the light did not change (one pixel moved)
+    assert not kept[7] and not kept[3] and int(kept.sum()) >= 40
     torch.testing.assert_close(z[7], x[7])
     torch.testing.assert_close(z[3], x[3])  # invalid: its own
     keep = torch.ones(50, dtype=torch.bool)
     keep[[3, 7]] = False
-    assert int((z[keep] == 0.5).all(1).sum()) >= 40  # most static pixels kept the previous
+    assert int((z[keep] == 0.5 * gain).all(1).sum()) >= 40  # most static pixels kept the previous
+    # a flicker: every pixel 10 % brighter is still static, started from the previous answer
+    # times the gain
+    z2, kept2, gain2 = _spatial_start(1.1 * x, prev_x, prev_sp, ok)
+    assert gain2 == pytest.approx(1.1 * gain, rel=1e-9) and int(kept2.sum()) >= 40
+    torch.testing.assert_close(z2[kept2], torch.full_like(z2[kept2], 0.5 * gain2))
 
 
 def test_the_temporal_prior_lowers_the_error_and_stays_out_of_a_moving_part():
@@ -235,4 +242,4 @@ def test_warm_start_state_is_reset():
     w = WarmStart()
     w.x = torch.zeros(3, 2)
     w.reset()
-    assert w.x is None and w.spatial_x is None and w.spatial_dual is None
+    assert w.x is None and w.spatial_x is None and w.spatial_dual is None and w.spatial_u is None

@@ -27,7 +27,8 @@ def test_every_config_key_has_its_place_and_the_defaults_agree():
     cfg = ReconstructConfig()
     api_only = {k for k, (g, f) in FLAT_KEYS.items()
                 if not GROUPS[g].__dataclass_fields__[f].metadata["yaml"]}
-    assert {"sat_threshold", "noise_quantization_dn", "temporal"} <= api_only
+    assert {"sat_threshold", "noise_quantization_dn"} <= api_only
+    assert "temporal" not in api_only  # the sequence group: reconstruct --sequence reads it
     assert {f.name for f in dataclasses.fields(cfg)} == set(FLAT_KEYS) - api_only
     s = cfg.settings()
     assert s == ReconstructSettings()  # the configuration's defaults are the settings'

@@ -53,6 +53,7 @@ from hsi_torch.recon.nnls import cpu_threads, solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, sample_pixels
 from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.recon.spatial import solve_frame as spatial_solve_frame
+from hsi_torch.recon.spatial.admm import CHECK_EVERY as SPATIAL_CHECK_EVERY
 from hsi_torch.recon.uncertainty import (
     DEFAULT_ELECTRONS_PER_DN,
     SensorNoise,
@@ -91,11 +92,20 @@ class WarmStart:
     Attributes:
         per_pixel: start the active-set solve of the pixels that pivot from the zero set of
             ``x`` (the previous frame's per-pixel solution) instead of the solver's own start.
-        spatial: start the spatial prior's ADMM from ``spatial_x`` (the previous frame's
-            answer) and its TV prox from ``spatial_dual`` instead of this frame's per-pixel
-            solution and a zero dual.
+        spatial: start the spatial prior's ADMM from the previous frame's state on the pixels
+            whose per-pixel solution stayed still (:func:`_spatial_start`): its answer
+            ``spatial_x`` and scaled dual ``spatial_u``; this frame's per-pixel solution and its
+            multiplier on the others; the TV prox from ``spatial_dual``; the stopping rule
+            checked every :data:`WARM_CHECK_EVERY` iterations (the same rule and tolerance as
+            cold).
+        reuse_noise: with ``spatial``, a frame whose gain against the previous one
+            (:func:`_spatial_start`) is within :data:`NOISE_REUSE_GAIN` of 1 (the same exposure
+            and light) reuses the previous frame's noise level ``σ̂`` and so its ``λ`` instead of
+            estimating them again (``stats["noise_sigma_given"]``): the answer is then the
+            optimum of the problem with the previous frame's ``λ``, not this frame's own.
         x: ``(P, M)`` the last per-pixel solution (``None`` before the first frame).
-        spatial_x: ``(P, M)`` the last spatial answer; spatial_dual: its TV prox dual.
+        spatial_x: ``(P, M)`` the last spatial answer; spatial_dual: its TV prox dual;
+            spatial_u: ``(P, M)`` its ADMM scaled dual (``None`` where the solve had none).
     """
 
     per_pixel: bool = True
@@ -103,10 +113,15 @@ class WarmStart:
     x: Tensor | None = None
     spatial_x: Tensor | None = None
     spatial_dual: tuple | None = None
+    spatial_u: Tensor | None = None
+    reuse_noise: bool = False
+    spatial_sigma: float | None = None
+    sigma_gain: float = 1.0
 
     def reset(self) -> None:
         """Forget the state (the next frame starts cold)."""
-        self.x = self.spatial_x = self.spatial_dual = None
+        self.x = self.spatial_x = self.spatial_dual = self.spatial_u = None
+        self.spatial_sigma, self.sigma_gain = None, 1.0
 
 
 
@@ -337,18 +352,49 @@ def _solve_per_pixel(
 #: solution changed by at most this many times the frame's median change (the static ones).
 STATIC_CHANGE_FACTOR = 4.0
 
+#: Iterations between two checks of the spatial ADMM's stopping rule when warm-started (cold:
+#: :data:`hsi_torch.recon.spatial.admm.CHECK_EVERY`): a start near the optimum meets the rule
+#: in a few iterations.
+WARM_CHECK_EVERY = 1
 
-def _spatial_start(x: Tensor, prev_x: Tensor, prev_spatial: Tensor, ok: Tensor) -> Tensor:
-    """The spatial ADMM's warm start: the previous frame's spatial answer where the pixel is
-    static (its per-pixel solution moved by ``≤`` :data:`STATIC_CHANGE_FACTOR` × the median
-    squared change over the valid pixels: the noise, when most of the scene is still), this
-    frame's per-pixel solution where it moved (a moving pixel's previous answer is a worse
-    start than its own data)."""
-    d = (x - prev_x.to(x)).square().sum(1)
-    if not bool(ok.any()):
-        return x
-    keep = ok & (d <= STATIC_CHANGE_FACTOR * d[ok].median())
-    return torch.where(keep.unsqueeze(1), prev_spatial.to(x), x)
+#: ``reuse_noise``: the previous frame's noise level is reused when the frame's gain against it
+#: is within this of 1.
+NOISE_REUSE_GAIN = 0.1
+
+#: The static test of :func:`_spatial_start` takes its median over at most this many valid pixels
+#: (evenly spaced).
+START_SAMPLES = 16384
+
+
+def _spatial_start(x: Tensor, prev_x: Tensor, prev_spatial: Tensor,
+                   ok: Tensor) -> tuple[Tensor, Tensor, float]:
+    """The spatial ADMM's warm start: the previous frame's spatial answer times the frame's gain
+    ``g`` where the pixel is static, this frame's per-pixel solution where it moved (a moving
+    pixel's previous answer is a worse start than its own data).
+
+    The gain ``g``, the ratio of the sums of all bands of all valid pixels ``Σx / Σx'`` (``x'``
+    the previous per-pixel solution; sums, so that the noise averages out: a ratio of norms or
+    of per-pixel projections is biased by it), follows a change of the light or the exposure
+    between frames (a flicker moves every pixel's optimum by the same factor). A pixel is static
+    when its per-pixel solution moved from ``g·x'_p`` by ``≤`` :data:`STATIC_CHANGE_FACTOR` ×
+    the median squared change over the valid pixels (the noise, when most of the scene is
+    still).
+
+    Returns:
+        the start ``(P, M)``, the static pixels ``(P,)`` bool (where the previous frame's ADMM
+        dual is carried over too, times ``g``) and ``g``.
+    """
+    idx = ok.nonzero().squeeze(1)
+    if idx.numel() == 0:
+        return x, torch.zeros_like(ok), 1.0
+    prev_x = prev_x.to(x)
+    sample = idx[:: max(1, idx.numel() // START_SAMPLES)]  # the medians on a sample
+    den = float(prev_x[idx].sum())
+    g = float(x[idx].sum()) / den if den > 0 else 1.0
+    g = g if math.isfinite(g) and g > 0 else 1.0
+    d = (x - g * prev_x).square().sum(1)
+    keep = ok & (d <= STATIC_CHANGE_FACTOR * d[sample].median())
+    return torch.where(keep.unsqueeze(1), g * prev_spatial.to(x), x), keep, g
 
 
 def solve_observations(
@@ -415,16 +461,31 @@ def solve_observations(
         if grad and pr.spatial_iters is None:
             raise ValueError("prior='tv' with gradients needs spatial_iters=N (fixed, "
                              "differentiable iterations)")
-        start, dual = None, None
+        start, dual, u0, keep, check, sigma = None, None, None, None, SPATIAL_CHECK_EVERY, None
         if (warm is not None and warm.spatial and warm.spatial_x is not None
                 and prev_x is not None and warm.spatial_x.shape == x.shape == prev_x.shape):
-            start, dual = _spatial_start(x, prev_x, warm.spatial_x, ok), warm.spatial_dual
+            start, keep, gain = _spatial_start(x, prev_x, warm.spatial_x, ok)
+            dual, check = warm.spatial_dual, WARM_CHECK_EVERY
+            if warm.spatial_u is not None and warm.spatial_u.shape == x.shape:
+                u0 = gain * warm.spatial_u.to(x)
+            if warm.reuse_noise and abs(warm.sigma_gain * gain - 1.0) <= NOISE_REUSE_GAIN:
+                sigma = warm.spatial_sigma
         x, sinfo = spatial_solve_frame(sens, yc, mask, ok, changed, x, lam=pr.lam,
                                        iters=pr.spatial_iters, rank=pr.spectral_rank,
-                                       start=start, dual=dual)
+                                       start=start, dual=dual, u0=u0,
+                                       u0_mask=None if u0 is None else keep, check_every=check,
+                                       sigma=sigma)
         sdual = sinfo.pop("spatial_dual", None)
+        su = sinfo.pop("spatial_u", None)
         if warm is not None:
-            warm.spatial_x, warm.spatial_dual = x.detach().clone(), sdual
+            warm.spatial_x, warm.spatial_dual, warm.spatial_u = x.detach().clone(), sdual, su
+            if sigma is None:  # estimated on this frame
+                warm.spatial_sigma, warm.sigma_gain = sinfo.get("noise_sigma"), 1.0
+            else:
+                warm.sigma_gain *= gain
+        if start is not None:
+            sinfo["spatial_warm_static"] = int(torch.count_nonzero(keep))
+            sinfo["spatial_warm_gain"] = gain
     elif grad and not native_grad:
         x = _reduced_resolve(sens, yc, mask, x, changed)
     if prior != "tv" and x.device.type == "cpu" and not x.requires_grad:

@@ -852,11 +852,21 @@ class HSIReconstructor(nn.Module):
         return ReconstructionResult(cube[0], valid[0], sens.wavelengths_nm, st, timings, std)
 
     @_judged
-    def reconstruct_capture(self, capture: Any) -> ReconstructionResult:
+    def reconstruct_capture(
+        self,
+        capture: Any,
+        *,
+        warm: WarmStart | None = None,
+        sensing: BundleSensing | None = None,
+        stats: dict[str, Any] | None = None,
+    ) -> ReconstructionResult:
         """Reconstruct a :class:`hsi_torch.io.LinearCapture` (``image``, ``saturated``, the
         exposure from ``metadata``: ``exposure_s``, else the simulator's relative ``exposure``,
         compared with the bundle's white reference in the same unit; the statistics say
         ``radiometric_scale`` and ``exposure_note``, :func:`hsi_torch.recon.checks.exposure_info`).
+        ``warm``, ``sensing``: as :meth:`reconstruct_frame` (a frame of a sequence); ``stats``:
+        statistics added to the result's before it is judged (the reading's checks, see
+        :meth:`reconstruct_file`).
         """
         src = str(getattr(capture, "path", "capture"))
         corr = apply_bundle_corrections(capture, self.sensing.radiometry)
@@ -872,9 +882,12 @@ class HSIReconstructor(nn.Module):
             res = self.reconstruct_frame(
                 capture.image, capture.saturated, exposure_s=t,
                 source=src, raw_layout=layout, cfa_pattern=pattern, bundle_corrections=False,
+                warm=warm, sensing=sensing,
             )  # fmt: skip
             res.stats.update(exp_stats)
             res.stats.update(corr)
+            if stats:
+                res.stats.update(stats)
             return res
         except InputError as exc:
             if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
@@ -883,7 +896,13 @@ class HSIReconstructor(nn.Module):
 
     @_judged
     def reconstruct_file(
-        self, path: str | os.PathLike, *, page: int | None = None, **overrides: Any
+        self,
+        path: str | os.PathLike,
+        *,
+        page: int | None = None,
+        warm: WarmStart | None = None,
+        sensing: BundleSensing | None = None,
+        **overrides: Any,
     ) -> ReconstructionResult:
         """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it (``page``: one page
         of a multi-page TIFF, e.g. a frame of a sequence; default: the file's only image).
@@ -900,7 +919,24 @@ class HSIReconstructor(nn.Module):
         the camera and its differences from the bundle's
         (:func:`hsi_torch.recon.checks.measure_capture`, which only measures);
         :func:`hsi_torch.recon.checks.frame_findings` turns them into findings.
-        ``timings["load"]`` is the read (and demosaic).
+        ``timings["load"]`` is the read (and demosaic). ``warm``, ``sensing``: as
+        :meth:`reconstruct_frame` (a frame of a sequence).
+        """
+        cap, checks, t_load = self.read_capture(path, page=page, **overrides)
+        res = self.reconstruct_capture(cap, warm=warm, sensing=sensing, stats=checks)
+        res.timings = {"load": t_load, **res.timings}
+        res.timings["total"] += t_load
+        return res
+
+    def read_capture(
+        self, path: str | os.PathLike, *, page: int | None = None, **overrides: Any
+    ) -> tuple[Any, dict[str, Any], float]:
+        """The reading half of :meth:`reconstruct_file`: the capture read, size-checked and
+        corrected as the bundle's calibration was, and measured.
+
+        Returns:
+            the :class:`hsi_torch.io.LinearCapture`, the statistics of the reading's checks
+            (with ``metadata``) and the time it took (s).
         """
         s = self.settings
         if overrides:
@@ -924,14 +960,9 @@ class HSIReconstructor(nn.Module):
             _check_half_size(cap, sens, p)
         apply_bundle_corrections(cap, sens.radiometry)  # before the pedestal is measured
         checks = measure_capture(cap, sens.radiometry, sensor_size=sens.sensor_size)
+        checks["metadata"] = cap.metadata
         _sync(sens.device)
-        t_load = time.perf_counter() - t0
-        res = self.reconstruct_capture(cap)
-        res.timings = {"load": t_load, **res.timings}
-        res.timings["total"] += t_load
-        res.stats.update(checks)
-        res.stats["metadata"] = cap.metadata
-        return res
+        return cap, checks, time.perf_counter() - t0
 
     def capture_defaults(self, exposure_s: float | None = None) -> CaptureDefaults:
         """What :func:`~hsi_torch.io.read_any` gives a file that does not say: the bundle's

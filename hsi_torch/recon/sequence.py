@@ -4,13 +4,16 @@
 Reconstructor`, its one frame function) and carries three things from frame to frame, each set
 in the settings' ``sequence`` group (:class:`~hsi_torch.recon.settings.SequenceSettings`):
 
-* **Warm starts** (``warm_start``, ``warm_spatial``; both off by default, see
+* **Warm starts** (``warm_start``, ``warm_spatial``, ``warm_noise``; off by default, see
   ``docs/sequences.md`` for why; :class:`~hsi_torch.recon.frame.WarmStart`): the per-pixel
   active-set solve of the pixels that pivot starts from the previous frame's zero set (the same
   KKT points as cold solves, in another number of rounds); the spatial prior's ADMM starts from
-  the previous frame's answer on the pixels whose per-pixel solution did not move (this frame's
-  per-pixel solution elsewhere) and its TV prox from the previous dual (its answer agrees with
-  the cold one only to the ADMM's stopping rule).
+  the previous frame's state (answer and scaled dual times the frame's gain on the pixels whose
+  per-pixel solution did not move, this frame's per-pixel solution and its multiplier elsewhere,
+  the TV prox's dual) and checks its stopping rule every iteration (the same optimum to the
+  solver's tolerance); ``warm_noise`` also reuses the last estimated noise level (so ``λ``)
+  while the light holds (a deviation from the noise rule: the optimum of the problem with that
+  ``λ``).
 * **A temporal prior** (``temporal="quadratic"``, per-pixel solve only): each pixel solves
   ``min_{s≥0} ‖W(As − y)‖² + β‖Ds‖² + w·‖s − s_prev‖²_G`` with ``s_prev`` the previous frame's
   answer and ``‖v‖²_G = vᵀGv`` the pixel's own data metric (``G = AᵀWA + βDᵀD``), where the data
@@ -48,7 +51,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -57,7 +60,7 @@ from torch import Tensor
 
 from hsi_torch.findings import Finding
 from hsi_torch.io.bundle import CalibrationBundle
-from hsi_torch.recon.checks import exposure_scale
+from hsi_torch.recon.checks import exposure_info, exposure_scale
 from hsi_torch.recon.corrections import correct_frames
 from hsi_torch.recon.drift import corrected_sensing, estimate_drift
 from hsi_torch.recon.frame import (
@@ -219,7 +222,7 @@ class SequenceReconstructor:
         self.base_sensing = self.reconstructor.sensing
         sq = s.sequence
         self.warm = (
-            WarmStart(per_pixel=sq.warm_start, spatial=sq.warm_spatial)
+            WarmStart(per_pixel=sq.warm_start, spatial=sq.warm_spatial, reuse_noise=sq.warm_noise)
             if sq.warm_start or sq.warm_spatial
             else None
         )
@@ -275,9 +278,54 @@ class SequenceReconstructor:
     ) -> ReconstructionResult:
         """Reconstruct the next frame (arguments as
         :meth:`~hsi_torch.recon.pipeline.Reconstructor.reconstruct_frame`)."""
+        rec = self.reconstructor
+        src = source or f"frame {self.frame_index}"
+
+        def solve(sens: BundleSensing) -> ReconstructionResult:
+            return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s,
+                                         cfa_pattern=cfa_pattern, source=src, warm=self.warm,
+                                         sensing=sens)  # fmt: skip
+
+        return self._frame(image, saturated, exposure_s, cfa_pattern, src, False, solve)
+
+    def reconstruct_file(
+        self, path: str | os.PathLike, *, page: int | None = None
+    ) -> ReconstructionResult:
+        """Read the next frame from a file and reconstruct it through the file front door
+        (:meth:`~hsi_torch.recon.pipeline.Reconstructor.reconstruct_file`: the reading's checks
+        and findings as for a single capture; ``page``: a page of a multi-page TIFF), with the
+        sequence's warm start, drift path and temporal prior."""
+        rec = self.reconstructor
+        cap, checks, t_load = rec.read_capture(path, page=page)
+        sens = self.base_sensing
+        t_exp, _ = exposure_info(cap.metadata, sens.radiometry, sens.exposure_s,
+                                 self.settings.input.exposure_correction)  # fmt: skip
+        meta = cap.metadata
+        pattern = meta.get("cfa_pattern") if meta.get("kind") == "bayer" else None
+
+        def solve(sens: BundleSensing) -> ReconstructionResult:
+            res = rec.reconstruct_capture(cap, warm=self.warm, sensing=sens, stats=checks)
+            res.timings = {"load": t_load, **res.timings}
+            res.timings["total"] += t_load
+            return res
+
+        src = str(getattr(cap, "path", None) or path)
+        return self._frame(cap.image, cap.saturated, t_exp, pattern, src, True, solve)
+
+    def _frame(
+        self,
+        image: Tensor,
+        saturated: Tensor | None,
+        exposure_s: float | None,
+        cfa_pattern: str | None,
+        src: str,
+        corrected: bool,
+        solve: Callable[[BundleSensing], ReconstructionResult],
+    ) -> ReconstructionResult:
+        """One frame: the drift path (on the image, ``corrected``: the bundle's corrections
+        already applied), ``solve`` with the frame's sensing, the temporal step."""
         t = self.frame_index
-        src = source or f"frame {t}"
-        rec, sq = self.reconstructor, self.settings.sequence
+        sq = self.settings.sequence
         found: list[Finding] = []
         seq_stats: dict[str, Any] = {
             "frame": t,
@@ -287,12 +335,8 @@ class SequenceReconstructor:
         pattern = cfa_pattern or sens.cfa_pattern
         prepared = None
         if sq.drift_track:
-            img = image.to(device=sens.device, dtype=sens.dtype)
-            sat = None if saturated is None else saturated.to(device=sens.device)
-            img, sat = prepare_input(img, sat, pattern)
-            img, sat, _ = correct_frames(img, sat, sens.radiometry)
-            prepared = (img, sat)
-            est = estimate_drift(sens, img, self.settings.registration.min_views)
+            prepared = self._prepare(image, saturated, pattern, corrected)
+            est = estimate_drift(sens, prepared[0], self.settings.registration.min_views)
             meas = None
             if est.refusal is None and est.sensor_shift_px is not None:
                 meas = np.array(
@@ -309,38 +353,40 @@ class SequenceReconstructor:
             seq_stats["drift_path"] = None if path is None else [round(float(v), 4) for v in path]
             if path is not None:
                 sens = corrected_sensing(self.base_sensing, path[:2], float(path[2]))
-        res = rec.reconstruct_frame(
-            image,
-            saturated,
-            exposure_s=exposure_s,
-            cfa_pattern=cfa_pattern,
-            source=src,
-            warm=self.warm,
-            sensing=sens,
-        )
+        res = solve(sens)
         if sq.temporal == "quadratic":
-            self._temporal_step(
-                res, sens, image, saturated, exposure_s, pattern, prepared, seq_stats
-            )
+            if prepared is None:
+                prepared = self._prepare(image, saturated, pattern, corrected)
+            self._temporal_step(res, sens, exposure_s, prepared, seq_stats)
         res.stats["sequence"] = seq_stats
         res.stats["findings"] = [f.to_dict() for f in found]
         self.findings += found
         self.frame_index += 1
         return res
 
+    def _prepare(
+        self, image: Tensor, saturated: Tensor | None, pattern: str | None, corrected: bool
+    ) -> tuple[Tensor, Tensor | None]:
+        """The frame's image as the front door solves it: on the bundle's device and dtype,
+        demosaiced, corrected (unless ``corrected``)."""
+        sens = self.base_sensing
+        img = image.to(device=sens.device, dtype=sens.dtype)
+        sat = None if saturated is None else saturated.to(device=sens.device)
+        img, sat = prepare_input(img, sat, pattern)
+        if not corrected:
+            img, sat, _ = correct_frames(img, sat, sens.radiometry)
+        return img, sat
+
     def _temporal_step(
         self,
         res: ReconstructionResult,
         sens: BundleSensing,
-        image: Tensor,
-        saturated: Tensor | None,
         exposure_s: float | None,
-        pattern: str | None,
-        prepared: tuple | None,
+        prepared: tuple[Tensor, Tensor | None],
         seq_stats: dict[str, Any],
     ) -> None:
         """The gated temporal solve of one frame (per-pixel answers in ``res`` replaced where
-        the pixel is static)."""
+        the pixel is static); ``prepared``: the frame's image and saturation as solved."""
         sq = self.settings.sequence
         M = sens.num_bands
         pix = sens.pixel_index.to(res.cube.device)
@@ -352,14 +398,7 @@ class SequenceReconstructor:
             self._prev = x.clone()
             seq_stats["temporal_static"] = 0
             return
-        # the frame's observations, as the front door made them
-        if prepared is None:
-            img = image.to(device=sens.device, dtype=sens.dtype)
-            sat = None if saturated is None else saturated.to(device=sens.device)
-            img, sat = prepare_input(img, sat, pattern)
-            img, sat, _ = correct_frames(img, sat, sens.radiometry)
-        else:
-            img, sat = prepared
+        img, sat = prepared
         if sat is not None and not bool(sat.any()):
             sat = None
         with torch.no_grad():

@@ -544,19 +544,28 @@ TEMPORAL_KINDS = ("none", "quadratic")
 @dataclass(frozen=True)
 class SequenceSettings:
     """Frames of one sequence reconstructed in order (:mod:`hsi_torch.recon.sequence`). Flat
-    keys: ``warm_start``, ``warm_spatial``, ``temporal``, ``temporal_weight``,
-    ``temporal_gate``, ``drift_track``, ``drift_window``, ``drift_jump_px``. Settings of the
-    Python API (not in ``reconstruct.yaml``).
+    keys: ``warm_start``, ``warm_spatial``, ``warm_noise``, ``temporal``, ``temporal_weight``,
+    ``temporal_gate``, ``drift_track``, ``drift_window``, ``drift_jump_px``: in
+    ``reconstruct.yaml`` and ``--set`` (they act on ``reconstruct --sequence`` and ``watch``, and
+    on :class:`~hsi_torch.recon.sequence.SequenceReconstructor`; a single capture has no previous
+    frame).
 
     Attributes:
         warm_start: the per-pixel active-set solve of the pixels that pivot starts from the
             previous frame's zero set (the same KKT points as cold solves). Off by default: on
             the simulated moving scene it was not faster than the solver's own start
             (``docs/sequences.md``).
-        warm_spatial: the spatial prior's ADMM starts from the previous frame's answer on the
-            static pixels and its TV prox from the previous dual. Off by default: it ran as many
-            iterations as the cold start, and its tolerance-stopped answers can be further from
-            the optimum than the cold ones (``docs/sequences.md``).
+        warm_spatial: the spatial prior's ADMM starts from the previous frame's state (answer and
+            scaled dual on the static pixels, the TV prox's dual) and checks its stopping rule
+            every iteration: the same optimum to the solver's tolerance. Off by default: on the
+            simulated moving scene it was 1.07× (small) and 1.08× (full size) faster per frame,
+            far from paying (consecutive frames' optima differ by about as much as a frame's
+            per-pixel start differs from its own; ``docs/sequences.md``).
+        warm_noise: with ``warm_spatial``, a frame within 10 % of the light and exposure of the
+            frame whose noise level was last estimated reuses that noise level ``σ̂`` and so its
+            ``λ`` (``stats["noise_sigma_given"]``): the frame's answer is the optimum of the
+            problem with that ``λ``, not of its own estimate's (a deviation from the noise rule,
+            for speed: the estimate is a third of a small frame's spatial solve).
         temporal: ``"none"`` or ``"quadratic"``: a penalty ``w‖s_t − s_{t−1}‖²_G`` per pixel on
             the change of its spectrum since the previous frame's answer (``G`` the pixel's Gram
             matrix), on the pixels whose data the previous answer still explains (the motion
@@ -576,27 +585,29 @@ class SequenceSettings:
         False,
         "start each frame's per-pixel active-set solve from the previous frame's zero set",
         key="warm_start",
-        yaml=False,
     )
     warm_spatial: bool = _set(
         False,
         "start each frame's spatial-prior ADMM from the previous "
         "frame's answer (static pixels) and TV dual",
         key="warm_spatial",
-        yaml=False,
+    )
+    warm_noise: bool = _set(
+        False,
+        "warm_spatial: reuse the noise level (and lambda) of the frame it was last estimated "
+        "on while the light and exposure stay within 10 % of it",
+        key="warm_noise",
     )
     temporal: str = _set(
         "none",
         "temporal prior: none or quadratic (a gated penalty on the "
         "change of each pixel's spectrum since the previous frame)",
         key="temporal",
-        yaml=False,
     )
     temporal_weight: float = _set(
         1.0,
         "the temporal penalty's weight: the previous answer counts as this many frames of data",
         key="temporal_weight",
-        yaml=False,
     )
     temporal_gate: float = _set(
         4.0,
@@ -604,29 +615,27 @@ class SequenceSettings:
         "variance per free band) the previous answer may fit this "
         "frame's data",
         key="temporal_gate",
-        yaml=False,
     )
     drift_track: bool = _set(
         False,
         "measure the drift of every frame and correct a smooth path fitted over the recent frames",
         key="drift_track",
-        yaml=False,
     )
     drift_window: int = _set(
-        10, "frames the drift path is fitted over", key="drift_window", yaml=False
+        10, "frames the drift path is fitted over", key="drift_window"
     )
     drift_jump_px: float = _set(
         0.5,
         "a measured drift this far (px) from the path's "
         "prediction is a jump: flagged, and the path restarts",
         key="drift_jump_px",
-        yaml=False,
     )
 
     def __post_init__(self) -> None:
         for key, v in (
             ("warm_start", self.warm_start),
             ("warm_spatial", self.warm_spatial),
+            ("warm_noise", self.warm_noise),
             ("drift_track", self.drift_track),
         ):
             if not isinstance(v, bool):
@@ -734,6 +743,9 @@ class ReconstructSettings:
         if self.prior.kind == "none":
             for key in ("lam", "spatial_iters", "spectral_rank"):
                 note(key, "it applies to the spatial prior only (prior: tv), and prior is none")
+        if self.prior.kind == "none":
+            for key in ("warm_spatial", "warm_noise"):
+                note(key, "it starts the spatial prior's solve (prior: tv), and prior is none")
         if self.solve.solver == "active_set":
             note("admm_iters", "it applies to solver: admm only, and the solver is active_set")
         if not self.uncertainty.enabled:

@@ -10,10 +10,12 @@
   and the animated preview ``OUT/sequence_preview.gif`` written at the end.
 
 Every frame goes through one function, :func:`_reconstruct_sequence` (the reconstructor and the
-frames in, ``(frame, result or error)`` out, in order): today it calls the front door
-(:meth:`~hsi_torch.recon.pipeline.Reconstructor.reconstruct_file`) on each frame independently —
-a cold solve per frame, nothing carried from one frame to the next. A reconstructor that uses
-time (warm starts, a temporal prior) replaces that one function.
+frames in, ``(frame, result or error)`` out, in order): each frame through the file front door
+(:meth:`~hsi_torch.recon.pipeline.Reconstructor.reconstruct_file`), and where the settings'
+``sequence`` group asks for it (``warm_start``, ``warm_spatial``, ``temporal``,
+``drift_track``: ``--set sequence.warm_spatial=true`` …) through a
+:class:`~hsi_torch.recon.sequence.SequenceReconstructor` that carries the solver state, the
+previous answer and the drift path from one frame to the next.
 
 **Resume.** A rerun into the same folder skips the frames already in the store (by their input)
 and appends the rest; the store's frames must be frames of the sequence, in its order (a sequence
@@ -49,6 +51,8 @@ from hsi_torch.recon.batch.run import ReconstructRun, check_run
 from hsi_torch.recon.batch.sequence_finish import finish_sequence_run
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
+from hsi_torch.recon.sequence import SequenceReconstructor
+from hsi_torch.recon.settings import ReconstructSettings
 
 __all__ = [
     "sequence_cubes",
@@ -57,6 +61,7 @@ __all__ = [
     "frame_findings",
     "frame_metadata",
     "reconstruct_frame_of_sequence",
+    "uses_time",
 ]
 
 #: The animated sRGB preview of a sequence run (GIF, in the output folder).
@@ -67,9 +72,12 @@ SEQUENCE_PREVIEW = "sequence_preview.gif"
 # the one per-frame function
 
 
-def reconstruct_frame_of_sequence(rec: Reconstructor, frame: SequenceFrame) -> ReconstructionResult:
+def reconstruct_frame_of_sequence(
+    rec: Reconstructor | SequenceReconstructor, frame: SequenceFrame
+) -> ReconstructionResult:
     """One frame through the front door, read as ``rec.settings`` say
-    (:meth:`Reconstructor.reconstruct_file`; a page of a multi-page TIFF decoded alone).
+    (:meth:`Reconstructor.reconstruct_file`, or :meth:`SequenceReconstructor.reconstruct_file`:
+    the same front door with the sequence's state; a page of a multi-page TIFF decoded alone).
 
     Raises:
         NoValidPixelsError: not a single pixel could be reconstructed (the reason named).
@@ -83,6 +91,13 @@ def reconstruct_frame_of_sequence(rec: Reconstructor, frame: SequenceFrame) -> R
     return res
 
 
+def uses_time(settings: ReconstructSettings) -> bool:
+    """Whether the settings' ``sequence`` group carries anything from frame to frame (a warm
+    start, the temporal prior, the drift path)."""
+    sq = settings.sequence
+    return sq.warm_start or sq.warm_spatial or sq.temporal != "none" or sq.drift_track
+
+
 def _reconstruct_sequence(
     rec: Reconstructor, frames: Iterable[SequenceFrame], quiet: bool = True
 ) -> Iterator[tuple[SequenceFrame, ReconstructionResult | BaseException]]:
@@ -91,18 +106,23 @@ def _reconstruct_sequence(
     reconstructed (the sequence goes on). ``frames`` may be a lazy iterator (a live folder's
     files as they become complete): each is pulled only when the previous one is done.
 
-    Today: each frame independently through the front door
-    (:func:`reconstruct_frame_of_sequence`, a cold solve). A reconstructor that carries state
-    from frame to frame (warm starts, a temporal prior) goes here, keeping this contract.
-    ``quiet``: the findings are not raised as Python warnings (a run reports them itself);
+    Each frame through the front door (:func:`reconstruct_frame_of_sequence`): independently
+    (a cold solve per frame) unless ``rec.settings.sequence`` asks for warm starts, the temporal
+    prior or the drift path (:func:`uses_time`): then through one
+    :class:`~hsi_torch.recon.sequence.SequenceReconstructor` on ``rec``'s sensing, which carries
+    them from frame to frame (a frame that fails leaves the state as the last good frame left
+    it). ``quiet``: the findings are not raised as Python warnings (a run reports them itself);
     they are on every result (:attr:`ReconstructionResult.findings`) either way.
     """
+    one: Reconstructor | SequenceReconstructor = rec
+    if uses_time(rec.settings):
+        one = SequenceReconstructor(rec.sensing, rec.settings)
     for frame in frames:
         try:
             with warnings.catch_warnings():
                 if quiet:  # the run reports them, one line each
                     warnings.simplefilter("ignore", HSIWarning)
-                res = reconstruct_frame_of_sequence(rec, frame)
+                res = reconstruct_frame_of_sequence(one, frame)
         except (HSIError, ValueError, OSError) as exc:  # the frame's fault: reported, go on
             exc.__traceback_text__ = traceback.format_exc()  # type: ignore[attr-defined]
             yield frame, exc

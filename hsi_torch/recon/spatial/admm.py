@@ -17,9 +17,16 @@ Method (scaled form, splitting ``x = z``; ``x`` carries the data terms, ``z`` th
   Inactive pixels have no TV edge: their prox is the projection.
 * Warm start from the per-pixel NNLS solution ``x0``: ``z = x0``, ``u = (b − G x0)/ρ`` (the
   multiplier of the per-pixel optimum). With ``λ = 0`` this is already the fixed point.
-* Stopping (Boyd et al.), checked every :data:`CHECK_EVERY` iterations: relative primal residual
-  ``‖x − z‖ / ‖z‖`` and relative dual residual ``ρ ‖z − z_prev‖ / ‖b‖`` both ``≤ tol``. ``ρ``
-  stays fixed (no residual balancing), so the factorisation is never recomputed.
+* Warm start from a previous solve (a sequence's previous frame, ``u0``): ``z`` from the given
+  start, the scaled dual ``u`` carried over (:attr:`SpatialResult.u`) on the rows ``u0_mask``
+  selects (the rest as above) and the TV prox's dual (``dual0``). With ``z`` and ``u`` those of
+  the previous optimum, the first x-update is ``x = z + (G + ρI)⁻¹ (b − b_prev)``: the
+  iterations start from the change of the data alone, not from the per-pixel multiplier.
+* Stopping (Boyd et al.), checked every ``check_every`` iterations (default
+  :data:`CHECK_EVERY`): relative primal residual ``‖x − z‖ / ‖z‖`` and relative dual residual
+  ``ρ ‖z − z_prev‖ / ‖b‖`` both ``≤ tol``. ``ρ`` stays fixed (no residual balancing), so the
+  factorisation is never recomputed. A warm start that is already near the optimum meets the
+  rule in a few iterations; checking every iteration then saves the rest of the 10.
 
 One loop (:func:`_admm`) runs the iterations and applies the stopping rule for every backend; a
 backend is one iteration on its own storage (:class:`_Step`):
@@ -73,6 +80,9 @@ class SpatialResult:
             (see the module docstring); lam: the ``λ`` used (objective scale); rho: the penalty.
         dual: the TV prox's final dual state (compiled backend: band-major arrays; ``None``
             elsewhere), for ``dual0`` of the next frame's solve.
+        u: ``(P, M)`` the final scaled dual (after the last iteration's update ``u ← u + x −
+            z``; the multiplier of ``x = z`` over ``ρ``), for ``u0`` of the next frame's solve
+            (``None`` in the fixed-iteration mode).
     """
 
     x: Tensor
@@ -83,6 +93,7 @@ class SpatialResult:
     lam: float
     rho: float
     dual: tuple | None = None
+    u: Tensor | None = None
 
 
 def solve_spatial(
@@ -100,6 +111,9 @@ def solve_spatial(
     brightness_weight: float = 1.0,
     nonneg: bool = True,
     dual0: tuple | None = None,
+    u0: Tensor | None = None,
+    u0_mask: Tensor | None = None,
+    check_every: int = CHECK_EVERY,
 ) -> SpatialResult:
     """ADMM for ``min_{s ≥ 0} Σ_p s_pᵀG_p s_p − 2 b_pᵀ s_p + λ·TV(s)`` (see the module docstring).
 
@@ -134,6 +148,12 @@ def solve_spatial(
         dual0: the TV prox's dual to start from (:attr:`SpatialResult.dual` of a previous solve
             of the same problem size, e.g. the previous frame of a sequence; compiled backend
             only, ignored elsewhere and where its shape differs). Default: zeros.
+        u0: ``(P, M)`` the scaled dual to start from (:attr:`SpatialResult.u` of a previous
+            solve of the same problem size; tolerance-driven mode). Default, and on the rows
+            where ``u0_mask`` is False: ``(b − G z)/ρ``, the multiplier of the start ``z``.
+        u0_mask: ``(P,)`` bool, the rows of ``u0`` used (default all).
+        check_every: iterations between two checks of the stopping rule (``≥ 1``; default
+            :data:`CHECK_EVERY`); 1 or 2 for a warm start near the optimum.
 
     Returns:
         :class:`SpatialResult`.
@@ -142,8 +162,17 @@ def solve_spatial(
         raise ValueError(f"backend must be 'auto', 'torch' or 'compiled', got {backend!r}")
     if not 0.0 < float(brightness_weight) <= 1.0:
         raise ValueError(f"brightness_weight must be in (0, 1], got {brightness_weight}")
+    if int(check_every) < 1:
+        raise ValueError(f"check_every must be >= 1, got {check_every}")
+    P, m = problem.num_pixels, problem.num_bands
+    if u0 is not None and tuple(u0.shape) != (P, m):
+        raise ValueError(f"u0 must be ({P}, {m}), got {tuple(u0.shape)}")
+    if u0_mask is not None and tuple(u0_mask.shape) != (P,):
+        raise ValueError(f"u0_mask must be ({P},), got {tuple(u0_mask.shape)}")
+    warm_u = None if u0 is None else (u0, u0_mask)
     return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters, backend,
-                          num_threads, float(brightness_weight), bool(nonneg), dual0)
+                          num_threads, float(brightness_weight), bool(nonneg), dual0, warm_u,
+                          int(check_every))
 
 
 def _solve_spatial(
@@ -152,6 +181,8 @@ def _solve_spatial(
     backend: str = "auto", num_threads: int | None = 1, alpha: float = 1.0,
     nonneg: bool = True,
     dual0: tuple | None = None,
+    warm_u: tuple[Tensor, Tensor | None] | None = None,
+    check_every: int = CHECK_EVERY,
 ) -> SpatialResult:
     kernel_threads = torch.get_num_threads()
     P, m = problem.num_pixels, problem.num_bands
@@ -187,14 +218,18 @@ def _solve_spatial(
         with torch.no_grad():
             cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
                                   kernel_threads, nonneg, dual0)
+            if warm_u is not None:
+                cstep.set_u(*warm_u)
             with threads(kernel_threads):
-                it, done, prim, dual = _admm(cstep, rho, tol, max_iter)
+                it, done, prim, dual = _admm(cstep, rho, tol, max_iter,
+                                             check_every=check_every)
             # the TV factor is not read again until the next frame's ADMM: its pages of the
             # mapped precomputation cache leave the resident set (the warm start is next)
             disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
             return SpatialResult(z_out, it, done, prim, dual, lam_f, rho,
-                                 (cstep.p.copy(), cstep.psum.copy()))
+                                 (cstep.p.copy(), cstep.psum.copy()),
+                                 torch.from_numpy(cstep.final_u()).to(b.device))
     if not nonneg:
         raise ValueError("nonneg=False needs the compiled backend (numba, a CPU problem, pixels "
                          "in row-major order, the tolerance-driven mode)")
@@ -202,6 +237,9 @@ def _solve_spatial(
         raise ValueError("the compiled spatial solver needs numba, a CPU problem and pixels in "
                          "row-major order")
     u = (b - problem.apply_gram(z)) / rho
+    if warm_u is not None and iters is None:
+        u0 = warm_u[0].to(u)
+        u = u0 if warm_u[1] is None else torch.where(warm_u[1].to(u.device).view(-1, 1), u0, u)
 
     if iters is not None:  # fixed iterations, out of place: differentiable
         prox = None if lam_f == 0.0 else _DualProx(problem, t, inner_iters, alpha)
@@ -217,8 +255,8 @@ def _solve_spatial(
             tf = float(t)
             prox = lambda cube: ws.prox(cube, tf, inner_iters)  # noqa: E731
         step = _TorchStep(problem, b, z, u, prox)
-        it, done, prim, dual = _admm(step, rho, tol, max_iter)
-    return SpatialResult(step.z, it, done, prim, dual, lam_f, rho)
+        it, done, prim, dual = _admm(step, rho, tol, max_iter, check_every=check_every)
+    return SpatialResult(step.z, it, done, prim, dual, lam_f, rho, u=step.u)  # (updated)
 
 
 # -- the loop and the stopping rule ----------------------------------------------------------
@@ -236,9 +274,10 @@ class _Step(Protocol):
 
 
 def _admm(step: _Step, rho: float, tol: float, max_iter: int,
-          iters: int | None = None) -> tuple[int, bool, float, float]:
+          iters: int | None = None, check_every: int = CHECK_EVERY
+          ) -> tuple[int, bool, float, float]:
     """Run ``step``: exactly ``iters`` iterations, or until the stopping rule holds (checked
-    every :data:`CHECK_EVERY` iterations, at most ``max_iter`` rounded up to a multiple of it).
+    every ``check_every`` iterations, at most ``max_iter`` rounded up to a multiple of it).
 
     Returns:
         the iterations run, whether the rule was met (True in the fixed mode), and the last
@@ -251,9 +290,9 @@ def _admm(step: _Step, rho: float, tol: float, max_iter: int,
     bnorm = step.bnorm()
     it, prim, dual, done = 0, float("inf"), float("inf"), False
     while it < max_iter:
-        for k in range(CHECK_EVERY):
-            step(it + k, k == CHECK_EVERY - 1)
-        it += CHECK_EVERY
+        for k in range(check_every):
+            step(it + k, k == check_every - 1)
+        it += check_every
         zn, xz, dz = step.norms()
         prim = xz / (zn or 1.0)
         dual = rho * dz / bnorm
@@ -381,6 +420,20 @@ class _CompiledStep:
     def result(self) -> np.ndarray:
         """``z`` pixel-major ``(P, M)``."""
         return np.ascontiguousarray(self.z.T)
+
+    def set_u(self, u0: Tensor, mask: Tensor | None) -> None:
+        """Start from the scaled dual ``u0`` ``(P, M)`` on the rows ``mask`` (``(P,)`` bool;
+        ``None``: all); the other rows keep the start's ``(b − G z)/ρ``."""
+        u0n = u0.detach().cpu().numpy().astype(self.u.dtype, copy=False)
+        if mask is None:
+            self.u[...] = u0n.T
+        else:
+            rows = np.flatnonzero(mask.detach().cpu().numpy())
+            self.u[:, rows] = u0n[rows].T
+
+    def final_u(self) -> np.ndarray:
+        """The scaled dual after the last iteration, ``u + x − z``, pixel-major ``(P, M)``."""
+        return np.ascontiguousarray((self.u + self.x - self.z).T)
 
     def norms(self) -> tuple[float, float, float]:
         return (float(np.linalg.norm(self.z)), float(np.linalg.norm(self.x - self.z)),

@@ -15,7 +15,7 @@ from hsi_torch.recon.nnls.constants import BPP_ROUNDS, REFINE_STEPS
 from hsi_torch.recon.nnls.kkt import _default_tol
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.spatial import _compiled as compiled
-from hsi_torch.recon.spatial.admm import SpatialResult, solve_spatial
+from hsi_torch.recon.spatial.admm import CHECK_EVERY, SpatialResult, solve_spatial
 from hsi_torch.recon.spatial.lam import DEFAULT_LAM, LAM_RULES
 from hsi_torch.recon.spatial.noise import (
     NOISE_SAMPLES,
@@ -65,6 +65,10 @@ def solve_frame(
     rank: int | None = None,
     start: Tensor | None = None,
     dual: tuple | None = None,
+    u0: Tensor | None = None,
+    u0_mask: Tensor | None = None,
+    check_every: int = CHECK_EVERY,
+    sigma: float | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -94,7 +98,12 @@ def solve_frame(
         start: ``(P, M)`` the ADMM's start instead of ``x0`` (e.g. the previous frame's answer
             in a sequence; ``x0`` still gives the noise estimate); dual: the TV prox's dual to
             start from (``info["spatial_dual"]`` of a previous frame, :func:`solve_spatial`'s
-            ``dual0``).
+            ``dual0``); u0, u0_mask: the ADMM's scaled dual to start from on the masked rows
+            (``info["spatial_u"]`` of a previous frame; :func:`solve_spatial`'s); check_every:
+            iterations between two checks of the stopping rule (:func:`solve_spatial`'s);
+            sigma: the noise level ``σ̂`` (DN) to use instead of this frame's estimate (e.g. the
+            previous frame's in a sequence of the same exposure; ``info["noise_sigma_given"]``
+            says so).
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -105,7 +114,8 @@ def solve_frame(
         :data:`NOISE_SAMPLES` pixels), ``spatial_iterations``,
         ``spatial_converged``, ``spatial_primal_residual``, ``spatial_dual_residual``, ``rho``,
         ``brightness_weight``, ``spectral_rank`` (``k``, or ``M``: the full-band solve),
-        ``spatial_dual`` (the final dual state, for ``dual``).
+        ``spatial_dual`` (the final dual state, for ``dual``), ``spatial_u`` (the final scaled
+        dual, for ``u0``; ``None`` in the fixed-iteration and subspace modes).
     """
     alpha = brightness_weight
     auto = isinstance(lam, str)
@@ -120,7 +130,8 @@ def solve_frame(
     rows = changed.nonzero().squeeze(1)
     row_gram = model.gram(mask.index_select(0, rows), rows, prob.reg) if rows.numel() else None
     x0 = x0.detach()
-    sigma = frame_noise_level(sens, y, mask, ok, x0)
+    given = sigma is not None and math.isfinite(sigma) and sigma > 0
+    sigma = float(sigma) if given else frame_noise_level(sens, y, mask, ok, x0)
     with torch.no_grad():
         sp = base.for_frame(ok, rows, row_gram)
         if guided and math.isfinite(sigma):
@@ -149,15 +160,18 @@ def solve_frame(
         disk.release_pages(prob.gram_inv)
         z0 = x0 if start is None else start.detach().to(device=x0.device, dtype=x0.dtype)
         res = solve_spatial(sp, b, lam_abs, x0=z0, tol=tol, max_iter=max_iter, iters=iters,
-                            inner_iters=inner_iters, brightness_weight=alpha, dual0=dual)
+                            inner_iters=inner_iters, brightness_weight=alpha, dual0=dual,
+                            u0=u0, u0_mask=u0_mask, check_every=check_every)
         k = m
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
+        "noise_sigma_given": given,
         "brightness_weight": alpha, "spectral_rank": k,
         "mean_square_residual": mean_square_residual(sens, res.x, y, mask, ok, NOISE_SAMPLES),
         "spatial_iterations": res.iterations, "spatial_converged": res.converged,
         "spatial_primal_residual": res.primal_residual,
         "spatial_dual_residual": res.dual_residual, "rho": res.rho, "spatial_dual": res.dual,
+        "spatial_u": res.u,
     }  # fmt: skip
     return res.x, info
 

@@ -1,0 +1,210 @@
+"""Warm starts of the spatial prior across frames (the ADMM's whole state carried: ``z``, the
+scaled dual ``u``, the TV prox's dual) reach the cold optimum, and ``reconstruct --sequence``
+uses the settings' ``sequence`` group (warm starts, temporal prior, drift path) end to end.
+Tiny problems and test_pipeline's 4-view bundle: fast."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_pipeline import make_bundle, render_capture, true_spectra
+from test_spatial import _condat_vu, _objective, _tiny
+
+from hsi_torch.cli import main
+from hsi_torch.recon.nnls import solve_nnls
+from hsi_torch.recon.pipeline import Reconstructor
+from hsi_torch.recon.sequence import SequenceReconstructor
+from hsi_torch.recon.settings import ReconstructSettings
+from hsi_torch.recon.spatial import _compiled as spatial_compiled
+from hsi_torch.recon.spatial import prepare_spatial, solve_spatial
+
+BACKENDS = ["torch"] + (["compiled"] if spatial_compiled.AVAILABLE else [])
+
+
+def _two_frames(seed: int = 0):
+    """A tiny spatial problem and a second frame of it: the same scene 3 % brighter with new
+    noise (``b`` of both)."""
+    A, y, G, b, active, (h, w) = _tiny("cpu", torch.float64, h=6, w=7, seed=seed)
+    g = torch.Generator().manual_seed(seed + 100)
+    y1 = 1.03 * (y - 0.0) + 0.05 * torch.randn(y.shape, generator=g, dtype=torch.float64)
+    b1 = torch.einsum("pom,po->pm", A, y1)
+    prob = prepare_spatial(G, torch.arange(h * w), (h, w), active)
+    return A, y, y1, G, b, b1, active, prob, (h, w)
+
+
+@pytest.mark.parametrize("backend", BACKENDS[-1:])  # compiled where numba is (torch: slow here;
+def test_the_warm_state_reaches_the_cold_optimum(backend):  # the masked test ties it to compiled)
+    """Frame 1 solved from frame 0's final state (``z``, ``u``, TV dual; the rule checked every
+    iteration) ends at the same minimiser as its cold solve and as an independent primal-dual
+    reference, to the solver's tolerance."""
+    A, y, y1, G, b, b1, active, prob, (h, w) = _two_frames()
+    # the torch backend's iterations are Python-bound: a looser tolerance keeps the test fast
+    lam, (tol, close, fclose) = 0.5, ((1e-8, 1e-5, 1e-8) if backend == "compiled"
+                                      else (1e-5, 1e-3, 1e-5))
+    kw = dict(tol=tol, max_iter=20000, backend=backend)
+    prev = solve_spatial(prob, b, lam, x0=solve_nnls(A, y).x, **kw)
+    assert prev.u is not None and prev.u.shape == b.shape
+    cold = solve_spatial(prob, b1, lam, x0=solve_nnls(A, y1).x, **kw)
+    warm = solve_spatial(prob, b1, lam, x0=prev.x, u0=prev.u, dual0=prev.dual, check_every=1,
+                         **kw)  # fmt: skip
+    assert cold.converged and warm.converged
+    assert float((warm.x - cold.x).abs().max()) < close
+    ref = torch.from_numpy(_condat_vu(G.numpy(), b1.numpy(), lam, active.view(h, w).numpy(),
+                                      20000))  # fmt: skip
+    f_warm = _objective(G, b1, warm.x, lam, active.view(h, w), prob.to_cube)
+    f_ref = _objective(G, b1, ref, lam, active.view(h, w), prob.to_cube)
+    assert f_warm <= f_ref + fclose * abs(f_ref)
+    assert float((warm.x - ref).abs().max()) < 10 * close
+    assert float(warm.x.min()) >= 0
+
+
+def test_the_whole_state_is_carried():
+    """Restarted from its own final state, a solve of the same data is already converged: one
+    iteration meets the rule (``x``, ``z``, ``u`` and the TV dual all carried; the compiled
+    backend, the one that carries the TV dual). Started from the same ``z`` with the
+    multiplier recomputed and a zero TV dual it is not."""
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    backend = "compiled"
+    A, y, _, G, b, _, active, prob, _ = _two_frames(seed=1)
+    kw = dict(tol=1e-3, max_iter=5000, backend=backend)
+    first = solve_spatial(prob, b, 0.5, x0=solve_nnls(A, y).x, **kw)
+    again = solve_spatial(prob, b, 0.5, x0=first.x, u0=first.u, dual0=first.dual,
+                          check_every=1, **kw)  # fmt: skip
+    assert again.converged and again.iterations == 1
+    torch.testing.assert_close(again.x, first.x, atol=1e-3 * float(first.x.abs().max()), rtol=0)
+    fresh = solve_spatial(prob, b, 0.5, x0=first.x, check_every=1, **kw)
+    assert fresh.iterations > 1
+
+
+def test_the_masked_dual_start_is_the_same_on_both_backends():
+    """``u0`` on the masked rows, ``(b − G z)/ρ`` elsewhere: the torch and compiled backends run
+    the same iterations from it (fixed count, same answer to rounding)."""
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    A, y, y1, G, b, b1, active, prob, _ = _two_frames(seed=2)
+    prev = solve_spatial(prob, b, 0.7, x0=solve_nnls(A, y).x, tol=1e-4, max_iter=5000)
+    mask = torch.zeros(b.shape[0], dtype=torch.bool)
+    mask[::2] = True
+    kw = dict(x0=prev.x, u0=prev.u, u0_mask=mask, tol=1e-30, max_iter=20, check_every=4)
+    a = solve_spatial(prob, b1, 0.7, backend="compiled", **kw)
+    t = solve_spatial(prob, b1, 0.7, backend="torch", **kw)
+    assert a.iterations == t.iterations == 20
+    torch.testing.assert_close(a.x, t.x, atol=1e-11, rtol=0)
+    torch.testing.assert_close(a.u, t.u, atol=1e-9, rtol=0)
+
+
+def test_bad_warm_states_are_named():
+    A, y, _, G, b, _, active, prob, _ = _two_frames()
+    with pytest.raises(ValueError, match="check_every"):
+        solve_spatial(prob, b, 0.5, check_every=0)
+    with pytest.raises(ValueError, match="u0 must be"):
+        solve_spatial(prob, b, 0.5, u0=torch.zeros(3, 4, dtype=b.dtype))
+    with pytest.raises(ValueError, match="u0_mask must be"):
+        solve_spatial(prob, b, 0.5, u0=torch.zeros_like(b), u0_mask=torch.ones(2, dtype=bool))
+
+
+def test_warm_spatial_frames_stay_at_the_cold_answers():
+    """A sequence with ``warm_spatial``: every frame after the first is warm-started (its static
+    pixels counted, the gain measured) and its cube agrees with the cold solve of the same
+    frame to the spatial solve's tolerance."""
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior="tv")
+    cold = Reconstructor(bundle, **kw)
+    seq = SequenceReconstructor(cold.sensing, warm_spatial=True, **kw)
+    base = true_spectra()
+    g = torch.Generator().manual_seed(0)
+    for t in range(3):
+        img = render_capture(bundle, base * (1 + 0.02 * t))
+        img = img + 0.3 * torch.randn(img.shape, generator=g, dtype=img.dtype)
+        a = cold.reconstruct_frame(img)
+        r = seq.reconstruct(img)
+        v = a.valid & r.valid
+        err = float((r.cube[:, v] - a.cube[:, v]).norm() / a.cube[:, v].norm())
+        assert err < 2e-2, (t, err)  # the ADMM's relative tolerance (1e-2) on both
+        if t:
+            assert r.stats["spatial_warm_static"] > 0
+            assert r.stats["spatial_warm_gain"] == pytest.approx(1.02, abs=0.02)
+    assert seq.warm is not None and seq.warm.spatial_u is not None
+
+
+def test_warm_noise_reuses_the_noise_level_while_the_light_holds():
+    """``warm_noise``: frames within 10 % of the light of the frame whose noise level was
+    estimated reuse it (and its ``λ``), said in the statistics; a frame 30 % brighter
+    estimates its own again."""
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior="tv")
+    seq = SequenceReconstructor(bundle, warm_spatial=True, warm_noise=True, **kw)
+    base = true_spectra()
+    g = torch.Generator().manual_seed(1)
+    stats = []
+    for gain in (1.0, 1.03, 1.05, 1.4):
+        img = render_capture(bundle, base * gain)
+        img = img + 0.3 * torch.randn(img.shape, generator=g, dtype=img.dtype)
+        stats.append(seq.reconstruct(img).stats)
+    assert [s["noise_sigma_given"] for s in stats] == [False, True, True, False]
+    assert stats[1]["lam_abs"] == stats[2]["lam_abs"] == stats[0]["lam_abs"]
+    assert stats[3]["lam_abs"] != stats[0]["lam_abs"]
+
+
+# ---------------------------------------------------------------------------------------------
+# reconstruct --sequence with the sequence group
+
+
+def test_the_sequence_settings_are_yaml_keys():
+    from hsi_torch.recon.config import ReconstructConfig
+
+    cfg = ReconstructConfig(warm_spatial=True, prior="tv", drift_track=True)
+    s = cfg.settings()
+    assert s.sequence.warm_spatial and s.sequence.drift_track
+    msgs = ReconstructSettings.from_flat({"warm_spatial": True}).inert()
+    assert any("warm_spatial" in m for m in msgs)
+
+
+def test_reconstruct_sequence_uses_the_sequence_group(tmp_path: Path):
+    """``--set temporal=quadratic --set warm_start=true --set drift_track=true``: the CLI's
+    store holds what :class:`SequenceReconstructor` gives the same files in Python (the
+    temporal prior acting from the second frame on), and each frame's metadata says it."""
+    pytest.importorskip("zarr")
+    pytest.importorskip("xarray")
+    from hsi_torch.io.sequence_store import open_sequence_store
+
+    bundle_path = tmp_path / "calib.npz"
+    make_bundle(white_exposure_s=0.01, cfa_pattern="RGGB").save(bundle_path)
+    bundle = make_bundle()
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    g = torch.Generator().manual_seed(0)
+    for k in range(3):
+        img = render_capture(bundle, true_spectra(seed=10))
+        img = img + 0.5 * torch.randn(img.shape, generator=g, dtype=img.dtype)
+        np.save(shots / f"s_t={0.5 * k}s.npy", img.numpy())
+    keys = {"temporal": "quadratic", "warm_start": True, "drift_track": True}
+    sets = ["--set", "dtype=float64", "--set", "beta=0.001"]
+    for k, v in keys.items():
+        sets += ["--set", f"{k}={str(v).lower()}"]
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--bundle", str(bundle_path), "--out", str(out),
+                 "--no-progress", *sets, "--sequence", str(shots / "*.npy")]) == 0  # fmt: skip
+    ds = open_sequence_store(out / "sequence.zarr")
+    assert ds.sizes["time"] == 3
+    seq = SequenceReconstructor(bundle_path, dtype=torch.float64, beta=1e-3, **keys)
+    plain = Reconstructor(bundle_path, dtype=torch.float64, beta=1e-3)
+    for k in range(3):
+        src = shots / f"s_t={0.5 * k}s.npy"
+        ref = seq.reconstruct_file(src)
+        cube = ds.cube.isel(time=k).values
+        want = torch.where(ref.valid, ref.cube, torch.nan).numpy()
+        assert np.allclose(cube, want, rtol=1e-6, atol=1e-8, equal_nan=True)
+        meta = json.loads(ds.metadata[k].values.item())
+        st = meta["stats"]["sequence"]
+        assert st["frame"] == k and "drift_measured" in st  # the path was asked for
+        if k:
+            assert st["temporal_static"] > 0
+            ind = plain.reconstruct_file(src)  # the temporal prior changed the answer
+            assert not np.allclose(cube, torch.where(ind.valid, ind.cube, torch.nan).numpy(),
+                                   rtol=1e-6, atol=1e-8, equal_nan=True)  # fmt: skip
