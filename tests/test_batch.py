@@ -8,6 +8,7 @@ reconstruction run (:func:`hsi_torch.recon.batch.driver.drive`, in this process,
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -132,3 +133,24 @@ def test_run_batch_interrupt_propagates(tmp_path, inputs):
     with pytest.raises(KeyboardInterrupt):
         run_batch([inputs / "a.txt"], process, tmp_path / "o3", progress=False)
     assert not (tmp_path / "o3" / DONE_DIR).exists()
+
+
+def test_a_writer_killed_mid_run_leaves_no_temporary_file(inputs, tmp_path):
+    """A temporary file whose writer died during the run (a cluster worker killed mid-file, its
+    task retried elsewhere) is removed once every task has ended; a live writer's is kept."""
+    out = tmp_path / "out"
+    dead = out / ".b.out.999999999-abcdef.tmp"  # no such process
+    live = out / f".x.out.{os.getpid()}-abcdef.tmp"
+    process = _processor(out, [])
+
+    def killed_mid_file(p: Path) -> Path:
+        if p.stem == "b":  # planted while the run is going, after its start-of-run cleaning
+            dead.write_bytes(b"partial")
+            live.write_bytes(b"being written")
+        return process(p)
+
+    s = run_batch([str(inputs / "[abc].txt")], killed_mid_file, out, progress=False)
+    assert s.exit_code == 0 and len(s.processed) == 3
+    assert dead in s.cleaned and not dead.exists()
+    assert live.exists() and live not in s.cleaned
+    assert "killed worker" in s.report()

@@ -79,7 +79,8 @@ class RunSummary:
         failed: the failures, in input order.
         outputs: input → output paths its task reported (processed inputs only).
         elapsed_s: wall time of the run in seconds.
-        cleaned: stale temporary files of killed runs removed at the start.
+        cleaned: stale temporary files removed: those of killed runs at the start, and those of
+            this run's writers killed mid-file (a cluster worker) once every task has ended.
         frames: input → frame index in the dataset store (a store target).
         workers: input → the cluster worker that reconstructed it (runs on a cluster).
         prepare_s: worker process → seconds its bundle preparation took (processes that
@@ -137,7 +138,7 @@ class RunSummary:
             lines.append(f"  findings: {findings_summary(every)}{where}")
         if self.cleaned:
             lines.append(f"  removed {len(self.cleaned)} stale temporary file(s) of an "
-                         "interrupted run")
+                         "interrupted run or a killed worker")
         lines += [f"  FAILED {shown_path(f.input)}: {f.error}" for f in self.failed]
         n = len(set(self.workers.values()))
         if n:
@@ -358,6 +359,9 @@ def drive(
                     collect()
             while pending:
                 collect()
+            # a worker killed mid-file (its task retried elsewhere) left its temporary file:
+            # every task has ended, so none of this run's writers is still writing
+            summary.cleaned += target.cleaned()
         except BaseException:
             executor.cancel(list(pending))
             for _, held in pending.values():
