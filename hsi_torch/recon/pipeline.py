@@ -870,15 +870,8 @@ class HSIReconstructor(nn.Module):
         """
         src = str(getattr(capture, "path", "capture"))
         corr = apply_bundle_corrections(capture, self.sensing.radiometry)
-        meta = capture.metadata
-        layout, pattern = "rgb", None
-        if meta.get("kind") == "bayer":  # demosaiced by the reader: the noise went through it
-            layout = "half" if meta.get("demosaic") == "half" else "bayer"
-            pattern = meta.get("cfa_pattern")
-        sens = self.sensing
         try:
-            t, exp_stats = exposure_info(meta, sens.radiometry, sens.exposure_s,
-                                         self.settings.input.exposure_correction)  # fmt: skip
+            t, exp_stats, layout, pattern = self.capture_frame_arguments(capture)
             res = self.reconstruct_frame(
                 capture.image, capture.saturated, exposure_s=t,
                 source=src, raw_layout=layout, cfa_pattern=pattern, bundle_corrections=False,
@@ -893,6 +886,23 @@ class HSIReconstructor(nn.Module):
             if "'exposure_s'" in str(exc) and getattr(capture, "path", None) is not None:
                 raise FileFormatError(f"{src}: {exc}") from None  # the file's metadata at fault
             raise
+
+    def capture_frame_arguments(
+        self, capture: Any
+    ) -> tuple[float | None, dict[str, Any], str, str | None]:
+        """What a :class:`hsi_torch.io.LinearCapture` gives :meth:`reconstruct_frame`: its
+        exposure (s, :func:`hsi_torch.recon.checks.exposure_info`, with that function's
+        statistics), its raw layout (``"rgb"``, ``"bayer"`` or ``"half"``: a mosaic demosaiced by
+        the reader, whose noise went through the demosaic) and its CFA pattern."""
+        meta = capture.metadata
+        layout, pattern = "rgb", None
+        if meta.get("kind") == "bayer":
+            layout = "half" if meta.get("demosaic") == "half" else "bayer"
+            pattern = meta.get("cfa_pattern")
+        sens = self.sensing
+        t, exp_stats = exposure_info(meta, sens.radiometry, sens.exposure_s,
+                                     self.settings.input.exposure_correction)  # fmt: skip
+        return t, exp_stats, layout, pattern
 
     @_judged
     def reconstruct_file(
@@ -923,10 +933,9 @@ class HSIReconstructor(nn.Module):
         :meth:`reconstruct_frame` (a frame of a sequence).
         """
         cap, checks, t_load = self.read_capture(path, page=page, **overrides)
-        res = self.reconstruct_capture(cap, warm=warm, sensing=sensing, stats=checks)
-        res.timings = {"load": t_load, **res.timings}
-        res.timings["total"] += t_load
-        return res
+        return with_load_time(
+            self.reconstruct_capture(cap, warm=warm, sensing=sensing, stats=checks), t_load
+        )
 
     def read_capture(
         self, path: str | os.PathLike, *, page: int | None = None, **overrides: Any
@@ -1004,6 +1013,13 @@ class Reconstructor(HSIReconstructor):
 
     #: ``keep_calibration``'s default: never
     default_keep_calibration: bool | None = False
+
+
+def with_load_time(res: ReconstructionResult, load_s: float) -> ReconstructionResult:
+    """``res`` with the file's read (s) as its first timing, ``"load"``, and in its total."""
+    res.timings = {"load": load_s, **res.timings}
+    res.timings["total"] += load_s
+    return res
 
 
 def _derived(sens: BundleSensing) -> dict[str, Tensor]:

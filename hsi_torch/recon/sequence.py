@@ -60,7 +60,7 @@ from torch import Tensor
 
 from hsi_torch.findings import Finding
 from hsi_torch.io.bundle import CalibrationBundle
-from hsi_torch.recon.checks import exposure_info, exposure_scale
+from hsi_torch.recon.checks import exposure_scale
 from hsi_torch.recon.corrections import correct_frames
 from hsi_torch.recon.drift import corrected_sensing, estimate_drift
 from hsi_torch.recon.frame import (
@@ -71,7 +71,7 @@ from hsi_torch.recon.frame import (
     sample_views,
 )
 from hsi_torch.recon.nnls import NNLSProblem
-from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor
+from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor, with_load_time
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.settings import ReconstructSettings, with_overrides
 from hsi_torch.recon.spatial.noise import frame_noise_level
@@ -297,17 +297,12 @@ class SequenceReconstructor:
         sequence's warm start, drift path and temporal prior."""
         rec = self.reconstructor
         cap, checks, t_load = rec.read_capture(path, page=page)
-        sens = self.base_sensing
-        t_exp, _ = exposure_info(cap.metadata, sens.radiometry, sens.exposure_s,
-                                 self.settings.input.exposure_correction)  # fmt: skip
-        meta = cap.metadata
-        pattern = meta.get("cfa_pattern") if meta.get("kind") == "bayer" else None
+        t_exp, _, _, pattern = rec.capture_frame_arguments(cap)
 
         def solve(sens: BundleSensing) -> ReconstructionResult:
-            res = rec.reconstruct_capture(cap, warm=self.warm, sensing=sens, stats=checks)
-            res.timings = {"load": t_load, **res.timings}
-            res.timings["total"] += t_load
-            return res
+            return with_load_time(
+                rec.reconstruct_capture(cap, warm=self.warm, sensing=sens, stats=checks), t_load
+            )
 
         src = str(getattr(cap, "path", None) or path)
         return self._frame(cap.image, cap.saturated, t_exp, pattern, src, True, solve)
