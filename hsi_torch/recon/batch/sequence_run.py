@@ -110,9 +110,12 @@ def _reconstruct_sequence(
     (a cold solve per frame) unless ``rec.settings.sequence`` asks for warm starts, the temporal
     prior or the drift path (:func:`uses_time`): then through one
     :class:`~hsi_torch.recon.sequence.SequenceReconstructor` on ``rec``'s sensing, which carries
-    them from frame to frame (a frame that fails leaves the state as the last good frame left
-    it). ``quiet``: the findings are not raised as Python warnings (a run reports them itself);
-    they are on every result (:attr:`ReconstructionResult.findings`) either way.
+    them from frame to frame (a frame that fails in its reading leaves them as they were; one
+    refused after its solve has already handed on its solver state — a start only, the next
+    solve ends at its own optimum — and its drift measurement, while the temporal prior keeps
+    the last good answer). ``quiet``: the findings are not raised as Python warnings (a run
+    reports them itself); they are on every result (:attr:`ReconstructionResult.findings`)
+    either way.
     """
     one: Reconstructor | SequenceReconstructor = rec
     if uses_time(rec.settings):
