@@ -432,8 +432,12 @@ class _CompiledStep:
             self.u[:, rows] = u0n[rows].T
 
     def final_u(self) -> np.ndarray:
-        """The scaled dual after the last iteration, ``u + x − z``, pixel-major ``(P, M)``."""
-        return np.ascontiguousarray((self.u + self.x - self.z).T)
+        """The scaled dual after the last iteration, ``u + x − z``, pixel-major ``(P, M)``: a
+        transposed view of the step's own ``u``, updated in place (no frame-sized copy on every
+        solve, warm-started or not; the step is done after this)."""
+        self.u += self.x
+        self.u -= self.z
+        return self.u.T
 
     def norms(self) -> tuple[float, float, float]:
         return (float(np.linalg.norm(self.z)), float(np.linalg.norm(self.x - self.z)),
