@@ -39,13 +39,14 @@ from typing import Any
 from hsi_torch.console import info, progress_bar, warn
 from hsi_torch.errors import HSIError, InputError, NoValidPixelsError
 from hsi_torch.findings import Finding, HSIWarning, findings_from_dicts
-from hsi_torch.io.dataset import _read_json, require_dataset_packages
+from hsi_torch.io.dataset import require_dataset_packages
 from hsi_torch.io.sequence import CaptureSequence, SequenceFrame, open_sequence
 from hsi_torch.io.sequence_store import (
     SEQUENCE_NAME,
     SequenceStore,
     is_sequence_store,
 )
+from hsi_torch.io.zarr_group import read_json
 from hsi_torch.recon.batch.driver import RunFailure, RunSummary
 from hsi_torch.recon.batch.run import ReconstructRun, check_run
 from hsi_torch.recon.batch.sequence_finish import finish_sequence_run
@@ -268,7 +269,7 @@ def run_sequence(
         raise ValueError(f"--sequence: {exc}") from None
     store_path = Path(out_dir) / SEQUENCE_NAME
     if time_from == "auto" and resume and is_sequence_store(store_path):
-        src = _read_json(store_path / ".zattrs").get("time_source")
+        src = read_json(store_path / ".zattrs").get("time_source")
         time_from = src if isinstance(src, str) else "auto"  # the store's frames' rule
     seq = (
         inputs
