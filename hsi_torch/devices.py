@@ -1,11 +1,15 @@
 """Device and precision names (``"cuda:1"``, ``"float64"``) as torch objects, checked once here
-for every configuration, command option and constructor that takes them."""
+for every configuration, command option and constructor that takes them; and the one way a
+tensor (any device) becomes a host array, :func:`to_numpy`."""
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import torch
 
-__all__ = ["DTYPES", "torch_dtype", "resolve_device"]
+__all__ = ["DTYPES", "torch_dtype", "resolve_device", "to_numpy"]
 
 #: the precisions a configuration may name
 DTYPES: dict[str, torch.dtype] = {"float32": torch.float32, "float64": torch.float64}
@@ -53,3 +57,10 @@ def resolve_device(
         raise ValueError(f"{label} {str(name)!r}: MPS is not available on this machine/torch "
                          "build")  # fmt: skip
     return dev
+
+
+def to_numpy(x: Any, dtype: Any = None) -> np.ndarray:
+    """A tensor (any device; detached, copied to the host) or an array-like as a numpy array
+    (shared with ``x`` where possible), in ``dtype`` if given (a copy only where it differs)."""
+    a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    return a if dtype is None else a.astype(dtype, copy=False)

@@ -35,6 +35,7 @@ from hsi_torch.calibrate.registration import (
     fit_homography,
     view_orientation,
 )
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import InputError
 from hsi_torch.io.atomic import atomic_write_bytes
 from hsi_torch.optics.geometry import apply_homography, triangle_edge_distance
@@ -798,7 +799,7 @@ def draw_layout_overlay(
     their parity: green text = confirmed by the grids, orange = not confirmed, red = flipped
     against the design), the neighbouring tiles thin and grey, the BRF-free patch in yellow and
     the fitted transform as a caption. ``long_side``: the picture's longer side (px)."""
-    img = white.detach().cpu().numpy() if isinstance(white, torch.Tensor) else np.asarray(white)
+    img = to_numpy(white)
     img = img.mean(0) if img.ndim == 3 else img
     hi = float(np.percentile(img, 99.5)) or 1.0
     grey = (np.sqrt(np.clip(img / hi, 0, 1)) * 200).astype(np.uint8)

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import torch
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.optics.geometry import apply_homography, triangle_edge_distance
 
 __all__ = [
@@ -263,8 +264,8 @@ def detect_in_views(
     """
     cfg = config or GridDetectorConfig()
     gray = to_gray_uint8(image)
-    tris = _as_numpy(triangles).reshape(-1, 3, 2)
-    par = _as_numpy(parity).reshape(-1)
+    tris = to_numpy(triangles).reshape(-1, 3, 2)
+    par = to_numpy(parity).reshape(-1)
     if len(par) != len(tris):
         raise ValueError(f"parity has {len(par)} entries but triangles has {len(tris)} views")
     out: list[np.ndarray | None] = []
@@ -426,7 +427,7 @@ def register_views(
     cfg = config or GridDetectorConfig()
     if len(images) == 0:
         raise ValueError("register_views needs at least one target image")
-    tris = _as_numpy(triangles).reshape(-1, 3, 2)
+    tris = to_numpy(triangles).reshape(-1, 3, 2)
     V = len(tris)
     detections = [detect_in_views(img, tris, parity, cfg) for img in images]
     missing_ref = all(d[reference_view] is None for d in detections)
@@ -515,8 +516,8 @@ def check_registration(
     Raises:
         ValueError: naming every view at fault, its inliers / parity, and the fix.
     """
-    tris = _as_numpy(triangles).reshape(-1, 3, 2)
-    par = _as_numpy(parity).reshape(-1)
+    tris = to_numpy(triangles).reshape(-1, 3, 2)
+    par = to_numpy(parity).reshape(-1)
     hs = result.view_homographies.detach().cpu().numpy()
     problems = []
     for r in result.reports:
@@ -542,9 +543,3 @@ def check_registration(
             f"{min_inlier_fraction:g}); run `hsi-torch layout` to propose a layout fitted to "
             "your white and grid shots, or correct the parity by hand"
         )
-
-
-def _as_numpy(x: np.ndarray | torch.Tensor | Sequence) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)

@@ -45,6 +45,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, InputError
 from hsi_torch.io.safety import file_kind
 
@@ -301,9 +302,7 @@ def atomic_save_npz(
     """
     converted: dict[str, np.ndarray] = {}
     for k, v in arrays.items():
-        if hasattr(v, "detach"):  # torch.Tensor
-            v = v.detach().cpu().numpy()
-        converted[k] = np.asarray(v)
+        converted[k] = to_numpy(v)
     with atomic_write(path, "wb") as f:
         (np.savez_compressed if compressed else np.savez)(f, **converted)
     return Path(path)

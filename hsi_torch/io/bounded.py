@@ -41,6 +41,7 @@ __all__ = [
     "check_declared",
     "require_npz",
     "npz_declared",
+    "npy_header",
     "read_json_bounded",
     "check_store_files",
     "declared_image_size",
@@ -125,12 +126,22 @@ def npz_declared(z: Any) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     out = {}
     for name in z.files:
         with z.zip.open(name + ".npy") as f:
-            version = np.lib.format.read_magic(f)
-            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                    else np.lib.format.read_array_header_2_0)  # fmt: skip
-            shape, _, dtype = read(f)
-        out[name] = (tuple(int(v) for v in shape), np.dtype(dtype))
+            out[name] = npy_header(f)
     return out
+
+
+def npy_header(f: Any) -> tuple[tuple[int, ...], np.dtype]:
+    """``(shape, dtype)`` from the header of the ``.npy`` stream ``f`` (positioned at its start;
+    left at the first data byte): the one reader of ``.npy`` headers in the package.
+
+    Raises:
+        ValueError: not an ``.npy`` header (NumPy's own message).
+    """
+    version = np.lib.format.read_magic(f)
+    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+            else np.lib.format.read_array_header_2_0)  # fmt: skip
+    shape, _, dtype = read(f)
+    return tuple(int(v) for v in shape), np.dtype(dtype)
 
 
 def read_json_bounded(
@@ -211,10 +222,7 @@ def declared_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
             shape = (h, w) if c == 1 else (h, w, c)
         elif suffix == ".npy":
             with open(p, "rb") as f:
-                version = np.lib.format.read_magic(f)
-                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                        else np.lib.format.read_array_header_2_0)  # fmt: skip
-                shape = tuple(read(f)[0])
+                shape = npy_header(f)[0]
         elif suffix == ".npz":
             require_npz(p)
             with np.load(p, allow_pickle=False) as z:

@@ -65,9 +65,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.forward_model import SensingModel
 from hsi_torch.io.atomic import atomic_save_npz, json_default
+from hsi_torch.io.bounded import npy_header
 from hsi_torch.io.radiometry import CameraIdentity
 from hsi_torch.io.safety import file_sha256, require_regular_file, short_repr
 from hsi_torch.provenance import package_version, provenance
@@ -181,12 +183,6 @@ def _check_radiometry_settings(settings: Any, fail: Any) -> None:
             fail(f"settings.{key}", f"must be a string or null, got {type(v).__name__}")
 
 
-def _np(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 class ReferenceFrame:
     """``frame_size``, ``(h, w)`` of the reference frame, from the ``reference_bbox``
     ``(x0, y0, w, h)`` of a bundle or of what is built from it."""
@@ -228,8 +224,8 @@ class CalibrationBundle(ReferenceFrame):
 
     def __post_init__(self) -> None:
         for k in (*_FLOAT_KEYS, *_INT_KEYS, *_BOOL_KEYS):
-            setattr(self, k, _np(getattr(self, k)))
-        self.extras = {str(k): _np(v) for k, v in self.extras.items()}
+            setattr(self, k, to_numpy(getattr(self, k)))
+        self.extras = {str(k): to_numpy(v) for k, v in self.extras.items()}
         self.reflection_sequences = [tuple(int(i) for i in s) for s in self.reflection_sequences]
         self.validate()
 
@@ -530,12 +526,7 @@ class CalibrationBundle(ReferenceFrame):
 def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype from a member's ``.npy`` header (a few hundred bytes decompressed)."""
     with zf.open(info) as f:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-        else:
-            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-    return tuple(int(v) for v in shape), np.dtype(dtype)
+        return npy_header(f)
 
 
 def _check_members(p: Path, raw: bytes | None = None) -> int:

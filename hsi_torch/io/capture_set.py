@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from hsi_torch.io.capture_manifest import check_manifest, entry_settings
@@ -588,8 +589,7 @@ def encode_mask_png(mask: Any) -> bytes:
     """PNG bytes of a bool ``(H, W)`` mask (tensor or array): 255 where True."""
     import cv2  # lazy: OpenCV only where a PNG mask is encoded (see the module docstring)
 
-    a = mask.detach().cpu().numpy() if hasattr(mask, "detach") else np.asarray(mask)
-    ok, buf = cv2.imencode(".png", a.astype(np.uint8) * 255)
+    ok, buf = cv2.imencode(".png", to_numpy(mask, np.uint8) * 255)
     if not ok:
         raise RuntimeError("PNG encoding failed")
     return buf.tobytes()

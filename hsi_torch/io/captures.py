@@ -27,9 +27,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
-from hsi_torch.io.bounded import declared_image_size, require_npz
+from hsi_torch.io.bounded import declared_image_size, npy_header, require_npz
 from hsi_torch.io.radiometry import capture_exposure
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
@@ -131,12 +132,6 @@ class LinearCapture:
 # writing
 
 
-def _to_numpy(image: Any) -> np.ndarray:
-    if isinstance(image, torch.Tensor):
-        return image.detach().cpu().numpy()
-    return np.asarray(image)
-
-
 def write_capture(
     path: str | os.PathLike, image: Any, metadata: dict[str, Any] | None = None
 ) -> Path:
@@ -158,7 +153,7 @@ def write_capture(
     p = Path(path)
     if p.suffix.lower() not in _TIFF_SUFFIXES:
         raise ValueError(f"capture path must end in .tif or .tiff, got {p}")
-    arr = _to_numpy(image)
+    arr = to_numpy(image)
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3 or arr.shape[0] not in (1, 3):
@@ -390,22 +385,12 @@ def _parse_metadata(text: str, where: str) -> dict[str, Any]:
     return meta
 
 
-def _npy_header(f: Any) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and dtype from an open ``.npy`` stream's header (no data read)."""
-    version = np.lib.format.read_magic(f)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-    else:
-        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-    return tuple(shape), np.dtype(dtype)
-
-
 def _read_npy(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     try:
         with open(p, "rb") as f:
-            shape, dtype = _npy_header(f)
+            shape, dtype = npy_header(f)
             available = p.stat().st_size - f.tell()
         _check_header(p, shape, dtype, expected_size, available)
         arr = np.load(p, allow_pickle=False)
@@ -447,13 +432,13 @@ def _read_npz(
                 )
             info = z.zip.getinfo(key + ".npy")
             with z.zip.open(info) as f:
-                shape, dtype = _npy_header(f)
+                shape, dtype = npy_header(f)
                 header_len = f.tell()
             raw = info.file_size - header_len if info.compress_type == 0 else None
             _check_header(p, shape, dtype, expected_size, raw)
             if "metadata" in keys:  # a text: its header too, before it is decoded
                 with z.zip.open(z.zip.getinfo("metadata.npy")) as f:
-                    mshape, mdtype = _npy_header(f)
+                    mshape, mdtype = npy_header(f)
                 if mshape != () or mdtype.kind not in "US" or mdtype.itemsize > _MAX_META_BYTES:
                     raise FileFormatError(
                         f"{p}: 'metadata' must be a JSON string (0-d str array) of at most "

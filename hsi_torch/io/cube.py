@@ -54,6 +54,7 @@ from xml.sax.saxutils import escape as _xml_escape
 import numpy as np
 import torch
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError, require_packages
 from hsi_torch.findings import Finding, findings_from_dicts
 from hsi_torch.io.atomic import (
@@ -168,12 +169,6 @@ class Cube:
         return cube_to_xarray(self.cube, self.wavelengths, self.valid, self.metadata)
 
 
-def _np(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 def _format_of(p: Path, fmt: CubeFormat | None) -> CubeFormat:
     if fmt is not None:
         if fmt not in _FORMAT_SUFFIX:
@@ -191,23 +186,23 @@ def _format_of(p: Path, fmt: CubeFormat | None) -> CubeFormat:
 def _prepare(
     cube: Any, wavelengths: Any, valid: Any | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    c = _np(cube)
+    c = to_numpy(cube)
     if c.ndim != 3:
         raise ValueError(f"cube must have shape (M, H, W), got {tuple(c.shape)}")
     if c.dtype.kind not in "uif":
         raise TypeError(f"cube must be numeric, got dtype {c.dtype}")
-    wl = _np(wavelengths).astype(np.float64).ravel()
+    wl = to_numpy(wavelengths).astype(np.float64).ravel()
     if wl.shape != (c.shape[0],):
         raise ValueError(
             f"wavelengths must have shape ({c.shape[0]},) to match cube {tuple(c.shape)}, got "
-            f"{tuple(_np(wavelengths).shape)}"
+            f"{tuple(to_numpy(wavelengths).shape)}"
         )
     if not np.all(np.isfinite(wl)) or np.any(wl <= 0):
         raise ValueError("wavelengths must be finite and positive (nm)")
     if valid is None:
         v = np.isfinite(c).all(axis=0)
     else:
-        v = _np(valid).astype(bool)
+        v = to_numpy(valid).astype(bool)
         if v.shape != c.shape[1:]:
             raise ValueError(f"valid must have shape {tuple(c.shape[1:])}, got {tuple(v.shape)}")
     return c.astype(np.float32, copy=False), wl, v
@@ -549,7 +544,7 @@ def save_cube_formats(
     t0 = time.perf_counter()
     c, wl, v = _prepare(cube, wavelengths, valid)
     c_nan = _nan_where_invalid(c, v) if any(f != "npz" for f in formats) else None
-    extra = {k: _np(a) for k, a in (npz_arrays or {}).items()}
+    extra = {k: to_numpy(a) for k, a in (npz_arrays or {}).items()}
     taken = {"cube", "wavelengths_nm", "valid", "metadata"} & set(extra)
     if taken:
         raise ValueError(f"npz_arrays: {sorted(taken)} are the cube's own keys")
@@ -639,7 +634,7 @@ def load_cube(
     if c.ndim != 3:
         raise FileFormatError(f"{p}: cube must be 3-D (M, H, W), got shape {tuple(c.shape)}")
     if wavelengths is not None:
-        wl = _np(wavelengths).astype(np.float64).ravel()
+        wl = to_numpy(wavelengths).astype(np.float64).ravel()
     if wl is None:
         raise FileFormatError(f"{p}: the file carries no wavelengths; pass wavelengths=")
     wl = np.asarray(wl, dtype=np.float64).ravel()

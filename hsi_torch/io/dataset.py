@@ -64,10 +64,11 @@ from typing import Any
 
 import numpy as np
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, require_packages
 from hsi_torch.io.atomic import atomic_write, json_default, remove_file
 from hsi_torch.io.bounded import check_store_files
-from hsi_torch.io.cube import _nan_where_invalid, _np
+from hsi_torch.io.cube import _nan_where_invalid
 from hsi_torch.io.safety import short_repr
 from hsi_torch.io.zarr_codecs import (
     SAFE_CODECS,
@@ -335,8 +336,8 @@ def write_frame(
     n = int(metas["done"]["shape"][0])
     if not 0 <= index < n:
         raise IndexError(f"{root}: frame {index} outside the store's {n} frames")
-    c = _np(cube).astype(np.float32, copy=False)
-    v = _np(valid).astype(bool, copy=False)
+    c = to_numpy(cube, np.float32)
+    v = to_numpy(valid, bool)
     if c.shape != tuple(metas["cube"]["chunks"][1:]) or v.shape != c.shape[1:]:
         raise ValueError(
             f"{root}: frame {index}: cube {tuple(c.shape)} and valid {tuple(v.shape)} do not fit "

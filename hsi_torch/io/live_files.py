@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from hsi_torch.io.bounded import npy_header
 from hsi_torch.io.captures import quiet_tifffile
 
 __all__ = ["is_temporary_name", "looks_complete"]
@@ -43,10 +44,7 @@ def looks_complete(path: str | os.PathLike) -> bool:
             import numpy as np  # lazy: numpy is loaded by the readers anyway
 
             with open(p, "rb") as f:
-                version = np.lib.format.read_magic(f)
-                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                        else np.lib.format.read_array_header_2_0)  # fmt: skip
-                shape, _, dtype = read(f)
+                shape, dtype = npy_header(f)
                 need = f.tell() + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
             return size >= need
         if suffix == ".npz":

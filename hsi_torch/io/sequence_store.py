@@ -66,11 +66,12 @@ import numpy as np
 import torch
 
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz
+from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, InputError
 from hsi_torch.findings import Finding
 from hsi_torch.io.atomic import atomic_write, json_default
 from hsi_torch.io.bounded import check_declared, check_store_files
-from hsi_torch.io.cube import _nan_where_invalid, _np
+from hsi_torch.io.cube import _nan_where_invalid
 from hsi_torch.io.dataset import require_dataset_packages
 from hsi_torch.io.safety import short_repr
 from hsi_torch.io.zarr_codecs import check_array_meta, check_zarr_codecs
@@ -250,8 +251,8 @@ class SequenceStore(ZarrGroup):
                 f"({self.times_s[-1]:g} s, {self.sources[-1]}); a sequence store only grows "
                 "forward in time: write into another folder"
             )
-        c = _np(cube).astype(np.float32, copy=False)
-        v = _np(valid).astype(bool, copy=False)
+        c = to_numpy(cube, np.float32)
+        v = to_numpy(valid, bool)
         want = tuple(self.meta["cube"]["chunks"][1:])
         if c.shape != want or v.shape != want[1:]:
             raise ValueError(f"{self.path}: frame {k} ({source}): cube {tuple(c.shape)} and "

@@ -29,6 +29,8 @@ from kornia.geometry.conversions import normalize_pixel_coordinates
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor
 
+from hsi_torch.devices import to_numpy
+
 __all__ = [
     "apply_homography",
     "triangle_edge_distance",
@@ -170,14 +172,8 @@ def _f64(a: np.ndarray | Sequence) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
 
 
-def _as_numpy(x: np.ndarray | Tensor | Sequence) -> np.ndarray:
-    if isinstance(x, Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 def _check_bbox(reference_bbox: Sequence[int] | Tensor) -> tuple[int, int, int, int]:
-    bb = [int(v) for v in _as_numpy(reference_bbox).reshape(-1).tolist()]
+    bb = [int(v) for v in to_numpy(reference_bbox).reshape(-1).tolist()]
     if len(bb) != 4 or bb[2] <= 0 or bb[3] <= 0:
         raise ValueError(f"reference_bbox must be (x0, y0, w, h) with w, h > 0, got {bb}")
     return bb[0], bb[1], bb[2], bb[3]
