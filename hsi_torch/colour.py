@@ -154,9 +154,7 @@ def spectra_to_srgb(
     return srgb_encode(rgb) if encode else rgb
 
 
-def cube_to_xyz(
-    cube: torch.Tensor, wavelengths, illuminant: IlluminantLike = "D65"
-) -> torch.Tensor:
+def cube_to_xyz(cube: torch.Tensor, wavelengths, illuminant: IlluminantLike = "D65")-> torch.Tensor:
     """``(..., M, H, W)`` cube → ``(..., 3, H, W)`` XYZ (white reflector: ``Y = 1``)."""
     cube = torch.as_tensor(cube)
     if cube.ndim < 3:

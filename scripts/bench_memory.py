@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hsi_torch.profiling import ChildMemory, run_child_memory
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # memory_probes beside this file
+from memory_probes import ChildMemory, run_child_memory  # noqa: E402
 
 CGROUP_ROOT = Path("/sys/fs/cgroup")
 

@@ -64,7 +64,7 @@ import numpy as np
 import torch
 
 from hsi_torch.io.bundle import CalibrationBundle
-from hsi_torch.profiling import RssSampler, peak_rss_gib
+from hsi_torch.profiling import peak_rss_gib
 from hsi_torch.recon.checks import exposure_scale
 from hsi_torch.recon.frame import observations_from_samples, sample_views
 from hsi_torch.recon.pipeline import Reconstructor
@@ -73,6 +73,7 @@ from hsi_torch.spectral import DEFAULT_GRID, band_widths, difference_matrix
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # also when run through runpy
 import nnls_baselines  # noqa: E402  (scripts/nnls_baselines.py)
+from memory_probes import RssSampler  # noqa: E402
 
 
 def _sync(dev: torch.device) -> None:

@@ -39,8 +39,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from hsi_torch.profiling import RssSampler, run_child  # noqa: E402
+from hsi_torch.profiling import run_child  # noqa: E402
 from hsi_torch.resources import shipped_config  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # memory_probes beside this file
+from memory_probes import RssSampler  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIGS = [shipped_config("simulate"), shipped_config("simulate_full")]

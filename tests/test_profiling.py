@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
-from hsi_torch.profiling import process_memory, run_child_memory
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+from memory_probes import process_memory, run_child_memory  # noqa: E402
 
 linux_proc = pytest.mark.skipif(process_memory() is None, reason="needs Linux /proc/<pid>/status")
 

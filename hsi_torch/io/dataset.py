@@ -1,24 +1,15 @@
 """One Zarr store for a whole run: every frame's cube in one chunked dataset.
 
-``hsi-torch reconstruct --format zarr`` writes ``OUT/cubes.zarr`` instead of files per input. It is
-a Zarr (format 2, consolidated metadata) group that ``xarray.open_zarr`` opens as a Dataset:
-
-===========  ===========================  ========  ============  ================================
-variable     dims                         dtype     chunk         meaning
-===========  ===========================  ========  ============  ================================
-cube         (frame, wavelength, y, x)    float32   (1, M, h, w)  the cube; NaN where invalid or
-                                                                  not (yet) reconstructed
-valid        (frame, y, x)                bool      (1, h, w)     pixel reconstructed
-done         (frame,)                     bool      (1,)          the frame is complete
-metadata     (frame,)                     str       (1,)          the frame's metadata (JSON, as
-                                                                  in a cube file)
-source       (frame,)  coordinate         str       (4096,)       the input file (absolute path)
-wavelength   (wavelength,) coordinate     float64                 band centres, nm
-y, x         coordinates                  int64                   reference-frame pixel indices
-===========  ===========================  ========  ============  ================================
-
-``cube`` is compressed with Zstandard (level 1: 0.1–0.2 s and 27–43 % of the raw 61 MiB for the
-full-size demo's three scenes). The root attributes hold ``hsi_torch_dataset`` (layout version),
+``hsi-torch reconstruct --format zarr`` writes ``OUT/cubes.zarr`` instead of files per input: a
+Zarr (format 2, consolidated metadata) group that ``xarray.open_zarr`` opens as a Dataset (the
+layout table and reading examples: docs/cluster.md). Variables, one chunk per frame:
+``cube (frame, wavelength, y, x)`` float32, NaN where invalid or not (yet) reconstructed;
+``valid (frame, y, x)`` bool; ``done (frame,)`` bool, the frame is complete; ``metadata
+(frame,)`` str, the frame's metadata (JSON, as in a cube file: its ``"findings"`` are the
+frame's findings); coordinates ``source (frame,)`` (the input's absolute path, chunks of 4096),
+``wavelength`` (float64, nm), ``y``, ``x`` (int64 reference-frame pixel indices). ``cube`` is
+compressed with Zstandard (level 1: 0.1–0.2 s and 27–43 % of the raw 61 MiB for the full-size
+demo's three scenes). The root attributes hold ``hsi_torch_dataset`` (layout version),
 ``wavelengths_nm``, ``frame_size`` and ``bundle``.
 
 **Written concurrently, without a lock on the store.** One frame is one chunk of each variable,
@@ -42,14 +33,6 @@ are checked against the codecs this module writes (:data:`STORE_CODECS`: Zstanda
 which runs code when it decodes) is refused with an error naming the array and the codec
 (:func:`check_zarr_codecs`). Cube files written as ``<stem>.zarr`` by xarray are opened with the
 wider list :data:`SAFE_CODECS` (numcodecs' compressors and filters that only decode data).
-
-Reading::
-
-    ds = xarray.open_zarr("out/cubes.zarr")
-    ds.cube.isel(frame=0).sel(wavelength=550)      # (h, w)
-    ds.cube.where(ds.done, drop=True)              # complete frames only
-    json.loads(ds.metadata[0].values.item())       # one frame's metadata; its "findings":
-                                                   # the frame's findings (Finding.to_dict list)
 """
 
 from __future__ import annotations
@@ -305,12 +288,8 @@ _META_CACHE: dict[str, dict[str, dict[str, Any]]] = {}
 
 
 def write_frame(
-    store: str | os.PathLike,
-    index: int,
-    cube: Any,
-    valid: Any,
-    metadata: dict[str, Any],
-) -> list[Path]:
+    store: str | os.PathLike, index: int, cube: Any, valid: Any, metadata: dict[str, Any]
+)-> list[Path]:
     """Write one frame into a store made by :meth:`CubeDataset.open`: the cube (NaN where not
     ``valid``), the mask, the metadata, then ``done`` — each chunk atomically, no lock (the
     frame's chunks are its own files). Any process that sees the store's folder can call it.

@@ -3,32 +3,18 @@ by frame.
 
 ``hsi-torch reconstruct --sequence`` and ``hsi-torch watch`` write ``OUT/sequence.zarr``, a Zarr
 (format 2, consolidated metadata) group that ``xarray.open_zarr`` opens as a Dataset and the
-napari reader shows with a time slider:
-
-==========  ==========================  ========  ============  =================================
-variable    dims                        dtype     chunk         meaning
-==========  ==========================  ========  ============  =================================
-cube        (time, wavelength, y, x)    float32   (1, M, h, w)  the cube; NaN where not valid
-valid       (time, y, x)                bool      (1, h, w)     pixel reconstructed
-time        (time,) coordinate          float64   (1,)          seconds since the first frame
-timestamp   (time,)                     str       (1,)          the frame's date and time (ISO
-                                                                8601) or ``""`` when not absolute
-source      (time,)                     str       (1,)          the input (absolute path,
-                                                                ``#page=N`` for a TIFF page)
-findings    (time,)                     str       (1,)          the frame's findings, a JSON
-                                                                list of
-                                                                :meth:`hsi_torch.findings.Finding.to_dict`
-metadata    (time,)                     str       (1,)          the frame's metadata (JSON, as
-                                                                in a cube file)
-wavelength  (wavelength,) coordinate    float64                 band centres, nm
-y, x        coordinates                 int64                   reference-frame pixel indices
-==========  ==========================  ========  ============  =================================
-
-The root attributes hold ``hsi_torch_sequence`` (layout version), ``wavelengths_nm``,
-``frame_size``, ``time_origin`` (the first frame's date and time, or ``None``), ``time_source``
-and ``bundle``. ``cube`` is compressed with Zstandard (level 1), as in the run's store
-(:mod:`hsi_torch.io.dataset`); both are written by :mod:`hsi_torch.io.zarr_group` (chunk
-encoding, codec checks, the lock).
+napari reader shows with a time slider (the layout table and reading examples:
+docs/sequences_io.md). Along ``time``, one chunk per frame: ``cube (time, wavelength, y, x)``
+float32, NaN where not valid; ``valid (time, y, x)`` bool; ``time`` (coordinate, float64,
+seconds since the first frame); ``timestamp`` (str, the frame's ISO 8601 date and time or
+``""`` when not absolute); ``source`` (str, the input's absolute path, ``#page=N`` for a TIFF
+page); ``findings`` (str, a JSON list of :meth:`hsi_torch.findings.Finding.to_dict`);
+``metadata`` (str, JSON as in a cube file); coordinates ``wavelength`` (float64, nm), ``y``,
+``x`` (int64 reference-frame pixel indices). The root attributes hold ``hsi_torch_sequence``
+(layout version), ``wavelengths_nm``, ``frame_size``, ``time_origin`` (the first frame's date
+and time, or ``None``), ``time_source`` and ``bundle``. ``cube`` is compressed with Zstandard
+(level 1), as in the run's store (:mod:`hsi_torch.io.dataset`); both are written by
+:mod:`hsi_torch.io.zarr_group` (chunk encoding, codec checks, the lock).
 
 **Appended, resumable.** Every frame is one chunk of each time-axis array, written atomically
 (temporary file + rename, :mod:`hsi_torch.io.atomic`); only then is the time axis lengthened (the
@@ -44,13 +30,6 @@ decoded) and that every file is a regular file of bounded size, then opens the s
 (``xarray.open_zarr``: one frame is decoded when it is asked for); :func:`iter_store_frames`
 yields one frame at a time, each checked against the cube size cap
 (``$HSI_TORCH_MAX_CUBE_GB``, :mod:`hsi_torch.io.bounded`) — a sequence is never loaded whole.
-
-Reading::
-
-    ds = xarray.open_zarr("out/sequence.zarr")
-    ds.cube.isel(time=-1).sel(wavelength=550)        # (h, w), the last frame
-    ds.cube.sel(y=40, x=60).plot(x="time")           # one pixel's spectra in time
-    json.loads(ds.findings[3].values.item())         # frame 3's findings
 """
 
 from __future__ import annotations
