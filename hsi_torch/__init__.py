@@ -12,20 +12,17 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-_LAZY = {
-    "SpectralGrid": "hsi_torch.spectral",
-    "DEFAULT_GRID": "hsi_torch.spectral",
-    "HSIReconstructor": "hsi_torch.recon.pipeline",
-    "Reconstructor": "hsi_torch.recon.pipeline",
-    "CalibrationBundle": "hsi_torch.io.bundle",
-}
+from hsi_torch.errors import lazy_attributes
 
-__all__ = ["__version__", *_LAZY]
+_NAMES, _lazy = lazy_attributes("hsi_torch", {
+    "hsi_torch.spectral": ("SpectralGrid", "DEFAULT_GRID"),
+    "hsi_torch.recon.pipeline": ("HSIReconstructor", "Reconstructor"),
+    "hsi_torch.io.bundle": ("CalibrationBundle",),
+})
+__all__ = ["__version__", *_NAMES]
 
 
 def __getattr__(name: str) -> Any:
     if name == "__version__":  # from git metadata in a checkout: computed on first use
         return importlib.import_module("hsi_torch.provenance").package_version()
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'hsi_torch' has no attribute {name!r}")
+    return _lazy(name)

@@ -59,8 +59,7 @@ def validate_cfa_pattern(pattern: str) -> str:
     if len(p) != 4 or sorted(p) != ["B", "G", "G", "R"]:
         raise ValueError(
             f"cfa_pattern must be a 2x2 Bayer pattern such as 'RGGB', 'BGGR', 'GRBG' or 'GBRG' "
-            f"(one R, one B, two G), got {pattern!r}"
-        )
+            f"(one R, one B, two G), got {pattern!r}")
     return p
 
 

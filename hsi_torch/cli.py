@@ -168,16 +168,14 @@ def _add_common(p: argparse.ArgumentParser, config: bool = True, device: bool = 
         p.add_argument(
             "--config", "-c", type=Path, default=None, metavar="YAML",
             help="YAML configuration file, or the name of a shipped one (default: the "
-                 "command's shipped file; see 'hsi-torch config list')",
-        )  # fmt: skip
+                 "command's shipped file; see 'hsi-torch config list')")  # fmt: skip
         p.add_argument(
             "--set", "-s", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
             help="override a config key (repeatable; the value is YAML; see the examples)",
         )  # fmt: skip
     if device:
         p.add_argument(
-            "--device", default=None, help="torch device, e.g. cpu, cuda, cuda:1 (default: cpu)"
-        )
+            "--device", default=None, help="torch device, e.g. cpu, cuda, cuda:1 (default: cpu)")
     _add_global(p, argparse.SUPPRESS)
 
 
@@ -186,40 +184,33 @@ def _add_global(p: argparse.ArgumentParser, default: Any) -> None:
     sub-parsers, so that they do not overwrite a value given before the sub-command)."""
     p.add_argument(
         "-q", "--quiet", action="store_true", default=default,
-        help="print only warnings and errors (no progress bars, no reports)",
-    )  # fmt: skip
+        help="print only warnings and errors (no progress bars, no reports)")  # fmt: skip
     p.add_argument(
         "--no-progress", dest="progress", action="store_false", default=default,
-        help="no progress bars (they are also off when stderr is not a terminal)",
-    )  # fmt: skip
+        help="no progress bars (they are also off when stderr is not a terminal)")  # fmt: skip
     p.add_argument(
-        "--debug", action="store_true", default=default, help="show full tracebacks on errors"
-    )
+        "--debug", action="store_true", default=default, help="show full tracebacks on errors")
     p.add_argument(
         "--data-dir", type=Path, default=default, metavar="DIR",
         help="real-data folder (CAVE scene, real RAW files, ...; default: $HSI_TORCH_DATA, else "
-             "../shared/data/real beside a source checkout)",
-    )  # fmt: skip
+             "../shared/data/real beside a source checkout)")  # fmt: skip
 
 
 def _add_cluster_options(p: argparse.ArgumentParser) -> None:
     """``reconstruct``'s options for a run on a Dask cluster and for the dataset store."""
     g = p.add_argument_group(
-        "many captures (Dask cluster, dataset store; pip install 'hsi-torch[cluster]')"
-    )
+        "many captures (Dask cluster, dataset store; pip install 'hsi-torch[cluster]')")
     where = g.add_mutually_exclusive_group()
     where.add_argument(
         "--scheduler", metavar="SPEC", default=None,
         help="reconstruct on Dask workers: local:N (N worker processes on this machine, started "
              "and stopped by the command, on 127.0.0.1) or a running scheduler's address, "
              "tls://host:8786 (with --tls-*) or tcp://host:8786 (trusted networks only: a "
-             "scheduler can run code in this process)",
-    )  # fmt: skip
+             "scheduler can run code in this process)")  # fmt: skip
     where.add_argument(
         "--scheduler-file", type=Path, default=None, metavar="FILE",
         help="the scheduler's address from the file it wrote (dask scheduler "
-             "--scheduler-file, dask-mpi, ...)",
-    )  # fmt: skip
+             "--scheduler-file, dask-mpi, ...)")  # fmt: skip
     for opt, what in (("--tls-ca-file", "the certificate authority that signed the cluster's "
                                         "certificates (PEM)"),
                       ("--tls-cert", "this client's certificate (PEM; may hold the key too)"),
@@ -229,19 +220,16 @@ def _add_cluster_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--threads-per-worker", type=int, default=None, metavar="K",
         help="torch and numba threads per frame in each worker (default: cores / N for "
-             "local:N, else the worker's own thread count)",
-    )  # fmt: skip
+             "local:N, else the worker's own thread count)")  # fmt: skip
     g.add_argument(
         "--send-bundle", action="store_true",
         help="send the bundle's bytes to the workers instead of its path (workers that do "
-             "not see this file system)",
-    )  # fmt: skip
+             "not see this file system)")  # fmt: skip
     g.add_argument(
         "--format", choices=("files", "zarr"), default="files",
         help="files: the configured cube files per input (default); zarr: one chunked Zarr "
              "store OUT/cubes.zarr for the whole run (one frame per input, opens with "
-             "xarray.open_zarr; no previews)",
-    )  # fmt: skip
+             "xarray.open_zarr; no previews)")  # fmt: skip
 
 
 def _add_sequence_options(p: argparse.ArgumentParser, watch: bool) -> None:
@@ -280,8 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Snapshot hyperspectral imaging with a birefringent filter and a tapered "
         "kaleidoscope: simulate, calibrate, reconstruct, evaluate.",
-        epilog=_epilog(None), formatter_class=raw,
-    )  # fmt: skip
+        epilog=_epilog(None), formatter_class=raw)  # fmt: skip
     parser.add_argument("--version", action="version", version=f"{PROG} {_version()}")
     _add_global(parser, None)
     parser.set_defaults(debug=False, quiet=False, progress=True)
@@ -298,8 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--overwrite", action="store_true",
         help="replace the files of a non-empty --out (the new set is written completely "
-             "first, then moved into place)",
-    )  # fmt: skip
+             "first, then moved into place)")  # fmt: skip
 
     p = command("calibrate", "build a calibration bundle from calibration captures")
     _add_common(p)
@@ -308,8 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--oracle", action="store_true",
         help="build the bundle from a simulated capture set's ground truth (true B, phi, g, "
              "homographies, masks) instead of calibrating: reconstructing with both measures "
-             "what calibration costs",
-    )  # fmt: skip
+             "what calibration costs")  # fmt: skip
     p.add_argument(
         "--out", "-o", type=Path, required=True,
         help="output folder (writes calib.npz, calib.report.json, calib_diagnostics.png and "
@@ -324,8 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
         "view's parity on the circle-grid shots and writes nominal_layout.json with an\n"
         "overlay PNG to check by eye (see docs/calibration.md). Refused (exit 1, nothing\n"
         "written) when the white shot's edges do not single out the fit (--min-edge-contrast)\n"
-        "or the grid shots decide no view's parity.",
-    )  # fmt: skip
+        "or the grid shots decide no view's parity.")  # fmt: skip
     _add_common(p, device=False)
     p.add_argument("--captures", type=Path, default=None,
                    help="capture folder: its white/, grid/ and dark/ shots (or manifest)")
@@ -341,8 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", "-o", type=Path, required=True,
         help="the layout file (NAME.json; the overlay is NAME_overlay.png beside it) or a "
-             "folder (nominal_layout.json + nominal_layout_overlay.png)",
-    )  # fmt: skip
+             "folder (nominal_layout.json + nominal_layout_overlay.png)")  # fmt: skip
 
     p = command("reconstruct", "reconstruct spectral cubes from captures")
     _add_common(p)
@@ -350,8 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", "-o", type=Path, required=True, help="output folder")
     p.add_argument(
         "--no-resume", dest="resume", action="store_false",
-        help="re-process inputs whose outputs already exist",
-    )  # fmt: skip
+        help="re-process inputs whose outputs already exist")  # fmt: skip
     p.add_argument("--strict", action="store_true",
                    help="every warning about a frame refuses it: no cube, the run exits 1 "
                         "(the setting strict)")  # fmt: skip
@@ -385,8 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--full", action="store_true",
         help="the original prototype's size (simulate_full.yaml): every stage in its own "
-             "process, timed, peak memory measured; a few minutes",
-    )  # fmt: skip
+             "process, timed, peak memory measured; a few minutes")  # fmt: skip
 
     p = command("captures", "build a capture set from a lab's photos (import), or check one")
     cap = p.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -412,8 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument(
         "action", nargs="?", choices=("list", "show", "copy"), default="list",
-        help="list the names (default), show NAME, or copy NAME to DEST",
-    )  # fmt: skip
+        help="list the names (default), show NAME, or copy NAME to DEST")  # fmt: skip
     p.add_argument("name", nargs="?", metavar="NAME", help="e.g. simulate, calibrate, synthetic")
     p.add_argument("dest", nargs="?", type=Path, metavar="DEST", help="file or folder (copy)")
     p.add_argument("--force", action="store_true", help="copy: overwrite an existing DEST")
@@ -442,19 +422,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "bench", help="timing benchmarks (extra arguments go to the script)", add_help=False,
         description="Runs scripts/bench_<target>.py; unknown arguments are passed to it. "
-        "'hsi-torch bench <target> --help' lists the script's own options.",
-    )  # fmt: skip
+        "'hsi-torch bench <target> --help' lists the script's own options.")  # fmt: skip
     p.add_argument(
         "target", nargs="?", choices=BENCH_TARGETS, default=None,
-        help="benchmark to run (default: pipeline)",
-    )  # fmt: skip
+        help="benchmark to run (default: pipeline)")  # fmt: skip
     p.add_argument(
         "-h", "--help", dest="bench_help", action="store_true",
-        help="show this help (after a target: the benchmark script's options)",
-    )  # fmt: skip
+        help="show this help (after a target: the benchmark script's options)")  # fmt: skip
     p.add_argument(
-        "--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS
-    )
+        "--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     p.set_defaults(_bench_parser=p)  # printed by main() for a bare "bench --help"
     return parser
 
@@ -583,8 +559,7 @@ def _dispatch(args: argparse.Namespace, extra: list[str], debug: bool, created: 
 
     data_dir_before = resources.get_real_data_dir_setting()
     console_before = console.configure(
-        quiet=bool(getattr(args, "quiet", False)), progress=bool(getattr(args, "progress", True))
-    )
+        quiet=bool(getattr(args, "quiet", False)), progress=bool(getattr(args, "progress", True)))
     try:
         if getattr(args, "data_dir", None) is not None:
             resources.set_real_data_dir(args.data_dir)

@@ -42,5 +42,4 @@ def load_args_config(args: argparse.Namespace, schema_cls: type, default: str | 
     from hsi_torch.config import load_config  # lazy: config loads YAML and torch (start-up time)
 
     return load_config(
-        config_source(args, default), schema_cls, getattr(args, "overrides", [])
-    )
+        config_source(args, default), schema_cls, getattr(args, "overrides", []))

@@ -102,8 +102,7 @@ def spectra_to_xyz(
     if spectra.shape[-1] != wl.numel():
         raise ValueError(
             f"spectra have {spectra.shape[-1]} samples on the last axis but "
-            f"{wl.numel()} wavelengths were given"
-        )
+            f"{wl.numel()} wavelengths were given")
     return spectra @ w.T
 
 
@@ -237,15 +236,13 @@ def _masked_xyz(
     if v.shape[-2:] != cube.shape[-2:]:
         raise ValueError(
             f"valid must have shape (..., H, W) = {tuple(cube.shape[-2:])}, got "
-            f"{tuple(valid.shape)}"
-        )
+            f"{tuple(valid.shape)}")
     xyz = cube_to_xyz(cube, wavelengths, illuminant)
     zero = torch.zeros((), dtype=xyz.dtype, device=xyz.device)
     xyz = torch.where(v, xyz, zero)
     if not bool(torch.isfinite(xyz).all()):
         xyz = cube_to_xyz(
-            torch.where(v, torch.nan_to_num(cube, nan=0.0), 0.0), wavelengths, illuminant
-        )
+            torch.where(v, torch.nan_to_num(cube, nan=0.0), 0.0), wavelengths, illuminant)
     return xyz
 
 
@@ -374,8 +371,7 @@ def save_preview_png(
         normalise=normalise,
         percentile=percentile,
         exposure=exposure,
-        valid=valid,
-    )
+        valid=valid)
     if caption is None and not min_size:
         return save_png_rgb(rgb, path)
     return save_labelled_png(rgb, path, caption=caption, min_size=min_size)
@@ -457,8 +453,7 @@ def plot_spectra(
         if t.shape[0] != s.shape[0] or t.shape[1] != t_wl.size:
             raise ValueError(
                 f"truth shape {t.shape} does not match spectra {s.shape} / "
-                f"{t_wl.size} truth wavelengths"
-            )
+                f"{t_wl.size} truth wavelengths")
     k = s.shape[0]
     sd = None if std is None else np.atleast_2d(to_np(std))
     if sd is not None and sd.shape != s.shape:
@@ -498,8 +493,7 @@ def plot_spectra(
         fig.suptitle(
             title
             + ("  (solid: estimate, dashed: truth)" if t is not None else "")
-            + ("  (band: ±1σ)" if sd is not None else "")
-        )
+            + ("  (band: ±1σ)" if sd is not None else ""))
     fig.tight_layout()
     if path is not None:
         import io

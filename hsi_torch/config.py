@@ -210,8 +210,7 @@ def safe_yaml_load(text: str, max_values: int = MAX_YAML_VALUES) -> Any:
         if size(node) > max_values:
             raise ValueError(
                 f"the YAML expands to more than {max_values} values (aliases such as *a repeat "
-                "a value each time they are used); write the values out"
-            )
+                "a value each time they are used); write the values out")
         return loader.construct_document(node)
     except RecursionError:
         raise ValueError("the YAML is nested too deeply") from None
@@ -240,8 +239,7 @@ def _refuse_duplicate_keys(node: yaml.MappingNode) -> None:
             f"key {short_repr(key.value)} is given twice in one mapping (first at line "
             f"{first.start_mark.line + 1}); YAML would keep the later value in silence: keep "
             "one of them",
-            key.start_mark,
-        )
+            key.start_mark)
 
 
 def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyPath, str]:
@@ -260,16 +258,14 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyP
                 if part >= len(node):
                     raise ConfigError(
                         f"override '{text}': index {part} is out of range (length {len(node)})",
-                        _fmt_key(parts[:i]),
-                    )
+                        _fmt_key(parts[:i]))
                 if not isinstance(node[part], (dict, list)):
                     node[part] = {} if not isinstance(nxt, int) else []
                 node = node[part]
             else:
                 raise ConfigError(
                     f"override '{text}': cannot descend into a {type(node).__name__}",
-                    _fmt_key(parts[:i]) or None,
-                )
+                    _fmt_key(parts[:i]) or None)
         last = parts[-1]
         if isinstance(node, dict):
             node[last] = value
@@ -278,8 +274,7 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[KeyP
         else:
             raise ConfigError(
                 f"override '{text}': cannot set {last!r} on a {type(node).__name__}",
-                _fmt_key(parts[:-1]) or None,
-            )
+                _fmt_key(parts[:-1]) or None)
         applied[parts] = text
     return applied
 
@@ -431,12 +426,10 @@ def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
             return tuple(_convert(v, args[0], (*path, i), ctx) for i, v in enumerate(value))
         if len(value) != len(args):
             raise ctx.error(
-                path, f"expected {len(args)} items ({_type_name(tp)}), got {len(value)}"
-            )
+                path, f"expected {len(args)} items ({_type_name(tp)}), got {len(value)}")
         return tuple(
             _convert(v, a, (*path, i), ctx)
-            for i, (v, a) in enumerate(zip(value, args, strict=True))
-        )
+            for i, (v, a) in enumerate(zip(value, args, strict=True)))
     if origin in (dict, Mapping) or tp in (dict, Mapping):
         if not isinstance(value, Mapping):
             raise ctx.error(path, f"expected a mapping, got {_got(value)}")
@@ -588,8 +581,7 @@ def write_resolved_config(
     """Write ``instance`` as ``out_dir/resolved_config.yaml`` (every run does this beside its
     outputs, so a result can be reproduced with ``--config out_dir/resolved_config.yaml``)."""
     return dump_config(
-        instance, Path(out_dir) / name, header=f"resolved configuration, hsi_torch {__version__}"
-    )
+        instance, Path(out_dir) / name, header=f"resolved configuration, hsi_torch {__version__}")
 
 
 def describe_schema(schema_cls: type, prefix: str = "") -> str:

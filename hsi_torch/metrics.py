@@ -77,8 +77,7 @@ def _check(estimate: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, t
     truth = torch.as_tensor(truth, device=estimate.device)
     if estimate.shape != truth.shape:
         raise ValueError(
-            f"estimate shape {tuple(estimate.shape)} != truth shape {tuple(truth.shape)}"
-        )
+            f"estimate shape {tuple(estimate.shape)} != truth shape {tuple(truth.shape)}")
     dtype = torch.promote_types(estimate.dtype, truth.dtype)
     if not dtype.is_floating_point:
         dtype = torch.get_default_dtype()

@@ -47,8 +47,7 @@ GIT_TIMEOUT_S = 2.0
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
 _COMMAND: contextvars.ContextVar[tuple[str, ...] | None] = contextvars.ContextVar(
-    "hsi_torch_command", default=None
-)
+    "hsi_torch_command", default=None)
 
 
 def _git(*args: str) -> str | None:
@@ -58,8 +57,7 @@ def _git(*args: str) -> str | None:
         r = subprocess.run(
             ["git", "-C", str(_PACKAGE_DIR), *args], capture_output=True, text=True,
             timeout=GIT_TIMEOUT_S, check=False, stdin=subprocess.DEVNULL,
-            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0", "LC_ALL": "C"},
-        )  # fmt: skip
+            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0", "LC_ALL": "C"})  # fmt: skip
     except (OSError, subprocess.SubprocessError, ValueError):
         return None
     return r.stdout if r.returncode == 0 else None

@@ -71,9 +71,7 @@ _REFLECTANCE_SET_ALIASES = ("190 patches", "190_patches", "rawtoaces 190")
 WavelengthsLike = SpectralGrid | torch.Tensor | Sequence[float] | np.ndarray
 
 
-# --------------------------------------------------------------------------------------------
-# helpers
-# --------------------------------------------------------------------------------------------
+# -------------------------------------------------------------------------------------- helpers --
 
 
 def as_wavelengths(
@@ -132,8 +130,7 @@ def _resample(
             raise ValueError(
                 f"{what}: requested wavelengths {tgt[outside].tolist()} nm lie outside the "
                 f"tabulated range [{float(src[0])}, {float(src[-1])}] nm; pass "
-                "extrapolate='zero' or 'edge' to allow this"
-            )
+                "extrapolate='zero' or 'edge' to allow this")
     out = resample_spectra(val, src, tgt, dim=-1, extrapolate=extrapolate)
     return out.to(wl.dtype)
 
@@ -231,9 +228,7 @@ def _normalise(values: np.ndarray, src_nm: np.ndarray, mode: str | None, what: s
     return values / peak
 
 
-# --------------------------------------------------------------------------------------------
-# illuminants
-# --------------------------------------------------------------------------------------------
+# ---------------------------------------------------------------------------------- illuminants --
 
 
 def list_illuminants() -> list[str]:
@@ -280,16 +275,13 @@ def illuminant(
     else:
         raise ValueError(
             f"unknown illuminant {name!r}: not a CSV file and not in colour.SDS_ILLUMINANTS "
-            f"(e.g. 'D65', 'A'; see list_illuminants())"
-        )
+            f"(e.g. 'D65', 'A'; see list_illuminants())")
     src = np.asarray(src, np.float64)
     val = _normalise(np.asarray(val, dtype=np.float64), src, normalise, what)
     return _resample(src, val, wavelengths, extrapolate, what, device, dtype)
 
 
-# --------------------------------------------------------------------------------------------
-# camera sensitivities
-# --------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------- camera sensitivities --
 
 
 def _real_data_cameras() -> dict[str, Path]:
@@ -350,8 +342,7 @@ def resolve_camera(name_or_path: str | os.PathLike) -> str:
         return name
     raise ValueError(
         f"unknown camera {name!r}: not a CSV/JSON file and not one of {list_cameras()} "
-        "(names match without regard to case)"
-    )
+        "(names match without regard to case)")
 
 
 def _read_camera_json(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -424,21 +415,17 @@ def camera_sensitivities(
         if table.shape[1] != 3:
             raise ValueError(
                 f"camera CSV {name}: expected 4 columns (wavelength,R,G,B), "
-                f"got {table.shape[1] + 1}"
-            )
+                f"got {table.shape[1] + 1}")
         vals = table.T
     else:
         raise ValueError(
-            f"unknown camera {name!r}: not a CSV/JSON file and not one of {list_cameras()}"
-        )
+            f"unknown camera {name!r}: not a CSV/JSON file and not one of {list_cameras()}")
     what = f"camera {name!r}"
     vals = _normalise(np.asarray(vals, np.float64), np.asarray(src, np.float64), normalise, what)
     return _resample(src, vals, wavelengths, extrapolate, what, device, dtype)
 
 
-# --------------------------------------------------------------------------------------------
-# reflectances
-# --------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------- reflectances --
 
 
 @functools.lru_cache(maxsize=8)
@@ -447,8 +434,7 @@ def _colorchecker_table(name: str) -> tuple[np.ndarray, np.ndarray, tuple[str, .
 
     if name not in colour.SDS_COLOURCHECKERS:
         raise ValueError(
-            f"unknown ColorChecker {name!r}; available: {sorted(colour.SDS_COLOURCHECKERS)}"
-        )
+            f"unknown ColorChecker {name!r}; available: {sorted(colour.SDS_COLOURCHECKERS)}")
     sds = colour.SDS_COLOURCHECKERS[name]
     names = tuple(sds.keys())
     src = np.asarray(next(iter(sds.values())).wavelengths, dtype=np.float64)
@@ -512,16 +498,13 @@ def reflectance_set(
     else:
         raise ValueError(
             f"unknown reflectance set {name!r}: use '190 patches', a ColorChecker name "
-            f"{sorted(colour.SDS_COLOURCHECKERS)} or a CSV file"
-        )
+            f"{sorted(colour.SDS_COLOURCHECKERS)} or a CSV file")
     if clip_negative:
         vals = np.clip(vals, 0.0, None)
     return _resample(src, vals, wavelengths, extrapolate, what, device, dtype), list(names)
 
 
-# --------------------------------------------------------------------------------------------
-# CIE colour matching functions
-# --------------------------------------------------------------------------------------------
+# ---------------------------------------------------------------- CIE colour matching functions --
 
 
 def cie_1931_cmfs(
@@ -542,9 +525,7 @@ def cie_1931_cmfs(
                      "zero", "CIE 1931 CMFs", device, dtype)
 
 
-# --------------------------------------------------------------------------------------------
-# gel filters
-# --------------------------------------------------------------------------------------------
+# ---------------------------------------------------------------------------------- gel filters --
 
 
 #: Gel filters shipped in ``hsi_torch/data`` (code → (file, brand, name)).

@@ -54,8 +54,7 @@ def _package_dir(sub: str) -> Path:
     if not isinstance(res, Path):  # e.g. a zip import: shipped files need a real folder
         raise RuntimeError(
             f"hsi_torch's {sub}/ folder is not on the file system ({res}); install the package "
-            "as a regular folder (pip install, not a zip)"
-        )
+            "as a regular folder (pip install, not a zip)")
     return res
 
 
@@ -76,8 +75,7 @@ def shipped_config_dir() -> Path:
     where = f" nor {root / 'configs'}" if root is not None else ""
     raise FileNotFoundError(
         f"the shipped configuration files are missing: neither {installed}{where} exists "
-        "(reinstall hsi-torch)"
-    )
+        "(reinstall hsi-torch)")
 
 
 def shipped_config_names() -> list[str]:
@@ -96,8 +94,7 @@ def shipped_config(name: str) -> Path:
     path = shipped_config_dir() / f"{stem}.yaml"
     if not path.is_file():
         raise FileNotFoundError(
-            f"no shipped config {name!r}; available: {', '.join(shipped_config_names())}"
-        )
+            f"no shipped config {name!r}; available: {', '.join(shipped_config_names())}")
     return path
 
 

@@ -38,8 +38,7 @@ def band_widths(wavelengths: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"wavelengths must be 1-D, got shape {tuple(wl.shape)}")
     if wl.numel() == 1:
         return torch.ones_like(
-            wl, dtype=torch.get_default_dtype() if not wl.is_floating_point() else wl.dtype
-        )
+            wl, dtype=torch.get_default_dtype() if not wl.is_floating_point() else wl.dtype)
     wl = wl.to(torch.float64) if not wl.is_floating_point() else wl
     d = wl[1:] - wl[:-1]
     out = torch.empty_like(wl)
@@ -98,16 +97,14 @@ class SpectralGrid:
     ) -> torch.Tensor:
         """``(M,)`` wavelengths in nm."""
         return torch.tensor(
-            self.wavelengths_nm, device=device, dtype=dtype or torch.get_default_dtype()
-        )
+            self.wavelengths_nm, device=device, dtype=dtype or torch.get_default_dtype())
 
     def band_widths(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> torch.Tensor:
         """``(M,)`` band widths Δλ_m in nm (see :func:`band_widths`)."""
         return band_widths(self.wavelengths(device, torch.float64)).to(
-            dtype or torch.get_default_dtype()
-        )
+            dtype or torch.get_default_dtype())
 
     def wavenumbers(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
@@ -153,8 +150,7 @@ def resample_spectra(
     if values.shape[dim] != src.numel():
         raise ValueError(
             f"values has {values.shape[dim]} samples along dim {dim} "
-            f"but source_nm has {src.numel()}"
-        )
+            f"but source_nm has {src.numel()}")
     if src.numel() > 1 and bool((src[1:] <= src[:-1]).any()):
         raise ValueError("source_nm must be strictly increasing")
     if extrapolate not in ("zero", "edge", "error"):
@@ -163,15 +159,13 @@ def resample_spectra(
     if extrapolate == "error" and bool(outside.any()):
         raise ValueError(
             f"target wavelengths {tgt[outside].tolist()} nm lie outside the source range "
-            f"[{float(src[0])}, {float(src[-1])}] nm"
-        )
+            f"[{float(src[0])}, {float(src[-1])}] nm")
     v = values.movedim(dim, -1)
     if src.numel() == 1:
         out = v[..., :1].expand(*v.shape[:-1], tgt.numel()).clone()
     else:
         idx = torch.searchsorted(src, tgt.clamp(src[0], src[-1]), right=True).clamp(
-            1, src.numel() - 1
-        )
+            1, src.numel() - 1)
         x0, x1 = src[idx - 1], src[idx]
         t = ((tgt.clamp(src[0], src[-1]) - x0) / (x1 - x0)).clamp(0, 1)
         out = v[..., idx - 1] * (1 - t) + v[..., idx] * t

@@ -142,8 +142,7 @@ def atomic_write(
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
-        prefix=f".{dest.name}.{os.getpid()}-", suffix=".tmp", dir=dest.parent
-    )
+        prefix=f".{dest.name}.{os.getpid()}-", suffix=".tmp", dir=dest.parent)
     try:
         kwargs: dict[str, Any] = {} if mode == "wb" else {"encoding": "utf-8", "newline": ""}
         os.close(fd)
@@ -604,16 +603,14 @@ def confined(root: str | os.PathLike, rel: Any) -> Path:
     if bad or any(part in ("", ".", "..") for part in parts):
         raise InputError(
             f"{r}: the path {str(rel)[:200]!r} in this folder's records does not "
-            "stay inside it; ignored"
-        )
+            "stay inside it; ignored")
     here = r
     for part in parts[:-1]:
         here = here / part
         if os.path.islink(here):
             raise InputError(
                 f"{r}: the path {rel[:200]!r} in this folder's records passes "
-                f"through the symbolic link {here}; ignored"
-            )
+                f"through the symbolic link {here}; ignored")
     return r.joinpath(*parts)
 
 
@@ -769,8 +766,7 @@ def check_not_input(
         same = "" if os.path.abspath(hit) == os.path.abspath(out) else f" (the same file as {hit})"
         raise InputError(
             f"refusing to write {out}: it is an input of this command{same}; choose another "
-            "output folder"
-        )
+            "output folder")
     return out
 
 
@@ -779,8 +775,7 @@ def _check_replaceable(dest: Path) -> None:
     if dest.is_dir() and not dest.is_symlink():
         raise InputError(
             f"cannot write {dest}: a folder of that name is in the way (a file is "
-            "written there; move the folder away)"
-        )
+            "written there; move the folder away)")
     if dest.parent.exists() and not dest.parent.is_dir():
         raise InputError(f"cannot write {dest}: {dest.parent} is not a folder")
 
@@ -906,8 +901,7 @@ class ReplaceTransaction:
             if not src.is_file():
                 raise InputError(
                     f"the new {dest} was not written completely (its staged file "
-                    f"{src.name} is missing)"
-                )
+                    f"{src.name} is missing)")
             self.check(dest)
         backups: list[tuple[Path, Path | None]] = []  # (destination, backup or None if new)
         journal: Path | None = None
@@ -1031,8 +1025,7 @@ def _write_journal(moves: list[tuple[Path, Path]],
             "note": "a replacement of these files was interrupted; the next run "
             "into this folder puts the earlier files back",
             "moves": entries,
-        }
-    )
+        })
     with atomic_write(path, "w") as f:
         f.write(text)
     return path

@@ -99,8 +99,7 @@ def check_declared(
         raise FileFormatError(
             f"{path}: the header declares a {what} of shape {shape} {np.dtype(dtype)} "
             f"({nbytes / 2**30:.2f} GiB), more than the {cap / 2**30:.2f} GiB a reader decodes "
-            f"(refused before decoding; set ${MAX_CUBE_GB_ENV} to open a larger one on purpose)"
-        )
+            f"(refused before decoding; set ${MAX_CUBE_GB_ENV} to open a larger one on purpose)")
     return nbytes
 
 
@@ -193,8 +192,7 @@ def check_store_files(root: str | os.PathLike, max_bytes: int | None = None) -> 
             if st.st_size > cap:
                 raise FileFormatError(
                     f"{f}: a store file of {st.st_size / 2**30:.2f} GiB, more than the "
-                    f"{cap / 2**30:.2f} GiB a reader decodes (${MAX_CUBE_GB_ENV})"
-                )
+                    f"{cap / 2**30:.2f} GiB a reader decodes (${MAX_CUBE_GB_ENV})")
 
 
 def declared_image_size(path: str | os.PathLike) -> tuple[int, int] | None:

@@ -332,8 +332,7 @@ class CalibrationBundle(ReferenceFrame):
         if size > bound:
             raise FileFormatError(
                 f"calibration bundle {p}: {size} bytes, more than its members hold ({bound}); "
-                "refusing to read it"
-            )
+                "refusing to read it")
         raw = p.read_bytes()
         return cls.load(p, raw=raw), file_sha256(raw)
 
@@ -346,16 +345,14 @@ class CalibrationBundle(ReferenceFrame):
             if p.is_dir():
                 raise FileFormatError(
                     f"calibration bundle {p} is a folder, not a bundle file (give the .npz "
-                    "written by 'hsi-torch calibrate')"
-                )
+                    "written by 'hsi-torch calibrate')")
             if not p.exists():
                 raise MissingFileError(f"calibration bundle {p} does not exist")
             require_regular_file(p, "calibration bundle")  # a FIFO would block the reader
         if not zipfile.is_zipfile(p if raw is None else io.BytesIO(raw)):  # np.load would guess
             raise FileFormatError(  # .npy/pickle: say it here
                 f"calibration bundle {p}: not a readable NPZ file (not a zip archive: corrupt, "
-                "truncated or another format)"
-            )
+                "truncated or another format)")
         try:
             return _check_members(p, raw)  # known members, sizes bounded: before decompressing
         except FileFormatError:
@@ -385,8 +382,7 @@ class CalibrationBundle(ReferenceFrame):
         if raw_meta.ndim != 0 or raw_meta.dtype.kind != "U":
             raise FileFormatError(
                 f"calibration bundle {p}: 'meta' must be a JSON string (0-d str array), got a "
-                f"{raw_meta.dtype} array of shape {raw_meta.shape}"
-            )
+                f"{raw_meta.dtype} array of shape {raw_meta.shape}")
         try:
             meta = json.loads(str(raw_meta))
         except (json.JSONDecodeError, RecursionError) as exc:
@@ -395,14 +391,12 @@ class CalibrationBundle(ReferenceFrame):
             ) from exc
         if not isinstance(meta, dict):
             raise FileFormatError(
-                f"calibration bundle {p}: 'meta' must be a JSON object, got {type(meta).__name__}"
-            )
+                f"calibration bundle {p}: 'meta' must be a JSON object, got {type(meta).__name__}")
         ver = meta.get("schema_version")
         if type(ver) is not int or ver not in READABLE_SCHEMA_VERSIONS:
             raise FileFormatError(
                 f"calibration bundle {p}: schema_version {ver!r} is not supported "
-                f"(this software reads versions {', '.join(map(str, READABLE_SCHEMA_VERSIONS))})"
-            )
+                f"(this software reads versions {', '.join(map(str, READABLE_SCHEMA_VERSIONS))})")
         kw = {k: data[fk] for k, fk in _FILE_KEYS.items()}
         extras = {k[len("extra_") :]: v for k, v in data.items() if k.startswith("extra_")}
         bundle = cls.__new__(cls)  # bypass __post_init__ so errors can name the file
@@ -410,20 +404,17 @@ class CalibrationBundle(ReferenceFrame):
             setattr(bundle, k, v)
         seqs = meta.get("reflection_sequences", [])
         ok = isinstance(seqs, list) and all(
-            isinstance(q, list) and all(type(i) is int for i in q) for q in seqs
-        )
+            isinstance(q, list) and all(type(i) is int for i in q) for q in seqs)
         if not ok:
             raise FileFormatError(
                 f"calibration bundle {p}: meta 'reflection_sequences' must be a list of lists of "
-                "mirror indices (integers)"
-            )
+                "mirror indices (integers)")
         bundle.reflection_sequences = [tuple(q) for q in seqs]
         for key in ("settings", "provenance"):
             if not isinstance(meta.get(key, {}), dict):
                 raise FileFormatError(
                     f"calibration bundle {p}: meta '{key}' must be a JSON object, got "
-                    f"{type(meta[key]).__name__}"
-                )
+                    f"{type(meta[key]).__name__}")
         bundle.settings = meta.get("settings", {})
         bundle.provenance = meta.get("provenance", {})
         bundle.software_version = str(meta.get("software_version", "unknown"))
@@ -462,8 +453,7 @@ class CalibrationBundle(ReferenceFrame):
         if shp[-2:] != (H, W):
             raise ValueError(
                 f"capture sensor size {shp[-2]}x{shp[-1]} (HxW) does not match the calibration "
-                f"bundle's {H}x{W}: the bundle was made for another camera/geometry or crop"
-            )
+                f"bundle's {H}x{W}: the bundle was made for another camera/geometry or crop")
         if len(shp) >= 3 and shp[-3] != 3:
             raise ValueError(f"capture must have 3 colour channels, got shape {shp}")
 
@@ -496,8 +486,7 @@ class CalibrationBundle(ReferenceFrame):
         idx = None if pixel_index is None else torch.as_tensor(pixel_index).cpu()
         return SensingModel.from_factors(
             torch.as_tensor(self.B), torch.as_tensor(self.gain), torch.as_tensor(self.phi),
-            band_widths(wl), pixel_index=idx, device=device, dtype=dtype,
-        )  # fmt: skip
+            band_widths(wl), pixel_index=idx, device=device, dtype=dtype)  # fmt: skip
 
     def observation_mask(
         self, device: torch.device | str | None = None, pixel_index: torch.Tensor | None = None
@@ -563,8 +552,7 @@ def _check_members(p: Path, raw: bytes | None = None) -> int:
         if meta_info.file_size > MAX_META_BYTES:
             raise FileFormatError(
                 f"{where}: member 'meta' is {meta_info.file_size} bytes, more than "
-                f"{MAX_META_BYTES >> 20} MiB of metadata; refusing to decompress it"
-            )
+                f"{MAX_META_BYTES >> 20} MiB of metadata; refusing to decompress it")
         shape, dtype = _npy_header(zf, meta_info)
         if shape == () and dtype.kind == "U":
             with zf.open(meta_info) as f:
@@ -578,8 +566,7 @@ def _check_members(p: Path, raw: bytes | None = None) -> int:
                     raise FileFormatError(  # layout's members)
                         f"{where}: schema_version {short_repr(ver)} is not supported (this "
                         f"software reads versions "
-                        f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))})"
-                    )
+                        f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))})")
                 if isinstance(meta.get("extras"), list):
                     extras_named = meta["extras"]
         for name, info in by_name.items():
@@ -594,8 +581,7 @@ def _check_members(p: Path, raw: bytes | None = None) -> int:
                 raise FileFormatError(
                     f"{where}: unknown member {short_repr(info.filename)} (a bundle holds "
                     f"meta, {', '.join(_FILE_KEYS.values())} and the extra_<name> arrays its "
-                    "meta lists); refusing the file"
-                )
+                    "meta lists); refusing the file")
         headers = {}
         for name, info in by_name.items():
             if name == "meta":
@@ -646,12 +632,10 @@ def _check_members(p: Path, raw: bytes | None = None) -> int:
                 raise FileFormatError(
                     f"{where}: member '{name}' declares shape {short_repr(shape)} ({dtype}), "
                     f"more than the bundle's layout allows (V={V} views, M={M} bands, reference "
-                    f"frame {h}x{w}: at most {cap} elements); refusing to decompress it"
-                )
+                    f"frame {h}x{w}: at most {cap} elements); refusing to decompress it")
             declared = by_name[name].file_size
             if declared > n * dtype.itemsize + 65536:
                 raise FileFormatError(
                     f"{where}: member '{name}' holds {declared} bytes, far more than its header's "
-                    f"{short_repr(shape)} {dtype}; refusing to decompress it"
-                )
+                    f"{short_repr(shape)} {dtype}; refusing to decompress it")
     return sum(i.compress_size + 2 * len(i.filename) + 256 for i in infos) + 65536

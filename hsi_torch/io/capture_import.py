@@ -112,8 +112,7 @@ def _check_file(p: Path, where: str) -> None:
     if p.suffix.lower() not in SUPPORTED_SUFFIXES:
         raise FileFormatError(
             f"{where}: {p.name}: unsupported file type {p.suffix!r}; captures are camera RAW "
-            "(.dng, .cr2, .nef, ...), 8/16-bit TIFF or PNG, NPY or NPZ"
-        )
+            "(.dng, .cr2, .nef, ...), 8/16-bit TIFF or PNG, NPY or NPZ")
 
 
 def _cell_value(column: str, text: str, where: str) -> Any:
@@ -138,8 +137,7 @@ def _cell_value(column: str, text: str, where: str) -> Any:
         if len(vals) not in (1, 3, 4) or not all(math.isfinite(v) and v >= 0 for v in vals):
             raise FileFormatError(
                 f"{where}: column 'black_level' must be one number >= 0, or 3 (R G B) or 4 "
-                f"(Bayer cell) of them, got {text!r}"
-            )
+                f"(Bayer cell) of them, got {text!r}")
         return vals[0] if len(vals) == 1 else vals
     if column == "cfa_pattern":
         v = text.upper()
@@ -185,14 +183,12 @@ def read_sheet(path: str | os.PathLike) -> list[SheetRow]:
             raise FileFormatError(
                 f"capture sheet {sheet}: the header {short_text(header[0], 80)!r} is separated by "
                 f"{name}; a capture sheet is comma-separated: save it as CSV with ',' between "
-                "the cells (spreadsheets in some locales write ';')"
-            )
+                "the cells (spreadsheets in some locales write ';')")
     for c in cols:
         if c not in SHEET_COLUMNS:
             raise FileFormatError(
                 f"capture sheet {sheet}: unknown column '{c}'{_did_you_mean(c, SHEET_COLUMNS)}; "
-                f"the columns are {', '.join(SHEET_COLUMNS)}"
-            )
+                f"the columns are {', '.join(SHEET_COLUMNS)}")
     for c in ("file", "role"):
         if c not in cols:
             raise FileFormatError(f"capture sheet {sheet}: no '{c}' column (header: "
@@ -217,8 +213,7 @@ def read_sheet(path: str | os.PathLike) -> list[SheetRow]:
         if role not in CAPTURE_TYPES:
             raise FileFormatError(
                 f"{where}: role {vals['role']!r} is not one of {', '.join(CAPTURE_TYPES)}"
-                f"{_did_you_mean(role, CAPTURE_TYPES)}"
-            )
+                f"{_did_you_mean(role, CAPTURE_TYPES)}")
         f = sheet.parent / vals["file"]
         _check_file(f, where)
         given = {c: _cell_value(c, v, where) for c, v in vals.items()
@@ -448,8 +443,7 @@ def import_captures(
                 raise InputError(
                     f"{r.where}: scan frame {r.file.name}: the sheet says {lam:g} nm but the file "
                     f"name says {named:g} nm; correct the sheet's wavelength_nm cell (an empty "
-                    "cell takes the name's) or the file name"
-                )
+                    "cell takes the name's) or the file name")
             e["wavelength_nm"] = lam
             band = _band_of(grid, lam, tol_nm)
             if band is not None:
@@ -595,8 +589,7 @@ def _refuse_users_files(copies: list[tuple[Path, Path]], out: Path) -> None:
         raise InputError(
             f"refusing to import into {out}: it holds files of the names the import would write "
             f"({shown}) that are not copies of the files imported; choose a new folder, or move "
-            "them away"
-        )
+            "them away")
 
 
 def check_capture_set(
@@ -745,8 +738,7 @@ def _format_check(rows: list[dict[str, Any]], problems: list[tuple[str, str]]) -
             f"{r['role'][:12]:<12} {Path(r['file']).name[-36:]:<36} {band:>5}  {hw:<10} "
             f"{lv(r['black_level']) + ' (' + str(r['black_level_source']) + ')':<21} "
             f"{lv(r['white_level']):>7} {r['cfa_pattern'] or 'RGB':<5} {exp:<22} "
-            f"{r['camera'] or '-'}"
-        )
+            f"{r['camera'] or '-'}")
     lines += [f"{level}: {text}" for level, text in problems]
     return "\n".join(lines)
 

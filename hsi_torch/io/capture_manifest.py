@@ -75,8 +75,7 @@ def _unknown(key: str, known: Mapping[str, str], where: str) -> FileFormatError:
     return FileFormatError(
         f"{where}: unknown key '{key}'{hint}; a manifest key is a setting calibration honours "
         f"({', '.join(settings)}) or a descriptive key of the published schema "
-        "(docs/calibration.md, 'The manifest'), never ignored"
-    )
+        "(docs/calibration.md, 'The manifest'), never ignored")
 
 
 def _number(v: Any) -> bool:

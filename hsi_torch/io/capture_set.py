@@ -172,8 +172,7 @@ def read_nominal_layout(path: str | Path) -> NominalLayout:
     d = _read_json_object(
         p, "nominal layout",
         missing=f"nominal layout {p} not found: calibration needs the view triangles, parity, "
-        "reference_bbox and BRF-free patch (see docs/calibration.md)",
-    )  # fmt: skip
+        "reference_bbox and BRF-free patch (see docs/calibration.md)")  # fmt: skip
     for key in ("sensor_size", "triangles_px", "parity", "reference_bbox"):
         if key not in d:
             raise FileFormatError(f"nominal layout {p}: missing key '{key}'")
@@ -245,8 +244,7 @@ class CaptureSet:
                           ("circle-grid", self.grid)):  # fmt: skip
             if not lst:
                 raise FileFormatError(
-                    f"captures folder {self.root}: no {name} captures (looked in {where})"
-                )
+                    f"captures folder {self.root}: no {name} captures (looked in {where})")
         dups = self.duplicate_files()
         if dups:
             raise FileFormatError(f"captures folder {self.root}: " + "; ".join(dups))
@@ -290,8 +288,7 @@ class CaptureSet:
         """The capture of scene ``name``."""
         if name not in self.scenes:
             raise MissingFileError(
-                f"capture set {self.root}: no scene {name!r} (it has {sorted(self.scenes)})"
-            )
+                f"capture set {self.root}: no scene {name!r} (it has {sorted(self.scenes)})")
         return self.scenes[name]
 
     @property
@@ -401,8 +398,7 @@ def _check_version(d: Mapping[str, Any], path: Path) -> None:
     if type(ver) is not int or ver != CAPTURE_SET_SCHEMA_VERSION:
         raise FileFormatError(
             f"{path}: schema_version {ver!r} is not supported (this software reads version "
-            f"{CAPTURE_SET_SCHEMA_VERSION})"
-        )
+            f"{CAPTURE_SET_SCHEMA_VERSION})")
 
 
 #: Manifest key by which its author lets entries name files outside the set's folder.
@@ -426,8 +422,7 @@ def _manifest_path(root: Path, value: Any, mpath: Path, key: str, outside_ok: bo
     if not isinstance(value, str) or not value.strip() or "\0" in value:
         raise FileFormatError(
             f"{mpath}: {key} must be a file name (a non-empty string relative to the folder), "
-            f"got {type(value).__name__} {short_repr(value, 80)}"
-        )
+            f"got {type(value).__name__} {short_repr(value, 80)}")
     p = root / value
     if outside_ok:
         return p
@@ -435,8 +430,7 @@ def _manifest_path(root: Path, value: Any, mpath: Path, key: str, outside_ok: bo
         raise FileFormatError(
             f"{mpath}: {key} {short_repr(value, 120)} points outside the capture set's folder "
             f"{root} (absolute, '..' or a symlink out of it); only files inside it are read "
-            f"unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true"
-        )
+            f"unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true")
     return p
 
 
@@ -499,8 +493,7 @@ def read_capture_set(
                 raise FileFormatError(
                     f"{mpath}: files_root {short_repr(fr, 120)} points outside the capture set's "
                     f"folder {root} (absolute, '..' or a symlink out of it); the captures are "
-                    f"read from inside it unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true"
-                )
+                    f"read from inside it unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true")
             if not files_root.is_dir():
                 raise MissingFileError(f"{mpath}: files_root {files_root} is not a folder")
         entries = manifest.get("captures", [])
@@ -577,8 +570,7 @@ def read_mask_png(path: str | Path, size: tuple[int, int] | None = None) -> np.n
         raise FileFormatError(f"BRF-free mask {p}: not a readable image")
     if size is not None and m.shape != tuple(size):
         raise FileFormatError(
-            f"BRF-free mask {p}: size {m.shape} does not match the sensor size {tuple(size)}"
-        )
+            f"BRF-free mask {p}: size {m.shape} does not match the sensor size {tuple(size)}")
     return m > 127
 
 

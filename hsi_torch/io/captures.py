@@ -158,8 +158,7 @@ def write_capture(
         arr = arr[None]
     if arr.ndim != 3 or arr.shape[0] not in (1, 3):
         raise ValueError(
-            f"image must have shape (1, H, W) (Bayer) or (3, H, W) (RGB), got {tuple(arr.shape)}"
-        )
+            f"image must have shape (1, H, W) (Bayer) or (3, H, W) (RGB), got {tuple(arr.shape)}")
     if arr.dtype.kind not in "uif":
         raise TypeError(f"image must be integer or floating point, got dtype {arr.dtype}")
     if arr.dtype.kind == "f":
@@ -169,15 +168,13 @@ def write_capture(
     if arr.size and (arr.min() < 0 or arr.max() > 65535):
         raise ValueError(
             f"image values must lie in [0, 65535] for a 16-bit capture, got "
-            f"[{arr.min()}, {arr.max()}]"
-        )
+            f"[{arr.min()}, {arr.max()}]")
     arr = arr.astype(np.uint16)
     meta = dict(metadata or {})
     kind = meta.get("kind", "bayer" if arr.shape[0] == 1 else "rgb")
     if kind not in ("bayer", "rgb") or (kind == "bayer") != (arr.shape[0] == 1):
         raise ValueError(
-            f"metadata kind {kind!r} does not match an image with {arr.shape[0]} channel(s)"
-        )
+            f"metadata kind {kind!r} does not match an image with {arr.shape[0]} channel(s)")
     if kind == "bayer":
         if "cfa_pattern" not in meta:
             raise ValueError("a Bayer capture needs metadata['cfa_pattern'] (e.g. 'RGGB')")
@@ -222,15 +219,13 @@ def _as_chw(arr: np.ndarray, p: Path, meta: dict[str, Any]) -> tuple[np.ndarray,
     else:
         raise FileFormatError(
             f"{p}: image has shape {tuple(arr.shape)}; expected (H, W) or (1, H, W) for a Bayer "
-            "mosaic, or (3, H, W) / (H, W, 3) for RGB"
-        )
+            "mosaic, or (3, H, W) / (H, W, 3) for RGB")
     if min(arr.shape) == 0:
         raise FileFormatError(f"{p}: the image is empty (shape {tuple(arr.shape)})")
     inferred = "bayer" if arr.shape[0] == 1 else "rgb"
     if kind is not None and kind != inferred:
         raise FileFormatError(
-            f"{p}: metadata says kind={kind!r} but the image has {arr.shape[0]} channel(s)"
-        )
+            f"{p}: metadata says kind={kind!r} but the image has {arr.shape[0]} channel(s)")
     return arr, inferred
 
 
@@ -249,8 +244,7 @@ def _check_dtype(arr: np.ndarray, p: Path) -> None:
             raise FileFormatError(
                 f"{p}: image values reach {top:.3g}, beyond any sensor's range (at most "
                 f"{MAX_SAMPLE_VALUE:.3g} = 2^50 is accepted: the reconstruction works in float32, "
-                "whose squares overflow near 1.8e19); rescale the capture to sensor counts (DN)"
-            )
+                "whose squares overflow near 1.8e19); rescale the capture to sensor counts (DN)")
     if arr.dtype.kind in "if" and arr.size and arr.min() < 0:
         raise FileFormatError(f"{p}: image contains negative stored values (min {arr.min()})")
 
@@ -279,8 +273,7 @@ def _check_header(
         raise FileFormatError(
             f"{p}: the header describes an image of shape {shape} ({dtype}); expected (H, W) or "
             "(1, H, W) for a Bayer mosaic, or (3, H, W) / (H, W, 3) for RGB (refused before "
-            "decoding)"
-        )
+            "decoding)")
     if min(shape) < 1:
         raise FileFormatError(f"{p}: the image is empty (shape {shape})")
     hw = shape[-2:] if len(shape) == 2 or shape[0] in (1, 3) else shape[:2]
@@ -290,13 +283,11 @@ def _check_header(
         raise FileFormatError(
             f"{p}: the header describes a {'x'.join(map(str, shape))} {dtype} image "
             f"({nbytes / 2**30:.1f} GiB), more than a capture can be "
-            f"({MAX_CAPTURE_BYTES / 2**30:.0f} GiB)"
-        )
+            f"({MAX_CAPTURE_BYTES / 2**30:.0f} GiB)")
     if available is not None and nbytes > available:
         raise FileFormatError(
             f"{p}: the header describes a {'x'.join(map(str, shape))} {dtype} image "
-            f"({nbytes} bytes) but the file holds only {available} bytes of data: truncated"
-        )
+            f"({nbytes} bytes) but the file holds only {available} bytes of data: truncated")
 
 
 @contextlib.contextmanager
@@ -331,8 +322,7 @@ def _read_tiff(
                 raise FileFormatError(f"{p}: TIFF file has no image data")
             if len(tif.series) > 1:
                 raise FileFormatError(
-                    f"{p}: TIFF holds {len(tif.series)} image series; a capture has exactly one"
-                )
+                    f"{p}: TIFF holds {len(tif.series)} image series; a capture has exactly one")
             desc = tif.pages[0].description if len(tif.pages) else ""
             series = tif.series[0]
             page = series.pages[0] if len(series.pages) else None
@@ -428,8 +418,7 @@ def _read_npz(
                 key = next(k for k in keys if k != "metadata")
             else:
                 raise FileFormatError(
-                    f"{p}: NPZ must hold an array named 'image' (found {sorted(keys)})"
-                )
+                    f"{p}: NPZ must hold an array named 'image' (found {sorted(keys)})")
             info = z.zip.getinfo(key + ".npy")
             with z.zip.open(info) as f:
                 shape, dtype = npy_header(f)
@@ -443,8 +432,7 @@ def _read_npz(
                     raise FileFormatError(
                         f"{p}: 'metadata' must be a JSON string (0-d str array) of at most "
                         f"{_MAX_META_BYTES // 2**20} MiB, the header says a {mdtype} array of "
-                        f"shape {mshape}"
-                    )
+                        f"shape {mshape}")
             arr = z[key]
             meta_text = None
             if "metadata" in keys:  # a 0-d str array (its header was checked)
@@ -485,8 +473,7 @@ def _read_png(
     if ctype not in _PNG_CHANNELS or depth not in (8, 16):
         raise FileFormatError(
             f"{p}: PNG of colour type {ctype}, bit depth {depth} is not a capture; expected an "
-            "8- or 16-bit grey (Bayer mosaic) or RGB PNG without alpha or palette"
-        )
+            "8- or 16-bit grey (Bayer mosaic) or RGB PNG without alpha or palette")
     nch = _PNG_CHANNELS[ctype]
     shape = (height, width) if nch == 1 else (height, width, 3)
     _check_header(p, shape, np.dtype(np.uint16 if depth == 16 else np.uint8), expected_size)
@@ -576,8 +563,7 @@ def _level_map(value: Any, kind: str, shape: tuple[int, int], p: Path, name: str
         return torch.from_numpy(vals).reshape(3, 1, 1)
     raise FileFormatError(
         f"{p}: {name} must be a scalar, 4 values (Bayer cell, row-major) or 3 values (RGB); "
-        f"got {vals.tolist()} for a {kind} capture"
-    )
+        f"got {vals.tolist()} for a {kind} capture")
 
 
 def read_any(
@@ -665,8 +651,7 @@ def read_any(
     if suffix not in SUPPORTED_SUFFIXES:
         raise FileFormatError(
             f"{p}: unsupported file type {p.suffix!r}; expected one of .tif, .tiff, .png, .npy, "
-            ".npz or a camera RAW suffix (.dng, .cr2, .nef, .arw, .kdc, ...)"
-        )
+            ".npz or a camera RAW suffix (.dng, .cr2, .nef, .arw, .kdc, ...)")
     srcs = dict(sources or {})
     for key, src in srcs.items():
         if src not in SETTING_SOURCES:
@@ -703,8 +688,7 @@ def read_any(
             raise FileFormatError(
                 f"{p}: Bayer mosaic without a CFA pattern in its metadata; pass cfa_pattern="
                 "('RGGB', 'BGGR', 'GRBG' or 'GBRG'; on the command line: --set cfa_pattern=RGGB; "
-                "in a capture sheet or manifest: its cfa_pattern)"
-            )
+                "in a capture sheet or manifest: its cfa_pattern)")
         try:
             pattern = validate_cfa_pattern(pattern)
         except (TypeError, ValueError) as exc:
@@ -746,8 +730,7 @@ def read_any(
         else:
             if normalize:
                 raise FileFormatError(
-                    f"{p}: normalize=True needs a white level (none in metadata)"
-                )
+                    f"{p}: normalize=True needs a white level (none in metadata)")
             sat = torch.zeros(stored.shape, dtype=torch.bool)
         lin = lin.to(device=device, dtype=dtype)
         sat = sat.to(device=device)
@@ -873,5 +856,4 @@ def _check_size(p: Path, actual: tuple[int, ...], expected: tuple[int, int] | No
     if tuple(actual) != exp:
         raise FileFormatError(
             f"{p}: image size (H, W) = {tuple(actual)} does not match the expected sensor size "
-            f"{exp} (e.g. of the calibration bundle)"
-        )
+            f"{exp} (e.g. of the calibration bundle)")

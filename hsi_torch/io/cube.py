@@ -45,7 +45,7 @@ import tempfile
 import time
 import uuid
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -134,12 +134,9 @@ def require_format(fmt: str) -> None:
 
 
 def _import_xarray(what: str):
-    try:
-        import xarray as xr
-    except ModuleNotFoundError:
-        raise ModuleNotFoundError(
-            f"{what} needs the optional package 'xarray': {_EXTRA_HINT}", name="xarray"
-        ) from None
+    require_packages(("xarray",), what, _EXTRA_HINT)
+    import xarray as xr
+
     return xr
 
 
@@ -195,8 +192,7 @@ def _prepare(
     if wl.shape != (c.shape[0],):
         raise ValueError(
             f"wavelengths must have shape ({c.shape[0]},) to match cube {tuple(c.shape)}, got "
-            f"{tuple(to_numpy(wavelengths).shape)}"
-        )
+            f"{tuple(to_numpy(wavelengths).shape)}")
     if not np.all(np.isfinite(wl)) or np.any(wl <= 0):
         raise ValueError("wavelengths must be finite and positive (nm)")
     if valid is None:
@@ -293,12 +289,10 @@ def _save_prepared(
         return _save_xarray(p, kind, c, wl, v, meta)
     if kind == "npz":
         meta_json = json.dumps(
-            {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=json_default
-        )
+            {"hsi_torch_cube": CUBE_FORMAT_VERSION, **meta}, default=json_default)
         atomic_save_npz(
             p, {"cube": c, "wavelengths_nm": wl, "valid": v, "metadata": np.array(meta_json),
-                **(extra_arrays or {})},
-        )  # fmt: skip
+                **(extra_arrays or {})})  # fmt: skip
         return [p]
     if kind == "tiff":
         return _save_tiff(p, c, wl, meta)
@@ -346,16 +340,12 @@ def _save_tiff(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
     return [p, vrt]
 
 
-def _tif_stem(tif: Path) -> str:
-    name = tif.name
-    for suffix in (".ome.tiff", ".ome.tif", ".tiff", ".tif"):
-        if name.lower().endswith(suffix):
-            return name[: -len(suffix)]
-    return tif.stem
-
-
 def _vrt_path(tif: Path) -> Path:
-    return tif.with_name(_tif_stem(tif) + ".vrt")
+    """``<stem>.vrt`` beside ``<stem>.tif`` (``.tiff``, ``.ome.tif``, ``.ome.tiff``)."""
+    for suffix in (".ome.tiff", ".ome.tif", ".tiff", ".tif"):
+        if tif.name.lower().endswith(suffix):
+            return tif.with_name(tif.name[: -len(suffix)] + ".vrt")
+    return tif.with_name(tif.stem + ".vrt")
 
 
 def _save_vrt(tif: Path, shape: tuple[int, ...], wl: np.ndarray) -> Path:
@@ -378,8 +368,7 @@ def _save_vrt(tif: Path, shape: tuple[int, ...], wl: np.ndarray) -> Path:
             f'      <SourceProperties RasterXSize="{w}" RasterYSize="{h}" DataType="Float32" '
             f'BlockXSize="{w}" BlockYSize="1"/>\n'
             "    </SimpleSource>\n"
-            "  </VRTRasterBand>"
-        )
+            "  </VRTRasterBand>")
     text = (
         f'<VRTDataset rasterXSize="{w}" rasterYSize="{h}">\n'
         "  <!-- hsi_torch spectral cube: the bands are the pages of the OME-TIFF beside this "
@@ -427,8 +416,7 @@ def _xarray_of(c: np.ndarray, wl: np.ndarray, v: np.ndarray, meta: dict[str, Any
             "long_name": "spectral cube (reflectance relative to the white reference)",
             "hsi_torch_cube": CUBE_FORMAT_VERSION,
             "hsi_torch_metadata": json.dumps(meta, default=json_default),
-        },
-    )
+        })
 
 
 @contextlib.contextmanager
@@ -472,6 +460,15 @@ def _save_xarray(
 def _envi_paths(p: Path) -> tuple[Path, Path]:
     stem = p.with_suffix("")
     return stem.with_suffix(".hdr"), stem.with_suffix(".img")
+
+
+def _envi_header(hdr: Path) -> Path:
+    """``hdr``, refused unless a regular file of at most :data:`MAX_JSON_BYTES`."""
+    require_regular_file(hdr, "ENVI header")
+    if hdr.stat().st_size > MAX_JSON_BYTES:
+        raise FileFormatError(f"{hdr}: an ENVI header of {hdr.stat().st_size} bytes (at most "
+                              f"{MAX_JSON_BYTES // 2**20} MiB is read)")  # fmt: skip
+    return hdr
 
 
 #: The ENVI header field that holds the findings (a JSON list on one line).
@@ -612,8 +609,7 @@ def load_cube(
                     check_declared(p, shape, dtype, max_bytes, f"cube array {name!r}")
                 if "cube" not in z:
                     raise FileFormatError(
-                        f"{p}: NPZ has no array 'cube' (found {sorted(z.keys())})"
-                    )
+                        f"{p}: NPZ has no array 'cube' (found {sorted(z.keys())})")
                 c = z["cube"]
                 wl = z["wavelengths_nm"] if "wavelengths_nm" in z else None
                 valid = z["valid"].astype(bool) if "valid" in z else None
@@ -640,8 +636,7 @@ def load_cube(
     wl = np.asarray(wl, dtype=np.float64).ravel()
     if wl.shape[0] != c.shape[0]:
         raise FileFormatError(
-            f"{p}: {wl.shape[0]} wavelengths for a cube with {c.shape[0]} bands {tuple(c.shape)}"
-        )
+            f"{p}: {wl.shape[0]} wavelengths for a cube with {c.shape[0]} bands {tuple(c.shape)}")
     c = c.astype(np.float32)
     if valid is None:
         valid = np.isfinite(c).all(axis=0)
@@ -654,8 +649,7 @@ def load_cube(
         valid=torch.from_numpy(np.ascontiguousarray(valid)).to(device),
         metadata=meta,
         path=p,
-        findings=findings,
-    )
+        findings=findings)
 
 
 def _decode_findings(p: Path, meta: dict[str, Any]) -> list[Finding]:
@@ -715,24 +709,10 @@ def read_cube_metadata(path: str | os.PathLike) -> dict[str, Any]:
         elif kind == "envi":
             import spectral.io.envi as envi
 
-            require_regular_file(target, "ENVI header")
-            if target.stat().st_size > MAX_JSON_BYTES:
-                raise FileFormatError(f"{target}: an ENVI header of {target.stat().st_size} "
-                                      "bytes")  # fmt: skip
-            meta = dict(envi.read_envi_header(str(target)))
+            meta = dict(envi.read_envi_header(str(_envi_header(target))))
         else:
-            xr = _import_xarray(f"reading {p}")
-            if kind == "zarr":
-                check_zarr_codecs(p, SAFE_CODECS)
-                check_store_files(p)
-            else:
-                require_regular_file(p, "cube file")
-            opener = xr.open_dataset if kind == "netcdf" else xr.open_zarr
-            with opener(p) as ds:  # lazy: the cube's chunks are not read
-                if "cube" not in ds:
-                    raise FileFormatError(f"{p}: no variable 'cube' (found "
-                                          f"{sorted(ds.data_vars)})")  # fmt: skip
-                meta = _json_dict(ds["cube"].attrs.get("hsi_torch_metadata"))
+            with _open_xarray(p, kind, None) as da:  # lazy: the cube's chunks are not read
+                meta = _json_dict(da.attrs.get("hsi_torch_metadata"))
     except FileFormatError:
         raise
     except Exception as exc:
@@ -824,7 +804,9 @@ def _ome_channel_wavelengths(chans: list[dict[str, Any]]) -> np.ndarray | None:
     return np.asarray(out, dtype=np.float64) if out else None
 
 
-def _load_xarray(p: Path, kind: str, max_bytes: int | None = None):
+@contextlib.contextmanager
+def _open_xarray(p: Path, kind: str, max_bytes: int | None) -> Iterator[Any]:
+    """The ``cube`` variable of a NetCDF or Zarr cube file, opened lazily (nothing decoded)."""
     xr = _import_xarray(f"reading {p}")
     if kind == "zarr":  # before xarray decodes anything: no codec that runs code (pickle)
         check_zarr_codecs(p, SAFE_CODECS)
@@ -835,7 +817,12 @@ def _load_xarray(p: Path, kind: str, max_bytes: int | None = None):
     with opener(p) as ds:
         if "cube" not in ds:
             raise FileFormatError(f"{p}: no variable 'cube' (found {sorted(ds.data_vars)})")
-        da = ds["cube"].transpose("wavelength", ...)
+        yield ds["cube"]
+
+
+def _load_xarray(p: Path, kind: str, max_bytes: int | None = None):
+    with _open_xarray(p, kind, max_bytes) as cube:
+        da = cube.transpose("wavelength", ...)
         check_declared(p, da.shape, da.dtype, max_bytes)  # (lazy until .values)
         c = np.asarray(da.values)
         wl = np.asarray(da["wavelength"].values, dtype=np.float64)
@@ -848,19 +835,9 @@ def _load_xarray(p: Path, kind: str, max_bytes: int | None = None):
     return c, wl * scale, valid, meta
 
 
-_UNIT_TO_NM = {
-    "nm": 1.0,
-    "nanometers": 1.0,
-    "nanometer": 1.0,
-    "um": 1e3,
-    "µm": 1e3,
-    "micrometers": 1e3,
-    "micrometer": 1e3,
-    "microns": 1e3,
-    "micron": 1e3,
-    "mm": 1e6,
-    "millimeters": 1e6,
-}
+_UNIT_TO_NM = {"nm": 1.0, "nanometers": 1.0, "nanometer": 1.0, "um": 1e3, "µm": 1e3,
+               "micrometers": 1e3, "micrometer": 1e3, "microns": 1e3, "micron": 1e3, "mm": 1e6,
+               "millimeters": 1e6}  # fmt: skip
 
 
 def _load_envi(
@@ -872,10 +849,7 @@ def _load_envi(
     import spectral.io.envi as envi
 
     hdr, img = _envi_paths(p)
-    require_regular_file(hdr, "ENVI header")
-    if hdr.stat().st_size > MAX_JSON_BYTES:
-        raise FileFormatError(f"{hdr}: an ENVI header of {hdr.stat().st_size} bytes (at most "
-                              f"{MAX_JSON_BYTES // 2**20} MiB is read)")  # fmt: skip
+    _envi_header(hdr)
     if img.exists():
         require_regular_file(img, "ENVI data file")
     image = envi.open(str(hdr), str(img) if img.exists() else None)
@@ -891,8 +865,7 @@ def _load_envi(
             f"declares {expected} ({h} lines x {w} samples x {m} bands of {dtype}"
             + (f" after a {image.offset}-byte offset" if image.offset else "")
             + "): " + ("truncated" if actual < expected else "the header describes another "
-                       "cube (bands, samples, lines or data type)")
-        )
+                       "cube (bands, samples, lines or data type)"))
     centers = image.bands.centers
     for key, values in (("wavelength", centers), ("band names", image.metadata.get(
             "band names"))):

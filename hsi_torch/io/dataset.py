@@ -185,8 +185,7 @@ class CubeDataset(ZarrGroup):
         if self.attrs.get("hsi_torch_dataset") != DATASET_VERSION:
             raise FileFormatError(
                 f"{self.path}: not a hsi_torch dataset store of layout version {DATASET_VERSION} "
-                f"(attribute hsi_torch_dataset = {self.attrs.get('hsi_torch_dataset')!r})"
-            )
+                f"(attribute hsi_torch_dataset = {self.attrs.get('hsi_torch_dataset')!r})")
         self.wavelengths_nm = [float(x) for x in self.attrs.get("wavelengths_nm", [])]
         self.frame_size = tuple(int(v) for v in self.attrs.get("frame_size", (0, 0)))  # type: ignore[assignment]
         n = int(self.meta["source"]["shape"][0])
@@ -320,8 +319,7 @@ def write_frame(
     if c.shape != tuple(metas["cube"]["chunks"][1:]) or v.shape != c.shape[1:]:
         raise ValueError(
             f"{root}: frame {index}: cube {tuple(c.shape)} and valid {tuple(v.shape)} do not fit "
-            f"the store's frames {tuple(metas['cube']['chunks'][1:])}"
-        )
+            f"the store's frames {tuple(metas['cube']['chunks'][1:])}")
     c = _nan_where_invalid(c, v)
     text = json.dumps(metadata, default=json_default)
     written: list[Path] = []

@@ -69,8 +69,7 @@ def expand_inputs(inputs: Iterable[str | os.PathLike] | str | os.PathLike) -> li
             if p.is_dir():
                 raise ValueError(
                     f"input {text!r} is a directory; pass files or a pattern such as "
-                    f"'{Path(text) / '*.tif'}'"
-                )
+                    f"'{Path(text) / '*.tif'}'")
             paths = [p]
         for p in paths:
             key = os.path.abspath(p)
@@ -196,8 +195,7 @@ def refuse_not_empty(out: str | os.PathLike, names: Sequence[str], earlier: str,
     shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
     raise InputError(
         f"--out {out} is not empty ({shown}) and holds no earlier {earlier}; {writes} there "
-        "and would replace files of those names: choose a new or empty folder"
-    )
+        "and would replace files of those names: choose a new or empty folder")
 
 
 def claim_out_dir(

@@ -239,8 +239,7 @@ class CameraIdentity:
             sensor_size=None if sensor_size is None else (int(sensor_size[0]),
                                                           int(sensor_size[1])),
             black_level=None if black is None else (black[0], black[1], black[2]),
-            white_level=_number(metadata.get("white_level")) if own else None,
-        )  # fmt: skip
+            white_level=_number(metadata.get("white_level")) if own else None)  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: Any) -> CameraIdentity | None:
@@ -257,8 +256,7 @@ class CameraIdentity:
             cfa_pattern=_text(d.get("cfa_pattern")),
             sensor_size=(int(size[0]), int(size[1])) if ok_size else None,
             black_level=None if black is None else (black[0], black[1], black[2]),
-            white_level=_number(d.get("white_level")),
-        )  # fmt: skip
+            white_level=_number(d.get("white_level")))  # fmt: skip
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able dict (lists for tuples)."""

@@ -131,8 +131,7 @@ def load_raw(
         ) from exc
     if raw.ndim != 2:
         raise FileFormatError(
-            f"{p}: RAW data has shape {raw.shape}; only single-plane Bayer sensors are supported"
-        )
+            f"{p}: RAW data has shape {raw.shape}; only single-plane Bayer sensors are supported")
     h, w = raw.shape
     if h < 2 or w < 2:
         raise FileFormatError(f"{p}: RAW image is too small ({h}x{w})")
@@ -146,8 +145,7 @@ def load_raw(
     if not periodic or not pattern:
         raise FileFormatError(
             f"{p}: unsupported colour filter array (colour description {desc!r}, top-left cell "
-            f"{cell.tolist()}); only 2x2 R/G/B Bayer sensors are supported"
-        )
+            f"{cell.tolist()}); only 2x2 R/G/B Bayer sensors are supported")
     black_cell = tuple(black_pc[int(i)] for i in cell.ravel())
 
     data = torch.from_numpy(raw.astype(np.float32)).to(device=device)
@@ -170,8 +168,7 @@ def load_raw(
         white_level=white,
         normalized=normalize,
         path=p,
-        metadata={"sizes": sizes, "color_desc": desc, "camera_whitebalance": wb},
-    )
+        metadata={"sizes": sizes, "color_desc": desc, "camera_whitebalance": wb})
     if demosaic is not None:
         half = demosaic == "half"
         out.rgb = bayer_half(lin, pattern) if half else demosaic_bilinear(lin, pattern)

@@ -65,8 +65,7 @@ def require_regular_file(path: str | os.PathLike, what: str = "input file") -> P
         raise FileFormatError(f"{p}: cannot read the {what} ({exc})") from None
     if not stat.S_ISREG(mode):
         raise FileFormatError(
-            f"{p}: is {file_kind(mode)}, not a regular file; a {what} must be a file"
-        )
+            f"{p}: is {file_kind(mode)}, not a regular file; a {what} must be a file")
     return p
 
 

@@ -88,8 +88,7 @@ TIME_SOURCES = ("sheet", "name", "exif", "index", "mtime")
 #: Largest sheet read (bytes).
 _MAX_SHEET_BYTES = 16 << 20
 _ELAPSED = re.compile(
-    r"(?<![A-Za-z0-9])t[=_-]?(?P<v>\d+(?:\.\d+)?)(?P<u>ms|s)?(?![A-Za-z0-9])", re.IGNORECASE
-)
+    r"(?<![A-Za-z0-9])t[=_-]?(?P<v>\d+(?:\.\d+)?)(?P<u>ms|s)?(?![A-Za-z0-9])", re.IGNORECASE)
 _STAMP = re.compile(r"(?<!\d)(?P<d>\d{8})[T_-](?P<t>\d{6})(?:[._](?P<f>\d{1,6}))?(?!\d)")
 
 
@@ -463,8 +462,7 @@ def _frame_times(
                 if time_from == "exif":
                     raise InputError(
                         f"{entries[0][0]}: the pages of a multi-page TIFF carry "
-                        "no EXIF time each; use a sheet or the pages' time_s"
-                    )
+                        "no EXIF time each; use a sheet or the pages' time_s")
                 continue
             got_dt: list[tuple[float | None, _dt.datetime | None]] = []
             for p, _ in entries:
@@ -601,8 +599,7 @@ def _read_sequence_sheet(
     if "file" not in cols or not ({"time_s", "timestamp"} & set(cols)):
         raise FileFormatError(
             f"sequence sheet {p}: the header needs a 'file' column and a "
-            f"'time_s' or 'timestamp' column (got {','.join(cols) or 'none'})"
-        )
+            f"'time_s' or 'timestamp' column (got {','.join(cols) or 'none'})")
     entries: list[tuple[Path, int | None]] = []
     times: list[tuple[float | None, _dt.datetime | None]] = []
     for where, cells in csv_lines(reader, p):

@@ -228,8 +228,7 @@ class SequenceStore(ZarrGroup):
             raise InputError(
                 f"{source}: its time ({t:g} s) is not after the store's last frame "
                 f"({self.times_s[-1]:g} s, {self.sources[-1]}); a sequence store only grows "
-                "forward in time: write into another folder"
-            )
+                "forward in time: write into another folder")
         c = to_numpy(cube, np.float32)
         v = to_numpy(valid, bool)
         want = tuple(self.meta["cube"]["chunks"][1:])
@@ -349,8 +348,7 @@ def write_animated_preview(
             wl,
             normalise=None,
             exposure=1.0 / ref,
-            valid=torch.from_numpy(np.ascontiguousarray(valid[::step, ::step])),
-        )
+            valid=torch.from_numpy(np.ascontiguousarray(valid[::step, ::step])))
         u8 = (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
         images.append(Image.fromarray(np.ascontiguousarray(u8), "RGB").quantize(colors=255))
     out = Path(path)

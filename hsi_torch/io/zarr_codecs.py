@@ -63,8 +63,7 @@ def _check_codec(conf: Any, allowed: Any, array: str, role: str, store: Any) -> 
         raise FileFormatError(
             f"{store}: array {array!r} names the {role} codec {_s(cid)}, which is not one "
             f"this store is read with ({', '.join(names)}); refusing to decode it (a crafted "
-            "store can run code through a codec such as 'pickle')"
-        )
+            "store can run code through a codec such as 'pickle')")
     if isinstance(allowed, dict):
         bad = [k for k, v in conf.items() if k != "id" and not (
             type(v) is int if k == "level" else type(v) is bool)]  # fmt: skip

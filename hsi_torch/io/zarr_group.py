@@ -317,13 +317,11 @@ class ZarrGroup:
             raise InputError(
                 f"{self.path}: the store holds cubes of {len(self.wavelengths_nm)} bands "
                 f"{_span(self.wavelengths_nm)}, this run's bundle gives {len(wl)} bands "
-                f"{_span(wl)}; write into another folder"
-            )
+                f"{_span(wl)}; write into another folder")
         if tuple(int(v) for v in frame_size) != tuple(self.frame_size):
             raise InputError(
                 f"{self.path}: the store holds frames of (h, w) = {tuple(self.frame_size)}, this "
-                f"run's bundle gives {tuple(frame_size)}; write into another folder"
-            )
+                f"run's bundle gives {tuple(frame_size)}; write into another folder")
 
     def _set_length(self, n: int) -> None:
         """Every array along the axis has ``n`` entries (their ``.zarray``, then ``.zmetadata``)."""
