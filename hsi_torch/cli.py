@@ -1,23 +1,8 @@
 """The ``hsi-torch`` command line: one entry point, sub-commands dispatched to the owning modules.
 
 Each sub-command parses its arguments here and then lazily imports and calls
-``run_<command>(args: argparse.Namespace)`` in its owning module:
-
-=============  ===============================================  ==============================
-command        function called                                  typical use
-=============  ===============================================  ==============================
-simulate       ``hsi_torch.simulate.cli_entry.run_simulate``    render captures + ground truth
-calibrate      ``hsi_torch.calibrate.cli_entry.run_calibrate``  captures → calibration bundle
-layout         ``hsi_torch.calibrate.cli_entry.run_layout``     white/grid shots → nominal layout
-reconstruct    ``hsi_torch.recon.cli_entry.run_reconstruct``    bundle + captures → cubes
-watch          ``hsi_torch.recon.cli_entry.run_watch``          live folder → sequence store
-experiment     ``hsi_torch.experiments.cli_entry.run_experiment``  named evaluation
-demo           ``hsi_torch.experiments.cli_entry.run_demo``     the README's main command
-config         ``hsi_torch.resources.run_config``               show / copy a shipped config
-captures       ``hsi_torch.io.capture_import.run_captures``     a lab's photos → a capture set
-view           ``hsi_torch.viewer.cli_entry.run_view``          cubes in napari (``[viewer]``)
-bench          ``scripts/bench_<target>.py`` via ``runpy``      timings
-=============  ===============================================  ==============================
+``run_<command>(args: argparse.Namespace)`` in its owning module (:data:`ENTRY_POINTS`: command →
+module and function; ``bench`` runs ``scripts/bench_<target>.py`` through ``runpy``).
 
 Without ``--config`` a command runs with its shipped configuration file
 (``configs/<command>.yaml``, ``<NAME>.yaml`` for ``experiment NAME``; see

@@ -4,40 +4,24 @@
 (only headers are read: the sizes, the EXIF tags); its frames are read one at a time
 (:meth:`CaptureSequence.read`), so a sequence of any length needs the memory of one capture.
 
-**Inputs** (one of):
-
-- a **folder**: every capture file in it (TIFF, PNG, NPY, NPZ, camera RAW/DNG; hidden files and
-  temporary names such as ``*.tmp``, ``*.part``, ``*.crdownload`` skipped), in natural name order
-  (``frame_2`` before ``frame_10``);
-- **files and glob patterns** (``'shots/*.dng'``): the files in natural name order;
-- one **multi-page TIFF**: one frame per page, in page order (a page's JSON ``ImageDescription``
-  may give its ``time_s``);
-- a **sheet** (``.csv``): a header line with the columns ``file`` (required; relative to the
-  sheet's folder), ``time_s`` (seconds) or ``timestamp`` (ISO 8601, e.g.
-  ``2026-12-07T13:05:00.250``), optionally ``page`` (of a multi-page TIFF); one frame per line,
-  in the sheet's order; ``#`` starts a comment line.
+**Inputs** (the table with examples: docs/sequences_io.md): a folder (every capture file in it,
+hidden and temporary names such as ``*.tmp``, ``*.part``, ``*.crdownload`` skipped, in natural
+name order: ``frame_2`` before ``frame_10``), files and glob patterns (natural name order), one
+multi-page TIFF (one frame per page, in page order; a page's JSON ``ImageDescription`` may give
+its ``time_s``) or a sheet (``.csv``: columns ``file``, required, relative to the sheet's folder;
+``time_s`` in seconds or ``timestamp`` in ISO 8601; optionally ``page``; ``#`` starts a comment).
 
 **Each frame's time** (``time_from``, default ``"auto"``: the first that every frame has):
-
-1. ``"sheet"``: the sheet's ``time_s`` / ``timestamp``;
-2. ``"name"``: the file name — an elapsed time ``t=12.5s``, ``t12.5s``, ``t_0012.500s``,
-   ``t=250ms`` (a ``t`` before the number; the unit ``s`` or ``ms``, ``s`` when absent) or a
-   date and time ``20261207-130500.250`` / ``20261207T130500_250`` (absolute);
-3. ``"exif"``: EXIF ``DateTimeOriginal`` + ``SubSecTimeOriginal`` (``exifread``; TIFF and camera
-   RAW/DNG; ``DateTime`` when the original is absent) — absolute, to the sub-second the camera
-   writes;
-4. ``"index"``: none of these: frame ``k`` is at ``k × frame_interval_s`` (default 1 s), and the
-   times say only the order.
-
-Times (``time_s``) are seconds: since the first frame where they are absolute (the first frame's
-date and time is then :attr:`CaptureSequence.origin`, each frame's
-:attr:`SequenceFrame.timestamp` its ISO 8601 date and time — the camera's local time: EXIF holds no
-zone unless ``OffsetTimeOriginal`` is written, which is kept when present), as given where they
-are relative (a sheet's ``time_s``, ``t=12.5s`` names).
-
-A fifth source, ``"mtime"`` (the file's modification time, absolute), is used only when asked for
-(``hsi-torch watch`` falls back to it: a file just written by the camera's software was modified
-when it was taken; a copied file was not).
+``"sheet"`` (its ``time_s`` / ``timestamp``), ``"name"`` (an elapsed ``t=12.5s``, ``t12.5s``,
+``t_0012.500s``, ``t=250ms`` — unit ``s`` when absent — or an absolute ``20261207-130500.250`` /
+``20261207T130500_250``), ``"exif"`` (``DateTimeOriginal`` + ``SubSecTimeOriginal`` through
+``exifread``, ``DateTime`` when the original is absent; absolute) or ``"index"`` (frame ``k`` at
+``k × frame_interval_s``, default 1 s: only the order). ``"mtime"`` (the file's modification
+time, absolute) only when asked for (``hsi-torch watch`` falls back to it). Times (``time_s``)
+are seconds since the first frame where absolute (its date and time is
+:attr:`CaptureSequence.origin`, each frame's :attr:`SequenceFrame.timestamp` its ISO 8601 date
+and time in the camera's local time; EXIF's ``OffsetTimeOriginal`` is kept when present), as
+given where relative.
 
 **Checked before any frame is read**, each error naming the file at fault: a file listed twice,
 two frames at the same time, times that go backwards in the frames' order (the name order or the
