@@ -1,39 +1,32 @@
 """Spectral cubes on disk, in files that the usual tools open. All writes atomic.
 
-Convention:
-    - In memory a cube is ``(M, H, W)`` (band-first, like every image tensor in hsi_torch) with
-      wavelengths ``(M,)`` in nm and an optional validity mask ``(H, W)`` bool.
-    - **TIFF** (``tiff``): ``<stem>.tif`` is an **OME-TIFF**, one float32 page per band in
-      wavelength order, each an OME ``Channel`` named by its wavelength (``"550 nm"``) with
-      ``EmissionWavelength`` in nm: Fiji/Bio-Formats, napari and ``tifffile`` see 25 named
-      channels. The OME ``Image/Description`` holds our JSON (``{"hsi_torch_cube": 1,
-      "wavelengths_nm": [...], "wavelength_units": "nm", ...metadata}``). Beside it,
-      ``<stem>.vrt`` (a few kB of XML) lets **GDAL/QGIS/rasterio** open the cube as 25 bands named
-      by wavelength (``wavelength``/``wavelength_units`` band metadata, NaN no-data), reading the
-      TIFF's pages: GDAL maps the pages of a multi-page TIFF to sub-datasets, and an OME-TIFF
-      keeps one plane per page, so one file cannot be both (an OME-TIFF and 25 bands to GDAL).
-      Older files whose first page's description is our JSON are still read.
-    - **ENVI** (``envi``): ``<stem>.hdr`` + ``<stem>.img``, BSQ, float32 little-endian
-      (``data type = 4``, ``byte order = 0``), with ``wavelength = {...}``, ``wavelength units =
-      nm``, ``band names`` and ``data ignore value = nan``, readable by ``spectral.envi.open`` and
-      ENVI/QGIS/GDAL. The ``.img`` is written first, then the ``.hdr``.
-    - **NPZ** (``npz``): arrays ``cube (M,H,W) float32``, ``wavelengths_nm (M,) float64``,
-      ``valid (H,W) bool``, ``metadata`` (JSON string).
-    - **NetCDF** (``netcdf``, ``<stem>.nc``) and **Zarr** (``zarr``, the folder ``<stem>.zarr``):
-      the :func:`cube_to_xarray` DataArray ``cube (wavelength, y, x)`` with the ``wavelength``
-      coordinate in nm and the ``valid`` mask as a coordinate; they need the optional extra
-      ``pip install 'hsi-torch[formats]'`` (xarray, netCDF4, zarr), imported only when used.
-    - TIFF, ENVI, NetCDF and Zarr have no separate mask plane in the cube: pixels where ``valid``
-      is False are written as NaN (NetCDF/Zarr also keep ``valid``), and on loading ``valid`` is
-      "all bands finite" (or the stored mask). NPZ stores cube values untouched plus the mask.
-    - **Findings** (:class:`hsi_torch.findings.Finding`, what the checks found about the cube)
-      are stored in every format as the metadata key ``"findings"``: a JSON list of
-      :meth:`~hsi_torch.findings.Finding.to_dict` objects, inside the metadata JSON of NPZ
-      (``metadata``), OME-TIFF (``Image/Description``), NetCDF and Zarr (the attribute
-      ``hsi_torch_metadata``); ENVI, whose header keeps no other metadata, gets the header field
-      ``hsi_torch findings = [...]`` (the same JSON list on one line). :func:`load_cube` gives them
-      back as :attr:`Cube.findings`; :func:`read_cube_findings` reads them (and
-      :func:`read_cube_metadata` the whole metadata) without decoding the cube.
+The format table, with each tool that opens them: docs/io_config_cli.md. In memory a cube is
+``(M, H, W)`` (band-first) with wavelengths ``(M,)`` in nm and an optional validity mask
+``(H, W)`` bool. On disk:
+
+- **TIFF** (``tiff``): ``<stem>.tif``, an OME-TIFF of one float32 page per band in wavelength
+  order, each an OME ``Channel`` named ``"550 nm"`` with ``EmissionWavelength`` in nm; the OME
+  ``Image/Description`` holds our JSON (``{"hsi_torch_cube": 1, "wavelengths_nm": [...],
+  "wavelength_units": "nm", ...metadata}``). Beside it ``<stem>.vrt`` lets GDAL/QGIS/rasterio
+  open the pages as bands named by wavelength (one file cannot be both an OME-TIFF and 25 GDAL
+  bands: GDAL maps a multi-page TIFF's pages to sub-datasets). Older files whose first page's
+  description is our JSON are still read.
+- **ENVI** (``envi``): ``<stem>.hdr`` + ``<stem>.img``, BSQ float32 little-endian, with
+  ``wavelength``, ``wavelength units = nm``, ``band names`` and ``data ignore value = nan``; the
+  ``.img`` is written first, then the ``.hdr``.
+- **NPZ** (``npz``): ``cube (M,H,W) float32``, ``wavelengths_nm (M,) float64``, ``valid (H,W)
+  bool``, ``metadata`` (JSON string).
+- **NetCDF** (``<stem>.nc``) and **Zarr** (the folder ``<stem>.zarr``): the
+  :func:`cube_to_xarray` DataArray ``cube (wavelength, y, x)``, ``valid`` as a coordinate; they
+  need the optional extra ``pip install 'hsi-torch[formats]'``, imported only when used.
+
+TIFF, ENVI, NetCDF and Zarr hold NaN where ``valid`` is False (NetCDF/Zarr also keep ``valid``);
+on loading ``valid`` is "all bands finite" (or the stored mask). NPZ stores the values untouched
+plus the mask. **Findings** (:class:`hsi_torch.findings.Finding`) are stored in every format as
+the metadata key ``"findings"``, a JSON list of :meth:`~hsi_torch.findings.Finding.to_dict`
+(ENVI, whose header keeps no other metadata: the header field ``hsi_torch findings = [...]`` on
+one line); :func:`load_cube` gives them back as :attr:`Cube.findings`, :func:`read_cube_findings`
+(and :func:`read_cube_metadata`) read them without decoding the cube.
 """
 
 from __future__ import annotations
