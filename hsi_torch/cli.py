@@ -537,7 +537,7 @@ def _remove_if_empty(folder: Path) -> None:
     remove_empty_folder(folder)
 
 
-def _dispatch(args: argparse.Namespace, extra: list[str], debug: bool, created: list[Path])-> int:
+def _dispatch(args: argparse.Namespace, extra: list[str], debug: bool, created: list[Path]) -> int:
     """Run the sub-command; every error becomes one line on stderr and an exit status."""
     from hsi_torch import console, resources
     from hsi_torch.errors import ConfigError, HSIError

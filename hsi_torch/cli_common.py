@@ -36,7 +36,7 @@ def config_source(args: argparse.Namespace, default: str | None = None) -> Path 
     return shipped_config(default) if default in shipped_config_names() else None
 
 
-def load_args_config(args: argparse.Namespace, schema_cls: type, default: str | None = None)-> Any:
+def load_args_config(args: argparse.Namespace, schema_cls: type, default: str | None = None) -> Any:
     """Convenience for entry functions: ``load_config(config_source(args, default), schema_cls,
     args.overrides)`` (``default``: the shipped config used without ``--config``)."""
     from hsi_torch.config import load_config  # lazy: config loads YAML and torch (start-up time)

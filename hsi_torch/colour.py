@@ -153,7 +153,8 @@ def spectra_to_srgb(
     return srgb_encode(rgb) if encode else rgb
 
 
-def cube_to_xyz(cube: torch.Tensor, wavelengths, illuminant: IlluminantLike = "D65")-> torch.Tensor:
+def cube_to_xyz(cube: torch.Tensor, wavelengths,
+                illuminant: IlluminantLike = "D65") -> torch.Tensor:  # fmt: skip
     """``(..., M, H, W)`` cube → ``(..., 3, H, W)`` XYZ (white reflector: ``Y = 1``)."""
     cube = torch.as_tensor(cube)
     if cube.ndim < 3:
@@ -246,12 +247,6 @@ def _masked_xyz(
     return xyz
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    # hsi_torch.io.atomic gives the file ordinary permissions (mkstemp alone makes them 0600)
-
-    atomic_write_bytes(path, data)
-
-
 def _to_u8_hwc(rgb: torch.Tensor) -> np.ndarray:
     rgb = torch.as_tensor(rgb)
     if rgb.ndim != 3 or rgb.shape[0] != 3:
@@ -319,7 +314,7 @@ def _write_png(arr_rgb: np.ndarray, path: str | os.PathLike) -> Path:
     if not ok:
         raise RuntimeError(f"PNG encoding failed for {path}")
     path = Path(path)
-    _atomic_write_bytes(path, buf.tobytes())
+    atomic_write_bytes(path, buf.tobytes())
     return path
 
 
@@ -501,5 +496,5 @@ def plot_spectra(
         path = Path(path)
         buf = io.BytesIO()
         fig.savefig(buf, format=(path.suffix.lstrip(".") or "png"))
-        _atomic_write_bytes(path, buf.getvalue())
+        atomic_write_bytes(path, buf.getvalue())
     return fig

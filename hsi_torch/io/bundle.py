@@ -136,7 +136,7 @@ _FILE_KEYS = {
 
 def make_provenance(
     inputs: Mapping[str, str | os.PathLike] | Iterable[str | os.PathLike] = (), **extra: Any
-)-> dict[str, Any]:
+) -> dict[str, Any]:
     """Provenance record: SHA-256 of each input file, UTC creation time, the run (``run``:
     command line, package version, git commit, torch / NumPy / Python versions, see
     :func:`hsi_torch.provenance.provenance`), plus ``extra`` items.

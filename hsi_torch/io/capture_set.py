@@ -449,7 +449,7 @@ def _wavelength(value: Any, mpath: Path, key: str) -> float | None:
 
 def read_capture_set(
     root: str | Path, *, layout: str | Path | None = None, brf_free_mask: str | Path | None = None
-)-> CaptureSet:
+) -> CaptureSet:
     """Find the files of a capture set (manifest, or the sub-folders of a real device's folder).
 
     Args:

@@ -288,7 +288,7 @@ _META_CACHE: dict[str, dict[str, dict[str, Any]]] = {}
 
 def write_frame(
     store: str | os.PathLike, index: int, cube: Any, valid: Any, metadata: dict[str, Any]
-)-> list[Path]:
+) -> list[Path]:
     """Write one frame into a store made by :meth:`CubeDataset.open`: the cube (NaN where not
     ``valid``), the mask, the metadata, then ``done`` — each chunk atomically, no lock (the
     frame's chunks are its own files). Any process that sees the store's folder can call it.

@@ -40,7 +40,7 @@ VEIL_BLOCKS = 24
 
 def unreached_index(
     white: torch.Tensor, outside_index: Any, *, dark_fraction: float = 0.05, margin_px: float = 8.0
-)-> np.ndarray:
+) -> np.ndarray:
     """The samples of ``outside_index`` that no light reaches, judged on a white frame.
 
     The bundle's views are not every tile the kaleidoscope lights (reflections of higher order
@@ -80,7 +80,7 @@ def _robust_mean(x: np.ndarray) -> float:
 
 def estimate_veil(
     image: torch.Tensor, outside_index: Any, *, blocks: int = VEIL_BLOCKS, min_samples: int = 8
-)-> tuple[torch.Tensor, dict[str, Any]]:
+) -> tuple[torch.Tensor, dict[str, Any]]:
     """The smooth veil of each colour of ``image``, measured where no view reaches.
 
     Args:
