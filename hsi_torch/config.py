@@ -5,23 +5,17 @@ reads a YAML file (or a dict), applies command-line overrides, checks every key 
 the schema and returns an instance; :func:`dump_config` writes the resolved configuration back as
 YAML (each run stores it beside its outputs).
 
-Supported field types: ``bool``, ``int``, ``float``, ``str``, :class:`pathlib.Path`, ``Optional``
-and unions, ``Literal[...]``, ``Enum`` subclasses, ``list[X]``, ``tuple[X, ...]``,
-``tuple[X, Y]``, ``dict[str, X]``, nested dataclasses, ``Any``, and
-:data:`ExistingPath` (a ``Path`` that must exist).
-
-Conversions: ``int`` → ``float`` is allowed; numeric strings are accepted for ``float``/``int``
-(PyYAML reads ``1e-3`` as a string); a ``float`` must be finite (``.inf``, ``.nan``, ``1e999``
-are refused: no setting means "infinite"; optional keys use ``null``); ``bool`` is never coerced
-from or to numbers; a ``Path``
-that is relative is joined to the config file's folder (for a dict source: ``base_dir``, default
-the current directory; for a command-line override: the current directory); ``~`` is expanded.
-
-Errors: :class:`ConfigError` (a ``ValueError``) naming the source file and the dotted key —
-unknown key (with the closest valid key suggested; a key a schema lists in its class attribute
-``__renamed_keys__`` — ``{old key: what to write instead}`` — with that text), wrong type,
-value not among the ``Literal`` choices, missing required key, missing file, invalid YAML, and
-errors raised by a schema's ``__post_init__``.
+The rules, with example messages: docs/io_config_cli.md. Field types: ``bool``, ``int``,
+``float``, ``str``, :class:`pathlib.Path`, ``Optional`` and unions, ``Literal[...]``, ``Enum``,
+``list[X]``, ``tuple[X, ...]``, ``tuple[X, Y]``, ``dict[str, X]``, nested dataclasses, ``Any``,
+:data:`ExistingPath`. ``int`` → ``float`` and numeric strings → numbers are accepted (PyYAML
+reads ``1e-3`` as a string); a ``float`` must be finite (optional keys use ``null``); ``bool``
+never mixes with numbers; a relative ``Path`` is joined to the config file's folder (a dict
+source: ``base_dir``; an override: the current directory), ``~`` expanded. Errors:
+:class:`ConfigError` (a ``ValueError``) naming the source file and the dotted key — an unknown
+key (the closest valid key suggested, or the text a schema's ``__renamed_keys__`` gives for an
+old key), a wrong type or ``Literal`` choice, a missing key or file, invalid YAML, and errors
+raised by a schema's ``__post_init__``.
 
 Example:
     >>> @dataclass
