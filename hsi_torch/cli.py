@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.cli_common import config_source, load_args_config
-from hsi_torch.provenance import command_line
+from hsi_torch.provenance import command_line, package_version
 
 __all__ = ["main", "build_parser", "ENTRY_POINTS", "load_args_config", "config_source"]
 
@@ -59,12 +59,6 @@ ENTRY_POINTS: dict[str, tuple[str, str]] = {
 BENCH_TARGETS = ("solver", "pipeline", "simulate")
 #: commands whose --out is always a folder (calibrate's is a folder unless it ends in .npz)
 _FOLDER_OUT = ("simulate", "reconstruct", "experiment", "demo", "watch")
-
-
-def _version() -> str:
-    from hsi_torch import __version__
-
-    return __version__
 
 
 #: Examples shown by each command's ``--help`` (a test parses every one, validates its config
@@ -254,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Snapshot hyperspectral imaging with a birefringent filter and a tapered "
         "kaleidoscope: simulate, calibrate, reconstruct, evaluate.",
         epilog=_epilog(None), formatter_class=raw)  # fmt: skip
-    parser.add_argument("--version", action="version", version=f"{PROG} {_version()}")
+    parser.add_argument("--version", action="version", version=f"{PROG} {package_version()}")
     _add_global(parser, None)
     parser.set_defaults(debug=False, quiet=False, progress=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -51,10 +51,6 @@ PEDESTAL_MAX_SAMPLES = 65_536
 # ----------------------------------------------------------------------------------- levels
 
 
-def _cell_colours(cfa_pattern: str) -> list[int]:
-    return ["RGB".index(ch) for ch in validate_cfa_pattern(cfa_pattern)]
-
-
 def black_level_rgb(level: Any, cfa_pattern: str | None = None) -> list[float] | None:
     """A black level as one value per colour ``[R, G, B]`` (DN).
 
@@ -81,7 +77,7 @@ def black_level_rgb(level: Any, cfa_pattern: str | None = None) -> list[float] |
         return [float(x) for x in v]
     if v.size == 4 and cfa_pattern:
         try:
-            colours = _cell_colours(cfa_pattern)
+            colours = ["RGB".index(ch) for ch in validate_cfa_pattern(cfa_pattern)]
         except (TypeError, ValueError):
             return None
         out = []
