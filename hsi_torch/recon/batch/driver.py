@@ -31,7 +31,6 @@ and propagates. The summary lists processed, skipped and failed inputs in input 
 from __future__ import annotations
 
 import contextlib
-import os
 import sys
 import time
 import traceback
@@ -53,7 +52,6 @@ __all__ = [
     "RunSummary",
     "RunFailure",
     "print_summary",
-    "call_process",
 ]
 
 #: ``(token, result, exception)`` of a completed task
@@ -233,24 +231,6 @@ def _stored_findings(target: OutputTarget, inp: Path) -> list[Finding]:
         else:
             warn(f"WARNING {name} (skipped; stored with its outputs): {f.text()}")
     return found
-
-
-def call_process(process: Callable[[Path], Any], input_path: str, frame: int | None = None
-                 ) -> dict[str, Any]:  # fmt: skip
-    """A task of :func:`drive` from a plain ``process(path) -> output path(s) or None`` that
-    raises on failure (the result protocol of the module docstring)."""
-    try:
-        result = process(Path(input_path))
-    except Exception as exc:  # noqa: BLE001 - reported to the driver with its traceback
-        return {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc()}  # fmt: skip
-    if result is None:
-        outputs: list[str] = []
-    elif isinstance(result, (str, os.PathLike)):
-        outputs = [os.fspath(result)]
-    else:
-        outputs = [os.fspath(p) for p in result]
-    return {"ok": True, "outputs": outputs, "warnings": []}
 
 
 def drive(
