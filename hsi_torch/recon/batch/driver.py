@@ -5,16 +5,13 @@
 (:class:`hsi_torch.recon.distributed.DaskExecutor`: a bounded number in flight, taken as they
 complete):
 
-1. the input's name is checked (:func:`hsi_torch.io.paths.check_input_name`);
-2. **skip** it when the target says it is done (``resume``);
-3. **claim** it (:meth:`OutputTarget.begin <hsi_torch.recon.batch.targets.OutputTarget.begin>`:
-   the input exists, its outputs are its own, the done-marker says "started");
-4. **hand out** its task (``task(*args(input, frame))``, a function that returns
-   ``{"ok": True, "outputs": [...], "warnings": [...], ...}`` or ``{"ok": False, "error",
-   "traceback"}`` instead of raising);
-5. **collect** the result: notes (what was assumed) and warnings printed, its findings kept
-   (:attr:`RunSummary.findings`), then **finish** (the marker says "done") or
-   **abandon** (the earlier marker back) and record the failure.
+check the input's name → **skip** it when the target says it is done (``resume``) → **claim** it
+(:meth:`OutputTarget.begin <hsi_torch.recon.batch.targets.OutputTarget.begin>`) → **hand out** its
+task (``task(*args(input, frame))``, which returns ``{"ok": True, "outputs": [...], "warnings":
+[...], ...}`` or ``{"ok": False, "error", "traceback"}`` instead of raising) → **collect** it
+(notes and warnings printed, findings kept in :attr:`RunSummary.findings`) → **finish** or
+**abandon** (the earlier marker back, the failure recorded); ``docs/architecture.md``, *A
+reconstruction run, end to end*.
 
 A skipped input's findings are those stored with its outputs
 (:meth:`OutputTarget.stored_findings <hsi_torch.recon.batch.targets.FilesTarget.stored_findings>`,
