@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import traceback
 from pathlib import Path
 
 import pytest
@@ -18,11 +19,27 @@ from hsi_torch.io.paths import ensure_out_dir, expand_inputs
 from hsi_torch.recon.batch.driver import (
     InlineExecutor,
     RunSummary,
-    call_process,
     drive,
     print_summary,
 )
 from hsi_torch.recon.batch.targets import DONE_DIR, FilesTarget
+
+
+def call_process(process, input_path: str, frame: int | None = None) -> dict:
+    """A task of :func:`drive` from a plain ``process(path) -> output path(s) or None`` that
+    raises on failure (the driver's result protocol)."""
+    try:
+        result = process(Path(input_path))
+    except Exception as exc:  # noqa: BLE001 - reported to the driver with its traceback
+        return {"ok": False, "error": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc()}  # fmt: skip
+    if result is None:
+        outputs: list[str] = []
+    elif isinstance(result, (str, os.PathLike)):
+        outputs = [os.fspath(result)]
+    else:
+        outputs = [os.fspath(p) for p in result]
+    return {"ok": True, "outputs": outputs, "warnings": []}
 
 
 def run_batch(inputs, process, out_dir, *, resume=True, progress=True, planned_outputs=None,

@@ -111,6 +111,7 @@ def test_a_warning_reaches_python_as_its_class_and_the_result(tiny):
 def test_frame_findings_codes_and_limits():
     """The table of docs/bad_inputs.md: each statistic gives its code and severity."""
     from hsi_torch.recon.checks import frame_findings
+    from hsi_torch.recon.drift import drift_finding
     from hsi_torch.recon.settings import ReconstructSettings
 
     s = ReconstructSettings()
@@ -153,6 +154,12 @@ def test_frame_findings_codes_and_limits():
     assert (f.code, f.severity, f.measured, f.limit) == ("drift.moved", "warning", 2.1, 0.5)
     (f,) = frame_findings({"drift": {**moved, "corrected": True}}, s)
     assert (f.code, f.severity) == ("drift.corrected", "info")
+    # the finding the front door stored when it measured the drift is the one the cube gets
+    # (not made again), under the source judged; a stored "nothing to say" stays nothing
+    said = drift_finding(moved, "auto", 1.0, "frame 3").to_dict()  # made with drift_warn_px=1
+    (f,) = frame_findings({"drift": {**moved, "finding": said}}, s, "a.tif")
+    assert f.to_dict() == {**said, "source": "a.tif"} and f.limit == 1.0
+    assert frame_findings({"drift": {**moved, "finding": None}}, s) == []
     (f,) = frame_findings({"black_level_source": "bundle", "black_level": 512.0}, s)
     assert (f.code, f.severity) == ("capture.black_level_from_bundle", "info")
     many = {"radiometric_scale": "relative", "exposure_note": "exposure unknown",

@@ -26,7 +26,7 @@ from torch import Tensor
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.recon.frame import observations_from_samples, prepare_input, sample_views
 from hsi_torch.recon.sensing import BundleSensing, precompute_sensing
-from hsi_torch.recon.spatial import grid_edges, total_variation
+from hsi_torch.recon.spatial import total_variation
 from hsi_torch.recon.uncertainty import SensorNoise, observation_variance, sampling_variance_factor
 
 __all__ = ["CameraOperator"]
@@ -222,7 +222,3 @@ class CameraOperator:
         if lam == 0:
             return data
         return data + lam * total_variation(x, self.valid.to(x.device), brightness_weight)
-
-    def edges(self) -> tuple[Tensor, Tensor]:
-        """The TV graph of the valid region (:func:`~hsi_torch.recon.spatial.grid_edges`)."""
-        return grid_edges(self.valid)

@@ -1,25 +1,13 @@
-"""What reconstruction checks about a capture against its calibration bundle, and says.
+"""What reconstruction checks about a capture against its calibration bundle, and says (the
+rules and every finding's code: ``docs/bad_inputs.md``; the black-level rule is the reader's,
+:func:`hsi_torch.io.captures.black_level_rule`, only reported here).
 
-- **Black level.** A file that carries no black level of its own (a plain TIFF, PNG or NPY; camera
-  RAW always carries one) gets the one the calibration used: the bundle's ``black_level_rgb``
-  (the files' black level plus the dark frames' mean, per colour). An explicit ``black_level``
-  setting wins over both. The reader applies this (:func:`hsi_torch.io.captures.
-  black_level_rule`, with the bundle's :class:`~hsi_torch.io.captures.CaptureDefaults`); here it
-  is only reported.
-- **Pedestal.** After black subtraction, the sensor outside every view must read ≈ 0
-  (:mod:`hsi_torch.io.radiometry`); a frame that reads more carries a black pedestal that was not
-  removed, and gets a warning naming the level.
-- **Exposure.** A capture's observations are scaled by ``t_white / t_capture``
-  (:func:`exposure_scale`) when both exposures are known in the same
-  unit; the result's statistics then say ``radiometric_scale: "reflectance"`` and the ratio.
-  Otherwise ``radiometric_scale: "relative"`` and a warning: the cube is not reflectance.
-- **Camera.** The capture's camera identity (make/model, CFA pattern, the file's own black and
-  white levels) is compared with the bundle's; every difference is a warning.
-
-:func:`measure_capture` and :func:`exposure_info` fill a frame's statistics;
-:func:`frame_findings` turns them (with the solve's fit residual and the drift) into
-:class:`~hsi_torch.findings.Finding` objects: facts (info), doubts (warning) and refusals (error:
-the data contradicts the result, no cube is written).
+:func:`measure_capture` (black level as read, pedestal outside the views, camera, data scale)
+and :func:`exposure_info` (observations scaled by ``t_white / t_capture``,
+:func:`exposure_scale`, when both exposures are known in the same unit: ``radiometric_scale:
+"reflectance"``, else ``"relative"``) fill a frame's statistics; :func:`frame_findings` turns
+them (with the solve's fit residual and the drift) into :class:`~hsi_torch.findings.Finding`
+objects: facts (info), doubts (warning) and refusals (error: no cube is written).
 """
 
 from __future__ import annotations
@@ -336,29 +324,11 @@ def frame_findings(
     source: str | None = None,
 ) -> list[Finding]:
     """Every check about one reconstructed frame, as :class:`~hsi_torch.findings.Finding` objects
-    (codes in ``docs/bad_inputs.md``), from its statistics (:func:`measure_capture`,
-    :func:`exposure_info` and :meth:`hsi_torch.recon.pipeline.Reconstructor.reconstruct_frame`'s).
-
-    ``capture.*``: the black level taken from the bundle and an exposure scaled [info], samples
-    at the white level [info], a pedestal outside the views [warning; error beyond
-    ``pedestal_refuse_factor`` times its limit], an unknown exposure ratio, another camera, another
-    data scale, an RGB file for a Bayer bundle [warning]. ``fit.*``: the relative fit residual
-    [warning above ``fit_residual_warning``, error above ``fit_residual_limit``], pixels whose
-    solve did not converge [warning]. ``drift.*``: a drift above ``drift_warn_px`` [warning;
-    info once corrected], one that could not be measured [warning; an error with a fit residual
-    above ``fit_residual_warning`` (neither the bundle nor a drift explains the capture), and
-    under ``refine_registration``, raised before the solve as
-    :class:`~hsi_torch.recon.drift.DriftError`], nothing to measure it from under
-    ``refine_registration`` [warning]. With ``strict`` every warning is an error
-    (:func:`~hsi_torch.findings.escalated`).
-
-    Args:
-        stats: the frame's statistics (:attr:`ReconstructionResult.stats`).
-        settings: the limits (default: the defaults).
-        source: what the findings are about (the file), or ``None``.
-
-    Returns:
-        The findings, capture first, then fit, then drift.
+    (codes, severities and limits: ``docs/bad_inputs.md``), from its statistics
+    (:func:`measure_capture`, :func:`exposure_info` and the frame's solve): ``capture.*``, then
+    ``fit.*``, then ``drift.*``, then the illuminant's; with ``strict`` every warning is an error
+    (:func:`~hsi_torch.findings.escalated`). ``settings``: the limits (default: the defaults);
+    ``source``: what the findings are about (the file), or ``None``.
     """
     s = settings if settings is not None else ReconstructSettings()
     out = capture_findings(stats, s, source) + fit_findings(stats, s, source)
@@ -473,7 +443,8 @@ def drift_findings(
     stats: Mapping[str, Any], settings: ReconstructSettings, source: str | None = None
 ) -> list[Finding]:
     """The ``drift.*`` findings of :func:`frame_findings` (not escalated): the frame's
-    :func:`~hsi_torch.recon.drift.drift_finding` under ``settings``; a measurement within
+    :func:`~hsi_torch.recon.drift.drift_finding`, the one stored when the drift was measured
+    (``stats["drift"]["finding"]``), else made under ``settings``; a measurement within
     ``drift_warn_px`` (``drift.below_warning``, a corrected motion below it, ``drift.no_texture``
     but under ``refine_registration: true``) stays in the statistics only, not a line on every
     frame."""
@@ -481,8 +452,12 @@ def drift_findings(
     if not isinstance(drift, Mapping):
         return []
     reg = settings.registration
-    f = drift_finding(drift, reg.refine, reg.warn_px, source, stats.get("fit_residual"),
-                      settings.output.fit_residual_warning)  # fmt: skip
+    if "finding" in drift:  # said by the front door that measured it, under these settings
+        said = drift["finding"]
+        f = None if said is None else Finding.from_dict({**said, "source": source})
+    else:
+        f = drift_finding(drift, reg.refine, reg.warn_px, source, stats.get("fit_residual"),
+                          settings.output.fit_residual_warning)  # fmt: skip
     if f is None:
         return []
     m = f.measured

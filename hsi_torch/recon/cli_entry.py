@@ -1,17 +1,11 @@
-"""``hsi-torch reconstruct``: captures (files or globs) + a calibration bundle → spectral cubes.
+"""``hsi-torch reconstruct`` and ``hsi-torch watch``: captures + a calibration bundle → cubes.
 
-The run is :func:`hsi_torch.recon.batch.entry.run_reconstruction` (the same as
-``reconstruct_many`` in Python): inputs, configuration (``min_views`` against the bundle's views
-included) and bundle are all checked before the output folder or the run's configuration file
-are created. Without ``--scheduler``/``--scheduler-file`` the inputs run one after another in
-this process (progress bar, continues past bad files, every failure reported at the end, exit
-status 1 when any failed) and Dask is not imported; with them, on a Dask cluster's workers (the
-same outputs). ``--format zarr`` writes one dataset store instead of files per input.
-
-``--sequence`` (or one folder, one sheet ``.csv`` or one multi-page TIFF as the input, which is
-said) reconstructs the inputs as one sequence in time order into ``OUT/sequence.zarr``
-(:func:`hsi_torch.recon.batch.sequence_run.run_sequence`); ``hsi-torch watch`` reconstructs a live
-folder into the same store (:func:`hsi_torch.recon.batch.watch.watch_folder`).
+A batch is :func:`hsi_torch.recon.batch.entry.run_reconstruction` (the same as
+``reconstruct_many`` in Python: everything checked before the output folder is created; this
+process, or a Dask cluster with ``--scheduler``/``--scheduler-file``); ``--sequence`` (or one
+folder, sheet ``.csv`` or multi-page TIFF as the input, which is said) is
+:func:`hsi_torch.recon.batch.sequence_run.run_sequence` into ``OUT/sequence.zarr``; ``watch`` is
+:func:`hsi_torch.recon.batch.watch.watch_folder` into the same store.
 """
 
 from __future__ import annotations

@@ -1,25 +1,15 @@
-"""The Dask side of a distributed batch run: connecting to a cluster, handing tasks to workers.
+"""The Dask side of a distributed batch run: connecting to a cluster, handing tasks to workers
+(the user's side, threads and security: ``docs/cluster.md``).
 
 :func:`connect` gives a ``distributed.Client`` for ``--scheduler local:N`` (a ``LocalCluster`` of
-N worker processes, one task thread each, started and stopped here), ``--scheduler
-tcp://host:8786`` (a running scheduler: ``dask scheduler``, ``dask-jobqueue``, ``dask-mpi``,
-...) or ``--scheduler-file FILE`` (the file such a scheduler wrote). :class:`DaskExecutor` runs
-the tasks of :func:`hsi_torch.recon.batch.driver.drive` on its workers: a bounded number in
-flight (twice the cluster's task threads, at least 4, re-read as workers come and go), results
-taken as they complete, the not-yet-started ones cancelled on Ctrl-C.
-
-Threads: ``local:N`` gives every frame ``cores // N`` torch and numba threads (at least 1) unless
-``threads_per_worker`` says otherwise; on an existing cluster a frame gets its worker's Dask
-thread count (``dask worker --nthreads``), since a worker process runs one frame at a time.
-
-Security: a scheduler and its workers can run any code in this process (a task's result is
-unpickled here), so connect only to a cluster you trust. ``local:N`` listens on the loopback
-interface only; a remote scheduler should be reached over ``tls://`` with certificates
-(:func:`make_security`: ``--tls-ca-file``, ``--tls-cert``, ``--tls-key``), which Dask uses
-to encrypt the connection and to authenticate both ends. A plain ``tcp://`` address that is not
-on this machine gets a warning (``docs/cluster.md``, *Security*).
-
-Needs the optional extra ``pip install 'hsi-torch[cluster]'`` (``dask[distributed]``), imported
+N worker processes on the loopback interface, one task thread each, ``cores // N`` torch and
+numba threads a frame unless ``threads_per_worker`` says otherwise), ``--scheduler
+tcp://host:8786`` or ``tls://`` (a running scheduler; :func:`make_security` for TLS, a plain
+``tcp://`` address not on this machine is warned about: a scheduler can run any code here) or
+``--scheduler-file FILE``. :class:`DaskExecutor` runs the tasks of
+:func:`hsi_torch.recon.batch.driver.drive` on its workers: twice the cluster's task threads in
+flight (at least 4, re-read as workers come and go), results taken as they complete, the
+not-yet-started ones cancelled on Ctrl-C. Needs ``pip install 'hsi-torch[cluster]'``, imported
 only here.
 """
 

@@ -1,70 +1,17 @@
 """Drift of the sensor since calibration, measured from the scene itself, and its correction.
 
-The views of one capture see the same scene. Warped into the reference frame with the bundle's
-registration they line up, unless the sensor has moved relative to the optics since the
-calibration: then every view's content is displaced in the reference frame, and by a different
-amount, because each view's homography maps a sensor motion differently (a mirrored view moves
-the other way, a tapered view by a scaled amount).
-
-**What is measured** (:func:`estimate_drift`): each view, warped to the reference frame by the
-bundle's own sampling grid, is aligned to the reference view (view 0) by a translation —
-phase correlation (``cv2.phaseCorrelate``) for a first guess, then OpenCV's enhanced correlation
-coefficient (``cv2.findTransformECC``, ``MOTION_TRANSLATION``) on the common area of the two
-views — of their *gradient-magnitude* images, each normalised by its mean: the views see the
-scene through different spectral filters, so their intensities differ, but the edges lie in the
-same places. The result is a per-view shift ``d_v`` (reference-frame px, ``(x, y)``): view
-``v``'s content at ``x`` is the reference view's content at ``x + d_v`` (``d_0 = 0``).
-
-**Cost.** A reference frame at least 320 px on its shorter side (the full-size prototype's is
-744 × 858) is aligned on ``2 × 2``-pixel block means of the warped views (:func:`_block_factor`):
-a quarter of the pixels, and measured shifts within 0.02 px of those of the full-resolution
-alignment (``docs/reconstruct.md``). What no frame changes (the views' masks and tapers, the
-compared crops and windows, the fit's Jacobians) is computed once per bundle and kept on the
-sensing (:func:`_static`); a frame costs one warp of its colour sum, the gradient images and
-the alignments (≈ 0.1 s of one CPU core at full size).
-
-**What is corrected** (:func:`corrected_sensing`): a rigid motion of the sensor,
-``p' = c + R(θ)(p − c) + t`` (its pixel ``p`` sees what the calibrated sensor saw at ``p'``;
-``c`` the sensor centre). With the bundle's ``H_v`` (view sensor px → reference sensor px), it
-displaces view ``v``'s content in the reference frame by ``u_v(x) = H_v(M(H_v⁻¹ x)) − x``; the
-measured ``d_v`` are the differences ``u_v − u_0`` over each view's common area. ``(t, θ)`` is
-their weighted least-squares fit (3 unknowns from 2 numbers per view; the views' different
-orientations make the absolute motion, the reference view's included, measurable). The
-correction samples view ``v`` of the frame at ``M⁻¹(H_v⁻¹ x)`` instead of ``H_v⁻¹ x`` — exact
-for a rigid sensor motion, for every view, including the reference view and the rotation inside
-each view — and a sample whose moved position falls off the sensor is dropped from that frame
-(the pixels concerned are solved again with their own observation mask). The spectral model
-``A`` is unchanged: the optics did not move, each reference pixel still sees the same scene
-point through the same filters.
-
-**When it is refused** (:attr:`DriftEstimate.refusal`; ``refine_registration`` raises
-:class:`DriftError`, the check alone warns): the motion is fitted to the views that agree —
-within :data:`DRIFT_AGREE_PX` of the fit, the farthest view left out and the rest fitted again
-while one is farther — and trusted only when at least ``drift_min_views`` (default
-:data:`DRIFT_MIN_VIEWS`) agree, more agree than disagree, they see the scene in at least two
-orientations, and the fitted motion keeps every view with texture inside the search window
-(:data:`DRIFT_MAX_VIEW_SHIFT_PX`; the sensor motion that reaches it is
-:attr:`DriftEstimate.range_px`, 15.9 px on the small prototype). A scene may measure less:
-where views cannot be aligned, what the others measure (a false match on a repeating pattern,
-one view's shift) fits a wrong motion, and the rules refuse it — the small prototype's
-ColorChecker (a grid of patches) beyond 9 px, whose 12 px drift was fitted as 30.65 px from one
-view before, while its USAF and CAVE scenes measure 12 px right. A frame without texture (a
-flat field) is not refused: nothing is measured.
-
-**When it is corrected** (:func:`drift_decision`): ``refine_registration: auto`` (the default)
-corrects a frame's drift when it is measured reliably (no refusal) and the fitted motion moves
-a view's pixel by more than ``drift_warn_px`` (0.5 px): below that the correction would change
-the cube by less than the noise, and a drift it cannot measure is not "corrected" by a guess —
-the frame is kept as calibrated, with a ``drift.unmeasurable`` warning finding.
-``refine_registration: true`` corrects whatever is measured and refuses (:class:`DriftError`)
-a frame whose drift cannot be measured; ``false`` never corrects (the check still measures).
-
-**What it cannot see**: motion of parts of the optics relative to each other (a kaleidoscope
-that shifts against the relay lens changes each view's homography in its own way; that shows
-as a large per-view fit residual, :attr:`DriftEstimate.residual_px`, but is not corrected),
-motion along the optical axis (a change of scale), drift within a view finer than the
-translation measured per view, and anything in a scene without texture (a flat white field:
-no view is measured, nothing is corrected, ``DriftEstimate.measured_views == 0``).
+The method, its limits, the refusal rules and measurements: ``docs/reconstruct.md``, *Drift*.
+Conventions: :func:`estimate_drift` aligns each view, warped to the reference frame by the
+bundle's own sampling grid, to the reference view (view 0) on gradient-magnitude images (phase
+correlation, then ECC translation); ``d_v`` (reference-frame px, ``(x, y)``): view ``v``'s content
+at ``x`` is the reference view's at ``x + d_v`` (``d_0 = 0``). Reference frames at least 320 px on
+the shorter side are aligned on ``2 × 2`` block means (:func:`_block_factor`); what no frame
+changes is kept per bundle (:func:`_static`). :func:`corrected_sensing` corrects a rigid sensor
+motion ``p' = c + R(θ)(p − c) + t`` (pixel ``p`` sees what the calibrated sensor saw at ``p'``,
+``c`` the sensor centre): view ``v``'s content moves by ``u_v(x) = H_v(M(H_v⁻¹ x)) − x``, ``(t, θ)``
+is the weighted least-squares fit of ``d_v`` to ``u_v − u_0``, and every view samples the frame
+at ``M⁻¹(H_v⁻¹ x)``; ``A`` is unchanged. :func:`drift_decision` says whether to correct,
+:func:`drift_finding` what is said.
 """
 
 from __future__ import annotations

@@ -1,24 +1,11 @@
-"""Was the scene lit as the white reference was? A check of the reconstructed cube.
+"""Was the scene lit as the white reference was? A check of the reconstructed cube (why, what
+it cannot tell and measurements: ``docs/reconstruct.md``, *The scene's light against the white
+reference's*).
 
-Reconstruction gives reflectance relative to the white reference: a scene lit by another light
-than the white's reads ``s(λ) · l_scene(λ) / l_white(λ)`` whatever the software does, and no
-frame holds the information to tell a reddish scene from a reddish light. What the data can
-show is the usual case where the scene holds something near-neutral among its brightest
-surfaces (a white or grey card, paper, a highlight): under the white's light that surface reads
-flat, under another light it reads that light's ratio to the white's. :func:`illuminant_finding`
-takes the mean spectrum of the brightest ``top_fraction`` of the valid pixels and compares its
-long-wavelength end (≥ 620 nm) with its short end (≤ 480 nm):
-
-- a ratio beyond ``limit`` (default :data:`ILLUMINANT_RATIO_LIMIT`, 3) either way is a
-  ``capture.illuminant`` warning: the small prototype's ColorChecker under tungsten (CIE A)
-  against a D65 white reads 7.4, under the white's own light 0.94–0.96;
-- within it, an ``info`` finding records the ratio.
-
-**When it cannot tell**: a scene whose brightest surfaces are themselves strongly coloured (a
-red object filling the frame: a false alarm), or a light that differs from the white's by less
-than the limit (D50 against D65: missed), and a scene without valid pixels. The real CAVE scene
-(stuffed toys, a ColorChecker below them) reads 0.46–0.50 under its own light, inside the limit.
-The fix is the protocol's: shoot the white reference under the scene's light.
+:func:`illuminant_finding` takes the mean spectrum of the brightest ``top_fraction`` of the valid
+pixels and divides its mean at ≥ 620 nm by its mean at ≤ 480 nm (≈ 1 for a near-neutral surface
+under the white's light): beyond ``limit`` (default :data:`ILLUMINANT_RATIO_LIMIT`, 3) either way
+a ``capture.illuminant`` warning, within it an ``info`` finding recording the ratio.
 """
 
 from __future__ import annotations

@@ -1,47 +1,12 @@
 """The one reconstructor: :class:`HSIReconstructor` turns a bundle plus settings into cubes from
-tensors (``forward``: an ``nn.Module`` for batches, gradients, ``nn.Sequential`` and
-``torch.compile``), captures or files (:meth:`~HSIReconstructor.reconstruct_frame`,
-:meth:`~HSIReconstructor.reconstruct_capture`, :meth:`~HSIReconstructor.reconstruct_file`), all
-through the one frame function :func:`hsi_torch.recon.frame.reconstruct_frame`.
-:class:`Reconstructor` is the same class built for files: it keeps no full-frame calibration
-arrays (see ``keep_calibration``).
-
-The per-frame maths are :mod:`hsi_torch.recon.frame`; the bundle's sensor corrections
-:mod:`hsi_torch.recon.corrections`; what is measured about a capture (pedestal, camera,
-exposure) :mod:`hsi_torch.recon.checks`.
-
-Buffers: the per-bundle precomputation (the factored sensing model of the reconstructed pixels,
-static masks, the views' sampling grid, the solver's Gram matrices and inverses) is registered as
-non-persistent buffers — the very tensors of the :class:`~hsi_torch.recon.sensing.BundleSensing`
-the object was built from, so a precomputation loaded memory-mapped from the disk cache stays
-mapped (no copy). With ``keep_calibration`` the bundle's calibration products (``B``, ``phi``,
-``gain``, ``view_mask``) are persistent buffers too. ``.to(device)``/``.cuda()`` move everything
-and ``.double()`` switches the precision (the factorisation is then recomputed in the new dtype);
-:attr:`HSIReconstructor.sensing` is then a view of the moved buffers.
-
-Differentiable with respect to the input: see :mod:`hsi_torch.recon.frame` (straight-through
-reduced solve on the solver's free set for the active-set method; fixed-iteration ADMM is
-differentiated through its iterations).
-
-``torch.compile``: the forward pass does no timing and computes no statistics (no ``.item()``);
-the input checks and the Bayer demosaic are traced, and the warp + observations + solve +
-assembly run in :meth:`HSIReconstructor.reconstruct_prepared`, wrapped with
-``torch.compiler.disable``: the exact active-set solver's data-dependent control flow (which
-pixels need pivoting, grouped by the size of their zero set) would otherwise break the graph
-dozens of times and recompile for every frame. A network around the module therefore compiles
-with one graph break at the solver, and the result equals the eager one (tested).
-
-``state_dict()`` holds the calibration (``B``, ``phi``, ``gain``, masks, homographies, wavelengths,
-the reconstructed pixels) and, as extra state, the sensor size, reference-frame box, white
-exposure and ``phi`` in the bundle's float64. ``load_state_dict`` checks the whole state dict
-first and then rebuilds everything derived from it (the factored sensing model, observation mask,
-sampling grid, Gram matrices and their inverses) with the build of
-:func:`hsi_torch.recon.sensing.build_sensing` that :meth:`HSIReconstructor.from_bundle` uses,
-so the output is bit for bit that of a module built from the other bundle (float32 and
-float64, tested); a state dict of another geometry (views, bands, reference frame, sensor)
-raises :class:`~hsi_torch.errors.InputError` and leaves the module as it was. An object built
-without the calibration arrays (``keep_calibration=False``, :class:`Reconstructor`) refuses to
-load a state dict.
+tensors (``forward``: an ``nn.Module``), captures or files (:meth:`~HSIReconstructor.
+reconstruct_frame`, :meth:`~HSIReconstructor.reconstruct_capture`,
+:meth:`~HSIReconstructor.reconstruct_file`), all through the one frame function
+:func:`hsi_torch.recon.frame.reconstruct_frame`; :class:`Reconstructor` is the same class without
+the full-frame calibration arrays. Buffers, ``.to``/``.double``, ``torch.compile`` (one graph
+break, at the eager solver) and the all-or-nothing ``load_state_dict`` (derived tensors rebuilt by
+:func:`hsi_torch.recon.sensing.build_sensing`, bit for bit): ``docs/python_api.md``, *The module's
+buffers and state*.
 """
 
 from __future__ import annotations
@@ -216,68 +181,39 @@ class HSIReconstructor(nn.Module):
     and networks (``forward``) and for captures and files (:meth:`reconstruct_frame`,
     :meth:`reconstruct_capture`, :meth:`reconstruct_file`), all precomputation done once.
 
-    ``forward(x)`` takes ``(B, 3, H, W)`` linear RGB (DN above black, on the calibration's
-    exposure scale) or ``(B, 1, H, W)`` Bayer mosaics, ``H×W`` the bundle's sensor size, and
-    returns :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))`` — or, built with
-    ``output="cube"``, the cube tensor alone with invalid pixels set to ``fill_value``, so that it
-    drops into ``nn.Sequential``. The input may have any float dtype; the output has the input's
-    dtype. The input must be on the object's device. A bundle calibrated with
-    ``stray_light: subtract`` or ``defects: mask`` has its corrections repeated on every frame
-    (:meth:`correct`), as ``hsi-torch reconstruct`` does. The file methods add timings, statistics,
-    the drift check and the per-band standard deviation (``uncertainty``).
+    ``forward(x)``: ``(B, 3, H, W)`` linear RGB (DN above black, on the calibration's exposure
+    scale) or ``(B, 1, H, W)`` Bayer mosaics, ``H×W`` the bundle's sensor size, any float dtype,
+    on the object's device → :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``
+    in the input's dtype, or with ``output="cube"`` the cube alone, ``fill_value`` where invalid
+    (for ``nn.Sequential``). A bundle calibrated with ``stray_light: subtract`` or
+    ``defects: mask`` has its corrections repeated on every frame (:meth:`correct`). The file
+    methods add timings, statistics, the drift check (:mod:`hsi_torch.recon.drift`) and the
+    per-band standard deviation (``uncertainty``).
 
     Args:
         bundle: :class:`CalibrationBundle`, its path, or a ready :class:`BundleSensing`.
-        settings: every setting (:class:`~hsi_torch.recon.settings.ReconstructSettings`; what a
-            run passes; default: the defaults): β and the difference order, the solver
-            (``"active_set"``: exact, gradient of the final reduced solve; ``"admm"`` with
-            ``admm_iters=N``: exactly ``N`` differentiable iterations), ``device``/``dtype`` of
-            the buffers and the solve (movable later with ``.to``), ``min_views``, the prior
-            (``prior="tv"``: spatial-spectral reconstruction with a vectorial total-variation
-            prior, warm-started from the per-pixel answer, :mod:`hsi_torch.recon.spatial`; for
-            gradients give ``spatial_iters=N``), ``cfa_pattern`` for ``forward``'s Bayer inputs
-            (default: the bundle's), ``exposure_correction``, ``uncertainty`` (the standard
-            deviation of every band, :attr:`ReconstructionResult.std`, from the settings' sensor
-            noise model; file methods only), the drift check and correction
-            (:mod:`hsi_torch.recon.drift`; a drift the frame cannot support — too few views
-            agree, beyond the measurable range — raises
-            :class:`~hsi_torch.recon.drift.DriftError` under ``refine_registration``; file
-            methods only), and where the per-bundle precomputation of a bundle given as a path is
-            cached between processes (``precompute_cache``,
-            :mod:`hsi_torch.recon.precompute_cache`), the limits of the checks (``output``
-            group: ``fit_residual_warning``, ``fit_residual_limit``, ``pedestal_refuse_factor``,
-            ``strict``).
-        output: ``"result"`` (default): ``forward`` returns :class:`ReconstructionOutput`
-            ``(cube, valid)``; ``"cube"``: the cube tensor alone, ``(B, M, h, w)``, invalid
-            pixels set to ``fill_value`` — the form for ``nn.Sequential(rec, nn.Conv2d(M, …))``.
-            Not a reconstruction setting: the module's output form.
-        fill_value: the value of invalid pixels with ``output="cube"`` (default 0.0).
+        settings: every setting (:class:`~hsi_torch.recon.settings.ReconstructSettings`; default:
+            the defaults); for gradients use ``solver="active_set"`` or ``admm_iters=N``, and
+            ``spatial_iters=N`` with ``prior="tv"``.
+        output: ``"result"`` (default) or ``"cube"`` (the module's output form, not a setting).
+        fill_value: the value of invalid pixels with ``output="cube"``.
         keep_calibration: keep the bundle's full-frame calibration arrays (``B``, ``phi``,
             ``gain``, ``view_mask``) as persistent buffers, so that ``state_dict`` carries the
             calibration. Default: kept when ``bundle`` is a :class:`CalibrationBundle` (and by
             :meth:`from_bundle`); not for a path (whose precomputation may then come from the disk
             cache without reading the bundle) or a :class:`BundleSensing`. Without them
             ``forward`` and the file methods work the same, and ``load_state_dict`` refuses.
-        overrides: flat settings keys changed on ``settings``
-            (:meth:`~hsi_torch.recon.settings.ReconstructSettings.replace`, e.g. ``beta=1e3``,
+        overrides: flat settings keys changed on ``settings`` (e.g. ``beta=1e3``,
             ``prior="tv"``, ``dtype=torch.float64``); keys that then have no effect are a
             ``UserWarning``. :attr:`settings` holds the result, validated.
 
-    Every ``reconstruct_*`` method judges its result: the checks' findings are attached
-    (:attr:`ReconstructionResult.findings`), its warnings raised as Python warnings of their
-    :class:`~hsi_torch.findings.HSIWarning` subclass, and a frame the data contradicts (an
-    error finding) raises :class:`~hsi_torch.findings.RefusedError`. ``forward`` checks the
+    Every ``reconstruct_*`` method judges its result (:func:`_judged`); ``forward`` checks the
     pedestal outside the views (:meth:`check_input`).
 
     Example:
         >>> rec = HSIReconstructor.from_bundle("calib.npz", beta=1e4).to("cuda")  # doctest: +SKIP
         >>> cube, valid = rec(rgb)          # rgb (B, 3, H, W) on cuda  # doctest: +SKIP
-        >>> loss = cube[valid.unsqueeze(1).expand_as(cube)].mean()  # doctest: +SKIP
-        >>> loss.backward()  # doctest: +SKIP
         >>> res = rec.reconstruct_file("scene.tif")  # the same object on a file  # doctest: +SKIP
-        >>> net = nn.Sequential(HSIReconstructor.from_bundle("calib.npz", output="cube",
-        ...                                                  fill_value=0.0),
-        ...                     nn.Conv2d(25, 8, 3))  # doctest: +SKIP
     """
 
     #: ``keep_calibration``'s default (``None``: when ``bundle`` is a :class:`CalibrationBundle`)
@@ -423,11 +359,7 @@ class HSIReconstructor(nn.Module):
                 chunk_size=self.settings.solve.chunk_size,
             )  # fmt: skip
             self.gram, self.gram_inv, self.gram_diag, self.gram_norm = (
-                p.gram,
-                p.gram_inv,
-                p.gram_diag,
-                p.gram_norm,
-            )
+                p.gram, p.gram_inv, p.gram_diag, p.gram_norm)  # fmt: skip
             self.singular, self.no_data = p.singular, p.no_data
         return out
 
@@ -653,22 +585,8 @@ class HSIReconstructor(nn.Module):
         saturated: Tensor | None = None,
         exposure_scale: Tensor | float | None = None,
     ) -> ReconstructionOutput | Tensor:
-        """Reconstruct a batch.
-
-        Args:
-            x: ``(B, 3, H, W)`` linear RGB or ``(B, 1, H, W)`` Bayer, float, on this module's
-                device.
-            saturated: optional bool mask of ``x``'s shape (saturated samples are masked).
-            exposure_scale: optional scalar or ``(B,)`` factor on the observations.
-
-        ``x`` must be in DN above black (the black level subtracted, as the calibration did); a
-        pedestal left in is a :class:`~hsi_torch.findings.CaptureWarning` or, far beyond its
-        limit, :class:`~hsi_torch.findings.RefusedError` (:meth:`check_input`).
-
-        Returns:
-            :class:`ReconstructionOutput` ``(cube (B, M, h, w), valid (B, h, w))``; built with
-            ``output="cube"``: the cube alone, ``(B, M, h, w)``, ``fill_value`` where invalid.
-        """
+        """Reconstruct a batch ``x`` (see the class; ``saturated``: bool, ``x``'s shape;
+        ``exposure_scale``: scalar or ``(B,)`` factor on the observations)."""
         if not isinstance(x, Tensor) or x.ndim != 4:
             raise ValueError(
                 "x must be a (B, 3, H, W) or (B, 1, H, W) tensor, got "
@@ -718,14 +636,8 @@ class HSIReconstructor(nn.Module):
         return out.cube, out.valid
 
     def check_input(self, rgb: Tensor, saturated: Tensor | None = None) -> None:
-        """The input convention's guard: ``(B, 3, H, W)`` linear RGB must be DN above black.
-        The sensor pixels outside every view (the bundle's ``radiometry.outside_index``) must
-        then read ≈ 0; a pedestal above its limit is a :class:`~hsi_torch.findings.CaptureWarning`
-        (``capture.pedestal``), and beyond ``pedestal_refuse_factor`` times it (e.g. the
-        simulator's ``expose()`` DN with their 512 DN black level: cubes 5.5x too bright)
-        :class:`~hsi_torch.findings.RefusedError`; under ``strict`` the warning refuses too
-        (:func:`hsi_torch.recon.checks.batch_pedestal_findings`; saturated samples left out).
-        A gather of a few thousand pixels and one ``(B, 3)`` copy to the host per call; run inside
+        """The input convention's guard (``(B, 3, H, W)`` linear RGB must be DN above black):
+        :func:`hsi_torch.recon.checks.batch_pedestal_findings`, warned or refused. Run inside
         :meth:`reconstruct_prepared`, so ``torch.compile`` sees no extra graph break."""
         found = batch_pedestal_findings(rgb, self.radiometry, self.settings,
                                         "HSIReconstructor input", saturated)  # fmt: skip
@@ -914,24 +826,10 @@ class HSIReconstructor(nn.Module):
         sensing: BundleSensing | None = None,
         **overrides: Any,
     ) -> ReconstructionResult:
-        """Read a capture (:func:`hsi_torch.io.read_any`) and reconstruct it (``page``: one page
-        of a multi-page TIFF, e.g. a frame of a sequence; default: the file's only image).
-
-        The reading follows the settings' ``input`` group (``demosaic``, ``cfa_pattern``,
-        ``black_level``, ``white_level`` override the file's metadata; ``overrides``: flat keys of
-        that group changed for this file, e.g. ``demosaic="half"``). What a file does not say it
-        gets from the bundle, in the reader (:meth:`capture_defaults`): a Bayer file without a
-        pattern the bundle's, a file without a black level the calibration's, a file without an
-        exposure the ``exposure_s`` setting. The file's full-resolution size is checked against
-        the bundle (errors name the file): the sensor size, or for Bayer files read with
-        ``demosaic="half"`` (a bundle made at half resolution) twice the sensor size. The
-        statistics also hold the black level used and its source, the pedestal outside the views,
-        the camera and its differences from the bundle's
-        (:func:`hsi_torch.recon.checks.measure_capture`, which only measures);
-        :func:`hsi_torch.recon.checks.frame_findings` turns them into findings.
-        ``timings["load"]`` is the read (and demosaic). ``warm``, ``sensing``: as
-        :meth:`reconstruct_frame` (a frame of a sequence).
-        """
+        """Read a capture (:meth:`read_capture`) and reconstruct it (``page``: one page of a
+        multi-page TIFF; ``overrides``: flat keys of the ``input`` group for this file, e.g.
+        ``demosaic="half"``; ``warm``, ``sensing``: as :meth:`reconstruct_frame`).
+        ``timings["load"]`` is the read (and demosaic)."""
         cap, checks, t_load = self.read_capture(path, page=page, **overrides)
         return with_load_time(
             self.reconstruct_capture(cap, warm=warm, sensing=sensing, stats=checks), t_load
@@ -940,8 +838,11 @@ class HSIReconstructor(nn.Module):
     def read_capture(
         self, path: str | os.PathLike, *, page: int | None = None, **overrides: Any
     ) -> tuple[Any, dict[str, Any], float]:
-        """The reading half of :meth:`reconstruct_file`: the capture read, size-checked and
-        corrected as the bundle's calibration was, and measured.
+        """The reading half of :meth:`reconstruct_file`: the capture read
+        (:func:`hsi_torch.io.read_any`, the ``input`` group over the file's metadata, what the
+        file does not say from :meth:`capture_defaults`), its full-resolution size checked (the
+        sensor size; twice it for Bayer files with ``demosaic="half"``), corrected as the
+        bundle's calibration was, and measured (:func:`hsi_torch.recon.checks.measure_capture`).
 
         Returns:
             the :class:`hsi_torch.io.LinearCapture`, the statistics of the reading's checks
@@ -985,18 +886,13 @@ class HSIReconstructor(nn.Module):
 
     def extra_repr(self) -> str:
         h, w = self.frame_size
-        return (
-            f"views={self.homographies.shape[0]}, bands={self.num_bands}, "
-            f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
-            f"beta={self.beta:g}, diff_order={self.diff_order}, "
-            f"solver={self.settings.solve.solver!r}"
-            + (
-                f", prior='tv', lam={self.settings.prior.lam}"
-                if self.settings.prior.kind == "tv"
-                else ""
-            )
-            + (f", output='cube', fill_value={self.fill_value:g}" if self.output == "cube" else "")
-        )
+        s = self.settings
+        return (f"views={self.homographies.shape[0]}, bands={self.num_bands}, "
+                f"pixels={self.pixel_index.shape[0]}, sensor={self.sensor_size}, frame=({h}, {w}), "
+                f"beta={self.beta:g}, diff_order={self.diff_order}, solver={s.solve.solver!r}"
+                + (f", prior='tv', lam={s.prior.lam}" if s.prior.kind == "tv" else "")
+                + (f", output='cube', fill_value={self.fill_value:g}" if self.output == "cube"
+                   else ""))  # fmt: skip
 
 
 class Reconstructor(HSIReconstructor):

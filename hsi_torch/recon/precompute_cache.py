@@ -3,27 +3,14 @@
 The per-bundle precomputation (:func:`hsi_torch.recon.sensing.precompute_sensing`) costs seconds at
 full size and depends only on the bundle file's content, ``(beta, diff_order)``, the precision,
 the device type and the code that computes it; a process stores it once and later processes load
-it. The full rules (key, format, trust, folders, bound, measured cost) are in
-``docs/reconstruct.md``, *The precomputation cache*; in short:
-
-- **Entry**: a folder ``<bundle stem>-<key>.hsicache/`` of ``<name>.npy`` files (data at a
-  multiple of :data:`ALIGN` bytes: mapped data aligned as a fresh allocation keeps the kernels on
-  the same paths) and ``index.json`` (``format``, ``key``, ``arrays``: dtype and shape per array,
-  the caller's metadata, ``mac``), written in a temporary folder and renamed into place.
-- **Key** (:func:`entry_key`): SHA-256 of the caller's parts, :data:`FORMAT_VERSION`, the caller's
-  layout version, the torch version and a digest of :data:`SOURCE_FILES`.
-- **Trust**: ``mac`` is a keyed BLAKE3 (four times faster than HMAC-SHA256 here; it runs over
-  ~2 GiB on every cold start) over the index and every array's bytes, keyed by the folder's
-  secret (:data:`KEY_FILE`); the hash memo (:data:`HASH_MEMO`) is authenticated the same way. A
-  folder is used only when it is the user's own and not writable by group or others
-  (:func:`folder_problem`).
-- **Loading** (:func:`load_entry`): JSON and plain-number ``.npy`` only, every file opened
-  ``O_NOFOLLOW | O_NONBLOCK`` and checked against the index, the MAC checked over the mapped
-  bytes; any failure is a miss with a :class:`PrecomputeCacheWarning`. Arrays come back
-  memory-mapped copy-on-write; :func:`changed_since_load` tells a file changed under the mapping.
-- **Where** (:func:`cache_folder`): ``"auto"``, ``"beside"``, ``"off"`` or a folder; bounded by
-  ``$HSI_TORCH_CACHE_MAX_GB`` (least recently used entries removed), never written when the disk
-  would keep less than :data:`MIN_FREE_BYTES`; ``hsi-torch cache info | clear``.
+it. The rules (key, format, trust, folders, bound, measured cost) are ``docs/reconstruct.md``,
+*The precomputation cache*. Here: an entry is a folder ``<bundle stem>-<key>.hsicache/`` of
+``<name>.npy`` files (data at multiples of :data:`ALIGN` bytes) and :data:`INDEX`, keyed by
+:func:`entry_key`, authenticated by a keyed BLAKE3 MAC (:func:`_mac`, the folder's secret in
+:data:`KEY_FILE`; the hash memo :data:`HASH_MEMO` likewise), in a folder trusted by
+:func:`folder_problem`, chosen by :func:`cache_folder`; :func:`load_entry` maps it copy-on-write
+(refusals are misses with a :class:`PrecomputeCacheWarning`), :func:`changed_since_load` tells a
+file changed under the mapping, :func:`save_entry` writes it, ``hsi-torch cache info | clear``.
 """
 
 from __future__ import annotations

@@ -8,12 +8,9 @@ of the dense ``3V·M``), the static observation mask, the sampling grid (``H_v�
 reference sensor px in float64, so a frame is warped by *one* ``remap`` over the valid pixels
 only) and the solver factorisation (:func:`hsi_torch.recon.nnls.prepare_nnls`).
 
-:func:`precompute_sensing` keeps a small cache keyed by the bundle object's identity, device,
-dtype, ``beta`` and ``diff_order`` (:data:`BUILD_COUNTS` counts the builds); it holds the bundle
-weakly, so a bundle no longer referenced is freed. A bundle given as a *file* is also cached on
-disk (the setting ``precompute_cache``; :mod:`hsi_torch.recon.precompute_cache`) under a key of
-the file's SHA-256, ``beta``, ``diff_order``, the dtype, the device type and the code's version;
-a later process loads the entry memory-mapped (``BUILD_COUNTS["loaded"]``).
+:func:`precompute_sensing` keeps a small in-process cache (the bundle held weakly) and, for a
+bundle given as a file, the disk cache (``precompute_cache``; ``docs/reconstruct.md``, *The
+precomputation cache*); :data:`BUILD_COUNTS` counts builds and loads.
 
 Convention:
     Observation index ``o = 3·v + c`` (``v = 0`` the reference view, ``c`` = R, G, B).

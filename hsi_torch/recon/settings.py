@@ -11,8 +11,8 @@ the keyword overrides of :class:`~hsi_torch.recon.pipeline.Reconstructor`) and p
 reconstructor, the nn.Module and the workers of a distributed run.
 
 **One definition**: every setting is one field of one group, with its default, its help text
-(``metadata["help"]``) and, where it differs from the field's name, its flat key
-(``metadata["key"]``). The flat names (:data:`FLAT_KEYS`) and the YAML schema of
+(``metadata["help"]``, the field's documentation) and, where it differs from the field's name,
+its flat key (``metadata["key"]``). The flat names (:data:`FLAT_KEYS`) and the YAML schema of
 ``reconstruct.yaml`` (:class:`~hsi_torch.recon.config.ReconstructConfig`, with its help texts
 and defaults) are generated from these groups; a field marked ``metadata["yaml"] = False`` is a
 setting of the Python API only.
@@ -156,20 +156,7 @@ def thaw(value: Any) -> Any:
 @dataclass(frozen=True)
 class SolveSettings:
     """The per-pixel solve. Flat keys: ``beta``, ``diff_order``, ``solver``, ``admm_iters``,
-    ``chunk_size``, ``min_views``, ``nan_invalid``, ``device``, ``dtype``.
-
-    Attributes:
-        beta: smoothness weight on ``‖D s‖²`` (DN² scale), finite and ``≥ 0``.
-        diff_order: 1, 2, or 0 (Tikhonov).
-        solver: ``"active_set"`` (exact) or ``"admm"``; admm_iters: fixed ADMM iterations.
-        chunk_size: pixels per solver chunk (``None``: the solver's default).
-        min_views: views a pixel needs to be valid.
-        nan_invalid: invalid pixels are NaN (else 0) in the cube.
-        device: torch device name (``None``: follow the bundle); dtype: ``float32``/``float64``.
-        precompute_cache: where the per-bundle precomputation is cached between processes:
-            ``"auto"`` (the user cache folder), ``"beside"`` (beside the bundle), ``"off"``, or
-            a folder (:mod:`hsi_torch.recon.precompute_cache`). Not part of the outputs.
-    """
+    ``chunk_size``, ``min_views``, ``nan_invalid``, ``device``, ``dtype``."""
 
     beta: float = _set(
         DEFAULT_BETA,
@@ -229,16 +216,7 @@ class SolveSettings:
 @dataclass(frozen=True)
 class PriorSettings:
     """The spatial prior. Flat keys: ``prior`` (= ``kind``), ``lam``, ``spatial_iters``,
-    ``spectral_rank``.
-
-    Attributes:
-        kind: ``"none"`` (per-pixel NNLS) or ``"tv"`` (vectorial total variation).
-        lam: relative TV weight (finite, ``≥ 0``) or a per-frame rule: ``"auto"`` (SURE) or
-            ``"discrepancy"`` (Morozov).
-        spatial_iters: fixed ADMM iterations of the TV solve (``None``: to tolerance).
-        spectral_rank: ``k``: the TV on the ``k`` leading spectral components and the
-            complement per pixel (:mod:`hsi_torch.recon.spatial.subspace`; ``None``: all bands).
-    """
+    ``spectral_rank``."""
 
     kind: Literal["none", "tv"] = _set(
         "none",
@@ -281,19 +259,7 @@ class PriorSettings:
 class InputSettings:
     """How a capture file is read. Flat keys: ``demosaic``, ``cfa_pattern``, ``black_level``,
     ``white_level``, ``exposure_correction``, ``exposure_s`` (``sat_threshold`` is a keyword of
-    the Python API).
-
-    Attributes:
-        demosaic: Bayer inputs: ``"bilinear"`` or ``"half"``.
-        cfa_pattern: Bayer CFA pattern (``None``: the file's, else the bundle's).
-        black_level: DN subtracted: a scalar, 3 values (R, G, B) or 4 (Bayer cell); ``None``:
-            the file's metadata.
-        white_level: saturation level, DN, ``> 0`` (``None``: the file's metadata).
-        exposure_correction: scale observations by ``t_white / t_capture``.
-        exposure_s: the exposure time (s) of captures whose file carries none (``None``: the
-            file's; unknown → the cube's scale is relative, with a warning).
-        sat_threshold: warped saturation weight above which an observation is saturated.
-    """
+    the Python API)."""
 
     demosaic: Literal["bilinear", "half"] = _set(
         "bilinear",
@@ -356,19 +322,7 @@ class InputSettings:
 class OutputSettings:
     """What a run writes per input. Flat keys: ``formats``, ``preview``, ``preview_size``,
     ``spectra_pixels``, ``fit_residual_warning``, ``fit_residual_limit``,
-    ``pedestal_refuse_factor``, ``strict``.
-
-    Attributes:
-        formats: cube files (:data:`CUBE_FORMATS`), no duplicates.
-        preview: write the sRGB preview PNG; preview_size: its longer side is enlarged to at
-            least this many px (0: native; at most :data:`MAX_PREVIEW_SIZE`).
-        spectra_pixels: reference-frame pixels ``(row, col)`` whose spectra are plotted.
-        fit_residual_warning: warn above this relative fit residual (``None``: never).
-        fit_residual_limit: refuse a frame above this relative fit residual (``None``: never).
-        pedestal_refuse_factor: refuse a frame whose pedestal outside the views is more than
-            this many times its warning limit (``None``: never).
-        strict: every warning finding about a frame is an error (the frame is refused).
-    """
+    ``pedestal_refuse_factor``, ``strict``."""
 
     formats: tuple[CubeFormat, ...] = _set(
         ("tiff", "envi", "npz"),
@@ -437,14 +391,7 @@ class OutputSettings:
 @dataclass(frozen=True)
 class UncertaintySettings:
     """The per-band standard deviation. Flat keys: ``uncertainty`` (= ``enabled``),
-    ``noise_electrons_per_dn``, ``noise_read_e``.
-
-    Attributes:
-        enabled: compute and write it.
-        electrons_per_dn: conversion gain, e⁻/DN, ``> 0`` (``None``: the simulator's default
-            sensor); read_e: read noise σ in electrons, ``≥ 0``; quantization_dn: the ADC step,
-            DN, ``≥ 0`` (a keyword of the Python API, through its ``noise``).
-    """
+    ``noise_electrons_per_dn``, ``noise_read_e``."""
 
     enabled: bool = _set(
         False,
@@ -479,24 +426,7 @@ class UncertaintySettings:
 @dataclass(frozen=True)
 class RegistrationSettings:
     """The sensor drift measured from each frame (:mod:`hsi_torch.recon.drift`). Flat keys:
-    ``drift_check``, ``drift_warn_px``, ``refine_registration``, ``drift_min_views``.
-
-    Attributes:
-        check: measure every frame's drift against the bundle's registration and record it in
-            the statistics (``stats["drift"]``, stored with the cube).
-        warn_px: warn when the fitted sensor motion moves a view's pixel by more than this
-            (px, ``> 0``; ``None``: never).
-        refine: correct the measured sensor motion before solving (implies the measurement):
-            ``True`` always (a drift that cannot be measured refuses the frame,
-            :class:`hsi_torch.recon.drift.DriftError`), ``False`` never, ``"auto"`` (the
-            default) when it is measured reliably and moves a view's pixel by more than
-            ``warn_px``, and a drift that cannot be measured is not corrected (the frame is kept,
-            with a ``drift.unmeasurable`` finding; :func:`hsi_torch.recon.drift.drift_decision`).
-        min_views: the fewest views (besides the reference) that must agree on the motion for
-            it to be trusted (an integer ``>= 2``); fewer, and ``refine`` refuses the frame
-            (:class:`hsi_torch.recon.drift.DriftError`) and the check warns that the drift
-            could not be measured.
-    """
+    ``drift_check``, ``drift_warn_px``, ``refine_registration``, ``drift_min_views``."""
 
     check: bool = _set(
         True,
@@ -696,13 +626,8 @@ class ReconstructSettings:
         Raises:
             ConfigError: an unknown key or an invalid value (naming the key).
         """
-        groups: dict[str, dict[str, Any]] = {g: {} for g in GROUPS}
-        for k, v in {**(values or {}), **keywords}.items():
-            where = FLAT_KEYS.get(k)
-            if where is None:
-                raise _bad(k, RENAMED_KEYS.get(k, "unknown reconstruction setting"))
-            groups[where[0]][where[1]] = _frozen(v)
-        return cls(**{g: GROUPS[g](**kw) for g, kw in groups.items()})
+        groups = _grouped({**(values or {}), **keywords})
+        return cls(**{g: GROUPS[g](**groups.get(g, {})) for g in GROUPS})
 
     def flat(self) -> dict[str, Any]:
         """The flat keys and values (lists, as in a YAML file); ``from_flat(s.flat()) == s``."""
@@ -714,13 +639,8 @@ class ReconstructSettings:
         Raises:
             ConfigError: an unknown key or an invalid value (naming the key).
         """
-        groups: dict[str, dict[str, Any]] = {}
-        for k, v in keywords.items():
-            where = FLAT_KEYS.get(k)
-            if where is None:
-                raise _bad(k, RENAMED_KEYS.get(k, "unknown reconstruction setting"))
-            groups.setdefault(where[0], {})[where[1]] = _frozen(v)
-        changed = {g: dataclasses.replace(getattr(self, g), **kw) for g, kw in groups.items()}
+        changed = {g: dataclasses.replace(getattr(self, g), **kw)
+                   for g, kw in _grouped(keywords).items()}  # fmt: skip
         return dataclasses.replace(self, **changed)
 
     def inert(self) -> list[str]:
@@ -743,7 +663,6 @@ class ReconstructSettings:
         if self.prior.kind == "none":
             for key in ("lam", "spatial_iters", "spectral_rank"):
                 note(key, "it applies to the spatial prior only (prior: tv), and prior is none")
-        if self.prior.kind == "none":
             for key in ("warm_spatial", "warm_noise"):
                 note(key, "it starts the spatial prior's solve (prior: tv), and prior is none")
         if self.solve.solver == "active_set":
@@ -755,9 +674,8 @@ class ReconstructSettings:
             note("preview_size", "preview is false (no preview image is written)")
         if not (self.registration.check or self.registration.refine):
             for key in ("drift_warn_px", "drift_min_views"):
-                note(
-                    key, "the drift is not measured (drift_check and refine_registration are false)"
-                )
+                note(key, "the drift is not measured (drift_check and refine_registration are "
+                          "false)")  # fmt: skip
         return out
 
     def key(self) -> str:
@@ -781,6 +699,17 @@ FLAT_KEYS: dict[str, tuple[str, str]] = {
 }
 
 _DEFAULTS = ReconstructSettings()
+
+
+def _grouped(flat: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Flat keys as ``{group: {field: value}}`` (lists frozen); an unknown key is refused."""
+    groups: dict[str, dict[str, Any]] = {}
+    for k, v in flat.items():
+        where = FLAT_KEYS.get(k)
+        if where is None:
+            raise _bad(k, RENAMED_KEYS.get(k, "unknown reconstruction setting"))
+        groups.setdefault(where[0], {})[where[1]] = _frozen(v)
+    return groups
 
 
 def with_overrides(

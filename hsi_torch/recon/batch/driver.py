@@ -5,16 +5,13 @@
 (:class:`hsi_torch.recon.distributed.DaskExecutor`: a bounded number in flight, taken as they
 complete):
 
-1. the input's name is checked (:func:`hsi_torch.io.paths.check_input_name`);
-2. **skip** it when the target says it is done (``resume``);
-3. **claim** it (:meth:`OutputTarget.begin <hsi_torch.recon.batch.targets.OutputTarget.begin>`:
-   the input exists, its outputs are its own, the done-marker says "started");
-4. **hand out** its task (``task(*args(input, frame))``, a function that returns
-   ``{"ok": True, "outputs": [...], "warnings": [...], ...}`` or ``{"ok": False, "error",
-   "traceback"}`` instead of raising);
-5. **collect** the result: notes (what was assumed) and warnings printed, its findings kept
-   (:attr:`RunSummary.findings`), then **finish** (the marker says "done") or
-   **abandon** (the earlier marker back) and record the failure.
+check the input's name → **skip** it when the target says it is done (``resume``) → **claim** it
+(:meth:`OutputTarget.begin <hsi_torch.recon.batch.targets.OutputTarget.begin>`) → **hand out** its
+task (``task(*args(input, frame))``, which returns ``{"ok": True, "outputs": [...], "warnings":
+[...], ...}`` or ``{"ok": False, "error", "traceback"}`` instead of raising) → **collect** it
+(notes and warnings printed, findings kept in :attr:`RunSummary.findings`) → **finish** or
+**abandon** (the earlier marker back, the failure recorded); ``docs/architecture.md``, *A
+reconstruction run, end to end*.
 
 A skipped input's findings are those stored with its outputs
 (:meth:`OutputTarget.stored_findings <hsi_torch.recon.batch.targets.FilesTarget.stored_findings>`,
@@ -31,7 +28,6 @@ and propagates. The summary lists processed, skipped and failed inputs in input 
 from __future__ import annotations
 
 import contextlib
-import os
 import sys
 import time
 import traceback
@@ -53,7 +49,6 @@ __all__ = [
     "RunSummary",
     "RunFailure",
     "print_summary",
-    "call_process",
 ]
 
 #: ``(token, result, exception)`` of a completed task
@@ -233,24 +228,6 @@ def _stored_findings(target: OutputTarget, inp: Path) -> list[Finding]:
         else:
             warn(f"WARNING {name} (skipped; stored with its outputs): {f.text()}")
     return found
-
-
-def call_process(process: Callable[[Path], Any], input_path: str, frame: int | None = None
-                 ) -> dict[str, Any]:  # fmt: skip
-    """A task of :func:`drive` from a plain ``process(path) -> output path(s) or None`` that
-    raises on failure (the result protocol of the module docstring)."""
-    try:
-        result = process(Path(input_path))
-    except Exception as exc:  # noqa: BLE001 - reported to the driver with its traceback
-        return {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc()}  # fmt: skip
-    if result is None:
-        outputs: list[str] = []
-    elif isinstance(result, (str, os.PathLike)):
-        outputs = [os.fspath(result)]
-    else:
-        outputs = [os.fspath(p) for p in result]
-    return {"ok": True, "outputs": outputs, "warnings": []}
 
 
 def drive(

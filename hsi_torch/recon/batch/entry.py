@@ -219,29 +219,16 @@ def reconstruct_many(
     (:func:`run_reconstruction` from Python).
 
     Args:
-        inputs: capture files and/or glob patterns.
-        bundle: the calibration bundle (``.npz``).
-        out_dir: output folder (as ``hsi-torch reconstruct --out``).
+        inputs, bundle, out_dir: as :func:`run_reconstruction`.
         client: a ``distributed.Client``, a scheduler spec (``"local:N"``,
             ``"tcp://host:8786"``; see :func:`hsi_torch.recon.distributed.connect`), or
             ``None``: this process.
         config: a :class:`ReconstructConfig`, a mapping, a YAML file, or ``None`` (the shipped
             ``reconstruct.yaml``); ``overrides``: ``["beta=1e3", ...]`` on top.
-        options: :func:`run_reconstruction`'s keywords, as documented there:
-            ``output_format`` (``"files"``, the configured cube formats and previews, or
-            ``"zarr"``, one dataset store ``out_dir/cubes.zarr``), ``resume``, ``progress``,
-            ``device`` (``"cuda"``: each worker its GPU), ``threads_per_worker`` (default: cores
-            / N for ``local:N``, else each worker's Dask thread count), ``send_bundle``,
-            ``security`` (for a ``tls://`` scheduler spec).
+        options: :func:`run_reconstruction`'s keywords (``output_format``, ``resume``,
+            ``progress``, ``device``, ``threads_per_worker``, ``send_bundle``, ``security``).
 
-    Returns:
-        The :class:`~hsi_torch.recon.batch.driver.RunSummary`: ``processed``, ``skipped``,
-        ``failed`` (input, reason), ``outputs`` per input; ``exit_code`` is 1 when any input
-        failed.
-
-    Raises:
-        ValueError: a bad option, a glob that matches nothing, a bad bundle or configuration
-            (before anything is written).
+    Returns and raises as :func:`run_reconstruction`.
 
     Example:
         >>> from distributed import Client                              # doctest: +SKIP

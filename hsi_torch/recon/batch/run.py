@@ -153,22 +153,17 @@ def write_outputs(
     Returns:
         The paths written.
     """
-
     with replace_then_commit(inputs) as tx:
         final = Path(stem)
-        staged = tx.stage_tree(final.parent) / final.name
-        written = _write_staged(result, staged, settings, metadata, timings)
-    return [final.parent / p.relative_to(staged.parent) for p in written]
+        s = tx.stage_tree(final.parent) / final.name  # the stem in the staging folder
+        written = _write_files(result, s, settings, metadata, timings)
+    return [final.parent / p.relative_to(s.parent) for p in written]
 
 
-def _write_staged(
-    result: ReconstructionResult,
-    s: Path,
-    settings: ReconstructSettings | ReconstructConfig,
-    metadata: dict[str, Any] | None,
-    timings: dict[str, float] | None,
-) -> list[Path]:
-    """:func:`write_outputs`' files under the stem ``s`` (in the staging folder)."""
+def _write_files(result: ReconstructionResult, s: Path,
+                 settings: ReconstructSettings | ReconstructConfig,
+                 metadata: dict[str, Any] | None, timings: dict[str, float] | None
+                 ) -> list[Path]:  # fmt: skip
     cfg = as_settings(settings).output
     cube = result.cube.detach().to("cpu", torch.float32)
     valid = result.valid.detach().cpu()

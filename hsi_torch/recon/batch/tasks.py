@@ -8,15 +8,10 @@ store (:func:`hsi_torch.io.dataset.write_frame`). It runs in this process for a 
 otherwise, so both write the same files. Errors are returned, not raised, so that every kind of
 exception reaches the driver intact.
 
-**The bundle once per process.** A task gets the bundle's path (or, with ``send_bundle``, its
-bytes: replicated once to every worker and kept in a local file); the prepared
-:class:`~hsi_torch.recon.pipeline.Reconstructor` is kept in a per-process cache keyed by the
-bundle's SHA-256 and the run's :class:`~hsi_torch.recon.settings.ReconstructSettings` (its
-:meth:`~hsi_torch.recon.settings.ReconstructSettings.key`: every setting, the device included) —
-one prepared bundle per process; another bundle or other settings replace it. A worker checks
-that its file is the client's (same size and time, else same SHA-256). Frames run one at a time
-in a process, with ``threads`` torch and numba threads set in the task's own thread (numba's
-setting is per thread).
+**The bundle once per process** (``docs/cluster.md``, *How work is spread*): the prepared
+:class:`~hsi_torch.recon.pipeline.Reconstructor` is kept per process, keyed by the bundle's
+SHA-256 and :meth:`~hsi_torch.recon.settings.ReconstructSettings.key`; ``threads`` torch and
+numba threads are set in the task's own thread (numba's setting is per thread).
 """
 
 from __future__ import annotations

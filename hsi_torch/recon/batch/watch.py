@@ -1,30 +1,13 @@
 """``hsi-torch watch``: a live folder — each capture reconstructed as the camera's tethering
-software writes it, into the sequence store a batch run can resume.
+software writes it, into the sequence store a batch run can resume (the user's rules: when a file
+is complete, given up, skipped; what is printed and written: ``docs/sequences_io.md``).
 
-:class:`FolderWatcher` polls the folder (every ``poll_s`` seconds; no file-system events, so it
-works on network shares) and hands out **complete** capture files only, in natural name order:
-
-- a temporary name (hidden, ``*.tmp``, ``*.part``, ``*.crdownload``, ...) is never a frame: the
-  software renames it when done;
-- a file is complete when its size and modification time have not changed for ``settle_s``
-  seconds **and** its structure says it is whole
-  (:func:`~hsi_torch.io.sequence.looks_complete`: an NPY holds the bytes its header declares,
-  a TIFF/DNG every strip its pages point to, a PNG its end chunk), so a writer that pauses
-  half-way is waited for;
-- a file that stays incomplete and unchanged for ``stale_s`` seconds is given up (reported as
-  failed) rather than blocking the folder; while an earlier-named file is still being written,
-  later ones wait for it (the frames stay in time order).
-
-Each frame goes through the sequences' one per-frame function
-(:func:`hsi_torch.recon.batch.sequence_run._reconstruct_sequence`) and is appended to
-``OUT/sequence.zarr``; ``OUT/latest_preview.png`` (sRGB) is replaced after every frame, and one
-line says the frame's time, how long it took, and whether the watcher keeps up or how many
-complete files are waiting (how many seconds behind the oldest waiting one is). The watch stops
-on Ctrl-C, after ``max_frames`` frames, or when nothing new arrived for ``idle_timeout_s``; it
-then writes ``OUT/sequence_preview.gif``. Files already in the store are skipped, so a watch can
-be restarted, and ``hsi-torch reconstruct --sequence FOLDER --out OUT`` resumes the same store
-(the frames' times come from their names, else EXIF, else the file's modification time, the
-watcher's ``time_from="auto"``; the store records which and a resuming run uses the same).
+:class:`FolderWatcher` polls the folder (every ``poll_s`` seconds; no file-system events) and
+hands out complete capture files only (unchanged for ``settle_s`` seconds *and* whole by
+:func:`~hsi_torch.io.sequence.looks_complete`), in natural name order; one incomplete and
+unchanged for ``stale_s`` seconds is given up. Each frame goes through the sequences' one
+per-frame function (:func:`hsi_torch.recon.batch.sequence_run._reconstruct_sequence`) and is
+appended to ``OUT/sequence.zarr``.
 """
 
 from __future__ import annotations
