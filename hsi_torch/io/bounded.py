@@ -129,17 +129,22 @@ def npz_declared(z: Any) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     return out
 
 
-def npy_header(f: Any) -> tuple[tuple[int, ...], np.dtype]:
+def npy_header(f: Any, max_header_size: int = 10_000,
+               c_order: bool = False) -> tuple[tuple[int, ...], np.dtype]:  # fmt: skip
     """``(shape, dtype)`` from the header of the ``.npy`` stream ``f`` (positioned at its start;
     left at the first data byte): the one reader of ``.npy`` headers in the package.
+    ``max_header_size``: the largest header accepted (bytes); ``c_order``: refuse an array of
+    two or more axes stored in Fortran order.
 
     Raises:
-        ValueError: not an ``.npy`` header (NumPy's own message).
+        ValueError: not an ``.npy`` header (NumPy's own message), or Fortran order refused.
     """
     version = np.lib.format.read_magic(f)
     read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
             else np.lib.format.read_array_header_2_0)  # fmt: skip
-    shape, _, dtype = read(f)
+    shape, fortran, dtype = read(f, max_header_size=max_header_size)
+    if c_order and fortran and len(shape) > 1:
+        raise ValueError(f"a {tuple(shape)} array in Fortran order (C order expected)")
     return tuple(int(v) for v in shape), np.dtype(dtype)
 
 

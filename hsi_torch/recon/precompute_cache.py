@@ -45,6 +45,7 @@ from hsi_torch.io.atomic import (
     read_file_head,
     read_own_bytes,
 )
+from hsi_torch.io.bounded import npy_header
 from hsi_torch.io.safety import file_sha256
 
 __all__ = [
@@ -542,13 +543,10 @@ def _map_member(dir_fd: int, name: str, dt: np.dtype, shape: tuple[int, ...],
     stamp.add(fname, fd)
     with f:
         try:
-            version = np.lib.format.read_magic(f)
-            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                    else np.lib.format.read_array_header_2_0)  # fmt: skip
-            got_shape, fortran, got_dt = read(f, max_header_size=MAX_HEADER_BYTES)
+            got_shape, got_dt = npy_header(f, MAX_HEADER_BYTES, c_order=True)
         except (ValueError, SyntaxError, TypeError, OSError) as exc:
             raise _Refused(f"{fname}: not a NumPy array file ({exc})") from None
-        if got_dt != dt or tuple(got_shape) != shape or (fortran and len(shape) > 1):
+        if got_dt != dt or got_shape != shape:
             raise _Refused(f"{fname} holds {got_dt} {tuple(got_shape)}, the index says {dt} "
                            f"{shape}")  # fmt: skip
         offset = f.tell()

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hsi_torch.devices import resolve_device
+from hsi_torch.devices import resolve_device, to_numpy
 from hsi_torch.forward_model import OnDevice, SensingModel
 from hsi_torch.io.bundle import CalibrationBundle, ReferenceFrame
 from hsi_torch.io.radiometry import CameraIdentity
@@ -419,7 +419,7 @@ def _encode(name: str, v: Any, arrays: dict[str, np.ndarray]) -> dict[str, Any] 
     ``name``); ``None``: a kind it does not know (then nothing is cached: a field dropped on the
     way through the cache would change what a cached run does)."""
     if isinstance(v, Tensor):
-        arrays[name] = v.detach().cpu().numpy()
+        arrays[name] = to_numpy(v)
         return {"array": name}
     if isinstance(v, np.ndarray):
         arrays[name] = np.asarray(v)
@@ -457,15 +457,13 @@ def _to_cache(sens: BundleSensing) -> tuple[dict[str, np.ndarray], dict[str, Any
     Every attribute of the :class:`~hsi_torch.recon.nnls.NNLSProblem` is stored under
     ``problem.<name>`` whatever the solver keeps, so a change of its layout needs no change
     here."""
-    def host(t: Tensor) -> np.ndarray:
-        return t.detach().cpu().numpy()
-
     arrays: dict[str, np.ndarray] = {
-        "valid": host(sens.valid), "pixel_index": host(sens.pixel_index),
-        "obs_mask": host(sens.obs_mask), "sample_grid": host(sens.grid()),
-        "homographies": host(sens.homographies), "wavelengths_nm": host(sens.wavelengths_nm),
-        "model.transmittance": host(sens.model.transmittance),
-        "model.gain": host(sens.model.gain), "model.response": host(sens.model.response),
+        "valid": to_numpy(sens.valid), "pixel_index": to_numpy(sens.pixel_index),
+        "obs_mask": to_numpy(sens.obs_mask), "sample_grid": to_numpy(sens.grid()),
+        "homographies": to_numpy(sens.homographies),
+        "wavelengths_nm": to_numpy(sens.wavelengths_nm),
+        "model.transmittance": to_numpy(sens.model.transmittance),
+        "model.gain": to_numpy(sens.model.gain), "model.response": to_numpy(sens.model.response),
     }  # fmt: skip
     problem: dict[str, Any] = {}
     for name, v in vars(sens.problem).items():
