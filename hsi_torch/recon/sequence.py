@@ -324,7 +324,8 @@ class SequenceReconstructor:
         found: list[Finding] = []
         seq_stats: dict[str, Any] = {
             "frame": t,
-            "warm": self.warm is not None and self.warm.x is not None,
+            "warm": self.warm is not None
+            and (self.warm.x is not None or self.warm.spatial_x is not None),
         }
         sens = self.base_sensing
         pattern = cfa_pattern or sens.cfa_pattern
