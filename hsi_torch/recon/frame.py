@@ -108,8 +108,9 @@ class WarmStart:
             and light) reuses the previous frame's noise level ``σ̂`` and so its ``λ`` instead of
             estimating them again (``stats["noise_sigma_given"]``): the answer is then the
             optimum of the problem with the previous frame's ``λ``, not this frame's own.
-        x: ``(P, M)`` the last per-pixel solution (``None`` before the first frame, and after
-            a frame whose per-pixel solve skipped its static pixels).
+        x: ``(P, M)`` the last per-pixel solution, kept with ``per_pixel`` (``None`` before
+            the first frame, and after a frame whose per-pixel solve skipped its static
+            pixels).
         spatial_x: ``(P, M)`` the last spatial answer; spatial_dual: its TV prox dual;
             spatial_u: ``(P, M)`` its ADMM scaled dual (``None`` where the solve had none).
         y: ``(P, 3V)`` the last frame's observations (DN, 0 where masked) and ``mask`` their
@@ -532,7 +533,7 @@ def solve_observations(
             sens, y, mask, V, min_views, premasked, solver, admm_iters, sv.chunk_size, threads,
             x_start, select)
     if warm is not None:  # a per-pixel start only where every pixel was solved
-        warm.x = None if moved_gain else x.detach().clone()
+        warm.x = x.detach().clone() if warm.per_pixel and not moved_gain else None
     native_grad = solver == "admm" and admm_iters is not None
     grad = torch.is_grad_enabled() and yc.requires_grad
     sinfo: dict[str, Any] = {}
