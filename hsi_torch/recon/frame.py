@@ -50,7 +50,7 @@ from torch import Tensor
 from hsi_torch.errors import InputError
 from hsi_torch.io.raw import demosaic_bilinear, demosaic_saturation, validate_cfa_pattern
 from hsi_torch.recon import _compiled as _frame_compiled
-from hsi_torch.recon.nnls import NNLSProblem, cpu_threads, solve_nnls
+from hsi_torch.recon.nnls import cpu_threads, solve_nnls
 from hsi_torch.recon.sensing import BundleSensing, sample_pixels
 from hsi_torch.recon.settings import ReconstructSettings
 from hsi_torch.recon.spatial import noise as spatial_noise
@@ -330,9 +330,9 @@ def _solve_per_pixel(
     ``threads``: the solver's CPU threads (torch's own count is lowered to 1 around this call).
     Returns ``ok``, ``changed``, ``yc``, ``x``, ``converged``, ``kkt``, ``iterations``, the
     number re-solved. ``x_start``: the frame solve's warm start (``problem.solve``'s ``x0``).
-    ``select(ok, changed, yc)``: the ``(n,)`` pixels to solve (sorted, the changed ones among
-    them), or ``None`` for all; the others are left at ``x = 0`` (converged, KKT residual 0,
-    no iteration: not solved, so not counted as failures)."""
+    ``select(ok, changed, yc)``: the ``(n,)`` pixels to solve (the changed ones among them), or
+    ``None`` for all; the others are solved for zero observations, so left at ``x = 0``
+    (converged, no pivoting; their answer is not used)."""
     P = y.shape[0]
     static = sens.obs_mask
     if (y.device.type == "cpu" and static.device.type == "cpu" and _frame_compiled.AVAILABLE
@@ -357,13 +357,14 @@ def _solve_per_pixel(
     if rows is None:
         res = sens.problem.solve(yc, x0=x_start, **kw)
         x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
-    else:  # a subset: the stored factorisation of those pixels, their answers scattered back
-        res = _subproblem(sens.problem, rows).solve(yc.index_select(0, rows), **kw)
-        x = res.x.new_zeros((P, res.x.shape[1])).index_copy_(0, rows, res.x)
-        conv = torch.ones(P, dtype=torch.bool, device=x.device).index_copy_(0, rows,
-                                                                            res.converged)
-        kkt = res.kkt_residual.new_zeros(P).index_copy_(0, rows, res.kkt_residual)
-        iters = res.iterations.new_zeros(P).index_copy_(0, rows, res.iterations)
+    else:
+        # a subset: the frame's solve with the other pixels' observations zeroed (their answer
+        # is 0 at once, without pivoting), not a gathered copy of the subset's stored Gram
+        # matrices and factors (on a mapped precomputation cache, gathering them cost more than
+        # the whole frame's solve)
+        keep = torch.zeros(P, dtype=yc.dtype, device=yc.device).index_fill_(0, rows, 1.0)
+        res = sens.problem.solve(yc * keep.unsqueeze(1), **kw)
+        x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
     n_changed = int(torch.count_nonzero(changed))
     if n_changed:
         idx = changed.nonzero().squeeze(1)
@@ -380,19 +381,6 @@ def _solve_per_pixel(
         iters.index_copy_(0, idx, sub.iterations)
     return ok, changed, yc, x, conv, kkt, iters, n_changed
 
-
-
-def _subproblem(prob: NNLSProblem, rows: Tensor) -> NNLSProblem:
-    """The prepared per-pixel problem of the pixels ``rows`` ``(n,)``: their rows of the stored
-    Gram matrices and factorisation (nothing factorised again)."""
-
-    def take(t: Tensor) -> Tensor:
-        return t if t.shape[0] == 1 else t.index_select(0, rows.to(t.device))
-
-    mask = None if prob.mask is None else take(prob.mask)
-    return NNLSProblem(prob.sensing.select(rows), mask, prob.beta, prob.diff_order,
-                       take(prob.gram), take(prob.gram_inv), take(prob.gram_diag),
-                       take(prob.gram_norm), take(prob.singular), take(prob.no_data))
 
 
 #: The spatial warm start keeps the previous frame's answer on the pixels whose observations
@@ -419,10 +407,10 @@ def _moved_pixels(y: Tensor, mask: Tensor, prev_y: Tensor, prev_mask: Tensor,
     """Which pixels moved since the previous frame, from the observations alone (before any
     solve), and the frame's gain against it.
 
-    The gain ``g = Σy / Σy'`` over the observations used in both frames of the valid pixels
-    (``y'`` the previous frame's: a change of the light or exposure scales every observation by
-    the same factor, and sums average the noise out). A pixel's change is
-    ``c_p = ‖W(y − g y')‖²`` over its observations used in both frames (``W``); it has *moved*
+    The gain ``g = Σy / Σy'`` over the observations used in both frames of up to
+    :data:`START_SAMPLES` evenly spaced valid pixels (``y'`` the previous frame's: a change of
+    the light or exposure scales every observation by the same factor, and sums average the
+    noise out). A pixel's change is ``c_p = ‖y − g y'‖²`` (both 0 where masked); it has *moved*
     when ``c_p`` exceeds :data:`STATIC_CHANGE_FACTOR` × the median change over the valid pixels,
     or when its mask changed. The change is not divided by the pixel's own noise level: the
     bright pixels, whose shot noise is largest, are then mostly "moved" and start from their
@@ -437,17 +425,19 @@ def _moved_pixels(y: Tensor, mask: Tensor, prev_y: Tensor, prev_mask: Tensor,
     Returns:
         ``moved (P,)`` bool (valid pixels only) and ``g``.
     """
-    both = mask & prev_mask
     idx = ok.nonzero().squeeze(1)
     if idx.numel() == 0:
         return torch.zeros_like(ok), 1.0
-    zero = torch.zeros((), dtype=y.dtype, device=y.device)
-    yb, pb = torch.where(both, y, zero), torch.where(both, prev_y.to(y), zero)
-    den = float(pb[idx].sum(dtype=torch.float64))
-    g = float(yb[idx].sum(dtype=torch.float64)) / den if den > 0 else 1.0
-    g = g if math.isfinite(g) and g > 0 else 1.0
-    c = (yb - g * pb).square().sum(1)
+    prev_y = prev_y.to(y)
+    # the gain on a sample of the valid pixels (tens of thousands of observations: the noise
+    # averages out), over the observations used in both frames
     sample = idx[:: max(1, idx.numel() // START_SAMPLES)]
+    both = mask.index_select(0, sample) & prev_mask.index_select(0, sample)
+    den = float((prev_y.index_select(0, sample) * both).sum(dtype=torch.float64))
+    g = float((y.index_select(0, sample) * both).sum(dtype=torch.float64)) / den if den > 0 else 1.0
+    g = g if math.isfinite(g) and g > 0 else 1.0
+    # y and y' are 0 where their own masks are False: a pixel whose mask changed is moved anyway
+    c = torch.add(y, prev_y, alpha=-g).square_().sum(1)
     moved = ok & ((c > STATIC_CHANGE_FACTOR * c[sample].median()) | (mask != prev_mask).any(1))
     return moved, g
 
