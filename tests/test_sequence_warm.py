@@ -224,11 +224,12 @@ def test_warm_noise_reuses_the_noise_level_while_the_light_holds():
 def test_the_sequence_settings_are_yaml_keys():
     from hsi_torch.recon.config import ReconstructConfig
 
-    cfg = ReconstructConfig(warm_spatial=True, prior="tv", drift_track=True)
+    cfg = ReconstructConfig(warm_spatial=False, prior="tv", drift_track=True)
     s = cfg.settings()
-    assert s.sequence.warm_spatial and s.sequence.drift_track
-    msgs = ReconstructSettings.from_flat({"warm_spatial": True}).inert()
-    assert any("warm_spatial" in m for m in msgs)
+    assert not s.sequence.warm_spatial and s.sequence.drift_track
+    assert ReconstructSettings().sequence.warm_spatial  # on by default
+    msgs = ReconstructSettings.from_flat({"warm_noise": True}).inert()
+    assert any("warm_noise" in m for m in msgs)
 
 
 def test_reconstruct_sequence_uses_the_sequence_group(tmp_path: Path):
