@@ -164,7 +164,8 @@ def main() -> None:
                             its[k].append(w.stats["spatial_iterations"])
                     line += f"; {k} {w.timings['solve']:.3f} s"
                     if rec is tv:
-                        line += (f" ({w.stats['spatial_iterations']} it, static "
+                        line += (f" ({w.stats['spatial_iterations']} it, per-pixel solved "
+                                 f"{w.stats.get('per_pixel_solved')}, static "
                                  f"{w.stats.get('spatial_warm_static')}, gain "
                                  f"{w.stats.get('spatial_warm_gain', 1.0):.3f}, σ given "
                                  f"{w.stats.get('noise_sigma_given')})")

@@ -70,11 +70,13 @@ def _frames(bundle, n: int, noise: float, seed: int = 0, change=None, growth: fl
 @pytest.mark.parametrize("prior", ["none", "tv"])
 def test_warm_sequence_matches_cold_frames(prior):
     """The per-pixel warm start gives the cold cubes: the same KKT points, and with the spatial
-    prior the same start (this frame's per-pixel answer), so the same spatial answer."""
+    prior (its own warm start, on by default, turned off) the same start (this frame's
+    per-pixel answer), so the same spatial answer."""
     bundle = make_bundle()
     kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior=prior)
     cold = Reconstructor(bundle, **kw)
-    seq = SequenceReconstructor(cold.sensing, warm_start=True, **kw)
+    off = {"warm_spatial": False} if prior == "tv" else {}
+    seq = SequenceReconstructor(cold.sensing, warm_start=True, **off, **kw)
     for _, img in _frames(bundle, 3, noise=0.5):
         a = cold.reconstruct_frame(img)
         b = seq.reconstruct(img)
@@ -85,31 +87,31 @@ def test_warm_sequence_matches_cold_frames(prior):
     assert b.stats["sequence"]["warm"] and b.stats["sequence"]["frame"] == 2
 
 
-def test_the_spatial_start_keeps_the_previous_answer_on_static_pixels_only():
-    """``warm_spatial``: static pixels (per-pixel change within 4× the median) start from the
-    previous spatial answer, a moved pixel from its own per-pixel solution."""
-    from hsi_torch.recon.frame import _spatial_start
+def test_the_moved_test_reads_the_observations_and_divides_the_light_out():
+    """``warm_spatial``: a pixel has moved when its observations changed by more than 4× the
+    median change (against its shot noise) after the frame's gain is divided out, or when its
+    mask changed; a flicker (every observation 10 % brighter) moves nothing."""
+    from hsi_torch.recon.frame import _moved_pixels
 
     g = torch.Generator().manual_seed(0)
-    prev_x = torch.rand(50, 4, generator=g, dtype=torch.float64)
-    x = prev_x + 0.01 * torch.randn(50, 4, generator=g, dtype=torch.float64)
-    x[7] += 1.0  # moved
-    prev_sp = torch.full_like(x, 0.5)
+    prev = 10 + 90 * torch.rand(50, 12, generator=g, dtype=torch.float64)
+    noise = 0.3 * prev.sqrt() * torch.randn(50, 12, generator=g, dtype=torch.float64)
+    y = prev + noise
+    y[7] += 40.0  # moved
+    mask = torch.ones(50, 12, dtype=torch.bool)
     ok = torch.ones(50, dtype=torch.bool)
     ok[3] = False
-    z, kept, gain = _spatial_start(x, prev_x, prev_sp, ok)
+    moved, gain = _moved_pixels(y, mask, prev, mask, ok)
     assert gain == pytest.approx(1.0, abs=0.05)  # the light did not change (one pixel moved)
-    assert not kept[7] and not kept[3] and int(kept.sum()) >= 40
-    torch.testing.assert_close(z[7], x[7])
-    torch.testing.assert_close(z[3], x[3])  # invalid: its own
-    keep = torch.ones(50, dtype=torch.bool)
-    keep[[3, 7]] = False
-    assert int((z[keep] == 0.5 * gain).all(1).sum()) >= 40  # most static pixels kept the previous
-    # a flicker: every pixel 10 % brighter is still static, started from the previous answer
-    # times the gain
-    z2, kept2, gain2 = _spatial_start(1.1 * x, prev_x, prev_sp, ok)
-    assert gain2 == pytest.approx(1.1 * gain, rel=1e-9) and int(kept2.sum()) >= 40
-    torch.testing.assert_close(z2[kept2], torch.full_like(z2[kept2], 0.5 * gain2))
+    assert bool(moved[7]) and not bool(moved[3])  # an invalid pixel is never "moved"
+    assert int(moved.sum()) <= 5
+    flick = 1.1 * (prev + noise)
+    moved2, gain2 = _moved_pixels(flick, mask, prev, mask, ok)
+    assert gain2 == pytest.approx(1.1, rel=1e-2) and int(moved2.sum()) <= 3
+    mask2 = mask.clone()
+    mask2[11, 4] = False  # a saturated observation: the pixel's own mask changed
+    moved3, _ = _moved_pixels(torch.where(mask2, flick, 0), mask2, prev, mask, ok)
+    assert bool(moved3[11])
 
 
 def test_the_temporal_prior_lowers_the_error_and_stays_out_of_a_moving_part():

@@ -98,6 +98,24 @@ def test_the_masked_dual_start_is_the_same_on_both_backends():
     torch.testing.assert_close(a.u, t.u, atol=1e-9, rtol=0)
 
 
+def test_a_kept_workspace_gives_the_same_iterations():
+    """The ADMM's buffers kept between solves (a sequence's ``workspace``) hold the last solve's
+    values; every one is written before it is read, so a solve with them runs the same
+    iterations as with fresh buffers (the same answer, to the last bit)."""
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    A, y, y1, G, b, b1, active, prob, _ = _two_frames(seed=4)
+    ws: dict = {}
+    kw = dict(tol=1e-30, max_iter=12, backend="compiled")
+    first = solve_spatial(prob, b, 0.6, x0=solve_nnls(A, y).x, workspace=ws, **kw)
+    assert {"x", "p", "p2"} <= set(ws)
+    for dual in (None, first.dual):
+        fresh = solve_spatial(prob, b1, 0.6, x0=first.x, u0=first.u, dual0=dual, **kw)
+        kept = solve_spatial(prob, b1, 0.6, x0=first.x, u0=first.u, dual0=dual, workspace=ws,
+                             **kw)  # fmt: skip
+        assert torch.equal(kept.x, fresh.x) and torch.equal(kept.u, fresh.u)
+
+
 def test_bad_warm_states_are_named():
     A, y, _, G, b, _, active, prob, _ = _two_frames()
     with pytest.raises(ValueError, match="check_every"):
@@ -132,6 +150,72 @@ def test_warm_spatial_frames_stay_at_the_cold_answers():
     assert seq.warm is not None and seq.warm.spatial_u is not None
 
 
+def test_a_warm_frame_solves_per_pixel_only_where_its_answer_is_used(monkeypatch):
+    """``warm_spatial`` with a noise estimate on 8 sampled pixels: on a warm frame the per-pixel
+    problem is solved on the moved pixels, the samples and nothing else; a patch that changes
+    is moved, starts the ADMM from its own per-pixel answer (the cold solve's, exactly), and
+    every frame's cube and ``λ`` agree with its cold solve (the same noise estimate, the ADMM's
+    tolerance)."""
+    import hsi_torch.recon.frame as frame_mod
+    import hsi_torch.recon.spatial.noise as noise_mod
+
+    monkeypatch.setattr(noise_mod, "NOISE_SAMPLES", 8)
+    seen: dict = {}
+    real_moved, real_spatial = frame_mod._moved_pixels, frame_mod.spatial_solve_frame
+
+    def spy_moved(*a, **k):
+        seen["moved"], seen["gain"] = real_moved(*a, **k)
+        return seen["moved"], seen["gain"]
+
+    def spy_spatial(*a, **k):
+        seen["start"] = k.get("start")
+        return real_spatial(*a, **k)
+
+    monkeypatch.setattr(frame_mod, "_moved_pixels", spy_moved)
+    monkeypatch.setattr(frame_mod, "spatial_solve_frame", spy_spatial)
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior="tv")
+    cold = Reconstructor(bundle, **kw)
+    per_pixel = Reconstructor(cold.sensing, **{**kw, "prior": "none"})
+    seq = SequenceReconstructor(cold.sensing, warm_spatial=True, **kw)
+    sens = cold.sensing
+    h, w = sens.frame_size
+    pix = sens.pixel_index
+    base = true_spectra()
+    g = torch.Generator().manual_seed(3)
+    for t in range(3):
+        s = base * (1 + 0.03 * t)
+        if t == 2:  # a patch changes its spectrum
+            s = s.clone()
+            s[:, 10:15, 10:15] = s[:, 10:15, 10:15].flip(0) * 1.5
+        img = render_capture(bundle, s)
+        img = img + 0.3 * torch.randn(img.shape, generator=g, dtype=img.dtype)
+        a = cold.reconstruct_frame(img)
+        seen.clear()
+        r = seq.reconstruct(img)
+        v = a.valid & r.valid
+        err = float((r.cube[:, v] - a.cube[:, v]).norm() / a.cube[:, v].norm())
+        assert err < 2e-2, (t, err)
+        assert r.stats["lam_abs"] == pytest.approx(a.stats["lam_abs"], rel=1e-9)
+        if t == 0:
+            assert "moved" not in seen and "per_pixel_solved" not in r.stats
+            continue
+        moved = seen["moved"]
+        n_valid = r.stats["num_valid"]
+        assert r.stats["per_pixel_solved"] <= int(moved.sum()) + 8 < n_valid
+        assert r.stats["spatial_warm_gain"] == pytest.approx(1 + 0.03 * t, rel=0.03, abs=0.02)
+        patch = torch.zeros(h, w, dtype=torch.bool)
+        patch[10:15, 10:15] = True
+        in_patch = patch.reshape(-1)[pix] & r.valid.reshape(-1)[pix]
+        if t == 1:
+            assert int(moved.sum()) < n_valid // 4  # a flicker is not motion
+        else:
+            assert bool(moved[in_patch].all())
+            own = per_pixel.reconstruct_frame(img).cube.reshape(sens.num_bands, -1)[:, pix].T
+            torch.testing.assert_close(seen["start"][in_patch], own[in_patch], rtol=1e-9,
+                                       atol=1e-9)
+
+
 def test_warm_noise_reuses_the_noise_level_while_the_light_holds():
     """``warm_noise``: frames within 10 % of the light of the frame whose noise level was
     estimated reuse it (and its ``λ``), said in the statistics; a frame 30 % brighter
@@ -158,11 +242,12 @@ def test_warm_noise_reuses_the_noise_level_while_the_light_holds():
 def test_the_sequence_settings_are_yaml_keys():
     from hsi_torch.recon.config import ReconstructConfig
 
-    cfg = ReconstructConfig(warm_spatial=True, prior="tv", drift_track=True)
+    cfg = ReconstructConfig(warm_spatial=False, prior="tv", drift_track=True)
     s = cfg.settings()
-    assert s.sequence.warm_spatial and s.sequence.drift_track
-    msgs = ReconstructSettings.from_flat({"warm_spatial": True}).inert()
-    assert any("warm_spatial" in m for m in msgs)
+    assert not s.sequence.warm_spatial and s.sequence.drift_track
+    assert ReconstructSettings().sequence.warm_spatial  # on by default
+    msgs = ReconstructSettings.from_flat({"warm_noise": True}).inert()
+    assert any("warm_noise" in m for m in msgs)
 
 
 def test_reconstruct_sequence_uses_the_sequence_group(tmp_path: Path):

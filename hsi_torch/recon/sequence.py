@@ -4,16 +4,17 @@
 Reconstructor`, its one frame function) and carries three things from frame to frame, each set
 in the settings' ``sequence`` group (:class:`~hsi_torch.recon.settings.SequenceSettings`):
 
-* **Warm starts** (``warm_start``, ``warm_spatial``, ``warm_noise``; off by default, see
-  ``docs/sequences.md`` for why; :class:`~hsi_torch.recon.frame.WarmStart`): the per-pixel
-  active-set solve of the pixels that pivot starts from the previous frame's zero set (the same
-  KKT points as cold solves, in another number of rounds); the spatial prior's ADMM starts from
-  the previous frame's state (answer and scaled dual times the frame's gain on the pixels whose
-  per-pixel solution did not move, this frame's per-pixel solution and its multiplier elsewhere,
-  the TV prox's dual) and checks its stopping rule every iteration (the same optimum to the
-  solver's tolerance); ``warm_noise`` also reuses the last estimated noise level (so ``λ``)
-  while the light holds (a deviation from the noise rule: the optimum of the problem with that
-  ``λ``).
+* **Warm starts** (``warm_start``, ``warm_spatial``, ``warm_noise``; only ``warm_spatial`` is
+  on by default, see ``docs/sequences.md`` for why; :class:`~hsi_torch.recon.frame.WarmStart`):
+  the per-pixel active-set solve of the pixels that pivot starts from the previous frame's zero
+  set (the same KKT points as cold solves, in another number of rounds); the spatial prior's
+  ADMM starts from the previous frame's state (answer and scaled dual times the frame's gain on
+  the pixels whose observations did not move, this frame's per-pixel solution and its
+  multiplier elsewhere, the TV prox's dual) and checks its stopping rule every iteration (the
+  same optimum to the solver's tolerance; the per-pixel problem solved only on the moved pixels
+  and the noise estimate's samples); ``warm_noise`` also reuses the last estimated noise level
+  (so ``λ``) while the light holds (a deviation from the noise rule: the optimum of the problem
+  with that ``λ``).
 * **A temporal prior** (``temporal="quadratic"``, per-pixel solve only): each pixel solves
   ``min_{s≥0} ‖W(As − y)‖² + β‖Ds‖² + w·‖s − s_prev‖²_G`` with ``s_prev`` the previous frame's
   answer and ``‖v‖²_G = vᵀGv`` the pixel's own data metric (``G = AᵀWA + βDᵀD``), where the data
@@ -324,7 +325,8 @@ class SequenceReconstructor:
         found: list[Finding] = []
         seq_stats: dict[str, Any] = {
             "frame": t,
-            "warm": self.warm is not None and self.warm.x is not None,
+            "warm": self.warm is not None
+            and (self.warm.x is not None or self.warm.spatial_x is not None),
         }
         sens = self.base_sensing
         pattern = cfa_pattern or sens.cfa_pattern

@@ -94,9 +94,11 @@ def reconstruct_frame_of_sequence(
 
 def uses_time(settings: ReconstructSettings) -> bool:
     """Whether the settings' ``sequence`` group carries anything from frame to frame (a warm
-    start, the temporal prior, the drift path)."""
+    start, the temporal prior, the drift path; the spatial warm start, on by default, only with
+    the spatial prior)."""
     sq = settings.sequence
-    return sq.warm_start or sq.warm_spatial or sq.temporal != "none" or sq.drift_track
+    spatial = sq.warm_spatial and settings.prior.kind == "tv"
+    return sq.warm_start or spatial or sq.temporal != "none" or sq.drift_track
 
 
 def _reconstruct_sequence(

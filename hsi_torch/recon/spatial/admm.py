@@ -114,6 +114,7 @@ def solve_spatial(
     u0: Tensor | None = None,
     u0_mask: Tensor | None = None,
     check_every: int = CHECK_EVERY,
+    workspace: dict | None = None,
 ) -> SpatialResult:
     """ADMM for ``min_{s ≥ 0} Σ_p s_pᵀG_p s_p − 2 b_pᵀ s_p + λ·TV(s)`` (see the module docstring).
 
@@ -154,6 +155,10 @@ def solve_spatial(
         u0_mask: ``(P,)`` bool, the rows of ``u0`` used (default all).
         check_every: iterations between two checks of the stopping rule (``≥ 1``; default
             :data:`CHECK_EVERY`); 1 or 2 for a warm start near the optimum.
+        workspace: a dict the compiled backend keeps its frame-sized iteration buffers in
+            between solves of the same size (a sequence's frames: no fresh allocation, and no
+            page faults on it, per frame; every buffer is written before it is read, so the
+            answer is the same); ``None``: allocated per solve.
 
     Returns:
         :class:`SpatialResult`.
@@ -172,7 +177,7 @@ def solve_spatial(
     warm_u = None if u0 is None else (u0, u0_mask)
     return _solve_spatial(problem, b, lam, x0, tol, max_iter, iters, inner_iters, backend,
                           num_threads, float(brightness_weight), bool(nonneg), dual0, warm_u,
-                          int(check_every))
+                          int(check_every), workspace)
 
 
 def _solve_spatial(
@@ -183,6 +188,7 @@ def _solve_spatial(
     dual0: tuple | None = None,
     warm_u: tuple[Tensor, Tensor | None] | None = None,
     check_every: int = CHECK_EVERY,
+    workspace: dict | None = None,
 ) -> SpatialResult:
     kernel_threads = torch.get_num_threads()
     P, m = problem.num_pixels, problem.num_bands
@@ -217,7 +223,7 @@ def _solve_spatial(
     if inputs is not None:  # the warm start's u is formed by the compiled pass itself
         with torch.no_grad():
             cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
-                                  kernel_threads, nonneg, dual0)
+                                  kernel_threads, nonneg, dual0, workspace)
             if warm_u is not None:
                 cstep.set_u(*warm_u)
             with threads(kernel_threads):
@@ -227,9 +233,11 @@ def _solve_spatial(
             # mapped precomputation cache leave the resident set (the warm start is next)
             disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
-            return SpatialResult(z_out, it, done, prim, dual, lam_f, rho,
-                                 (cstep.p.copy(), cstep.psum.copy()),
-                                 torch.from_numpy(cstep.final_u()).to(b.device))
+            res = SpatialResult(z_out, it, done, prim, dual, lam_f, rho,
+                                (cstep.p.copy(), cstep.psum.copy()),
+                                torch.from_numpy(cstep.final_u()).to(b.device))
+            cstep.release(workspace)
+            return res
     if not nonneg:
         raise ValueError("nonneg=False needs the compiled backend (numba, a CPU problem, pixels "
                          "in row-major order, the tolerance-driven mode)")
@@ -357,7 +365,8 @@ class _CompiledStep:
 
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, t: float, lam: float, inner_iters: int, alpha: float,
-                 num_blocks: int = 1, nonneg: bool = True, dual0: tuple | None = None) -> None:
+                 num_blocks: int = 1, nonneg: bool = True, dual0: tuple | None = None,
+                 workspace: dict | None = None) -> None:
         self.inv_rows, graph = inputs
         self.rho, self.lam, self.alpha, self.nonneg = problem.rho, lam, alpha, nonneg
         self.t = t if lam > 0 else 0.0
@@ -380,16 +389,28 @@ class _CompiledStep:
         # G is not read by the iterations: its pages of a mapped cache entry leave the
         # resident set while the ADMM state exists (the next frame reads them back)
         disk.release_pages(problem.gram)
-        self.x = np.zeros_like(self.z)
-        self.x2, self.u2, self.z2 = (np.empty_like(self.z) for _ in range(3))
+        ws = {} if workspace is None else workspace
+        dt = self.z.dtype
+
+        def buf(name: str, shape: tuple[int, ...], zero: bool) -> np.ndarray:
+            a = ws.pop(name, None)
+            if a is None or a.shape != shape or a.dtype != dt:
+                return np.zeros(shape, dt) if zero else np.empty(shape, dt)
+            if zero:
+                a.fill(0)
+            return a
+
+        self.x = buf("x", self.z.shape, True)
+        self.x2, self.u2, self.z2 = (buf(k, self.z.shape, False) for k in ("x2", "u2", "z2"))
         self.z_prev = self.z
         # the dual (band-major) and its band sums (brightness weighting), double-buffered too
-        self.p = np.zeros((2, m, P), self.z.dtype)
-        self.p2 = np.zeros_like(self.p)
-        self.psum = np.zeros((2, P), self.z.dtype)
-        self.psum2 = np.zeros_like(self.psum)
-        if (dual0 is not None and dual0[0].shape == self.p.shape
-                and dual0[1].shape == self.psum.shape):  # a warm start of the dual
+        warm_dual = (dual0 is not None and dual0[0].shape == (2, m, P)
+                     and dual0[1].shape == (2, P))
+        self.p = buf("p", (2, m, P), not warm_dual)
+        self.p2 = buf("p2", (2, m, P), True)
+        self.psum = buf("psum", (2, P), not warm_dual)
+        self.psum2 = buf("psum2", (2, P), True)
+        if warm_dual:  # a warm start of the dual
             self.p[...] = dual0[0]
             self.psum[...] = dual0[1]
         self.grid = problem.fgp_grid()
@@ -416,6 +437,13 @@ class _CompiledStep:
         self.z, self.z2 = self.z2, self.z
         if self.moms.shape[0]:  # (λ = 0: no dual)
             self.p, self.p2, self.psum, self.psum2 = self.p2, self.p, self.psum2, self.psum
+
+    def release(self, workspace: dict | None) -> None:
+        """Hand the iteration buffers to ``workspace`` for the next solve of this size (not
+        ``u``: :meth:`final_u` returned a view of it)."""
+        if workspace is not None:
+            workspace.update(x=self.x, x2=self.x2, u2=self.u2, z2=self.z2, p=self.p,
+                             p2=self.p2, psum=self.psum, psum2=self.psum2)
 
     def result(self) -> np.ndarray:
         """``z`` pixel-major ``(P, M)``."""

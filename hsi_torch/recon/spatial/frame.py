@@ -69,6 +69,7 @@ def solve_frame(
     u0_mask: Tensor | None = None,
     check_every: int = CHECK_EVERY,
     sigma: float | None = None,
+    workspace: dict | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -103,7 +104,8 @@ def solve_frame(
             iterations between two checks of the stopping rule (:func:`solve_spatial`'s);
             sigma: the noise level ``σ̂`` (DN) to use instead of this frame's estimate (e.g. the
             previous frame's in a sequence of the same exposure; ``info["noise_sigma_given"]``
-            says so).
+            says so); workspace: :func:`solve_spatial`'s (the ADMM's buffers kept between the
+            frames of a sequence).
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -161,7 +163,8 @@ def solve_frame(
         z0 = x0 if start is None else start.detach().to(device=x0.device, dtype=x0.dtype)
         res = solve_spatial(sp, b, lam_abs, x0=z0, tol=tol, max_iter=max_iter, iters=iters,
                             inner_iters=inner_iters, brightness_weight=alpha, dual0=dual,
-                            u0=u0, u0_mask=u0_mask, check_every=check_every)
+                            u0=u0, u0_mask=u0_mask, check_every=check_every,
+                            workspace=workspace)
         k = m
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,

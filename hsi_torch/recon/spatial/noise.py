@@ -15,6 +15,7 @@ import math
 import torch
 from torch import Tensor
 
+from hsi_torch.recon.nnls._threads import cpu_threads
 from hsi_torch.recon.sensing import BundleSensing, sample_pixels
 
 __all__ = [
@@ -94,16 +95,20 @@ def lam_scale(sigma: float, G: Tensor, active: Tensor | None = None) -> float:
 
 def frame_noise_level(
     sens: BundleSensing, y: Tensor, mask: Tensor, ok: Tensor, x: Tensor,
-    num_samples: int = NOISE_SAMPLES,
+    num_samples: int | None = None,
 ) -> float:
     """Noise standard deviation (DN) of one frame's observations from its per-pixel solution
-    ``x (P, M)``: :func:`estimate_noise` on up to ``num_samples`` evenly spaced valid pixels
-    (residual ``‖W(A x − y)‖²``, ``n_p`` used observations, :func:`effective_dof`)."""
-    idx = sample_pixels(ok, num_samples)
+    ``x (P, M)``: :func:`estimate_noise` on up to ``num_samples`` (default
+    :data:`NOISE_SAMPLES`, read at the call) evenly spaced valid pixels
+    (:func:`~hsi_torch.recon.sensing.sample_pixels`; residual ``‖W(A x − y)‖²``, ``n_p`` used
+    observations, :func:`effective_dof`): only those rows of ``x`` are read."""
+    idx = sample_pixels(ok, NOISE_SAMPLES if num_samples is None else num_samples)
     if idx is None:
         return float("nan")
     model, prob = sens.model, sens.problem
-    with torch.no_grad():
+    # a few thousand pixels: single-threaded kernels (a multi-threaded one waits at its barrier
+    # for a core another process holds)
+    with torch.no_grad(), cpu_threads(y.device, 1):
         w = mask.index_select(0, idx)
         xs = x.index_select(0, idx).detach().to(model.dtype)
         r = (model.A(xs, idx) - y.index_select(0, idx).to(model.dtype)) * w.to(model.dtype)
@@ -117,7 +122,7 @@ def mean_square_residual(sens: BundleSensing, x: Tensor, y: Tensor, mask: Tensor
     """``Σ_p ‖W_p(A_p x_p − y_p)‖² / Σ_p n_p`` over the valid pixels ``ok`` (DN²; ``n_p`` the
     pixel's used observations); ``num_samples``: over that many evenly spaced valid pixels
     (:func:`~hsi_torch.recon.sensing.sample_pixels`) instead of all."""
-    with torch.no_grad():
+    with torch.no_grad(), cpu_threads(y.device, 1 if num_samples is not None else None):
         idx = None
         if num_samples is not None:
             idx = sample_pixels(ok, num_samples)
