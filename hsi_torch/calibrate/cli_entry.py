@@ -184,9 +184,7 @@ def _write_oracle(captures: Path, bundle_path: Path, inputs: Any = ()) -> int:
     return 0
 
 
-# =============================================================================================
-# hsi-torch layout
-# =============================================================================================
+# --- hsi-torch layout
 
 
 def layout_paths(out: str | Path) -> tuple[Path, Path]:

@@ -103,9 +103,7 @@ class DemoConfig:
     progress: bool = field(default=True, metadata=_h("progress bars on stderr"))
 
 
-# =============================================================================================
-# scenes
-# =============================================================================================
+# --- scenes
 
 
 def _synthetic_cube(wavelengths_nm: np.ndarray, size: int = 96) -> np.ndarray:
@@ -153,9 +151,7 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
     return specs
 
 
-# =============================================================================================
-# plots
-# =============================================================================================
+# --- plots
 
 
 def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scores_orc) -> None:
@@ -319,9 +315,7 @@ def metrics_lines(entry: dict[str, Any]) -> list[str]:
     return out
 
 
-# =============================================================================================
-# the demo
-# =============================================================================================
+# --- the demo
 
 
 def demo(

@@ -144,8 +144,7 @@ class DesignSweepConfig:
             raise ValueError(f"top_k must be >= 0, got {self.top_k}")
 
 
-# ---------------------------------------------------------------------------------------------
-# condition numbers
+# --- condition numbers
 
 
 @dataclass
@@ -234,8 +233,7 @@ def rank_designs(rows: list[dict[str, Any]], rank_by: str = "worst") -> list[dic
     return out
 
 
-# ---------------------------------------------------------------------------------------------
-# the command
+# --- the command
 
 
 def _design_key(r: dict[str, Any]) -> tuple:

@@ -27,7 +27,6 @@ from hsi_torch.calibrate import brf_transmittance
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import load_config
-from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.opd_estimate import (
     OPDEstimate,
@@ -63,9 +62,7 @@ __all__ = [
 ]
 
 
-# =============================================================================================
-# inputs
-# =============================================================================================
+# --- inputs
 
 
 @dataclass
@@ -229,9 +226,7 @@ def _memory_truth(renderer: Any, progress: bool) -> dict[str, Any]:
             "reference_bbox": torch.tensor(lay.reference_bbox)}
 
 
-# =============================================================================================
-# the experiment
-# =============================================================================================
+# --- the experiment
 
 
 def _rows_for(name: str, mp: MeasuredPoints, est: OPDEstimate, match: dict[str, Tensor],
@@ -375,8 +370,7 @@ def _plot_polar(path: Path, pred: PredictedViews, rows: list[dict[str, Any]], ex
     ax.scatter(ms, ma, s=260, facecolors="none", edgecolors=cmap(norm(view_group)), lw=2.2,
                zorder=3, label="predicted views (outline: ray-traced group OPD)")
     for v in range(lay.num_views):
-        ax.annotate(f"v{v}", (ms[v], ma[v]), xytext=(8, 8), textcoords="offset points",
-                    fontsize=8)
+        ax.annotate(f"v{v}", (ms[v], ma[v]), xytext=(8, 8), textcoords="offset points", fontsize=8)
     sc = ax.scatter([math.radians(r["sigma_deg"]) for r in rows],
                     [r["alpha_deg"] for r in rows], c=vals, cmap=cmap, norm=norm, marker="s",
                     s=24, edgecolors="k", lw=0.3, zorder=4, label="estimated (fit)")
@@ -429,11 +423,7 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     Returns:
         The summary dict (statistics per input, notes, timings).
     """
-    t_all = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(device or cfg.device or "cpu")
-    dt = torch_dtype(cfg.dtype)
+    t_all, out, dev, dt = report.start_run(out, cfg, device)
     if not cfg.inputs:
         raise ValueError("opd: `inputs` is empty")
     names = [i.name or i.kind for i in cfg.inputs]

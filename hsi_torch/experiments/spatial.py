@@ -34,18 +34,16 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import torch
 
 from hsi_torch.config import load_config
 from hsi_torch.console import info as log
-from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
     colorchecker_scores,
     cube_scores,
     erode_px,
 )
-from hsi_torch.experiments.report import new_figure, save_figure
+from hsi_torch.experiments.report import new_figure, save_figure, start_run
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
@@ -179,8 +177,7 @@ def _fmt(v: Any, key: str = "") -> str:
 
 
 def _write_tables(out: Path, rows: list[dict[str, Any]]) -> str:
-    lines = ["| " + " | ".join(h for _, h in _COLUMNS) + " |",
-             "|" + "---|" * len(_COLUMNS)]
+    lines = ["| " + " | ".join(h for _, h in _COLUMNS) + " |", "|" + "---|" * len(_COLUMNS)]
     for r in rows:
         lines.append("| " + " | ".join(_fmt(r[k], k) for k, _ in _COLUMNS) + " |")
     md = "\n".join(lines) + "\n"
@@ -246,11 +243,8 @@ def run_spatial(cfg: SpatialConfig, out: str | Path, *, device: str | None = Non
                 ) -> dict[str, Any]:
     """Run the comparison (see the module docstring); returns the summary written to
     ``out/summary.json``."""
-    t_all = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = torch_dtype(cfg.dtype)
+    t_all, out, dev, dt = start_run(out, cfg, device)
+    dev = str(dev)
     oracle = cfg.bundle == "oracle"
     cs = Path(cfg.captures) if cfg.captures is not None else _simulate(cfg, out, dev, oracle)
     truth, _ = read_truth(cs)

@@ -38,7 +38,6 @@ import torch
 from torch import Tensor
 
 from hsi_torch import refdata
-from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -86,8 +85,7 @@ def default_betas() -> list[float]:
     return [0.0] + [float(v) for v in np.logspace(-2, 6, 17)]
 
 
-# ---------------------------------------------------------------------------------------------
-# configuration
+# --- configuration
 
 
 @dataclass
@@ -271,8 +269,7 @@ def build_design(
     raise ValueError(f"unknown design kind {spec.kind!r}")
 
 
-# ---------------------------------------------------------------------------------------------
-# the experiment's machinery
+# --- the experiment's machinery
 
 
 def peak_matching_gain(matrix: Tensor, reflectances: Tensor, peak_dn: float = 255.0) -> Tensor:
@@ -448,8 +445,7 @@ def evaluate_design(
     )  # fmt: skip
 
 
-# ---------------------------------------------------------------------------------------------
-# figures
+# --- figures
 
 
 def _plot_psnr(out: Path, rows: list[dict[str, Any]], names: list[str]) -> None:
@@ -520,8 +516,7 @@ def _plot_responses(out: Path, designs: list[SensingDesign], scales: list[float]
     report.save_figure(fig, out / "responses.png")
 
 
-# ---------------------------------------------------------------------------------------------
-# the command
+# --- the command
 
 
 def run_synthetic(
@@ -534,11 +529,7 @@ def run_synthetic(
         The summary dict (also written as ``summary.json``): per design and σ the rows of
         ``results.csv``, the margin of every design over ``cfg.reference`` per σ, timings.
     """
-    t0 = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(device or cfg.device or "cpu")
-    dt = torch_dtype(cfg.dtype)
+    t0, out, dev, dt = report.start_run(out, cfg, device)
     grid = cfg.wavelengths.grid()
     refl, patch_names = refdata.reflectance_set(cfg.reflectances, grid, device=dev, dtype=dt)
     seeds = list(range(cfg.seed, cfg.seed + cfg.num_seeds))

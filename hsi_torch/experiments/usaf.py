@@ -37,7 +37,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hsi_torch.config import load_config, to_dict
-from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -78,9 +77,7 @@ __all__ = [
 ABLATIONS = ("diffuser", "warp", "demosaic", "noise", "beta")
 
 
-# =============================================================================================
-# contrast criterion
-# =============================================================================================
+# --- contrast criterion
 
 
 def michelson_bar_contrast(bars: Tensor, gaps: Tensor) -> Tensor:
@@ -105,8 +102,7 @@ def michelson_bar_contrast(bars: Tensor, gaps: Tensor) -> Tensor:
     return torch.where(nan, torch.full_like(c, float("nan")), c)
 
 
-def triplet_sample_points(element: Any, length_fraction: float = 0.6, n_along: int = 7
-                          ) -> Tensor:
+def triplet_sample_points(element: Any, length_fraction: float = 0.6, n_along: int = 7) -> Tensor:
     """``(5, n_along, 2)`` diffuser points (mm) of a bar triplet: rows 0, 2, 4 = bar centres,
     rows 1, 3 = gap centres, each at ``n_along`` positions along the central ``length_fraction``
     of the bars. ``element``: a :class:`~hsi_torch.simulate.scenes.USAFElement`."""
@@ -190,9 +186,7 @@ def elements_below(lp_mm: Tensor, reference_lp_mm: float) -> list[int | None]:
     return out
 
 
-# =============================================================================================
-# RGB reference (no add-on)
-# =============================================================================================
+# --- RGB reference (no add-on)
 
 
 def rgb_reference(renderer: Any, scene: Any, *, seed: int = 0, supersample: int | None = None,
@@ -277,9 +271,7 @@ def ideal_observations(rec: Reconstructor, renderer: Any, scene: Any, *, noise: 
     return cube, valid, info
 
 
-# =============================================================================================
-# config and run
-# =============================================================================================
+# --- config and run
 
 
 @dataclass
@@ -397,8 +389,7 @@ def check_reusable_capture_set(path: Path, expected: list[SimulateConfig]) -> No
     path = Path(path)
     for need in ("manifest.json", "resolved_config.yaml", "ground_truth/truth.npz"):
         if not (path / need).is_file():
-            raise ValueError(f"capture_set: {path} is not a complete capture set "
-                             f"({need} missing)")
+            raise ValueError(f"capture_set: {path} is not a complete capture set ({need} missing)")
 
     def flat(d: Any, pre: tuple = ()) -> dict[tuple, Any]:
         if isinstance(d, dict):
@@ -450,11 +441,8 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     Returns:
         The summary dict (limits per band and for the RGB reference, scale, timings).
     """
-    t_all = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = torch_dtype(cfg.dtype)
+    t_all, out, dev, dt = report.start_run(out, cfg, device)
+    dev = str(dev)
     cfg.__post_init__()  # the ablation list and beta may have been edited after construction
     ablate = list(cfg.ablate)
     ideal = "warp" in ablate
@@ -475,8 +463,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         cs = Path(cfg.capture_set)
         check_reusable_capture_set(cs, [sim_cs, sim] if ideal else [sim_cs])
     else:
-        simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress,
-                             log=lambda *a: None)
+        simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
     tm["simulate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.bundle == "oracle":
@@ -522,8 +509,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
             [[e.bbox_mm[0], e.bbox_mm[2]], [e.bbox_mm[1], e.bbox_mm[3]]], dtype=torch.float64))
         xa, ya = [int(math.floor(v)) for v in bx[0].tolist()]
         xb, yb = [int(math.ceil(v)) for v in bx[1].tolist()]
-        ok = 0 <= xa and 0 <= ya and xb < w and yb < h and bool(valid[ya:yb + 1, xa:xb + 1]
-                                                               .all())
+        ok = 0 <= xa and 0 <= ya and xb < w and yb < h and bool(valid[ya:yb + 1, xa:xb + 1].all())
         box_ok.append(ok)
     cube = res.cube.detach().to("cpu", torch.float64)
     c_hsi = element_contrasts(cube, pts_px)  # (M, T)
@@ -569,8 +555,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
                      "horizontal": ge(int(orient["horizontal"][0][mi])),
                      "vertical": ge(int(orient["vertical"][0][mi])),
                      "elements_below_rgb": steps[mi]})
-    rnames = ["RGB reference (R)", "RGB reference (G)", "RGB reference (B)",
-              "RGB reference (gray)"]
+    rnames = ["RGB reference (R)", "RGB reference (G)", "RGB reference (B)", "RGB reference (gray)"]
     for ci, nm in enumerate(rnames):
         rows.append({"image": nm, "wavelength_nm": None, "finest": ge(int(idx_r[ci])),
                      "lp_per_mm_target": float(f_r[ci]),
@@ -672,8 +657,7 @@ def _plot_side_by_side(path: Path, band_img: Tensor, rgb: Tensor, renderer: Any,
     img = band_img.numpy()
     finite = img[np.isfinite(img)]
     hi = float(np.percentile(finite, 99.5)) if finite.size else 1.0
-    axes[0].imshow(np.ma.masked_invalid(img), cmap="gray", vmin=0, vmax=hi,
-                   interpolation="nearest")
+    axes[0].imshow(np.ma.masked_invalid(img), cmap="gray", vmin=0, vmax=hi, interpolation="nearest")
     disp = (rgb / rgb.amax().clamp_min(1e-9)).clamp(0, 1).permute(1, 2, 0).numpy() ** (1 / 2.2)
     axes[1].imshow(disp, interpolation="nearest")
     for ax, i, title in ((axes[0], i_hsi, f"HSI reconstruction, {lam:g} nm band"),

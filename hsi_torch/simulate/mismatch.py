@@ -30,8 +30,7 @@ import torch
 
 from hsi_torch.config import help_meta as _h
 
-__all__ = ["DOCUMENTED_EFFECTS", "Mismatch", "radial_undistort", "drift_points",
-           "stray_light_veil"]
+__all__ = ["DOCUMENTED_EFFECTS", "Mismatch", "radial_undistort", "drift_points", "stray_light_veil"]
 
 #: Each effect at its documented realistic magnitude (``docs/simulate.md``, "Non-ideal
 #: effects"): ``mismatch.<key>: value`` overrides per effect name. Applied alone or together,
