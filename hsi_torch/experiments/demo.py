@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +47,7 @@ from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.figures import plot_calibration
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
-from hsi_torch.config import help_meta, load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
 from hsi_torch.experiments.metrics import (
     colorchecker_scores,
@@ -72,35 +72,23 @@ from hsi_torch.simulate.oracle import bundle_from_truth
 __all__ = ["DemoConfig", "demo", "score_scene"]
 
 
-_h = help_meta
-
 
 @dataclass
 class DemoConfig:
     """Settings of ``hsi-torch demo`` (``--set key=value`` overrides any of them)."""
 
-    simulate_config: Path | None = field(
-        default=None, metadata=_h("simulator config; null: the shipped simulate.yaml")
-    )
-    calibrate_config: Path | None = field(
-        default=None, metadata=_h("calibration config; null: the shipped calibrate.yaml")
-    )
-    beta: float = field(default=1e4, metadata=_h("reconstruction smoothness weight (DN^2)"))
-    diff_order: int = field(default=1, metadata=_h("order of the difference operator"))
-    erode_mm: float = field(
-        default=0.3,
-        metadata=_h("ColorChecker: score pixels at least this far inside a patch, mm on the "
-                    "diffuser (3 sigma of the 0.1 mm diffuser blur)"),
-    )
-    cave: bool = field(
-        default=True, metadata=_h("add the real CAVE scene when the real-data folder has it")
-    )
-    quick_scale: float = field(
-        default=0.75, metadata=_h("--quick: camera.scale of the simulated sensor")
-    )
-    device: str = field(default="cpu", metadata=_h("torch device of calibration/reconstruction"))
-    seed: int = field(default=0, metadata=_h("simulator noise seed"))
-    progress: bool = field(default=True, metadata=_h("progress bars on stderr"))
+    simulate_config: Path | None = option(None, "simulator config; null: the shipped simulate.yaml")
+    calibrate_config: Path | None = option(None, "calibration config; null: the shipped "
+                                                 "calibrate.yaml")
+    beta: float = option(1e4, "reconstruction smoothness weight (DN^2)")
+    diff_order: int = option(1, "order of the difference operator")
+    erode_mm: float = option(0.3, "ColorChecker: score pixels at least this far inside a patch, "
+                                  "mm on the diffuser (3 sigma of the 0.1 mm diffuser blur)")
+    cave: bool = option(True, "add the real CAVE scene when the real-data folder has it")
+    quick_scale: float = option(0.75, "--quick: camera.scale of the simulated sensor")
+    device: str = option("cpu", "torch device of calibration/reconstruction")
+    seed: int = option(0, "simulator noise seed")
+    progress: bool = option(True, "progress bars on stderr")
 
 
 # --- scenes

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch import refdata
+from hsi_torch.config import option
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -74,12 +75,10 @@ __all__ = [
 class PSNRSpec:
     """Simulated-PSNR stage of the design sweep (synthetic protocol at one noise level)."""
 
-    noise_sigma: float = field(default=1.0, metadata={"help": "σ (DN)"})
+    noise_sigma: float = option(1.0, "σ (DN)")
     num_seeds: int = 5
     seed: int = 0
-    betas: list[float] | None = field(
-        default=None, metadata={"help": "None = [0] + logspace(-2, 6, 17)"}
-    )
+    betas: list[float] | None = option(None, "None = [0] + logspace(-2, 6, 17)")
     reflectances: str = "ColorChecker N Ohta"
     peak_dn: float = 255.0
     diff_order: int = 1
@@ -109,26 +108,17 @@ class DesignSweepConfig:
         default_factory=lambda: [float(v) for v in range(0, 120, 10)],
         metadata={"help": "projected optic-axis azimuth (deg); the tube is 3-fold symmetric"},
     )
-    a_out_mm: list[float] = field(
-        default_factory=lambda: [16.0, 22.0, 28.0, 34.0, 40.0],
-        metadata={"help": "kaleidoscope exit side (taper; a_in from the default geometry)"},
-    )
-    length_mm: list[float] = field(
-        default_factory=lambda: [160.0], metadata={"help": "kaleidoscope tube lengths"}
-    )
-    geometry: dict[str, Any] = field(
-        default_factory=dict, metadata={"help": "other KaleidoscopeGeometry overrides"}
-    )
-    camera: str = field(default=refdata.DEFAULT_CAMERA, metadata={"help": "camera for φ"})
+    a_out_mm: list[float] = option(text="kaleidoscope exit side (taper; a_in from the default "
+                                        "geometry)", factory=lambda: [16.0, 22.0, 28.0, 34.0, 40.0])
+    length_mm: list[float] = option(text="kaleidoscope tube lengths", factory=lambda: [160.0])
+    geometry: dict[str, Any] = option(text="other KaleidoscopeGeometry overrides", factory=dict)
+    camera: str = option(refdata.DEFAULT_CAMERA, "camera for φ")
     illuminant: str = "D65"
     wavelengths: GridSpec = field(default_factory=GridSpec)
-    min_period_nm: float = field(
-        default=30.0, metadata={"help": "min modulation period λ²/|OPD| at the first band"}
-    )
-    rank_by: Literal["worst", "median"] = field(
-        default="worst", metadata={"help": "condition number over the 7 scene points"}
-    )
-    top_k: int = field(default=8, metadata={"help": "designs scored by simulated PSNR"})
+    min_period_nm: float = option(30.0, "min modulation period λ²/|OPD| at the first band")
+    rank_by: Literal["worst", "median"] = option("worst", "condition number over the 7 scene "
+                                                          "points")
+    top_k: int = option(8, "designs scored by simulated PSNR")
     psnr: PSNRSpec = field(default_factory=PSNRSpec)
     progress: bool = True
 

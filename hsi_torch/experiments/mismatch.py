@@ -36,7 +36,7 @@ import numpy as np
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.config import help_meta as _h
-from hsi_torch.config import load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.console import info
 from hsi_torch.experiments.metrics import (
     colorchecker_scores,
@@ -114,17 +114,14 @@ _SIZES = {"small": "simulate", "full": "simulate_full"}
 class MismatchConfig:
     """Settings of ``hsi-torch experiment mismatch`` (see the module docstring)."""
 
-    size: Literal["small", "full"] = field(
-        default="small",
-        metadata=_h("small: the shipped simulate.yaml (400 x 384 px, ColorChecker); full: "
-                    "simulate_full.yaml (2896 x 2784 px, ColorChecker, USAF, CAVE when "
-                    "$HSI_TORCH_DATA holds it)"),
-    )
-    simulate_config: str | None = field(
-        default=None,
-        metadata=_h("simulate config (shipped name or YAML path); null: the size's, or the "
-                    "resolved_config.yaml of ideal_captures"),
-    )
+    size: Literal["small", "full"] = option("small", "small: the shipped simulate.yaml (400 x "
+                                                     "384 px, ColorChecker); full: "
+                                                     "simulate_full.yaml (2896 x 2784 px, "
+                                                     "ColorChecker, USAF, CAVE when "
+                                                     "$HSI_TORCH_DATA holds it)")
+    simulate_config: str | None = option(None, "simulate config (shipped name or YAML path); "
+                                               "null: the size's, or the resolved_config.yaml of "
+                                               "ideal_captures")
     simulate_set: list[str] = field(
         default_factory=list, metadata=_h("extra --set overrides of the simulate config")
     )
@@ -134,31 +131,22 @@ class MismatchConfig:
                     "effect together) and 'all-<effect>' (all but that one, with every remedy "
                     "but its own)"),
     )
-    remedies: bool = field(default=True, metadata=_h("also score each effect's remedy"))
-    noise_free: bool = field(
-        default=False,
-        metadata=_h("no shot/read noise, no quantisation: each effect's own cost without the "
-                    "noise realisations' spread"),
-    )
-    ideal_captures: Path | None = field(
-        default=None,
-        metadata=_h("an existing ideal capture set (read only; linked, never written) for the "
-                    "ideal row; null: simulate it"),
-    )
-    ideal_bundle: Path | None = field(
-        default=None,
-        metadata=_h("that set's calibration bundle (with ideal_captures); null: calibrate it"),
-    )
+    remedies: bool = option(True, "also score each effect's remedy")
+    noise_free: bool = option(False, "no shot/read noise, no quantisation: each effect's own "
+                                     "cost without the noise realisations' spread")
+    ideal_captures: Path | None = option(None, "an existing ideal capture set (read only; "
+                                               "linked, never written) for the ideal row; null: "
+                                               "simulate it")
+    ideal_bundle: Path | None = option(None, "that set's calibration bundle (with "
+                                             "ideal_captures); null: calibrate it")
     calibrate_set: list[str] = field(
         default_factory=lambda: ["pedestal_check=warn"],
         metadata=_h("--set overrides of the shipped calibrate.yaml for every row (default: a "
                     "veil outside the views warns instead of stopping the row)"),
     )
-    beta: float = field(default=DEFAULT_BETA, metadata=_h("reconstruction smoothness weight"))
-    erode_mm: float = field(
-        default=0.3, metadata=_h("ColorChecker patch interiors: this far inside each patch, mm")
-    )
-    device: str | None = field(default=None, metadata=_h("torch device (null: cpu)"))
+    beta: float = option(DEFAULT_BETA, "reconstruction smoothness weight")
+    erode_mm: float = option(0.3, "ColorChecker patch interiors: this far inside each patch, mm")
+    device: str | None = option(None, "torch device (null: cpu)")
 
     def __post_init__(self) -> None:
         known = {*DOCUMENTED_EFFECTS, "all", *(f"all-{e}" for e in DOCUMENTED_EFFECTS)}

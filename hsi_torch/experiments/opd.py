@@ -26,7 +26,7 @@ from torch import Tensor
 from hsi_torch.calibrate import brf_transmittance
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
-from hsi_torch.config import load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.experiments import report
 from hsi_torch.experiments.opd_estimate import (
     OPDEstimate,
@@ -83,8 +83,8 @@ class OPDInputSpec:
     """
 
     kind: Literal["truth", "oracle", "calibrated", "scan", "bundle", "csv"]
-    name: str | None = field(default=None, metadata={"help": "label (default: the kind)"})
-    path: Path | None = field(default=None, metadata={"help": "bundle .npz or CSV file"})
+    name: str | None = option(None, "label (default: the kind)")
+    path: Path | None = option(None, "bundle .npz or CSV file")
 
 
 @dataclass
@@ -94,11 +94,9 @@ class OPDPointsSpec:
     ``ring_fraction`` of the way to the vertices (and edge midpoints)."""
 
     num_ring: int = 6
-    ring_fraction: float = field(
-        default=0.35, metadata={"help": "0.35 keeps the ring clear of the BRF-free disk"})
-    min_modulation: float = field(
-        default=0.2, metadata={"help": "fitted amplitude/offset below this: 'unmodulated', "
-                                        "left out of the error statistics"})
+    ring_fraction: float = option(0.35, "0.35 keeps the ring clear of the BRF-free disk")
+    min_modulation: float = option(0.2, "fitted amplitude/offset below this: 'unmodulated', left "
+                                        "out of the error statistics")
 
 
 @dataclass
@@ -128,21 +126,17 @@ def _default_inputs() -> list[OPDInputSpec]:
 class OPDConfig:
     """``hsi-torch experiment opd`` configuration (see docs/experiments.md)."""
 
-    prototype: Path | None = field(
-        default=None, metadata={"help": "SimulateConfig YAML of the design (null: the shipped "
-                                        "simulate.yaml, the default prototype)"})
+    prototype: Path | None = option(None, "SimulateConfig YAML of the design (null: the shipped "
+                                          "simulate.yaml, the default prototype)")
     prototype_overrides: list[str] = field(
         default_factory=list, metadata={"help": "key=value overrides of the prototype config"})
-    capture_set: Path | None = field(
-        default=None, metadata={"help": "existing simulated capture set; null: simulate one "
-                                        "into OUT/capture_set when an input needs it"})
+    capture_set: Path | None = option(None, "existing simulated capture set; null: simulate one "
+                                            "into OUT/capture_set when an input needs it")
     inputs: list[OPDInputSpec] = field(default_factory=_default_inputs)
     points: OPDPointsSpec = field(default_factory=OPDPointsSpec)
     estimator: OPDEstimatorSpec = field(default_factory=OPDEstimatorSpec)
-    prediction_wavelength_nm: float = field(
-        default=550.0, metadata={"help": "wavelength of the listed phase OPD"})
-    calibrate_config: Path | None = field(
-        default=None, metadata={"help": "calibration config for kind 'calibrated'"})
+    prediction_wavelength_nm: float = option(550.0, "wavelength of the listed phase OPD")
+    calibrate_config: Path | None = option(None, "calibration config for kind 'calibrated'")
     dtype: Literal["float32", "float64"] = "float64"
     device: str | None = None
     progress: bool = True

@@ -35,7 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from hsi_torch.config import load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.console import info as log
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -65,27 +65,23 @@ def _h(text: str) -> dict[str, str]:
 class SpatialConfig:
     """``hsi-torch experiment spatial`` configuration (see the module docstring)."""
 
-    captures: Path | None = field(
-        default=None, metadata=_h("simulated capture set with ground truth (e.g. a demo's "
-                                  "captures folder); null: simulate one into OUT/captures"))
-    prototype: Path | None = field(
-        default=None, metadata=_h("when simulating: SimulateConfig YAML (null: the shipped "
-                                  "simulate.yaml, the small default prototype)"))
-    prototype_overrides: list[str] = field(
-        default_factory=list, metadata=_h("when simulating: overrides of the prototype config"))
-    bundle: str = field(default="oracle", metadata=_h("oracle | path to a bundle .npz"))
-    beta: float = field(default=1e4, metadata=_h("spectral smoothness weight (DN^2)"))
+    captures: Path | None = option(None, "simulated capture set with ground truth (e.g. a demo's "
+                                         "captures folder); null: simulate one into OUT/captures")
+    prototype: Path | None = option(None, "when simulating: SimulateConfig YAML (null: the "
+                                          "shipped simulate.yaml, the small default prototype)")
+    prototype_overrides: list[str] = option(text="when simulating: overrides of the prototype "
+                                                 "config", factory=list)
+    bundle: str = option("oracle", "oracle | path to a bundle .npz")
+    beta: float = option(1e4, "spectral smoothness weight (DN^2)")
     diff_order: int = 1
     lams: list[float | Literal["auto", "discrepancy"]] = field(
         default_factory=lambda: [DEFAULT_LAM, "auto"],
         metadata=_h("TV weights to compare with per-pixel: relative lam values, auto (SURE), "
                    "discrepancy"))
-    ranks: list[int] = field(
-        default_factory=list,
-        metadata=_h("also the TV on k leading spectral components (spectral_rank), at the first "
-                    "numeric lams entry (default lam if none), for each k listed"))
-    erode_mm: float = field(
-        default=0.3, metadata=_h("ColorChecker interiors: mm inside a patch on the diffuser"))
+    ranks: list[int] = option(text="also the TV on k leading spectral components "
+                                   "(spectral_rank), at the first numeric lams entry (default "
+                                   "lam if none), for each k listed", factory=list)
+    erode_mm: float = option(0.3, "ColorChecker interiors: mm inside a patch on the diffuser")
     scenes: list[str] = field(
         default_factory=list, metadata=_h("scene names to score (empty: every scene with truth)"))
     seed: int = 0

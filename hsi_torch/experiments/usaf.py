@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hsi_torch.config import load_config, to_dict
+from hsi_torch.config import load_config, option, to_dict
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -279,10 +279,9 @@ class USAFTargetSpec:
     """The USAF 1951 scene (:class:`~hsi_torch.simulate.scenes.USAF1951Scene` parameters)."""
 
     groups: list[int] = field(default_factory=lambda: [-2, -1, 0, 1])
-    magnification: float = field(
-        default=0.0625, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm); "
-                                          "1/16 puts the full-size RGB reference's limit at "
-                                          "G0 E2 = 1.12 lp/mm"})
+    magnification: float = option(0.0625, "diffuser mm per target mm (r(G,E) in target lp/mm); "
+                                          "1/16 puts the full-size RGB reference's limit at G0 "
+                                          "E2 = 1.12 lp/mm")
     center_mm: list[float] = field(default_factory=lambda: [0.0, 0.3])
     bar_reflectance: float = 0.9
     background_reflectance: float = 0.05
@@ -292,37 +291,32 @@ class USAFTargetSpec:
 class USAFConfig:
     """``hsi-torch experiment usaf`` configuration (see docs/experiments.md)."""
 
-    prototype: Path | None = field(
-        default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: the "
-                                        "shipped simulate_full.yaml, the full-size prototype)"})
+    prototype: Path | None = option(None, "SimulateConfig YAML of the prototype (null: the "
+                                          "shipped simulate_full.yaml, the full-size prototype)")
     prototype_overrides: list[str] = field(
         default_factory=lambda: ["diffuser.blur_sigma_mm=0.01"],
         metadata={"help": "overrides of the prototype config (default: a fine ground-glass "
                           "diffuser, σ = 10 µm; docs/experiments.md says why)"})
     target: USAFTargetSpec = field(default_factory=USAFTargetSpec)
-    bundle: str = field(
-        default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
+    bundle: str = option("oracle", "oracle | calibrated | path to a bundle .npz")
     calibrate_config: Path | None = None
-    capture_set: Path | None = field(
-        default=None, metadata={"help": "reuse this capture set (a previous run's "
-                                        "OUT/capture_set) instead of simulating one; refused "
-                                        "unless it was simulated with the very prototype, "
-                                        "target and ablations this run would simulate"})
-    beta: float = field(default=1000.0, metadata={"help": "smoothness weight (DN² scale)"})
+    capture_set: Path | None = option(None, "reuse this capture set (a previous run's "
+                                            "OUT/capture_set) instead of simulating one; refused "
+                                            "unless it was simulated with the very prototype, "
+                                            "target and ablations this run would simulate")
+    beta: float = option(1000.0, "smoothness weight (DN² scale)")
     diff_order: int = 1
-    prior: Literal["none", "tv"] = field(
-        default="none", metadata={"help": "none: per-pixel NNLS; tv: spatial-spectral (TV)"})
-    lam: float | Literal["auto", "discrepancy"] = field(
-        default=DEFAULT_LAM, metadata={"help": "prior=tv: relative TV weight (see the "
-                                               "reconstruct config), auto (SURE) or "
-                                               "discrepancy"})
+    prior: Literal["none", "tv"] = option("none", "none: per-pixel NNLS; tv: spatial-spectral (TV)")
+    lam: float | Literal["auto", "discrepancy"] = option(
+        DEFAULT_LAM, "prior=tv: relative TV weight (see the reconstruct config), auto (SURE) or "
+                     "discrepancy")
     ablate: list[str] = field(
         default_factory=list,
         metadata={"help": "factors switched off (ablation): diffuser (no diffuser blur), warp "
                           "(ideally registered observations: no view sampling, warp or "
                           "demosaic), demosaic (full-RGB sensor), noise (no shot/read noise, "
                           "no quantisation), beta (beta = 0)"})
-    threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})
+    threshold: float = option(0.1, "Michelson contrast to resolve")
     orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
     length_fraction: float = 0.6
     n_along: int = 7
