@@ -15,7 +15,10 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+import torch
+
 from hsi_torch.console import progress_bar, progress_enabled
+from hsi_torch.devices import torch_dtype
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = [
@@ -133,14 +136,11 @@ def progress(
     return progress_bar(iterable, desc=desc, total=total)
 
 
-def start_run(out: str | os.PathLike, cfg: Any, device: str | None) -> tuple[float, Path, Any, Any]:
+def start_run(out: str | os.PathLike, cfg: Any, device: str | None
+              ) -> tuple[float, Path, torch.device, torch.dtype]:
     """The start of an experiment's run: ``(t0, out, device, dtype)`` — the start time
     (``time.perf_counter``), ``out`` as a created folder, the torch device (``device``, else
     ``cfg.device``, else the CPU) and the torch dtype of ``cfg.dtype``."""
-    import torch
-
-    from hsi_torch.devices import torch_dtype
-
     t0 = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
