@@ -226,11 +226,6 @@ def rank_designs(rows: list[dict[str, Any]], rank_by: str = "worst") -> list[dic
 # --- the command
 
 
-def _design_key(r: dict[str, Any]) -> tuple:
-    return (r["a_out_mm"], r["length_mm"], r["material"], r["thickness_mm"], r["axis_tilt_deg"],
-            r["axis_azimuth_deg"])
-
-
 def _brf_of(r: dict[str, Any]) -> Any:
     return BRFConfig(material=r["material"], thickness_mm=r["thickness_mm"],
                      axis_tilt_deg=r["axis_tilt_deg"], axis_azimuth_deg=r["axis_azimuth_deg"])
@@ -365,8 +360,10 @@ def run_design(
 
     def_key = (DEFAULT_GEOMETRY.a_out_mm, DEFAULT_GEOMETRY.length_mm, default_brf.material,
                default_brf.thickness_mm, default_brf.axis_tilt_deg, default_brf.axis_azimuth_deg)
+    keys = ("a_out_mm", "length_mm", "material", "thickness_mm", "axis_tilt_deg",
+            "axis_azimuth_deg")
     for r in rows:
-        r["is_default"] = _design_key(r) == def_key and not cfg.geometry
+        r["is_default"] = tuple(r[k] for k in keys) == def_key and not cfg.geometry
     ranked = rank_designs(rows, cfg.rank_by)
 
     # simulated PSNR of the top-K (+ the default prototype)

@@ -118,10 +118,6 @@ OPD_METRICS_NOTE = ("The field's reconstruction metrics (hsi_torch.metrics: PSNR
                     "differences (nm) with the ray tracer's.")
 
 
-def _default_inputs() -> list[OPDInputSpec]:
-    return [OPDInputSpec("truth")]
-
-
 @dataclass
 class OPDConfig:
     """``hsi-torch experiment opd`` configuration (see docs/experiments.md)."""
@@ -132,7 +128,7 @@ class OPDConfig:
         default_factory=list, metadata={"help": "key=value overrides of the prototype config"})
     capture_set: Path | None = option(None, "existing simulated capture set; null: simulate one "
                                             "into OUT/capture_set when an input needs it")
-    inputs: list[OPDInputSpec] = field(default_factory=_default_inputs)
+    inputs: list[OPDInputSpec] = field(default_factory=lambda: [OPDInputSpec("truth")])
     points: OPDPointsSpec = field(default_factory=OPDPointsSpec)
     estimator: OPDEstimatorSpec = field(default_factory=OPDEstimatorSpec)
     prediction_wavelength_nm: float = option(550.0, "wavelength of the listed phase OPD")
@@ -140,10 +136,6 @@ class OPDConfig:
     dtype: Literal["float32", "float64"] = "float64"
     device: str | None = None
     progress: bool = True
-
-
-def _needs_capture_set(kind: str) -> bool:
-    return kind in ("oracle", "calibrated", "scan")
 
 
 def _load_prototype(cfg: OPDConfig):
@@ -427,7 +419,7 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     timings: dict[str, float] = {}
     notes: list[str] = []
     capture_set = cfg.capture_set
-    if any(_needs_capture_set(i.kind) for i in cfg.inputs) and capture_set is None:
+    if any(i.kind in ("oracle", "calibrated", "scan") for i in cfg.inputs) and capture_set is None:
         capture_set = out / "capture_set"
         if not (capture_set / "ground_truth" / "truth.npz").is_file():
             t0 = time.perf_counter()
