@@ -96,18 +96,14 @@ def _default_materials() -> dict[str, list[float]]:
 class DesignSweepConfig:
     """Configuration of ``hsi-torch experiment design``."""
 
-    materials: dict[str, list[float]] = field(
-        default_factory=_default_materials,
-        metadata={"help": "material -> plate thicknesses (mm); 'quartz', 'calcite', 'polymer'"},
-    )
-    tilts_deg: list[float] = field(
-        default_factory=lambda: [float(v) for v in range(0, 90, 5)],
-        metadata={"help": "optic-axis tilt out of the plate (deg)"},
-    )
-    azimuths_deg: list[float] = field(
-        default_factory=lambda: [float(v) for v in range(0, 120, 10)],
-        metadata={"help": "projected optic-axis azimuth (deg); the tube is 3-fold symmetric"},
-    )
+    materials: dict[str, list[float]] = option(text="material -> plate thicknesses (mm); "
+                                               "'quartz', 'calcite', 'polymer'",
+                                               factory=_default_materials)
+    tilts_deg: list[float] = field(default_factory=lambda: [float(v) for v in range(0, 90, 5)],
+                                   metadata={"help": "optic-axis tilt out of the plate (deg)"})
+    azimuths_deg: list[float] = option(text="projected optic-axis azimuth (deg); the tube is "
+                                       "3-fold symmetric",
+                                       factory=lambda: [float(v) for v in range(0, 120, 10)])
     a_out_mm: list[float] = option(text="kaleidoscope exit side (taper; a_in from the default "
                                         "geometry)", factory=lambda: [16.0, 22.0, 28.0, 34.0, 40.0])
     length_mm: list[float] = option(text="kaleidoscope tube lengths", factory=lambda: [160.0])

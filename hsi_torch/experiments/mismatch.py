@@ -27,7 +27,7 @@ import gc
 import io
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -35,7 +35,6 @@ import numpy as np
 
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
-from hsi_torch.config import help_meta as _h
 from hsi_torch.config import load_config, option
 from hsi_torch.console import info
 from hsi_torch.experiments.metrics import (
@@ -122,15 +121,12 @@ class MismatchConfig:
     simulate_config: str | None = option(None, "simulate config (shipped name or YAML path); "
                                                "null: the size's, or the resolved_config.yaml of "
                                                "ideal_captures")
-    simulate_set: list[str] = field(
-        default_factory=list, metadata=_h("extra --set overrides of the simulate config")
-    )
-    effects: list[str] = field(
-        default_factory=lambda: [*DOCUMENTED_EFFECTS, "all"],
-        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, 'all' (every "
-                    "effect together) and 'all-<effect>' (all but that one, with every remedy "
-                    "but its own)"),
-    )
+    simulate_set: list[str] = option(text="extra --set overrides of the simulate config",
+                                     factory=list)
+    effects: list[str] = option(text="rows besides the ideal one: names of DOCUMENTED_EFFECTS, "
+                                "'all' (every effect together) and 'all-<effect>' (all but that "
+                                "one, with every remedy but its own)",
+                                factory=lambda: [*DOCUMENTED_EFFECTS, "all"])
     remedies: bool = option(True, "also score each effect's remedy")
     noise_free: bool = option(False, "no shot/read noise, no quantisation: each effect's own "
                                      "cost without the noise realisations' spread")
@@ -139,11 +135,10 @@ class MismatchConfig:
                                                "simulate it")
     ideal_bundle: Path | None = option(None, "that set's calibration bundle (with "
                                              "ideal_captures); null: calibrate it")
-    calibrate_set: list[str] = field(
-        default_factory=lambda: ["pedestal_check=warn"],
-        metadata=_h("--set overrides of the shipped calibrate.yaml for every row (default: a "
-                    "veil outside the views warns instead of stopping the row)"),
-    )
+    calibrate_set: list[str] = option(text="--set overrides of the shipped calibrate.yaml for "
+                                      "every row (default: a veil outside the views warns "
+                                      "instead of stopping the row)",
+                                      factory=lambda: ["pedestal_check=warn"])
     beta: float = option(DEFAULT_BETA, "reconstruction smoothness weight")
     erode_mm: float = option(0.3, "ColorChecker patch interiors: this far inside each patch, mm")
     device: str | None = option(None, "torch device (null: cpu)")

@@ -1,26 +1,16 @@
-"""Per-pixel vs spatial-spectral reconstruction (``hsi-torch experiment spatial``).
+"""Per-pixel vs spatial-spectral reconstruction (``hsi-torch experiment spatial``; the outputs,
+method and measured numbers are in docs/experiments.md, *Per-pixel vs spatial-spectral*, and
+docs/spatial.md).
 
-Every scene of a simulated capture set with ground truth is reconstructed with the per-pixel
-NNLS solver (``prior="none"``) and with the total-variation prior (``prior="tv"``,
-:mod:`hsi_torch.recon.spatial`) at each ``lams`` entry (a relative weight, or ``auto`` for the
-discrepancy principle), from the same bundle and ``β``. Scores against the truth
-(:mod:`hsi_torch.experiments.metrics`, reflectance, PSNR = 10·log10(1/MSE), SAM in degrees):
-
-* per pixel over the scene's footprint (valid pixels where the truth is non-zero) and over its
-  brighter half (true mean reflectance ≥ the median): PSNR, mean and median SAM;
-* ColorChecker also: per pixel over whole patches (edges included), and the per-patch mean
-  spectrum over whole patches and over patch interiors (``erode_mm`` inside), mean over patches.
-
-Writes ``table.md`` / ``table.csv`` (one row per scene × method; ``solve s`` is the solve stage
-of the frame, per-pixel NNLS included for the TV rows), ``summary.json`` (all scores, the chosen
-``λ`` and noise level, timings), ``<scene>_error.png`` (per-pixel RMS error over bands
-for each method, one colour scale) and ``<scene>_spectra.png`` (truth and each method at a few
-pixels, on edges and inside regions).
-
-The capture set: ``captures`` (e.g. the ``captures`` folder of ``hsi-torch demo``), or, when
-null, a fresh simulation of the prototype (``prototype`` + ``prototype_overrides``) with the
-ColorChecker, the real CAVE scene when the real-data folder holds it, and a USAF target. The
-bundle: ``oracle`` (the simulator's truth) or the path of a calibrated bundle ``.npz``.
+Every scene of a simulated capture set with ground truth (``captures``, or a fresh simulation of
+``prototype`` when null) is reconstructed from one bundle (``oracle`` or a ``.npz`` path) and
+``β`` with the per-pixel NNLS solver and with the TV prior (:mod:`hsi_torch.recon.spatial`) at
+each ``lams`` entry, and scored against the truth (:mod:`hsi_torch.experiments.metrics`,
+reflectance, PSNR = 10·log10(1/MSE), SAM in degrees) per pixel over the scene's footprint (valid
+pixels where the truth is non-zero) and its brighter half (true mean reflectance ≥ the median);
+the ColorChecker also over whole patches and as per-patch mean spectra (whole patches and
+interiors, ``erode_mm`` inside). ``solve s`` in the table is the frame's solve stage, per-pixel
+NNLS included for the TV rows.
 """
 
 from __future__ import annotations

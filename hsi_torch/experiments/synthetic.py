@@ -129,9 +129,8 @@ class DesignSpec:
     scene_point_mm: list[float] | None = option(None, "this_system: (X, Y) diffuser point in mm "
                                                       "(overrides)")
     includes_illuminant: bool = option(False, "csv: responses already include the illuminant")
-    geometry: dict[str, Any] = field(
-        default_factory=dict, metadata={"help": "this_system: KaleidoscopeGeometry overrides"}
-    )
+    geometry: dict[str, Any] = option(text="this_system: KaleidoscopeGeometry overrides",
+                                      factory=dict)
     brf: dict[str, Any] = option(text="this_system/fujimoto: BRFConfig overrides", factory=dict)
     design: dict[str, Any] = option(text="manakov/fujimoto: PrototypeDesign overrides (filters, "
                                          "grains)", factory=dict)
@@ -161,9 +160,8 @@ class SyntheticConfig:
     illuminant: str = option("D65", "CIE name or CSV, for every design")
     reflectances: str = option("ColorChecker N Ohta", "ColorChecker name, '190 patches' or a CSV "
                                                       "wavelength,r1..rK")
-    noise_sigmas: list[float] = field(
-        default_factory=lambda: [0.5, 1.0, 2.0, 4.0], metadata={"help": "Gaussian noise σ (DN)"}
-    )
+    noise_sigmas: list[float] = option(text="Gaussian noise σ (DN)",
+                                       factory=lambda: [0.5, 1.0, 2.0, 4.0])
     num_seeds: int = option(5, "noise realisations per σ")
     seed: int = option(0, "first seed (seeds are seed … seed+n−1)")
     betas: list[float] | None = option(None, "β sweep; None = [0] + logspace(-2, 6, 17)")

@@ -310,12 +310,11 @@ class USAFConfig:
     lam: float | Literal["auto", "discrepancy"] = option(
         DEFAULT_LAM, "prior=tv: relative TV weight (see the reconstruct config), auto (SURE) or "
                      "discrepancy")
-    ablate: list[str] = field(
-        default_factory=list,
-        metadata={"help": "factors switched off (ablation): diffuser (no diffuser blur), warp "
-                          "(ideally registered observations: no view sampling, warp or "
-                          "demosaic), demosaic (full-RGB sensor), noise (no shot/read noise, "
-                          "no quantisation), beta (beta = 0)"})
+    ablate: list[str] = option(text="factors switched off (ablation): diffuser (no diffuser "
+                               "blur), warp (ideally registered observations: no view sampling, "
+                               "warp or demosaic), demosaic (full-RGB sensor), noise (no "
+                               "shot/read noise, no quantisation), beta (beta = 0)",
+                               factory=list)
     threshold: float = option(0.1, "Michelson contrast to resolve")
     orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
     length_fraction: float = 0.6
