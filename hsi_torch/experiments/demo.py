@@ -1,21 +1,13 @@
 """``hsi-torch demo [--out DIR] [--quick] [--set key=value ...]``: the README's main command
 (the command line is :func:`hsi_torch.experiments.cli_entry.run_demo`).
 
-End to end on the virtual prototype, from nothing to scored spectral cubes:
-
-1. **simulate** the default prototype (the shipped ``simulate.yaml``, 400 × 384 px sensor) into
-   ``OUT/captures``: monochromator scan, white and circle-grid shots, dark frame, and the scenes —
-   the ColorChecker, plus the real CAVE cube (``cave_stuffed_toys`` in the real-data folder:
-   ``HSI_TORCH_DATA``, else ``../shared/data/real`` beside a source checkout) when it is present,
-   otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
-2. **calibrate** from those captures only (the shipped ``calibrate.yaml``) → ``OUT/calib.npz``;
-3. **reconstruct** every scene with the calibrated bundle and, for comparison, with the *oracle*
-   bundle made of the simulator's true B, φ, g and homographies (so the cost of calibration is
-   visible), at a fixed β (``beta``, default 1e4, see below), and once more with the calibrated
-   bundle and the spatial (TV) prior at its default weight (scores under ``tv``, beside
-   per-pixel);
-4. **score** against the ground truth and write cubes, sRGB previews, spectra plots and
-   ``OUT/summary.json``.
+End to end on the virtual prototype (docs/demo.md tells what it writes): **simulate** the
+default prototype (the shipped ``simulate.yaml``) into ``OUT/captures`` with the ColorChecker and
+the real CAVE cube when the real-data folder holds it (else a built-in synthetic cube: smooth
+blends of ColorChecker spectra); **calibrate** from those captures only → ``OUT/calib.npz``;
+**reconstruct** every scene with the calibrated bundle, the *oracle* bundle (the simulator's true
+B, φ, g and homographies: the cost of calibration) and, calibrated, the TV prior at its default
+weight (scores under ``tv``); **score** against the ground truth into ``OUT/summary.json``.
 
 Metrics (reflectance, peak 1; :mod:`hsi_torch.experiments.metrics`, shared with the
 experiments): PSNR = 10·log10(1/MSE), spectral angle (SAM) in degrees.
