@@ -1,27 +1,12 @@
-"""``hsi-torch calibrate [--config C] --captures DIR --out OUT [--set k=v] [--device D]``.
+"""``hsi-torch calibrate [--config C] --captures DIR --out OUT [--set k=v] [--device D]`` and
+``hsi-torch layout`` (docs/calibration.md tells the outputs and the rules in full).
 
-``--out`` is a folder, like every command's: it is created and receives, only after the whole
-calibration succeeded (each file atomically):
-
-- ``OUT/calib.npz`` — the :class:`~hsi_torch.calibrate.CalibrationBundle`;
-- ``OUT/calib.report.json`` — the per-view registration report, valid-region statistics, timings;
-- ``OUT/calib_diagnostics.png`` — the diagnostics figure
-  (:func:`hsi_torch.calibrate.figures.plot_calibration`);
-- ``OUT/resolved_config.yaml`` — the configuration (rerun with ``--config``).
-
-``--out NAME.npz`` names the bundle file itself: ``NAME.npz``, ``NAME.report.json``,
-``NAME_diagnostics.png`` and ``NAME.resolved_config.yaml`` beside it, so that several bundles can
-share a folder.
-
-The four files are replaced together (:func:`hsi_torch.io.atomic.replace_then_commit`): on any
-error the previous ones are left as they were, and a run killed between two moves is undone by
-the next run into the folder. A line on stderr says when an existing bundle is replaced. No
-output may be one of the calibration captures (the same file, whatever its name).
-
-``--oracle``: for a capture set written by ``hsi-torch simulate``, the bundle is built from its
-ground truth (:func:`hsi_torch.simulate.oracle.bundle_from_truth`) instead of calibrated; only
-the bundle and its diagnostics figure are written (no configuration is used). Reconstructing the
-same captures with both bundles shows what calibration costs.
+``--out`` is a folder receiving ``calib.npz``, ``calib.report.json``, ``calib_diagnostics.png``
+and ``resolved_config.yaml`` (:func:`output_paths`; ``--out NAME.npz`` names the bundle file
+itself), all four replaced together only once the whole calibration succeeded
+(:func:`hsi_torch.io.atomic.replace_then_commit`); no output may be one of the captures.
+``--oracle``: the bundle of a simulated set's ground truth
+(:func:`hsi_torch.simulate.oracle.bundle_from_truth`) and its figure, nothing calibrated.
 """
 
 from __future__ import annotations
@@ -184,9 +169,7 @@ def _write_oracle(captures: Path, bundle_path: Path, inputs: Any = ()) -> int:
     return 0
 
 
-# =============================================================================================
-# hsi-torch layout
-# =============================================================================================
+# --- hsi-torch layout
 
 
 def layout_paths(out: str | Path) -> tuple[Path, Path]:

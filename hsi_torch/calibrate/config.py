@@ -177,97 +177,53 @@ class ResponseSection:
 class CalibrateConfig:
     """Settings of ``hsi-torch calibrate`` (see the field help texts)."""
 
-    layout: Path | None = field(
-        default=None,
-        metadata=_h(
-            "nominal layout JSON (triangles, parity, reference_bbox, BRF-free patch); "
-            "null: CAPTURES/nominal_layout.json"
-        ),
-    )
-    brf_free_mask: Path | None = field(
-        default=None,
-        metadata=_h(
-            "PNG of usable BRF-free pixels (255 = use); null: the layout's usable_mask / "
-            "CAPTURES/brf_free_mask.png, else the layout's polygon eroded"
-        ),
-    )
-    grid_start_nm: float = field(default=430.0, metadata=_h("first band centre, nm"))
-    grid_stop_nm: float = field(default=670.0, metadata=_h("last band centre, nm"))
-    grid_step_nm: float = field(default=10.0, metadata=_h("band step, nm"))
-    demosaic: Literal["bilinear"] = field(
-        default="bilinear",
-        metadata=_h("Bayer captures: bilinear demosaic at full resolution (read_any default)"),
-    )
-    cfa_pattern: str | None = field(
-        default=None, metadata=_h("override the files' CFA pattern (e.g. RGGB)")
-    )
-    black_level: float | None = field(
-        default=None, metadata=_h("override the files' black level (DN)")
-    )
-    white_level: float | None = field(
-        default=None, metadata=_h("override the files' white (saturation) level (DN)")
-    )
-    dark: Literal["per_pixel", "mean", "none"] = field(
-        default="per_pixel",
-        metadata=_h(
-            "dark frames: subtract their per-pixel mean, their per-channel mean, or "
-            "nothing (the black level is always subtracted)"
-        ),
-    )
-    pedestal_check: Literal["error", "warn", "off"] = field(
-        default="error",
-        metadata=_h(
-            "the sensor outside every view must read ~0 after black (and dark) subtraction: "
-            "error refuses captures that carry a black pedestal (a missing black level), "
-            "warn only says so"
-        ),
-    )
-    stray_light: Literal["auto", "none", "subtract"] = field(
-        default="auto",
-        metadata=_h(
-            "the veil of stray light, measured on the white where no light reaches (judged on "
-            "the white): auto subtracts it from every lit frame when it is above "
-            "stray_light_threshold, subtract always, none never; the bundle records it, so "
-            "reconstruction subtracts it from the captures too"
-        ),
-    )
-    stray_light_threshold: float = field(
-        default=0.002,
-        metadata=_h(
-            "stray_light: auto subtracts a veil above this fraction of the white's mean "
-            "(largest colour; the ideal device reads ~0, the documented 2 % veil ~0.02)"
-        ),
-    )
-    defects: Literal["auto", "none", "mask"] = field(
-        default="auto",
-        metadata=_h(
-            "hot (dark frames) and dead (white frames) pixels: auto masks them when at least "
-            "defect_min_pixels are found, mask always writes what is found, none never; "
-            "reconstruction drops the observations that sample a masked pixel"
-        ),
-    )
-    defect_min_pixels: int = field(
-        default=1, metadata=_h("defects: auto masks when at least this many raw pixels are found")
-    )
-    defect_hot_sigma: float = field(
-        default=10.0, metadata=_h("hot: dark above its median by this many robust sigmas")
-    )
-    defect_dead_ratio: float = field(
-        default=0.5, metadata=_h("dead: white below this fraction of its 3x3 median")
-    )
-    device: str = field(default="cpu", metadata=_h("torch device"))
-    dtype: Literal["float32", "float64"] = field(
-        default="float32",
-        metadata=_h(
-            "precision of the images and maps (float32 halves the memory at full size; "
-            "the response estimation always runs in float64)"
-        ),
-    )
-    min_views: int = field(default=3, metadata=_h("modulated views a valid pixel needs"))
+    layout: Path | None = option(None, "nominal layout JSON (triangles, parity, reference_bbox, "
+                                       "BRF-free patch); null: CAPTURES/nominal_layout.json")
+    brf_free_mask: Path | None = option(None, "PNG of usable BRF-free pixels (255 = use); null: "
+                                              "the layout's usable_mask / "
+                                              "CAPTURES/brf_free_mask.png, else the layout's "
+                                              "polygon eroded")
+    grid_start_nm: float = option(430.0, "first band centre, nm")
+    grid_stop_nm: float = option(670.0, "last band centre, nm")
+    grid_step_nm: float = option(10.0, "band step, nm")
+    demosaic: Literal["bilinear"] = option("bilinear", "Bayer captures: bilinear demosaic at "
+                                                       "full resolution (read_any default)")
+    cfa_pattern: str | None = option(None, "override the files' CFA pattern (e.g. RGGB)")
+    black_level: float | None = option(None, "override the files' black level (DN)")
+    white_level: float | None = option(None, "override the files' white (saturation) level (DN)")
+    dark: Literal["per_pixel", "mean", "none"] = option(
+        "per_pixel", "dark frames: subtract their per-pixel mean, their per-channel mean, or "
+                     "nothing (the black level is always subtracted)")
+    pedestal_check: Literal["error", "warn", "off"] = option(
+        "error", "the sensor outside every view must read ~0 after black (and dark) subtraction: "
+                 "error refuses captures that carry a black pedestal (a missing black level), "
+                 "warn only says so")
+    stray_light: Literal["auto", "none", "subtract"] = option(
+        "auto", "the veil of stray light, measured on the white where no light reaches (judged "
+                "on the white): auto subtracts it from every lit frame when it is above "
+                "stray_light_threshold, subtract always, none never; the bundle records it, so "
+                "reconstruction subtracts it from the captures too")
+    stray_light_threshold: float = option(0.002, "stray_light: auto subtracts a veil above this "
+                                                 "fraction of the white's mean (largest colour; "
+                                                 "the ideal device reads ~0, the documented 2 % "
+                                                 "veil ~0.02)")
+    defects: Literal["auto", "none", "mask"] = option(
+        "auto", "hot (dark frames) and dead (white frames) pixels: auto masks them when at least "
+                "defect_min_pixels are found, mask always writes what is found, none never; "
+                "reconstruction drops the observations that sample a masked pixel")
+    defect_min_pixels: int = option(1, "defects: auto masks when at least this many raw pixels "
+                                       "are found")
+    defect_hot_sigma: float = option(10.0, "hot: dark above its median by this many robust sigmas")
+    defect_dead_ratio: float = option(0.5, "dead: white below this fraction of its 3x3 median")
+    device: str = option("cpu", "torch device")
+    dtype: Literal["float32", "float64"] = option(
+        "float32", "precision of the images and maps (float32 halves the memory at full size; "
+                   "the response estimation always runs in float64)")
+    min_views: int = option(3, "modulated views a valid pixel needs")
     registration: RegistrationSection = field(default_factory=RegistrationSection)
     transmittance: TransmittanceSection = field(default_factory=TransmittanceSection)
     response: ResponseSection = field(default_factory=ResponseSection)
-    progress: bool = field(default=True, metadata=_h("progress bar on stderr"))
+    progress: bool = option(True, "progress bar on stderr")
 
     def __post_init__(self) -> None:
         if not (self.grid_step_nm > 0 and self.grid_stop_nm >= self.grid_start_nm):

@@ -29,11 +29,6 @@ from hsi_torch.io.bundle import CalibrationBundle
 __all__ = ["plot_calibration"]
 
 
-def _nearest(wl: np.ndarray, targets: Sequence[float]) -> list[int]:
-    idx = [int(np.argmin(np.abs(wl - t))) for t in targets]
-    return list(dict.fromkeys(idx))  # unique, in order
-
-
 def plot_calibration(
     bundle: Any,
     path: str | os.PathLike,
@@ -61,7 +56,8 @@ def plot_calibration(
 
     b = bundle if isinstance(bundle, CalibrationBundle) else CalibrationBundle.load(bundle)
     wl = np.asarray(b.wavelengths_nm, dtype=np.float64)
-    bands = _nearest(wl, wavelengths_nm)
+    # the nearest band of each wavelength, each once, in order
+    bands = list(dict.fromkeys(int(np.argmin(np.abs(wl - t))) for t in wavelengths_nm))
     # the maps are drawn a few hundred pixels wide: subsample full-size frames (and keep only the
     # drawn bands, in float32) rather than copying the whole (V, M, h, w) transmittance
     fh, fw = (int(v) for v in np.shape(b.valid))

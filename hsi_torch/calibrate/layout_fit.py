@@ -60,9 +60,7 @@ __all__ = [
 ]
 
 
-# =============================================================================================
-# the design's tiles
-# =============================================================================================
+# --- the design's tiles
 
 
 @dataclass
@@ -184,9 +182,7 @@ def _edge_points(tiles: DesignTiles, spacing_px: float, fine: bool = False) -> n
     return np.concatenate(pts)
 
 
-# =============================================================================================
-# the fit
-# =============================================================================================
+# --- the fit
 
 
 def _blur(x: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -416,8 +412,7 @@ def fit_similarity(
             splat = torch.zeros(big, dtype=torch.float32)
             for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
                                 (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):  # fmt: skip
-                splat.index_put_(((y0 + dy).long(), (x0 + dx).long()), wgt.float(),
-                                 accumulate=True)
+                splat.index_put_(((y0 + dy).long(), (x0 + dx).long()), wgt.float(), accumulate=True)
             corr = torch.fft.irfft2(fe * torch.conj(torch.fft.rfft2(splat)), s=big)
             # corr[ty, tx] = sum_x splat(x) e(x + t); shifts beyond +-m wrap: mask them
             corr = torch.roll(corr, shifts=(m, m), dims=(0, 1))[: 2 * m + 1, : 2 * m + 1]
@@ -460,9 +455,7 @@ def fit_similarity(
     )  # fmt: skip
 
 
-# =============================================================================================
-# parity from the grid shots
-# =============================================================================================
+# --- parity from the grid shots
 
 
 @dataclass
@@ -557,9 +550,7 @@ def confirm_parity(
     return out
 
 
-# =============================================================================================
-# the proposal
-# =============================================================================================
+# --- the proposal
 
 
 @dataclass

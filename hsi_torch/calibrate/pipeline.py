@@ -207,9 +207,7 @@ class CalibrationReport:
         return "\n".join(lines)
 
 
-# =============================================================================================
-# helpers
-# =============================================================================================
+# --- helpers
 
 
 def _polygon_mask(poly: np.ndarray, size: tuple[int, int], offset_px: float) -> np.ndarray:
@@ -329,9 +327,7 @@ def _polygon_mask_from_mask(mask: np.ndarray, dilate_px: float) -> np.ndarray:
     return dist <= dilate_px
 
 
-# =============================================================================================
-# the stages
-# =============================================================================================
+# --- the stages
 
 
 def check_sensor_size(cs: CaptureSet, lay: NominalLayout) -> None:
@@ -441,8 +437,7 @@ def register_grid_shots(
         lost = float((count == 0).float().mean())
         flat = flat.div_(count.clamp_min_(1))
         del count
-        lim = 0.02 * float(torch.quantile(flat.flatten()[:: max(1, flat.numel() // 200_000)],
-                                          0.99))
+        lim = 0.02 * float(torch.quantile(flat.flatten()[:: max(1, flat.numel() // 200_000)], 0.99))
         if lost > cfg.response.max_saturated_fraction or not lim > 0:
             # saturated white shots are reported (or dropped) by the response stage; the
             # grid shots are then registered as they are
@@ -764,9 +759,7 @@ def assemble_bundle(
     return bundle, modulated, vsum
 
 
-# =============================================================================================
-# the calibration
-# =============================================================================================
+# --- the calibration
 
 
 def sensor_corrections(
@@ -836,8 +829,7 @@ def sensor_corrections(
                         source="dark and white frames")
     out["findings"].append(f)
     if mask:
-        out["settings"]["defects"] = {"pixels": int(pix.size), "raw_pixels": n_raw,
-                                      "from": origin}
+        out["settings"]["defects"] = {"pixels": int(pix.size), "raw_pixels": n_raw, "from": origin}
         out["extras"]["defect_pixels"] = pix
     return out
 

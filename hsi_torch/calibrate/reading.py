@@ -428,9 +428,7 @@ def check_pedestal(reader: CaptureReader, mode: str, notes: list[str]) -> dict[s
     return ped
 
 
-# =============================================================================================
-# which scan frames
-# =============================================================================================
+# --- which scan frames
 
 
 @dataclass

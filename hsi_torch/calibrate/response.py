@@ -104,9 +104,7 @@ def _obs_weights(weights: torch.Tensor | None, N: int, V: int, like: torch.Tenso
     return w.expand(N, V)
 
 
-def _check_white(
-    white: torch.Tensor, b: torch.Tensor
-) -> tuple[torch.Tensor, int, int, int, int]:
+def _check_white(white: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, int, int, int, int]:
     """Bring white to (S, V, 3, h, w) and check ``b (V, M, h, w)`` against it."""
     if white.ndim == 4:
         white = white[None]

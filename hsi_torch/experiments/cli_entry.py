@@ -22,8 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment",
-           "run_demo"]
+__all__ = ["EXPERIMENTS", "register_experiment", "resolve_experiment", "run_experiment", "run_demo"]
 
 #: name → (module, schema class, run function)
 EXPERIMENTS: dict[str, tuple[str, str, str]] = {

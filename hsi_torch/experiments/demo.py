@@ -1,21 +1,13 @@
 """``hsi-torch demo [--out DIR] [--quick] [--set key=value ...]``: the README's main command
 (the command line is :func:`hsi_torch.experiments.cli_entry.run_demo`).
 
-End to end on the virtual prototype, from nothing to scored spectral cubes:
-
-1. **simulate** the default prototype (the shipped ``simulate.yaml``, 400 × 384 px sensor) into
-   ``OUT/captures``: monochromator scan, white and circle-grid shots, dark frame, and the scenes —
-   the ColorChecker, plus the real CAVE cube (``cave_stuffed_toys`` in the real-data folder:
-   ``HSI_TORCH_DATA``, else ``../shared/data/real`` beside a source checkout) when it is present,
-   otherwise a built-in synthetic cube (smooth blends of ColorChecker spectra);
-2. **calibrate** from those captures only (the shipped ``calibrate.yaml``) → ``OUT/calib.npz``;
-3. **reconstruct** every scene with the calibrated bundle and, for comparison, with the *oracle*
-   bundle made of the simulator's true B, φ, g and homographies (so the cost of calibration is
-   visible), at a fixed β (``beta``, default 1e4, see below), and once more with the calibrated
-   bundle and the spatial (TV) prior at its default weight (scores under ``tv``, beside
-   per-pixel);
-4. **score** against the ground truth and write cubes, sRGB previews, spectra plots and
-   ``OUT/summary.json``.
+End to end on the virtual prototype (docs/demo.md tells what it writes): **simulate** the
+default prototype (the shipped ``simulate.yaml``) into ``OUT/captures`` with the ColorChecker and
+the real CAVE cube when the real-data folder holds it (else a built-in synthetic cube: smooth
+blends of ColorChecker spectra); **calibrate** from those captures only → ``OUT/calib.npz``;
+**reconstruct** every scene with the calibrated bundle, the *oracle* bundle (the simulator's true
+B, φ, g and homographies: the cost of calibration) and, calibrated, the TV prior at its default
+weight (scores under ``tv``); **score** against the ground truth into ``OUT/summary.json``.
 
 Metrics (reflectance, peak 1; :mod:`hsi_torch.experiments.metrics`, shared with the
 experiments): PSNR = 10·log10(1/MSE), spectral angle (SAM) in degrees.
@@ -36,7 +28,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +39,7 @@ from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.figures import plot_calibration
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.colour import cube_to_srgb, cube_to_xyz, save_labelled_png, save_preview_panel
-from hsi_torch.config import help_meta, load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.experiments.calibration_scores import format_scores, score_against_truth
 from hsi_torch.experiments.metrics import (
     colorchecker_scores,
@@ -72,40 +64,26 @@ from hsi_torch.simulate.oracle import bundle_from_truth
 __all__ = ["DemoConfig", "demo", "score_scene"]
 
 
-_h = help_meta
-
 
 @dataclass
 class DemoConfig:
     """Settings of ``hsi-torch demo`` (``--set key=value`` overrides any of them)."""
 
-    simulate_config: Path | None = field(
-        default=None, metadata=_h("simulator config; null: the shipped simulate.yaml")
-    )
-    calibrate_config: Path | None = field(
-        default=None, metadata=_h("calibration config; null: the shipped calibrate.yaml")
-    )
-    beta: float = field(default=1e4, metadata=_h("reconstruction smoothness weight (DN^2)"))
-    diff_order: int = field(default=1, metadata=_h("order of the difference operator"))
-    erode_mm: float = field(
-        default=0.3,
-        metadata=_h("ColorChecker: score pixels at least this far inside a patch, mm on the "
-                    "diffuser (3 sigma of the 0.1 mm diffuser blur)"),
-    )
-    cave: bool = field(
-        default=True, metadata=_h("add the real CAVE scene when the real-data folder has it")
-    )
-    quick_scale: float = field(
-        default=0.75, metadata=_h("--quick: camera.scale of the simulated sensor")
-    )
-    device: str = field(default="cpu", metadata=_h("torch device of calibration/reconstruction"))
-    seed: int = field(default=0, metadata=_h("simulator noise seed"))
-    progress: bool = field(default=True, metadata=_h("progress bars on stderr"))
+    simulate_config: Path | None = option(None, "simulator config; null: the shipped simulate.yaml")
+    calibrate_config: Path | None = option(None, "calibration config; null: the shipped "
+                                                 "calibrate.yaml")
+    beta: float = option(1e4, "reconstruction smoothness weight (DN^2)")
+    diff_order: int = option(1, "order of the difference operator")
+    erode_mm: float = option(0.3, "ColorChecker: score pixels at least this far inside a patch, "
+                                  "mm on the diffuser (3 sigma of the 0.1 mm diffuser blur)")
+    cave: bool = option(True, "add the real CAVE scene when the real-data folder has it")
+    quick_scale: float = option(0.75, "--quick: camera.scale of the simulated sensor")
+    device: str = option("cpu", "torch device of calibration/reconstruction")
+    seed: int = option(0, "simulator noise seed")
+    progress: bool = option(True, "progress bars on stderr")
 
 
-# =============================================================================================
-# scenes
-# =============================================================================================
+# --- scenes
 
 
 def _synthetic_cube(wavelengths_nm: np.ndarray, size: int = 96) -> np.ndarray:
@@ -153,9 +131,7 @@ def _scene_specs(cfg: DemoConfig, out: Path, wl: np.ndarray, log) -> list[dict[s
     return specs
 
 
-# =============================================================================================
-# plots
-# =============================================================================================
+# --- plots
 
 
 def _plot_colorchecker(path: Path, wl, truth, est_cal, est_orc, scores_cal, scores_orc) -> None:
@@ -319,9 +295,7 @@ def metrics_lines(entry: dict[str, Any]) -> list[str]:
     return out
 
 
-# =============================================================================================
-# the demo
-# =============================================================================================
+# --- the demo
 
 
 def demo(

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch import refdata
+from hsi_torch.config import option
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -74,12 +75,10 @@ __all__ = [
 class PSNRSpec:
     """Simulated-PSNR stage of the design sweep (synthetic protocol at one noise level)."""
 
-    noise_sigma: float = field(default=1.0, metadata={"help": "σ (DN)"})
+    noise_sigma: float = option(1.0, "σ (DN)")
     num_seeds: int = 5
     seed: int = 0
-    betas: list[float] | None = field(
-        default=None, metadata={"help": "None = [0] + logspace(-2, 6, 17)"}
-    )
+    betas: list[float] | None = option(None, "None = [0] + logspace(-2, 6, 17)")
     reflectances: str = "ColorChecker N Ohta"
     peak_dn: float = 255.0
     diff_order: int = 1
@@ -97,38 +96,25 @@ def _default_materials() -> dict[str, list[float]]:
 class DesignSweepConfig:
     """Configuration of ``hsi-torch experiment design``."""
 
-    materials: dict[str, list[float]] = field(
-        default_factory=_default_materials,
-        metadata={"help": "material -> plate thicknesses (mm); 'quartz', 'calcite', 'polymer'"},
-    )
-    tilts_deg: list[float] = field(
-        default_factory=lambda: [float(v) for v in range(0, 90, 5)],
-        metadata={"help": "optic-axis tilt out of the plate (deg)"},
-    )
-    azimuths_deg: list[float] = field(
-        default_factory=lambda: [float(v) for v in range(0, 120, 10)],
-        metadata={"help": "projected optic-axis azimuth (deg); the tube is 3-fold symmetric"},
-    )
-    a_out_mm: list[float] = field(
-        default_factory=lambda: [16.0, 22.0, 28.0, 34.0, 40.0],
-        metadata={"help": "kaleidoscope exit side (taper; a_in from the default geometry)"},
-    )
-    length_mm: list[float] = field(
-        default_factory=lambda: [160.0], metadata={"help": "kaleidoscope tube lengths"}
-    )
-    geometry: dict[str, Any] = field(
-        default_factory=dict, metadata={"help": "other KaleidoscopeGeometry overrides"}
-    )
-    camera: str = field(default=refdata.DEFAULT_CAMERA, metadata={"help": "camera for φ"})
+    materials: dict[str, list[float]] = option(text="material -> plate thicknesses (mm); "
+                                               "'quartz', 'calcite', 'polymer'",
+                                               factory=_default_materials)
+    tilts_deg: list[float] = field(default_factory=lambda: [float(v) for v in range(0, 90, 5)],
+                                   metadata={"help": "optic-axis tilt out of the plate (deg)"})
+    azimuths_deg: list[float] = option(text="projected optic-axis azimuth (deg); the tube is "
+                                       "3-fold symmetric",
+                                       factory=lambda: [float(v) for v in range(0, 120, 10)])
+    a_out_mm: list[float] = option(text="kaleidoscope exit side (taper; a_in from the default "
+                                        "geometry)", factory=lambda: [16.0, 22.0, 28.0, 34.0, 40.0])
+    length_mm: list[float] = option(text="kaleidoscope tube lengths", factory=lambda: [160.0])
+    geometry: dict[str, Any] = option(text="other KaleidoscopeGeometry overrides", factory=dict)
+    camera: str = option(refdata.DEFAULT_CAMERA, "camera for φ")
     illuminant: str = "D65"
     wavelengths: GridSpec = field(default_factory=GridSpec)
-    min_period_nm: float = field(
-        default=30.0, metadata={"help": "min modulation period λ²/|OPD| at the first band"}
-    )
-    rank_by: Literal["worst", "median"] = field(
-        default="worst", metadata={"help": "condition number over the 7 scene points"}
-    )
-    top_k: int = field(default=8, metadata={"help": "designs scored by simulated PSNR"})
+    min_period_nm: float = option(30.0, "min modulation period λ²/|OPD| at the first band")
+    rank_by: Literal["worst", "median"] = option("worst", "condition number over the 7 scene "
+                                                          "points")
+    top_k: int = option(8, "designs scored by simulated PSNR")
     psnr: PSNRSpec = field(default_factory=PSNRSpec)
     progress: bool = True
 
@@ -144,8 +130,7 @@ class DesignSweepConfig:
             raise ValueError(f"top_k must be >= 0, got {self.top_k}")
 
 
-# ---------------------------------------------------------------------------------------------
-# condition numbers
+# --- condition numbers
 
 
 @dataclass
@@ -234,13 +219,7 @@ def rank_designs(rows: list[dict[str, Any]], rank_by: str = "worst") -> list[dic
     return out
 
 
-# ---------------------------------------------------------------------------------------------
-# the command
-
-
-def _design_key(r: dict[str, Any]) -> tuple:
-    return (r["a_out_mm"], r["length_mm"], r["material"], r["thickness_mm"], r["axis_tilt_deg"],
-            r["axis_azimuth_deg"])
+# --- the command
 
 
 def _brf_of(r: dict[str, Any]) -> Any:
@@ -377,8 +356,10 @@ def run_design(
 
     def_key = (DEFAULT_GEOMETRY.a_out_mm, DEFAULT_GEOMETRY.length_mm, default_brf.material,
                default_brf.thickness_mm, default_brf.axis_tilt_deg, default_brf.axis_azimuth_deg)
+    keys = ("a_out_mm", "length_mm", "material", "thickness_mm", "axis_tilt_deg",
+            "axis_azimuth_deg")
     for r in rows:
-        r["is_default"] = _design_key(r) == def_key and not cfg.geometry
+        r["is_default"] = tuple(r[k] for k in keys) == def_key and not cfg.geometry
     ranked = rank_designs(rows, cfg.rank_by)
 
     # simulated PSNR of the top-K (+ the default prototype)

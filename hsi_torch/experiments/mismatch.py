@@ -1,55 +1,23 @@
 """What each non-ideal effect costs, and what its remedy wins back (``hsi-torch experiment
-mismatch``).
+mismatch``; the protocol, the columns and the remedies are in docs/experiments.md, *What the
+reality gap costs*).
 
 For the ideal virtual prototype, each effect of
-:data:`~hsi_torch.simulate.mismatch.DOCUMENTED_EFFECTS` alone at its documented magnitude
-(``docs/simulate.md``, "Non-ideal effects") and all of them together: the capture set is
-simulated, calibrated with the shipped ``calibrate.yaml`` (plus ``calibrate_set``), and every
-scored scene reconstructed (per pixel, default ``β``) with the calibrated bundle and with the
-oracle bundle (the truth of the calibrated, ideal-model device). Scores against the truth
-(reflectance, peak 1): the ColorChecker's patch-interior mean spectra (≥ ``erode_mm`` inside each
-patch; PSNR and SAM) and per pixel over the patch interiors, and, when the set holds the CAVE
-scene, per pixel over its valid footprint. "Lost" is ideal − effect.
-
-**Shipped defaults** (the ``defaults`` scores): every row calibrated with the shipped
-``calibrate.yaml`` (``stray_light: auto``, ``defects: auto``: the remedies the white and dark
-frames call for, :mod:`hsi_torch.calibrate.remedies`) and reconstructed with the shipped settings
-(``refine_registration: auto``, :func:`hsi_torch.recon.drift.drift_decision`): what a lab gets
-without knowing its device's departures. The findings (the bundle's decisions, each scene's
-drift decision and illuminant check) are kept with the scores (``findings``) and summarised in
-the table (:func:`decisions`). The ``calibrated`` and ``remedy`` scores apply the remedies
-exactly as named (:data:`NO_REMEDY` plus the remedy's parts; the registration refined only by
-the ``refine`` part); a calibration whose automatic decisions equal the remedies asked for is
-reused for them (the same calibration).
-
-**Remedies** (``remedies: true``), measured on the same captures (:data:`ROW_REMEDIES`; the
-``remedy`` column names every part a number includes):
-
-- ``stray_light``: the veil is estimated from the sensor area no view reaches, in every lit frame,
-  and subtracted before calibration and reconstruction (calibrate ``stray_light=subtract``,
-  reconstruct :func:`~hsi_torch.io.sensor_corrections.subtract_veil`);
-- ``sensor_defects``: hot and dead pixels found in the dark and white frames (calibrate
-  ``defects=mask``) are dropped from every frame's observations;
-- ``scene_illuminant``: the white reference shot under the scene's light (the white captures
-  re-rendered under it), the protocol's fix — no software can tell a reddish scene from a
-  reddish light;
-- ``drift``: the same bundle, each scene reconstructed with ``refine_registration`` (its drift
-  measured from the scene's views and the sampling corrected, :mod:`hsi_torch.recon.drift`);
-- ``all``: every remedy together — the white references re-shot under the scene's light (with
-  the calibration: before the sensor drifted and the filter warmed, :data:`WHITE_WITHOUT`), that
-  set calibrated with the veil subtracted and the defects masked, and every scene reconstructed
-  with ``refine_registration``; ``ideal``: the same on the ideal device (its white already is
-  the scene's light), what the remedies cost a device that needs none.
+:data:`~hsi_torch.simulate.mismatch.DOCUMENTED_EFFECTS` alone at its documented magnitude and all
+of them together: the capture set is simulated, calibrated with the shipped ``calibrate.yaml``
+(plus ``calibrate_set``), and every scored scene reconstructed (per pixel, default ``β``) with
+the calibrated bundle and with the oracle bundle. "Lost" is ideal − effect. The ``defaults``
+scores use the shipped settings (the findings kept with the scores, summarised by
+:func:`decisions`); ``calibrated`` and ``remedy`` apply the remedies exactly as named
+(:data:`NO_REMEDY` plus the parts of :data:`ROW_REMEDIES`), a calibration whose automatic
+decisions equal the remedies asked for being reused.
 
 **Cost.** Effects that act only after calibration (``drift``, ``brf_temperature``,
 ``scene_illuminant``) reuse the ideal row's captures and calibration: only their scene captures are
-rendered (:func:`~hsi_torch.simulate.rerender.rerender_after_calibration`). At full size an
-existing ideal set and its bundle can be given (``ideal_captures``, ``ideal_bundle``; the ideal
-set's ``resolved_config.yaml`` is then the simulate config). Every row's captures, bundles and
-scores are kept under ``OUT/rows/<row>/`` and reused by a rerun (delete a row's folder to redo
-it), so ``--set 'effects=[stray_light]'`` reproduces one row.
-
-Writes ``mismatch.md`` (the table), ``mismatch.json`` (every score) and ``mismatch.csv``.
+rendered (:func:`~hsi_torch.simulate.rerender.rerender_after_calibration`). Every row's captures,
+bundles and scores are kept under ``OUT/rows/<row>/`` and reused by a rerun (delete a row's
+folder to redo it). Writes ``mismatch.md`` (the table), ``mismatch.json`` (every score) and
+``mismatch.csv``.
 """
 
 from __future__ import annotations
@@ -59,7 +27,7 @@ import gc
 import io
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -67,8 +35,7 @@ import numpy as np
 
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
-from hsi_torch.config import help_meta as _h
-from hsi_torch.config import load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.console import info
 from hsi_torch.experiments.metrics import (
     colorchecker_scores,
@@ -146,51 +113,35 @@ _SIZES = {"small": "simulate", "full": "simulate_full"}
 class MismatchConfig:
     """Settings of ``hsi-torch experiment mismatch`` (see the module docstring)."""
 
-    size: Literal["small", "full"] = field(
-        default="small",
-        metadata=_h("small: the shipped simulate.yaml (400 x 384 px, ColorChecker); full: "
-                    "simulate_full.yaml (2896 x 2784 px, ColorChecker, USAF, CAVE when "
-                    "$HSI_TORCH_DATA holds it)"),
-    )
-    simulate_config: str | None = field(
-        default=None,
-        metadata=_h("simulate config (shipped name or YAML path); null: the size's, or the "
-                    "resolved_config.yaml of ideal_captures"),
-    )
-    simulate_set: list[str] = field(
-        default_factory=list, metadata=_h("extra --set overrides of the simulate config")
-    )
-    effects: list[str] = field(
-        default_factory=lambda: [*DOCUMENTED_EFFECTS, "all"],
-        metadata=_h("rows besides the ideal one: names of DOCUMENTED_EFFECTS, 'all' (every "
-                    "effect together) and 'all-<effect>' (all but that one, with every remedy "
-                    "but its own)"),
-    )
-    remedies: bool = field(default=True, metadata=_h("also score each effect's remedy"))
-    noise_free: bool = field(
-        default=False,
-        metadata=_h("no shot/read noise, no quantisation: each effect's own cost without the "
-                    "noise realisations' spread"),
-    )
-    ideal_captures: Path | None = field(
-        default=None,
-        metadata=_h("an existing ideal capture set (read only; linked, never written) for the "
-                    "ideal row; null: simulate it"),
-    )
-    ideal_bundle: Path | None = field(
-        default=None,
-        metadata=_h("that set's calibration bundle (with ideal_captures); null: calibrate it"),
-    )
-    calibrate_set: list[str] = field(
-        default_factory=lambda: ["pedestal_check=warn"],
-        metadata=_h("--set overrides of the shipped calibrate.yaml for every row (default: a "
-                    "veil outside the views warns instead of stopping the row)"),
-    )
-    beta: float = field(default=DEFAULT_BETA, metadata=_h("reconstruction smoothness weight"))
-    erode_mm: float = field(
-        default=0.3, metadata=_h("ColorChecker patch interiors: this far inside each patch, mm")
-    )
-    device: str | None = field(default=None, metadata=_h("torch device (null: cpu)"))
+    size: Literal["small", "full"] = option("small", "small: the shipped simulate.yaml (400 x "
+                                                     "384 px, ColorChecker); full: "
+                                                     "simulate_full.yaml (2896 x 2784 px, "
+                                                     "ColorChecker, USAF, CAVE when "
+                                                     "$HSI_TORCH_DATA holds it)")
+    simulate_config: str | None = option(None, "simulate config (shipped name or YAML path); "
+                                               "null: the size's, or the resolved_config.yaml of "
+                                               "ideal_captures")
+    simulate_set: list[str] = option(text="extra --set overrides of the simulate config",
+                                     factory=list)
+    effects: list[str] = option(text="rows besides the ideal one: names of DOCUMENTED_EFFECTS, "
+                                "'all' (every effect together) and 'all-<effect>' (all but that "
+                                "one, with every remedy but its own)",
+                                factory=lambda: [*DOCUMENTED_EFFECTS, "all"])
+    remedies: bool = option(True, "also score each effect's remedy")
+    noise_free: bool = option(False, "no shot/read noise, no quantisation: each effect's own "
+                                     "cost without the noise realisations' spread")
+    ideal_captures: Path | None = option(None, "an existing ideal capture set (read only; "
+                                               "linked, never written) for the ideal row; null: "
+                                               "simulate it")
+    ideal_bundle: Path | None = option(None, "that set's calibration bundle (with "
+                                             "ideal_captures); null: calibrate it")
+    calibrate_set: list[str] = option(text="--set overrides of the shipped calibrate.yaml for "
+                                      "every row (default: a veil outside the views warns "
+                                      "instead of stopping the row)",
+                                      factory=lambda: ["pedestal_check=warn"])
+    beta: float = option(DEFAULT_BETA, "reconstruction smoothness weight")
+    erode_mm: float = option(0.3, "ColorChecker patch interiors: this far inside each patch, mm")
+    device: str | None = option(None, "torch device (null: cpu)")
 
     def __post_init__(self) -> None:
         known = {*DOCUMENTED_EFFECTS, "all", *(f"all-{e}" for e in DOCUMENTED_EFFECTS)}
@@ -353,8 +304,7 @@ def _bundle(cfg: MismatchConfig, captures: Path, path: Path,
         del bundle
         gc.collect()
         tag = " (shipped defaults)" if remedy is None else " (remedy)" if remedy else ""
-        info(f"  calibrated {captures.parent.name}{tag} in "
-             f"{time.perf_counter() - t0:.0f} s")
+        info(f"  calibrated {captures.parent.name}{tag} in {time.perf_counter() - t0:.0f} s")
     return path
 
 

@@ -26,8 +26,7 @@ from torch import Tensor
 from hsi_torch.calibrate import brf_transmittance
 from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
-from hsi_torch.config import load_config
-from hsi_torch.devices import torch_dtype
+from hsi_torch.config import load_config, option
 from hsi_torch.experiments import report
 from hsi_torch.experiments.opd_estimate import (
     OPDEstimate,
@@ -63,9 +62,7 @@ __all__ = [
 ]
 
 
-# =============================================================================================
-# inputs
-# =============================================================================================
+# --- inputs
 
 
 @dataclass
@@ -86,8 +83,8 @@ class OPDInputSpec:
     """
 
     kind: Literal["truth", "oracle", "calibrated", "scan", "bundle", "csv"]
-    name: str | None = field(default=None, metadata={"help": "label (default: the kind)"})
-    path: Path | None = field(default=None, metadata={"help": "bundle .npz or CSV file"})
+    name: str | None = option(None, "label (default: the kind)")
+    path: Path | None = option(None, "bundle .npz or CSV file")
 
 
 @dataclass
@@ -97,11 +94,9 @@ class OPDPointsSpec:
     ``ring_fraction`` of the way to the vertices (and edge midpoints)."""
 
     num_ring: int = 6
-    ring_fraction: float = field(
-        default=0.35, metadata={"help": "0.35 keeps the ring clear of the BRF-free disk"})
-    min_modulation: float = field(
-        default=0.2, metadata={"help": "fitted amplitude/offset below this: 'unmodulated', "
-                                        "left out of the error statistics"})
+    ring_fraction: float = option(0.35, "0.35 keeps the ring clear of the BRF-free disk")
+    min_modulation: float = option(0.2, "fitted amplitude/offset below this: 'unmodulated', left "
+                                        "out of the error statistics")
 
 
 @dataclass
@@ -123,36 +118,24 @@ OPD_METRICS_NOTE = ("The field's reconstruction metrics (hsi_torch.metrics: PSNR
                     "differences (nm) with the ray tracer's.")
 
 
-def _default_inputs() -> list[OPDInputSpec]:
-    return [OPDInputSpec("truth")]
-
-
 @dataclass
 class OPDConfig:
     """``hsi-torch experiment opd`` configuration (see docs/experiments.md)."""
 
-    prototype: Path | None = field(
-        default=None, metadata={"help": "SimulateConfig YAML of the design (null: the shipped "
-                                        "simulate.yaml, the default prototype)"})
+    prototype: Path | None = option(None, "SimulateConfig YAML of the design (null: the shipped "
+                                          "simulate.yaml, the default prototype)")
     prototype_overrides: list[str] = field(
         default_factory=list, metadata={"help": "key=value overrides of the prototype config"})
-    capture_set: Path | None = field(
-        default=None, metadata={"help": "existing simulated capture set; null: simulate one "
-                                        "into OUT/capture_set when an input needs it"})
-    inputs: list[OPDInputSpec] = field(default_factory=_default_inputs)
+    capture_set: Path | None = option(None, "existing simulated capture set; null: simulate one "
+                                            "into OUT/capture_set when an input needs it")
+    inputs: list[OPDInputSpec] = field(default_factory=lambda: [OPDInputSpec("truth")])
     points: OPDPointsSpec = field(default_factory=OPDPointsSpec)
     estimator: OPDEstimatorSpec = field(default_factory=OPDEstimatorSpec)
-    prediction_wavelength_nm: float = field(
-        default=550.0, metadata={"help": "wavelength of the listed phase OPD"})
-    calibrate_config: Path | None = field(
-        default=None, metadata={"help": "calibration config for kind 'calibrated'"})
+    prediction_wavelength_nm: float = option(550.0, "wavelength of the listed phase OPD")
+    calibrate_config: Path | None = option(None, "calibration config for kind 'calibrated'")
     dtype: Literal["float32", "float64"] = "float64"
     device: str | None = None
     progress: bool = True
-
-
-def _needs_capture_set(kind: str) -> bool:
-    return kind in ("oracle", "calibrated", "scan")
 
 
 def _load_prototype(cfg: OPDConfig):
@@ -229,9 +212,7 @@ def _memory_truth(renderer: Any, progress: bool) -> dict[str, Any]:
             "reference_bbox": torch.tensor(lay.reference_bbox)}
 
 
-# =============================================================================================
-# the experiment
-# =============================================================================================
+# --- the experiment
 
 
 def _rows_for(name: str, mp: MeasuredPoints, est: OPDEstimate, match: dict[str, Tensor],
@@ -375,8 +356,7 @@ def _plot_polar(path: Path, pred: PredictedViews, rows: list[dict[str, Any]], ex
     ax.scatter(ms, ma, s=260, facecolors="none", edgecolors=cmap(norm(view_group)), lw=2.2,
                zorder=3, label="predicted views (outline: ray-traced group OPD)")
     for v in range(lay.num_views):
-        ax.annotate(f"v{v}", (ms[v], ma[v]), xytext=(8, 8), textcoords="offset points",
-                    fontsize=8)
+        ax.annotate(f"v{v}", (ms[v], ma[v]), xytext=(8, 8), textcoords="offset points", fontsize=8)
     sc = ax.scatter([math.radians(r["sigma_deg"]) for r in rows],
                     [r["alpha_deg"] for r in rows], c=vals, cmap=cmap, norm=norm, marker="s",
                     s=24, edgecolors="k", lw=0.3, zorder=4, label="estimated (fit)")
@@ -429,11 +409,7 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     Returns:
         The summary dict (statistics per input, notes, timings).
     """
-    t_all = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(device or cfg.device or "cpu")
-    dt = torch_dtype(cfg.dtype)
+    t_all, out, dev, dt = report.start_run(out, cfg, device)
     if not cfg.inputs:
         raise ValueError("opd: `inputs` is empty")
     names = [i.name or i.kind for i in cfg.inputs]
@@ -443,7 +419,7 @@ def run_opd(cfg: OPDConfig, out: str | Path, *, device: str | None = None) -> di
     timings: dict[str, float] = {}
     notes: list[str] = []
     capture_set = cfg.capture_set
-    if any(_needs_capture_set(i.kind) for i in cfg.inputs) and capture_set is None:
+    if any(i.kind in ("oracle", "calibrated", "scan") for i in cfg.inputs) and capture_set is None:
         capture_set = out / "capture_set"
         if not (capture_set / "ground_truth" / "truth.npz").is_file():
             t0 = time.perf_counter()

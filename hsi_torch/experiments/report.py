@@ -10,11 +10,15 @@ import csv
 import io
 import math
 import os
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+import torch
+
 from hsi_torch.console import progress_bar, progress_enabled
+from hsi_torch.devices import torch_dtype
 from hsi_torch.io.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = [
@@ -25,6 +29,7 @@ __all__ = [
     "new_figure",
     "save_figure",
     "progress",
+    "start_run",
 ]
 
 T = TypeVar("T")
@@ -129,3 +134,14 @@ def progress(
     if not progress_enabled(enable):
         return iterable
     return progress_bar(iterable, desc=desc, total=total)
+
+
+def start_run(out: str | os.PathLike, cfg: Any, device: str | None
+              ) -> tuple[float, Path, torch.device, torch.dtype]:
+    """The start of an experiment's run: ``(t0, out, device, dtype)`` — the start time
+    (``time.perf_counter``), ``out`` as a created folder, the torch device (``device``, else
+    ``cfg.device``, else the CPU) and the torch dtype of ``cfg.dtype``."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return t0, out, torch.device(device or cfg.device or "cpu"), torch_dtype(cfg.dtype)

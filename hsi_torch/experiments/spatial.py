@@ -1,26 +1,16 @@
-"""Per-pixel vs spatial-spectral reconstruction (``hsi-torch experiment spatial``).
+"""Per-pixel vs spatial-spectral reconstruction (``hsi-torch experiment spatial``; the outputs,
+method and measured numbers are in docs/experiments.md, *Per-pixel vs spatial-spectral*, and
+docs/spatial.md).
 
-Every scene of a simulated capture set with ground truth is reconstructed with the per-pixel
-NNLS solver (``prior="none"``) and with the total-variation prior (``prior="tv"``,
-:mod:`hsi_torch.recon.spatial`) at each ``lams`` entry (a relative weight, or ``auto`` for the
-discrepancy principle), from the same bundle and ``β``. Scores against the truth
-(:mod:`hsi_torch.experiments.metrics`, reflectance, PSNR = 10·log10(1/MSE), SAM in degrees):
-
-* per pixel over the scene's footprint (valid pixels where the truth is non-zero) and over its
-  brighter half (true mean reflectance ≥ the median): PSNR, mean and median SAM;
-* ColorChecker also: per pixel over whole patches (edges included), and the per-patch mean
-  spectrum over whole patches and over patch interiors (``erode_mm`` inside), mean over patches.
-
-Writes ``table.md`` / ``table.csv`` (one row per scene × method; ``solve s`` is the solve stage
-of the frame, per-pixel NNLS included for the TV rows), ``summary.json`` (all scores, the chosen
-``λ`` and noise level, timings), ``<scene>_error.png`` (per-pixel RMS error over bands
-for each method, one colour scale) and ``<scene>_spectra.png`` (truth and each method at a few
-pixels, on edges and inside regions).
-
-The capture set: ``captures`` (e.g. the ``captures`` folder of ``hsi-torch demo``), or, when
-null, a fresh simulation of the prototype (``prototype`` + ``prototype_overrides``) with the
-ColorChecker, the real CAVE scene when the real-data folder holds it, and a USAF target. The
-bundle: ``oracle`` (the simulator's truth) or the path of a calibrated bundle ``.npz``.
+Every scene of a simulated capture set with ground truth (``captures``, or a fresh simulation of
+``prototype`` when null) is reconstructed from one bundle (``oracle`` or a ``.npz`` path) and
+``β`` with the per-pixel NNLS solver and with the TV prior (:mod:`hsi_torch.recon.spatial`) at
+each ``lams`` entry, and scored against the truth (:mod:`hsi_torch.experiments.metrics`,
+reflectance, PSNR = 10·log10(1/MSE), SAM in degrees) per pixel over the scene's footprint (valid
+pixels where the truth is non-zero) and its brighter half (true mean reflectance ≥ the median);
+the ColorChecker also over whole patches and as per-patch mean spectra (whole patches and
+interiors, ``erode_mm`` inside). ``solve s`` in the table is the frame's solve stage, per-pixel
+NNLS included for the TV rows.
 """
 
 from __future__ import annotations
@@ -34,18 +24,16 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import torch
 
-from hsi_torch.config import load_config
+from hsi_torch.config import load_config, option
 from hsi_torch.console import info as log
-from hsi_torch.devices import torch_dtype
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
     colorchecker_scores,
     cube_scores,
     erode_px,
 )
-from hsi_torch.experiments.report import new_figure, save_figure
+from hsi_torch.experiments.report import new_figure, save_figure, start_run
 from hsi_torch.io.atomic import atomic_write_json, atomic_write_text
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_set import read_truth
@@ -67,27 +55,23 @@ def _h(text: str) -> dict[str, str]:
 class SpatialConfig:
     """``hsi-torch experiment spatial`` configuration (see the module docstring)."""
 
-    captures: Path | None = field(
-        default=None, metadata=_h("simulated capture set with ground truth (e.g. a demo's "
-                                  "captures folder); null: simulate one into OUT/captures"))
-    prototype: Path | None = field(
-        default=None, metadata=_h("when simulating: SimulateConfig YAML (null: the shipped "
-                                  "simulate.yaml, the small default prototype)"))
-    prototype_overrides: list[str] = field(
-        default_factory=list, metadata=_h("when simulating: overrides of the prototype config"))
-    bundle: str = field(default="oracle", metadata=_h("oracle | path to a bundle .npz"))
-    beta: float = field(default=1e4, metadata=_h("spectral smoothness weight (DN^2)"))
+    captures: Path | None = option(None, "simulated capture set with ground truth (e.g. a demo's "
+                                         "captures folder); null: simulate one into OUT/captures")
+    prototype: Path | None = option(None, "when simulating: SimulateConfig YAML (null: the "
+                                          "shipped simulate.yaml, the small default prototype)")
+    prototype_overrides: list[str] = option(text="when simulating: overrides of the prototype "
+                                                 "config", factory=list)
+    bundle: str = option("oracle", "oracle | path to a bundle .npz")
+    beta: float = option(1e4, "spectral smoothness weight (DN^2)")
     diff_order: int = 1
     lams: list[float | Literal["auto", "discrepancy"]] = field(
         default_factory=lambda: [DEFAULT_LAM, "auto"],
         metadata=_h("TV weights to compare with per-pixel: relative lam values, auto (SURE), "
                    "discrepancy"))
-    ranks: list[int] = field(
-        default_factory=list,
-        metadata=_h("also the TV on k leading spectral components (spectral_rank), at the first "
-                    "numeric lams entry (default lam if none), for each k listed"))
-    erode_mm: float = field(
-        default=0.3, metadata=_h("ColorChecker interiors: mm inside a patch on the diffuser"))
+    ranks: list[int] = option(text="also the TV on k leading spectral components "
+                                   "(spectral_rank), at the first numeric lams entry (default "
+                                   "lam if none), for each k listed", factory=list)
+    erode_mm: float = option(0.3, "ColorChecker interiors: mm inside a patch on the diffuser")
     scenes: list[str] = field(
         default_factory=list, metadata=_h("scene names to score (empty: every scene with truth)"))
     seed: int = 0
@@ -179,8 +163,7 @@ def _fmt(v: Any, key: str = "") -> str:
 
 
 def _write_tables(out: Path, rows: list[dict[str, Any]]) -> str:
-    lines = ["| " + " | ".join(h for _, h in _COLUMNS) + " |",
-             "|" + "---|" * len(_COLUMNS)]
+    lines = ["| " + " | ".join(h for _, h in _COLUMNS) + " |", "|" + "---|" * len(_COLUMNS)]
     for r in rows:
         lines.append("| " + " | ".join(_fmt(r[k], k) for k, _ in _COLUMNS) + " |")
     md = "\n".join(lines) + "\n"
@@ -246,11 +229,8 @@ def run_spatial(cfg: SpatialConfig, out: str | Path, *, device: str | None = Non
                 ) -> dict[str, Any]:
     """Run the comparison (see the module docstring); returns the summary written to
     ``out/summary.json``."""
-    t_all = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = torch_dtype(cfg.dtype)
+    t_all, out, dev, dt = start_run(out, cfg, device)
+    dev = str(dev)
     oracle = cfg.bundle == "oracle"
     cs = Path(cfg.captures) if cfg.captures is not None else _simulate(cfg, out, dev, oracle)
     truth, _ = read_truth(cs)

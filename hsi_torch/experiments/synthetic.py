@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from hsi_torch import refdata
-from hsi_torch.devices import torch_dtype
+from hsi_torch.config import option
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -86,8 +86,7 @@ def default_betas() -> list[float]:
     return [0.0] + [float(v) for v in np.logspace(-2, 6, 17)]
 
 
-# ---------------------------------------------------------------------------------------------
-# configuration
+# --- configuration
 
 
 @dataclass
@@ -115,42 +114,26 @@ class DesignSpec:
 
     kind: Literal["this_system", "bundle", "three_camera", "faced_reflectors", "csv", "manakov",
                   "fujimoto"]
-    name: str | None = field(default=None, metadata={"help": "label (default from the kind)"})
-    camera: str = field(
-        default=refdata.DEFAULT_CAMERA,
-        metadata={"help": "camera sensitivities (name, CSV or JSON) for this_system/faced"},
-    )
+    name: str | None = option(None, "label (default from the kind)")
+    camera: str = option(refdata.DEFAULT_CAMERA, "camera sensitivities (name, CSV or JSON) for "
+                                                 "this_system/faced")
     cameras: list[str] = field(
         default_factory=lambda: list(DEFAULT_3CAMERA),
         metadata={"help": "three_camera: camera names or CSV/JSON files"},
     )
-    filter: str = field(
-        default=DEFAULT_FACED_FILTER, metadata={"help": "faced_reflectors: Lee code or CSV"}
-    )
-    bounces: int = field(default=DEFAULT_FACED_BOUNCES, metadata={"help": "faced: N (i = 0…N)"})
-    path: Path | None = field(default=None, metadata={"help": "bundle .npz or design CSV"})
-    pixel: list[int] | None = field(
-        default=None, metadata={"help": "bundle: [row, col] reference-frame pixel; None = mean"}
-    )
-    scene_point: str = field(
-        default="centre", metadata={"help": "this_system: 'centre' or 'mean' (of 7 points)"}
-    )
-    scene_point_mm: list[float] | None = field(
-        default=None, metadata={"help": "this_system: (X, Y) diffuser point in mm (overrides)"}
-    )
-    includes_illuminant: bool = field(
-        default=False, metadata={"help": "csv: responses already include the illuminant"}
-    )
-    geometry: dict[str, Any] = field(
-        default_factory=dict, metadata={"help": "this_system: KaleidoscopeGeometry overrides"}
-    )
-    brf: dict[str, Any] = field(
-        default_factory=dict, metadata={"help": "this_system/fujimoto: BRFConfig overrides"}
-    )
-    design: dict[str, Any] = field(
-        default_factory=dict,
-        metadata={"help": "manakov/fujimoto: PrototypeDesign overrides (filters, grains)"},
-    )
+    filter: str = option(DEFAULT_FACED_FILTER, "faced_reflectors: Lee code or CSV")
+    bounces: int = option(DEFAULT_FACED_BOUNCES, "faced: N (i = 0…N)")
+    path: Path | None = option(None, "bundle .npz or design CSV")
+    pixel: list[int] | None = option(None, "bundle: [row, col] reference-frame pixel; None = mean")
+    scene_point: str = option("centre", "this_system: 'centre' or 'mean' (of 7 points)")
+    scene_point_mm: list[float] | None = option(None, "this_system: (X, Y) diffuser point in mm "
+                                                      "(overrides)")
+    includes_illuminant: bool = option(False, "csv: responses already include the illuminant")
+    geometry: dict[str, Any] = option(text="this_system: KaleidoscopeGeometry overrides",
+                                      factory=dict)
+    brf: dict[str, Any] = option(text="this_system/fujimoto: BRFConfig overrides", factory=dict)
+    design: dict[str, Any] = option(text="manakov/fujimoto: PrototypeDesign overrides (filters, "
+                                         "grains)", factory=dict)
 
     def __post_init__(self) -> None:
         if self.kind in ("bundle", "csv") and self.path is None:
@@ -174,31 +157,24 @@ class SyntheticConfig:
     """Configuration of ``hsi-torch experiment synthetic``."""
 
     wavelengths: GridSpec = field(default_factory=GridSpec)
-    illuminant: str = field(default="D65", metadata={"help": "CIE name or CSV, for every design"})
-    reflectances: str = field(
-        default="ColorChecker N Ohta",
-        metadata={"help": "ColorChecker name, '190 patches' or a CSV wavelength,r1..rK"},
-    )
-    noise_sigmas: list[float] = field(
-        default_factory=lambda: [0.5, 1.0, 2.0, 4.0], metadata={"help": "Gaussian noise σ (DN)"}
-    )
-    num_seeds: int = field(default=5, metadata={"help": "noise realisations per σ"})
-    seed: int = field(default=0, metadata={"help": "first seed (seeds are seed … seed+n−1)"})
-    betas: list[float] | None = field(
-        default=None, metadata={"help": "β sweep; None = [0] + logspace(-2, 6, 17)"}
-    )
-    peak_dn: float = field(default=255.0, metadata={"help": "exposure matching target (DN)"})
-    diff_order: int = field(default=1, metadata={"help": "smoothness operator order (1 or 2)"})
+    illuminant: str = option("D65", "CIE name or CSV, for every design")
+    reflectances: str = option("ColorChecker N Ohta", "ColorChecker name, '190 patches' or a CSV "
+                                                      "wavelength,r1..rK")
+    noise_sigmas: list[float] = option(text="Gaussian noise σ (DN)",
+                                       factory=lambda: [0.5, 1.0, 2.0, 4.0])
+    num_seeds: int = option(5, "noise realisations per σ")
+    seed: int = option(0, "first seed (seeds are seed … seed+n−1)")
+    betas: list[float] | None = option(None, "β sweep; None = [0] + logspace(-2, 6, 17)")
+    peak_dn: float = option(255.0, "exposure matching target (DN)")
+    diff_order: int = option(1, "smoothness operator order (1 or 2)")
     dtype: Literal["float32", "float64"] = "float64"
-    device: str | None = field(default=None, metadata={"help": "torch device (None = cpu)"})
-    reference: str = field(
-        default="3Camera", metadata={"help": "design the margins are measured against"}
-    )
+    device: str | None = option(None, "torch device (None = cpu)")
+    reference: str = option("3Camera", "design the margins are measured against")
     spectra_patches: list[int] = field(
         default_factory=lambda: [0, 2, 7, 11, 13, 15],
         metadata={"help": "patches drawn in spectra.png"},
     )
-    spectra_sigma: float = field(default=1.0, metadata={"help": "σ of spectra.png"})
+    spectra_sigma: float = option(1.0, "σ of spectra.png")
     progress: bool = True
     designs: list[DesignSpec] = field(default_factory=_default_designs)
 
@@ -271,8 +247,7 @@ def build_design(
     raise ValueError(f"unknown design kind {spec.kind!r}")
 
 
-# ---------------------------------------------------------------------------------------------
-# the experiment's machinery
+# --- the experiment's machinery
 
 
 def peak_matching_gain(matrix: Tensor, reflectances: Tensor, peak_dn: float = 255.0) -> Tensor:
@@ -448,8 +423,7 @@ def evaluate_design(
     )  # fmt: skip
 
 
-# ---------------------------------------------------------------------------------------------
-# figures
+# --- figures
 
 
 def _plot_psnr(out: Path, rows: list[dict[str, Any]], names: list[str]) -> None:
@@ -520,8 +494,7 @@ def _plot_responses(out: Path, designs: list[SensingDesign], scales: list[float]
     report.save_figure(fig, out / "responses.png")
 
 
-# ---------------------------------------------------------------------------------------------
-# the command
+# --- the command
 
 
 def run_synthetic(
@@ -534,11 +507,7 @@ def run_synthetic(
         The summary dict (also written as ``summary.json``): per design and σ the rows of
         ``results.csv``, the margin of every design over ``cfg.reference`` per σ, timings.
     """
-    t0 = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = torch.device(device or cfg.device or "cpu")
-    dt = torch_dtype(cfg.dtype)
+    t0, out, dev, dt = report.start_run(out, cfg, device)
     grid = cfg.wavelengths.grid()
     refl, patch_names = refdata.reflectance_set(cfg.reflectances, grid, device=dev, dtype=dt)
     seeds = list(range(cfg.seed, cfg.seed + cfg.num_seeds))

@@ -148,8 +148,7 @@ def phi_matrix(
     return f * l_
 
 
-# ---------------------------------------------------------------------------------------------
-# this system: rays through the kaleidoscope
+# --- this system: rays through the kaleidoscope
 
 
 def scene_points(geometry: Any, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -362,8 +361,7 @@ def _coded_design(
     else:
         fac = design.grain_factor(pts)  # (1,)
         opd = brf_.opd_nm(alpha[..., None], sigma[..., None], wl) * fac[:, None, None]
-        t = polarizer_transmittance(opd, wl, np.radians(brf_.psi_deg),
-                                    np.radians(brf_.chi_deg))
+        t = polarizer_transmittance(opd, wl, np.radians(brf_.psi_deg), np.radians(brf_.chi_deg))
         info.update(brf=brf_.to_dict(), grain_factor=float(fac[0]),
                     opd_nm_550=(brf_.opd_nm(alpha, sigma, torch.tensor(550.0, dtype=torch.float64))
                                 * fac[:, None])[0].tolist())

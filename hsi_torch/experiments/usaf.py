@@ -36,8 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hsi_torch.config import load_config, to_dict
-from hsi_torch.devices import torch_dtype
+from hsi_torch.config import load_config, option, to_dict
 from hsi_torch.experiments import report
 from hsi_torch.experiments.metrics import (
     METRIC_FORMATS,
@@ -78,9 +77,7 @@ __all__ = [
 ABLATIONS = ("diffuser", "warp", "demosaic", "noise", "beta")
 
 
-# =============================================================================================
-# contrast criterion
-# =============================================================================================
+# --- contrast criterion
 
 
 def michelson_bar_contrast(bars: Tensor, gaps: Tensor) -> Tensor:
@@ -105,8 +102,7 @@ def michelson_bar_contrast(bars: Tensor, gaps: Tensor) -> Tensor:
     return torch.where(nan, torch.full_like(c, float("nan")), c)
 
 
-def triplet_sample_points(element: Any, length_fraction: float = 0.6, n_along: int = 7
-                          ) -> Tensor:
+def triplet_sample_points(element: Any, length_fraction: float = 0.6, n_along: int = 7) -> Tensor:
     """``(5, n_along, 2)`` diffuser points (mm) of a bar triplet: rows 0, 2, 4 = bar centres,
     rows 1, 3 = gap centres, each at ``n_along`` positions along the central ``length_fraction``
     of the bars. ``element``: a :class:`~hsi_torch.simulate.scenes.USAFElement`."""
@@ -190,9 +186,7 @@ def elements_below(lp_mm: Tensor, reference_lp_mm: float) -> list[int | None]:
     return out
 
 
-# =============================================================================================
-# RGB reference (no add-on)
-# =============================================================================================
+# --- RGB reference (no add-on)
 
 
 def rgb_reference(renderer: Any, scene: Any, *, seed: int = 0, supersample: int | None = None,
@@ -277,9 +271,7 @@ def ideal_observations(rec: Reconstructor, renderer: Any, scene: Any, *, noise: 
     return cube, valid, info
 
 
-# =============================================================================================
-# config and run
-# =============================================================================================
+# --- config and run
 
 
 @dataclass
@@ -287,10 +279,9 @@ class USAFTargetSpec:
     """The USAF 1951 scene (:class:`~hsi_torch.simulate.scenes.USAF1951Scene` parameters)."""
 
     groups: list[int] = field(default_factory=lambda: [-2, -1, 0, 1])
-    magnification: float = field(
-        default=0.0625, metadata={"help": "diffuser mm per target mm (r(G,E) in target lp/mm); "
-                                          "1/16 puts the full-size RGB reference's limit at "
-                                          "G0 E2 = 1.12 lp/mm"})
+    magnification: float = option(0.0625, "diffuser mm per target mm (r(G,E) in target lp/mm); "
+                                          "1/16 puts the full-size RGB reference's limit at G0 "
+                                          "E2 = 1.12 lp/mm")
     center_mm: list[float] = field(default_factory=lambda: [0.0, 0.3])
     bar_reflectance: float = 0.9
     background_reflectance: float = 0.05
@@ -300,37 +291,31 @@ class USAFTargetSpec:
 class USAFConfig:
     """``hsi-torch experiment usaf`` configuration (see docs/experiments.md)."""
 
-    prototype: Path | None = field(
-        default=None, metadata={"help": "SimulateConfig YAML of the prototype (null: the "
-                                        "shipped simulate_full.yaml, the full-size prototype)"})
+    prototype: Path | None = option(None, "SimulateConfig YAML of the prototype (null: the "
+                                          "shipped simulate_full.yaml, the full-size prototype)")
     prototype_overrides: list[str] = field(
         default_factory=lambda: ["diffuser.blur_sigma_mm=0.01"],
         metadata={"help": "overrides of the prototype config (default: a fine ground-glass "
                           "diffuser, σ = 10 µm; docs/experiments.md says why)"})
     target: USAFTargetSpec = field(default_factory=USAFTargetSpec)
-    bundle: str = field(
-        default="oracle", metadata={"help": "oracle | calibrated | path to a bundle .npz"})
+    bundle: str = option("oracle", "oracle | calibrated | path to a bundle .npz")
     calibrate_config: Path | None = None
-    capture_set: Path | None = field(
-        default=None, metadata={"help": "reuse this capture set (a previous run's "
-                                        "OUT/capture_set) instead of simulating one; refused "
-                                        "unless it was simulated with the very prototype, "
-                                        "target and ablations this run would simulate"})
-    beta: float = field(default=1000.0, metadata={"help": "smoothness weight (DN² scale)"})
+    capture_set: Path | None = option(None, "reuse this capture set (a previous run's "
+                                            "OUT/capture_set) instead of simulating one; refused "
+                                            "unless it was simulated with the very prototype, "
+                                            "target and ablations this run would simulate")
+    beta: float = option(1000.0, "smoothness weight (DN² scale)")
     diff_order: int = 1
-    prior: Literal["none", "tv"] = field(
-        default="none", metadata={"help": "none: per-pixel NNLS; tv: spatial-spectral (TV)"})
-    lam: float | Literal["auto", "discrepancy"] = field(
-        default=DEFAULT_LAM, metadata={"help": "prior=tv: relative TV weight (see the "
-                                               "reconstruct config), auto (SURE) or "
-                                               "discrepancy"})
-    ablate: list[str] = field(
-        default_factory=list,
-        metadata={"help": "factors switched off (ablation): diffuser (no diffuser blur), warp "
-                          "(ideally registered observations: no view sampling, warp or "
-                          "demosaic), demosaic (full-RGB sensor), noise (no shot/read noise, "
-                          "no quantisation), beta (beta = 0)"})
-    threshold: float = field(default=0.1, metadata={"help": "Michelson contrast to resolve"})
+    prior: Literal["none", "tv"] = option("none", "none: per-pixel NNLS; tv: spatial-spectral (TV)")
+    lam: float | Literal["auto", "discrepancy"] = option(
+        DEFAULT_LAM, "prior=tv: relative TV weight (see the reconstruct config), auto (SURE) or "
+                     "discrepancy")
+    ablate: list[str] = option(text="factors switched off (ablation): diffuser (no diffuser "
+                               "blur), warp (ideally registered observations: no view sampling, "
+                               "warp or demosaic), demosaic (full-RGB sensor), noise (no "
+                               "shot/read noise, no quantisation), beta (beta = 0)",
+                               factory=list)
+    threshold: float = option(0.1, "Michelson contrast to resolve")
     orientation: Literal["both", "horizontal", "vertical", "either"] = "both"
     length_fraction: float = 0.6
     n_along: int = 7
@@ -397,8 +382,7 @@ def check_reusable_capture_set(path: Path, expected: list[SimulateConfig]) -> No
     path = Path(path)
     for need in ("manifest.json", "resolved_config.yaml", "ground_truth/truth.npz"):
         if not (path / need).is_file():
-            raise ValueError(f"capture_set: {path} is not a complete capture set "
-                             f"({need} missing)")
+            raise ValueError(f"capture_set: {path} is not a complete capture set ({need} missing)")
 
     def flat(d: Any, pre: tuple = ()) -> dict[tuple, Any]:
         if isinstance(d, dict):
@@ -450,11 +434,8 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
     Returns:
         The summary dict (limits per band and for the RGB reference, scale, timings).
     """
-    t_all = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dev = str(torch.device(device or cfg.device or "cpu"))
-    dt = torch_dtype(cfg.dtype)
+    t_all, out, dev, dt = report.start_run(out, cfg, device)
+    dev = str(dev)
     cfg.__post_init__()  # the ablation list and beta may have been edited after construction
     ablate = list(cfg.ablate)
     ideal = "warp" in ablate
@@ -475,8 +456,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
         cs = Path(cfg.capture_set)
         check_reusable_capture_set(cs, [sim_cs, sim] if ideal else [sim_cs])
     else:
-        simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress,
-                             log=lambda *a: None)
+        simulate_capture_set(sim_cs, cs, device=dev, progress=cfg.progress, log=lambda *a: None)
     tm["simulate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.bundle == "oracle":
@@ -522,8 +502,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
             [[e.bbox_mm[0], e.bbox_mm[2]], [e.bbox_mm[1], e.bbox_mm[3]]], dtype=torch.float64))
         xa, ya = [int(math.floor(v)) for v in bx[0].tolist()]
         xb, yb = [int(math.ceil(v)) for v in bx[1].tolist()]
-        ok = 0 <= xa and 0 <= ya and xb < w and yb < h and bool(valid[ya:yb + 1, xa:xb + 1]
-                                                               .all())
+        ok = 0 <= xa and 0 <= ya and xb < w and yb < h and bool(valid[ya:yb + 1, xa:xb + 1].all())
         box_ok.append(ok)
     cube = res.cube.detach().to("cpu", torch.float64)
     c_hsi = element_contrasts(cube, pts_px)  # (M, T)
@@ -569,8 +548,7 @@ def run_usaf(cfg: USAFConfig, out: str | Path, *, device: str | None = None) -> 
                      "horizontal": ge(int(orient["horizontal"][0][mi])),
                      "vertical": ge(int(orient["vertical"][0][mi])),
                      "elements_below_rgb": steps[mi]})
-    rnames = ["RGB reference (R)", "RGB reference (G)", "RGB reference (B)",
-              "RGB reference (gray)"]
+    rnames = ["RGB reference (R)", "RGB reference (G)", "RGB reference (B)", "RGB reference (gray)"]
     for ci, nm in enumerate(rnames):
         rows.append({"image": nm, "wavelength_nm": None, "finest": ge(int(idx_r[ci])),
                      "lp_per_mm_target": float(f_r[ci]),
@@ -672,8 +650,7 @@ def _plot_side_by_side(path: Path, band_img: Tensor, rgb: Tensor, renderer: Any,
     img = band_img.numpy()
     finite = img[np.isfinite(img)]
     hi = float(np.percentile(finite, 99.5)) if finite.size else 1.0
-    axes[0].imshow(np.ma.masked_invalid(img), cmap="gray", vmin=0, vmax=hi,
-                   interpolation="nearest")
+    axes[0].imshow(np.ma.masked_invalid(img), cmap="gray", vmin=0, vmax=hi, interpolation="nearest")
     disp = (rgb / rgb.amax().clamp_min(1e-9)).clamp(0, 1).permute(1, 2, 0).numpy() ** (1 / 2.2)
     axes[1].imshow(disp, interpolation="nearest")
     for ax, i, title in ((axes[0], i_hsi, f"HSI reconstruction, {lam:g} nm band"),

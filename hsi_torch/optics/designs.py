@@ -40,8 +40,7 @@ def gaussian_bandpass(
 ) -> torch.Tensor:
     """``(F, L)`` Gaussian band-pass transmittances ``peak · exp(−(λ − c)² / 2σ²)``,
     ``σ = FWHM / (2 √(2 ln 2))``, at ``wavelengths_nm (L,)`` (nm)."""
-    c = torch.as_tensor(list(centers_nm), dtype=wavelengths_nm.dtype,
-                        device=wavelengths_nm.device)
+    c = torch.as_tensor(list(centers_nm), dtype=wavelengths_nm.dtype, device=wavelengths_nm.device)
     sig = float(fwhm_nm) * _FWHM_TO_SIGMA
     return float(peak) * torch.exp(-0.5 * ((wavelengths_nm[None, :] - c[:, None]) / sig) ** 2)
 

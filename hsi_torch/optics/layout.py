@@ -76,10 +76,6 @@ def brf_free_mask(geometry: KaleidoscopeGeometry, hit_xy: torch.Tensor) -> torch
     return geometry.brf_free_mask(hit_xy)
 
 
-def _circular_mean(a: torch.Tensor) -> torch.Tensor:
-    return torch.atan2(torch.sin(a).mean(), torch.cos(a).mean())
-
-
 @dataclass
 class ViewLayout:
     """Per-view geometry on the sensor (``V`` views; view 0 = reference, zero reflections).
@@ -298,7 +294,7 @@ def build_view_layout(
         tris.append(apply_homography(hmat, verts))
         par.append(1 - 2 * (len(trace.sequences[i]) % 2))
         ma.append(alpha[sel].mean())
-        ms.append(_circular_mean(sigma[sel]))
+        ms.append(torch.atan2(torch.sin(sigma[sel]).mean(), torch.cos(sigma[sel]).mean()))
         wl = torch.tensor(opd_wavelength_nm, device=dev, dtype=torch.float64)
         opd.append(brf.opd_nm(alpha[sel], sigma[sel], wl).mean())
         npx.append(sel.numel())

@@ -377,8 +377,7 @@ class SensorModel:
     @property
     def has_fixed_pattern(self) -> bool:
         """PRNU, hot or dead pixels are on."""
-        return (self.prnu_sigma > 0 or self.hot_pixel_fraction > 0
-                or self.dead_pixel_fraction > 0)
+        return (self.prnu_sigma > 0 or self.hot_pixel_fraction > 0 or self.dead_pixel_fraction > 0)
 
     def fixed_pattern(
         self, height: int, width: int, device: torch.device | str | None = None,

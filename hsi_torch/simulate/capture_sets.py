@@ -63,9 +63,7 @@ __all__ = [
 ]
 
 
-# =============================================================================================
-# building blocks from the config
-# =============================================================================================
+# --- building blocks from the config
 
 
 def design_optics(cfg: SimulateConfig) -> tuple[KaleidoscopeGeometry, CameraModel]:
@@ -188,8 +186,7 @@ def plan_captures(
     def add(spec: CaptureSpec, files: list[tuple[str, str, dict]]) -> None:
         specs.append(spec)
         for f, t, extra in files:
-            planned.append(PlannedCapture(spec, f, t, len(specs) - 1, seed0 + len(planned),
-                                          extra))
+            planned.append(PlannedCapture(spec, f, t, len(specs) - 1, seed0 + len(planned), extra))
 
     wl_scan = (cap.scan_wavelengths_nm if cap.scan_wavelengths_nm is not None
                else renderer.wavelengths.tolist())
@@ -228,9 +225,7 @@ def plan_captures(
     return specs, planned, scenes
 
 
-# =============================================================================================
-# nominal layout and BRF-free patch
-# =============================================================================================
+# --- nominal layout and BRF-free patch
 
 
 def brf_free_patch_mask(renderer: CaptureRenderer, margin_px: float = 1.5) -> torch.Tensor:
@@ -291,9 +286,7 @@ def nominal_layout(renderer: CaptureRenderer, patch_mask: torch.Tensor) -> dict[
     }
 
 
-# =============================================================================================
-# the command's work
-# =============================================================================================
+# --- the command's work
 
 
 @dataclass

@@ -24,14 +24,13 @@ and images.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
-from hsi_torch.config import help_meta as _h
+from hsi_torch.config import option
 
-__all__ = ["DOCUMENTED_EFFECTS", "Mismatch", "radial_undistort", "drift_points",
-           "stray_light_veil"]
+__all__ = ["DOCUMENTED_EFFECTS", "Mismatch", "radial_undistort", "drift_points", "stray_light_veil"]
 
 #: Each effect at its documented realistic magnitude (``docs/simulate.md``, "Non-ideal
 #: effects"): ``mismatch.<key>: value`` overrides per effect name. Applied alone or together,
@@ -59,85 +58,48 @@ class Mismatch:
     """
 
     # --- monochromator (scan frames only; calibration takes the manifest's line on trust)
-    scan_wavelength_offset_nm: float = field(
-        default=0.0,
-        metadata=_h("true line centre minus the wavelength the manifest states, nm (scan only)"),
-    )
-    scan_fwhm_actual_nm: float | None = field(
-        default=None,
-        metadata=_h("true line FWHM, nm; null = captures.scan_fwhm_nm (scan only)"),
-    )
+    scan_wavelength_offset_nm: float = option(0.0, "true line centre minus the wavelength the "
+                                                   "manifest states, nm (scan only)")
+    scan_fwhm_actual_nm: float | None = option(None, "true line FWHM, nm; null = "
+                                                     "captures.scan_fwhm_nm (scan only)")
     # --- objective/relay lens (every capture)
-    distortion_k1: float = field(
-        default=0.0,
-        metadata=_h("radial distortion k1 (OpenCV convention, radius in focal lengths)"),
-    )
-    distortion_k2: float = field(default=0.0, metadata=_h("radial distortion k2"))
+    distortion_k1: float = option(0.0, "radial distortion k1 (OpenCV convention, radius in focal "
+                                       "lengths)")
+    distortion_k2: float = option(0.0, "radial distortion k2")
     # --- stray light (every lit capture)
-    stray_light_fraction: float = field(
-        default=0.0,
-        metadata=_h("veiling glare: mean of the veil / mean irradiance of the sensor, per colour"),
-    )
-    stray_light_width: float = field(
-        default=0.5,
-        metadata=_h("Gaussian sigma of the veil around the principal point, in sensor "
-                    "half-diagonals"),
-    )
+    stray_light_fraction: float = option(0.0, "veiling glare: mean of the veil / mean irradiance "
+                                              "of the sensor, per colour")
+    stray_light_width: float = option(0.5, "Gaussian sigma of the veil around the principal "
+                                           "point, in sensor half-diagonals")
     # --- birefringent filter
-    brf_thickness_gradient_um_per_mm: tuple[float, float] = field(
-        default=(0.0, 0.0),
-        metadata=_h("thickness wedge (x, y) across the aperture, um per mm of diffuser"),
-    )
-    brf_thickness_curvature_um: float = field(
-        default=0.0,
-        metadata=_h("quadratic thickness change at the entrance circumradius, um"),
-    )
-    brf_delta_t_k: float = field(
-        default=0.0,
-        metadata=_h("filter temperature at capture minus at calibration, K (scenes only)"),
-    )
-    brf_retardance_temp_coeff_per_k: float = field(
-        default=-1.23e-4,
-        metadata=_h("(1/OPD) dOPD/dT, 1/K (crystal quartz, thickness expansion included)"),
-    )
+    brf_thickness_gradient_um_per_mm: tuple[float, float] = option(
+        (0.0, 0.0), "thickness wedge (x, y) across the aperture, um per mm of diffuser")
+    brf_thickness_curvature_um: float = option(0.0, "quadratic thickness change at the entrance "
+                                                    "circumradius, um")
+    brf_delta_t_k: float = option(0.0, "filter temperature at capture minus at calibration, K "
+                                       "(scenes only)")
+    brf_retardance_temp_coeff_per_k: float = option(
+        -1.23e-4, "(1/OPD) dOPD/dT, 1/K (crystal quartz, thickness expansion included)")
     # --- mechanics (scenes only)
-    drift_shift_px: tuple[float, float] = field(
-        default=(0.0, 0.0),
-        metadata=_h("sensor shift (x, y) relative to the optics since calibration, px "
-                    "(scenes only)"),
-    )
-    drift_rotation_deg: float = field(
-        default=0.0,
-        metadata=_h("sensor rotation about its centre since calibration, deg (scenes only)"),
-    )
+    drift_shift_px: tuple[float, float] = option(
+        (0.0, 0.0), "sensor shift (x, y) relative to the optics since calibration, px (scenes "
+                    "only)")
+    drift_rotation_deg: float = option(0.0, "sensor rotation about its centre since calibration, "
+                                            "deg (scenes only)")
     # --- sensor (every capture; SensorModel fields)
-    sensor_nonlinearity: float = field(
-        default=0.0,
-        metadata=_h("fraction of the charge lost at the full well (0 = linear)"),
-    )
-    sensor_nonlinearity_knee: float = field(
-        default=0.7,
-        metadata=_h("fraction of the full well where the response starts to bend"),
-    )
-    prnu_sigma: float = field(
-        default=0.0, metadata=_h("pixel gain non-uniformity (PRNU), relative sigma")
-    )
-    hot_pixel_fraction: float = field(default=0.0, metadata=_h("fraction of hot pixels"))
-    hot_pixel_level: float = field(
-        default=0.2, metadata=_h("a hot pixel's extra charge, fraction of the full well")
-    )
-    dead_pixel_fraction: float = field(
-        default=0.0, metadata=_h("fraction of dead pixels (no photo-charge)")
-    )
-    pattern_seed: int = field(
-        default=1, metadata=_h("seed of the fixed patterns (PRNU, hot and dead pixels)")
-    )
+    sensor_nonlinearity: float = option(0.0, "fraction of the charge lost at the full well (0 = "
+                                             "linear)")
+    sensor_nonlinearity_knee: float = option(0.7, "fraction of the full well where the response "
+                                                  "starts to bend")
+    prnu_sigma: float = option(0.0, "pixel gain non-uniformity (PRNU), relative sigma")
+    hot_pixel_fraction: float = option(0.0, "fraction of hot pixels")
+    hot_pixel_level: float = option(0.2, "a hot pixel's extra charge, fraction of the full well")
+    dead_pixel_fraction: float = option(0.0, "fraction of dead pixels (no photo-charge)")
+    pattern_seed: int = option(1, "seed of the fixed patterns (PRNU, hot and dead pixels)")
     # --- illumination (scenes only)
-    scene_illuminant: str | None = field(
-        default=None,
-        metadata=_h("illuminant of the scene captures (CIE name or CSV); null = `illuminant` "
-                    "(white references and grids always use `illuminant`)"),
-    )
+    scene_illuminant: str | None = option(None, "illuminant of the scene captures (CIE name or "
+                                                "CSV); null = `illuminant` (white references and "
+                                                "grids always use `illuminant`)")
 
     def __post_init__(self) -> None:
         self.brf_thickness_gradient_um_per_mm = tuple(  # type: ignore[assignment]

@@ -107,9 +107,7 @@ __all__ = [
 ]
 
 
-# =============================================================================================
-# spectral helpers
-# =============================================================================================
+# --- spectral helpers
 
 
 def fine_wavelengths(grid_nm: torch.Tensor, step_nm: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -228,9 +226,7 @@ def blur_scene(
     return CubeScene(img, wl.cpu(), extent_mm=extent, extrapolate="edge", endmembers=endmembers)
 
 
-# =============================================================================================
-# data containers
-# =============================================================================================
+# --- data containers
 
 
 @dataclass
@@ -282,9 +278,7 @@ class SubpixelTrace:
         return int(self.pixel.numel())
 
 
-# =============================================================================================
-# renderer
-# =============================================================================================
+# --- renderer
 
 
 # rays shaded together: their (rays, L) cosine matrix (4 MB in float32) stays in the CPU cache
@@ -416,8 +410,7 @@ class CaptureRenderer:
         self.phi_fine = l_ * f_ * tau  # (3, L), l·f·τ
         self.kappa = 1.0 / float((self.phi_fine * self.fine_widths).sum(1).max())
         lines = line_profile(self.fine, self.fine, self.scan_fwhm_nm, self.scan_line)  # (L, L)
-        self.kappa_scan = 1.0 / float(
-            torch.einsum("jl,cl->jc", lines * self.fine_widths, f_).max())
+        self.kappa_scan = 1.0 / float(torch.einsum("jl,cl->jc", lines * self.fine_widths, f_).max())
         self.dn_per_unit = sensor.electrons_at_unity / sensor.gain_e_per_dn
         self.layout = layout if layout is not None else build_view_layout(
             geometry, camera, brf, device=dev)
@@ -780,8 +773,7 @@ class CaptureRenderer:
             out[:, :j] = integrate(plan["scan"]).mul_(tr.throughput[:, None, None])
         if not plan["scenes"]:
             return
-        g_obj = tr.throughput * self.diffuser.falloff(tr.alpha) * self.vignetting_factor(
-            tr.hit_xy)
+        g_obj = tr.throughput * self.diffuser.falloff(tr.alpha) * self.vignetting_factor(tr.hit_xy)
         white = integrate(plan["white"])[:, 0] if plan["white"] is not None else None
         for k, e in enumerate(plan["scenes"]):
             kind, col = e["kind"], j + k

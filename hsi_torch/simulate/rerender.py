@@ -45,8 +45,7 @@ def white_mismatch_of(cfg_mismatch: Any) -> dict[str, Any]:
 
 
 def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
-    return json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
-                                  for k, v in d.items()}))
+    return json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}))
 
 
 def _base_mismatch(base: Path) -> dict[str, Any]:

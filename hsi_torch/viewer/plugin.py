@@ -60,10 +60,6 @@ def _read(path: str | Sequence[str]) -> list:
     return out
 
 
-def _band_layers(viewer: Any) -> list[Any]:
-    return [ly for ly in viewer.layers if ly.metadata.get("hsi_torch")]
-
-
 class SpectrumWidget(QWidget):
     """Spectra at clicked points of the band-stack layers (module docstring).
 
@@ -105,7 +101,7 @@ class SpectrumWidget(QWidget):
 
     # -- the band slider -----------------------------------------------------------------------
     def _layer(self) -> Any | None:
-        layers = _band_layers(self.viewer)
+        layers = [ly for ly in self.viewer.layers if ly.metadata.get("hsi_torch")]
         sel = self.viewer.layers.selection.active
         if sel is not None and sel in layers:
             return sel

@@ -63,9 +63,7 @@ def _constant_spectrum(value: float, n: int, wl: torch.Tensor) -> torch.Tensor:
     return torch.full((n, wl.numel()), float(value), device=wl.device, dtype=wl.dtype)
 
 
-# =============================================================================================
-# rendering helpers
-# =============================================================================================
+# --- rendering helpers
 
 
 def pixel_centres_mm(
