@@ -256,14 +256,11 @@ CANON = {"camera_make": "Canon", "camera_model": "EOS 5D Mark II"}
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory) -> dict[str, Path]:
+def lab(small_sim: Path, tmp_path_factory) -> dict[str, Path]:
     """The small simulated set (scenes: the ColorChecker) as plain Bayer TIFFs: no black level
     (512 DN left in the data), no CFA pattern; the white shots name their exposure (0.02 s) and
     camera; a dark frame in ``withdark`` only; a scene at half the white's exposure."""
-    sim = tmp_path_factory.mktemp("sim")
-    assert main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(sim),
-                 "--set", "render.figures=false", "--set", "render.progress=false",
-                 "--set", "render.dtype=float32"]) == 0  # fmt: skip
+    sim = small_sim  # the session's shared, read-only set
     root = tmp_path_factory.mktemp("lab")
     out = {"sim": sim}
     for name, dark in (("nodark", False), ("withdark", True)):

@@ -46,13 +46,10 @@ MINIMAL_MANIFEST = {  # the docs' example (docs/calibration.md, "The manifest")
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory) -> Path:
-    """The default small set with its ColorChecker scene (float32 render, no figures)."""
-    out = tmp_path_factory.mktemp("sim")
-    assert main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
-                 "--set", "render.figures=false", "--set", "render.progress=false",
-                 "--set", "render.dtype=float32"]) == 0  # fmt: skip
-    return out
+def sim(small_sim: Path) -> Path:
+    """The default small set with its ColorChecker scene (float32 render, no figures): the
+    session's shared, read-only ``small_sim``."""
+    return small_sim
 
 
 def _mosaic(path: Path) -> np.ndarray:
