@@ -13,11 +13,13 @@ file keeps its own device list.
 from __future__ import annotations
 
 import atexit
+import hashlib
 import importlib.util
 import os
 import shutil
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -152,3 +154,66 @@ def ws(tmp_path: Path) -> tuple[Path, Path, Path]:
     caps.mkdir()
     np.save(caps / "a.npy", render_capture(bundle, true_spectra()).numpy())
     return tmp_path, bpath, caps
+
+
+# ------------------------------------------------------------------ shared simulated sets
+#: the small prototype's fast settings: float32 render, no figures, no progress bar
+SMALL_SIM_FAST = ("render.figures=false", "render.progress=false", "render.dtype=float32")
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    """SHA-256 of every file below ``folder`` (relative path → digest)."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+def _simulate_shared(out: Path, *overrides: str) -> Path:
+    from hsi_torch.cli import main
+    from hsi_torch.resources import shipped_config
+
+    args = ["simulate", "--config", str(shipped_config("simulate")), "--out", str(out)]
+    for o in (*SMALL_SIM_FAST, *overrides):
+        args += ["--set", o]
+    assert main(args) == 0
+    return out
+
+
+def _read_only_check(folder: Path) -> Iterator[Path]:
+    """Yield ``folder``; afterwards fail when a test changed it (the shared folders are
+    read-only: a test that needs to change one copies it first)."""
+    before = _digests(folder)
+    yield folder
+    after = _digests(folder)
+    changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+    assert not changed, f"a test changed the shared folder {folder}: {changed[:10]}"
+
+
+@pytest.fixture(scope="session")
+def small_sim(tmp_path_factory) -> Iterator[Path]:
+    """The shipped small prototype's capture set with its ColorChecker scene (``simulate
+    --config simulate.yaml`` with :data:`SMALL_SIM_FAST`), simulated once per session and shared
+    by every module that needs it (each simulation is tens of seconds on 2 cores). Read-only:
+    the session fails at its end when a test changed a file of it."""
+    out = _simulate_shared(tmp_path_factory.mktemp("shared_sim") / "sim")
+    yield from _read_only_check(out)
+
+
+@pytest.fixture(scope="session")
+def small_sim_calib(small_sim: Path, tmp_path_factory) -> Iterator[Path]:
+    """``hsi-torch calibrate --captures small_sim --out DIR`` (the shipped calibrate.yaml), once
+    per session; returns ``DIR`` (``DIR/calib.npz``, its report). Read-only, as ``small_sim``."""
+    from hsi_torch.cli import main
+
+    out = tmp_path_factory.mktemp("shared_calib") / "calib"
+    assert main(["calibrate", "--captures", str(small_sim), "--out", str(out), "--no-progress",
+                 "-q"]) == 0  # fmt: skip
+    yield from _read_only_check(out)
+
+
+@pytest.fixture(scope="session")
+def small_sim_no_scenes(tmp_path_factory) -> Iterator[Path]:
+    """The small prototype's calibration captures only (``captures.scenes=[]``, otherwise as
+    ``small_sim``), once per session. Read-only, as ``small_sim``."""
+    out = _simulate_shared(tmp_path_factory.mktemp("shared_sim_no_scenes") / "sim",
+                           "captures.scenes=[]")
+    yield from _read_only_check(out)

@@ -22,19 +22,14 @@ from hsi_torch.experiments.calibration_scores import (
 )
 from hsi_torch.io.bundle import CalibrationBundle, file_sha256
 from hsi_torch.io.capture_set import read_capture_set, wavelength_from_name
-from hsi_torch.resources import shipped_config
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory) -> Path:
+def sim(small_sim_no_scenes: Path) -> Path:
     """The default small capture set (shipped simulate.yaml, realistic noise), no scene captures,
-    rendered in float32 (the simulator's documented fast setting) to keep the test short."""
-    out = tmp_path_factory.mktemp("sim")
-    rc = main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
-               "--set", "captures.scenes=[]", "--set", "render.figures=false",
-               "--set", "render.progress=false", "--set", "render.dtype=float32"])  # fmt: skip
-    assert rc == 0
-    return out
+    rendered in float32 (the simulator's documented fast setting) to keep the test short: the
+    session's shared, read-only set."""
+    return small_sim_no_scenes
 
 
 @pytest.fixture(scope="module")

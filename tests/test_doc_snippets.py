@@ -5,7 +5,8 @@ runs in a fresh copy-on-demand workspace laid out the way the snippets name thin
 prototype, made once per test session):
 
 =======================  ==========================================================
-``sim/``                 ``hsi-torch simulate --out sim`` (the shipped small prototype)
+``sim/``                 the shipped small prototype's set (the session's shared ``small_sim``
+                         of ``conftest.py``: ``simulate`` with a float32 render, no figures)
 ``calib/calib.npz``      ``hsi-torch calibrate --captures sim --out calib`` (+ ``calib.npz``)
 ``shots/scene_001.tif``  the simulated ColorChecker capture (``shots/scene_002.tif``: the
                          second scene; ``scene.tif``, ``shot.tif``: copies at the top)
@@ -112,12 +113,13 @@ def snippet_env(tmp_path_factory) -> dict[str, str]:
 
 
 @pytest.fixture(scope="session")
-def base_workspace(tmp_path_factory, snippet_env) -> Path:
-    """The small simulated set, its calibration and shots, made once (see the module docstring)."""
+def base_workspace(tmp_path_factory, small_sim: Path, small_sim_calib: Path) -> Path:
+    """The small simulated set, its calibration and shots, made once (see the module docstring):
+    copies of the session's shared set and calibration (simulated and calibrated in this process,
+    not by two more commands that each import torch)."""
     ws = tmp_path_factory.mktemp("snippet_base")
-    for cmd in (["simulate", "--out", "sim"], ["calibrate", "--captures", "sim", "--out", "calib"]):
-        r = _run([sys.executable, "-m", "hsi_torch", *cmd], ws, snippet_env)
-        assert r.returncode == 0, r.stderr[-2000:]
+    shutil.copytree(small_sim, ws / "sim")
+    shutil.copytree(small_sim_calib, ws / "calib")
     shutil.copy(ws / "calib" / "calib.npz", ws / "calib.npz")
     scenes = sorted((ws / "sim" / "scenes").glob("*.tif"))
     assert scenes, "the simulated set has no scene capture"

@@ -48,9 +48,10 @@ def _simulate(out: Path, *extra: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory) -> Path:
-    """The default small capture set (the design as built)."""
-    return _simulate(tmp_path_factory.mktemp("sim"))
+def sim(small_sim_no_scenes: Path) -> Path:
+    """The default small capture set (the design as built; ``_FAST``): the session's shared,
+    read-only set."""
+    return small_sim_no_scenes
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,6 @@ from hsi_torch.optics.sensor import SensorModel
 from hsi_torch.recon import HSIReconstructor, Reconstructor
 from hsi_torch.recon.checks import BundleRadiometry
 from hsi_torch.recon.pipeline import apply_bundle_corrections
-from hsi_torch.resources import shipped_config
 from hsi_torch.simulate.config import SimulateConfig
 from hsi_torch.simulate.mismatch import stray_light_veil
 from hsi_torch.simulate.oracle import bundle_from_truth
@@ -145,12 +144,8 @@ def test_bundle_corrections_mark_defects_and_subtract_the_veil_once(device):
 
 
 @pytest.fixture(scope="module")
-def small_set(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("mm") / "ideal"
-    assert main(["simulate", "--config", str(shipped_config("simulate")), "--out", str(out),
-                 "--set", "render.figures=false", "--set", "render.progress=false",
-                 "--set", "render.dtype=float32"]) == 0  # fmt: skip
-    return out
+def small_set(small_sim: Path) -> Path:
+    return small_sim  # the session's shared, read-only set (float32 render, no figures)
 
 
 def test_rerender_without_an_effect_reproduces_the_set(small_set: Path, tmp_path: Path):

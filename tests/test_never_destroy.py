@@ -20,11 +20,12 @@ def _snapshot(folder: Path) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory) -> Path:
+def sim(small_sim: Path, small_sim_calib: Path, tmp_path_factory) -> Path:
+    """``sim/`` (the small prototype's set) and ``calib/`` (its calibration): copies of the
+    session's shared ones (the tests copy this folder again before pointing commands at it)."""
     root = tmp_path_factory.mktemp("never_destroy")
-    assert main(["simulate", "--out", str(root / "sim"), "--no-progress", "-q"]) == 0
-    assert main(["calibrate", "--captures", str(root / "sim"), "--out", str(root / "calib"),
-                 "--no-progress", "-q"]) == 0  # fmt: skip
+    shutil.copytree(small_sim, root / "sim")
+    shutil.copytree(small_sim_calib, root / "calib")
     return root
 
 

@@ -39,3 +39,26 @@ def test_bad_options_are_usage_errors() -> None:
     assert rc != 0 and "--dtype: unknown ['float16']" in out
     rc, out = _collect("--device", "nonsense")
     assert rc != 0 and "--device nonsense: not a torch device" in out
+
+
+def test_a_changed_shared_folder_fails_the_session(tmp_path: Path) -> None:
+    """The shared sets of tests/conftest.py are read-only: the check behind them passes an
+    untouched folder and fails, naming the file, one whose file a test changed or added."""
+    import pytest
+    from conftest import _read_only_check
+
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "a.tif").write_bytes(b"capture")
+    check = _read_only_check(tmp_path)
+    assert next(check) == tmp_path
+    with pytest.raises(StopIteration):
+        next(check)  # untouched: passes
+    for change in ("rewrite", "add"):
+        check = _read_only_check(tmp_path)
+        next(check)
+        if change == "rewrite":
+            (tmp_path / "sub" / "a.tif").write_bytes(b"changed")
+        else:
+            (tmp_path / "b.json").write_text("{}")
+        with pytest.raises(AssertionError, match="a.tif" if change == "rewrite" else "b.json"):
+            next(check)
