@@ -117,6 +117,16 @@ def test_reconstruct_config_is_generated_from_the_settings():
         assert f.metadata["help"] == src.metadata["help"] and f.metadata["help"]
 
 
+def test_shipped_calibrate_yaml_is_the_schema_default_but_the_blob_area():
+    """``calibrate.yaml`` and ``CalibrateConfig()`` agree on every key but the one the YAML
+    tunes for the simulator's grids (and says so): ``registration.blob.max_area``."""
+    shipped = to_dict(load_config(shipped_config("calibrate"), CalibrateConfig))
+    default = to_dict(CalibrateConfig())
+    assert shipped["registration"]["blob"].pop("max_area") == 2000.0
+    assert default["registration"]["blob"].pop("max_area") == 1.0e5
+    assert shipped == default
+
+
 def test_shipped_simulate_yaml_is_the_schema_default():
     """The small prototype's shipped config and ``SimulateConfig()`` describe the same device."""
     shipped = to_dict(load_config(shipped_config("simulate"), SimulateConfig))
