@@ -226,10 +226,12 @@ def main() -> None:
         gains, gains_e, sams = [], [], []
         t_ind, t_tem = [], []
         for f in frames("noise4", noise_gain=4.0):
+            tc = time.perf_counter()
             ind = pp.reconstruct_frame(f.image, f.saturated)
-            tem = seq.reconstruct(f.image, f.saturated)
-            t_ind.append(ind.timings["solve"])
-            t_tem.append(tem.timings["solve"])
+            tc2 = time.perf_counter()
+            tem = seq.reconstruct(f.image, f.saturated)  # its solve, then the temporal step
+            t_ind.append(tc2 - tc)
+            t_tem.append(time.perf_counter() - tc2)
             a, sa = psnr_sam(ind.cube, f.truth, ind.valid)
             b, sb = psnr_sam(tem.cube, f.truth, tem.valid)
             ae, _ = psnr_sam(ind.cube, f.truth, ind.valid, f.moved)
@@ -238,7 +240,7 @@ def main() -> None:
             print(
                 f"[temporal] frame {f.index:2d}: PSNR {a:.2f} → {b:.2f} dB, SAM {sa:.2f} → "
                 f"{sb:.2f}°, moving edges {ae:.2f} → {be:.2f} dB "
-                f"({int(f.moved.sum())} px), static {st:.2f}; solve {t_ind[-1]:.1f} → "
+                f"({int(f.moved.sum())} px), static {st:.2f}; frame {t_ind[-1]:.1f} → "
                 f"{t_tem[-1]:.1f} s, max KKT {tem.stats['sequence'].get('temporal_max_kkt')}, "
                 f"peak RSS {peak_rss_gib():.2f} GiB",
                 flush=True,
@@ -252,7 +254,7 @@ def main() -> None:
             f"[temporal] frames 1–{n - 1}: PSNR gain mean {statistics.mean(gains):+.2f} dB "
             f"(min {min(gains):+.2f}), SAM change mean {statistics.mean(sams):+.2f}°; moving "
             f"edges PSNR change mean {statistics.mean(gains_e):+.2f} dB "
-            f"(min {min(gains_e):+.2f}); solve median independent "
+            f"(min {min(gains_e):+.2f}); s/frame median independent "
             f"{statistics.median(t_ind):.2f} s, temporal {statistics.median(t_tem):.2f} s",
             flush=True,
         )
