@@ -156,7 +156,9 @@ class DriftPath:
 
 class _Identity:
     """The sensing of a problem whose "observations" are already its right-hand sides
-    (``Aᵀ W y`` computed outside): ``A_adjoint`` returns them as they are."""
+    (``Aᵀ W y`` computed outside): ``A_adjoint`` returns them as they are. As for every sensing,
+    ``A_adjoint(y, idx)`` gets the rows ``y`` of the pixels ``idx`` (a chunk), not the whole
+    frame's: ``idx`` selects the operator's rows, and this operator has none to select."""
 
     def __init__(
         self, num_pixels: int, num_bands: int, dtype: torch.dtype, device: torch.device
@@ -164,8 +166,8 @@ class _Identity:
         self.num_pixels, self.num_obs, self.num_bands = num_pixels, num_bands, num_bands
         self.dtype, self.device, self.shared = dtype, device, False
 
-    def A_adjoint(self, y: Tensor, idx: Tensor | slice | None = None) -> Tensor:
-        return y if idx is None else y[idx]
+    def A_adjoint(self, y: Tensor, idx: Tensor | slice | None = None) -> Tensor:  # noqa: ARG002
+        return y
 
 
 def temporal_problem(problem: NNLSProblem, num_pixels: int) -> NNLSProblem:
