@@ -270,3 +270,27 @@ def test_the_temporal_problem_solves_every_chunk_of_a_large_frame(backend):
     assert bool(chunked.converged.all()) and float(kkt.max()) <= 1e-10
     assert int((chunked.x == 0).sum()) > P  # constraints active: a real NNLS check
     torch.testing.assert_close(chunked.x, whole.x, rtol=1e-9, atol=1e-9)
+
+
+def test_the_temporal_step_hands_the_sensing_contiguous_rows(monkeypatch):
+    """The per-pixel answers and the previous frame's reach the sensing operator as ``(P, M)``
+    rows in memory: on a transposed view ``torch.bmm`` runs one BLAS call per pixel on CPU
+    (hundreds of seconds a full-size frame on a loaded machine instead of a fraction of one)."""
+    from hsi_torch.forward_model import SensingModel
+
+    seen: list[bool] = []
+    a_orig = SensingModel.A
+
+    def a_recorded(self, s, idx=None):
+        seen.append(s.is_contiguous())
+        return a_orig(self, s, idx)
+
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False)
+    seq = SequenceReconstructor(bundle, temporal="quadratic", **kw)
+    frames = _frames(bundle, 2, noise=3.0, seed=2, growth=0.0)
+    seq.reconstruct(frames[0][1])
+    monkeypatch.setattr(SensingModel, "A", a_recorded)
+    res = seq.reconstruct(frames[1][1])
+    assert res.stats["sequence"]["temporal_static"] > 0  # the temporal step ran
+    assert len(seen) >= 2 and all(seen)

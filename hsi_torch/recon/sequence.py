@@ -387,7 +387,11 @@ class SequenceReconstructor:
         sq = self.settings.sequence
         M = sens.num_bands
         pix = sens.pixel_index.to(res.cube.device)
-        x = res.cube.reshape(M, -1).index_select(1, pix).T.nan_to_num(0.0).to(sens.dtype)
+        # (P, M) rows in memory: on a transposed view torch.bmm (the sensing's A) runs one BLAS
+        # call per pixel on CPU (hundreds of seconds a full-size frame instead of a fraction of
+        # a second); every later frame's s_prev is a copy of these rows
+        x = res.cube.reshape(M, -1).index_select(1, pix).T.nan_to_num(0.0)
+        x = x.to(sens.dtype).contiguous()
         ok = res.valid.reshape(-1).index_select(0, pix)
         prev, prev_ok = self._prev, self._prev_ok
         self._prev_ok = ok.clone()
