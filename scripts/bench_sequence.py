@@ -213,7 +213,10 @@ def main() -> None:
                 print(
                     f"[warm] {name}, {k}: solve median cold {mc:.3f} s ({1 / mc:.2f} frames/s), "
                     f"warm {mw:.3f} s ({1 / mw:.2f} frames/s), speed-up {mc / mw:.2f}x "
-                    f"(sums {sum(tc):.1f} / {sum(tw[k]):.1f} s); PSNR warm − cold per frame: "
+                    f"(sums {sum(tc):.1f} / {sum(tw[k]):.1f} s; per frame cold/warm median "
+                    f"{statistics.median(c / w for c, w in zip(tc, tw[k], strict=True)):.2f}x, "
+                    f"warm faster on {sum(c > w for c, w in zip(tc, tw[k], strict=True))} of "
+                    f"{len(tc)} frames); PSNR warm − cold per frame: "
                     f"min {min(dp[k]):+.4f} max {max(dp[k]):+.4f} dB"
                     + (f"; ADMM iterations median cold {statistics.median(its_c)}, warm "
                        f"{statistics.median(its[k])}" if rec is tv else ""),
