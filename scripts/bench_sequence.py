@@ -11,10 +11,16 @@ a rotating ColorChecker, :mod:`hsi_torch.simulate.motion`, forward engine, oracl
 * ``drift``: drift growing 0.1 px a frame: the tracked path's error per frame and the PSNR of
   the path-corrected frames vs the same frames without drift.
 
-Full size by default; ``--small`` for the 400 × 384 px prototype. ``--cache DIR``: the
-``warm`` part's bundle and frames are read from ``DIR`` (``bundle.pt``, ``frame_000.pt`` …: a
-dict of ``image``, ``saturated``, ``truth``, ``moved``), written there first if absent (the
-full-size simulation takes minutes a frame on a loaded machine; a second run reuses it).
+Full size by default; ``--small`` for the 400 × 384 px prototype. ``--cache DIR``: the bundle,
+the renderer's ground truth and every part's frames are read from ``DIR``, written there first
+if absent (the full-size ground truth takes minutes and a frame up to a minute and a half on a
+loaded machine; a second run, or another part on the same frames, reuses them): ``bundle.pt``,
+``gt.pt`` (made only when a frame must be simulated), the ``warm`` part's frames
+``frame_000.pt`` … (a dict of ``image``, ``saturated``, ``truth``, ``moved``, ``drift_px``,
+``drift_deg``), the ``temporal`` part's in ``noise4/`` and the ``drift`` part's in ``drift/``
+and, for its reference without drift, ``still/``. ``--drift-flicker 0.05`` gives the ``drift``
+part the ``warm`` part's 5 % flicker: its reference without drift is then the ``warm`` part's
+frames (same scene, light and noise seeds), not a third simulated sequence.
 The spatial mode's warm starts are ``WarmStart(per_pixel=False)`` (the ADMM's state) and the
 same with ``reuse_noise=True`` (the noise level, hence ``λ``, of the frame it was last estimated
 on); the per-pixel warm start is measured in its own row.
@@ -74,22 +80,43 @@ def main() -> None:
     ap.add_argument("--spatial-warm", default="both", choices=["both", "state", "reused"],
                     help="the spatial mode's warm starts: the ADMM state, with the noise level "
                          "reused, or both")
-    ap.add_argument("--cache", default=None, help="folder of the warm part's simulated frames")
+    ap.add_argument("--cache", default=None,
+                    help="folder of the bundle, ground truth and every part's simulated frames")
+    ap.add_argument("--drift-flicker", type=float, default=0.0,
+                    help="the drift part's flicker of the light (0.05: the warm part's, whose "
+                         "frames are then its reference without drift)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     size = "small" if args.small else "full"
     parts = set(args.parts.split(","))
     cache = args.cache
-    cached = cache is not None and os.path.exists(os.path.join(cache, "bundle.pt"))
-    if cached and parts == {"warm"}:  # the frames are read back: no renderer needed
-        renderer, gt = None, None
-        bundle = torch.load(os.path.join(cache, "bundle.pt"), weights_only=False)
+    sim: dict[str, object] = {}  # the renderer and its ground truth, made when first needed
+
+    def renderer_and_truth() -> tuple:
+        if not sim:
+            ts = time.perf_counter()
+            sim["renderer"], _ = sequence_renderer(
+                size, ["render.supersample=1", "diffuser.blur_sigma_mm=0"]
+            )
+            gp = None if cache is None else os.path.join(cache, "gt.pt")
+            if gp is not None and os.path.exists(gp):
+                sim["gt"] = torch.load(gp, weights_only=False)
+            else:
+                sim["gt"] = sim["renderer"].ground_truth()
+                if gp is not None:
+                    os.makedirs(cache, exist_ok=True)
+                    torch.save(sim["gt"], gp)
+            print(f"renderer and ground truth {time.perf_counter() - ts:.1f} s", flush=True)
+        return sim["renderer"], sim["gt"]
+
+    bp = None if cache is None else os.path.join(cache, "bundle.pt")
+    if bp is not None and os.path.exists(bp):
+        bundle = torch.load(bp, weights_only=False)
     else:
-        renderer, _ = sequence_renderer(
-            size, ["render.supersample=1", "diffuser.blur_sigma_mm=0"]
-        )
-        gt = renderer.ground_truth()
-        bundle = oracle_bundle(renderer, gt)
+        bundle = oracle_bundle(*renderer_and_truth())
+        if bp is not None:
+            os.makedirs(cache, exist_ok=True)
+            torch.save(bundle, bp)
     pp = Reconstructor(bundle, beta=args.beta, drift_check=False)
     sens = pp.sensing
     print(
@@ -99,34 +126,42 @@ def main() -> None:
     layers = cave_and_chart()
     n = args.frames
 
-    def frames(**kw):
-        return simulate_sequence(renderer, layers, n, truth=gt, **kw)
-
-    def warm_frames():
-        """The warm part's frames (5 % flicker), through ``--cache`` where given."""
-        if cache is None:
-            yield from frames(illumination=Illumination(flicker=0.05))
+    def frames(tag: str | None = None, **kw):
+        """The simulated frames (``simulate_sequence`` keywords ``kw``), read from and written
+        to ``--cache``'s folder ``tag`` (``""``: the cache's top level) where given."""
+        if cache is None or tag is None:
+            yield from simulate_sequence(*_sim_args(), n, truth=renderer_and_truth()[1], **kw)
             return
-        os.makedirs(cache, exist_ok=True)
-        path = os.path.join(cache, "bundle.pt")
-        if not os.path.exists(path):
-            torch.save(bundle, path)
+        folder = os.path.join(cache, tag)
+        os.makedirs(folder, exist_ok=True)
         ts = time.perf_counter()
-        sim = None
+        it = None
         for i in range(n):
-            fp = os.path.join(cache, f"frame_{i:03d}.pt")
+            fp = os.path.join(folder, f"frame_{i:03d}.pt")
             if os.path.exists(fp):
                 d = torch.load(fp)
             else:
-                if sim is None:
-                    sim = iter(frames(illumination=Illumination(flicker=0.05)))
+                if it is None:
+                    it = iter(simulate_sequence(*_sim_args(), n, truth=renderer_and_truth()[1],
+                                                **kw))
                     for _ in range(i):
-                        next(sim)
-                f = next(sim)
-                d = {k: getattr(f, k) for k in ("image", "saturated", "truth", "moved")}
+                        next(it)
+                f = next(it)
+                d = {k: getattr(f, k) for k in ("image", "saturated", "truth", "moved",
+                                                 "drift_px", "drift_deg")}
                 torch.save(d, fp)
-                print(f"[warm] simulated frame {i} ({time.perf_counter() - ts:.0f} s)")
+                print(f"[{tag or 'warm'}] simulated frame {i} ({time.perf_counter() - ts:.0f} s, "
+                      f"peak RSS {peak_rss_gib():.2f} GiB)", flush=True)
+            d.setdefault("drift_px", (0.0, 0.0))  # caches written before the drift was kept
+            d.setdefault("drift_deg", 0.0)
             yield SimpleNamespace(**{**d, "index": i})
+
+    def _sim_args() -> tuple:
+        return renderer_and_truth()[0], layers
+
+    def warm_frames():
+        """The warm part's frames (5 % flicker), through ``--cache`` where given."""
+        return frames("", illumination=Illumination(flicker=0.05))
 
     if "warm" in parts:
         tv = Reconstructor(sens, prior="tv", drift_check=False)
@@ -179,7 +214,10 @@ def main() -> None:
                 print(
                     f"[warm] {name}, {k}: solve median cold {mc:.3f} s ({1 / mc:.2f} frames/s), "
                     f"warm {mw:.3f} s ({1 / mw:.2f} frames/s), speed-up {mc / mw:.2f}x "
-                    f"(sums {sum(tc):.1f} / {sum(tw[k]):.1f} s); PSNR warm − cold per frame: "
+                    f"(sums {sum(tc):.1f} / {sum(tw[k]):.1f} s; per frame cold/warm median "
+                    f"{statistics.median(c / w for c, w in zip(tc, tw[k], strict=True)):.2f}x, "
+                    f"warm faster on {sum(c > w for c, w in zip(tc, tw[k], strict=True))} of "
+                    f"{len(tc)} frames); PSNR warm − cold per frame: "
                     f"min {min(dp[k]):+.4f} max {max(dp[k]):+.4f} dB"
                     + (f"; ADMM iterations median cold {statistics.median(its_c)}, warm "
                        f"{statistics.median(its[k])}" if rec is tv else ""),
@@ -190,9 +228,14 @@ def main() -> None:
     if "temporal" in parts:
         seq = SequenceReconstructor(sens, temporal="quadratic", drift_check=False)
         gains, gains_e, sams = [], [], []
-        for f in frames(noise_gain=4.0):
+        t_ind, t_tem = [], []
+        for f in frames("noise4", noise_gain=4.0):
+            tc = time.perf_counter()
             ind = pp.reconstruct_frame(f.image, f.saturated)
-            tem = seq.reconstruct(f.image, f.saturated)
+            tc2 = time.perf_counter()
+            tem = seq.reconstruct(f.image, f.saturated)  # its solve, then the temporal step
+            t_ind.append(tc2 - tc)
+            t_tem.append(time.perf_counter() - tc2)
             a, sa = psnr_sam(ind.cube, f.truth, ind.valid)
             b, sb = psnr_sam(tem.cube, f.truth, tem.valid)
             ae, _ = psnr_sam(ind.cube, f.truth, ind.valid, f.moved)
@@ -201,7 +244,10 @@ def main() -> None:
             print(
                 f"[temporal] frame {f.index:2d}: PSNR {a:.2f} → {b:.2f} dB, SAM {sa:.2f} → "
                 f"{sb:.2f}°, moving edges {ae:.2f} → {be:.2f} dB "
-                f"({int(f.moved.sum())} px), static {st:.2f}"
+                f"({int(f.moved.sum())} px), static {st:.2f}; frame {t_ind[-1]:.1f} → "
+                f"{t_tem[-1]:.1f} s, max KKT {tem.stats['sequence'].get('temporal_max_kkt')}, "
+                f"peak RSS {peak_rss_gib():.2f} GiB",
+                flush=True,
             )
             if f.index > 0:
                 gains.append(b - a)
@@ -212,15 +258,21 @@ def main() -> None:
             f"[temporal] frames 1–{n - 1}: PSNR gain mean {statistics.mean(gains):+.2f} dB "
             f"(min {min(gains):+.2f}), SAM change mean {statistics.mean(sams):+.2f}°; moving "
             f"edges PSNR change mean {statistics.mean(gains_e):+.2f} dB "
-            f"(min {min(gains_e):+.2f})"
+            f"(min {min(gains_e):+.2f}); s/frame median independent "
+            f"{statistics.median(t_ind):.2f} s, temporal {statistics.median(t_tem):.2f} s",
+            flush=True,
         )
 
     if "drift" in parts:
         seq = SequenceReconstructor(sens, drift_track=True, warm_start=False)
         errs, dps, dks = [], [], []
-        still = frames()
-        for f, g in zip(frames(drift_px_per_frame=(0.1, 0.0)), still, strict=True):
-            r = seq.reconstruct(f.image, f.saturated)
+        light = Illumination(flicker=args.drift_flicker)
+        still = warm_frames() if args.drift_flicker == 0.05 else frames("still", illumination=light)
+        drifting = frames("drift", illumination=light, drift_px_per_frame=(0.1, 0.0))
+        for f, g in zip(drifting, still, strict=True):
+            tc = time.perf_counter()
+            r = seq.reconstruct(f.image, f.saturated)  # the drift measured, the path, the solve
+            t_frame = time.perf_counter() - tc
             path = r.stats["sequence"]["drift_path"]
             err = (
                 math.hypot(path[0] - f.drift_px[0], path[1] - f.drift_px[1])
@@ -243,7 +295,8 @@ def main() -> None:
                 f"[drift] frame {f.index:2d}: true {f.drift_px[0]:.2f} px, measured "
                 f"{meas[0] if meas else float('nan'):.3f}, path {path[0]:.3f} (error "
                 f"{err:.3f} px); PSNR tracked {b:.2f}, true drift corrected {k:.2f}, no drift "
-                f"{a:.2f} dB"
+                f"{a:.2f} dB; tracked frame {t_frame:.1f} s, peak RSS {peak_rss_gib():.2f} GiB",
+                flush=True,
             )
         print(
             f"[drift] path error max {max(errs):.3f} px; PSNR tracked − no drift "

@@ -157,7 +157,9 @@ class DriftPath:
 
 class _Identity:
     """The sensing of a problem whose "observations" are already its right-hand sides
-    (``Aᵀ W y`` computed outside): ``A_adjoint`` returns them as they are."""
+    (``Aᵀ W y`` computed outside): ``A_adjoint`` returns them as they are. As for every sensing,
+    ``A_adjoint(y, idx)`` gets the rows ``y`` of the pixels ``idx`` (a chunk), not the whole
+    frame's: ``idx`` selects the operator's rows, and this operator has none to select."""
 
     def __init__(
         self, num_pixels: int, num_bands: int, dtype: torch.dtype, device: torch.device
@@ -165,8 +167,8 @@ class _Identity:
         self.num_pixels, self.num_obs, self.num_bands = num_pixels, num_bands, num_bands
         self.dtype, self.device, self.shared = dtype, device, False
 
-    def A_adjoint(self, y: Tensor, idx: Tensor | slice | None = None) -> Tensor:
-        return y if idx is None else y[idx]
+    def A_adjoint(self, y: Tensor, idx: Tensor | slice | None = None) -> Tensor:  # noqa: ARG002
+        return y
 
 
 def temporal_problem(problem: NNLSProblem, num_pixels: int) -> NNLSProblem:
@@ -387,7 +389,11 @@ class SequenceReconstructor:
         sq = self.settings.sequence
         M = sens.num_bands
         pix = sens.pixel_index.to(res.cube.device)
-        x = res.cube.reshape(M, -1).index_select(1, pix).T.nan_to_num(0.0).to(sens.dtype)
+        # (P, M) rows in memory: on a transposed view torch.bmm (the sensing's A) runs one BLAS
+        # call per pixel on CPU (hundreds of seconds a full-size frame instead of a fraction of
+        # a second); every later frame's s_prev is a copy of these rows
+        x = res.cube.reshape(M, -1).index_select(1, pix).T.nan_to_num(0.0)
+        x = x.to(sens.dtype).contiguous()
         ok = res.valid.reshape(-1).index_select(0, pix)
         prev, prev_ok = self._prev, self._prev_ok
         self._prev_ok = ok.clone()
