@@ -195,7 +195,9 @@ class SensingModel(PerPixel):
         """
         B, g = self._factors(idx)
         n = s.shape[0]
-        rs = s.unsqueeze(2) * self.response.T  # (n, M, C): r_cm s_m
+        # contiguous rows: from a transposed view, bmm on CPU makes one BLAS call per pixel
+        # (16 s instead of 0.08 s on 32 768 px)
+        rs = s.contiguous().unsqueeze(2) * self.response.T  # (n, M, C): r_cm s_m
         if B.shape[0] == 1:
             y = torch.matmul(B, rs)  # (n, V, C)
         else:

@@ -38,6 +38,15 @@ def test_dense_matches_the_formula(device, dtype):
     assert (model.num_pixels, model.num_views, model.num_obs, model.num_bands) == (7, 4, 12, 9)
 
 
+def test_a_transposed_view_gives_the_contiguous_answer(device, dtype):
+    """``A`` of a transposed view (e.g. a ``(M, P)`` truth's columns) is computed as for
+    contiguous rows: the same bits (from a view, CPU bmm ran one BLAS call per pixel)."""
+    B, gain, resp = _factors(300, 10, 25, device, dtype, seed=2)
+    model = SensingModel(B, gain, resp)
+    s = torch.rand(25, 300, device=device, dtype=dtype).T
+    assert torch.equal(model.A(s), model.A(s.contiguous()))
+
+
 def test_operators_agree_with_the_dense_matrices(device, dtype):
     B, gain, resp = _factors(11, 5, 8, device, dtype, seed=1)
     model = SensingModel(B, gain, resp)
