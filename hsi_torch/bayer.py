@@ -22,7 +22,9 @@ Demosaic options (both differentiable, batched, device/dtype-agnostic):
       (zero padding).
       In the interior this is the textbook bilinear demosaic (measured samples are kept exactly,
       linear ramps are reproduced exactly); at the border the weights renormalise over the
-      samples that exist instead of assuming zeros.
+      samples that exist instead of assuming zeros. It is evaluated colour by colour on whole
+      rows, band by band, without the products and sums of the masked-out zeros (the same
+      values as the masked planes, :func:`demosaic_bilinear`).
 """
 
 from __future__ import annotations
