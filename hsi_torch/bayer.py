@@ -232,11 +232,11 @@ def _in_bands(fn, x: torch.Tensor, out_dtype: torch.dtype) -> torch.Tensor:
 def _bilinear_reference(x: torch.Tensor, pattern: str) -> torch.Tensor:
     """The normalised convolution of the module docstring on whole masked planes, band by band.
 
-    ``x`` is ``(N, 1, H, W)`` floating point; returns ``(N, 3, H, W)``. Slower than the per-phase
+    ``x`` is ``(N, 1, H, W)`` floating point; returns ``(N, 3, H, W)``. Slower than the row-wise
     evaluation of :func:`demosaic_bilinear` (it multiplies and adds the masked-out zeros); kept for
     mosaics holding NaN or ±inf, where the masked-out products ``x·0`` are NaN and spread into
-    the other colours' neighbourhoods.
-    """
+    the other colours' neighbourhoods, and for mosaics that require a gradient (no in-place
+    writes)."""
 
     def one(xb: torch.Tensor) -> torch.Tensor:
         num, den_rb, den_g = _bilinear_num_den(xb, pattern)
