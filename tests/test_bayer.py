@@ -106,3 +106,15 @@ def test_saturation_bad_pattern_refused_even_without_flags():
         bayer.demosaic_saturation(torch.zeros(1, 4, 4, dtype=torch.bool), "RGGR")
     assert bayer.demosaic_saturation(torch.zeros(0, 1, 4, 4, dtype=torch.bool), "RGGB").shape == (
         0, 3, 4, 4)  # fmt: skip
+
+
+def test_non_contiguous_inputs():
+    """Transposed and strided views are read as they are (the band copy takes any strides)."""
+    g = torch.Generator().manual_seed(11)
+    x = torch.rand(2, 1, 40, 31, generator=g).transpose(-1, -2)
+    assert torch.equal(bayer.demosaic_bilinear(x, "GRBG"), ref.reference_bilinear(x, "GRBG"))
+    x = torch.rand(3, 1, 40, 62, generator=g)[..., ::2]
+    assert torch.equal(bayer.demosaic_bilinear(x, "BGGR"), ref.reference_bilinear(x, "BGGR"))
+    sat = (torch.rand(2, 1, 40, 31, generator=g) > 0.9).transpose(-1, -2)
+    expected = ref.reference_saturation(sat, "GRBG")
+    assert torch.equal(bayer.demosaic_saturation(sat, "GRBG"), expected)
