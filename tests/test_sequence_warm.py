@@ -147,6 +147,35 @@ def test_the_start_state_and_the_norms_kernels():
     np.testing.assert_allclose(got, want, rtol=1e-12)
 
 
+def test_the_subset_solve_skips_the_zeroed_pixels():
+    """A warm frame's per-pixel subset is the frame's compiled solve with the other pixels'
+    observations zeroed: those answer ``x = 0`` at once (their KKT point: ``b = 0``), the subset
+    exactly as in the whole frame's solve, which meets the KKT conditions."""
+    from hsi_torch.forward_model import SensingModel
+    from hsi_torch.recon.nnls import _compiled as nnls_compiled
+    from hsi_torch.recon.nnls import prepare_nnls
+
+    if not nnls_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    g = torch.Generator().manual_seed(5)
+    P, V, C, M = 500, 6, 3, 25
+    B = torch.rand(P, V, M, generator=g, dtype=torch.float64)
+    model = SensingModel(B, 0.7 + 0.4 * torch.rand(P, V, generator=g, dtype=torch.float64),
+                         torch.rand(C, M, generator=g, dtype=torch.float64) * 20)
+    s = torch.rand(P, M, generator=g, dtype=torch.float64)
+    y = torch.einsum("pom,pm->po", model.dense(), s)
+    y = y + 0.5 * torch.randn(y.shape, generator=g, dtype=torch.float64)
+    prob = prepare_nnls(model, beta=10.0)
+    whole = prob.solve(y, backend="compiled")
+    assert float(whole.kkt_residual.max()) < 1e-9
+    sub = torch.rand(P, generator=g) < 0.35
+    part = prob.solve(y * sub.unsqueeze(1).to(y.dtype), backend="compiled")
+    torch.testing.assert_close(part.x[sub], whole.x[sub], rtol=0, atol=1e-12)
+    assert bool((part.x[~sub] == 0).all()) and bool((part.kkt_residual[~sub] == 0).all())
+    assert bool(part.converged.all()) and bool((part.iterations[~sub] == 0).all())
+    assert float((whole.x[~sub] > 0).float().mean()) > 0.5  # they had answers of their own
+
+
 def test_the_kept_frame_constants_follow_the_valid_pixels(monkeypatch):
     """A sequence's workspace keeps the frame's TV graph and ``λ``'s data scale with the valid
     pixels they were made for: a frame with other valid pixels (e.g. some saturated) makes
