@@ -148,7 +148,9 @@ def solve_spatial(
             compiled backend only (tolerance-driven, CPU, numba).
         dual0: the TV prox's dual to start from (:attr:`SpatialResult.dual` of a previous solve
             of the same problem size, e.g. the previous frame of a sequence; compiled backend
-            only, ignored elsewhere and where its shape differs). Default: zeros.
+            only, ignored elsewhere and where its shape differs). Default: zeros. With a
+            ``workspace`` its arrays are taken over as the solve's first dual buffer (no
+            copy; they are overwritten: pass a copy to keep them).
         u0: ``(P, M)`` the scaled dual to start from (:attr:`SpatialResult.u` of a previous
             solve of the same problem size; tolerance-driven mode). Default, and on the rows
             where ``u0_mask`` is False: ``(b − G z)/ρ``, the multiplier of the start ``z``.
@@ -158,7 +160,8 @@ def solve_spatial(
         workspace: a dict the compiled backend keeps its frame-sized iteration buffers in
             between solves of the same size (a sequence's frames: no fresh allocation, and no
             page faults on it, per frame; every buffer is written before it is read, so the
-            answer is the same); ``None``: allocated per solve.
+            answer is the same; the returned ``u`` and ``dual`` are not among them);
+            ``None``: allocated per solve.
 
     Returns:
         :class:`SpatialResult`.
