@@ -108,12 +108,108 @@ def test_a_kept_workspace_gives_the_same_iterations():
     ws: dict = {}
     kw = dict(tol=1e-30, max_iter=12, backend="compiled")
     first = solve_spatial(prob, b, 0.6, x0=solve_nnls(A, y).x, workspace=ws, **kw)
-    assert {"x", "p", "p2"} <= set(ws)
+    assert {"x", "p2", "b", "z"} <= set(ws) and "p" not in ws  # the dual is the answer's
     for dual in (None, first.dual):
         fresh = solve_spatial(prob, b1, 0.6, x0=first.x, u0=first.u, dual0=dual, **kw)
         kept = solve_spatial(prob, b1, 0.6, x0=first.x, u0=first.u, dual0=dual, workspace=ws,
                              **kw)  # fmt: skip
         assert torch.equal(kept.x, fresh.x) and torch.equal(kept.u, fresh.u)
+        assert all(np.array_equal(k, f) for k, f in zip(kept.dual, fresh.dual, strict=True))
+
+
+def test_the_start_state_and_the_norms_kernels():
+    """The compiled start state takes the given scaled dual on the masked pixels (their ``G`` not
+    read) and ``(b − G z)/ρ`` elsewhere, into kept buffers; the fused norms equal numpy's."""
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(0)
+    P, m, rho = 301, 5, 0.7
+    R = rng.normal(size=(P, m, m))
+    G = np.ascontiguousarray(R @ R.transpose(0, 2, 1))
+    b, z0 = rng.normal(size=(P, m)), rng.normal(size=(P, m))
+    u0 = rng.normal(size=(m, P))
+    use = rng.random(P) < 0.6
+    slot = np.full(P, -1, np.int64)
+    none = np.zeros((1, m, m))
+    bT, zT, uT = spatial_compiled.start_state(b, z0, G, slot, none, rho)
+    z = np.maximum(z0, 0)
+    np.testing.assert_allclose(uT.T, (b - np.einsum("pij,pj->pi", G, z)) / rho, atol=1e-12)
+    np.testing.assert_array_equal(zT, z.T)
+    out = tuple(np.full((m, P), np.nan) for _ in range(3))
+    bT2, zT2, uT2 = spatial_compiled.start_state(b, z0, G, slot, none, rho, True, u0, use, out)
+    assert bT2 is out[0] and uT2 is out[2]
+    np.testing.assert_array_equal(uT2[:, use], u0[:, use])
+    np.testing.assert_array_equal(uT2[:, ~use], uT[:, ~use])
+    np.testing.assert_array_equal(bT2, b.T)
+    x, zp = rng.normal(size=(m, P)), rng.normal(size=(m, P))
+    got = spatial_compiled.norms3(zT, x, zp)
+    want = (np.linalg.norm(zT), np.linalg.norm(x - zT), np.linalg.norm(zT - zp))
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+def test_the_subset_solve_skips_the_zeroed_pixels():
+    """A warm frame's per-pixel subset is the frame's compiled solve with the other pixels'
+    observations zeroed: those answer ``x = 0`` at once (their KKT point: ``b = 0``), the subset
+    exactly as in the whole frame's solve, which meets the KKT conditions."""
+    from hsi_torch.forward_model import SensingModel
+    from hsi_torch.recon.nnls import _compiled as nnls_compiled
+    from hsi_torch.recon.nnls import prepare_nnls
+
+    if not nnls_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    g = torch.Generator().manual_seed(5)
+    P, V, C, M = 500, 6, 3, 25
+    B = torch.rand(P, V, M, generator=g, dtype=torch.float64)
+    model = SensingModel(B, 0.7 + 0.4 * torch.rand(P, V, generator=g, dtype=torch.float64),
+                         torch.rand(C, M, generator=g, dtype=torch.float64) * 20)
+    s = torch.rand(P, M, generator=g, dtype=torch.float64)
+    y = torch.einsum("pom,pm->po", model.dense(), s)
+    y = y + 0.5 * torch.randn(y.shape, generator=g, dtype=torch.float64)
+    prob = prepare_nnls(model, beta=10.0)
+    whole = prob.solve(y, backend="compiled")
+    assert float(whole.kkt_residual.max()) < 1e-9
+    sub = torch.rand(P, generator=g) < 0.35
+    part = prob.solve(y * sub.unsqueeze(1).to(y.dtype), backend="compiled")
+    torch.testing.assert_close(part.x[sub], whole.x[sub], rtol=0, atol=1e-12)
+    assert bool((part.x[~sub] == 0).all()) and bool((part.kkt_residual[~sub] == 0).all())
+    assert bool(part.converged.all()) and bool((part.iterations[~sub] == 0).all())
+    assert float((whole.x[~sub] > 0).float().mean()) > 0.5  # they had answers of their own
+
+
+def test_the_kept_frame_constants_follow_the_valid_pixels(monkeypatch):
+    """A sequence's workspace keeps the frame's TV graph and ``λ``'s data scale with the valid
+    pixels they were made for: a frame with other valid pixels (e.g. some saturated) makes
+    them again, and every frame's answer and ``λ`` are those of a solve without the
+    workspace."""
+    import hsi_torch.recon.frame as frame_mod
+    from hsi_torch.recon.spatial.frame import solve_frame
+
+    args: dict = {}
+    real = frame_mod.spatial_solve_frame
+
+    def spy(*a, **k):
+        args["a"] = a
+        return real(*a, **k)
+
+    monkeypatch.setattr(frame_mod, "spatial_solve_frame", spy)
+    bundle = make_bundle()
+    rec = Reconstructor(bundle, beta=1e-3, dtype=torch.float64, drift_check=False, prior="tv")
+    rec.reconstruct_frame(render_capture(bundle, true_spectra()))
+    sens, y, mask, ok, changed, x0 = args["a"]
+    fewer = ok.clone()
+    fewer[ok.nonzero()[::3, 0]] = False
+    ws: dict = {}
+    lams, consts = [], []
+    for valid in (ok, ok, fewer, ok):
+        kept_x, kept = solve_frame(sens, y, mask, valid, changed, x0, workspace=ws)
+        fresh_x, fresh = solve_frame(sens, y, mask, valid, changed, x0)
+        assert kept["lam_abs"] == fresh["lam_abs"]
+        assert torch.equal(kept_x, fresh_x)
+        assert torch.equal(ws["frame_constants"][1], valid)
+        lams.append(kept["lam_abs"])
+        consts.append(ws["frame_constants"])
+    assert lams[0] == lams[1] == lams[3] != lams[2]
+    assert consts[0] is consts[1] and consts[2] is not consts[1] and consts[3] is not consts[2]
 
 
 def test_bad_warm_states_are_named():

@@ -302,7 +302,16 @@ if AVAILABLE:
         for r in range(ch * n // num_chunks, (ch + 1) * n // num_chunks):
             p = 0 if shared else r
             if fused:  # b = Aᵀ W y from the factors, stored (rounded to b's dtype)
-                _rhs(y, mask, Bt, gain, resp, r, rhs)
+                dark = True  # no observation: b = 0 without reading the pixel's factors
+                for o in range(y.shape[1]):
+                    if y[r, o] != 0.0:
+                        dark = False
+                        break
+                if dark:
+                    for j in range(m):
+                        rhs[j] = 0.0
+                else:
+                    _rhs(y, mask, Bt, gain, resp, r, rhs)
                 for j in range(m):
                     b[r, j] = rhs[j]
             bn = 0.0
@@ -310,6 +319,15 @@ if AVAILABLE:
                 br[j] = b[r, j]
                 bn += br[j] * br[j]
             bn = np.sqrt(bn)
+            if bn == 0.0:  # b = 0: x = 0 is the answer (KKT residual 0); G and H not read
+                for j in range(m):
+                    x_out[r, j] = 0.0
+                    z_out[r, j] = False
+                plain[r] = not skip[r]
+                r_out[r] = 0.0
+                status[r] = DONE
+                rounds[r] = 0
+                continue
             for i in range(m):  # x0 = H b
                 x0[i] = 0.0
             _symv(H, p, br, x0, 1.0)
@@ -556,7 +574,10 @@ def solve_frame_cpu(
     the zero set of a few coordinate-descent sweeps (:func:`_start_zero_set`);
     the KKT residual of the answer with the exact ``G`` and ``b``; for pixels without a zero set,
     up to ``refine`` refinement steps ``x ← max(0, x − H(Gx − b))`` kept while they lower it.
-    Each pixel's bytes are read once and nothing of frame size is allocated but the outputs.
+    Each pixel's bytes are read once and nothing of frame size is allocated but the outputs; a
+    pixel whose ``b`` is 0 (with ``factors``: whose observations are all 0, e.g. zeroed to solve
+    a subset of a frame) is answered ``x = 0`` (its KKT point) without reading its ``G``, ``H``
+    or factors.
     ``G`` and ``H`` must be symmetric (they are read by rows as columns).
 
     Args:

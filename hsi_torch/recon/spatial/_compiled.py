@@ -35,8 +35,8 @@ import numpy as np
 from hsi_torch.recon._numba import AVAILABLE
 from hsi_torch.recon._numba import nb as _nb
 
-__all__ = ["AVAILABLE", "sym_apply", "start_state", "fgp_grid", "fgp_blocks", "fgp_block",
-           "pack_inverse_rows", "row_chunks"]
+__all__ = ["AVAILABLE", "sym_apply", "start_state", "norms3", "fgp_grid", "fgp_blocks",
+           "fgp_block", "pack_inverse_rows", "row_chunks"]
 
 
 #: numba's fast-math flags for the TV kernels: reassociation lets the per-pixel sums over bands
@@ -68,7 +68,7 @@ if AVAILABLE:
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
     def _start_state(b, z0, gram, row_slot, row_gram, rho, bT, zT, uT, num_chunks,
-                     lo):  # pragma: no cover - compiled
+                     lo, u0T, use_u0):  # pragma: no cover - compiled
         n, m = b.shape
         shared = gram.shape[0] == 1
         for ch in _nb.prange(num_chunks):
@@ -78,6 +78,13 @@ if AVAILABLE:
                 for j in range(m):
                     zj = z0[i, j]
                     z[j] = zj if zj > lo else lo
+                    bT[j, i] = b[i, j]
+                    zT[j, i] = z[j]
+                if use_u0[i]:  # a given u: this pixel's G is not read
+                    for j in range(m):
+                        uT[j, i] = u0T[j, i]
+                    continue
+                for j in range(m):
                     g[j] = 0.0
                 k = row_slot[i]
                 S = row_gram[k] if k >= 0 else (gram[0] if shared else gram[i])
@@ -86,9 +93,25 @@ if AVAILABLE:
                     for j in range(m):
                         g[j] += S[c, j] * zc
                 for j in range(m):
-                    bT[j, i] = b[i, j]
-                    zT[j, i] = z[j]
                     uT[j, i] = (b[i, j] - g[j]) / rho
+
+    @_nb.njit(parallel=True, cache=True, error_model="numpy")
+    def _norms3(z, x, zp, num_chunks):  # pragma: no cover - compiled
+        m, n = z.shape
+        acc = np.zeros((num_chunks, 3))
+        for ch in _nb.prange(num_chunks):
+            a0, a1, a2 = 0.0, 0.0, 0.0
+            lo, hi = ch * n // num_chunks, (ch + 1) * n // num_chunks
+            for j in range(m):
+                for i in range(lo, hi):
+                    zi = np.float64(z[j, i])
+                    d = np.float64(x[j, i]) - zi
+                    e = zi - np.float64(zp[j, i])
+                    a0 += zi * zi
+                    a1 += d * d
+                    a2 += e * e
+            acc[ch, 0], acc[ch, 1], acc[ch, 2] = a0, a1, a2
+        return acc.sum(0)
 
     @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _primal_row(v, t, r, rs, r_up, rs_up, wrow, wfrom, wto, out, a, b, c, off,
@@ -428,22 +451,51 @@ def sym_apply(mat: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
 
 
 def start_state(b: np.ndarray, z0: np.ndarray, gram: np.ndarray, row_slot: np.ndarray,
-                row_gram: np.ndarray, rho: float,
-                nonneg: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                row_gram: np.ndarray, rho: float, nonneg: bool = True,
+                u0: np.ndarray | None = None, use_u0: np.ndarray | None = None,
+                out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ADMM warm start on band-major state, in one pass: ``z = max(z0, 0)`` (``z = z0``
     without ``nonneg``), ``u = (b − G z)/ρ`` (pixels with ``row_slot ≥ 0``: their
     ``row_gram``), with ``b``, as ``(M, P)`` arrays (``b``, ``z0`` pixel-major ``(P, M)``;
     ``gram (P|1, M, M)`` symmetric).
 
+    Args:
+        u0: ``(M, P)`` band-major scaled dual to start from on the pixels ``use_u0`` (``(P,)``
+            bool): there ``u = u0`` and the pixel's ``G`` is not read (a sequence's static
+            pixels: most of a mapped Gram stack's pages are not touched); ``None``: nowhere.
+        out: ``(bT, zT, uT)`` ``(M, P)`` C-contiguous arrays of ``b``'s dtype to write into
+            (buffers kept between solves; every element is written); ``None``: new arrays.
+
     Returns:
         ``bT``, ``zT``, ``uT``.
     """
     n, m = b.shape
-    bT, zT, uT = (np.empty((m, n), b.dtype) for _ in range(3))
+    if out is not None and all(a.shape == (m, n) and a.dtype == b.dtype
+                               and a.flags.c_contiguous for a in out):
+        bT, zT, uT = out
+    else:
+        bT, zT, uT = (np.empty((m, n), b.dtype) for _ in range(3))
+    if u0 is None or use_u0 is None:
+        u0, use_u0 = np.zeros((m, 1), b.dtype), np.zeros(n, np.bool_)
+    else:
+        if u0.shape != (m, n) or use_u0.shape != (n,):
+            raise ValueError(f"u0 must be ({m}, {n}) and use_u0 ({n},), got "
+                             f"{u0.shape} and {use_u0.shape}")
+        u0 = np.ascontiguousarray(u0, b.dtype)
+        use_u0 = np.ascontiguousarray(use_u0, np.bool_)
     if n:
         _start_state(b, z0, gram, row_slot, row_gram, float(rho), bT, zT, uT,
-                     _chunks(n // 256), 0.0 if nonneg else -np.inf)
+                     _chunks(n // 256), 0.0 if nonneg else -np.inf, u0, use_u0)
     return bT, zT, uT
+
+
+def norms3(z: np.ndarray, x: np.ndarray, z_prev: np.ndarray) -> tuple[float, float, float]:
+    """``‖z‖``, ``‖x − z‖``, ``‖z − z_prev‖`` of three ``(M, P)`` C-contiguous arrays of one
+    dtype in one parallel pass, no temporaries (sums in float64)."""
+    n = z.shape[1]
+    acc = _norms3(z, x, z_prev, _chunks(n // 4096))
+    return float(np.sqrt(acc[0])), float(np.sqrt(acc[1])), float(np.sqrt(acc[2]))
 
 
 def fgp_grid(graph: tuple[np.ndarray, ...], pixel_index: np.ndarray, frame_size: tuple[int, int],

@@ -148,7 +148,9 @@ def solve_spatial(
             compiled backend only (tolerance-driven, CPU, numba).
         dual0: the TV prox's dual to start from (:attr:`SpatialResult.dual` of a previous solve
             of the same problem size, e.g. the previous frame of a sequence; compiled backend
-            only, ignored elsewhere and where its shape differs). Default: zeros.
+            only, ignored elsewhere and where its shape differs). Default: zeros. With a
+            ``workspace`` its arrays are taken over as the solve's first dual buffer (no
+            copy; they are overwritten: pass a copy to keep them).
         u0: ``(P, M)`` the scaled dual to start from (:attr:`SpatialResult.u` of a previous
             solve of the same problem size; tolerance-driven mode). Default, and on the rows
             where ``u0_mask`` is False: ``(b − G z)/ρ``, the multiplier of the start ``z``.
@@ -158,7 +160,8 @@ def solve_spatial(
         workspace: a dict the compiled backend keeps its frame-sized iteration buffers in
             between solves of the same size (a sequence's frames: no fresh allocation, and no
             page faults on it, per frame; every buffer is written before it is read, so the
-            answer is the same); ``None``: allocated per solve.
+            answer is the same; the returned ``u`` and ``dual`` are not among them);
+            ``None``: allocated per solve.
 
     Returns:
         :class:`SpatialResult`.
@@ -223,9 +226,7 @@ def _solve_spatial(
     if inputs is not None:  # the warm start's u is formed by the compiled pass itself
         with torch.no_grad():
             cstep = _CompiledStep(problem, inputs, b, z, float(t), lam_f, inner_iters, alpha,
-                                  kernel_threads, nonneg, dual0, workspace)
-            if warm_u is not None:
-                cstep.set_u(*warm_u)
+                                  kernel_threads, nonneg, dual0, workspace, warm_u)
             with threads(kernel_threads):
                 it, done, prim, dual = _admm(cstep, rho, tol, max_iter,
                                              check_every=check_every)
@@ -233,8 +234,7 @@ def _solve_spatial(
             # mapped precomputation cache leave the resident set (the warm start is next)
             disk.release_pages(inputs[0])
             z_out = torch.from_numpy(cstep.result()).to(b.device)
-            res = SpatialResult(z_out, it, done, prim, dual, lam_f, rho,
-                                (cstep.p.copy(), cstep.psum.copy()),
+            res = SpatialResult(z_out, it, done, prim, dual, lam_f, rho, cstep.final_dual(),
                                 torch.from_numpy(cstep.final_u()).to(b.device))
             cstep.release(workspace)
             return res
@@ -366,7 +366,8 @@ class _CompiledStep:
     def __init__(self, problem: SpatialProblem, inputs: tuple[np.ndarray, tuple[np.ndarray, ...]],
                  b: Tensor, z0: Tensor, t: float, lam: float, inner_iters: int, alpha: float,
                  num_blocks: int = 1, nonneg: bool = True, dual0: tuple | None = None,
-                 workspace: dict | None = None) -> None:
+                 workspace: dict | None = None,
+                 warm_u: tuple[Tensor, Tensor | None] | None = None) -> None:
         self.inv_rows, graph = inputs
         self.rho, self.lam, self.alpha, self.nonneg = problem.rho, lam, alpha, nonneg
         self.t = t if lam > 0 else 0.0
@@ -381,16 +382,8 @@ class _CompiledStep:
         else:
             self.row_inv = row_gram = np.zeros((1, m, m), b.numpy().dtype)
         gram = problem.gram.detach().numpy()
-        # band-major b, z = max(z0, 0) and u = (b − G z)/ρ (the multiplier of the per-pixel
-        # optimum), in one pass
-        self.b, self.z, self.u = compiled.start_state(
-            np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
-            np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho, nonneg)
-        # G is not read by the iterations: its pages of a mapped cache entry leave the
-        # resident set while the ADMM state exists (the next frame reads them back)
-        disk.release_pages(problem.gram)
         ws = {} if workspace is None else workspace
-        dt = self.z.dtype
+        dt = gram.dtype
 
         def buf(name: str, shape: tuple[int, ...], zero: bool) -> np.ndarray:
             a = ws.pop(name, None)
@@ -400,19 +393,41 @@ class _CompiledStep:
                 a.fill(0)
             return a
 
+        u0 = use_u0 = None
+        if warm_u is not None:  # the given scaled dual, band-major (a transposed view: no copy)
+            u0 = warm_u[0].detach().cpu().numpy().astype(dt, copy=False).T
+            use_u0 = (np.ones(P, np.bool_) if warm_u[1] is None
+                      else warm_u[1].detach().cpu().numpy().astype(np.bool_, copy=False))
+        # band-major b, z = max(z0, 0) and u = (b − G z)/ρ (the multiplier of the per-pixel
+        # optimum; the given u0 where use_u0, without reading G there), in one pass
+        self.b, self.z, self.u = compiled.start_state(
+            np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
+            np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho, nonneg, u0, use_u0,
+            (buf("b", (m, P), False), buf("z", (m, P), False), np.empty((m, P), dt)))
+        # G is not read by the iterations: its pages of a mapped cache entry leave the
+        # resident set while the ADMM state exists (the next frame reads them back)
+        disk.release_pages(problem.gram)
+
         self.x = buf("x", self.z.shape, True)
         self.x2, self.u2, self.z2 = (buf(k, self.z.shape, False) for k in ("x2", "u2", "z2"))
         self.z_prev = self.z
         # the dual (band-major) and its band sums (brightness weighting), double-buffered too
         warm_dual = (dual0 is not None and dual0[0].shape == (2, m, P)
                      and dual0[1].shape == (2, P))
-        self.p = buf("p", (2, m, P), not warm_dual)
+        if (warm_dual and workspace is not None
+                and all(isinstance(a, np.ndarray) and a.dtype == dt and a.flags.c_contiguous
+                        and a.flags.writeable for a in dual0)):
+            # a sequence's dual (the previous solve's, not a buffer of the workspace): taken
+            # over as this solve's first dual buffer, no frame-sized copy
+            self.p, self.psum = dual0[0], dual0[1]
+        else:
+            self.p = buf("p", (2, m, P), not warm_dual)
+            self.psum = buf("psum", (2, P), not warm_dual)
+            if warm_dual:  # a warm start of the dual
+                self.p[...] = dual0[0]
+                self.psum[...] = dual0[1]
         self.p2 = buf("p2", (2, m, P), True)
-        self.psum = buf("psum", (2, P), not warm_dual)
         self.psum2 = buf("psum2", (2, P), True)
-        if warm_dual:  # a warm start of the dual
-            self.p[...] = dual0[0]
-            self.psum[...] = dual0[1]
         self.grid = problem.fgp_grid()
         self.blocks = compiled.fgp_blocks(self.grid[0], num_blocks)
         row_ptr = self.grid[0]
@@ -440,24 +455,21 @@ class _CompiledStep:
 
     def release(self, workspace: dict | None) -> None:
         """Hand the iteration buffers to ``workspace`` for the next solve of this size (not
-        ``u``: :meth:`final_u` returned a view of it)."""
+        ``u`` nor the dual: :meth:`final_u` and :meth:`final_dual` returned them; ``z`` after
+        :meth:`result` copied it)."""
         if workspace is not None:
-            workspace.update(x=self.x, x2=self.x2, u2=self.u2, z2=self.z2, p=self.p,
-                             p2=self.p2, psum=self.psum, psum2=self.psum2)
+            workspace.update(x=self.x, x2=self.x2, u2=self.u2, z2=self.z2, b=self.b, z=self.z,
+                             p2=self.p2, psum2=self.psum2)
+
+    def final_dual(self) -> tuple[np.ndarray, np.ndarray]:
+        """The TV prox's final dual ``(2, M, P)`` and its band sums ``(2, P)``: the step's own
+        arrays, not copies (not handed to a workspace by :meth:`release`; a later solve with a
+        workspace takes them over as its first dual buffer when given them as ``dual0``)."""
+        return self.p, self.psum
 
     def result(self) -> np.ndarray:
         """``z`` pixel-major ``(P, M)``."""
         return np.ascontiguousarray(self.z.T)
-
-    def set_u(self, u0: Tensor, mask: Tensor | None) -> None:
-        """Start from the scaled dual ``u0`` ``(P, M)`` on the rows ``mask`` (``(P,)`` bool;
-        ``None``: all); the other rows keep the start's ``(b − G z)/ρ``."""
-        u0n = u0.detach().cpu().numpy().astype(self.u.dtype, copy=False)
-        if mask is None:
-            self.u[...] = u0n.T
-        else:
-            rows = np.flatnonzero(mask.detach().cpu().numpy())
-            self.u[:, rows] = u0n[rows].T
 
     def final_u(self) -> np.ndarray:
         """The scaled dual after the last iteration, ``u + x − z``, pixel-major ``(P, M)``: a
@@ -468,8 +480,7 @@ class _CompiledStep:
         return self.u.T
 
     def norms(self) -> tuple[float, float, float]:
-        return (float(np.linalg.norm(self.z)), float(np.linalg.norm(self.x - self.z)),
-                float(np.linalg.norm(self.z - self.z_prev)))
+        return compiled.norms3(self.z, self.x, self.z_prev)
 
     def bnorm(self) -> float:
         return float(np.linalg.norm(self.b)) or 1.0

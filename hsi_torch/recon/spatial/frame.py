@@ -20,7 +20,7 @@ from hsi_torch.recon.spatial.lam import DEFAULT_LAM, LAM_RULES
 from hsi_torch.recon.spatial.noise import (
     NOISE_SAMPLES,
     frame_noise_level,
-    lam_scale,
+    gram_trace_median,
     mean_square_residual,
 )
 from hsi_torch.recon.spatial.problem import SpatialProblem, bundle_spatial_problem, guide_weights
@@ -134,11 +134,25 @@ def solve_frame(
     x0 = x0.detach()
     given = sigma is not None and math.isfinite(sigma) and sigma > 0
     sigma = float(sigma) if given else frame_noise_level(sens, y, mask, ok, x0)
+    # a sequence's per-frame constants (the TV graph and its compiled layout, λ's data scale
+    # median trace G): kept in the workspace with the valid pixels they were made for, reused
+    # only for the same bundle and exactly the same valid pixels (else made again)
+    kept = None if workspace is None else workspace.get("frame_constants")
+    if not (kept is not None and kept[0] is base and kept[1].shape == ok.shape
+            and torch.equal(kept[1], ok)):
+        kept = None
     with torch.no_grad():
-        sp = base.for_frame(ok, rows, row_gram)
+        if kept is not None:
+            sp = kept[2].with_rows(rows, row_gram)
+        else:
+            sp = base.for_frame(ok, rows, row_gram)
+        plain = sp
         if guided and math.isfinite(sigma):
             sp = base.for_frame(ok, rows, row_gram, guide_weights(sp, y.detach(), mask, sigma))
-    scale = lam_scale(sigma, prob.gram, ok) if math.isfinite(sigma) else 0.0
+    med = kept[3] if kept is not None else gram_trace_median(prob.gram, ok)
+    scale = float(sigma) * math.sqrt(max(med, 0.0)) if math.isfinite(sigma) else 0.0
+    if workspace is not None and kept is None:
+        workspace["frame_constants"] = (base, ok.clone(), plain, med)
     b = _adjoint(model, y.to(model.dtype), mask)
     extra: dict[str, Any] = {"lam_rule": "fixed"}
     if auto:

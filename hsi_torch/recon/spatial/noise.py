@@ -87,10 +87,18 @@ def lam_scale(sigma: float, G: Tensor, active: Tensor | None = None) -> float:
         sigma: noise standard deviation of the observations (DN).
         G: ``(P|1, M, M)``; active: ``(P,)`` bool pixels to take the median over.
     """
+    return float(sigma) * math.sqrt(max(gram_trace_median(G, active), 0.0))
+
+
+def gram_trace_median(G: Tensor, active: Tensor | None = None) -> float:
+    """``median_p trace(G_p)`` over the ``active (P,)`` pixels (all where ``None`` or none is
+    active) of ``G (P|1, M, M)``: :func:`lam_scale`'s data scale is ``σ`` times its root (a
+    constant of the bundle and the valid pixels: a sequence keeps it while they stay the
+    same)."""
     tr = G.diagonal(dim1=1, dim2=2).sum(1)
     if active is not None and tr.shape[0] == active.shape[0] and bool(active.any()):
         tr = tr[active]
-    return float(sigma) * math.sqrt(max(float(tr.median()), 0.0))
+    return float(tr.median())
 
 
 def frame_noise_level(

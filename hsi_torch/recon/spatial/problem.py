@@ -104,15 +104,32 @@ class SpatialProblem:
         if weights is not None:
             ex = ex.to(self.gram.dtype) * weights[0].to(self.gram.dtype)
             ey = ey.to(self.gram.dtype) * weights[1].to(self.gram.dtype)
-        r_inv = None
-        if rows is not None and rows.numel():
-            eye = torch.eye(self.num_bands, dtype=self.gram.dtype, device=self.gram.device)
-            L, _ = torch.linalg.cholesky_ex(row_gram + self.rho * eye)
-            r_inv = torch.cholesky_inverse(L)
-        else:
-            rows, row_gram = None, None
+        rows, row_gram, r_inv = self._rows(rows, row_gram)
         return SpatialProblem(self.gram, self.rho, self.factor, self.pixel_index,
                               self.frame_size, active, ex, ey, rows, row_gram, r_inv)
+
+    def with_rows(self, rows: Tensor | None, row_gram: Tensor | None) -> SpatialProblem:
+        """This frame problem with other pixels' own Gram matrices (:meth:`for_frame`'s
+        ``rows``, ``row_gram``): the same active pixels and TV graph, shared with this one
+        together with the compiled path's layout of it (already built for this problem: not
+        built again). A sequence's frames with the same valid pixels use it."""
+        rows, row_gram, r_inv = self._rows(rows, row_gram)
+        new = SpatialProblem(self.gram, self.rho, self.factor, self.pixel_index,
+                             self.frame_size, self.active, self.ex, self.ey, rows, row_gram,
+                             r_inv)
+        for key in ("_graph", "_fgp_grid"):  # cached properties: independent of the rows
+            if key in self.__dict__:
+                new.__dict__[key] = self.__dict__[key]
+        return new
+
+    def _rows(self, rows: Tensor | None, row_gram: Tensor | None
+              ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        """``rows``, ``row_gram`` and their ``(G + ρI)⁻¹`` (all ``None`` for no rows)."""
+        if rows is None or not rows.numel():
+            return None, None, None
+        eye = torch.eye(self.num_bands, dtype=self.gram.dtype, device=self.gram.device)
+        L, _ = torch.linalg.cholesky_ex(row_gram + self.rho * eye)
+        return rows, row_gram, torch.cholesky_inverse(L)
 
     def compiled_inputs(self) -> tuple[np.ndarray, tuple[np.ndarray, ...]] | None:
         """The compiled CPU path's inputs: ``(G + ρI)⁻¹`` packed by rows
