@@ -127,13 +127,6 @@ def test_shipped_calibrate_yaml_is_the_schema_default_but_the_blob_area():
     assert shipped == default
 
 
-def test_shipped_reconstruct_yaml_is_the_settings_default():
-    """``reconstruct.yaml`` sets every key to the settings' default (a default changed in the
-    settings and not in the file would make the shipped file a non-default choice)."""
-    shipped = to_dict(load_config(shipped_config("reconstruct"), ReconstructConfig))
-    assert shipped == to_dict(ReconstructConfig())
-
-
 def test_shipped_simulate_yaml_is_the_schema_default():
     """The small prototype's shipped config and ``SimulateConfig()`` describe the same device."""
     shipped = to_dict(load_config(shipped_config("simulate"), SimulateConfig))
