@@ -216,11 +216,8 @@ def prepare_input(
         )
     pattern = validate_cfa_pattern(cfa_pattern)
     rgb = demosaic_bilinear(image, pattern)
-    if saturated is None:
-        return rgb, None
-    if not bool(saturated.any()):  # nothing to propagate: the demosaiced mask is all False
-        return rgb, torch.zeros(rgb.shape, dtype=torch.bool, device=rgb.device)
-    return rgb, demosaic_saturation(saturated.bool(), pattern, "bilinear")
+    sat = None if saturated is None else demosaic_saturation(saturated.bool(), pattern, "bilinear")
+    return rgb, sat
 
 
 
