@@ -353,7 +353,6 @@ def _solve_per_pixel(
     rows = None if select is None else select(ok, changed, yc)
     if rows is None:
         res = sens.problem.solve(yc, x0=x_start, **kw)
-        x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
     else:
         # a subset: the frame's solve with the other pixels' observations zeroed (their answer
         # is 0 at once, without pivoting), not a gathered copy of the subset's stored Gram
@@ -361,7 +360,7 @@ def _solve_per_pixel(
         # the whole frame's solve)
         keep = torch.zeros(P, dtype=yc.dtype, device=yc.device).index_fill_(0, rows, 1.0)
         res = sens.problem.solve(yc * keep.unsqueeze(1), **kw)
-        x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
+    x, conv, kkt, iters = res.x, res.converged, res.kkt_residual, res.iterations
     n_changed = int(torch.count_nonzero(changed))
     if n_changed:
         idx = changed.nonzero().squeeze(1)
