@@ -51,6 +51,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hsi_torch.devices import to_numpy
 from hsi_torch.recon import precompute_cache as disk
 from hsi_torch.recon._numba import threads
 from hsi_torch.recon.nnls._threads import cpu_threads
@@ -395,9 +396,8 @@ class _CompiledStep:
 
         u0 = use_u0 = None
         if warm_u is not None:  # the given scaled dual, band-major (a transposed view: no copy)
-            u0 = warm_u[0].detach().cpu().numpy().astype(dt, copy=False).T
-            use_u0 = (np.ones(P, np.bool_) if warm_u[1] is None
-                      else warm_u[1].detach().cpu().numpy().astype(np.bool_, copy=False))
+            u0 = to_numpy(warm_u[0], dt).T
+            use_u0 = np.ones(P, np.bool_) if warm_u[1] is None else to_numpy(warm_u[1], np.bool_)
         # band-major b, z = max(z0, 0) and u = (b − G z)/ρ (the multiplier of the per-pixel
         # optimum; the given u0 where use_u0, without reading G there), in one pass
         self.b, self.z, self.u = compiled.start_state(
