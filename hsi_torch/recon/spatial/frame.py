@@ -21,6 +21,7 @@ from hsi_torch.recon.spatial.noise import (
     NOISE_SAMPLES,
     frame_noise_level,
     gram_trace_median,
+    lam_scale,
     mean_square_residual,
 )
 from hsi_torch.recon.spatial.problem import SpatialProblem, bundle_spatial_problem, guide_weights
@@ -150,7 +151,7 @@ def solve_frame(
         if guided and math.isfinite(sigma):
             sp = base.for_frame(ok, rows, row_gram, guide_weights(sp, y.detach(), mask, sigma))
     med = kept[3] if kept is not None else gram_trace_median(prob.gram, ok)
-    scale = float(sigma) * math.sqrt(max(med, 0.0)) if math.isfinite(sigma) else 0.0
+    scale = lam_scale(sigma, prob.gram, ok, med) if math.isfinite(sigma) else 0.0
     if workspace is not None and kept is None:
         workspace["frame_constants"] = (base, ok.clone(), plain, med)
     b = _adjoint(model, y.to(model.dtype), mask)

@@ -75,7 +75,8 @@ def estimate_noise(residual_sq: Tensor, num_obs: Tensor, dof: Tensor) -> float:
     return math.sqrt(float(residual_sq[use].double().sum()) / den)
 
 
-def lam_scale(sigma: float, G: Tensor, active: Tensor | None = None) -> float:
+def lam_scale(sigma: float, G: Tensor, active: Tensor | None = None,
+              trace_median: float | None = None) -> float:
     """The data scale of ``λ``: ``σ · sqrt(median_p trace(G_p))`` (DN² per unit of ``s``).
 
     For ``G_p ≈ g I``, the reconstruction noise per band is ``σ/sqrt(g)`` and TV denoising of
@@ -86,8 +87,11 @@ def lam_scale(sigma: float, G: Tensor, active: Tensor | None = None) -> float:
     Args:
         sigma: noise standard deviation of the observations (DN).
         G: ``(P|1, M, M)``; active: ``(P,)`` bool pixels to take the median over.
+        trace_median: :func:`gram_trace_median` of ``G`` and ``active`` if already known (a
+            sequence keeps it between frames); ``None``: computed here.
     """
-    return float(sigma) * math.sqrt(max(gram_trace_median(G, active), 0.0))
+    med = gram_trace_median(G, active) if trace_median is None else trace_median
+    return float(sigma) * math.sqrt(max(med, 0.0))
 
 
 def gram_trace_median(G: Tensor, active: Tensor | None = None) -> float:
