@@ -36,11 +36,12 @@ def _two_frames(seed: int = 0):
     return A, y, y1, G, b, b1, active, prob, (h, w)
 
 
+@pytest.mark.parametrize("relax", [1.0, 1.3, 1.7])
 @pytest.mark.parametrize("backend", BACKENDS[-1:])  # compiled where numba is (torch: slow here;
-def test_the_warm_state_reaches_the_cold_optimum(backend):  # the masked test ties it to compiled)
+def test_the_warm_state_reaches_the_cold_optimum(backend, relax):  # the masked test ties them)
     """Frame 1 solved from frame 0's final state (``z``, ``u``, TV dual; the rule checked every
-    iteration) ends at the same minimiser as its cold solve and as an independent primal-dual
-    reference, to the solver's tolerance."""
+    iteration; over-relaxed or not) ends at the same minimiser as its cold solve and as an
+    independent primal-dual reference, to the solver's tolerance."""
     A, y, y1, G, b, b1, active, prob, (h, w) = _two_frames()
     # the torch backend's iterations are Python-bound: a looser tolerance keeps the test fast
     lam, (tol, close, fclose) = 0.5, ((1e-8, 1e-5, 1e-8) if backend == "compiled"
@@ -50,7 +51,7 @@ def test_the_warm_state_reaches_the_cold_optimum(backend):  # the masked test ti
     assert prev.u is not None and prev.u.shape == b.shape
     cold = solve_spatial(prob, b1, lam, x0=solve_nnls(A, y1).x, **kw)
     warm = solve_spatial(prob, b1, lam, x0=prev.x, u0=prev.u, dual0=prev.dual, check_every=1,
-                         **kw)  # fmt: skip
+                         relax=relax, **kw)  # fmt: skip
     assert cold.converged and warm.converged
     assert float((warm.x - cold.x).abs().max()) < close
     ref = torch.from_numpy(_condat_vu(G.numpy(), b1.numpy(), lam, active.view(h, w).numpy(),
@@ -81,16 +82,19 @@ def test_the_whole_state_is_carried():
     assert fresh.iterations > 1
 
 
-def test_the_masked_dual_start_is_the_same_on_both_backends():
+@pytest.mark.parametrize("relax", [1.0, 1.3])
+def test_the_masked_dual_start_is_the_same_on_both_backends(relax):
     """``u0`` on the masked rows, ``(b − G z)/ρ`` elsewhere: the torch and compiled backends run
-    the same iterations from it (fixed count, same answer to rounding)."""
+    the same iterations from it (fixed count, same answer and final ``u`` to rounding; over-
+    relaxed too, where the carried ``u`` is that of ``x̂``)."""
     if not spatial_compiled.AVAILABLE:
         pytest.skip("numba not installed")
     A, y, y1, G, b, b1, active, prob, _ = _two_frames(seed=2)
     prev = solve_spatial(prob, b, 0.7, x0=solve_nnls(A, y).x, tol=1e-4, max_iter=5000)
     mask = torch.zeros(b.shape[0], dtype=torch.bool)
     mask[::2] = True
-    kw = dict(x0=prev.x, u0=prev.u, u0_mask=mask, tol=1e-30, max_iter=20, check_every=4)
+    kw = dict(x0=prev.x, u0=prev.u, u0_mask=mask, tol=1e-30, max_iter=20, check_every=4,
+              relax=relax)
     a = solve_spatial(prob, b1, 0.7, backend="compiled", **kw)
     t = solve_spatial(prob, b1, 0.7, backend="torch", **kw)
     assert a.iterations == t.iterations == 20

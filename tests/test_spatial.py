@@ -244,6 +244,9 @@ def test_bad_inputs(device):
         solve_spatial(prob, torch.zeros(4, 2, device=device), 1.0)
     with pytest.raises(ValueError, match="lam"):
         solve_spatial(prob, torch.zeros(4, 3, device=device), -1.0)
+    for relax in (0.0, 2.0):
+        with pytest.raises(ValueError, match="relax must be in"):
+            solve_spatial(prob, torch.zeros(4, 3, device=device), 1.0, relax=relax)
 
 
 def test_inplace_and_differentiable_paths_agree(device, dtype):
@@ -292,10 +295,12 @@ def test_edge_weights(device):
     assert jump(g.x) > jump(p.x)
 
 
-@pytest.mark.parametrize("weighted,alpha", [(False, 1.0), (True, 1.0), (True, 0.3)])
-def test_compiled_and_torch_backends_agree(dtype, weighted, alpha):
+@pytest.mark.parametrize("weighted,alpha,relax",
+                         [(False, 1.0, 1.0), (True, 1.0, 1.0), (True, 0.3, 1.0), (True, 0.3, 1.3)])
+def test_compiled_and_torch_backends_agree(dtype, weighted, alpha, relax):
     """The compiled CPU kernels run the torch path's iterations: same answer to rounding, with
-    inactive pixels, edge weights and pixels with their own Gram matrix in this frame."""
+    inactive pixels, edge weights and pixels with their own Gram matrix in this frame (and
+    over-relaxed: the same relaxed iterations, the primal residual of ``x``, not ``x̂``)."""
     from hsi_torch.recon.spatial import _compiled as _spatial_compiled
 
     if not _spatial_compiled.AVAILABLE:
@@ -312,10 +317,12 @@ def test_compiled_and_torch_backends_agree(dtype, weighted, alpha):
     prob = base.for_frame(active, rows, row_gram, weights)
     assert prob.compiled_inputs() is not None
     x0 = solve_nnls(A, y).x
-    kw = dict(x0=x0, tol=1e-30, max_iter=30, inner_iters=4, brightness_weight=alpha)
+    kw = dict(x0=x0, tol=1e-30, max_iter=30, inner_iters=4, brightness_weight=alpha,
+              relax=relax)
     a = solve_spatial(prob, b, 0.7, backend="compiled", **kw)
     t = solve_spatial(prob, b, 0.7, backend="torch", **kw)
-    f = solve_spatial(prob, b, 0.7, x0=x0, iters=30, inner_iters=4, brightness_weight=alpha)
+    f = solve_spatial(prob, b, 0.7, x0=x0, iters=30, inner_iters=4, brightness_weight=alpha,
+                      relax=relax)
     torch.testing.assert_close(f.x, t.x, atol=1e-5 if dtype == torch.float32 else 1e-11, rtol=0)
     assert a.iterations == t.iterations == 30
     torch.testing.assert_close(a.x, t.x, atol=1e-5 if dtype == torch.float32 else 1e-11,

@@ -96,8 +96,9 @@ if AVAILABLE:
                     uT[j, i] = (b[i, j] - g[j]) / rho
 
     @_nb.njit(parallel=True, cache=True, error_model="numpy")
-    def _norms3(z, x, zp, num_chunks):  # pragma: no cover - compiled
+    def _norms3(z, x, zp, relax, num_chunks):  # pragma: no cover - compiled
         m, n = z.shape
+        keep, inv = 1.0 - relax, 1.0 / relax
         acc = np.zeros((num_chunks, 3))
         for ch in _nb.prange(num_chunks):
             a0, a1, a2 = 0.0, 0.0, 0.0
@@ -105,8 +106,8 @@ if AVAILABLE:
             for j in range(m):
                 for i in range(lo, hi):
                     zi = np.float64(z[j, i])
-                    d = np.float64(x[j, i]) - zi
                     e = zi - np.float64(zp[j, i])
+                    d = (np.float64(x[j, i]) - zi + keep * e) * inv
                     a0 += zi * zi
                     a1 += d * d
                     a2 += e * e
@@ -240,7 +241,7 @@ if AVAILABLE:
     @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _x_row(inv_rows, row_slot, row_inv, has_slot, b, x_in, u_in, z_in, x_out, u_out, rho,
                update_u, own, vrow, lo, hi, x0, col, contiguous, rhs, acc,
-               uu):  # pragma: no cover - compiled
+               uu, relax):  # pragma: no cover - compiled
         """The ADMM x-update of the pixels of one row on band-major ``(M, P)`` state: ``u ← u_in
         + x_in − z_in`` (``update_u``), ``x = (G + ρI)⁻¹ (b + ρ(z_in − u))`` from the packed
         inverse (:func:`pack_inverse_rows`), ``v = x + u`` into ``vrow (M, W + 2)`` at the
@@ -294,6 +295,11 @@ if AVAILABLE:
                             for cc in range(1, m):
                                 a += rhs[cc, x] * row_inv[k, cc, j]
                             acc[j, x] = a
+            if relax != 1:  # over-relaxation: x̂ = a·x + (1 − a)·z_in replaces x
+                keep = 1 - relax
+                for j in range(m):
+                    for x in range(n):
+                        acc[j, x] = relax * acc[j, x] + keep * z_in[j, i0 + x]
             if contiguous:
                 ux = np.uint64(x0) + u1 + c0
                 for j in range(m):
@@ -337,7 +343,8 @@ if AVAILABLE:
     @_nb.njit(error_model="numpy", fastmath=_FAST)
     def _fgp_one_block(bi, inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in,
                        x_out, u_out, rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out,
-                       ps_out, z_out, blocks, row_ptr, col, span, ex, ey, zlo):  # pragma: no cover
+                       ps_out, z_out, blocks, row_ptr, col, span, ex, ey, zlo,
+                       relax):  # pragma: no cover
         """One block of rows of :func:`_fgp_block` (its own thread)."""
         n_it = moms.shape[0]
         m = b.shape[0]
@@ -379,7 +386,7 @@ if AVAILABLE:
                 _load_row(ps_in, ring_rs[0, sl], lo, hi, x0, col, cont)
                 _x_row(inv_rows, row_slot, row_inv, row_has_slot[y_in], b, x_in, u_in, z_in,
                        x_out, u_out, rho, update_u, ra <= y_in < rb, ring_v[y_in % nv], lo,
-                       hi, x0, col, cont, rhs, acc, uu)
+                       hi, x0, col, cont, rhs, acc, uu, relax)
             for j in range(n_it + 1):
                 y = s - j
                 if j < n_it:
@@ -429,13 +436,13 @@ if AVAILABLE:
     @_nb.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FAST)
     def _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
                    rho, update_u, t, step, moms, one, c, p_in, ps_in, p_out, ps_out, z_out, blocks,
-                   row_ptr, col, span, ex, ey, zlo):  # pragma: no cover - compiled
+                   row_ptr, col, span, ex, ey, zlo, relax):  # pragma: no cover - compiled
         for bi in _nb.prange(blocks.shape[0] - 1):
             # int64 both when typed and when lowered (prange's index is then
             # uint64): one compiled signature, not two
             _fgp_one_block(np.int64(bi), inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in,
                            z_in, x_out, u_out, rho, update_u, t, step, moms, one, c, p_in, ps_in,
-                           p_out, ps_out, z_out, blocks, row_ptr, col, span, ex, ey, zlo)
+                           p_out, ps_out, z_out, blocks, row_ptr, col, span, ex, ey, zlo, relax)
 
 
 def _chunks(n: int) -> int:
@@ -490,11 +497,12 @@ def start_state(b: np.ndarray, z0: np.ndarray, gram: np.ndarray, row_slot: np.nd
     return bT, zT, uT
 
 
-def norms3(z: np.ndarray, x: np.ndarray, z_prev: np.ndarray) -> tuple[float, float, float]:
+def norms3(z: np.ndarray, x: np.ndarray, z_prev: np.ndarray,
+           relax: float = 1.0) -> tuple[float, float, float]:
     """``‖z‖``, ``‖x − z‖``, ``‖z − z_prev‖`` of three ``(M, P)`` C-contiguous arrays of one
     dtype in one parallel pass, no temporaries (sums in float64)."""
     n = z.shape[1]
-    acc = _norms3(z, x, z_prev, _chunks(n // 4096))
+    acc = _norms3(z, x, z_prev, float(relax), _chunks(n // 4096))
     return float(np.sqrt(acc[0])), float(np.sqrt(acc[1])), float(np.sqrt(acc[2]))
 
 
@@ -578,7 +586,7 @@ def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
               update_u: bool, t: float, step: float, moms: np.ndarray, p_in: np.ndarray,
               ps_in: np.ndarray, p_out: np.ndarray, ps_out: np.ndarray, z_out: np.ndarray,
               grid: tuple[np.ndarray, ...], blocks: np.ndarray,
-              brightness_weight: float = 1.0, nonneg: bool = True) -> None:
+              brightness_weight: float = 1.0, nonneg: bool = True, relax: float = 1.0) -> None:
     """One ADMM iteration in one pass over the frame, on band-major ``(M, P)`` state: the
     x-update (``u ← u_in + x_in − z_in`` if ``update_u``, ``x = (G + ρI)⁻¹(b + ρ(z_in − u))``,
     ``v = x + u``), then ``J = len(moms)`` FGP dual iterations of the TV prox from ``r = p_in``
@@ -616,4 +624,4 @@ def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
     _fgp_block(inv_rows, row_slot, row_inv, row_has_slot, b, x_in, u_in, z_in, x_out, u_out,
                ty(rho), bool(update_u), ty(t), ty(step), np.asarray(moms, b.dtype), ty(1), c,
                p_in, ps_in, p_out, ps_out, z_out, blocks, row_ptr, col, span, EX, EY,
-               ty(0 if nonneg else -np.inf))
+               ty(0 if nonneg else -np.inf), ty(relax))

@@ -71,6 +71,7 @@ def solve_frame(
     check_every: int = CHECK_EVERY,
     sigma: float | None = None,
     workspace: dict | None = None,
+    relax: float = 1.0,
 ) -> tuple[Tensor, dict[str, Any]]:
     """The spatial solve of one frame, warm-started from its per-pixel solution.
 
@@ -106,7 +107,7 @@ def solve_frame(
             sigma: the noise level ``σ̂`` (DN) to use instead of this frame's estimate (e.g. the
             previous frame's in a sequence of the same exposure; ``info["noise_sigma_given"]``
             says so); workspace: :func:`solve_spatial`'s (the ADMM's buffers kept between the
-            frames of a sequence).
+            frames of a sequence); relax: :func:`solve_spatial`'s over-relaxation.
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
@@ -179,7 +180,7 @@ def solve_frame(
         res = solve_spatial(sp, b, lam_abs, x0=z0, tol=tol, max_iter=max_iter, iters=iters,
                             inner_iters=inner_iters, brightness_weight=alpha, dual0=dual,
                             u0=u0, u0_mask=u0_mask, check_every=check_every,
-                            workspace=workspace)
+                            workspace=workspace, relax=relax)
         k = m
     info = {
         "prior": "tv", "lam": lam, "lam_abs": lam_abs, **extra, "noise_sigma": sigma,
