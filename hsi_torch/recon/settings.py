@@ -115,15 +115,19 @@ def _number(key: str, value: Any) -> float:
     return v
 
 
+def _checked(obj: Any, name: str, key: str, ok: Any, want: str) -> None:
+    """Check the field ``name`` of a frozen settings group (``key``: its flat key, named in the
+    error): a finite number for which ``ok`` holds (else "must be ``want``"), stored as a float."""
+    v = _number(key, getattr(obj, name))
+    if not ok(v):
+        raise _bad(key, f"must be {want}, got {getattr(obj, name)}")
+    object.__setattr__(obj, name, v)
+
+
 def _positive_or_none(obj: Any, name: str, key: str, unit: str = "") -> None:
-    """Check the field ``name`` of a frozen settings group: ``None`` or a finite number ``> 0``
-    (``key``: its flat key, named in the error), stored as a float."""
-    value = getattr(obj, name)
-    if value is not None:
-        v = _number(key, value)
-        if not v > 0:
-            raise _bad(key, f"must be > 0{unit} or null, got {value}")
-        object.__setattr__(obj, name, v)
+    """:func:`_checked` for ``None`` or a number ``> 0``."""
+    if getattr(obj, name) is not None:
+        _checked(obj, name, key, lambda v: v > 0, f"> 0{unit} or null")
 
 
 def _count(key: str, value: Any, minimum: int, allow_none: bool = True) -> None:
@@ -247,10 +251,7 @@ class PriorSettings:
                 raise _bad("lam", f"must be a number >= 0, 'auto' or 'discrepancy', got "
                                   f"{self.lam[:40]!r}")  # fmt: skip
         else:
-            lam = _number("lam", self.lam)
-            if not lam >= 0:
-                raise _bad("lam", f"must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
-            object.__setattr__(self, "lam", lam)
+            _checked(self, "lam", "lam", lambda v: v >= 0, ">= 0, 'auto' or 'discrepancy'")
         _count("spatial_iters", self.spatial_iters, 1)
         _count("spectral_rank", self.spectral_rank, 1)
 
@@ -307,15 +308,9 @@ class InputSettings:
         elif bl is not None:
             object.__setattr__(self, "black_level", _number("black_level", bl))
         _positive_or_none(self, "white_level", "white_level")
-        if self.exposure_s is not None:
-            t = _number("exposure_s", self.exposure_s)
-            if not (0 < t < float("inf")):
-                raise _bad("exposure_s", f"must be > 0 and finite or null, got {self.exposure_s}")
-            object.__setattr__(self, "exposure_s", t)
-        sat = _number("sat_threshold", self.sat_threshold)
-        if not 0 <= sat < 1:
-            raise _bad("sat_threshold", f"must be in [0, 1), got {self.sat_threshold}")
-        object.__setattr__(self, "sat_threshold", sat)
+        if self.exposure_s is not None:  # (a number is finite: _number)
+            _checked(self, "exposure_s", "exposure_s", lambda v: v > 0, "> 0 and finite or null")
+        _checked(self, "sat_threshold", "sat_threshold", lambda v: 0 <= v < 1, "in [0, 1)")
 
 
 @dataclass(frozen=True)
@@ -413,14 +408,8 @@ class UncertaintySettings:
 
     def __post_init__(self) -> None:
         _positive_or_none(self, "electrons_per_dn", "noise_electrons_per_dn")
-        r = _number("noise_read_e", self.read_e)
-        if not r >= 0:
-            raise _bad("noise_read_e", f"must be >= 0, got {self.read_e}")
-        object.__setattr__(self, "read_e", r)
-        q = _number("noise_quantization_dn", self.quantization_dn)
-        if not q >= 0:
-            raise _bad("noise_quantization_dn", f"must be >= 0, got {self.quantization_dn}")
-        object.__setattr__(self, "quantization_dn", q)
+        _checked(self, "read_e", "noise_read_e", lambda v: v >= 0, ">= 0")
+        _checked(self, "quantization_dn", "noise_quantization_dn", lambda v: v >= 0, ">= 0")
 
 
 @dataclass(frozen=True)
