@@ -159,8 +159,7 @@ def thaw(value: Any) -> Any:
 
 @dataclass(frozen=True)
 class SolveSettings:
-    """The per-pixel solve. Flat keys: ``beta``, ``diff_order``, ``solver``, ``admm_iters``,
-    ``chunk_size``, ``min_views``, ``nan_invalid``, ``device``, ``dtype``."""
+    """The per-pixel solve (flat keys: the field names)."""
 
     beta: float = _set(
         DEFAULT_BETA,
@@ -258,9 +257,8 @@ class PriorSettings:
 
 @dataclass(frozen=True)
 class InputSettings:
-    """How a capture file is read. Flat keys: ``demosaic``, ``cfa_pattern``, ``black_level``,
-    ``white_level``, ``exposure_correction``, ``exposure_s`` (``sat_threshold`` is a keyword of
-    the Python API)."""
+    """How a capture file is read (flat keys: the field names; ``sat_threshold`` is a keyword
+    of the Python API)."""
 
     demosaic: Literal["bilinear", "half"] = _set(
         "bilinear",
@@ -315,9 +313,7 @@ class InputSettings:
 
 @dataclass(frozen=True)
 class OutputSettings:
-    """What a run writes per input. Flat keys: ``formats``, ``preview``, ``preview_size``,
-    ``spectra_pixels``, ``fit_residual_warning``, ``fit_residual_limit``,
-    ``pedestal_refuse_factor``, ``strict``."""
+    """What a run writes per input (flat keys: the field names)."""
 
     formats: tuple[CubeFormat, ...] = _set(
         ("tiff", "envi", "npz"),
