@@ -796,6 +796,9 @@ def test_the_cache_command_shows_and_clears_only_what_it_wrote(tmp_path, capsys)
     fake = folder / "fake-abababababababababababab.hsicache"
     fake.mkdir()
     (fake / "x.npy").write_text("no index: not the cache's")
+    array = folder / "array-abababababababababababab.hsicache"
+    array.mkdir()
+    (array / disk.INDEX).write_text("[2]")  # an index that is not an object: not the cache's
     assert main(["cache", "info", "--folder", str(folder)]) == 0
     out = capsys.readouterr().out
     assert str(folder) in out and path.name in out and "1 entr" in out and "GiB" in out
@@ -805,7 +808,7 @@ def test_the_cache_command_shows_and_clears_only_what_it_wrote(tmp_path, capsys)
     assert not path.exists()
     assert sorted(p.name for p in folder.iterdir()) == sorted(
         [disk.KEY_FILE, "link-abababababababababababab.hsicache",
-         "notes-abababababababababababab.hsicache", "notes.txt", fake.name])
+         "notes-abababababababababababab.hsicache", "notes.txt", fake.name, array.name])
     assert (outside / "thesis.npy").read_text() == "mine" and (fake / "x.npy").exists()
 
 

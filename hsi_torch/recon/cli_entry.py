@@ -34,6 +34,8 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
     cfg: ReconstructConfig = load_args_config(args, ReconstructConfig, default="reconstruct")
     if getattr(args, "strict", False):
         cfg.strict = True  # every warning refuses its frame
+    common = dict(resume=getattr(args, "resume", True), progress=getattr(args, "progress", True),
+                  device=getattr(args, "device", None), config_source=_config_source(args))
     sequence = bool(getattr(args, "sequence", False))
     if not sequence and is_sequence_input(args.inputs):
         info(f"{args.inputs[0]}: a folder, a sheet or a multi-page TIFF: reconstructed as a "
@@ -44,23 +46,17 @@ def run_reconstruct(args: argparse.Namespace) -> RunSummary:
         return run_sequence(
             args.inputs, args.bundle, args.out, cfg,
             time_from=getattr(args, "time_from", "auto"),
-            frame_interval_s=getattr(args, "frame_interval", None),
-            resume=getattr(args, "resume", True), progress=getattr(args, "progress", True),
-            device=getattr(args, "device", None),
-            config_source=str(args.config) if getattr(args, "config", None) else None,
+            frame_interval_s=getattr(args, "frame_interval", None), **common,
         )  # fmt: skip
     return run_reconstruction(
         args.inputs, args.bundle, args.out, cfg,
         scheduler=getattr(args, "scheduler", None),
         scheduler_file=getattr(args, "scheduler_file", None),
         output_format=getattr(args, "format", None) or "files",
-        resume=getattr(args, "resume", True), progress=getattr(args, "progress", True),
-        device=getattr(args, "device", None),
         threads_per_worker=getattr(args, "threads_per_worker", None),
         send_bundle=bool(getattr(args, "send_bundle", False)),
         tls=(getattr(args, "tls_ca_file", None), getattr(args, "tls_cert", None),
-             getattr(args, "tls_key", None)),
-        config_source=str(args.config) if getattr(args, "config", None) else None,
+             getattr(args, "tls_key", None)), **common,
     )  # fmt: skip
 
 
@@ -74,6 +70,10 @@ def _refuse_with_sequence(args: argparse.Namespace) -> None:
         raise ValueError("--format: a sequence is written to OUT/sequence.zarr (--sequence)")
 
 
+def _config_source(args: argparse.Namespace) -> str | None:
+    return str(args.config) if getattr(args, "config", None) else None
+
+
 def run_watch(args: argparse.Namespace) -> RunSummary:
     """Entry point of ``hsi-torch watch`` (see :mod:`hsi_torch.recon.batch.watch`).
 
@@ -84,6 +84,5 @@ def run_watch(args: argparse.Namespace) -> RunSummary:
     return watch_folder(
         args.folder, args.bundle, args.out, cfg, time_from=args.time_from,
         max_frames=args.max_frames, idle_timeout_s=args.idle_timeout, settle_s=args.settle,
-        device=getattr(args, "device", None),
-        config_source=str(args.config) if getattr(args, "config", None) else None,
+        device=getattr(args, "device", None), config_source=_config_source(args),
     )  # fmt: skip

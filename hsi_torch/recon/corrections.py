@@ -26,8 +26,7 @@ def apply_bundle_corrections(capture: Any, rad: BundleRadiometry | None) -> dict
       observation that samples one is dropped.
 
     Returns:
-        Statistics: ``stray_light_veil_dn`` (the veil's mean per colour) and
-        ``defect_pixels`` (pixels marked), when applied.
+        The statistics of :func:`correct_frames`.
     """
     done = getattr(capture, "_bundle_corrections", None)
     if isinstance(done, dict):
@@ -43,9 +42,7 @@ def correct_frames(
     rgb: Tensor, saturated: Tensor | None, rad: BundleRadiometry | None
 ) -> tuple[Tensor, Tensor | None, dict[str, Any]]:
     """The bundle's sensor corrections on tensors, as :func:`apply_bundle_corrections` does on
-    captures: ``stray_light: subtract`` bundles get the veil (fitted per frame and colour on the
-    bundle's unreached pixels) subtracted; ``defects: mask`` bundles get their hot and dead
-    pixels marked saturated.
+    captures (the veil fitted per frame and colour).
 
     Args:
         rgb: ``(3, H, W)`` or ``(B, 3, H, W)`` linear RGB (demosaiced), sensor size.

@@ -860,10 +860,12 @@ class HSIReconstructor(nn.Module):
         p = Path(path)
         sens = self.sensing
         t0 = time.perf_counter()
+        black = read.black_level  # a tuple in the settings, a list for read_any
         cap = read_any(
             p, expected_size=sens.sensor_size if read.demosaic == "bilinear" else None,
-            demosaic=read.demosaic, cfa_pattern=read.cfa_pattern, black_level=_listed(
-                read.black_level), white_level=read.white_level, dtype=sens.dtype,
+            demosaic=read.demosaic, cfa_pattern=read.cfa_pattern,
+            black_level=list(black) if isinstance(black, tuple) else black,
+            white_level=read.white_level, dtype=sens.dtype,
             device=sens.device, defaults=self.capture_defaults(read.exposure_s), page=page,
         )  # fmt: skip
         if read.demosaic == "half":
@@ -928,11 +930,6 @@ def _derived(sens: BundleSensing) -> dict[str, Tensor]:
         "gram_diag": p.gram_diag, "gram_norm": p.gram_norm, "singular": p.singular,
         "no_data": p.no_data,
     }  # fmt: skip
-
-
-def _listed(level: Any) -> Any:
-    """A settings black level (a number or a tuple) in read_any's form."""
-    return list(level) if isinstance(level, tuple) else level
 
 
 def _check_half_size(cap: Any, sens: BundleSensing, path: Path) -> None:

@@ -791,13 +791,10 @@ def _entry_kind(path: Path) -> str | None:
         )
     except (OSError, ValueError, _Refused, RecursionError):
         return None
-    key = index.get("key") if isinstance(index, dict) else None
-    ok = (
-        isinstance(index.get("format"), int)
-        and isinstance(key, str)
-        and bool(re.fullmatch(r"[0-9a-f]{64}", key))
-    )
-    return "entry" if ok else None
+    if not isinstance(index, dict) or not isinstance(index.get("format"), int):
+        return None  # (an index that is not a JSON object: not the cache's)
+    key = index.get("key")
+    return "entry" if isinstance(key, str) and re.fullmatch(r"[0-9a-f]{64}", key) else None
 
 
 def _entry_bytes(path: Path) -> int:

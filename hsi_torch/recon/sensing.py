@@ -256,12 +256,6 @@ def _factorise(
                         chunk_size=chunk_size)
 
 
-def _cfa_from_settings(bundle: CalibrationBundle) -> str | None:
-    s = bundle.settings
-    v = s.get("cfa_pattern") if isinstance(s, dict) else None
-    return str(v) if isinstance(v, str) else None
-
-
 def precompute_sensing(
     bundle: CalibrationBundle | str | os.PathLike,
     *,
@@ -331,7 +325,8 @@ def precompute_sensing(
     # bundle loaded here from a path is freed before the factorisation's memory is taken
     ref = weakref.ref(b)
     exposure = bundle_exposure(b)
-    extra = dict(exposure_s=exposure, cfa_pattern=_cfa_from_settings(b),
+    cfa = b.settings.get("cfa_pattern") if isinstance(b.settings, dict) else None
+    extra = dict(exposure_s=exposure, cfa_pattern=cfa if isinstance(cfa, str) else None,
                  radiometry=BundleRadiometry.from_bundle(b, exposure))  # fmt: skip
     hand_over = [b]
     del b

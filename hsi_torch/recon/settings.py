@@ -115,15 +115,19 @@ def _number(key: str, value: Any) -> float:
     return v
 
 
+def _checked(obj: Any, name: str, key: str, ok: Any, want: str) -> None:
+    """Check the field ``name`` of a frozen settings group (``key``: its flat key, named in the
+    error): a finite number for which ``ok`` holds (else "must be ``want``"), stored as a float."""
+    v = _number(key, getattr(obj, name))
+    if not ok(v):
+        raise _bad(key, f"must be {want}, got {getattr(obj, name)}")
+    object.__setattr__(obj, name, v)
+
+
 def _positive_or_none(obj: Any, name: str, key: str, unit: str = "") -> None:
-    """Check the field ``name`` of a frozen settings group: ``None`` or a finite number ``> 0``
-    (``key``: its flat key, named in the error), stored as a float."""
-    value = getattr(obj, name)
-    if value is not None:
-        v = _number(key, value)
-        if not v > 0:
-            raise _bad(key, f"must be > 0{unit} or null, got {value}")
-        object.__setattr__(obj, name, v)
+    """:func:`_checked` for ``None`` or a number ``> 0``."""
+    if getattr(obj, name) is not None:
+        _checked(obj, name, key, lambda v: v > 0, f"> 0{unit} or null")
 
 
 def _count(key: str, value: Any, minimum: int, allow_none: bool = True) -> None:
@@ -155,8 +159,7 @@ def thaw(value: Any) -> Any:
 
 @dataclass(frozen=True)
 class SolveSettings:
-    """The per-pixel solve. Flat keys: ``beta``, ``diff_order``, ``solver``, ``admm_iters``,
-    ``chunk_size``, ``min_views``, ``nan_invalid``, ``device``, ``dtype``."""
+    """The per-pixel solve (flat keys: the field names)."""
 
     beta: float = _set(
         DEFAULT_BETA,
@@ -247,19 +250,15 @@ class PriorSettings:
                 raise _bad("lam", f"must be a number >= 0, 'auto' or 'discrepancy', got "
                                   f"{self.lam[:40]!r}")  # fmt: skip
         else:
-            lam = _number("lam", self.lam)
-            if not lam >= 0:
-                raise _bad("lam", f"must be >= 0, 'auto' or 'discrepancy', got {self.lam}")
-            object.__setattr__(self, "lam", lam)
+            _checked(self, "lam", "lam", lambda v: v >= 0, ">= 0, 'auto' or 'discrepancy'")
         _count("spatial_iters", self.spatial_iters, 1)
         _count("spectral_rank", self.spectral_rank, 1)
 
 
 @dataclass(frozen=True)
 class InputSettings:
-    """How a capture file is read. Flat keys: ``demosaic``, ``cfa_pattern``, ``black_level``,
-    ``white_level``, ``exposure_correction``, ``exposure_s`` (``sat_threshold`` is a keyword of
-    the Python API)."""
+    """How a capture file is read (flat keys: the field names; ``sat_threshold`` is a keyword
+    of the Python API)."""
 
     demosaic: Literal["bilinear", "half"] = _set(
         "bilinear",
@@ -307,22 +306,14 @@ class InputSettings:
         elif bl is not None:
             object.__setattr__(self, "black_level", _number("black_level", bl))
         _positive_or_none(self, "white_level", "white_level")
-        if self.exposure_s is not None:
-            t = _number("exposure_s", self.exposure_s)
-            if not (0 < t < float("inf")):
-                raise _bad("exposure_s", f"must be > 0 and finite or null, got {self.exposure_s}")
-            object.__setattr__(self, "exposure_s", t)
-        sat = _number("sat_threshold", self.sat_threshold)
-        if not 0 <= sat < 1:
-            raise _bad("sat_threshold", f"must be in [0, 1), got {self.sat_threshold}")
-        object.__setattr__(self, "sat_threshold", sat)
+        if self.exposure_s is not None:  # (a number is finite: _number)
+            _checked(self, "exposure_s", "exposure_s", lambda v: v > 0, "> 0 and finite or null")
+        _checked(self, "sat_threshold", "sat_threshold", lambda v: 0 <= v < 1, "in [0, 1)")
 
 
 @dataclass(frozen=True)
 class OutputSettings:
-    """What a run writes per input. Flat keys: ``formats``, ``preview``, ``preview_size``,
-    ``spectra_pixels``, ``fit_residual_warning``, ``fit_residual_limit``,
-    ``pedestal_refuse_factor``, ``strict``."""
+    """What a run writes per input (flat keys: the field names)."""
 
     formats: tuple[CubeFormat, ...] = _set(
         ("tiff", "envi", "npz"),
@@ -413,14 +404,8 @@ class UncertaintySettings:
 
     def __post_init__(self) -> None:
         _positive_or_none(self, "electrons_per_dn", "noise_electrons_per_dn")
-        r = _number("noise_read_e", self.read_e)
-        if not r >= 0:
-            raise _bad("noise_read_e", f"must be >= 0, got {self.read_e}")
-        object.__setattr__(self, "read_e", r)
-        q = _number("noise_quantization_dn", self.quantization_dn)
-        if not q >= 0:
-            raise _bad("noise_quantization_dn", f"must be >= 0, got {self.quantization_dn}")
-        object.__setattr__(self, "quantization_dn", q)
+        _checked(self, "read_e", "noise_read_e", lambda v: v >= 0, ">= 0")
+        _checked(self, "quantization_dn", "noise_quantization_dn", lambda v: v >= 0, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -473,94 +458,54 @@ TEMPORAL_KINDS = ("none", "quadratic")
 
 @dataclass(frozen=True)
 class SequenceSettings:
-    """Frames of one sequence reconstructed in order (:mod:`hsi_torch.recon.sequence`). Flat
-    keys: ``warm_start``, ``warm_spatial``, ``warm_noise``, ``temporal``, ``temporal_weight``,
-    ``temporal_gate``, ``drift_track``, ``drift_window``, ``drift_jump_px``: in
-    ``reconstruct.yaml`` and ``--set`` (they act on ``reconstruct --sequence`` and ``watch``, and
-    on :class:`~hsi_torch.recon.sequence.SequenceReconstructor`; a single capture has no previous
-    frame).
-
-    Attributes:
-        warm_start: the per-pixel active-set solve of the pixels that pivot starts from the
-            previous frame's zero set (the same KKT points as cold solves). Off by default: on
-            the simulated moving scene it was not faster than the solver's own start
-            (``docs/sequences.md``).
-        warm_spatial: the spatial prior's ADMM starts from the previous frame's state (answer and
-            scaled dual on the pixels whose observations did not move, the TV prox's dual) and
-            checks its stopping rule every iteration, and the per-pixel problem is solved only
-            on the moved pixels and the noise estimate's samples: the same optimum (and the
-            same ``λ``) to the solver's tolerance. On by default (it acts with ``prior: tv``
-            only): on the simulated full-size moving scene the solve stage was 1.4× faster per
-            frame (median; 6 ADMM iterations instead of 10) and every frame within
-            +0.035…+0.046 dB of its cold solve (``docs/sequences.md``).
-        warm_noise: with ``warm_spatial``, a frame within 10 % of the light and exposure of the
-            frame whose noise level was last estimated reuses that noise level ``σ̂`` and so its
-            ``λ`` (``stats["noise_sigma_given"]``): the frame's answer is the optimum of the
-            problem with that ``λ``, not of its own estimate's (a deviation from the noise rule,
-            for speed: the estimate is a third of a small frame's spatial solve).
-        temporal: ``"none"`` or ``"quadratic"``: a penalty ``w‖s_t − s_{t−1}‖²_G`` per pixel on
-            the change of its spectrum since the previous frame's answer (``G`` the pixel's Gram
-            matrix), on the pixels whose data the previous answer still explains (the motion
-            gate, ``temporal_gate``).
-        temporal_weight: ``w``: the previous answer counts as ``w`` frames of data (``> 0``).
-        temporal_gate: a pixel is static when its previous answer explains this frame's
-            observations within ``gate·|F|`` times its own noise variance (estimated from its
-            fit residual; ``|F|`` its free bands) more than its own fit does (``> 0``).
-        drift_track: measure every frame's sensor drift and correct the drift of a smooth path
-            fitted over the recent frames instead of each frame's own estimate.
-        drift_window: frames the path is fitted over (an integer ``>= 2``).
-        drift_jump_px: a frame whose measured drift is this far (px) from the path's prediction
-            is a jump (a ``drift_jump`` finding): the path restarts from it (``> 0``).
+    """Frames of one sequence reconstructed in order (:mod:`hsi_torch.recon.sequence`; flat keys:
+    the field names, in ``reconstruct.yaml`` and ``--set``, acting on ``reconstruct --sequence``,
+    ``watch`` and :class:`~hsi_torch.recon.sequence.SequenceReconstructor`). What each setting
+    does, the temporal prior's penalty ``w‖s_t − s_{t−1}‖²_G`` and its motion gate,
+    ``warm_noise``'s deviation from the noise rule and the measured effects:
+    ``docs/sequences.md``.
     """
 
     warm_start: bool = _set(
         False,
         "start each frame's per-pixel active-set solve from the previous frame's zero set",
-        key="warm_start",
     )
     warm_spatial: bool = _set(
         True,
         "start each frame's spatial-prior ADMM from the previous "
         "frame's answer (static pixels) and TV dual",
-        key="warm_spatial",
     )
     warm_noise: bool = _set(
         False,
         "warm_spatial: reuse the noise level (and lambda) of the frame it was last estimated "
         "on while the light and exposure stay within 10 % of it",
-        key="warm_noise",
     )
     temporal: str = _set(
         "none",
         "temporal prior: none or quadratic (a gated penalty on the "
         "change of each pixel's spectrum since the previous frame)",
-        key="temporal",
     )
     temporal_weight: float = _set(
         1.0,
         "the temporal penalty's weight: the previous answer counts as this many frames of data",
-        key="temporal_weight",
     )
     temporal_gate: float = _set(
         4.0,
         "motion gate: how much worse (in the pixel's noise "
         "variance per free band) the previous answer may fit this "
         "frame's data",
-        key="temporal_gate",
     )
     drift_track: bool = _set(
         False,
         "measure the drift of every frame and correct a smooth path fitted over the recent frames",
-        key="drift_track",
     )
     drift_window: int = _set(
-        10, "frames the drift path is fitted over", key="drift_window"
+        10, "frames the drift path is fitted over"
     )
     drift_jump_px: float = _set(
         0.5,
         "a measured drift this far (px) from the path's "
         "prediction is a jump: flagged, and the path restarts",
-        key="drift_jump_px",
     )
 
     def __post_init__(self) -> None:

@@ -1,14 +1,6 @@
-"""The findings report of a reconstruction run: one JSON file per run in its output folder.
-
-Every run that processed or skipped an input writes ``OUT/runs/<run>.findings.json`` beside its
-configuration file ``OUT/runs/<run>.yaml`` (its layout, an example and when it is written:
-``docs/reconstruct.md``, *Findings*). Keys: ``hsi_torch_findings_report`` (:data:`REPORT_VERSION`),
-``run_config`` (relative to ``out``), ``out``, ``store``, ``elapsed_s``, ``counts``
-(processed / skipped / failed), ``findings_summary``, ``provenance`` and ``inputs``: one row per
-input with ``input``, ``status``, ``outputs`` (absolute; a skipped input's are the files the run
-would have written for it), ``findings`` (:meth:`hsi_torch.findings.Finding.to_dict`; read back
-with :func:`hsi_torch.findings.findings_from_dicts`; a skipped input's are those stored with its
-cube) and ``error``.
+"""The findings report of a reconstruction run: every run that processed or skipped an input
+writes ``OUT/runs/<run>.findings.json`` beside its configuration file ``OUT/runs/<run>.yaml``
+(its keys, an example and when it is written: ``docs/reconstruct.md``, *Findings*).
 """
 
 from __future__ import annotations
@@ -37,7 +29,8 @@ def findings_report(
     run_config: str | os.PathLike | None = None,
     skipped_outputs: Callable[[Path], Sequence[str | os.PathLike]] | None = None,
 ) -> dict[str, Any]:
-    """The report of a run (the layout of the module docstring) as a JSON-able dict.
+    """The report of a run (the layout of ``docs/reconstruct.md``, *Findings*) as a JSON-able
+    dict.
 
     Args:
         summary: the run's summary.

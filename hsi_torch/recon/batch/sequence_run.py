@@ -13,17 +13,13 @@ Every frame goes through one function, :func:`_reconstruct_sequence` (the recons
 frames in, ``(frame, result or error)`` out, in order): each frame through the file front door
 (:meth:`~hsi_torch.recon.pipeline.Reconstructor.reconstruct_file`), and where the settings'
 ``sequence`` group asks for it (``warm_start``, ``warm_spatial``, ``temporal``,
-``drift_track``: ``--set sequence.warm_spatial=true`` …) through a
+``drift_track``: ``--set warm_spatial=true`` …) through a
 :class:`~hsi_torch.recon.sequence.SequenceReconstructor` that carries the solver state, the
 previous answer and the drift path from one frame to the next.
 
-**Resume.** A rerun into the same folder skips the frames already in the store (by their input)
-and appends the rest; the store's frames must be frames of the sequence, in its order (a sequence
-store only grows forward in time), so a frame that failed in an earlier run and lies before the
-store's last frame cannot be inserted any more: it is reported as failed (write into another
-folder to include it). ``--no-resume`` does not overwrite a store: it refuses one that has frames.
-A failed frame does not stop the run (the time axis simply has no entry for it); the exit status
-is 1 when any failed.
+**Resume** (a store grows forward only; ``--no-resume`` refuses a store with frames):
+``docs/sequences_io.md``. A failed frame does not stop the run (the time axis simply has no entry
+for it); the exit status is 1 when any failed.
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ the solver: ``from hsi_torch.recon.nnls import solve_nnls, prepare_nnls``.
 """
 
 from hsi_torch.recon.nnls._threads import cpu_threads
-from hsi_torch.recon.nnls.kkt import masked_gram, nnls_kkt_residual, smoothness_gram
+from hsi_torch.recon.nnls.kkt import nnls_kkt_residual, smoothness_gram
 from hsi_torch.recon.nnls.problem import (
     NNLSProblem,
     NNLSResult,
@@ -70,6 +70,5 @@ __all__ = [
     "SolveOptions",
     "nnls_kkt_residual",
     "smoothness_gram",
-    "masked_gram",
     "cpu_threads",
 ]

@@ -13,7 +13,7 @@ from torch import Tensor
 from hsi_torch.errors import InputError
 from hsi_torch.spectral import difference_matrix
 
-__all__ = ["smoothness_gram", "masked_gram", "nnls_kkt_residual"]
+__all__ = ["smoothness_gram", "nnls_kkt_residual"]
 
 
 def _rowvec(
@@ -102,24 +102,6 @@ def smoothness_gram(
         D = difference_matrix(num_bands, diff_order, device=device, dtype=dtype)
         return beta * (D.T @ D)
     return torch.zeros((num_bands, num_bands), dtype=dtype, device=device)
-
-
-def masked_gram(
-    A: Tensor, mask: Tensor | None, reg: Tensor | None = None, *, out: Tensor | None = None
-) -> Tensor:
-    """Per-pixel Gram matrices ``G = Aᵀ W A (+ reg)``.
-
-    Args:
-        A: ``(n, O, M)`` finite sensing matrices; mask: ``(n, O)`` bool (``W``) or ``None``.
-        reg: optional ``(M, M)`` added, e.g. :func:`smoothness_gram`.
-        out: optional ``(n, M, M)`` to write into.
-
-    Returns:
-        ``(n, M, M)``, exactly symmetric (the same products in the same order on both sides).
-    """
-    aw = A if mask is None else A * mask.unsqueeze(2)  # A finite: 0/1 weights by product
-    G = torch.bmm(A.transpose(1, 2), aw, out=out)
-    return G if reg is None else G.add_(reg)
 
 
 def _gram_norm(G: Tensor) -> Tensor:

@@ -96,19 +96,15 @@ def _as_sensing(A: Tensor | Sensing) -> Sensing:
     return DenseSensing(A)
 
 
-def _operator_tensors(op: Sensing) -> tuple[Tensor, ...]:
-    if isinstance(op, DenseSensing):
-        return (op.matrices,)
-    return (op.transmittance, op.gain, op.response)
-
-
 def _check_inputs(
     A: Tensor | Sensing, mask: Tensor | None, beta: float, diff_order: int
 ) -> tuple[Sensing, Tensor | None, float]:
     op = _as_sensing(A)
     # the Gram matrices and their factorisations are formed without autograd: a gradient
     # through A would only see A's part in the right-hand side AᵀWy, a wrong derivative
-    if torch.is_grad_enabled() and any(t.requires_grad for t in _operator_tensors(op)):
+    tensors = (op.matrices,) if isinstance(op, DenseSensing) else (
+        op.transmittance, op.gain, op.response)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         raise ValueError(
             "A requires grad, but the NNLS solver is differentiable with respect to y only (its "
             "Gram matrices and their factorisations are constants for autograd, so a gradient "
