@@ -303,7 +303,7 @@ def test_a_frame_is_demosaiced_once_for_the_solve_and_the_temporal_step(monkeypa
     front door solves the frame as the sequence prepared it. The answers are those of the same
     frames given demosaiced (RGB), and the front door's per-capture handling of a mosaic holds:
     its demosaic time, and the noise model's Bayer layout (the first frame's standard deviations
-    are those of the mosaic reconstructed alone, not of the RGB frame)."""
+    are those of the mosaic reconstructed alone, not of the RGB frame). A bad frame is named."""
     from hsi_torch.io.raw import mosaic
     from hsi_torch.recon import frame as frame_module
 
@@ -335,3 +335,7 @@ def test_a_frame_is_demosaiced_once_for_the_solve_and_the_temporal_step(monkeypa
             torch.testing.assert_close(a.std, c.std, rtol=0, atol=0, equal_nan=True)
             assert not torch.allclose(a.std.nan_to_num(), b.std.nan_to_num())
     assert a.stats["sequence"]["temporal_static"] > 0  # the temporal step ran
+    with pytest.raises(ValueError, match="frame 2: sensor size"):  # named, as by the front door
+        from_bayer.reconstruct(bayer[:, :-2], cfa_pattern="RGGB")
+    with pytest.raises(ValueError, match=r"cam\.dng: image must be .* got \(40, 40\)"):
+        from_bayer.reconstruct(bayer[0], source="cam.dng")
