@@ -296,3 +296,46 @@ def test_the_temporal_step_hands_the_sensing_contiguous_rows(monkeypatch):
     res = seq.reconstruct(frames[1][1])
     assert res.stats["sequence"]["temporal_static"] > 0  # the temporal step ran
     assert len(seen) >= 2 and all(seen)
+
+
+def test_a_frame_is_demosaiced_once_for_the_solve_and_the_temporal_step(monkeypatch):
+    """A Bayer frame of a temporal sequence (the drift path on too) is demosaiced once: the
+    front door solves the frame as the sequence prepared it. The answers are those of the same
+    frames given demosaiced (RGB), and the front door's per-capture handling of a mosaic holds:
+    its demosaic time, and the noise model's Bayer layout (the first frame's standard deviations
+    are those of the mosaic reconstructed alone, not of the RGB frame). A bad frame is named."""
+    from hsi_torch.io.raw import mosaic
+    from hsi_torch.recon import frame as frame_module
+
+    demosaic = frame_module.demosaic_bilinear
+    calls: list[int] = []
+
+    def counted(*args):
+        calls.append(1)
+        return demosaic(*args)
+
+    monkeypatch.setattr(frame_module, "demosaic_bilinear", counted)
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, uncertainty=True)
+    seq_kw = dict(temporal="quadratic", drift_track=True, **kw)
+    from_bayer = SequenceReconstructor(bundle, **seq_kw)
+    from_rgb = SequenceReconstructor(from_bayer.base_sensing, **seq_kw)
+    for t, (_, img) in enumerate(_frames(bundle, 2, noise=3.0, seed=2, growth=0.0)):
+        bayer = mosaic(img, "RGGB")
+        before = len(calls)
+        a = from_bayer.reconstruct(bayer, cfa_pattern="RGGB")
+        assert len(calls) == before + 1
+        b = from_rgb.reconstruct(demosaic(bayer, "RGGB"))
+        torch.testing.assert_close(a.cube, b.cube, rtol=0, atol=0, equal_nan=True)
+        assert a.stats["sequence"] == b.stats["sequence"]
+        assert "demosaic" in a.timings and "demosaic" not in b.timings
+        if t == 0:
+            alone = Reconstructor(from_bayer.base_sensing, **kw)
+            c = alone.reconstruct_frame(bayer, cfa_pattern="RGGB")
+            torch.testing.assert_close(a.std, c.std, rtol=0, atol=0, equal_nan=True)
+            assert not torch.allclose(a.std.nan_to_num(), b.std.nan_to_num())
+    assert a.stats["sequence"]["temporal_static"] > 0  # the temporal step ran
+    with pytest.raises(ValueError, match="frame 2: sensor size"):  # named, as by the front door
+        from_bayer.reconstruct(bayer[:, :-2], cfa_pattern="RGGB")
+    with pytest.raises(ValueError, match=r"cam\.dng: image must be .* got \(40, 40\)"):
+        from_bayer.reconstruct(bayer[0], source="cam.dng")

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
@@ -78,6 +79,10 @@ from hsi_torch.recon.settings import ReconstructSettings, with_overrides
 from hsi_torch.recon.spatial.noise import frame_noise_level
 
 __all__ = ["SequenceReconstructor", "DriftPath", "temporal_problem"]
+
+#: A frame as :meth:`SequenceReconstructor._prepare` made it: the image ``(3, H, W)`` and
+#: saturation mask on the bundle's device, the corrections' statistics, the seconds it took.
+_Prepared = tuple[Tensor, Tensor | None, dict[str, Any], float]
 
 
 class DriftPath:
@@ -284,10 +289,23 @@ class SequenceReconstructor:
         rec = self.reconstructor
         src = source or f"frame {self.frame_index}"
 
-        def solve(sens: BundleSensing) -> ReconstructionResult:
-            return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s,
-                                         cfa_pattern=cfa_pattern, source=src, warm=self.warm,
-                                         sensing=sens)  # fmt: skip
+        def solve(sens: BundleSensing, prepared: _Prepared | None) -> ReconstructionResult:
+            if prepared is None:
+                return rec.reconstruct_frame(image, saturated, exposure_s=exposure_s,
+                                             cfa_pattern=cfa_pattern, source=src,
+                                             warm=self.warm, sensing=sens)  # fmt: skip
+            # the frame as this class prepared it: not demosaiced and corrected a second time
+            img, sat, corr, seconds = prepared
+            mosaic = image.shape[0] == 1
+            res = rec.reconstruct_frame(img, sat, exposure_s=exposure_s, cfa_pattern=cfa_pattern,
+                                        source=src, raw_layout="bayer" if mosaic else None,
+                                        bundle_corrections=False, warm=self.warm,
+                                        sensing=sens)  # fmt: skip
+            res.stats.update(corr)
+            if mosaic:
+                res.timings = {"demosaic": seconds, **res.timings}
+            res.timings["total"] += seconds
+            return res
 
         return self._frame(image, saturated, exposure_s, cfa_pattern, src, False, solve)
 
@@ -302,7 +320,7 @@ class SequenceReconstructor:
         cap, checks, t_load = rec.read_capture(path, page=page)
         t_exp, _, _, pattern = rec.capture_frame_arguments(cap)
 
-        def solve(sens: BundleSensing) -> ReconstructionResult:
+        def solve(sens: BundleSensing, _: _Prepared | None) -> ReconstructionResult:
             return with_load_time(
                 rec.reconstruct_capture(cap, warm=self.warm, sensing=sens, stats=checks), t_load
             )
@@ -318,10 +336,11 @@ class SequenceReconstructor:
         cfa_pattern: str | None,
         src: str,
         corrected: bool,
-        solve: Callable[[BundleSensing], ReconstructionResult],
+        solve: Callable[[BundleSensing, _Prepared | None], ReconstructionResult],
     ) -> ReconstructionResult:
         """One frame: the drift path (on the image, ``corrected``: the bundle's corrections
-        already applied), ``solve`` with the frame's sensing, the temporal step."""
+        already applied), ``solve`` with the frame's sensing and the frame as prepared for the
+        drift path and the temporal step (``None`` without either), the temporal step."""
         t = self.frame_index
         sq = self.settings.sequence
         found: list[Finding] = []
@@ -333,8 +352,10 @@ class SequenceReconstructor:
         sens = self.base_sensing
         pattern = cfa_pattern or sens.cfa_pattern
         prepared = None
+        if sq.drift_track or sq.temporal == "quadratic":  # prepared once, for all three
+            prepared = self._prepare(image, saturated, pattern, corrected, src)
         if sq.drift_track:
-            prepared = self._prepare(image, saturated, pattern, corrected)
+            assert prepared is not None
             est = estimate_drift(sens, prepared[0], self.settings.registration.min_views)
             meas = None
             if est.refusal is None and est.sensor_shift_px is not None:
@@ -352,10 +373,9 @@ class SequenceReconstructor:
             seq_stats["drift_path"] = None if path is None else [round(float(v), 4) for v in path]
             if path is not None:
                 sens = corrected_sensing(self.base_sensing, path[:2], float(path[2]))
-        res = solve(sens)
+        res = solve(sens, prepared)
         if sq.temporal == "quadratic":
-            if prepared is None:
-                prepared = self._prepare(image, saturated, pattern, corrected)
+            assert prepared is not None
             self._temporal_step(res, sens, exposure_s, prepared, seq_stats)
         res.stats["sequence"] = seq_stats
         res.stats["findings"] = [f.to_dict() for f in found]
@@ -364,28 +384,40 @@ class SequenceReconstructor:
         return res
 
     def _prepare(
-        self, image: Tensor, saturated: Tensor | None, pattern: str | None, corrected: bool
-    ) -> tuple[Tensor, Tensor | None]:
-        """The frame's image as the front door solves it: on the bundle's device and dtype,
-        demosaiced, corrected (unless ``corrected``)."""
+        self,
+        image: Tensor,
+        saturated: Tensor | None,
+        pattern: str | None,
+        corrected: bool,
+        src: str,
+    ) -> _Prepared:
+        """The frame as the front door prepares it: on the bundle's device, demosaiced,
+        corrected (unless ``corrected``); with the corrections' statistics and the seconds it
+        took. A bad image is refused naming ``src``, as by the front door."""
         sens = self.base_sensing
-        img = image.to(device=sens.device, dtype=sens.dtype)
+        if not isinstance(image, Tensor) or image.ndim != 3:
+            got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
+            raise ValueError(f"{src}: image must be a (3, H, W) or (1, H, W) tensor, got {got}")
+        sens.check_capture_size(image.shape, src)
+        t0 = time.perf_counter()
+        img = image.to(device=sens.device)
         sat = None if saturated is None else saturated.to(device=sens.device)
         img, sat = prepare_input(img, sat, pattern)
+        corr: dict[str, Any] = {}
         if not corrected:
-            img, sat, _ = correct_frames(img, sat, sens.radiometry)
-        return img, sat
+            img, sat, corr = correct_frames(img, sat, sens.radiometry)
+        return img, sat, corr, time.perf_counter() - t0
 
     def _temporal_step(
         self,
         res: ReconstructionResult,
         sens: BundleSensing,
         exposure_s: float | None,
-        prepared: tuple[Tensor, Tensor | None],
+        prepared: _Prepared,
         seq_stats: dict[str, Any],
     ) -> None:
         """The gated temporal solve of one frame (per-pixel answers in ``res`` replaced where
-        the pixel is static); ``prepared``: the frame's image and saturation as solved."""
+        the pixel is static); ``prepared``: the frame as solved (:meth:`_prepare`)."""
         sq = self.settings.sequence
         M = sens.num_bands
         pix = sens.pixel_index.to(res.cube.device)
@@ -401,7 +433,7 @@ class SequenceReconstructor:
             self._prev = x.clone()
             seq_stats["temporal_static"] = 0
             return
-        img, sat = prepared
+        img, sat = prepared[0].to(sens.dtype), prepared[1]  # cast as the front door's solve
         if sat is not None and not bool(sat.any()):
             sat = None
         with torch.no_grad():
