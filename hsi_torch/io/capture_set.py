@@ -291,14 +291,6 @@ class CaptureSet:
                 f"capture set {self.root}: no scene {name!r} (it has {sorted(self.scenes)})")
         return self.scenes[name]
 
-    @property
-    def truth_path(self) -> Path:
-        return self.root / TRUTH_NPZ
-
-    def has_truth(self) -> bool:
-        """The set was simulated and holds its ground truth."""
-        return (self.root / TRUTH_NPZ).is_file() and (self.root / TRUTH_JSON).is_file()
-
     def read_brf_free_mask(self, size: tuple[int, int] | None = None) -> np.ndarray:
         """The usable BRF-free pixels, ``(H, W)`` bool (:func:`read_mask_png`)."""
         if self.brf_free_mask_path is None:

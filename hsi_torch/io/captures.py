@@ -309,6 +309,18 @@ def quiet_tifffile() -> contextlib.AbstractContextManager[None]:
     return _quiet("tifffile")
 
 
+def exif_tags(p: str | os.PathLike) -> dict[str, Any]:
+    """The EXIF tags of a TIFF or camera RAW/DNG (``exifread``, its messages silenced), ``{}``
+    when it has no readable EXIF."""
+    import exifread  # lazy: only TIFF and RAW files have EXIF to read
+
+    try:
+        with _quiet("exifread"), open(p, "rb") as f:
+            return exifread.process_file(f, details=False)
+    except Exception:  # noqa: BLE001 - EXIF is optional information; the pixels are read elsewhere
+        return {}
+
+
 def _read_tiff(
     p: Path, expected_size: tuple[int, int] | None = None, page: int | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -615,27 +627,11 @@ def read_any(
 
     Returns:
         :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
-        mask ``(3, H', W')`` and metadata.
-
-    Metadata contract — besides the file's own keys, ``metadata`` always holds:
-
-    - ``kind`` (``"bayer"``/``"rgb"``), ``source`` (the path), ``demosaic`` (Bayer);
-    - ``cfa_pattern``: the pattern used (Bayer), ``None`` for RGB files without one;
-    - ``black_level``: what was subtracted (DN: a number, 4 Bayer-cell or 3 RGB values) and
-      ``black_level_source``: ``"file"`` (RAW/DNG black level, our JSON metadata), ``"sheet"``,
-      ``"manifest"``, ``"config"`` (a keyword override, labelled by ``sources``), ``"bundle"``
-      (``defaults.black_level_rgb``) or ``"default"`` (nothing given: 0 was subtracted)
-      (:func:`black_level_rule`);
-    - ``white_level``: the saturation level used (DN) or ``None`` (a float file without one),
-      and ``white_level_source``: ``"file"``, ``"sheet"``, ``"manifest"``, ``"config"``,
-      ``"default"`` (the integer type's maximum) or ``None`` (none);
-    - ``exposure_s``: the exposure time in seconds (``float``) or ``None`` when unknown, and
-      ``exposure_source``: ``"file"`` (JSON ``exposure_s`` or EXIF ``ExposureTime``), ``"sheet"``,
-      ``"manifest"``, ``"config"`` (an override, or ``defaults.exposure_s`` for a file with no
-      exposure of its own), or ``None`` when unknown. (The simulator's relative
-      ``exposure`` key is kept as it is and is not an ``exposure_s``.)
-    - ``camera_make``, ``camera_model``: ``str`` or ``None`` (override, else our JSON metadata,
-      else EXIF ``Make``/``Model`` of a TIFF or RAW/DNG).
+        mask ``(3, H', W')`` and metadata: the file's own keys plus ``kind``, ``source`` (the
+        path), ``demosaic`` (Bayer), ``cfa_pattern``, ``black_level`` (DN subtracted) and
+        ``black_level_source`` (:func:`black_level_rule`), ``white_level`` and
+        ``white_level_source``, ``exposure_s`` and ``exposure_source``, ``camera_make``,
+        ``camera_model``: the metadata contract of ``docs/io_config_cli.md``, *Captures in*.
 
     Raises:
         MissingFileError (a ``FileNotFoundError``), FileFormatError (``ValueError``) for unreadable,
@@ -763,13 +759,7 @@ def _file_exif(p: Path) -> dict[str, Any]:
     (``exifread``); keys absent when the file has no such tag or no readable EXIF at all.
     (Our own capture TIFFs, written by :func:`write_capture`, hold no EXIF and are not parsed:
     ~30 ms for a full-size TIFF's tags.)"""
-    import exifread  # lazy: only TIFF and RAW files have EXIF to read
-
-    try:
-        with _quiet("exifread"), open(p, "rb") as f:
-            tags = exifread.process_file(f, details=False)
-    except Exception:  # noqa: BLE001 - EXIF is optional information; the pixels are read elsewhere
-        return {}
+    tags = exif_tags(p)
     out: dict[str, Any] = {}
     for name in ("EXIF ExposureTime", "Image ExposureTime"):
         tag = tags.get(name)
