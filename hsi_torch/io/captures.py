@@ -30,7 +30,7 @@ import torch
 from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
-from hsi_torch.io.bounded import declared_image_size, npy_header, require_npz
+from hsi_torch.io.bounded import declared_image_size, image_hw, npy_header, require_npz
 from hsi_torch.io.radiometry import capture_exposure
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
@@ -268,15 +268,14 @@ def _check_header(
     file holds. The decoded size is therefore bounded by ``H·W·3`` samples of the expected
     sensor size before decoding starts, whatever the compression."""
     shape = tuple(int(v) for v in shape)
-    if len(shape) == 3 and shape[0] not in (1, 3) and shape[-1] not in (1, 3) or not (
-            2 <= len(shape) <= 3):
+    hw = image_hw(shape)
+    if hw is None:
         raise FileFormatError(
             f"{p}: the header describes an image of shape {shape} ({dtype}); expected (H, W) or "
             "(1, H, W) for a Bayer mosaic, or (3, H, W) / (H, W, 3) for RGB (refused before "
             "decoding)")
     if min(shape) < 1:
         raise FileFormatError(f"{p}: the image is empty (shape {shape})")
-    hw = shape[-2:] if len(shape) == 2 or shape[0] in (1, 3) else shape[:2]
     _check_size(p, hw, expected_size)
     nbytes = int(np.prod(shape, dtype=np.float64) * max(1, dtype.itemsize))
     if nbytes > MAX_CAPTURE_BYTES:

@@ -53,6 +53,7 @@ from hsi_torch.findings import Finding, findings_from_dicts
 from hsi_torch.io.atomic import (
     atomic_save_npz,
     atomic_write,
+    atomic_write_text,
     json_default,
     remove_file,
     remove_tree,
@@ -345,32 +346,27 @@ def _save_vrt(tif: Path, shape: tuple[int, ...], wl: np.ndarray) -> Path:
     """GDAL virtual dataset: the TIFF's pages (``GTIFF_DIR:k:``) as bands named by wavelength."""
     m, h, w = shape
     src = _xml_escape(tif.name)
-    bands = []
-    for k, lam in enumerate(wl):
-        bands.append(
-            f'  <VRTRasterBand dataType="Float32" band="{k + 1}">\n'
-            f"    <Description>{_band_name(lam)}</Description>\n"
-            "    <NoDataValue>nan</NoDataValue>\n"
-            f'    <Metadata><MDI key="wavelength">{lam:.10g}</MDI>'
-            '<MDI key="wavelength_units">nm</MDI></Metadata>\n'
-            f'    <Metadata domain="IMAGERY"><MDI key="CENTRAL_WAVELENGTH_UM">{lam / 1000:.10g}'
-            "</MDI></Metadata>\n"
-            "    <SimpleSource>\n"
-            f'      <SourceFilename relativeToVRT="1">GTIFF_DIR:{k + 1}:{src}</SourceFilename>\n'
-            "      <SourceBand>1</SourceBand>\n"
-            f'      <SourceProperties RasterXSize="{w}" RasterYSize="{h}" DataType="Float32" '
-            f'BlockXSize="{w}" BlockYSize="1"/>\n'
-            "    </SimpleSource>\n"
-            "  </VRTRasterBand>")
+    bands = [
+        f'  <VRTRasterBand dataType="Float32" band="{k + 1}">\n'
+        f"    <Description>{_band_name(lam)}</Description>\n"
+        "    <NoDataValue>nan</NoDataValue>\n"
+        f'    <Metadata><MDI key="wavelength">{lam:.10g}</MDI>'
+        '<MDI key="wavelength_units">nm</MDI></Metadata>\n'
+        f'    <Metadata domain="IMAGERY"><MDI key="CENTRAL_WAVELENGTH_UM">{lam / 1000:.10g}'
+        "</MDI></Metadata>\n"
+        "    <SimpleSource>\n"
+        f'      <SourceFilename relativeToVRT="1">GTIFF_DIR:{k + 1}:{src}</SourceFilename>\n'
+        "      <SourceBand>1</SourceBand>\n"
+        f'      <SourceProperties RasterXSize="{w}" RasterYSize="{h}" DataType="Float32" '
+        f'BlockXSize="{w}" BlockYSize="1"/>\n'
+        "    </SimpleSource>\n"
+        "  </VRTRasterBand>" for k, lam in enumerate(wl)]
     text = (
         f'<VRTDataset rasterXSize="{w}" rasterYSize="{h}">\n'
         "  <!-- hsi_torch spectral cube: the bands are the pages of the OME-TIFF beside this "
         "file -->\n" + "\n".join(bands) + "\n</VRTDataset>\n"
     )
-    vrt = _vrt_path(tif)
-    with atomic_write(vrt, "w") as f:
-        f.write(text)
-    return vrt
+    return atomic_write_text(_vrt_path(tif), text)
 
 
 def cube_to_xarray(
@@ -496,8 +492,7 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
     with atomic_write(img, "wb") as f:  # the array's own buffer, no bytes copy
         f.write(memoryview(np.ascontiguousarray(c, dtype="<f4")).cast("B"))
     try:
-        with atomic_write(hdr, "w") as f:
-            f.write("\n".join(lines) + "\n")
+        atomic_write_text(hdr, "\n".join(lines) + "\n")
     except BaseException:
         remove_file(img)  # no data file without its header
         raise
