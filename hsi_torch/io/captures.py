@@ -40,7 +40,7 @@ from hsi_torch.io.raw import (
     validate_cfa_pattern,
 )
 from hsi_torch.io.raw import demosaic as _demosaic  # read_any's argument shadows the name
-from hsi_torch.io.safety import require_regular_file
+from hsi_torch.io.safety import require_regular_file, unreadable_as_format_error
 
 __all__ = [
     "CAPTURE_FORMAT_VERSION",
@@ -325,7 +325,7 @@ def _read_tiff(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     import tifffile
 
-    try:
+    with unreadable_as_format_error(p, "TIFF"):
         with quiet_tifffile(), tifffile.TiffFile(p) as tif:
             if page is not None:  # one page of a multi-page TIFF (a sequence's frame)
                 return _read_tiff_page(p, tif, page, expected_size)
@@ -345,12 +345,6 @@ def _read_tiff(
                 raw = max(0, raw) * max(1, len(series.pages))
             _check_header(p, series.shape, np.dtype(series.dtype), expected_size, raw)
             arr = series.asarray()
-    except FileFormatError:
-        raise
-    except Exception as exc:  # tifffile raises many types for corrupt/truncated data
-        raise FileFormatError(
-            f"{p}: cannot read TIFF ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
-        ) from exc
     return arr, _description_metadata(desc)
 
 
@@ -389,18 +383,12 @@ def _parse_metadata(text: str, where: str) -> dict[str, Any]:
 def _read_npy(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    try:
+    with unreadable_as_format_error(p, "NPY"):
         with open(p, "rb") as f:
             shape, dtype = npy_header(f)
             available = p.stat().st_size - f.tell()
         _check_header(p, shape, dtype, expected_size, available)
         arr = np.load(p, allow_pickle=False)
-    except FileFormatError:
-        raise
-    except Exception as exc:
-        raise FileFormatError(
-            f"{p}: cannot read NPY ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
-        ) from exc
     meta: dict[str, Any] = {}
     side = p.with_name(p.name + ".json")
     if side.exists() or side.is_symlink():
@@ -420,7 +408,7 @@ def _read_npz(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     require_npz(p)  # else numpy's hint about allow_pickle, for a file that is no NPZ
-    try:
+    with unreadable_as_format_error(p, "NPZ"):
         with np.load(p, allow_pickle=False) as z:
             keys = list(z.keys())
             if "image" in keys:
@@ -449,12 +437,6 @@ def _read_npz(
             if "metadata" in keys:  # a 0-d str array (its header was checked)
                 item = z["metadata"].item()
                 meta_text = item.decode("utf-8") if isinstance(item, bytes) else str(item)
-    except FileFormatError:
-        raise
-    except Exception as exc:
-        raise FileFormatError(
-            f"{p}: cannot read NPZ ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
-        ) from exc
     meta = _parse_metadata(meta_text, f"{p}: 'metadata'") if meta_text else {}
     return arr, meta
 

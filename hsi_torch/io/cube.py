@@ -67,7 +67,7 @@ from hsi_torch.io.bounded import (
     require_npz,
 )
 from hsi_torch.io.captures import quiet_tifffile
-from hsi_torch.io.safety import require_regular_file
+from hsi_torch.io.safety import require_regular_file, unreadable_as_format_error
 from hsi_torch.io.zarr_codecs import SAFE_CODECS, check_zarr_codecs
 
 __all__ = [
@@ -589,7 +589,7 @@ def load_cube(
     valid: np.ndarray | None = None
     meta: dict[str, Any] = {}
     wl: np.ndarray | None = None
-    try:
+    with unreadable_as_format_error(p, f"{kind.upper()} cube"):
         if kind == "npz":
             require_npz(p)
             with np.load(p, allow_pickle=False) as z:
@@ -608,13 +608,6 @@ def load_cube(
             c, wl, valid, meta = _load_xarray(p, kind, max_bytes)
         else:
             c, wl, meta = _load_envi(p, max_bytes)
-    except FileFormatError:
-        raise
-    except Exception as exc:
-        raise FileFormatError(
-            f"{p}: cannot read {kind.upper()} cube ({type(exc).__name__}: {exc}); the file is "
-            "corrupt or truncated"
-        ) from exc
     if c.ndim != 3:
         raise FileFormatError(f"{p}: cube must be 3-D (M, H, W), got shape {tuple(c.shape)}")
     if wavelengths is not None:
