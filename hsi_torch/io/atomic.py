@@ -123,7 +123,6 @@ def atomic_write(
     leaves only the temporary file.
 
     Args:
-        path: destination file.
         mode: ``"wb"`` (default) or ``"w"`` (text, UTF-8).
         fsync: flush the data to the disk before the rename (default). ``False`` for files
             that are checked when read and can be made again (a cache): after a power loss the
@@ -411,7 +410,6 @@ def open_own_file(path: str | os.PathLike, what: str = "lock file") -> tuple[int
     it is changed.
 
     Args:
-        path: the lock or marker.
         what: what it is, for the message (``"lock file"``).
 
     Returns:

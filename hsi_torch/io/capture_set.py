@@ -432,7 +432,6 @@ def read_capture_set(
     """Find the files of a capture set (manifest, or the sub-folders of a real device's folder).
 
     Args:
-        root: the folder.
         layout: a nominal layout to use instead of the set's (``manifest["nominal_layout"]``,
             else ``ROOT/nominal_layout.json``).
         brf_free_mask: a BRF-free mask PNG to use instead of the set's (the layout's

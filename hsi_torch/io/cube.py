@@ -229,7 +229,6 @@ def save_cube(
         valid: optional ``(H, W)`` bool mask; default: pixels whose bands are all finite.
         metadata: JSON-serialisable extras (TIFF/NPZ/NetCDF/Zarr; ENVI keeps only
             ``description``).
-        fmt: force a format.
         findings: stored as the metadata key ``"findings"`` (every format, ENVI included;
             replaces a ``"findings"`` key of ``metadata``).
 
@@ -564,7 +563,6 @@ def load_cube(
     Args:
         path: ``.tif/.tiff``, ``.hdr/.img`` or ``.npz``.
         wavelengths: ``(M,)`` nm, required only for files that do not carry them.
-        device: device of the returned tensors.
         max_bytes: the largest decoded cube accepted (default
             :func:`~hsi_torch.io.bounded.max_cube_bytes`: ``$HSI_TORCH_MAX_CUBE_GB``, 1 GiB).
 

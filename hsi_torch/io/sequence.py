@@ -393,8 +393,8 @@ def _check_duplicates(entries: list[tuple[Path, int | None]]) -> None:
     for i, (p, page) in enumerate(entries):
         key = (os.path.realpath(p), page)
         if key in seen:
-            raise InputError(f"{_name((p, page))} is listed twice in the sequence (frames {seen[key]} and "
-                             f"{i}); each capture is one frame")  # fmt: skip
+            raise InputError(f"{_name((p, page))} is listed twice in the sequence (frames "
+                             f"{seen[key]} and {i}); each capture is one frame")  # fmt: skip
         seen[key] = i
 
 
