@@ -31,9 +31,7 @@ a folder or pattern with no capture.
 
 from __future__ import annotations
 
-import csv
 import datetime as _dt
-import io
 import json
 import math
 import os
@@ -44,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
-from hsi_torch.io.bounded import csv_lines, declared_image_size
+from hsi_torch.io.bounded import csv_header, csv_lines, declared_image_size
 from hsi_torch.io.captures import (
     SUPPORTED_SUFFIXES,
     LinearCapture,
@@ -552,15 +550,7 @@ def _read_sequence_sheet(
     p = require_regular_file(sheet, "sequence sheet")
     if p.stat().st_size > _MAX_SHEET_BYTES:
         raise FileFormatError(f"{p}: a sequence sheet larger than {_MAX_SHEET_BYTES >> 20} MiB")
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(f"sequence sheet {p}: cannot read it as UTF-8 text ({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    try:
-        header = next(reader, None)
-    except csv.Error as exc:
-        raise FileFormatError(f"sequence sheet {p}: not a CSV file ({exc})") from None
+    reader, header = csv_header(p, "sequence sheet")
     cols = [h.strip().lower() for h in header or []]
     known = ("file", "time_s", "timestamp", "page")
     for c in cols:
