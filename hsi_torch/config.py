@@ -358,29 +358,22 @@ def _convert(value: Any, tp: Any, path: KeyPath, ctx: _Ctx) -> Any:
             raise ctx.error(path, f"expected int, got {_got(value)}")
         if isinstance(value, int):
             return value
-        num = value
-        if isinstance(value, str):
-            try:
-                num = float(value)
-            except ValueError:
-                raise ctx.error(path, f"expected int, got {_got(value)}") from None
+        try:
+            num = float(value) if isinstance(value, str) else value
+        except ValueError:
+            num = None
         if isinstance(num, float) and num.is_integer():
             return int(num)
         raise ctx.error(path, f"expected int, got {_got(value)}")
     if tp is float:
         if isinstance(value, bool):
             raise ctx.error(path, f"expected float, got {_got(value)}")
-        num: float | None = None
-        if isinstance(value, (int, float)):
-            try:
-                num = float(value)
-            except OverflowError:  # an int beyond float range
-                num = math.inf
-        elif isinstance(value, str):
-            try:
-                num = float(value)
-            except ValueError:
-                pass
+        try:
+            num = float(value) if isinstance(value, (int, float, str)) else None
+        except OverflowError:  # an int beyond float range
+            num = math.inf
+        except ValueError:  # a string that is no number
+            num = None
         if num is None:
             raise ctx.error(path, f"expected float, got {_got(value)}")
         if not math.isfinite(num):
@@ -509,8 +502,7 @@ def load_config(
             what = "is a directory" if cfg_path.is_dir() else "not found"
             raise ConfigError(f"config file {what}", source=src_name)
         try:
-            text = cfg_path.read_text(encoding="utf-8")
-            data = safe_yaml_load(text)
+            data = safe_yaml_load(cfg_path.read_text(encoding="utf-8"))
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -151,10 +151,7 @@ class RefusedError(InputError):
 def warning_class(code: str) -> type[HSIWarning]:
     """The :class:`HSIWarning` subclass a finding code maps to (:class:`HSIWarning` itself for
     an unknown area)."""
-    best = ""
-    for prefix in _CLASSES:
-        if code.startswith(prefix) and len(prefix) > len(best):
-            best = prefix
+    best = max((prefix for prefix in _CLASSES if code.startswith(prefix)), key=len, default="")
     return _CLASSES.get(best, HSIWarning)
 
 
@@ -162,8 +159,7 @@ def warn_findings(findings: Iterable[Finding], stacklevel: int = 2) -> None:
     """Raise every ``"warning"`` finding as a Python warning of its class (``.finding`` set)."""
     for f in findings:
         if f.severity == "warning":
-            cls = warning_class(f.code)
-            w = cls(f.text())
+            w = warning_class(f.code)(f.text())
             w.finding = f
             warnings.warn(w, stacklevel=stacklevel + 1)
 
@@ -171,9 +167,7 @@ def warn_findings(findings: Iterable[Finding], stacklevel: int = 2) -> None:
 def escalated(findings: Iterable[Finding], strict: bool) -> list[Finding]:
     """``findings`` with every warning made an error when ``strict`` (the rest unchanged)."""
     out = list(findings)
-    if not strict:
-        return out
-    return [replace(f, severity="error") if f.severity == "warning" else f for f in out]
+    return [replace(f, severity="error") if strict and f.severity == "warning" else f for f in out]
 
 
 def refusals(findings: Iterable[Finding]) -> list[Finding]:

@@ -232,8 +232,7 @@ def _psnr_bands(pe: Tensor, pt: Tensor, quantize: bool = False) -> Tensor:
 def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device):
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return g
+    return g / g.sum()
 
 
 def _filter_valid(z: Tensor, kernel: Tensor) -> Tensor:

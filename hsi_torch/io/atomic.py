@@ -123,7 +123,6 @@ def atomic_write(
     leaves only the temporary file.
 
     Args:
-        path: destination file.
         mode: ``"wb"`` (default) or ``"w"`` (text, UTF-8).
         fsync: flush the data to the disk before the rename (default). ``False`` for files
             that are checked when read and can be made again (a cache): after a power loss the
@@ -299,9 +298,7 @@ def atomic_save_npz(
         arrays: name → array-like (numpy arrays, scalars, strings; torch tensors are moved to CPU).
         compressed: use ``np.savez_compressed``.
     """
-    converted: dict[str, np.ndarray] = {}
-    for k, v in arrays.items():
-        converted[k] = to_numpy(v)
+    converted = {k: to_numpy(v) for k, v in arrays.items()}
     with atomic_write(path, "wb") as f:
         (np.savez_compressed if compressed else np.savez)(f, **converted)
     return Path(path)
@@ -413,7 +410,6 @@ def open_own_file(path: str | os.PathLike, what: str = "lock file") -> tuple[int
     it is changed.
 
     Args:
-        path: the lock or marker.
         what: what it is, for the message (``"lock file"``).
 
     Returns:
@@ -1020,15 +1016,9 @@ def _write_journal(moves: list[tuple[Path, Path]],
         entries.append({"dest": dest.name, "backup": backup.name if backup else None,
                         "new_inode": os.stat(src).st_ino})  # fmt: skip
     path = folder / f".hsi_torch_commit-{os.getpid()}-{os.urandom(6).hex()}.json"
-    text = json.dumps(
-        {
-            "note": "a replacement of these files was interrupted; the next run "
-            "into this folder puts the earlier files back",
-            "moves": entries,
-        })
-    with atomic_write(path, "w") as f:
-        f.write(text)
-    return path
+    note = ("a replacement of these files was interrupted; the next run into this folder puts "
+            "the earlier files back")
+    return atomic_write_text(path, json.dumps({"note": note, "moves": entries}))
 
 
 def recover_commits(folder: str | os.PathLike) -> list[Path]:

@@ -20,6 +20,7 @@ more than the cap, and every file they open is a regular file (a FIFO would bloc
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -45,6 +46,8 @@ __all__ = [
     "read_json_bounded",
     "check_store_files",
     "declared_image_size",
+    "image_hw",
+    "csv_header",
     "csv_lines",
 ]
 
@@ -244,13 +247,29 @@ def declared_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     except Exception as exc:  # noqa: BLE001 - each library raises its own types
         raise FileFormatError(f"{p}: cannot read the image header ({type(exc).__name__}: "
                               f"{short_text(str(exc), 120)})") from None  # fmt: skip
-    if shape is None or len(shape) not in (2, 3):
-        return None
-    if len(shape) == 2:
-        return int(shape[0]), int(shape[1])
-    if shape[0] in (1, 3):
-        return int(shape[1]), int(shape[2])
-    return (int(shape[0]), int(shape[1])) if shape[-1] in (1, 3) else None
+    return None if shape is None else image_hw(shape)
+
+
+def image_hw(shape: tuple[int, ...]) -> tuple[int, int] | None:
+    """``(H, W)`` of a capture's array shape: ``(H, W)``, ``(C, H, W)`` or ``(H, W, C)`` with C
+    1 or 3 (channels first when both fit); ``None`` for any other shape."""
+    if len(shape) == 2 or (len(shape) == 3 and shape[0] in (1, 3)):
+        return int(shape[-2]), int(shape[-1])
+    return (int(shape[0]), int(shape[1])) if len(shape) == 3 and shape[-1] in (1, 3) else None
+
+
+def csv_header(path: Path, what: str) -> tuple[Any, list[str] | None]:
+    """A sheet's ``csv.reader`` (UTF-8, an optional BOM) and its header row (``None``: an empty
+    file); errors name ``what`` and the file."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"{what} {path}: cannot read it as UTF-8 text ({exc})") from None
+    reader = csv.reader(io.StringIO(text, newline=""))  # a quoted cell keeps its line breaks
+    try:
+        return reader, next(reader, None)
+    except csv.Error as exc:
+        raise FileFormatError(f"{what} {path}: not a CSV file ({exc})") from None
 
 
 def csv_lines(reader: Any, name: Any) -> Iterator[tuple[str, list[str]]]:

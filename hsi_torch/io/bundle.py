@@ -457,18 +457,6 @@ class CalibrationBundle(ReferenceFrame):
         if len(shp) >= 3 and shp[-3] != 3:
             raise ValueError(f"capture must have 3 colour channels, got shape {shp}")
 
-    def layout_tensors(
-        self, device: torch.device | str | None = None, dtype: torch.dtype = torch.float64
-    ) -> dict[str, torch.Tensor]:
-        """``triangles (V,3,2)``, ``parity (V,)``, ``view_homographies (V,3,3)`` as tensors."""
-        return {
-            "triangles": torch.as_tensor(self.triangles, device=device, dtype=dtype),
-            "parity": torch.as_tensor(self.parity, device=device),
-            "view_homographies": torch.as_tensor(
-                self.view_homographies, device=device, dtype=dtype
-            ),
-        }
-
     def sensing_model(
         self,
         pixel_index: torch.Tensor | None = None,

@@ -14,11 +14,9 @@ file, the nominal layout, and a report per band of the calibration grid.
 
 from __future__ import annotations
 
-import csv
 import difflib
 import filecmp
 import glob
-import io
 import json
 import math
 import os
@@ -36,6 +34,7 @@ from hsi_torch.errors import FileFormatError, HSIError, InputError, MissingFileE
 from hsi_torch.io.atomic import atomic_write, atomic_write_json
 from hsi_torch.io.bounded import (
     MAX_JSON_BYTES,
+    csv_header,
     csv_lines,
     declared_image_size,
     npz_declared,
@@ -162,16 +161,7 @@ def read_sheet(path: str | os.PathLike) -> list[SheetRow]:
     sheet = Path(path)
     if not sheet.is_file():
         raise MissingFileError(f"capture sheet {sheet} not found")
-    try:
-        text = sheet.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(f"capture sheet {sheet}: cannot read it as UTF-8 text "
-                              f"({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))  # a quoted cell keeps its line breaks
-    try:
-        header = next(reader, None)
-    except csv.Error as exc:
-        raise FileFormatError(f"capture sheet {sheet}: not a CSV file ({exc})") from None
+    reader, header = csv_header(sheet, "capture sheet")
     if not header or not any(h.strip() for h in header):
         raise FileFormatError(f"capture sheet {sheet}: empty; the first line is the header "
                               f"({','.join(SHEET_COLUMNS[:3])},...)")  # fmt: skip

@@ -109,8 +109,7 @@ def check_manifest(manifest: Mapping[str, Any], path: str | Path) -> None:
     """Refuse, by name, every key the schema does not know and every setting of the wrong type.
 
     Args:
-        manifest: the parsed ``manifest.json`` (a JSON object).
-        path: the manifest file (for messages).
+        manifest: the parsed ``manifest.json`` (a JSON object); path: its file (for messages).
 
     Raises:
         FileFormatError: naming the file, the entry (``captures[k]``, its file) and the key.

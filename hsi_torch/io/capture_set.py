@@ -291,14 +291,6 @@ class CaptureSet:
                 f"capture set {self.root}: no scene {name!r} (it has {sorted(self.scenes)})")
         return self.scenes[name]
 
-    @property
-    def truth_path(self) -> Path:
-        return self.root / TRUTH_NPZ
-
-    def has_truth(self) -> bool:
-        """The set was simulated and holds its ground truth."""
-        return (self.root / TRUTH_NPZ).is_file() and (self.root / TRUTH_JSON).is_file()
-
     def read_brf_free_mask(self, size: tuple[int, int] | None = None) -> np.ndarray:
         """The usable BRF-free pixels, ``(H, W)`` bool (:func:`read_mask_png`)."""
         if self.brf_free_mask_path is None:
@@ -434,26 +426,12 @@ def _manifest_path(root: Path, value: Any, mpath: Path, key: str, outside_ok: bo
     return p
 
 
-def _wavelength(value: Any, mpath: Path, key: str) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise FileFormatError(f"{mpath}: {key} must be a number of nm, got "
-                              f"{type(value).__name__} {short_repr(value, 80)}")  # fmt: skip
-    wl = float(value)
-    if not np.isfinite(wl) or wl <= 0:
-        raise FileFormatError(f"{mpath}: {key} must be a positive finite number of nm, got "
-                              f"{short_repr(value, 80)}")  # fmt: skip
-    return wl
-
-
 def read_capture_set(
     root: str | Path, *, layout: str | Path | None = None, brf_free_mask: str | Path | None = None
 ) -> CaptureSet:
     """Find the files of a capture set (manifest, or the sub-folders of a real device's folder).
 
     Args:
-        root: the folder.
         layout: a nominal layout to use instead of the set's (``manifest["nominal_layout"]``,
             else ``ROOT/nominal_layout.json``).
         brf_free_mask: a BRF-free mask PNG to use instead of the set's (the layout's
@@ -496,24 +474,16 @@ def read_capture_set(
                     f"read from inside it unless the manifest says \"{ALLOW_OUTSIDE_KEY}\": true")
             if not files_root.is_dir():
                 raise MissingFileError(f"{mpath}: files_root {files_root} is not a folder")
-        entries = manifest.get("captures", [])
-        if not isinstance(entries, list):
-            raise FileFormatError(f"{mpath}: 'captures' must be a list of entries, got "
-                                  f"{type(entries).__name__}")  # fmt: skip
-        for k, e in enumerate(entries):
-            if not isinstance(e, dict) or "file" not in e or "type" not in e:
-                raise FileFormatError(f"{mpath}: captures[{k}] needs 'file' and 'type'")
+        # (check_manifest has checked the entries' form, types and settings)
+        for k, e in enumerate(manifest.get("captures", [])):
             p = _manifest_path(files_root, e["file"], mpath, f"captures[{k}].file", outside_ok)
             cs.settings[p] = entry_settings(manifest, e)
             if not p.is_file():
                 raise MissingFileError(f"{mpath}: captures[{k}] file {p} does not exist")
             t = e["type"]
-            if not isinstance(t, str):
-                raise FileFormatError(f"{mpath}: captures[{k}].type must be one of "
-                                      f"{', '.join(CAPTURE_TYPES)}, got {short_repr(t, 80)}")
             if t == "scan":
-                wl = _wavelength(e.get("wavelength_nm"), mpath, f"captures[{k}].wavelength_nm")
-                cs.scan.append((p, wl))
+                wl = e.get("wavelength_nm")
+                cs.scan.append((p, None if wl is None else float(wl)))
             elif t == "scene":
                 name = e.get("name", p.stem)
                 if not isinstance(name, str):

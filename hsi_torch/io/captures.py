@@ -30,7 +30,7 @@ import torch
 from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, MissingFileError
 from hsi_torch.io.atomic import atomic_write, json_default
-from hsi_torch.io.bounded import declared_image_size, npy_header, require_npz
+from hsi_torch.io.bounded import declared_image_size, image_hw, npy_header, require_npz
 from hsi_torch.io.radiometry import capture_exposure
 from hsi_torch.io.raw import (
     RAW_SUFFIXES,
@@ -40,7 +40,7 @@ from hsi_torch.io.raw import (
     validate_cfa_pattern,
 )
 from hsi_torch.io.raw import demosaic as _demosaic  # read_any's argument shadows the name
-from hsi_torch.io.safety import require_regular_file
+from hsi_torch.io.safety import require_regular_file, unreadable_as_format_error
 
 __all__ = [
     "CAPTURE_FORMAT_VERSION",
@@ -268,15 +268,14 @@ def _check_header(
     file holds. The decoded size is therefore bounded by ``H·W·3`` samples of the expected
     sensor size before decoding starts, whatever the compression."""
     shape = tuple(int(v) for v in shape)
-    if len(shape) == 3 and shape[0] not in (1, 3) and shape[-1] not in (1, 3) or not (
-            2 <= len(shape) <= 3):
+    hw = image_hw(shape)
+    if hw is None:
         raise FileFormatError(
             f"{p}: the header describes an image of shape {shape} ({dtype}); expected (H, W) or "
             "(1, H, W) for a Bayer mosaic, or (3, H, W) / (H, W, 3) for RGB (refused before "
             "decoding)")
     if min(shape) < 1:
         raise FileFormatError(f"{p}: the image is empty (shape {shape})")
-    hw = shape[-2:] if len(shape) == 2 or shape[0] in (1, 3) else shape[:2]
     _check_size(p, hw, expected_size)
     nbytes = int(np.prod(shape, dtype=np.float64) * max(1, dtype.itemsize))
     if nbytes > MAX_CAPTURE_BYTES:
@@ -309,12 +308,24 @@ def quiet_tifffile() -> contextlib.AbstractContextManager[None]:
     return _quiet("tifffile")
 
 
+def exif_tags(p: str | os.PathLike) -> dict[str, Any]:
+    """The EXIF tags of a TIFF or camera RAW/DNG (``exifread``, its messages silenced), ``{}``
+    when it has no readable EXIF."""
+    import exifread  # lazy: only TIFF and RAW files have EXIF to read
+
+    try:
+        with _quiet("exifread"), open(p, "rb") as f:
+            return exifread.process_file(f, details=False)
+    except Exception:  # noqa: BLE001 - EXIF is optional information; the pixels are read elsewhere
+        return {}
+
+
 def _read_tiff(
     p: Path, expected_size: tuple[int, int] | None = None, page: int | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     import tifffile
 
-    try:
+    with unreadable_as_format_error(p, "TIFF"):
         with quiet_tifffile(), tifffile.TiffFile(p) as tif:
             if page is not None:  # one page of a multi-page TIFF (a sequence's frame)
                 return _read_tiff_page(p, tif, page, expected_size)
@@ -334,12 +345,6 @@ def _read_tiff(
                 raw = max(0, raw) * max(1, len(series.pages))
             _check_header(p, series.shape, np.dtype(series.dtype), expected_size, raw)
             arr = series.asarray()
-    except FileFormatError:
-        raise
-    except Exception as exc:  # tifffile raises many types for corrupt/truncated data
-        raise FileFormatError(
-            f"{p}: cannot read TIFF ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
-        ) from exc
     return arr, _description_metadata(desc)
 
 
@@ -378,18 +383,12 @@ def _parse_metadata(text: str, where: str) -> dict[str, Any]:
 def _read_npy(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    try:
+    with unreadable_as_format_error(p, "NPY"):
         with open(p, "rb") as f:
             shape, dtype = npy_header(f)
             available = p.stat().st_size - f.tell()
         _check_header(p, shape, dtype, expected_size, available)
         arr = np.load(p, allow_pickle=False)
-    except FileFormatError:
-        raise
-    except Exception as exc:
-        raise FileFormatError(
-            f"{p}: cannot read NPY ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
-        ) from exc
     meta: dict[str, Any] = {}
     side = p.with_name(p.name + ".json")
     if side.exists() or side.is_symlink():
@@ -409,7 +408,7 @@ def _read_npz(
     p: Path, expected_size: tuple[int, int] | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     require_npz(p)  # else numpy's hint about allow_pickle, for a file that is no NPZ
-    try:
+    with unreadable_as_format_error(p, "NPZ"):
         with np.load(p, allow_pickle=False) as z:
             keys = list(z.keys())
             if "image" in keys:
@@ -438,12 +437,6 @@ def _read_npz(
             if "metadata" in keys:  # a 0-d str array (its header was checked)
                 item = z["metadata"].item()
                 meta_text = item.decode("utf-8") if isinstance(item, bytes) else str(item)
-    except FileFormatError:
-        raise
-    except Exception as exc:
-        raise FileFormatError(
-            f"{p}: cannot read NPZ ({type(exc).__name__}: {exc}); the file is corrupt or truncated"
-        ) from exc
     meta = _parse_metadata(meta_text, f"{p}: 'metadata'") if meta_text else {}
     return arr, meta
 
@@ -615,27 +608,11 @@ def read_any(
 
     Returns:
         :class:`LinearCapture` with ``image`` ``(3, H', W')`` = stored − black (float), saturation
-        mask ``(3, H', W')`` and metadata.
-
-    Metadata contract — besides the file's own keys, ``metadata`` always holds:
-
-    - ``kind`` (``"bayer"``/``"rgb"``), ``source`` (the path), ``demosaic`` (Bayer);
-    - ``cfa_pattern``: the pattern used (Bayer), ``None`` for RGB files without one;
-    - ``black_level``: what was subtracted (DN: a number, 4 Bayer-cell or 3 RGB values) and
-      ``black_level_source``: ``"file"`` (RAW/DNG black level, our JSON metadata), ``"sheet"``,
-      ``"manifest"``, ``"config"`` (a keyword override, labelled by ``sources``), ``"bundle"``
-      (``defaults.black_level_rgb``) or ``"default"`` (nothing given: 0 was subtracted)
-      (:func:`black_level_rule`);
-    - ``white_level``: the saturation level used (DN) or ``None`` (a float file without one),
-      and ``white_level_source``: ``"file"``, ``"sheet"``, ``"manifest"``, ``"config"``,
-      ``"default"`` (the integer type's maximum) or ``None`` (none);
-    - ``exposure_s``: the exposure time in seconds (``float``) or ``None`` when unknown, and
-      ``exposure_source``: ``"file"`` (JSON ``exposure_s`` or EXIF ``ExposureTime``), ``"sheet"``,
-      ``"manifest"``, ``"config"`` (an override, or ``defaults.exposure_s`` for a file with no
-      exposure of its own), or ``None`` when unknown. (The simulator's relative
-      ``exposure`` key is kept as it is and is not an ``exposure_s``.)
-    - ``camera_make``, ``camera_model``: ``str`` or ``None`` (override, else our JSON metadata,
-      else EXIF ``Make``/``Model`` of a TIFF or RAW/DNG).
+        mask ``(3, H', W')`` and metadata: the file's own keys plus ``kind``, ``source`` (the
+        path), ``demosaic`` (Bayer), ``cfa_pattern``, ``black_level`` (DN subtracted) and
+        ``black_level_source`` (:func:`black_level_rule`), ``white_level`` and
+        ``white_level_source``, ``exposure_s`` and ``exposure_source``, ``camera_make``,
+        ``camera_model``: the metadata contract of ``docs/io_config_cli.md``, *Captures in*.
 
     Raises:
         MissingFileError (a ``FileNotFoundError``), FileFormatError (``ValueError``) for unreadable,
@@ -763,13 +740,7 @@ def _file_exif(p: Path) -> dict[str, Any]:
     (``exifread``); keys absent when the file has no such tag or no readable EXIF at all.
     (Our own capture TIFFs, written by :func:`write_capture`, hold no EXIF and are not parsed:
     ~30 ms for a full-size TIFF's tags.)"""
-    import exifread  # lazy: only TIFF and RAW files have EXIF to read
-
-    try:
-        with _quiet("exifread"), open(p, "rb") as f:
-            tags = exifread.process_file(f, details=False)
-    except Exception:  # noqa: BLE001 - EXIF is optional information; the pixels are read elsewhere
-        return {}
+    tags = exif_tags(p)
     out: dict[str, Any] = {}
     for name in ("EXIF ExposureTime", "Image ExposureTime"):
         tag = tags.get(name)

@@ -53,6 +53,7 @@ from hsi_torch.findings import Finding, findings_from_dicts
 from hsi_torch.io.atomic import (
     atomic_save_npz,
     atomic_write,
+    atomic_write_text,
     json_default,
     remove_file,
     remove_tree,
@@ -66,7 +67,7 @@ from hsi_torch.io.bounded import (
     require_npz,
 )
 from hsi_torch.io.captures import quiet_tifffile
-from hsi_torch.io.safety import require_regular_file
+from hsi_torch.io.safety import require_regular_file, unreadable_as_format_error
 from hsi_torch.io.zarr_codecs import SAFE_CODECS, check_zarr_codecs
 
 __all__ = [
@@ -228,7 +229,6 @@ def save_cube(
         valid: optional ``(H, W)`` bool mask; default: pixels whose bands are all finite.
         metadata: JSON-serialisable extras (TIFF/NPZ/NetCDF/Zarr; ENVI keeps only
             ``description``).
-        fmt: force a format.
         findings: stored as the metadata key ``"findings"`` (every format, ENVI included;
             replaces a ``"findings"`` key of ``metadata``).
 
@@ -345,32 +345,27 @@ def _save_vrt(tif: Path, shape: tuple[int, ...], wl: np.ndarray) -> Path:
     """GDAL virtual dataset: the TIFF's pages (``GTIFF_DIR:k:``) as bands named by wavelength."""
     m, h, w = shape
     src = _xml_escape(tif.name)
-    bands = []
-    for k, lam in enumerate(wl):
-        bands.append(
-            f'  <VRTRasterBand dataType="Float32" band="{k + 1}">\n'
-            f"    <Description>{_band_name(lam)}</Description>\n"
-            "    <NoDataValue>nan</NoDataValue>\n"
-            f'    <Metadata><MDI key="wavelength">{lam:.10g}</MDI>'
-            '<MDI key="wavelength_units">nm</MDI></Metadata>\n'
-            f'    <Metadata domain="IMAGERY"><MDI key="CENTRAL_WAVELENGTH_UM">{lam / 1000:.10g}'
-            "</MDI></Metadata>\n"
-            "    <SimpleSource>\n"
-            f'      <SourceFilename relativeToVRT="1">GTIFF_DIR:{k + 1}:{src}</SourceFilename>\n'
-            "      <SourceBand>1</SourceBand>\n"
-            f'      <SourceProperties RasterXSize="{w}" RasterYSize="{h}" DataType="Float32" '
-            f'BlockXSize="{w}" BlockYSize="1"/>\n'
-            "    </SimpleSource>\n"
-            "  </VRTRasterBand>")
+    bands = [
+        f'  <VRTRasterBand dataType="Float32" band="{k + 1}">\n'
+        f"    <Description>{_band_name(lam)}</Description>\n"
+        "    <NoDataValue>nan</NoDataValue>\n"
+        f'    <Metadata><MDI key="wavelength">{lam:.10g}</MDI>'
+        '<MDI key="wavelength_units">nm</MDI></Metadata>\n'
+        f'    <Metadata domain="IMAGERY"><MDI key="CENTRAL_WAVELENGTH_UM">{lam / 1000:.10g}'
+        "</MDI></Metadata>\n"
+        "    <SimpleSource>\n"
+        f'      <SourceFilename relativeToVRT="1">GTIFF_DIR:{k + 1}:{src}</SourceFilename>\n'
+        "      <SourceBand>1</SourceBand>\n"
+        f'      <SourceProperties RasterXSize="{w}" RasterYSize="{h}" DataType="Float32" '
+        f'BlockXSize="{w}" BlockYSize="1"/>\n'
+        "    </SimpleSource>\n"
+        "  </VRTRasterBand>" for k, lam in enumerate(wl)]
     text = (
         f'<VRTDataset rasterXSize="{w}" rasterYSize="{h}">\n'
         "  <!-- hsi_torch spectral cube: the bands are the pages of the OME-TIFF beside this "
         "file -->\n" + "\n".join(bands) + "\n</VRTDataset>\n"
     )
-    vrt = _vrt_path(tif)
-    with atomic_write(vrt, "w") as f:
-        f.write(text)
-    return vrt
+    return atomic_write_text(_vrt_path(tif), text)
 
 
 def cube_to_xarray(
@@ -496,8 +491,7 @@ def _save_envi(p: Path, c: np.ndarray, wl: np.ndarray, meta: dict[str, Any]) -> 
     with atomic_write(img, "wb") as f:  # the array's own buffer, no bytes copy
         f.write(memoryview(np.ascontiguousarray(c, dtype="<f4")).cast("B"))
     try:
-        with atomic_write(hdr, "w") as f:
-            f.write("\n".join(lines) + "\n")
+        atomic_write_text(hdr, "\n".join(lines) + "\n")
     except BaseException:
         remove_file(img)  # no data file without its header
         raise
@@ -569,7 +563,6 @@ def load_cube(
     Args:
         path: ``.tif/.tiff``, ``.hdr/.img`` or ``.npz``.
         wavelengths: ``(M,)`` nm, required only for files that do not carry them.
-        device: device of the returned tensors.
         max_bytes: the largest decoded cube accepted (default
             :func:`~hsi_torch.io.bounded.max_cube_bytes`: ``$HSI_TORCH_MAX_CUBE_GB``, 1 GiB).
 
@@ -594,7 +587,7 @@ def load_cube(
     valid: np.ndarray | None = None
     meta: dict[str, Any] = {}
     wl: np.ndarray | None = None
-    try:
+    with unreadable_as_format_error(p, f"{kind.upper()} cube"):
         if kind == "npz":
             require_npz(p)
             with np.load(p, allow_pickle=False) as z:
@@ -613,13 +606,6 @@ def load_cube(
             c, wl, valid, meta = _load_xarray(p, kind, max_bytes)
         else:
             c, wl, meta = _load_envi(p, max_bytes)
-    except FileFormatError:
-        raise
-    except Exception as exc:
-        raise FileFormatError(
-            f"{p}: cannot read {kind.upper()} cube ({type(exc).__name__}: {exc}); the file is "
-            "corrupt or truncated"
-        ) from exc
     if c.ndim != 3:
         raise FileFormatError(f"{p}: cube must be 3-D (M, H, W), got shape {tuple(c.shape)}")
     if wavelengths is not None:

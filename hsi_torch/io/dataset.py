@@ -49,7 +49,7 @@ import numpy as np
 
 from hsi_torch.devices import to_numpy
 from hsi_torch.errors import FileFormatError, require_packages
-from hsi_torch.io.atomic import atomic_write, json_default, remove_file
+from hsi_torch.io.atomic import json_default, remove_file
 from hsi_torch.io.bounded import check_store_files
 from hsi_torch.io.cube import _nan_where_invalid
 from hsi_torch.io.safety import short_repr
@@ -326,11 +326,8 @@ def write_frame(
     for name, data in (("cube", c[None]), ("valid", v[None]),
                        ("metadata", np.array([text], dtype=object)),
                        ("done", np.ones(1, dtype=bool))):  # fmt: skip
-        meta = metas[name]
-        p = root / chunk_key(name, index, len(meta["shape"]))
-        payload = encode_chunk(meta, data)
-        with atomic_write(p, "wb") as f:
-            f.write(payload)
+        p = root / chunk_key(name, index, len(metas[name]["shape"]))
+        put(p, encode_chunk(metas[name], data))
         written.append(p)
     return written
 

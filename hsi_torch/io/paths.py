@@ -211,7 +211,6 @@ def claim_out_dir(
     ``marker`` written first, so the writer's own folder is accepted the next time.
 
     Args:
-        out: the output folder.
         marker: the marker's file name in ``out`` (e.g. ``.hsi_torch_bench_simulate``).
         earlier: what an earlier run is called in the message (``"run of drift_small.py"``).
         writes: what the run writes there, for the message (``"it writes drift_small.json"``).

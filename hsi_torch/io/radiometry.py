@@ -80,10 +80,7 @@ def black_level_rgb(level: Any, cfa_pattern: str | None = None) -> list[float] |
             colours = ["RGB".index(ch) for ch in validate_cfa_pattern(cfa_pattern)]
         except (TypeError, ValueError):
             return None
-        out = []
-        for c in range(3):
-            out.append(float(np.mean([v[i] for i in range(4) if colours[i] == c])))
-        return out
+        return [float(np.mean([v[i] for i in range(4) if colours[i] == c])) for c in range(3)]
     return None
 
 

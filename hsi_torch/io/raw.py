@@ -93,8 +93,7 @@ def load_raw(
         path: RAW file (any format LibRaw reads: DNG, CR2, NEF, ARW, KDC, ...).
         demosaic: ``None`` (mosaic only), ``"half"`` or ``"bilinear"`` to also fill ``rgb``.
         normalize: divide by ``white − black`` per pixel so that saturation is 1.0.
-        dtype: floating dtype of the outputs.
-        device: device of the outputs.
+        dtype, device: of the outputs (a floating dtype).
 
     Returns:
         :class:`RawImage`.

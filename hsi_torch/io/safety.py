@@ -13,10 +13,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import reprlib
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +30,7 @@ __all__ = [
     "short_repr",
     "short_text",
     "png_header",
+    "unreadable_as_format_error",
     "MAX_REPR",
 ]
 
@@ -67,6 +70,20 @@ def require_regular_file(path: str | os.PathLike, what: str = "input file") -> P
         raise FileFormatError(
             f"{p}: is {file_kind(mode)}, not a regular file; a {what} must be a file")
     return p
+
+
+@contextlib.contextmanager
+def unreadable_as_format_error(p: str | os.PathLike, kind: str) -> Iterator[None]:
+    """Any error but a :class:`FileFormatError` inside the block (the file libraries raise many
+    types for corrupt or truncated data) raised as a ``FileFormatError`` naming ``p``: ``"<p>:
+    cannot read <kind> (<type>: <error>); the file is corrupt or truncated"``."""
+    try:
+        yield
+    except FileFormatError:
+        raise
+    except Exception as exc:
+        raise FileFormatError(f"{p}: cannot read {kind} ({type(exc).__name__}: {exc}); the file "
+                              "is corrupt or truncated") from exc
 
 
 _REPR = reprlib.Repr()

@@ -31,11 +31,8 @@ a folder or pattern with no capture.
 
 from __future__ import annotations
 
-import csv
 import datetime as _dt
-import io
 import json
-import logging
 import math
 import os
 import re
@@ -45,8 +42,14 @@ from pathlib import Path
 from typing import Any
 
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
-from hsi_torch.io.bounded import csv_lines, declared_image_size
-from hsi_torch.io.captures import SUPPORTED_SUFFIXES, LinearCapture, quiet_tifffile, read_any
+from hsi_torch.io.bounded import csv_header, csv_lines, declared_image_size
+from hsi_torch.io.captures import (
+    SUPPORTED_SUFFIXES,
+    LinearCapture,
+    exif_tags,
+    quiet_tifffile,
+    read_any,
+)
 from hsi_torch.io.live_files import is_temporary_name, looks_complete
 from hsi_torch.io.paths import expand_inputs
 from hsi_torch.io.safety import require_regular_file, short_text
@@ -64,7 +67,6 @@ __all__ = [
     "frame_time",
     "file_mtime",
     "looks_complete",
-    "read_tiff_page",
 ]
 
 #: Where a frame's time comes from (``time_from``; ``"auto"`` picks the first every frame has).
@@ -143,9 +145,7 @@ class CaptureSequence(Sequence[SequenceFrame]):
         """Decode one frame (:func:`hsi_torch.io.read_any`; ``read_kw`` its keyword arguments;
         a page of a multi-page TIFF is decoded alone)."""
         f = self.frames[frame] if isinstance(frame, int) else frame
-        if f.page is None:
-            return read_any(f.path, **read_kw)
-        return read_tiff_page(f.path, f.page, **read_kw)
+        return read_any(f.path, page=f.page, **read_kw)
 
     def captures(self, **read_kw: Any) -> Iterator[tuple[SequenceFrame, LinearCapture]]:
         """``(frame, capture)`` for every frame in order, one decoded at a time."""
@@ -217,19 +217,8 @@ def exif_time(path: str | os.PathLike) -> _dt.datetime | None:
     Raises:
         FileFormatError: a date tag that is not ``YYYY:MM:DD HH:MM:SS`` (naming the file).
     """
-    import exifread  # lazy: only sequences timed by EXIF need it
-
     p = require_regular_file(path, "capture file")
-    log = logging.getLogger("exifread")
-    level = log.level
-    log.setLevel(logging.CRITICAL)
-    try:
-        with open(p, "rb") as f:
-            tags = exifread.process_file(f, details=False)
-    except Exception:  # noqa: BLE001 - no readable EXIF: no time from it
-        return None
-    finally:
-        log.setLevel(level)
+    tags = exif_tags(p)
 
     def tag(*names: str) -> str | None:
         for n in names:
@@ -402,9 +391,8 @@ def _check_duplicates(entries: list[tuple[Path, int | None]]) -> None:
     for i, (p, page) in enumerate(entries):
         key = (os.path.realpath(p), page)
         if key in seen:
-            what = f"{p}" + (f" page {page}" if page is not None else "")
-            raise InputError(f"{what} is listed twice in the sequence (frames {seen[key]} and "
-                             f"{i}); each capture is one frame")  # fmt: skip
+            raise InputError(f"{_name((p, page))} is listed twice in the sequence (frames "
+                             f"{seen[key]} and {i}); each capture is one frame")  # fmt: skip
         seen[key] = i
 
 
@@ -434,10 +422,8 @@ def _frame_times(
                 return src, got
             if time_from == "name":
                 if missing:
-                    p, page = missing[0]
-                    raise InputError(f"{p}" + (f" page {page}" if page is not None else "")
-                                     + ": no time in the name (e.g. 't=12.5s', 't0012.5s', "
-                                     "'20261207-130500.250')")  # fmt: skip
+                    raise InputError(_name(missing[0]) + ": no time in the name (e.g. 't=12.5s', "
+                                     "'t0012.5s', '20261207-130500.250')")  # fmt: skip
                 raise InputError("the file names mix elapsed times (t=…s) and dates: give one "
                                  "kind of time")  # fmt: skip
             continue
@@ -450,8 +436,7 @@ def _frame_times(
                 continue
             got_dt: list[tuple[float | None, _dt.datetime | None]] = []
             for p, _ in entries:
-                suffix = p.suffix.lower()
-                t = exif_time(p) if suffix not in (".png", ".npy", ".npz") else None
+                t = exif_time(p) if p.suffix.lower() not in (".png", ".npy", ".npz") else None
                 if t is None:
                     if time_from == "exif":
                         raise InputError(f"{p}: no EXIF DateTimeOriginal (nor DateTime) to "
@@ -565,15 +550,7 @@ def _read_sequence_sheet(
     p = require_regular_file(sheet, "sequence sheet")
     if p.stat().st_size > _MAX_SHEET_BYTES:
         raise FileFormatError(f"{p}: a sequence sheet larger than {_MAX_SHEET_BYTES >> 20} MiB")
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(f"sequence sheet {p}: cannot read it as UTF-8 text ({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    try:
-        header = next(reader, None)
-    except csv.Error as exc:
-        raise FileFormatError(f"sequence sheet {p}: not a CSV file ({exc})") from None
+    reader, header = csv_header(p, "sequence sheet")
     cols = [h.strip().lower() for h in header or []]
     known = ("file", "time_s", "timestamp", "page")
     for c in cols:
@@ -632,14 +609,3 @@ def _read_sequence_sheet(
         raise FileFormatError(f"sequence sheet {p}: some timestamps have a time zone, others "
                               "not")  # fmt: skip
     return entries, times
-
-
-def read_tiff_page(path: str | os.PathLike, page: int, **read_kw: Any) -> LinearCapture:
-    """One page of a multi-page TIFF as a :class:`LinearCapture` (the page is decoded alone and
-    read as a single-page capture by :func:`~hsi_torch.io.read_any`: the same black and white
-    levels, demosaic and metadata rules; the page's JSON description is its metadata).
-
-    Raises:
-        FileFormatError: no such page, or the page is not an image a capture can be.
-    """
-    return read_any(path, page=page, **read_kw)

@@ -116,7 +116,6 @@ def check_zarr_codecs(
     of its folder and of each folder one level below (where the arrays of a group are).
 
     Args:
-        path: the store's folder.
         allowed: codec ids accepted (default :data:`STORE_CODECS`, the run's store; a cube
             file's store uses :data:`SAFE_CODECS`).
         max_arrays: bound on the sub-folders looked at.

@@ -335,8 +335,7 @@ class ZarrGroup:
         return self.path / chunk_key(name, index, len(self.meta[name]["shape"]))
 
     def _write_chunk(self, name: str, index: int, data: np.ndarray) -> None:
-        with atomic_write(self._chunk_path(name, index), "wb") as f:
-            f.write(encode_chunk(self.meta[name], data))
+        put(self._chunk_path(name, index), encode_chunk(self.meta[name], data))
 
     def _read_chunk(self, name: str, index: int) -> np.ndarray:
         """Chunk ``index`` of array ``name``, decoded.
