@@ -318,10 +318,6 @@ class BRFConfig:
         psi, chi = POLARIZER_PRESETS[preset]
         return cls(psi_deg=psi, chi_deg=chi, **kwargs)
 
-    @property
-    def uniaxial_material(self) -> UniaxialMaterial:
-        return self._mat
-
     def indices(self, wavelength_nm: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
         """``(n_o, n_e)`` at ``wavelength_nm``."""
         return self._mat.indices(wavelength_nm)
