@@ -92,7 +92,6 @@ class GridDetectorConfig:
     Attributes:
         pattern_size: ``(points per row, rows)`` as ``cv2.findCirclesGrid`` expects for
             ``CALIB_CB_ASYMMETRIC_GRID`` (OpenCV's sample target is ``(4, 11)``).
-        blob: blob-detector parameters.
         equalize: ``"none"``, ``"clahe"`` (always equalise) or ``"auto"`` (try the plain image,
             then a CLAHE-equalised one).
         margin_px: margin added around each triangle's bounding box when cropping.
@@ -334,7 +333,6 @@ def fit_homography(
         src: per image ``(N_k, 2)`` points (source view, px).
         dst: per image ``(N_k, 2)`` corresponding points (destination, px), same order as the
             detector returned them.
-        ransac_threshold_px: RANSAC inlier threshold.
         check_reversed: try the reversed order of each ``src[k]``.
         points: if given, receives ``(src (N, 2), dst (N, 2))`` in the chosen order.
 

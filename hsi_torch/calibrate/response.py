@@ -523,11 +523,8 @@ def estimate_response_field(
         b: ``(V, M, h, w)`` ``B_v(p, λ_m) Δλ_m`` in the reference frame.
         f_prior: ``(3, M)``.
         mask: ``(V, h, w)`` bool: pixel present in view v (and reliable).
-        beta_phi, gamma_h, normalise, n_iter, diff_order: see :func:`estimate_response`.
-        degree, smoothness: see :func:`fit_gain_field`.
-        reference_view: the view normalised to mean gain 1.
-        refine_steps: joint refinement steps after the alternations (see
-            :func:`estimate_response`).
+        beta_phi, gamma_h, normalise, n_iter, diff_order, reference_view, refine_steps: see
+            :func:`estimate_response`; degree, smoothness: see :func:`fit_gain_field`.
         max_pixels: estimate on a regular sub-grid (every ``s``-th row and column,
             ``s = ⌈sqrt(h·w / max_pixels)⌉``) when the frame has more pixels; the gain field is
             then evaluated on the whole frame from its coefficients and the gauge (mean reference
