@@ -96,7 +96,6 @@ class UniaxialMaterial:
     """A uniaxial birefringent material: Sellmeier dispersion or constant indices.
 
     Attributes:
-        name: label.
         sellmeier_o, sellmeier_e: Ghosh ``(A, B, C, D, E)`` for the ordinary/extraordinary index.
         n_o, delta_n: constant ordinary index and birefringence ``n_e − n_o`` (used when the
             Sellmeier coefficients are ``None``, e.g. a polymer retarder film).

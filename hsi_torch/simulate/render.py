@@ -40,12 +40,9 @@ Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) 
 
 reproduces the noise-free rendering to the discretisation error of the 10 nm grid.
 
-How it is computed (:meth:`CaptureRenderer.render_captures`; docs/simulate.md, *Numerics and
-measured times*): one band of sensor rows at a time; per ray ``Tstack(λ) = A + B · cos(2π ·
-OPD(λ) / λ)`` (:meth:`stack_cosine_form`), so one ``(rays, L)`` cosine matrix per band meets one
-weight matrix holding every capture's spectra, scenes as ``K`` abundance planes × endmember
-spectra. Precision: the render dtype for rays, cosines, rasters and images; float64 for the view
-layout, the spectral weights and the ground truth.
+How it is computed: :meth:`CaptureRenderer.render_captures` and :meth:`CaptureRenderer._shade`
+(docs/simulate.md, *Numerics and measured times*). Precision: the render dtype for rays, cosines,
+rasters and images; float64 for the view layout, the spectral weights and the ground truth.
 """
 
 from __future__ import annotations
