@@ -369,11 +369,7 @@ def simulate_capture_set(
     progress: bool | None = None,
     log=print,
 ) -> SimulationSummary:
-    """Render every capture of ``cfg`` with its ground truth into ``out_dir``.
-
-    Returns:
-        :class:`SimulationSummary` (files, views, valid pixels, timings).
-    """
+    """Render every capture of ``cfg`` with its ground truth into ``out_dir``."""
     t_all = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
