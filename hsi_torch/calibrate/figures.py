@@ -41,7 +41,6 @@ def plot_calibration(
 
     Args:
         bundle: a :class:`~hsi_torch.calibrate.CalibrationBundle` (or the path of one).
-        path: the PNG to write.
         report: the :class:`~hsi_torch.calibrate.pipeline.CalibrationReport` of the run
             (optional: adds each view's RANSAC inliers and RMS to the residual panel).
         wavelengths_nm: the transmittance maps' wavelengths (nearest grid bands).

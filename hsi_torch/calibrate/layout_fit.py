@@ -116,7 +116,6 @@ def trace_design(
             border the views on the sensor; their edges help the fit).
         max_trace_pixels: the trace runs on a copy of the sensor with at most this many pixels
             (same field of view, coarser pitch); the tiles' homographies are exact either way.
-        device: where to trace.
 
     Raises:
         ValueError: the reference (direct) view is not on the sensor.
@@ -208,13 +207,8 @@ def edge_map(image: torch.Tensor, sigma_px: float, clip: float = 1.0) -> torch.T
     disks (≈ 0.7) the fit aligns. ``ε`` = 2 % of the 99th percentile (dark areas do not
     amplify noise).
 
-    Args:
-        image: ``(H, W)`` linear grey image (any scale).
-        sigma_px: Gaussian σ (px of ``image``).
-        clip: the soft limit of the edge strength.
-
-    Returns:
-        ``(H, W)`` float32 edge strength.
+    ``image``: ``(H, W)`` linear grey image (any scale); ``sigma_px``: σ in its px. Returns
+    ``(H, W)`` float32.
     """
     x = image.to(torch.float32).clamp_min(0)
     q = float(torch.quantile(x.flatten()[:: max(1, x.numel() // 100_000)], 0.99))
@@ -367,14 +361,10 @@ def fit_similarity(
 
     Args:
         white: ``(H, W)`` linear grey white shot (mean of the shots, black level subtracted).
-        tiles: the design (:func:`trace_design`).
         max_shift: search range of the shift, a fraction of the shorter image side.
         max_rotation_deg, max_scale_change: search ranges of rotation (±deg) and scale (±).
         coarse_size: the coarse search runs with the shorter side reduced to about this.
         iterations: gradient steps per pyramid level.
-
-    Returns:
-        :class:`SimilarityFit`.
     """
     img = white.detach().to("cpu", torch.float32)
     if img.ndim != 2:
@@ -463,8 +453,7 @@ class ParityEvidence:
     """What the circle-grid shots say about one view's parity.
 
     Attributes:
-        view: the view.
-        design: the design's parity; chosen: the parity proposed.
+        design, chosen: the design's parity and the parity proposed.
         status: ``"confirmed"`` (the design's parity is supported), ``"flipped"`` (only the other
             one is), ``"unconfirmed"`` (neither is: grid not found, too few inliers).
         inliers: per tried parity (``"+1"``, ``"-1"``): ``[RANSAC inliers, points]`` (``[0, 0]``
@@ -502,13 +491,9 @@ def confirm_parity(
     agrees with it (mirrored views reverse orientation). The better supported parity wins;
     without evidence the design's is kept and reported as unconfirmed.
 
-    Args:
-        grid_images: grid shots (as :func:`~hsi_torch.calibrate.registration.to_gray_uint8`
-            takes them; ideally flat-fielded by the white shot).
-        triangles: ``(V, 3, 2)`` sensor px (view 0 the reference, parity +1).
-        parity: ``(V,)`` the parities to check.
-        config: detector / RANSAC settings.
-        min_inlier_fraction: a parity is supported from this fraction of RANSAC inliers up.
+    ``grid_images``: as :func:`~hsi_torch.calibrate.registration.to_gray_uint8` takes them,
+    ideally flat-fielded by the white shot; ``triangles (V, 3, 2)`` sensor px (view 0 the
+    reference, parity +1); ``parity (V,)`` the parities to check.
 
     Returns:
         One :class:`ParityEvidence` per view (view 0: always ``+1``, ``"confirmed"`` when the
@@ -558,11 +543,8 @@ class LayoutProposal:
     """A proposed nominal layout.
 
     Attributes:
-        tiles: the design (:func:`trace_design`).
-        fit: the similarity fitted to the white shot.
         sensor_size: ``(H, W)`` of the white shot.
         triangles: ``(V, 3, 2)`` fitted view triangles (sensor px).
-        parity: ``(V,)`` proposed parities.
         parity_evidence: per view (empty without grid shots).
         brf_free_polygon: ``(64, 2)`` sensor px of the BRF-free disk in view 0 (or ``None``).
         reference_bbox: ``(x0, y0, w, h)`` around view 0's triangle, clipped to the sensor.
@@ -629,14 +611,9 @@ def propose_layout(
 ) -> LayoutProposal:
     """Fit the design to the white shot and check the parities on the grid shots.
 
-    Args:
-        white: ``(H, W)`` linear grey white shot (or ``(3, H, W)``: channels averaged).
-        tiles: the design (:func:`trace_design`); its camera's sensor size must be the white
-            shot's.
-        grid_images: circle-grid shots (flat-fielded), optional.
-        detector: grid detector settings (``registration`` of ``calibrate.yaml``).
-        min_inlier_fraction: see :func:`confirm_parity`.
-        **fit_kwargs: passed to :func:`fit_similarity`.
+    ``white``: ``(H, W)`` linear grey white shot (or ``(3, H, W)``: channels averaged);
+    ``grid_images``: circle-grid shots (flat-fielded), optional; ``detector``: the
+    ``registration`` settings of ``calibrate.yaml``; ``fit_kwargs`` go to :func:`fit_similarity`.
 
     Raises:
         InputError: the white shot's size differs from the design camera's.

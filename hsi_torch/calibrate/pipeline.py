@@ -263,12 +263,6 @@ def _camera_prior(name: str, wl: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(f, dtype=wl.dtype).to(wl.device)
 
 
-def _progress(enabled: bool, total: int):
-    if not progress_enabled(enabled):
-        return None
-    return progress_bar(total=total, desc="calibrating", unit="step", leave=False)
-
-
 def _drop_saturated_whites(
     white_ref: torch.Tensor,
     sat_ref: torch.Tensor,
@@ -879,7 +873,8 @@ def calibrate_capture_set(
     patch = brf_free_patch(cs, lay, cfg, dev)
 
     files_total = len(cs.dark) + len(cs.grid) + len(scan_sel) + len(cs.white) + 3  # + 3 fits
-    bar = _progress(cfg.progress if progress is None else progress, files_total)
+    bar = (progress_bar(total=files_total, desc="calibrating", unit="step", leave=False)
+           if progress_enabled(cfg.progress if progress is None else progress) else None)
 
     def tick(n: int = 1, stage: str | None = None) -> None:
         if bar is not None:

@@ -4,16 +4,9 @@ Each view-channel of the kaleidoscope is a (possibly mirrored) projective copy o
 view. Registration crops each view's triangle from every target image, undoes its mirror parity,
 detects an asymmetric circle grid with OpenCV, maps the detections back to sensor pixels,
 aggregates the correspondences with the reference view over all target images and fits one
-homography per view with RANSAC.
-
-Convention:
-    Pixel coordinates are ``(x, y) = (column, row)`` with pixel centres at integer coordinates
-    (kornia ``align_corners=True``). ``view_homographies[v]`` maps **sensor px of view v → sensor
-    px of the reference view** (homogeneous column vectors), ``H_0 = I``; mirrored views have
-    ``det(H_v) < 0`` (the parity flip is part of the homography). The reference frame is the sensor
-    crop ``reference_bbox = (x0, y0, w, h)``: reference-frame pixel ``(j, i)`` is reference-sensor
-    pixel ``(x0 + j, y0 + i)``. Applying the homographies, testing triangles and warping views
-    into the reference frame are :mod:`hsi_torch.optics.geometry`.
+homography per view with RANSAC. Pixel coordinates, the homographies' direction (view v →
+reference view, mirrored views with ``det H_v < 0``) and the reference frame follow the
+conventions of :mod:`hsi_torch.optics.geometry`, which also applies and warps them.
 """
 
 from __future__ import annotations
@@ -99,7 +92,6 @@ class GridDetectorConfig:
     Attributes:
         pattern_size: ``(points per row, rows)`` as ``cv2.findCirclesGrid`` expects for
             ``CALIB_CB_ASYMMETRIC_GRID`` (OpenCV's sample target is ``(4, 11)``).
-        blob: blob-detector parameters.
         equalize: ``"none"``, ``"clahe"`` (always equalise) or ``"auto"`` (try the plain image,
             then a CLAHE-equalised one).
         margin_px: margin added around each triangle's bounding box when cropping.
@@ -161,16 +153,9 @@ def to_gray_uint8(image: np.ndarray | torch.Tensor) -> np.ndarray:
 def detect_circle_grid(
     gray: np.ndarray, config: GridDetectorConfig | None = None
 ) -> np.ndarray | None:
-    """Detect an asymmetric circle grid in one grey image.
-
-    Args:
-        gray: ``(H, W)`` uint8 image (use :func:`to_gray_uint8`).
-        config: detector settings (pattern size, blob parameters, equalisation).
-
-    Returns:
-        ``(N, 2)`` float64 centres ``(x, y)`` in OpenCV's grid order (``N = cols·rows``), or
-        ``None`` when the grid is not found.
-    """
+    """Detect an asymmetric circle grid in one ``(H, W)`` uint8 image (:func:`to_gray_uint8`):
+    ``(N, 2)`` float64 centres ``(x, y)`` in OpenCV's grid order (``N = cols·rows``), or
+    ``None`` when the grid is not found."""
     cfg = config or GridDetectorConfig()
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise ValueError(f"gray must be a (H, W) uint8 array, got {gray.shape} {gray.dtype}")
@@ -248,13 +233,8 @@ def detect_in_views(
     parity: np.ndarray | torch.Tensor | Sequence[int],
     config: GridDetectorConfig | None = None,
 ) -> list[np.ndarray | None]:
-    """Detect the circle grid in every view's triangle of one target image.
-
-    Args:
-        image: sensor image (see :func:`to_gray_uint8` for accepted layouts).
-        triangles: ``(V, 3, 2)`` triangle vertices in sensor px.
-        parity: ``(V,)`` ±1.
-        config: detector settings.
+    """Detect the circle grid in every view's triangle (``(V, 3, 2)`` sensor px, parity
+    ``(V,)`` ±1) of one sensor image (as :func:`to_gray_uint8` takes it).
 
     Returns:
         A list of ``V`` entries: ``(N, 2)`` detections in **sensor px** (grid order as returned by
@@ -282,11 +262,9 @@ class ViewRegistrationReport:
     """Per-view registration statistics.
 
     Attributes:
-        view: view index.
-        images_with_detections: number of target images where the grid was found in this view
-            *and* in the reference view.
-        points_used: correspondences given to RANSAC.
-        inliers: RANSAC inliers.
+        images_with_detections: target images where the grid was found in this view *and* in
+            the reference view.
+        points_used, inliers: correspondences given to RANSAC, and its inliers.
         rms_px: reprojection RMS (px, reference sensor) over the inliers.
         reversed_order_images: images whose detections had to be reversed (180° grid ambiguity).
     """
@@ -355,7 +333,6 @@ def fit_homography(
         src: per image ``(N_k, 2)`` points (source view, px).
         dst: per image ``(N_k, 2)`` corresponding points (destination, px), same order as the
             detector returned them.
-        ransac_threshold_px: RANSAC inlier threshold.
         check_reversed: try the reversed order of each ``src[k]``.
         points: if given, receives ``(src (N, 2), dst (N, 2))`` in the chosen order.
 
@@ -406,12 +383,8 @@ def register_views(
     images give ``H_v`` (:func:`fit_homography`: the 180° ordering ambiguity resolved per image,
     then RANSAC with ``config.ransac_threshold_px``); the reference view gets the identity.
 
-    Args:
-        images: target images (each as accepted by :func:`to_gray_uint8`), same sensor size.
-        triangles: ``(V, 3, 2)`` triangle vertices in sensor px.
-        parity: ``(V,)`` ±1.
-        config: detector/RANSAC settings.
-        reference_view: index of the reference view (0 by convention).
+    ``images``: target images of one sensor size (as :func:`to_gray_uint8` takes them);
+    ``triangles``, ``parity`` as :func:`detect_in_views`.
 
     Returns:
         :class:`RegistrationResult` with ``(V, 3, 3)`` float64 homographies and per-view reports.
@@ -502,19 +475,15 @@ def check_registration(
     points; a view whose homography reverses orientation while its parity says upright (or the
     reverse) contradicts the layout too.
 
-    Args:
-        result: :func:`register_views`' output.
-        triangles: ``(V, 3, 2)`` sensor px; parity: ``(V,)`` ±1 (as given to
-            :func:`register_views`).
-        min_inlier_fraction: the smallest fraction of RANSAC inliers accepted per view.
-        layout_name: how the layout is named in the message.
+    ``triangles``, ``parity``: as given to :func:`register_views`; ``min_inlier_fraction``: the
+    smallest fraction of RANSAC inliers accepted per view.
 
     Raises:
         ValueError: naming every view at fault, its inliers / parity, and the fix.
     """
     tris = to_numpy(triangles).reshape(-1, 3, 2)
     par = to_numpy(parity).reshape(-1)
-    hs = result.view_homographies.detach().cpu().numpy()
+    hs = to_numpy(result.view_homographies)
     problems = []
     for r in result.reports:
         v = r.view

@@ -88,9 +88,7 @@ def stray_light_finding(
         mode: the setting (``"auto"``, ``"subtract"``, ``"none"``).
         level: the veil relative to the white per colour (:func:`veil_level`), ``None`` when it
             could not be measured (fewer than :data:`MIN_UNREACHED` unreached samples).
-        threshold: ``stray_light_threshold``.
         samples: unreached sensor samples the veil was measured on.
-        subtract: whether the veil is subtracted.
     """
     if level is None:  # asked for (subtract): a warning; auto: a fact
         return Finding(
@@ -161,8 +159,6 @@ def defects_finding(
         mode: the setting (``"auto"``, ``"mask"``, ``"none"``).
         raw: hot and dead sensor pixels found (before the dilation).
         masked: pixels masked (after the demosaic's dilation; 0 when not masked).
-        min_pixels: ``defect_min_pixels``.
-        mask: whether they are masked.
         origin: which frames they were looked for in (``"dark and white"``, ``"white only …"``).
     """
     what = f"{raw} hot or dead sensor pixels found ({origin})"

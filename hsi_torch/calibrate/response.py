@@ -163,8 +163,7 @@ def solve_phi(
         g: ``(V,)`` or ``(N, V)`` gains.
         f_prior: ``(3, M)`` relative sensitivity shape prior f̃^c.
         weights: optional ``(N, V)`` (or ``(V,)``) non-negative observation weights.
-        beta_phi: smoothness weight β_φ.
-        gamma_h: prior weight γ_h (0 disables the prior; α is then the LS fit of φ to f̃).
+        gamma_h: 0 disables the prior; α is then the LS fit of φ to f̃.
         diff_order: order of the difference matrix ``D`` (1 or 2).
 
     Returns:
@@ -358,11 +357,8 @@ def estimate_response(
         weights: optional ``(N, V)`` observation weights (0 = missing).
         beta_phi, gamma_h: regularisation weights, relative to :func:`data_scale` when
             ``normalise`` (default), else absolute (the original prototype: ``8e5``, ``8e5``).
-        normalise: interpret ``beta_phi``/``gamma_h`` relative to the data (module docstring).
-        n_iter: number of alternations.
         gain_reg: relative ridge of the g-step towards 1.
         reference_view: the view whose gain is fixed to 1.
-        diff_order: order of ``D``.
         g_init: optional ``(V,)`` initial gains (default ones).
         refine_steps: maximum joint Levenberg–Marquardt steps on the same objective after the
             alternations (0 = the plain alternation of the original prototype). Alternation
@@ -466,8 +462,6 @@ def fit_gain_field(
         b: ``(V, M, h, w)`` ``B_v(p, λ_m) Δλ_m`` in the reference frame.
         phi: ``(3, M)``.
         mask: ``(V, h, w)`` bool/float observation weights.
-        degree: total polynomial degree.
-        smoothness: relative ridge on non-constant coefficients.
         basis: ``(basis (K, h, w), total_degree (K,))`` to use instead of
             ``legendre_basis_2d(h, w, degree)`` (e.g. a strided sub-grid of a larger frame).
 
@@ -529,11 +523,8 @@ def estimate_response_field(
         b: ``(V, M, h, w)`` ``B_v(p, λ_m) Δλ_m`` in the reference frame.
         f_prior: ``(3, M)``.
         mask: ``(V, h, w)`` bool: pixel present in view v (and reliable).
-        beta_phi, gamma_h, normalise, n_iter, diff_order: see :func:`estimate_response`.
-        degree, smoothness: see :func:`fit_gain_field`.
-        reference_view: the view normalised to mean gain 1.
-        refine_steps: joint refinement steps after the alternations (see
-            :func:`estimate_response`).
+        beta_phi, gamma_h, normalise, n_iter, diff_order, reference_view, refine_steps: see
+            :func:`estimate_response`; degree, smoothness: see :func:`fit_gain_field`.
         max_pixels: estimate on a regular sub-grid (every ``s``-th row and column,
             ``s = ⌈sqrt(h·w / max_pixels)⌉``) when the frame has more pixels; the gain field is
             then evaluated on the whole frame from its coefficients and the gauge (mean reference

@@ -6,11 +6,9 @@ at the same λ_j and colour channel; the colour channels are then combined with 
 proportional to their signal (the patch mean to the power ``weight_power``), ignoring saturated
 pixels. Pixels that never receive light (between the triangles) are flagged unreliable. The result,
 in sensor coordinates, is carried into the reference frame with the view homographies
-(:func:`to_reference_frame`, one batched kornia warp).
-
-Convention:
-    Scans are ``(J, 3, H, W)`` (wavelength, colour R/G/B, row, column), wavelengths in nm.
-    ``view_homographies[v]`` maps view-v sensor px → reference-view sensor px (``H_0 = I``).
+(:func:`to_reference_frame`, one batched kornia warp; the homographies as
+:mod:`hsi_torch.optics.geometry` defines them). Scans are ``(J, 3, H, W)`` (wavelength, colour
+R/G/B, row, column), wavelengths in nm.
 """
 
 from __future__ import annotations
@@ -56,15 +54,8 @@ def match_wavelengths(
     grid_nm: torch.Tensor | Sequence[float],
     tol_nm: float = 0.5,
 ) -> torch.Tensor:
-    """Indices of the scan frames that realise each grid wavelength.
-
-    Args:
-        scan_nm: ``(J,)`` wavelengths of the scan frames (nm, any order).
-        grid_nm: ``(M,)`` required wavelengths (nm).
-        tol_nm: largest accepted |scan − grid| difference.
-
-    Returns:
-        ``(M,)`` long tensor of indices into the scan.
+    """``(M,)`` indices into the scan frames ``scan_nm (J,)`` (nm, any order) of each grid
+    wavelength ``grid_nm (M,)``, within ``tol_nm``.
 
     Raises:
         ValueError: naming the grid wavelengths with no scan frame within ``tol_nm``.
@@ -115,9 +106,7 @@ def brf_transmittance(
             a missing wavelength raises).
         saturation_level: DN at/above which a raw value is treated as saturated (before dark
             subtraction); ``None`` disables the test.
-        lit_threshold: minimum of ``max_j B`` for a lit pixel.
-        weight_power: exponent of the patch mean in the colour weights (1: ∝ signal).
-        tol_nm: wavelength matching tolerance.
+        tol_nm: wavelength matching tolerance (:func:`match_wavelengths`).
 
     Returns:
         :class:`TransmittanceResult` (rows in grid order when ``grid_nm`` is given).
@@ -224,14 +213,11 @@ def to_reference_frame(
 
     Args:
         per_pixel_map: ``(…, H, W)`` sensor-coordinate map (e.g. ``(M, H, W)`` transmittance).
-        view_homographies: ``(V, 3, 3)`` view-v sensor px → reference sensor px.
-        triangles: ``(V, 3, 2)`` triangle vertices (sensor px).
-        reference_bbox: ``(x0, y0, w, h)`` of the reference frame in sensor px.
+        view_homographies, triangles, reference_bbox, inset_px, mode: as
+            :func:`~hsi_torch.optics.geometry.warp_views`.
         source_mask: optional ``(H, W)`` bool validity in sensor coordinates (e.g. ``lit`` or
             ``reliable.all(0)``); a warped pixel stays valid only if all its bilinear neighbours
             are valid.
-        inset_px: inward margin from the triangle edges for the analytic masks.
-        mode: ``"bilinear"`` or ``"nearest"``.
 
     Returns:
         ``(maps, masks)``: ``maps (V, …, h, w)`` in the map's dtype/device and ``masks (V, h, w)``

@@ -307,7 +307,6 @@ def demo(
         out: output folder (created).
         cfg: :class:`DemoConfig` (defaults when ``None``).
         quick: smaller sensor (``quick_scale``), float32 rendering, no figures.
-        log: where progress lines go.
 
     Returns:
         The summary dict written to ``OUT/summary.json``.

@@ -227,6 +227,15 @@ def _brf_of(r: dict[str, Any]) -> Any:
                      axis_tilt_deg=r["axis_tilt_deg"], axis_azimuth_deg=r["axis_azimuth_deg"])
 
 
+def _cond_row(common: dict[str, Any], tilt: float, azimuth: float, cond: Tensor, max_opd: Tensor,
+              max_opd_allowed: float, ref_view_px: int) -> dict[str, Any]:
+    """One design's row: ``cond`` its condition numbers at the scene points (centre first)."""
+    return {**common, "axis_tilt_deg": tilt, "axis_azimuth_deg": azimuth,
+            "cond_worst": float(cond.max()), "cond_median": float(cond.median()),
+            "cond_centre": float(cond[0]), "max_opd_nm": float(max_opd),
+            "ok": bool(max_opd <= max_opd_allowed), "ref_view_px": ref_view_px}
+
+
 def _plot(out: Path, rows: list[dict[str, Any]], best: dict[str, Any], cfg: DesignSweepConfig,
           key: str) -> None:
     tilts, azs = sorted(cfg.tilts_deg), sorted(cfg.azimuths_deg)
@@ -327,29 +336,17 @@ def run_design(
                  and (default_brf.axis_tilt_deg not in tilts
                       or default_brf.axis_azimuth_deg not in azs))
         cond, max_opd = condition_sweep(rays, mat, th, tilts, azs, grid, phi)
+        common = {"a_in_mm": base["a_in_mm"], "a_out_mm": a_out, "length_mm": length,
+                  "material": mat, "thickness_mm": th}
         for i, t in enumerate(tilts):
             for j, az in enumerate(azs):
-                c = cond[i, j]
-                rows.append({
-                    "a_in_mm": base["a_in_mm"], "a_out_mm": a_out, "length_mm": length,
-                    "material": mat, "thickness_mm": th, "axis_tilt_deg": t,
-                    "axis_azimuth_deg": az, "cond_worst": float(c.max()),
-                    "cond_median": float(c.median()), "cond_centre": float(c[0]),
-                    "max_opd_nm": float(max_opd[i, j]),
-                    "ok": bool(max_opd[i, j] <= max_opd_allowed),
-                    "ref_view_px": rays.ref_view_px,
-                })  # fmt: skip
+                rows.append(_cond_row(common, t, az, cond[i, j], max_opd[i, j], max_opd_allowed,
+                                      rays.ref_view_px))
         if extra:
-            c1, m1 = condition_sweep(rays, mat, th, [default_brf.axis_tilt_deg],
-                                     [default_brf.axis_azimuth_deg], grid, phi)
-            rows.append({
-                "a_in_mm": base["a_in_mm"], "a_out_mm": a_out, "length_mm": length,
-                "material": mat, "thickness_mm": th, "axis_tilt_deg": default_brf.axis_tilt_deg,
-                "axis_azimuth_deg": default_brf.axis_azimuth_deg,
-                "cond_worst": float(c1[0, 0].max()), "cond_median": float(c1[0, 0].median()),
-                "cond_centre": float(c1[0, 0, 0]), "max_opd_nm": float(m1[0, 0]),
-                "ok": bool(m1[0, 0] <= max_opd_allowed), "ref_view_px": rays.ref_view_px,
-            })  # fmt: skip
+            t, az = default_brf.axis_tilt_deg, default_brf.axis_azimuth_deg
+            c1, m1 = condition_sweep(rays, mat, th, [t], [az], grid, phi)
+            rows.append(_cond_row(common, t, az, c1[0, 0], m1[0, 0], max_opd_allowed,
+                                  rays.ref_view_px))
     if not rows:
         raise ValueError(f"design sweep: no usable geometry ({skipped})")
     t_cond = time.perf_counter() - t0

@@ -73,8 +73,7 @@ class OPDInputSpec:
       - ``truth``: the simulator's ground-truth ``B`` (reference frame; the capture set's
         ``truth.npz``, or computed in memory when no capture set is used);
       - ``oracle``: :func:`hsi_torch.simulate.oracle.bundle_from_truth` of the capture set;
-      - ``calibrated``: ``hsi_torch.calibrate.pipeline.calibrate_capture_set`` on the capture set
-        (falls back to the oracle bundle, with a note, when that pipeline is not installed);
+      - ``calibrated``: :func:`calibrated_bundle` of the capture set;
       - ``scan``: ``B`` in sensor coordinates from the capture set's monochromator scan with
         :func:`hsi_torch.calibrate.brf_transmittance` (ratio to the BRF-free patch), sampled in
         the *nominal* triangles (no homographies needed);

@@ -139,8 +139,6 @@ def estimate_opd(
         wavelengths_nm: ``(M,)`` strictly increasing wavelengths (nm), ``M ≥ 4``.
         num_k: samples of the uniform ``k`` grid (default ``M``); sets the coarse bin.
         window: ``'hann'`` or ``'none'`` (applied after the mean is removed).
-        pad_factor: zero-padding factor of the refined FFT.
-        fit: also run the least-squares cosine fit.
         search_bins, search_points: the fit's grid search spans ``fft ± search_bins`` coarse
             bins with ``search_points`` frequencies (then ``iters`` LM steps).
 

@@ -85,7 +85,6 @@ def markdown_table(
     """A GitHub-flavoured Markdown table.
 
     Args:
-        rows: dicts holding the values.
         columns: keys to show, or ``{key: header}``.
         formats: per-key format spec (``".2f"``) or callable.
         bold: rows for which this returns True are set in bold.

@@ -369,7 +369,6 @@ def evaluate_design(
         sigmas: noise levels (DN); seeds: noise seeds (:func:`noise_realisation`).
         betas: smoothness weights (default :func:`default_betas`).
         peak_dn: exposure-matching target; diff_order: order of ``D``.
-        keep_estimates: keep the reconstructions at the best β.
 
     Returns:
         :class:`DesignEvaluation`. One :func:`~hsi_torch.recon.nnls.solve_nnls` call solves

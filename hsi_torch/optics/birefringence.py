@@ -96,7 +96,6 @@ class UniaxialMaterial:
     """A uniaxial birefringent material: Sellmeier dispersion or constant indices.
 
     Attributes:
-        name: label.
         sellmeier_o, sellmeier_e: Ghosh ``(A, B, C, D, E)`` for the ordinary/extraordinary index.
         n_o, delta_n: constant ordinary index and birefringence ``n_e − n_o`` (used when the
             Sellmeier coefficients are ``None``, e.g. a polymer retarder film).
@@ -317,10 +316,6 @@ class BRFConfig:
             )
         psi, chi = POLARIZER_PRESETS[preset]
         return cls(psi_deg=psi, chi_deg=chi, **kwargs)
-
-    @property
-    def uniaxial_material(self) -> UniaxialMaterial:
-        return self._mat
 
     def indices(self, wavelength_nm: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
         """``(n_o, n_e)`` at ``wavelength_nm``."""

@@ -150,8 +150,7 @@ def view_sample_grid(
     :func:`warp_views` computes at those pixels.
 
     Args:
-        view_homographies: ``(V, 3, 3)`` view-v sensor px → reference sensor px.
-        reference_bbox: ``(x0, y0, w, h)``; sensor_size: ``(H, W)``.
+        sensor_size: ``(H, W)``.
         pixel_index: ``(P,)`` flat row-major reference-frame indices (default all ``h·w``).
         dtype: of the result (default: ``view_homographies``' dtype).
 
@@ -194,14 +193,8 @@ def reference_to_source_matrices(
     """Matrices ``M_v = T_crop · H_v`` mapping view-v sensor px → reference-frame px.
 
     ``T_crop`` translates by ``(−x0, −y0)``. These are the ``M`` that
-    ``kornia.geometry.transform.warp_perspective`` expects (it samples ``src(M⁻¹ x)``).
-
-    Args:
-        view_homographies: ``(V, 3, 3)``.
-        reference_bbox: ``(x0, y0, w, h)``.
-
-    Returns:
-        ``(V, 3, 3)`` tensor, dtype/device of ``view_homographies``.
+    ``kornia.geometry.transform.warp_perspective`` expects (it samples ``src(M⁻¹ x)``);
+    ``(V, 3, 3)``, dtype/device of ``view_homographies``.
     """
     _check_homographies(view_homographies)
     x0, y0, _, _ = _check_bbox(reference_bbox)
@@ -226,10 +219,7 @@ def view_masks(
     ``sensor_size = (H, W)`` is given.
 
     Args:
-        view_homographies: ``(V, 3, 3)`` view sensor px → reference sensor px.
         triangles: ``(V, 3, 2)`` sensor px.
-        reference_bbox: ``(x0, y0, w, h)``.
-        sensor_size: optional ``(H, W)``.
         inset_px: inward margin from the triangle edges (px of the view's sensor image).
 
     Returns:
@@ -268,8 +258,6 @@ def warp_views(
 
     Args:
         image: ``(C, H, W)`` or ``(B, C, H, W)`` sensor image(s), any float dtype/device.
-        view_homographies: ``(V, 3, 3)`` view sensor px → reference sensor px.
-        reference_bbox: ``(x0, y0, w, h)``.
         triangles: optional ``(V, 3, 2)``; when given, the per-view validity masks are returned.
         inset_px: inward triangle margin of the masks (see :func:`view_masks`).
         mode: ``"bilinear"`` or ``"nearest"``.

@@ -505,13 +505,10 @@ def trace_rays(
     reflection count. Any float dtype/device; ``float64`` recommended for calibration-grade work.
 
     Args:
-        geometry: the tube.
-        camera: the pinhole camera.
         pixel_xy: ``(N, 2)`` sensor coordinates ``(x, y)`` in px (any real values).
         sequences: the view list (view ``i`` = ``sequences[i]``); default
             :func:`enumerate_sequences` ``(geometry.max_reflections)``. Rays with another sequence
             get ``view_index = −1`` (but keep their hit point and angles).
-        chunk: rays per batch.
 
     Returns:
         :class:`RayTrace` with ``(N,)`` fields.

@@ -247,7 +247,6 @@ def build_view_layout(
     """Derive the :class:`ViewLayout` from a full-sensor trace.
 
     Args:
-        geometry, camera: the optics.
         brf: filter used for ``opd_nm`` (default :class:`BRFConfig` ``()``).
         trace: an ``(H, W)`` :func:`trace_sensor` result to reuse (traced in float64 otherwise).
         min_pixels: views with fewer pixels on the sensor are left out (sequences kept in order).

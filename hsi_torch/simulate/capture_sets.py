@@ -19,6 +19,7 @@ Every file is written atomically (temp file + ``os.replace``).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -312,16 +313,6 @@ class SimulationSummary:
                 f"  time {t.get('total', 0.0):.1f} s ({parts})")
 
 
-def _tqdm(enabled: bool):
-    if not progress_enabled(enabled):
-        return None
-
-    def wrap(it, **kw):
-        return progress_bar(it, leave=False, **kw)
-
-    return wrap
-
-
 def _camera_name(sensitivity: str) -> str:
     """A camera sensitivity's name: itself for a reference-data name, a file's stem."""
     p = Path(sensitivity)
@@ -378,16 +369,12 @@ def simulate_capture_set(
     progress: bool | None = None,
     log=print,
 ) -> SimulationSummary:
-    """Render every capture of ``cfg`` with its ground truth into ``out_dir``.
-
-    Returns:
-        :class:`SimulationSummary` (files, views, valid pixels, timings).
-    """
+    """Render every capture of ``cfg`` with its ground truth into ``out_dir``."""
     t_all = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     show = cfg.render.progress if progress is None else progress
-    bar = _tqdm(show)
+    bar = functools.partial(progress_bar, leave=False) if progress_enabled(show) else None
     tm: dict[str, float] = {}
 
     t0 = time.perf_counter()

@@ -40,12 +40,9 @@ Ground truth in the reference frame (the sensor crop ``layout.reference_bbox``) 
 
 reproduces the noise-free rendering to the discretisation error of the 10 nm grid.
 
-How it is computed (:meth:`CaptureRenderer.render_captures`; docs/simulate.md, *Numerics and
-measured times*): one band of sensor rows at a time; per ray ``Tstack(λ) = A + B · cos(2π ·
-OPD(λ) / λ)`` (:meth:`stack_cosine_form`), so one ``(rays, L)`` cosine matrix per band meets one
-weight matrix holding every capture's spectra, scenes as ``K`` abundance planes × endmember
-spectra. Precision: the render dtype for rays, cosines, rasters and images; float64 for the view
-layout, the spectral weights and the ground truth.
+How it is computed: :meth:`CaptureRenderer.render_captures` and :meth:`CaptureRenderer._shade`
+(docs/simulate.md, *Numerics and measured times*). Precision: the render dtype for rays, cosines,
+rasters and images; float64 for the view layout, the spectral weights and the ground truth.
 """
 
 from __future__ import annotations
@@ -568,9 +565,6 @@ class CaptureRenderer:
         return w / w.sum(1, keepdim=True)
 
     # ------------------------------------------------------------------ tracing
-    def _render_geometry(self) -> KaleidoscopeGeometry:
-        return dataclasses.replace(self.geometry, max_reflections=self.max_reflections)
-
     def sensor_to_pinhole(
         self, points_px: torch.Tensor, after_calibration: bool = False
     ) -> torch.Tensor:
@@ -600,7 +594,7 @@ class CaptureRenderer:
         ``after_calibration``) before they are traced.
         """
         dev, dt = self.device, self.dtype
-        geom = self._render_geometry()
+        geom = dataclasses.replace(self.geometry, max_reflections=self.max_reflections)
         seqs = enumerate_sequences(self.max_reflections)
         lay_codes = sequence_codes(self.layout.reflection_sequences)
         all_codes = torch.tensor(sequence_codes(seqs), device=dev)
@@ -629,19 +623,6 @@ class CaptureRenderer:
                 pixel=pix[keep], alpha=tr.alpha[keep], sigma=tr.sigma[keep], hit_xy=hit,
                 throughput=tr.throughput[keep], brf_free=self.geometry.brf_free_mask(hit),
                 view=view_of[tr.sequence_code[keep]], samples=s2, sensor_size=(h, w))
-
-    def trace(self, progress: Callable | None = None) -> SubpixelTrace:
-        """All sub-pixel rays that reach the diffuser at once (:meth:`trace_tiles` concatenated).
-
-        For inspection: it holds every ray (≈ 45 bytes each: 1 GB at full size); rendering never
-        does, it works band by band.
-        """
-        parts = [tr for _, _, tr in self.trace_tiles(progress)]
-        h, w = self.sensor_size
-        return SubpixelTrace(
-            **{f: torch.cat([getattr(t, f) for t in parts]) for f in
-               ("pixel", "alpha", "sigma", "hit_xy", "throughput", "brf_free", "view")},
-            samples=self.supersample**2, sensor_size=(h, w))
 
     # ------------------------------------------------------------------ rendering
     def _scene_for_render(self, scene: Any) -> Any:

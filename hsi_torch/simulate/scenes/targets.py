@@ -140,7 +140,6 @@ class USAF1951Scene(_FlatTarget):
     left of the vertical one; columns are separated by twice the group's largest bar width.
 
     Attributes:
-        groups: groups to draw.
         magnification: diffuser mm per target mm.
         center_mm: centre of the pattern's bounding box (mm).
         bar_reflectance, background_reflectance: flat reflectances.
