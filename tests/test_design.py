@@ -176,20 +176,26 @@ def test_registry_and_unknown_name():
         resolve_experiment("nope")
 
 
-def test_cli_dispatch(tmp_path, capsys):
+@pytest.mark.parametrize("tilts,azimuths", [("[65, 70]", "[40]"), ("[60]", "[30]")])
+def test_cli_dispatch(tmp_path, capsys, tilts, azimuths):
+    """The CLI runs the sweep; a sweep that leaves out the default plate's tilt and azimuth gets
+    its extra row, which the figure places too (it failed when the default ranked best)."""
     from hsi_torch.cli import main
 
     out = tmp_path / "cli"
     code = main([
         "experiment", "design", "--config", str(shipped_config("design")), "--out", str(out),
-        "--set", "materials={quartz: [2.5]}", "--set", "tilts_deg=[65, 70]",
-        "--set", "azimuths_deg=[40]", "--set", "a_out_mm=[40]", "--set", "top_k=1",
+        "--set", "materials={quartz: [2.5]}", "--set", f"tilts_deg={tilts}",
+        "--set", f"azimuths_deg={azimuths}", "--set", "a_out_mm=[40]", "--set", "top_k=1",
         "--set", "psnr.num_seeds=1", "--set", "psnr.betas=[1000]", "--set", "progress=false",
     ])  # fmt: skip
     assert code == 0
+    assert (out / "condition_heatmap.png").is_file()
     resolved = yaml.safe_load((out / "resolved_config.yaml").read_text())
-    assert resolved["tilts_deg"] == [65.0, 70.0] and resolved["psnr"]["betas"] == [1000.0]
+    assert resolved["tilts_deg"] == yaml.safe_load(tilts)
+    assert resolved["psnr"]["betas"] == [1000.0]
     rows = list(csv.DictReader(open(out / "ranking.csv")))
     assert len(rows) == 2
+    assert sum(r["is_default"] == "True" for r in rows) == 1
     assert main(["experiment", "nope", "--out", str(tmp_path / "x")]) == 1
     assert "unknown experiment 'nope'" in capsys.readouterr().err

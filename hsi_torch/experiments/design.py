@@ -238,13 +238,15 @@ def _cond_row(common: dict[str, Any], tilt: float, azimuth: float, cond: Tensor,
 
 def _plot(out: Path, rows: list[dict[str, Any]], best: dict[str, Any], cfg: DesignSweepConfig,
           key: str) -> None:
-    tilts, azs = sorted(cfg.tilts_deg), sorted(cfg.azimuths_deg)
+    # the axes of the rows themselves: the default plate's extra row may lie outside the sweep
+    tilts = sorted({r["axis_tilt_deg"] for r in rows})
+    azs = sorted({r["axis_azimuth_deg"] for r in rows})
     sel = {(r["axis_tilt_deg"], r["axis_azimuth_deg"]): r for r in rows
            if (r["a_out_mm"], r["length_mm"], r["material"], r["thickness_mm"])
            == (best["a_out_mm"], best["length_mm"], best["material"], best["thickness_mm"])}
     heat = np.array([[math.log10(sel[(t, a)][key]) if (t, a) in sel and sel[(t, a)]["ok"]
                       else np.nan for a in azs] for t in tilts])
-    ths = sorted(cfg.materials[best["material"]])
+    ths = sorted({r["thickness_mm"] for r in rows if r["material"] == best["material"]})
     heat2 = np.full((len(tilts), len(ths)), np.nan)
     for r in rows:
         if (r["a_out_mm"], r["length_mm"], r["material"]) == (
