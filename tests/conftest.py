@@ -209,11 +209,3 @@ def small_sim_calib(small_sim: Path, tmp_path_factory) -> Iterator[Path]:
                  "-q"]) == 0  # fmt: skip
     yield from _read_only_check(out)
 
-
-@pytest.fixture(scope="session")
-def small_sim_no_scenes(tmp_path_factory) -> Iterator[Path]:
-    """The small prototype's calibration captures only (``captures.scenes=[]``, otherwise as
-    ``small_sim``), once per session. Read-only, as ``small_sim``."""
-    out = _simulate_shared(tmp_path_factory.mktemp("shared_sim_no_scenes") / "sim",
-                           "captures.scenes=[]")
-    yield from _read_only_check(out)

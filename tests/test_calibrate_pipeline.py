@@ -25,20 +25,18 @@ from hsi_torch.io.capture_set import read_capture_set, wavelength_from_name
 
 
 @pytest.fixture(scope="module")
-def sim(small_sim_no_scenes: Path) -> Path:
-    """The default small capture set (shipped simulate.yaml, realistic noise), no scene captures,
-    rendered in float32 (the simulator's documented fast setting) to keep the test short: the
-    session's shared, read-only set."""
-    return small_sim_no_scenes
+def sim(small_sim: Path) -> Path:
+    """The default small capture set (shipped simulate.yaml, realistic noise), rendered in
+    float32 (the simulator's documented fast setting) to keep the test short: the session's
+    shared, read-only set (calibration reads no scene capture)."""
+    return small_sim
 
 
 @pytest.fixture(scope="module")
-def calibrated(sim: Path, tmp_path_factory) -> Path:
-    """``calibrate --out DIR`` (the shipped calibrate.yaml); returns ``DIR/calib.npz``."""
-    out = tmp_path_factory.mktemp("cal") / "run"
-    rc = main(["calibrate", "--captures", str(sim), "--out", str(out), "--no-progress"])
-    assert rc == 0
-    return out / "calib.npz"
+def calibrated(small_sim_calib: Path) -> Path:
+    """``calibrate --out DIR`` (the shipped calibrate.yaml) of ``sim``: the session's shared,
+    read-only run; returns ``DIR/calib.npz``."""
+    return small_sim_calib / "calib.npz"
 
 
 def test_targets_on_default_simulated_set(sim: Path, calibrated: Path):
@@ -114,7 +112,7 @@ def _copy_set(sim: Path, dst: Path) -> Path:
     """A modifiable copy of the capture set: JSON/PNG copied, capture folders linked (the
     manifest opts in to files outside its folder, since the links lead there)."""
     dst.mkdir(parents=True, exist_ok=True)
-    for name in ("scan", "white", "grid", "dark", "ground_truth"):
+    for name in ("scan", "white", "grid", "dark", "scenes", "ground_truth"):
         (dst / name).symlink_to(sim / name, target_is_directory=True)
     for name in ("manifest.json", "nominal_layout.json", "brf_free_mask.png"):
         shutil.copy(sim / name, dst / name)

@@ -15,11 +15,14 @@ import numpy as np
 import pytest
 from synthetic_data import write_dng
 
+from hsi_torch.calibrate.config import CalibrateConfig
 from hsi_torch.calibrate.pipeline import calibrate_capture_set
 from hsi_torch.cli import main
+from hsi_torch.config import load_config
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
 from hsi_torch.experiments.metrics import cube_scores, erode_px, interior_mask
 from hsi_torch.io import read_any, read_capture
+from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.io.capture_import import (
     check_capture_set,
     import_captures,
@@ -126,7 +129,7 @@ def _score(cube: np.ndarray, valid: np.ndarray, truth: dict) -> float:
 
 
 def test_lab_folder_imported_calibrates_and_reconstructs_like_the_simulators(
-    sim: Path, tmp_path: Path, capsys
+    sim: Path, small_sim_calib: Path, tmp_path: Path, capsys
 ):
     lab = tmp_path / "lab"
     sheet = _lab_folder(sim, lab)
@@ -150,8 +153,10 @@ def test_lab_folder_imported_calibrates_and_reconstructs_like_the_simulators(
     assert "512 (sheet)" in out and "512 (file)" in out and "0.01 s (file)" in out
     assert "Lab Optics KaleidoCam 1" in out
 
-    bundle, report = calibrate_capture_set(capset, progress=False)
-    native, _ = calibrate_capture_set(sim, progress=False)
+    # the shipped calibrate.yaml, as `hsi-torch calibrate` of `sim` (the session's small_sim_calib)
+    cfg = load_config(shipped_config("calibrate"), CalibrateConfig)
+    bundle, report = calibrate_capture_set(capset, cfg, progress=False)
+    native = CalibrationBundle.load(small_sim_calib / "calib.npz")
     assert report.counts["scan"] == 26  # 25 bands, one of them two frames
     assert any("550 nm: 2 frames" in n for n in report.notes)
     assert any("frame_700.dng (700 nm)" in n for n in report.notes)

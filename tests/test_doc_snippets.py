@@ -15,10 +15,14 @@ prototype, made once per test session):
                          DNG files in its own folders, ``lab/nominal_layout.json``
 =======================  ==========================================================
 
-A bash block runs with ``bash -e -o pipefail``, a Python block with the test's interpreter, both
-with the workspace as the working folder, ``hsi-torch`` on ``PATH`` (this interpreter's
-``python -m hsi_torch``) and the source checkout as ``REPO``. A block that cannot run here is
-marked in the document by an HTML comment on the line right before its fence::
+A bash block runs with ``bash -e -o pipefail``, a Python block as ``python -c`` of the test's
+interpreter, both with the workspace as the working folder, ``hsi-torch`` on ``PATH`` (this
+interpreter's ``python -m hsi_torch``) and the source checkout as ``REPO``. Each ``hsi-torch`` call
+and each Python block runs in a process forked from one server that imported torch and the
+package once per session (``forkserver.py``: the streams, folder, environment and exit status
+are the caller's, as in a fresh interpreter), not in a new interpreter importing them again. A
+block that cannot run here is marked in the document by an HTML comment on the line right before
+its fence::
 
     <!-- snippet: skip (needs a Dask cluster: the scheduler address is the reader's) -->
 
@@ -31,9 +35,12 @@ from __future__ import annotations
 
 import os
 import re
+import select
 import shutil
+import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +49,7 @@ import pytest
 from hsi_torch.resources import real_data_dir
 
 REPO = Path(__file__).resolve().parents[1]
+FORKSERVER = Path(__file__).resolve().parent / "forkserver.py"
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 _FENCE = re.compile(r"^```(bash|sh|python)\s*$")
 _MARK = re.compile(r"^<!--\s*snippet:\s*(\w+)(?:\s*\((.*)\))?\s*-->\s*$")
@@ -95,11 +103,14 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str]) -> subprocess.Completed
 
 
 @pytest.fixture(scope="session")
-def snippet_env(tmp_path_factory) -> dict[str, str]:
-    """Environment of the snippets: ``hsi-torch`` (this interpreter) first on ``PATH``."""
+def snippet_env(tmp_path_factory) -> Iterator[dict[str, str]]:
+    """Environment of the snippets: ``hsi-torch`` (this interpreter, through the session's fork
+    server) first on ``PATH``; ``SNIPPET_SOCKET`` names the server's socket."""
     bindir = tmp_path_factory.mktemp("snippet_bin")
+    sock = bindir / "forkserver.sock"
     shim = bindir / "hsi-torch"
-    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m hsi_torch "$@"\n')
+    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -S -E "{FORKSERVER}" client "{sock}" '
+                    'cli "$@"\n')  # fmt: skip
     shim.chmod(0o755)
     env = dict(os.environ)
     env["PATH"] = f"{bindir}{os.pathsep}{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
@@ -109,7 +120,20 @@ def snippet_env(tmp_path_factory) -> dict[str, str]:
     data = real_data_dir()
     if data is not None:
         env["HSI_TORCH_DATA"] = str(data)
-    return env
+    with open(bindir / "forkserver.log", "wb") as log:
+        server = subprocess.Popen([sys.executable, str(FORKSERVER), "serve", str(sock)], env=env,
+                                  stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
+                                  start_new_session=True)  # fmt: skip
+    try:
+        ready, _, _ = select.select([server.stdout], [], [], TIMEOUT_S)
+        line = server.stdout.readline() if ready else b""
+        assert line == b"ready\n", f"the fork server did not start: {bindir / 'forkserver.log'}"
+        env["SNIPPET_SOCKET"] = str(sock)
+        yield env
+    finally:
+        os.killpg(server.pid, signal.SIGKILL)  # the server and any child left running
+        server.wait()
+        server.stdout.close()
 
 
 @pytest.fixture(scope="session")
@@ -191,8 +215,9 @@ def test_markers_are_well_formed():
 def test_snippet_runs(snippet: Snippet, workspace: Path, snippet_env: dict[str, str]):
     if snippet.skip:
         pytest.skip(snippet.skip)
-    if snippet.lang == "python":
-        cmd = [sys.executable, "-c", snippet.code]
+    if snippet.lang == "python":  # python -c, forked from the session's server
+        cmd = [sys.executable, "-S", "-E", str(FORKSERVER), "client", snippet_env["SNIPPET_SOCKET"],
+               "code", snippet.code]  # fmt: skip
     else:
         cmd = ["bash", "-e", "-o", "pipefail", "-c", snippet.code]
     r = _run(cmd, workspace, snippet_env)

@@ -48,10 +48,10 @@ def _simulate(out: Path, *extra: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def sim(small_sim_no_scenes: Path) -> Path:
-    """The default small capture set (the design as built; ``_FAST``): the session's shared,
-    read-only set."""
-    return small_sim_no_scenes
+def sim(small_sim: Path) -> Path:
+    """The default small capture set (the design as built; float32 render, no figures): the
+    session's shared, read-only set."""
+    return small_sim
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +67,9 @@ def _lab_copy(sim: Path, dst: Path, layout: Path | None = None) -> Path:
     """The set as a lab has it: captures and manifest, no BRF-free mask PNG (the layout's
     polygon is used), the given layout (else the simulator's)."""
     dst.mkdir(parents=True, exist_ok=True)
-    for name in ("scan", "white", "grid", "dark", "ground_truth"):
-        (dst / name).symlink_to(sim / name, target_is_directory=True)
+    for name in ("scan", "white", "grid", "dark", "scenes", "ground_truth"):
+        if (sim / name).is_dir():  # sim_off has no scene
+            (dst / name).symlink_to(sim / name, target_is_directory=True)
     m = json.loads((sim / "manifest.json").read_text())
     m["brf_free_mask"] = None
     m["allow_files_outside"] = True  # the linked folders lead out of the copy: opted in

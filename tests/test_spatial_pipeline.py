@@ -4,14 +4,13 @@ tiny 4-view bundle of test_pipeline (exact forward model)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
 from test_pipeline import make_bundle, render_capture
 
+from hsi_torch.cli import main
 from hsi_torch.recon.config import ReconstructConfig
 from hsi_torch.recon.module import HSIReconstructor
 from hsi_torch.recon.pipeline import Reconstructor
@@ -183,7 +182,7 @@ def test_config_default_is_the_api_default():
         ReconstructConfig(lam=-1.0)
 
 
-def test_cli_reconstruct_with_tv(tmp_path):
+def test_cli_reconstruct_with_tv(tmp_path, capsys):
     bundle = make_bundle()
     bpath = tmp_path / "b.npz"
     bundle.save(bpath)
@@ -191,13 +190,10 @@ def test_cli_reconstruct_with_tv(tmp_path):
     cap = tmp_path / "cap.npz"
     np.savez(cap, image=img)
     out = tmp_path / "out"
-    r = subprocess.run(
-        [sys.executable, "-m", "hsi_torch", "reconstruct", "--bundle", str(bpath), "--out",
-         str(out), "--set", "prior=tv", "--set", "lam=discrepancy", "--set", "formats=[npz]",
-         "--set", "preview=false", "--set", "beta=1.0", str(cap)],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
+    rc = main(["reconstruct", "--bundle", str(bpath), "--out", str(out), "--set", "prior=tv",
+               "--set", "lam=discrepancy", "--set", "formats=[npz]", "--set", "preview=false",
+               "--set", "beta=1.0", str(cap)])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
     with np.load(out / "cap.npz", allow_pickle=False) as z:
         keys = list(z.keys())
         meta = json.loads(str(z["metadata"])) if "metadata" in keys else None
