@@ -391,9 +391,10 @@ WARM_CHECK_EVERY = 1
 
 #: The spatial ADMM's over-relaxation when warm-started (:func:`~hsi_torch.recon.spatial.
 #: solve_spatial`'s ``relax``; cold solves: none). On the full-size moving scene (30 frames) the
-#: warm frames met the stopping rule in 5–6 iterations instead of 6–7 and scored −0.026 …
-#: +0.015 dB against their cold solves (1.5: 4–5 iterations, down to −0.04 dB; 1.8: −0.14 dB).
-WARM_RELAX = 1.3
+#: warm frames met the stopping rule in 5 iterations on every frame (unrelaxed: 6–7) and scored
+#: −0.029 … −0.001 dB against their cold solves (1.3: 5–6 iterations, −0.027 … +0.015 dB; 1.5:
+#: 4–5 iterations, down to −0.049 dB, at the 0.05 dB bound; 1.8: worse, −0.135 dB).
+WARM_RELAX = 1.4
 
 #: ``reuse_noise``: the previous frame's noise level is reused when the frame's gain against it
 #: is within this of 1.
