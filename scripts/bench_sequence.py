@@ -9,7 +9,8 @@ a rotating ColorChecker, :mod:`hsi_torch.simulate.motion`, forward engine, oracl
 * ``temporal``: the same scene at low light (noise ×4): PSNR and SAM per frame with the
   temporal prior vs independent frames, on all valid pixels and on the moving edges alone.
 * ``drift``: drift growing 0.1 px a frame: the tracked path's error per frame and the PSNR of
-  the path-corrected frames vs the same frames without drift.
+  the path-corrected frames vs the same frames without drift and vs the frames corrected with
+  the true drift (``--drift-prior tv``: every one of them with the spatial prior).
 
 Full size by default; ``--small`` for the 400 × 384 px prototype. ``--cache DIR``: the bundle,
 the renderer's ground truth and every part's frames are read from ``DIR``, written there first
@@ -82,6 +83,8 @@ def main() -> None:
                          "reused, or both")
     ap.add_argument("--cache", default=None,
                     help="folder of the bundle, ground truth and every part's simulated frames")
+    ap.add_argument("--drift-prior", default="none", choices=["none", "tv"],
+                    help="the drift part's prior (every reconstruction of that part)")
     ap.add_argument("--drift-flicker", type=float, default=0.0,
                     help="the drift part's flicker of the light (0.05: the warm part's, whose "
                          "frames are then its reference without drift)")
@@ -264,7 +267,9 @@ def main() -> None:
         )
 
     if "drift" in parts:
-        seq = SequenceReconstructor(sens, drift_track=True, warm_start=False)
+        dprior = args.drift_prior
+        seq = SequenceReconstructor(sens, drift_track=True, warm_start=False, prior=dprior)
+        plain = pp if dprior == "none" else Reconstructor(sens, prior=dprior, drift_check=False)
         errs, dps, dks = [], [], []
         light = Illumination(flicker=args.drift_flicker)
         still = warm_frames() if args.drift_flicker == 0.05 else frames("still", illumination=light)
@@ -279,9 +284,9 @@ def main() -> None:
                 if path is not None
                 else float("nan")
             )
-            ref = pp.reconstruct_frame(g.image, g.saturated)  # the same scene without drift
+            ref = plain.reconstruct_frame(g.image, g.saturated)  # the same scene without drift
             known = Reconstructor(
-                corrected_sensing(sens, f.drift_px, f.drift_deg), drift_check=False
+                corrected_sensing(sens, f.drift_px, f.drift_deg), drift_check=False, prior=dprior
             ).reconstruct_frame(f.image, f.saturated)
             both = r.valid & ref.valid & known.valid
             a = psnr_sam(ref.cube, g.truth, both)[0]
