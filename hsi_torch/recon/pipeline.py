@@ -695,20 +695,10 @@ class HSIReconstructor(nn.Module):
         """
         own = self._refreshed()  # the disk-cache entry changed under its mapping?
         sens = own if sensing is None else sensing
-        if not isinstance(image, Tensor) or image.ndim != 3:
-            raise ValueError(
-                f"{source}: image must be a (3, H, W) or (1, H, W) tensor, got "
-                f"{tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__}"
-            )
-        sens.check_capture_size(image.shape, source)
         t0 = time.perf_counter()
-        img = image.to(device=sens.device)
-        sat = None if saturated is None else saturated.to(device=sens.device)
         pattern = cfa_pattern or sens.cfa_pattern
-        img, sat = prepare_input(img, sat, pattern)
-        corr: dict[str, Any] = {}
-        if bundle_corrections:
-            img, sat, corr = correct_frames(img, sat, sens.radiometry)
+        img, sat, corr = prepare_image(sens, image, saturated, pattern, source,
+                                       bundle_corrections)
         settings = self.settings
         scale = (exposure_scale(exposure_s, sens.exposure_s) if settings.input.exposure_correction
                  else 1.0)  # fmt: skip
@@ -911,6 +901,30 @@ class Reconstructor(HSIReconstructor):
 
     #: ``keep_calibration``'s default: never
     default_keep_calibration: bool | None = False
+
+
+def prepare_image(
+    sens: BundleSensing, image: Tensor, saturated: Tensor | None, pattern: str | None,
+    source: str, corrections: bool = True,
+) -> tuple[Tensor, Tensor | None, dict[str, Any]]:
+    """A frame as the front door solves it: ``image`` ``(3, H, W)`` RGB or ``(1, H, W)`` mosaic
+    checked against the bundle's sensor size (errors name ``source``), on ``sens``'s device,
+    demosaiced with ``pattern`` (:func:`~hsi_torch.recon.frame.prepare_input`) and, with
+    ``corrections``, corrected (:func:`correct_frames`). Returns the image, the saturation mask
+    and the corrections' statistics (empty without them)."""
+    if not isinstance(image, Tensor) or image.ndim != 3:
+        raise ValueError(
+            f"{source}: image must be a (3, H, W) or (1, H, W) tensor, got "
+            f"{tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__}"
+        )
+    sens.check_capture_size(image.shape, source)
+    img = image.to(device=sens.device)
+    sat = None if saturated is None else saturated.to(device=sens.device)
+    img, sat = prepare_input(img, sat, pattern)
+    corr: dict[str, Any] = {}
+    if corrections:
+        img, sat, corr = correct_frames(img, sat, sens.radiometry)
+    return img, sat, corr
 
 
 def with_load_time(res: ReconstructionResult, load_s: float) -> ReconstructionResult:

@@ -63,17 +63,20 @@ from torch import Tensor
 from hsi_torch.findings import Finding
 from hsi_torch.io.bundle import CalibrationBundle
 from hsi_torch.recon.checks import exposure_scale
-from hsi_torch.recon.corrections import correct_frames
 from hsi_torch.recon.drift import corrected_sensing, estimate_drift
 from hsi_torch.recon.frame import (
     WarmStart,
     assemble_cube,
     observations_from_samples,
-    prepare_input,
     sample_views,
 )
 from hsi_torch.recon.nnls import NNLSProblem
-from hsi_torch.recon.pipeline import ReconstructionResult, Reconstructor, with_load_time
+from hsi_torch.recon.pipeline import (
+    ReconstructionResult,
+    Reconstructor,
+    prepare_image,
+    with_load_time,
+)
 from hsi_torch.recon.sensing import BundleSensing
 from hsi_torch.recon.settings import ReconstructSettings, with_overrides
 from hsi_torch.recon.spatial.noise import frame_noise_level
@@ -394,18 +397,9 @@ class SequenceReconstructor:
         """The frame as the front door prepares it: on the bundle's device, demosaiced,
         corrected (unless ``corrected``); with the corrections' statistics and the seconds it
         took. A bad image is refused naming ``src``, as by the front door."""
-        sens = self.base_sensing
-        if not isinstance(image, Tensor) or image.ndim != 3:
-            got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
-            raise ValueError(f"{src}: image must be a (3, H, W) or (1, H, W) tensor, got {got}")
-        sens.check_capture_size(image.shape, src)
         t0 = time.perf_counter()
-        img = image.to(device=sens.device)
-        sat = None if saturated is None else saturated.to(device=sens.device)
-        img, sat = prepare_input(img, sat, pattern)
-        corr: dict[str, Any] = {}
-        if not corrected:
-            img, sat, corr = correct_frames(img, sat, sens.radiometry)
+        img, sat, corr = prepare_image(self.base_sensing, image, saturated, pattern, src,
+                                       not corrected)
         return img, sat, corr, time.perf_counter() - t0
 
     def _temporal_step(
