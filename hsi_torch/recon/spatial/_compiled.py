@@ -500,7 +500,9 @@ def start_state(b: np.ndarray, z0: np.ndarray, gram: np.ndarray, row_slot: np.nd
 def norms3(z: np.ndarray, x: np.ndarray, z_prev: np.ndarray,
            relax: float = 1.0) -> tuple[float, float, float]:
     """``‖z‖``, ``‖x − z‖``, ``‖z − z_prev‖`` of three ``(M, P)`` C-contiguous arrays of one
-    dtype in one parallel pass, no temporaries (sums in float64)."""
+    dtype in one parallel pass, no temporaries (sums in float64). With ``relax = a ≠ 1`` the
+    given ``x`` is the relaxed ``x̂ = a·x + (1 − a)·z_prev`` that :func:`fgp_block` stores, and
+    the second norm is that of the unrelaxed ``x``: ``(x̂ − z + (1 − a)(z − z_prev))/a``."""
     n = z.shape[1]
     acc = _norms3(z, x, z_prev, float(relax), _chunks(n // 4096))
     return float(np.sqrt(acc[0])), float(np.sqrt(acc[1])), float(np.sqrt(acc[2]))
@@ -593,7 +595,9 @@ def fgp_block(inv_rows: np.ndarray, row_slot: np.ndarray, row_inv: np.ndarray,
     and the primal of the last: ``p ← Π(r + step·K D z(r))``, ``r ← p_new + moms[j]·(p_new −
     p_old)``, ``z(r) = max(v − t (KD)ᵀr, 0)``; out: ``x_out``, ``u_out``, the final dual
     ``p_out`` (band sums ``ps_out``) and ``z_out = z(p_out)``. With ``J = 0`` and ``t = 0``
-    (``λ = 0``): ``z_out = max(v, 0)`` and the dual is left alone.
+    (``λ = 0``): ``z_out = max(v, 0)`` and the dual is left alone. Over-relaxed (``relax = a ≠
+    1``): ``x̂ = a·x + (1 − a)·z_in`` replaces ``x`` in ``v``, in ``x_out`` and so in the next
+    iteration's ``u`` update.
 
     The iterations of :func:`hsi_torch.recon.spatial.operators.prox_tv_nonneg` on the valid
     pixels, fused: dual iteration ``j`` of row ``y`` needs iteration ``j − 1`` of rows ``y − 1 …

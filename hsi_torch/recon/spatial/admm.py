@@ -29,7 +29,8 @@ Method (scaled form, splitting ``x = z``; ``x`` carries the data terms, ``z`` th
   iteration and the saving counts; a cold solve checks first after 10 iterations and keeps its
   measured answers).
 * Stopping (Boyd et al.), checked every ``check_every`` iterations (default
-  :data:`CHECK_EVERY`): relative primal residual ``‖x − z‖ / ‖z‖`` and relative dual residual
+  :data:`CHECK_EVERY`): relative primal residual ``‖x − z‖ / ‖z‖`` (of ``x``, not ``x̂``) and
+  relative dual residual
   ``ρ ‖z − z_prev‖ / ‖b‖`` both ``≤ tol``. ``ρ`` stays fixed (no residual balancing), so the
   factorisation is never recomputed. A warm start that is already near the optimum meets the
   rule in a few iterations; checking every iteration then saves the rest of the 10.
