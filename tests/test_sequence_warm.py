@@ -216,6 +216,32 @@ def test_the_kept_frame_constants_follow_the_valid_pixels(monkeypatch):
     assert consts[0] is consts[1] and consts[2] is not consts[1] and consts[3] is not consts[2]
 
 
+def test_frames_without_a_warm_start_reuse_the_bundles_buffers():
+    """Frames solved one after another without a warm start keep the ADMM's buffers and frame
+    constants on the bundle's sensing (``spatial_workspace``): each cube is, to the last bit,
+    that of a reconstructor that solves only that frame."""
+    if not spatial_compiled.AVAILABLE:
+        pytest.skip("numba not installed")
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior="tv")
+    rec = Reconstructor(bundle, **kw)
+    g = torch.Generator().manual_seed(3)
+    for t in range(3):
+        img = render_capture(bundle, true_spectra(seed=t))
+        img = img + 0.3 * torch.randn(img.shape, generator=g, dtype=img.dtype)
+        kept = rec.reconstruct_frame(img)
+        # the iteration buffers, and the answer's dual and scaled dual handed back
+        assert {"x", "z", "b", "u", "p", "psum", "frame_constants"} <= set(
+            rec.sensing.spatial_workspace)
+        fresh = Reconstructor(bundle, **kw).reconstruct_frame(img)
+        torch.testing.assert_close(kept.cube, fresh.cube, rtol=0, atol=0, equal_nan=True)
+        assert torch.equal(kept.valid, fresh.valid)
+        assert kept.stats["spatial_iterations"] == fresh.stats["spatial_iterations"]
+    import pickle
+
+    assert pickle.loads(pickle.dumps(rec.sensing)).spatial_workspace == {}
+
+
 def test_bad_warm_states_are_named():
     A, y, _, G, b, _, active, prob, _ = _two_frames()
     with pytest.raises(ValueError, match="check_every"):

@@ -44,6 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -551,9 +552,12 @@ def solve_observations(
                                        start=start, dual=dual, u0=u0,
                                        u0_mask=None if u0 is None else keep, check_every=check,
                                        sigma=sigma, relax=relax,
-                                       workspace=None if warm is None else warm.workspace)
+                                       workspace=(sens.spatial_workspace if warm is None
+                                                  else warm.workspace))
         sdual = sinfo.pop("spatial_dual", None)
         su = sinfo.pop("spatial_u", None)
+        if warm is None:  # the answer's dual and u are not kept: buffers of the next solve
+            _return_buffers(sens.spatial_workspace, sdual, su)
         if warm is not None:
             warm.spatial_x, warm.spatial_dual, warm.spatial_u = x.detach().clone(), sdual, su
             if warm.spatial and not grad:  # the next frame's moved test
@@ -580,6 +584,19 @@ def solve_observations(
     info.update(sinfo)
     return x, ok, info
 
+
+
+def _return_buffers(workspace: dict, dual: tuple | None, u: Tensor | None) -> None:
+    """Hand a finished spatial solve's TV dual ``(p, psum)`` and scaled dual ``u`` (the compiled
+    backend's own band-major arrays) to ``workspace`` as the next solve's buffers, where they are
+    C-contiguous numpy arrays (the torch backend's are not handed back)."""
+    if dual is not None and all(isinstance(a, np.ndarray) and a.flags.c_contiguous
+                                for a in dual):
+        workspace["p"], workspace["psum"] = dual
+    if u is not None and u.device.type == "cpu":
+        arr = u.numpy().T
+        if arr.flags.c_contiguous:
+            workspace["u"] = arr
 
 
 def _frame_stats(

@@ -556,7 +556,7 @@ class HSIReconstructor(nn.Module):
             ),
             exposure_s=self.exposure_s, sample_grid=self.sample_grid, sample_inside=None,
             _problems={}, staging_lock=threading.Lock(), _staging=[], disk_entry=None,
-            _drift_static={},
+            _drift_static={}, spatial_workspace={},
         )  # fmt: skip
 
     def _refreshed(self) -> BundleSensing:

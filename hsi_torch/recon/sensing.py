@@ -143,6 +143,14 @@ class BundleSensing(OnDevice, ReferenceFrame):
         _drift_static: the drift check's per-bundle masks, crops and Jacobians, kept on first
             use (:func:`hsi_torch.recon.drift.estimate_drift`; shared with the copies
             ``dataclasses.replace`` makes, rebuilt when their masks or homographies differ).
+        spatial_workspace: the spatial prior's frame-sized ADMM buffers (numpy, CPU), kept
+            between the frames solved without a warm start
+            (:func:`~hsi_torch.recon.spatial.admm.solve_spatial`'s ``workspace``; a sequence's
+            :class:`~hsi_torch.recon.frame.WarmStart` has its own): a frame then writes into
+            memory the previous one used instead of asking the system for ~250 MB of fresh
+            pages at the full-size frame (zero-filled, and as transparent huge pages often
+            compacted first). Shared with the copies ``dataclasses.replace`` makes; emptied by
+            pickling.
     """
 
     _ON = "model"  # (no annotation: a class attribute, not a field)
@@ -169,12 +177,14 @@ class BundleSensing(OnDevice, ReferenceFrame):
     #: not cached on disk); further per-bundle factors (the TV prior's) are cached beside it
     disk_entry: tuple[Path, Path, str] | None = field(default=None, repr=False)
     _drift_static: dict[str, Any] = field(default_factory=dict, repr=False)
+    spatial_workspace: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def __getstate__(self) -> dict[str, Any]:  # picklable / deep-copyable: no lock, no buffer
         state = self.__dict__.copy()
         state["staging_lock"] = None
         state["_staging"] = []
         state["_drift_static"] = {}
+        state["spatial_workspace"] = {}
         state.pop("_bundle_ref", None)
         state.pop("_disk_stamp", None)  # a copy holds its own memory, not the entry's files
         return state

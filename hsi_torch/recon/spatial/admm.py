@@ -419,7 +419,7 @@ class _CompiledStep:
         self.b, self.z, self.u = compiled.start_state(
             np.ascontiguousarray(b.detach().numpy()), np.ascontiguousarray(z0.numpy()),
             np.ascontiguousarray(gram), self.row_slot, row_gram, self.rho, nonneg, u0, use_u0,
-            (buf("b", (m, P), False), buf("z", (m, P), False), np.empty((m, P), dt)))
+            (buf("b", (m, P), False), buf("z", (m, P), False), buf("u", (m, P), False)))
         # G is not read by the iterations: its pages of a mapped cache entry leave the
         # resident set while the ADMM state exists (the next frame reads them back)
         disk.release_pages(problem.gram)
