@@ -1,13 +1,17 @@
 """Benchmark of sequence reconstruction on a simulated moving scene (the CAVE scene panning behind
 a rotating ColorChecker, :mod:`hsi_torch.simulate.motion`, forward engine, oracle bundle).
 
-    python scripts/bench_sequence.py [--small] [--frames 30] [--parts warm,temporal,drift]
+    python scripts/bench_sequence.py [--small] [--frames 30] [--parts warm,temporal,drift,accuracy]
 
 * ``warm``: per mode (per pixel, spatial prior) every frame solved cold and warm-started in the
-  same process, alternating: the solve stage's time per frame, frames/s, the speed-up, each
+  same process, alternating (the cold solves keep the ADMM's buffers on the bundle's sensing,
+  as the warm ones keep theirs): the solve stage's time per frame, frames/s, the speed-up, each
   frame's PSNR warm vs cold (the difference must stay within 0.05 dB), peak RSS.
 * ``temporal``: the same scene at low light (noise ×4): PSNR and SAM per frame with the
   temporal prior vs independent frames, on all valid pixels and on the moving edges alone.
+* ``accuracy`` (not run by default: minutes a frame): on the frames ``--accuracy-frames``, each
+  iterate's distance to the frame's exact optimum for the cold and the warm spatial solve, and
+  the iterations each needs for the same distance (:func:`accuracy_part`).
 * ``drift``: drift growing 0.1 px a frame: the tracked path's error per frame and the PSNR of
   the path-corrected frames vs the same frames without drift and vs the frames corrected with
   the true drift (``--drift-prior tv``: every one of them with the spatial prior).
@@ -36,6 +40,7 @@ import statistics
 import time
 from types import SimpleNamespace
 
+import numpy as np
 import torch
 
 from hsi_torch.profiling import peak_rss_gib
@@ -85,6 +90,8 @@ def main() -> None:
                     help="folder of the bundle, ground truth and every part's simulated frames")
     ap.add_argument("--drift-prior", default="none", choices=["none", "tv"],
                     help="the drift part's prior (every reconstruction of that part)")
+    ap.add_argument("--accuracy-frames", default="3,15",
+                    help="the accuracy part's frames (each takes minutes: its exact optimum)")
     ap.add_argument("--drift-flicker", type=float, default=0.0,
                     help="the drift part's flicker of the light (0.05: the warm part's, whose "
                          "frames are then its reference without drift)")
@@ -308,7 +315,105 @@ def main() -> None:
             f"{min(dps):+.3f} … {max(dps):+.3f} dB, tracked − true drift corrected "
             f"{min(dks):+.3f} … {max(dks):+.3f} dB; findings {[x.code for x in seq.findings]}"
         )
+    if "accuracy" in parts:
+        at = sorted({int(v) for v in args.accuracy_frames.split(",")})
+        accuracy_part(sens, warm_frames(), at)
     print(f"peak RSS {peak_rss_gib():.2f} GiB; total {time.perf_counter() - t0:.0f} s")
+
+
+def _copied(v: object) -> object:
+    """A copy of a recorded argument (tensors, arrays and tuples of them): the solve it was
+    recorded from writes into some of them."""
+    if isinstance(v, torch.Tensor):
+        return v.detach().clone()
+    if isinstance(v, np.ndarray):
+        return v.copy()
+    if isinstance(v, tuple):
+        return tuple(_copied(a) for a in v)
+    return v
+
+
+def accuracy_part(sens, frames, at: list[int]) -> None:
+    """The ``accuracy`` part: what a warm start buys at equal accuracy. Every frame up to the
+    last of ``at`` is solved warm (the spatial prior, ``WarmStart(per_pixel=False)``); on the
+    frames ``at`` the spatial solve's arguments are recorded for the cold and the warm solve,
+    the frame's exact optimum ``x*`` is computed from the cold start (relative tolerance
+    1e-5), and both solves are replayed for 1, 2, … iterations (cold also over-relaxed as
+    the warm one is) to give each iterate's distance ``‖x_k − x*‖ / ‖x*‖`` and the iteration
+    where the stopping rule, checked every iteration, is first met."""
+    import hsi_torch.recon.spatial.frame as spatial_frame
+
+    tv = Reconstructor(sens, prior="tv", drift_check=False)
+    warm = WarmStart(per_pixel=False)
+    real = spatial_frame.solve_spatial
+    calls: list[tuple] = []
+
+    def recording(problem, b, lam, **kw):
+        calls.append((problem, b.clone(), lam, {k: _copied(v) for k, v in kw.items()}))
+        return real(problem, b, lam, **kw)
+
+    spatial_frame.solve_spatial = recording
+    ratios: list[tuple[float, float]] = []
+    try:
+        for f in frames:
+            if f.index > at[-1]:
+                break
+            recorded, its = {}, {}
+            for mode, ws in ((("cold", None),) if f.index in at else ()) + (("warm", warm),):
+                calls.clear()
+                its[mode] = tv.reconstruct_frame(f.image, f.saturated,
+                                                 warm=ws).stats["spatial_iterations"]
+                recorded[mode] = calls[0]
+            if f.index >= at[-1]:
+                frames.close()  # no further frame is simulated
+            if f.index not in at or f.index == 0:
+                continue
+            prob, b, lam, kw = recorded["cold"]
+            base = {**kw, "workspace": None}
+            ts = time.perf_counter()
+            ref = real(prob, b, lam, **{**base, "tol": 1e-5, "max_iter": 20000, "check_every": 10})
+            star = ref.x.double()
+            nstar = float(star.norm())
+            print(f"[accuracy] frame {f.index}: optimum in {ref.iterations} iterations "
+                  f"({time.perf_counter() - ts:.0f} s, relative residuals {ref.primal_residual:.1e}"
+                  f" / {ref.dual_residual:.1e}); the frame's rule: tolerance {kw['tol']}",
+                  flush=True)
+            rows = {}
+            warm_relax = recorded["warm"][3]["relax"]
+            n_cold, n_warm = its["cold"], its["warm"]
+            for name, (pr, bb, la, k0), n_it, relax in (
+                    ("cold", recorded["cold"], max(n_cold, n_warm + 3), None),
+                    ("cold, over-relaxed", recorded["cold"], max(n_cold, n_warm + 3), warm_relax),
+                    ("warm", recorded["warm"], max(n_cold, n_warm + 3), None)):
+                kw_k = {**k0, "workspace": None, "tol": 0.0, "check_every": 1}
+                if relax is not None:
+                    kw_k["relax"] = relax
+                dist, met = [], None
+                for k in range(1, n_it + 1):
+                    r = real(pr, bb, la, **{**_copied(kw_k), "max_iter": k})
+                    dist.append(float((r.x.double() - star).norm()) / nstar)
+                    if met is None and max(r.primal_residual, r.dual_residual) <= k0["tol"]:
+                        met = k
+                rows[name] = (dist, met)
+                print(f"[accuracy] frame {f.index} {name} (relax {kw_k.get('relax', 1.0)}): rule "
+                      f"met at iteration {met}; distance to the optimum by iteration: "
+                      + " ".join(f"{k + 1}:{d:.2e}" for k, d in enumerate(dist)), flush=True)
+            cold, wd = rows["cold"][0], rows["warm"][0]
+            # the pipeline's answers: the warm solve's iterate n_warm, the cold one's n_cold;
+            # the first cold iterate as close as the first, the first warm one as the second
+            c_eq = next((k + 1 for k, d in enumerate(cold) if d <= wd[n_warm - 1]), None)
+            w_eq = next((k + 1 for k, d in enumerate(wd) if d <= cold[n_cold - 1]), None)
+            print(f"[accuracy] frame {f.index}: the pipeline's warm answer ({n_warm} it) is as "
+                  f"close as cold iterate {c_eq}; its cold answer ({n_cold} it) is reached warm "
+                  f"at iteration {w_eq}", flush=True)
+            if c_eq and w_eq:
+                ratios.append((c_eq / n_warm, n_cold / w_eq))
+    finally:
+        spatial_frame.solve_spatial = real
+    if ratios:
+        print("[accuracy] iterations cold/warm at equal distance to the optimum: at the warm "
+              "answer's " + ", ".join(f"{a:.2f}" for a, _ in ratios) + "; at the cold answer's "
+              + ", ".join(f"{c:.2f}" for _, c in ratios), flush=True)
 
 
 if __name__ == "__main__":
