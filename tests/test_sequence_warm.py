@@ -242,6 +242,35 @@ def test_frames_without_a_warm_start_reuse_the_bundles_buffers():
     assert pickle.loads(pickle.dumps(rec.sensing)).spatial_workspace == {}
 
 
+def test_threads_sharing_the_bundles_buffers_get_their_own_answers():
+    """Frames of one reconstructor solved from two threads at once: a solve takes each kept
+    buffer out of ``spatial_workspace`` while it uses it, so every cube is still the one its
+    own frame gives alone."""
+    import threading
+
+    bundle = make_bundle()
+    kw = dict(beta=1e-3, dtype=torch.float64, drift_check=False, prior="tv")
+    rec = Reconstructor(bundle, **kw)
+    images = [render_capture(bundle, true_spectra(seed=s)) for s in (5, 6)]
+    alone = [Reconstructor(bundle, **kw).reconstruct_frame(img).cube for img in images]
+    start = threading.Barrier(2)
+    bad: list[str] = []
+
+    def run(k: int) -> None:
+        start.wait()
+        for _ in range(3):
+            cube = rec.reconstruct_frame(images[k]).cube
+            if not torch.allclose(cube, alone[k], rtol=0, atol=0, equal_nan=True):
+                bad.append(f"thread {k}")
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert bad == []
+
+
 def test_bad_warm_states_are_named():
     A, y, _, G, b, _, active, prob, _ = _two_frames()
     with pytest.raises(ValueError, match="check_every"):
