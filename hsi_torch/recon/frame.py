@@ -594,7 +594,7 @@ def _return_buffers(workspace: dict, dual: tuple | None, u: Tensor | None) -> No
                                 for a in dual):
         workspace["p"], workspace["psum"] = dual
     if u is not None and u.device.type == "cpu":
-        arr = u.numpy().T
+        arr = u.detach().numpy().T
         if arr.flags.c_contiguous:
             workspace["u"] = arr
 

@@ -147,7 +147,7 @@ class BundleSensing(OnDevice, ReferenceFrame):
             between the frames solved without a warm start
             (:func:`~hsi_torch.recon.spatial.admm.solve_spatial`'s ``workspace``; a sequence's
             :class:`~hsi_torch.recon.frame.WarmStart` has its own): a frame then writes into
-            memory the previous one used instead of asking the system for ~250 MB of fresh
+            memory the previous one used instead of asking the system for ~340 MB of fresh
             pages at the full-size frame (zero-filled, and as transparent huge pages often
             compacted first). Shared with the copies ``dataclasses.replace`` makes; emptied by
             pickling.
