@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from synthetic_data import write_dng
 
-from hsi_torch.calibrate.config import CalibrateConfig
-from hsi_torch.calibrate.pipeline import calibrate_capture_set
+from hsi_torch.calibrate.config import CalibrateConfig, ResponseSection
+from hsi_torch.calibrate.pipeline import CalibrationReport, calibrate_capture_set
 from hsi_torch.cli import main
 from hsi_torch.config import load_config
 from hsi_torch.errors import FileFormatError, InputError, MissingFileError
@@ -53,6 +53,15 @@ def sim(small_sim: Path) -> Path:
     """The default small set with its ColorChecker scene (float32 render, no figures): the
     session's shared, read-only ``small_sim``."""
     return small_sim
+
+
+def _calibrate(capset: Path, **cfg) -> tuple[CalibrationBundle, CalibrationReport]:
+    """``calibrate_capture_set(capset)`` with the response fit at its cheapest (no joint
+    refinement, a 2 000-pixel sub-grid; ``cfg``: other settings): for the tests of how the
+    captures are read (black levels, pedestals, dark and repeated frames), which the response
+    does not change; about half the default calibration's time."""
+    cheap = ResponseSection(refine_steps=0, max_pixels=2000)
+    return calibrate_capture_set(capset, CalibrateConfig(response=cheap, **cfg), progress=False)
 
 
 def _mosaic(path: Path) -> np.ndarray:
@@ -511,7 +520,7 @@ def test_scan_tiffs_with_a_pedestal_beside_dngs_with_their_black_level_are_refus
                        r"black levels.*"
                        r"these captures carry a black pedestal of ~51\d DN; give their "
                        r"black_level in the sheet"):  # fmt: skip
-        calibrate_capture_set(capset, progress=False)
+        _calibrate(capset)
     # with their black level in the sheet, the set calibrates as the DNGs do
     bundle, report = _calibrate_with_scan_black_level(sheet, rows, tmp_path, BLACK)
     assert report.pedestal["ok"]
@@ -582,7 +591,7 @@ def test_dark_frames_of_different_exposures_are_averaged_with_a_warning(sim: Pat
     capset = _import_sheet(sheet, rows, tmp_path / "capset")
     with pytest.warns(UserWarning, match=r"dark frames of different exposures averaged "
                       r"\(.*\(0\.02 s\), dark_long\.dng \(0\.5 s\)\)"):  # fmt: skip
-        _, report = calibrate_capture_set(capset, progress=False)
+        _, report = _calibrate(capset)
     assert any(n.startswith("dark frames of different exposures") for n in report.notes)
 
 
@@ -608,7 +617,7 @@ def test_a_repeated_scan_frame_of_another_wavelength_is_warned_about(sim: Path, 
     with pytest.warns(UserWarning, match=r"scan: retake_560\.dng differs from "
                       r"frame_\d+\.dng, the frame of the same wavelength it is averaged with, "
                       r"by [23]\d % RMS") as rec:  # fmt: skip
-        _, report = calibrate_capture_set(capset, progress=False)
+        _, report = _calibrate(capset)
     assert sum("differs from" in str(w.message) for w in rec) == 1  # not the identical repeat
     assert any("is its wavelength right?" in n for n in report.notes)
 
@@ -638,7 +647,7 @@ def test_a_dark_frame_with_a_pedestal_of_its_own_is_named_when_too_much_is_subtr
     with pytest.raises(CalibrationError, match=r"reads -5\d\d\.\d DN .*too high.*or the dark "
                        r"frame dark_00\.png \(read with black level 0 DN, source: default; its "
                        r"mean, 51\d DN above that"):  # fmt: skip
-        calibrate_capture_set(capset, progress=False)
+        _calibrate(capset)
 
 
 def _add_pedestal(lab: Path, rows: list[list[str]], role: str, dn: int) -> None:
@@ -663,7 +672,7 @@ def _calibrate_with_scan_black_level(sheet: Path, rows: list, tmp_path: Path, le
         if r[1] == "scan":
             r[4] = str(level)
     capset = _import_sheet(sheet, rows, tmp_path / "capset2")
-    return calibrate_capture_set(capset, progress=False)
+    return _calibrate(capset)
 
 
 def _set_with_pedestal(sim: Path, tmp_path: Path, role: str, dn: float) -> tuple[Path, list, Path]:
@@ -696,7 +705,7 @@ def test_dng_scan_frames_with_a_pedestal_their_black_level_tag_misses_are_refuse
                        r"level \(512 DN\) does not include: correct the files' black level \(a "
                        r"DNG's BlackLevel tag\) or give their black_level in the sheet or "
                        r"manifest \(e\.g\. 57\d\)"):  # fmt: skip
-        calibrate_capture_set(capset, progress=False)
+        _calibrate(capset)
     # their black level in the sheet: the set calibrates, every role ~0 outside the views
     _, report = _calibrate_with_scan_black_level(sheet, rows, tmp_path, BLACK + 64)
     assert report.pedestal["ok"]
@@ -712,16 +721,13 @@ def test_dng_white_shots_with_a_pedestal_their_black_level_tag_misses_are_warned
     warns (and notes in the report) naming the white frames; ``error`` (the default) refuses.
     Before the fix the scan frames (read 2 DN) decided for them: exit 0, no warning, the
     ColorChecker at 27.9 dB instead of 31.3 dB."""
-    from hsi_torch.calibrate.config import CalibrateConfig
-
     _, _, capset = _set_with_pedestal(sim, tmp_path, "white", 64)
     with pytest.warns(UserWarning, match=r"reads 6\d\.\d DN after black subtraction .*the 3 white "
                       r"frames read with black level 512 DN \(source: file\): white_00\.dng, "
                       r"white_01\.dng, white_02\.dng; the other frames read .*[0-4]\.\d DN "
                       r"\(scan, 26 frames\); limit 44\.\d DN\): these captures carry a black "
                       r"pedestal of ~6\d DN"):  # fmt: skip
-        _, report = calibrate_capture_set(capset, CalibrateConfig(pedestal_check="warn"),
-                                          progress=False)  # fmt: skip
+        _, report = _calibrate(capset, pedestal_check="warn")
     assert not report.pedestal["ok"] and report.pedestal["group"]["role"] == "white"
     assert any("white_00.dng" in n and "black pedestal" in n for n in report.notes)
     assert "  white (3 frames, black level 512 DN, file): R 6" in str(report)

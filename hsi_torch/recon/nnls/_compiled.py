@@ -624,6 +624,10 @@ def solve_frame_cpu(
         raise ValueError(f"solve_frame_cpu: zero_set must be {(n, m)}, got {zero_set.shape}")
     zinit = (np.zeros((1, m), np.bool_) if zero_set is None
              else np.ascontiguousarray(zero_set, dtype=np.bool_))
+    if not H.flags.c_contiguous and H.transpose(0, 2, 1).flags.c_contiguous:
+        # H is symmetric: a column-major one (torch's batched Cholesky inverse) is passed as its
+        # transpose, C-contiguous without a copy: one compiled kernel per dtype, not per layout
+        H = H.transpose(0, 2, 1)
     with threads(num_threads):
         _frame_kernel(G, H, b, gd, gn, skip, float(tol), int(max_rounds), int(refine),
                       float(INFEASIBILITY_FRACTION), int(zero_set_limit(m)), int(MURTY_PATIENCE),
