@@ -356,8 +356,6 @@ def accuracy_part(sens, frames, at: list[int]) -> None:
     ratios: list[tuple[float, float]] = []
     try:
         for f in frames:
-            if f.index > at[-1]:
-                break
             recorded, its = {}, {}
             for mode, ws in ((("cold", None),) if f.index in at else ()) + (("warm", warm),):
                 calls.clear()

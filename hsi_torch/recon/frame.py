@@ -44,7 +44,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -558,7 +557,7 @@ def solve_observations(
         su = sinfo.pop("spatial_u", None)
         if warm is None:  # the answer's dual and u are not kept: buffers of the next solve
             _return_buffers(sens.spatial_workspace, sdual, su)
-        if warm is not None:
+        else:
             warm.spatial_x, warm.spatial_dual, warm.spatial_u = x.detach().clone(), sdual, su
             if warm.spatial and not grad:  # the next frame's moved test
                 warm.y, warm.mask = yc.detach().clone(), mask.clone()
@@ -588,15 +587,12 @@ def solve_observations(
 
 def _return_buffers(workspace: dict, dual: tuple | None, u: Tensor | None) -> None:
     """Hand a finished spatial solve's TV dual ``(p, psum)`` and scaled dual ``u`` (the compiled
-    backend's own band-major arrays) to ``workspace`` as the next solve's buffers, where they are
-    C-contiguous numpy arrays (the torch backend's are not handed back)."""
-    if dual is not None and all(isinstance(a, np.ndarray) and a.flags.c_contiguous
-                                for a in dual):
+    backend's band-major arrays; ``u`` as their transposed view) to ``workspace`` as the next
+    solve's buffers (the solve takes only those of its layout, shape and dtype)."""
+    if dual is not None:
         workspace["p"], workspace["psum"] = dual
     if u is not None and u.device.type == "cpu":
-        arr = u.detach().numpy().T
-        if arr.flags.c_contiguous:
-            workspace["u"] = arr
+        workspace["u"] = u.detach().numpy().T
 
 
 def _frame_stats(

@@ -169,8 +169,9 @@ def solve_spatial(
         workspace: a dict the compiled backend keeps its frame-sized iteration buffers in
             between solves of the same size (a sequence's frames: no fresh allocation, and no
             page faults on it, per frame; every buffer is written before it is read, so the
-            answer is the same; the returned ``u`` and ``dual`` are not among them);
-            ``None``: allocated per solve.
+            answer is the same; the returned ``u`` and ``dual`` are not among them; an entry
+            that is not a C-contiguous writable array of the buffer's shape and dtype is not
+            used); ``None``: allocated per solve.
         relax: the over-relaxation ``a ∈ (0, 2)`` (module docstring; 1: none, the default).
 
     Returns:
@@ -403,8 +404,9 @@ class _CompiledStep:
         dt = gram.dtype
 
         def buf(name: str, shape: tuple[int, ...], zero: bool) -> np.ndarray:
-            a = ws.pop(name, None)
-            if a is None or a.shape != shape or a.dtype != dt:
+            a = ws.pop(name, None)  # taken out while this solve uses it
+            if not (isinstance(a, np.ndarray) and a.shape == shape and a.dtype == dt
+                    and a.flags.c_contiguous and a.flags.writeable):
                 return np.zeros(shape, dt) if zero else np.empty(shape, dt)
             if zero:
                 a.fill(0)

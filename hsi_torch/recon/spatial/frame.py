@@ -106,8 +106,9 @@ def solve_frame(
             iterations between two checks of the stopping rule (:func:`solve_spatial`'s);
             sigma: the noise level ``σ̂`` (DN) to use instead of this frame's estimate (e.g. the
             previous frame's in a sequence of the same exposure; ``info["noise_sigma_given"]``
-            says so); workspace: :func:`solve_spatial`'s (the ADMM's buffers kept between the
-            frames of a sequence); relax: :func:`solve_spatial`'s over-relaxation.
+            says so); workspace: :func:`solve_spatial`'s (the ADMM's buffers kept between
+            frames: a sequence's, or the bundle sensing's for frames without a warm start);
+            relax: :func:`solve_spatial`'s over-relaxation.
 
     Returns:
         ``x (P, M)`` and ``info``: ``lam`` (relative), ``lam_abs`` (``λ``), ``lam_rule``
